@@ -1,0 +1,145 @@
+//! Planar geometry: polylines, the Frenet frame of a path, oriented boxes and polygons.
+//!
+//! Everything is in a right-handed world frame in metres; angles are radians counter-clockwise
+//! from +x. "Left" is the side a driver going along a polyline sees on the left (positive `d`).
+
+mod boxes;
+mod frenet;
+mod polygon;
+mod polyline;
+
+pub use boxes::OrientedBox;
+pub use frenet::{FrenetPath, FrenetPoint};
+pub use polygon::Polygon;
+pub use polyline::{Polyline, SegmentHit};
+
+/// A point or a vector in the plane.
+pub type Point = nalgebra::Vector2<f64>;
+
+/// Errors from building geometry out of input data.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum GeomError {
+    /// A polyline needs two distinct points, a polygon three.
+    #[error("needs at least {needed} distinct points, got {got}")]
+    TooFewPoints {
+        /// The minimum number of distinct points.
+        needed: usize,
+        /// How many distinct points there were.
+        got: usize,
+    },
+    /// A coordinate was NaN or infinite.
+    #[error("point {index} is not finite: ({x}, {y})")]
+    NonFinite {
+        /// Index of the offending point in the input.
+        index: usize,
+        /// Its x coordinate.
+        x: f64,
+        /// Its y coordinate.
+        y: f64,
+    },
+}
+
+/// The 2-D cross product `a × b` (z component).
+#[inline]
+pub fn cross(a: &Point, b: &Point) -> f64 {
+    a.x * b.y - a.y * b.x
+}
+
+/// `v` rotated by +90° (to the left).
+#[inline]
+pub fn left_normal(v: &Point) -> Point {
+    Point::new(-v.y, v.x)
+}
+
+/// An angle wrapped to (-π, π].
+#[inline]
+pub fn wrap_angle(a: f64) -> f64 {
+    let two_pi = std::f64::consts::TAU;
+    let mut r = a % two_pi;
+    if r <= -std::f64::consts::PI {
+        r += two_pi;
+    } else if r > std::f64::consts::PI {
+        r -= two_pi;
+    }
+    r
+}
+
+/// Distance from `p` to the segment `a`–`b`, and the clamped parameter of the closest point.
+#[inline]
+pub fn point_segment_distance(p: &Point, a: &Point, b: &Point) -> (f64, f64) {
+    let e = b - a;
+    let len2 = e.norm_squared();
+    let t = if len2 > 0.0 {
+        ((p - a).dot(&e) / len2).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    ((p - (a + e * t)).norm(), t)
+}
+
+/// Shortest distance between segments `a0`–`a1` and `b0`–`b1` (zero when they cross).
+pub fn segment_segment_distance(a0: &Point, a1: &Point, b0: &Point, b1: &Point) -> f64 {
+    if segments_intersect(a0, a1, b0, b1) {
+        return 0.0;
+    }
+    point_segment_distance(a0, b0, b1)
+        .0
+        .min(point_segment_distance(a1, b0, b1).0)
+        .min(point_segment_distance(b0, a0, a1).0)
+        .min(point_segment_distance(b1, a0, a1).0)
+}
+
+/// Whether the closed segments `a0`–`a1` and `b0`–`b1` share a point.
+pub fn segments_intersect(a0: &Point, a1: &Point, b0: &Point, b1: &Point) -> bool {
+    let d1 = cross(&(b1 - b0), &(a0 - b0));
+    let d2 = cross(&(b1 - b0), &(a1 - b0));
+    let d3 = cross(&(a1 - a0), &(b0 - a0));
+    let d4 = cross(&(a1 - a0), &(b1 - a0));
+    if ((d1 > 0.0 && d2 < 0.0) || (d1 < 0.0 && d2 > 0.0))
+        && ((d3 > 0.0 && d4 < 0.0) || (d3 < 0.0 && d4 > 0.0))
+    {
+        return true;
+    }
+    let on = |p: &Point, q: &Point, r: &Point, d: f64| {
+        d == 0.0
+            && r.x >= p.x.min(q.x)
+            && r.x <= p.x.max(q.x)
+            && r.y >= p.y.min(q.y)
+            && r.y <= p.y.max(q.y)
+    };
+    on(b0, b1, a0, d1) || on(b0, b1, a1, d2) || on(a0, a1, b0, d3) || on(a0, a1, b1, d4)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn wrap_angle_stays_in_range() {
+        for k in -20..20 {
+            let a = k as f64 * 0.77;
+            let w = wrap_angle(a);
+            assert!(w > -std::f64::consts::PI - 1e-12 && w <= std::f64::consts::PI + 1e-12);
+            assert!(((a - w) / std::f64::consts::TAU).fract().abs() < 1e-9
+                || (1.0 - ((a - w) / std::f64::consts::TAU).fract().abs()) < 1e-9);
+        }
+    }
+
+    #[test]
+    fn crossing_segments_have_zero_distance() {
+        let d = segment_segment_distance(
+            &Point::new(0.0, 0.0),
+            &Point::new(2.0, 2.0),
+            &Point::new(0.0, 2.0),
+            &Point::new(2.0, 0.0),
+        );
+        assert_eq!(d, 0.0);
+        let d = segment_segment_distance(
+            &Point::new(0.0, 0.0),
+            &Point::new(1.0, 0.0),
+            &Point::new(0.0, 1.0),
+            &Point::new(1.0, 1.0),
+        );
+        assert!((d - 1.0).abs() < 1e-12);
+    }
+}

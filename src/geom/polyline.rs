@@ -1,0 +1,261 @@
+//! Polylines with cumulative arc length: the shape of lanes, boundaries and road edges.
+
+use super::{point_segment_distance, GeomError, Point};
+
+/// Consecutive points closer than this are merged: zero-length segments have no direction.
+const MERGE_EPS: f64 = 1e-6;
+
+/// An open polyline of at least two distinct points, with its cumulative arc length.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Polyline {
+    points: Vec<Point>,
+    cum: Vec<f64>,
+}
+
+/// The closest point of a polyline to a query point.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SegmentHit {
+    /// Index of the segment (between points `segment` and `segment + 1`).
+    pub segment: usize,
+    /// Position along that segment in [0, 1].
+    pub t: f64,
+    /// Arc length of the closest point.
+    pub s: f64,
+    /// Euclidean distance from the query point.
+    pub distance: f64,
+}
+
+impl Polyline {
+    /// Builds a polyline, merging consecutive duplicate points.
+    ///
+    /// Fails on a non-finite coordinate or when fewer than two distinct points remain.
+    pub fn new(points: impl IntoIterator<Item = Point>) -> Result<Self, GeomError> {
+        let mut out: Vec<Point> = Vec::new();
+        for (index, p) in points.into_iter().enumerate() {
+            if !p.x.is_finite() || !p.y.is_finite() {
+                return Err(GeomError::NonFinite {
+                    index,
+                    x: p.x,
+                    y: p.y,
+                });
+            }
+            if out.last().is_none_or(|q| (p - q).norm() > MERGE_EPS) {
+                out.push(p);
+            }
+        }
+        if out.len() < 2 {
+            return Err(GeomError::TooFewPoints {
+                needed: 2,
+                got: out.len(),
+            });
+        }
+        let mut cum = Vec::with_capacity(out.len());
+        let mut s = 0.0;
+        cum.push(0.0);
+        for w in out.windows(2) {
+            s += (w[1] - w[0]).norm();
+            cum.push(s);
+        }
+        Ok(Self { points: out, cum })
+    }
+
+    /// The points, consecutive duplicates removed.
+    pub fn points(&self) -> &[Point] {
+        &self.points
+    }
+
+    /// Cumulative arc length at each point; starts at 0.
+    pub fn arc_lengths(&self) -> &[f64] {
+        &self.cum
+    }
+
+    /// Total length.
+    pub fn length(&self) -> f64 {
+        *self.cum.last().expect("a polyline has two points")
+    }
+
+    /// Number of segments.
+    pub fn segment_count(&self) -> usize {
+        self.points.len() - 1
+    }
+
+    /// First point.
+    pub fn first(&self) -> Point {
+        self.points[0]
+    }
+
+    /// Last point.
+    pub fn last(&self) -> Point {
+        self.points[self.points.len() - 1]
+    }
+
+    /// Index of the segment that holds arc length `s` (clamped to the ends).
+    pub fn segment_at(&self, s: f64) -> usize {
+        let n = self.segment_count();
+        match self.cum.partition_point(|&c| c <= s) {
+            0 => 0,
+            i => (i - 1).min(n - 1),
+        }
+    }
+
+    /// The point at arc length `s`; beyond either end the end segment is extended straight.
+    pub fn point_at(&self, s: f64) -> Point {
+        let i = self.segment_at(s);
+        let a = self.points[i];
+        let b = self.points[i + 1];
+        let len = self.cum[i + 1] - self.cum[i];
+        a + (b - a) * ((s - self.cum[i]) / len)
+    }
+
+    /// Unit direction of segment `i`.
+    pub fn segment_direction(&self, i: usize) -> Point {
+        (self.points[i + 1] - self.points[i]).normalize()
+    }
+
+    /// Heading (radians) of the segment holding arc length `s`.
+    pub fn heading_at(&self, s: f64) -> f64 {
+        let d = self.segment_direction(self.segment_at(s));
+        d.y.atan2(d.x)
+    }
+
+    /// Resamples to points every `spacing` metres (the last point is always kept).
+    pub fn resample_spacing(&self, spacing: f64) -> Polyline {
+        let n = ((self.length() / spacing.max(1e-3)).ceil() as usize).max(1) + 1;
+        self.resample_count(n)
+    }
+
+    /// Resamples to exactly `n >= 2` points evenly spaced in arc length.
+    pub fn resample_count(&self, n: usize) -> Polyline {
+        let n = n.max(2);
+        let len = self.length();
+        let pts = (0..n).map(|k| self.point_at(len * k as f64 / (n - 1) as f64));
+        Polyline::new(pts).expect("resampling a valid polyline keeps two distinct points")
+    }
+
+    /// The same points in reverse order.
+    pub fn reversed(&self) -> Polyline {
+        Polyline::new(self.points.iter().rev().copied()).expect("reversal keeps the points")
+    }
+
+    /// The part between arc lengths `s0 < s1` (clamped to the polyline).
+    pub fn slice(&self, s0: f64, s1: f64) -> Option<Polyline> {
+        let s0 = s0.max(0.0);
+        let s1 = s1.min(self.length());
+        if s1 - s0 <= MERGE_EPS {
+            return None;
+        }
+        let mut pts = vec![self.point_at(s0)];
+        for (p, &c) in self.points.iter().zip(&self.cum) {
+            if c > s0 && c < s1 {
+                pts.push(*p);
+            }
+        }
+        pts.push(self.point_at(s1));
+        Polyline::new(pts).ok()
+    }
+
+    /// The closest point of the polyline to `p`.
+    pub fn nearest(&self, p: &Point) -> SegmentHit {
+        let mut best = SegmentHit {
+            segment: 0,
+            t: 0.0,
+            s: 0.0,
+            distance: f64::INFINITY,
+        };
+        for i in 0..self.segment_count() {
+            let (d, t) = point_segment_distance(p, &self.points[i], &self.points[i + 1]);
+            if d < best.distance {
+                best = SegmentHit {
+                    segment: i,
+                    t,
+                    s: self.cum[i] + t * (self.cum[i + 1] - self.cum[i]),
+                    distance: d,
+                };
+            }
+        }
+        best
+    }
+
+    /// Euclidean distance from `p` to the polyline.
+    pub fn distance_to(&self, p: &Point) -> f64 {
+        self.nearest(p).distance
+    }
+
+    /// Axis-aligned bounding box `(min, max)`.
+    pub fn bounds(&self) -> (Point, Point) {
+        bounds_of(&self.points)
+    }
+}
+
+/// Axis-aligned bounding box of a non-empty point set.
+pub(crate) fn bounds_of(points: &[Point]) -> (Point, Point) {
+    let mut lo = Point::new(f64::INFINITY, f64::INFINITY);
+    let mut hi = Point::new(f64::NEG_INFINITY, f64::NEG_INFINITY);
+    for p in points {
+        lo = lo.inf(p);
+        hi = hi.sup(p);
+    }
+    (lo, hi)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn l_shape() -> Polyline {
+        Polyline::new([
+            Point::new(0.0, 0.0),
+            Point::new(10.0, 0.0),
+            Point::new(10.0, 0.0),
+            Point::new(10.0, 5.0),
+        ])
+        .unwrap()
+    }
+
+    #[test]
+    fn duplicates_are_merged_and_length_is_summed() {
+        let l = l_shape();
+        assert_eq!(l.points().len(), 3);
+        assert!((l.length() - 15.0).abs() < 1e-12);
+        assert_eq!(l.arc_lengths(), &[0.0, 10.0, 15.0]);
+    }
+
+    #[test]
+    fn point_at_extends_beyond_ends() {
+        let l = l_shape();
+        assert!((l.point_at(-2.0) - Point::new(-2.0, 0.0)).norm() < 1e-12);
+        assert!((l.point_at(12.0) - Point::new(10.0, 2.0)).norm() < 1e-12);
+        assert!((l.point_at(17.0) - Point::new(10.0, 7.0)).norm() < 1e-12);
+    }
+
+    #[test]
+    fn too_few_or_non_finite_points_fail() {
+        assert_eq!(
+            Polyline::new([Point::new(1.0, 1.0), Point::new(1.0, 1.0)]),
+            Err(GeomError::TooFewPoints { needed: 2, got: 1 })
+        );
+        assert!(matches!(
+            Polyline::new([Point::new(0.0, 0.0), Point::new(f64::NAN, 1.0)]),
+            Err(GeomError::NonFinite { index: 1, .. })
+        ));
+    }
+
+    #[test]
+    fn resample_keeps_ends_and_spacing() {
+        let l = l_shape().resample_spacing(1.0);
+        assert_eq!(l.points().len(), 16);
+        assert!((l.length() - 15.0).abs() < 1e-9);
+        assert!((l.last() - Point::new(10.0, 5.0)).norm() < 1e-12);
+    }
+
+    #[test]
+    fn nearest_and_slice() {
+        let l = l_shape();
+        let h = l.nearest(&Point::new(12.0, 3.0));
+        assert_eq!(h.segment, 1);
+        assert!((h.s - 13.0).abs() < 1e-12 && (h.distance - 2.0).abs() < 1e-12);
+        let s = l.slice(5.0, 12.0).unwrap();
+        assert!((s.length() - 7.0).abs() < 1e-12);
+        assert!((s.first() - Point::new(5.0, 0.0)).norm() < 1e-12);
+    }
+}

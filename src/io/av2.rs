@@ -1,0 +1,378 @@
+//! Argoverse 2 motion forecasting: a scenario parquet file plus the log map JSON beside it.
+//!
+//! Tracks become agents. AV2 records no object sizes, so agents get nominal footprints by type
+//! (listed in [`nominal_size`]) and the scene's warnings say so. Non-numeric track ids (the
+//! ego vehicle is `"AV"`) get fresh integer ids, also listed in the warnings. The focal track
+//! is the scene's ego; the current step is the last observed step. Lane segments become lanes
+//! (neighbours kept only when they run the same way), drivable areas are kept as polygons and
+//! their outlines, turned counter-clockwise, are the road edges.
+
+use std::collections::{BTreeMap, HashMap};
+use std::fs::File;
+use std::path::{Path, PathBuf};
+
+use parquet::file::reader::{FileReader, SerializedFileReader};
+use parquet::record::Field;
+use serde::Deserialize;
+
+use super::IoError;
+use crate::geom::{Point, Polygon, Polyline};
+use crate::scene::{
+    Agent, AgentState, AgentType, Lane, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind,
+    RoadLine, RoadLineKind, Scene, SceneMeta, SourceFormat,
+};
+
+/// The scenario parquet and map JSON of an AV2 scenario directory.
+pub fn find_scenario_in_dir(dir: &Path) -> Result<(PathBuf, PathBuf), IoError> {
+    let mut parquet = None;
+    let mut map = None;
+    for e in std::fs::read_dir(dir).map_err(|e| IoError::read(dir, e))? {
+        let p = e.map_err(|e| IoError::read(dir, e))?.path();
+        let name = p.file_name().unwrap_or_default().to_string_lossy().into_owned();
+        if name.starts_with("scenario_") && name.ends_with(".parquet") {
+            parquet = Some(p);
+        } else if name.starts_with("log_map_archive_") && name.ends_with(".json") {
+            map = Some(p);
+        }
+    }
+    match (parquet, map) {
+        (Some(p), Some(m)) => Ok((p, m)),
+        (None, _) => Err(IoError::invalid(dir, "directory", "no scenario_*.parquet file")),
+        (_, None) => Err(IoError::invalid(dir, "directory", "no log_map_archive_*.json file")),
+    }
+}
+
+/// Nominal footprint (length, width) per AV2 object type, metres.
+pub fn nominal_size(object_type: &str) -> (f64, f64) {
+    match object_type {
+        "vehicle" => (4.5, 2.0),
+        "bus" => (12.0, 2.6),
+        "pedestrian" => (0.6, 0.6),
+        "cyclist" | "motorcyclist" => (2.0, 0.8),
+        "riderless_bicycle" => (1.8, 0.6),
+        _ => (1.0, 1.0),
+    }
+}
+
+fn agent_type(object_type: &str) -> AgentType {
+    match object_type {
+        "vehicle" | "bus" => AgentType::Vehicle,
+        "pedestrian" => AgentType::Pedestrian,
+        "cyclist" | "motorcyclist" => AgentType::Cyclist,
+        _ => AgentType::Other,
+    }
+}
+
+/// Reads an AV2 scenario from its directory or its parquet file.
+pub fn read(path: &Path) -> Result<Scene, IoError> {
+    let (parquet, map_json) = if path.is_dir() {
+        find_scenario_in_dir(path)?
+    } else {
+        let dir = path.parent().unwrap_or(Path::new("."));
+        let (_, m) = find_scenario_in_dir(dir).map_err(|_| {
+            IoError::invalid(path, "map", "no log_map_archive_*.json beside the parquet file")
+        })?;
+        (path.to_path_buf(), m)
+    };
+    let map = read_map(&map_json)?;
+    let (agents, meta) = read_tracks(&parquet)?;
+    Scene::new(meta, map, agents).map_err(|e| IoError::Scene {
+        path: parquet.display().to_string(),
+        location: "scenario".into(),
+        source: e,
+    })
+}
+
+#[derive(Default)]
+struct Row {
+    observed: Option<bool>,
+    track_id: Option<String>,
+    object_type: Option<String>,
+    timestep: Option<i64>,
+    x: Option<f64>,
+    y: Option<f64>,
+    heading: Option<f64>,
+    vx: Option<f64>,
+    vy: Option<f64>,
+    scenario_id: Option<String>,
+    focal: Option<String>,
+    num_timestamps: Option<i64>,
+}
+
+fn read_tracks(path: &Path) -> Result<(Vec<Agent>, SceneMeta), IoError> {
+    let file = File::open(path).map_err(|e| IoError::read(path, e))?;
+    let reader = SerializedFileReader::new(file)
+        .map_err(|e| IoError::invalid(path, "footer", format!("not a readable parquet file: {e}")))?;
+    let iter = reader
+        .get_row_iter(None)
+        .map_err(|e| IoError::invalid(path, "schema", e.to_string()))?;
+    let mut rows = Vec::new();
+    for (i, row) in iter.enumerate() {
+        let row = row.map_err(|e| IoError::invalid(path, format!("row {i}"), e.to_string()))?;
+        let mut r = Row::default();
+        for (name, field) in row.get_column_iter() {
+            let f = |v: &Field| match v {
+                Field::Double(d) => Some(*d),
+                Field::Float(d) => Some(*d as f64),
+                _ => None,
+            };
+            let int = |v: &Field| match v {
+                Field::Long(d) => Some(*d),
+                Field::Int(d) => Some(*d as i64),
+                Field::ULong(d) => i64::try_from(*d).ok(),
+                _ => None,
+            };
+            let s = |v: &Field| match v {
+                Field::Str(s) => Some(s.clone()),
+                _ => None,
+            };
+            match name.as_str() {
+                "observed" => r.observed = matches!(field, Field::Bool(true)).then_some(true).or(Some(false)),
+                "track_id" => r.track_id = s(field),
+                "object_type" => r.object_type = s(field),
+                "timestep" => r.timestep = int(field),
+                "position_x" => r.x = f(field),
+                "position_y" => r.y = f(field),
+                "heading" => r.heading = f(field),
+                "velocity_x" => r.vx = f(field),
+                "velocity_y" => r.vy = f(field),
+                "scenario_id" => r.scenario_id = s(field),
+                "focal_track_id" => r.focal = s(field),
+                "num_timestamps" => r.num_timestamps = int(field),
+                _ => {}
+            }
+        }
+        let missing = [
+            ("track_id", r.track_id.is_none()),
+            ("object_type", r.object_type.is_none()),
+            ("timestep", r.timestep.is_none()),
+            ("position_x", r.x.is_none()),
+            ("position_y", r.y.is_none()),
+            ("heading", r.heading.is_none()),
+        ];
+        if let Some((col, _)) = missing.iter().find(|(_, m)| *m) {
+            return Err(IoError::invalid(path, format!("row {i}"), format!("column {col} is missing or null")));
+        }
+        rows.push(r);
+    }
+    if rows.is_empty() {
+        return Err(IoError::invalid(path, "rows", "the scenario has no track states"));
+    }
+    let steps = rows
+        .iter()
+        .filter_map(|r| r.num_timestamps)
+        .max()
+        .unwrap_or(0)
+        .max(rows.iter().filter_map(|r| r.timestep).max().unwrap_or(0) + 1) as usize;
+    let mut warnings = vec![
+        "AV2 has no object sizes: nominal footprints by type are used".to_string(),
+    ];
+    // Track ids in first-seen order; numeric ones keep their number.
+    let mut order: Vec<String> = Vec::new();
+    let mut tracks: HashMap<String, (String, Vec<AgentState>)> = HashMap::new();
+    let mut current = 0usize;
+    for (i, r) in rows.iter().enumerate() {
+        let tid = r.track_id.clone().expect("checked");
+        let t = r.timestep.expect("checked");
+        if t < 0 || t as usize >= steps {
+            return Err(IoError::invalid(path, format!("row {i}"), format!("timestep {t} outside 0..{steps}")));
+        }
+        let entry = tracks.entry(tid.clone()).or_insert_with(|| {
+            order.push(tid.clone());
+            (r.object_type.clone().expect("checked"), vec![AgentState::INVALID; steps])
+        });
+        let (x, y, h) = (r.x.expect("checked"), r.y.expect("checked"), r.heading.expect("checked"));
+        if ![x, y, h].iter().all(|v| v.is_finite()) {
+            return Err(IoError::invalid(path, format!("row {i}"), "non-finite position or heading"));
+        }
+        entry.1[t as usize] = AgentState {
+            x,
+            y,
+            heading: h,
+            vx: r.vx.filter(|v| v.is_finite()).unwrap_or(0.0),
+            vy: r.vy.filter(|v| v.is_finite()).unwrap_or(0.0),
+            valid: true,
+        };
+        if r.observed == Some(true) {
+            current = current.max(t as usize);
+        }
+    }
+    let mut next_id = order.iter().filter_map(|t| t.parse::<i64>().ok()).max().unwrap_or(0) + 1;
+    let mut ids: BTreeMap<String, i64> = BTreeMap::new();
+    for t in &order {
+        let id = match t.parse::<i64>() {
+            Ok(n) => n,
+            Err(_) => {
+                next_id += 1;
+                warnings.push(format!("track {t:?} has id {}", next_id - 1));
+                next_id - 1
+            }
+        };
+        ids.insert(t.clone(), id);
+    }
+    let agents = order
+        .iter()
+        .map(|t| {
+            let (ty, states) = tracks.remove(t).expect("present");
+            let (length, width) = nominal_size(&ty);
+            Agent {
+                id: ids[t],
+                agent_type: agent_type(&ty),
+                length,
+                width,
+                states,
+            }
+        })
+        .collect();
+    let first = &rows[0];
+    let meta = SceneMeta {
+        source_format: SourceFormat::Av2,
+        source_file: path.display().to_string(),
+        scenario_id: first.scenario_id.clone().unwrap_or_else(|| super::file_stem(path)),
+        dt: 0.1,
+        current_step: current,
+        ego: first.focal.as_ref().and_then(|f| ids.get(f).copied()),
+        warnings,
+    };
+    Ok((agents, meta))
+}
+
+#[derive(Deserialize)]
+struct JsonPoint {
+    x: f64,
+    y: f64,
+}
+
+#[derive(Deserialize)]
+struct JsonLane {
+    id: i64,
+    centerline: Vec<JsonPoint>,
+    left_lane_boundary: Vec<JsonPoint>,
+    right_lane_boundary: Vec<JsonPoint>,
+    #[serde(default)]
+    left_lane_mark_type: Option<String>,
+    #[serde(default)]
+    right_lane_mark_type: Option<String>,
+    #[serde(default)]
+    left_neighbor_id: Option<i64>,
+    #[serde(default)]
+    right_neighbor_id: Option<i64>,
+    #[serde(default)]
+    predecessors: Vec<i64>,
+    #[serde(default)]
+    successors: Vec<i64>,
+    #[serde(default)]
+    is_intersection: bool,
+    #[serde(default)]
+    lane_type: Option<String>,
+}
+
+#[derive(Deserialize)]
+struct JsonArea {
+    area_boundary: Vec<JsonPoint>,
+}
+
+#[derive(Deserialize)]
+struct JsonCrossing {
+    edge1: Vec<JsonPoint>,
+    edge2: Vec<JsonPoint>,
+}
+
+#[derive(Deserialize)]
+struct JsonMap {
+    lane_segments: BTreeMap<String, JsonLane>,
+    #[serde(default)]
+    drivable_areas: BTreeMap<String, JsonArea>,
+    #[serde(default)]
+    pedestrian_crossings: BTreeMap<String, JsonCrossing>,
+}
+
+fn pts(v: &[JsonPoint]) -> Vec<Point> {
+    v.iter().map(|p| Point::new(p.x, p.y)).collect()
+}
+
+fn read_map(path: &Path) -> Result<Map, IoError> {
+    let text = std::fs::read_to_string(path).map_err(|e| IoError::read(path, e))?;
+    let m: JsonMap = serde_json::from_str(&text).map_err(|e| {
+        IoError::invalid(path, format!("line {}, column {}", e.line(), e.column()), e.to_string())
+    })?;
+    let mut parts = MapParts::default();
+    let geom_err = |what: String, e: crate::geom::GeomError| IoError::invalid(path, what, e.to_string());
+    let mut lines: Vec<(Polyline, String)> = Vec::new();
+    let mut dirs: HashMap<i64, Point> = HashMap::new();
+    for (key, l) in &m.lane_segments {
+        let c = Polyline::new(pts(&l.centerline)).map_err(|e| geom_err(format!("lane_segments[{key}].centerline"), e))?;
+        dirs.insert(l.id, c.last() - c.first());
+        let mut lane = Lane::new(l.id, c);
+        lane.left_boundary = Polyline::new(pts(&l.left_lane_boundary)).ok();
+        lane.right_boundary = Polyline::new(pts(&l.right_lane_boundary)).ok();
+        lane.lane_type = match l.lane_type.as_deref() {
+            Some("VEHICLE") => LaneType::SurfaceStreet,
+            Some("BIKE") => LaneType::Bike,
+            Some("BUS") => LaneType::Bus,
+            _ => LaneType::Other,
+        };
+        lane.is_intersection = l.is_intersection;
+        lane.predecessors = l.predecessors.clone();
+        lane.successors = l.successors.clone();
+        lane.left_neighbors = l.left_neighbor_id.into_iter().collect();
+        lane.right_neighbors = l.right_neighbor_id.into_iter().collect();
+        for (b, mark) in [
+            (&lane.left_boundary, &l.left_lane_mark_type),
+            (&lane.right_boundary, &l.right_lane_mark_type),
+        ] {
+            if let (Some(b), Some(mark)) = (b, mark) {
+                lines.push((b.clone(), mark.clone()));
+            }
+        }
+        parts.lanes.push(lane);
+    }
+    // AV2 lists opposite-direction lanes as neighbours too; the lane graph wants same-direction.
+    for lane in &mut parts.lanes {
+        let own = dirs[&lane.id];
+        let same = |n: &i64| dirs.get(n).is_some_and(|d| d.dot(&own) > 0.0);
+        lane.left_neighbors.retain(same);
+        lane.right_neighbors.retain(same);
+    }
+    for (line, mark) in lines {
+        let kind = match mark.as_str() {
+            "NONE" | "UNKNOWN" => continue,
+            "DASHED_WHITE" | "DASHED_YELLOW" | "DOUBLE_DASH_WHITE" | "DOUBLE_DASH_YELLOW" => RoadLineKind::Broken,
+            "SOLID_WHITE" | "SOLID_YELLOW" | "SOLID_BLUE" => RoadLineKind::Solid,
+            "DOUBLE_SOLID_WHITE" | "DOUBLE_SOLID_YELLOW" => RoadLineKind::DoubleSolid,
+            _ => RoadLineKind::Unknown,
+        };
+        super::push_unique_road_line(
+            &mut parts.road_lines,
+            RoadLine {
+                kind,
+                yellow: mark.contains("YELLOW"),
+                line,
+            },
+        );
+    }
+    for (key, a) in &m.drivable_areas {
+        let poly = Polygon::new(pts(&a.area_boundary)).map_err(|e| geom_err(format!("drivable_areas[{key}]"), e))?;
+        // Counter-clockwise outlines have the area on their left, the road-edge convention.
+        let mut ring: Vec<Point> = poly.points().to_vec();
+        if poly.signed_area() < 0.0 {
+            ring.reverse();
+        }
+        ring.push(ring[0]);
+        let edge = Polyline::new(ring).map_err(|e| geom_err(format!("drivable_areas[{key}]"), e))?;
+        parts.road_edges.push(RoadEdge::new(RoadEdgeKind::Boundary, edge));
+        parts.drivable_areas.push(poly);
+    }
+    for (key, c) in &m.pedestrian_crossings {
+        let (e1, e2) = (pts(&c.edge1), pts(&c.edge2));
+        let ring = e1.iter().chain(e2.iter().rev()).copied();
+        parts
+            .crosswalks
+            .push(Polygon::new(ring).map_err(|e| geom_err(format!("pedestrian_crossings[{key}]"), e))?);
+    }
+    Map::new(parts).map_err(|e| IoError::Scene {
+        path: path.display().to_string(),
+        location: "lane_segments".into(),
+        source: e,
+    })
+}

@@ -1,0 +1,516 @@
+//! CommonRoad XML scenarios, 2018b (`<obstacle><role>dynamic</role>`) and 2020a
+//! (`<dynamicObstacle>`), plain or gzipped.
+//!
+//! Lanelets become lanes: the centre line is the midpoint of the left and right bounds after
+//! resampling both to the same number of points (one every 2 m at most); `adjacentLeft/Right`
+//! with `drivingDir="same"` become neighbours. A bound with no lanelet beyond it (either
+//! direction) is a road edge, except where it runs inside another lanelet (intersections).
+//! Lanelet surfaces form the drivable area; crosswalk lanelets become crosswalks. Speed limits
+//! come from `<speedLimit>` (2018b) or speed-limit traffic signs (2020a: `R2-1`, `274`).
+//! Planning problems are not part of the scene model (their ego has no recorded trajectory).
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use roxmltree::{Document, Node};
+
+use super::{IoError, LoadOptions};
+use crate::geom::{Point, Polygon, Polyline};
+use crate::scene::{
+    Agent, AgentState, AgentType, Lane, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind,
+    RoadLine, RoadLineKind, Scene, SceneMeta, SourceFormat, StopLine,
+};
+
+/// Largest spacing of centre-line points, metres.
+const CENTERLINE_SPACING: f64 = 2.0;
+
+struct Ctx<'a> {
+    path: &'a Path,
+    doc: &'a Document<'a>,
+}
+
+impl Ctx<'_> {
+    fn err(&self, node: Node, msg: impl Into<String>) -> IoError {
+        let pos = self.doc.text_pos_at(node.range().start);
+        let what = match node.attribute("id") {
+            Some(id) => format!("<{} id={id}>", node.tag_name().name()),
+            None => format!("<{}>", node.tag_name().name()),
+        };
+        IoError::invalid(
+            self.path,
+            format!("line {}, column {}, {what}", pos.row, pos.col),
+            msg,
+        )
+    }
+
+    fn child<'a, 'i>(&self, node: Node<'a, 'i>, name: &str) -> Option<Node<'a, 'i>> {
+        node.children().find(|c| c.has_tag_name(name))
+    }
+
+    fn need<'a, 'i>(&self, node: Node<'a, 'i>, name: &str) -> Result<Node<'a, 'i>, IoError> {
+        self.child(node, name)
+            .ok_or_else(|| self.err(node, format!("missing <{name}>")))
+    }
+
+    fn number(&self, node: Node) -> Result<f64, IoError> {
+        let text = node.text().unwrap_or("").trim();
+        let v: f64 = text
+            .parse()
+            .map_err(|_| self.err(node, format!("expected a number, found {text:?}")))?;
+        if !v.is_finite() {
+            return Err(self.err(node, format!("{text} is not finite")));
+        }
+        Ok(v)
+    }
+
+    fn id(&self, node: Node, attr: &str) -> Result<i64, IoError> {
+        let v = node
+            .attribute(attr)
+            .ok_or_else(|| self.err(node, format!("missing attribute {attr}")))?;
+        v.trim()
+            .parse()
+            .map_err(|_| self.err(node, format!("attribute {attr}={v:?} is not an integer")))
+    }
+
+    /// A value given as `<exact>` or as an interval (its midpoint).
+    fn value(&self, node: Node) -> Result<f64, IoError> {
+        if let Some(e) = self.child(node, "exact") {
+            return self.number(e);
+        }
+        match (self.child(node, "intervalStart"), self.child(node, "intervalEnd")) {
+            (Some(a), Some(b)) => Ok(0.5 * (self.number(a)? + self.number(b)?)),
+            _ => Err(self.err(node, "expected <exact> or <intervalStart>/<intervalEnd>")),
+        }
+    }
+
+    fn point(&self, node: Node) -> Result<Point, IoError> {
+        Ok(Point::new(
+            self.number(self.need(node, "x")?)?,
+            self.number(self.need(node, "y")?)?,
+        ))
+    }
+
+    fn points(&self, node: Node) -> Result<Vec<Point>, IoError> {
+        node.children()
+            .filter(|c| c.has_tag_name("point"))
+            .map(|p| self.point(p))
+            .collect()
+    }
+
+    fn polyline(&self, node: Node) -> Result<Polyline, IoError> {
+        Polyline::new(self.points(node)?).map_err(|e| self.err(node, e.to_string()))
+    }
+}
+
+/// Reads one CommonRoad scenario.
+pub fn read(path: &Path, opts: &LoadOptions) -> Result<Scene, IoError> {
+    let bytes = super::read_maybe_gz(path)?;
+    let text = std::str::from_utf8(&bytes)
+        .map_err(|e| IoError::invalid(path, format!("byte {}", e.valid_up_to()), "not UTF-8"))?;
+    parse(path, text, opts)
+}
+
+/// Parses CommonRoad XML text (`path` is used for messages and metadata).
+pub fn parse(path: &Path, text: &str, opts: &LoadOptions) -> Result<Scene, IoError> {
+    let doc = Document::parse(text).map_err(|e| {
+        let pos = e.pos();
+        IoError::invalid(
+            path,
+            format!("line {}, column {}", pos.row, pos.col),
+            e.to_string(),
+        )
+    })?;
+    let cx = Ctx { path, doc: &doc };
+    let root = doc.root_element();
+    if !root.has_tag_name("commonRoad") {
+        return Err(cx.err(root, "the root element is not <commonRoad>"));
+    }
+    let dt: f64 = match root.attribute("timeStepSize") {
+        Some(v) => v
+            .trim()
+            .parse()
+            .map_err(|_| cx.err(root, format!("timeStepSize={v:?} is not a number")))?,
+        None => return Err(cx.err(root, "missing attribute timeStepSize")),
+    };
+    let scenario_id = root
+        .attribute("benchmarkID")
+        .map(str::to_string)
+        .unwrap_or_else(|| super::file_stem(path));
+
+    let speed_signs = speed_limit_signs(&cx, root)?;
+    let map = read_map(&cx, root, &speed_signs)?;
+    let (agents, steps) = read_agents(&cx, root)?;
+    let current_step = opts.commonroad_current_step.min(steps.saturating_sub(1));
+    let meta = SceneMeta {
+        source_format: SourceFormat::CommonRoad,
+        source_file: path.display().to_string(),
+        scenario_id,
+        dt,
+        current_step,
+        ego: None,
+        warnings: Vec::new(),
+    };
+    Scene::new(meta, map, agents).map_err(|e| IoError::Scene {
+        path: path.display().to_string(),
+        location: "scenario".into(),
+        source: e,
+    })
+}
+
+/// Speed limits (m/s) of speed-limit traffic signs, by sign id.
+fn speed_limit_signs(cx: &Ctx, root: Node) -> Result<HashMap<i64, f64>, IoError> {
+    let mut out = HashMap::new();
+    for sign in root.children().filter(|c| c.has_tag_name("trafficSign")) {
+        for el in sign.children().filter(|c| c.has_tag_name("trafficSignElement")) {
+            let code = cx
+                .child(el, "trafficSignID")
+                .and_then(|n| n.text())
+                .unwrap_or("")
+                .trim();
+            if code == "R2-1" || code == "274" {
+                if let Some(v) = cx.child(el, "additionalValue") {
+                    out.insert(cx.id(sign, "id")?, cx.number(v)?);
+                }
+            }
+        }
+    }
+    Ok(out)
+}
+
+struct RawLanelet {
+    id: i64,
+    left: Polyline,
+    right: Polyline,
+    left_marking: Option<String>,
+    right_marking: Option<String>,
+    has_left: bool,
+    has_right: bool,
+    kind: LaneType,
+    crosswalk: bool,
+}
+
+fn lane_type(name: &str) -> (LaneType, bool) {
+    match name {
+        "interstate" | "highway" | "mainCarriageWay" | "accessRamp" | "exitRamp" => {
+            (LaneType::Freeway, false)
+        }
+        "urban" | "country" | "driveWay" | "unknown" => (LaneType::SurfaceStreet, false),
+        "busLane" => (LaneType::Bus, false),
+        "bicycleLane" => (LaneType::Bike, false),
+        "crosswalk" => (LaneType::Other, true),
+        _ => (LaneType::Other, false),
+    }
+}
+
+fn centerline(left: &Polyline, right: &Polyline) -> Polyline {
+    let len = left.length().max(right.length());
+    let n = left
+        .points()
+        .len()
+        .max(right.points().len())
+        .max((len / CENTERLINE_SPACING).ceil() as usize + 1);
+    let (l, r) = (left.resample_count(n), right.resample_count(n));
+    let mid = l.points().iter().zip(r.points()).map(|(a, b)| (a + b) * 0.5);
+    // Bounds that meet at both ends (a degenerate lanelet) fall back to the left bound.
+    Polyline::new(mid).unwrap_or_else(|_| left.clone())
+}
+
+fn read_map(cx: &Ctx, root: Node, speed_signs: &HashMap<i64, f64>) -> Result<Map, IoError> {
+    let mut parts = MapParts::default();
+    let mut raws = Vec::new();
+    let mut intersection_lanes = std::collections::HashSet::new();
+    for inter in root.descendants().filter(|c| c.has_tag_name("incoming")) {
+        for s in inter.children().filter(|c| {
+            c.has_tag_name("successorsRight")
+                || c.has_tag_name("successorsStraight")
+                || c.has_tag_name("successorsLeft")
+        }) {
+            intersection_lanes.insert(cx.id(s, "ref")?);
+        }
+    }
+    for node in root.children().filter(|c| c.has_tag_name("lanelet")) {
+        let id = cx.id(node, "id")?;
+        let lb = cx.need(node, "leftBound")?;
+        let rb = cx.need(node, "rightBound")?;
+        let left = cx.polyline(lb)?;
+        let right = cx.polyline(rb)?;
+        let marking = |b: Node| {
+            cx.child(b, "lineMarking")
+                .and_then(|m| m.text())
+                .map(|t| t.trim().to_string())
+        };
+        let refs = |name: &str| -> Result<Vec<i64>, IoError> {
+            node.children()
+                .filter(|c| c.has_tag_name(name))
+                .map(|c| cx.id(c, "ref"))
+                .collect()
+        };
+        let adjacent = |name: &str| -> Result<(Option<i64>, bool), IoError> {
+            match cx.child(node, name) {
+                Some(a) => {
+                    let r = cx.id(a, "ref")?;
+                    let same = a.attribute("drivingDir").unwrap_or("same") == "same";
+                    Ok((same.then_some(r), true))
+                }
+                None => Ok((None, false)),
+            }
+        };
+        let (left_same, has_left) = adjacent("adjacentLeft")?;
+        let (right_same, has_right) = adjacent("adjacentRight")?;
+        let (kind, crosswalk) = cx
+            .child(node, "laneletType")
+            .and_then(|t| t.text())
+            .map(|t| lane_type(t.trim()))
+            .unwrap_or((LaneType::SurfaceStreet, false));
+        let mut speed_limit = match cx.child(node, "speedLimit") {
+            Some(s) => Some(cx.number(s)?),
+            None => None,
+        };
+        for r in refs("trafficSignRef")? {
+            if let Some(v) = speed_signs.get(&r) {
+                speed_limit = Some(*v);
+            }
+        }
+        if let Some(stop) = cx.child(node, "stopLine") {
+            let mut pts = cx.points(stop)?;
+            if pts.len() < 2 {
+                pts = vec![left.last(), right.last()];
+            }
+            parts.stop_lines.push(StopLine {
+                points: pts,
+                lanes: vec![id],
+            });
+        }
+        if crosswalk {
+            let ring = right.points().iter().chain(left.points().iter().rev()).copied();
+            parts
+                .crosswalks
+                .push(Polygon::new(ring).map_err(|e| cx.err(node, e.to_string()))?);
+            continue;
+        }
+        let mut lane = Lane::new(id, centerline(&left, &right));
+        lane.left_boundary = Some(left.clone());
+        lane.right_boundary = Some(right.clone());
+        lane.lane_type = kind;
+        lane.speed_limit = speed_limit;
+        lane.is_intersection = intersection_lanes.contains(&id);
+        lane.predecessors = refs("predecessor")?;
+        lane.successors = refs("successor")?;
+        lane.left_neighbors = left_same.into_iter().collect();
+        lane.right_neighbors = right_same.into_iter().collect();
+        parts.lanes.push(lane);
+        raws.push(RawLanelet {
+            id,
+            left_marking: marking(lb),
+            right_marking: marking(rb),
+            left,
+            right,
+            has_left,
+            has_right,
+            kind,
+            crosswalk,
+        });
+    }
+
+    let surfaces: Vec<(i64, Polygon)> = parts
+        .lanes
+        .iter()
+        .filter_map(|l| Some((l.id, l.surface()?)))
+        .collect();
+    for raw in &raws {
+        // Oriented with the road on the left: the right bound as is, the left bound reversed.
+        if !raw.has_right {
+            push_edge_runs(&mut parts.road_edges, &raw.right, raw.id, &surfaces);
+        }
+        if !raw.has_left {
+            push_edge_runs(&mut parts.road_edges, &raw.left.reversed(), raw.id, &surfaces);
+        }
+    }
+    for raw in &raws {
+        for (line, marking) in [(&raw.left, &raw.left_marking), (&raw.right, &raw.right_marking)] {
+            let Some(m) = marking else { continue };
+            let kind = match m.as_str() {
+                "dashed" | "broad_dashed" => RoadLineKind::Broken,
+                "solid" | "broad_solid" => RoadLineKind::Solid,
+                "no_marking" => continue,
+                _ => RoadLineKind::Unknown,
+            };
+            super::push_unique_road_line(
+                &mut parts.road_lines,
+                RoadLine {
+                    kind,
+                    yellow: false,
+                    line: line.clone(),
+                },
+            );
+        }
+    }
+    parts.drivable_areas = raws
+        .iter()
+        .filter(|r| !r.crosswalk && r.kind != LaneType::Other)
+        .filter_map(|r| surfaces.iter().find(|(id, _)| *id == r.id).map(|(_, p)| p.clone()))
+        .collect();
+    Map::new(parts).map_err(|e| IoError::Scene {
+        path: cx.path.display().to_string(),
+        location: "lanelet network".into(),
+        source: e,
+    })
+}
+
+/// Adds the parts of a candidate edge (road on its left) that do not run inside another
+/// lanelet: probing just outside each segment tells a real edge from a bound that borders
+/// another lanelet without being declared adjacent (common in intersections and merges).
+fn push_edge_runs(out: &mut Vec<RoadEdge>, line: &Polyline, own: i64, surfaces: &[(i64, Polygon)]) {
+    let pts = line.points();
+    let mut run: Vec<Point> = Vec::new();
+    let flush = |run: &mut Vec<Point>, out: &mut Vec<RoadEdge>| {
+        if run.len() >= 2 {
+            if let Ok(l) = Polyline::new(run.drain(..)) {
+                out.push(RoadEdge::new(RoadEdgeKind::Boundary, l));
+            }
+        }
+        run.clear();
+    };
+    for w in pts.windows(2) {
+        let dir = (w[1] - w[0]).normalize();
+        let probe = (w[0] + w[1]) * 0.5 + Point::new(dir.y, -dir.x) * 0.3;
+        let interior = surfaces
+            .iter()
+            .any(|(id, poly)| *id != own && poly.contains(&probe));
+        if interior {
+            flush(&mut run, out);
+        } else {
+            if run.is_empty() {
+                run.push(w[0]);
+            }
+            run.push(w[1]);
+        }
+    }
+    flush(&mut run, out);
+}
+
+fn agent_type(name: &str) -> AgentType {
+    match name {
+        "car" | "truck" | "bus" | "motorcycle" | "priorityVehicle" | "parkedVehicle" | "taxi" => {
+            AgentType::Vehicle
+        }
+        "bicycle" => AgentType::Cyclist,
+        "pedestrian" => AgentType::Pedestrian,
+        _ => AgentType::Other,
+    }
+}
+
+fn read_state(cx: &Ctx, node: Node) -> Result<(i64, AgentState), IoError> {
+    let pos = cx.need(node, "position")?;
+    let p = match cx.child(pos, "point") {
+        Some(p) => cx.point(p)?,
+        None => {
+            // Uncertain positions come as shapes; their centre is the best estimate.
+            let center = pos
+                .descendants()
+                .find(|c| c.has_tag_name("center"))
+                .ok_or_else(|| cx.err(pos, "expected <point> or a shape with <center>"))?;
+            cx.point(center)?
+        }
+    };
+    let heading = cx.value(cx.need(node, "orientation")?)?;
+    let time = cx.value(cx.need(node, "time")?)?;
+    if time < 0.0 || time.fract() != 0.0 {
+        return Err(cx.err(node, format!("time {time} is not a non-negative step index")));
+    }
+    let v = match cx.child(node, "velocity") {
+        Some(v) => cx.value(v)?,
+        None => 0.0,
+    };
+    Ok((
+        time as i64,
+        AgentState {
+            x: p.x,
+            y: p.y,
+            heading,
+            vx: v * heading.cos(),
+            vy: v * heading.sin(),
+            valid: true,
+        },
+    ))
+}
+
+fn read_agents(cx: &Ctx, root: Node) -> Result<(Vec<Agent>, usize), IoError> {
+    struct Raw {
+        id: i64,
+        kind: AgentType,
+        length: f64,
+        width: f64,
+        states: Vec<(i64, AgentState)>,
+        is_static: bool,
+    }
+    let mut raws = Vec::new();
+    for node in root.children() {
+        let is_static = match node.tag_name().name() {
+            "dynamicObstacle" => false,
+            "staticObstacle" => true,
+            "obstacle" => {
+                let role = cx.child(node, "role").and_then(|r| r.text()).unwrap_or("");
+                role.trim() == "static"
+            }
+            _ => continue,
+        };
+        let id = cx.id(node, "id")?;
+        let kind = agent_type(cx.need(node, "type")?.text().unwrap_or("").trim());
+        let shape = cx.need(node, "shape")?;
+        let (length, width) = if let Some(r) = cx.child(shape, "rectangle") {
+            (cx.number(cx.need(r, "length")?)?, cx.number(cx.need(r, "width")?)?)
+        } else if let Some(c) = cx.child(shape, "circle") {
+            let r = cx.number(cx.need(c, "radius")?)?;
+            (2.0 * r, 2.0 * r)
+        } else if let Some(p) = cx.child(shape, "polygon") {
+            let pts = cx.points(p)?;
+            let (lo, hi) = crate::geom::Polyline::new(pts)
+                .map_err(|e| cx.err(p, e.to_string()))?
+                .bounds();
+            (hi.x - lo.x, hi.y - lo.y)
+        } else {
+            return Err(cx.err(shape, "expected <rectangle>, <circle> or <polygon>"));
+        };
+        let mut states = vec![read_state(cx, cx.need(node, "initialState")?)?];
+        if let Some(traj) = cx.child(node, "trajectory") {
+            for s in traj.children().filter(|c| c.has_tag_name("state")) {
+                states.push(read_state(cx, s)?);
+            }
+        }
+        raws.push(Raw {
+            id,
+            kind,
+            length,
+            width,
+            states,
+            is_static,
+        });
+    }
+    let steps = raws
+        .iter()
+        .flat_map(|r| r.states.iter().map(|(t, _)| *t))
+        .max()
+        .map_or(0, |t| t as usize + 1);
+    let agents = raws
+        .into_iter()
+        .map(|r| {
+            let mut states = vec![AgentState::INVALID; steps];
+            for (t, s) in &r.states {
+                states[*t as usize] = *s;
+            }
+            if r.is_static {
+                let s = r.states[0].1;
+                states.fill(s);
+            }
+            Agent {
+                id: r.id,
+                agent_type: r.kind,
+                length: r.length,
+                width: r.width,
+                states,
+            }
+        })
+        .collect();
+    Ok((agents, steps))
+}

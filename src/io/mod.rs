@@ -1,0 +1,295 @@
+//! Scene readers and writers. Every error names the file and the record, line or element.
+//!
+//! | format | files | reader |
+//! |---|---|---|
+//! | Waymo Open Motion Dataset | `*.tfrecord`, `*.tfrecord-00000-of-01000`, a directory of shards | [`womd`] |
+//! | CommonRoad 2018b / 2020a | `*.xml`, `*.xml.gz` | [`commonroad`] |
+//! | Argoverse 2 motion forecasting | `scenario_*.parquet` (map JSON beside it) or its directory | [`av2`] |
+//! | drivescript YAML | `*.yaml`, `*.yml` | [`yaml`] |
+//!
+//! Rollouts (simulated futures) are read and written as JSON by [`rollout`].
+
+pub mod av2;
+pub mod commonroad;
+pub mod rollout;
+pub mod tfrecord;
+pub mod womd;
+pub mod womd_proto;
+pub mod yaml;
+
+use std::path::{Path, PathBuf};
+
+use crate::scene::{Scene, SceneError};
+
+/// The formats a scene can be read from, for error messages.
+pub const SUPPORTED_FORMATS: &str = "Waymo Open Motion Dataset TFRecord (.tfrecord, *.tfrecord-NNNNN-of-NNNNN), \
+CommonRoad XML (.xml, .xml.gz), Argoverse 2 scenario (.parquet or its directory), drivescript YAML (.yaml, .yml)";
+
+/// Errors from reading or writing scenes and rollouts.
+#[derive(Debug, thiserror::Error)]
+pub enum IoError {
+    /// The file could not be opened or read.
+    #[error("{path}: {source}")]
+    Read {
+        /// The file.
+        path: String,
+        /// The I/O error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The file could not be written.
+    #[error("{path}: cannot write: {source}")]
+    Write {
+        /// The file.
+        path: String,
+        /// The I/O error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The format cannot be told from the name.
+    #[error("{path}: unknown scene format; supported: {SUPPORTED_FORMATS}")]
+    UnknownFormat {
+        /// The file.
+        path: String,
+    },
+    /// The content is malformed at a given place.
+    #[error("{path}: {location}: {message}")]
+    Invalid {
+        /// The file.
+        path: String,
+        /// Record index, line and column, element or row.
+        location: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// The content parsed but makes an inconsistent scene.
+    #[error("{path}: {location}: {source}")]
+    Scene {
+        /// The file.
+        path: String,
+        /// Which scene in the file.
+        location: String,
+        /// What is inconsistent.
+        #[source]
+        source: SceneError,
+    },
+}
+
+impl IoError {
+    pub(crate) fn invalid(
+        path: &Path,
+        location: impl Into<String>,
+        message: impl Into<String>,
+    ) -> Self {
+        IoError::Invalid {
+            path: path.display().to_string(),
+            location: location.into(),
+            message: message.into(),
+        }
+    }
+
+    pub(crate) fn read(path: &Path, source: std::io::Error) -> Self {
+        IoError::Read {
+            path: path.display().to_string(),
+            source,
+        }
+    }
+}
+
+/// A scene file format.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SceneFormat {
+    /// Waymo Open Motion Dataset TFRecord.
+    Womd,
+    /// CommonRoad XML.
+    CommonRoad,
+    /// Argoverse 2 scenario.
+    Av2,
+    /// drivescript YAML.
+    Yaml,
+}
+
+/// Tells the format of a scene source from its name (and, for directories, their content).
+pub fn detect_format(path: &Path) -> Result<SceneFormat, IoError> {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().to_lowercase())
+        .unwrap_or_default();
+    if path.is_dir() {
+        if av2::find_scenario_in_dir(path).is_ok() {
+            return Ok(SceneFormat::Av2);
+        }
+        if womd::is_shard_dir(path) {
+            return Ok(SceneFormat::Womd);
+        }
+        return Err(IoError::UnknownFormat {
+            path: path.display().to_string(),
+        });
+    }
+    if name.ends_with(".tfrecord") || name.contains(".tfrecord-") || name.starts_with("tfrecord-")
+    {
+        Ok(SceneFormat::Womd)
+    } else if name.ends_with(".xml") || name.ends_with(".xml.gz") {
+        Ok(SceneFormat::CommonRoad)
+    } else if name.ends_with(".parquet") {
+        Ok(SceneFormat::Av2)
+    } else if name.ends_with(".yaml") || name.ends_with(".yml") {
+        Ok(SceneFormat::Yaml)
+    } else {
+        Err(IoError::UnknownFormat {
+            path: path.display().to_string(),
+        })
+    }
+}
+
+/// Options for readers of formats that do not say where history ends.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LoadOptions {
+    /// Current step for CommonRoad scenes (which have no notion of one), clamped to the
+    /// scene's length. Default 10: 1 s of history plus the current state at 10 Hz, as WOMD.
+    pub commonroad_current_step: usize,
+}
+
+impl Default for LoadOptions {
+    fn default() -> Self {
+        Self {
+            commonroad_current_step: 10,
+        }
+    }
+}
+
+/// Reads every scene of a source (a WOMD file or shard directory may hold many).
+pub fn load_scenes(path: &Path, opts: &LoadOptions) -> Result<Vec<Scene>, IoError> {
+    match detect_format(path)? {
+        SceneFormat::Womd if path.is_dir() => womd::read_shards(path)?.collect(),
+        SceneFormat::Womd => womd::read_file(path)?.collect(),
+        SceneFormat::CommonRoad => Ok(vec![commonroad::read(path, opts)?]),
+        SceneFormat::Av2 => Ok(vec![av2::read(path)?]),
+        SceneFormat::Yaml => Ok(vec![yaml::read(path)?]),
+    }
+}
+
+/// Reads scene number `index` of a source (0 for single-scene formats).
+pub fn load_scene(path: &Path, index: usize, opts: &LoadOptions) -> Result<Scene, IoError> {
+    let fmt = detect_format(path)?;
+    if fmt == SceneFormat::Womd {
+        let mut iter: Box<dyn Iterator<Item = Result<Scene, IoError>>> = if path.is_dir() {
+            Box::new(womd::read_shards(path)?)
+        } else {
+            Box::new(womd::read_file(path)?)
+        };
+        let mut count = 0;
+        for scene in iter.by_ref() {
+            if count == index {
+                return scene;
+            }
+            scene?;
+            count += 1;
+        }
+        return Err(IoError::invalid(
+            path,
+            format!("scene {index}"),
+            format!("the source holds only {count} scenes"),
+        ));
+    }
+    let mut scenes = load_scenes(path, opts)?;
+    if index >= scenes.len() {
+        return Err(IoError::invalid(
+            path,
+            format!("scene {index}"),
+            format!("the source holds only {} scenes", scenes.len()),
+        ));
+    }
+    Ok(scenes.swap_remove(index))
+}
+
+/// The scene sources under `path`: the path itself if it is a file or an AV2 / WOMD directory,
+/// else every readable source found in it (recursively), sorted.
+pub fn discover(path: &Path) -> Result<Vec<PathBuf>, IoError> {
+    if !path.exists() {
+        return Err(IoError::read(
+            path,
+            std::io::Error::new(std::io::ErrorKind::NotFound, "no such file or directory"),
+        ));
+    }
+    if !path.is_dir() || detect_format(path).is_ok() {
+        return Ok(vec![path.to_path_buf()]);
+    }
+    let mut out = Vec::new();
+    let mut entries: Vec<PathBuf> = std::fs::read_dir(path)
+        .map_err(|e| IoError::read(path, e))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .collect();
+    entries.sort();
+    for p in entries {
+        if p.is_dir() {
+            out.extend(discover(&p)?);
+        } else if matches!(
+            detect_format(&p),
+            Ok(SceneFormat::CommonRoad | SceneFormat::Yaml | SceneFormat::Womd)
+        ) {
+            out.push(p);
+        }
+    }
+    Ok(out)
+}
+
+/// Writes `bytes` to `path` atomically: a temporary file beside it, then a rename.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
+    let err = |source| IoError::Write {
+        path: path.display().to_string(),
+        source,
+    };
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    std::fs::create_dir_all(&dir).map_err(err)?;
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "out".into());
+    let tmp = dir.join(format!(".{name}.tmp{}", std::process::id()));
+    std::fs::write(&tmp, bytes).map_err(err)?;
+    std::fs::rename(&tmp, path).map_err(|e| {
+        let _ = std::fs::remove_file(&tmp);
+        err(e)
+    })
+}
+
+/// Reads a whole file, transparently gunzipping `.gz` files.
+pub(crate) fn read_maybe_gz(path: &Path) -> Result<Vec<u8>, IoError> {
+    let raw = std::fs::read(path).map_err(|e| IoError::read(path, e))?;
+    if path.extension().is_some_and(|e| e == "gz") {
+        use std::io::Read;
+        let mut out = Vec::new();
+        flate2::read::GzDecoder::new(&raw[..])
+            .read_to_end(&mut out)
+            .map_err(|e| IoError::invalid(path, "gzip stream", e.to_string()))?;
+        Ok(out)
+    } else {
+        Ok(raw)
+    }
+}
+
+/// The file name without extensions, as a fallback scenario id.
+pub(crate) fn file_stem(path: &Path) -> String {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    name.split('.').next().unwrap_or(&name).to_string()
+}
+
+/// Adds a painted line unless the same line (either direction) is already there: formats store
+/// the line between two lanes once per lane.
+pub(crate) fn push_unique_road_line(lines: &mut Vec<crate::scene::RoadLine>, line: crate::scene::RoadLine) {
+    let (a, b) = (line.line.first(), line.line.last());
+    let dup = lines.iter().any(|l| {
+        let (p, q) = (l.line.first(), l.line.last());
+        ((p - a).norm() < 1e-3 && (q - b).norm() < 1e-3) || ((p - b).norm() < 1e-3 && (q - a).norm() < 1e-3)
+    });
+    if !dup {
+        lines.push(line);
+    }
+}

@@ -1,0 +1,186 @@
+//! Rollout JSON: the trajectories of every agent of a scene, recorded or simulated.
+//!
+//! ```json
+//! { "format": "drivescript-rollout", "version": 1, "scene_id": "USA_US101-3_3_T-1",
+//!   "dt": 0.1, "current_step": 10,
+//!   "agents": [ { "id": 7, "type": "vehicle", "length": 4.6, "width": 1.9,
+//!                 "states": [[x, y, heading, valid], ...] } ],
+//!   "costs": { "ends_in_lane": 0.0 } }
+//! ```
+//! Every agent has one state per step; invalid states are written as zeros with `false`.
+//! `costs` (optional) holds per-term cost values.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use super::IoError;
+use crate::scene::{Agent, AgentState, AgentType, Scene, SceneMeta};
+
+/// The `format` tag of rollout files.
+pub const FORMAT_TAG: &str = "drivescript-rollout";
+/// The schema version written.
+pub const VERSION: u32 = 1;
+
+/// One state: `[x, y, heading, valid]`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct RolloutState(pub f64, pub f64, pub f64, pub bool);
+
+/// One agent's trajectory.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RolloutAgent {
+    /// Agent id.
+    pub id: i64,
+    /// Agent type.
+    #[serde(rename = "type")]
+    pub agent_type: AgentType,
+    /// Footprint length.
+    pub length: f64,
+    /// Footprint width.
+    pub width: f64,
+    /// One state per step.
+    pub states: Vec<RolloutState>,
+}
+
+/// Trajectories of all agents of a scene.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Rollout {
+    /// Always [`FORMAT_TAG`].
+    pub format: String,
+    /// Schema version.
+    pub version: u32,
+    /// Scenario id of the scene it belongs to.
+    pub scene_id: String,
+    /// Seconds per step.
+    pub dt: f64,
+    /// Index of the current step.
+    pub current_step: usize,
+    /// The agents.
+    pub agents: Vec<RolloutAgent>,
+    /// Per-term cost values, when a cost script was evaluated.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub costs: BTreeMap<String, f64>,
+}
+
+impl Rollout {
+    /// The recorded trajectories of a scene.
+    pub fn from_scene(scene: &Scene) -> Self {
+        Self {
+            format: FORMAT_TAG.into(),
+            version: VERSION,
+            scene_id: scene.meta.scenario_id.clone(),
+            dt: scene.meta.dt,
+            current_step: scene.meta.current_step,
+            agents: scene
+                .agents
+                .iter()
+                .map(|a| RolloutAgent {
+                    id: a.id,
+                    agent_type: a.agent_type,
+                    length: a.length,
+                    width: a.width,
+                    states: a
+                        .states
+                        .iter()
+                        .map(|s| {
+                            if s.valid {
+                                RolloutState(s.x, s.y, s.heading, true)
+                            } else {
+                                RolloutState(0.0, 0.0, 0.0, false)
+                            }
+                        })
+                        .collect(),
+                })
+                .collect(),
+            costs: BTreeMap::new(),
+        }
+    }
+
+    /// Checks the schema's rules; `what` names the source in messages.
+    fn validate(&self, what: &Path) -> Result<(), IoError> {
+        let bad = |loc: String, msg: String| IoError::invalid(what, loc, msg);
+        if self.format != FORMAT_TAG {
+            return Err(bad("format".into(), format!("expected {FORMAT_TAG:?}, found {:?}", self.format)));
+        }
+        if self.version != VERSION {
+            return Err(bad("version".into(), format!("unsupported version {} (this build reads {VERSION})", self.version)));
+        }
+        if !(self.dt.is_finite() && self.dt > 0.0) {
+            return Err(bad("dt".into(), format!("{} must be positive", self.dt)));
+        }
+        let steps = self.agents.first().map_or(0, |a| a.states.len());
+        for (i, a) in self.agents.iter().enumerate() {
+            let loc = format!("agents[{i}] (id {})", a.id);
+            if a.states.len() != steps {
+                return Err(bad(loc, format!("{} states, agents[0] has {steps}", a.states.len())));
+            }
+            if let Some(k) = a.states.iter().position(|s| s.3 && !(s.0.is_finite() && s.1.is_finite() && s.2.is_finite())) {
+                return Err(bad(loc, format!("state {k} is valid but not finite")));
+            }
+        }
+        if steps > 0 && self.current_step >= steps {
+            return Err(bad("current_step".into(), format!("{} is outside the {steps} steps", self.current_step)));
+        }
+        Ok(())
+    }
+
+    /// Reads and checks a rollout file.
+    pub fn read(path: &Path) -> Result<Self, IoError> {
+        let text = std::fs::read_to_string(path).map_err(|e| IoError::read(path, e))?;
+        let r: Rollout = serde_json::from_str(&text).map_err(|e| {
+            IoError::invalid(path, format!("line {}, column {}", e.line(), e.column()), e.to_string())
+        })?;
+        r.validate(path)?;
+        Ok(r)
+    }
+
+    /// Writes the rollout atomically (fails on non-finite valid states, which JSON cannot hold).
+    pub fn write(&self, path: &Path) -> Result<(), IoError> {
+        self.validate(path)?;
+        let text = serde_json::to_string(self).expect("rollouts serialise");
+        super::write_atomic(path, text.as_bytes())
+    }
+
+    /// The scene's map and metadata with this rollout's agents (velocities from differences).
+    pub fn apply_to(&self, scene: &Scene, what: &Path) -> Result<Scene, IoError> {
+        self.validate(what)?;
+        let agents = self
+            .agents
+            .iter()
+            .map(|a| {
+                let n = a.states.len();
+                let states = (0..n)
+                    .map(|k| {
+                        let s = a.states[k];
+                        if !s.3 {
+                            return AgentState::INVALID;
+                        }
+                        let (lo, hi) = (k.saturating_sub(1), (k + 1).min(n - 1));
+                        let (lo, hi) = if a.states[lo].3 && a.states[hi].3 { (lo, hi) } else { (k, k) };
+                        let span = (hi - lo) as f64 * self.dt;
+                        let (vx, vy) = if span > 0.0 {
+                            ((a.states[hi].0 - a.states[lo].0) / span, (a.states[hi].1 - a.states[lo].1) / span)
+                        } else {
+                            (0.0, 0.0)
+                        };
+                        AgentState { x: s.0, y: s.1, heading: s.2, vx, vy, valid: true }
+                    })
+                    .collect();
+                Agent { id: a.id, agent_type: a.agent_type, length: a.length, width: a.width, states }
+            })
+            .collect();
+        let meta = SceneMeta {
+            dt: self.dt,
+            current_step: self.current_step,
+            ..scene.meta.clone()
+        };
+        Scene::new(meta, scene.map.clone(), agents).map_err(|e| IoError::Scene {
+            path: what.display().to_string(),
+            location: "rollout".into(),
+            source: e,
+        })
+    }
+}

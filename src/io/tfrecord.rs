@@ -1,0 +1,274 @@
+//! TFRecord framing: `u64 length (LE) | u32 masked CRC-32C of the length | payload | u32 masked
+//! CRC-32C of the payload`, repeated to the end of the file.
+
+use std::io::{Read, Write};
+
+/// Records larger than this are refused: a corrupted length would otherwise allocate wildly.
+pub const MAX_RECORD_BYTES: u64 = 1 << 30;
+
+/// Why a TFRecord stream could not be read.
+#[derive(Debug, thiserror::Error)]
+pub enum TfRecordError {
+    /// The underlying reader failed.
+    #[error("record {record}: read failed: {source}")]
+    Io {
+        /// Index of the record being read.
+        record: usize,
+        /// The I/O error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The file ended inside a record.
+    #[error("record {record} at byte {offset}: file ends inside the {part}")]
+    Truncated {
+        /// Index of the record.
+        record: usize,
+        /// Byte offset where the record starts.
+        offset: u64,
+        /// Which part was cut short.
+        part: &'static str,
+    },
+    /// The length's checksum does not match.
+    #[error("record {record} at byte {offset}: length checksum mismatch (corrupted length)")]
+    LengthCrc {
+        /// Index of the record.
+        record: usize,
+        /// Byte offset where the record starts.
+        offset: u64,
+    },
+    /// The payload's checksum does not match.
+    #[error("record {record} at byte {offset}: payload checksum mismatch (corrupted data)")]
+    DataCrc {
+        /// Index of the record.
+        record: usize,
+        /// Byte offset where the record starts.
+        offset: u64,
+    },
+    /// The length is implausibly large.
+    #[error("record {record} at byte {offset}: length {len} exceeds {MAX_RECORD_BYTES} bytes")]
+    TooLarge {
+        /// Index of the record.
+        record: usize,
+        /// Byte offset where the record starts.
+        offset: u64,
+        /// The length read.
+        len: u64,
+    },
+}
+
+impl TfRecordError {
+    /// Index of the record the error is about.
+    pub fn record(&self) -> usize {
+        match self {
+            TfRecordError::Io { record, .. }
+            | TfRecordError::Truncated { record, .. }
+            | TfRecordError::LengthCrc { record, .. }
+            | TfRecordError::DataCrc { record, .. }
+            | TfRecordError::TooLarge { record, .. } => *record,
+        }
+    }
+}
+
+const fn crc32c_table() -> [u32; 256] {
+    let mut table = [0u32; 256];
+    let mut i = 0;
+    while i < 256 {
+        let mut c = i as u32;
+        let mut k = 0;
+        while k < 8 {
+            c = if c & 1 != 0 {
+                0x82F6_3B78 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
+            k += 1;
+        }
+        table[i] = c;
+        i += 1;
+    }
+    table
+}
+
+static CRC32C: [u32; 256] = crc32c_table();
+
+/// CRC-32C (Castagnoli) of `data`.
+pub fn crc32c(data: &[u8]) -> u32 {
+    let mut c = !0u32;
+    for &b in data {
+        c = CRC32C[((c ^ b as u32) & 0xff) as usize] ^ (c >> 8);
+    }
+    !c
+}
+
+/// The masked CRC TFRecord stores (so that CRCs of CRCs stay well distributed).
+pub fn masked_crc32c(data: &[u8]) -> u32 {
+    let c = crc32c(data);
+    (c.rotate_right(15)).wrapping_add(0xa282_ead8)
+}
+
+/// Reads records one by one, checking both checksums.
+pub struct TfRecordReader<R> {
+    inner: R,
+    record: usize,
+    offset: u64,
+    failed: bool,
+}
+
+impl<R: Read> TfRecordReader<R> {
+    /// Wraps a byte stream.
+    pub fn new(inner: R) -> Self {
+        Self {
+            inner,
+            record: 0,
+            offset: 0,
+            failed: false,
+        }
+    }
+
+    /// Fills `buf`; `Ok(false)` when the stream ends before the first byte.
+    fn fill(&mut self, buf: &mut [u8], part: &'static str, start: u64) -> Result<bool, TfRecordError> {
+        let mut got = 0;
+        while got < buf.len() {
+            match self.inner.read(&mut buf[got..]) {
+                Ok(0) if got == 0 && part == "length" => return Ok(false),
+                Ok(0) => {
+                    return Err(TfRecordError::Truncated {
+                        record: self.record,
+                        offset: start,
+                        part,
+                    })
+                }
+                Ok(n) => got += n,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(source) => {
+                    return Err(TfRecordError::Io {
+                        record: self.record,
+                        source,
+                    })
+                }
+            }
+        }
+        self.offset += buf.len() as u64;
+        Ok(true)
+    }
+
+    fn read_record(&mut self) -> Result<Option<Vec<u8>>, TfRecordError> {
+        let start = self.offset;
+        let record = self.record;
+        let mut len_buf = [0u8; 8];
+        if !self.fill(&mut len_buf, "length", start)? {
+            return Ok(None);
+        }
+        let mut crc_buf = [0u8; 4];
+        self.fill(&mut crc_buf, "length checksum", start)?;
+        if u32::from_le_bytes(crc_buf) != masked_crc32c(&len_buf) {
+            return Err(TfRecordError::LengthCrc {
+                record,
+                offset: start,
+            });
+        }
+        let len = u64::from_le_bytes(len_buf);
+        if len > MAX_RECORD_BYTES {
+            return Err(TfRecordError::TooLarge {
+                record,
+                offset: start,
+                len,
+            });
+        }
+        let mut data = vec![0u8; len as usize];
+        self.fill(&mut data, "payload", start)?;
+        self.fill(&mut crc_buf, "payload checksum", start)?;
+        if u32::from_le_bytes(crc_buf) != masked_crc32c(&data) {
+            return Err(TfRecordError::DataCrc {
+                record,
+                offset: start,
+            });
+        }
+        self.record += 1;
+        Ok(Some(data))
+    }
+}
+
+impl<R: Read> Iterator for TfRecordReader<R> {
+    type Item = Result<Vec<u8>, TfRecordError>;
+
+    /// The next payload; after an error the iterator ends (framing cannot be recovered).
+    fn next(&mut self) -> Option<Self::Item> {
+        if self.failed {
+            return None;
+        }
+        match self.read_record() {
+            Ok(Some(d)) => Some(Ok(d)),
+            Ok(None) => None,
+            Err(e) => {
+                self.failed = true;
+                Some(Err(e))
+            }
+        }
+    }
+}
+
+/// Appends one framed record to `w`.
+pub fn write_record(w: &mut impl Write, payload: &[u8]) -> std::io::Result<()> {
+    let len = (payload.len() as u64).to_le_bytes();
+    w.write_all(&len)?;
+    w.write_all(&masked_crc32c(&len).to_le_bytes())?;
+    w.write_all(payload)?;
+    w.write_all(&masked_crc32c(payload).to_le_bytes())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn crc32c_known_vector() {
+        assert_eq!(crc32c(b"123456789"), 0xE306_9283);
+        assert_eq!(crc32c(b""), 0);
+    }
+
+    fn framed(records: &[&[u8]]) -> Vec<u8> {
+        let mut buf = Vec::new();
+        for r in records {
+            write_record(&mut buf, r).unwrap();
+        }
+        buf
+    }
+
+    #[test]
+    fn round_trip() {
+        let buf = framed(&[b"hello", b"", b"world!"]);
+        let got: Vec<Vec<u8>> = TfRecordReader::new(&buf[..]).map(Result::unwrap).collect();
+        assert_eq!(got, vec![b"hello".to_vec(), vec![], b"world!".to_vec()]);
+    }
+
+    #[test]
+    fn truncation_names_the_record() {
+        let buf = framed(&[b"first", b"second record"]);
+        for cut in 1..buf.len() {
+            if cut == 8 + 4 + 5 + 4 {
+                continue; // exactly one whole record
+            }
+            let results: Vec<_> = TfRecordReader::new(&buf[..cut]).collect();
+            let err = results.last().unwrap().as_ref().unwrap_err();
+            let expected = if cut < 21 { 0 } else { 1 };
+            assert_eq!(err.record(), expected, "cut at {cut}");
+            assert!(matches!(err, TfRecordError::Truncated { .. }));
+        }
+    }
+
+    #[test]
+    fn bit_flips_are_detected() {
+        let buf = framed(&[b"first", b"second record"]);
+        for byte in 0..buf.len() {
+            let mut bad = buf.clone();
+            bad[byte] ^= 0x10;
+            let results: Vec<_> = TfRecordReader::new(&bad[..]).collect();
+            let err = results
+                .iter()
+                .find_map(|r| r.as_ref().err())
+                .unwrap_or_else(|| panic!("flip at byte {byte} went unnoticed"));
+            assert_eq!(err.record(), if byte < 21 { 0 } else { 1 });
+        }
+    }
+}

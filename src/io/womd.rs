@@ -1,0 +1,472 @@
+//! Waymo Open Motion Dataset: `Scenario` protos in TFRecord files, one scenario per record.
+//!
+//! Read: tracks become agents (size from the current state, else the first valid one), lane
+//! centres become lanes (entry/exit lanes → predecessors/successors, same-direction neighbours
+//! → left/right), road edges keep WOMD's orientation (road on the left), road lines, crosswalks,
+//! speed bumps and stop signs are kept. Traffic-signal states and driveways are not part of the
+//! scene model; the reader says so in the scene's warnings. WOMD lanes carry boundaries as
+//! references into road lines, not as their own polylines, so WOMD lanes have no boundaries.
+
+use std::fs::File;
+use std::io::BufReader;
+use std::path::{Path, PathBuf};
+
+use prost::Message;
+
+use super::tfrecord::{write_record, TfRecordReader};
+use super::womd_proto as pb;
+use super::IoError;
+use crate::geom::{Point, Polygon, Polyline};
+use crate::scene::{
+    Agent, AgentState, AgentType, Lane, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind,
+    RoadLine, RoadLineKind, Scene, SceneMeta, SourceFormat, StopLine,
+};
+
+const MPH_TO_MPS: f64 = 0.44704;
+
+/// Whether a directory holds WOMD shards (files named like TFRecords).
+pub fn is_shard_dir(dir: &Path) -> bool {
+    shard_files(dir).is_ok_and(|v| !v.is_empty())
+}
+
+fn shard_files(dir: &Path) -> Result<Vec<PathBuf>, IoError> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(|e| IoError::read(dir, e))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.is_file()
+                && p.file_name().is_some_and(|n| {
+                    let n = n.to_string_lossy();
+                    n.ends_with(".tfrecord") || n.contains(".tfrecord-") || n.starts_with("tfrecord-")
+                })
+        })
+        .collect();
+    files.sort();
+    Ok(files)
+}
+
+/// Streams the scenarios of one TFRecord file.
+pub fn read_file(path: &Path) -> Result<impl Iterator<Item = Result<Scene, IoError>>, IoError> {
+    let file = File::open(path).map_err(|e| IoError::read(path, e))?;
+    let path = path.to_path_buf();
+    let reader = TfRecordReader::new(BufReader::with_capacity(1 << 20, file));
+    Ok(reader.enumerate().map(move |(i, rec)| {
+        let bytes = rec.map_err(|e| IoError::invalid(&path, format!("record {}", e.record()), e.to_string()))?;
+        decode_record(&path, i, &bytes)
+    }))
+}
+
+/// Streams the scenarios of every shard in a directory, in file-name order.
+pub fn read_shards(dir: &Path) -> Result<impl Iterator<Item = Result<Scene, IoError>>, IoError> {
+    let files = shard_files(dir)?;
+    Ok(files.into_iter().flat_map(|f| -> Box<dyn Iterator<Item = Result<Scene, IoError>>> {
+        match read_file(&f) {
+            Ok(it) => Box::new(it),
+            Err(e) => Box::new(std::iter::once(Err(e))),
+        }
+    }))
+}
+
+/// Decodes record `index` of `path` into a scene.
+pub fn decode_record(path: &Path, index: usize, bytes: &[u8]) -> Result<Scene, IoError> {
+    let loc = format!("record {index}");
+    let scenario = pb::Scenario::decode(bytes)
+        .map_err(|e| IoError::invalid(path, &loc, format!("not a Scenario proto: {e}")))?;
+    scenario_to_scene(&scenario, path, index)
+}
+
+fn pt(p: &pb::MapPoint) -> Point {
+    Point::new(p.x.unwrap_or(0.0), p.y.unwrap_or(0.0))
+}
+
+/// Converts a decoded scenario (record `index` of `path`) into a scene.
+pub fn scenario_to_scene(sc: &pb::Scenario, path: &Path, index: usize) -> Result<Scene, IoError> {
+    let id = sc.scenario_id.clone().unwrap_or_default();
+    let loc = format!("record {index} (scenario {id})");
+    let bad = |msg: String| IoError::invalid(path, &loc, msg);
+    let steps = sc.timestamps_seconds.len();
+    let mut warnings = Vec::new();
+
+    let dt = if steps >= 2 {
+        let mut diffs: Vec<f64> = sc.timestamps_seconds.windows(2).map(|w| w[1] - w[0]).collect();
+        diffs.sort_by(f64::total_cmp);
+        diffs[diffs.len() / 2]
+    } else {
+        0.1
+    };
+    let current = sc.current_time_index.unwrap_or(0);
+    if current < 0 || (steps > 0 && current as usize >= steps) {
+        return Err(bad(format!(
+            "current_time_index {current} is outside the {steps} timestamps"
+        )));
+    }
+
+    let mut agents = Vec::with_capacity(sc.tracks.len());
+    for (ti, track) in sc.tracks.iter().enumerate() {
+        let tid = track.id.ok_or_else(|| bad(format!("track {ti} has no id")))?;
+        if track.states.len() != steps {
+            return Err(bad(format!(
+                "track {ti} (id {tid}) has {} states for {steps} timestamps",
+                track.states.len()
+            )));
+        }
+        let agent_type = match track.object_type.unwrap_or(0) {
+            pb::object_type::VEHICLE => AgentType::Vehicle,
+            pb::object_type::PEDESTRIAN => AgentType::Pedestrian,
+            pb::object_type::CYCLIST => AgentType::Cyclist,
+            _ => AgentType::Other,
+        };
+        let valid = |s: &pb::ObjectState| s.valid.unwrap_or(false);
+        let size_src = track
+            .states
+            .get(current as usize)
+            .filter(|s| valid(s))
+            .or_else(|| track.states.iter().find(|s| valid(s)));
+        let (length, width) = size_src.map_or((0.0, 0.0), |s| {
+            (s.length.unwrap_or(0.0) as f64, s.width.unwrap_or(0.0) as f64)
+        });
+        let states = track
+            .states
+            .iter()
+            .map(|s| {
+                if valid(s) {
+                    AgentState {
+                        x: s.center_x.unwrap_or(0.0),
+                        y: s.center_y.unwrap_or(0.0),
+                        heading: s.heading.unwrap_or(0.0) as f64,
+                        vx: s.velocity_x.unwrap_or(0.0) as f64,
+                        vy: s.velocity_y.unwrap_or(0.0) as f64,
+                        valid: true,
+                    }
+                } else {
+                    AgentState::INVALID
+                }
+            })
+            .collect();
+        agents.push(Agent {
+            id: tid as i64,
+            agent_type,
+            length,
+            width,
+            states,
+        });
+    }
+    let ego = match sc.sdc_track_index {
+        Some(i) => Some(
+            agents
+                .get(i as usize)
+                .ok_or_else(|| bad(format!("sdc_track_index {i} but only {} tracks", agents.len())))?
+                .id,
+        ),
+        None => None,
+    };
+
+    let mut parts = MapParts::default();
+    let mut driveways = 0;
+    for f in &sc.map_features {
+        let fid = f.id.unwrap_or(-1);
+        let line = |pts: &[pb::MapPoint], what: &str| -> Result<Option<Polyline>, IoError> {
+            match Polyline::new(pts.iter().map(pt)) {
+                Ok(l) => Ok(Some(l)),
+                Err(crate::geom::GeomError::TooFewPoints { got, .. }) => {
+                    let _ = got;
+                    Ok(None)
+                }
+                Err(e) => Err(bad(format!("{what} {fid}: {e}"))),
+            }
+        };
+        match &f.feature_data {
+            Some(pb::FeatureData::Lane(l)) => {
+                let Some(center) = line(&l.polyline, "lane")? else {
+                    warnings.push(format!(
+                        "lane {fid} skipped: its polyline has fewer than 2 distinct points"
+                    ));
+                    continue;
+                };
+                let mut lane = Lane::new(fid, center);
+                lane.lane_type = match l.r#type.unwrap_or(0) {
+                    pb::lane_type::FREEWAY => LaneType::Freeway,
+                    pb::lane_type::SURFACE_STREET => LaneType::SurfaceStreet,
+                    pb::lane_type::BIKE_LANE => LaneType::Bike,
+                    _ => LaneType::Other,
+                };
+                lane.speed_limit = l
+                    .speed_limit_mph
+                    .filter(|v| *v > 0.0)
+                    .map(|v| v * MPH_TO_MPS);
+                // WOMD: lane centres in intersections have no boundaries.
+                lane.is_intersection = l.left_boundaries.is_empty() && l.right_boundaries.is_empty();
+                lane.predecessors = l.entry_lanes.clone();
+                lane.successors = l.exit_lanes.clone();
+                lane.left_neighbors = l.left_neighbors.iter().filter_map(|n| n.feature_id).collect();
+                lane.right_neighbors = l.right_neighbors.iter().filter_map(|n| n.feature_id).collect();
+                parts.lanes.push(lane);
+            }
+            Some(pb::FeatureData::RoadEdge(e)) => {
+                let Some(l) = line(&e.polyline, "road edge")? else {
+                    warnings.push(format!("road edge {fid} skipped: fewer than 2 distinct points"));
+                    continue;
+                };
+                let kind = match e.r#type.unwrap_or(0) {
+                    pb::road_edge_type::BOUNDARY => RoadEdgeKind::Boundary,
+                    pb::road_edge_type::MEDIAN => RoadEdgeKind::Median,
+                    _ => RoadEdgeKind::Unknown,
+                };
+                parts.road_edges.push(RoadEdge::new(kind, l));
+            }
+            Some(pb::FeatureData::RoadLine(r)) => {
+                let Some(l) = line(&r.polyline, "road line")? else {
+                    warnings.push(format!("road line {fid} skipped: fewer than 2 distinct points"));
+                    continue;
+                };
+                use pb::road_line_type as t;
+                let ty = r.r#type.unwrap_or(0);
+                let kind = match ty {
+                    t::BROKEN_SINGLE_WHITE | t::BROKEN_SINGLE_YELLOW | t::BROKEN_DOUBLE_YELLOW => {
+                        RoadLineKind::Broken
+                    }
+                    t::SOLID_SINGLE_WHITE | t::SOLID_SINGLE_YELLOW => RoadLineKind::Solid,
+                    t::SOLID_DOUBLE_WHITE | t::SOLID_DOUBLE_YELLOW | t::PASSING_DOUBLE_YELLOW => {
+                        RoadLineKind::DoubleSolid
+                    }
+                    _ => RoadLineKind::Unknown,
+                };
+                parts.road_lines.push(RoadLine {
+                    kind,
+                    yellow: (t::BROKEN_SINGLE_YELLOW..=t::PASSING_DOUBLE_YELLOW).contains(&ty),
+                    line: l,
+                });
+            }
+            Some(pb::FeatureData::StopSign(s)) => {
+                let Some(p) = &s.position else {
+                    warnings.push(format!("stop sign {fid} skipped: no position"));
+                    continue;
+                };
+                parts.stop_lines.push(StopLine {
+                    points: vec![pt(p)],
+                    lanes: s.lane.clone(),
+                });
+            }
+            Some(pb::FeatureData::Crosswalk(c)) => match Polygon::new(c.polygon.iter().map(pt)) {
+                Ok(p) => parts.crosswalks.push(p),
+                Err(e) => warnings.push(format!("crosswalk {fid} skipped: {e}")),
+            },
+            Some(pb::FeatureData::SpeedBump(c)) => match Polygon::new(c.polygon.iter().map(pt)) {
+                Ok(p) => parts.speed_bumps.push(p),
+                Err(e) => warnings.push(format!("speed bump {fid} skipped: {e}")),
+            },
+            Some(pb::FeatureData::Driveway(_)) => driveways += 1,
+            None => warnings.push(format!("map feature {fid} has no data")),
+        }
+    }
+    if driveways > 0 {
+        warnings.push(format!("{driveways} driveways not represented in the scene model"));
+    }
+    let signals = sc.dynamic_map_states.iter().map(|d| d.lane_states.len()).sum::<usize>();
+    if signals > 0 {
+        warnings.push(format!(
+            "{signals} traffic-signal lane states not represented in the scene model"
+        ));
+    }
+
+    let map = Map::new(parts).map_err(|e| IoError::Scene {
+        path: path.display().to_string(),
+        location: loc.clone(),
+        source: e,
+    })?;
+    let meta = SceneMeta {
+        source_format: SourceFormat::Womd,
+        source_file: path.display().to_string(),
+        scenario_id: if id.is_empty() { format!("{}#{index}", super::file_stem(path)) } else { id },
+        dt,
+        current_step: current as usize,
+        ego,
+        warnings,
+    };
+    Scene::new(meta, map, agents).map_err(|e| IoError::Scene {
+        path: path.display().to_string(),
+        location: loc,
+        source: e,
+    })
+}
+
+fn map_point(p: Point) -> pb::MapPoint {
+    pb::MapPoint {
+        x: Some(p.x),
+        y: Some(p.y),
+        z: Some(0.0),
+    }
+}
+
+/// Encodes a scene as a WOMD `Scenario` (lanes, edges, lines, crosswalks, speed bumps, stop
+/// signs, tracks). Used to write test shards and to convert other datasets for WOMD tools.
+pub fn scene_to_scenario(scene: &Scene) -> pb::Scenario {
+    let steps = scene.num_steps();
+    let tracks: Vec<pb::Track> = scene
+        .agents
+        .iter()
+        .map(|a| pb::Track {
+            id: Some(a.id as i32),
+            object_type: Some(match a.agent_type {
+                AgentType::Vehicle => pb::object_type::VEHICLE,
+                AgentType::Pedestrian => pb::object_type::PEDESTRIAN,
+                AgentType::Cyclist => pb::object_type::CYCLIST,
+                AgentType::Other => pb::object_type::OTHER,
+            }),
+            states: a
+                .states
+                .iter()
+                .map(|s| {
+                    if s.valid {
+                        pb::ObjectState {
+                            center_x: Some(s.x),
+                            center_y: Some(s.y),
+                            center_z: Some(0.0),
+                            length: Some(a.length as f32),
+                            width: Some(a.width as f32),
+                            height: Some(1.5),
+                            heading: Some(s.heading as f32),
+                            velocity_x: Some(s.vx as f32),
+                            velocity_y: Some(s.vy as f32),
+                            valid: Some(true),
+                        }
+                    } else {
+                        pb::ObjectState {
+                            center_x: Some(-1.0),
+                            center_y: Some(-1.0),
+                            center_z: Some(-1.0),
+                            length: Some(-1.0),
+                            width: Some(-1.0),
+                            height: Some(-1.0),
+                            heading: Some(-1.0),
+                            velocity_x: Some(-1.0),
+                            velocity_y: Some(-1.0),
+                            valid: Some(false),
+                        }
+                    }
+                })
+                .collect(),
+        })
+        .collect();
+    let mut features = Vec::new();
+    let g = scene.map.graph();
+    let neighbor = |id: i64| pb::LaneNeighbor {
+        feature_id: Some(id),
+        ..Default::default()
+    };
+    for lane in scene.map.lanes() {
+        features.push(pb::MapFeature {
+            id: Some(lane.id),
+            feature_data: Some(pb::FeatureData::Lane(pb::LaneCenter {
+                speed_limit_mph: lane.speed_limit.map(|v| v / MPH_TO_MPS),
+                r#type: Some(match lane.lane_type {
+                    LaneType::Freeway => pb::lane_type::FREEWAY,
+                    LaneType::SurfaceStreet | LaneType::Bus => pb::lane_type::SURFACE_STREET,
+                    LaneType::Bike => pb::lane_type::BIKE_LANE,
+                    LaneType::Other => pb::lane_type::UNDEFINED,
+                }),
+                interpolating: Some(false),
+                polyline: lane.centerline.points().iter().map(|p| map_point(*p)).collect(),
+                entry_lanes: g.predecessors(lane.id).to_vec(),
+                exit_lanes: g.successors(lane.id).to_vec(),
+                left_neighbors: g.left_neighbors(lane.id).iter().map(|&i| neighbor(i)).collect(),
+                right_neighbors: g.right_neighbors(lane.id).iter().map(|&i| neighbor(i)).collect(),
+                // Mark non-intersection lanes as bounded so that the reader's intersection
+                // heuristic gives the flag back.
+                left_boundaries: if lane.is_intersection {
+                    vec![]
+                } else {
+                    vec![pb::BoundarySegment::default()]
+                },
+                right_boundaries: vec![],
+            })),
+        });
+    }
+    let mut next_id = scene.map.lanes().iter().map(|l| l.id).max().unwrap_or(0) + 1;
+    let mut fresh = || {
+        next_id += 1;
+        Some(next_id)
+    };
+    for e in scene.map.road_edges() {
+        features.push(pb::MapFeature {
+            id: fresh(),
+            feature_data: Some(pb::FeatureData::RoadEdge(pb::RoadEdge {
+                r#type: Some(match e.kind {
+                    RoadEdgeKind::Boundary => pb::road_edge_type::BOUNDARY,
+                    RoadEdgeKind::Median => pb::road_edge_type::MEDIAN,
+                    RoadEdgeKind::Unknown => pb::road_edge_type::UNKNOWN,
+                }),
+                polyline: e.line().points().iter().map(|p| map_point(*p)).collect(),
+            })),
+        });
+    }
+    for l in scene.map.road_lines() {
+        use pb::road_line_type as t;
+        let ty = match (l.kind, l.yellow) {
+            (RoadLineKind::Broken, false) => t::BROKEN_SINGLE_WHITE,
+            (RoadLineKind::Broken, true) => t::BROKEN_SINGLE_YELLOW,
+            (RoadLineKind::Solid, false) => t::SOLID_SINGLE_WHITE,
+            (RoadLineKind::Solid, true) => t::SOLID_SINGLE_YELLOW,
+            (RoadLineKind::DoubleSolid, false) => t::SOLID_DOUBLE_WHITE,
+            (RoadLineKind::DoubleSolid, true) => t::SOLID_DOUBLE_YELLOW,
+            (RoadLineKind::Unknown, _) => t::UNKNOWN,
+        };
+        features.push(pb::MapFeature {
+            id: fresh(),
+            feature_data: Some(pb::FeatureData::RoadLine(pb::RoadLine {
+                r#type: Some(ty),
+                polyline: l.line.points().iter().map(|p| map_point(*p)).collect(),
+            })),
+        });
+    }
+    for c in scene.map.crosswalks() {
+        features.push(pb::MapFeature {
+            id: fresh(),
+            feature_data: Some(pb::FeatureData::Crosswalk(pb::Crosswalk {
+                polygon: c.points().iter().map(|p| map_point(*p)).collect(),
+            })),
+        });
+    }
+    for c in scene.map.speed_bumps() {
+        features.push(pb::MapFeature {
+            id: fresh(),
+            feature_data: Some(pb::FeatureData::SpeedBump(pb::SpeedBump {
+                polygon: c.points().iter().map(|p| map_point(*p)).collect(),
+            })),
+        });
+    }
+    for s in scene.map.stop_lines() {
+        let centre = s.points.iter().sum::<Point>() / s.points.len().max(1) as f64;
+        features.push(pb::MapFeature {
+            id: fresh(),
+            feature_data: Some(pb::FeatureData::StopSign(pb::StopSign {
+                lane: s.lanes.clone(),
+                position: Some(map_point(centre)),
+            })),
+        });
+    }
+    pb::Scenario {
+        scenario_id: Some(scene.meta.scenario_id.clone()),
+        timestamps_seconds: (0..steps).map(|k| k as f64 * scene.meta.dt).collect(),
+        current_time_index: Some(scene.meta.current_step as i32),
+        sdc_track_index: scene
+            .meta
+            .ego
+            .and_then(|e| scene.agents.iter().position(|a| a.id == e))
+            .map(|i| i as i32),
+        tracks,
+        dynamic_map_states: vec![pb::DynamicMapState::default(); steps],
+        map_features: features,
+        objects_of_interest: vec![],
+        tracks_to_predict: vec![],
+    }
+}
+
+/// Writes scenes as one TFRecord file of `Scenario` records (atomically).
+pub fn write_file(path: &Path, scenes: &[Scene]) -> Result<(), IoError> {
+    let mut buf = Vec::new();
+    for s in scenes {
+        write_record(&mut buf, &scene_to_scenario(s).encode_to_vec()).expect("writing to memory");
+    }
+    super::write_atomic(path, &buf)
+}

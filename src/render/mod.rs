@@ -1,0 +1,1 @@
+//! Pictures of scenes: SVG, PNG and animated GIF.

@@ -1,0 +1,188 @@
+//! The lane graph: successor, predecessor and same-direction left/right neighbour edges.
+
+use std::collections::HashMap;
+
+use serde::Serialize;
+
+use super::map::{Lane, LaneId};
+
+/// Topology of the lanes of a map, by lane id.
+///
+/// Edges are made symmetric (a successor edge implies the predecessor edge back, a left
+/// neighbour implies the right neighbour back) because sources often list only one side.
+/// References to lanes that are not in the map are dropped from the graph and counted in
+/// [`LaneGraph::dangling`] (WOMD maps are cropped, so their lanes name lanes outside the crop).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct LaneGraph {
+    index: HashMap<LaneId, usize>,
+    ids: Vec<LaneId>,
+    succ: Vec<Vec<LaneId>>,
+    pred: Vec<Vec<LaneId>>,
+    left: Vec<Vec<LaneId>>,
+    right: Vec<Vec<LaneId>>,
+    dangling: usize,
+}
+
+/// Number of directed edges of each kind.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+pub struct EdgeCounts {
+    /// lane → successor edges.
+    pub successor: usize,
+    /// lane → predecessor edges.
+    pub predecessor: usize,
+    /// lane → left neighbour edges.
+    pub left: usize,
+    /// lane → right neighbour edges.
+    pub right: usize,
+}
+
+fn push_unique(v: &mut Vec<LaneId>, id: LaneId) {
+    if !v.contains(&id) {
+        v.push(id);
+    }
+}
+
+impl LaneGraph {
+    /// Builds the graph from the lanes' own edge lists. Lane ids must be unique (checked by
+    /// the map).
+    pub fn build(lanes: &[Lane]) -> Self {
+        let n = lanes.len();
+        let index: HashMap<LaneId, usize> =
+            lanes.iter().enumerate().map(|(i, l)| (l.id, i)).collect();
+        let mut g = LaneGraph {
+            ids: lanes.iter().map(|l| l.id).collect(),
+            succ: vec![Vec::new(); n],
+            pred: vec![Vec::new(); n],
+            left: vec![Vec::new(); n],
+            right: vec![Vec::new(); n],
+            dangling: 0,
+            index,
+        };
+        for (i, lane) in lanes.iter().enumerate() {
+            let lists = [
+                (&lane.successors, 0),
+                (&lane.predecessors, 1),
+                (&lane.left_neighbors, 2),
+                (&lane.right_neighbors, 3),
+            ];
+            for (list, kind) in lists {
+                for &other in list {
+                    let Some(&j) = g.index.get(&other) else {
+                        g.dangling += 1;
+                        continue;
+                    };
+                    if j == i {
+                        continue;
+                    }
+                    let (fwd, back) = match kind {
+                        0 => (&mut g.succ, &mut g.pred),
+                        1 => (&mut g.pred, &mut g.succ),
+                        2 => (&mut g.left, &mut g.right),
+                        _ => (&mut g.right, &mut g.left),
+                    };
+                    push_unique(&mut fwd[i], other);
+                    push_unique(&mut back[j], lane.id);
+                }
+            }
+        }
+        g
+    }
+
+    fn at(&self, id: LaneId) -> Option<usize> {
+        self.index.get(&id).copied()
+    }
+
+    /// Whether the lane is in the graph.
+    pub fn contains(&self, id: LaneId) -> bool {
+        self.index.contains_key(&id)
+    }
+
+    /// Lanes this lane flows into.
+    pub fn successors(&self, id: LaneId) -> &[LaneId] {
+        self.at(id).map_or(&[], |i| &self.succ[i])
+    }
+
+    /// Lanes that flow into this lane.
+    pub fn predecessors(&self, id: LaneId) -> &[LaneId] {
+        self.at(id).map_or(&[], |i| &self.pred[i])
+    }
+
+    /// All left neighbours (same direction).
+    pub fn left_neighbors(&self, id: LaneId) -> &[LaneId] {
+        self.at(id).map_or(&[], |i| &self.left[i])
+    }
+
+    /// All right neighbours (same direction).
+    pub fn right_neighbors(&self, id: LaneId) -> &[LaneId] {
+        self.at(id).map_or(&[], |i| &self.right[i])
+    }
+
+    /// The left neighbour (the first listed, when a source lists several).
+    pub fn left(&self, id: LaneId) -> Option<LaneId> {
+        self.left_neighbors(id).first().copied()
+    }
+
+    /// The right neighbour (the first listed).
+    pub fn right(&self, id: LaneId) -> Option<LaneId> {
+        self.right_neighbors(id).first().copied()
+    }
+
+    /// Follows left neighbours as far as they go.
+    pub fn leftmost(&self, id: LaneId) -> LaneId {
+        self.walk(id, |g, l| g.left(l))
+    }
+
+    /// Follows right neighbours as far as they go.
+    pub fn rightmost(&self, id: LaneId) -> LaneId {
+        self.walk(id, |g, l| g.right(l))
+    }
+
+    /// Whether no lane lies to the right in the same direction.
+    pub fn is_rightmost(&self, id: LaneId) -> bool {
+        self.right(id).is_none()
+    }
+
+    /// Number of same-direction lanes side by side with this one (itself included).
+    pub fn lane_count(&self, id: LaneId) -> usize {
+        let mut n = 1;
+        let mut cur = self.leftmost(id);
+        let mut seen = vec![cur];
+        while let Some(r) = self.right(cur) {
+            if seen.contains(&r) {
+                break;
+            }
+            seen.push(r);
+            cur = r;
+            n += 1;
+        }
+        n
+    }
+
+    fn walk(&self, id: LaneId, step: impl Fn(&Self, LaneId) -> Option<LaneId>) -> LaneId {
+        let mut cur = id;
+        // Maps with inconsistent neighbour lists can form cycles.
+        for _ in 0..self.ids.len() {
+            match step(self, cur) {
+                Some(next) if next != id => cur = next,
+                _ => break,
+            }
+        }
+        cur
+    }
+
+    /// References to lanes missing from the map.
+    pub fn dangling(&self) -> usize {
+        self.dangling
+    }
+
+    /// Number of directed edges of each kind.
+    pub fn edge_counts(&self) -> EdgeCounts {
+        let count = |v: &Vec<Vec<LaneId>>| v.iter().map(Vec::len).sum();
+        EdgeCounts {
+            successor: count(&self.succ),
+            predecessor: count(&self.pred),
+            left: count(&self.left),
+            right: count(&self.right),
+        }
+    }
+}

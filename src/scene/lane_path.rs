@@ -1,0 +1,165 @@
+//! Lane paths: a lane extended through its successors (and back through its predecessors) into
+//! one reference path for Frenet coordinates.
+
+use serde::{Deserialize, Serialize};
+
+use super::map::{LaneId, Map};
+use super::SceneError;
+use crate::geom::{wrap_angle, FrenetPath, Polyline};
+
+/// Which way to go where a lane forks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Turn {
+    /// The successor whose heading changes least.
+    #[default]
+    Straight,
+    /// The successor turning most to the left.
+    Left,
+    /// The successor turning most to the right.
+    Right,
+}
+
+/// Heading change (radians) beyond which a lane counts as a turn.
+pub const TURN_THRESHOLD: f64 = 30.0 * std::f64::consts::PI / 180.0;
+
+/// A reference path made of consecutive lanes.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LanePath {
+    /// The lanes in driving order.
+    pub lanes: Vec<LaneId>,
+    /// Arc length on the path at which each lane starts.
+    pub lane_starts: Vec<f64>,
+    /// The lane the path was requested for.
+    pub origin: LaneId,
+    /// The path's Frenet frame.
+    pub frenet: FrenetPath,
+}
+
+impl LanePath {
+    /// Arc length at which the requested lane starts (the path may begin earlier).
+    pub fn origin_s(&self) -> f64 {
+        let k = self
+            .lanes
+            .iter()
+            .position(|&l| l == self.origin)
+            .expect("the origin lane is on its path");
+        self.lane_starts[k]
+    }
+
+    /// The lane holding arc length `s`.
+    pub fn lane_at_s(&self, s: f64) -> LaneId {
+        let k = self.lane_starts.partition_point(|&x| x <= s);
+        self.lanes[k.saturating_sub(1)]
+    }
+}
+
+impl Map {
+    /// Total heading change along a lane, radians (positive = turning left).
+    pub fn heading_change(&self, id: LaneId) -> Option<f64> {
+        let c = &self.lane(id)?.centerline;
+        let a = c.segment_direction(0);
+        let b = c.segment_direction(c.segment_count() - 1);
+        Some(wrap_angle(b.y.atan2(b.x) - a.y.atan2(a.x)))
+    }
+
+    /// Classifies a lane as a left turn, right turn or straight by its heading change.
+    pub fn turn_of(&self, id: LaneId) -> Option<Turn> {
+        let h = self.heading_change(id)?;
+        Some(if h > TURN_THRESHOLD {
+            Turn::Left
+        } else if h < -TURN_THRESHOLD {
+            Turn::Right
+        } else {
+            Turn::Straight
+        })
+    }
+
+    fn pick_successor(&self, options: &[LaneId], turn: Turn) -> Option<LaneId> {
+        let scored = options
+            .iter()
+            .filter_map(|&id| Some((self.heading_change(id)?, id)));
+        let key = |h: f64| match turn {
+            Turn::Straight => h.abs(),
+            Turn::Left => -h,
+            Turn::Right => h,
+        };
+        scored
+            .min_by(|a, b| key(a.0).total_cmp(&key(b.0)).then(a.1.cmp(&b.1)))
+            .map(|(_, id)| id)
+    }
+
+    /// The predecessor whose end lines up best with the start of `id`.
+    fn pick_predecessor(&self, id: LaneId) -> Option<LaneId> {
+        let start = self.lane(id)?.centerline.segment_direction(0);
+        self.graph()
+            .predecessors(id)
+            .iter()
+            .filter_map(|&p| {
+                let c = &self.lane(p)?.centerline;
+                let end = c.segment_direction(c.segment_count() - 1);
+                Some((end.dot(&start), p))
+            })
+            .max_by(|a, b| a.0.total_cmp(&b.0).then(b.1.cmp(&a.1)))
+            .map(|(_, p)| p)
+    }
+
+    /// The path through `lane`: at least `ahead` metres from the lane's start onwards (through
+    /// successors, taking `turn` at forks) and up to `behind` metres before it (through the best
+    /// aligned predecessors). Stops early where the graph ends or would loop.
+    pub fn lane_path(
+        &self,
+        lane: LaneId,
+        ahead: f64,
+        behind: f64,
+        turn: Turn,
+    ) -> Result<LanePath, SceneError> {
+        let first = self.lane(lane).ok_or(SceneError::UnknownLane(lane))?;
+        let mut lanes = vec![lane];
+        let mut forward = first.centerline.length();
+        while forward < ahead {
+            let last = *lanes.last().expect("non-empty");
+            let Some(next) = self.pick_successor(self.graph().successors(last), turn) else {
+                break;
+            };
+            if lanes.contains(&next) {
+                break;
+            }
+            forward += self.lane(next).expect("graph lanes exist").centerline.length();
+            lanes.push(next);
+        }
+        let mut back = 0.0;
+        while back < behind {
+            let Some(prev) = self.pick_predecessor(lanes[0]) else {
+                break;
+            };
+            if lanes.contains(&prev) {
+                break;
+            }
+            back += self.lane(prev).expect("graph lanes exist").centerline.length();
+            lanes.insert(0, prev);
+        }
+        let mut points: Vec<crate::geom::Point> = Vec::new();
+        let mut lane_starts = Vec::with_capacity(lanes.len());
+        let mut s = 0.0;
+        for id in &lanes {
+            let c = &self.lane(*id).expect("lanes exist").centerline;
+            if let Some(prev_end) = points.last().copied() {
+                s += (c.first() - prev_end).norm();
+            }
+            lane_starts.push(s);
+            s += c.length();
+            points.extend_from_slice(c.points());
+        }
+        let line = Polyline::new(points).map_err(|e| SceneError::Geometry {
+            what: format!("lane path from lane {lane}"),
+            source: e,
+        })?;
+        Ok(LanePath {
+            lanes,
+            lane_starts,
+            origin: lane,
+            frenet: FrenetPath::new(line),
+        })
+    }
+}

@@ -1,0 +1,331 @@
+//! The road map: lanes with their lane graph, road edges, road lines, crosswalks, stop lines,
+//! speed bumps and drivable areas, in the world frame.
+
+use std::collections::HashSet;
+
+use serde::{Deserialize, Serialize};
+
+use super::lane_graph::LaneGraph;
+use super::SceneError;
+use crate::geom::{wrap_angle, FrenetPath, Point, Polygon, Polyline};
+
+/// Identifier of a lane, as the source numbers it.
+pub type LaneId = i64;
+
+/// What a lane is for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LaneType {
+    /// Motorways and ramps.
+    Freeway,
+    /// Urban and rural roads.
+    SurfaceStreet,
+    /// Bicycle lanes.
+    Bike,
+    /// Bus lanes.
+    Bus,
+    /// Lanes not meant for vehicles (sidewalks, shoulders) or of unknown use.
+    Other,
+}
+
+impl LaneType {
+    /// Whether vehicles normally drive in it.
+    pub fn is_vehicle_lane(self) -> bool {
+        matches!(
+            self,
+            LaneType::Freeway | LaneType::SurfaceStreet | LaneType::Bus
+        )
+    }
+}
+
+/// A lane: its centre line (direction of travel), boundaries and edges as the source lists them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Lane {
+    /// Identifier from the source.
+    pub id: LaneId,
+    /// Centre line in the direction of travel.
+    pub centerline: Polyline,
+    /// Left boundary, where the source has one.
+    pub left_boundary: Option<Polyline>,
+    /// Right boundary, where the source has one.
+    pub right_boundary: Option<Polyline>,
+    /// What the lane is for.
+    pub lane_type: LaneType,
+    /// Speed limit in m/s, where known.
+    pub speed_limit: Option<f64>,
+    /// Whether the lane lies inside an intersection.
+    pub is_intersection: bool,
+    /// Lanes that flow into this one.
+    pub predecessors: Vec<LaneId>,
+    /// Lanes this one flows into.
+    pub successors: Vec<LaneId>,
+    /// Same-direction neighbours to the left.
+    pub left_neighbors: Vec<LaneId>,
+    /// Same-direction neighbours to the right.
+    pub right_neighbors: Vec<LaneId>,
+}
+
+impl Lane {
+    /// A lane with a centre line and nothing else known.
+    pub fn new(id: LaneId, centerline: Polyline) -> Self {
+        Self {
+            id,
+            centerline,
+            left_boundary: None,
+            right_boundary: None,
+            lane_type: LaneType::SurfaceStreet,
+            speed_limit: None,
+            is_intersection: false,
+            predecessors: Vec::new(),
+            successors: Vec::new(),
+            left_neighbors: Vec::new(),
+            right_neighbors: Vec::new(),
+        }
+    }
+
+    /// The lane surface between its boundaries, when both are known.
+    pub fn surface(&self) -> Option<Polygon> {
+        let (l, r) = (self.left_boundary.as_ref()?, self.right_boundary.as_ref()?);
+        Polygon::new(
+            r.points()
+                .iter()
+                .copied()
+                .chain(l.points().iter().rev().copied()),
+        )
+        .ok()
+    }
+}
+
+/// Kind of road edge.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RoadEdgeKind {
+    /// Curb or barrier with no traffic beyond it.
+    Boundary,
+    /// Barrier or island separating traffic.
+    Median,
+    /// Unspecified.
+    Unknown,
+}
+
+/// A road edge, oriented so that the road is on its left (the WOMD convention).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RoadEdge {
+    /// Kind of edge.
+    pub kind: RoadEdgeKind,
+    /// The edge's Frenet frame (its polyline is `path.polyline()`).
+    pub path: FrenetPath,
+}
+
+impl RoadEdge {
+    /// An edge from a polyline with the road on its left.
+    pub fn new(kind: RoadEdgeKind, line: Polyline) -> Self {
+        Self {
+            kind,
+            path: FrenetPath::new(line),
+        }
+    }
+
+    /// The edge's polyline.
+    pub fn line(&self) -> &Polyline {
+        self.path.polyline()
+    }
+}
+
+/// Painted line kinds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RoadLineKind {
+    /// Broken (dashed) line, may be crossed.
+    Broken,
+    /// Solid line.
+    Solid,
+    /// Double solid line.
+    DoubleSolid,
+    /// Anything else.
+    Unknown,
+}
+
+/// A painted line on the road.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RoadLine {
+    /// Kind of marking.
+    pub kind: RoadLineKind,
+    /// Whether it is yellow (separates opposite directions in North America).
+    pub yellow: bool,
+    /// Its shape.
+    pub line: Polyline,
+}
+
+/// A stop line or stop sign position and the lanes it controls.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StopLine {
+    /// One point (a sign) or the two ends of a painted line.
+    pub points: Vec<Point>,
+    /// Lanes it controls.
+    pub lanes: Vec<LaneId>,
+}
+
+/// The parts a reader assembles into a [`Map`].
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct MapParts {
+    /// Lanes.
+    pub lanes: Vec<Lane>,
+    /// Road edges, road on their left.
+    pub road_edges: Vec<RoadEdge>,
+    /// Painted lines.
+    pub road_lines: Vec<RoadLine>,
+    /// Crosswalk polygons.
+    pub crosswalks: Vec<Polygon>,
+    /// Stop lines and signs.
+    pub stop_lines: Vec<StopLine>,
+    /// Speed bump polygons.
+    pub speed_bumps: Vec<Polygon>,
+    /// Drivable area polygons, where the source has them (a point inside any is on the road).
+    pub drivable_areas: Vec<Polygon>,
+}
+
+/// A road map with its lane graph.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Map {
+    parts: MapParts,
+    graph: LaneGraph,
+    edge_bounds: Vec<(Point, Point)>,
+}
+
+impl Map {
+    /// Builds the map and its lane graph; lane ids must be unique.
+    pub fn new(parts: MapParts) -> Result<Self, SceneError> {
+        let mut seen = HashSet::new();
+        for lane in &parts.lanes {
+            if !seen.insert(lane.id) {
+                return Err(SceneError::DuplicateLane(lane.id));
+            }
+        }
+        let graph = LaneGraph::build(&parts.lanes);
+        let edge_bounds = parts.road_edges.iter().map(|e| e.line().bounds()).collect();
+        Ok(Self {
+            parts,
+            graph,
+            edge_bounds,
+        })
+    }
+
+    /// An empty map.
+    pub fn empty() -> Self {
+        Self::new(MapParts::default()).expect("an empty map is valid")
+    }
+
+    /// The parts the map was built from.
+    pub fn parts(&self) -> &MapParts {
+        &self.parts
+    }
+
+    /// All lanes.
+    pub fn lanes(&self) -> &[Lane] {
+        &self.parts.lanes
+    }
+
+    /// The lane with this id.
+    pub fn lane(&self, id: LaneId) -> Option<&Lane> {
+        self.parts.lanes.iter().find(|l| l.id == id)
+    }
+
+    /// The lane graph.
+    pub fn graph(&self) -> &LaneGraph {
+        &self.graph
+    }
+
+    /// Road edges (road on their left).
+    pub fn road_edges(&self) -> &[RoadEdge] {
+        &self.parts.road_edges
+    }
+
+    /// Painted lines.
+    pub fn road_lines(&self) -> &[RoadLine] {
+        &self.parts.road_lines
+    }
+
+    /// Crosswalks.
+    pub fn crosswalks(&self) -> &[Polygon] {
+        &self.parts.crosswalks
+    }
+
+    /// Stop lines and stop signs.
+    pub fn stop_lines(&self) -> &[StopLine] {
+        &self.parts.stop_lines
+    }
+
+    /// Speed bumps.
+    pub fn speed_bumps(&self) -> &[Polygon] {
+        &self.parts.speed_bumps
+    }
+
+    /// Drivable areas.
+    pub fn drivable_areas(&self) -> &[Polygon] {
+        &self.parts.drivable_areas
+    }
+
+    /// Bounding box of all lanes and edges, `None` for an empty map.
+    pub fn bounds(&self) -> Option<(Point, Point)> {
+        let lines = self
+            .parts
+            .lanes
+            .iter()
+            .map(|l| l.centerline.bounds())
+            .chain(self.edge_bounds.iter().copied())
+            .chain(self.parts.road_lines.iter().map(|l| l.line.bounds()))
+            .chain(self.parts.drivable_areas.iter().map(|p| p.bounds()));
+        lines.reduce(|(lo, hi), (a, b)| (lo.inf(&a), hi.sup(&b)))
+    }
+
+    /// Signed distance from `p` to the nearest road edge: negative on the road, positive off it.
+    ///
+    /// With drivable areas the side comes from them (inside any area = on the road); otherwise
+    /// from the nearest edge's orientation (road on its left). `None` when the map has no edges.
+    pub fn signed_distance_to_road_edge(&self, p: Point) -> Option<f64> {
+        let mut best = f64::INFINITY;
+        let mut best_edge = None;
+        for (i, edge) in self.parts.road_edges.iter().enumerate() {
+            let (lo, hi) = self.edge_bounds[i];
+            let dx = (lo.x - p.x).max(p.x - hi.x).max(0.0);
+            let dy = (lo.y - p.y).max(p.y - hi.y).max(0.0);
+            if dx.hypot(dy) >= best {
+                continue;
+            }
+            let d = edge.line().distance_to(&p);
+            if d < best {
+                best = d;
+                best_edge = Some(i);
+            }
+        }
+        let edge = &self.parts.road_edges[best_edge?];
+        let on_road = if self.parts.drivable_areas.is_empty() {
+            edge.path.project(p).d >= 0.0
+        } else {
+            self.parts.drivable_areas.iter().any(|a| a.contains(&p))
+        };
+        Some(if on_road { -best } else { best })
+    }
+
+    /// The nearest lane to a pose whose direction agrees with `heading` (within 90°).
+    ///
+    /// Ranks lanes by distance to the centre line plus 2 m per radian of heading difference,
+    /// so that of overlapping lanes in an intersection the one going the agent's way wins.
+    pub fn lane_at(&self, p: Point, heading: f64) -> Option<LaneId> {
+        let mut best: Option<(f64, LaneId)> = None;
+        for lane in &self.parts.lanes {
+            let hit = lane.centerline.nearest(&p);
+            let dir = lane.centerline.segment_direction(hit.segment);
+            let diff = wrap_angle(heading - dir.y.atan2(dir.x)).abs();
+            if diff >= std::f64::consts::FRAC_PI_2 {
+                continue;
+            }
+            let score = hit.distance + 2.0 * diff;
+            if best.is_none_or(|(b, _)| score < b) {
+                best = Some((score, lane.id));
+            }
+        }
+        best.map(|(_, id)| id)
+    }
+}

@@ -1,0 +1,339 @@
+//! The scene model: a road map with its lane graph, agents with states at a fixed time step,
+//! and where it all came from. World frame, SI units.
+
+mod agents;
+mod lane_graph;
+mod lane_path;
+mod map;
+
+use std::collections::{BTreeMap, HashSet};
+
+use serde::Serialize;
+
+pub use agents::{Agent, AgentId, AgentState, AgentType};
+pub use lane_graph::{EdgeCounts, LaneGraph};
+pub use lane_path::{LanePath, Turn, TURN_THRESHOLD};
+pub use map::{
+    Lane, LaneId, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind, RoadLine, RoadLineKind,
+    StopLine,
+};
+
+use crate::geom::GeomError;
+
+/// Errors that make a scene inconsistent.
+#[derive(Debug, thiserror::Error)]
+pub enum SceneError {
+    /// Two lanes share an id.
+    #[error("lane id {0} appears twice")]
+    DuplicateLane(LaneId),
+    /// Two agents share an id.
+    #[error("agent id {0} appears twice")]
+    DuplicateAgent(AgentId),
+    /// A lane id that is not in the map.
+    #[error("no lane with id {0} in the map")]
+    UnknownLane(LaneId),
+    /// An agent id that is not in the scene.
+    #[error("no agent with id {0} in the scene")]
+    UnknownAgent(AgentId),
+    /// Agents must all have one state per scene step.
+    #[error("agent {agent} has {got} states, the scene has {expected} steps")]
+    StepCount {
+        /// The agent.
+        agent: AgentId,
+        /// Its number of states.
+        got: usize,
+        /// The scene's number of steps.
+        expected: usize,
+    },
+    /// A valid state with a NaN or infinite value.
+    #[error("agent {agent} step {step}: state is not finite")]
+    NonFiniteState {
+        /// The agent.
+        agent: AgentId,
+        /// The step.
+        step: usize,
+    },
+    /// A footprint that is not positive and finite.
+    #[error("agent {agent}: size {length} x {width} is not positive and finite")]
+    BadSize {
+        /// The agent.
+        agent: AgentId,
+        /// Its length.
+        length: f64,
+        /// Its width.
+        width: f64,
+    },
+    /// The time step must be positive and finite.
+    #[error("time step dt = {0} must be positive and finite")]
+    BadDt(f64),
+    /// The current step must be one of the scene's steps.
+    #[error("current step {current} is outside the scene's {steps} steps")]
+    CurrentStep {
+        /// The current step.
+        current: usize,
+        /// Number of steps.
+        steps: usize,
+    },
+    /// Geometry that could not be built.
+    #[error("{what}: {source}")]
+    Geometry {
+        /// What was being built.
+        what: String,
+        /// Why it failed.
+        #[source]
+        source: GeomError,
+    },
+}
+
+/// Scene file formats.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SourceFormat {
+    /// Waymo Open Motion Dataset `Scenario` protos in TFRecord files.
+    Womd,
+    /// CommonRoad XML (2018b or 2020a).
+    CommonRoad,
+    /// Argoverse 2 motion forecasting (scenario parquet + log map JSON).
+    Av2,
+    /// drivescript's hand-written YAML scenes.
+    Yaml,
+}
+
+impl SourceFormat {
+    /// Display name.
+    pub fn name(self) -> &'static str {
+        match self {
+            SourceFormat::Womd => "womd",
+            SourceFormat::CommonRoad => "commonroad",
+            SourceFormat::Av2 => "av2",
+            SourceFormat::Yaml => "yaml",
+        }
+    }
+}
+
+/// Where a scene came from and its time grid.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SceneMeta {
+    /// Source format.
+    pub source_format: SourceFormat,
+    /// Source file (or directory).
+    pub source_file: String,
+    /// Scenario id from the source, or the file stem.
+    pub scenario_id: String,
+    /// Seconds between steps.
+    pub dt: f64,
+    /// Index of the current step: steps up to it are history, after it future.
+    pub current_step: usize,
+    /// The focal or ego agent, when the format names one.
+    pub ego: Option<AgentId>,
+    /// Source records that were read but could not be represented (with why), so that nothing
+    /// is dropped without a word.
+    pub warnings: Vec<String>,
+}
+
+/// A map, the agents on it and metadata.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Scene {
+    /// Source and time grid.
+    pub meta: SceneMeta,
+    /// The road map.
+    pub map: Map,
+    /// Agents, each with one state per step.
+    pub agents: Vec<Agent>,
+}
+
+impl Scene {
+    /// Assembles a scene and checks that it is consistent.
+    pub fn new(meta: SceneMeta, map: Map, agents: Vec<Agent>) -> Result<Self, SceneError> {
+        if !(meta.dt.is_finite() && meta.dt > 0.0) {
+            return Err(SceneError::BadDt(meta.dt));
+        }
+        let steps = agents.first().map_or(0, |a| a.states.len());
+        let mut ids = HashSet::new();
+        for a in &agents {
+            if !ids.insert(a.id) {
+                return Err(SceneError::DuplicateAgent(a.id));
+            }
+            if a.states.len() != steps {
+                return Err(SceneError::StepCount {
+                    agent: a.id,
+                    got: a.states.len(),
+                    expected: steps,
+                });
+            }
+            let size_ok =
+                a.length.is_finite() && a.length > 0.0 && a.width.is_finite() && a.width > 0.0;
+            // A track that is never observed has no size to speak of.
+            if !size_ok && a.valid_count() > 0 {
+                return Err(SceneError::BadSize {
+                    agent: a.id,
+                    length: a.length,
+                    width: a.width,
+                });
+            }
+            for (step, s) in a.states.iter().enumerate() {
+                let finite = [s.x, s.y, s.heading, s.vx, s.vy]
+                    .iter()
+                    .all(|v| v.is_finite());
+                if s.valid && !finite {
+                    return Err(SceneError::NonFiniteState {
+                        agent: a.id,
+                        step,
+                    });
+                }
+            }
+        }
+        if steps > 0 && meta.current_step >= steps {
+            return Err(SceneError::CurrentStep {
+                current: meta.current_step,
+                steps,
+            });
+        }
+        if let Some(ego) = meta.ego {
+            if !ids.contains(&ego) {
+                return Err(SceneError::UnknownAgent(ego));
+            }
+        }
+        Ok(Self { meta, map, agents })
+    }
+
+    /// Number of time steps.
+    pub fn num_steps(&self) -> usize {
+        self.agents.first().map_or(0, |a| a.states.len())
+    }
+
+    /// Number of future steps (after the current one).
+    pub fn num_future_steps(&self) -> usize {
+        self.num_steps()
+            .saturating_sub(self.meta.current_step + 1)
+    }
+
+    /// The agent with this id.
+    pub fn agent(&self, id: AgentId) -> Option<&Agent> {
+        self.agents.iter().find(|a| a.id == id)
+    }
+
+    /// A summary for `inspect`.
+    pub fn summary(&self) -> SceneSummary {
+        let mut agents_by_type = BTreeMap::new();
+        for a in &self.agents {
+            *agents_by_type.entry(a.agent_type.name()).or_insert(0) += 1;
+        }
+        let steps = self.num_steps();
+        SceneSummary {
+            format: self.meta.source_format.name(),
+            file: self.meta.source_file.clone(),
+            scenario_id: self.meta.scenario_id.clone(),
+            dt: self.meta.dt,
+            steps,
+            current_step: self.meta.current_step,
+            duration_s: steps.saturating_sub(1) as f64 * self.meta.dt,
+            ego: self.meta.ego,
+            agents: self.agents.len(),
+            agents_by_type,
+            lanes: self.map.lanes().len(),
+            road_edges: self.map.road_edges().len(),
+            road_lines: self.map.road_lines().len(),
+            crosswalks: self.map.crosswalks().len(),
+            stop_lines: self.map.stop_lines().len(),
+            speed_bumps: self.map.speed_bumps().len(),
+            drivable_areas: self.map.drivable_areas().len(),
+            lane_graph: self.map.graph().edge_counts(),
+            dangling_lane_refs: self.map.graph().dangling(),
+            warnings: self.meta.warnings.clone(),
+        }
+    }
+}
+
+/// What `drivescript inspect` reports about a scene.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SceneSummary {
+    /// Source format.
+    pub format: &'static str,
+    /// Source file.
+    pub file: String,
+    /// Scenario id.
+    pub scenario_id: String,
+    /// Seconds per step.
+    pub dt: f64,
+    /// Number of steps.
+    pub steps: usize,
+    /// Current step index.
+    pub current_step: usize,
+    /// Seconds from the first to the last step.
+    pub duration_s: f64,
+    /// Ego or focal agent.
+    pub ego: Option<AgentId>,
+    /// Number of agents.
+    pub agents: usize,
+    /// Agents per type.
+    pub agents_by_type: BTreeMap<&'static str, usize>,
+    /// Number of lanes.
+    pub lanes: usize,
+    /// Number of road edges.
+    pub road_edges: usize,
+    /// Number of painted lines.
+    pub road_lines: usize,
+    /// Number of crosswalks.
+    pub crosswalks: usize,
+    /// Number of stop lines and signs.
+    pub stop_lines: usize,
+    /// Number of speed bumps.
+    pub speed_bumps: usize,
+    /// Number of drivable-area polygons.
+    pub drivable_areas: usize,
+    /// Lane-graph edge counts.
+    pub lane_graph: EdgeCounts,
+    /// Lane references to lanes outside the map.
+    pub dangling_lane_refs: usize,
+    /// What the reader could not represent.
+    pub warnings: Vec<String>,
+}
+
+impl std::fmt::Display for SceneSummary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let types: Vec<String> = self
+            .agents_by_type
+            .iter()
+            .map(|(k, v)| format!("{v} {k}"))
+            .collect();
+        writeln!(f, "scene       {} ({})", self.scenario_id, self.format)?;
+        writeln!(f, "file        {}", self.file)?;
+        writeln!(
+            f,
+            "time        {} steps x {} s = {:.1} s, current step {}",
+            self.steps, self.dt, self.duration_s, self.current_step
+        )?;
+        writeln!(
+            f,
+            "agents      {} ({}){}",
+            self.agents,
+            types.join(", "),
+            self.ego.map(|e| format!(", ego {e}")).unwrap_or_default()
+        )?;
+        writeln!(
+            f,
+            "map         {} lanes, {} road edges, {} road lines, {} crosswalks, {} stop lines, {} speed bumps, {} drivable areas",
+            self.lanes,
+            self.road_edges,
+            self.road_lines,
+            self.crosswalks,
+            self.stop_lines,
+            self.speed_bumps,
+            self.drivable_areas
+        )?;
+        write!(
+            f,
+            "lane graph  {} successor, {} predecessor, {} left, {} right edges; {} references to lanes outside the map",
+            self.lane_graph.successor,
+            self.lane_graph.predecessor,
+            self.lane_graph.left,
+            self.lane_graph.right,
+            self.dangling_lane_refs
+        )?;
+        for w in &self.warnings {
+            write!(f, "\nwarning     {w}")?;
+        }
+        Ok(())
+    }
+}
