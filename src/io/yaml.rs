@@ -1,5 +1,6 @@
 //! drivescript's YAML scenes: a straight or curved multi-lane road and a few agents, written by
-//! hand in a few lines. The format is documented in README.md ("YAML scenes").
+//! hand in a few lines, or a full map (`map:`) as `drivescript convert` writes it. The format is
+//! documented in README.md ("YAML scenes").
 //!
 //! The road is built along a reference line, its right edge: it starts at `origin`, heads
 //! `heading` degrees and is straight (`radius: 0`) or an arc (`radius > 0` bends left, `< 0`
@@ -9,17 +10,17 @@
 
 use std::path::Path;
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 use super::IoError;
-use crate::geom::{FrenetPath, Point, Polyline};
+use crate::geom::{FrenetPath, Point, Polygon, Polyline};
 use crate::scene::{
     Agent, AgentState, AgentType, Lane, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind,
-    RoadLine, RoadLineKind, Scene, SceneMeta, SourceFormat,
+    RoadLine, RoadLineKind, Scene, SceneMeta, SourceFormat, StopLine,
 };
 
 /// A YAML scene file.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct YamlScene {
     /// Scenario id (default: the file name).
@@ -34,14 +35,128 @@ pub struct YamlScene {
     /// Index of the current step.
     #[serde(default = "default_current")]
     pub current_step: usize,
-    /// The road.
-    pub road: YamlRoad,
+    /// A generated road (give this or `map`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub road: Option<YamlRoad>,
+    /// An explicit map (give this or `road`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub map: Option<YamlMap>,
     /// The agents.
     #[serde(default)]
     pub agents: Vec<YamlAgent>,
     /// The ego agent's id.
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ego: Option<i64>,
+}
+
+/// A list of `[x, y]` points.
+pub type YamlPoints = Vec<[f64; 2]>;
+
+/// An explicit map.
+#[derive(Debug, Clone, Default, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct YamlMap {
+    /// Lanes.
+    #[serde(default)]
+    pub lanes: Vec<YamlLane>,
+    /// Road edges, road on their left.
+    #[serde(default)]
+    pub road_edges: Vec<YamlEdge>,
+    /// Painted lines.
+    #[serde(default)]
+    pub road_lines: Vec<YamlRoadLine>,
+    /// Crosswalk polygons.
+    #[serde(default)]
+    pub crosswalks: Vec<YamlPoints>,
+    /// Stop lines and signs.
+    #[serde(default)]
+    pub stop_lines: Vec<YamlStopLine>,
+    /// Speed bump polygons.
+    #[serde(default)]
+    pub speed_bumps: Vec<YamlPoints>,
+    /// Drivable-area polygons.
+    #[serde(default)]
+    pub drivable_areas: Vec<YamlPoints>,
+}
+
+/// A lane of an explicit map.
+#[derive(Debug, Clone, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct YamlLane {
+    /// Lane id.
+    pub id: i64,
+    /// Centre line in the direction of travel.
+    pub centerline: YamlPoints,
+    /// Left boundary.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub left_boundary: Option<YamlPoints>,
+    /// Right boundary.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub right_boundary: Option<YamlPoints>,
+    /// Lane type.
+    #[serde(rename = "type", default = "default_map_lane_type")]
+    pub lane_type: LaneType,
+    /// Speed limit, m/s.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub speed_limit: Option<f64>,
+    /// Inside an intersection.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub intersection: bool,
+    /// Predecessor lane ids.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub predecessors: Vec<i64>,
+    /// Successor lane ids.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub successors: Vec<i64>,
+    /// Same-direction left neighbours.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub left: Vec<i64>,
+    /// Same-direction right neighbours.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub right: Vec<i64>,
+}
+
+fn default_map_lane_type() -> LaneType {
+    LaneType::SurfaceStreet
+}
+
+/// A road edge of an explicit map.
+#[derive(Debug, Clone, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct YamlEdge {
+    /// Edge kind.
+    #[serde(default = "default_edge_kind")]
+    pub kind: RoadEdgeKind,
+    /// Points, road on the left.
+    pub points: YamlPoints,
+}
+
+fn default_edge_kind() -> RoadEdgeKind {
+    RoadEdgeKind::Boundary
+}
+
+/// A painted line of an explicit map.
+#[derive(Debug, Clone, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct YamlRoadLine {
+    /// Marking kind.
+    pub kind: RoadLineKind,
+    /// Yellow paint.
+    #[serde(default)]
+    pub yellow: bool,
+    /// Points.
+    pub points: YamlPoints,
+}
+
+/// A stop line of an explicit map.
+#[derive(Debug, Clone, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct YamlStopLine {
+    /// One point (a sign) or the line's ends.
+    pub points: YamlPoints,
+    /// Controlled lanes.
+    #[serde(default)]
+    pub lanes: Vec<i64>,
 }
 
 fn default_dt() -> f64 {
@@ -55,7 +170,7 @@ fn default_current() -> usize {
 }
 
 /// The road of a YAML scene.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct YamlRoad {
     /// Number of lanes, all driving the same way.
@@ -96,7 +211,7 @@ fn default_lane_type() -> LaneType {
 }
 
 /// A scripted lane change.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct YamlLaneChange {
     /// Target lane index.
@@ -113,7 +228,7 @@ fn default_lc_duration() -> f64 {
 }
 
 /// An agent of a YAML scene.
-#[derive(Debug, Clone, Deserialize)]
+#[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct YamlAgent {
     /// Identifier.
@@ -122,35 +237,43 @@ pub struct YamlAgent {
     #[serde(default = "default_agent_type", rename = "type")]
     pub agent_type: AgentType,
     /// Footprint length (default by type).
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub length: Option<f64>,
     /// Footprint width (default by type).
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub width: Option<f64>,
     /// Lane index at the current step (0 = rightmost).
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "is_zero_usize")]
     pub lane: usize,
     /// Distance along the road at the current step, metres.
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "is_zero_f64")]
     pub s: f64,
     /// Lateral offset from the lane centre, metres (left positive).
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "is_zero_f64")]
     pub d: f64,
     /// Speed at the current step, m/s (negative drives backwards).
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "is_zero_f64")]
     pub speed: f64,
     /// Constant acceleration, m/s² (the agent stops rather than reverse).
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "is_zero_f64")]
     pub accel: f64,
     /// Optional scripted lane change.
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub lane_change: Option<YamlLaneChange>,
     /// First valid step (default 0): agents that appear late.
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "is_zero_usize")]
     pub valid_from: usize,
-    /// Explicit `[x, y, heading]` per step, replacing the motion fields.
-    #[serde(default)]
-    pub states: Option<Vec<[f64; 3]>>,
+    /// Explicit states, one per step, replacing the motion fields: `[x, y, heading]` or
+    /// `[x, y, heading, vx, vy]`, or `~` (null) where the agent is not observed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub states: Option<Vec<Option<Vec<f64>>>>,
+}
+
+fn is_zero_f64(v: &f64) -> bool {
+    *v == 0.0
+}
+fn is_zero_usize(v: &usize) -> bool {
+    *v == 0
 }
 
 fn default_agent_type() -> AgentType {
@@ -208,26 +331,88 @@ fn reference_line(r: &YamlRoad) -> Polyline {
 
 fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
     let bad = |loc: String, msg: String| IoError::invalid(path, loc, msg);
-    let r = &y.road;
-    if r.lanes == 0 || r.segments == 0 {
-        return Err(bad("road".into(), "lanes and segments must be at least 1".into()));
-    }
-    if !(r.length.is_finite() && r.length > 0.0 && r.lane_width.is_finite() && r.lane_width > 0.0)
-    {
-        return Err(bad("road".into(), "length and lane_width must be positive".into()));
-    }
-    let max_offset = r.lanes as f64 * r.lane_width;
-    if r.radius != 0.0 && (r.radius.abs() <= max_offset + 1.0 || !r.radius.is_finite()) {
-        return Err(bad(
-            "road.radius".into(),
-            format!("|radius| must exceed the road width ({max_offset} m)"),
-        ));
-    }
     if y.steps == 0 || y.current_step >= y.steps {
         return Err(bad(
             "current_step".into(),
             format!("current_step {} must be below steps {}", y.current_step, y.steps),
         ));
+    }
+    let (parts, road) = match (&y.road, &y.map) {
+        (Some(r), None) => {
+            let (parts, reference) = road_parts(path, r)?;
+            (parts, Some((r, reference)))
+        }
+        (None, Some(m)) => (explicit_parts(path, m)?, None),
+        _ => return Err(bad("document".into(), "give exactly one of `road` and `map`".into())),
+    };
+    let map = Map::new(parts).map_err(|e| IoError::Scene {
+        path: path.display().to_string(),
+        location: "map".into(),
+        source: e,
+    })?;
+
+    let mut agents = Vec::new();
+    for (i, a) in y.agents.iter().enumerate() {
+        let loc = format!("agents[{i}] (id {})", a.id);
+        let (dl, dw) = default_size(a.agent_type);
+        let (length, width) = (a.length.unwrap_or(dl), a.width.unwrap_or(dw));
+        let mut states = if let Some(explicit) = &a.states {
+            if explicit.len() != y.steps {
+                return Err(bad(loc, format!("{} states for {} steps", explicit.len(), y.steps)));
+            }
+            explicit_states(explicit, y.dt).map_err(|(k, m)| bad(format!("{loc} state {k}"), m))?
+        } else {
+            let Some((r, reference)) = &road else {
+                return Err(bad(loc, "with an explicit `map`, agents need explicit `states`".into()));
+            };
+            if a.lane >= r.lanes || a.lane_change.as_ref().is_some_and(|c| c.to >= r.lanes) {
+                return Err(bad(loc, format!("lane index out of range: the road has {} lanes", r.lanes)));
+            }
+            lane_motion(a, y, reference, r.lane_width)
+        };
+        if a.valid_from >= y.steps {
+            return Err(bad(loc, format!("valid_from {} must be below steps {}", a.valid_from, y.steps)));
+        }
+        for s in states.iter_mut().take(a.valid_from) {
+            *s = AgentState::INVALID;
+        }
+        agents.push(Agent {
+            id: a.id,
+            agent_type: a.agent_type,
+            length,
+            width,
+            states,
+        });
+    }
+    let meta = SceneMeta {
+        source_format: SourceFormat::Yaml,
+        source_file: path.display().to_string(),
+        scenario_id: y.scenario_id.clone().unwrap_or_else(|| super::file_stem(path)),
+        dt: y.dt,
+        current_step: y.current_step,
+        ego: y.ego,
+        warnings: Vec::new(),
+    };
+    Scene::new(meta, map, agents).map_err(|e| IoError::Scene {
+        path: path.display().to_string(),
+        location: "agents".into(),
+        source: e,
+    })
+}
+
+/// The map of a generated road, and the road's reference line (its right edge).
+fn road_parts(path: &Path, r: &YamlRoad) -> Result<(MapParts, FrenetPath), IoError> {
+    let bad = |loc: &str, msg: String| IoError::invalid(path, loc, msg);
+    if r.lanes == 0 || r.segments == 0 {
+        return Err(bad("road", "lanes and segments must be at least 1".into()));
+    }
+    if !(r.length.is_finite() && r.length > 0.0 && r.lane_width.is_finite() && r.lane_width > 0.0)
+    {
+        return Err(bad("road", "length and lane_width must be positive".into()));
+    }
+    let max_offset = r.lanes as f64 * r.lane_width;
+    if r.radius != 0.0 && (r.radius.abs() <= max_offset + 1.0 || !r.radius.is_finite()) {
+        return Err(bad("road.radius", format!("|radius| must exceed the road width ({max_offset} m)")));
     }
     let reference = FrenetPath::new(reference_line(r));
     let w = r.lane_width;
@@ -265,10 +450,7 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
             parts.lanes.push(lane);
         }
     }
-    parts.road_edges.push(RoadEdge::new(
-        RoadEdgeKind::Boundary,
-        offset_line(0.0, 0.0, r.length),
-    ));
+    parts.road_edges.push(RoadEdge::new(RoadEdgeKind::Boundary, offset_line(0.0, 0.0, r.length)));
     parts.road_edges.push(RoadEdge::new(
         RoadEdgeKind::Boundary,
         offset_line(max_offset, 0.0, r.length).reversed(),
@@ -280,75 +462,188 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
             line: offset_line(k as f64 * w, 0.0, r.length),
         });
     }
-    let map = Map::new(parts).map_err(|e| IoError::Scene {
-        path: path.display().to_string(),
-        location: "road".into(),
-        source: e,
-    })?;
-
-    let mut agents = Vec::new();
-    for (i, a) in y.agents.iter().enumerate() {
-        let loc = format!("agents[{i}] (id {})", a.id);
-        let (dl, dw) = default_size(a.agent_type);
-        let (length, width) = (a.length.unwrap_or(dl), a.width.unwrap_or(dw));
-        let states = if let Some(explicit) = &a.states {
-            if explicit.len() != y.steps {
-                return Err(bad(loc, format!("{} states for {} steps", explicit.len(), y.steps)));
-            }
-            explicit_states(explicit, y.dt)
-        } else {
-            if a.lane >= r.lanes || a.lane_change.as_ref().is_some_and(|c| c.to >= r.lanes) {
-                return Err(bad(loc, format!("lane index out of range: the road has {} lanes", r.lanes)));
-            }
-            lane_motion(a, y, &reference, w)
-        };
-        let mut states = states;
-        if a.valid_from >= y.steps {
-            return Err(bad(loc, format!("valid_from {} must be below steps {}", a.valid_from, y.steps)));
-        }
-        for s in states.iter_mut().take(a.valid_from) {
-            *s = AgentState::INVALID;
-        }
-        agents.push(Agent {
-            id: a.id,
-            agent_type: a.agent_type,
-            length,
-            width,
-            states,
-        });
-    }
-    let meta = SceneMeta {
-        source_format: SourceFormat::Yaml,
-        source_file: path.display().to_string(),
-        scenario_id: y.scenario_id.clone().unwrap_or_else(|| super::file_stem(path)),
-        dt: y.dt,
-        current_step: y.current_step,
-        ego: y.ego,
-        warnings: Vec::new(),
-    };
-    Scene::new(meta, map, agents).map_err(|e| IoError::Scene {
-        path: path.display().to_string(),
-        location: "agents".into(),
-        source: e,
-    })
+    Ok((parts, reference))
 }
 
-fn explicit_states(xyh: &[[f64; 3]], dt: f64) -> Vec<AgentState> {
-    let n = xyh.len();
-    (0..n)
-        .map(|k| {
-            let (a, b) = (k.saturating_sub(1), (k + 1).min(n - 1));
-            let span = (b - a).max(1) as f64 * dt;
-            AgentState {
-                x: xyh[k][0],
-                y: xyh[k][1],
-                heading: xyh[k][2],
-                vx: (xyh[b][0] - xyh[a][0]) / span,
-                vy: (xyh[b][1] - xyh[a][1]) / span,
-                valid: true,
-            }
+fn to_points(v: &[[f64; 2]]) -> impl Iterator<Item = Point> + '_ {
+    v.iter().map(|p| Point::new(p[0], p[1]))
+}
+
+fn explicit_parts(path: &Path, m: &YamlMap) -> Result<MapParts, IoError> {
+    let line = |loc: String, v: &[[f64; 2]]| {
+        Polyline::new(to_points(v)).map_err(|e| IoError::invalid(path, loc, e.to_string()))
+    };
+    let poly = |loc: String, v: &[[f64; 2]]| {
+        Polygon::new(to_points(v)).map_err(|e| IoError::invalid(path, loc, e.to_string()))
+    };
+    let mut parts = MapParts::default();
+    for (i, l) in m.lanes.iter().enumerate() {
+        let loc = |f: &str| format!("map.lanes[{i}] (id {}).{f}", l.id);
+        let mut lane = Lane::new(l.id, line(loc("centerline"), &l.centerline)?);
+        lane.left_boundary = l.left_boundary.as_deref().map(|b| line(loc("left_boundary"), b)).transpose()?;
+        lane.right_boundary = l.right_boundary.as_deref().map(|b| line(loc("right_boundary"), b)).transpose()?;
+        lane.lane_type = l.lane_type;
+        lane.speed_limit = l.speed_limit;
+        lane.is_intersection = l.intersection;
+        lane.predecessors = l.predecessors.clone();
+        lane.successors = l.successors.clone();
+        lane.left_neighbors = l.left.clone();
+        lane.right_neighbors = l.right.clone();
+        parts.lanes.push(lane);
+    }
+    for (i, e) in m.road_edges.iter().enumerate() {
+        parts.road_edges.push(RoadEdge::new(e.kind, line(format!("map.road_edges[{i}]"), &e.points)?));
+    }
+    for (i, l) in m.road_lines.iter().enumerate() {
+        parts.road_lines.push(RoadLine {
+            kind: l.kind,
+            yellow: l.yellow,
+            line: line(format!("map.road_lines[{i}]"), &l.points)?,
+        });
+    }
+    for (i, c) in m.crosswalks.iter().enumerate() {
+        parts.crosswalks.push(poly(format!("map.crosswalks[{i}]"), c)?);
+    }
+    for (i, c) in m.speed_bumps.iter().enumerate() {
+        parts.speed_bumps.push(poly(format!("map.speed_bumps[{i}]"), c)?);
+    }
+    for (i, c) in m.drivable_areas.iter().enumerate() {
+        parts.drivable_areas.push(poly(format!("map.drivable_areas[{i}]"), c)?);
+    }
+    for (i, s) in m.stop_lines.iter().enumerate() {
+        if s.points.is_empty() || s.points.iter().flatten().any(|v| !v.is_finite()) {
+            return Err(IoError::invalid(path, format!("map.stop_lines[{i}]"), "needs finite points"));
+        }
+        parts.stop_lines.push(StopLine {
+            points: to_points(&s.points).collect(),
+            lanes: s.lanes.clone(),
+        });
+    }
+    Ok(parts)
+}
+
+fn pts_out(pts: &[Point]) -> YamlPoints {
+    pts.iter().map(|p| [p.x, p.y]).collect()
+}
+
+/// The whole scene (map and every agent's states) as a YAML document that [`parse`] reads
+/// back to the same scene.
+pub fn to_yaml(scene: &Scene) -> String {
+    let g = scene.map.graph();
+    let map = YamlMap {
+        lanes: scene
+            .map
+            .lanes()
+            .iter()
+            .map(|l| YamlLane {
+                id: l.id,
+                centerline: pts_out(l.centerline.points()),
+                left_boundary: l.left_boundary.as_ref().map(|b| pts_out(b.points())),
+                right_boundary: l.right_boundary.as_ref().map(|b| pts_out(b.points())),
+                lane_type: l.lane_type,
+                speed_limit: l.speed_limit,
+                intersection: l.is_intersection,
+                predecessors: g.predecessors(l.id).to_vec(),
+                successors: g.successors(l.id).to_vec(),
+                left: g.left_neighbors(l.id).to_vec(),
+                right: g.right_neighbors(l.id).to_vec(),
+            })
+            .collect(),
+        road_edges: scene
+            .map
+            .road_edges()
+            .iter()
+            .map(|e| YamlEdge { kind: e.kind, points: pts_out(e.line().points()) })
+            .collect(),
+        road_lines: scene
+            .map
+            .road_lines()
+            .iter()
+            .map(|l| YamlRoadLine { kind: l.kind, yellow: l.yellow, points: pts_out(l.line.points()) })
+            .collect(),
+        crosswalks: scene.map.crosswalks().iter().map(|p| pts_out(p.points())).collect(),
+        stop_lines: scene
+            .map
+            .stop_lines()
+            .iter()
+            .map(|s| YamlStopLine { points: pts_out(&s.points), lanes: s.lanes.clone() })
+            .collect(),
+        speed_bumps: scene.map.speed_bumps().iter().map(|p| pts_out(p.points())).collect(),
+        drivable_areas: scene.map.drivable_areas().iter().map(|p| pts_out(p.points())).collect(),
+    };
+    let agents = scene
+        .agents
+        .iter()
+        .map(|a| YamlAgent {
+            id: a.id,
+            agent_type: a.agent_type,
+            length: Some(a.length),
+            width: Some(a.width),
+            lane: 0,
+            s: 0.0,
+            d: 0.0,
+            speed: 0.0,
+            accel: 0.0,
+            lane_change: None,
+            valid_from: 0,
+            states: Some(
+                a.states
+                    .iter()
+                    .map(|s| s.valid.then(|| vec![s.x, s.y, s.heading, s.vx, s.vy]))
+                    .collect(),
+            ),
         })
-        .collect()
+        .collect();
+    let doc = YamlScene {
+        scenario_id: Some(scene.meta.scenario_id.clone()),
+        dt: scene.meta.dt,
+        steps: scene.num_steps(),
+        current_step: scene.meta.current_step,
+        road: None,
+        map: Some(map),
+        agents,
+        ego: scene.meta.ego,
+    };
+    let header = format!(
+        "# drivescript scene converted from {} ({})\n",
+        scene.meta.source_file,
+        scene.meta.source_format.name()
+    );
+    header + &serde_yaml::to_string(&doc).expect("scenes serialise to YAML")
+}
+
+fn explicit_states(xyh: &[Option<Vec<f64>>], dt: f64) -> Result<Vec<AgentState>, (usize, String)> {
+    let n = xyh.len();
+    for (k, s) in xyh.iter().enumerate() {
+        if let Some(v) = s {
+            if v.len() != 3 && v.len() != 5 {
+                return Err((k, format!("expected [x, y, heading] or [x, y, heading, vx, vy], got {} numbers", v.len())));
+            }
+            if v.iter().any(|x| !x.is_finite()) {
+                return Err((k, "values must be finite".into()));
+            }
+        }
+    }
+    Ok((0..n)
+        .map(|k| {
+            let Some(v) = &xyh[k] else { return AgentState::INVALID };
+            let (vx, vy) = if v.len() == 5 {
+                (v[3], v[4])
+            } else {
+                // Velocity from neighbouring valid states.
+                let lo = if k > 0 && xyh[k - 1].is_some() { k - 1 } else { k };
+                let hi = if k + 1 < n && xyh[k + 1].is_some() { k + 1 } else { k };
+                if hi > lo {
+                    let (a, b) = (xyh[lo].as_ref().expect("valid"), xyh[hi].as_ref().expect("valid"));
+                    let span = (hi - lo) as f64 * dt;
+                    ((b[0] - a[0]) / span, (b[1] - a[1]) / span)
+                } else {
+                    (0.0, 0.0)
+                }
+            };
+            AgentState { x: v[0], y: v[1], heading: v[2], vx, vy, valid: true }
+        })
+        .collect())
 }
 
 fn lane_motion(a: &YamlAgent, y: &YamlScene, reference: &FrenetPath, w: f64) -> Vec<AgentState> {

@@ -1,1 +1,87 @@
-//! Pictures of scenes: SVG, PNG and animated GIF.
+//! Pictures of scenes: SVG, PNG and animated GIF, in pure Rust.
+//!
+//! One drawing routine ([`draw::draw_scene`]) paints onto a [`Canvas`]; the SVG writer and the
+//! tiny-skia rasteriser are two canvases, and the GIF is raster frames of successive steps.
+
+mod draw;
+mod font;
+mod gif;
+mod raster;
+mod svg;
+
+pub use self::gif::render_gif;
+pub use draw::View;
+pub use raster::render_png;
+pub use svg::render_svg;
+
+use crate::geom::Point;
+
+/// Errors from rendering.
+#[derive(Debug, thiserror::Error)]
+pub enum RenderError {
+    /// The picture would be empty or absurdly large.
+    #[error("cannot render: {0}")]
+    Size(String),
+    /// The encoder failed.
+    #[error("{format} encoding failed: {message}")]
+    Encode {
+        /// PNG or GIF.
+        format: &'static str,
+        /// The encoder's message.
+        message: String,
+    },
+}
+
+/// What to draw and how big.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RenderOptions {
+    /// Image width in pixels (the height follows from the scene's extent).
+    pub width: u32,
+    /// Metres of map shown around the agents.
+    pub margin: f64,
+    /// The step whose boxes are drawn (default: the current step).
+    pub step: Option<usize>,
+    /// Draw history trails (steps up to the drawn one).
+    pub history: bool,
+    /// Draw future trails (steps after the current one).
+    pub future: bool,
+    /// Caption written in the top-left corner.
+    pub caption: Option<String>,
+}
+
+impl Default for RenderOptions {
+    fn default() -> Self {
+        Self {
+            width: 1000,
+            margin: 15.0,
+            step: None,
+            history: true,
+            future: true,
+            caption: None,
+        }
+    }
+}
+
+/// An RGBA colour.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Rgba(pub u8, pub u8, pub u8, pub u8);
+
+impl Rgba {
+    fn hex(self) -> String {
+        format!("#{:02x}{:02x}{:02x}", self.0, self.1, self.2)
+    }
+
+    fn opacity(self) -> f32 {
+        self.3 as f32 / 255.0
+    }
+}
+
+/// A drawing surface in pixel coordinates (y down).
+pub trait Canvas {
+    /// Fills a closed polygon.
+    fn fill_polygon(&mut self, pts: &[Point], color: Rgba);
+    /// Strokes a polyline; `dash` is `[on, off]` in pixels.
+    fn stroke(&mut self, pts: &[Point], width: f32, color: Rgba, dash: Option<[f32; 2]>, closed: bool);
+    /// Writes a short label with its top-left corner at `at`, `size` pixels tall, on a halo.
+    fn label(&mut self, at: Point, text: &str, size: f32, color: Rgba);
+}

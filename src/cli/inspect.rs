@@ -1,0 +1,56 @@
+//! `drivescript inspect`.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::Result;
+use drivescript::io::{discover, load_scenes, LoadOptions};
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Scene files or directories (directories are searched for every readable scene).
+    #[arg(required = true)]
+    scenes: Vec<PathBuf>,
+    /// Print a JSON array of summaries instead of text.
+    #[arg(long)]
+    json: bool,
+}
+
+pub fn run(args: Args) -> Result<ExitCode> {
+    let opts = LoadOptions::default();
+    let mut summaries = Vec::new();
+    let mut failures = 0usize;
+    for root in &args.scenes {
+        let sources = match discover(root) {
+            Ok(s) => s,
+            Err(e) => {
+                eprintln!("error: {e}");
+                failures += 1;
+                continue;
+            }
+        };
+        for src in sources {
+            match load_scenes(&src, &opts) {
+                Ok(scenes) => {
+                    for s in scenes {
+                        let sum = s.summary();
+                        if !args.json {
+                            println!("{sum}\n");
+                        }
+                        summaries.push(sum);
+                    }
+                }
+                Err(e) => {
+                    eprintln!("error: {e}");
+                    failures += 1;
+                }
+            }
+        }
+    }
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&summaries)?);
+    } else {
+        println!("{} scenes read, {} sources failed", summaries.len(), failures);
+    }
+    Ok(if failures == 0 { ExitCode::SUCCESS } else { ExitCode::FAILURE })
+}

@@ -1,0 +1,77 @@
+//! Command-line interface: argument definitions and dispatch.
+
+mod bench;
+mod convert;
+mod demo;
+mod inspect;
+mod render;
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+/// Controllable traffic simulation on real road maps.
+#[derive(Parser)]
+#[command(name = "drivescript", version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Summarise scenes: format, scenario id, time grid, agents by type, map and lane graph.
+    #[command(after_help = "Examples:
+  drivescript inspect data/samples/commonroad/USA_US101-3_3_T-1.xml
+  drivescript inspect data/samples --json
+  drivescript inspect ~/womd/validation/   # every shard, every scenario")]
+    Inspect(inspect::Args),
+    /// Draw a scene (or a rollout on its map) as SVG, PNG or animated GIF.
+    #[command(after_help = "Examples:
+  drivescript render data/samples/commonroad/USA_Lanker-1_1_T-1.xml -o lanker.png
+  drivescript render scene.yaml --rollout sim.json -o sim.gif
+  drivescript render training.tfrecord-00000-of-01000 --index 3 --step 0 -o s3.svg")]
+    Render(render::Args),
+    /// Convert a scene to YAML (map and agents) or TFRecord, or its trajectories to rollout JSON.
+    #[command(after_help = "Examples:
+  drivescript convert data/samples/av2/ -o av2.yaml
+  drivescript convert data/samples/commonroad/USA_US101-3_3_T-1.xml -o us101.tfrecord
+  drivescript convert scene.yaml -o recorded.json")]
+    Convert(convert::Args),
+    /// Run the demo: render a sample scene to out/demo.gif and print its summary.
+    Demo(demo::Args),
+    /// Measure throughput and print a table.
+    #[command(after_help = "Examples:
+  drivescript bench io
+  drivescript bench io --data ../shared/data/commonroad-ngsim")]
+    Bench(bench::Args),
+}
+
+/// Parses the command line and runs the subcommand; errors are printed with their causes.
+pub fn run() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Inspect(a) => inspect::run(a),
+        Command::Render(a) => render::run(a),
+        Command::Convert(a) => convert::run(a),
+        Command::Demo(a) => demo::run(a),
+        Command::Bench(a) => bench::run(a),
+    };
+    match result {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// Where the repository's sample data lives (next to the binary's crate, or the working dir).
+pub(crate) fn samples_dir() -> PathBuf {
+    let here = PathBuf::from("data/samples");
+    if here.exists() {
+        return here;
+    }
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("data/samples")
+}

@@ -1,0 +1,69 @@
+//! `drivescript render`.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use anyhow::{bail, Context, Result};
+use drivescript::io::{load_scene, rollout::Rollout, write_atomic, LoadOptions};
+use drivescript::render::{render_gif, render_png, render_svg, RenderOptions};
+use drivescript::scene::Scene;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// The scene file or directory.
+    scene: PathBuf,
+    /// Draw this rollout's trajectories instead of the recorded ones.
+    #[arg(long)]
+    rollout: Option<PathBuf>,
+    /// Which scene of a multi-scene source (WOMD files hold many).
+    #[arg(long, default_value_t = 0)]
+    index: usize,
+    /// Step whose boxes are drawn in SVG/PNG (default: the current step).
+    #[arg(long)]
+    step: Option<usize>,
+    /// Image width in pixels.
+    #[arg(long, default_value_t = 1000)]
+    width: u32,
+    /// Output: .svg, .png or .gif.
+    #[arg(short, long)]
+    output: PathBuf,
+}
+
+/// Writes `scene` as SVG, PNG or GIF by the output's extension.
+pub fn write_picture(scene: &Scene, output: &Path, opts: &RenderOptions) -> Result<()> {
+    let ext = output
+        .extension()
+        .map(|e| e.to_string_lossy().to_lowercase())
+        .unwrap_or_default();
+    let bytes = match ext.as_str() {
+        "svg" => render_svg(scene, opts)?.into_bytes(),
+        "png" => render_png(scene, opts)?,
+        "gif" => render_gif(scene, opts)?,
+        _ => bail!("{}: unknown picture format; use .svg, .png or .gif", output.display()),
+    };
+    write_atomic(output, &bytes)?;
+    Ok(())
+}
+
+pub fn run(args: Args) -> Result<ExitCode> {
+    let mut scene = load_scene(&args.scene, args.index, &LoadOptions::default())?;
+    if let Some(r) = &args.rollout {
+        let rollout = Rollout::read(r)?;
+        scene = rollout
+            .apply_to(&scene, r)
+            .with_context(|| format!("applying {} to {}", r.display(), args.scene.display()))?;
+    }
+    if let Some(step) = args.step {
+        if step >= scene.num_steps() {
+            bail!("--step {step}: the scene has {} steps", scene.num_steps());
+        }
+    }
+    let opts = RenderOptions {
+        width: args.width,
+        step: args.step,
+        ..RenderOptions::default()
+    };
+    write_picture(&scene, &args.output, &opts)?;
+    println!("wrote {}", args.output.display());
+    Ok(ExitCode::SUCCESS)
+}

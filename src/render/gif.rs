@@ -1,0 +1,93 @@
+//! Animated GIFs of rollouts: one frame per step over a map drawn once.
+
+use super::draw::{draw_agents, draw_caption, draw_map, View};
+use super::raster::RasterCanvas;
+use super::{RenderError, RenderOptions};
+use crate::scene::Scene;
+
+/// Levels per channel of the fixed 6×7×6 colour cube (252 colours) plus 4 greys.
+const R_LEVELS: u32 = 6;
+const G_LEVELS: u32 = 7;
+const B_LEVELS: u32 = 6;
+
+fn palette() -> Vec<u8> {
+    let mut p = Vec::with_capacity(256 * 3);
+    for r in 0..R_LEVELS {
+        for g in 0..G_LEVELS {
+            for b in 0..B_LEVELS {
+                p.push((r * 255 / (R_LEVELS - 1)) as u8);
+                p.push((g * 255 / (G_LEVELS - 1)) as u8);
+                p.push((b * 255 / (B_LEVELS - 1)) as u8);
+            }
+        }
+    }
+    for v in [60u8, 120, 180, 228] {
+        p.extend_from_slice(&[v, v, v]);
+    }
+    p
+}
+
+/// Maps a pixel to the fixed palette: a fixed palette keeps colours stable across frames (no
+/// flicker) and costs one lookup per pixel instead of a per-frame quantiser.
+fn index(r: u8, g: u8, b: u8) -> u8 {
+    let q = |v: u8, levels: u32| (v as u32 * (levels - 1) + 127) / 255;
+    let (qr, qg, qb) = (q(r, R_LEVELS), q(g, G_LEVELS), q(b, B_LEVELS));
+    let cube = (qr * G_LEVELS + qg) * B_LEVELS + qb;
+    // Near-greys go to the closest of cube greys and the four extra greys.
+    let (mx, mn) = (r.max(g).max(b), r.min(g).min(b));
+    if mx - mn < 10 {
+        let v = (r as u32 + g as u32 + b as u32) / 3;
+        let extra = [60u32, 120, 180, 228];
+        let (k, d) = extra
+            .iter()
+            .enumerate()
+            .map(|(k, e)| (k, e.abs_diff(v)))
+            .min_by_key(|(_, d)| *d)
+            .expect("four greys");
+        let cube_v = qr * 255 / (R_LEVELS - 1);
+        if d < cube_v.abs_diff(v) {
+            return (R_LEVELS * G_LEVELS * B_LEVELS) as u8 + k as u8;
+        }
+    }
+    cube as u8
+}
+
+/// An animation of every step of the scene (trails grow as it plays), looping forever.
+pub fn render_gif(scene: &Scene, opts: &RenderOptions) -> Result<Vec<u8>, RenderError> {
+    let view = View::fit(scene, opts)?;
+    let mut base = RasterCanvas::new(&view)?;
+    draw_map(&mut base, scene, &view);
+    let (w, h) = (view.width as u16, view.height as u16);
+    let err = |e: gif::EncodingError| RenderError::Encode {
+        format: "GIF",
+        message: e.to_string(),
+    };
+    let mut out = Vec::new();
+    {
+        let mut enc = gif::Encoder::new(&mut out, w, h, &palette()).map_err(err)?;
+        enc.set_repeat(gif::Repeat::Infinite).map_err(err)?;
+        let delay = ((scene.meta.dt * 100.0).round() as u16).max(2);
+        let steps = scene.num_steps().max(1);
+        for step in 0..steps {
+            let mut c = RasterCanvas {
+                pixmap: base.pixmap.clone(),
+            };
+            let frame_opts = RenderOptions {
+                step: Some(step),
+                ..opts.clone()
+            };
+            draw_agents(&mut c, scene, &view, step, &frame_opts);
+            draw_caption(&mut c, scene, &view, step, &frame_opts);
+            let px: Vec<u8> = c
+                .pixmap
+                .data()
+                .chunks_exact(4)
+                .map(|p| index(p[0], p[1], p[2]))
+                .collect();
+            let mut frame = gif::Frame::from_indexed_pixels(w, h, px, None);
+            frame.delay = if step + 1 == steps { delay * 10 } else { delay };
+            enc.write_frame(&frame).map_err(err)?;
+        }
+    }
+    Ok(out)
+}
