@@ -470,3 +470,234 @@ pub fn write_file(path: &Path, scenes: &[Scene]) -> Result<(), IoError> {
     }
     super::write_atomic(path, &buf)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn mp(x: f64, y: f64) -> pb::MapPoint {
+        pb::MapPoint { x: Some(x), y: Some(y), z: Some(0.0) }
+    }
+
+    fn state(x: f64, valid: bool) -> pb::ObjectState {
+        pb::ObjectState {
+            center_x: Some(x),
+            center_y: Some(1.8),
+            center_z: Some(0.0),
+            length: Some(4.5),
+            width: Some(2.0),
+            height: Some(1.6),
+            heading: Some(0.0),
+            velocity_x: Some(10.0),
+            velocity_y: Some(0.0),
+            valid: Some(valid),
+        }
+    }
+
+    fn feature(id: i64, data: pb::FeatureData) -> pb::MapFeature {
+        pb::MapFeature { id: Some(id), feature_data: Some(data) }
+    }
+
+    /// A scenario with every kind of map feature, encoded by prost as WOMD files are.
+    fn scenario() -> pb::Scenario {
+        let lane = |pts: Vec<pb::MapPoint>, exit: Vec<i64>, left: Vec<i64>| {
+            pb::FeatureData::Lane(pb::LaneCenter {
+                speed_limit_mph: Some(25.0),
+                r#type: Some(pb::lane_type::SURFACE_STREET),
+                interpolating: Some(false),
+                polyline: pts,
+                entry_lanes: vec![],
+                exit_lanes: exit,
+                left_boundaries: vec![pb::BoundarySegment {
+                    lane_start_index: Some(0),
+                    lane_end_index: Some(1),
+                    boundary_feature_id: Some(30),
+                    boundary_type: Some(pb::road_line_type::BROKEN_SINGLE_WHITE),
+                }],
+                right_boundaries: vec![],
+                left_neighbors: left
+                    .into_iter()
+                    .map(|id| pb::LaneNeighbor { feature_id: Some(id), ..Default::default() })
+                    .collect(),
+                right_neighbors: vec![],
+            })
+        };
+        pb::Scenario {
+            scenario_id: Some("abc123".into()),
+            timestamps_seconds: (0..5).map(|k| k as f64 * 0.1).collect(),
+            current_time_index: Some(2),
+            tracks: vec![
+                pb::Track {
+                    id: Some(7),
+                    object_type: Some(pb::object_type::VEHICLE),
+                    states: (0..5).map(|k| state(k as f64, true)).collect(),
+                },
+                pb::Track {
+                    id: Some(9),
+                    object_type: Some(pb::object_type::PEDESTRIAN),
+                    states: (0..5).map(|k| state(k as f64, k >= 3)).collect(),
+                },
+            ],
+            dynamic_map_states: vec![
+                pb::DynamicMapState {
+                    lane_states: vec![pb::TrafficSignalLaneState {
+                        lane: Some(1),
+                        state: Some(6),
+                        stop_point: Some(mp(50.0, 1.8)),
+                    }],
+                };
+                5
+            ],
+            map_features: vec![
+                feature(1, lane(vec![mp(0.0, 1.8), mp(50.0, 1.8)], vec![2, 99], vec![3])),
+                feature(2, lane(vec![mp(50.0, 1.8), mp(100.0, 1.8)], vec![], vec![])),
+                feature(3, lane(vec![mp(0.0, 5.4), mp(50.0, 5.4)], vec![], vec![])),
+                feature(4, lane(vec![mp(3.0, 3.0)], vec![], vec![])),
+                feature(
+                    20,
+                    pb::FeatureData::RoadEdge(pb::RoadEdge {
+                        r#type: Some(pb::road_edge_type::BOUNDARY),
+                        polyline: vec![mp(0.0, 0.0), mp(100.0, 0.0)],
+                    }),
+                ),
+                feature(
+                    30,
+                    pb::FeatureData::RoadLine(pb::RoadLine {
+                        r#type: Some(pb::road_line_type::SOLID_DOUBLE_YELLOW),
+                        polyline: vec![mp(0.0, 7.2), mp(100.0, 7.2)],
+                    }),
+                ),
+                feature(
+                    40,
+                    pb::FeatureData::StopSign(pb::StopSign { lane: vec![1], position: Some(mp(50.0, 0.0)) }),
+                ),
+                feature(
+                    50,
+                    pb::FeatureData::Crosswalk(pb::Crosswalk {
+                        polygon: vec![mp(60.0, 0.0), mp(64.0, 0.0), mp(64.0, 7.0), mp(60.0, 7.0)],
+                    }),
+                ),
+                feature(
+                    60,
+                    pb::FeatureData::SpeedBump(pb::SpeedBump {
+                        polygon: vec![mp(80.0, 0.0), mp(81.0, 0.0), mp(81.0, 7.0)],
+                    }),
+                ),
+                feature(
+                    70,
+                    pb::FeatureData::Driveway(pb::Driveway {
+                        polygon: vec![mp(0.0, -5.0), mp(5.0, -5.0), mp(5.0, 0.0)],
+                    }),
+                ),
+            ],
+            sdc_track_index: Some(0),
+            objects_of_interest: vec![7, 9],
+            tracks_to_predict: vec![pb::RequiredPrediction { track_index: Some(1), difficulty: Some(1) }],
+        }
+    }
+
+    fn framed(records: &[Vec<u8>]) -> Vec<u8> {
+        let mut buf = Vec::new();
+        for r in records {
+            write_record(&mut buf, r).unwrap();
+        }
+        buf
+    }
+
+    #[test]
+    fn hand_encoded_scenario_reads_back() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("training.tfrecord-00000-of-00001");
+        let bytes = scenario().encode_to_vec();
+        std::fs::write(&path, framed(&[bytes.clone(), bytes])).unwrap();
+        let scenes: Vec<Scene> = read_file(&path).unwrap().map(Result::unwrap).collect();
+        assert_eq!(scenes.len(), 2);
+        let s = &scenes[0];
+        assert_eq!(s.meta.scenario_id, "abc123");
+        assert_eq!((s.num_steps(), s.meta.current_step, s.meta.ego), (5, 2, Some(7)));
+        assert!((s.meta.dt - 0.1).abs() < 1e-12);
+        let ped = s.agent(9).unwrap();
+        assert_eq!(ped.agent_type, AgentType::Pedestrian);
+        assert_eq!(ped.valid_span(), Some((3, 4)));
+        assert_eq!((ped.length, ped.width), (4.5, 2.0));
+        let lane = s.map.lane(1).unwrap();
+        assert!((lane.speed_limit.unwrap() - 25.0 * MPH_TO_MPS).abs() < 1e-9);
+        assert!(!lane.is_intersection);
+        assert_eq!(s.map.graph().successors(1), &[2]);
+        assert_eq!(s.map.graph().left(1), Some(3));
+        assert_eq!(s.map.graph().dangling(), 1, "exit lane 99 is outside the map");
+        assert_eq!(s.map.lanes().len(), 3, "the one-point lane 4 is skipped");
+        assert_eq!(s.map.road_edges().len(), 1);
+        assert_eq!(s.map.road_lines()[0].kind, RoadLineKind::DoubleSolid);
+        assert!(s.map.road_lines()[0].yellow);
+        assert_eq!((s.map.crosswalks().len(), s.map.speed_bumps().len()), (1, 1));
+        assert_eq!(s.map.stop_lines()[0].lanes, vec![1]);
+        let w = s.meta.warnings.join("\n");
+        assert!(w.contains("lane 4 skipped"), "{w}");
+        assert!(w.contains("1 driveways"), "{w}");
+        assert!(w.contains("5 traffic-signal lane states"), "{w}");
+    }
+
+    #[test]
+    fn scene_to_scenario_round_trips() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.tfrecord");
+        std::fs::write(&path, framed(&[scenario().encode_to_vec()])).unwrap();
+        let s = read_file(&path).unwrap().next().unwrap().unwrap();
+        let out = dir.path().join("b.tfrecord");
+        write_file(&out, std::slice::from_ref(&s)).unwrap();
+        let back = read_file(&out).unwrap().next().unwrap().unwrap();
+        assert_eq!(back.agents.len(), s.agents.len());
+        for (a, b) in s.agents.iter().zip(&back.agents) {
+            assert_eq!((a.id, a.agent_type, a.valid_span()), (b.id, b.agent_type, b.valid_span()));
+            for (x, y) in a.states.iter().zip(&b.states) {
+                assert!((x.x - y.x).abs() < 1e-9 && (x.heading - y.heading).abs() < 1e-6);
+            }
+        }
+        assert_eq!(back.map.lanes().len(), s.map.lanes().len());
+        assert_eq!(back.map.graph().edge_counts(), s.map.graph().edge_counts());
+        assert_eq!(back.map.road_lines()[0].kind, RoadLineKind::DoubleSolid);
+        assert_eq!(back.meta.ego, Some(7));
+    }
+
+    #[test]
+    fn bad_records_name_the_record() {
+        let dir = tempfile::tempdir().unwrap();
+        let good = scenario().encode_to_vec();
+        let path = dir.path().join("x.tfrecord");
+        // Framing is fine but record 1 is not a protobuf message.
+        std::fs::write(&path, framed(&[good.clone(), vec![0xff; 40]])).unwrap();
+        let results: Vec<_> = read_file(&path).unwrap().collect();
+        assert!(results[0].is_ok());
+        let e = results[1].as_ref().unwrap_err().to_string();
+        assert!(e.contains("record 1") && e.contains("not a Scenario proto"), "{e}");
+        // A track whose state count disagrees with the timestamps.
+        let mut sc = scenario();
+        sc.tracks[1].states.pop();
+        std::fs::write(&path, framed(&[good, sc.encode_to_vec()])).unwrap();
+        let e = read_file(&path).unwrap().nth(1).unwrap().unwrap_err().to_string();
+        assert!(e.contains("record 1") && e.contains("track 1 (id 9) has 4 states"), "{e}");
+        // A bit flip in record 1's payload.
+        let mut bytes = framed(&[scenario().encode_to_vec(), scenario().encode_to_vec()]);
+        let n = bytes.len();
+        bytes[n - 30] ^= 0x04;
+        std::fs::write(&path, &bytes).unwrap();
+        let e = read_file(&path).unwrap().nth(1).unwrap().unwrap_err().to_string();
+        assert!(e.contains("record 1") && e.contains("checksum"), "{e}");
+    }
+
+    #[test]
+    fn shard_directories_stream_in_name_order() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut sc = scenario();
+        for k in 0..3 {
+            sc.scenario_id = Some(format!("s{k}"));
+            let name = format!("validation.tfrecord-0000{k}-of-00003");
+            std::fs::write(dir.path().join(name), framed(&[sc.encode_to_vec()])).unwrap();
+        }
+        std::fs::write(dir.path().join("README.txt"), "not a shard").unwrap();
+        assert!(is_shard_dir(dir.path()));
+        let ids: Vec<String> = read_shards(dir.path()).unwrap().map(|s| s.unwrap().meta.scenario_id).collect();
+        assert_eq!(ids, vec!["s0", "s1", "s2"]);
+    }
+}

@@ -163,3 +163,96 @@ impl Map {
         })
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geom::Point;
+    use crate::io::yaml;
+    use std::path::Path;
+
+    /// Lane 1 runs east into a fork: 2 goes straight on, 3 turns left, 4 turns right; 0 leads
+    /// into 1, and 5 runs beside 1 on its left.
+    fn fork() -> crate::scene::Scene {
+        let text = r#"
+steps: 2
+current_step: 0
+map:
+  lanes:
+    - {id: 0, centerline: [[-50, 0], [0, 0]], successors: [1]}
+    - {id: 1, centerline: [[0, 0], [50, 0]], successors: [2, 3, 4], left: [5]}
+    - {id: 2, centerline: [[50, 0], [100, 0]]}
+    - {id: 3, centerline: [[50, 0], [60, 2], [68, 10], [70, 20]]}
+    - {id: 4, centerline: [[50, 0], [60, -2], [68, -10], [70, -20]]}
+    - {id: 5, centerline: [[0, 3.5], [50, 3.5]]}
+agents:
+  - {id: 1, states: [[10, 0, 0], [11, 0, 0]]}
+"#;
+        yaml::parse(Path::new("fork.yaml"), text).unwrap()
+    }
+
+    #[test]
+    fn straight_on_at_forks_unless_told() {
+        let s = fork();
+        let p = s.map.lane_path(1, 200.0, 100.0, Turn::Straight).unwrap();
+        assert_eq!(p.lanes, vec![0, 1, 2]);
+        assert!((p.origin_s() - 50.0).abs() < 1e-9);
+        assert!((p.frenet.length() - 150.0).abs() < 1e-9);
+        assert_eq!(p.lane_at_s(75.0), 1);
+        let left = s.map.lane_path(1, 200.0, 0.0, Turn::Left).unwrap();
+        assert_eq!(left.lanes, vec![1, 3]);
+        let right = s.map.lane_path(1, 200.0, 0.0, Turn::Right).unwrap();
+        assert_eq!(right.lanes, vec![1, 4]);
+        // Short requests stop as soon as the length is covered.
+        assert_eq!(s.map.lane_path(1, 30.0, 0.0, Turn::Straight).unwrap().lanes, vec![1]);
+        assert!(matches!(
+            s.map.lane_path(42, 10.0, 0.0, Turn::Straight),
+            Err(SceneError::UnknownLane(42))
+        ));
+    }
+
+    #[test]
+    fn turns_are_classified_by_heading_change() {
+        let s = fork();
+        assert_eq!(s.map.turn_of(2), Some(Turn::Straight));
+        assert_eq!(s.map.turn_of(3), Some(Turn::Left));
+        assert_eq!(s.map.turn_of(4), Some(Turn::Right));
+    }
+
+    #[test]
+    fn frenet_on_a_lane_path_measures_from_its_start() {
+        let s = fork();
+        let p = s.map.lane_path(1, 100.0, 50.0, Turn::Straight).unwrap();
+        let f = p.frenet.project(Point::new(20.0, 1.5));
+        assert!((f.s - 70.0).abs() < 1e-9 && (f.d - 1.5).abs() < 1e-9);
+    }
+
+    #[test]
+    fn lane_graph_queries() {
+        let s = fork();
+        let g = s.map.graph();
+        assert_eq!(g.left(1), Some(5));
+        assert_eq!(g.right(5), Some(1), "neighbour edges are made symmetric");
+        assert_eq!(g.leftmost(1), 5);
+        assert_eq!(g.rightmost(5), 1);
+        assert!(g.is_rightmost(1) && !g.is_rightmost(5));
+        assert_eq!(g.lane_count(1), 2);
+        assert_eq!(g.predecessors(3), &[1]);
+        assert_eq!(g.successors(0), &[1]);
+        let c = g.edge_counts();
+        assert_eq!((c.successor, c.predecessor, c.left, c.right), (4, 4, 1, 1));
+    }
+
+    #[test]
+    fn lane_at_prefers_the_lane_going_the_agents_way() {
+        let s = fork();
+        // At the fork all three successors start at the same point; heading decides.
+        let at = |x: f64, y: f64, h: f64| s.map.lane_at(Point::new(x, y), h);
+        assert_eq!(at(52.0, 0.3, 0.2), Some(3));
+        assert_eq!(at(52.0, -0.3, -0.2), Some(4));
+        assert_eq!(at(20.0, 3.0, 0.0), Some(5));
+        assert_eq!(at(20.0, 0.5, 0.0), Some(1));
+        // Facing backwards matches no lane.
+        assert_eq!(at(20.0, 0.5, std::f64::consts::PI), None);
+    }
+}
