@@ -53,7 +53,10 @@ fn load_all(sources: &[PathBuf]) -> Result<usize> {
 fn row(name: &str, sources: &[PathBuf], min: Duration) -> Result<()> {
     let n = load_all(sources).with_context(|| format!("loading the {name} scenes"))?;
     let (r, reps) = rate(min, n, || load_all(sources).map(|_| ()))?;
-    println!("| {name:<40} | {n:>6} | {reps:>5} | {r:>10.1} | {:>9.2} |", 1000.0 / r);
+    println!(
+        "| {name:<40} | {n:>6} | {reps:>5} | {r:>10.1} | {:>9.2} |",
+        1000.0 / r
+    );
     Ok(())
 }
 
@@ -62,8 +65,14 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let min = Duration::from_secs_f64(args.seconds.max(0.05));
     let samples = super::samples_dir();
     println!("## Scene readers\n");
-    println!("| {:<40} | scenes |  reps |   scenes/s |  ms/scene |", "format");
-    println!("|{}|--------|-------|------------|-----------|", "-".repeat(42));
+    println!(
+        "| {:<40} | scenes |  reps |   scenes/s |  ms/scene |",
+        "format"
+    );
+    println!(
+        "|{}|--------|-------|------------|-----------|",
+        "-".repeat(42)
+    );
     let cr = discover(&samples.join("commonroad"))?;
     row("CommonRoad XML (samples)", &cr, min)?;
     if let Some(d) = &args.data {
@@ -72,10 +81,21 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
     row("Argoverse 2 (sample)", &[samples.join("av2")], min)?;
     row("YAML (samples)", &discover(&samples.join("yaml"))?, min)?;
-    let tmp = std::env::temp_dir().join(format!("drivescript-bench-{}.tfrecord", std::process::id()));
-    let scenes: Vec<_> = cr.iter().map(|p| load_scenes(p, &LoadOptions::default())).collect::<Result<Vec<_>, _>>()?.into_iter().flatten().collect();
+    let tmp =
+        std::env::temp_dir().join(format!("drivescript-bench-{}.tfrecord", std::process::id()));
+    let scenes: Vec<_> = cr
+        .iter()
+        .map(|p| load_scenes(p, &LoadOptions::default()))
+        .collect::<Result<Vec<_>, _>>()?
+        .into_iter()
+        .flatten()
+        .collect();
     womd::write_file(&tmp, &scenes)?;
-    let res = row("WOMD TFRecord (samples, re-encoded)", std::slice::from_ref(&tmp), min);
+    let res = row(
+        "WOMD TFRecord (samples, re-encoded)",
+        std::slice::from_ref(&tmp),
+        min,
+    );
     let _ = std::fs::remove_file(&tmp);
     res?;
 
@@ -113,8 +133,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
 
 /// A real lane path from the Lankershim sample, resampled to 200 points.
 fn bench_path(samples: &Path) -> Result<FrenetPath> {
-    let scene = load_scenes(&samples.join("commonroad/USA_Lanker-1_1_T-1.xml"), &LoadOptions::default())?
-        .remove(0);
+    let scene = load_scenes(
+        &samples.join("commonroad/USA_Lanker-1_1_T-1.xml"),
+        &LoadOptions::default(),
+    )?
+    .remove(0);
     let best = scene
         .map
         .lanes()

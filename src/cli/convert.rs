@@ -28,7 +28,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
     } else if name.ends_with(".tfrecord") || name.contains(".tfrecord-") {
         womd::write_file(&args.output, std::slice::from_ref(&scene))?;
     } else {
-        bail!("{}: unknown output format; use .yaml, .json or .tfrecord", args.output.display());
+        bail!(
+            "{}: unknown output format; use .yaml, .json or .tfrecord",
+            args.output.display()
+        );
     }
     println!("wrote {}", args.output.display());
     Ok(ExitCode::SUCCESS)

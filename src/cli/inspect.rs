@@ -50,7 +50,15 @@ pub fn run(args: Args) -> Result<ExitCode> {
     if args.json {
         println!("{}", serde_json::to_string_pretty(&summaries)?);
     } else {
-        println!("{} scenes read, {} sources failed", summaries.len(), failures);
+        println!(
+            "{} scenes read, {} sources failed",
+            summaries.len(),
+            failures
+        );
     }
-    Ok(if failures == 0 { ExitCode::SUCCESS } else { ExitCode::FAILURE })
+    Ok(if failures == 0 {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    })
 }

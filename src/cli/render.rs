@@ -39,7 +39,10 @@ pub fn write_picture(scene: &Scene, output: &Path, opts: &RenderOptions) -> Resu
         "svg" => render_svg(scene, opts)?.into_bytes(),
         "png" => render_png(scene, opts)?,
         "gif" => render_gif(scene, opts)?,
-        _ => bail!("{}: unknown picture format; use .svg, .png or .gif", output.display()),
+        _ => bail!(
+            "{}: unknown picture format; use .svg, .png or .gif",
+            output.display()
+        ),
     };
     write_atomic(output, &bytes)?;
     Ok(())

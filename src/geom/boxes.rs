@@ -128,10 +128,12 @@ impl OrientedBox {
 }
 
 fn project(corners: &[Point; 4], axis: &Point) -> (f64, f64) {
-    corners.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), c| {
-        let p = c.dot(axis);
-        (lo.min(p), hi.max(p))
-    })
+    corners
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), c| {
+            let p = c.dot(axis);
+            (lo.min(p), hi.max(p))
+        })
 }
 
 #[cfg(test)]

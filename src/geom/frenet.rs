@@ -171,9 +171,7 @@ impl FrenetPath {
         let n = *self.normals.last().expect("two vertices");
         Piece {
             a: self.line.last(),
-            e: self
-                .line
-                .segment_direction(self.line.segment_count() - 1),
+            e: self.line.segment_direction(self.line.segment_count() - 1),
             n0: n,
             n1: n,
             s0: self.line.length(),
@@ -300,9 +298,8 @@ mod tests {
 
     #[test]
     fn straight_path_is_cartesian() {
-        let f = FrenetPath::new(
-            Polyline::new([Point::new(0.0, 0.0), Point::new(10.0, 0.0)]).unwrap(),
-        );
+        let f =
+            FrenetPath::new(Polyline::new([Point::new(0.0, 0.0), Point::new(10.0, 0.0)]).unwrap());
         let fp = f.project(Point::new(3.0, 2.0));
         assert!((fp.s - 3.0).abs() < 1e-12 && (fp.d - 2.0).abs() < 1e-12);
         assert_eq!(fp.ds, [1.0, 0.0]);
@@ -333,7 +330,10 @@ mod tests {
             for k in 1..=2000 {
                 let p = Point::new(15.0 + k as f64 * 0.005, y);
                 let fp = f.project(p);
-                assert!((fp.s - prev.s).abs() < 0.02, "s jumps at {p:?}: {prev:?} -> {fp:?}");
+                assert!(
+                    (fp.s - prev.s).abs() < 0.02,
+                    "s jumps at {p:?}: {prev:?} -> {fp:?}"
+                );
                 assert!((fp.d - prev.d).abs() < 0.02, "d jumps at {p:?}");
                 prev = fp;
             }

@@ -120,8 +120,10 @@ mod tests {
             let a = k as f64 * 0.77;
             let w = wrap_angle(a);
             assert!(w > -std::f64::consts::PI - 1e-12 && w <= std::f64::consts::PI + 1e-12);
-            assert!(((a - w) / std::f64::consts::TAU).fract().abs() < 1e-9
-                || (1.0 - ((a - w) / std::f64::consts::TAU).fract().abs()) < 1e-9);
+            assert!(
+                ((a - w) / std::f64::consts::TAU).fract().abs() < 1e-9
+                    || (1.0 - ((a - w) / std::f64::consts::TAU).fract().abs()) < 1e-9
+            );
         }
     }
 

@@ -37,7 +37,11 @@ impl Polygon {
             });
         }
         let (lo, hi) = bounds_of(&pts);
-        Ok(Self { points: pts, lo, hi })
+        Ok(Self {
+            points: pts,
+            lo,
+            hi,
+        })
     }
 
     /// The ring's points, without the closing repeat.

@@ -18,8 +18,8 @@ use serde::Deserialize;
 use super::IoError;
 use crate::geom::{Point, Polygon, Polyline};
 use crate::scene::{
-    Agent, AgentState, AgentType, Lane, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind,
-    RoadLine, RoadLineKind, Scene, SceneMeta, SourceFormat,
+    Agent, AgentState, AgentType, Lane, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind, RoadLine,
+    RoadLineKind, Scene, SceneMeta, SourceFormat,
 };
 
 /// The scenario parquet and map JSON of an AV2 scenario directory.
@@ -28,7 +28,11 @@ pub fn find_scenario_in_dir(dir: &Path) -> Result<(PathBuf, PathBuf), IoError> {
     let mut map = None;
     for e in std::fs::read_dir(dir).map_err(|e| IoError::read(dir, e))? {
         let p = e.map_err(|e| IoError::read(dir, e))?.path();
-        let name = p.file_name().unwrap_or_default().to_string_lossy().into_owned();
+        let name = p
+            .file_name()
+            .unwrap_or_default()
+            .to_string_lossy()
+            .into_owned();
         if name.starts_with("scenario_") && name.ends_with(".parquet") {
             parquet = Some(p);
         } else if name.starts_with("log_map_archive_") && name.ends_with(".json") {
@@ -37,8 +41,16 @@ pub fn find_scenario_in_dir(dir: &Path) -> Result<(PathBuf, PathBuf), IoError> {
     }
     match (parquet, map) {
         (Some(p), Some(m)) => Ok((p, m)),
-        (None, _) => Err(IoError::invalid(dir, "directory", "no scenario_*.parquet file")),
-        (_, None) => Err(IoError::invalid(dir, "directory", "no log_map_archive_*.json file")),
+        (None, _) => Err(IoError::invalid(
+            dir,
+            "directory",
+            "no scenario_*.parquet file",
+        )),
+        (_, None) => Err(IoError::invalid(
+            dir,
+            "directory",
+            "no log_map_archive_*.json file",
+        )),
     }
 }
 
@@ -70,7 +82,11 @@ pub fn read(path: &Path) -> Result<Scene, IoError> {
     } else {
         let dir = path.parent().unwrap_or(Path::new("."));
         let (_, m) = find_scenario_in_dir(dir).map_err(|_| {
-            IoError::invalid(path, "map", "no log_map_archive_*.json beside the parquet file")
+            IoError::invalid(
+                path,
+                "map",
+                "no log_map_archive_*.json beside the parquet file",
+            )
         })?;
         (path.to_path_buf(), m)
     };
@@ -101,8 +117,9 @@ struct Row {
 
 fn read_tracks(path: &Path) -> Result<(Vec<Agent>, SceneMeta), IoError> {
     let file = File::open(path).map_err(|e| IoError::read(path, e))?;
-    let reader = SerializedFileReader::new(file)
-        .map_err(|e| IoError::invalid(path, "footer", format!("not a readable parquet file: {e}")))?;
+    let reader = SerializedFileReader::new(file).map_err(|e| {
+        IoError::invalid(path, "footer", format!("not a readable parquet file: {e}"))
+    })?;
     let iter = reader
         .get_row_iter(None)
         .map_err(|e| IoError::invalid(path, "schema", e.to_string()))?;
@@ -127,7 +144,11 @@ fn read_tracks(path: &Path) -> Result<(Vec<Agent>, SceneMeta), IoError> {
                 _ => None,
             };
             match name.as_str() {
-                "observed" => r.observed = matches!(field, Field::Bool(true)).then_some(true).or(Some(false)),
+                "observed" => {
+                    r.observed = matches!(field, Field::Bool(true))
+                        .then_some(true)
+                        .or(Some(false))
+                }
                 "track_id" => r.track_id = s(field),
                 "object_type" => r.object_type = s(field),
                 "timestep" => r.timestep = int(field),
@@ -151,22 +172,36 @@ fn read_tracks(path: &Path) -> Result<(Vec<Agent>, SceneMeta), IoError> {
             ("heading", r.heading.is_none()),
         ];
         if let Some((col, _)) = missing.iter().find(|(_, m)| *m) {
-            return Err(IoError::invalid(path, format!("row {i}"), format!("column {col} is missing or null")));
+            return Err(IoError::invalid(
+                path,
+                format!("row {i}"),
+                format!("column {col} is missing or null"),
+            ));
         }
         rows.push(r);
     }
     if rows.is_empty() {
-        return Err(IoError::invalid(path, "rows", "the scenario has no track states"));
+        return Err(IoError::invalid(
+            path,
+            "rows",
+            "the scenario has no track states",
+        ));
     }
-    let steps = rows
-        .iter()
-        .filter_map(|r| r.num_timestamps)
-        .max()
-        .unwrap_or(0)
-        .max(rows.iter().filter_map(|r| r.timestep).max().unwrap_or(0) + 1) as usize;
-    let mut warnings = vec![
-        "AV2 has no object sizes: nominal footprints by type are used".to_string(),
-    ];
+    let steps =
+        rows.iter()
+            .filter_map(|r| r.num_timestamps)
+            .max()
+            .unwrap_or(0)
+            .max(rows.iter().filter_map(|r| r.timestep).max().unwrap_or(0) + 1) as usize;
+    if steps > super::MAX_STEPS {
+        return Err(IoError::invalid(
+            path,
+            "num_timestamps",
+            format!("{steps} steps is implausible (limit {})", super::MAX_STEPS),
+        ));
+    }
+    let mut warnings =
+        vec!["AV2 has no object sizes: nominal footprints by type are used".to_string()];
     // Track ids in first-seen order; numeric ones keep their number.
     let mut order: Vec<String> = Vec::new();
     let mut tracks: HashMap<String, (String, Vec<AgentState>)> = HashMap::new();
@@ -175,15 +210,30 @@ fn read_tracks(path: &Path) -> Result<(Vec<Agent>, SceneMeta), IoError> {
         let tid = r.track_id.clone().expect("checked");
         let t = r.timestep.expect("checked");
         if t < 0 || t as usize >= steps {
-            return Err(IoError::invalid(path, format!("row {i}"), format!("timestep {t} outside 0..{steps}")));
+            return Err(IoError::invalid(
+                path,
+                format!("row {i}"),
+                format!("timestep {t} outside 0..{steps}"),
+            ));
         }
         let entry = tracks.entry(tid.clone()).or_insert_with(|| {
             order.push(tid.clone());
-            (r.object_type.clone().expect("checked"), vec![AgentState::INVALID; steps])
+            (
+                r.object_type.clone().expect("checked"),
+                vec![AgentState::INVALID; steps],
+            )
         });
-        let (x, y, h) = (r.x.expect("checked"), r.y.expect("checked"), r.heading.expect("checked"));
+        let (x, y, h) = (
+            r.x.expect("checked"),
+            r.y.expect("checked"),
+            r.heading.expect("checked"),
+        );
         if ![x, y, h].iter().all(|v| v.is_finite()) {
-            return Err(IoError::invalid(path, format!("row {i}"), "non-finite position or heading"));
+            return Err(IoError::invalid(
+                path,
+                format!("row {i}"),
+                "non-finite position or heading",
+            ));
         }
         entry.1[t as usize] = AgentState {
             x,
@@ -197,7 +247,12 @@ fn read_tracks(path: &Path) -> Result<(Vec<Agent>, SceneMeta), IoError> {
             current = current.max(t as usize);
         }
     }
-    let mut next_id = order.iter().filter_map(|t| t.parse::<i64>().ok()).max().unwrap_or(0) + 1;
+    let mut next_id = order
+        .iter()
+        .filter_map(|t| t.parse::<i64>().ok())
+        .max()
+        .unwrap_or(0)
+        + 1;
     let mut ids: BTreeMap<String, i64> = BTreeMap::new();
     for t in &order {
         let id = match t.parse::<i64>() {
@@ -228,7 +283,10 @@ fn read_tracks(path: &Path) -> Result<(Vec<Agent>, SceneMeta), IoError> {
     let meta = SceneMeta {
         source_format: SourceFormat::Av2,
         source_file: path.display().to_string(),
-        scenario_id: first.scenario_id.clone().unwrap_or_else(|| super::file_stem(path)),
+        scenario_id: first
+            .scenario_id
+            .clone()
+            .unwrap_or_else(|| super::file_stem(path)),
         dt: 0.1,
         current_step: current,
         ego: first.focal.as_ref().and_then(|f| ids.get(f).copied()),
@@ -294,14 +352,20 @@ fn pts(v: &[JsonPoint]) -> Vec<Point> {
 fn read_map(path: &Path) -> Result<Map, IoError> {
     let text = std::fs::read_to_string(path).map_err(|e| IoError::read(path, e))?;
     let m: JsonMap = serde_json::from_str(&text).map_err(|e| {
-        IoError::invalid(path, format!("line {}, column {}", e.line(), e.column()), e.to_string())
+        IoError::invalid(
+            path,
+            format!("line {}, column {}", e.line(), e.column()),
+            e.to_string(),
+        )
     })?;
     let mut parts = MapParts::default();
-    let geom_err = |what: String, e: crate::geom::GeomError| IoError::invalid(path, what, e.to_string());
+    let geom_err =
+        |what: String, e: crate::geom::GeomError| IoError::invalid(path, what, e.to_string());
     let mut lines: Vec<(Polyline, String)> = Vec::new();
     let mut dirs: HashMap<i64, Point> = HashMap::new();
     for (key, l) in &m.lane_segments {
-        let c = Polyline::new(pts(&l.centerline)).map_err(|e| geom_err(format!("lane_segments[{key}].centerline"), e))?;
+        let c = Polyline::new(pts(&l.centerline))
+            .map_err(|e| geom_err(format!("lane_segments[{key}].centerline"), e))?;
         dirs.insert(l.id, c.last() - c.first());
         let mut lane = Lane::new(l.id, c);
         lane.left_boundary = Polyline::new(pts(&l.left_lane_boundary)).ok();
@@ -337,7 +401,9 @@ fn read_map(path: &Path) -> Result<Map, IoError> {
     for (line, mark) in lines {
         let kind = match mark.as_str() {
             "NONE" | "UNKNOWN" => continue,
-            "DASHED_WHITE" | "DASHED_YELLOW" | "DOUBLE_DASH_WHITE" | "DOUBLE_DASH_YELLOW" => RoadLineKind::Broken,
+            "DASHED_WHITE" | "DASHED_YELLOW" | "DOUBLE_DASH_WHITE" | "DOUBLE_DASH_YELLOW" => {
+                RoadLineKind::Broken
+            }
             "SOLID_WHITE" | "SOLID_YELLOW" | "SOLID_BLUE" => RoadLineKind::Solid,
             "DOUBLE_SOLID_WHITE" | "DOUBLE_SOLID_YELLOW" => RoadLineKind::DoubleSolid,
             _ => RoadLineKind::Unknown,
@@ -352,23 +418,27 @@ fn read_map(path: &Path) -> Result<Map, IoError> {
         );
     }
     for (key, a) in &m.drivable_areas {
-        let poly = Polygon::new(pts(&a.area_boundary)).map_err(|e| geom_err(format!("drivable_areas[{key}]"), e))?;
+        let poly = Polygon::new(pts(&a.area_boundary))
+            .map_err(|e| geom_err(format!("drivable_areas[{key}]"), e))?;
         // Counter-clockwise outlines have the area on their left, the road-edge convention.
         let mut ring: Vec<Point> = poly.points().to_vec();
         if poly.signed_area() < 0.0 {
             ring.reverse();
         }
         ring.push(ring[0]);
-        let edge = Polyline::new(ring).map_err(|e| geom_err(format!("drivable_areas[{key}]"), e))?;
-        parts.road_edges.push(RoadEdge::new(RoadEdgeKind::Boundary, edge));
+        let edge =
+            Polyline::new(ring).map_err(|e| geom_err(format!("drivable_areas[{key}]"), e))?;
+        parts
+            .road_edges
+            .push(RoadEdge::new(RoadEdgeKind::Boundary, edge));
         parts.drivable_areas.push(poly);
     }
     for (key, c) in &m.pedestrian_crossings {
         let (e1, e2) = (pts(&c.edge1), pts(&c.edge2));
         let ring = e1.iter().chain(e2.iter().rev()).copied();
-        parts
-            .crosswalks
-            .push(Polygon::new(ring).map_err(|e| geom_err(format!("pedestrian_crossings[{key}]"), e))?);
+        parts.crosswalks.push(
+            Polygon::new(ring).map_err(|e| geom_err(format!("pedestrian_crossings[{key}]"), e))?,
+        );
     }
     Map::new(parts).map_err(|e| IoError::Scene {
         path: path.display().to_string(),

@@ -17,8 +17,8 @@ use roxmltree::{Document, Node};
 use super::{IoError, LoadOptions};
 use crate::geom::{Point, Polygon, Polyline};
 use crate::scene::{
-    Agent, AgentState, AgentType, Lane, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind,
-    RoadLine, RoadLineKind, Scene, SceneMeta, SourceFormat, StopLine,
+    Agent, AgentState, AgentType, Lane, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind, RoadLine,
+    RoadLineKind, Scene, SceneMeta, SourceFormat, StopLine,
 };
 
 /// Largest spacing of centre-line points, metres.
@@ -77,7 +77,10 @@ impl Ctx<'_> {
         if let Some(e) = self.child(node, "exact") {
             return self.number(e);
         }
-        match (self.child(node, "intervalStart"), self.child(node, "intervalEnd")) {
+        match (
+            self.child(node, "intervalStart"),
+            self.child(node, "intervalEnd"),
+        ) {
             (Some(a), Some(b)) => Ok(0.5 * (self.number(a)? + self.number(b)?)),
             _ => Err(self.err(node, "expected <exact> or <intervalStart>/<intervalEnd>")),
         }
@@ -161,7 +164,10 @@ pub fn parse(path: &Path, text: &str, opts: &LoadOptions) -> Result<Scene, IoErr
 fn speed_limit_signs(cx: &Ctx, root: Node) -> Result<HashMap<i64, f64>, IoError> {
     let mut out = HashMap::new();
     for sign in root.children().filter(|c| c.has_tag_name("trafficSign")) {
-        for el in sign.children().filter(|c| c.has_tag_name("trafficSignElement")) {
+        for el in sign
+            .children()
+            .filter(|c| c.has_tag_name("trafficSignElement"))
+        {
             let code = cx
                 .child(el, "trafficSignID")
                 .and_then(|n| n.text())
@@ -210,7 +216,11 @@ fn centerline(left: &Polyline, right: &Polyline) -> Polyline {
         .max(right.points().len())
         .max((len / CENTERLINE_SPACING).ceil() as usize + 1);
     let (l, r) = (left.resample_count(n), right.resample_count(n));
-    let mid = l.points().iter().zip(r.points()).map(|(a, b)| (a + b) * 0.5);
+    let mid = l
+        .points()
+        .iter()
+        .zip(r.points())
+        .map(|(a, b)| (a + b) * 0.5);
     // Bounds that meet at both ends (a degenerate lanelet) fall back to the left bound.
     Polyline::new(mid).unwrap_or_else(|_| left.clone())
 }
@@ -282,7 +292,11 @@ fn read_map(cx: &Ctx, root: Node, speed_signs: &HashMap<i64, f64>) -> Result<Map
             });
         }
         if crosswalk {
-            let ring = right.points().iter().chain(left.points().iter().rev()).copied();
+            let ring = right
+                .points()
+                .iter()
+                .chain(left.points().iter().rev())
+                .copied();
             parts
                 .crosswalks
                 .push(Polygon::new(ring).map_err(|e| cx.err(node, e.to_string()))?);
@@ -323,11 +337,19 @@ fn read_map(cx: &Ctx, root: Node, speed_signs: &HashMap<i64, f64>) -> Result<Map
             push_edge_runs(&mut parts.road_edges, &raw.right, raw.id, &surfaces);
         }
         if !raw.has_left {
-            push_edge_runs(&mut parts.road_edges, &raw.left.reversed(), raw.id, &surfaces);
+            push_edge_runs(
+                &mut parts.road_edges,
+                &raw.left.reversed(),
+                raw.id,
+                &surfaces,
+            );
         }
     }
     for raw in &raws {
-        for (line, marking) in [(&raw.left, &raw.left_marking), (&raw.right, &raw.right_marking)] {
+        for (line, marking) in [
+            (&raw.left, &raw.left_marking),
+            (&raw.right, &raw.right_marking),
+        ] {
             let Some(m) = marking else { continue };
             let kind = match m.as_str() {
                 "dashed" | "broad_dashed" => RoadLineKind::Broken,
@@ -348,7 +370,12 @@ fn read_map(cx: &Ctx, root: Node, speed_signs: &HashMap<i64, f64>) -> Result<Map
     parts.drivable_areas = raws
         .iter()
         .filter(|r| !r.crosswalk && r.kind != LaneType::Other)
-        .filter_map(|r| surfaces.iter().find(|(id, _)| *id == r.id).map(|(_, p)| p.clone()))
+        .filter_map(|r| {
+            surfaces
+                .iter()
+                .find(|(id, _)| *id == r.id)
+                .map(|(_, p)| p.clone())
+        })
         .collect();
     Map::new(parts).map_err(|e| IoError::Scene {
         path: cx.path.display().to_string(),
@@ -416,7 +443,19 @@ fn read_state(cx: &Ctx, node: Node) -> Result<(i64, AgentState), IoError> {
     let heading = cx.value(cx.need(node, "orientation")?)?;
     let time = cx.value(cx.need(node, "time")?)?;
     if time < 0.0 || time.fract() != 0.0 {
-        return Err(cx.err(node, format!("time {time} is not a non-negative step index")));
+        return Err(cx.err(
+            node,
+            format!("time {time} is not a non-negative step index"),
+        ));
+    }
+    if time >= super::MAX_STEPS as f64 {
+        return Err(cx.err(
+            node,
+            format!(
+                "time step {time} is implausible (limit {})",
+                super::MAX_STEPS
+            ),
+        ));
     }
     let v = match cx.child(node, "velocity") {
         Some(v) => cx.value(v)?,
@@ -459,7 +498,10 @@ fn read_agents(cx: &Ctx, root: Node) -> Result<(Vec<Agent>, usize), IoError> {
         let kind = agent_type(cx.need(node, "type")?.text().unwrap_or("").trim());
         let shape = cx.need(node, "shape")?;
         let (length, width) = if let Some(r) = cx.child(shape, "rectangle") {
-            (cx.number(cx.need(r, "length")?)?, cx.number(cx.need(r, "width")?)?)
+            (
+                cx.number(cx.need(r, "length")?)?,
+                cx.number(cx.need(r, "width")?)?,
+            )
         } else if let Some(c) = cx.child(shape, "circle") {
             let r = cx.number(cx.need(c, "radius")?)?;
             (2.0 * r, 2.0 * r)

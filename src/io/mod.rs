@@ -25,6 +25,10 @@ use crate::scene::{Scene, SceneError};
 pub const SUPPORTED_FORMATS: &str = "Waymo Open Motion Dataset TFRecord (.tfrecord, *.tfrecord-NNNNN-of-NNNNN), \
 CommonRoad XML (.xml, .xml.gz), Argoverse 2 scenario (.parquet or its directory), drivescript YAML (.yaml, .yml)";
 
+/// Most time steps a scene may have (over 2.7 hours at 10 Hz): a corrupted step index must
+/// not turn into a huge allocation.
+pub const MAX_STEPS: usize = 100_000;
+
 /// Errors from reading or writing scenes and rollouts.
 #[derive(Debug, thiserror::Error)]
 pub enum IoError {
@@ -126,8 +130,7 @@ pub fn detect_format(path: &Path) -> Result<SceneFormat, IoError> {
             path: path.display().to_string(),
         });
     }
-    if name.ends_with(".tfrecord") || name.contains(".tfrecord-") || name.starts_with("tfrecord-")
-    {
+    if name.ends_with(".tfrecord") || name.contains(".tfrecord-") || name.starts_with("tfrecord-") {
         Ok(SceneFormat::Womd)
     } else if name.ends_with(".xml") || name.ends_with(".xml.gz") {
         Ok(SceneFormat::CommonRoad)
@@ -283,11 +286,15 @@ pub(crate) fn file_stem(path: &Path) -> String {
 
 /// Adds a painted line unless the same line (either direction) is already there: formats store
 /// the line between two lanes once per lane.
-pub(crate) fn push_unique_road_line(lines: &mut Vec<crate::scene::RoadLine>, line: crate::scene::RoadLine) {
+pub(crate) fn push_unique_road_line(
+    lines: &mut Vec<crate::scene::RoadLine>,
+    line: crate::scene::RoadLine,
+) {
     let (a, b) = (line.line.first(), line.line.last());
     let dup = lines.iter().any(|l| {
         let (p, q) = (l.line.first(), l.line.last());
-        ((p - a).norm() < 1e-3 && (q - b).norm() < 1e-3) || ((p - b).norm() < 1e-3 && (q - a).norm() < 1e-3)
+        ((p - a).norm() < 1e-3 && (q - b).norm() < 1e-3)
+            || ((p - b).norm() < 1e-3 && (q - a).norm() < 1e-3)
     });
     if !dup {
         lines.push(line);

@@ -103,10 +103,19 @@ impl Rollout {
     fn validate(&self, what: &Path) -> Result<(), IoError> {
         let bad = |loc: String, msg: String| IoError::invalid(what, loc, msg);
         if self.format != FORMAT_TAG {
-            return Err(bad("format".into(), format!("expected {FORMAT_TAG:?}, found {:?}", self.format)));
+            return Err(bad(
+                "format".into(),
+                format!("expected {FORMAT_TAG:?}, found {:?}", self.format),
+            ));
         }
         if self.version != VERSION {
-            return Err(bad("version".into(), format!("unsupported version {} (this build reads {VERSION})", self.version)));
+            return Err(bad(
+                "version".into(),
+                format!(
+                    "unsupported version {} (this build reads {VERSION})",
+                    self.version
+                ),
+            ));
         }
         if !(self.dt.is_finite() && self.dt > 0.0) {
             return Err(bad("dt".into(), format!("{} must be positive", self.dt)));
@@ -115,14 +124,24 @@ impl Rollout {
         for (i, a) in self.agents.iter().enumerate() {
             let loc = format!("agents[{i}] (id {})", a.id);
             if a.states.len() != steps {
-                return Err(bad(loc, format!("{} states, agents[0] has {steps}", a.states.len())));
+                return Err(bad(
+                    loc,
+                    format!("{} states, agents[0] has {steps}", a.states.len()),
+                ));
             }
-            if let Some(k) = a.states.iter().position(|s| s.3 && !(s.0.is_finite() && s.1.is_finite() && s.2.is_finite())) {
+            if let Some(k) = a
+                .states
+                .iter()
+                .position(|s| s.3 && !(s.0.is_finite() && s.1.is_finite() && s.2.is_finite()))
+            {
                 return Err(bad(loc, format!("state {k} is valid but not finite")));
             }
         }
         if steps > 0 && self.current_step >= steps {
-            return Err(bad("current_step".into(), format!("{} is outside the {steps} steps", self.current_step)));
+            return Err(bad(
+                "current_step".into(),
+                format!("{} is outside the {steps} steps", self.current_step),
+            ));
         }
         Ok(())
     }
@@ -131,7 +150,11 @@ impl Rollout {
     pub fn read(path: &Path) -> Result<Self, IoError> {
         let text = std::fs::read_to_string(path).map_err(|e| IoError::read(path, e))?;
         let r: Rollout = serde_json::from_str(&text).map_err(|e| {
-            IoError::invalid(path, format!("line {}, column {}", e.line(), e.column()), e.to_string())
+            IoError::invalid(
+                path,
+                format!("line {}, column {}", e.line(), e.column()),
+                e.to_string(),
+            )
         })?;
         r.validate(path)?;
         Ok(r)
@@ -159,17 +182,37 @@ impl Rollout {
                             return AgentState::INVALID;
                         }
                         let (lo, hi) = (k.saturating_sub(1), (k + 1).min(n - 1));
-                        let (lo, hi) = if a.states[lo].3 && a.states[hi].3 { (lo, hi) } else { (k, k) };
+                        let (lo, hi) = if a.states[lo].3 && a.states[hi].3 {
+                            (lo, hi)
+                        } else {
+                            (k, k)
+                        };
                         let span = (hi - lo) as f64 * self.dt;
                         let (vx, vy) = if span > 0.0 {
-                            ((a.states[hi].0 - a.states[lo].0) / span, (a.states[hi].1 - a.states[lo].1) / span)
+                            (
+                                (a.states[hi].0 - a.states[lo].0) / span,
+                                (a.states[hi].1 - a.states[lo].1) / span,
+                            )
                         } else {
                             (0.0, 0.0)
                         };
-                        AgentState { x: s.0, y: s.1, heading: s.2, vx, vy, valid: true }
+                        AgentState {
+                            x: s.0,
+                            y: s.1,
+                            heading: s.2,
+                            vx,
+                            vy,
+                            valid: true,
+                        }
                     })
                     .collect();
-                Agent { id: a.id, agent_type: a.agent_type, length: a.length, width: a.width, states }
+                Agent {
+                    id: a.id,
+                    agent_type: a.agent_type,
+                    length: a.length,
+                    width: a.width,
+                    states,
+                }
             })
             .collect();
         let meta = SceneMeta {

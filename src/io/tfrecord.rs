@@ -126,7 +126,12 @@ impl<R: Read> TfRecordReader<R> {
     }
 
     /// Fills `buf`; `Ok(false)` when the stream ends before the first byte.
-    fn fill(&mut self, buf: &mut [u8], part: &'static str, start: u64) -> Result<bool, TfRecordError> {
+    fn fill(
+        &mut self,
+        buf: &mut [u8],
+        part: &'static str,
+        start: u64,
+    ) -> Result<bool, TfRecordError> {
         let mut got = 0;
         while got < buf.len() {
             match self.inner.read(&mut buf[got..]) {

@@ -18,8 +18,8 @@ use super::womd_proto as pb;
 use super::IoError;
 use crate::geom::{Point, Polygon, Polyline};
 use crate::scene::{
-    Agent, AgentState, AgentType, Lane, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind,
-    RoadLine, RoadLineKind, Scene, SceneMeta, SourceFormat, StopLine,
+    Agent, AgentState, AgentType, Lane, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind, RoadLine,
+    RoadLineKind, Scene, SceneMeta, SourceFormat, StopLine,
 };
 
 const MPH_TO_MPS: f64 = 0.44704;
@@ -37,7 +37,9 @@ fn shard_files(dir: &Path) -> Result<Vec<PathBuf>, IoError> {
             p.is_file()
                 && p.file_name().is_some_and(|n| {
                     let n = n.to_string_lossy();
-                    n.ends_with(".tfrecord") || n.contains(".tfrecord-") || n.starts_with("tfrecord-")
+                    n.ends_with(".tfrecord")
+                        || n.contains(".tfrecord-")
+                        || n.starts_with("tfrecord-")
                 })
         })
         .collect();
@@ -51,7 +53,9 @@ pub fn read_file(path: &Path) -> Result<impl Iterator<Item = Result<Scene, IoErr
     let path = path.to_path_buf();
     let reader = TfRecordReader::new(BufReader::with_capacity(1 << 20, file));
     Ok(reader.enumerate().map(move |(i, rec)| {
-        let bytes = rec.map_err(|e| IoError::invalid(&path, format!("record {}", e.record()), e.to_string()))?;
+        let bytes = rec.map_err(|e| {
+            IoError::invalid(&path, format!("record {}", e.record()), e.to_string())
+        })?;
         decode_record(&path, i, &bytes)
     }))
 }
@@ -59,12 +63,14 @@ pub fn read_file(path: &Path) -> Result<impl Iterator<Item = Result<Scene, IoErr
 /// Streams the scenarios of every shard in a directory, in file-name order.
 pub fn read_shards(dir: &Path) -> Result<impl Iterator<Item = Result<Scene, IoError>>, IoError> {
     let files = shard_files(dir)?;
-    Ok(files.into_iter().flat_map(|f| -> Box<dyn Iterator<Item = Result<Scene, IoError>>> {
-        match read_file(&f) {
-            Ok(it) => Box::new(it),
-            Err(e) => Box::new(std::iter::once(Err(e))),
-        }
-    }))
+    Ok(files
+        .into_iter()
+        .flat_map(|f| -> Box<dyn Iterator<Item = Result<Scene, IoError>>> {
+            match read_file(&f) {
+                Ok(it) => Box::new(it),
+                Err(e) => Box::new(std::iter::once(Err(e))),
+            }
+        }))
 }
 
 /// Decodes record `index` of `path` into a scene.
@@ -88,7 +94,11 @@ pub fn scenario_to_scene(sc: &pb::Scenario, path: &Path, index: usize) -> Result
     let mut warnings = Vec::new();
 
     let dt = if steps >= 2 {
-        let mut diffs: Vec<f64> = sc.timestamps_seconds.windows(2).map(|w| w[1] - w[0]).collect();
+        let mut diffs: Vec<f64> = sc
+            .timestamps_seconds
+            .windows(2)
+            .map(|w| w[1] - w[0])
+            .collect();
         diffs.sort_by(f64::total_cmp);
         diffs[diffs.len() / 2]
     } else {
@@ -103,7 +113,9 @@ pub fn scenario_to_scene(sc: &pb::Scenario, path: &Path, index: usize) -> Result
 
     let mut agents = Vec::with_capacity(sc.tracks.len());
     for (ti, track) in sc.tracks.iter().enumerate() {
-        let tid = track.id.ok_or_else(|| bad(format!("track {ti} has no id")))?;
+        let tid = track
+            .id
+            .ok_or_else(|| bad(format!("track {ti} has no id")))?;
         if track.states.len() != steps {
             return Err(bad(format!(
                 "track {ti} (id {tid}) has {} states for {steps} timestamps",
@@ -123,7 +135,10 @@ pub fn scenario_to_scene(sc: &pb::Scenario, path: &Path, index: usize) -> Result
             .filter(|s| valid(s))
             .or_else(|| track.states.iter().find(|s| valid(s)));
         let (length, width) = size_src.map_or((0.0, 0.0), |s| {
-            (s.length.unwrap_or(0.0) as f64, s.width.unwrap_or(0.0) as f64)
+            (
+                s.length.unwrap_or(0.0) as f64,
+                s.width.unwrap_or(0.0) as f64,
+            )
         });
         let states = track
             .states
@@ -155,7 +170,12 @@ pub fn scenario_to_scene(sc: &pb::Scenario, path: &Path, index: usize) -> Result
         Some(i) => Some(
             agents
                 .get(i as usize)
-                .ok_or_else(|| bad(format!("sdc_track_index {i} but only {} tracks", agents.len())))?
+                .ok_or_else(|| {
+                    bad(format!(
+                        "sdc_track_index {i} but only {} tracks",
+                        agents.len()
+                    ))
+                })?
                 .id,
         ),
         None => None,
@@ -195,16 +215,27 @@ pub fn scenario_to_scene(sc: &pb::Scenario, path: &Path, index: usize) -> Result
                     .filter(|v| *v > 0.0)
                     .map(|v| v * MPH_TO_MPS);
                 // WOMD: lane centres in intersections have no boundaries.
-                lane.is_intersection = l.left_boundaries.is_empty() && l.right_boundaries.is_empty();
+                lane.is_intersection =
+                    l.left_boundaries.is_empty() && l.right_boundaries.is_empty();
                 lane.predecessors = l.entry_lanes.clone();
                 lane.successors = l.exit_lanes.clone();
-                lane.left_neighbors = l.left_neighbors.iter().filter_map(|n| n.feature_id).collect();
-                lane.right_neighbors = l.right_neighbors.iter().filter_map(|n| n.feature_id).collect();
+                lane.left_neighbors = l
+                    .left_neighbors
+                    .iter()
+                    .filter_map(|n| n.feature_id)
+                    .collect();
+                lane.right_neighbors = l
+                    .right_neighbors
+                    .iter()
+                    .filter_map(|n| n.feature_id)
+                    .collect();
                 parts.lanes.push(lane);
             }
             Some(pb::FeatureData::RoadEdge(e)) => {
                 let Some(l) = line(&e.polyline, "road edge")? else {
-                    warnings.push(format!("road edge {fid} skipped: fewer than 2 distinct points"));
+                    warnings.push(format!(
+                        "road edge {fid} skipped: fewer than 2 distinct points"
+                    ));
                     continue;
                 };
                 let kind = match e.r#type.unwrap_or(0) {
@@ -216,7 +247,9 @@ pub fn scenario_to_scene(sc: &pb::Scenario, path: &Path, index: usize) -> Result
             }
             Some(pb::FeatureData::RoadLine(r)) => {
                 let Some(l) = line(&r.polyline, "road line")? else {
-                    warnings.push(format!("road line {fid} skipped: fewer than 2 distinct points"));
+                    warnings.push(format!(
+                        "road line {fid} skipped: fewer than 2 distinct points"
+                    ));
                     continue;
                 };
                 use pb::road_line_type as t;
@@ -260,9 +293,15 @@ pub fn scenario_to_scene(sc: &pb::Scenario, path: &Path, index: usize) -> Result
         }
     }
     if driveways > 0 {
-        warnings.push(format!("{driveways} driveways not represented in the scene model"));
+        warnings.push(format!(
+            "{driveways} driveways not represented in the scene model"
+        ));
     }
-    let signals = sc.dynamic_map_states.iter().map(|d| d.lane_states.len()).sum::<usize>();
+    let signals = sc
+        .dynamic_map_states
+        .iter()
+        .map(|d| d.lane_states.len())
+        .sum::<usize>();
     if signals > 0 {
         warnings.push(format!(
             "{signals} traffic-signal lane states not represented in the scene model"
@@ -277,7 +316,11 @@ pub fn scenario_to_scene(sc: &pb::Scenario, path: &Path, index: usize) -> Result
     let meta = SceneMeta {
         source_format: SourceFormat::Womd,
         source_file: path.display().to_string(),
-        scenario_id: if id.is_empty() { format!("{}#{index}", super::file_stem(path)) } else { id },
+        scenario_id: if id.is_empty() {
+            format!("{}#{index}", super::file_stem(path))
+        } else {
+            id
+        },
         dt,
         current_step: current as usize,
         ego,
@@ -366,11 +409,24 @@ pub fn scene_to_scenario(scene: &Scene) -> pb::Scenario {
                     LaneType::Other => pb::lane_type::UNDEFINED,
                 }),
                 interpolating: Some(false),
-                polyline: lane.centerline.points().iter().map(|p| map_point(*p)).collect(),
+                polyline: lane
+                    .centerline
+                    .points()
+                    .iter()
+                    .map(|p| map_point(*p))
+                    .collect(),
                 entry_lanes: g.predecessors(lane.id).to_vec(),
                 exit_lanes: g.successors(lane.id).to_vec(),
-                left_neighbors: g.left_neighbors(lane.id).iter().map(|&i| neighbor(i)).collect(),
-                right_neighbors: g.right_neighbors(lane.id).iter().map(|&i| neighbor(i)).collect(),
+                left_neighbors: g
+                    .left_neighbors(lane.id)
+                    .iter()
+                    .map(|&i| neighbor(i))
+                    .collect(),
+                right_neighbors: g
+                    .right_neighbors(lane.id)
+                    .iter()
+                    .map(|&i| neighbor(i))
+                    .collect(),
                 // Mark non-intersection lanes as bounded so that the reader's intersection
                 // heuristic gives the flag back.
                 left_boundaries: if lane.is_intersection {
@@ -476,7 +532,11 @@ mod tests {
     use super::*;
 
     fn mp(x: f64, y: f64) -> pb::MapPoint {
-        pb::MapPoint { x: Some(x), y: Some(y), z: Some(0.0) }
+        pb::MapPoint {
+            x: Some(x),
+            y: Some(y),
+            z: Some(0.0),
+        }
     }
 
     fn state(x: f64, valid: bool) -> pb::ObjectState {
@@ -495,7 +555,10 @@ mod tests {
     }
 
     fn feature(id: i64, data: pb::FeatureData) -> pb::MapFeature {
-        pb::MapFeature { id: Some(id), feature_data: Some(data) }
+        pb::MapFeature {
+            id: Some(id),
+            feature_data: Some(data),
+        }
     }
 
     /// A scenario with every kind of map feature, encoded by prost as WOMD files are.
@@ -517,7 +580,10 @@ mod tests {
                 right_boundaries: vec![],
                 left_neighbors: left
                     .into_iter()
-                    .map(|id| pb::LaneNeighbor { feature_id: Some(id), ..Default::default() })
+                    .map(|id| pb::LaneNeighbor {
+                        feature_id: Some(id),
+                        ..Default::default()
+                    })
                     .collect(),
                 right_neighbors: vec![],
             })
@@ -549,7 +615,10 @@ mod tests {
                 5
             ],
             map_features: vec![
-                feature(1, lane(vec![mp(0.0, 1.8), mp(50.0, 1.8)], vec![2, 99], vec![3])),
+                feature(
+                    1,
+                    lane(vec![mp(0.0, 1.8), mp(50.0, 1.8)], vec![2, 99], vec![3]),
+                ),
                 feature(2, lane(vec![mp(50.0, 1.8), mp(100.0, 1.8)], vec![], vec![])),
                 feature(3, lane(vec![mp(0.0, 5.4), mp(50.0, 5.4)], vec![], vec![])),
                 feature(4, lane(vec![mp(3.0, 3.0)], vec![], vec![])),
@@ -569,7 +638,10 @@ mod tests {
                 ),
                 feature(
                     40,
-                    pb::FeatureData::StopSign(pb::StopSign { lane: vec![1], position: Some(mp(50.0, 0.0)) }),
+                    pb::FeatureData::StopSign(pb::StopSign {
+                        lane: vec![1],
+                        position: Some(mp(50.0, 0.0)),
+                    }),
                 ),
                 feature(
                     50,
@@ -592,7 +664,10 @@ mod tests {
             ],
             sdc_track_index: Some(0),
             objects_of_interest: vec![7, 9],
-            tracks_to_predict: vec![pb::RequiredPrediction { track_index: Some(1), difficulty: Some(1) }],
+            tracks_to_predict: vec![pb::RequiredPrediction {
+                track_index: Some(1),
+                difficulty: Some(1),
+            }],
         }
     }
 
@@ -614,7 +689,10 @@ mod tests {
         assert_eq!(scenes.len(), 2);
         let s = &scenes[0];
         assert_eq!(s.meta.scenario_id, "abc123");
-        assert_eq!((s.num_steps(), s.meta.current_step, s.meta.ego), (5, 2, Some(7)));
+        assert_eq!(
+            (s.num_steps(), s.meta.current_step, s.meta.ego),
+            (5, 2, Some(7))
+        );
         assert!((s.meta.dt - 0.1).abs() < 1e-12);
         let ped = s.agent(9).unwrap();
         assert_eq!(ped.agent_type, AgentType::Pedestrian);
@@ -625,12 +703,19 @@ mod tests {
         assert!(!lane.is_intersection);
         assert_eq!(s.map.graph().successors(1), &[2]);
         assert_eq!(s.map.graph().left(1), Some(3));
-        assert_eq!(s.map.graph().dangling(), 1, "exit lane 99 is outside the map");
+        assert_eq!(
+            s.map.graph().dangling(),
+            1,
+            "exit lane 99 is outside the map"
+        );
         assert_eq!(s.map.lanes().len(), 3, "the one-point lane 4 is skipped");
         assert_eq!(s.map.road_edges().len(), 1);
         assert_eq!(s.map.road_lines()[0].kind, RoadLineKind::DoubleSolid);
         assert!(s.map.road_lines()[0].yellow);
-        assert_eq!((s.map.crosswalks().len(), s.map.speed_bumps().len()), (1, 1));
+        assert_eq!(
+            (s.map.crosswalks().len(), s.map.speed_bumps().len()),
+            (1, 1)
+        );
         assert_eq!(s.map.stop_lines()[0].lanes, vec![1]);
         let w = s.meta.warnings.join("\n");
         assert!(w.contains("lane 4 skipped"), "{w}");
@@ -649,7 +734,10 @@ mod tests {
         let back = read_file(&out).unwrap().next().unwrap().unwrap();
         assert_eq!(back.agents.len(), s.agents.len());
         for (a, b) in s.agents.iter().zip(&back.agents) {
-            assert_eq!((a.id, a.agent_type, a.valid_span()), (b.id, b.agent_type, b.valid_span()));
+            assert_eq!(
+                (a.id, a.agent_type, a.valid_span()),
+                (b.id, b.agent_type, b.valid_span())
+            );
             for (x, y) in a.states.iter().zip(&b.states) {
                 assert!((x.x - y.x).abs() < 1e-9 && (x.heading - y.heading).abs() < 1e-6);
             }
@@ -670,19 +758,35 @@ mod tests {
         let results: Vec<_> = read_file(&path).unwrap().collect();
         assert!(results[0].is_ok());
         let e = results[1].as_ref().unwrap_err().to_string();
-        assert!(e.contains("record 1") && e.contains("not a Scenario proto"), "{e}");
+        assert!(
+            e.contains("record 1") && e.contains("not a Scenario proto"),
+            "{e}"
+        );
         // A track whose state count disagrees with the timestamps.
         let mut sc = scenario();
         sc.tracks[1].states.pop();
         std::fs::write(&path, framed(&[good, sc.encode_to_vec()])).unwrap();
-        let e = read_file(&path).unwrap().nth(1).unwrap().unwrap_err().to_string();
-        assert!(e.contains("record 1") && e.contains("track 1 (id 9) has 4 states"), "{e}");
+        let e = read_file(&path)
+            .unwrap()
+            .nth(1)
+            .unwrap()
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("record 1") && e.contains("track 1 (id 9) has 4 states"),
+            "{e}"
+        );
         // A bit flip in record 1's payload.
         let mut bytes = framed(&[scenario().encode_to_vec(), scenario().encode_to_vec()]);
         let n = bytes.len();
         bytes[n - 30] ^= 0x04;
         std::fs::write(&path, &bytes).unwrap();
-        let e = read_file(&path).unwrap().nth(1).unwrap().unwrap_err().to_string();
+        let e = read_file(&path)
+            .unwrap()
+            .nth(1)
+            .unwrap()
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("record 1") && e.contains("checksum"), "{e}");
     }
 
@@ -697,7 +801,10 @@ mod tests {
         }
         std::fs::write(dir.path().join("README.txt"), "not a shard").unwrap();
         assert!(is_shard_dir(dir.path()));
-        let ids: Vec<String> = read_shards(dir.path()).unwrap().map(|s| s.unwrap().meta.scenario_id).collect();
+        let ids: Vec<String> = read_shards(dir.path())
+            .unwrap()
+            .map(|s| s.unwrap().meta.scenario_id)
+            .collect();
         assert_eq!(ids, vec!["s0", "s1", "s2"]);
     }
 }

@@ -15,8 +15,8 @@ use serde::{Deserialize, Serialize};
 use super::IoError;
 use crate::geom::{FrenetPath, Point, Polygon, Polyline};
 use crate::scene::{
-    Agent, AgentState, AgentType, Lane, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind,
-    RoadLine, RoadLineKind, Scene, SceneMeta, SourceFormat, StopLine,
+    Agent, AgentState, AgentType, Lane, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind, RoadLine,
+    RoadLineKind, Scene, SceneMeta, SourceFormat, StopLine,
 };
 
 /// A YAML scene file.
@@ -331,10 +331,23 @@ fn reference_line(r: &YamlRoad) -> Polyline {
 
 fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
     let bad = |loc: String, msg: String| IoError::invalid(path, loc, msg);
+    if y.steps > super::MAX_STEPS {
+        return Err(bad(
+            "steps".into(),
+            format!(
+                "{} steps is implausible (limit {})",
+                y.steps,
+                super::MAX_STEPS
+            ),
+        ));
+    }
     if y.steps == 0 || y.current_step >= y.steps {
         return Err(bad(
             "current_step".into(),
-            format!("current_step {} must be below steps {}", y.current_step, y.steps),
+            format!(
+                "current_step {} must be below steps {}",
+                y.current_step, y.steps
+            ),
         ));
     }
     let (parts, road) = match (&y.road, &y.map) {
@@ -343,7 +356,12 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
             (parts, Some((r, reference)))
         }
         (None, Some(m)) => (explicit_parts(path, m)?, None),
-        _ => return Err(bad("document".into(), "give exactly one of `road` and `map`".into())),
+        _ => {
+            return Err(bad(
+                "document".into(),
+                "give exactly one of `road` and `map`".into(),
+            ))
+        }
     };
     let map = Map::new(parts).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
@@ -358,20 +376,35 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
         let (length, width) = (a.length.unwrap_or(dl), a.width.unwrap_or(dw));
         let mut states = if let Some(explicit) = &a.states {
             if explicit.len() != y.steps {
-                return Err(bad(loc, format!("{} states for {} steps", explicit.len(), y.steps)));
+                return Err(bad(
+                    loc,
+                    format!("{} states for {} steps", explicit.len(), y.steps),
+                ));
             }
             explicit_states(explicit, y.dt).map_err(|(k, m)| bad(format!("{loc} state {k}"), m))?
         } else {
             let Some((r, reference)) = &road else {
-                return Err(bad(loc, "with an explicit `map`, agents need explicit `states`".into()));
+                return Err(bad(
+                    loc,
+                    "with an explicit `map`, agents need explicit `states`".into(),
+                ));
             };
             if a.lane >= r.lanes || a.lane_change.as_ref().is_some_and(|c| c.to >= r.lanes) {
-                return Err(bad(loc, format!("lane index out of range: the road has {} lanes", r.lanes)));
+                return Err(bad(
+                    loc,
+                    format!("lane index out of range: the road has {} lanes", r.lanes),
+                ));
             }
             lane_motion(a, y, reference, r.lane_width)
         };
         if a.valid_from >= y.steps {
-            return Err(bad(loc, format!("valid_from {} must be below steps {}", a.valid_from, y.steps)));
+            return Err(bad(
+                loc,
+                format!(
+                    "valid_from {} must be below steps {}",
+                    a.valid_from, y.steps
+                ),
+            ));
         }
         for s in states.iter_mut().take(a.valid_from) {
             *s = AgentState::INVALID;
@@ -387,7 +420,10 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
     let meta = SceneMeta {
         source_format: SourceFormat::Yaml,
         source_file: path.display().to_string(),
-        scenario_id: y.scenario_id.clone().unwrap_or_else(|| super::file_stem(path)),
+        scenario_id: y
+            .scenario_id
+            .clone()
+            .unwrap_or_else(|| super::file_stem(path)),
         dt: y.dt,
         current_step: y.current_step,
         ego: y.ego,
@@ -406,20 +442,30 @@ fn road_parts(path: &Path, r: &YamlRoad) -> Result<(MapParts, FrenetPath), IoErr
     if r.lanes == 0 || r.segments == 0 {
         return Err(bad("road", "lanes and segments must be at least 1".into()));
     }
-    if !(r.length.is_finite() && r.length > 0.0 && r.lane_width.is_finite() && r.lane_width > 0.0)
-    {
+    if !(r.length.is_finite() && r.length > 0.0 && r.lane_width.is_finite() && r.lane_width > 0.0) {
         return Err(bad("road", "length and lane_width must be positive".into()));
+    }
+    if r.length > 100_000.0 || r.lanes > 64 || r.lane_width > 50.0 || r.segments as f64 > r.length {
+        return Err(bad(
+            "road",
+            "at most 100 km long, 64 lanes, 50 m lane width and one segment per metre".into(),
+        ));
     }
     let max_offset = r.lanes as f64 * r.lane_width;
     if r.radius != 0.0 && (r.radius.abs() <= max_offset + 1.0 || !r.radius.is_finite()) {
-        return Err(bad("road.radius", format!("|radius| must exceed the road width ({max_offset} m)")));
+        return Err(bad(
+            "road.radius",
+            format!("|radius| must exceed the road width ({max_offset} m)"),
+        ));
     }
     let reference = FrenetPath::new(reference_line(r));
     let w = r.lane_width;
     let offset_line = |d: f64, s0: f64, s1: f64| {
         let n = ((s1 - s0) / 1.0).ceil().max(1.0) as usize + 1;
-        Polyline::new((0..n).map(|k| reference.to_cartesian(s0 + (s1 - s0) * k as f64 / (n - 1) as f64, d)))
-            .expect("positive length")
+        Polyline::new(
+            (0..n).map(|k| reference.to_cartesian(s0 + (s1 - s0) * k as f64 / (n - 1) as f64, d)),
+        )
+        .expect("positive length")
     };
     let mut parts = MapParts::default();
     let seg_len = r.length / r.segments as f64;
@@ -450,7 +496,10 @@ fn road_parts(path: &Path, r: &YamlRoad) -> Result<(MapParts, FrenetPath), IoErr
             parts.lanes.push(lane);
         }
     }
-    parts.road_edges.push(RoadEdge::new(RoadEdgeKind::Boundary, offset_line(0.0, 0.0, r.length)));
+    parts.road_edges.push(RoadEdge::new(
+        RoadEdgeKind::Boundary,
+        offset_line(0.0, 0.0, r.length),
+    ));
     parts.road_edges.push(RoadEdge::new(
         RoadEdgeKind::Boundary,
         offset_line(max_offset, 0.0, r.length).reversed(),
@@ -480,8 +529,16 @@ fn explicit_parts(path: &Path, m: &YamlMap) -> Result<MapParts, IoError> {
     for (i, l) in m.lanes.iter().enumerate() {
         let loc = |f: &str| format!("map.lanes[{i}] (id {}).{f}", l.id);
         let mut lane = Lane::new(l.id, line(loc("centerline"), &l.centerline)?);
-        lane.left_boundary = l.left_boundary.as_deref().map(|b| line(loc("left_boundary"), b)).transpose()?;
-        lane.right_boundary = l.right_boundary.as_deref().map(|b| line(loc("right_boundary"), b)).transpose()?;
+        lane.left_boundary = l
+            .left_boundary
+            .as_deref()
+            .map(|b| line(loc("left_boundary"), b))
+            .transpose()?;
+        lane.right_boundary = l
+            .right_boundary
+            .as_deref()
+            .map(|b| line(loc("right_boundary"), b))
+            .transpose()?;
         lane.lane_type = l.lane_type;
         lane.speed_limit = l.speed_limit;
         lane.is_intersection = l.intersection;
@@ -492,7 +549,10 @@ fn explicit_parts(path: &Path, m: &YamlMap) -> Result<MapParts, IoError> {
         parts.lanes.push(lane);
     }
     for (i, e) in m.road_edges.iter().enumerate() {
-        parts.road_edges.push(RoadEdge::new(e.kind, line(format!("map.road_edges[{i}]"), &e.points)?));
+        parts.road_edges.push(RoadEdge::new(
+            e.kind,
+            line(format!("map.road_edges[{i}]"), &e.points)?,
+        ));
     }
     for (i, l) in m.road_lines.iter().enumerate() {
         parts.road_lines.push(RoadLine {
@@ -502,17 +562,27 @@ fn explicit_parts(path: &Path, m: &YamlMap) -> Result<MapParts, IoError> {
         });
     }
     for (i, c) in m.crosswalks.iter().enumerate() {
-        parts.crosswalks.push(poly(format!("map.crosswalks[{i}]"), c)?);
+        parts
+            .crosswalks
+            .push(poly(format!("map.crosswalks[{i}]"), c)?);
     }
     for (i, c) in m.speed_bumps.iter().enumerate() {
-        parts.speed_bumps.push(poly(format!("map.speed_bumps[{i}]"), c)?);
+        parts
+            .speed_bumps
+            .push(poly(format!("map.speed_bumps[{i}]"), c)?);
     }
     for (i, c) in m.drivable_areas.iter().enumerate() {
-        parts.drivable_areas.push(poly(format!("map.drivable_areas[{i}]"), c)?);
+        parts
+            .drivable_areas
+            .push(poly(format!("map.drivable_areas[{i}]"), c)?);
     }
     for (i, s) in m.stop_lines.iter().enumerate() {
         if s.points.is_empty() || s.points.iter().flatten().any(|v| !v.is_finite()) {
-            return Err(IoError::invalid(path, format!("map.stop_lines[{i}]"), "needs finite points"));
+            return Err(IoError::invalid(
+                path,
+                format!("map.stop_lines[{i}]"),
+                "needs finite points",
+            ));
         }
         parts.stop_lines.push(StopLine {
             points: to_points(&s.points).collect(),
@@ -553,23 +623,48 @@ pub fn to_yaml(scene: &Scene) -> String {
             .map
             .road_edges()
             .iter()
-            .map(|e| YamlEdge { kind: e.kind, points: pts_out(e.line().points()) })
+            .map(|e| YamlEdge {
+                kind: e.kind,
+                points: pts_out(e.line().points()),
+            })
             .collect(),
         road_lines: scene
             .map
             .road_lines()
             .iter()
-            .map(|l| YamlRoadLine { kind: l.kind, yellow: l.yellow, points: pts_out(l.line.points()) })
+            .map(|l| YamlRoadLine {
+                kind: l.kind,
+                yellow: l.yellow,
+                points: pts_out(l.line.points()),
+            })
             .collect(),
-        crosswalks: scene.map.crosswalks().iter().map(|p| pts_out(p.points())).collect(),
+        crosswalks: scene
+            .map
+            .crosswalks()
+            .iter()
+            .map(|p| pts_out(p.points()))
+            .collect(),
         stop_lines: scene
             .map
             .stop_lines()
             .iter()
-            .map(|s| YamlStopLine { points: pts_out(&s.points), lanes: s.lanes.clone() })
+            .map(|s| YamlStopLine {
+                points: pts_out(&s.points),
+                lanes: s.lanes.clone(),
+            })
             .collect(),
-        speed_bumps: scene.map.speed_bumps().iter().map(|p| pts_out(p.points())).collect(),
-        drivable_areas: scene.map.drivable_areas().iter().map(|p| pts_out(p.points())).collect(),
+        speed_bumps: scene
+            .map
+            .speed_bumps()
+            .iter()
+            .map(|p| pts_out(p.points()))
+            .collect(),
+        drivable_areas: scene
+            .map
+            .drivable_areas()
+            .iter()
+            .map(|p| pts_out(p.points()))
+            .collect(),
     };
     let agents = scene
         .agents
@@ -617,7 +712,13 @@ fn explicit_states(xyh: &[Option<Vec<f64>>], dt: f64) -> Result<Vec<AgentState>,
     for (k, s) in xyh.iter().enumerate() {
         if let Some(v) = s {
             if v.len() != 3 && v.len() != 5 {
-                return Err((k, format!("expected [x, y, heading] or [x, y, heading, vx, vy], got {} numbers", v.len())));
+                return Err((
+                    k,
+                    format!(
+                        "expected [x, y, heading] or [x, y, heading, vx, vy], got {} numbers",
+                        v.len()
+                    ),
+                ));
             }
             if v.iter().any(|x| !x.is_finite()) {
                 return Err((k, "values must be finite".into()));
@@ -626,22 +727,42 @@ fn explicit_states(xyh: &[Option<Vec<f64>>], dt: f64) -> Result<Vec<AgentState>,
     }
     Ok((0..n)
         .map(|k| {
-            let Some(v) = &xyh[k] else { return AgentState::INVALID };
+            let Some(v) = &xyh[k] else {
+                return AgentState::INVALID;
+            };
             let (vx, vy) = if v.len() == 5 {
                 (v[3], v[4])
             } else {
                 // Velocity from neighbouring valid states.
-                let lo = if k > 0 && xyh[k - 1].is_some() { k - 1 } else { k };
-                let hi = if k + 1 < n && xyh[k + 1].is_some() { k + 1 } else { k };
+                let lo = if k > 0 && xyh[k - 1].is_some() {
+                    k - 1
+                } else {
+                    k
+                };
+                let hi = if k + 1 < n && xyh[k + 1].is_some() {
+                    k + 1
+                } else {
+                    k
+                };
                 if hi > lo {
-                    let (a, b) = (xyh[lo].as_ref().expect("valid"), xyh[hi].as_ref().expect("valid"));
+                    let (a, b) = (
+                        xyh[lo].as_ref().expect("valid"),
+                        xyh[hi].as_ref().expect("valid"),
+                    );
                     let span = (hi - lo) as f64 * dt;
                     ((b[0] - a[0]) / span, (b[1] - a[1]) / span)
                 } else {
                     (0.0, 0.0)
                 }
             };
-            AgentState { x: v[0], y: v[1], heading: v[2], vx, vy, valid: true }
+            AgentState {
+                x: v[0],
+                y: v[1],
+                heading: v[2],
+                vx,
+                vy,
+                valid: true,
+            }
         })
         .collect())
 }

@@ -56,7 +56,10 @@ impl View {
         lo -= m;
         hi += m;
         if !(opts.width >= 64 && opts.width <= 8192) {
-            return Err(RenderError::Size(format!("width {} is outside 64..8192 pixels", opts.width)));
+            return Err(RenderError::Size(format!(
+                "width {} is outside 64..8192 pixels",
+                opts.width
+            )));
         }
         let w = opts.width as f64;
         let (ww, wh) = ((hi.x - lo.x).max(1.0), (hi.y - lo.y).max(1.0));
@@ -76,7 +79,10 @@ impl View {
 
     /// World point → pixel.
     pub fn px(&self, p: Point) -> Point {
-        Point::new((p.x - self.origin.x) * self.scale, (self.origin.y - p.y) * self.scale)
+        Point::new(
+            (p.x - self.origin.x) * self.scale,
+            (self.origin.y - p.y) * self.scale,
+        )
     }
 
     fn pxs(&self, pts: &[Point]) -> Vec<Point> {
@@ -84,20 +90,29 @@ impl View {
     }
 
     fn visible(&self, (lo, hi): (Point, Point)) -> bool {
-        let (a, b) = (self.px(Point::new(lo.x, hi.y)), self.px(Point::new(hi.x, lo.y)));
+        let (a, b) = (
+            self.px(Point::new(lo.x, hi.y)),
+            self.px(Point::new(hi.x, lo.y)),
+        );
         b.x >= 0.0 && a.x <= self.width as f64 && b.y >= 0.0 && a.y <= self.height as f64
     }
 }
 
 fn bounds(pts: &[Point]) -> (Point, Point) {
-    pts.iter().fold((pts[0], pts[0]), |(lo, hi), p| (lo.inf(p), hi.sup(p)))
+    pts.iter()
+        .fold((pts[0], pts[0]), |(lo, hi), p| (lo.inf(p), hi.sup(p)))
 }
 
 /// The static part: background, road surface, markings, edges, crosswalks, stop lines.
 pub(crate) fn draw_map(c: &mut dyn Canvas, scene: &Scene, v: &View) {
     let (w, h) = (v.width as f64, v.height as f64);
     c.fill_polygon(
-        &[Point::new(0.0, 0.0), Point::new(w, 0.0), Point::new(w, h), Point::new(0.0, h)],
+        &[
+            Point::new(0.0, 0.0),
+            Point::new(w, 0.0),
+            Point::new(w, h),
+            Point::new(0.0, h),
+        ],
         BACKGROUND,
     );
     let map = &scene.map;
@@ -140,7 +155,11 @@ pub(crate) fn draw_map(c: &mut dyn Canvas, scene: &Scene, v: &View) {
         let color = if l.yellow { YELLOW_LINE } else { WHITE_LINE };
         let dash = matches!(l.kind, crate::scene::RoadLineKind::Broken)
             .then(|| [metres(3.0).max(3.0), metres(6.0).max(4.0)]);
-        let width = if matches!(l.kind, crate::scene::RoadLineKind::DoubleSolid) { 2.5 } else { 1.5 };
+        let width = if matches!(l.kind, crate::scene::RoadLineKind::DoubleSolid) {
+            2.5
+        } else {
+            1.5
+        };
         c.stroke(&v.pxs(pts), width, color, dash, false);
     }
     for e in map.road_edges() {
@@ -167,7 +186,13 @@ pub(crate) fn draw_map(c: &mut dyn Canvas, scene: &Scene, v: &View) {
 }
 
 /// Trails, boxes and labels of the agents at `step`.
-pub(crate) fn draw_agents(c: &mut dyn Canvas, scene: &Scene, v: &View, step: usize, opts: &RenderOptions) {
+pub(crate) fn draw_agents(
+    c: &mut dyn Canvas,
+    scene: &Scene,
+    v: &View,
+    step: usize,
+    opts: &RenderOptions,
+) {
     let current = scene.meta.current_step;
     let runs = |a: &crate::scene::Agent, from: usize, to: usize| -> Vec<Vec<Point>> {
         // Split at invalid steps so that a gap is not drawn as a straight jump.
@@ -216,9 +241,19 @@ pub(crate) fn draw_agents(c: &mut dyn Canvas, scene: &Scene, v: &View, step: usi
             v.px(front + (cs[1] - front) * 0.8),
         ];
         c.fill_polygon(&bar, Rgba(255, 255, 255, 170));
-        let tl = corners.iter().fold(Point::new(f64::INFINITY, f64::INFINITY), |m, p| m.inf(p));
-        let tr_x = corners.iter().map(|p| p.x).fold(f64::NEG_INFINITY, f64::max);
-        c.label(Point::new(tr_x + 2.0, tl.y - 9.0), &a.id.to_string(), 9.0, Rgba(15, 15, 15, 255));
+        let tl = corners
+            .iter()
+            .fold(Point::new(f64::INFINITY, f64::INFINITY), |m, p| m.inf(p));
+        let tr_x = corners
+            .iter()
+            .map(|p| p.x)
+            .fold(f64::NEG_INFINITY, f64::max);
+        c.label(
+            Point::new(tr_x + 2.0, tl.y - 9.0),
+            &a.id.to_string(),
+            9.0,
+            Rgba(15, 15, 15, 255),
+        );
     }
 }
 
@@ -230,7 +265,13 @@ pub fn draw_scene(c: &mut dyn Canvas, scene: &Scene, v: &View, opts: &RenderOpti
     draw_caption(c, scene, v, step, opts);
 }
 
-pub(crate) fn draw_caption(c: &mut dyn Canvas, scene: &Scene, v: &View, step: usize, opts: &RenderOptions) {
+pub(crate) fn draw_caption(
+    c: &mut dyn Canvas,
+    scene: &Scene,
+    v: &View,
+    step: usize,
+    opts: &RenderOptions,
+) {
     let text = opts.caption.clone().unwrap_or_else(|| {
         format!(
             "{}  t = {:.1} s  step {}/{}",
@@ -244,6 +285,17 @@ pub(crate) fn draw_caption(c: &mut dyn Canvas, scene: &Scene, v: &View, step: us
     // A 10 m scale bar in the bottom-left corner.
     let y = v.height as f64 - 12.0;
     let len = 10.0 * v.scale;
-    c.stroke(&[Point::new(8.0, y), Point::new(8.0 + len, y)], 3.0, Rgba(10, 10, 10, 255), None, false);
-    c.label(Point::new(12.0 + len, y - 6.0), "10 m", 9.0, Rgba(10, 10, 10, 255));
+    c.stroke(
+        &[Point::new(8.0, y), Point::new(8.0 + len, y)],
+        3.0,
+        Rgba(10, 10, 10, 255),
+        None,
+        false,
+    );
+    c.label(
+        Point::new(12.0 + len, y - 6.0),
+        "10 m",
+        9.0,
+        Rgba(10, 10, 10, 255),
+    );
 }

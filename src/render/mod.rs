@@ -81,7 +81,14 @@ pub trait Canvas {
     /// Fills a closed polygon.
     fn fill_polygon(&mut self, pts: &[Point], color: Rgba);
     /// Strokes a polyline; `dash` is `[on, off]` in pixels.
-    fn stroke(&mut self, pts: &[Point], width: f32, color: Rgba, dash: Option<[f32; 2]>, closed: bool);
+    fn stroke(
+        &mut self,
+        pts: &[Point],
+        width: f32,
+        color: Rgba,
+        dash: Option<[f32; 2]>,
+        closed: bool,
+    );
     /// Writes a short label with its top-left corner at `at`, `size` pixels tall, on a halo.
     fn label(&mut self, at: Point, text: &str, size: f32, color: Rgba);
 }

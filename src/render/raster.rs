@@ -1,6 +1,8 @@
 //! Raster output with tiny-skia: PNG, and the frames of GIFs.
 
-use tiny_skia::{Color, FillRule, LineCap, LineJoin, Paint, PathBuilder, Pixmap, Stroke, StrokeDash, Transform};
+use tiny_skia::{
+    Color, FillRule, LineCap, LineJoin, Paint, PathBuilder, Pixmap, Stroke, StrokeDash, Transform,
+};
 
 use super::draw::{draw_scene, View};
 use super::font::glyph;
@@ -44,7 +46,13 @@ fn path(pts: &[Point], closed: bool) -> Option<tiny_skia::Path> {
 impl Canvas for RasterCanvas {
     fn fill_polygon(&mut self, pts: &[Point], c: Rgba) {
         if let Some(p) = path(pts, true) {
-            self.pixmap.fill_path(&p, &paint(c), FillRule::EvenOdd, Transform::identity(), None);
+            self.pixmap.fill_path(
+                &p,
+                &paint(c),
+                FillRule::EvenOdd,
+                Transform::identity(),
+                None,
+            );
         }
     }
 
@@ -57,7 +65,8 @@ impl Canvas for RasterCanvas {
             dash: dash.and_then(|[a, b]| StrokeDash::new(vec![a, b], 0.0)),
             ..Stroke::default()
         };
-        self.pixmap.stroke_path(&p, &paint(c), &stroke, Transform::identity(), None);
+        self.pixmap
+            .stroke_path(&p, &paint(c), &stroke, Transform::identity(), None);
     }
 
     fn label(&mut self, at: Point, text: &str, size: f32, c: Rgba) {
@@ -65,7 +74,12 @@ impl Canvas for RasterCanvas {
         let w = text.chars().count() as f32 * 6.0 * px + 2.0 * px;
         let (x0, y0) = (at.x as f32, at.y as f32);
         if let Some(r) = tiny_skia::Rect::from_xywh(x0 - px, y0 - px, w, 9.0 * px) {
-            self.pixmap.fill_rect(r, &paint(Rgba(255, 255, 255, 190)), Transform::identity(), None);
+            self.pixmap.fill_rect(
+                r,
+                &paint(Rgba(255, 255, 255, 190)),
+                Transform::identity(),
+                None,
+            );
         }
         let ink = paint(c);
         for (i, ch) in text.chars().enumerate() {

@@ -21,7 +21,9 @@ fn coords(pts: &[Point]) -> String {
 }
 
 fn escape(t: &str) -> String {
-    t.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;")
+    t.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
 }
 
 impl Canvas for SvgCanvas {
@@ -68,7 +70,9 @@ impl Canvas for SvgCanvas {
 /// The scene as an SVG document.
 pub fn render_svg(scene: &Scene, opts: &RenderOptions) -> Result<String, RenderError> {
     let view = View::fit(scene, opts)?;
-    let mut c = SvgCanvas { body: String::new() };
+    let mut c = SvgCanvas {
+        body: String::new(),
+    };
     draw_scene(&mut c, scene, &view, opts);
     Ok(format!(
         r#"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" viewBox="0 0 {w} {h}">

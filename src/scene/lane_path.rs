@@ -125,7 +125,11 @@ impl Map {
             if lanes.contains(&next) {
                 break;
             }
-            forward += self.lane(next).expect("graph lanes exist").centerline.length();
+            forward += self
+                .lane(next)
+                .expect("graph lanes exist")
+                .centerline
+                .length();
             lanes.push(next);
         }
         let mut back = 0.0;
@@ -136,7 +140,11 @@ impl Map {
             if lanes.contains(&prev) {
                 break;
             }
-            back += self.lane(prev).expect("graph lanes exist").centerline.length();
+            back += self
+                .lane(prev)
+                .expect("graph lanes exist")
+                .centerline
+                .length();
             lanes.insert(0, prev);
         }
         let mut points: Vec<crate::geom::Point> = Vec::new();
@@ -204,7 +212,10 @@ agents:
         let right = s.map.lane_path(1, 200.0, 0.0, Turn::Right).unwrap();
         assert_eq!(right.lanes, vec![1, 4]);
         // Short requests stop as soon as the length is covered.
-        assert_eq!(s.map.lane_path(1, 30.0, 0.0, Turn::Straight).unwrap().lanes, vec![1]);
+        assert_eq!(
+            s.map.lane_path(1, 30.0, 0.0, Turn::Straight).unwrap().lanes,
+            vec![1]
+        );
         assert!(matches!(
             s.map.lane_path(42, 10.0, 0.0, Turn::Straight),
             Err(SceneError::UnknownLane(42))

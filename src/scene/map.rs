@@ -340,11 +340,27 @@ mod tests {
     fn signed_distance_to_road_edge_is_negative_on_the_road() {
         let text = "road: {lanes: 2, lane_width: 3.5, length: 100}\nagents: []\n";
         let s = yaml::parse(Path::new("road.yaml"), text).unwrap();
-        let sd = |x, y| s.map.signed_distance_to_road_edge(Point::new(x, y)).unwrap();
-        assert!((sd(50.0, 1.0) + 1.0).abs() < 1e-9, "1 m inside the right edge");
-        assert!((sd(50.0, 6.0) + 1.0).abs() < 1e-9, "1 m inside the left edge");
-        assert!((sd(50.0, -2.0) - 2.0).abs() < 1e-9, "2 m beyond the right edge");
-        assert!((sd(50.0, 9.0) - 2.0).abs() < 1e-9, "2 m beyond the left edge");
+        let sd = |x, y| {
+            s.map
+                .signed_distance_to_road_edge(Point::new(x, y))
+                .unwrap()
+        };
+        assert!(
+            (sd(50.0, 1.0) + 1.0).abs() < 1e-9,
+            "1 m inside the right edge"
+        );
+        assert!(
+            (sd(50.0, 6.0) + 1.0).abs() < 1e-9,
+            "1 m inside the left edge"
+        );
+        assert!(
+            (sd(50.0, -2.0) - 2.0).abs() < 1e-9,
+            "2 m beyond the right edge"
+        );
+        assert!(
+            (sd(50.0, 9.0) - 2.0).abs() < 1e-9,
+            "2 m beyond the left edge"
+        );
     }
 
     #[test]
@@ -359,10 +375,18 @@ map:
     - points: [[100, 7], [0, 7]]
 "#;
         let s = yaml::parse(Path::new("edges.yaml"), text).unwrap();
-        let sd = |x, y| s.map.signed_distance_to_road_edge(Point::new(x, y)).unwrap();
+        let sd = |x, y| {
+            s.map
+                .signed_distance_to_road_edge(Point::new(x, y))
+                .unwrap()
+        };
         assert!(sd(50.0, 2.0) < 0.0 && sd(50.0, 5.0) < 0.0);
         assert!(sd(50.0, -0.5) > 0.0 && sd(50.0, 7.5) > 0.0);
-        let empty = yaml::parse(Path::new("e.yaml"), "steps: 1\ncurrent_step: 0\nmap: {}\n").unwrap();
-        assert_eq!(empty.map.signed_distance_to_road_edge(Point::new(0.0, 0.0)), None);
+        let empty =
+            yaml::parse(Path::new("e.yaml"), "steps: 1\ncurrent_step: 0\nmap: {}\n").unwrap();
+        assert_eq!(
+            empty.map.signed_distance_to_road_edge(Point::new(0.0, 0.0)),
+            None
+        );
     }
 }

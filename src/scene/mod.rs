@@ -14,8 +14,7 @@ pub use agents::{Agent, AgentId, AgentState, AgentType};
 pub use lane_graph::{EdgeCounts, LaneGraph};
 pub use lane_path::{LanePath, Turn, TURN_THRESHOLD};
 pub use map::{
-    Lane, LaneId, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind, RoadLine, RoadLineKind,
-    StopLine,
+    Lane, LaneId, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind, RoadLine, RoadLineKind, StopLine,
 };
 
 use crate::geom::GeomError;
@@ -176,10 +175,7 @@ impl Scene {
                     .iter()
                     .all(|v| v.is_finite());
                 if s.valid && !finite {
-                    return Err(SceneError::NonFiniteState {
-                        agent: a.id,
-                        step,
-                    });
+                    return Err(SceneError::NonFiniteState { agent: a.id, step });
                 }
             }
         }
@@ -204,8 +200,7 @@ impl Scene {
 
     /// Number of future steps (after the current one).
     pub fn num_future_steps(&self) -> usize {
-        self.num_steps()
-            .saturating_sub(self.meta.current_step + 1)
+        self.num_steps().saturating_sub(self.meta.current_step + 1)
     }
 
     /// The agent with this id.

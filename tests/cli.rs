@@ -1,0 +1,237 @@
+//! End-to-end tests through the command line, one per scene format, on data/samples.
+
+mod common;
+
+use common::{fails, ok, s, samples};
+use serde_json::Value;
+
+fn inspect_json(path: &str) -> Vec<Value> {
+    let out = ok(&["inspect", path, "--json"]);
+    serde_json::from_str::<Value>(&out)
+        .unwrap()
+        .as_array()
+        .unwrap()
+        .clone()
+}
+
+#[test]
+fn inspect_commonroad_2018b_and_2020a() {
+    let dir = samples().join("commonroad");
+    let all = inspect_json(s(&dir));
+    assert_eq!(all.len(), 4);
+    let us101 = all
+        .iter()
+        .find(|v| v["scenario_id"] == "USA_US101-3_3_T-1")
+        .unwrap();
+    assert_eq!(us101["format"], "commonroad");
+    assert_eq!(us101["steps"], 32);
+    assert_eq!(us101["agents_by_type"]["vehicle"], 12);
+    assert_eq!(us101["lanes"], 12);
+    assert_eq!(us101["current_step"], 10);
+    // Peachtree is a 2020a-style file with stop lines and line markings.
+    let peach = all
+        .iter()
+        .find(|v| v["scenario_id"] == "USA_Peach-4_8_T-1")
+        .unwrap();
+    assert!(peach["stop_lines"].as_u64().unwrap() > 0);
+    assert!(peach["lane_graph"]["successor"].as_u64().unwrap() > 0);
+    for v in &all {
+        assert!(v["road_edges"].as_u64().unwrap() > 0, "{v}");
+        assert_eq!(v["dangling_lane_refs"], 0, "{v}");
+    }
+}
+
+#[test]
+fn inspect_av2_by_directory_and_by_parquet() {
+    let dir = samples().join("av2");
+    let by_dir = inspect_json(s(&dir));
+    assert_eq!(by_dir.len(), 1);
+    let v = &by_dir[0];
+    assert_eq!(v["format"], "av2");
+    assert_eq!(v["scenario_id"], "0a1e6f0a-1817-4a98-b02e-db8c9327d151");
+    assert_eq!(v["steps"], 110);
+    assert_eq!(v["current_step"], 49);
+    assert_eq!(v["agents"], 58);
+    assert_eq!(v["ego"], 138951);
+    assert_eq!(v["lanes"], 71);
+    assert_eq!(v["crosswalks"], 6);
+    let parquet = dir.join("scenario_0a1e6f0a-1817-4a98-b02e-db8c9327d151.parquet");
+    let by_file = inspect_json(s(&parquet));
+    assert_eq!(by_file[0]["agents"], 58);
+}
+
+#[test]
+fn inspect_yaml_and_text_output() {
+    let out = ok(&["inspect", s(&samples().join("yaml/highway_cut_in.yaml"))]);
+    assert!(out.contains("highway-cut-in (yaml)"), "{out}");
+    assert!(out.contains("4 (4 vehicle), ego 1"), "{out}");
+    assert!(out.contains("6 lanes"), "{out}");
+}
+
+#[test]
+fn womd_files_written_by_convert_inspect_and_render() {
+    let dir = tempfile::tempdir().unwrap();
+    let shard = dir.path().join("test.tfrecord-00000-of-00001");
+    ok(&[
+        "convert",
+        s(&samples().join("commonroad/USA_US101-4_1_T-1.xml")),
+        "-o",
+        s(&shard),
+    ]);
+    let v = inspect_json(s(&shard));
+    assert_eq!(v[0]["format"], "womd");
+    assert_eq!(v[0]["scenario_id"], "USA_US101-4_1_T-1");
+    assert_eq!(v[0]["agents"], 22);
+    assert_eq!(v[0]["steps"], 101);
+    // A directory of shards is one source.
+    let v = inspect_json(s(dir.path()));
+    assert_eq!(v.len(), 1);
+    let png = dir.path().join("w.png");
+    ok(&["render", s(&shard), "--index", "0", "-o", s(&png)]);
+    assert_eq!(&std::fs::read(&png).unwrap()[..4], b"\x89PNG");
+    let err = fails(&["render", s(&shard), "--index", "3", "-o", s(&png)]);
+    assert!(err.contains("only 1 scenes"), "{err}");
+}
+
+#[test]
+fn render_svg_png_gif() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("commonroad/USA_Lanker-1_1_T-1.xml");
+    let svg = dir.path().join("a.svg");
+    ok(&["render", s(&scene), "-o", s(&svg)]);
+    let text = std::fs::read_to_string(&svg).unwrap();
+    assert!(text.starts_with("<svg") && text.contains("<polygon") && text.contains(">1261<"));
+    let png = dir.path().join("a.png");
+    ok(&[
+        "render",
+        s(&scene),
+        "--step",
+        "0",
+        "--width",
+        "400",
+        "-o",
+        s(&png),
+    ]);
+    let bytes = std::fs::read(&png).unwrap();
+    assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n");
+    assert_eq!(u32::from_be_bytes(bytes[16..20].try_into().unwrap()), 400);
+    let gif = dir.path().join("a.gif");
+    ok(&[
+        "render",
+        s(&samples().join("yaml/curved_two_lanes.yaml")),
+        "--width",
+        "300",
+        "-o",
+        s(&gif),
+    ]);
+    let bytes = std::fs::read(&gif).unwrap();
+    assert_eq!(&bytes[..6], b"GIF89a");
+    // One frame per step (91 steps), 300 pixels wide.
+    let mut dec = gif::DecodeOptions::new().read_info(&bytes[..]).unwrap();
+    assert_eq!(dec.width(), 300);
+    let mut frames = 0;
+    while dec.read_next_frame().unwrap().is_some() {
+        frames += 1;
+    }
+    assert_eq!(frames, 91);
+    let err = fails(&["render", s(&scene), "-o", s(&dir.path().join("a.bmp"))]);
+    assert!(err.contains("unknown picture format"), "{err}");
+    let err = fails(&["render", s(&scene), "--step", "500", "-o", s(&png)]);
+    assert!(err.contains("--step 500"), "{err}");
+}
+
+#[test]
+fn convert_to_yaml_round_trips_every_format() {
+    let dir = tempfile::tempdir().unwrap();
+    for (k, src) in [
+        samples().join("commonroad/USA_Peach-4_8_T-1.xml"),
+        samples().join("av2"),
+        samples().join("yaml/highway_cut_in.yaml"),
+    ]
+    .iter()
+    .enumerate()
+    {
+        let yaml = dir.path().join(format!("s{k}.yaml"));
+        ok(&["convert", s(src), "-o", s(&yaml)]);
+        let a = &inspect_json(s(src))[0];
+        let b = &inspect_json(s(&yaml))[0];
+        for key in [
+            "scenario_id",
+            "steps",
+            "current_step",
+            "agents",
+            "agents_by_type",
+            "ego",
+            "lanes",
+            "road_edges",
+            "road_lines",
+            "crosswalks",
+            "stop_lines",
+            "drivable_areas",
+            "lane_graph",
+        ] {
+            assert_eq!(
+                a[key],
+                b[key],
+                "{key} differs after converting {}",
+                src.display()
+            );
+        }
+        assert_eq!(b["format"], "yaml");
+    }
+}
+
+#[test]
+fn rollout_json_written_and_rendered() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let json = dir.path().join("r.json");
+    ok(&["convert", s(&scene), "-o", s(&json)]);
+    let v: Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(v["format"], "drivescript-rollout");
+    assert_eq!(v["agents"][0]["states"].as_array().unwrap().len(), 91);
+    assert_eq!(v["agents"][0]["states"][0].as_array().unwrap().len(), 4);
+    let svg = dir.path().join("r.svg");
+    ok(&["render", s(&scene), "--rollout", s(&json), "-o", s(&svg)]);
+    // A rollout with a wrong version is refused with its field named.
+    let bad = std::fs::read_to_string(&json)
+        .unwrap()
+        .replace("\"version\":1", "\"version\":7");
+    std::fs::write(&json, bad).unwrap();
+    let err = fails(&["render", s(&scene), "--rollout", s(&json), "-o", s(&svg)]);
+    assert!(
+        err.contains("r.json: version: unsupported version 7"),
+        "{err}"
+    );
+}
+
+#[test]
+fn unknown_formats_list_the_supported_ones() {
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("scene.osm");
+    std::fs::write(&f, "<osm/>").unwrap();
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("scene.osm: unknown scene format") && err.contains("CommonRoad XML"),
+        "{err}"
+    );
+    let err = fails(&["inspect", "no/such/file.xml"]);
+    assert!(err.contains("no/such/file.xml"), "{err}");
+}
+
+#[test]
+fn help_has_examples() {
+    for cmd in ["inspect", "render", "convert", "bench"] {
+        let out = ok(&[cmd, "--help"]);
+        assert!(out.contains("Examples:"), "{cmd} --help has no examples");
+    }
+}
+
+#[test]
+fn demo_writes_the_gif() {
+    let dir = tempfile::tempdir().unwrap();
+    let gif = dir.path().join("demo.gif");
+    let out = ok(&["demo", "-o", s(&gif)]);
+    assert!(out.contains("USA_Lanker-1_1_T-1"), "{out}");
+    assert_eq!(&std::fs::read(&gif).unwrap()[..6], b"GIF89a");
+}

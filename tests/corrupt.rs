@@ -1,0 +1,335 @@
+//! Corrupted inputs of every format end in an error naming the file and the place, never a
+//! panic: hand-made corruptions with their expected messages, then seeded random mutations.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+
+use common::{fails, s, samples};
+use drivescript::io::{load_scenes, LoadOptions};
+
+fn copy_to(dir: &Path, src: &Path, name: &str) -> PathBuf {
+    let dst = dir.join(name);
+    std::fs::copy(src, &dst).unwrap();
+    dst
+}
+
+fn edit(path: &Path, f: impl FnOnce(String) -> String) {
+    let t = std::fs::read_to_string(path).unwrap();
+    std::fs::write(path, f(t)).unwrap();
+}
+
+#[test]
+fn commonroad_errors_name_line_and_element() {
+    let dir = tempfile::tempdir().unwrap();
+    let src = samples().join("commonroad/USA_US101-3_3_T-1.xml");
+    let f = copy_to(dir.path(), &src, "a.xml");
+    edit(&f, |t| t.replacen("<x>-44.8542</x>", "<x>west</x>", 1));
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("a.xml: line 5") && err.contains("<x>") && err.contains("\"west\""),
+        "{err}"
+    );
+
+    let f = copy_to(dir.path(), &src, "b.xml");
+    edit(&f, |t| t[..t.len() / 2].to_string());
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("b.xml: line ") && err.contains("column"),
+        "{err}"
+    );
+
+    let f = copy_to(dir.path(), &src, "c.xml");
+    edit(&f, |t| {
+        t.replacen("<leftBound>", "<leftBoundary>", 1).replacen(
+            "</leftBound>",
+            "</leftBoundary>",
+            1,
+        )
+    });
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("<lanelet id=31>") && err.contains("missing <leftBound>"),
+        "{err}"
+    );
+
+    let f = copy_to(dir.path(), &src, "d.xml");
+    edit(&f, |t| {
+        t.replacen("<exact>0</exact>", "<exact>-3</exact>", 1)
+    });
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("d.xml") && err.contains("not a non-negative step index"),
+        "{err}"
+    );
+
+    let f = copy_to(dir.path(), &src, "e.xml");
+    edit(&f, |t| {
+        t.replacen("<commonRoad ", "<notCommonRoad ", 1)
+            .replace("</commonRoad>", "</notCommonRoad>")
+    });
+    let err = fails(&["inspect", s(&f)]);
+    assert!(err.contains("not <commonRoad>"), "{err}");
+
+    // A truncated gzip stream.
+    let gz = dir.path().join("f.xml.gz");
+    let mut enc = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+    std::io::Write::write_all(&mut enc, &std::fs::read(&src).unwrap()).unwrap();
+    let bytes = enc.finish().unwrap();
+    std::fs::write(&gz, &bytes[..bytes.len() / 3]).unwrap();
+    let err = fails(&["inspect", s(&gz)]);
+    assert!(err.contains("f.xml.gz: gzip stream"), "{err}");
+}
+
+#[test]
+fn av2_errors_name_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let src = samples().join("av2");
+    for e in std::fs::read_dir(&src).unwrap() {
+        let p = e.unwrap().path();
+        std::fs::copy(&p, dir.path().join(p.file_name().unwrap())).unwrap();
+    }
+    let parquet = dir
+        .path()
+        .join("scenario_0a1e6f0a-1817-4a98-b02e-db8c9327d151.parquet");
+    let map = dir
+        .path()
+        .join("log_map_archive_0a1e6f0a-1817-4a98-b02e-db8c9327d151.json");
+    let good_map = std::fs::read_to_string(&map).unwrap();
+    edit(&map, |t| t.replacen("\"centerline\"", "\"centreline\"", 1));
+    let err = fails(&["inspect", s(dir.path())]);
+    assert!(
+        err.contains("log_map_archive")
+            && err.contains("line 1, column")
+            && err.contains("centerline"),
+        "{err}"
+    );
+    std::fs::write(&map, &good_map).unwrap();
+
+    let bytes = std::fs::read(&parquet).unwrap();
+    std::fs::write(&parquet, &bytes[..bytes.len() - 100]).unwrap();
+    let err = fails(&["inspect", s(dir.path())]);
+    assert!(
+        err.contains("scenario_0a1e6f0a") && err.contains("parquet"),
+        "{err}"
+    );
+
+    std::fs::remove_file(&map).unwrap();
+    std::fs::write(&parquet, &bytes).unwrap();
+    let err = fails(&["inspect", s(&parquet)]);
+    assert!(
+        err.contains("no log_map_archive_*.json beside the parquet file"),
+        "{err}"
+    );
+}
+
+#[test]
+fn yaml_errors_name_line_or_agent() {
+    let dir = tempfile::tempdir().unwrap();
+    let src = samples().join("yaml/highway_cut_in.yaml");
+    let f = copy_to(dir.path(), &src, "a.yaml");
+    edit(&f, |t| t.replacen("speed: 24", "sped: 24", 1));
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("a.yaml: line 17") && err.contains("unknown field `sped`"),
+        "{err}"
+    );
+
+    let f = copy_to(dir.path(), &src, "b.yaml");
+    edit(&f, |t| {
+        t.replacen("lane_change: {to: 1", "lane_change: {to: 5", 1)
+    });
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("agents[1] (id 2)") && err.contains("the road has 3 lanes"),
+        "{err}"
+    );
+
+    let f = copy_to(dir.path(), &src, "c.yaml");
+    edit(&f, |t| t.replacen("ego: 1", "ego: 77", 1));
+    let err = fails(&["inspect", s(&f)]);
+    assert!(err.contains("no agent with id 77"), "{err}");
+
+    let f = copy_to(dir.path(), &src, "d.yaml");
+    edit(&f, |t| t.replacen("  - id: 3", "  - id: 1", 1));
+    let err = fails(&["inspect", s(&f)]);
+    assert!(err.contains("agent id 1 appears twice"), "{err}");
+
+    let f = dir.path().join("e.yaml");
+    std::fs::write(
+        &f,
+        "steps: 2\ncurrent_step: 0\nmap:\n  lanes:\n    - {id: 1, centerline: [[0, 0]]}\n",
+    )
+    .unwrap();
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("map.lanes[0] (id 1).centerline")
+            && err.contains("at least 2 distinct points"),
+        "{err}"
+    );
+}
+
+#[test]
+fn womd_truncated_and_flipped_files_name_the_record() {
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("x.tfrecord");
+    // Two records: concatenate two single-scene files.
+    let a = dir.path().join("a.tfrecord");
+    let b = dir.path().join("b.tfrecord");
+    common::ok(&[
+        "convert",
+        s(&samples().join("yaml/highway_cut_in.yaml")),
+        "-o",
+        s(&a),
+    ]);
+    common::ok(&[
+        "convert",
+        s(&samples().join("yaml/curved_two_lanes.yaml")),
+        "-o",
+        s(&b),
+    ]);
+    let (ra, rb) = (std::fs::read(&a).unwrap(), std::fs::read(&b).unwrap());
+    let both = [ra.clone(), rb].concat();
+    std::fs::write(&f, &both[..both.len() - 7]).unwrap();
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("x.tfrecord: record 1") && err.contains("file ends inside the payload"),
+        "{err}"
+    );
+    let mut flipped = both.clone();
+    flipped[ra.len() + 40] ^= 0x80;
+    std::fs::write(&f, &flipped).unwrap();
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("record 1") && err.contains("payload checksum mismatch"),
+        "{err}"
+    );
+    let mut flipped = both;
+    flipped[ra.len() + 2] ^= 0x01;
+    std::fs::write(&f, &flipped).unwrap();
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("record 1") && err.contains("length checksum mismatch"),
+        "{err}"
+    );
+}
+
+/// A small deterministic generator, so that failures reproduce.
+struct Lcg(u64);
+
+impl Lcg {
+    fn next(&mut self) -> u64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        self.0 >> 33
+    }
+    fn below(&mut self, n: usize) -> usize {
+        (self.next() % n.max(1) as u64) as usize
+    }
+}
+
+fn mutate(rng: &mut Lcg, bytes: &[u8]) -> Vec<u8> {
+    let mut b = bytes.to_vec();
+    match rng.below(4) {
+        0 => b.truncate(rng.below(b.len())),
+        1 => {
+            for _ in 0..1 + rng.below(8) {
+                let i = rng.below(b.len());
+                b[i] ^= 1 << rng.below(8);
+            }
+        }
+        2 => {
+            let i = rng.below(b.len());
+            let junk: Vec<u8> = (0..1 + rng.below(64)).map(|_| rng.next() as u8).collect();
+            b.splice(i..i, junk);
+        }
+        _ => {
+            let i = rng.below(b.len());
+            let j = (i + rng.below(256)).min(b.len());
+            b.drain(i..j);
+        }
+    }
+    b
+}
+
+#[test]
+fn random_mutations_never_panic() {
+    let dir = tempfile::tempdir().unwrap();
+    let tf = dir.path().join("src.tfrecord");
+    common::ok(&[
+        "convert",
+        s(&samples().join("yaml/curved_two_lanes.yaml")),
+        "-o",
+        s(&tf),
+    ]);
+    let gz = dir.path().join("src.xml.gz");
+    let mut enc = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+    let us101 = samples().join("commonroad/USA_US101-3_3_T-1.xml");
+    std::io::Write::write_all(&mut enc, &std::fs::read(&us101).unwrap()).unwrap();
+    std::fs::write(&gz, enc.finish().unwrap()).unwrap();
+    let av2 = samples().join("av2");
+    let cases: Vec<(PathBuf, &str, usize)> = vec![
+        (us101, "m.xml", 60),
+        (gz, "m.xml.gz", 60),
+        (samples().join("yaml/highway_cut_in.yaml"), "m.yaml", 150),
+        (tf, "m.tfrecord", 150),
+        (
+            av2.join("scenario_0a1e6f0a-1817-4a98-b02e-db8c9327d151.parquet"),
+            "scenario_m.parquet",
+            150,
+        ),
+        (
+            av2.join("log_map_archive_0a1e6f0a-1817-4a98-b02e-db8c9327d151.json"),
+            "log_map_archive_m.json",
+            60,
+        ),
+    ];
+    let mut rng = Lcg(0x5eed);
+    let opts = LoadOptions::default();
+    for (src, name, n) in cases {
+        let original = std::fs::read(&src).unwrap();
+        let case_dir = dir.path().join(name.replace('.', "_"));
+        std::fs::create_dir_all(&case_dir).unwrap();
+        // AV2 needs both files; the one not being mutated stays intact.
+        for e in std::fs::read_dir(&av2).unwrap() {
+            let p = e.unwrap().path();
+            let fname = p.file_name().unwrap().to_string_lossy().into_owned();
+            if name.starts_with("scenario") && fname.ends_with(".json") {
+                std::fs::copy(&p, case_dir.join("log_map_archive_m.json")).unwrap();
+            }
+            if name.starts_with("log_map") && fname.ends_with(".parquet") {
+                std::fs::copy(&p, case_dir.join("scenario_m.parquet")).unwrap();
+            }
+        }
+        let target = case_dir.join(name);
+        let load_path = if name.contains("parquet") || name.contains("log_map") {
+            case_dir.clone()
+        } else {
+            target.clone()
+        };
+        let mut errors = 0;
+        let t0 = std::time::Instant::now();
+        for k in 0..n {
+            let m = mutate(&mut rng, &original);
+            std::fs::write(&target, &m).unwrap();
+            match load_scenes(&load_path, &opts) {
+                Ok(_) => {}
+                Err(e) => {
+                    errors += 1;
+                    let msg = e.to_string();
+                    assert!(
+                        msg.contains("_m") || msg.contains("m."),
+                        "mutation {k} of {name}: error does not name the file: {msg}"
+                    );
+                }
+            }
+        }
+        eprintln!("{name}: {errors}/{n} rejected in {:?}", t0.elapsed());
+        assert!(
+            errors > n / 4,
+            "{name}: only {errors} of {n} mutations were rejected"
+        );
+    }
+}
