@@ -30,7 +30,12 @@ pub struct FrenetPath {
     line: Polyline,
     /// Unit normal at every vertex (segment normal at the ends, bisector inside).
     normals: Vec<Point>,
+    /// Bounding boxes of runs of [`CHUNK`] segments, to skip far parts of long paths.
+    chunks: Vec<(Point, Point)>,
 }
+
+/// Segments per bounding box in the projection's broad phase.
+const CHUNK: usize = 8;
 
 /// One piece of the path: a segment, or the straight extension before the start / after the end.
 #[derive(Clone, Copy)]
@@ -125,7 +130,21 @@ impl FrenetPath {
             });
         }
         normals.push(seg_normals[n - 2]);
-        Self { line, normals }
+        let chunks = pts
+            .windows(2)
+            .collect::<Vec<_>>()
+            .chunks(CHUNK)
+            .map(|c| {
+                c.iter().fold((c[0][0], c[0][0]), |(lo, hi), w| {
+                    (lo.inf(&w[0]).inf(&w[1]), hi.sup(&w[0]).sup(&w[1]))
+                })
+            })
+            .collect();
+        Self {
+            line,
+            normals,
+            chunks,
+        }
     }
 
     /// The underlying polyline.
@@ -198,12 +217,29 @@ impl FrenetPath {
     pub fn project(&self, p: Point) -> FrenetPoint {
         let pts = self.line.points();
         let nseg = self.line.segment_count();
+        let seg_dist = |i: usize| super::point_segment_distance(&p, &pts[i], &pts[i + 1]).0;
+        // Broad phase: chunks in order of their boxes' distance, so that the nearest segment is
+        // found after a few chunks and the rest are skipped.
+        let mut order: Vec<(f64, usize)> = self
+            .chunks
+            .iter()
+            .enumerate()
+            .map(|(k, (lo, hi))| {
+                let dx = (lo.x - p.x).max(p.x - hi.x).max(0.0);
+                let dy = (lo.y - p.y).max(p.y - hi.y).max(0.0);
+                (dx.hypot(dy), k)
+            })
+            .collect();
+        order.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
+        let segs = |k: usize| k * CHUNK..((k + 1) * CHUNK).min(nseg);
         let mut dmin = f64::INFINITY;
-        let mut dist = Vec::with_capacity(nseg);
-        for i in 0..nseg {
-            let (d, _) = super::point_segment_distance(&p, &pts[i], &pts[i + 1]);
-            dmin = dmin.min(d);
-            dist.push(d);
+        for &(lb, k) in &order {
+            if lb > dmin {
+                break;
+            }
+            for i in segs(k) {
+                dmin = dmin.min(seg_dist(i));
+            }
         }
         // The interpolated-normal foot is at most ~1/cos(half the joint angle) farther than the
         // nearest point, so segments much farther than that cannot hold the best root.
@@ -219,9 +255,14 @@ impl FrenetPath {
         };
         consider(&self.before_piece(), &mut best);
         consider(&self.after_piece(), &mut best);
-        for (i, &d) in dist.iter().enumerate() {
-            if d <= reach {
-                consider(&self.segment_piece(i), &mut best);
+        for &(lb, k) in &order {
+            if lb > reach {
+                break;
+            }
+            for i in segs(k) {
+                if seg_dist(i) <= reach {
+                    consider(&self.segment_piece(i), &mut best);
+                }
             }
         }
         if best.is_none() {
