@@ -39,6 +39,28 @@ pub enum GeomError {
     },
 }
 
+/// Checks that every point is finite and drops each point closer than `eps` to the one kept
+/// before it.
+pub(crate) fn finite_deduped(
+    points: impl IntoIterator<Item = Point>,
+    eps: f64,
+) -> Result<Vec<Point>, GeomError> {
+    let mut out: Vec<Point> = Vec::new();
+    for (index, p) in points.into_iter().enumerate() {
+        if !p.x.is_finite() || !p.y.is_finite() {
+            return Err(GeomError::NonFinite {
+                index,
+                x: p.x,
+                y: p.y,
+            });
+        }
+        if out.last().is_none_or(|q| (p - q).norm() > eps) {
+            out.push(p);
+        }
+    }
+    Ok(out)
+}
+
 /// The 2-D cross product `a × b` (z component).
 #[inline]
 pub fn cross(a: &Point, b: &Point) -> f64 {

@@ -14,19 +14,7 @@ pub struct Polygon {
 impl Polygon {
     /// Builds a polygon; a repeated closing point is dropped. Needs three distinct points.
     pub fn new(points: impl IntoIterator<Item = Point>) -> Result<Self, GeomError> {
-        let mut pts: Vec<Point> = Vec::new();
-        for (index, p) in points.into_iter().enumerate() {
-            if !p.x.is_finite() || !p.y.is_finite() {
-                return Err(GeomError::NonFinite {
-                    index,
-                    x: p.x,
-                    y: p.y,
-                });
-            }
-            if pts.last().is_none_or(|q| (p - q).norm() > 1e-9) {
-                pts.push(p);
-            }
-        }
+        let mut pts = super::finite_deduped(points, 1e-9)?;
         while pts.len() > 1 && (pts[0] - pts[pts.len() - 1]).norm() <= 1e-9 {
             pts.pop();
         }

@@ -30,19 +30,7 @@ impl Polyline {
     ///
     /// Fails on a non-finite coordinate or when fewer than two distinct points remain.
     pub fn new(points: impl IntoIterator<Item = Point>) -> Result<Self, GeomError> {
-        let mut out: Vec<Point> = Vec::new();
-        for (index, p) in points.into_iter().enumerate() {
-            if !p.x.is_finite() || !p.y.is_finite() {
-                return Err(GeomError::NonFinite {
-                    index,
-                    x: p.x,
-                    y: p.y,
-                });
-            }
-            if out.last().is_none_or(|q| (p - q).norm() > MERGE_EPS) {
-                out.push(p);
-            }
-        }
+        let out = super::finite_deduped(points, MERGE_EPS)?;
         if out.len() < 2 {
             return Err(GeomError::TooFewPoints {
                 needed: 2,

@@ -222,6 +222,15 @@ pub fn write_record(w: &mut impl Write, payload: &[u8]) -> std::io::Result<()> {
     w.write_all(&masked_crc32c(payload).to_le_bytes())
 }
 
+/// Frames `payloads` as one TFRecord byte stream.
+pub fn frame_records<P: AsRef<[u8]>>(payloads: &[P]) -> Vec<u8> {
+    let mut buf = Vec::new();
+    for p in payloads {
+        write_record(&mut buf, p.as_ref()).expect("writing to memory cannot fail");
+    }
+    buf
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -232,24 +241,16 @@ mod tests {
         assert_eq!(crc32c(b""), 0);
     }
 
-    fn framed(records: &[&[u8]]) -> Vec<u8> {
-        let mut buf = Vec::new();
-        for r in records {
-            write_record(&mut buf, r).unwrap();
-        }
-        buf
-    }
-
     #[test]
     fn round_trip() {
-        let buf = framed(&[b"hello", b"", b"world!"]);
+        let buf = frame_records::<&[u8]>(&[b"hello", b"", b"world!"]);
         let got: Vec<Vec<u8>> = TfRecordReader::new(&buf[..]).map(Result::unwrap).collect();
         assert_eq!(got, vec![b"hello".to_vec(), vec![], b"world!".to_vec()]);
     }
 
     #[test]
     fn truncation_names_the_record() {
-        let buf = framed(&[b"first", b"second record"]);
+        let buf = frame_records::<&[u8]>(&[b"first", b"second record"]);
         for cut in 1..buf.len() {
             if cut == 8 + 4 + 5 + 4 {
                 continue; // exactly one whole record
@@ -264,7 +265,7 @@ mod tests {
 
     #[test]
     fn bit_flips_are_detected() {
-        let buf = framed(&[b"first", b"second record"]);
+        let buf = frame_records::<&[u8]>(&[b"first", b"second record"]);
         for byte in 0..buf.len() {
             let mut bad = buf.clone();
             bad[byte] ^= 0x10;

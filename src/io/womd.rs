@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 
 use prost::Message;
 
-use super::tfrecord::{write_record, TfRecordReader};
+use super::tfrecord::{frame_records, TfRecordReader};
 use super::womd_proto as pb;
 use super::IoError;
 use crate::geom::{Point, Polygon, Polyline};
@@ -520,16 +520,17 @@ pub fn scene_to_scenario(scene: &Scene) -> pb::Scenario {
 
 /// Writes scenes as one TFRecord file of `Scenario` records (atomically).
 pub fn write_file(path: &Path, scenes: &[Scene]) -> Result<(), IoError> {
-    let mut buf = Vec::new();
-    for s in scenes {
-        write_record(&mut buf, &scene_to_scenario(s).encode_to_vec()).expect("writing to memory");
-    }
-    super::write_atomic(path, &buf)
+    let payloads: Vec<Vec<u8>> = scenes
+        .iter()
+        .map(|s| scene_to_scenario(s).encode_to_vec())
+        .collect();
+    super::write_atomic(path, &frame_records(&payloads))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::io::tfrecord::frame_records;
 
     fn mp(x: f64, y: f64) -> pb::MapPoint {
         pb::MapPoint {
@@ -671,20 +672,12 @@ mod tests {
         }
     }
 
-    fn framed(records: &[Vec<u8>]) -> Vec<u8> {
-        let mut buf = Vec::new();
-        for r in records {
-            write_record(&mut buf, r).unwrap();
-        }
-        buf
-    }
-
     #[test]
     fn hand_encoded_scenario_reads_back() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("training.tfrecord-00000-of-00001");
         let bytes = scenario().encode_to_vec();
-        std::fs::write(&path, framed(&[bytes.clone(), bytes])).unwrap();
+        std::fs::write(&path, frame_records(&[bytes.clone(), bytes])).unwrap();
         let scenes: Vec<Scene> = read_file(&path).unwrap().map(Result::unwrap).collect();
         assert_eq!(scenes.len(), 2);
         let s = &scenes[0];
@@ -727,7 +720,7 @@ mod tests {
     fn scene_to_scenario_round_trips() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("a.tfrecord");
-        std::fs::write(&path, framed(&[scenario().encode_to_vec()])).unwrap();
+        std::fs::write(&path, frame_records(&[scenario().encode_to_vec()])).unwrap();
         let s = read_file(&path).unwrap().next().unwrap().unwrap();
         let out = dir.path().join("b.tfrecord");
         write_file(&out, std::slice::from_ref(&s)).unwrap();
@@ -754,7 +747,7 @@ mod tests {
         let good = scenario().encode_to_vec();
         let path = dir.path().join("x.tfrecord");
         // Framing is fine but record 1 is not a protobuf message.
-        std::fs::write(&path, framed(&[good.clone(), vec![0xff; 40]])).unwrap();
+        std::fs::write(&path, frame_records(&[good.clone(), vec![0xff; 40]])).unwrap();
         let results: Vec<_> = read_file(&path).unwrap().collect();
         assert!(results[0].is_ok());
         let e = results[1].as_ref().unwrap_err().to_string();
@@ -765,7 +758,7 @@ mod tests {
         // A track whose state count disagrees with the timestamps.
         let mut sc = scenario();
         sc.tracks[1].states.pop();
-        std::fs::write(&path, framed(&[good, sc.encode_to_vec()])).unwrap();
+        std::fs::write(&path, frame_records(&[good, sc.encode_to_vec()])).unwrap();
         let e = read_file(&path)
             .unwrap()
             .nth(1)
@@ -777,7 +770,7 @@ mod tests {
             "{e}"
         );
         // A bit flip in record 1's payload.
-        let mut bytes = framed(&[scenario().encode_to_vec(), scenario().encode_to_vec()]);
+        let mut bytes = frame_records(&[scenario().encode_to_vec(), scenario().encode_to_vec()]);
         let n = bytes.len();
         bytes[n - 30] ^= 0x04;
         std::fs::write(&path, &bytes).unwrap();
@@ -797,7 +790,7 @@ mod tests {
         for k in 0..3 {
             sc.scenario_id = Some(format!("s{k}"));
             let name = format!("validation.tfrecord-0000{k}-of-00003");
-            std::fs::write(dir.path().join(name), framed(&[sc.encode_to_vec()])).unwrap();
+            std::fs::write(dir.path().join(name), frame_records(&[sc.encode_to_vec()])).unwrap();
         }
         std::fs::write(dir.path().join("README.txt"), "not a shard").unwrap();
         assert!(is_shard_dir(dir.path()));
