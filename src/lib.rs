@@ -6,6 +6,7 @@
 //! scenes and rollouts.
 #![warn(missing_docs)]
 
+pub mod cost;
 pub mod geom;
 pub mod io;
 pub mod render;

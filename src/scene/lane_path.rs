@@ -8,7 +8,7 @@ use super::SceneError;
 use crate::geom::{wrap_angle, FrenetPath, Polyline};
 
 /// Which way to go where a lane forks.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Turn {
     /// The successor whose heading changes least.

@@ -284,8 +284,14 @@ impl Map {
     /// With drivable areas the side comes from them (inside any area = on the road); otherwise
     /// from the nearest edge's orientation (road on its left). `None` when the map has no edges.
     pub fn signed_distance_to_road_edge(&self, p: Point) -> Option<f64> {
+        self.nearest_road_edge(p).map(|(d, _)| d)
+    }
+
+    /// The signed distance of [`Map::signed_distance_to_road_edge`] and the nearest point on
+    /// the edge (the distance's gradient w.r.t. `p` is `sign · (p - q) / |p - q|`).
+    pub fn nearest_road_edge(&self, p: Point) -> Option<(f64, Point)> {
         let mut best = f64::INFINITY;
-        let mut best_edge = None;
+        let mut best_hit = None;
         for (i, edge) in self.parts.road_edges.iter().enumerate() {
             let (lo, hi) = self.edge_bounds[i];
             let dx = (lo.x - p.x).max(p.x - hi.x).max(0.0);
@@ -293,19 +299,21 @@ impl Map {
             if dx.hypot(dy) >= best {
                 continue;
             }
-            let d = edge.line().distance_to(&p);
-            if d < best {
-                best = d;
-                best_edge = Some(i);
+            let hit = edge.line().nearest(&p);
+            if hit.distance < best {
+                best = hit.distance;
+                best_hit = Some((i, hit));
             }
         }
-        let edge = &self.parts.road_edges[best_edge?];
+        let (i, hit) = best_hit?;
+        let edge = &self.parts.road_edges[i];
         let on_road = if self.parts.drivable_areas.is_empty() {
             edge.path.project(p).d >= 0.0
         } else {
             self.parts.drivable_areas.iter().any(|a| a.contains(&p))
         };
-        Some(if on_road { -best } else { best })
+        let q = edge.line().point_at(hit.s);
+        Some((if on_road { -best } else { best }, q))
     }
 
     /// The nearest lane to a pose whose direction agrees with `heading` (within 90°).

@@ -1,0 +1,579 @@
+//! The sandboxed Rhai engine: compile → validate → evaluate.
+//!
+//! Scripts are untrusted (an LLM wrote them). The engine starts from `Engine::new_raw()` with
+//! only arithmetic, logic, strings, iteration, function pointers, arrays, maps and math: no
+//! file, network, process, environment, time or `eval`, no `sleep` or `exit`. `import` resolves
+//! only the modules under `stdlib/` (embedded at build time). Operations, call depth,
+//! expression depth, string, array and map sizes, variables, modules and wall time are all
+//! limited, and each breach is an error naming the limit and the script line.
+
+use std::cell::{Cell, RefCell};
+use std::collections::HashMap;
+use std::rc::Rc;
+use std::time::{Duration, Instant};
+
+use rhai::packages::{
+    ArithmeticPackage, BasicArrayPackage, BasicFnPackage, BasicIteratorPackage, BasicMapPackage,
+    BasicMathPackage, BasicStringPackage, LogicPackage, MoreStringPackage, Package,
+};
+use rhai::{Dynamic, Engine, EvalAltResult, Module, NativeCallContext, ParseErrorType, Position, Scope, AST};
+
+use super::dual::Dual;
+use super::report::{CostReport, TermReport};
+use super::series::Series;
+use super::stdlib::{self, Ctx, DocEntry, Shared, Term};
+use super::trajectory::Trajectories;
+use crate::scene::Scene;
+
+/// The Rhai modules of `stdlib/`, embedded so that the binary needs no files at run time.
+pub const STDLIB_MODULES: &[(&str, &str)] = &[
+    ("behaviours", include_str!("../../stdlib/behaviours.rhai")),
+];
+
+/// Resource limits for one script. Every field is configurable; the defaults suit scripts of
+/// a few dozen lines evaluated at every diffusion step.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Limits {
+    /// Rhai operations per evaluation.
+    pub max_operations: u64,
+    /// Nested function calls.
+    pub max_call_levels: usize,
+    /// Expression nesting at the top level.
+    pub max_expr_depth: usize,
+    /// Expression nesting inside functions.
+    pub max_fn_expr_depth: usize,
+    /// Characters in a string.
+    pub max_string_size: usize,
+    /// Elements in an array.
+    pub max_array_size: usize,
+    /// Entries in a map.
+    pub max_map_size: usize,
+    /// Variables alive at once.
+    pub max_variables: usize,
+    /// Imported modules.
+    pub max_modules: usize,
+    /// Wall time per evaluation.
+    pub wall_time: Duration,
+    /// Lines kept from `print`.
+    pub max_print_lines: usize,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Self {
+            max_operations: 2_000_000,
+            max_call_levels: 32,
+            max_expr_depth: 64,
+            max_fn_expr_depth: 32,
+            max_string_size: 10_000,
+            max_array_size: 100_000,
+            max_map_size: 10_000,
+            max_variables: 1_000,
+            max_modules: 8,
+            wall_time: Duration::from_secs(5),
+            max_print_lines: 200,
+        }
+    }
+}
+
+/// Errors from compiling, validating or evaluating a cost script. Each names the script and,
+/// where there is one, the line and column.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CostError {
+    /// The script does not parse.
+    #[error("{script}:{line}:{column}: syntax error: {message}")]
+    Syntax {
+        /// Script name.
+        script: String,
+        /// Line (1-based).
+        line: usize,
+        /// Column (1-based).
+        column: usize,
+        /// What is wrong.
+        message: String,
+    },
+    /// Evaluation failed.
+    #[error("{script}:{line}:{column}: {message}")]
+    Runtime {
+        /// Script name.
+        script: String,
+        /// Line (0 when unknown).
+        line: usize,
+        /// Column.
+        column: usize,
+        /// What went wrong.
+        message: String,
+    },
+    /// A resource limit was reached.
+    #[error("{script}:{line}:{column}: limit exceeded: {limit}")]
+    Limit {
+        /// Script name.
+        script: String,
+        /// Which limit and its value.
+        limit: String,
+        /// Line.
+        line: usize,
+        /// Column.
+        column: usize,
+    },
+    /// A term is unusable as a guidance cost.
+    #[error("{script}:{line}: term {term:?}: {message}")]
+    Term {
+        /// Script name.
+        script: String,
+        /// Term name.
+        term: String,
+        /// Line of its declaration.
+        line: usize,
+        /// What is wrong.
+        message: String,
+    },
+    /// The script declared nothing.
+    #[error("{script}: the script declares no term; call term(name, value) at least once")]
+    NoTerms {
+        /// Script name.
+        script: String,
+    },
+    /// A `--param` that cannot be used.
+    #[error("parameter {name:?}: {message}")]
+    Param {
+        /// Parameter name (or the whole argument).
+        name: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// Trajectories that do not belong to the scene.
+    #[error("{script}: trajectories do not fit the scene: {message}")]
+    Shape {
+        /// Script name.
+        script: String,
+        /// What does not fit.
+        message: String,
+    },
+}
+
+/// Script parameters (`--param cutter=1 victim=2`), visible to the script as constants.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Params(pub Vec<(String, ParamValue)>);
+
+/// A parameter's value.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ParamValue {
+    /// An integer (agent and lane ids).
+    Int(i64),
+    /// A number.
+    Float(f64),
+    /// A boolean.
+    Bool(bool),
+    /// Anything else.
+    Str(String),
+}
+
+impl Params {
+    /// Parses `name=value` arguments: integers, floats and booleans are typed, the rest strings.
+    pub fn parse<S: AsRef<str>>(args: &[S]) -> Result<Self, CostError> {
+        let mut out = Vec::new();
+        for a in args {
+            let a = a.as_ref();
+            let Some((k, v)) = a.split_once('=') else {
+                return Err(CostError::Param { name: a.into(), message: "expected name=value".into() });
+            };
+            let k = k.trim();
+            let ident = k.chars().next().is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
+                && k.chars().all(|c| c.is_ascii_alphanumeric() || c == '_');
+            if !ident {
+                return Err(CostError::Param { name: k.into(), message: "not a valid identifier".into() });
+            }
+            if out.iter().any(|(n, _): &(String, ParamValue)| n == k) {
+                return Err(CostError::Param { name: k.into(), message: "given twice".into() });
+            }
+            let v = v.trim();
+            let val = if let Ok(i) = v.parse::<i64>() {
+                ParamValue::Int(i)
+            } else if let Ok(f) = v.parse::<f64>() {
+                if !f.is_finite() {
+                    return Err(CostError::Param { name: k.into(), message: format!("{v} is not finite") });
+                }
+                ParamValue::Float(f)
+            } else if v == "true" || v == "false" {
+                ParamValue::Bool(v == "true")
+            } else {
+                ParamValue::Str(v.to_string())
+            };
+            out.push((k.to_string(), val));
+        }
+        Ok(Params(out))
+    }
+}
+
+/// Only the embedded stdlib modules, by bare name.
+struct StdlibResolver {
+    cache: RefCell<HashMap<String, rhai::Shared<Module>>>,
+}
+
+impl rhai::ModuleResolver for StdlibResolver {
+    fn resolve(&self, engine: &Engine, _source: Option<&str>, path: &str, pos: Position) -> Result<rhai::Shared<Module>, Box<EvalAltResult>> {
+        if let Some(m) = self.cache.borrow().get(path) {
+            return Ok(m.clone());
+        }
+        let names: Vec<&str> = STDLIB_MODULES.iter().map(|(n, _)| *n).collect();
+        let Some((_, src)) = STDLIB_MODULES.iter().find(|(n, _)| *n == path) else {
+            return Err(Box::new(EvalAltResult::ErrorModuleNotFound(
+                format!("{path} (only the stdlib modules {} can be imported)", names.join(", ")),
+                pos,
+            )));
+        };
+        let mut ast = engine.compile(src).map_err(|e| {
+            Box::new(EvalAltResult::ErrorInModule(path.into(), Box::new(e.into()), pos))
+        })?;
+        ast.set_source(format!("stdlib/{path}.rhai"));
+        let m = Module::eval_ast_as_new(Scope::new(), &ast, engine)
+            .map_err(|e| Box::new(EvalAltResult::ErrorInModule(path.into(), e, pos)))?;
+        let m: rhai::Shared<Module> = m.into();
+        self.cache.borrow_mut().insert(path.into(), m.clone());
+        Ok(m)
+    }
+}
+
+/// Marker returned by the progress callback when the wall time is up.
+const WALL_TIME_MARK: &str = "drivescript:wall-time";
+
+/// A compiled cost script bound to a scene.
+pub struct CostScript {
+    name: String,
+    engine: Engine,
+    ast: AST,
+    scope: Scope<'static>,
+    shared: Shared,
+    started: Rc<Cell<Instant>>,
+    limits: Limits,
+    docs: Vec<DocEntry>,
+}
+
+/// A fresh sandboxed engine with the stdlib registered; returns it with its documentation.
+fn build_engine(shared: &Shared, limits: &Limits, started: &Rc<Cell<Instant>>) -> (Engine, Vec<DocEntry>) {
+    let mut e = Engine::new_raw();
+    for pkg in [
+        ArithmeticPackage::new().as_shared_module(),
+        LogicPackage::new().as_shared_module(),
+        BasicStringPackage::new().as_shared_module(),
+        MoreStringPackage::new().as_shared_module(),
+        BasicIteratorPackage::new().as_shared_module(),
+        BasicFnPackage::new().as_shared_module(),
+        BasicArrayPackage::new().as_shared_module(),
+        BasicMapPackage::new().as_shared_module(),
+        BasicMathPackage::new().as_shared_module(),
+    ] {
+        e.register_global_module(pkg);
+    }
+    e.disable_symbol("eval");
+    e.set_strict_variables(true);
+    e.set_max_operations(limits.max_operations)
+        .set_max_call_levels(limits.max_call_levels)
+        .set_max_expr_depths(limits.max_expr_depth, limits.max_fn_expr_depth)
+        .set_max_string_size(limits.max_string_size)
+        .set_max_array_size(limits.max_array_size)
+        .set_max_map_size(limits.max_map_size)
+        .set_max_variables(limits.max_variables)
+        .set_max_modules(limits.max_modules);
+    let (t0, wall) = (started.clone(), limits.wall_time);
+    e.on_progress(move |ops| {
+        // Checking the clock every operation would cost more than most scripts.
+        if ops % 512 == 0 && t0.get().elapsed() > wall {
+            Some(Dynamic::from(WALL_TIME_MARK.to_string()))
+        } else {
+            None
+        }
+    });
+    let (sh, max_lines) = (shared.clone(), limits.max_print_lines);
+    e.on_print(move |s| {
+        let mut c = sh.borrow_mut();
+        if c.prints.len() < max_lines {
+            c.prints.push(s.to_string());
+        }
+    });
+    let sh = shared.clone();
+    e.on_debug(move |s, _, pos| {
+        let mut c = sh.borrow_mut();
+        if c.prints.len() < max_lines {
+            c.prints.push(format!("[line {}] {s}", pos.line().unwrap_or(0)));
+        }
+    });
+    e.set_module_resolver(StdlibResolver { cache: RefCell::new(HashMap::new()) });
+    let mut docs = stdlib::register(&mut e, shared);
+    register_terms(&mut e, shared, &mut docs);
+    (e, docs)
+}
+
+fn term_value(v: &Dynamic, name: &str) -> Result<Dual, Box<EvalAltResult>> {
+    if let Some(d) = v.clone().try_cast::<Dual>() {
+        return Ok(d);
+    }
+    if v.is::<Series>() {
+        return stdlib::err(format!(
+            "term {name:?} needs a single value, not a Series: reduce it with sum(), mean(), max(), min() or last()"
+        ));
+    }
+    match stdlib::number(v, "term") {
+        Ok(f) => Ok(Dual::constant(f)),
+        Err(_) => stdlib::err(format!("term {name:?}: the value is a {}, not a Dual or number", v.type_name())),
+    }
+}
+
+fn add_term(shared: &Shared, pos: Position, name: &str, v: &Dynamic, weight: f64) -> Result<(), Box<EvalAltResult>> {
+    let value = term_value(v, name)?;
+    if !value.val.is_finite() {
+        return stdlib::err(format!("term {name:?} is {} (check divisions, logs and square roots)", value.val));
+    }
+    if let Some(&(k, g)) = value.grad.iter().find(|(_, g)| !g.is_finite()) {
+        return stdlib::err(format!("term {name:?} has a non-finite gradient ({g}) w.r.t. coordinate {k}"));
+    }
+    if !(weight.is_finite() && weight >= 0.0) {
+        return stdlib::err(format!("term {name:?}: weight {weight} must be finite and non-negative"));
+    }
+    if name.trim().is_empty() {
+        return stdlib::err("term names must not be empty");
+    }
+    let mut c = shared.borrow_mut();
+    if let Some(t) = c.terms.iter().find(|t| t.name == name) {
+        return stdlib::err(format!("term {name:?} is declared twice (first at line {})", t.line.unwrap_or(0)));
+    }
+    c.terms.push(Term { name: name.to_string(), weight, value, line: pos.line() });
+    Ok(())
+}
+
+fn register_terms(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>) {
+    const S: &str = "Terms";
+    stdlib::doc(docs, S, "term(name, value)", "Declares a named cost term (a Dual or number, weight 1); the total cost is the weighted sum of all terms.");
+    let sh = shared.clone();
+    e.register_fn("term", move |ctx: NativeCallContext, name: &str, v: Dynamic| add_term(&sh, ctx.call_position(), name, &v, 1.0));
+    stdlib::doc(docs, S, "term(name, value, weight)", "The same with a non-negative weight.");
+    let sh = shared.clone();
+    e.register_fn("term", move |ctx: NativeCallContext, name: &str, v: Dynamic, w: Dynamic| {
+        add_term(&sh, ctx.call_position(), name, &v, stdlib::number(&w, "term weight")?)
+    });
+}
+
+impl CostScript {
+    /// Compiles `source` (named `name` in messages) for `scene` with `params` as constants.
+    /// Parameters are also visible as `DT` (seconds per step) and `STEPS` (future steps).
+    pub fn compile(source: &str, name: &str, scene: Rc<Scene>, params: &Params, limits: &Limits) -> Result<Self, CostError> {
+        let traj = Trajectories::filled(&scene);
+        let shared: Shared = Rc::new(RefCell::new(Ctx {
+            scene: scene.clone(),
+            traj,
+            terms: Vec::new(),
+            prints: Vec::new(),
+            paths: HashMap::new(),
+            widths: HashMap::new(),
+        }));
+        let started = Rc::new(Cell::new(Instant::now()));
+        let (engine, docs) = build_engine(&shared, limits, &started);
+        let mut scope = Scope::new();
+        scope.push_constant("DT", scene.meta.dt);
+        scope.push_constant("STEPS", scene.num_future_steps() as i64);
+        for (k, v) in &params.0 {
+            match v {
+                ParamValue::Int(i) => scope.push_constant(k.as_str(), *i),
+                ParamValue::Float(f) => scope.push_constant(k.as_str(), *f),
+                ParamValue::Bool(b) => scope.push_constant(k.as_str(), *b),
+                ParamValue::Str(s) => scope.push_constant(k.as_str(), s.clone()),
+            };
+        }
+        started.set(Instant::now());
+        let ast = engine.compile_into_self_contained(&scope, source).map_err(|e| {
+            let pos = e.position();
+            let (line, column) = (pos.line().unwrap_or(0), pos.position().unwrap_or(0));
+            match *e {
+                EvalAltResult::ErrorParsing(ParseErrorType::ExprTooDeep, _) => CostError::Limit {
+                    script: name.into(),
+                    limit: format!("expression depth (max {})", limits.max_expr_depth),
+                    line,
+                    column,
+                },
+                EvalAltResult::ErrorParsing(ParseErrorType::LiteralTooLarge(ref what, max), _) => CostError::Limit {
+                    script: name.into(),
+                    limit: format!("{what} (max {max})"),
+                    line,
+                    column,
+                },
+                EvalAltResult::ErrorParsing(..) => CostError::Syntax {
+                    script: name.into(),
+                    line,
+                    column,
+                    message: strip_position(&e.to_string()),
+                },
+                EvalAltResult::ErrorModuleNotFound(..) | EvalAltResult::ErrorInModule(..) => CostError::Runtime {
+                    script: name.into(),
+                    line,
+                    column,
+                    message: strip_position(&e.to_string()),
+                },
+                ref other => CostError::Syntax {
+                    script: name.into(),
+                    line,
+                    column,
+                    message: strip_position(&other.to_string()),
+                },
+            }
+        })?;
+        Ok(Self {
+            name: name.to_string(),
+            engine,
+            ast,
+            scope,
+            shared,
+            started,
+            limits: limits.clone(),
+            docs,
+        })
+    }
+
+    /// The script's name.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// The documentation of every function the engine registers.
+    pub fn docs(&self) -> &[DocEntry] {
+        &self.docs
+    }
+
+    /// The engine, for tools that inspect what it registers.
+    pub fn engine(&self) -> &Engine {
+        &self.engine
+    }
+
+    /// A dry run before any sampling, on the recorded future with gaps filled: the script runs,
+    /// declares at least one term, and every term is finite and depends on some trajectory.
+    pub fn validate(&self) -> Result<CostReport, CostError> {
+        let traj = Trajectories::filled(&self.shared.borrow().scene);
+        let report = self.evaluate(&traj)?;
+        if report.terms.is_empty() {
+            return Err(CostError::NoTerms { script: self.name.clone() });
+        }
+        for t in &report.terms {
+            if t.grad.is_empty() {
+                return Err(CostError::Term {
+                    script: self.name.clone(),
+                    term: t.name.clone(),
+                    line: t.line,
+                    message: format!(
+                        "it is the constant {} and does not depend on any trajectory (history values and parameters alone cannot guide sampling)",
+                        t.value
+                    ),
+                });
+            }
+        }
+        Ok(report)
+    }
+
+    /// Evaluates every term and its gradient on candidate trajectories.
+    pub fn evaluate(&self, traj: &Trajectories) -> Result<CostReport, CostError> {
+        {
+            let mut c = self.shared.borrow_mut();
+            let expect = Trajectories::empty(&c.scene).layout;
+            if traj.layout != expect || traj.xyh.len() != expect.agents * expect.steps {
+                return Err(CostError::Shape {
+                    script: self.name.clone(),
+                    message: format!(
+                        "{} agents x {} steps given, the scene has {} x {}",
+                        traj.layout.agents, traj.layout.steps, expect.agents, expect.steps
+                    ),
+                });
+            }
+            c.traj = traj.clone();
+            c.terms.clear();
+            c.prints.clear();
+        }
+        let t0 = Instant::now();
+        self.started.set(t0);
+        let mut scope = self.scope.clone();
+        self.engine
+            .run_ast_with_scope(&mut scope, &self.ast)
+            .map_err(|e| self.map_error(&e))?;
+        let c = self.shared.borrow();
+        let terms: Vec<TermReport> = c
+            .terms
+            .iter()
+            .map(|t| TermReport {
+                name: t.name.clone(),
+                weight: t.weight,
+                value: t.value.val,
+                line: t.line.unwrap_or(0),
+                grad: (*t.value.grad).clone(),
+            })
+            .collect();
+        Ok(CostReport::new(terms, traj.layout, c.prints.clone(), t0.elapsed()))
+    }
+
+    /// Evaluates a batch of candidates (K samples of one scene).
+    pub fn evaluate_batch(&self, trajs: &[Trajectories]) -> Result<Vec<CostReport>, CostError> {
+        trajs.iter().map(|t| self.evaluate(t)).collect()
+    }
+
+    fn map_error(&self, e: &EvalAltResult) -> CostError {
+        let script = self.name.clone();
+        let pos = e.position();
+        let (line, column) = (pos.line().unwrap_or(0), pos.position().unwrap_or(0));
+        let limit = |limit: String| CostError::Limit { script: script.clone(), limit, line, column };
+        let l = &self.limits;
+        match e {
+            EvalAltResult::ErrorTooManyOperations(_) => limit(format!("operations (max {})", l.max_operations)),
+            EvalAltResult::ErrorStackOverflow(_) => limit(format!("call depth (max {})", l.max_call_levels)),
+            EvalAltResult::ErrorTooManyVariables(_) => limit(format!("variables (max {})", l.max_variables)),
+            EvalAltResult::ErrorTooManyModules(_) => limit(format!("modules (max {})", l.max_modules)),
+            EvalAltResult::ErrorDataTooLarge(what, _) => {
+                let max = if what.contains("string") || what.contains("String") {
+                    format!("max {} characters", l.max_string_size)
+                } else if what.contains("rray") {
+                    format!("max {} elements", l.max_array_size)
+                } else if what.contains("ap") {
+                    format!("max {} entries", l.max_map_size)
+                } else {
+                    "limit".to_string()
+                };
+                limit(format!("{what} ({max})"))
+            }
+            EvalAltResult::ErrorTerminated(tok, _) if tok.to_string() == WALL_TIME_MARK => {
+                limit(format!("wall time (max {:.1} s)", l.wall_time.as_secs_f64()))
+            }
+            EvalAltResult::ErrorInFunctionCall(f, _, inner, _) | EvalAltResult::ErrorInModule(f, inner, _) => {
+                // Report the innermost cause at the outermost position (in the user's script).
+                let inner_err = self.map_error(inner);
+                match inner_err {
+                    CostError::Limit { limit, .. } => CostError::Limit { script, limit, line, column },
+                    other => CostError::Runtime {
+                        script,
+                        line,
+                        column,
+                        message: format!("in {f}: {}", error_message(&other)),
+                    },
+                }
+            }
+            EvalAltResult::ErrorRuntime(v, _) => CostError::Runtime { script, line, column, message: v.to_string() },
+            EvalAltResult::ErrorFunctionNotFound(sig, _) => CostError::Runtime {
+                script,
+                line,
+                column,
+                message: format!("no function {sig} (see `drivescript stdlib-doc` for what exists and its argument types)"),
+            },
+            other => CostError::Runtime { script, line, column, message: strip_position(&other.to_string()) },
+        }
+    }
+}
+
+fn error_message(e: &CostError) -> String {
+    match e {
+        CostError::Runtime { message, .. } | CostError::Syntax { message, .. } | CostError::Term { message, .. } => message.clone(),
+        other => other.to_string(),
+    }
+}
+
+/// Rhai appends " (line N, position M)" to its messages; the location is reported separately.
+fn strip_position(s: &str) -> String {
+    match s.rfind(" (line ") {
+        Some(i) if s.ends_with(')') => s[..i].to_string(),
+        _ => s.to_string(),
+    }
+}

@@ -1,0 +1,22 @@
+//! The cost engine: sandboxed Rhai cost scripts evaluated with sparse dual-number gradients.
+//!
+//! A script sees the scene (agents, lanes, lane graph) and one set of candidate trajectories,
+//! and declares named terms with `term(name, value)`. Values are [`Dual`] numbers or
+//! [`Series`] of them over the future steps; the gradient of each term w.r.t. every
+//! trajectory coordinate ([`VarLayout`]) comes out of the evaluation with its value.
+
+mod dual;
+mod engine;
+mod fwd;
+mod report;
+mod series;
+pub mod stdlib;
+mod trajectory;
+
+pub use dual::{Dual, Grad};
+pub use engine::{CostError, CostScript, Limits, ParamValue, Params, STDLIB_MODULES};
+pub use fwd::{box_clearance, Fwd};
+pub use report::{CostReport, TermReport};
+pub use series::Series;
+pub use stdlib::DocEntry;
+pub use trajectory::{Coord, Trajectories, VarLayout};

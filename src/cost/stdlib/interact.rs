@@ -1,0 +1,203 @@
+//! Interactions between agents: gaps along a path, distances, box clearance, time to collision
+//! and collision penalties.
+
+use rhai::{Array, Dynamic, Engine};
+
+use super::agents::{coord_series, AgentRef};
+use super::frenet::{frenet, PathRef};
+use super::{doc, err, number, DocEntry, RResult, Shared};
+use crate::cost::dual::{accumulate, Dual};
+use crate::cost::fwd::{box_clearance, Fwd};
+use crate::cost::series::{Builder, Series};
+use crate::cost::trajectory::Coord;
+
+/// TTC reported when the agents are not closing in, seconds.
+const TTC_CAP: f64 = 10.0;
+
+fn lift<T>(r: Result<T, String>) -> RResult<T> {
+    r.or_else(|m| err(m))
+}
+
+/// A series over the aligned steps of two agents from `f(state_a, state_b) -> Fwd<6>`.
+fn pair_series(shared: &Shared, a: usize, b: usize, f: impl Fn([f64; 3], [f64; 3]) -> Fwd<6>) -> Series {
+    let sa = [Coord::X, Coord::Y, Coord::Heading].map(|c| coord_series(shared, a, c));
+    let sb = [Coord::X, Coord::Y, Coord::Heading].map(|c| coord_series(shared, b, c));
+    let (ha, hb) = (sa[0].0.head, sb[0].0.head);
+    let head = ha.min(hb);
+    let n = head + sa[0].len();
+    let mut out = Builder::new(n, head, sa[0].dt(), sa[0].0.time0);
+    for k in 0..n {
+        let (ka, kb) = (k + ha - head, k + hb - head);
+        let valid = sa.iter().all(|s| s.0.valid[ka]) && sb.iter().all(|s| s.0.valid[kb]);
+        if !valid {
+            out.push_row(0.0, false, std::iter::empty());
+            continue;
+        }
+        let xa = [sa[0].0.val[ka], sa[1].0.val[ka], sa[2].0.val[ka]];
+        let xb = [sb[0].0.val[kb], sb[1].0.val[kb], sb[2].0.val[kb]];
+        let v = f(xa, xb);
+        let mut row: Vec<(u32, f64)> = Vec::with_capacity(6);
+        for (i, s) in sa.iter().enumerate() {
+            if let Some(&(var, _)) = s.row(ka).first() {
+                row.push((var, v.g[i]));
+            }
+        }
+        for (i, s) in sb.iter().enumerate() {
+            if let Some(&(var, _)) = s.row(kb).first() {
+                row.push((var, v.g[3 + i]));
+            }
+        }
+        row.sort_unstable_by_key(|e| e.0);
+        out.push_row(v.v, true, row);
+    }
+    out.build()
+}
+
+fn sizes(shared: &Shared, a: usize, b: usize) -> ((f64, f64), (f64, f64)) {
+    let ctx = shared.borrow();
+    let (x, y) = (&ctx.scene.agents[a], &ctx.scene.agents[b]);
+    ((x.length, x.width), (y.length, y.width))
+}
+
+fn distinct(a: &AgentRef, b: &AgentRef, what: &str) -> RResult<()> {
+    if a.idx == b.idx {
+        return err(format!("{what}: both arguments are agent {}", a.id));
+    }
+    Ok(())
+}
+
+/// Signed box clearance series of two agents.
+pub(crate) fn clearance(shared: &Shared, a: usize, b: usize) -> Series {
+    let (za, zb) = sizes(shared, a, b);
+    pair_series(shared, a, b, move |p, q| box_clearance(p, za, q, zb))
+}
+
+fn ttc(shared: &Shared, a: &AgentRef, b: &AgentRef, cap: f64) -> RResult<Series> {
+    distinct(a, b, "ttc")?;
+    if !(cap.is_finite() && cap > 0.0) {
+        return err(format!("ttc: cap must be positive, got {cap}"));
+    }
+    let c = clearance(shared, a.idx, b.idx);
+    let rate = c.deriv();
+    lift(c.zip(&rate, "ttc", move |gap, dgap| {
+        let closing = -dgap;
+        Some(if gap <= 0.0 {
+            (0.0, 0.0, 0.0)
+        } else if closing <= gap / cap {
+            (cap, 0.0, 0.0)
+        } else {
+            (gap / closing, 1.0 / closing, gap / (closing * closing))
+        })
+    }))
+}
+
+/// Σ over pairs and steps of relu(margin - clearance)², with a broad phase on centre distance.
+pub(crate) fn no_collision_cost(shared: &Shared, agents: &[usize], margin: f64) -> Dual {
+    let ctx = shared.borrow();
+    let lay = ctx.traj.layout;
+    let reach: Vec<f64> = agents
+        .iter()
+        .map(|&i| 0.5 * ctx.scene.agents[i].length.hypot(ctx.scene.agents[i].width))
+        .collect();
+    let mut val = 0.0;
+    let mut rows: Vec<[(u32, f64); 6]> = Vec::new();
+    for (ii, &i) in agents.iter().enumerate() {
+        for (jj, &j) in agents.iter().enumerate().skip(ii + 1) {
+            let (zi, zj) = (
+                (ctx.scene.agents[i].length, ctx.scene.agents[i].width),
+                (ctx.scene.agents[j].length, ctx.scene.agents[j].width),
+            );
+            let near = reach[ii] + reach[jj] + margin;
+            for t in 0..lay.steps {
+                let (p, vp) = ctx.traj.state(i, t);
+                let (q, vq) = ctx.traj.state(j, t);
+                if !(vp && vq) || (p[0] - q[0]).hypot(p[1] - q[1]) > near {
+                    continue;
+                }
+                let c = box_clearance(p, zi, q, zj);
+                let short = margin - c.v;
+                if short <= 0.0 {
+                    continue;
+                }
+                val += short * short;
+                let k = -2.0 * short;
+                let mut row = [(0u32, 0.0); 6];
+                for (s, coord) in [Coord::X, Coord::Y, Coord::Heading].into_iter().enumerate() {
+                    row[s] = (lay.var(i, t, coord), k * c.g[s]);
+                    row[3 + s] = (lay.var(j, t, coord), k * c.g[3 + s]);
+                }
+                rows.push(row);
+            }
+        }
+    }
+    // Keep the structural dependence on every agent's first step even when nothing is near,
+    // so that the validator sees a term that depends on the trajectory.
+    let mut zero: Vec<(u32, f64)> = agents.iter().map(|&i| (lay.var(i, 0, Coord::X), 0.0)).collect();
+    zero.sort_unstable_by_key(|e| e.0);
+    let grad = accumulate(rows.iter().map(|r| (&r[..], 1.0)).chain(std::iter::once((&zero[..], 1.0))));
+    Dual::new(val, grad)
+}
+
+pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>) {
+    const S: &str = "Interactions";
+    doc(docs, S, "gap(a, b, path) -> Series", "Bumper-to-bumper gap from a to b along the path: s_b - s_a - (length_a + length_b) / 2 (negative when b is behind a).");
+    let sh = shared.clone();
+    e.register_fn("gap", move |a: AgentRef, b: AgentRef, p: PathRef| -> RResult<Series> {
+        distinct(&a, &b, "gap")?;
+        let (fa, fb) = (frenet(&sh, a.idx, &p), frenet(&sh, b.idx, &p));
+        let half = {
+            let ctx = sh.borrow();
+            0.5 * (ctx.scene.agents[a.idx].length + ctx.scene.agents[b.idx].length)
+        };
+        lift(fb.s.zip(&fa.s, "gap", move |sb, sa| Some((sb - sa - half, 1.0, -1.0))))
+    });
+    doc(docs, S, "distance(a, b) -> Series", "Distance between the two agents' centres, metres.");
+    let sh = shared.clone();
+    e.register_fn("distance", move |a: AgentRef, b: AgentRef| -> RResult<Series> {
+        distinct(&a, &b, "distance")?;
+        Ok(pair_series(&sh, a.idx, b.idx, |p, q| {
+            let dx = Fwd::<6>::var(q[0], 3) - Fwd::var(p[0], 0);
+            let dy = Fwd::<6>::var(q[1], 4) - Fwd::var(p[1], 1);
+            (dx * dx + dy * dy).sqrt()
+        }))
+    });
+    doc(docs, S, "clearance(a, b) -> Series", "Signed clearance between the two boxes: their distance when apart, minus the penetration depth when they overlap (negative = collision).");
+    let sh = shared.clone();
+    e.register_fn("clearance", move |a: AgentRef, b: AgentRef| -> RResult<Series> {
+        distinct(&a, &b, "clearance")?;
+        Ok(clearance(&sh, a.idx, b.idx))
+    });
+    doc(docs, S, "ttc(a, b) / ttc(a, b, cap) -> Series", "Time until the boxes touch at the current closing rate of their clearance, seconds: 0 when overlapping, cap (10 s by default) when not closing in.");
+    let sh = shared.clone();
+    e.register_fn("ttc", move |a: AgentRef, b: AgentRef| ttc(&sh, &a, &b, TTC_CAP));
+    let sh = shared.clone();
+    e.register_fn("ttc", move |a: AgentRef, b: AgentRef, cap: Dynamic| ttc(&sh, &a, &b, number(&cap, "ttc cap")?));
+    doc(docs, S, "collision_penalty(a, b, margin) -> Series", "relu(margin - clearance(a, b))²: zero while the boxes stay margin metres apart.");
+    let sh = shared.clone();
+    e.register_fn("collision_penalty", move |a: AgentRef, b: AgentRef, m: Dynamic| -> RResult<Series> {
+        distinct(&a, &b, "collision_penalty")?;
+        let m = number(&m, "collision_penalty margin")?;
+        lift(clearance(&sh, a.idx, b.idx).map("collision_penalty", move |c| {
+            let s = (m - c).max(0.0);
+            Some((s * s, -2.0 * s))
+        }))
+    });
+    doc(docs, S, "no_collision_cost(agents, margin) -> Dual", "Sum over all pairs of the agents and all future steps of relu(margin - clearance)², skipping pairs whose centres are far apart.");
+    let sh = shared.clone();
+    e.register_fn("no_collision_cost", move |list: Array, m: Dynamic| -> RResult<Dual> {
+        let m = number(&m, "no_collision_cost margin")?;
+        let mut idx = Vec::with_capacity(list.len());
+        for (k, v) in list.iter().enumerate() {
+            match v.clone().try_cast::<AgentRef>() {
+                Some(a) => idx.push(a.idx),
+                None => return err(format!("no_collision_cost: element {k} is a {}, not an Agent", v.type_name())),
+            }
+        }
+        idx.sort_unstable();
+        idx.dedup();
+        if idx.len() < 2 {
+            return err("no_collision_cost needs at least two distinct agents");
+        }
+        Ok(no_collision_cost(&sh, &idx, m))
+    });
+}

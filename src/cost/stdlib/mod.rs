@@ -1,0 +1,145 @@
+//! The native functions scripts call, registered into the Rhai engine with their documentation.
+//!
+//! Every function is registered next to a [`DocEntry`] (signature and one line), so that the
+//! reference `drivescript stdlib-doc` prints, and that the LLM prompts include, is generated
+//! from what the engine actually has.
+
+mod agents;
+mod frenet;
+mod interact;
+mod lanes;
+mod math;
+
+use std::cell::RefCell;
+use std::collections::HashMap;
+use std::rc::Rc;
+
+use rhai::{Dynamic, Engine, EvalAltResult, Position};
+
+use super::dual::Dual;
+use super::series::Series;
+use super::trajectory::Trajectories;
+use crate::scene::{LanePath, Scene, Turn};
+
+pub(crate) use agents::AgentRef;
+pub(crate) use frenet::{FrenetRef, PathRef};
+
+/// One documented function, property or operator of the script API.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct DocEntry {
+    /// Section of the reference.
+    pub section: &'static str,
+    /// Signature as scripts write it.
+    pub signature: &'static str,
+    /// One line of documentation.
+    pub doc: &'static str,
+}
+
+/// A term declared by a script.
+#[derive(Debug, Clone)]
+pub(crate) struct Term {
+    pub name: String,
+    pub weight: f64,
+    pub value: Dual,
+    pub line: Option<usize>,
+}
+
+/// What native functions see: the scene, the candidate trajectories and what the script has
+/// declared so far.
+pub(crate) struct Ctx {
+    pub scene: Rc<Scene>,
+    pub traj: Trajectories,
+    pub terms: Vec<Term>,
+    pub prints: Vec<String>,
+    pub paths: HashMap<(i64, u64, u64, Turn), Rc<LanePath>>,
+    pub widths: HashMap<usize, Rc<Vec<(f64, f64)>>>,
+}
+
+pub(crate) type Shared = Rc<RefCell<Ctx>>;
+
+pub(crate) type RResult<T> = Result<T, Box<EvalAltResult>>;
+
+/// A script-level error from a message.
+pub(crate) fn err<T>(msg: impl Into<String>) -> RResult<T> {
+    Err(Box::new(EvalAltResult::ErrorRuntime(
+        Dynamic::from(msg.into()),
+        Position::NONE,
+    )))
+}
+
+/// A numeric script value: a series, a scalar dual or a plain number.
+pub(crate) enum Val {
+    S(Series),
+    D(Dual),
+    F(f64),
+}
+
+impl Val {
+    pub(crate) fn from_dynamic(d: &Dynamic, what: &str) -> RResult<Val> {
+        if let Some(s) = d.clone().try_cast::<Series>() {
+            Ok(Val::S(s))
+        } else if let Some(x) = d.clone().try_cast::<Dual>() {
+            Ok(Val::D(x))
+        } else if let Ok(f) = d.as_float() {
+            Ok(Val::F(f))
+        } else if let Ok(i) = d.as_int() {
+            Ok(Val::F(i as f64))
+        } else {
+            err(format!(
+                "{what} expects a Series, Dual or number, got {}",
+                d.type_name()
+            ))
+        }
+    }
+
+    pub(crate) fn into_dynamic(self) -> Dynamic {
+        match self {
+            Val::S(s) => Dynamic::from(s),
+            Val::D(d) => Dynamic::from(d),
+            Val::F(f) => Dynamic::from(f),
+        }
+    }
+}
+
+/// A plain number from an int or float argument.
+pub(crate) fn number(d: &Dynamic, what: &str) -> RResult<f64> {
+    if let Ok(f) = d.as_float() {
+        Ok(f)
+    } else if let Ok(i) = d.as_int() {
+        Ok(i as f64)
+    } else {
+        err(format!("{what} expects a number, got {}", d.type_name()))
+    }
+}
+
+/// Registers every native function and returns their documentation.
+pub(crate) fn register(engine: &mut Engine, shared: &Shared) -> Vec<DocEntry> {
+    let mut docs = Vec::new();
+    engine
+        .register_type_with_name::<Series>("Series")
+        .register_type_with_name::<Dual>("Dual")
+        .register_type_with_name::<AgentRef>("Agent")
+        .register_type_with_name::<PathRef>("Path")
+        .register_type_with_name::<FrenetRef>("Frenet");
+    math::register(engine, &mut docs);
+    agents::register(engine, shared, &mut docs);
+    frenet::register(engine, shared, &mut docs);
+    lanes::register(engine, shared, &mut docs);
+    interact::register(engine, shared, &mut docs);
+    docs
+}
+
+/// Records a documentation entry.
+pub(crate) fn doc(docs: &mut Vec<DocEntry>, section: &'static str, signature: &'static str, doc: &'static str) {
+    docs.push(DocEntry { section, signature, doc });
+}
+
+/// Parses a turn name.
+pub(crate) fn turn(s: &str) -> RResult<Turn> {
+    match s {
+        "straight" => Ok(Turn::Straight),
+        "left" => Ok(Turn::Left),
+        "right" => Ok(Turn::Right),
+        _ => err(format!("turn must be \"straight\", \"left\" or \"right\", got {s:?}")),
+    }
+}

@@ -1,0 +1,177 @@
+//! Candidate trajectories: what a cost script is evaluated on and differentiated against.
+
+use crate::io::rollout::Rollout;
+use crate::scene::Scene;
+
+/// Numbering of the trajectory coordinates that gradients refer to: agent (in scene order),
+/// future step, then x | y | heading.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct VarLayout {
+    /// Number of agents.
+    pub agents: usize,
+    /// Number of future steps.
+    pub steps: usize,
+}
+
+/// Which coordinate of a state.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Coord {
+    /// x position.
+    X = 0,
+    /// y position.
+    Y = 1,
+    /// heading.
+    Heading = 2,
+}
+
+impl VarLayout {
+    /// Index of a coordinate.
+    #[inline]
+    pub fn var(&self, agent: usize, step: usize, c: Coord) -> u32 {
+        (((agent * self.steps) + step) * 3 + c as usize) as u32
+    }
+
+    /// Total number of coordinates.
+    pub fn len(&self) -> usize {
+        self.agents * self.steps * 3
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// `(agent, step, coord)` of a coordinate index.
+    pub fn decode(&self, var: u32) -> (usize, usize, Coord) {
+        let v = var as usize;
+        let c = match v % 3 {
+            0 => Coord::X,
+            1 => Coord::Y,
+            _ => Coord::Heading,
+        };
+        let s = v / 3;
+        (s / self.steps, s % self.steps, c)
+    }
+}
+
+/// Future states `(x, y, heading)` of every agent of a scene, with validity.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Trajectories {
+    /// The coordinate layout.
+    pub layout: VarLayout,
+    /// States, indexed `agent * steps + step`.
+    pub xyh: Vec<[f64; 3]>,
+    /// Validity, same indexing.
+    pub valid: Vec<bool>,
+}
+
+impl Trajectories {
+    /// All-invalid trajectories for a scene.
+    pub fn empty(scene: &Scene) -> Self {
+        let layout = VarLayout {
+            agents: scene.agents.len(),
+            steps: scene.num_future_steps(),
+        };
+        Self {
+            layout,
+            xyh: vec![[0.0; 3]; layout.agents * layout.steps],
+            valid: vec![false; layout.agents * layout.steps],
+        }
+    }
+
+    /// The recorded future (invalid where an agent was not observed).
+    pub fn recorded(scene: &Scene) -> Self {
+        let mut t = Self::empty(scene);
+        let c = scene.meta.current_step;
+        for (a, agent) in scene.agents.iter().enumerate() {
+            for k in 0..t.layout.steps {
+                let s = agent.states[c + 1 + k];
+                let i = a * t.layout.steps + k;
+                t.xyh[i] = [s.x, s.y, s.heading];
+                t.valid[i] = s.valid;
+            }
+        }
+        t
+    }
+
+    /// The recorded future with gaps filled so that every agent is valid at every future step:
+    /// after its last observation an agent continues at its last velocity, before its first
+    /// it is held at its first. Used for dry runs, where every function must see a full series.
+    pub fn filled(scene: &Scene) -> Self {
+        let mut t = Self::recorded(scene);
+        let c = scene.meta.current_step;
+        let n = t.layout.steps;
+        for (a, agent) in scene.agents.iter().enumerate() {
+            // The latest observed state at or before each future step, with its velocity.
+            let mut last = agent.states[..=c].iter().rposition(|s| s.valid).map(|k| (k, agent.states[k]));
+            for k in 0..n {
+                let i = a * n + k;
+                let step = c + 1 + k;
+                if t.valid[i] {
+                    last = Some((step, agent.states[step]));
+                    continue;
+                }
+                let fill = match last {
+                    Some((ls, s)) => {
+                        let dtt = (step - ls) as f64 * scene.meta.dt;
+                        [s.x + s.vx * dtt, s.y + s.vy * dtt, s.heading]
+                    }
+                    None => {
+                        let first = agent.states.iter().find(|s| s.valid);
+                        first.map_or([0.0; 3], |s| [s.x, s.y, s.heading])
+                    }
+                };
+                t.xyh[i] = fill;
+                t.valid[i] = true;
+            }
+        }
+        t
+    }
+
+    /// The future part of a rollout of this scene (agents matched by id).
+    pub fn from_rollout(scene: &Scene, r: &Rollout) -> Result<Self, String> {
+        if r.current_step != scene.meta.current_step {
+            return Err(format!(
+                "the rollout's current step is {}, the scene's {}",
+                r.current_step, scene.meta.current_step
+            ));
+        }
+        let mut t = Self::empty(scene);
+        let n = t.layout.steps;
+        for (a, agent) in scene.agents.iter().enumerate() {
+            let ra = r
+                .agents
+                .iter()
+                .find(|x| x.id == agent.id)
+                .ok_or_else(|| format!("the rollout has no agent {}", agent.id))?;
+            if ra.states.len() != scene.num_steps() {
+                return Err(format!(
+                    "agent {} has {} states in the rollout, the scene has {} steps",
+                    agent.id,
+                    ra.states.len(),
+                    scene.num_steps()
+                ));
+            }
+            for k in 0..n {
+                let s = ra.states[scene.meta.current_step + 1 + k];
+                t.xyh[a * n + k] = [s.0, s.1, s.2];
+                t.valid[a * n + k] = s.3;
+            }
+        }
+        Ok(t)
+    }
+
+    /// State of `agent` at future step `k`.
+    #[inline]
+    pub fn state(&self, agent: usize, k: usize) -> ([f64; 3], bool) {
+        let i = agent * self.layout.steps + k;
+        (self.xyh[i], self.valid[i])
+    }
+
+    /// Adds `step * gradient` to the coordinates (for tests and simple descent).
+    pub fn apply(&mut self, gradient: &[f64], step: f64) {
+        for (i, g) in gradient.iter().enumerate() {
+            self.xyh[i / 3][i % 3] += step * g;
+        }
+    }
+}
