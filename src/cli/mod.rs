@@ -2,6 +2,7 @@
 
 mod bench;
 mod convert;
+mod cost;
 mod demo;
 mod inspect;
 mod render;
@@ -39,6 +40,11 @@ enum Command {
   drivescript convert data/samples/commonroad/USA_US101-3_3_T-1.xml -o us101.tfrecord
   drivescript convert scene.yaml -o recorded.json")]
     Convert(convert::Args),
+    /// Evaluate a cost script on a scene's recorded future (or a rollout): per-term values and gradients.
+    #[command(after_help = "Examples:
+  drivescript cost data/samples/yaml/highway_cut_in.yaml --script scripts/cut_in.rhai --param cutter=2 victim=1
+  drivescript cost scene.xml --script my.rhai --rollout sim.json --json")]
+    Cost(cost::Args),
     /// Run the demo: render a sample scene to out/demo.gif and print its summary.
     Demo(demo::Args),
     /// Measure throughput and print a table.
@@ -55,6 +61,7 @@ pub fn run() -> ExitCode {
         Command::Inspect(a) => inspect::run(a),
         Command::Render(a) => render::run(a),
         Command::Convert(a) => convert::run(a),
+        Command::Cost(a) => cost::run(a),
         Command::Demo(a) => demo::run(a),
         Command::Bench(a) => bench::run(a),
     };

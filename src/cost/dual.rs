@@ -166,7 +166,13 @@ mod tests {
     #[test]
     fn merge_unions_sorted_indices() {
         let mut out = Vec::new();
-        merge_into(&mut out, &[(1, 1.0), (4, 2.0)], 2.0, &[(0, 1.0), (4, 1.0), (9, 3.0)], -1.0);
+        merge_into(
+            &mut out,
+            &[(1, 1.0), (4, 2.0)],
+            2.0,
+            &[(0, 1.0), (4, 1.0), (9, 3.0)],
+            -1.0,
+        );
         assert_eq!(out, vec![(0, -1.0), (1, 2.0), (4, 3.0), (9, -3.0)]);
     }
 
@@ -187,6 +193,9 @@ mod tests {
         let p = x.mul(&y);
         assert_eq!((p.val, p.grad.as_slice()), (6.0, &[(0, 2.0), (1, 3.0)][..]));
         let q = x.div(&y);
-        assert_eq!((q.val, q.grad.as_slice()), (1.5, &[(0, 0.5), (1, -0.75)][..]));
+        assert_eq!(
+            (q.val, q.grad.as_slice()),
+            (1.5, &[(0, 0.5), (1, -0.75)][..])
+        );
     }
 }

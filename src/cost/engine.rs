@@ -16,7 +16,9 @@ use rhai::packages::{
     ArithmeticPackage, BasicArrayPackage, BasicFnPackage, BasicIteratorPackage, BasicMapPackage,
     BasicMathPackage, BasicStringPackage, LogicPackage, MoreStringPackage, Package,
 };
-use rhai::{Dynamic, Engine, EvalAltResult, Module, NativeCallContext, ParseErrorType, Position, Scope, AST};
+use rhai::{
+    Dynamic, Engine, EvalAltResult, Module, NativeCallContext, ParseErrorType, Position, Scope, AST,
+};
 
 use super::dual::Dual;
 use super::report::{CostReport, TermReport};
@@ -26,9 +28,8 @@ use super::trajectory::Trajectories;
 use crate::scene::Scene;
 
 /// The Rhai modules of `stdlib/`, embedded so that the binary needs no files at run time.
-pub const STDLIB_MODULES: &[(&str, &str)] = &[
-    ("behaviours", include_str!("../../stdlib/behaviours.rhai")),
-];
+pub const STDLIB_MODULES: &[(&str, &str)] =
+    &[("behaviours", include_str!("../../stdlib/behaviours.rhai"))];
 
 /// Resource limits for one script. Every field is configurable; the defaults suit scripts of
 /// a few dozen lines evaluated at every diffusion step.
@@ -176,23 +177,38 @@ impl Params {
         for a in args {
             let a = a.as_ref();
             let Some((k, v)) = a.split_once('=') else {
-                return Err(CostError::Param { name: a.into(), message: "expected name=value".into() });
+                return Err(CostError::Param {
+                    name: a.into(),
+                    message: "expected name=value".into(),
+                });
             };
             let k = k.trim();
-            let ident = k.chars().next().is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
+            let ident = k
+                .chars()
+                .next()
+                .is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
                 && k.chars().all(|c| c.is_ascii_alphanumeric() || c == '_');
             if !ident {
-                return Err(CostError::Param { name: k.into(), message: "not a valid identifier".into() });
+                return Err(CostError::Param {
+                    name: k.into(),
+                    message: "not a valid identifier".into(),
+                });
             }
             if out.iter().any(|(n, _): &(String, ParamValue)| n == k) {
-                return Err(CostError::Param { name: k.into(), message: "given twice".into() });
+                return Err(CostError::Param {
+                    name: k.into(),
+                    message: "given twice".into(),
+                });
             }
             let v = v.trim();
             let val = if let Ok(i) = v.parse::<i64>() {
                 ParamValue::Int(i)
             } else if let Ok(f) = v.parse::<f64>() {
                 if !f.is_finite() {
-                    return Err(CostError::Param { name: k.into(), message: format!("{v} is not finite") });
+                    return Err(CostError::Param {
+                        name: k.into(),
+                        message: format!("{v} is not finite"),
+                    });
                 }
                 ParamValue::Float(f)
             } else if v == "true" || v == "false" {
@@ -212,19 +228,32 @@ struct StdlibResolver {
 }
 
 impl rhai::ModuleResolver for StdlibResolver {
-    fn resolve(&self, engine: &Engine, _source: Option<&str>, path: &str, pos: Position) -> Result<rhai::Shared<Module>, Box<EvalAltResult>> {
+    fn resolve(
+        &self,
+        engine: &Engine,
+        _source: Option<&str>,
+        path: &str,
+        pos: Position,
+    ) -> Result<rhai::Shared<Module>, Box<EvalAltResult>> {
         if let Some(m) = self.cache.borrow().get(path) {
             return Ok(m.clone());
         }
         let names: Vec<&str> = STDLIB_MODULES.iter().map(|(n, _)| *n).collect();
         let Some((_, src)) = STDLIB_MODULES.iter().find(|(n, _)| *n == path) else {
             return Err(Box::new(EvalAltResult::ErrorModuleNotFound(
-                format!("{path} (only the stdlib modules {} can be imported)", names.join(", ")),
+                format!(
+                    "{path} (only the stdlib modules {} can be imported)",
+                    names.join(", ")
+                ),
                 pos,
             )));
         };
         let mut ast = engine.compile(src).map_err(|e| {
-            Box::new(EvalAltResult::ErrorInModule(path.into(), Box::new(e.into()), pos))
+            Box::new(EvalAltResult::ErrorInModule(
+                path.into(),
+                Box::new(e.into()),
+                pos,
+            ))
         })?;
         ast.set_source(format!("stdlib/{path}.rhai"));
         let m = Module::eval_ast_as_new(Scope::new(), &ast, engine)
@@ -251,7 +280,11 @@ pub struct CostScript {
 }
 
 /// A fresh sandboxed engine with the stdlib registered; returns it with its documentation.
-fn build_engine(shared: &Shared, limits: &Limits, started: &Rc<Cell<Instant>>) -> (Engine, Vec<DocEntry>) {
+fn build_engine(
+    shared: &Shared,
+    limits: &Limits,
+    started: &Rc<Cell<Instant>>,
+) -> (Engine, Vec<DocEntry>) {
     let mut e = Engine::new_raw();
     for pkg in [
         ArithmeticPackage::new().as_shared_module(),
@@ -296,10 +329,13 @@ fn build_engine(shared: &Shared, limits: &Limits, started: &Rc<Cell<Instant>>) -
     e.on_debug(move |s, _, pos| {
         let mut c = sh.borrow_mut();
         if c.prints.len() < max_lines {
-            c.prints.push(format!("[line {}] {s}", pos.line().unwrap_or(0)));
+            c.prints
+                .push(format!("[line {}] {s}", pos.line().unwrap_or(0)));
         }
     });
-    e.set_module_resolver(StdlibResolver { cache: RefCell::new(HashMap::new()) });
+    e.set_module_resolver(StdlibResolver {
+        cache: RefCell::new(HashMap::new()),
+    });
     let mut docs = stdlib::register(&mut e, shared);
     register_terms(&mut e, shared, &mut docs);
     (e, docs)
@@ -316,29 +352,53 @@ fn term_value(v: &Dynamic, name: &str) -> Result<Dual, Box<EvalAltResult>> {
     }
     match stdlib::number(v, "term") {
         Ok(f) => Ok(Dual::constant(f)),
-        Err(_) => stdlib::err(format!("term {name:?}: the value is a {}, not a Dual or number", v.type_name())),
+        Err(_) => stdlib::err(format!(
+            "term {name:?}: the value is a {}, not a Dual or number",
+            v.type_name()
+        )),
     }
 }
 
-fn add_term(shared: &Shared, pos: Position, name: &str, v: &Dynamic, weight: f64) -> Result<(), Box<EvalAltResult>> {
+fn add_term(
+    shared: &Shared,
+    pos: Position,
+    name: &str,
+    v: &Dynamic,
+    weight: f64,
+) -> Result<(), Box<EvalAltResult>> {
     let value = term_value(v, name)?;
     if !value.val.is_finite() {
-        return stdlib::err(format!("term {name:?} is {} (check divisions, logs and square roots)", value.val));
+        return stdlib::err(format!(
+            "term {name:?} is {} (check divisions, logs and square roots)",
+            value.val
+        ));
     }
     if let Some(&(k, g)) = value.grad.iter().find(|(_, g)| !g.is_finite()) {
-        return stdlib::err(format!("term {name:?} has a non-finite gradient ({g}) w.r.t. coordinate {k}"));
+        return stdlib::err(format!(
+            "term {name:?} has a non-finite gradient ({g}) w.r.t. coordinate {k}"
+        ));
     }
     if !(weight.is_finite() && weight >= 0.0) {
-        return stdlib::err(format!("term {name:?}: weight {weight} must be finite and non-negative"));
+        return stdlib::err(format!(
+            "term {name:?}: weight {weight} must be finite and non-negative"
+        ));
     }
     if name.trim().is_empty() {
         return stdlib::err("term names must not be empty");
     }
     let mut c = shared.borrow_mut();
     if let Some(t) = c.terms.iter().find(|t| t.name == name) {
-        return stdlib::err(format!("term {name:?} is declared twice (first at line {})", t.line.unwrap_or(0)));
+        return stdlib::err(format!(
+            "term {name:?} is declared twice (first at line {})",
+            t.line.unwrap_or(0)
+        ));
     }
-    c.terms.push(Term { name: name.to_string(), weight, value, line: pos.line() });
+    c.terms.push(Term {
+        name: name.to_string(),
+        weight,
+        value,
+        line: pos.line(),
+    });
     Ok(())
 }
 
@@ -346,18 +406,43 @@ fn register_terms(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>) {
     const S: &str = "Terms";
     stdlib::doc(docs, S, "term(name, value)", "Declares a named cost term (a Dual or number, weight 1); the total cost is the weighted sum of all terms.");
     let sh = shared.clone();
-    e.register_fn("term", move |ctx: NativeCallContext, name: &str, v: Dynamic| add_term(&sh, ctx.call_position(), name, &v, 1.0));
-    stdlib::doc(docs, S, "term(name, value, weight)", "The same with a non-negative weight.");
+    e.register_fn(
+        "term",
+        move |ctx: NativeCallContext, name: &str, v: Dynamic| {
+            add_term(&sh, ctx.call_position(), name, &v, 1.0)
+        },
+    );
+    stdlib::doc(
+        docs,
+        S,
+        "term(name, value, weight)",
+        "The same with a non-negative weight.",
+    );
     let sh = shared.clone();
-    e.register_fn("term", move |ctx: NativeCallContext, name: &str, v: Dynamic, w: Dynamic| {
-        add_term(&sh, ctx.call_position(), name, &v, stdlib::number(&w, "term weight")?)
-    });
+    e.register_fn(
+        "term",
+        move |ctx: NativeCallContext, name: &str, v: Dynamic, w: Dynamic| {
+            add_term(
+                &sh,
+                ctx.call_position(),
+                name,
+                &v,
+                stdlib::number(&w, "term weight")?,
+            )
+        },
+    );
 }
 
 impl CostScript {
     /// Compiles `source` (named `name` in messages) for `scene` with `params` as constants.
     /// Parameters are also visible as `DT` (seconds per step) and `STEPS` (future steps).
-    pub fn compile(source: &str, name: &str, scene: Rc<Scene>, params: &Params, limits: &Limits) -> Result<Self, CostError> {
+    pub fn compile(
+        source: &str,
+        name: &str,
+        scene: Rc<Scene>,
+        params: &Params,
+        limits: &Limits,
+    ) -> Result<Self, CostError> {
         let traj = Trajectories::filled(&scene);
         let shared: Shared = Rc::new(RefCell::new(Ctx {
             scene: scene.clone(),
@@ -381,42 +466,51 @@ impl CostScript {
             };
         }
         started.set(Instant::now());
-        let ast = engine.compile_into_self_contained(&scope, source).map_err(|e| {
-            let pos = e.position();
-            let (line, column) = (pos.line().unwrap_or(0), pos.position().unwrap_or(0));
-            match *e {
-                EvalAltResult::ErrorParsing(ParseErrorType::ExprTooDeep, _) => CostError::Limit {
-                    script: name.into(),
-                    limit: format!("expression depth (max {})", limits.max_expr_depth),
-                    line,
-                    column,
-                },
-                EvalAltResult::ErrorParsing(ParseErrorType::LiteralTooLarge(ref what, max), _) => CostError::Limit {
-                    script: name.into(),
-                    limit: format!("{what} (max {max})"),
-                    line,
-                    column,
-                },
-                EvalAltResult::ErrorParsing(..) => CostError::Syntax {
-                    script: name.into(),
-                    line,
-                    column,
-                    message: strip_position(&e.to_string()),
-                },
-                EvalAltResult::ErrorModuleNotFound(..) | EvalAltResult::ErrorInModule(..) => CostError::Runtime {
-                    script: name.into(),
-                    line,
-                    column,
-                    message: strip_position(&e.to_string()),
-                },
-                ref other => CostError::Syntax {
-                    script: name.into(),
-                    line,
-                    column,
-                    message: strip_position(&other.to_string()),
-                },
-            }
-        })?;
+        let ast = engine
+            .compile_into_self_contained(&scope, source)
+            .map_err(|e| {
+                let pos = e.position();
+                let (line, column) = (pos.line().unwrap_or(0), pos.position().unwrap_or(0));
+                match *e {
+                    EvalAltResult::ErrorParsing(ParseErrorType::ExprTooDeep, _) => {
+                        CostError::Limit {
+                            script: name.into(),
+                            limit: format!("expression depth (max {})", limits.max_expr_depth),
+                            line,
+                            column,
+                        }
+                    }
+                    EvalAltResult::ErrorParsing(
+                        ParseErrorType::LiteralTooLarge(ref what, max),
+                        _,
+                    ) => CostError::Limit {
+                        script: name.into(),
+                        limit: format!("{what} (max {max})"),
+                        line,
+                        column,
+                    },
+                    EvalAltResult::ErrorParsing(..) => CostError::Syntax {
+                        script: name.into(),
+                        line,
+                        column,
+                        message: strip_position(&e.to_string()),
+                    },
+                    EvalAltResult::ErrorModuleNotFound(..) | EvalAltResult::ErrorInModule(..) => {
+                        CostError::Runtime {
+                            script: name.into(),
+                            line,
+                            column,
+                            message: strip_position(&e.to_string()),
+                        }
+                    }
+                    ref other => CostError::Syntax {
+                        script: name.into(),
+                        line,
+                        column,
+                        message: strip_position(&other.to_string()),
+                    },
+                }
+            })?;
         Ok(Self {
             name: name.to_string(),
             engine,
@@ -450,7 +544,9 @@ impl CostScript {
         let traj = Trajectories::filled(&self.shared.borrow().scene);
         let report = self.evaluate(&traj)?;
         if report.terms.is_empty() {
-            return Err(CostError::NoTerms { script: self.name.clone() });
+            return Err(CostError::NoTerms {
+                script: self.name.clone(),
+            });
         }
         for t in &report.terms {
             if t.grad.is_empty() {
@@ -504,7 +600,12 @@ impl CostScript {
                 grad: (*t.value.grad).clone(),
             })
             .collect();
-        Ok(CostReport::new(terms, traj.layout, c.prints.clone(), t0.elapsed()))
+        Ok(CostReport::new(
+            terms,
+            traj.layout,
+            c.prints.clone(),
+            t0.elapsed(),
+        ))
     }
 
     /// Evaluates a batch of candidates (K samples of one scene).
@@ -516,7 +617,12 @@ impl CostScript {
         let script = self.name.clone();
         let pos = e.position();
         let (line, column) = (pos.line().unwrap_or(0), pos.position().unwrap_or(0));
-        let limit = |limit: String| CostError::Limit { script: script.clone(), limit, line, column };
+        let limit = |limit: String| CostError::Limit {
+            script: script.clone(),
+            limit,
+            line,
+            column,
+        };
         let l = &self.limits;
         match e {
             EvalAltResult::ErrorTooManyOperations(_) => limit(format!("operations (max {})", l.max_operations)),
@@ -565,7 +671,9 @@ impl CostScript {
 
 fn error_message(e: &CostError) -> String {
     match e {
-        CostError::Runtime { message, .. } | CostError::Syntax { message, .. } | CostError::Term { message, .. } => message.clone(),
+        CostError::Runtime { message, .. }
+        | CostError::Syntax { message, .. }
+        | CostError::Term { message, .. } => message.clone(),
         other => other.to_string(),
     }
 }

@@ -137,21 +137,36 @@ pub struct V2<const N: usize> {
 
 impl<const N: usize> V2<N> {
     fn sub(self, o: Self) -> Self {
-        V2 { x: self.x - o.x, y: self.y - o.y }
+        V2 {
+            x: self.x - o.x,
+            y: self.y - o.y,
+        }
     }
     fn dot(self, o: Self) -> Fwd<N> {
         self.x * o.x + self.y * o.y
     }
     fn scale(self, c: Fwd<N>) -> Self {
-        V2 { x: self.x * c, y: self.y * c }
+        V2 {
+            x: self.x * c,
+            y: self.y * c,
+        }
     }
     fn add(self, o: Self) -> Self {
-        V2 { x: self.x + o.x, y: self.y + o.y }
+        V2 {
+            x: self.x + o.x,
+            y: self.y + o.y,
+        }
     }
 }
 
 /// Corners of a box (counter-clockwise) and its two unit axes.
-fn corners<const N: usize>(x: Fwd<N>, y: Fwd<N>, h: Fwd<N>, l: f64, w: f64) -> ([V2<N>; 4], [V2<N>; 2]) {
+fn corners<const N: usize>(
+    x: Fwd<N>,
+    y: Fwd<N>,
+    h: Fwd<N>,
+    l: f64,
+    w: f64,
+) -> ([V2<N>; 4], [V2<N>; 2]) {
     let (c, s) = (h.cos(), h.sin());
     let u = V2 { x: c, y: s };
     let v = V2 { x: -s, y: c };
@@ -159,13 +174,20 @@ fn corners<const N: usize>(x: Fwd<N>, y: Fwd<N>, h: Fwd<N>, l: f64, w: f64) -> (
     let hl = u.scale(Fwd::c(0.5 * l));
     let hw = v.scale(Fwd::c(0.5 * w));
     let k = |a: f64, b: f64| centre.add(hl.scale(Fwd::c(a))).add(hw.scale(Fwd::c(b)));
-    ([k(-1.0, -1.0), k(1.0, -1.0), k(1.0, 1.0), k(-1.0, 1.0)], [u, v])
+    (
+        [k(-1.0, -1.0), k(1.0, -1.0), k(1.0, 1.0), k(-1.0, 1.0)],
+        [u, v],
+    )
 }
 
 fn point_segment<const N: usize>(p: V2<N>, a: V2<N>, b: V2<N>) -> Fwd<N> {
     let e = b.sub(a);
     let len2 = e.dot(e);
-    let t = if len2.v > 0.0 { p.sub(a).dot(e) / len2 } else { Fwd::c(0.0) };
+    let t = if len2.v > 0.0 {
+        p.sub(a).dot(e) / len2
+    } else {
+        Fwd::c(0.0)
+    };
     let t = if t.v < 0.0 {
         Fwd::c(0.0)
     } else if t.v > 1.0 {
@@ -182,8 +204,20 @@ fn point_segment<const N: usize>(p: V2<N>, a: V2<N>, b: V2<N>) -> Fwd<N> {
 /// along the four box axes) when they overlap. Continuous at contact, where both are zero.
 /// Inputs 0..3 are box A's `(x, y, heading)`, 3..6 box B's.
 pub fn box_clearance(a: [f64; 3], sa: (f64, f64), b: [f64; 3], sb: (f64, f64)) -> Fwd<6> {
-    let (ca, axa) = corners(Fwd::var(a[0], 0), Fwd::var(a[1], 1), Fwd::var(a[2], 2), sa.0, sa.1);
-    let (cb, axb) = corners(Fwd::var(b[0], 3), Fwd::var(b[1], 4), Fwd::var(b[2], 5), sb.0, sb.1);
+    let (ca, axa) = corners(
+        Fwd::var(a[0], 0),
+        Fwd::var(a[1], 1),
+        Fwd::var(a[2], 2),
+        sa.0,
+        sa.1,
+    );
+    let (cb, axb) = corners(
+        Fwd::var(b[0], 3),
+        Fwd::var(b[1], 4),
+        Fwd::var(b[2], 5),
+        sb.0,
+        sb.1,
+    );
     let mut depth: Option<Fwd<6>> = None;
     for axis in axa.iter().chain(axb.iter()) {
         let proj = |cs: &[V2<6>; 4]| {
@@ -255,8 +289,13 @@ mod tests {
                     b1[i - 3] += h;
                     b0[i - 3] -= h;
                 }
-                let fd = (box_clearance(a1, sa, b1, sb).v - box_clearance(a0, sa, b0, sb).v) / (2.0 * h);
-                assert!((fd - c.g[i]).abs() < 1e-5, "slot {i} for {a:?} {b:?}: fd {fd} vs {}", c.g[i]);
+                let fd =
+                    (box_clearance(a1, sa, b1, sb).v - box_clearance(a0, sa, b0, sb).v) / (2.0 * h);
+                assert!(
+                    (fd - c.g[i]).abs() < 1e-5,
+                    "slot {i} for {a:?} {b:?}: fd {fd} vs {}",
+                    c.g[i]
+                );
             }
         }
     }

@@ -48,7 +48,12 @@ pub struct CostReport {
 }
 
 impl CostReport {
-    pub(crate) fn new(terms: Vec<TermReport>, layout: VarLayout, prints: Vec<String>, elapsed: Duration) -> Self {
+    pub(crate) fn new(
+        terms: Vec<TermReport>,
+        layout: VarLayout,
+        prints: Vec<String>,
+        elapsed: Duration,
+    ) -> Self {
         let mut gradient = vec![0.0; layout.len()];
         let mut total = 0.0;
         for t in &terms {
@@ -57,7 +62,14 @@ impl CostReport {
                 gradient[k as usize] += t.weight * g;
             }
         }
-        Self { terms, total, gradient, layout, prints, elapsed }
+        Self {
+            terms,
+            total,
+            gradient,
+            layout,
+            prints,
+            elapsed,
+        }
     }
 
     /// The term with this name.
@@ -69,7 +81,13 @@ impl CostReport {
     pub fn agent_grad_norms(&self) -> Vec<f64> {
         let per = self.layout.steps * 3;
         (0..self.layout.agents)
-            .map(|a| self.gradient[a * per..(a + 1) * per].iter().map(|g| g * g).sum::<f64>().sqrt())
+            .map(|a| {
+                self.gradient[a * per..(a + 1) * per]
+                    .iter()
+                    .map(|g| g * g)
+                    .sum::<f64>()
+                    .sqrt()
+            })
             .collect()
     }
 }

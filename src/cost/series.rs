@@ -58,7 +58,12 @@ impl Builder {
         }
     }
 
-    pub(crate) fn push_row(&mut self, val: f64, valid: bool, row: impl IntoIterator<Item = (u32, f64)>) {
+    pub(crate) fn push_row(
+        &mut self,
+        val: f64,
+        valid: bool,
+        row: impl IntoIterator<Item = (u32, f64)>,
+    ) {
         self.d.ent.extend(row);
         self.finish_element(val, valid);
     }
@@ -138,14 +143,20 @@ impl Series {
                 b.push_row(0.0, false, self.row(k).iter().map(|&(i, _)| (i, 0.0)));
                 continue;
             }
-            let (v, dv) = f(d.val[k]).ok_or_else(|| domain(name, d.val[k], k as isize - d.head as isize))?;
+            let (v, dv) =
+                f(d.val[k]).ok_or_else(|| domain(name, d.val[k], k as isize - d.head as isize))?;
             b.push_row(v, true, self.row(k).iter().map(|&(i, g)| (i, dv * g)));
         }
         Ok(b.build())
     }
 
     /// Elementwise binary `f(a, b) -> (value, ∂/∂a, ∂/∂b)` of two series of equal length.
-    pub fn zip(&self, other: &Series, name: &str, f: impl Fn(f64, f64) -> Option<(f64, f64, f64)>) -> OpResult<Series> {
+    pub fn zip(
+        &self,
+        other: &Series,
+        name: &str,
+        f: impl Fn(f64, f64) -> Option<(f64, f64, f64)>,
+    ) -> OpResult<Series> {
         let (a, o) = (&self.0, &other.0);
         if self.len() != other.len() {
             return Err(format!(
@@ -175,7 +186,12 @@ impl Series {
     }
 
     /// Elementwise binary `f(a, s)` of a series and a scalar dual.
-    pub fn zip_dual(&self, s: &Dual, name: &str, f: impl Fn(f64, f64) -> Option<(f64, f64, f64)>) -> OpResult<Series> {
+    pub fn zip_dual(
+        &self,
+        s: &Dual,
+        name: &str,
+        f: impl Fn(f64, f64) -> Option<(f64, f64, f64)>,
+    ) -> OpResult<Series> {
         let d = &self.0;
         let mut b = self.like(d.val.len(), d.head);
         for k in 0..d.val.len() {
@@ -201,7 +217,11 @@ impl Series {
         let mut b = self.like(n, d.head.saturating_sub(1));
         let start = if d.head >= 1 { 1 } else { 0 };
         for k in start..n {
-            let (lo, hi) = if k == 0 { (0, 1.min(n - 1)) } else { (k - 1, k) };
+            let (lo, hi) = if k == 0 {
+                (0, 1.min(n - 1))
+            } else {
+                (k - 1, k)
+            };
             if lo == hi {
                 b.push_row(0.0, d.valid[k], self.row(k).iter().map(|&(i, _)| (i, 0.0)));
                 continue;
@@ -231,7 +251,10 @@ impl Series {
     /// Sum of the valid elements.
     pub fn sum(&self) -> Dual {
         let val = self.visible_rows().map(|(_, v, _)| v).sum();
-        Dual::new(val, accumulate(self.visible_rows().map(|(_, _, r)| (r, 1.0))))
+        Dual::new(
+            val,
+            accumulate(self.visible_rows().map(|(_, _, r)| (r, 1.0))),
+        )
     }
 
     /// Mean of the valid elements.
@@ -245,10 +268,13 @@ impl Series {
         self.count_valid("max")?;
         let (_, v, r) = self
             .visible_rows()
-            .fold(None, |best: Option<(usize, f64, &[(u32, f64)])>, e| match best {
-                Some(b) if b.1 >= e.1 => Some(b),
-                _ => Some(e),
-            })
+            .fold(
+                None,
+                |best: Option<(usize, f64, &[(u32, f64)])>, e| match best {
+                    Some(b) if b.1 >= e.1 => Some(b),
+                    _ => Some(e),
+                },
+            )
             .expect("checked non-empty");
         Ok(Dual::new(v, r.to_vec()))
     }
@@ -258,10 +284,13 @@ impl Series {
         self.count_valid("min")?;
         let (_, v, r) = self
             .visible_rows()
-            .fold(None, |best: Option<(usize, f64, &[(u32, f64)])>, e| match best {
-                Some(b) if b.1 <= e.1 => Some(b),
-                _ => Some(e),
-            })
+            .fold(
+                None,
+                |best: Option<(usize, f64, &[(u32, f64)])>, e| match best {
+                    Some(b) if b.1 <= e.1 => Some(b),
+                    _ => Some(e),
+                },
+            )
             .expect("checked non-empty");
         Ok(Dual::new(v, r.to_vec()))
     }
@@ -272,11 +301,16 @@ impl Series {
             return Err(format!("smooth_max: beta must be positive, got {beta}"));
         }
         let m = self.max()?.val;
-        let w: Vec<(f64, &[(u32, f64)])> =
-            self.visible_rows().map(|(_, v, r)| ((beta * (v - m)).exp(), r)).collect();
+        let w: Vec<(f64, &[(u32, f64)])> = self
+            .visible_rows()
+            .map(|(_, v, r)| ((beta * (v - m)).exp(), r))
+            .collect();
         let z: f64 = w.iter().map(|(e, _)| e).sum();
         let val = m + z.ln() / beta;
-        Ok(Dual::new(val, accumulate(w.iter().map(|&(e, r)| (r, e / z)))))
+        Ok(Dual::new(
+            val,
+            accumulate(w.iter().map(|&(e, r)| (r, e / z))),
+        ))
     }
 
     /// Smooth minimum `-smooth_max(-v)`.
@@ -287,9 +321,16 @@ impl Series {
 
     /// Euclidean norm of the valid elements.
     pub fn norm(&self) -> Dual {
-        let val: f64 = self.visible_rows().map(|(_, v, _)| v * v).sum::<f64>().sqrt();
+        let val: f64 = self
+            .visible_rows()
+            .map(|(_, v, _)| v * v)
+            .sum::<f64>()
+            .sqrt();
         let scale = if val > 0.0 { 1.0 / val } else { 0.0 };
-        Dual::new(val, accumulate(self.visible_rows().map(|(_, v, r)| (r, v * scale))))
+        Dual::new(
+            val,
+            accumulate(self.visible_rows().map(|(_, v, r)| (r, v * scale))),
+        )
     }
 
     /// Visible element `i` (negative counts from the end).
@@ -301,20 +342,30 @@ impl Series {
         }
         let k = self.0.head + j as usize;
         if !self.0.valid[k] {
-            return Err(format!("element {j} is not valid (the agent is not observed then)"));
+            return Err(format!(
+                "element {j} is not valid (the agent is not observed then)"
+            ));
         }
         Ok(Dual::new(self.0.val[k], self.row(k).to_vec()))
     }
 
     /// First valid element.
     pub fn first(&self) -> OpResult<Dual> {
-        let j = self.valid().iter().position(|v| *v).ok_or("first: the series has no valid element")?;
+        let j = self
+            .valid()
+            .iter()
+            .position(|v| *v)
+            .ok_or("first: the series has no valid element")?;
         self.at(j as i64)
     }
 
     /// Last valid element.
     pub fn last(&self) -> OpResult<Dual> {
-        let j = self.valid().iter().rposition(|v| *v).ok_or("last: the series has no valid element")?;
+        let j = self
+            .valid()
+            .iter()
+            .rposition(|v| *v)
+            .ok_or("last: the series has no valid element")?;
         self.at(j as i64)
     }
 
@@ -345,7 +396,9 @@ impl Series {
         let fix = |i: i64| if i < 0 { n + i } else { i };
         let (a, b) = (fix(i0), fix(i1));
         if a < 0 || b > n || a >= b {
-            return Err(format!("slice({i0}, {i1}) is empty or outside the series' {n} elements"));
+            return Err(format!(
+                "slice({i0}, {i1}) is empty or outside the series' {n} elements"
+            ));
         }
         let d = &self.0;
         let keep = (d.head + a as usize).min(3);
@@ -381,7 +434,11 @@ mod tests {
     fn s(vals: &[f64], head: usize, var0: u32) -> Series {
         let mut b = Builder::new(vals.len(), head, 0.1, 0.1);
         for (k, &v) in vals.iter().enumerate() {
-            let row: Vec<(u32, f64)> = if k < head { vec![] } else { vec![(var0 + k as u32, 1.0)] };
+            let row: Vec<(u32, f64)> = if k < head {
+                vec![]
+            } else {
+                vec![(var0 + k as u32, 1.0)]
+            };
             b.push_row(v, true, row);
         }
         b.build()
@@ -393,7 +450,11 @@ mod tests {
         let v = x.deriv();
         assert_eq!(v.len(), 3);
         assert!((v.values()[0] - 10.0).abs() < 1e-9);
-        assert_eq!(v.grad_at(0), &[(1, 10.0)], "the previous state is a constant");
+        assert_eq!(
+            v.grad_at(0),
+            &[(1, 10.0)],
+            "the previous state is a constant"
+        );
         assert_eq!(v.grad_at(1), &[(1, -10.0), (2, 10.0)]);
     }
 
@@ -405,7 +466,9 @@ mod tests {
         assert_eq!(c.len(), 2);
         assert_eq!(c.values(), &[0.0, 1.0]);
         assert_eq!(c.0.head, 1);
-        assert!(a.zip(&s(&[1.0], 0, 0), "sub", |x, y| Some((x - y, 1.0, -1.0))).is_err());
+        assert!(a
+            .zip(&s(&[1.0], 0, 0), "sub", |x, y| Some((x - y, 1.0, -1.0)))
+            .is_err());
     }
 
     #[test]
@@ -428,7 +491,9 @@ mod tests {
     #[test]
     fn domain_errors_name_the_element() {
         let x = s(&[0.0, -1.0], 0, 0);
-        let e = x.map("sqrt", |v| (v >= 0.0).then(|| (v.sqrt(), 0.5 / v.sqrt()))).unwrap_err();
+        let e = x
+            .map("sqrt", |v| (v >= 0.0).then(|| (v.sqrt(), 0.5 / v.sqrt())))
+            .unwrap_err();
         assert_eq!(e, "sqrt: invalid argument -1 at element 1");
     }
 }

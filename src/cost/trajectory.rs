@@ -103,7 +103,10 @@ impl Trajectories {
         let n = t.layout.steps;
         for (a, agent) in scene.agents.iter().enumerate() {
             // The latest observed state at or before each future step, with its velocity.
-            let mut last = agent.states[..=c].iter().rposition(|s| s.valid).map(|k| (k, agent.states[k]));
+            let mut last = agent.states[..=c]
+                .iter()
+                .rposition(|s| s.valid)
+                .map(|k| (k, agent.states[k]));
             for k in 0..n {
                 let i = a * n + k;
                 let step = c + 1 + k;

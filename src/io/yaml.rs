@@ -704,7 +704,10 @@ pub fn to_yaml(scene: &Scene) -> String {
         scene.meta.source_file,
         scene.meta.source_format.name()
     );
-    header + serde_yaml::to_string(&doc).expect("scenes serialise to YAML").as_str()
+    header
+        + serde_yaml::to_string(&doc)
+            .expect("scenes serialise to YAML")
+            .as_str()
 }
 
 fn explicit_states(xyh: &[Option<Vec<f64>>], dt: f64) -> Result<Vec<AgentState>, (usize, String)> {

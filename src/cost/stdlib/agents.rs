@@ -97,7 +97,11 @@ fn history(shared: &Shared, a: usize, field: &str) -> RResult<Series> {
             "y" => s.y,
             "heading" => s.heading,
             "speed" => s.speed(),
-            _ => return err(format!("history: field must be x, y, heading or speed, got {field:?}")),
+            _ => {
+                return err(format!(
+                    "history: field must be x, y, heading or speed, got {field:?}"
+                ))
+            }
         };
         b.push_row(v, s.valid, std::iter::empty());
     }
@@ -109,9 +113,22 @@ pub(crate) fn lookup(shared: &Shared, id: i64) -> RResult<AgentRef> {
     match ctx.scene.agents.iter().position(|a| a.id == id) {
         Some(idx) => Ok(AgentRef { idx, id }),
         None => {
-            let ids: Vec<String> = ctx.scene.agents.iter().take(30).map(|a| a.id.to_string()).collect();
-            let more = if ctx.scene.agents.len() > 30 { ", ..." } else { "" };
-            err(format!("unknown agent id {id}; the scene has agents {}{more}", ids.join(", ")))
+            let ids: Vec<String> = ctx
+                .scene
+                .agents
+                .iter()
+                .take(30)
+                .map(|a| a.id.to_string())
+                .collect();
+            let more = if ctx.scene.agents.len() > 30 {
+                ", ..."
+            } else {
+                ""
+            };
+            err(format!(
+                "unknown agent id {id}; the scene has agents {}{more}",
+                ids.join(", ")
+            ))
         }
     }
 }
@@ -120,32 +137,70 @@ fn current(shared: &Shared, a: &AgentRef) -> RResult<crate::scene::AgentState> {
     let ctx = shared.borrow();
     let s = ctx.scene.agents[a.idx].states[ctx.scene.meta.current_step];
     if !s.valid {
-        return err(format!("agent {} is not observed at the current step", a.id));
+        return err(format!(
+            "agent {} is not observed at the current step",
+            a.id
+        ));
     }
     Ok(s)
 }
 
 pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>) {
     const S: &str = "Agents";
-    doc(docs, S, "agent(id) -> Agent", "The agent with this id; an unknown id is an error that lists the scene's ids.");
+    doc(
+        docs,
+        S,
+        "agent(id) -> Agent",
+        "The agent with this id; an unknown id is an error that lists the scene's ids.",
+    );
     let sh = shared.clone();
     e.register_fn("agent", move |id: i64| lookup(&sh, id));
-    doc(docs, S, "agents() -> array of Agent", "Every agent of the scene, in scene order.");
+    doc(
+        docs,
+        S,
+        "agents() -> array of Agent",
+        "Every agent of the scene, in scene order.",
+    );
     let sh = shared.clone();
     e.register_fn("agents", move || {
         let ctx = sh.borrow();
-        ctx.scene.agents.iter().enumerate().map(|(idx, a)| Dynamic::from(AgentRef { idx, id: a.id })).collect::<Array>()
+        ctx.scene
+            .agents
+            .iter()
+            .enumerate()
+            .map(|(idx, a)| Dynamic::from(AgentRef { idx, id: a.id }))
+            .collect::<Array>()
     });
-    doc(docs, S, "vehicles() -> array of Agent", "The vehicles of the scene.");
+    doc(
+        docs,
+        S,
+        "vehicles() -> array of Agent",
+        "The vehicles of the scene.",
+    );
     let sh = shared.clone();
     e.register_fn("vehicles", move || of_type(&sh, AgentType::Vehicle));
-    doc(docs, S, "agents_of_type(t) -> array of Agent", "Agents of type \"vehicle\", \"pedestrian\", \"cyclist\" or \"other\".");
+    doc(
+        docs,
+        S,
+        "agents_of_type(t) -> array of Agent",
+        "Agents of type \"vehicle\", \"pedestrian\", \"cyclist\" or \"other\".",
+    );
     let sh = shared.clone();
-    e.register_fn("agents_of_type", move |t: &str| match AgentType::from_name(t) {
-        Some(ty) => Ok(of_type(&sh, ty)),
-        None => err(format!("agents_of_type: unknown type {t:?} (vehicle, pedestrian, cyclist, other)")),
-    });
-    doc(docs, S, "ego() -> Agent", "The scene's ego / focal agent; an error when the format names none.");
+    e.register_fn(
+        "agents_of_type",
+        move |t: &str| match AgentType::from_name(t) {
+            Some(ty) => Ok(of_type(&sh, ty)),
+            None => err(format!(
+                "agents_of_type: unknown type {t:?} (vehicle, pedestrian, cyclist, other)"
+            )),
+        },
+    );
+    doc(
+        docs,
+        S,
+        "ego() -> Agent",
+        "The scene's ego / focal agent; an error when the format names none.",
+    );
     let sh = shared.clone();
     e.register_fn("ego", move || {
         let ego = sh.borrow().scene.meta.ego;
@@ -154,55 +209,125 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
             None => err("this scene names no ego agent; use agent(id)"),
         }
     });
-    doc(docs, S, "a.id -> int, a.type -> string, a.length -> float, a.width -> float", "Identity and footprint.");
+    doc(
+        docs,
+        S,
+        "a.id -> int, a.type -> string, a.length -> float, a.width -> float",
+        "Identity and footprint.",
+    );
     e.register_get("id", |a: &mut AgentRef| a.id);
     let sh = shared.clone();
-    e.register_get("type", move |a: &mut AgentRef| sh.borrow().scene.agents[a.idx].agent_type.name().to_string());
+    e.register_get("type", move |a: &mut AgentRef| {
+        sh.borrow().scene.agents[a.idx]
+            .agent_type
+            .name()
+            .to_string()
+    });
     let sh = shared.clone();
-    e.register_get("length", move |a: &mut AgentRef| sh.borrow().scene.agents[a.idx].length);
+    e.register_get("length", move |a: &mut AgentRef| {
+        sh.borrow().scene.agents[a.idx].length
+    });
     let sh = shared.clone();
-    e.register_get("width", move |a: &mut AgentRef| sh.borrow().scene.agents[a.idx].width);
+    e.register_get("width", move |a: &mut AgentRef| {
+        sh.borrow().scene.agents[a.idx].width
+    });
 
     doc(docs, S, "a.x, a.y, a.heading -> Series", "Position and heading over the future steps (heading unwrapped, so it is continuous); these carry the gradient.");
     let sh = shared.clone();
-    e.register_get("x", move |a: &mut AgentRef| coord_series(&sh, a.idx, Coord::X));
+    e.register_get("x", move |a: &mut AgentRef| {
+        coord_series(&sh, a.idx, Coord::X)
+    });
     let sh = shared.clone();
-    e.register_get("y", move |a: &mut AgentRef| coord_series(&sh, a.idx, Coord::Y));
+    e.register_get("y", move |a: &mut AgentRef| {
+        coord_series(&sh, a.idx, Coord::Y)
+    });
     let sh = shared.clone();
-    e.register_get("heading", move |a: &mut AgentRef| coord_series(&sh, a.idx, Coord::Heading));
+    e.register_get("heading", move |a: &mut AgentRef| {
+        coord_series(&sh, a.idx, Coord::Heading)
+    });
     doc(docs, S, "a.vx, a.vy -> Series", "Velocity components, m/s.");
     let sh = shared.clone();
-    e.register_get("vx", move |a: &mut AgentRef| coord_series(&sh, a.idx, Coord::X).deriv());
+    e.register_get("vx", move |a: &mut AgentRef| {
+        coord_series(&sh, a.idx, Coord::X).deriv()
+    });
     let sh = shared.clone();
-    e.register_get("vy", move |a: &mut AgentRef| coord_series(&sh, a.idx, Coord::Y).deriv());
-    doc(docs, S, "a.speed -> Series", "Speed, m/s (never below 0.001, so that it stays differentiable at rest).");
+    e.register_get("vy", move |a: &mut AgentRef| {
+        coord_series(&sh, a.idx, Coord::Y).deriv()
+    });
+    doc(
+        docs,
+        S,
+        "a.speed -> Series",
+        "Speed, m/s (never below 0.001, so that it stays differentiable at rest).",
+    );
     let sh = shared.clone();
     e.register_get("speed", move |a: &mut AgentRef| speed(&sh, a.idx));
-    doc(docs, S, "a.long_speed -> Series", "Velocity along the heading, m/s: negative when driving in reverse.");
+    doc(
+        docs,
+        S,
+        "a.long_speed -> Series",
+        "Velocity along the heading, m/s: negative when driving in reverse.",
+    );
     let sh = shared.clone();
     e.register_get("long_speed", move |a: &mut AgentRef| long_speed(&sh, a.idx));
-    doc(docs, S, "a.accel -> Series", "Rate of change of speed, m/s².");
+    doc(
+        docs,
+        S,
+        "a.accel -> Series",
+        "Rate of change of speed, m/s².",
+    );
     let sh = shared.clone();
-    e.register_get("accel", move |a: &mut AgentRef| Ok::<_, Box<rhai::EvalAltResult>>(speed(&sh, a.idx)?.deriv()));
-    doc(docs, S, "a.jerk -> Series", "Rate of change of acceleration, m/s³.");
+    e.register_get("accel", move |a: &mut AgentRef| {
+        Ok::<_, Box<rhai::EvalAltResult>>(speed(&sh, a.idx)?.deriv())
+    });
+    doc(
+        docs,
+        S,
+        "a.jerk -> Series",
+        "Rate of change of acceleration, m/s³.",
+    );
     let sh = shared.clone();
-    e.register_get("jerk", move |a: &mut AgentRef| Ok::<_, Box<rhai::EvalAltResult>>(speed(&sh, a.idx)?.deriv().deriv()));
-    doc(docs, S, "a.yaw_rate -> Series", "Heading change per second, rad/s.");
+    e.register_get("jerk", move |a: &mut AgentRef| {
+        Ok::<_, Box<rhai::EvalAltResult>>(speed(&sh, a.idx)?.deriv().deriv())
+    });
+    doc(
+        docs,
+        S,
+        "a.yaw_rate -> Series",
+        "Heading change per second, rad/s.",
+    );
     let sh = shared.clone();
-    e.register_get("yaw_rate", move |a: &mut AgentRef| coord_series(&sh, a.idx, Coord::Heading).deriv());
+    e.register_get("yaw_rate", move |a: &mut AgentRef| {
+        coord_series(&sh, a.idx, Coord::Heading).deriv()
+    });
 
-    doc(docs, S, "a.current_x, a.current_y, a.current_heading, a.current_speed -> float", "The recorded state at the current step (constants).");
+    doc(
+        docs,
+        S,
+        "a.current_x, a.current_y, a.current_heading, a.current_speed -> float",
+        "The recorded state at the current step (constants).",
+    );
     let sh = shared.clone();
-    e.register_get("current_x", move |a: &mut AgentRef| current(&sh, a).map(|s| s.x));
+    e.register_get("current_x", move |a: &mut AgentRef| {
+        current(&sh, a).map(|s| s.x)
+    });
     let sh = shared.clone();
-    e.register_get("current_y", move |a: &mut AgentRef| current(&sh, a).map(|s| s.y));
+    e.register_get("current_y", move |a: &mut AgentRef| {
+        current(&sh, a).map(|s| s.y)
+    });
     let sh = shared.clone();
-    e.register_get("current_heading", move |a: &mut AgentRef| current(&sh, a).map(|s| s.heading));
+    e.register_get("current_heading", move |a: &mut AgentRef| {
+        current(&sh, a).map(|s| s.heading)
+    });
     let sh = shared.clone();
-    e.register_get("current_speed", move |a: &mut AgentRef| current(&sh, a).map(|s| s.speed()));
+    e.register_get("current_speed", move |a: &mut AgentRef| {
+        current(&sh, a).map(|s| s.speed())
+    });
     doc(docs, S, "a.history(field) -> Series", "Recorded \"x\", \"y\", \"heading\" or \"speed\" from the first step to the current one (constants; at_time takes negative times).");
     let sh = shared.clone();
-    e.register_fn("history", move |a: &mut AgentRef, f: &str| history(&sh, a.idx, f));
+    e.register_fn("history", move |a: &mut AgentRef, f: &str| {
+        history(&sh, a.idx, f)
+    });
     e.register_fn("to_string", |a: &mut AgentRef| format!("agent {}", a.id));
     e.register_fn("to_debug", |a: &mut AgentRef| format!("Agent({})", a.id));
 }

@@ -57,7 +57,9 @@ pub struct FrenetRef {
 
 fn make_path(shared: &Shared, lane: i64, ahead: f64, behind: f64, t: Turn) -> RResult<PathRef> {
     if !(ahead.is_finite() && ahead > 0.0 && ahead <= 100_000.0) {
-        return err(format!("lane_path: length {ahead} must be in (0, 100000] metres"));
+        return err(format!(
+            "lane_path: length {ahead} must be in (0, 100000] metres"
+        ));
     }
     let key = (lane, ahead.to_bits(), behind.to_bits(), t);
     let mut ctx = shared.borrow_mut();
@@ -105,11 +107,17 @@ pub(crate) fn agent_lane(shared: &Shared, a: &AgentRef) -> RResult<i64> {
     let ctx = shared.borrow();
     let s = ctx.scene.agents[a.idx].states[ctx.scene.meta.current_step];
     if !s.valid {
-        return err(format!("agent {} is not observed at the current step, so it has no lane", a.id));
+        return err(format!(
+            "agent {} is not observed at the current step, so it has no lane",
+            a.id
+        ));
     }
     match ctx.scene.map.lane_at(Point::new(s.x, s.y), s.heading) {
         Some(l) => Ok(l),
-        None => err(format!("agent {} is near no lane going its way at the current step", a.id)),
+        None => err(format!(
+            "agent {} is near no lane going its way at the current step",
+            a.id
+        )),
     }
 }
 
@@ -118,7 +126,13 @@ fn agent_path(shared: &Shared, a: &AgentRef, ahead: f64) -> RResult<PathRef> {
     let along = {
         let ctx = shared.borrow();
         let s = ctx.scene.agents[a.idx].states[ctx.scene.meta.current_step];
-        ctx.scene.map.lane(lane).expect("lane_at returns map lanes").centerline.nearest(&Point::new(s.x, s.y)).s
+        ctx.scene
+            .map
+            .lane(lane)
+            .expect("lane_at returns map lanes")
+            .centerline
+            .nearest(&Point::new(s.x, s.y))
+            .s
     };
     make_path(shared, lane, along + ahead, BEHIND, Turn::Straight)
 }
@@ -153,8 +167,16 @@ pub(crate) fn frenet(shared: &Shared, a: usize, p: &PathRef) -> FrenetRef {
         };
         bs.push_row(f.s, true, row(f.ds[0], f.ds[1]));
         bd.push_row(f.d, true, row(f.dd[0], f.dd[1]));
-        bl.push_row(hw - f.d, true, row(slope * f.ds[0] - f.dd[0], slope * f.ds[1] - f.dd[1]));
-        br.push_row(hw + f.d, true, row(slope * f.ds[0] + f.dd[0], slope * f.ds[1] + f.dd[1]));
+        bl.push_row(
+            hw - f.d,
+            true,
+            row(slope * f.ds[0] - f.dd[0], slope * f.ds[1] - f.dd[1]),
+        );
+        br.push_row(
+            hw + f.d,
+            true,
+            row(slope * f.ds[0] + f.dd[0], slope * f.ds[1] + f.dd[1]),
+        );
     }
     FrenetRef {
         s: bs.build(),
@@ -169,34 +191,80 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     doc(docs, S, "lane_path(lane, length) -> Path", "The lane extended through successors (straight on at forks) to `length` metres from its start, and 50 m back through predecessors.");
     let sh = shared.clone();
     e.register_fn("lane_path", move |lane: i64, len: Dynamic| {
-        make_path(&sh, lane, number(&len, "lane_path length")?, BEHIND, Turn::Straight)
+        make_path(
+            &sh,
+            lane,
+            number(&len, "lane_path length")?,
+            BEHIND,
+            Turn::Straight,
+        )
     });
-    doc(docs, S, "lane_path(lane, length, turn) -> Path", "The same, taking \"left\", \"right\" or \"straight\" at forks.");
+    doc(
+        docs,
+        S,
+        "lane_path(lane, length, turn) -> Path",
+        "The same, taking \"left\", \"right\" or \"straight\" at forks.",
+    );
     let sh = shared.clone();
     e.register_fn("lane_path", move |lane: i64, len: Dynamic, t: &str| {
-        make_path(&sh, lane, number(&len, "lane_path length")?, BEHIND, turn(t)?)
+        make_path(
+            &sh,
+            lane,
+            number(&len, "lane_path length")?,
+            BEHIND,
+            turn(t)?,
+        )
     });
-    doc(docs, S, "a.lane_path() -> Path", "The path of the agent's current lane, from 50 m behind it to 300 m ahead of the agent.");
+    doc(
+        docs,
+        S,
+        "a.lane_path() -> Path",
+        "The path of the agent's current lane, from 50 m behind it to 300 m ahead of the agent.",
+    );
     let sh = shared.clone();
-    e.register_fn("lane_path", move |a: &mut AgentRef| agent_path(&sh, a, AGENT_AHEAD));
-    doc(docs, S, "a.lane_path(length) -> Path", "The same with `length` metres ahead of the agent.");
+    e.register_fn("lane_path", move |a: &mut AgentRef| {
+        agent_path(&sh, a, AGENT_AHEAD)
+    });
+    doc(
+        docs,
+        S,
+        "a.lane_path(length) -> Path",
+        "The same with `length` metres ahead of the agent.",
+    );
     let sh = shared.clone();
     e.register_fn("lane_path", move |a: &mut AgentRef, len: Dynamic| {
         agent_path(&sh, a, number(&len, "lane_path length")?)
     });
     doc(docs, S, "p.lanes -> array of int, p.length -> float, p.origin_s -> float", "The path's lanes in driving order, its length, and the s at which the requested lane starts.");
-    e.register_get("lanes", |p: &mut PathRef| p.path.lanes.iter().map(|l| Dynamic::from(*l)).collect::<Array>());
+    e.register_get("lanes", |p: &mut PathRef| {
+        p.path
+            .lanes
+            .iter()
+            .map(|l| Dynamic::from(*l))
+            .collect::<Array>()
+    });
     e.register_get("length", |p: &mut PathRef| p.path.frenet.length());
     e.register_get("origin_s", |p: &mut PathRef| p.path.origin_s());
-    doc(docs, S, "a.frenet(path) -> Frenet", "The agent's Frenet coordinates on the path over the future steps (any agent on any path).");
+    doc(
+        docs,
+        S,
+        "a.frenet(path) -> Frenet",
+        "The agent's Frenet coordinates on the path over the future steps (any agent on any path).",
+    );
     let sh = shared.clone();
-    e.register_fn("frenet", move |a: &mut AgentRef, p: PathRef| frenet(&sh, a.idx, &p));
+    e.register_fn("frenet", move |a: &mut AgentRef, p: PathRef| {
+        frenet(&sh, a.idx, &p)
+    });
     doc(docs, S, "f.s -> Series, f.d -> Series", "Arc length along the path and lateral offset from its centre line (left positive), metres.");
     e.register_get("s", |f: &mut FrenetRef| f.s.clone());
     e.register_get("d", |f: &mut FrenetRef| f.d.clone());
     doc(docs, S, "f.to_left -> Series, f.to_right -> Series", "Distance from the agent's centre to the lane's left / right boundary (positive inside the lane; half width 1.8 m where the map has no boundaries).");
     e.register_get("to_left", |f: &mut FrenetRef| f.to_left.clone());
     e.register_get("to_right", |f: &mut FrenetRef| f.to_right.clone());
-    e.register_fn("to_string", |p: &mut PathRef| format!("path over lanes {:?}", p.path.lanes));
-    e.register_fn("to_debug", |p: &mut PathRef| format!("Path({:?}, {:.1} m)", p.path.lanes, p.path.frenet.length()));
+    e.register_fn("to_string", |p: &mut PathRef| {
+        format!("path over lanes {:?}", p.path.lanes)
+    });
+    e.register_fn("to_debug", |p: &mut PathRef| {
+        format!("Path({:?}, {:.1} m)", p.path.lanes, p.path.frenet.length())
+    });
 }

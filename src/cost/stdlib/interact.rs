@@ -19,7 +19,12 @@ fn lift<T>(r: Result<T, String>) -> RResult<T> {
 }
 
 /// A series over the aligned steps of two agents from `f(state_a, state_b) -> Fwd<6>`.
-fn pair_series(shared: &Shared, a: usize, b: usize, f: impl Fn([f64; 3], [f64; 3]) -> Fwd<6>) -> Series {
+fn pair_series(
+    shared: &Shared,
+    a: usize,
+    b: usize,
+    f: impl Fn([f64; 3], [f64; 3]) -> Fwd<6>,
+) -> Series {
     let sa = [Coord::X, Coord::Y, Coord::Heading].map(|c| coord_series(shared, a, c));
     let sb = [Coord::X, Coord::Y, Coord::Heading].map(|c| coord_series(shared, b, c));
     let (ha, hb) = (sa[0].0.head, sb[0].0.head);
@@ -132,9 +137,16 @@ pub(crate) fn no_collision_cost(shared: &Shared, agents: &[usize], margin: f64) 
     }
     // Keep the structural dependence on every agent's first step even when nothing is near,
     // so that the validator sees a term that depends on the trajectory.
-    let mut zero: Vec<(u32, f64)> = agents.iter().map(|&i| (lay.var(i, 0, Coord::X), 0.0)).collect();
+    let mut zero: Vec<(u32, f64)> = agents
+        .iter()
+        .map(|&i| (lay.var(i, 0, Coord::X), 0.0))
+        .collect();
     zero.sort_unstable_by_key(|e| e.0);
-    let grad = accumulate(rows.iter().map(|r| (&r[..], 1.0)).chain(std::iter::once((&zero[..], 1.0))));
+    let grad = accumulate(
+        rows.iter()
+            .map(|r| (&r[..], 1.0))
+            .chain(std::iter::once((&zero[..], 1.0))),
+    );
     Dual::new(val, grad)
 }
 
@@ -142,62 +154,100 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     const S: &str = "Interactions";
     doc(docs, S, "gap(a, b, path) -> Series", "Bumper-to-bumper gap from a to b along the path: s_b - s_a - (length_a + length_b) / 2 (negative when b is behind a).");
     let sh = shared.clone();
-    e.register_fn("gap", move |a: AgentRef, b: AgentRef, p: PathRef| -> RResult<Series> {
-        distinct(&a, &b, "gap")?;
-        let (fa, fb) = (frenet(&sh, a.idx, &p), frenet(&sh, b.idx, &p));
-        let half = {
-            let ctx = sh.borrow();
-            0.5 * (ctx.scene.agents[a.idx].length + ctx.scene.agents[b.idx].length)
-        };
-        lift(fb.s.zip(&fa.s, "gap", move |sb, sa| Some((sb - sa - half, 1.0, -1.0))))
-    });
-    doc(docs, S, "distance(a, b) -> Series", "Distance between the two agents' centres, metres.");
+    e.register_fn(
+        "gap",
+        move |a: AgentRef, b: AgentRef, p: PathRef| -> RResult<Series> {
+            distinct(&a, &b, "gap")?;
+            let (fa, fb) = (frenet(&sh, a.idx, &p), frenet(&sh, b.idx, &p));
+            let half = {
+                let ctx = sh.borrow();
+                0.5 * (ctx.scene.agents[a.idx].length + ctx.scene.agents[b.idx].length)
+            };
+            lift(fb.s.zip(&fa.s, "gap", move |sb, sa| {
+                Some((sb - sa - half, 1.0, -1.0))
+            }))
+        },
+    );
+    doc(
+        docs,
+        S,
+        "distance(a, b) -> Series",
+        "Distance between the two agents' centres, metres.",
+    );
     let sh = shared.clone();
-    e.register_fn("distance", move |a: AgentRef, b: AgentRef| -> RResult<Series> {
-        distinct(&a, &b, "distance")?;
-        Ok(pair_series(&sh, a.idx, b.idx, |p, q| {
-            let dx = Fwd::<6>::var(q[0], 3) - Fwd::var(p[0], 0);
-            let dy = Fwd::<6>::var(q[1], 4) - Fwd::var(p[1], 1);
-            (dx * dx + dy * dy).sqrt()
-        }))
-    });
+    e.register_fn(
+        "distance",
+        move |a: AgentRef, b: AgentRef| -> RResult<Series> {
+            distinct(&a, &b, "distance")?;
+            Ok(pair_series(&sh, a.idx, b.idx, |p, q| {
+                let dx = Fwd::<6>::var(q[0], 3) - Fwd::var(p[0], 0);
+                let dy = Fwd::<6>::var(q[1], 4) - Fwd::var(p[1], 1);
+                (dx * dx + dy * dy).sqrt()
+            }))
+        },
+    );
     doc(docs, S, "clearance(a, b) -> Series", "Signed clearance between the two boxes: their distance when apart, minus the penetration depth when they overlap (negative = collision).");
     let sh = shared.clone();
-    e.register_fn("clearance", move |a: AgentRef, b: AgentRef| -> RResult<Series> {
-        distinct(&a, &b, "clearance")?;
-        Ok(clearance(&sh, a.idx, b.idx))
-    });
+    e.register_fn(
+        "clearance",
+        move |a: AgentRef, b: AgentRef| -> RResult<Series> {
+            distinct(&a, &b, "clearance")?;
+            Ok(clearance(&sh, a.idx, b.idx))
+        },
+    );
     doc(docs, S, "ttc(a, b) / ttc(a, b, cap) -> Series", "Time until the boxes touch at the current closing rate of their clearance, seconds: 0 when overlapping, cap (10 s by default) when not closing in.");
     let sh = shared.clone();
-    e.register_fn("ttc", move |a: AgentRef, b: AgentRef| ttc(&sh, &a, &b, TTC_CAP));
-    let sh = shared.clone();
-    e.register_fn("ttc", move |a: AgentRef, b: AgentRef, cap: Dynamic| ttc(&sh, &a, &b, number(&cap, "ttc cap")?));
-    doc(docs, S, "collision_penalty(a, b, margin) -> Series", "relu(margin - clearance(a, b))²: zero while the boxes stay margin metres apart.");
-    let sh = shared.clone();
-    e.register_fn("collision_penalty", move |a: AgentRef, b: AgentRef, m: Dynamic| -> RResult<Series> {
-        distinct(&a, &b, "collision_penalty")?;
-        let m = number(&m, "collision_penalty margin")?;
-        lift(clearance(&sh, a.idx, b.idx).map("collision_penalty", move |c| {
-            let s = (m - c).max(0.0);
-            Some((s * s, -2.0 * s))
-        }))
+    e.register_fn("ttc", move |a: AgentRef, b: AgentRef| {
+        ttc(&sh, &a, &b, TTC_CAP)
     });
+    let sh = shared.clone();
+    e.register_fn("ttc", move |a: AgentRef, b: AgentRef, cap: Dynamic| {
+        ttc(&sh, &a, &b, number(&cap, "ttc cap")?)
+    });
+    doc(
+        docs,
+        S,
+        "collision_penalty(a, b, margin) -> Series",
+        "relu(margin - clearance(a, b))²: zero while the boxes stay margin metres apart.",
+    );
+    let sh = shared.clone();
+    e.register_fn(
+        "collision_penalty",
+        move |a: AgentRef, b: AgentRef, m: Dynamic| -> RResult<Series> {
+            distinct(&a, &b, "collision_penalty")?;
+            let m = number(&m, "collision_penalty margin")?;
+            lift(
+                clearance(&sh, a.idx, b.idx).map("collision_penalty", move |c| {
+                    let s = (m - c).max(0.0);
+                    Some((s * s, -2.0 * s))
+                }),
+            )
+        },
+    );
     doc(docs, S, "no_collision_cost(agents, margin) -> Dual", "Sum over all pairs of the agents and all future steps of relu(margin - clearance)², skipping pairs whose centres are far apart.");
     let sh = shared.clone();
-    e.register_fn("no_collision_cost", move |list: Array, m: Dynamic| -> RResult<Dual> {
-        let m = number(&m, "no_collision_cost margin")?;
-        let mut idx = Vec::with_capacity(list.len());
-        for (k, v) in list.iter().enumerate() {
-            match v.clone().try_cast::<AgentRef>() {
-                Some(a) => idx.push(a.idx),
-                None => return err(format!("no_collision_cost: element {k} is a {}, not an Agent", v.type_name())),
+    e.register_fn(
+        "no_collision_cost",
+        move |list: Array, m: Dynamic| -> RResult<Dual> {
+            let m = number(&m, "no_collision_cost margin")?;
+            let mut idx = Vec::with_capacity(list.len());
+            for (k, v) in list.iter().enumerate() {
+                match v.clone().try_cast::<AgentRef>() {
+                    Some(a) => idx.push(a.idx),
+                    None => {
+                        return err(format!(
+                            "no_collision_cost: element {k} is a {}, not an Agent",
+                            v.type_name()
+                        ))
+                    }
+                }
             }
-        }
-        idx.sort_unstable();
-        idx.dedup();
-        if idx.len() < 2 {
-            return err("no_collision_cost needs at least two distinct agents");
-        }
-        Ok(no_collision_cost(&sh, &idx, m))
-    });
+            idx.sort_unstable();
+            idx.dedup();
+            if idx.len() < 2 {
+                return err("no_collision_cost needs at least two distinct agents");
+            }
+            Ok(no_collision_cost(&sh, &idx, m))
+        },
+    );
 }

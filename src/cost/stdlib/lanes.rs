@@ -59,7 +59,11 @@ fn edge_series(shared: &Shared, a: usize, corners: bool) -> RResult<Series> {
             let (d, q) = map.nearest_road_edge(p).expect("edges exist");
             let r = p - q;
             let n = r.norm();
-            let g = if n > 1e-12 { r / n * d.signum() } else { Point::zeros() };
+            let g = if n > 1e-12 {
+                r / n * d.signum()
+            } else {
+                Point::zeros()
+            };
             let dp_dh = Point::new(-sn * lx - cs * ly, cs * lx - sn * ly);
             let grad = [g.x, g.y, g.dot(&dp_dh)];
             if best.is_none_or(|(bd, _)| d > bd) {
@@ -96,19 +100,76 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
             });
         }};
     }
-    doc(docs, S, "lane_exists(lane) -> bool", "Whether the map has this lane id.");
+    doc(
+        docs,
+        S,
+        "lane_exists(lane) -> bool",
+        "Whether the map has this lane id.",
+    );
     let sh = shared.clone();
-    e.register_fn("lane_exists", move |l: i64| sh.borrow().scene.map.graph().contains(l));
-    lanefn!("left", "left(lane) -> int or ()", "The same-direction lane to the left, or () if there is none.", |m, l| opt(m.graph().left(l)));
-    lanefn!("right", "right(lane) -> int or ()", "The same-direction lane to the right, or ().", |m, l| opt(m.graph().right(l)));
-    lanefn!("has_left", "has_left(lane) -> bool", "Whether a same-direction lane lies to the left.", |m, l| Dynamic::from(m.graph().left(l).is_some()));
-    lanefn!("has_right", "has_right(lane) -> bool", "Whether a same-direction lane lies to the right.", |m, l| Dynamic::from(m.graph().right(l).is_some()));
-    lanefn!("leftmost", "leftmost(lane) -> int", "The leftmost same-direction lane beside this one (itself if none is further left).", |m, l| Dynamic::from(m.graph().leftmost(l)));
-    lanefn!("rightmost", "rightmost(lane) -> int", "The rightmost same-direction lane beside this one.", |m, l| Dynamic::from(m.graph().rightmost(l)));
-    lanefn!("is_rightmost", "is_rightmost(lane) -> bool", "Whether no same-direction lane lies to the right.", |m, l| Dynamic::from(m.graph().is_rightmost(l)));
-    lanefn!("lane_count", "lane_count(lane) -> int", "Number of same-direction lanes side by side with this one, itself included.", |m, l| Dynamic::from(m.graph().lane_count(l) as i64));
-    lanefn!("successors", "successors(lane) -> array of int", "Lanes this lane flows into.", |m, l| Dynamic::from(ids(m.graph().successors(l))));
-    lanefn!("predecessors", "predecessors(lane) -> array of int", "Lanes flowing into this lane.", |m, l| Dynamic::from(ids(m.graph().predecessors(l))));
+    e.register_fn("lane_exists", move |l: i64| {
+        sh.borrow().scene.map.graph().contains(l)
+    });
+    lanefn!(
+        "left",
+        "left(lane) -> int or ()",
+        "The same-direction lane to the left, or () if there is none.",
+        |m, l| opt(m.graph().left(l))
+    );
+    lanefn!(
+        "right",
+        "right(lane) -> int or ()",
+        "The same-direction lane to the right, or ().",
+        |m, l| opt(m.graph().right(l))
+    );
+    lanefn!(
+        "has_left",
+        "has_left(lane) -> bool",
+        "Whether a same-direction lane lies to the left.",
+        |m, l| Dynamic::from(m.graph().left(l).is_some())
+    );
+    lanefn!(
+        "has_right",
+        "has_right(lane) -> bool",
+        "Whether a same-direction lane lies to the right.",
+        |m, l| Dynamic::from(m.graph().right(l).is_some())
+    );
+    lanefn!(
+        "leftmost",
+        "leftmost(lane) -> int",
+        "The leftmost same-direction lane beside this one (itself if none is further left).",
+        |m, l| Dynamic::from(m.graph().leftmost(l))
+    );
+    lanefn!(
+        "rightmost",
+        "rightmost(lane) -> int",
+        "The rightmost same-direction lane beside this one.",
+        |m, l| Dynamic::from(m.graph().rightmost(l))
+    );
+    lanefn!(
+        "is_rightmost",
+        "is_rightmost(lane) -> bool",
+        "Whether no same-direction lane lies to the right.",
+        |m, l| Dynamic::from(m.graph().is_rightmost(l))
+    );
+    lanefn!(
+        "lane_count",
+        "lane_count(lane) -> int",
+        "Number of same-direction lanes side by side with this one, itself included.",
+        |m, l| Dynamic::from(m.graph().lane_count(l) as i64)
+    );
+    lanefn!(
+        "successors",
+        "successors(lane) -> array of int",
+        "Lanes this lane flows into.",
+        |m, l| Dynamic::from(ids(m.graph().successors(l)))
+    );
+    lanefn!(
+        "predecessors",
+        "predecessors(lane) -> array of int",
+        "Lanes flowing into this lane.",
+        |m, l| Dynamic::from(ids(m.graph().predecessors(l)))
+    );
     lanefn!("turn_of", "turn_of(lane) -> string", "\"left\", \"right\" or \"straight\" by the lane's heading change (more than 30 degrees is a turn).", |m, l| Dynamic::from(match m.turn_of(l).expect("checked") {
         Turn::Left => "left",
         Turn::Right => "right",
@@ -121,41 +182,64 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
         let ctx = sh.borrow();
         let m = &ctx.scene.map;
         check(m, l)?;
-        Ok(opt(m.graph().successors(l).iter().copied().find(|s| m.turn_of(*s) == Some(want))))
+        Ok(opt(m
+            .graph()
+            .successors(l)
+            .iter()
+            .copied()
+            .find(|s| m.turn_of(*s) == Some(want))))
     });
-    doc(docs, S, "a.lane -> int", "The agent's lane at the current step (the nearest lane going its way).");
+    doc(
+        docs,
+        S,
+        "a.lane -> int",
+        "The agent's lane at the current step (the nearest lane going its way).",
+    );
     let sh = shared.clone();
     e.register_get("lane", move |a: &mut AgentRef| agent_lane(&sh, a));
     doc(docs, S, "lane_of(a, step) -> int or ()", "The agent's lane at a recorded step (0 = first step of the scene), or () where it is not observed or near no lane.");
     let sh = shared.clone();
-    e.register_fn("lane_of", move |a: AgentRef, step: i64| -> RResult<Dynamic> {
-        let ctx = sh.borrow();
-        let states = &ctx.scene.agents[a.idx].states;
-        let Some(s) = usize::try_from(step).ok().and_then(|k| states.get(k)) else {
-            return err(format!("lane_of: step {step} is outside the scene's {} steps", states.len()));
-        };
-        if !s.valid {
-            return Ok(Dynamic::UNIT);
-        }
-        Ok(opt(ctx.scene.map.lane_at(Point::new(s.x, s.y), s.heading)))
-    });
+    e.register_fn(
+        "lane_of",
+        move |a: AgentRef, step: i64| -> RResult<Dynamic> {
+            let ctx = sh.borrow();
+            let states = &ctx.scene.agents[a.idx].states;
+            let Some(s) = usize::try_from(step).ok().and_then(|k| states.get(k)) else {
+                return err(format!(
+                    "lane_of: step {step} is outside the scene's {} steps",
+                    states.len()
+                ));
+            };
+            if !s.valid {
+                return Ok(Dynamic::UNIT);
+            }
+            Ok(opt(ctx.scene.map.lane_at(Point::new(s.x, s.y), s.heading)))
+        },
+    );
 
     const R: &str = "Road edge";
     doc(docs, R, "a.edge_distance -> Series", "Signed distance from the agent's centre to the nearest road edge, metres: negative on the road.");
     let sh = shared.clone();
-    e.register_get("edge_distance", move |a: &mut AgentRef| edge_series(&sh, a.idx, false));
+    e.register_get("edge_distance", move |a: &mut AgentRef| {
+        edge_series(&sh, a.idx, false)
+    });
     doc(docs, R, "a.box_edge_distance -> Series", "The same for the agent's box corner farthest off the road (positive as soon as any corner is off).");
     let sh = shared.clone();
-    e.register_get("box_edge_distance", move |a: &mut AgentRef| edge_series(&sh, a.idx, true));
+    e.register_get("box_edge_distance", move |a: &mut AgentRef| {
+        edge_series(&sh, a.idx, true)
+    });
     doc(docs, R, "a.on_road(k) -> Series", "Soft indicator of the whole box being on the road: sigmoid(-k · box_edge_distance), near 1 on the road, near 0 off it.");
     let sh = shared.clone();
-    e.register_fn("on_road", move |a: &mut AgentRef, k: Dynamic| -> RResult<Series> {
-        let k = number(&k, "on_road k")?;
-        let d = edge_series(&sh, a.idx, true)?;
-        d.map("on_road", |v| {
-            let s = 1.0 / (1.0 + (k * v).exp());
-            Some((s, -k * s * (1.0 - s)))
-        })
-        .or_else(err)
-    });
+    e.register_fn(
+        "on_road",
+        move |a: &mut AgentRef, k: Dynamic| -> RResult<Series> {
+            let k = number(&k, "on_road k")?;
+            let d = edge_series(&sh, a.idx, true)?;
+            d.map("on_road", |v| {
+                let s = 1.0 / (1.0 + (k * v).exp());
+                Some((s, -k * s * (1.0 - s)))
+            })
+            .or_else(err)
+        },
+    );
 }

@@ -14,18 +14,27 @@ fn lift<T>(r: Result<T, String>) -> RResult<T> {
 }
 
 /// `f(a, b)` for any mix of series, duals and numbers.
-pub(crate) fn binary(a: Val, b: Val, name: &str, f: impl Fn(f64, f64) -> Option<(f64, f64, f64)>) -> RResult<Val> {
+pub(crate) fn binary(
+    a: Val,
+    b: Val,
+    name: &str,
+    f: impl Fn(f64, f64) -> Option<(f64, f64, f64)>,
+) -> RResult<Val> {
     let bad = |x: f64, y: f64| format!("{name}: invalid arguments ({x}, {y})");
     Ok(match (a, b) {
         (Val::S(s), Val::S(o)) => Val::S(lift(s.zip(&o, name, f))?),
         (Val::S(s), Val::D(d)) => Val::S(lift(s.zip_dual(&d, name, f))?),
-        (Val::D(d), Val::S(s)) => Val::S(lift(s.zip_dual(&d, name, |x, y| {
-            f(y, x).map(|(v, dy, dx)| (v, dx, dy))
-        }))?),
+        (Val::D(d), Val::S(s)) => {
+            Val::S(lift(s.zip_dual(&d, name, |x, y| {
+                f(y, x).map(|(v, dy, dx)| (v, dx, dy))
+            }))?)
+        }
         (Val::S(s), Val::F(c)) => Val::S(lift(s.map(name, |x| f(x, c).map(|(v, da, _)| (v, da))))?),
         (Val::F(c), Val::S(s)) => Val::S(lift(s.map(name, |x| f(c, x).map(|(v, _, db)| (v, db))))?),
         (Val::D(x), Val::D(y)) => {
-            let (v, da, db) = f(x.val, y.val).ok_or_else(|| bad(x.val, y.val)).or_else(err)?;
+            let (v, da, db) = f(x.val, y.val)
+                .ok_or_else(|| bad(x.val, y.val))
+                .or_else(err)?;
             Val::D(x.combine(&y, v, da, db))
         }
         (Val::D(x), Val::F(c)) => {
@@ -76,7 +85,15 @@ fn div(a: f64, b: f64) -> Option<(f64, f64, f64)> {
 }
 fn pow2(a: f64, p: f64) -> Option<(f64, f64, f64)> {
     let v = a.powf(p);
-    let d = if a == 0.0 && p >= 1.0 { if p == 1.0 { 1.0 } else { 0.0 } } else { p * a.powf(p - 1.0) };
+    let d = if a == 0.0 && p >= 1.0 {
+        if p == 1.0 {
+            1.0
+        } else {
+            0.0
+        }
+    } else {
+        p * a.powf(p - 1.0)
+    };
     let dp = if a > 0.0 { v * a.ln() } else { 0.0 };
     (v.is_finite() && d.is_finite()).then_some((v, d, dp))
 }
@@ -88,7 +105,11 @@ fn max2(a: f64, b: f64) -> Option<(f64, f64, f64)> {
 }
 fn hypot2(a: f64, b: f64) -> Option<(f64, f64, f64)> {
     let h = a.hypot(b);
-    Some(if h > 0.0 { (h, a / h, b / h) } else { (0.0, 0.0, 0.0) })
+    Some(if h > 0.0 {
+        (h, a / h, b / h)
+    } else {
+        (0.0, 0.0, 0.0)
+    })
 }
 fn atan2_(y: f64, x: f64) -> Option<(f64, f64, f64)> {
     let r2 = x * x + y * y;
@@ -99,7 +120,16 @@ fn relu(v: f64) -> Option<(f64, f64)> {
     Some(if v > 0.0 { (v, 1.0) } else { (0.0, 0.0) })
 }
 fn abs(v: f64) -> Option<(f64, f64)> {
-    Some((v.abs(), if v > 0.0 { 1.0 } else if v < 0.0 { -1.0 } else { 0.0 }))
+    Some((
+        v.abs(),
+        if v > 0.0 {
+            1.0
+        } else if v < 0.0 {
+            -1.0
+        } else {
+            0.0
+        },
+    ))
 }
 fn sqrt(v: f64) -> Option<(f64, f64)> {
     (v >= 0.0).then(|| {
@@ -158,18 +188,42 @@ fn positive(x: f64, what: &str) -> RResult<f64> {
 macro_rules! binop {
     ($e:ident, $name:literal, $f:expr) => {{
         let f: Bin = $f;
-        $e.register_fn($name, move |a: Series, b: Series| binary(Val::S(a), Val::S(b), $name, f).map(Val::into_dynamic));
-        $e.register_fn($name, move |a: Series, b: Dual| binary(Val::S(a), Val::D(b), $name, f).map(Val::into_dynamic));
-        $e.register_fn($name, move |a: Dual, b: Series| binary(Val::D(a), Val::S(b), $name, f).map(Val::into_dynamic));
-        $e.register_fn($name, move |a: Dual, b: Dual| binary(Val::D(a), Val::D(b), $name, f).map(Val::into_dynamic));
-        $e.register_fn($name, move |a: Series, b: f64| binary(Val::S(a), Val::F(b), $name, f).map(Val::into_dynamic));
-        $e.register_fn($name, move |a: f64, b: Series| binary(Val::F(a), Val::S(b), $name, f).map(Val::into_dynamic));
-        $e.register_fn($name, move |a: Series, b: i64| binary(Val::S(a), Val::F(b as f64), $name, f).map(Val::into_dynamic));
-        $e.register_fn($name, move |a: i64, b: Series| binary(Val::F(a as f64), Val::S(b), $name, f).map(Val::into_dynamic));
-        $e.register_fn($name, move |a: Dual, b: f64| binary(Val::D(a), Val::F(b), $name, f).map(Val::into_dynamic));
-        $e.register_fn($name, move |a: f64, b: Dual| binary(Val::F(a), Val::D(b), $name, f).map(Val::into_dynamic));
-        $e.register_fn($name, move |a: Dual, b: i64| binary(Val::D(a), Val::F(b as f64), $name, f).map(Val::into_dynamic));
-        $e.register_fn($name, move |a: i64, b: Dual| binary(Val::F(a as f64), Val::D(b), $name, f).map(Val::into_dynamic));
+        $e.register_fn($name, move |a: Series, b: Series| {
+            binary(Val::S(a), Val::S(b), $name, f).map(Val::into_dynamic)
+        });
+        $e.register_fn($name, move |a: Series, b: Dual| {
+            binary(Val::S(a), Val::D(b), $name, f).map(Val::into_dynamic)
+        });
+        $e.register_fn($name, move |a: Dual, b: Series| {
+            binary(Val::D(a), Val::S(b), $name, f).map(Val::into_dynamic)
+        });
+        $e.register_fn($name, move |a: Dual, b: Dual| {
+            binary(Val::D(a), Val::D(b), $name, f).map(Val::into_dynamic)
+        });
+        $e.register_fn($name, move |a: Series, b: f64| {
+            binary(Val::S(a), Val::F(b), $name, f).map(Val::into_dynamic)
+        });
+        $e.register_fn($name, move |a: f64, b: Series| {
+            binary(Val::F(a), Val::S(b), $name, f).map(Val::into_dynamic)
+        });
+        $e.register_fn($name, move |a: Series, b: i64| {
+            binary(Val::S(a), Val::F(b as f64), $name, f).map(Val::into_dynamic)
+        });
+        $e.register_fn($name, move |a: i64, b: Series| {
+            binary(Val::F(a as f64), Val::S(b), $name, f).map(Val::into_dynamic)
+        });
+        $e.register_fn($name, move |a: Dual, b: f64| {
+            binary(Val::D(a), Val::F(b), $name, f).map(Val::into_dynamic)
+        });
+        $e.register_fn($name, move |a: f64, b: Dual| {
+            binary(Val::F(a), Val::D(b), $name, f).map(Val::into_dynamic)
+        });
+        $e.register_fn($name, move |a: Dual, b: i64| {
+            binary(Val::D(a), Val::F(b as f64), $name, f).map(Val::into_dynamic)
+        });
+        $e.register_fn($name, move |a: i64, b: Dual| {
+            binary(Val::F(a as f64), Val::D(b), $name, f).map(Val::into_dynamic)
+        });
     }};
 }
 
@@ -191,7 +245,13 @@ fn un(e: &mut Engine, name: &'static str, f: Un) {
 
 fn bin(e: &mut Engine, name: &'static str, f: Bin) {
     e.register_fn(name, move |a: Dynamic, b: Dynamic| {
-        binary(Val::from_dynamic(&a, name)?, Val::from_dynamic(&b, name)?, name, f).map(Val::into_dynamic)
+        binary(
+            Val::from_dynamic(&a, name)?,
+            Val::from_dynamic(&b, name)?,
+            name,
+            f,
+        )
+        .map(Val::into_dynamic)
     });
 }
 
@@ -203,20 +263,54 @@ pub(super) fn register(e: &mut Engine, docs: &mut Vec<DocEntry>) {
     binop!(e, "*", mul);
     binop!(e, "/", div);
     doc(docs, S, "-x", "Negation of a Series or Dual.");
-    e.register_fn("-", |x: Series| unary(Val::S(x), "-", neg).map(Val::into_dynamic));
-    e.register_fn("-", |x: Dual| unary(Val::D(x), "-", neg).map(Val::into_dynamic));
-    doc(docs, S, "a < b, a <= b, a > b, a >= b", "Compare the values of Duals and numbers (for `if`; the result has no gradient).");
+    e.register_fn("-", |x: Series| {
+        unary(Val::S(x), "-", neg).map(Val::into_dynamic)
+    });
+    e.register_fn("-", |x: Dual| {
+        unary(Val::D(x), "-", neg).map(Val::into_dynamic)
+    });
+    doc(
+        docs,
+        S,
+        "a < b, a <= b, a > b, a >= b",
+        "Compare the values of Duals and numbers (for `if`; the result has no gradient).",
+    );
     cmpop!(e, "<", <);
     cmpop!(e, "<=", <=);
     cmpop!(e, ">", >);
     cmpop!(e, ">=", >=);
 
     let unary_docs: [(&'static str, &'static str, &'static str, Un); 10] = [
-        ("relu", "relu(x) -> same kind", "max(x, 0) elementwise.", relu),
-        ("abs", "abs(x) -> same kind", "|x| elementwise (derivative 0 at 0).", abs),
-        ("sqrt", "sqrt(x) -> same kind", "Square root; a negative argument is an error.", sqrt),
-        ("exp", "exp(x) -> same kind", "e^x; overflow is an error.", exp),
-        ("log", "log(x) -> same kind", "Natural logarithm; a non-positive argument is an error.", log),
+        (
+            "relu",
+            "relu(x) -> same kind",
+            "max(x, 0) elementwise.",
+            relu,
+        ),
+        (
+            "abs",
+            "abs(x) -> same kind",
+            "|x| elementwise (derivative 0 at 0).",
+            abs,
+        ),
+        (
+            "sqrt",
+            "sqrt(x) -> same kind",
+            "Square root; a negative argument is an error.",
+            sqrt,
+        ),
+        (
+            "exp",
+            "exp(x) -> same kind",
+            "e^x; overflow is an error.",
+            exp,
+        ),
+        (
+            "log",
+            "log(x) -> same kind",
+            "Natural logarithm; a non-positive argument is an error.",
+            log,
+        ),
         ("sin", "sin(x) -> same kind", "Sine.", sin),
         ("cos", "cos(x) -> same kind", "Cosine.", cos),
         ("tanh", "tanh(x) -> same kind", "Hyperbolic tangent.", tanh),
@@ -228,52 +322,116 @@ pub(super) fn register(e: &mut Engine, docs: &mut Vec<DocEntry>) {
         un(e, name, f);
     }
 
-    doc(docs, S, "softplus(x) / softplus(x, beta) -> same kind", "log(1 + e^(beta·x)) / beta, a smooth relu (beta = 1 by default; larger is sharper).");
+    doc(
+        docs,
+        S,
+        "softplus(x) / softplus(x, beta) -> same kind",
+        "log(1 + e^(beta·x)) / beta, a smooth relu (beta = 1 by default; larger is sharper).",
+    );
     e.register_fn("softplus", |x: Dynamic| {
-        unary(Val::from_dynamic(&x, "softplus")?, "softplus", |v| softplus(v, 1.0)).map(Val::into_dynamic)
+        unary(Val::from_dynamic(&x, "softplus")?, "softplus", |v| {
+            softplus(v, 1.0)
+        })
+        .map(Val::into_dynamic)
     });
     e.register_fn("softplus", |x: Dynamic, b: Dynamic| {
         let beta = positive(number(&b, "softplus beta")?, "softplus beta")?;
-        unary(Val::from_dynamic(&x, "softplus")?, "softplus", move |v| softplus(v, beta)).map(Val::into_dynamic)
+        unary(Val::from_dynamic(&x, "softplus")?, "softplus", move |v| {
+            softplus(v, beta)
+        })
+        .map(Val::into_dynamic)
     });
-    doc(docs, S, "sigmoid(x) / sigmoid(x, k) -> same kind", "1 / (1 + e^(-k·x)), k = 1 by default: a soft step from 0 to 1.");
+    doc(
+        docs,
+        S,
+        "sigmoid(x) / sigmoid(x, k) -> same kind",
+        "1 / (1 + e^(-k·x)), k = 1 by default: a soft step from 0 to 1.",
+    );
     e.register_fn("sigmoid", |x: Dynamic| {
-        unary(Val::from_dynamic(&x, "sigmoid")?, "sigmoid", |v| sigmoid(v, 1.0)).map(Val::into_dynamic)
+        unary(Val::from_dynamic(&x, "sigmoid")?, "sigmoid", |v| {
+            sigmoid(v, 1.0)
+        })
+        .map(Val::into_dynamic)
     });
     e.register_fn("sigmoid", |x: Dynamic, k: Dynamic| {
         let k = number(&k, "sigmoid k")?;
-        unary(Val::from_dynamic(&x, "sigmoid")?, "sigmoid", move |v| sigmoid(v, k)).map(Val::into_dynamic)
+        unary(Val::from_dynamic(&x, "sigmoid")?, "sigmoid", move |v| {
+            sigmoid(v, k)
+        })
+        .map(Val::into_dynamic)
     });
-    doc(docs, S, "smooth_abs(x) / smooth_abs(x, eps) -> same kind", "sqrt(x² + eps²) - eps (eps = 0.1 by default): |x| with a rounded bottom.");
+    doc(
+        docs,
+        S,
+        "smooth_abs(x) / smooth_abs(x, eps) -> same kind",
+        "sqrt(x² + eps²) - eps (eps = 0.1 by default): |x| with a rounded bottom.",
+    );
     e.register_fn("smooth_abs", |x: Dynamic| {
-        unary(Val::from_dynamic(&x, "smooth_abs")?, "smooth_abs", |v| smooth_abs(v, 0.1)).map(Val::into_dynamic)
+        unary(Val::from_dynamic(&x, "smooth_abs")?, "smooth_abs", |v| {
+            smooth_abs(v, 0.1)
+        })
+        .map(Val::into_dynamic)
     });
     e.register_fn("smooth_abs", |x: Dynamic, eps: Dynamic| {
         let eps = positive(number(&eps, "smooth_abs eps")?, "smooth_abs eps")?;
-        unary(Val::from_dynamic(&x, "smooth_abs")?, "smooth_abs", move |v| smooth_abs(v, eps)).map(Val::into_dynamic)
+        unary(
+            Val::from_dynamic(&x, "smooth_abs")?,
+            "smooth_abs",
+            move |v| smooth_abs(v, eps),
+        )
+        .map(Val::into_dynamic)
     });
     doc(docs, S, "pow(x, p) -> same kind", "x^p; p may itself be a Series or Dual. A negative base with a fractional power is an error.");
     bin(e, "pow", pow2);
-    doc(docs, S, "clamp(x, lo, hi) -> same kind", "x limited to [lo, hi] (numbers); derivative 1 inside, 0 outside.");
+    doc(
+        docs,
+        S,
+        "clamp(x, lo, hi) -> same kind",
+        "x limited to [lo, hi] (numbers); derivative 1 inside, 0 outside.",
+    );
     e.register_fn("clamp", |x: Dynamic, lo: Dynamic, hi: Dynamic| {
         let (lo, hi) = (number(&lo, "clamp lo")?, number(&hi, "clamp hi")?);
         if lo > hi {
             return err(format!("clamp: lo {lo} is above hi {hi}"));
         }
         unary(Val::from_dynamic(&x, "clamp")?, "clamp", move |v| {
-            Some(if v < lo { (lo, 0.0) } else if v > hi { (hi, 0.0) } else { (v, 1.0) })
+            Some(if v < lo {
+                (lo, 0.0)
+            } else if v > hi {
+                (hi, 0.0)
+            } else {
+                (v, 1.0)
+            })
         })
         .map(Val::into_dynamic)
     });
-    doc(docs, S, "hinge(x, margin) -> same kind", "relu(margin - x): how far x falls short of margin.");
+    doc(
+        docs,
+        S,
+        "hinge(x, margin) -> same kind",
+        "relu(margin - x): how far x falls short of margin.",
+    );
     e.register_fn("hinge", |x: Dynamic, m: Dynamic| {
         let m = number(&m, "hinge margin")?;
-        unary(Val::from_dynamic(&x, "hinge")?, "hinge", move |v| relu(m - v).map(|(r, d)| (r, -d))).map(Val::into_dynamic)
+        unary(Val::from_dynamic(&x, "hinge")?, "hinge", move |v| {
+            relu(m - v).map(|(r, d)| (r, -d))
+        })
+        .map(Val::into_dynamic)
     });
-    doc(docs, S, "min(a, b), max(a, b) -> Series|Dual", "Elementwise minimum / maximum (the gradient follows the chosen side).");
+    doc(
+        docs,
+        S,
+        "min(a, b), max(a, b) -> Series|Dual",
+        "Elementwise minimum / maximum (the gradient follows the chosen side).",
+    );
     bin(e, "min", min2);
     bin(e, "max", max2);
-    doc(docs, S, "smooth_max(a, b, beta), smooth_min(a, b, beta) -> Series|Dual", "Elementwise log-sum-exp maximum / minimum of two values, sharper as beta grows.");
+    doc(
+        docs,
+        S,
+        "smooth_max(a, b, beta), smooth_min(a, b, beta) -> Series|Dual",
+        "Elementwise log-sum-exp maximum / minimum of two values, sharper as beta grows.",
+    );
     e.register_fn("smooth_max", |a: Dynamic, b: Dynamic, beta: Dynamic| {
         let beta = positive(number(&beta, "smooth_max beta")?, "smooth_max beta")?;
         pair_lse(&a, &b, beta, "smooth_max")
@@ -282,50 +440,133 @@ pub(super) fn register(e: &mut Engine, docs: &mut Vec<DocEntry>) {
         let beta = positive(number(&beta, "smooth_min beta")?, "smooth_min beta")?;
         pair_lse(&a, &b, -beta, "smooth_min")
     });
-    doc(docs, S, "norm(x, y) -> same kind", "sqrt(x² + y²) elementwise (derivative 0 at the origin).");
+    doc(
+        docs,
+        S,
+        "norm(x, y) -> same kind",
+        "sqrt(x² + y²) elementwise (derivative 0 at the origin).",
+    );
     bin(e, "norm", hypot2);
-    doc(docs, S, "atan2(y, x) -> same kind", "Angle of the vector (x, y); (0, 0) is an error.");
+    doc(
+        docs,
+        S,
+        "atan2(y, x) -> same kind",
+        "Angle of the vector (x, y); (0, 0) is an error.",
+    );
     bin(e, "atan2", atan2_);
 
     const R: &str = "Series and Dual";
-    doc(docs, R, "s.len() -> int", "Number of elements (future steps).");
+    doc(
+        docs,
+        R,
+        "s.len() -> int",
+        "Number of elements (future steps).",
+    );
     e.register_fn("len", |s: &mut Series| s.len() as i64);
-    doc(docs, R, "s.first(), s.last() -> Dual", "First / last valid element.");
+    doc(
+        docs,
+        R,
+        "s.first(), s.last() -> Dual",
+        "First / last valid element.",
+    );
     e.register_fn("first", |s: &mut Series| lift(s.first()));
     e.register_fn("last", |s: &mut Series| lift(s.last()));
-    doc(docs, R, "s.at(i) -> Dual", "Element i (0 = first future step; negative counts from the end).");
+    doc(
+        docs,
+        R,
+        "s.at(i) -> Dual",
+        "Element i (0 = first future step; negative counts from the end).",
+    );
     e.register_fn("at", |s: &mut Series, i: i64| lift(s.at(i)));
-    doc(docs, R, "s.at_time(t) -> Dual", "The element t seconds after the current step.");
-    e.register_fn("at_time", |s: &mut Series, t: Dynamic| lift(s.at_time(number(&t, "at_time")?)));
-    doc(docs, R, "s.slice(i0, i1) -> Series", "Elements i0 .. i1 (end excluded; negative counts from the end).");
-    e.register_fn("slice", |s: &mut Series, a: i64, b: i64| lift(s.slice(a, b)));
-    doc(docs, R, "s.window(t0, t1) -> Series", "Elements from t0 to t1 seconds after the current step, both included.");
+    doc(
+        docs,
+        R,
+        "s.at_time(t) -> Dual",
+        "The element t seconds after the current step.",
+    );
+    e.register_fn("at_time", |s: &mut Series, t: Dynamic| {
+        lift(s.at_time(number(&t, "at_time")?))
+    });
+    doc(
+        docs,
+        R,
+        "s.slice(i0, i1) -> Series",
+        "Elements i0 .. i1 (end excluded; negative counts from the end).",
+    );
+    e.register_fn("slice", |s: &mut Series, a: i64, b: i64| {
+        lift(s.slice(a, b))
+    });
+    doc(
+        docs,
+        R,
+        "s.window(t0, t1) -> Series",
+        "Elements from t0 to t1 seconds after the current step, both included.",
+    );
     e.register_fn("window", |s: &mut Series, a: Dynamic, b: Dynamic| {
         lift(s.window(number(&a, "window")?, number(&b, "window")?))
     });
-    doc(docs, R, "s.sum(), s.mean() -> Dual", "Sum / mean of the valid elements.");
+    doc(
+        docs,
+        R,
+        "s.sum(), s.mean() -> Dual",
+        "Sum / mean of the valid elements.",
+    );
     e.register_fn("sum", |s: &mut Series| s.sum());
     e.register_fn("mean", |s: &mut Series| lift(s.mean()));
-    doc(docs, R, "s.max(), s.min() -> Dual", "Largest / smallest valid element.");
+    doc(
+        docs,
+        R,
+        "s.max(), s.min() -> Dual",
+        "Largest / smallest valid element.",
+    );
     e.register_fn("max", |s: &mut Series| lift(s.max()));
     e.register_fn("min", |s: &mut Series| lift(s.min()));
-    doc(docs, R, "s.smooth_max(beta), s.smooth_min(beta) -> Dual", "log-sum-exp maximum / minimum over the elements (beta > 0, sharper as it grows).");
-    e.register_fn("smooth_max", |s: &mut Series, b: Dynamic| lift(s.smooth_max(number(&b, "smooth_max beta")?)));
-    e.register_fn("smooth_min", |s: &mut Series, b: Dynamic| lift(s.smooth_min(number(&b, "smooth_min beta")?)));
-    doc(docs, R, "s.norm() -> Dual", "Euclidean norm of the valid elements.");
+    doc(
+        docs,
+        R,
+        "s.smooth_max(beta), s.smooth_min(beta) -> Dual",
+        "log-sum-exp maximum / minimum over the elements (beta > 0, sharper as it grows).",
+    );
+    e.register_fn("smooth_max", |s: &mut Series, b: Dynamic| {
+        lift(s.smooth_max(number(&b, "smooth_max beta")?))
+    });
+    e.register_fn("smooth_min", |s: &mut Series, b: Dynamic| {
+        lift(s.smooth_min(number(&b, "smooth_min beta")?))
+    });
+    doc(
+        docs,
+        R,
+        "s.norm() -> Dual",
+        "Euclidean norm of the valid elements.",
+    );
     e.register_fn("norm", |s: &mut Series| s.norm());
     doc(docs, R, "s.deriv() -> Series", "Derivative per second (backward differences; the first element uses the current state when the series comes from an agent).");
     e.register_fn("deriv", |s: &mut Series| s.deriv());
-    doc(docs, R, "s.values() -> array", "The values as floats (for print).");
+    doc(
+        docs,
+        R,
+        "s.values() -> array",
+        "The values as floats (for print).",
+    );
     e.register_fn("values", |s: &mut Series| {
-        s.values().iter().map(|v| Dynamic::from(*v)).collect::<rhai::Array>()
+        s.values()
+            .iter()
+            .map(|v| Dynamic::from(*v))
+            .collect::<rhai::Array>()
     });
-    doc(docs, R, "value(x) -> float", "The value of a Dual (a number stays itself).");
+    doc(
+        docs,
+        R,
+        "value(x) -> float",
+        "The value of a Dual (a number stays itself).",
+    );
     e.register_fn("value", |d: Dual| d.val);
     e.register_fn("value", |d: f64| d);
     e.register_fn("value", |d: i64| d as f64);
     e.register_fn("to_string", |d: &mut Dual| format!("{:.4}", d.val));
-    e.register_fn("to_debug", |d: &mut Dual| format!("Dual({:.6}, {} partials)", d.val, d.grad.len()));
+    e.register_fn("to_debug", |d: &mut Dual| {
+        format!("Dual({:.6}, {} partials)", d.val, d.grad.len())
+    });
     e.register_fn("to_string", |s: &mut Series| fmt_series(s));
     e.register_fn("to_debug", |s: &mut Series| fmt_series(s));
 }
@@ -348,5 +589,11 @@ fn pair_lse(a: &Dynamic, b: &Dynamic, beta: f64, name: &'static str) -> RResult<
         let z = ex + ey;
         Some((m + z.ln() / beta, ex / z, ey / z))
     };
-    binary(Val::from_dynamic(a, name)?, Val::from_dynamic(b, name)?, name, f).map(Val::into_dynamic)
+    binary(
+        Val::from_dynamic(a, name)?,
+        Val::from_dynamic(b, name)?,
+        name,
+        f,
+    )
+    .map(Val::into_dynamic)
 }

@@ -130,8 +130,17 @@ pub(crate) fn register(engine: &mut Engine, shared: &Shared) -> Vec<DocEntry> {
 }
 
 /// Records a documentation entry.
-pub(crate) fn doc(docs: &mut Vec<DocEntry>, section: &'static str, signature: &'static str, doc: &'static str) {
-    docs.push(DocEntry { section, signature, doc });
+pub(crate) fn doc(
+    docs: &mut Vec<DocEntry>,
+    section: &'static str,
+    signature: &'static str,
+    doc: &'static str,
+) {
+    docs.push(DocEntry {
+        section,
+        signature,
+        doc,
+    });
 }
 
 /// Parses a turn name.
@@ -140,6 +149,8 @@ pub(crate) fn turn(s: &str) -> RResult<Turn> {
         "straight" => Ok(Turn::Straight),
         "left" => Ok(Turn::Left),
         "right" => Ok(Turn::Right),
-        _ => err(format!("turn must be \"straight\", \"left\" or \"right\", got {s:?}")),
+        _ => err(format!(
+            "turn must be \"straight\", \"left\" or \"right\", got {s:?}"
+        )),
     }
 }

@@ -1,0 +1,130 @@
+//! `drivescript cost`.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::rc::Rc;
+
+use anyhow::{Context, Result};
+use drivescript::cost::{CostScript, Limits, Params, Trajectories};
+use drivescript::io::{load_scene, rollout::Rollout, LoadOptions};
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// The scene file or directory.
+    scene: PathBuf,
+    /// The cost script.
+    #[arg(long)]
+    script: PathBuf,
+    /// Script parameters, name=value (visible as constants).
+    #[arg(long = "param", num_args = 1..)]
+    params: Vec<String>,
+    /// Evaluate this rollout's future instead of the recorded one.
+    #[arg(long)]
+    rollout: Option<PathBuf>,
+    /// Which scene of a multi-scene source.
+    #[arg(long, default_value_t = 0)]
+    index: usize,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
+pub fn run(args: Args) -> Result<ExitCode> {
+    let scene = Rc::new(load_scene(
+        &args.scene,
+        args.index,
+        &LoadOptions::default(),
+    )?);
+    let source = std::fs::read_to_string(&args.script)
+        .with_context(|| format!("reading {}", args.script.display()))?;
+    let params = Params::parse(&args.params)?;
+    let name = args.script.display().to_string();
+    let script = CostScript::compile(&source, &name, scene.clone(), &params, &Limits::default())?;
+    script.validate()?;
+    let traj = match &args.rollout {
+        Some(p) => {
+            let r = Rollout::read(p)?;
+            Trajectories::from_rollout(&scene, &r)
+                .map_err(|m| anyhow::anyhow!("{}: {m}", p.display()))?
+        }
+        None => Trajectories::recorded(&scene),
+    };
+    let report = script.evaluate(&traj)?;
+    let norms = report.agent_grad_norms();
+    let mut agents: Vec<(i64, f64)> = scene
+        .agents
+        .iter()
+        .zip(&norms)
+        .map(|(a, n)| (a.id, *n))
+        .filter(|(_, n)| *n > 0.0)
+        .collect();
+    agents.sort_by(|a, b| b.1.total_cmp(&a.1));
+    if args.json {
+        let v = serde_json::json!({
+            "scene": scene.meta.scenario_id,
+            "script": name,
+            "source": if args.rollout.is_some() { "rollout" } else { "recorded" },
+            "total": report.total,
+            "terms": report.terms.iter().map(|t| serde_json::json!({
+                "name": t.name, "line": t.line, "weight": t.weight, "value": t.value,
+                "weighted": t.weight * t.value, "grad_norm": t.grad_norm(),
+            })).collect::<Vec<_>>(),
+            "agent_grad_norms": agents.iter().map(|(id, n)| serde_json::json!({"agent": id, "grad_norm": n})).collect::<Vec<_>>(),
+            "eval_ms": report.elapsed.as_secs_f64() * 1000.0,
+            "prints": report.prints,
+        });
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        println!(
+            "{} on {} ({} future)",
+            name,
+            scene.meta.scenario_id,
+            if args.rollout.is_some() {
+                "rollout"
+            } else {
+                "recorded"
+            }
+        );
+        println!(
+            "| {:<24} | line | weight |        value |     weighted |  grad norm |",
+            "term"
+        );
+        println!(
+            "|{}|------|--------|--------------|--------------|------------|",
+            "-".repeat(26)
+        );
+        for t in &report.terms {
+            println!(
+                "| {:<24} | {:>4} | {:>6.2} | {:>12.5} | {:>12.5} | {:>10.4} |",
+                t.name,
+                t.line,
+                t.weight,
+                t.value,
+                t.weight * t.value,
+                t.grad_norm()
+            );
+        }
+        println!("total {:.5}", report.total);
+        let shown: Vec<String> = agents
+            .iter()
+            .take(8)
+            .map(|(id, n)| format!("{id}: {n:.4}"))
+            .collect();
+        println!(
+            "gradient norm by agent: {}",
+            if shown.is_empty() {
+                "all zero".into()
+            } else {
+                shown.join(", ")
+            }
+        );
+        for p in &report.prints {
+            println!("print: {p}");
+        }
+        println!(
+            "evaluated in {:.3} ms",
+            report.elapsed.as_secs_f64() * 1000.0
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
