@@ -20,3 +20,6 @@ pub use report::{CostReport, TermReport};
 pub use series::Series;
 pub use stdlib::DocEntry;
 pub use trajectory::{Coord, Trajectories, VarLayout};
+
+#[cfg(test)]
+mod gradient_tests;
