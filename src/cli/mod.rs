@@ -6,6 +6,7 @@ mod cost;
 mod demo;
 mod inspect;
 mod render;
+mod stdlib_doc;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -47,6 +48,8 @@ enum Command {
     Cost(cost::Args),
     /// Run the demo: render a sample scene to out/demo.gif and print its summary.
     Demo(demo::Args),
+    /// Print the cost-script reference (markdown), generated from what the engine registers.
+    StdlibDoc(stdlib_doc::Args),
     /// Measure throughput and print a table.
     #[command(after_help = "Examples:
   drivescript bench io
@@ -63,6 +66,7 @@ pub fn run() -> ExitCode {
         Command::Convert(a) => convert::run(a),
         Command::Cost(a) => cost::run(a),
         Command::Demo(a) => demo::run(a),
+        Command::StdlibDoc(a) => stdlib_doc::run(a),
         Command::Bench(a) => bench::run(a),
     };
     match result {

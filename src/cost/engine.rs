@@ -404,6 +404,17 @@ fn add_term(
 
 fn register_terms(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>) {
     const S: &str = "Terms";
+    stdlib::doc(docs, S, "param(name)", "The value of `--param name=value`; an error naming the missing parameter when it was not given.");
+    let sh = shared.clone();
+    e.register_fn("param", move |name: &str| -> Result<Dynamic, Box<EvalAltResult>> {
+        match sh.borrow().params.get(name) {
+            Some(v) => Ok(v.clone()),
+            None => stdlib::err(format!("parameter {name:?} is required: pass --param {name}=VALUE")),
+        }
+    });
+    stdlib::doc(docs, S, "param(name, default)", "The value of `--param name=value`, or `default` when it was not given.");
+    let sh = shared.clone();
+    e.register_fn("param", move |name: &str, default: Dynamic| sh.borrow().params.get(name).cloned().unwrap_or(default));
     stdlib::doc(docs, S, "term(name, value)", "Declares a named cost term (a Dual or number, weight 1); the total cost is the weighted sum of all terms.");
     let sh = shared.clone();
     e.register_fn(
@@ -433,6 +444,84 @@ fn register_terms(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>) {
     );
 }
 
+/// The script API as the engine registers it: natives (by section) and the stdlib modules.
+pub fn reference() -> Vec<DocEntry> {
+    let scene = Rc::new(
+        Scene::new(
+            crate::scene::SceneMeta {
+                source_format: crate::scene::SourceFormat::Yaml,
+                source_file: String::new(),
+                scenario_id: "reference".into(),
+                dt: 0.1,
+                current_step: 0,
+                ego: None,
+                warnings: vec![],
+            },
+            crate::scene::Map::empty(),
+            vec![],
+        )
+        .expect("an empty scene is valid"),
+    );
+    let script = CostScript::compile("", "reference", scene, &Params::default(), &Limits::default())
+        .expect("the empty script compiles");
+    script.docs
+}
+
+/// `///` comments and signatures of the functions of a stdlib Rhai module.
+pub fn module_functions(source: &str) -> Vec<(String, String)> {
+    let mut out = Vec::new();
+    let mut comment: Vec<String> = Vec::new();
+    for line in source.lines() {
+        let t = line.trim();
+        if let Some(c) = t.strip_prefix("///") {
+            comment.push(c.trim().to_string());
+        } else if let Some(rest) = t.strip_prefix("fn ") {
+            let sig = rest.split('{').next().unwrap_or(rest).trim().to_string();
+            out.push((sig, comment.join(" ")));
+            comment.clear();
+        } else if !t.is_empty() {
+            comment.clear();
+        }
+    }
+    out
+}
+
+/// The reference `drivescript stdlib-doc` prints and the LLM prompts include (markdown).
+pub fn reference_markdown() -> String {
+    let mut md = String::from(
+        "# drivescript cost-script reference\n\n\
+Scripts are Rhai. They see the scene and one set of candidate trajectories, and declare named \
+terms with `term(name, value)`; the total cost is the weighted sum of the terms, and sampling \
+is guided by its gradient. Values are `Series` (one dual number per future step: element 0 is \
+the step after the current one), `Dual` (one dual number) or plain numbers; arithmetic mixes \
+them freely. Units are metres, seconds and radians; `d` is positive to the left. Parameters \
+given with `--param name=value` are constants, as are `DT` (seconds per step) and `STEPS` \
+(number of future steps). Steps where an agent is not observed are skipped by reductions.\n",
+    );
+    let docs = reference();
+    let mut section = "";
+    for d in &docs {
+        if d.section != section {
+            section = d.section;
+            md.push_str(&format!("\n## {section}\n\n| signature | meaning |\n|---|---|\n"));
+        }
+        md.push_str(&format!(
+            "| `{}` | {} |\n",
+            d.signature.replace('|', "\\|"),
+            d.doc.replace('|', "\\|")
+        ));
+    }
+    for (name, src) in STDLIB_MODULES {
+        md.push_str(&format!(
+            "\n## Module `{name}` (stdlib/{name}.rhai)\n\nImport with `import \"{name}\" as m;` and call `m::function(...)`.\n\n| function | meaning |\n|---|---|\n"
+        ));
+        for (sig, doc) in module_functions(src) {
+            md.push_str(&format!("| `{sig}` | {doc} |\n"));
+        }
+    }
+    md
+}
+
 impl CostScript {
     /// Compiles `source` (named `name` in messages) for `scene` with `params` as constants.
     /// Parameters are also visible as `DT` (seconds per step) and `STEPS` (future steps).
@@ -451,19 +540,27 @@ impl CostScript {
             prints: Vec::new(),
             paths: HashMap::new(),
             widths: HashMap::new(),
+            params: params
+                .0
+                .iter()
+                .map(|(k, v)| {
+                    let d = match v {
+                        ParamValue::Int(i) => Dynamic::from(*i),
+                        ParamValue::Float(f) => Dynamic::from(*f),
+                        ParamValue::Bool(b) => Dynamic::from(*b),
+                        ParamValue::Str(s) => Dynamic::from(s.clone()),
+                    };
+                    (k.clone(), d)
+                })
+                .collect(),
         }));
         let started = Rc::new(Cell::new(Instant::now()));
         let (engine, docs) = build_engine(&shared, limits, &started);
         let mut scope = Scope::new();
         scope.push_constant("DT", scene.meta.dt);
         scope.push_constant("STEPS", scene.num_future_steps() as i64);
-        for (k, v) in &params.0 {
-            match v {
-                ParamValue::Int(i) => scope.push_constant(k.as_str(), *i),
-                ParamValue::Float(f) => scope.push_constant(k.as_str(), *f),
-                ParamValue::Bool(b) => scope.push_constant(k.as_str(), *b),
-                ParamValue::Str(s) => scope.push_constant(k.as_str(), s.clone()),
-            };
+        for (k, v) in shared.borrow().params.iter() {
+            scope.push_constant_dynamic(k.as_str(), v.clone());
         }
         started.set(Instant::now());
         let ast = engine
@@ -683,5 +780,72 @@ fn strip_position(s: &str) -> String {
     match s.rfind(" (line ") {
         Some(i) if s.ends_with(')') => s[..i].to_string(),
         _ => s.to_string(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Names a documentation signature covers: functions, `get$` properties and operators.
+    fn documented_names(sig: &str) -> Vec<String> {
+        let mut out = Vec::new();
+        for item in sig.split(", ").flat_map(|p| p.split(" or ")) {
+            let item = item.split(" -> ").next().unwrap_or(item).trim();
+            if let Some(i) = item.find('(') {
+                let head = &item[..i];
+                if !head.is_empty() {
+                    out.push(head.rsplit('.').next().unwrap_or(head).to_string());
+                }
+            } else if let Some((_, prop)) = item.split_once('.') {
+                out.push(format!("get${}", prop.trim()));
+            } else if let Some(op) = item.split_whitespace().nth(1) {
+                out.push(op.to_string());
+            } else if let Some(op) = item.strip_suffix('x') {
+                out.push(op.to_string());
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn every_registered_function_is_documented_and_vice_versa() {
+        let docs = reference();
+        let documented: std::collections::BTreeSet<String> =
+            docs.iter().flat_map(|d| documented_names(d.signature)).collect();
+        let scene = Rc::new(Scene::new(
+            crate::scene::SceneMeta {
+                source_format: crate::scene::SourceFormat::Yaml,
+                source_file: String::new(),
+                scenario_id: "t".into(),
+                dt: 0.1,
+                current_step: 0,
+                ego: None,
+                warnings: vec![],
+            },
+            crate::scene::Map::empty(),
+            vec![],
+        ).unwrap());
+        let script = CostScript::compile("", "t", scene, &Params::default(), &Limits::default()).unwrap();
+        let registered: std::collections::BTreeSet<String> = script
+            .engine()
+            .gen_fn_signatures(false)
+            .iter()
+            .map(|s| s.split('(').next().unwrap().to_string())
+            // Display hooks for print, not part of the API.
+            .filter(|n| n != "to_string" && n != "to_debug")
+            .collect();
+        let missing: Vec<_> = registered.difference(&documented).collect();
+        let stale: Vec<_> = documented.difference(&registered).collect();
+        assert!(missing.is_empty(), "registered but undocumented: {missing:?}");
+        assert!(stale.is_empty(), "documented but not registered: {stale:?}");
+    }
+
+    #[test]
+    fn reference_lists_sections_and_modules() {
+        let md = reference_markdown();
+        for s in ["## Agents", "## Frenet frame", "## Lane graph", "## Interactions", "## Terms", "Module `behaviours`", "`end_in_lane(a, path, tol)`"] {
+            assert!(md.contains(s), "missing {s}");
+        }
     }
 }

@@ -14,7 +14,10 @@ pub mod stdlib;
 mod trajectory;
 
 pub use dual::{Dual, Grad};
-pub use engine::{CostError, CostScript, Limits, ParamValue, Params, STDLIB_MODULES};
+pub use engine::{
+    module_functions, reference, reference_markdown, CostError, CostScript, Limits, ParamValue, Params,
+    STDLIB_MODULES,
+};
 pub use fwd::{box_clearance, Fwd};
 pub use report::{CostReport, TermReport};
 pub use series::Series;

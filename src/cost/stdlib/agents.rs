@@ -328,6 +328,14 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     e.register_fn("history", move |a: &mut AgentRef, f: &str| {
         history(&sh, a.idx, f)
     });
+    doc(docs, S, "times() -> Series", "Seconds after the current step of every future step (a constant series: 1·DT, 2·DT, ...).");
+    let sh = shared.clone();
+    e.register_fn("times", move || {
+        let ctx = sh.borrow();
+        let dt = ctx.scene.meta.dt;
+        let t: Vec<f64> = (1..=ctx.traj.layout.steps).map(|k| k as f64 * dt).collect();
+        Series::constant(&t, dt, dt)
+    });
     e.register_fn("to_string", |a: &mut AgentRef| format!("agent {}", a.id));
     e.register_fn("to_debug", |a: &mut AgentRef| format!("Agent({})", a.id));
 }

@@ -195,7 +195,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
             Ok(clearance(&sh, a.idx, b.idx))
         },
     );
-    doc(docs, S, "ttc(a, b) / ttc(a, b, cap) -> Series", "Time until the boxes touch at the current closing rate of their clearance, seconds: 0 when overlapping, cap (10 s by default) when not closing in.");
+    doc(docs, S, "ttc(a, b) or ttc(a, b, cap) -> Series", "Time until the boxes touch at the current closing rate of their clearance, seconds: 0 when overlapping, cap (10 s by default) when not closing in.");
     let sh = shared.clone();
     e.register_fn("ttc", move |a: AgentRef, b: AgentRef| {
         ttc(&sh, &a, &b, TTC_CAP)

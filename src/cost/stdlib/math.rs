@@ -325,7 +325,7 @@ pub(super) fn register(e: &mut Engine, docs: &mut Vec<DocEntry>) {
     doc(
         docs,
         S,
-        "softplus(x) / softplus(x, beta) -> same kind",
+        "softplus(x) or softplus(x, beta) -> same kind",
         "log(1 + e^(beta·x)) / beta, a smooth relu (beta = 1 by default; larger is sharper).",
     );
     e.register_fn("softplus", |x: Dynamic| {
@@ -344,7 +344,7 @@ pub(super) fn register(e: &mut Engine, docs: &mut Vec<DocEntry>) {
     doc(
         docs,
         S,
-        "sigmoid(x) / sigmoid(x, k) -> same kind",
+        "sigmoid(x) or sigmoid(x, k) -> same kind",
         "1 / (1 + e^(-k·x)), k = 1 by default: a soft step from 0 to 1.",
     );
     e.register_fn("sigmoid", |x: Dynamic| {
@@ -363,7 +363,7 @@ pub(super) fn register(e: &mut Engine, docs: &mut Vec<DocEntry>) {
     doc(
         docs,
         S,
-        "smooth_abs(x) / smooth_abs(x, eps) -> same kind",
+        "smooth_abs(x) or smooth_abs(x, eps) -> same kind",
         "sqrt(x² + eps²) - eps (eps = 0.1 by default): |x| with a rounded bottom.",
     );
     e.register_fn("smooth_abs", |x: Dynamic| {

@@ -53,6 +53,7 @@ pub(crate) struct Ctx {
     pub prints: Vec<String>,
     pub paths: HashMap<(i64, u64, u64, Turn), Rc<LanePath>>,
     pub widths: HashMap<usize, Rc<Vec<(f64, f64)>>>,
+    pub params: std::collections::BTreeMap<String, Dynamic>,
 }
 
 pub(crate) type Shared = Rc<RefCell<Ctx>>;
