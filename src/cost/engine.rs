@@ -406,15 +406,27 @@ fn register_terms(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>) {
     const S: &str = "Terms";
     stdlib::doc(docs, S, "param(name)", "The value of `--param name=value`; an error naming the missing parameter when it was not given.");
     let sh = shared.clone();
-    e.register_fn("param", move |name: &str| -> Result<Dynamic, Box<EvalAltResult>> {
-        match sh.borrow().params.get(name) {
-            Some(v) => Ok(v.clone()),
-            None => stdlib::err(format!("parameter {name:?} is required: pass --param {name}=VALUE")),
-        }
-    });
-    stdlib::doc(docs, S, "param(name, default)", "The value of `--param name=value`, or `default` when it was not given.");
+    e.register_fn(
+        "param",
+        move |name: &str| -> Result<Dynamic, Box<EvalAltResult>> {
+            match sh.borrow().params.get(name) {
+                Some(v) => Ok(v.clone()),
+                None => stdlib::err(format!(
+                    "parameter {name:?} is required: pass --param {name}=VALUE"
+                )),
+            }
+        },
+    );
+    stdlib::doc(
+        docs,
+        S,
+        "param(name, default)",
+        "The value of `--param name=value`, or `default` when it was not given.",
+    );
     let sh = shared.clone();
-    e.register_fn("param", move |name: &str, default: Dynamic| sh.borrow().params.get(name).cloned().unwrap_or(default));
+    e.register_fn("param", move |name: &str, default: Dynamic| {
+        sh.borrow().params.get(name).cloned().unwrap_or(default)
+    });
     stdlib::doc(docs, S, "term(name, value)", "Declares a named cost term (a Dual or number, weight 1); the total cost is the weighted sum of all terms.");
     let sh = shared.clone();
     e.register_fn(
@@ -462,8 +474,14 @@ pub fn reference() -> Vec<DocEntry> {
         )
         .expect("an empty scene is valid"),
     );
-    let script = CostScript::compile("", "reference", scene, &Params::default(), &Limits::default())
-        .expect("the empty script compiles");
+    let script = CostScript::compile(
+        "",
+        "reference",
+        scene,
+        &Params::default(),
+        &Limits::default(),
+    )
+    .expect("the empty script compiles");
     script.docs
 }
 
@@ -503,7 +521,9 @@ given with `--param name=value` are constants, as are `DT` (seconds per step) an
     for d in &docs {
         if d.section != section {
             section = d.section;
-            md.push_str(&format!("\n## {section}\n\n| signature | meaning |\n|---|---|\n"));
+            md.push_str(&format!(
+                "\n## {section}\n\n| signature | meaning |\n|---|---|\n"
+            ));
         }
         md.push_str(&format!(
             "| `{}` | {} |\n",
@@ -811,22 +831,28 @@ mod tests {
     #[test]
     fn every_registered_function_is_documented_and_vice_versa() {
         let docs = reference();
-        let documented: std::collections::BTreeSet<String> =
-            docs.iter().flat_map(|d| documented_names(d.signature)).collect();
-        let scene = Rc::new(Scene::new(
-            crate::scene::SceneMeta {
-                source_format: crate::scene::SourceFormat::Yaml,
-                source_file: String::new(),
-                scenario_id: "t".into(),
-                dt: 0.1,
-                current_step: 0,
-                ego: None,
-                warnings: vec![],
-            },
-            crate::scene::Map::empty(),
-            vec![],
-        ).unwrap());
-        let script = CostScript::compile("", "t", scene, &Params::default(), &Limits::default()).unwrap();
+        let documented: std::collections::BTreeSet<String> = docs
+            .iter()
+            .flat_map(|d| documented_names(d.signature))
+            .collect();
+        let scene = Rc::new(
+            Scene::new(
+                crate::scene::SceneMeta {
+                    source_format: crate::scene::SourceFormat::Yaml,
+                    source_file: String::new(),
+                    scenario_id: "t".into(),
+                    dt: 0.1,
+                    current_step: 0,
+                    ego: None,
+                    warnings: vec![],
+                },
+                crate::scene::Map::empty(),
+                vec![],
+            )
+            .unwrap(),
+        );
+        let script =
+            CostScript::compile("", "t", scene, &Params::default(), &Limits::default()).unwrap();
         let registered: std::collections::BTreeSet<String> = script
             .engine()
             .gen_fn_signatures(false)
@@ -837,14 +863,25 @@ mod tests {
             .collect();
         let missing: Vec<_> = registered.difference(&documented).collect();
         let stale: Vec<_> = documented.difference(&registered).collect();
-        assert!(missing.is_empty(), "registered but undocumented: {missing:?}");
+        assert!(
+            missing.is_empty(),
+            "registered but undocumented: {missing:?}"
+        );
         assert!(stale.is_empty(), "documented but not registered: {stale:?}");
     }
 
     #[test]
     fn reference_lists_sections_and_modules() {
         let md = reference_markdown();
-        for s in ["## Agents", "## Frenet frame", "## Lane graph", "## Interactions", "## Terms", "Module `behaviours`", "`end_in_lane(a, path, tol)`"] {
+        for s in [
+            "## Agents",
+            "## Frenet frame",
+            "## Lane graph",
+            "## Interactions",
+            "## Terms",
+            "Module `behaviours`",
+            "`end_in_lane(a, path, tol)`",
+        ] {
             assert!(md.contains(s), "missing {s}");
         }
     }

@@ -8,19 +8,26 @@ use crate::io::{load_scene, LoadOptions};
 use crate::scene::Scene;
 
 fn scene(rel: &str) -> Rc<Scene> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/samples").join(rel);
+    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("data/samples")
+        .join(rel);
     Rc::new(load_scene(&p, 0, &LoadOptions::default()).unwrap())
 }
 
 /// Two agents observed over the whole future, the second the nearest to the first.
 fn pair(s: &Scene) -> (i64, i64) {
     let c = s.meta.current_step;
-    let full: Vec<_> = s.agents.iter().filter(|a| a.states[c..].iter().all(|x| x.valid)).collect();
+    let full: Vec<_> = s
+        .agents
+        .iter()
+        .filter(|a| a.states[c..].iter().all(|x| x.valid))
+        .collect();
     let a = full[0];
     let b = full[1..]
         .iter()
         .min_by(|x, y| {
-            let d = |z: &crate::scene::Agent| (z.states[c].position() - a.states[c].position()).norm();
+            let d =
+                |z: &crate::scene::Agent| (z.states[c].position() - a.states[c].position()).norm();
             d(x).total_cmp(&d(y))
         })
         .unwrap();
@@ -33,16 +40,27 @@ fn check(scene: &Rc<Scene>, body: &str) {
     let (a, b) = pair(scene);
     let params = Params::parse(&[format!("A={a}"), format!("B={b}")]).unwrap();
     let src = format!("let a = agent(A); let b = agent(B);\n{body}");
-    let script = CostScript::compile(&src, "grad-test", scene.clone(), &params, &Limits::default())
-        .unwrap_or_else(|e| panic!("{body}: {e}"));
+    let script = CostScript::compile(
+        &src,
+        "grad-test",
+        scene.clone(),
+        &params,
+        &Limits::default(),
+    )
+    .unwrap_or_else(|e| panic!("{body}: {e}"));
     let mut traj = Trajectories::filled(scene);
     for (i, v) in traj.xyh.iter_mut().enumerate() {
         v[0] += 0.013 * ((i * 7919) % 13) as f64 / 13.0;
         v[1] -= 0.011 * ((i * 104729) % 11) as f64 / 11.0;
     }
-    let report = script.evaluate(&traj).unwrap_or_else(|e| panic!("{body}: {e}"));
+    let report = script
+        .evaluate(&traj)
+        .unwrap_or_else(|e| panic!("{body}: {e}"));
     let t = &report.terms[0];
-    assert!(!t.grad.is_empty(), "{body}: no dependence on the trajectory");
+    assert!(
+        !t.grad.is_empty(),
+        "{body}: no dependence on the trajectory"
+    );
     // The largest partials, plus coordinates outside the gradient (which must be flat).
     let mut coords: Vec<(u32, f64)> = t.grad.clone();
     coords.sort_by(|x, y| y.1.abs().total_cmp(&x.1.abs()));
@@ -60,7 +78,13 @@ fn check(scene: &Rc<Scene>, body: &str) {
             coords.push((var, 0.0));
         }
     }
-    let value = |tr: &Trajectories| script.evaluate(tr).unwrap_or_else(|e| panic!("{body}: {e}")).terms[0].value;
+    let value = |tr: &Trajectories| {
+        script
+            .evaluate(tr)
+            .unwrap_or_else(|e| panic!("{body}: {e}"))
+            .terms[0]
+            .value
+    };
     for (var, analytic) in coords {
         let h = 1e-5;
         let (i, c) = (var as usize / 3, var as usize % 3);
@@ -152,7 +176,10 @@ fn agent_series_gradients() {
 
 #[test]
 fn frenet_gradients() {
-    for rel in ["commonroad/USA_US101-4_1_T-1.xml", "commonroad/USA_Lanker-1_1_T-1.xml"] {
+    for rel in [
+        "commonroad/USA_US101-4_1_T-1.xml",
+        "commonroad/USA_Lanker-1_1_T-1.xml",
+    ] {
         let s = scene(rel);
         for e in FRENET_EXPRS {
             check(&s, e);
@@ -160,12 +187,18 @@ fn frenet_gradients() {
     }
     let s = scene("commonroad/USA_Lanker-1_1_T-1.xml");
     // A turning path through an intersection.
-    check(&s, "let l = a.lane; let p = lane_path(l, 200, \"left\"); term(\"t\", a.frenet(p).d.sum());");
+    check(
+        &s,
+        "let l = a.lane; let p = lane_path(l, 200, \"left\"); term(\"t\", a.frenet(p).d.sum());",
+    );
 }
 
 #[test]
 fn interaction_gradients() {
-    for rel in ["commonroad/USA_US101-4_1_T-1.xml", "commonroad/USA_Lanker-1_1_T-1.xml"] {
+    for rel in [
+        "commonroad/USA_US101-4_1_T-1.xml",
+        "commonroad/USA_Lanker-1_1_T-1.xml",
+    ] {
         let s = scene(rel);
         for e in INTERACT_EXPRS {
             check(&s, e);

@@ -15,8 +15,8 @@ mod trajectory;
 
 pub use dual::{Dual, Grad};
 pub use engine::{
-    module_functions, reference, reference_markdown, CostError, CostScript, Limits, ParamValue, Params,
-    STDLIB_MODULES,
+    module_functions, reference, reference_markdown, CostError, CostScript, Limits, ParamValue,
+    Params, STDLIB_MODULES,
 };
 pub use fwd::{box_clearance, Fwd};
 pub use report::{CostReport, TermReport};

@@ -263,6 +263,10 @@ pub struct YamlAgent {
     /// First valid step (default 0): agents that appear late.
     #[serde(default, skip_serializing_if = "is_zero_usize")]
     pub valid_from: usize,
+    /// With an explicit `map`: the lane ids the agent drives along (consecutive lanes); `s` is
+    /// measured from the start of the first, `d` from the centre line.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub route: Option<Vec<i64>>,
     /// Explicit states, one per step, replacing the motion fields: `[x, y, heading]` or
     /// `[x, y, heading, vx, vy]`, or `~` (null) where the agent is not observed.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -383,19 +387,41 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
             }
             explicit_states(explicit, y.dt).map_err(|(k, m)| bad(format!("{loc} state {k}"), m))?
         } else {
-            let Some((r, reference)) = &road else {
-                return Err(bad(
-                    loc,
-                    "with an explicit `map`, agents need explicit `states`".into(),
-                ));
-            };
-            if a.lane >= r.lanes || a.lane_change.as_ref().is_some_and(|c| c.to >= r.lanes) {
-                return Err(bad(
-                    loc,
-                    format!("lane index out of range: the road has {} lanes", r.lanes),
-                ));
+            match (&road, &a.route) {
+                (Some((r, reference)), None) => {
+                    if a.lane >= r.lanes || a.lane_change.as_ref().is_some_and(|c| c.to >= r.lanes)
+                    {
+                        return Err(bad(
+                            loc,
+                            format!("lane index out of range: the road has {} lanes", r.lanes),
+                        ));
+                    }
+                    lane_motion(a, y, reference, r.lane_width)
+                }
+                (None, Some(route)) => {
+                    if a.lane_change.is_some() {
+                        return Err(bad(
+                            loc,
+                            "lane_change needs a generated `road`; give a `route` per lane instead"
+                                .into(),
+                        ));
+                    }
+                    let reference = route_path(&map, route).map_err(|m| bad(loc.clone(), m))?;
+                    lane_motion(a, y, &reference, 0.0)
+                }
+                (Some(_), Some(_)) => {
+                    return Err(bad(
+                        loc,
+                        "`route` is for explicit maps; on a generated road use `lane`".into(),
+                    ))
+                }
+                (None, None) => {
+                    return Err(bad(
+                        loc,
+                        "with an explicit `map`, agents need a `route` or explicit `states`".into(),
+                    ))
+                }
             }
-            lane_motion(a, y, reference, r.lane_width)
         };
         if a.valid_from >= y.steps {
             return Err(bad(
@@ -681,6 +707,7 @@ pub fn to_yaml(scene: &Scene) -> String {
             accel: 0.0,
             lane_change: None,
             valid_from: 0,
+            route: None,
             states: Some(
                 a.states
                     .iter()
@@ -770,6 +797,31 @@ fn explicit_states(xyh: &[Option<Vec<f64>>], dt: f64) -> Result<Vec<AgentState>,
         .collect())
 }
 
+/// The centre lines of `route`'s lanes joined into one path.
+fn route_path(map: &Map, route: &[i64]) -> Result<FrenetPath, String> {
+    if route.is_empty() {
+        return Err("route is empty".into());
+    }
+    let mut pts = Vec::new();
+    for (k, id) in route.iter().enumerate() {
+        let lane = map
+            .lane(*id)
+            .ok_or_else(|| format!("route lane {id} is not in the map"))?;
+        if k > 0 && !map.graph().successors(route[k - 1]).contains(id) {
+            return Err(format!(
+                "route lane {id} does not follow lane {}",
+                route[k - 1]
+            ));
+        }
+        pts.extend_from_slice(lane.centerline.points());
+    }
+    Polyline::new(pts)
+        .map(FrenetPath::new)
+        .map_err(|e| e.to_string())
+}
+
+/// States along `reference` at lateral offset `(lane + 0.5) · w + d` (with `w = 0` along a
+/// route's centre line).
 fn lane_motion(a: &YamlAgent, y: &YamlScene, reference: &FrenetPath, w: f64) -> Vec<AgentState> {
     let centre = |k: usize| (k as f64 + 0.5) * w;
     let pos = |k: usize| -> (f64, f64) {

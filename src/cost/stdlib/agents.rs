@@ -328,7 +328,12 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     e.register_fn("history", move |a: &mut AgentRef, f: &str| {
         history(&sh, a.idx, f)
     });
-    doc(docs, S, "times() -> Series", "Seconds after the current step of every future step (a constant series: 1·DT, 2·DT, ...).");
+    doc(
+        docs,
+        S,
+        "times() -> Series",
+        "Seconds after the current step of every future step (a constant series: 1·DT, 2·DT, ...).",
+    );
     let sh = shared.clone();
     e.register_fn("times", move || {
         let ctx = sh.borrow();

@@ -193,7 +193,11 @@ fn conflict(a: &PathRef, b: &PathRef) -> Option<(f64, f64, Point)> {
     let (lo, hi) = lb.bounds();
     for i in 0..pa.len() - 1 {
         let (p0, p1) = (pa[i], pa[i + 1]);
-        if p0.x.max(p1.x) < lo.x || p0.x.min(p1.x) > hi.x || p0.y.max(p1.y) < lo.y || p0.y.min(p1.y) > hi.y {
+        if p0.x.max(p1.x) < lo.x
+            || p0.x.min(p1.x) > hi.x
+            || p0.y.max(p1.y) < lo.y
+            || p0.y.min(p1.y) > hi.y
+        {
             continue;
         }
         let mut best: Option<f64> = None;
