@@ -7,6 +7,7 @@ mod demo;
 mod inspect;
 mod render;
 mod stdlib_doc;
+mod test_scripts;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -48,6 +49,11 @@ enum Command {
     Cost(cost::Args),
     /// Run the demo: render a sample scene to out/demo.gif and print its summary.
     Demo(demo::Args),
+    /// Run cost-script unit tests (*.test.yaml) and print a pass/fail table.
+    #[command(after_help = "Examples:
+  drivescript test-scripts
+  drivescript test-scripts scripts/cut_in.test.yaml -v")]
+    TestScripts(test_scripts::Args),
     /// Print the cost-script reference (markdown), generated from what the engine registers.
     StdlibDoc(stdlib_doc::Args),
     /// Measure throughput and print a table.
@@ -67,6 +73,7 @@ pub fn run() -> ExitCode {
         Command::Cost(a) => cost::run(a),
         Command::Demo(a) => demo::run(a),
         Command::StdlibDoc(a) => stdlib_doc::run(a),
+        Command::TestScripts(a) => test_scripts::run(a),
         Command::Bench(a) => bench::run(a),
     };
     match result {

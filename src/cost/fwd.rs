@@ -48,9 +48,26 @@ impl<const N: usize> Fwd<N> {
         self.chain(self.v.cos(), -self.v.sin())
     }
 
+    /// Whether two values tie: then min and max average the derivatives, the smallest
+    /// subgradient, so that symmetric configurations (two boxes exactly aligned) are not pushed
+    /// one way by the order of the corners.
+    fn ties(self, o: Self) -> bool {
+        (self.v - o.v).abs() <= 1e-12 * (1.0 + self.v.abs().max(o.v.abs()))
+    }
+
+    fn average(self, o: Self) -> Self {
+        let mut g = self.g;
+        for i in 0..N {
+            g[i] = 0.5 * (g[i] + o.g[i]);
+        }
+        Self { v: self.v, g }
+    }
+
     /// The smaller by value (its derivatives follow).
     pub fn min(self, o: Self) -> Self {
-        if self.v <= o.v {
+        if self.ties(o) {
+            self.average(o)
+        } else if self.v < o.v {
             self
         } else {
             o
@@ -59,7 +76,9 @@ impl<const N: usize> Fwd<N> {
 
     /// The larger by value.
     pub fn max(self, o: Self) -> Self {
-        if self.v >= o.v {
+        if self.ties(o) {
+            self.average(o)
+        } else if self.v > o.v {
             self
         } else {
             o

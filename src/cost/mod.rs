@@ -26,3 +26,4 @@ pub use trajectory::{Coord, Trajectories, VarLayout};
 
 #[cfg(test)]
 mod gradient_tests;
+pub mod script_test;

@@ -1,0 +1,469 @@
+//! Script unit tests: YAML files next to a script (`name.test.yaml`) naming scenes, parameters,
+//! candidate trajectories and expectations. The format is documented in README.md
+//! ("Testing cost scripts"); `drivescript test-scripts` and `cargo test` run them.
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+use std::rc::Rc;
+
+use serde::Deserialize;
+
+use super::{CostError, CostReport, CostScript, Limits, Params, Trajectories};
+use crate::io::{load_scene, rollout::Rollout, LoadOptions};
+use crate::scene::Scene;
+
+/// A test file.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TestFile {
+    /// The script, relative to the test file.
+    pub script: String,
+    /// The cases.
+    pub cases: Vec<TestCase>,
+}
+
+/// One case: a scene, parameters, a candidate and what to expect of it.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TestCase {
+    /// What the case shows.
+    pub name: String,
+    /// The scene, relative to the test file.
+    pub scene: String,
+    /// Script parameters.
+    #[serde(default)]
+    pub params: BTreeMap<String, serde_yaml::Value>,
+    /// The candidate future: `{scene: file}` (another scene's recorded future, agents matched by
+    /// id), `{rollout: file.json}`, or the recorded future when absent.
+    #[serde(default)]
+    pub candidate: CandidateSpec,
+    /// Edits applied to the candidate's future.
+    #[serde(default)]
+    pub edits: Vec<Edit>,
+    /// Expectations.
+    pub expect: Expect,
+}
+
+/// Where the candidate future comes from (at most one of the fields).
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CandidateSpec {
+    /// Another scene's recorded future (agents matched by id; same steps), e.g. a YAML variant
+    /// of the test scene in which an agent behaves differently.
+    #[serde(default)]
+    pub scene: Option<String>,
+    /// A rollout JSON file.
+    #[serde(default)]
+    pub rollout: Option<String>,
+}
+
+/// A change to one agent's candidate future, blended in linearly over `ramp` seconds from
+/// `from` seconds after the current step.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Edit {
+    /// The agent.
+    pub agent: i64,
+    /// Move sideways, metres, left of the agent's current heading.
+    #[serde(default)]
+    pub lateral: Option<f64>,
+    /// Move by `[dx, dy]` metres.
+    #[serde(default)]
+    pub shift: Option<[f64; 2]>,
+    /// Hold the current state for the whole future.
+    #[serde(default)]
+    pub freeze: bool,
+    /// Add a sideways sinusoid `[amplitude, period]` (metres left of the current heading,
+    /// seconds): `amplitude · sin(2π t / period)` at `t` seconds after the current step.
+    #[serde(default)]
+    pub sway: Option<[f64; 2]>,
+    /// Start of the change, seconds after the current step.
+    #[serde(default)]
+    pub from: f64,
+    /// Seconds over which the change grows to its full size.
+    #[serde(default)]
+    pub ramp: f64,
+}
+
+/// What a case expects.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Expect {
+    /// The weighted total is at most this.
+    #[serde(default)]
+    pub total_below: Option<f64>,
+    /// The weighted total is above this.
+    #[serde(default)]
+    pub total_above: Option<f64>,
+    /// These terms (unweighted) are at most these values.
+    #[serde(default)]
+    pub terms_below: BTreeMap<String, f64>,
+    /// These terms are above these values.
+    #[serde(default)]
+    pub terms_above: BTreeMap<String, f64>,
+    /// This term has the largest weighted value.
+    #[serde(default)]
+    pub largest_term: Option<String>,
+    /// A small step against the gradient lowers the total.
+    #[serde(default)]
+    pub descends: bool,
+    /// Against the gradient, this agent moves (summed over its future) along this direction.
+    #[serde(default)]
+    pub towards: Option<Towards>,
+    /// Compiling, validating or evaluating fails with a message containing this.
+    #[serde(default)]
+    pub error: Option<String>,
+}
+
+/// A direction the descent should move an agent.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Towards {
+    /// The agent.
+    pub agent: i64,
+    /// World-frame direction `[dx, dy]`.
+    pub direction: [f64; 2],
+    /// Only this future step (negative counts from the end) instead of the sum over all.
+    #[serde(default)]
+    pub step: Option<i64>,
+}
+
+/// The outcome of one case.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct CaseResult {
+    /// The test file.
+    pub file: String,
+    /// The case's name.
+    pub case: String,
+    /// Whether every expectation held.
+    pub passed: bool,
+    /// The measured quantities (and what failed).
+    pub detail: String,
+}
+
+/// Errors that keep a test file from running at all.
+#[derive(Debug, thiserror::Error)]
+pub enum ScriptTestError {
+    /// The file could not be read.
+    #[error("{path}: {message}")]
+    Read {
+        /// The file.
+        path: String,
+        /// Why.
+        message: String,
+    },
+}
+
+/// Test files (`*.test.yaml`) under the given files or directories, sorted.
+pub fn find_test_files(roots: &[PathBuf]) -> Result<Vec<PathBuf>, ScriptTestError> {
+    let mut out = Vec::new();
+    for r in roots {
+        if r.is_dir() {
+            let mut entries: Vec<PathBuf> = std::fs::read_dir(r)
+                .map_err(|e| ScriptTestError::Read {
+                    path: r.display().to_string(),
+                    message: e.to_string(),
+                })?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .collect();
+            entries.sort();
+            for p in entries {
+                if p.is_dir() {
+                    out.extend(find_test_files(&[p])?);
+                } else if p.to_string_lossy().ends_with(".test.yaml") {
+                    out.push(p);
+                }
+            }
+        } else if r.exists() {
+            out.push(r.clone());
+        } else {
+            return Err(ScriptTestError::Read {
+                path: r.display().to_string(),
+                message: "no such file or directory".into(),
+            });
+        }
+    }
+    Ok(out)
+}
+
+fn param_args(params: &BTreeMap<String, serde_yaml::Value>) -> Vec<String> {
+    params
+        .iter()
+        .map(|(k, v)| {
+            let v = match v {
+                serde_yaml::Value::String(s) => s.clone(),
+                other => serde_yaml::to_string(other)
+                    .unwrap_or_default()
+                    .trim()
+                    .to_string(),
+            };
+            format!("{k}={v}")
+        })
+        .collect()
+}
+
+fn apply_edit(scene: &Scene, traj: &mut Trajectories, e: &Edit) -> Result<(), String> {
+    let a = scene
+        .agents
+        .iter()
+        .position(|x| x.id == e.agent)
+        .ok_or_else(|| format!("edit: no agent {}", e.agent))?;
+    let cur = scene.agents[a].states[scene.meta.current_step];
+    let n = traj.layout.steps;
+    let dt = scene.meta.dt;
+    for k in 0..n {
+        let i = a * n + k;
+        if e.freeze {
+            traj.xyh[i] = [cur.x, cur.y, cur.heading];
+            traj.valid[i] = cur.valid;
+            continue;
+        }
+        let t = (k + 1) as f64 * dt;
+        let w = if t < e.from {
+            0.0
+        } else if e.ramp > 0.0 {
+            ((t - e.from) / e.ramp).min(1.0)
+        } else {
+            1.0
+        };
+        if let Some(d) = e.lateral {
+            let (s, c) = cur.heading.sin_cos();
+            traj.xyh[i][0] += -s * d * w;
+            traj.xyh[i][1] += c * d * w;
+        }
+        if let Some([amp, period]) = e.sway {
+            let d = amp * (std::f64::consts::TAU * t / period).sin();
+            let (s, c) = cur.heading.sin_cos();
+            traj.xyh[i][0] += -s * d;
+            traj.xyh[i][1] += c * d;
+        }
+        if let Some([dx, dy]) = e.shift {
+            traj.xyh[i][0] += dx * w;
+            traj.xyh[i][1] += dy * w;
+        }
+    }
+    Ok(())
+}
+
+struct Runner {
+    scenes: HashMap<PathBuf, Rc<Scene>>,
+}
+
+impl Runner {
+    fn scene(&mut self, p: &Path) -> Result<Rc<Scene>, String> {
+        if let Some(s) = self.scenes.get(p) {
+            return Ok(s.clone());
+        }
+        let s = Rc::new(load_scene(p, 0, &LoadOptions::default()).map_err(|e| e.to_string())?);
+        self.scenes.insert(p.to_path_buf(), s.clone());
+        Ok(s)
+    }
+
+    fn run_case(
+        &mut self,
+        dir: &Path,
+        script_path: &Path,
+        source: &str,
+        c: &TestCase,
+    ) -> Result<(bool, String), String> {
+        let scene = self.scene(&dir.join(&c.scene))?;
+        let params = Params::parse(&param_args(&c.params)).map_err(|e| e.to_string())?;
+        let name = script_path.display().to_string();
+        let outcome: Result<(CostScript, CostReport, Trajectories), CostError> = (|| {
+            let script =
+                CostScript::compile(source, &name, scene.clone(), &params, &Limits::default())?;
+            script.validate()?;
+            let mut traj = match (&c.candidate.scene, &c.candidate.rollout) {
+                (None, None) => Trajectories::recorded(&scene),
+                (Some(_), Some(_)) => {
+                    return Err(CostError::Shape {
+                        script: name.clone(),
+                        message: "candidate: give scene or rollout, not both".into(),
+                    })
+                }
+                (Some(p), None) => {
+                    let other = self.scene(&dir.join(p)).map_err(|m| CostError::Shape {
+                        script: name.clone(),
+                        message: m,
+                    })?;
+                    Trajectories::from_rollout(&scene, &Rollout::from_scene(&other)).map_err(
+                        |m| CostError::Shape {
+                            script: name.clone(),
+                            message: format!("{p}: {m}"),
+                        },
+                    )?
+                }
+                (None, Some(p)) => {
+                    let r = Rollout::read(&dir.join(p)).map_err(|e| CostError::Shape {
+                        script: name.clone(),
+                        message: e.to_string(),
+                    })?;
+                    Trajectories::from_rollout(&scene, &r).map_err(|m| CostError::Shape {
+                        script: name.clone(),
+                        message: format!("{p}: {m}"),
+                    })?
+                }
+            };
+            for e in &c.edits {
+                apply_edit(&scene, &mut traj, e).map_err(|m| CostError::Shape {
+                    script: name.clone(),
+                    message: m,
+                })?;
+            }
+            let report = script.evaluate(&traj)?;
+            Ok((script, report, traj))
+        })();
+        let x = &c.expect;
+        let (script, report, traj) = match (outcome, &x.error) {
+            (Err(e), Some(want)) => {
+                let msg = e.to_string();
+                return Ok((msg.contains(want.as_str()), format!("error: {msg}")));
+            }
+            (Err(e), None) => return Ok((false, format!("unexpected error: {e}"))),
+            (Ok((_, r, _)), Some(want)) => {
+                return Ok((
+                    false,
+                    format!(
+                        "expected an error containing {want:?}, got total {:.4}",
+                        r.total
+                    ),
+                ))
+            }
+            (Ok(v), None) => v,
+        };
+        let mut detail: Vec<String> = report
+            .terms
+            .iter()
+            .map(|t| format!("{}={:.4}", t.name, t.value))
+            .collect();
+        detail.insert(0, format!("total={:.4}", report.total));
+        let mut failed: Vec<String> = Vec::new();
+        let mut fail = |cond: bool, what: String| {
+            if !cond {
+                failed.push(format!("FAILED {what}"));
+            }
+        };
+        if let Some(v) = x.total_below {
+            fail(report.total <= v, format!("total <= {v}"));
+        }
+        if let Some(v) = x.total_above {
+            fail(report.total > v, format!("total > {v}"));
+        }
+        for (name, v) in &x.terms_below {
+            match report.term(name) {
+                Some(t) => fail(t.value <= *v, format!("{name} <= {v}")),
+                None => fail(false, format!("no term {name}")),
+            }
+        }
+        for (name, v) in &x.terms_above {
+            match report.term(name) {
+                Some(t) => fail(t.value > *v, format!("{name} > {v}")),
+                None => fail(false, format!("no term {name}")),
+            }
+        }
+        if let Some(name) = &x.largest_term {
+            let top = report
+                .terms
+                .iter()
+                .max_by(|a, b| (a.weight * a.value).total_cmp(&(b.weight * b.value)))
+                .map(|t| t.name.clone());
+            fail(
+                top.as_deref() == Some(name.as_str()),
+                format!("largest term is {name} (it is {top:?})"),
+            );
+        }
+        let gnorm = report.gradient.iter().map(|g| g * g).sum::<f64>().sqrt();
+        if x.descends {
+            let mut step = traj.clone();
+            let eps = 1e-3 / gnorm.max(1e-12);
+            step.apply(&report.gradient, -eps);
+            let after = script.evaluate(&step).map_err(|e| e.to_string())?.total;
+            detail.push(format!(
+                "after a {:.0e} m descent step total={after:.6}",
+                1e-3
+            ));
+            fail(
+                gnorm > 0.0 && after < report.total,
+                "a step against the gradient lowers the total".into(),
+            );
+        }
+        if let Some(tw) = &x.towards {
+            let a = scene
+                .agents
+                .iter()
+                .position(|z| z.id == tw.agent)
+                .ok_or(format!("towards: no agent {}", tw.agent))?;
+            let n = traj.layout.steps;
+            let (mut gx, mut gy) = (0.0, 0.0);
+            let steps: Vec<usize> = match tw.step {
+                None => (0..n).collect(),
+                Some(k) => {
+                    let j = if k < 0 { n as i64 + k } else { k };
+                    if j < 0 || j >= n as i64 {
+                        return Err(format!("towards: step {k} is outside the {n} future steps"));
+                    }
+                    vec![j as usize]
+                }
+            };
+            for k in steps {
+                gx -= report.gradient[(a * n + k) * 3];
+                gy -= report.gradient[(a * n + k) * 3 + 1];
+            }
+            let d = nalgebra::Vector2::new(tw.direction[0], tw.direction[1]).normalize();
+            let along = gx * d.x + gy * d.y;
+            detail.push(format!(
+                "descent of agent {} along {:?}: {along:.4}",
+                tw.agent, tw.direction
+            ));
+            fail(
+                along > 0.0,
+                format!(
+                    "descent moves agent {} towards {:?}",
+                    tw.agent, tw.direction
+                ),
+            );
+        }
+        let ok = failed.is_empty();
+        detail.extend(failed);
+        Ok((ok, detail.join(", ")))
+    }
+}
+
+/// Runs every case of a test file.
+pub fn run_test_file(path: &Path) -> Result<Vec<CaseResult>, ScriptTestError> {
+    let text = std::fs::read_to_string(path).map_err(|e| ScriptTestError::Read {
+        path: path.display().to_string(),
+        message: e.to_string(),
+    })?;
+    let file: TestFile = serde_yaml::from_str(&text).map_err(|e| ScriptTestError::Read {
+        path: path.display().to_string(),
+        message: match e.location() {
+            Some(l) => format!("line {}, column {}: {e}", l.line(), l.column()),
+            None => e.to_string(),
+        },
+    })?;
+    let dir = path.parent().unwrap_or(Path::new("."));
+    let script_path = dir.join(&file.script);
+    let source = std::fs::read_to_string(&script_path).map_err(|e| ScriptTestError::Read {
+        path: script_path.display().to_string(),
+        message: e.to_string(),
+    })?;
+    let mut runner = Runner {
+        scenes: HashMap::new(),
+    };
+    Ok(file
+        .cases
+        .iter()
+        .map(|c| {
+            let (passed, detail) = runner
+                .run_case(dir, &script_path, &source, c)
+                .unwrap_or_else(|m| (false, format!("case could not run: {m}")));
+            CaseResult {
+                file: path.display().to_string(),
+                case: c.name.clone(),
+                passed,
+                detail,
+            }
+        })
+        .collect())
+}
