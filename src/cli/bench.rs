@@ -21,12 +21,18 @@ pub struct Args {
     /// Minimum time spent on each row.
     #[arg(long, default_value_t = 1.0)]
     seconds: f64,
+    /// Scene for `bench cost`, cropped to 24 agents x 80 future steps (default: NGSIM US-101
+    /// scene 23_1 from ../shared/data when present, else the US-101 sample with its 22 agents).
+    #[arg(long)]
+    scene: Option<PathBuf>,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
 enum What {
     /// Scene readers (scenes/s per format) and Frenet projections/s.
     Io,
+    /// Cost + gradient of scripts against the same costs hand-written in Rust.
+    Cost,
 }
 
 /// Runs `f` (which handles `n` items) until `min` has passed; returns items per second.
@@ -61,8 +67,192 @@ fn row(name: &str, sources: &[PathBuf], min: Duration) -> Result<()> {
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
-    let What::Io = args.what;
     let min = Duration::from_secs_f64(args.seconds.max(0.05));
+    match args.what {
+        What::Io => bench_io(&args, min),
+        What::Cost => bench_cost(&args, min),
+    }
+}
+
+/// `n` agents observed at the current step (vehicles on a lane first, nearest the first such
+/// one, then other agents), with exactly `future` steps after the current step. Gaps in their futures are filled
+/// at constant velocity by the benchmark, so every coordinate is live.
+fn crop(
+    scene: &drivescript::scene::Scene,
+    n: usize,
+    future: usize,
+) -> Result<drivescript::scene::Scene> {
+    use drivescript::scene::{Agent, AgentType, Scene, SceneMeta};
+    let total = scene.num_steps();
+    anyhow::ensure!(
+        total > future,
+        "the scene has {total} steps, {} needed",
+        future + 1
+    );
+    let current = scene.meta.current_step.min(total - future - 1);
+    let end = current + future + 1;
+    let on_lane = |a: &Agent| {
+        scene
+            .map
+            .lane_at(a.states[current].position(), a.states[current].heading)
+            .is_some()
+    };
+    let mut cands: Vec<&Agent> = scene
+        .agents
+        .iter()
+        .filter(|a| a.states[current].valid)
+        .collect();
+    if cands.len() < n {
+        println!(
+            "note: only {} agents are observed at step {current}; using all of them",
+            cands.len()
+        );
+    }
+    let lane_vehicle = |a: &Agent| a.agent_type == AgentType::Vehicle && on_lane(a);
+    let first = *cands
+        .iter()
+        .find(|a| lane_vehicle(a))
+        .ok_or_else(|| anyhow::anyhow!("no vehicle is on a lane"))?;
+    let centre = first.states[current].position();
+    cands.sort_by(|a, b| {
+        let key = |x: &Agent| {
+            (
+                !lane_vehicle(x),
+                (x.states[current].position() - centre).norm(),
+            )
+        };
+        let (ka, kb) = (key(a), key(b));
+        ka.0.cmp(&kb.0).then(ka.1.total_cmp(&kb.1))
+    });
+    cands.truncate(n);
+    let agents = cands
+        .into_iter()
+        .map(|a| Agent {
+            states: a.states[..end].to_vec(),
+            ..a.clone()
+        })
+        .collect();
+    let meta = SceneMeta {
+        current_step: current,
+        ego: None,
+        ..scene.meta.clone()
+    };
+    Ok(Scene::new(meta, scene.map.clone(), agents)?)
+}
+
+fn time_per_call(min: Duration, mut f: impl FnMut()) -> (f64, usize) {
+    f();
+    let start = Instant::now();
+    let mut reps = 0;
+    while start.elapsed() < min || reps < 3 {
+        f();
+        reps += 1;
+    }
+    (start.elapsed().as_secs_f64() / reps as f64 * 1e6, reps)
+}
+
+fn bench_cost(args: &Args, min: Duration) -> Result<ExitCode> {
+    use drivescript::cost::{handwritten, CostScript, Limits, Params, Trajectories};
+    use std::rc::Rc;
+    let samples = super::samples_dir();
+    let shared = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../shared/data/commonroad-ngsim/USA_US101-23_1_T-1.xml.gz");
+    let path = args.scene.clone().unwrap_or_else(|| {
+        if shared.exists() {
+            shared
+        } else {
+            samples.join("commonroad/USA_US101-4_1_T-1.xml")
+        }
+    });
+    let full = drivescript::io::load_scene(&path, 0, &LoadOptions::default())?;
+    let scene = Rc::new(crop(&full, 24, 80)?);
+    let traj = Trajectories::filled(&scene);
+    let (v, c) = (scene.agents[0].id, scene.agents[1].id);
+    println!(
+        "scene {} ({}), {} agents x {} future steps, victim {v}, cutter {c}\n",
+        scene.meta.scenario_id,
+        path.display(),
+        scene.agents.len(),
+        traj.layout.steps
+    );
+    let scripts_dir = super::samples_dir().join("../../scripts");
+    let load = |name: &str, params: Vec<String>| -> Result<CostScript> {
+        let src = std::fs::read_to_string(scripts_dir.join(name))?;
+        Ok(CostScript::compile(
+            &src,
+            name,
+            scene.clone(),
+            &Params::parse(&params)?,
+            &Limits::default(),
+        )?)
+    };
+    let pair_loop = "let vs = vehicles();\nlet total = 0.0;\nfor i in 0..vs.len() {\n  for j in (i + 1)..vs.len() {\n    total += collision_penalty(vs[i], vs[j], 0.5).sum();\n  }\n}\nterm(\"collisions\", total);\n";
+    let rows: Vec<(&str, CostScript, Box<dyn Fn() -> f64>)> = vec![
+        (
+            "cut_in",
+            load(
+                "cut_in.rhai",
+                vec![format!("cutter={c}"), format!("victim={v}")],
+            )?,
+            Box::new({
+                let (s, t) = (scene.clone(), traj.clone());
+                move || handwritten::cut_in(&s, &t, 1, 0, 5.0, 0.5).map_or(f64::NAN, |r| r.0)
+            }),
+        ),
+        (
+            "rightmost_lane",
+            load("rightmost_lane.rhai", vec![format!("vehicle={v}")])?,
+            Box::new({
+                let (s, t) = (scene.clone(), traj.clone());
+                move || handwritten::rightmost(&s, &t, 0, 0.5).map_or(f64::NAN, |r| r.0)
+            }),
+        ),
+        (
+            "no_collisions",
+            load("no_collisions.rhai", vec!["margin=0.5".into()])?,
+            Box::new({
+                let (s, t) = (scene.clone(), traj.clone());
+                move || handwritten::no_collisions(&s, &t, 0.5).0
+            }),
+        ),
+        (
+            "no_collisions, pair loop in Rhai",
+            CostScript::compile(
+                pair_loop,
+                "pair-loop",
+                scene.clone(),
+                &Params::default(),
+                &Limits::default(),
+            )?,
+            Box::new({
+                let (s, t) = (scene.clone(), traj.clone());
+                move || handwritten::no_collisions(&s, &t, 0.5).0
+            }),
+        ),
+    ];
+    println!(
+        "| {:<34} | script µs | hand-written µs | ratio | script total | hand-written total |",
+        "cost"
+    );
+    println!(
+        "|{}|-----------|-----------------|-------|--------------|--------------------|",
+        "-".repeat(36)
+    );
+    for (name, script, hand) in rows {
+        let total = script.evaluate(&traj)?.total;
+        let (ts, _) = time_per_call(min, || {
+            std::hint::black_box(script.evaluate(&traj).expect("evaluated once already"));
+        });
+        let hand_total = hand();
+        let (th, _) = time_per_call(min, || {
+            std::hint::black_box(hand());
+        });
+        println!("| {name:<34} | {ts:>9.1} | {th:>15.1} | {:>5.2} | {total:>12.5} | {hand_total:>18.5} |", ts / th);
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn bench_io(args: &Args, min: Duration) -> Result<ExitCode> {
     let samples = super::samples_dir();
     println!("## Scene readers\n");
     println!(

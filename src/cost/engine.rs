@@ -560,6 +560,7 @@ impl CostScript {
             prints: Vec::new(),
             paths: HashMap::new(),
             widths: HashMap::new(),
+            coords: HashMap::new(),
             params: params
                 .0
                 .iter()
@@ -698,6 +699,7 @@ impl CostScript {
             c.traj = traj.clone();
             c.terms.clear();
             c.prints.clear();
+            c.coords.clear();
         }
         let t0 = Instant::now();
         self.started.set(t0);

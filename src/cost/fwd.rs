@@ -218,61 +218,132 @@ fn point_segment<const N: usize>(p: V2<N>, a: V2<N>, b: V2<N>) -> Fwd<N> {
     d.dot(d).sqrt()
 }
 
+fn corners_f64(p: [f64; 3], l: f64, w: f64) -> ([[f64; 2]; 4], [[f64; 2]; 2]) {
+    let (s, c) = p[2].sin_cos();
+    let (u, v) = ([c, s], [-s, c]);
+    let k = |a: f64, b: f64| {
+        [
+            p[0] + u[0] * 0.5 * l * a + v[0] * 0.5 * w * b,
+            p[1] + u[1] * 0.5 * l * a + v[1] * 0.5 * w * b,
+        ]
+    };
+    (
+        [k(-1.0, -1.0), k(1.0, -1.0), k(1.0, 1.0), k(-1.0, 1.0)],
+        [u, v],
+    )
+}
+
+fn point_segment_f64(p: [f64; 2], a: [f64; 2], b: [f64; 2]) -> f64 {
+    let e = [b[0] - a[0], b[1] - a[1]];
+    let len2 = e[0] * e[0] + e[1] * e[1];
+    let t = if len2 > 0.0 {
+        (((p[0] - a[0]) * e[0] + (p[1] - a[1]) * e[1]) / len2).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    (p[0] - a[0] - t * e[0]).hypot(p[1] - a[1] - t * e[1])
+}
+
+/// Whether `x` ties with the best value `best` (then both are averaged).
+fn near(x: f64, best: f64) -> bool {
+    (x - best).abs() <= 1e-12 * (1.0 + x.abs().max(best.abs()))
+}
+
+fn mean<const N: usize>(v: &[Fwd<N>]) -> Fwd<N> {
+    let mut out = v[0];
+    for x in &v[1..] {
+        out = out + *x;
+    }
+    out * (1.0 / v.len() as f64)
+}
+
 /// Signed clearance between two oriented boxes `(x, y, heading)` with sizes `(length, width)`:
 /// the distance between them when apart, minus the penetration depth (the smallest overlap
 /// along the four box axes) when they overlap. Continuous at contact, where both are zero.
 /// Inputs 0..3 are box A's `(x, y, heading)`, 3..6 box B's.
+///
+/// The active feature (the nearest vertex-edge pair, or the axis of least overlap) is found in
+/// plain floating point and only it is differentiated, which keeps this cheap enough to call
+/// for every pair of agents at every step. Ties are averaged (the smallest subgradient), so
+/// that exactly aligned boxes are not pushed one way by the order of the corners.
 pub fn box_clearance(a: [f64; 3], sa: (f64, f64), b: [f64; 3], sb: (f64, f64)) -> Fwd<6> {
-    let (ca, axa) = corners(
+    let (fa, axa) = corners_f64(a, sa.0, sa.1);
+    let (fb, axb) = corners_f64(b, sb.0, sb.1);
+    let proj = |cs: &[[f64; 2]; 4], ax: [f64; 2]| {
+        cs.iter()
+            .map(|c| c[0] * ax[0] + c[1] * ax[1])
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+                (lo.min(p), hi.max(p))
+            })
+    };
+    let axes = [axa[0], axa[1], axb[0], axb[1]];
+    let overlaps: Vec<f64> = axes
+        .iter()
+        .map(|&ax| {
+            let ((alo, ahi), (blo, bhi)) = (proj(&fa, ax), proj(&fb, ax));
+            (ahi - blo).min(bhi - alo)
+        })
+        .collect();
+    let (ca, ua) = corners(
         Fwd::var(a[0], 0),
         Fwd::var(a[1], 1),
         Fwd::var(a[2], 2),
         sa.0,
         sa.1,
     );
-    let (cb, axb) = corners(
+    let (cb, ub) = corners(
         Fwd::var(b[0], 3),
         Fwd::var(b[1], 4),
         Fwd::var(b[2], 5),
         sb.0,
         sb.1,
     );
-    let mut depth: Option<Fwd<6>> = None;
-    for axis in axa.iter().chain(axb.iter()) {
-        let proj = |cs: &[V2<6>; 4]| {
-            let p: Vec<Fwd<6>> = cs.iter().map(|c| c.dot(*axis)).collect();
-            let lo = p.iter().copied().reduce(Fwd::min).expect("four corners");
-            let hi = p.iter().copied().reduce(Fwd::max).expect("four corners");
-            (lo, hi)
-        };
-        let (alo, ahi) = proj(&ca);
-        let (blo, bhi) = proj(&cb);
-        let overlap = (ahi - blo).min(bhi - alo);
-        if overlap.v <= 0.0 {
-            depth = None;
-            break;
+    if overlaps.iter().all(|o| *o > 0.0) {
+        let depth = overlaps.iter().copied().fold(f64::INFINITY, f64::min);
+        let fwd_axes = [ua[0], ua[1], ub[0], ub[1]];
+        let tied: Vec<Fwd<6>> = overlaps
+            .iter()
+            .zip(fwd_axes)
+            .filter(|(o, _)| near(**o, depth))
+            .map(|(_, axis)| {
+                let p = |cs: &[V2<6>; 4]| {
+                    let v: Vec<Fwd<6>> = cs.iter().map(|c| c.dot(axis)).collect();
+                    (
+                        v.iter().copied().reduce(Fwd::min).expect("4"),
+                        v.iter().copied().reduce(Fwd::max).expect("4"),
+                    )
+                };
+                let ((alo, ahi), (blo, bhi)) = (p(&ca), p(&cb));
+                (ahi - blo).min(bhi - alo)
+            })
+            .collect();
+        return -mean(&tied);
+    }
+    // Apart: the nearest vertex-edge pair, found in f64, differentiated alone.
+    let mut cand: Vec<(f64, bool, usize, usize)> = Vec::with_capacity(32);
+    for (i, p) in fa.iter().enumerate() {
+        for j in 0..4 {
+            cand.push((point_segment_f64(*p, fb[j], fb[(j + 1) % 4]), true, i, j));
         }
-        depth = Some(match depth {
-            Some(d) => d.min(overlap),
-            None => overlap,
-        });
     }
-    if let Some(d) = depth {
-        return -d;
+    for (i, p) in fb.iter().enumerate() {
+        for j in 0..4 {
+            cand.push((point_segment_f64(*p, fa[j], fa[(j + 1) % 4]), false, i, j));
+        }
     }
-    let mut best: Option<Fwd<6>> = None;
-    for (ps, qs) in [(&ca, &cb), (&cb, &ca)] {
-        for p in ps.iter() {
-            for j in 0..4 {
-                let d = point_segment(*p, qs[j], qs[(j + 1) % 4]);
-                best = Some(match best {
-                    Some(b) => b.min(d),
-                    None => d,
-                });
+    let best = cand.iter().map(|c| c.0).fold(f64::INFINITY, f64::min);
+    let tied: Vec<Fwd<6>> = cand
+        .iter()
+        .filter(|c| near(c.0, best))
+        .map(|&(_, a_vertex, i, j)| {
+            if a_vertex {
+                point_segment(ca[i], cb[j], cb[(j + 1) % 4])
+            } else {
+                point_segment(cb[i], ca[j], ca[(j + 1) % 4])
             }
-        }
-    }
-    best.expect("sixteen pairs")
+        })
+        .collect();
+    mean(&tied)
 }
 
 #[cfg(test)]

@@ -26,4 +26,5 @@ pub use trajectory::{Coord, Trajectories, VarLayout};
 
 #[cfg(test)]
 mod gradient_tests;
+pub mod handwritten;
 pub mod script_test;

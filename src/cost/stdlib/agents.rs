@@ -24,6 +24,15 @@ pub struct AgentRef {
 /// The coordinate series of agent `a`: hidden history constants, then the candidate future.
 /// Headings are unwrapped so that differences are turn rates, not jumps of 2π.
 pub(crate) fn coord_series(shared: &Shared, a: usize, c: Coord) -> Series {
+    if let Some(s) = shared.borrow().coords.get(&(a, c as u8)) {
+        return s.clone();
+    }
+    let s = build_coord_series(shared, a, c);
+    shared.borrow_mut().coords.insert((a, c as u8), s.clone());
+    s
+}
+
+fn build_coord_series(shared: &Shared, a: usize, c: Coord) -> Series {
     let ctx = shared.borrow();
     let scene = &ctx.scene;
     let cur = scene.meta.current_step;

@@ -25,6 +25,17 @@ fn pair_series(
     b: usize,
     f: impl Fn([f64; 3], [f64; 3]) -> Fwd<6>,
 ) -> Series {
+    pair_series_opt(shared, a, b, |p, q| Some(f(p, q)))
+}
+
+/// Like [`pair_series`]; where `f` returns `None` the element is 0 with zero partials (kept for
+/// structure), which lets callers skip work for pairs that are far apart.
+fn pair_series_opt(
+    shared: &Shared,
+    a: usize,
+    b: usize,
+    f: impl Fn([f64; 3], [f64; 3]) -> Option<Fwd<6>>,
+) -> Series {
     let sa = [Coord::X, Coord::Y, Coord::Heading].map(|c| coord_series(shared, a, c));
     let sb = [Coord::X, Coord::Y, Coord::Heading].map(|c| coord_series(shared, b, c));
     let (ha, hb) = (sa[0].0.head, sb[0].0.head);
@@ -40,20 +51,22 @@ fn pair_series(
         }
         let xa = [sa[0].0.val[ka], sa[1].0.val[ka], sa[2].0.val[ka]];
         let xb = [sb[0].0.val[kb], sb[1].0.val[kb], sb[2].0.val[kb]];
-        let v = f(xa, xb);
-        let mut row: Vec<(u32, f64)> = Vec::with_capacity(6);
+        let v = f(xa, xb).unwrap_or(Fwd::c(0.0));
+        // Rows go straight into the series' buffer: this runs for every pair at every step.
+        let ent = out.ent();
+        let start = ent.len();
         for (i, s) in sa.iter().enumerate() {
             if let Some(&(var, _)) = s.row(ka).first() {
-                row.push((var, v.g[i]));
+                ent.push((var, v.g[i]));
             }
         }
         for (i, s) in sb.iter().enumerate() {
             if let Some(&(var, _)) = s.row(kb).first() {
-                row.push((var, v.g[3 + i]));
+                ent.push((var, v.g[3 + i]));
             }
         }
-        row.sort_unstable_by_key(|e| e.0);
-        out.push_row(v.v, true, row);
+        ent[start..].sort_unstable_by_key(|e| e.0);
+        out.finish_element(v.v, true);
     }
     out.build()
 }
@@ -216,12 +229,21 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
         move |a: AgentRef, b: AgentRef, m: Dynamic| -> RResult<Series> {
             distinct(&a, &b, "collision_penalty")?;
             let m = number(&m, "collision_penalty margin")?;
-            lift(
-                clearance(&sh, a.idx, b.idx).map("collision_penalty", move |c| {
-                    let s = (m - c).max(0.0);
-                    Some((s * s, -2.0 * s))
-                }),
-            )
+            let (za, zb) = sizes(&sh, a.idx, b.idx);
+            // Boxes whose centres are farther apart than their half-diagonals plus the margin
+            // cannot come within the margin: skip the exact clearance there.
+            let near = 0.5 * za.0.hypot(za.1) + 0.5 * zb.0.hypot(zb.1) + m;
+            Ok(pair_series_opt(&sh, a.idx, b.idx, move |p, q| {
+                if (p[0] - q[0]).hypot(p[1] - q[1]) > near {
+                    return None;
+                }
+                let c = box_clearance(p, za, q, zb);
+                let s = (m - c.v).max(0.0);
+                Some(Fwd {
+                    v: s * s,
+                    g: c.g.map(|g| -2.0 * s * g),
+                })
+            }))
         },
     );
     doc(docs, S, "no_collision_cost(agents, margin) -> Dual", "Sum over all pairs of the agents and all future steps of relu(margin - clearance)², skipping pairs whose centres are far apart.");

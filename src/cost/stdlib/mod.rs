@@ -54,6 +54,8 @@ pub(crate) struct Ctx {
     pub paths: HashMap<(i64, u64, u64, Turn), Rc<LanePath>>,
     pub widths: HashMap<usize, Rc<Vec<(f64, f64)>>>,
     pub params: std::collections::BTreeMap<String, Dynamic>,
+    /// Agent coordinate series of the current evaluation, built once per agent and coordinate.
+    pub coords: HashMap<(usize, u8), Series>,
 }
 
 pub(crate) type Shared = Rc<RefCell<Ctx>>;
