@@ -143,8 +143,15 @@ impl Series {
                 b.push_row(0.0, false, self.row(k).iter().map(|&(i, _)| (i, 0.0)));
                 continue;
             }
-            let (v, dv) =
-                f(d.val[k]).ok_or_else(|| domain(name, d.val[k], k as isize - d.head as isize))?;
+            let Some((v, dv)) = f(d.val[k]) else {
+                // History elements only feed derivatives of the first future steps: outside
+                // the function's domain they become unobserved rather than an error.
+                if k < d.head {
+                    b.push_row(0.0, false, std::iter::empty());
+                    continue;
+                }
+                return Err(domain(name, d.val[k], k as isize - d.head as isize));
+            };
             b.push_row(v, true, self.row(k).iter().map(|&(i, g)| (i, dv * g)));
         }
         Ok(b.build())
@@ -171,13 +178,22 @@ impl Series {
         let mut b = self.like(n, head);
         for k in 0..n {
             let (ka, kb) = (k + sa, k + sb);
-            let valid = a.valid[ka] && o.valid[kb];
-            let (v, ca, cb) = if valid {
-                f(a.val[ka], o.val[kb]).ok_or_else(|| {
-                    domain2(name, a.val[ka], o.val[kb], k as isize - head as isize)
-                })?
-            } else {
-                (0.0, 0.0, 0.0)
+            let mut valid = a.valid[ka] && o.valid[kb];
+            let (v, ca, cb) = match valid.then(|| f(a.val[ka], o.val[kb])) {
+                Some(Some(r)) => r,
+                Some(None) if k < head => {
+                    valid = false;
+                    (0.0, 0.0, 0.0)
+                }
+                Some(None) => {
+                    return Err(domain2(
+                        name,
+                        a.val[ka],
+                        o.val[kb],
+                        k as isize - head as isize,
+                    ))
+                }
+                None => (0.0, 0.0, 0.0),
             };
             merge_into(b.ent(), self.row(ka), ca, other.row(kb), cb);
             b.finish_element(v, valid);
@@ -195,12 +211,17 @@ impl Series {
         let d = &self.0;
         let mut b = self.like(d.val.len(), d.head);
         for k in 0..d.val.len() {
-            let valid = d.valid[k];
-            let (v, ca, cb) = if valid {
-                f(d.val[k], s.val)
-                    .ok_or_else(|| domain2(name, d.val[k], s.val, k as isize - d.head as isize))?
-            } else {
-                (0.0, 0.0, 0.0)
+            let mut valid = d.valid[k];
+            let (v, ca, cb) = match valid.then(|| f(d.val[k], s.val)) {
+                Some(Some(r)) => r,
+                Some(None) if k < d.head => {
+                    valid = false;
+                    (0.0, 0.0, 0.0)
+                }
+                Some(None) => {
+                    return Err(domain2(name, d.val[k], s.val, k as isize - d.head as isize))
+                }
+                None => (0.0, 0.0, 0.0),
             };
             merge_into(b.ent(), self.row(k), ca, &s.grad, cb);
             b.finish_element(v, valid);

@@ -1,0 +1,424 @@
+//! Untrusted scripts: every attack or mistake ends in a clear error within the limits (naming
+//! the limit or the problem and the script line), never a panic or a hang.
+
+use std::path::PathBuf;
+use std::rc::Rc;
+use std::time::{Duration, Instant};
+
+use drivescript::cost::{CostError, CostReport, CostScript, Limits, Params};
+use drivescript::io::{load_scene, LoadOptions};
+use drivescript::scene::Scene;
+
+fn scene() -> Rc<Scene> {
+    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes/highway.yaml");
+    Rc::new(load_scene(&p, 0, &LoadOptions::default()).unwrap())
+}
+
+fn run_with(src: &str, limits: &Limits) -> Result<CostReport, CostError> {
+    let s = CostScript::compile(src, "evil.rhai", scene(), &Params::default(), limits)?;
+    s.validate()
+}
+
+fn run(src: &str) -> Result<CostReport, CostError> {
+    run_with(src, &Limits::default())
+}
+
+/// Asserts an error whose message contains every `needle`, and returns it.
+fn fails(src: &str, needles: &[&str]) -> CostError {
+    let t0 = Instant::now();
+    let e = run(src).expect_err(src);
+    let msg = e.to_string();
+    for n in needles {
+        assert!(msg.contains(n), "{src:?}: {msg:?} lacks {n:?}");
+    }
+    assert!(msg.starts_with("evil.rhai"), "{msg}");
+    assert!(
+        t0.elapsed() < Duration::from_secs(20),
+        "{src:?} took {:?}",
+        t0.elapsed()
+    );
+    e
+}
+
+fn limit(src: &str, name: &str, line: usize) {
+    match fails(src, &[name]) {
+        CostError::Limit { line: l, .. } => assert_eq!(l, line, "{src:?}"),
+        other => panic!("{src:?}: expected a limit error, got {other:?}"),
+    }
+}
+
+#[test]
+fn infinite_loops_hit_the_operations_limit() {
+    limit(
+        "let x = 1;\nloop { x += 1; }",
+        "operations (max 2000000)",
+        2,
+    );
+    limit("while true {\n}", "operations", 1);
+    limit(
+        "for i in 0..100000000000 { let y = i * 2; }",
+        "operations",
+        1,
+    );
+}
+
+#[test]
+fn deep_recursion_hits_the_call_depth_limit() {
+    // Reported where the user's script makes the outermost call.
+    limit("fn f(n) { f(n + 1) }\nf(0);", "call depth (max 32)", 2);
+    limit("fn a(n) { b(n) }\nfn b(n) { a(n) }\na(1);", "call depth", 3);
+}
+
+#[test]
+fn deep_nesting_hits_the_expression_depth_limit() {
+    let src = format!("let x = {}1{};", "(".repeat(200), ")".repeat(200));
+    limit(&src, "expression depth (max 64)", 1);
+}
+
+#[test]
+fn huge_data_hits_the_size_limits() {
+    limit(
+        "let a = [];\nfor i in 0..1000000 { a.push(i); }",
+        "max 100000 elements",
+        2,
+    );
+    limit(
+        "let s = \"xx\";\nloop { s += s; }",
+        "max 10000 characters",
+        2,
+    );
+    // Rhai checks a map's size when it is next used, not on every insertion.
+    limit(
+        "let m = #{};\nfor i in 0..100000 { m[`k${i}`] = i; }\nprint(m.len());",
+        "max 10000 entries",
+        3,
+    );
+    limit("let a = [1];\nloop { a += a; }", "elements", 2);
+}
+
+#[test]
+fn too_many_variables_and_modules() {
+    let many: String = (0..1100).map(|i| format!("let v{i} = {i};\n")).collect();
+    match run(&many) {
+        Err(CostError::Limit { limit, .. }) => assert!(limit.contains("variables"), "{limit}"),
+        other => panic!("expected the variables limit, got {other:?}"),
+    }
+    let imports: String = (0..9)
+        .map(|i| format!("import \"behaviours\" as b{i};\n"))
+        .collect();
+    match run(&imports) {
+        Err(e) => assert!(e.to_string().contains("modules"), "{e}"),
+        Ok(_) => panic!("nine imports were allowed"),
+    }
+}
+
+#[test]
+fn wall_time_is_limited() {
+    let limits = Limits {
+        wall_time: Duration::from_millis(150),
+        max_operations: u64::MAX / 2,
+        ..Limits::default()
+    };
+    let t0 = Instant::now();
+    let e = run_with(
+        "let a = agent(1);\nloop { let p = a.frenet(a.lane_path()); }",
+        &limits,
+    )
+    .unwrap_err();
+    assert!(
+        e.to_string().contains("wall time (max 0.1 s)")
+            || e.to_string().contains("wall time (max 0.2 s)"),
+        "{e}"
+    );
+    assert!(t0.elapsed() < Duration::from_secs(3));
+}
+
+#[test]
+fn imports_outside_stdlib_are_refused() {
+    fails(
+        "import \"../../../etc/passwd\" as p;",
+        &["only the stdlib modules behaviours can be imported"],
+    );
+    fails("import \"/etc/passwd\" as p;", &["only the stdlib modules"]);
+    fails(
+        "import \"behaviours/../../Cargo\" as p;",
+        &["only the stdlib modules"],
+    );
+    // The real stdlib module works.
+    let ok =
+        run("import \"behaviours\" as b;\nterm(\"t\", b::over_speed(agent(1), 10.0));").unwrap();
+    assert!(ok.terms[0].value > 0.0);
+}
+
+#[test]
+fn no_file_process_env_time_or_eval() {
+    fails("let f = open_file(\"/etc/passwd\");", &["open_file"]);
+    fails("let t = timestamp();", &["timestamp"]);
+    fails("sleep(1000);", &["sleep"]);
+    fails("exit(0);", &["exit"]);
+    fails("let e = env(\"HOME\");", &["env"]);
+    fails("let x = eval(\"1 + 1\");", &["eval"]);
+    fails("system(\"rm -rf /\");", &["system"]);
+}
+
+#[test]
+fn nan_and_infinity_producers_are_reported() {
+    fails(
+        "term(\"t\", sqrt(agent(1).x - 1000000.0).sum());",
+        &["sqrt: invalid argument", "at element 0"],
+    );
+    fails("term(\"t\", log(agent(1).x * 0.0).sum());", &["log"]);
+    fails(
+        "term(\"t\", agent(1).x.sum() / 0.0);",
+        &["/: invalid arguments"],
+    );
+    fails(
+        "term(\"t\", exp(agent(1).x * 1000.0).sum());",
+        &["exp: invalid argument"],
+    );
+    fails(
+        "term(\"t\", agent(1).x.sum() * (1.0 / 0.0));",
+        &["term \"t\" is", "inf"],
+    );
+    fails("term(\"t\", agent(1).x.sum() + (0.0 / 0.0));", &["NaN"]);
+    fails(
+        "term(\"t\", pow(agent(1).x - 1000.0, 0.5).sum());",
+        &["pow"],
+    );
+}
+
+#[test]
+fn type_errors_name_what_was_given() {
+    fails(
+        "term(\"t\", \"hello\");",
+        &["string", "not a Dual or number"],
+    );
+    fails("term(\"t\", agent(1).x);", &["not a Series", "sum()"]);
+    fails(
+        "term(\"t\", relu(\"x\"));",
+        &["relu expects a Series, Dual or number, got string"],
+    );
+    fails(
+        "term(\"t\", agent(1).x.slice(0, 3) + agent(1).x);",
+        &["series lengths differ (3 and 70"],
+    );
+    fails("term(\"t\", agent(1) + 1);", &["no function"]);
+    fails(
+        "term(\"t\", agent(1).x.sum(), -1.0);",
+        &["weight -1 must be finite and non-negative"],
+    );
+    fails("term(42, agent(1).x.sum());", &["no function term"]);
+}
+
+#[test]
+fn unknown_agents_and_lanes() {
+    fails(
+        "term(\"t\", agent(99999).x.sum());",
+        &["unknown agent id 99999", "1, 2, 3, 4"],
+    );
+    fails(
+        "term(\"t\", agent(1).frenet(lane_path(123456789, 100)).d.sum());",
+        &["no lane with id 123456789"],
+    );
+    fails("let l = left(424242);", &["unknown lane 424242"]);
+    fails(
+        "let p = lane_path(100, 50, \"sideways\");",
+        &["turn must be"],
+    );
+    fails("let p = lane_path(100, -5);", &["length -5 must be"]);
+}
+
+#[test]
+fn terms_must_be_declared_once_and_depend_on_the_trajectory() {
+    assert!(matches!(run("let x = 1;"), Err(CostError::NoTerms { .. })));
+    match run("term(\"c\", 3.0);") {
+        Err(CostError::Term {
+            term,
+            line,
+            message,
+            ..
+        }) => {
+            assert_eq!((term.as_str(), line), ("c", 1));
+            assert!(
+                message.contains("does not depend on any trajectory"),
+                "{message}"
+            );
+        }
+        other => panic!("{other:?}"),
+    }
+    fails(
+        "term(\"a\", agent(1).x.sum());\nterm(\"a\", agent(2).x.sum());",
+        &["declared twice (first at line 1)"],
+    );
+    fails(
+        "term(\"t\", param(\"missing\"));",
+        &["parameter \"missing\" is required"],
+    );
+}
+
+#[test]
+fn syntax_errors_have_a_line_and_column() {
+    match run("let a = agent(1);\nterm(\"t\", a.x.sum(;") {
+        Err(CostError::Syntax { line, column, .. }) => assert_eq!((line, column > 0), (2, true)),
+        other => panic!("{other:?}"),
+    }
+    fails("let x = undefined_variable + 1;", &["undefined_variable"]);
+    fails("throw \"boom\";", &["boom"]);
+}
+
+#[test]
+fn random_script_text_never_panics() {
+    // Seeded random programs from the API's own vocabulary plus mutations of the real scripts.
+    let vocab = [
+        "agent(1)",
+        "agent(2)",
+        ".x",
+        ".y",
+        ".speed",
+        ".frenet(",
+        ".lane_path()",
+        "lane_path(100, 200)",
+        ".d",
+        ".s",
+        ".sum()",
+        ".mean()",
+        ".last()",
+        ".first()",
+        ".at(",
+        ".slice(",
+        ".window(",
+        "relu(",
+        "abs(",
+        "sqrt(",
+        "log(",
+        "exp(",
+        "pow(",
+        "norm(",
+        "term(\"t\", ",
+        "term(\"u\", ",
+        "clearance(",
+        "gap(",
+        "ttc(",
+        "no_collision_cost(vehicles(), ",
+        "left(",
+        "right(",
+        "rightmost(",
+        "successors(",
+        "conflict(",
+        "+",
+        "-",
+        "*",
+        "/",
+        "(",
+        ")",
+        ",",
+        ";",
+        "\n",
+        "1",
+        "0",
+        "-3",
+        "0.5",
+        "1e308",
+        "\"x\"",
+        "[",
+        "]",
+        "#{",
+        "}",
+        "let v = ",
+        "v",
+        "if ",
+        "else ",
+        "{",
+        "loop ",
+        "fn f(x) ",
+        "f(",
+        "while ",
+        "true",
+        "()",
+        "import \"behaviours\" as b;",
+        "b::end_in_lane(",
+        "param(\"a\", 1)",
+        "times()",
+    ];
+    let scripts: Vec<String> =
+        std::fs::read_dir(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("scripts"))
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.extension().is_some_and(|e| e == "rhai"))
+            .map(|p| std::fs::read_to_string(p).unwrap())
+            .collect();
+    let limits = Limits {
+        max_operations: 50_000,
+        wall_time: Duration::from_millis(200),
+        ..Limits::default()
+    };
+    let scene = scene();
+    let mut seed = 0x9e37_79b9_7f4a_7c15u64;
+    let mut next = move |n: usize| {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        (seed % n as u64) as usize
+    };
+    let params = Params::parse(&[
+        "vehicle=1",
+        "cutter=2",
+        "victim=1",
+        "yielder=1",
+        "other=2",
+        "follower=4",
+        "leader=2",
+        "attacker=4",
+        "target=2",
+        "x=10",
+        "y=5",
+    ])
+    .unwrap();
+    let (mut ok, mut err) = (0, 0);
+    for i in 0..1500 {
+        let src: String = if i % 2 == 0 {
+            (0..1 + next(25))
+                .map(|_| vocab[next(vocab.len())])
+                .collect()
+        } else {
+            let mut s: Vec<char> = scripts[next(scripts.len())].chars().collect();
+            for _ in 0..1 + next(4) {
+                let p = next(s.len().max(1));
+                match next(3) {
+                    0 if !s.is_empty() => {
+                        let end = (p + 1 + next(12)).min(s.len());
+                        s.drain(p..end);
+                    }
+                    1 => s
+                        .splice(p..p, vocab[next(vocab.len())].chars())
+                        .for_each(drop),
+                    _ => {
+                        if p < s.len() {
+                            s[p] = ['(', ')', ';', '1', '.', '"', 'x', '-'][next(8)];
+                        }
+                    }
+                }
+            }
+            s.into_iter().collect()
+        };
+        let result = CostScript::compile(&src, "fuzz.rhai", scene.clone(), &params, &limits)
+            .and_then(|s| s.validate());
+        match result {
+            Ok(r) => {
+                assert!(
+                    r.total.is_finite() && r.gradient.iter().all(|g| g.is_finite()),
+                    "{src}"
+                );
+                ok += 1;
+            }
+            Err(e) => {
+                assert!(e.to_string().starts_with("fuzz.rhai"), "{e}");
+                err += 1;
+            }
+        }
+    }
+    assert!(
+        ok > 20 && err > 500,
+        "{ok} ran, {err} failed: the generator is not exercising both paths"
+    );
+}
