@@ -239,9 +239,28 @@ fn demo_writes_the_gif() {
 #[test]
 fn cost_prints_terms_and_gradients() {
     let scene = samples().join("yaml/highway_cut_in.yaml");
-    let out = ok(&["cost", s(&scene), "--script", "scripts/cut_in.rhai", "--param", "cutter=2", "victim=1"]);
-    assert!(out.contains("ends_in_victim_lane") && out.contains("evaluated in"), "{out}");
-    let out = ok(&["cost", s(&scene), "--script", "scripts/rightmost_lane.rhai", "--param", "vehicle=3", "--json"]);
+    let out = ok(&[
+        "cost",
+        s(&scene),
+        "--script",
+        "scripts/cut_in.rhai",
+        "--param",
+        "cutter=2",
+        "victim=1",
+    ]);
+    assert!(
+        out.contains("ends_in_victim_lane") && out.contains("evaluated in"),
+        "{out}"
+    );
+    let out = ok(&[
+        "cost",
+        s(&scene),
+        "--script",
+        "scripts/rightmost_lane.rhai",
+        "--param",
+        "vehicle=3",
+        "--json",
+    ]);
     let v: Value = serde_json::from_str(&out).unwrap();
     assert!(v["total"].as_f64().unwrap() > 1.0, "{v}");
     assert_eq!(v["agent_grad_norms"][0]["agent"], 3);
@@ -249,12 +268,32 @@ fn cost_prints_terms_and_gradients() {
     let dir = tempfile::tempdir().unwrap();
     let json = dir.path().join("r.json");
     ok(&["convert", s(&scene), "-o", s(&json)]);
-    ok(&["cost", s(&scene), "--script", "scripts/cut_in.rhai", "--param", "cutter=2", "victim=1", "--rollout", s(&json)]);
+    ok(&[
+        "cost",
+        s(&scene),
+        "--script",
+        "scripts/cut_in.rhai",
+        "--param",
+        "cutter=2",
+        "victim=1",
+        "--rollout",
+        s(&json),
+    ]);
     let bad = dir.path().join("bad.rhai");
     std::fs::write(&bad, "let a = agent(1);\nterm(\"t\", a.x);\n").unwrap();
     let err = fails(&["cost", s(&scene), "--script", s(&bad)]);
-    assert!(err.contains("bad.rhai:2:1") && err.contains("not a Series"), "{err}");
-    let err = fails(&["cost", s(&scene), "--script", "scripts/cut_in.rhai", "--param", "cutter"]);
+    assert!(
+        err.contains("bad.rhai:2:1") && err.contains("not a Series"),
+        "{err}"
+    );
+    let err = fails(&[
+        "cost",
+        s(&scene),
+        "--script",
+        "scripts/cut_in.rhai",
+        "--param",
+        "cutter",
+    ]);
     assert!(err.contains("expected name=value"), "{err}");
 }
 
@@ -277,13 +316,22 @@ fn test_scripts_runs_the_suite_and_fails_on_a_broken_expectation() {
     let out = common::drivescript(&["test-scripts", s(&t)]);
     assert_eq!(out.status.code(), Some(1));
     let text = String::from_utf8_lossy(&out.stdout);
-    assert!(text.contains("FAILED total > 100") && text.contains("0 passed, 1 failed"), "{text}");
+    assert!(
+        text.contains("FAILED total > 100") && text.contains("0 passed, 1 failed"),
+        "{text}"
+    );
 }
 
 #[test]
 fn stdlib_doc_is_markdown_of_every_section() {
     let out = ok(&["stdlib-doc"]);
-    for s in ["# drivescript cost-script reference", "## Agents", "`a.lane_path() -> Path`", "## Terms", "Module `behaviours`"] {
+    for s in [
+        "# drivescript cost-script reference",
+        "## Agents",
+        "`a.lane_path() -> Path`",
+        "## Terms",
+        "Module `behaviours`",
+    ] {
         assert!(out.contains(s), "missing {s}");
     }
 }
