@@ -456,24 +456,23 @@ fn register_terms(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>) {
     );
 }
 
+/// A scene with no map and no agents: enough to build an engine and list what it registers.
+fn empty_scene() -> Rc<Scene> {
+    let meta = crate::scene::SceneMeta {
+        source_format: crate::scene::SourceFormat::Yaml,
+        source_file: String::new(),
+        scenario_id: "reference".into(),
+        dt: 0.1,
+        current_step: 0,
+        ego: None,
+        warnings: vec![],
+    };
+    Rc::new(Scene::new(meta, crate::scene::Map::empty(), vec![]).expect("an empty scene is valid"))
+}
+
 /// The script API as the engine registers it: natives (by section) and the stdlib modules.
 pub fn reference() -> Vec<DocEntry> {
-    let scene = Rc::new(
-        Scene::new(
-            crate::scene::SceneMeta {
-                source_format: crate::scene::SourceFormat::Yaml,
-                source_file: String::new(),
-                scenario_id: "reference".into(),
-                dt: 0.1,
-                current_step: 0,
-                ego: None,
-                warnings: vec![],
-            },
-            crate::scene::Map::empty(),
-            vec![],
-        )
-        .expect("an empty scene is valid"),
-    );
+    let scene = empty_scene();
     let script = CostScript::compile(
         "",
         "reference",
@@ -837,22 +836,7 @@ mod tests {
             .iter()
             .flat_map(|d| documented_names(d.signature))
             .collect();
-        let scene = Rc::new(
-            Scene::new(
-                crate::scene::SceneMeta {
-                    source_format: crate::scene::SourceFormat::Yaml,
-                    source_file: String::new(),
-                    scenario_id: "t".into(),
-                    dt: 0.1,
-                    current_step: 0,
-                    ego: None,
-                    warnings: vec![],
-                },
-                crate::scene::Map::empty(),
-                vec![],
-            )
-            .unwrap(),
-        );
+        let scene = empty_scene();
         let script =
             CostScript::compile("", "t", scene, &Params::default(), &Limits::default()).unwrap();
         let registered: std::collections::BTreeSet<String> = script
