@@ -7,6 +7,7 @@
 #![warn(missing_docs)]
 
 pub mod cost;
+pub mod eval;
 pub mod geom;
 pub mod io;
 pub mod render;

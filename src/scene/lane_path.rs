@@ -47,6 +47,48 @@ impl LanePath {
         self.lane_starts[k]
     }
 
+    /// The first point along this path where it touches `other` (a crossing, or the start of a
+    /// merge where both continue on the same lane), with the arc length on each path there.
+    pub fn first_meeting(&self, other: &LanePath) -> Option<(f64, f64, crate::geom::Point)> {
+        use crate::geom::{cross, point_segment_distance, segments_intersect};
+        let (la, lb) = (self.frenet.polyline(), other.frenet.polyline());
+        let (pa, pb) = (la.points(), lb.points());
+        let (lo, hi) = lb.bounds();
+        for i in 0..pa.len() - 1 {
+            let (p0, p1) = (pa[i], pa[i + 1]);
+            if p0.x.max(p1.x) < lo.x
+                || p0.x.min(p1.x) > hi.x
+                || p0.y.max(p1.y) < lo.y
+                || p0.y.min(p1.y) > hi.y
+            {
+                continue;
+            }
+            let mut best: Option<f64> = None;
+            for j in 0..pb.len() - 1 {
+                if segments_intersect(&p0, &p1, &pb[j], &pb[j + 1]) {
+                    let (e, f) = (p1 - p0, pb[j + 1] - pb[j]);
+                    let den = cross(&e, &f);
+                    // Where the segments cross, or (parallel, touching) the nearer touching end.
+                    let t = if den.abs() > 1e-12 {
+                        (cross(&(pb[j] - p0), &f) / den).clamp(0.0, 1.0)
+                    } else {
+                        point_segment_distance(&pb[j], &p0, &p1)
+                            .1
+                            .min(point_segment_distance(&pb[j + 1], &p0, &p1).1)
+                    };
+                    best = Some(best.map_or(t, |b: f64| b.min(t)));
+                }
+            }
+            if let Some(t) = best {
+                let p = p0 + (p1 - p0) * t;
+                let arc = la.arc_lengths();
+                let sa = arc[i] + t * (arc[i + 1] - arc[i]);
+                return Some((sa, other.frenet.project(p).s, p));
+            }
+        }
+        None
+    }
+
     /// The lane holding arc length `s`.
     pub fn lane_at_s(&self, s: f64) -> LaneId {
         let k = self.lane_starts.partition_point(|&x| x <= s);

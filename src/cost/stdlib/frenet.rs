@@ -188,42 +188,7 @@ pub(crate) fn frenet(shared: &Shared, a: usize, p: &PathRef) -> FrenetRef {
 
 /// The first point along `a` where it touches `b`, with both arc lengths.
 fn conflict(a: &PathRef, b: &PathRef) -> Option<(f64, f64, Point)> {
-    let (la, lb) = (a.path.frenet.polyline(), b.path.frenet.polyline());
-    let (pa, pb) = (la.points(), lb.points());
-    let (lo, hi) = lb.bounds();
-    for i in 0..pa.len() - 1 {
-        let (p0, p1) = (pa[i], pa[i + 1]);
-        if p0.x.max(p1.x) < lo.x
-            || p0.x.min(p1.x) > hi.x
-            || p0.y.max(p1.y) < lo.y
-            || p0.y.min(p1.y) > hi.y
-        {
-            continue;
-        }
-        let mut best: Option<f64> = None;
-        for j in 0..pb.len() - 1 {
-            if crate::geom::segments_intersect(&p0, &p1, &pb[j], &pb[j + 1]) {
-                // Parameter along a's segment of the crossing (or of the touching end).
-                let e = p1 - p0;
-                let f = pb[j + 1] - pb[j];
-                let den = crate::geom::cross(&e, &f);
-                let t = if den.abs() > 1e-12 {
-                    (crate::geom::cross(&(pb[j] - p0), &f) / den).clamp(0.0, 1.0)
-                } else {
-                    let hit = crate::geom::point_segment_distance(&pb[j], &p0, &p1).1;
-                    hit.min(crate::geom::point_segment_distance(&pb[j + 1], &p0, &p1).1)
-                };
-                best = Some(best.map_or(t, |b: f64| b.min(t)));
-            }
-        }
-        if let Some(t) = best {
-            let p = p0 + (p1 - p0) * t;
-            let sa = la.arc_lengths()[i] + t * (la.arc_lengths()[i + 1] - la.arc_lengths()[i]);
-            let sb = b.path.frenet.project(p).s;
-            return Some((sa, sb, p));
-        }
-    }
-    None
+    a.path.first_meeting(&b.path)
 }
 
 pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>) {

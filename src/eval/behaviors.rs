@@ -1,0 +1,614 @@
+//! Behaviour checkers: for every behaviour in scripts/, an independent geometric definition of
+//! success that never looks at the cost script. Each returns the verdict with the measured
+//! quantities behind it, so that a person or an LLM can see why it failed.
+
+use std::collections::BTreeMap;
+
+use serde::Serialize;
+
+use crate::geom::{wrap_angle, Point};
+use crate::scene::{Agent, AgentType, LanePath, Scene, Turn};
+
+/// The behaviours, named like the scripts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Behavior {
+    /// speed_limit(vehicle, limit)
+    SpeedLimit,
+    /// target_point(vehicle, x, y, tol)
+    TargetPoint,
+    /// no_collisions()
+    NoCollisions,
+    /// lane_change_left(vehicle)
+    LaneChangeLeft,
+    /// lane_change_right(vehicle)
+    LaneChangeRight,
+    /// rightmost_lane(vehicle)
+    RightmostLane,
+    /// cut_in(cutter, victim)
+    CutIn,
+    /// yield(yielder, other)
+    Yield,
+    /// follow(follower, leader, gap)
+    Follow,
+    /// reverse(vehicle)
+    Reverse,
+    /// off_road(vehicle)
+    OffRoad,
+    /// weave(vehicle)
+    Weave,
+    /// stop(vehicle, within)
+    Stop,
+    /// accident(attacker, target)
+    Accident,
+}
+
+/// Every behaviour, in table order.
+pub const ALL: [Behavior; 14] = [
+    Behavior::SpeedLimit,
+    Behavior::TargetPoint,
+    Behavior::NoCollisions,
+    Behavior::LaneChangeLeft,
+    Behavior::LaneChangeRight,
+    Behavior::RightmostLane,
+    Behavior::CutIn,
+    Behavior::Yield,
+    Behavior::Follow,
+    Behavior::Reverse,
+    Behavior::OffRoad,
+    Behavior::Weave,
+    Behavior::Stop,
+    Behavior::Accident,
+];
+
+impl Behavior {
+    /// The name (also the script's file stem).
+    pub fn name(self) -> &'static str {
+        match self {
+            Behavior::SpeedLimit => "speed_limit",
+            Behavior::TargetPoint => "target_point",
+            Behavior::NoCollisions => "no_collisions",
+            Behavior::LaneChangeLeft => "lane_change_left",
+            Behavior::LaneChangeRight => "lane_change_right",
+            Behavior::RightmostLane => "rightmost_lane",
+            Behavior::CutIn => "cut_in",
+            Behavior::Yield => "yield",
+            Behavior::Follow => "follow",
+            Behavior::Reverse => "reverse",
+            Behavior::OffRoad => "off_road",
+            Behavior::Weave => "weave",
+            Behavior::Stop => "stop",
+            Behavior::Accident => "accident",
+        }
+    }
+
+    /// The behaviour with this name.
+    pub fn from_name(s: &str) -> Option<Self> {
+        ALL.iter().copied().find(|b| b.name() == s)
+    }
+
+    /// The checker's definition of success, in one line.
+    pub fn definition(self) -> &'static str {
+        match self {
+            Behavior::SpeedLimit => "the speed (from positions) never exceeds `limit` + 0.5 m/s over the future",
+            Behavior::TargetPoint => "the final position is within `tol` (default 1 m) of (`x`, `y`)",
+            Behavior::NoCollisions => "no two vehicles' boxes overlap at any future step",
+            Behavior::LaneChangeLeft => "the vehicle ends in the left neighbour of a lane on its starting lane's path, within 1 m of that lane's centre line",
+            Behavior::LaneChangeRight => "the vehicle ends in the right neighbour of a lane on its starting lane's path, within 1 m of that lane's centre line",
+            Behavior::RightmostLane => "the vehicle ends within 1 m of the centre line of a lane with no same-direction lane to its right",
+            Behavior::CutIn => "A starts in a lane adjacent to B's, ends within 1 m of the centre of B's lane path ahead of B (bumper to bumper), and they never collide",
+            Behavior::Yield => "B passes the point where their lane paths meet before A reaches it, and they never collide",
+            Behavior::Follow => "over the last half of the horizon A stays within 1.5 m of B's lane path, behind B at a bumper-to-bumper gap between gap/2 and 2·gap",
+            Behavior::Reverse => "the vehicle ends at least 1 m behind its start along its starting heading, its heading never more than 30 degrees off",
+            Behavior::OffRoad => "the vehicle's centre ends beyond the road edge",
+            Behavior::Weave => "the lateral offset on the starting lane path crosses the centre line at least twice, reaching 0.3 m on both sides",
+            Behavior::Stop => "the speed (from positions) is at most 0.5 m/s at every step from `within` seconds (default 4) on",
+            Behavior::Accident => "the two boxes overlap at some future step",
+        }
+    }
+
+    /// Parameters the checker needs (defaults are documented in [`Behavior::definition`]).
+    pub fn required(self) -> &'static [&'static str] {
+        match self {
+            Behavior::SpeedLimit => &["vehicle", "limit"],
+            Behavior::TargetPoint => &["vehicle", "x", "y"],
+            Behavior::NoCollisions => &[],
+            Behavior::LaneChangeLeft | Behavior::LaneChangeRight | Behavior::RightmostLane => {
+                &["vehicle"]
+            }
+            Behavior::Reverse | Behavior::OffRoad | Behavior::Weave | Behavior::Stop => {
+                &["vehicle"]
+            }
+            Behavior::CutIn => &["cutter", "victim"],
+            Behavior::Yield => &["yielder", "other"],
+            Behavior::Follow => &["follower", "leader"],
+            Behavior::Accident => &["attacker", "target"],
+        }
+    }
+}
+
+/// A checker's verdict.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Verdict {
+    /// Whether the behaviour happened.
+    pub passed: bool,
+    /// The quantities behind the verdict.
+    pub measured: BTreeMap<String, f64>,
+    /// Why, in words.
+    pub reason: String,
+}
+
+/// Why a checker cannot run.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CheckError {
+    /// A parameter is missing.
+    #[error("{behavior}: parameter {name:?} is required")]
+    MissingParam {
+        /// The behaviour.
+        behavior: &'static str,
+        /// The parameter.
+        name: &'static str,
+    },
+    /// An agent is missing or unusable.
+    #[error("{behavior}: {message}")]
+    Agent {
+        /// The behaviour.
+        behavior: &'static str,
+        /// What is wrong.
+        message: String,
+    },
+}
+
+/// Checker parameters by name (agent ids as numbers).
+pub type CheckParams = BTreeMap<String, f64>;
+
+struct Ctx<'a> {
+    b: Behavior,
+    s: &'a Scene,
+    p: &'a CheckParams,
+    m: BTreeMap<String, f64>,
+}
+
+impl<'a> Ctx<'a> {
+    fn get(&self, name: &'static str) -> Result<f64, CheckError> {
+        self.p.get(name).copied().ok_or(CheckError::MissingParam {
+            behavior: self.b.name(),
+            name,
+        })
+    }
+
+    fn or(&self, name: &str, default: f64) -> f64 {
+        self.p.get(name).copied().unwrap_or(default)
+    }
+
+    fn agent(&self, name: &'static str) -> Result<&'a Agent, CheckError> {
+        let id = self.get(name)? as i64;
+        let a = self.s.agent(id).ok_or_else(|| CheckError::Agent {
+            behavior: self.b.name(),
+            message: format!("no agent {id} ({name})"),
+        })?;
+        if !a.is_valid(self.s.meta.current_step) {
+            return Err(CheckError::Agent {
+                behavior: self.b.name(),
+                message: format!("agent {id} ({name}) is not observed at the current step"),
+            });
+        }
+        Ok(a)
+    }
+
+    fn last(&self, a: &Agent) -> Result<usize, CheckError> {
+        let c = self.s.meta.current_step;
+        (c + 1..a.states.len())
+            .rev()
+            .find(|&t| a.is_valid(t))
+            .ok_or_else(|| CheckError::Agent {
+                behavior: self.b.name(),
+                message: format!("agent {} has no future", a.id),
+            })
+    }
+
+    fn measure(&mut self, k: &str, v: f64) {
+        self.m.insert(k.to_string(), v);
+    }
+
+    fn verdict(self, passed: bool, reason: impl Into<String>) -> Verdict {
+        Verdict {
+            passed,
+            measured: self.m,
+            reason: reason.into(),
+        }
+    }
+}
+
+fn lane_of(s: &Scene, a: &Agent, t: usize) -> Option<i64> {
+    let st = a.states.get(t).filter(|x| x.valid)?;
+    s.map.lane_at(st.position(), st.heading)
+}
+
+fn path_of(s: &Scene, a: &Agent) -> Option<LanePath> {
+    let c = s.meta.current_step;
+    let lane = lane_of(s, a, c)?;
+    let along = s
+        .map
+        .lane(lane)?
+        .centerline
+        .nearest(&a.states[c].position())
+        .s;
+    s.map
+        .lane_path(lane, along + 400.0, 50.0, Turn::Straight)
+        .ok()
+}
+
+fn speeds(s: &Scene, a: &Agent) -> Vec<(usize, f64)> {
+    let c = s.meta.current_step;
+    (c + 1..a.states.len())
+        .filter(|&t| a.is_valid(t) && a.is_valid(t - 1))
+        .map(|t| {
+            (
+                t,
+                (a.states[t].position() - a.states[t - 1].position()).norm() / s.meta.dt,
+            )
+        })
+        .collect()
+}
+
+fn overlap_steps(s: &Scene, a: &Agent, b: &Agent) -> Vec<usize> {
+    (s.meta.current_step + 1..s.num_steps())
+        .filter(
+            |&t| matches!((a.footprint(t), b.footprint(t)), (Some(x), Some(y)) if x.overlaps(&y)),
+        )
+        .collect()
+}
+
+/// Decides whether `behavior` happened in `scene` (a simulated or logged scene).
+pub fn check(
+    behavior: Behavior,
+    scene: &Scene,
+    params: &CheckParams,
+) -> Result<Verdict, CheckError> {
+    let mut x = Ctx {
+        b: behavior,
+        s: scene,
+        p: params,
+        m: BTreeMap::new(),
+    };
+    let s = scene;
+    let c = s.meta.current_step;
+    let no_lane = |b: Behavior, id: i64| CheckError::Agent {
+        behavior: b.name(),
+        message: format!("agent {id} is on no lane at the current step"),
+    };
+    Ok(match behavior {
+        Behavior::SpeedLimit => {
+            let a = x.agent("vehicle")?;
+            let limit = x.get("limit")?;
+            let vmax = speeds(s, a).iter().map(|v| v.1).fold(0.0, f64::max);
+            x.measure("max_speed", vmax);
+            x.measure("limit", limit);
+            let ok = vmax <= limit + 0.5;
+            x.verdict(
+                ok,
+                if ok {
+                    "stays under the limit"
+                } else {
+                    "exceeds the limit"
+                },
+            )
+        }
+        Behavior::TargetPoint => {
+            let a = x.agent("vehicle")?;
+            let (tx, ty, tol) = (x.get("x")?, x.get("y")?, x.or("tol", 1.0));
+            let end = a.states[x.last(a)?].position();
+            let d = (end - Point::new(tx, ty)).norm();
+            x.measure("final_distance", d);
+            x.verdict(
+                d <= tol,
+                format!("ends {d:.2} m from the target (tolerance {tol} m)"),
+            )
+        }
+        Behavior::NoCollisions => {
+            let v: Vec<&Agent> = s
+                .agents
+                .iter()
+                .filter(|a| a.agent_type == AgentType::Vehicle)
+                .collect();
+            let mut pairs = 0;
+            for (i, a) in v.iter().enumerate() {
+                for b in &v[i + 1..] {
+                    if !overlap_steps(s, a, b).is_empty() {
+                        pairs += 1;
+                    }
+                }
+            }
+            x.measure("colliding_pairs", pairs as f64);
+            x.verdict(pairs == 0, format!("{pairs} pairs of vehicles collide"))
+        }
+        Behavior::LaneChangeLeft | Behavior::LaneChangeRight => {
+            let a = x.agent("vehicle")?;
+            let start = lane_of(s, a, c).ok_or_else(|| no_lane(behavior, a.id))?;
+            let path = s
+                .map
+                .lane_path(start, 1000.0, 200.0, Turn::Straight)
+                .map_err(|e| CheckError::Agent {
+                    behavior: behavior.name(),
+                    message: e.to_string(),
+                })?;
+            let t = x.last(a)?;
+            let end = lane_of(s, a, t);
+            let g = s.map.graph();
+            let back = |l: i64| {
+                if behavior == Behavior::LaneChangeLeft {
+                    g.right(l)
+                } else {
+                    g.left(l)
+                }
+            };
+            let moved = end.and_then(back).is_some_and(|l| path.lanes.contains(&l));
+            let offset = end.map_or(f64::INFINITY, |l| {
+                s.map.lane(l).map_or(f64::INFINITY, |ln| {
+                    ln.centerline.distance_to(&a.states[t].position())
+                })
+            });
+            x.measure("start_lane", start as f64);
+            x.measure("end_lane", end.map_or(-1.0, |l| l as f64));
+            x.measure("end_offset_from_centre", offset);
+            let ok = moved && offset <= 1.0;
+            let side = if behavior == Behavior::LaneChangeLeft {
+                "left"
+            } else {
+                "right"
+            };
+            x.verdict(
+                ok,
+                if ok {
+                    format!("ends in the lane to the {side}")
+                } else if moved {
+                    format!("reaches the {side} lane but ends {offset:.2} m off its centre")
+                } else {
+                    format!("does not end in the lane to the {side} (ends in {end:?})")
+                },
+            )
+        }
+        Behavior::RightmostLane => {
+            let a = x.agent("vehicle")?;
+            let t = x.last(a)?;
+            let end = lane_of(s, a, t);
+            let offset = end.map_or(f64::INFINITY, |l| {
+                s.map.lane(l).map_or(f64::INFINITY, |ln| {
+                    ln.centerline.distance_to(&a.states[t].position())
+                })
+            });
+            let rightmost = end.is_some_and(|l| s.map.graph().is_rightmost(l));
+            x.measure("end_lane", end.map_or(-1.0, |l| l as f64));
+            x.measure("end_offset_from_centre", offset);
+            let ok = rightmost && offset <= 1.0;
+            x.verdict(
+                ok,
+                if ok {
+                    "ends in the rightmost lane".into()
+                } else {
+                    format!(
+                        "ends in lane {end:?}, {} the rightmost, {offset:.2} m off its centre",
+                        if rightmost { "which is" } else { "not" }
+                    )
+                },
+            )
+        }
+        Behavior::CutIn => {
+            let (a, b) = (x.agent("cutter")?, x.agent("victim")?);
+            let (la, lb) = (
+                lane_of(s, a, c).ok_or_else(|| no_lane(behavior, a.id))?,
+                lane_of(s, b, c).ok_or_else(|| no_lane(behavior, b.id))?,
+            );
+            let g = s.map.graph();
+            let adjacent =
+                g.left_neighbors(lb).contains(&la) || g.right_neighbors(lb).contains(&la);
+            let path = path_of(s, b).ok_or_else(|| no_lane(behavior, b.id))?;
+            let t = x.last(a)?.min(x.last(b)?);
+            let (fa, fb) = (
+                path.frenet.project(a.states[t].position()),
+                path.frenet.project(b.states[t].position()),
+            );
+            let gap = fa.s - fb.s - 0.5 * (a.length + b.length);
+            let hits = overlap_steps(s, a, b).len();
+            x.measure("starts_adjacent", adjacent as u8 as f64);
+            x.measure("end_offset_on_victim_path", fa.d.abs());
+            x.measure("end_gap_ahead", gap);
+            x.measure("collision_steps", hits as f64);
+            let ok = adjacent && fa.d.abs() <= 1.0 && gap >= 0.0 && hits == 0;
+            let why = if !adjacent {
+                "does not start in a lane beside the victim's".to_string()
+            } else if fa.d.abs() > 1.0 {
+                format!("ends {:.2} m off the victim's lane centre", fa.d.abs())
+            } else if gap < 0.0 {
+                format!("ends {:.2} m short of being ahead", -gap)
+            } else if hits > 0 {
+                format!("collides at {hits} steps")
+            } else {
+                "cuts in".into()
+            };
+            x.verdict(ok, why)
+        }
+        Behavior::Yield => {
+            let (a, b) = (x.agent("yielder")?, x.agent("other")?);
+            let (pa, pb) = (
+                path_of(s, a).ok_or_else(|| no_lane(behavior, a.id))?,
+                path_of(s, b).ok_or_else(|| no_lane(behavior, b.id))?,
+            );
+            let Some((sa, sb, _)) = pa.first_meeting(&pb) else {
+                x.measure("paths_meet", 0.0);
+                return Ok(x.verdict(false, "their lane paths never meet"));
+            };
+            let first = |ag: &Agent, p: &LanePath, at: f64| {
+                (c + 1..ag.states.len())
+                    .find(|&t| ag.is_valid(t) && p.frenet.project(ag.states[t].position()).s >= at)
+            };
+            let (ta, tb) = (first(a, &pa, sa), first(b, &pb, sb));
+            let hits = overlap_steps(s, a, b).len();
+            let dt = s.meta.dt;
+            x.measure(
+                "yielder_reaches_s",
+                ta.map_or(-1.0, |t| (t - c) as f64 * dt),
+            );
+            x.measure("other_passes_s", tb.map_or(-1.0, |t| (t - c) as f64 * dt));
+            x.measure("collision_steps", hits as f64);
+            let ok = match (ta, tb) {
+                (_, None) => false,
+                (None, Some(_)) => true,
+                (Some(ta), Some(tb)) => tb < ta,
+            } && hits == 0;
+            x.verdict(
+                ok,
+                match (ta, tb) {
+                    (_, None) => "the other agent never reaches the meeting point".to_string(),
+                    (Some(ta), Some(tb)) if ta <= tb => {
+                        "the yielder reaches the meeting point first".into()
+                    }
+                    _ if hits > 0 => format!("they collide at {hits} steps"),
+                    _ => "the other agent passes first".into(),
+                },
+            )
+        }
+        Behavior::Follow => {
+            let (a, b) = (x.agent("follower")?, x.agent("leader")?);
+            let want = x.or("gap", 10.0);
+            let path = path_of(s, b).ok_or_else(|| no_lane(behavior, b.id))?;
+            let n = s.num_steps();
+            let from = c + 1 + (n - c - 1) / 2;
+            let (mut worst_d, mut gaps) = (0.0f64, Vec::new());
+            for t in from..n {
+                if a.is_valid(t) && b.is_valid(t) {
+                    let (fa, fb) = (
+                        path.frenet.project(a.states[t].position()),
+                        path.frenet.project(b.states[t].position()),
+                    );
+                    worst_d = worst_d.max(fa.d.abs());
+                    gaps.push(fb.s - fa.s - 0.5 * (a.length + b.length));
+                }
+            }
+            if gaps.is_empty() {
+                return Ok(x.verdict(
+                    false,
+                    "the agents are not both observed in the last half of the horizon",
+                ));
+            }
+            let (gmin, gmax) = gaps
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), g| {
+                    (lo.min(*g), hi.max(*g))
+                });
+            x.measure("max_offset_from_leader_path", worst_d);
+            x.measure("min_gap", gmin);
+            x.measure("max_gap", gmax);
+            let ok = worst_d <= 1.5 && gmin >= 0.5 * want && gmax <= 2.0 * want;
+            x.verdict(ok, format!("gap {gmin:.1}..{gmax:.1} m (wanted {:.1}..{:.1}), up to {worst_d:.2} m off the leader's lane", 0.5 * want, 2.0 * want))
+        }
+        Behavior::Reverse => {
+            let a = x.agent("vehicle")?;
+            let s0 = a.states[c];
+            let t = x.last(a)?;
+            let dir = Point::new(s0.heading.cos(), s0.heading.sin());
+            let along = (a.states[t].position() - s0.position()).dot(&dir);
+            let turn = (c + 1..=t)
+                .filter(|&k| a.is_valid(k))
+                .map(|k| wrap_angle(a.states[k].heading - s0.heading).abs())
+                .fold(0.0, f64::max);
+            x.measure("displacement_along_heading", along);
+            x.measure("max_heading_change_deg", turn.to_degrees());
+            let ok = along <= -1.0 && turn <= 30f64.to_radians();
+            x.verdict(
+                ok,
+                format!(
+                    "moves {along:.2} m along its heading, turning up to {:.0} degrees",
+                    turn.to_degrees()
+                ),
+            )
+        }
+        Behavior::OffRoad => {
+            let a = x.agent("vehicle")?;
+            let t = x.last(a)?;
+            let d = s
+                .map
+                .signed_distance_to_road_edge(a.states[t].position())
+                .ok_or_else(|| CheckError::Agent {
+                    behavior: behavior.name(),
+                    message: "the map has no road edges".into(),
+                })?;
+            x.measure("final_edge_distance", d);
+            x.verdict(
+                d > 0.0,
+                format!(
+                    "ends {:.2} m {} the road edge",
+                    d.abs(),
+                    if d > 0.0 { "beyond" } else { "inside" }
+                ),
+            )
+        }
+        Behavior::Weave => {
+            let a = x.agent("vehicle")?;
+            let path = path_of(s, a).ok_or_else(|| no_lane(behavior, a.id))?;
+            let d0 = path.frenet.project(a.states[c].position()).d;
+            let ds: Vec<f64> = (c + 1..a.states.len())
+                .filter(|&t| a.is_valid(t))
+                .map(|t| path.frenet.project(a.states[t].position()).d - d0)
+                .collect();
+            let crossings = ds
+                .windows(2)
+                .filter(|w| (w[0] < 0.0) != (w[1] < 0.0))
+                .count();
+            let (lo, hi) = ds
+                .iter()
+                .fold((0.0f64, 0.0f64), |(lo, hi), d| (lo.min(*d), hi.max(*d)));
+            x.measure("crossings", crossings as f64);
+            x.measure("max_left", hi);
+            x.measure("max_right", -lo);
+            let ok = crossings >= 2 && hi >= 0.3 && -lo >= 0.3;
+            x.verdict(
+                ok,
+                format!(
+                    "crosses its starting line {crossings} times, {hi:.2} m left and {:.2} m right",
+                    -lo
+                ),
+            )
+        }
+        Behavior::Stop => {
+            let a = x.agent("vehicle")?;
+            let within = x.or("within", 4.0);
+            let from = c + (within / s.meta.dt).round() as usize;
+            let after: Vec<f64> = speeds(s, a)
+                .into_iter()
+                .filter(|(t, _)| *t >= from)
+                .map(|v| v.1)
+                .collect();
+            if after.is_empty() {
+                return Ok(x.verdict(false, format!("no observed step after {within} s")));
+            }
+            let vmax = after.iter().copied().fold(0.0, f64::max);
+            x.measure("max_speed_after", vmax);
+            x.verdict(
+                vmax <= 0.5,
+                format!("moves at up to {vmax:.2} m/s after {within} s"),
+            )
+        }
+        Behavior::Accident => {
+            let (a, b) = (x.agent("attacker")?, x.agent("target")?);
+            let hits = overlap_steps(s, a, b);
+            let min_dist = (c + 1..s.num_steps())
+                .filter_map(|t| Some(a.footprint(t)?.distance(&b.footprint(t)?)))
+                .fold(f64::INFINITY, f64::min);
+            x.measure("collision_steps", hits.len() as f64);
+            x.measure("min_box_distance", min_dist);
+            x.verdict(
+                !hits.is_empty(),
+                if hits.is_empty() {
+                    format!("they come no closer than {min_dist:.2} m")
+                } else {
+                    format!(
+                        "they collide from {:.1} s",
+                        (hits[0] - c) as f64 * s.meta.dt
+                    )
+                },
+            )
+        }
+    })
+}

@@ -1,0 +1,12 @@
+//! Evaluation: the paper's metrics, independent behaviour checkers and baselines. Everything
+//! here is a pure function of scenes, so any rollout (any simulator's) can be scored.
+
+pub mod baselines;
+pub mod behaviors;
+pub mod metrics;
+
+pub use baselines::Baseline;
+pub use behaviors::{check, Behavior, CheckError, CheckParams, Verdict};
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,266 @@
+//! Metrics and checkers on hand-made YAML scenes whose answers are known.
+
+use std::path::Path;
+
+use super::metrics::*;
+use super::{check, Baseline, Behavior, CheckParams};
+use crate::io::{load_scene, yaml, LoadOptions};
+use crate::scene::Scene;
+
+fn scene(name: &str) -> Scene {
+    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("scripts/scenes")
+        .join(name);
+    load_scene(&p, 0, &LoadOptions::default()).unwrap()
+}
+
+fn params(kv: &[(&str, f64)]) -> CheckParams {
+    kv.iter().map(|(k, v)| (k.to_string(), *v)).collect()
+}
+
+fn passes(b: Behavior, s: &Scene, kv: &[(&str, f64)]) -> bool {
+    check(b, s, &params(kv)).unwrap().passed
+}
+
+/// Moves agent `id`'s future by `f(seconds after the current step)`.
+fn edit(s: &mut Scene, id: i64, f: impl Fn(f64) -> (f64, f64)) {
+    let (c, dt) = (s.meta.current_step, s.meta.dt);
+    let a = s.agents.iter_mut().find(|a| a.id == id).unwrap();
+    for t in c + 1..a.states.len() {
+        let (dx, dy) = f((t - c) as f64 * dt);
+        a.states[t].x += dx;
+        a.states[t].y += dy;
+    }
+}
+
+#[test]
+fn two_overlapping_boxes_collide() {
+    let text = "steps: 3\ncurrent_step: 0\nroad: {lanes: 1, length: 50}\nagents:\n  - {id: 1, s: 10, speed: 10}\n  - {id: 2, s: 30, speed: 0}\n  - {id: 3, s: 45, speed: 1}\n";
+    let mut s = yaml::parse(Path::new("t.yaml"), text).unwrap();
+    assert_eq!(rate(&collided(&s)), Some(0.0));
+    // Put agent 2 on agent 1 at the last step.
+    let p = s.agents[0].states[2];
+    s.agents[1].states[2].x = p.x + 1.0;
+    let hit = collided(&s);
+    assert_eq!(hit, vec![Some(true), Some(true), Some(false)]);
+    assert!((rate(&hit).unwrap() - 2.0 / 3.0).abs() < 1e-12);
+    assert!(scene_collision_rate(&s, 0.1).unwrap() > 0.6);
+}
+
+#[test]
+fn a_car_past_the_road_edge_is_off_road() {
+    let mut s = scene("highway.yaml");
+    assert_eq!(rate(&offroad(&s)), Some(0.0));
+    // Vehicle 2 (rightmost lane) drifts 4 m right, past the edge.
+    edit(&mut s, 2, |t| (0.0, -4.0 * (t / 3.0).min(1.0)));
+    let off = offroad(&s);
+    assert_eq!(off[1], Some(true));
+    assert_eq!(rate(&off), Some(0.25));
+    // An agent already off the road at the current step does not count.
+    let text = "steps: 3\ncurrent_step: 0\nroad: {lanes: 1, length: 50}\nagents:\n  - {id: 1, s: 10, d: -4, speed: 5}\n";
+    let s = yaml::parse(Path::new("t.yaml"), text).unwrap();
+    assert_eq!(offroad(&s), vec![None]);
+}
+
+#[test]
+fn identical_distributions_have_zero_distance() {
+    let s = scene("highway_crash.yaml");
+    let k = kinematics(&s);
+    let r = realism(&k, &k, &JsdBins::default()).unwrap();
+    assert_eq!(
+        (r.speed, r.angular_speed, r.accel, r.nearest_vehicle, r.mean),
+        (0.0, 0.0, 0.0, 0.0, 0.0)
+    );
+    let (near, edge) = placement(&s);
+    let h = median_bandwidth(&near, &near);
+    assert!(mmd2(&near, &near, h).unwrap().abs() < 1e-12);
+    assert!(mmd2(&edge, &edge, 1.0).unwrap().abs() < 1e-12);
+    // Disjoint histograms are as far apart as JS distance goes: sqrt(ln 2).
+    let d = js_distance(&[1.0, 0.0], &[0.0, 1.0]);
+    assert!((d - 2f64.ln().sqrt()).abs() < 1e-12);
+    // Shifted samples are not.
+    let shifted: Vec<f64> = near.iter().map(|v| v + 5.0).collect();
+    assert!(mmd2(&near, &shifted, h).unwrap() > 0.01);
+}
+
+#[test]
+fn displacement_of_log_replay_is_zero_and_of_cv_is_not() {
+    let s = scene("highway_cut_in.yaml");
+    let log = Baseline::Log.simulate(&s);
+    assert!(displacement(&s, &log)
+        .iter()
+        .all(|d| d.ade == 0.0 && d.fde == 0.0));
+    let cv = Baseline::ConstantVelocity.simulate(&s);
+    let d = displacement(&s, &cv);
+    let cutter = d.iter().find(|d| d.agent == 2).unwrap();
+    assert!(
+        cutter.fde > 3.0,
+        "the cut-in ends a lane away from straight ahead: {cutter:?}"
+    );
+    let keeper = d.iter().find(|d| d.agent == 1).unwrap();
+    assert!(keeper.fde < 1e-6, "{keeper:?}");
+    // Lane following keeps the lane-keepers exact on a straight road too.
+    let lane = Baseline::Lane.simulate(&s);
+    assert!(
+        displacement(&s, &lane)
+            .iter()
+            .find(|d| d.agent == 3)
+            .unwrap()
+            .fde
+            < 1e-6
+    );
+    let m = min_displacement(&s, &[cv.clone(), log.clone()]);
+    assert!(m.iter().all(|d| d.ade == 0.0));
+}
+
+#[test]
+fn lane_change_passes_its_checker_and_fails_the_others() {
+    let left = scene("highway_left.yaml");
+    assert!(passes(Behavior::LaneChangeLeft, &left, &[("vehicle", 1.0)]));
+    assert!(!passes(
+        Behavior::LaneChangeRight,
+        &left,
+        &[("vehicle", 1.0)]
+    ));
+    assert!(!passes(Behavior::RightmostLane, &left, &[("vehicle", 1.0)]));
+    let right = scene("highway_right.yaml");
+    assert!(passes(
+        Behavior::LaneChangeRight,
+        &right,
+        &[("vehicle", 1.0)]
+    ));
+    assert!(passes(Behavior::RightmostLane, &right, &[("vehicle", 1.0)]));
+    assert!(!passes(
+        Behavior::LaneChangeLeft,
+        &right,
+        &[("vehicle", 1.0)]
+    ));
+    let base = scene("highway.yaml");
+    assert!(!passes(
+        Behavior::LaneChangeLeft,
+        &base,
+        &[("vehicle", 1.0)]
+    ));
+    assert!(passes(Behavior::RightmostLane, &base, &[("vehicle", 2.0)]));
+}
+
+#[test]
+fn cut_in_follow_accident_and_collisions() {
+    let cut = scene("highway_cut_in.yaml");
+    assert!(passes(
+        Behavior::CutIn,
+        &cut,
+        &[("cutter", 2.0), ("victim", 1.0)]
+    ));
+    assert!(passes(Behavior::NoCollisions, &cut, &[]));
+    let base = scene("highway.yaml");
+    let v = check(
+        Behavior::CutIn,
+        &base,
+        &params(&[("cutter", 2.0), ("victim", 1.0)]),
+    )
+    .unwrap();
+    assert!(
+        !v.passed && v.measured["end_offset_on_victim_path"] > 3.0,
+        "{v:?}"
+    );
+    // Cutting in but ending behind fails.
+    let mut late = scene("highway_cut_in.yaml");
+    edit(&mut late, 2, |t| (-45.0 * (t / 7.0), 0.0));
+    assert!(!passes(
+        Behavior::CutIn,
+        &late,
+        &[("cutter", 2.0), ("victim", 1.0)]
+    ));
+    let crash = scene("highway_crash.yaml");
+    assert!(passes(
+        Behavior::Accident,
+        &crash,
+        &[("attacker", 4.0), ("target", 2.0)]
+    ));
+    assert!(!passes(
+        Behavior::Accident,
+        &base,
+        &[("attacker", 4.0), ("target", 2.0)]
+    ));
+    assert!(!passes(Behavior::NoCollisions, &crash, &[]));
+    assert!(passes(
+        Behavior::Follow,
+        &crash,
+        &[("follower", 3.0), ("leader", 1.0), ("gap", 10.0)]
+    ));
+    assert!(!passes(
+        Behavior::Follow,
+        &base,
+        &[("follower", 4.0), ("leader", 2.0), ("gap", 10.0)]
+    ));
+}
+
+#[test]
+fn yield_stop_reverse_off_road_weave_speed_and_target() {
+    assert!(passes(
+        Behavior::Yield,
+        &scene("merge.yaml"),
+        &[("yielder", 11.0), ("other", 10.0)]
+    ));
+    let v = check(
+        Behavior::Yield,
+        &scene("merge_ramp_first.yaml"),
+        &params(&[("yielder", 11.0), ("other", 10.0)]),
+    )
+    .unwrap();
+    assert!(!v.passed, "{v:?}");
+    let stop = scene("highway_stop.yaml");
+    assert!(passes(Behavior::Stop, &stop, &[("vehicle", 1.0)]));
+    assert!(passes(Behavior::Reverse, &stop, &[("vehicle", 4.0)]));
+    let base = scene("highway.yaml");
+    assert!(!passes(Behavior::Stop, &base, &[("vehicle", 1.0)]));
+    assert!(!passes(Behavior::Reverse, &base, &[("vehicle", 4.0)]));
+    assert!(!passes(Behavior::OffRoad, &base, &[("vehicle", 3.0)]));
+    let mut off = scene("highway.yaml");
+    edit(&mut off, 3, |t| (0.0, 6.0 * (t / 3.0).min(1.0)));
+    assert!(passes(Behavior::OffRoad, &off, &[("vehicle", 3.0)]));
+    assert!(!passes(Behavior::Weave, &base, &[("vehicle", 1.0)]));
+    let mut weave = scene("highway.yaml");
+    edit(&mut weave, 1, |t| {
+        (0.0, (std::f64::consts::TAU * t / 4.0).sin())
+    });
+    assert!(passes(Behavior::Weave, &weave, &[("vehicle", 1.0)]));
+    assert!(passes(
+        Behavior::SpeedLimit,
+        &base,
+        &[("vehicle", 2.0), ("limit", 25.0)]
+    ));
+    assert!(!passes(
+        Behavior::SpeedLimit,
+        &base,
+        &[("vehicle", 2.0), ("limit", 20.0)]
+    ));
+    assert!(passes(
+        Behavior::TargetPoint,
+        &base,
+        &[("vehicle", 1.0), ("x", 200.0), ("y", 5.4)]
+    ));
+    assert!(!passes(
+        Behavior::TargetPoint,
+        &base,
+        &[("vehicle", 1.0), ("x", 230.0), ("y", 5.4)]
+    ));
+}
+
+#[test]
+fn checkers_explain_missing_parameters_and_agents() {
+    let base = scene("highway.yaml");
+    let e = check(Behavior::CutIn, &base, &params(&[("cutter", 2.0)])).unwrap_err();
+    assert_eq!(e.to_string(), "cut_in: parameter \"victim\" is required");
+    let e = check(Behavior::Stop, &base, &params(&[("vehicle", 99.0)])).unwrap_err();
+    assert!(e.to_string().contains("no agent 99"));
+    assert_eq!(Behavior::from_name("yield"), Some(Behavior::Yield));
+    for b in super::behaviors::ALL {
+        assert!(!b.definition().is_empty());
+        let script = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("scripts")
+            .join(format!("{}.rhai", b.name()));
+        assert!(script.exists(), "no script for checker {}", b.name());
+    }
+}
