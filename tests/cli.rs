@@ -335,3 +335,85 @@ fn stdlib_doc_is_markdown_of_every_section() {
         assert!(out.contains(s), "missing {s}");
     }
 }
+
+#[test]
+fn eval_prints_tables_for_baselines_and_rollouts() {
+    let dir = tempfile::tempdir().unwrap();
+    let scenes = samples().join("commonroad");
+    let json = dir.path().join("e.json");
+    let out = ok(&[
+        "eval",
+        s(&scenes),
+        "--task",
+        "conditional",
+        "--json",
+        s(&json),
+    ]);
+    assert!(out.contains("| log replay | 4 | 0.00 | 0.00 |"), "{out}");
+    assert!(out.contains("| constant velocity | 4 |"), "{out}");
+    let v: Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert_eq!(v["methods"][0]["summary"]["jsd"]["mean"], 0.0);
+    assert!(v["methods"][1]["summary"]["ade"].as_f64().unwrap() > 0.1);
+    // Rollouts written by anyone are scored: here the recorded futures, so ADE is 0.
+    let rolls = dir.path().join("rollouts");
+    std::fs::create_dir(&rolls).unwrap();
+    for name in ["USA_US101-3_3_T-1", "USA_Peach-4_8_T-1"] {
+        let src = scenes.join(format!("{name}.xml"));
+        ok(&[
+            "convert",
+            s(&src),
+            "-o",
+            s(&rolls.join(format!("{name}.json"))),
+        ]);
+    }
+    let pair = dir.path().join("pair");
+    std::fs::create_dir(&pair).unwrap();
+    for name in ["USA_US101-3_3_T-1", "USA_Peach-4_8_T-1"] {
+        std::fs::copy(
+            scenes.join(format!("{name}.xml")),
+            pair.join(format!("{name}.xml")),
+        )
+        .unwrap();
+    }
+    let out = ok(&[
+        "eval",
+        s(&pair),
+        "--task",
+        "conditional",
+        "--rollouts",
+        s(&rolls),
+    ]);
+    assert!(out.contains("| 2 | 0.00 | 0.00 |"), "{out}");
+    let out = ok(&[
+        "eval",
+        s(&pair),
+        "--task",
+        "unconditional",
+        "--baseline",
+        "cv",
+    ]);
+    assert!(out.contains("| constant velocity | 2 |"), "{out}");
+    let out = ok(&[
+        "eval",
+        s(&samples().join("yaml/highway_cut_in.yaml")),
+        "--task",
+        "behaviour",
+        "--behaviour",
+        "cut_in",
+        "--param",
+        "cutter=2",
+        "victim=1",
+        "--baseline",
+        "log",
+    ]);
+    assert!(out.contains("| log replay | cut_in | 1 | 1.00 |"), "{out}");
+    let err = fails(&[
+        "eval",
+        s(&pair),
+        "--task",
+        "behaviour",
+        "--behaviour",
+        "dance",
+    ]);
+    assert!(err.contains("unknown behaviour \"dance\""), "{err}");
+}

@@ -4,6 +4,7 @@ mod bench;
 mod convert;
 mod cost;
 mod demo;
+mod eval;
 mod inspect;
 mod render;
 mod stdlib_doc;
@@ -47,6 +48,13 @@ enum Command {
   drivescript cost data/samples/yaml/highway_cut_in.yaml --script scripts/cut_in.rhai --param cutter=2 victim=1
   drivescript cost scene.xml --script my.rhai --rollout sim.json --json")]
     Cost(cost::Args),
+    /// Score baselines or rollouts: conditional, unconditional or behaviour tables.
+    #[command(after_help = "Examples:
+  drivescript eval ../shared/data/commonroad-ngsim --task conditional
+  drivescript eval scenes/ --task unconditional --baseline cv
+  drivescript eval scene.yaml --task behaviour --behaviour cut_in --param cutter=2 victim=1 --rollouts sims/
+  drivescript eval data/samples --task conditional --rollouts sims/ --samples 4 --json out/eval.json")]
+    Eval(eval::Args),
     /// Run the demo: render a sample scene to out/demo.gif and print its summary.
     Demo(demo::Args),
     /// Run cost-script unit tests (*.test.yaml) and print a pass/fail table.
@@ -71,6 +79,7 @@ pub fn run() -> ExitCode {
         Command::Render(a) => render::run(a),
         Command::Convert(a) => convert::run(a),
         Command::Cost(a) => cost::run(a),
+        Command::Eval(a) => eval::run(a),
         Command::Demo(a) => demo::run(a),
         Command::StdlibDoc(a) => stdlib_doc::run(a),
         Command::TestScripts(a) => test_scripts::run(a),

@@ -402,13 +402,13 @@ pub fn median_bandwidth(x: &[f64], y: &[f64]) -> f64 {
 }
 
 /// Squared maximum mean discrepancy with a Gaussian kernel of bandwidth `h` (biased estimator;
-/// 0 for identical samples). Samples are thinned to at most 1000 values each.
+/// 0 for identical samples). Samples are thinned to at most 500 evenly spaced values each.
 pub fn mmd2(x: &[f64], y: &[f64], h: f64) -> Option<f64> {
     if x.is_empty() || y.is_empty() {
         return None;
     }
     let thin = |v: &[f64]| -> Vec<f64> {
-        let step = (v.len() / 1000).max(1);
+        let step = v.len().div_ceil(500).max(1);
         v.iter().step_by(step).copied().collect()
     };
     let (x, y) = (thin(x), thin(y));

@@ -264,3 +264,29 @@ fn checkers_explain_missing_parameters_and_agents() {
         assert!(script.exists(), "no script for checker {}", b.name());
     }
 }
+
+#[test]
+fn one_agent_and_late_agents_are_handled() {
+    let text = "steps: 30\ncurrent_step: 5\nroad: {lanes: 2, length: 200}\nagents:\n  - {id: 1, s: 10, speed: 10}\n";
+    let one = yaml::parse(Path::new("one.yaml"), text).unwrap();
+    assert_eq!(rate(&collided(&one)), Some(0.0));
+    assert_eq!(scene_collision_rate(&one, 0.1), Some(0.0));
+    let k = kinematics(&one);
+    assert!(k.nearest_vehicle.is_empty() && !k.speed.is_empty());
+    // No nearest-vehicle samples on either side: that histogram contributes 0.
+    assert_eq!(realism(&k, &k, &JsdBins::default()).unwrap().mean, 0.0);
+    let (near, edge) = placement(&one);
+    assert!(near.is_empty() && !edge.is_empty());
+    assert_eq!(mmd2(&near, &near, 1.0), None);
+    // An agent that appears after the current step is scored from when it appears, and not at
+    // all by the baselines (they cannot predict it).
+    let text = "steps: 30\ncurrent_step: 5\nroad: {lanes: 2, length: 200}\nagents:\n  - {id: 1, s: 10, speed: 10}\n  - {id: 2, lane: 1, s: 40, speed: 8, valid_from: 12}\n";
+    let late = yaml::parse(Path::new("late.yaml"), text).unwrap();
+    let cv = Baseline::ConstantVelocity.simulate(&late);
+    let d = displacement(&late, &cv);
+    assert_eq!(d.len(), 1, "agent 2 has no simulated future: {d:?}");
+    let log = displacement(&late, &late);
+    assert_eq!(log.len(), 2);
+    assert_eq!(collided(&late), vec![Some(false), Some(false)]);
+    assert_eq!(offroad(&late).iter().flatten().count(), 2);
+}

@@ -1,0 +1,377 @@
+//! `drivescript eval`: the paper's tables for baselines and rollouts.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use drivescript::eval::metrics::{self, JsdBins, Kinematics};
+use drivescript::eval::{check, Baseline, Behavior, CheckParams};
+use drivescript::io::{discover, load_scenes, rollout::Rollout, write_atomic, LoadOptions};
+use drivescript::scene::Scene;
+use indicatif::{ProgressBar, ProgressStyle};
+use serde_json::json;
+
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum Task {
+    /// History + endpoint given: ADE/FDE, realism JSD, collision and off-road rates.
+    Conditional,
+    /// Only the current state given: scene collision rate and MMD of placements.
+    Unconditional,
+    /// Success rate of a behaviour's checker.
+    Behaviour,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum BaselineArg {
+    /// Log replay (the recorded future).
+    Log,
+    /// Constant velocity.
+    Cv,
+    /// Constant speed along the current lane.
+    Lane,
+}
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Scene files or directories.
+    #[arg(required = true)]
+    scenes: Vec<PathBuf>,
+    /// What to evaluate.
+    #[arg(long, value_enum)]
+    task: Task,
+    /// Baselines to score (repeatable; default: all three unless --rollouts is given).
+    #[arg(long = "baseline", value_enum)]
+    baselines: Vec<BaselineArg>,
+    /// Directory of rollout JSON files to score: SCENARIO_ID.json or SCENARIO_ID_K.json.
+    #[arg(long)]
+    rollouts: Option<PathBuf>,
+    /// Samples per scene expected in --rollouts (minADE/minFDE over them).
+    #[arg(long, default_value_t = 1)]
+    samples: usize,
+    /// Behaviour for --task behaviour (a script name, e.g. cut_in).
+    #[arg(long)]
+    behaviour: Option<String>,
+    /// Checker parameters for --task behaviour, name=value.
+    #[arg(long = "param", num_args = 1..)]
+    params: Vec<String>,
+    /// Write the table and per-scene results as JSON.
+    #[arg(long)]
+    json: Option<PathBuf>,
+}
+
+/// One method's results over all scenes.
+#[derive(Default)]
+struct Acc {
+    scenes: usize,
+    ade: Vec<f64>,
+    fde: Vec<f64>,
+    min_ade: Vec<f64>,
+    min_fde: Vec<f64>,
+    collision: Vec<f64>,
+    offroad: Vec<f64>,
+    sim_kin: Kinematics,
+    log_kin: Kinematics,
+    scr: Vec<f64>,
+    mmd_near: Vec<f64>,
+    mmd_edge: Vec<f64>,
+    passed: usize,
+    checked: usize,
+    per_scene: Vec<serde_json::Value>,
+    seconds: f64,
+}
+
+fn mean(v: &[f64]) -> Option<f64> {
+    (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+}
+
+fn fmt(v: Option<f64>, prec: usize) -> String {
+    v.map_or("-".into(), |x| format!("{x:.prec$}"))
+}
+
+fn rollouts_for(dir: &Path, scene: &Scene, k: usize) -> Result<Vec<Scene>> {
+    let id = &scene.meta.scenario_id;
+    let mut out = Vec::new();
+    let single = dir.join(format!("{id}.json"));
+    if k == 1 && single.exists() {
+        let r = Rollout::read(&single)?;
+        out.push(r.apply_to(scene, &single)?);
+        return Ok(out);
+    }
+    for i in 0..k {
+        let p = dir.join(format!("{id}_{i}.json"));
+        if !p.exists() {
+            bail!(
+                "{}: missing rollout for scene {id} (sample {i} of {k})",
+                p.display()
+            );
+        }
+        out.push(Rollout::read(&p)?.apply_to(scene, &p)?);
+    }
+    Ok(out)
+}
+
+fn score(
+    task: Task,
+    acc: &mut Acc,
+    logged: &Scene,
+    sims: &[Scene],
+    behaviour: Option<(Behavior, &CheckParams)>,
+) {
+    let t0 = Instant::now();
+    acc.scenes += 1;
+    let sim = &sims[0];
+    let mut row = json!({"scene": logged.meta.scenario_id});
+    match task {
+        Task::Conditional => {
+            let d = metrics::displacement(logged, sim);
+            let (ade, fde) = (
+                mean(&d.iter().map(|x| x.ade).collect::<Vec<_>>()),
+                mean(&d.iter().map(|x| x.fde).collect::<Vec<_>>()),
+            );
+            if let (Some(a), Some(f)) = (ade, fde) {
+                acc.ade.push(a);
+                acc.fde.push(f);
+            }
+            if sims.len() > 1 {
+                let m = metrics::min_displacement(logged, sims);
+                if let Some(a) = mean(&m.iter().map(|x| x.ade).collect::<Vec<_>>()) {
+                    acc.min_ade.push(a);
+                    acc.min_fde.push(
+                        mean(&m.iter().map(|x| x.fde).collect::<Vec<_>>()).unwrap_or(f64::NAN),
+                    );
+                }
+            }
+            let col = metrics::rate(&metrics::collided(sim));
+            let off = metrics::rate(&metrics::offroad(sim));
+            acc.collision.extend(col);
+            acc.offroad.extend(off);
+            for s in sims {
+                acc.sim_kin.extend(&metrics::kinematics(s));
+            }
+            acc.log_kin.extend(&metrics::kinematics(logged));
+            row["ade"] = json!(ade);
+            row["fde"] = json!(fde);
+            row["collision_rate"] = json!(col);
+            row["offroad_rate"] = json!(off);
+        }
+        Task::Unconditional => {
+            let scr = metrics::scene_collision_rate(sim, 0.1);
+            acc.scr.extend(scr);
+            let (gn, ge) = metrics::placement(sim);
+            let (ln, le) = metrics::placement(logged);
+            let mn = metrics::mmd2(&gn, &ln, metrics::median_bandwidth(&gn, &ln));
+            let me = metrics::mmd2(&ge, &le, metrics::median_bandwidth(&ge, &le));
+            acc.mmd_near.extend(mn);
+            acc.mmd_edge.extend(me);
+            row["scene_collision_rate"] = json!(scr);
+            row["mmd2_nearest_object"] = json!(mn);
+            row["mmd2_road_edge"] = json!(me);
+        }
+        Task::Behaviour => {
+            let (b, p) = behaviour.expect("checked by the caller");
+            match check(b, sim, p) {
+                Ok(v) => {
+                    acc.checked += 1;
+                    acc.passed += v.passed as usize;
+                    row["verdict"] = json!(v);
+                }
+                Err(e) => row["error"] = json!(e.to_string()),
+            }
+        }
+    }
+    acc.seconds += t0.elapsed().as_secs_f64();
+    acc.per_scene.push(row);
+}
+
+fn task_name(t: Task) -> &'static str {
+    match t {
+        Task::Conditional => "conditional",
+        Task::Unconditional => "unconditional",
+        Task::Behaviour => "behaviour",
+    }
+}
+
+pub fn run(args: Args) -> Result<ExitCode> {
+    let mut methods: Vec<(String, Option<Baseline>)> = Vec::new();
+    let baselines = if args.baselines.is_empty() && args.rollouts.is_none() {
+        vec![BaselineArg::Log, BaselineArg::Cv, BaselineArg::Lane]
+    } else {
+        args.baselines.clone()
+    };
+    for b in baselines {
+        let b = match b {
+            BaselineArg::Log => Baseline::Log,
+            BaselineArg::Cv => Baseline::ConstantVelocity,
+            BaselineArg::Lane => Baseline::Lane,
+        };
+        methods.push((b.name().to_string(), Some(b)));
+    }
+    if let Some(d) = &args.rollouts {
+        if !d.is_dir() {
+            bail!("{}: --rollouts must be a directory", d.display());
+        }
+        methods.push((format!("rollouts in {}", d.display()), None));
+    }
+    let behaviour = match (args.task, &args.behaviour) {
+        (Task::Behaviour, None) => bail!("--task behaviour needs --behaviour NAME"),
+        (Task::Behaviour, Some(n)) => {
+            let b = Behavior::from_name(n).with_context(|| format!("unknown behaviour {n:?}"))?;
+            let mut p = CheckParams::new();
+            for kv in &args.params {
+                let (k, v) = kv
+                    .split_once('=')
+                    .with_context(|| format!("--param {kv}: expected name=value"))?;
+                p.insert(
+                    k.to_string(),
+                    v.parse()
+                        .with_context(|| format!("--param {kv}: the value must be a number"))?,
+                );
+            }
+            Some((b, p))
+        }
+        _ => None,
+    };
+    let mut sources = Vec::new();
+    for s in &args.scenes {
+        sources.extend(discover(s)?);
+    }
+    let mut accs: Vec<Acc> = methods.iter().map(|_| Acc::default()).collect();
+    let bar = ProgressBar::new(sources.len() as u64);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{bar:40} {pos}/{len} sources  {elapsed_precise} elapsed, {eta} left  {msg}",
+        )
+        .expect("valid template"),
+    );
+    let mut failures = 0;
+    for src in &sources {
+        bar.set_message(
+            src.file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+        );
+        let scenes = match load_scenes(src, &LoadOptions::default()) {
+            Ok(s) => s,
+            Err(e) => {
+                bar.suspend(|| eprintln!("error: {e}"));
+                failures += 1;
+                bar.inc(1);
+                continue;
+            }
+        };
+        for scene in &scenes {
+            for ((_, m), acc) in methods.iter().zip(accs.iter_mut()) {
+                let sims = match m {
+                    Some(b) => vec![b.simulate(scene)],
+                    None => match rollouts_for(
+                        args.rollouts.as_ref().expect("a rollouts method"),
+                        scene,
+                        args.samples,
+                    ) {
+                        Ok(s) => s,
+                        Err(e) => {
+                            bar.suspend(|| eprintln!("error: {e:#}"));
+                            failures += 1;
+                            continue;
+                        }
+                    },
+                };
+                score(
+                    args.task,
+                    acc,
+                    scene,
+                    &sims,
+                    behaviour.as_ref().map(|(b, p)| (*b, p)),
+                );
+            }
+        }
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let bins = JsdBins::default();
+    let mut table = Vec::new();
+    match args.task {
+        Task::Conditional => {
+            println!("| method | scenes | ADE (m) | FDE (m) | minADE | minFDE | JSD speed | JSD ang. speed | JSD accel | JSD nearest | JSD mean | collision | off-road | ms/scene |");
+            println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+        }
+        Task::Unconditional => {
+            println!("| method | scenes | scene collision rate | MMD² nearest object | MMD² road edge | ms/scene |");
+            println!("|---|---|---|---|---|---|");
+        }
+        Task::Behaviour => {
+            println!("| method | behaviour | scenes checked | success rate | ms/scene |");
+            println!("|---|---|---|---|---|");
+        }
+    }
+    for ((name, _), acc) in methods.iter().zip(&accs) {
+        let ms = if acc.scenes > 0 {
+            1000.0 * acc.seconds / acc.scenes as f64
+        } else {
+            f64::NAN
+        };
+        let row = match args.task {
+            Task::Conditional => {
+                let r = metrics::realism(&acc.sim_kin, &acc.log_kin, &bins);
+                println!(
+                    "| {name} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {ms:.1} |",
+                    acc.scenes,
+                    fmt(mean(&acc.ade), 2),
+                    fmt(mean(&acc.fde), 2),
+                    fmt(mean(&acc.min_ade), 2),
+                    fmt(mean(&acc.min_fde), 2),
+                    fmt(r.map(|r| r.speed), 3),
+                    fmt(r.map(|r| r.angular_speed), 3),
+                    fmt(r.map(|r| r.accel), 3),
+                    fmt(r.map(|r| r.nearest_vehicle), 3),
+                    fmt(r.map(|r| r.mean), 3),
+                    fmt(mean(&acc.collision), 3),
+                    fmt(mean(&acc.offroad), 3),
+                );
+                json!({"method": name, "scenes": acc.scenes, "ade": mean(&acc.ade), "fde": mean(&acc.fde),
+                    "min_ade": mean(&acc.min_ade), "min_fde": mean(&acc.min_fde), "jsd": r,
+                    "collision_rate": mean(&acc.collision), "offroad_rate": mean(&acc.offroad), "ms_per_scene": ms})
+            }
+            Task::Unconditional => {
+                println!(
+                    "| {name} | {} | {} | {} | {} | {ms:.1} |",
+                    acc.scenes,
+                    fmt(mean(&acc.scr), 3),
+                    fmt(mean(&acc.mmd_near), 3),
+                    fmt(mean(&acc.mmd_edge), 3)
+                );
+                json!({"method": name, "scenes": acc.scenes, "scene_collision_rate": mean(&acc.scr),
+                    "mmd2_nearest_object": mean(&acc.mmd_near), "mmd2_road_edge": mean(&acc.mmd_edge), "ms_per_scene": ms})
+            }
+            Task::Behaviour => {
+                let b = behaviour.as_ref().expect("behaviour task").0;
+                let rate = (acc.checked > 0).then(|| acc.passed as f64 / acc.checked as f64);
+                println!(
+                    "| {name} | {} | {} | {} | {ms:.1} |",
+                    b.name(),
+                    acc.checked,
+                    fmt(rate, 2)
+                );
+                json!({"method": name, "behaviour": b.name(), "definition": b.definition(), "checked": acc.checked, "success_rate": rate, "ms_per_scene": ms})
+            }
+        };
+        table.push(json!({"summary": row, "scenes": acc.per_scene}));
+    }
+    if args.task == Task::Conditional {
+        println!("\nJSD: Jensen-Shannon distance (natural log) of histograms pooled over agents, steps and scenes; bins {}", serde_json::to_string(&bins)?);
+    }
+    if let Some(out) = &args.json {
+        write_atomic(
+            out,
+            serde_json::to_string_pretty(&json!({"task": task_name(args.task), "methods": table}))?
+                .as_bytes(),
+        )?;
+        println!("wrote {}", out.display());
+    }
+    if failures > 0 {
+        eprintln!("{failures} sources or rollouts failed");
+        return Ok(ExitCode::FAILURE);
+    }
+    Ok(ExitCode::SUCCESS)
+}
