@@ -10,5 +10,7 @@ pub mod cost;
 pub mod eval;
 pub mod geom;
 pub mod io;
+pub mod model;
 pub mod render;
 pub mod scene;
+pub mod train;

@@ -3,6 +3,7 @@
 mod bench;
 mod convert;
 mod cost;
+mod dataset;
 mod demo;
 mod eval;
 mod inspect;
@@ -48,6 +49,11 @@ enum Command {
   drivescript cost data/samples/yaml/highway_cut_in.yaml --script scripts/cut_in.rhai --param cutter=2 victim=1
   drivescript cost scene.xml --script my.rhai --rollout sim.json --json")]
     Cost(cost::Args),
+    /// Training windows a corpus gives (for the diffusion model) and PCA reconstruction errors.
+    #[command(after_help = "Examples:
+  drivescript dataset ../shared/data/commonroad-ngsim
+  drivescript dataset data/samples --history 11 --future 30")]
+    Dataset(dataset::Args),
     /// Score baselines or rollouts: conditional, unconditional or behaviour tables.
     #[command(after_help = "Examples:
   drivescript eval ../shared/data/commonroad-ngsim --task conditional
@@ -80,6 +86,7 @@ pub fn run() -> ExitCode {
         Command::Convert(a) => convert::run(a),
         Command::Cost(a) => cost::run(a),
         Command::Eval(a) => eval::run(a),
+        Command::Dataset(a) => dataset::run(a),
         Command::Demo(a) => demo::run(a),
         Command::StdlibDoc(a) => stdlib_doc::run(a),
         Command::TestScripts(a) => test_scripts::run(a),

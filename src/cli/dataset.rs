@@ -1,0 +1,80 @@
+//! `drivescript dataset`: what training windows a corpus gives, and how well PCA holds them.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::Result;
+use drivescript::io::{discover, load_scenes, LoadOptions};
+use drivescript::model::Pca;
+use drivescript::train::{windows, WindowConfig};
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Scene files or directories.
+    #[arg(required = true)]
+    scenes: Vec<PathBuf>,
+    /// History steps, current included.
+    #[arg(long, default_value_t = 11)]
+    history: usize,
+    /// Future steps.
+    #[arg(long, default_value_t = 40)]
+    future: usize,
+    /// Steps between windows of a scene.
+    #[arg(long, default_value_t = 10)]
+    stride: usize,
+}
+
+pub fn run(args: Args) -> Result<ExitCode> {
+    let cfg = WindowConfig {
+        history: args.history,
+        future: args.future,
+        stride: args.stride,
+        ..WindowConfig::ngsim()
+    };
+    let (mut scenes, mut used, mut wins, mut agents, mut lanes) = (0, 0, 0, 0usize, 0usize);
+    let mut futures = Vec::new();
+    for root in &args.scenes {
+        for src in discover(root)? {
+            for s in load_scenes(&src, &LoadOptions::default())? {
+                scenes += 1;
+                let w = windows(&s, &cfg);
+                if !w.is_empty() {
+                    used += 1;
+                }
+                for win in &w {
+                    wins += 1;
+                    agents += win.agents.len();
+                    lanes += win.lane_ids.len();
+                    futures.extend((0..win.agents.len()).filter_map(|k| win.agent_future(&cfg, k)));
+                }
+            }
+        }
+    }
+    println!(
+        "{scenes} scenes, {used} long enough for {} + {} steps; {wins} windows; {:.1} agents and {:.1} lanes per window; {} complete agent futures",
+        cfg.history,
+        cfg.future,
+        agents as f64 / wins.max(1) as f64,
+        lanes as f64 / wins.max(1) as f64,
+        futures.len()
+    );
+    if futures.len() < 50 {
+        println!("too few futures to fit PCA");
+        return Ok(ExitCode::SUCCESS);
+    }
+    println!("\n| PCA components | position RMSE (m) | variance kept |");
+    println!("|---|---|---|");
+    let total = Pca::fit(&futures, futures[0].len())?
+        .variances
+        .iter()
+        .sum::<f64>();
+    for k in [4, 8, 12, 16, 24, 32] {
+        let p = Pca::fit(&futures, k)?;
+        println!(
+            "| {k} | {:.3} | {:.5} |",
+            p.position_rmse(&futures),
+            p.variances.iter().sum::<f64>() / total
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
