@@ -1,5 +1,12 @@
-//! The diffusion model's pieces. So far: the PCA space of future trajectories.
+//! The diffusion model (candle): the PCA space of future trajectories, MiniPointNet and agent
+//! encoders, relative attention, the denoiser and EDM preconditioning. One concept per file.
 
+pub mod attention;
+pub mod denoiser;
+pub mod edm;
+pub mod encoder;
 pub mod pca;
 
+pub use denoiser::{Context, Denoiser, DenoiserConfig};
+pub use edm::Edm;
 pub use pca::{Pca, PcaError};

@@ -83,6 +83,9 @@ pub struct Window {
     pub lanes: Vec<[f32; 2]>,
     /// Lane ids (length ≤ `max_lanes`); lanes beyond are padding.
     pub lane_ids: Vec<i64>,
+    /// `[lane i][lane j]` connectivity, `max_lanes × max_lanes`: 0 none, 1 j precedes i,
+    /// 2 j succeeds i, 3 j is i's left neighbour, 4 its right neighbour.
+    pub lane_conn: Vec<u8>,
 }
 
 /// Pose of `p` (world) in the frame at `origin`.
@@ -166,6 +169,24 @@ fn window(scene: &Scene, cfg: &WindowConfig, c: usize, centre: usize) -> Window 
             lanes[k * cfg.lane_points + j] = [f[0] as f32, f[1] as f32];
         }
     }
+    let m = cfg.max_lanes;
+    let mut lane_conn = vec![0u8; m * m];
+    let g = scene.map.graph();
+    for (i, &a) in lane_ids.iter().enumerate() {
+        for (j, &b) in lane_ids.iter().enumerate() {
+            lane_conn[i * m + j] = if g.predecessors(a).contains(&b) {
+                1
+            } else if g.successors(a).contains(&b) {
+                2
+            } else if g.left_neighbors(a).contains(&b) {
+                3
+            } else if g.right_neighbors(a).contains(&b) {
+                4
+            } else {
+                0
+            };
+        }
+    }
     Window {
         scene_id: scene.meta.scenario_id.clone(),
         current: c,
@@ -175,6 +196,7 @@ fn window(scene: &Scene, cfg: &WindowConfig, c: usize, centre: usize) -> Window 
         valid,
         lanes,
         lane_ids,
+        lane_conn,
     }
 }
 

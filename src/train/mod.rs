@@ -1,5 +1,13 @@
-//! Training data for the diffusion model: windows cut from scenes.
+//! Training the diffusion model: windows cut from scenes, their tensors, and the EDM training
+//! loop with checkpoints.
 
+pub mod batch;
 pub mod dataset;
+pub mod rng;
+pub mod trainer;
 
+pub use batch::{build, Batch, Normaliser};
 pub use dataset::{windows, Window, WindowConfig};
+pub use trainer::{
+    is_validation, load, save, train, CheckpointMeta, TrainConfig, TrainError, Trained,
+};

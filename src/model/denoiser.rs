@@ -1,0 +1,140 @@
+//! The denoiser `D_θ(x; m, σ)`: MiniPointNet lanes refined by lane-lane attention (encoded once
+//! per scene), agents encoded from their history, noisy PCA coefficients and the noise level,
+//! then alternating agent-lane and agent-agent attention, and a head back to PCA coefficients,
+//! all under EDM preconditioning.
+
+use candle_core::{Module, Result, Tensor};
+use candle_nn::{linear, Linear, VarBuilder};
+use serde::{Deserialize, Serialize};
+
+use super::attention::RelAttention;
+use super::edm::Edm;
+use super::encoder::{noise_features, AgentEncoder, MiniPointNet};
+
+/// Sizes of the network.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct DenoiserConfig {
+    /// Feature width.
+    pub d: usize,
+    /// Attention layers per module (lane-lane, agent-lane, agent-agent).
+    pub layers: usize,
+    /// PCA components per agent.
+    pub k: usize,
+    /// History steps fed to the agent encoder.
+    pub history: usize,
+    /// Fourier frequencies of the noise embedding.
+    pub noise_freqs: usize,
+}
+
+/// Tensors describing the map and the agents of a batch of windows (see `train::batch`).
+#[derive(Debug, Clone)]
+pub struct Context {
+    /// Lane points in each lane's own frame, `[B, M, P, 2]`.
+    pub lane_points: Tensor,
+    /// 1 for lanes present, `[B, M]`.
+    pub lane_mask: Tensor,
+    /// Lane j's pose in lane i's frame, `[B, M, M, 4]`.
+    pub lane_rel: Tensor,
+    /// Lane connectivity kinds, `[B, M, M]` (u32).
+    pub lane_conn: Tensor,
+    /// History features per agent, `[B, N, history·4]`.
+    pub agent_hist: Tensor,
+    /// 1 for agents present, `[B, N]`.
+    pub agent_mask: Tensor,
+    /// Lane j's pose in agent i's frame, `[B, N, M, 4]`.
+    pub agent_lane_rel: Tensor,
+    /// Agent j's pose in agent i's frame, `[B, N, N, 4]`.
+    pub agent_rel: Tensor,
+}
+
+/// The denoiser network.
+#[derive(Debug, Clone)]
+pub struct Denoiser {
+    cfg: DenoiserConfig,
+    lanes: MiniPointNet,
+    lane_lane: Vec<RelAttention>,
+    agents: AgentEncoder,
+    agent_lane: Vec<RelAttention>,
+    agent_agent: Vec<RelAttention>,
+    head1: Linear,
+    head2: Linear,
+    edm: Edm,
+}
+
+impl Denoiser {
+    /// Builds the network's variables under `vb`.
+    pub fn new(cfg: DenoiserConfig, edm: Edm, vb: VarBuilder) -> Result<Self> {
+        let d = cfg.d;
+        let stack = |name: &str, conn: bool| -> Result<Vec<RelAttention>> {
+            (0..cfg.layers)
+                .map(|i| RelAttention::new(d, conn, vb.pp(format!("{name}{i}"))))
+                .collect()
+        };
+        Ok(Self {
+            lanes: MiniPointNet::new(d, vb.pp("lanes"))?,
+            lane_lane: stack("lane_lane", true)?,
+            agents: AgentEncoder::new(
+                cfg.history * 4 + cfg.k + 2 * cfg.noise_freqs,
+                d,
+                vb.pp("agents"),
+            )?,
+            agent_lane: stack("agent_lane", false)?,
+            agent_agent: stack("agent_agent", false)?,
+            head1: linear(d, d, vb.pp("head1"))?,
+            head2: linear(d, cfg.k, vb.pp("head2"))?,
+            cfg,
+            edm,
+        })
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &DenoiserConfig {
+        &self.cfg
+    }
+
+    /// Lane features after lane-lane attention, `[B, M, d]`: depends only on the map, so a
+    /// sampler computes it once per scene.
+    pub fn encode_map(&self, ctx: &Context) -> Result<Tensor> {
+        let mut x = self.lanes.forward(&ctx.lane_points)?;
+        for l in &self.lane_lane {
+            x = l.forward(&x, &x, &ctx.lane_rel, &ctx.lane_mask, Some(&ctx.lane_conn))?;
+        }
+        Ok(x)
+    }
+
+    /// `D(x; σ)` for noisy coefficients `x` `[B, N, K]` and noise levels `sigma` (one per
+    /// window), given the encoded map.
+    pub fn denoise(
+        &self,
+        ctx: &Context,
+        map: &Tensor,
+        x: &Tensor,
+        sigma: &[f64],
+    ) -> Result<Tensor> {
+        let dev = x.device();
+        let b = sigma.len();
+        let pre: Vec<(f64, f64, f64, f64)> =
+            sigma.iter().map(|s| self.edm.precondition(*s)).collect();
+        let col = |f: fn(&(f64, f64, f64, f64)) -> f64| -> Result<Tensor> {
+            Tensor::from_vec(
+                pre.iter().map(|p| f(p) as f32).collect::<Vec<_>>(),
+                (b, 1, 1),
+                dev,
+            )
+        };
+        let (c_skip, c_out, c_in) = (col(|p| p.0)?, col(|p| p.1)?, col(|p| p.2)?);
+        let c_noise = Tensor::from_vec(pre.iter().map(|p| p.3 as f32).collect::<Vec<_>>(), b, dev)?;
+        let n = x.dim(1)?;
+        let noise = noise_features(&c_noise, self.cfg.noise_freqs)?
+            .unsqueeze(1)?
+            .repeat((1, n, 1))?;
+        let feats = Tensor::cat(&[ctx.agent_hist.clone(), x.broadcast_mul(&c_in)?, noise], 2)?;
+        let mut a = self.agents.forward(&feats)?;
+        for (al, aa) in self.agent_lane.iter().zip(&self.agent_agent) {
+            a = al.forward(&a, map, &ctx.agent_lane_rel, &ctx.lane_mask, None)?;
+            a = aa.forward(&a, &a, &ctx.agent_rel, &ctx.agent_mask, None)?;
+        }
+        let f = self.head2.forward(&self.head1.forward(&a)?.relu()?)?;
+        x.broadcast_mul(&c_skip)? + f.broadcast_mul(&c_out)?
+    }
+}

@@ -1,0 +1,184 @@
+//! Windows → tensors: the denoiser's [`Context`] and the normalised PCA targets.
+
+use candle_core::{Device, Result, Tensor};
+
+use super::dataset::{Window, WindowConfig};
+use crate::model::{Context, Pca};
+
+/// Metres per unit of the relative-pose features (keeps them near 1).
+pub const REL_SCALE: f32 = 50.0;
+/// Metres per unit of lane points and history positions.
+pub const POS_SCALE: f32 = 10.0;
+
+/// `(Δx, Δy, cos Δθ, sin Δθ)` of pose `j` in pose `i`'s frame, positions scaled.
+pub fn rel(i: [f32; 3], j: [f32; 3]) -> [f32; 4] {
+    let (s, c) = i[2].sin_cos();
+    let (dx, dy) = (j[0] - i[0], j[1] - i[1]);
+    let dh = j[2] - i[2];
+    [
+        (c * dx + s * dy) / REL_SCALE,
+        (-s * dx + c * dy) / REL_SCALE,
+        dh.cos(),
+        dh.sin(),
+    ]
+}
+
+/// Pose of lane `k` of a window: its first point and the direction to its second.
+fn lane_pose(w: &Window, cfg: &WindowConfig, k: usize) -> [f32; 3] {
+    let p = &w.lanes[k * cfg.lane_points..(k + 1) * cfg.lane_points];
+    [
+        p[0][0],
+        p[0][1],
+        (p[1][1] - p[0][1]).atan2(p[1][0] - p[0][0]),
+    ]
+}
+
+/// A batch: the context, the normalised target coefficients `[B, N, K]` and the loss mask
+/// `[B, N]` (agents whose whole future is known).
+pub struct Batch {
+    /// Model inputs.
+    pub ctx: Context,
+    /// Targets (zeros where unknown).
+    pub target: Tensor,
+    /// 1 where the target is known.
+    pub loss_mask: Tensor,
+}
+
+/// PCA plus per-component scaling to the EDM data standard deviation.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Normaliser {
+    /// The basis.
+    pub pca: Pca,
+    /// Standard deviation of each coefficient on the training set.
+    pub std: Vec<f64>,
+    /// Target standard deviation (EDM's σ_data).
+    pub sigma_data: f64,
+}
+
+impl Normaliser {
+    /// From a fitted basis.
+    pub fn new(pca: Pca, sigma_data: f64) -> Self {
+        let std = pca.variances.iter().map(|v| v.sqrt().max(1e-6)).collect();
+        Self {
+            pca,
+            std,
+            sigma_data,
+        }
+    }
+
+    /// Normalised coefficients of a future (`future × 3`, agent frame).
+    pub fn encode(&self, v: &[f64]) -> Vec<f32> {
+        self.pca
+            .encode(v)
+            .iter()
+            .zip(&self.std)
+            .map(|(c, s)| (c / s * self.sigma_data) as f32)
+            .collect()
+    }
+
+    /// The future (`future × 3`, agent frame) of normalised coefficients.
+    pub fn decode(&self, c: &[f32]) -> Vec<f64> {
+        let raw: Vec<f64> = c
+            .iter()
+            .zip(&self.std)
+            .map(|(c, s)| *c as f64 * s / self.sigma_data)
+            .collect();
+        self.pca.decode(&raw)
+    }
+}
+
+/// Builds the tensors of `windows`.
+pub fn build(
+    windows: &[&Window],
+    cfg: &WindowConfig,
+    norm: &Normaliser,
+    dev: &Device,
+) -> Result<Batch> {
+    let (b, n, m, p, h, k) = (
+        windows.len(),
+        cfg.max_agents,
+        cfg.max_lanes,
+        cfg.lane_points,
+        cfg.history,
+        norm.pca.k(),
+    );
+    let steps = cfg.steps();
+    let mut lane_points = vec![0f32; b * m * p * 2];
+    let mut lane_mask = vec![0f32; b * m];
+    let mut lane_rel = vec![0f32; b * m * m * 4];
+    let mut lane_conn = vec![0u32; b * m * m];
+    let mut agent_hist = vec![0f32; b * n * h * 4];
+    let mut agent_mask = vec![0f32; b * n];
+    let mut agent_lane_rel = vec![0f32; b * n * m * 4];
+    let mut agent_rel = vec![0f32; b * n * n * 4];
+    let mut target = vec![0f32; b * n * k];
+    let mut loss_mask = vec![0f32; b * n];
+    for (wi, w) in windows.iter().enumerate() {
+        let nl = w.lane_ids.len();
+        let poses: Vec<[f32; 3]> = (0..nl).map(|l| lane_pose(w, cfg, l)).collect();
+        for (l, pose) in poses.iter().enumerate() {
+            lane_mask[wi * m + l] = 1.0;
+            let (s, c) = pose[2].sin_cos();
+            for j in 0..p {
+                let q = w.lanes[l * p + j];
+                let (dx, dy) = (q[0] - pose[0], q[1] - pose[1]);
+                let o = ((wi * m + l) * p + j) * 2;
+                lane_points[o] = (c * dx + s * dy) / POS_SCALE;
+                lane_points[o + 1] = (-s * dx + c * dy) / POS_SCALE;
+            }
+            for (l2, pose2) in poses.iter().enumerate() {
+                let o = ((wi * m + l) * m + l2) * 4;
+                lane_rel[o..o + 4].copy_from_slice(&rel(*pose, *pose2));
+                lane_conn[(wi * m + l) * m + l2] = w.lane_conn[l * m + l2] as u32;
+            }
+        }
+        let na = w.agents.len();
+        let cur: Vec<[f32; 3]> = (0..na).map(|a| w.states[a * steps + h - 1]).collect();
+        for a in 0..na {
+            if !w.valid[a * steps + h - 1] {
+                continue;
+            }
+            agent_mask[wi * n + a] = 1.0;
+            let (s, c) = cur[a][2].sin_cos();
+            for t in 0..h {
+                if w.valid[a * steps + t] {
+                    let st = w.states[a * steps + t];
+                    let (dx, dy) = (st[0] - cur[a][0], st[1] - cur[a][1]);
+                    let o = ((wi * n + a) * h + t) * 4;
+                    agent_hist[o] = (c * dx + s * dy) / POS_SCALE;
+                    agent_hist[o + 1] = (-s * dx + c * dy) / POS_SCALE;
+                    agent_hist[o + 2] = st[2] - cur[a][2];
+                    agent_hist[o + 3] = 1.0;
+                }
+            }
+            for (l, pose) in poses.iter().enumerate() {
+                let o = ((wi * n + a) * m + l) * 4;
+                agent_lane_rel[o..o + 4].copy_from_slice(&rel(cur[a], *pose));
+            }
+            for a2 in 0..na {
+                let o = ((wi * n + a) * n + a2) * 4;
+                agent_rel[o..o + 4].copy_from_slice(&rel(cur[a], cur[a2]));
+            }
+            if let Some(f) = w.agent_future(cfg, a) {
+                let coeffs = norm.encode(&f);
+                target[(wi * n + a) * k..(wi * n + a + 1) * k].copy_from_slice(&coeffs);
+                loss_mask[wi * n + a] = 1.0;
+            }
+        }
+    }
+    let t = |v: Vec<f32>, shape: &[usize]| Tensor::from_vec(v, shape, dev);
+    Ok(Batch {
+        ctx: Context {
+            lane_points: t(lane_points, &[b, m, p, 2])?,
+            lane_mask: t(lane_mask, &[b, m])?,
+            lane_rel: t(lane_rel, &[b, m, m, 4])?,
+            lane_conn: Tensor::from_vec(lane_conn, (b, m, m), dev)?,
+            agent_hist: t(agent_hist, &[b, n, h * 4])?,
+            agent_mask: t(agent_mask, &[b, n])?,
+            agent_lane_rel: t(agent_lane_rel, &[b, n, m, 4])?,
+            agent_rel: t(agent_rel, &[b, n, n, 4])?,
+        },
+        target: t(target, &[b, n, k])?,
+        loss_mask: t(loss_mask, &[b, n])?,
+    })
+}
