@@ -10,6 +10,7 @@ mod inspect;
 mod render;
 mod stdlib_doc;
 mod test_scripts;
+mod train;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -54,6 +55,11 @@ enum Command {
   drivescript dataset ../shared/data/commonroad-ngsim
   drivescript dataset data/samples --history 11 --future 30")]
     Dataset(dataset::Args),
+    /// Train the diffusion model (EDM) on scenes; checkpoints as safetensors + JSON.
+    #[command(after_help = "Examples:
+  drivescript train --data ../shared/data/commonroad-ngsim --out runs/ngsim --steps 20000
+  drivescript train --data scripts/scenes --out /tmp/tiny --steps 50 --batch 4")]
+    Train(train::Args),
     /// Score baselines or rollouts: conditional, unconditional or behaviour tables.
     #[command(after_help = "Examples:
   drivescript eval ../shared/data/commonroad-ngsim --task conditional
@@ -86,6 +92,7 @@ pub fn run() -> ExitCode {
         Command::Convert(a) => convert::run(a),
         Command::Cost(a) => cost::run(a),
         Command::Eval(a) => eval::run(a),
+        Command::Train(a) => train::run(a),
         Command::Dataset(a) => dataset::run(a),
         Command::Demo(a) => demo::run(a),
         Command::StdlibDoc(a) => stdlib_doc::run(a),
