@@ -12,5 +12,6 @@ pub mod geom;
 pub mod io;
 pub mod model;
 pub mod render;
+pub mod sample;
 pub mod scene;
 pub mod train;

@@ -34,35 +34,66 @@ pub struct Args {
 }
 
 fn git_revision() -> Option<String> {
-    let out = std::process::Command::new("git").args(["rev-parse", "HEAD"]).output().ok()?;
-    out.status.success().then(|| String::from_utf8_lossy(&out.stdout).trim().to_string())
+    let out = std::process::Command::new("git")
+        .args(["rev-parse", "HEAD"])
+        .output()
+        .ok()?;
+    out.status
+        .success()
+        .then(|| String::from_utf8_lossy(&out.stdout).trim().to_string())
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
     let mut scenes = Vec::new();
     for root in &args.data {
         for src in discover(root)? {
-            scenes.extend(load_scenes(&src, &LoadOptions::default()).with_context(|| format!("loading {}", src.display()))?);
+            scenes.extend(
+                load_scenes(&src, &LoadOptions::default())
+                    .with_context(|| format!("loading {}", src.display()))?,
+            );
         }
     }
-    let cfg = TrainConfig { steps: args.steps, batch: args.batch, lr: args.lr, seed: args.seed, eval_every: args.eval_every, ..TrainConfig::ngsim() };
-    println!("{} scenes; window {} + {} steps, {} agents, {} lanes", scenes.len(), cfg.window.history, cfg.window.future, cfg.window.max_agents, cfg.window.max_lanes);
+    let cfg = TrainConfig {
+        steps: args.steps,
+        batch: args.batch,
+        lr: args.lr,
+        seed: args.seed,
+        eval_every: args.eval_every,
+        ..TrainConfig::ngsim()
+    };
+    println!(
+        "{} scenes; window {} + {} steps, {} agents, {} lanes",
+        scenes.len(),
+        cfg.window.history,
+        cfg.window.future,
+        cfg.window.max_agents,
+        cfg.window.max_lanes
+    );
     let bar = ProgressBar::new(args.steps as u64);
-    bar.set_style(ProgressStyle::with_template("{bar:40} {pos}/{len} steps  {per_sec}  ETA {eta}  {msg}").expect("valid template"));
+    bar.set_style(
+        ProgressStyle::with_template("{bar:40} {pos}/{len} steps  {per_sec}  ETA {eta}  {msg}")
+            .expect("valid template"),
+    );
     let mut last_val = None;
     let mut avg = None::<f64>;
-    let t = train(&scenes, cfg, Some(&args.out), git_revision(), |_, loss, val| {
-        avg = Some(avg.map_or(loss, |a| 0.98 * a + 0.02 * loss));
-        if val.is_some() {
-            last_val = val;
-        }
-        bar.set_message(format!(
-            "loss {:.4}  val {}",
-            avg.unwrap_or(loss),
-            last_val.map_or("-".into(), |v| format!("{v:.4}"))
-        ));
-        bar.inc(1);
-    })?;
+    let t = train(
+        &scenes,
+        cfg,
+        Some(&args.out),
+        git_revision(),
+        |_, loss, val| {
+            avg = Some(avg.map_or(loss, |a| 0.98 * a + 0.02 * loss));
+            if val.is_some() {
+                last_val = val;
+            }
+            bar.set_message(format!(
+                "loss {:.4}  val {}",
+                avg.unwrap_or(loss),
+                last_val.map_or("-".into(), |v| format!("{v:.4}"))
+            ));
+            bar.inc(1);
+        },
+    )?;
     bar.finish();
     println!(
         "trained {} steps on {} scenes ({} held out); PCA position RMSE {:.3} m; wrote {}",
@@ -73,7 +104,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
         args.out.display()
     );
     for (step, tl, vl) in &t.meta.history {
-        println!("step {step:>6}  train {tl:.4}  val {}", vl.map_or("-".into(), |v| format!("{v:.4}")));
+        println!(
+            "step {step:>6}  train {tl:.4}  val {}",
+            vl.map_or("-".into(), |v| format!("{v:.4}"))
+        );
     }
     Ok(ExitCode::SUCCESS)
 }

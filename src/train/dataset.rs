@@ -126,6 +126,13 @@ pub fn windows(scene: &Scene, cfg: &WindowConfig) -> Vec<Window> {
     out
 }
 
+/// The window at scene step `c` centred on agent index `centre` (which must be observed at
+/// `c`). Steps outside the scene (before its start or after its end) are unobserved, so this
+/// also serves inference, where the future is what the model generates.
+pub fn window_at(scene: &Scene, cfg: &WindowConfig, c: usize, centre: usize) -> Window {
+    window(scene, cfg, c, centre)
+}
+
 fn window(scene: &Scene, cfg: &WindowConfig, c: usize, centre: usize) -> Window {
     let s0 = scene.agents[centre].states[c];
     let origin = [s0.x, s0.y, s0.heading];
@@ -141,8 +148,13 @@ fn window(scene: &Scene, cfg: &WindowConfig, c: usize, centre: usize) -> Window 
     let mut states = vec![[0f32; 3]; cfg.max_agents * steps];
     let mut valid = vec![false; cfg.max_agents * steps];
     for (k, &i) in agents.iter().enumerate() {
-        for (j, t) in (c + 1 - cfg.history..=c + cfg.future).enumerate() {
-            let s = scene.agents[i].states[t];
+        for j in 0..steps {
+            let Some(s) = (c + 1 + j)
+                .checked_sub(cfg.history)
+                .and_then(|t| scene.agents[i].states.get(t))
+            else {
+                continue;
+            };
             if s.valid {
                 let f = to_frame(origin, s.position(), s.heading);
                 states[k * steps + j] = [f[0] as f32, f[1] as f32, f[2] as f32];

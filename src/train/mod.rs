@@ -7,7 +7,7 @@ pub mod rng;
 pub mod trainer;
 
 pub use batch::{build, Batch, Normaliser};
-pub use dataset::{windows, Window, WindowConfig};
+pub use dataset::{window_at, windows, Window, WindowConfig};
 pub use trainer::{
     is_validation, load, save, train, CheckpointMeta, TrainConfig, TrainError, Trained,
 };
