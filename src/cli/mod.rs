@@ -8,6 +8,7 @@ mod demo;
 mod eval;
 mod inspect;
 mod render;
+mod simulate;
 mod stdlib_doc;
 mod test_scripts;
 mod train;
@@ -55,6 +56,11 @@ enum Command {
   drivescript dataset ../shared/data/commonroad-ngsim
   drivescript dataset data/samples --history 11 --future 30")]
     Dataset(dataset::Args),
+    /// Sample futures of a scene with the diffusion model, guided by cost scripts.
+    #[command(after_help = "Examples:
+  drivescript simulate scene.yaml --checkpoint runs/ngsim --script scripts/cut_in.rhai --param cutter=2 victim=1 -o out/sim
+  drivescript simulate scene.xml --checkpoint runs/ngsim --task unconditional --samples 4 -o out/uncond")]
+    Simulate(simulate::Args),
     /// Train the diffusion model (EDM) on scenes; checkpoints as safetensors + JSON.
     #[command(after_help = "Examples:
   drivescript train --data ../shared/data/commonroad-ngsim --out runs/ngsim --steps 20000
@@ -93,6 +99,7 @@ pub fn run() -> ExitCode {
         Command::Cost(a) => cost::run(a),
         Command::Eval(a) => eval::run(a),
         Command::Train(a) => train::run(a),
+        Command::Simulate(a) => simulate::run(a),
         Command::Dataset(a) => dataset::run(a),
         Command::Demo(a) => demo::run(a),
         Command::StdlibDoc(a) => stdlib_doc::run(a),

@@ -104,6 +104,9 @@ pub fn prepare(scene: &Scene, trained: &Trained) -> Result<Scene, SampleError> {
 pub struct Sample {
     /// The simulated scene (history kept, future generated).
     pub scene: Scene,
+    /// The cost scripts' report on the first denoised estimate (before any guidance), per
+    /// script.
+    pub initial_reports: Vec<CostReport>,
     /// The cost scripts' report on the final trajectories, per script.
     pub reports: Vec<CostReport>,
 }
@@ -223,6 +226,7 @@ pub fn sample(
         .iter()
         .map(|a| a.states.last().filter(|s| s.valid).map(|s| (s.x, s.y)))
         .collect();
+    let initial: std::cell::RefCell<Vec<Vec<CostReport>>> = std::cell::RefCell::new(Vec::new());
     let guided = |x: &Tensor, sigma: f64, step: usize| -> Result<Tensor, SampleError> {
         let sig = vec![sigma; kk];
         let (d, xv) = if cfg.guidance == Guidance::Denoiser && (cfg.lambda > 0.0) {
@@ -246,13 +250,19 @@ pub fn sample(
         }
         let trajs = plan.trajectories(&dv);
         let mut g = vec![0f32; kk * n * k];
+        let first = initial.borrow().is_empty();
         for (s, t) in trajs.iter().enumerate() {
             let mut world = vec![0.0; t.layout.len()];
+            let mut reports = Vec::with_capacity(scripts.len());
             for script in scripts {
                 let r = script.evaluate(t)?;
                 for (w, v) in world.iter_mut().zip(&r.gradient) {
                     *w += v;
                 }
+                reports.push(r);
+            }
+            if first {
+                initial.borrow_mut().push(reports);
             }
             if cfg.task == Task::Conditional {
                 for &(_, ai, _) in &plan.slots {
@@ -332,8 +342,12 @@ pub fn sample(
             .collect::<Result<Vec<_>, _>>()?;
         out.push(Sample {
             scene: sim,
+            initial_reports: Vec::new(),
             reports,
         });
+    }
+    for (o, r) in out.iter_mut().zip(initial.into_inner()) {
+        o.initial_reports = r;
     }
     Ok(out)
 }
