@@ -417,3 +417,67 @@ fn eval_prints_tables_for_baselines_and_rollouts() {
     ]);
     assert!(err.contains("unknown behaviour \"dance\""), "{err}");
 }
+
+#[test]
+fn train_then_simulate_end_to_end() {
+    let dir = tempfile::tempdir().unwrap();
+    let ckpt = dir.path().join("ckpt");
+    let out = ok(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--out",
+        s(&ckpt),
+        "--steps",
+        "4",
+        "--batch",
+        "2",
+        "--eval-every",
+        "2",
+    ]);
+    assert!(out.contains("trained 4 steps"), "{out}");
+    assert!(ckpt.join("model.safetensors").exists() && ckpt.join("config.json").exists());
+    let sim = dir.path().join("sim");
+    let out = ok(&[
+        "simulate",
+        s(&samples().join("yaml/highway_cut_in.yaml")),
+        "--checkpoint",
+        s(&ckpt),
+        "--script",
+        "scripts/cut_in.rhai",
+        "--param",
+        "cutter=2",
+        "victim=1",
+        "--samples",
+        "2",
+        "--steps",
+        "4",
+        "-o",
+        s(&sim),
+    ]);
+    assert!(
+        out.contains("ends_in_victim_lane") && out.contains("2 samples"),
+        "{out}"
+    );
+    for f in [
+        "sample_0.json",
+        "sample_1.json",
+        "sample_0.gif",
+        "costs.json",
+    ] {
+        assert!(sim.join(f).exists(), "{f} missing");
+    }
+    // The rollouts are scored like anyone else's.
+    let r: Value =
+        serde_json::from_str(&std::fs::read_to_string(sim.join("sample_0.json")).unwrap()).unwrap();
+    assert_eq!(r["format"], "drivescript-rollout");
+    let err = fails(&[
+        "simulate",
+        s(&samples().join("yaml/highway_cut_in.yaml")),
+        "--checkpoint",
+        s(&dir.path().join("nope")),
+        "-o",
+        s(&sim),
+    ]);
+    assert!(err.contains("config.json"), "{err}");
+}

@@ -33,6 +33,9 @@ enum What {
     Io,
     /// Cost + gradient of scripts against the same costs hand-written in Rust.
     Cost,
+    /// Diffusion sampling (unguided, guided in output space, guided through the denoiser) and
+    /// training steps, at the paper's sizes (24 agents, 200 lanes, 32 steps).
+    Sample,
 }
 
 /// Runs `f` (which handles `n` items) until `min` has passed; returns items per second.
@@ -71,6 +74,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     match args.what {
         What::Io => bench_io(&args, min),
         What::Cost => bench_cost(&args, min),
+        What::Sample => bench_sample(&args),
     }
 }
 
@@ -249,6 +253,108 @@ fn bench_cost(args: &Args, min: Duration) -> Result<ExitCode> {
         });
         println!("| {name:<34} | {ts:>9.1} | {th:>15.1} | {:>5.2} | {total:>12.5} | {hand_total:>18.5} |", ts / th);
     }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Peak resident memory of this process so far, from /proc (Linux), in MiB.
+fn peak_rss_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / 1024.0)
+}
+
+fn bench_sample(args: &Args) -> Result<ExitCode> {
+    use drivescript::cost::{CostScript, Limits, Params};
+    use drivescript::model::{DenoiserConfig, Edm};
+    use drivescript::sample::{prepare, sample, Guidance, SampleConfig, Task};
+    use drivescript::train::{train, TrainConfig, WindowConfig};
+    use std::rc::Rc;
+    let samples = super::samples_dir();
+    // A model of the paper's sizes; one training step is enough for timing.
+    let window = WindowConfig {
+        history: 11,
+        future: 80,
+        max_agents: 24,
+        max_lanes: 200,
+        lane_points: 20,
+        stride: 10,
+        centres_per_step: 8,
+    };
+    let path = args
+        .scene
+        .clone()
+        .unwrap_or_else(|| samples.join("commonroad/USA_US101-4_1_T-1.xml"));
+    let scene = drivescript::io::load_scene(&path, 0, &LoadOptions::default())?;
+    let steps = 3;
+    let cfg = TrainConfig {
+        steps,
+        batch: 4,
+        window,
+        model: DenoiserConfig {
+            d: 64,
+            layers: 3,
+            k: 12,
+            history: 11,
+            noise_freqs: 8,
+        },
+        edm: Edm::default(),
+        eval_every: 1000,
+        ..TrainConfig::ngsim()
+    };
+    let mut step_times = Vec::new();
+    let mut last = Instant::now();
+    let trained = train(std::slice::from_ref(&scene), cfg, None, None, |_, _, _| {
+        step_times.push(last.elapsed().as_secs_f64());
+        last = Instant::now();
+    })?;
+    let per_step = step_times[1..].iter().sum::<f64>() / (step_times.len() - 1) as f64;
+    let sim = prepare(&scene, &trained)?;
+    let src = std::fs::read_to_string(samples.join("../../scripts/no_collisions.rhai"))?;
+    let script = CostScript::compile(
+        &src,
+        "no_collisions.rhai",
+        Rc::new(sim.clone()),
+        &Params::default(),
+        &Limits::default(),
+    )?;
+    println!(
+        "scene {} ({} agents, {} lanes) in a window of 24 agents and 200 lanes (padded); model d = 64, 3 layers per attention module, 12 PCA components; 32 Heun steps (63 denoiser calls), batch of 1\n",
+        scene.meta.scenario_id,
+        scene.agents.len(),
+        scene.map.lanes().len()
+    );
+    println!("| what | seconds |\n|---|---|");
+    println!("| training step (batch 4 windows, forward + backward + AdamW) | {per_step:.3} |");
+    for (name, lambda, g) in [
+        ("sampling, unguided", 0.0, Guidance::OutputSpace),
+        (
+            "sampling, guided in output space (no_collisions)",
+            0.05,
+            Guidance::OutputSpace,
+        ),
+        (
+            "sampling, guided through the denoiser (no_collisions)",
+            0.05,
+            Guidance::Denoiser,
+        ),
+    ] {
+        let cfg = SampleConfig {
+            steps: 32,
+            samples: 1,
+            lambda,
+            guidance: g,
+            task: Task::Unconditional,
+            ..SampleConfig::default()
+        };
+        let t = Instant::now();
+        sample(&trained, &sim, std::slice::from_ref(&script), &cfg)?;
+        println!("| {name} | {:.3} |", t.elapsed().as_secs_f64());
+    }
+    println!(
+        "\npeak resident memory: {}",
+        peak_rss_mib().map_or("unknown".into(), |m| format!("{m:.0} MiB"))
+    );
     Ok(ExitCode::SUCCESS)
 }
 
