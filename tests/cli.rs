@@ -460,17 +460,48 @@ fn train_then_simulate_end_to_end() {
         "{out}"
     );
     for f in [
-        "sample_0.json",
-        "sample_1.json",
-        "sample_0.gif",
-        "costs.json",
+        "highway-cut-in_0.json",
+        "highway-cut-in_1.json",
+        "highway-cut-in_0.gif",
+        "highway-cut-in_costs.json",
     ] {
         assert!(sim.join(f).exists(), "{f} missing");
     }
     // The rollouts are scored like anyone else's.
     let r: Value =
-        serde_json::from_str(&std::fs::read_to_string(sim.join("sample_0.json")).unwrap()).unwrap();
+        serde_json::from_str(&std::fs::read_to_string(sim.join("highway-cut-in_0.json")).unwrap())
+            .unwrap();
     assert_eq!(r["format"], "drivescript-rollout");
+    let out = ok(&[
+        "eval",
+        s(&samples().join("yaml/highway_cut_in.yaml")),
+        "--task",
+        "behaviour",
+        "--behaviour",
+        "cut_in",
+        "--param",
+        "cutter=2",
+        "victim=1",
+        "--rollouts",
+        s(&sim),
+        "--samples",
+        "2",
+    ]);
+    assert!(out.contains("| cut_in | 1 |"), "{out}");
+    // Closed loop re-plans every 0.5 s over the model's 4 s horizon.
+    let cl = dir.path().join("cl");
+    let out = ok(&[
+        "simulate",
+        s(&samples().join("yaml/highway_cut_in.yaml")),
+        "--checkpoint",
+        s(&ckpt),
+        "--closed-loop",
+        "--steps",
+        "2",
+        "-o",
+        s(&cl),
+    ]);
+    assert!(out.contains("highway-cut-in: 1 samples"), "{out}");
     let err = fails(&[
         "simulate",
         s(&samples().join("yaml/highway_cut_in.yaml")),

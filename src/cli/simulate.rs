@@ -6,9 +6,9 @@ use std::rc::Rc;
 
 use anyhow::{Context, Result};
 use drivescript::cost::{CostScript, Limits, Params};
-use drivescript::io::{load_scene, rollout::Rollout, LoadOptions};
+use drivescript::io::{discover, load_scenes, rollout::Rollout, LoadOptions};
 use drivescript::render::RenderOptions;
-use drivescript::sample::{prepare, sample, Guidance, SampleConfig, Task};
+use drivescript::sample::{closed_loop, prepare, sample, Guidance, SampleConfig, ScriptSpec, Task};
 use drivescript::train::load;
 
 #[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -29,11 +29,9 @@ enum GuidanceArg {
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// The scene file or directory.
-    scene: PathBuf,
-    /// Which scene of a multi-scene source.
-    #[arg(long, default_value_t = 0)]
-    index: usize,
+    /// Scene files or directories (every scene of each is simulated).
+    #[arg(required = true)]
+    scenes: Vec<PathBuf>,
     /// Conditioning.
     #[arg(long, value_enum, default_value = "conditional")]
     task: TaskArg,
@@ -58,35 +56,32 @@ pub struct Args {
     /// Where the guidance gradient is taken.
     #[arg(long, value_enum, default_value = "denoiser")]
     guidance: GuidanceArg,
+    /// Re-plan at 2 Hz: execute 0.5 s of each plan, then sample again from there.
+    #[arg(long)]
+    closed_loop: bool,
     /// Checkpoint directory (model.safetensors + config.json).
     #[arg(long)]
     checkpoint: PathBuf,
-    /// Output directory: sample_K.json, sample_0.gif, costs.json.
+    /// Output directory: SCENARIO_K.json per sample (what `eval --rollouts` reads),
+    /// SCENARIO_0.gif and SCENARIO_costs.json.
     #[arg(short, long)]
     output: PathBuf,
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
     let trained = load(&args.checkpoint)?;
-    let raw = load_scene(&args.scene, args.index, &LoadOptions::default())?;
-    let scene = prepare(&raw, &trained)?;
     let params = Params::parse(&args.params)?;
-    let shared = Rc::new(scene.clone());
-    let scripts = args
+    let specs = args
         .scripts
         .iter()
         .map(|p| {
-            let src =
+            let source =
                 std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
-            let s = CostScript::compile(
-                &src,
-                &p.display().to_string(),
-                shared.clone(),
-                &params,
-                &Limits::default(),
-            )?;
-            s.validate()?;
-            Ok(s)
+            Ok(ScriptSpec {
+                source,
+                name: p.display().to_string(),
+                params: params.clone(),
+            })
         })
         .collect::<Result<Vec<_>>>()?;
     let cfg = SampleConfig {
@@ -106,64 +101,81 @@ pub fn run(args: Args) -> Result<ExitCode> {
         },
         known_weight: 1.0,
     };
-    let t0 = std::time::Instant::now();
-    let samples = sample(&trained, &scene, &scripts, &cfg)?;
-    let secs = t0.elapsed().as_secs_f64();
     std::fs::create_dir_all(&args.output)
         .with_context(|| format!("creating {}", args.output.display()))?;
-    let mut report = Vec::new();
-    for (k, s) in samples.iter().enumerate() {
-        let mut r = Rollout::from_scene(&s.scene);
-        for rep in &s.reports {
-            for t in &rep.terms {
-                r.costs.insert(t.name.clone(), t.value);
-            }
-        }
-        r.write(&args.output.join(format!("sample_{k}.json")))?;
-        let terms: Vec<serde_json::Value> = s
-            .reports
-            .iter()
-            .zip(
-                s.initial_reports
-                    .iter()
-                    .map(Some)
-                    .chain(std::iter::repeat(None)),
-            )
-            .flat_map(|(fin, ini)| {
-                fin.terms.iter().map(move |t| {
-                    let before = ini.and_then(|i| i.term(&t.name)).map(|x| x.value);
-                    serde_json::json!({"term": t.name, "initial": before, "final": t.value})
-                })
-            })
-            .collect();
-        for t in &terms {
-            println!(
-                "sample {k}  {:<28} initial {:>10}  final {:>10.4}",
-                t["term"].as_str().unwrap_or(""),
-                t["initial"]
-                    .as_f64()
-                    .map_or("-".into(), |v| format!("{v:.4}")),
-                t["final"].as_f64().unwrap_or(f64::NAN)
-            );
-        }
-        report.push(serde_json::json!({"sample": k, "terms": terms}));
+    let mut sources = Vec::new();
+    for s in &args.scenes {
+        sources.extend(discover(s)?);
     }
-    drivescript::io::write_atomic(
-        &args.output.join("costs.json"),
-        serde_json::to_string_pretty(&report)?.as_bytes(),
-    )?;
-    super::render::write_picture(
-        &samples[0].scene,
-        &args.output.join("sample_0.gif"),
-        &RenderOptions {
-            width: 800,
-            ..Default::default()
-        },
-    )?;
-    println!(
-        "{} samples in {secs:.2} s; wrote {}",
-        samples.len(),
-        args.output.display()
-    );
+    for src in sources {
+        for raw in load_scenes(&src, &LoadOptions::default())? {
+            let id = raw.meta.scenario_id.clone();
+            let scene = prepare(&raw, &trained)?;
+            let t0 = std::time::Instant::now();
+            let samples = if args.closed_loop {
+                closed_loop(&trained, &raw, &specs, &cfg, 5)?
+            } else {
+                let shared = Rc::new(scene.clone());
+                let scripts = specs
+                    .iter()
+                    .map(|s| {
+                        let c = CostScript::compile(
+                            &s.source,
+                            &s.name,
+                            shared.clone(),
+                            &s.params,
+                            &Limits::default(),
+                        )?;
+                        c.validate()?;
+                        Ok(c)
+                    })
+                    .collect::<Result<Vec<_>>>()?;
+                sample(&trained, &scene, &scripts, &cfg)?
+            };
+            let secs = t0.elapsed().as_secs_f64();
+            let mut report = Vec::new();
+            for (k, s) in samples.iter().enumerate() {
+                let mut r = Rollout::from_scene(&s.scene);
+                for rep in &s.reports {
+                    for t in &rep.terms {
+                        r.costs.insert(t.name.clone(), t.value);
+                    }
+                }
+                r.write(&args.output.join(format!("{id}_{k}.json")))?;
+                let mut terms = Vec::new();
+                for (i, fin) in s.reports.iter().enumerate() {
+                    for t in &fin.terms {
+                        let before = s
+                            .initial_reports
+                            .get(i)
+                            .and_then(|r| r.term(&t.name))
+                            .map(|x| x.value);
+                        println!(
+                            "{id} sample {k}  {:<28} initial {:>10}  final {:>10.4}",
+                            t.name,
+                            before.map_or("-".into(), |v| format!("{v:.4}")),
+                            t.value
+                        );
+                        terms.push(serde_json::json!({"term": t.name, "initial": before, "final": t.value}));
+                    }
+                }
+                report.push(serde_json::json!({"sample": k, "terms": terms}));
+            }
+            drivescript::io::write_atomic(
+                &args.output.join(format!("{id}_costs.json")),
+                serde_json::to_string_pretty(&report)?.as_bytes(),
+            )?;
+            super::render::write_picture(
+                &samples[0].scene,
+                &args.output.join(format!("{id}_0.gif")),
+                &RenderOptions {
+                    width: 800,
+                    ..Default::default()
+                },
+            )?;
+            println!("{id}: {} samples in {secs:.2} s", samples.len());
+        }
+    }
+    println!("wrote {}", args.output.display());
     Ok(ExitCode::SUCCESS)
 }

@@ -1,5 +1,7 @@
-//! Sampling from the diffusion model, guided by cost scripts.
+//! Sampling from the diffusion model, guided by cost scripts, open or closed loop.
 
+pub mod closed_loop;
 pub mod guided;
 
+pub use closed_loop::{closed_loop, ScriptSpec};
 pub use guided::{prepare, sample, Guidance, Sample, SampleConfig, SampleError, Task};

@@ -1,0 +1,105 @@
+//! Closed-loop simulation: re-plan at 2 Hz. Each round samples a full future, executes its
+//! first 0.5 s (appended to the history as if observed), and samples again from there, until
+//! the model's horizon is covered.
+
+use std::rc::Rc;
+
+use super::guided::{prepare, sample, Sample, SampleConfig, SampleError};
+use crate::cost::{CostScript, Limits, Params};
+use crate::scene::Scene;
+use crate::train::Trained;
+
+/// A cost script's source, name and parameters: closed loop recompiles scripts at every round,
+/// because the scene's current step (and so the future a script sees) moves on.
+#[derive(Debug, Clone)]
+pub struct ScriptSpec {
+    /// Source text.
+    pub source: String,
+    /// Name used in messages.
+    pub name: String,
+    /// Parameters.
+    pub params: Params,
+}
+
+/// Simulates `scene` in closed loop, executing `execute` steps per round (5 = 0.5 s at 10 Hz).
+/// Returns one sample per `cfg.samples`, each over the model's horizon from the original
+/// current step; `initial_reports` are the first round's, `reports` score the executed
+/// trajectory over the whole horizon.
+pub fn closed_loop(
+    trained: &Trained,
+    scene: &Scene,
+    scripts: &[ScriptSpec],
+    cfg: &SampleConfig,
+    execute: usize,
+) -> Result<Vec<Sample>, SampleError> {
+    let future = trained.meta.config.window.future;
+    let execute = execute.clamp(1, future);
+    let start = prepare(scene, trained)?;
+    let c0 = start.meta.current_step;
+    let mut out = Vec::with_capacity(cfg.samples.max(1));
+    for k in 0..cfg.samples.max(1) {
+        let mut state = start.clone();
+        let mut done = 0;
+        let mut first_reports: Option<Vec<crate::cost::CostReport>> = None;
+        let mut round = 0u64;
+        while done < future {
+            // The scene as seen from the round's current step, with the model's full horizon.
+            let mut view = state.clone();
+            view.meta.current_step = c0 + done;
+            let view = prepare(&view, trained)?;
+            let compiled = scripts
+                .iter()
+                .map(|s| {
+                    CostScript::compile(
+                        &s.source,
+                        &s.name,
+                        Rc::new(view.clone()),
+                        &s.params,
+                        &Limits::default(),
+                    )
+                })
+                .collect::<Result<Vec<_>, _>>()?;
+            let round_cfg = SampleConfig {
+                samples: 1,
+                seed: cfg.seed.wrapping_add(1000 * k as u64 + round),
+                ..*cfg
+            };
+            let s = sample(trained, &view, &compiled, &round_cfg)?.remove(0);
+            let take = execute.min(future - done);
+            for (a, b) in state.agents.iter_mut().zip(&s.scene.agents) {
+                for t in 0..take {
+                    let step = c0 + done + 1 + t;
+                    if step < a.states.len() {
+                        a.states[step] = b.states[step];
+                    }
+                }
+            }
+            done += take;
+            round += 1;
+            if first_reports.is_none() {
+                first_reports = Some(s.initial_reports.clone());
+            }
+        }
+        // Score the executed trajectory over the whole horizon, as seen from the start.
+        let traj = crate::cost::Trajectories::recorded(&state);
+        let reports = scripts
+            .iter()
+            .map(|s| {
+                CostScript::compile(
+                    &s.source,
+                    &s.name,
+                    Rc::new(start.clone()),
+                    &s.params,
+                    &Limits::default(),
+                )?
+                .evaluate(&traj)
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        out.push(Sample {
+            scene: state,
+            initial_reports: first_reports.take().unwrap_or_default(),
+            reports,
+        });
+    }
+    Ok(out)
+}
