@@ -1,7 +1,7 @@
 //! Relative attention: `s_ij = (x_i W_q)·(x_j W_k + MLP(r_ij)) / √d`, values
 //! `x_j W_v + MLP(r_ij)`, with `r_ij = (Δx, Δy, cos Δθ, sin Δθ)` of j in i's frame (plus a
 //! connectivity embedding between lanes). Followed by the usual residual, layer norm and
-//! feed-forward. Everything stays in relative coordinates, so the model does not depend on
+//! feed-forward (pre-norm). Everything stays in relative coordinates, so the model does not depend on
 //! where the scene sits in the world.
 
 use candle_core::{DType, Module, Result, Tensor, D};
@@ -65,7 +65,10 @@ impl RelAttention {
         mask: &Tensor,
         conn: Option<&Tensor>,
     ) -> Result<Tensor> {
-        let q = self.q.forward(xq)?.unsqueeze(2)?; // [B, N, 1, d]
+        // Pre-norm: the residual stream carries the raw features (the agents' history and noisy
+        // coefficients) straight through, which trains much faster than post-norm here.
+        let hq = self.ln1.forward(xq)?;
+        let q = self.q.forward(&hq)?.unsqueeze(2)?; // [B, N, 1, d]
         let k = self.k.forward(xk)?.unsqueeze(1)?; // [B, 1, M, d]
         let v = self.v.forward(xk)?.unsqueeze(1)?;
         let mut hk = self.rk1.forward(rel)?;
@@ -87,9 +90,11 @@ impl RelAttention {
             .broadcast_add(&rv)?
             .broadcast_mul(&mask.unsqueeze(1)?.unsqueeze(3)?)?;
         let out = a.unsqueeze(3)?.broadcast_mul(&vals)?.sum(2)?; // [B, N, d]
-        let x = self.ln1.forward(&(xq + self.o.forward(&out)?)?)?;
-        let f = self.ff2.forward(&self.ff1.forward(&x)?.relu()?)?;
-        self.ln2.forward(&(x + f)?)
+        let x = (xq + self.o.forward(&out)?)?;
+        let f = self
+            .ff2
+            .forward(&self.ff1.forward(&self.ln2.forward(&x)?)?.relu()?)?;
+        x + f
     }
 }
 

@@ -49,16 +49,21 @@ pub struct Batch {
 pub struct Normaliser {
     /// The basis.
     pub pca: Pca,
-    /// Standard deviation of each coefficient on the training set.
+    /// Scale of each coefficient (one common value: see [`Normaliser::new`]).
     pub std: Vec<f64>,
     /// Target standard deviation (EDM's σ_data).
     pub sigma_data: f64,
 }
 
 impl Normaliser {
-    /// From a fitted basis.
+    /// From a fitted basis. Every component gets the same scale, the root mean variance over
+    /// components: scaling each to unit variance would blow the smallest components (tracking
+    /// jitter, or round-off on synthetic data) up to the size of the speed component, and the
+    /// loss would then be dominated by what cannot be predicted. One scale keeps the loss in
+    /// proportion to metres of trajectory.
     pub fn new(pca: Pca, sigma_data: f64) -> Self {
-        let std = pca.variances.iter().map(|v| v.sqrt().max(1e-6)).collect();
+        let mean_var = pca.variances.iter().sum::<f64>() / pca.variances.len().max(1) as f64;
+        let std = vec![mean_var.sqrt().max(1e-6); pca.variances.len()];
         Self {
             pca,
             std,
