@@ -164,6 +164,22 @@ impl Kinematics {
     }
 }
 
+/// For each point, the distance to the nearest other point (`None` when it is alone).
+fn nearest_distances(pts: &[Point]) -> Vec<Option<f64>> {
+    pts.iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let n = pts
+                .iter()
+                .enumerate()
+                .filter(|(j, _)| *j != i)
+                .map(|(_, q)| (p - q).norm())
+                .fold(f64::INFINITY, f64::min);
+            n.is_finite().then_some(n)
+        })
+        .collect()
+}
+
 /// Kinematic samples of every agent's future (history steps only provide differences).
 pub fn kinematics(s: &Scene) -> Kinematics {
     let dt = s.meta.dt;
@@ -192,17 +208,8 @@ pub fn kinematics(s: &Scene) -> Kinematics {
             .filter(|a| a.agent_type == AgentType::Vehicle && a.is_valid(t))
             .map(|a| a.states[t].position())
             .collect();
-        for (i, p) in pts.iter().enumerate() {
-            let near = pts
-                .iter()
-                .enumerate()
-                .filter(|(j, _)| *j != i)
-                .map(|(_, q)| (p - q).norm())
-                .fold(f64::INFINITY, f64::min);
-            if near.is_finite() {
-                k.nearest_vehicle.push(near);
-            }
-        }
+        k.nearest_vehicle
+            .extend(nearest_distances(&pts).into_iter().flatten());
     }
     k
 }
@@ -361,16 +368,8 @@ pub fn placement(s: &Scene) -> (Vec<f64>, Vec<f64>) {
             .filter(|a| a.is_valid(t))
             .map(|a| a.states[t].position())
             .collect();
-        for (i, p) in pts.iter().enumerate() {
-            let n = pts
-                .iter()
-                .enumerate()
-                .filter(|(j, _)| *j != i)
-                .map(|(_, q)| (p - q).norm())
-                .fold(f64::INFINITY, f64::min);
-            if n.is_finite() {
-                near.push(n);
-            }
+        near.extend(nearest_distances(&pts).into_iter().flatten());
+        for p in &pts {
             if let Some(d) = s.map.signed_distance_to_road_edge(*p) {
                 edge.push(d);
             }
