@@ -416,6 +416,19 @@ fn eval_prints_tables_for_baselines_and_rollouts() {
         "dance",
     ]);
     assert!(err.contains("unknown behaviour \"dance\""), "{err}");
+    // Agents chosen per scene: vehicle 1 (the ego, middle lane) for a left lane change.
+    let out = ok(&[
+        "eval",
+        "scripts/scenes",
+        "--task",
+        "behaviour",
+        "--behaviour",
+        "lane_change_left",
+        "--auto",
+        "--baseline",
+        "log",
+    ]);
+    assert!(out.contains("| log replay | lane_change_left | 6 | 0.17 |"), "{out}");
 }
 
 #[test]

@@ -55,6 +55,10 @@ pub struct Args {
     /// Checker parameters for --task behaviour, name=value.
     #[arg(long = "param", num_args = 1..)]
     params: Vec<String>,
+    /// For --task behaviour: choose the agents of every scene automatically
+    /// (`eval::behaviors::suggest`); --param values override the suggestion.
+    #[arg(long)]
+    auto: bool,
     /// Write the table and per-scene results as JSON.
     #[arg(long)]
     json: Option<PathBuf>,
@@ -245,6 +249,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         .expect("valid template"),
     );
     let mut failures = 0;
+    let mut skipped = 0;
     for src in &sources {
         bar.set_message(
             src.file_name()
@@ -261,6 +266,22 @@ pub fn run(args: Args) -> Result<ExitCode> {
             }
         };
         for scene in &scenes {
+            let scene_params = match (&behaviour, args.auto) {
+                (Some((b, given)), true) => {
+                    match drivescript::eval::behaviors::suggest(*b, scene) {
+                        Some(mut p) => {
+                            p.extend(given.iter().map(|(k, v)| (k.clone(), *v)));
+                            Some((*b, p))
+                        }
+                        None => {
+                            skipped += 1;
+                            continue;
+                        }
+                    }
+                }
+                (Some((b, given)), false) => Some((*b, given.clone())),
+                (None, _) => None,
+            };
             for ((_, m), acc) in methods.iter().zip(accs.iter_mut()) {
                 let sims = match m {
                     Some(b) => vec![b.simulate(scene)],
@@ -282,7 +303,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     acc,
                     scene,
                     &sims,
-                    behaviour.as_ref().map(|(b, p)| (*b, p)),
+                    scene_params.as_ref().map(|(b, p)| (*b, p)),
                 );
             }
         }
@@ -368,6 +389,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 .as_bytes(),
         )?;
         println!("wrote {}", out.display());
+    }
+    if skipped > 0 {
+        println!("{skipped} scenes skipped: no agents for which the behaviour is meaningful");
     }
     if failures > 0 {
         eprintln!("{failures} sources or rollouts failed");

@@ -612,3 +612,136 @@ pub fn check(
         }
     })
 }
+
+/// Agents for which a behaviour is a meaningful request in `scene`, chosen by geometry alone,
+/// so that success rates over many scenes need no hand-picked ids (`None` when the scene has
+/// no suitable agent). Candidates are vehicles observed at the current step and through the
+/// recorded future, on a lane; ties go to the one nearest the scene's ego (or first vehicle).
+///
+/// - one-vehicle behaviours: the nearest candidate; lane changes and `rightmost_lane` need a
+///   lane on that side (for `rightmost_lane`, not already the rightmost); `speed_limit` asks for
+///   80 % of its current speed; `target_point` for a point 20 m to the left of its recorded end;
+/// - `cut_in`: a victim and a cutter in an adjacent lane within 15 m along the victim's path;
+/// - `follow`: a leader ahead in the follower's lane within 60 m, asking for a 10 m gap;
+/// - `yield`: two vehicles whose lane paths meet ahead of both, within 1.2 times the distance
+///   each covers over the horizon at its current speed plus 20 m;
+/// - `accident`: the nearest pair; `no_collisions`: no agents.
+pub fn suggest(b: Behavior, scene: &Scene) -> Option<CheckParams> {
+    let c = scene.meta.current_step;
+    let n = scene.num_steps();
+    let mut cands: Vec<(&Agent, i64, LanePath)> = scene
+        .agents
+        .iter()
+        .filter(|a| a.agent_type == AgentType::Vehicle && (c..n).all(|t| a.is_valid(t)))
+        .filter_map(|a| Some((a, lane_of(scene, a, c)?, path_of(scene, a)?)))
+        .collect();
+    let centre = scene
+        .meta
+        .ego
+        .and_then(|e| scene.agent(e))
+        .or_else(|| cands.first().map(|x| x.0))?
+        .states[c]
+        .position();
+    cands.sort_by(|x, y| {
+        let d = |a: &Agent| (a.states[c].position() - centre).norm();
+        d(x.0).total_cmp(&d(y.0)).then(x.0.id.cmp(&y.0.id))
+    });
+    let g = scene.map.graph();
+    let p = |kv: &[(&str, f64)]| {
+        Some(
+            kv.iter()
+                .map(|(k, v)| (k.to_string(), *v))
+                .collect::<CheckParams>(),
+        )
+    };
+    match b {
+        Behavior::NoCollisions => p(&[]),
+        Behavior::SpeedLimit => {
+            let (a, _, _) = cands.first()?;
+            p(&[
+                ("vehicle", a.id as f64),
+                ("limit", 0.8 * a.states[c].speed()),
+            ])
+        }
+        Behavior::TargetPoint => {
+            let (a, _, _) = cands.first()?;
+            let end = a.states[n - 1];
+            let left = Point::new(-end.heading.sin(), end.heading.cos()) * 20.0;
+            p(&[
+                ("vehicle", a.id as f64),
+                ("x", end.x + left.x),
+                ("y", end.y + left.y),
+            ])
+        }
+        Behavior::LaneChangeLeft => cands
+            .iter()
+            .find(|x| g.left(x.1).is_some())
+            .and_then(|x| p(&[("vehicle", x.0.id as f64)])),
+        Behavior::LaneChangeRight => cands
+            .iter()
+            .find(|x| g.right(x.1).is_some())
+            .and_then(|x| p(&[("vehicle", x.0.id as f64)])),
+        Behavior::RightmostLane => cands
+            .iter()
+            .find(|x| !g.is_rightmost(x.1))
+            .and_then(|x| p(&[("vehicle", x.0.id as f64)])),
+        Behavior::Reverse | Behavior::OffRoad | Behavior::Weave | Behavior::Stop => {
+            cands.first().and_then(|x| p(&[("vehicle", x.0.id as f64)]))
+        }
+        Behavior::CutIn => {
+            for (victim, lv, path) in &cands {
+                let sv = path.frenet.project(victim.states[c].position()).s;
+                for (cutter, lc, _) in &cands {
+                    let adjacent =
+                        g.left_neighbors(*lv).contains(lc) || g.right_neighbors(*lv).contains(lc);
+                    let sc = path.frenet.project(cutter.states[c].position()).s;
+                    if cutter.id != victim.id && adjacent && (sc - sv).abs() <= 15.0 {
+                        return p(&[("cutter", cutter.id as f64), ("victim", victim.id as f64)]);
+                    }
+                }
+            }
+            None
+        }
+        Behavior::Follow => {
+            for (f, lf, path) in &cands {
+                let sf = path.frenet.project(f.states[c].position()).s;
+                for (l, ll, _) in &cands {
+                    let ahead = path.frenet.project(l.states[c].position()).s - sf;
+                    if l.id != f.id && ll == lf && ahead > 0.0 && ahead <= 60.0 {
+                        return p(&[
+                            ("follower", f.id as f64),
+                            ("leader", l.id as f64),
+                            ("gap", 10.0),
+                        ]);
+                    }
+                }
+            }
+            None
+        }
+        Behavior::Yield => {
+            // How far an agent gets over the horizon at its current speed, with some slack.
+            let horizon = (n - 1 - c) as f64 * scene.meta.dt;
+            let reach = |a: &Agent| 1.2 * a.states[c].speed() * horizon + 20.0;
+            for (a, _, pa) in &cands {
+                let sa0 = pa.frenet.project(a.states[c].position()).s;
+                for (o, _, po) in &cands {
+                    if o.id == a.id {
+                        continue;
+                    }
+                    let so0 = po.frenet.project(o.states[c].position()).s;
+                    if let Some((sa, so, _)) = pa.first_meeting(po) {
+                        if sa > sa0 && so > so0 && sa - sa0 <= reach(a) && so - so0 <= reach(o) {
+                            return p(&[("yielder", a.id as f64), ("other", o.id as f64)]);
+                        }
+                    }
+                }
+            }
+            None
+        }
+        Behavior::Accident => {
+            let (a, _, _) = cands.first()?;
+            let (b, _, _) = cands.get(1)?;
+            p(&[("attacker", a.id as f64), ("target", b.id as f64)])
+        }
+    }
+}

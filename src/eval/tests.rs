@@ -290,3 +290,32 @@ fn one_agent_and_late_agents_are_handled() {
     assert_eq!(collided(&late), vec![Some(false), Some(false)]);
     assert_eq!(offroad(&late).iter().flatten().count(), 2);
 }
+
+#[test]
+fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
+    use super::behaviors::suggest;
+    let base = scene("highway.yaml");
+    let left = suggest(Behavior::LaneChangeLeft, &base).unwrap();
+    // Vehicle 1 (ego, middle lane) has a lane to its left.
+    assert_eq!(left["vehicle"], 1.0);
+    assert_eq!(
+        suggest(Behavior::RightmostLane, &base).unwrap()["vehicle"],
+        1.0
+    );
+    let cut = suggest(Behavior::CutIn, &base).unwrap();
+    assert_eq!((cut["cutter"], cut["victim"]), (2.0, 1.0));
+    let f = suggest(Behavior::Follow, &scene("highway_crash.yaml")).unwrap();
+    assert_eq!((f["follower"], f["leader"]), (3.0, 1.0));
+    let y = suggest(Behavior::Yield, &scene("merge.yaml")).unwrap();
+    assert!(y.contains_key("yielder") && y.contains_key("other"));
+    assert!(
+        suggest(Behavior::Yield, &base).is_none(),
+        "parallel lanes never meet"
+    );
+    // Every suggestion is something its checker can run on.
+    for b in super::behaviors::ALL {
+        if let Some(p) = suggest(b, &base) {
+            check(b, &base, &p).unwrap();
+        }
+    }
+}
