@@ -428,7 +428,10 @@ fn eval_prints_tables_for_baselines_and_rollouts() {
         "--baseline",
         "log",
     ]);
-    assert!(out.contains("| log replay | lane_change_left | 6 | 0.17 |"), "{out}");
+    assert!(
+        out.contains("| log replay | lane_change_left | 6 | 0.17 |"),
+        "{out}"
+    );
 }
 
 #[test]

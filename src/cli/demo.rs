@@ -32,7 +32,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     };
     write_picture(&scene, &args.output, &opts)?;
     println!(
-        "wrote {} ({} frames, recorded trajectories; the diffusion model arrives in a later release)",
+        "wrote {} ({} frames of recorded trajectories; no trained diffusion checkpoint ships yet)",
         args.output.display(),
         scene.num_steps()
     );

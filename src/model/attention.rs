@@ -4,7 +4,7 @@
 //! feed-forward (pre-norm). Everything stays in relative coordinates, so the model does not depend on
 //! where the scene sits in the world.
 
-use candle_core::{DType, Module, Result, Tensor, D};
+use candle_core::{Module, Result, Tensor, D};
 use candle_nn::{embedding, layer_norm, linear, Embedding, LayerNorm, Linear, VarBuilder};
 
 /// Number of lane-pair connectivity kinds: none, predecessor, successor, left, right.
@@ -96,9 +96,4 @@ impl RelAttention {
             .forward(&self.ff1.forward(&self.ln2.forward(&x)?)?.relu()?)?;
         x + f
     }
-}
-
-/// A float mask from a u8/f32 tensor, for callers that build masks from data.
-pub fn float_mask(m: &Tensor) -> Result<Tensor> {
-    m.to_dtype(DType::F32)
 }
