@@ -59,6 +59,10 @@ pub struct Args {
     /// (`eval::behaviors::suggest`); --param values override the suggestion.
     #[arg(long)]
     auto: bool,
+    /// Score only this many future steps (e.g. a model's horizon): scenes are cut to
+    /// current step + 1 + HORIZON steps before anything is simulated or scored.
+    #[arg(long)]
+    horizon: Option<usize>,
     /// Write the table and per-scene results as JSON.
     #[arg(long)]
     json: Option<PathBuf>,
@@ -188,6 +192,15 @@ fn score(
     acc.per_scene.push(row);
 }
 
+/// The scene cut to `h` future steps.
+fn crop(mut s: Scene, h: usize) -> Result<Scene> {
+    let n = (s.meta.current_step + 1 + h).min(s.num_steps());
+    for a in &mut s.agents {
+        a.states.truncate(n);
+    }
+    Ok(Scene::new(s.meta.clone(), s.map.clone(), s.agents)?)
+}
+
 fn task_name(t: Task) -> &'static str {
     match t {
         Task::Conditional => "conditional",
@@ -264,6 +277,13 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 bar.inc(1);
                 continue;
             }
+        };
+        let scenes: Vec<Scene> = match args.horizon {
+            Some(h) => scenes
+                .into_iter()
+                .map(|s| crop(s, h))
+                .collect::<Result<_>>()?,
+            None => scenes,
         };
         for scene in &scenes {
             let scene_params = match (&behaviour, args.auto) {
