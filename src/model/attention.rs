@@ -5,10 +5,35 @@
 //! where the scene sits in the world.
 
 use candle_core::{Module, Result, Tensor, D};
-use candle_nn::{embedding, layer_norm, linear, Embedding, LayerNorm, Linear, VarBuilder};
+use candle_nn::{embedding, linear, Embedding, Linear, VarBuilder};
 
 /// Number of lane-pair connectivity kinds: none, predecessor, successor, left, right.
 pub const CONNECTIONS: usize = 5;
+
+/// Layer normalisation built from differentiable tensor ops. candle-nn's `LayerNorm` module
+/// runs a fused kernel without a backward pass (`apply_op3_no_bwd`), which silently stops
+/// gradients at every normalisation; training through it barely learns.
+#[derive(Debug, Clone)]
+pub struct Norm {
+    weight: Tensor,
+    bias: Tensor,
+}
+
+impl Norm {
+    /// A normalisation over the last dimension of width `d` (gain 1, bias 0 at creation).
+    pub fn new(d: usize, vb: VarBuilder) -> Result<Self> {
+        Ok(Self {
+            weight: vb.get_with_hints(d, "weight", candle_nn::Init::Const(1.0))?,
+            bias: vb.get_with_hints(d, "bias", candle_nn::Init::Const(0.0))?,
+        })
+    }
+}
+
+impl Module for Norm {
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        candle_nn::ops::layer_norm_slow(x, &self.weight, &self.bias, 1e-5)
+    }
+}
 
 /// One relative-attention block.
 #[derive(Debug, Clone)]
@@ -22,8 +47,8 @@ pub struct RelAttention {
     rv1: Linear,
     rv2: Linear,
     conn: Option<Embedding>,
-    ln1: LayerNorm,
-    ln2: LayerNorm,
+    ln1: Norm,
+    ln2: Norm,
     ff1: Linear,
     ff2: Linear,
     d: usize,
@@ -46,8 +71,8 @@ impl RelAttention {
             } else {
                 None
             },
-            ln1: layer_norm(d, 1e-5, vb.pp("ln1"))?,
-            ln2: layer_norm(d, 1e-5, vb.pp("ln2"))?,
+            ln1: Norm::new(d, vb.pp("ln1"))?,
+            ln2: Norm::new(d, vb.pp("ln2"))?,
             ff1: linear(d, 2 * d, vb.pp("ff1"))?,
             ff2: linear(2 * d, d, vb.pp("ff2"))?,
             d,
