@@ -243,6 +243,30 @@ fn un(e: &mut Engine, name: &'static str, f: Un) {
     });
 }
 
+/// Registers `name(x)` (with the parameter at `default`) and `name(x, p)`, for elementwise
+/// functions with one shape parameter; `positive_only` requires p > 0.
+fn unary_with_param(
+    e: &mut Engine,
+    name: &'static str,
+    default: f64,
+    positive_only: bool,
+    f: fn(f64, f64) -> Option<(f64, f64)>,
+) {
+    e.register_fn(name, move |x: Dynamic| {
+        unary(Val::from_dynamic(&x, name)?, name, move |v| f(v, default)).map(Val::into_dynamic)
+    });
+    e.register_fn(name, move |x: Dynamic, p: Dynamic| {
+        let what = format!("{name} parameter");
+        let p = number(&p, &what)?;
+        let p = if positive_only {
+            positive(p, &what)?
+        } else {
+            p
+        };
+        unary(Val::from_dynamic(&x, name)?, name, move |v| f(v, p)).map(Val::into_dynamic)
+    });
+}
+
 fn bin(e: &mut Engine, name: &'static str, f: Bin) {
     e.register_fn(name, move |a: Dynamic, b: Dynamic| {
         binary(
@@ -328,59 +352,21 @@ pub(super) fn register(e: &mut Engine, docs: &mut Vec<DocEntry>) {
         "softplus(x) or softplus(x, beta) -> same kind",
         "log(1 + e^(beta·x)) / beta, a smooth relu (beta = 1 by default; larger is sharper).",
     );
-    e.register_fn("softplus", |x: Dynamic| {
-        unary(Val::from_dynamic(&x, "softplus")?, "softplus", |v| {
-            softplus(v, 1.0)
-        })
-        .map(Val::into_dynamic)
-    });
-    e.register_fn("softplus", |x: Dynamic, b: Dynamic| {
-        let beta = positive(number(&b, "softplus beta")?, "softplus beta")?;
-        unary(Val::from_dynamic(&x, "softplus")?, "softplus", move |v| {
-            softplus(v, beta)
-        })
-        .map(Val::into_dynamic)
-    });
+    unary_with_param(e, "softplus", 1.0, true, softplus);
     doc(
         docs,
         S,
         "sigmoid(x) or sigmoid(x, k) -> same kind",
         "1 / (1 + e^(-k·x)), k = 1 by default: a soft step from 0 to 1.",
     );
-    e.register_fn("sigmoid", |x: Dynamic| {
-        unary(Val::from_dynamic(&x, "sigmoid")?, "sigmoid", |v| {
-            sigmoid(v, 1.0)
-        })
-        .map(Val::into_dynamic)
-    });
-    e.register_fn("sigmoid", |x: Dynamic, k: Dynamic| {
-        let k = number(&k, "sigmoid k")?;
-        unary(Val::from_dynamic(&x, "sigmoid")?, "sigmoid", move |v| {
-            sigmoid(v, k)
-        })
-        .map(Val::into_dynamic)
-    });
+    unary_with_param(e, "sigmoid", 1.0, false, sigmoid);
     doc(
         docs,
         S,
         "smooth_abs(x) or smooth_abs(x, eps) -> same kind",
         "sqrt(x² + eps²) - eps (eps = 0.1 by default): |x| with a rounded bottom.",
     );
-    e.register_fn("smooth_abs", |x: Dynamic| {
-        unary(Val::from_dynamic(&x, "smooth_abs")?, "smooth_abs", |v| {
-            smooth_abs(v, 0.1)
-        })
-        .map(Val::into_dynamic)
-    });
-    e.register_fn("smooth_abs", |x: Dynamic, eps: Dynamic| {
-        let eps = positive(number(&eps, "smooth_abs eps")?, "smooth_abs eps")?;
-        unary(
-            Val::from_dynamic(&x, "smooth_abs")?,
-            "smooth_abs",
-            move |v| smooth_abs(v, eps),
-        )
-        .map(Val::into_dynamic)
-    });
+    unary_with_param(e, "smooth_abs", 0.1, true, smooth_abs);
     doc(docs, S, "pow(x, p) -> same kind", "x^p; p may itself be a Series or Dual. A negative base with a fractional power is an error.");
     bin(e, "pow", pow2);
     doc(
