@@ -357,8 +357,7 @@ mod tests {
     use super::*;
     use crate::cost::{Limits, Params};
     use crate::io::{load_scene, LoadOptions};
-    use crate::model::{DenoiserConfig, Edm};
-    use crate::train::{train, TrainConfig, WindowConfig};
+    use crate::train::train;
     use std::path::Path;
     use std::rc::Rc;
 
@@ -373,28 +372,7 @@ mod tests {
         .iter()
         .map(|f| load_scene(&dir.join(f), 0, &LoadOptions::default()).unwrap())
         .collect();
-        let window = WindowConfig {
-            max_agents: 6,
-            max_lanes: 8,
-            lane_points: 8,
-            ..WindowConfig::ngsim()
-        };
-        let cfg = TrainConfig {
-            steps: 40,
-            batch: 4,
-            lr: 3e-3,
-            seed: 3,
-            window,
-            model: DenoiserConfig {
-                d: 16,
-                layers: 1,
-                k: 6,
-                history: window.history,
-                noise_freqs: 4,
-            },
-            edm: Edm::default(),
-            eval_every: 40,
-        };
+        let cfg = crate::train::trainer::tiny_config(40, 3, 40);
         let t = train(&scenes, cfg, None, None, |_, _, _| {}).unwrap();
         let s = prepare(&scenes[0], &t).unwrap();
         (t, s)

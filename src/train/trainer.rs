@@ -356,6 +356,34 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
     })
 }
 
+/// A tiny configuration that trains in well under a second, for tests.
+#[cfg(test)]
+pub(crate) fn tiny_config(steps: usize, seed: u64, eval_every: usize) -> TrainConfig {
+    let window = WindowConfig {
+        max_agents: 6,
+        max_lanes: 8,
+        lane_points: 8,
+        stride: 10,
+        ..WindowConfig::ngsim()
+    };
+    TrainConfig {
+        steps,
+        batch: 4,
+        lr: 3e-3,
+        seed,
+        window,
+        model: DenoiserConfig {
+            d: 16,
+            layers: 1,
+            k: 6,
+            history: window.history,
+            noise_freqs: 4,
+        },
+        edm: Edm::default(),
+        eval_every,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -376,39 +404,13 @@ mod tests {
         .collect()
     }
 
-    fn tiny() -> TrainConfig {
-        let window = WindowConfig {
-            max_agents: 6,
-            max_lanes: 8,
-            lane_points: 8,
-            stride: 10,
-            ..WindowConfig::ngsim()
-        };
-        TrainConfig {
-            steps: 30,
-            batch: 4,
-            lr: 3e-3,
-            seed: 7,
-            window,
-            model: DenoiserConfig {
-                d: 16,
-                layers: 1,
-                k: 6,
-                history: window.history,
-                noise_freqs: 4,
-            },
-            edm: Edm::default(),
-            eval_every: 10,
-        }
-    }
-
     #[test]
     fn a_tiny_model_learns_and_round_trips_through_a_checkpoint() {
         let dir = tempfile::tempdir().unwrap();
         let mut losses = Vec::new();
         let t = train(
             &scenes(),
-            tiny(),
+            tiny_config(30, 7, 10),
             Some(dir.path()),
             Some("test".into()),
             |_, l, _| losses.push(l),
@@ -428,7 +430,10 @@ mod tests {
         assert_eq!(back.meta.config, t.meta.config);
         // Same seed, same run.
         let mut again = Vec::new();
-        train(&scenes(), tiny(), None, None, |_, l, _| again.push(l)).unwrap();
+        train(&scenes(), tiny_config(30, 7, 10), None, None, |_, l, _| {
+            again.push(l)
+        })
+        .unwrap();
         assert_eq!(losses, again, "training is not deterministic for a seed");
     }
 }
