@@ -280,6 +280,7 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
         lane_points: 20,
         stride: 10,
         centres_per_step: 8,
+        pad_lanes: true,
     };
     let path = args
         .scene

@@ -5,7 +5,7 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result};
 use drivescript::io::{discover, load_scenes, LoadOptions};
-use drivescript::train::{train, TrainConfig};
+use drivescript::train::{load, train_from, TrainConfig};
 use indicatif::{ProgressBar, ProgressStyle};
 
 #[derive(clap::Args)]
@@ -31,6 +31,10 @@ pub struct Args {
     /// Validation (and checkpoint) every this many steps.
     #[arg(long, default_value_t = 100)]
     eval_every: usize,
+    /// Continue from this checkpoint (its sizes, PCA basis and seed are kept; `--steps` is the
+    /// total to reach). May be the `--out` directory itself.
+    #[arg(long)]
+    resume: Option<PathBuf>,
 }
 
 fn git_revision() -> Option<String> {
@@ -69,16 +73,32 @@ pub fn run(args: Args) -> Result<ExitCode> {
         cfg.window.max_agents,
         cfg.window.max_lanes
     );
+    let resume = match &args.resume {
+        Some(dir) => {
+            let r = load(dir).with_context(|| format!("resuming from {}", dir.display()))?;
+            println!(
+                "resuming from {} at step {}",
+                dir.display(),
+                r.meta.steps_done
+            );
+            Some(r)
+        }
+        None => None,
+    };
     let bar = ProgressBar::new(args.steps as u64);
+    if let Some(r) = &resume {
+        bar.set_position(r.meta.steps_done as u64);
+    }
     bar.set_style(
         ProgressStyle::with_template("{bar:40} {pos}/{len} steps  {per_sec}  ETA {eta}  {msg}")
             .expect("valid template"),
     );
     let mut last_val = None;
     let mut avg = None::<f64>;
-    let t = train(
+    let t = train_from(
         &scenes,
         cfg,
+        resume,
         Some(&args.out),
         git_revision(),
         |_, loss, val| {

@@ -51,7 +51,6 @@ pub struct RelAttention {
     ln2: Norm,
     ff1: Linear,
     ff2: Linear,
-    d: usize,
 }
 
 impl RelAttention {
@@ -75,7 +74,6 @@ impl RelAttention {
             ln2: Norm::new(d, vb.pp("ln2"))?,
             ff1: linear(d, 2 * d, vb.pp("ff1"))?,
             ff2: linear(2 * d, d, vb.pp("ff2"))?,
-            d,
         })
     }
 
@@ -93,9 +91,48 @@ impl RelAttention {
         // Pre-norm: the residual stream carries the raw features (the agents' history and noisy
         // coefficients) straight through, which trains much faster than post-norm here.
         let hq = self.ln1.forward(xq)?;
-        let q = self.q.forward(&hq)?.unsqueeze(2)?; // [B, N, 1, d]
-        let k = self.k.forward(xk)?.unsqueeze(1)?; // [B, 1, M, d]
-        let v = self.v.forward(xk)?.unsqueeze(1)?;
+        let q = self.q.forward(&hq)?; // [B, N, d]
+        let k = self.k.forward(xk)?; // [B, M, d]
+        let v = self.v.forward(xk)?;
+        let (hk, hv) = self.pair_hidden(rel, conn)?; // [B, N, M, d] each
+        let (b, n, m, d) = hk.dims4()?;
+        // The second layers of the relative MLPs are linear, so they are applied after the
+        // reduction over keys instead of to every pair:
+        //   q·(W h_ij + c) = (Wᵀq)·h_ij + q·c   and   Σ_j a_ij (W h_ij + c) = W (Σ_j a_ij h_ij) + c Σ_j a_ij.
+        // This is the same function as the direct form (a test checks it) but replaces two
+        // d×d products per pair and the [B, N, M, d] broadcasts by batched matrix products:
+        // about 3x faster training on NGSIM windows.
+        let (wk, ck) = (
+            self.rk2.weight(),
+            self.rk2.bias().expect("linear has a bias"),
+        );
+        let qw = q.broadcast_matmul(wk)?; // [B, N, d]
+        let qh = hk
+            .reshape((b * n, m, d))?
+            .matmul(&qw.reshape((b * n, d, 1))?)?
+            .reshape((b, n, m))?;
+        let qc = q.broadcast_mul(ck)?.sum_keepdim(D::Minus1)?; // [B, N, 1]
+        let s = ((q.matmul(&k.t()?)? + qh)?.broadcast_add(&qc)? / (d as f64).sqrt())?;
+        // Absent keys get a large negative score and zero weight afterwards, so a row with no
+        // key at all reads nothing.
+        let keep = mask.unsqueeze(1)?; // [B, 1, M]
+        let bias = ((&keep - 1.0)? * 1e9)?;
+        let a = candle_nn::ops::softmax_last_dim(&s.broadcast_add(&bias)?)?.broadcast_mul(&keep)?;
+        let (wv, cv) = (
+            self.rv2.weight(),
+            self.rv2.bias().expect("linear has a bias"),
+        );
+        let ah = a
+            .reshape((b * n, 1, m))?
+            .matmul(&hv.reshape((b * n, m, d))?)?
+            .reshape((b, n, d))?;
+        let out = ((a.matmul(&v)? + ah.broadcast_matmul(&wv.t()?)?)?
+            + a.sum_keepdim(D::Minus1)?.broadcast_mul(cv)?)?;
+        self.finish(xq, &out)
+    }
+
+    /// Hidden layers of the key and value relative MLPs for every pair, after the ReLU.
+    fn pair_hidden(&self, rel: &Tensor, conn: Option<&Tensor>) -> Result<(Tensor, Tensor)> {
         let mut hk = self.rk1.forward(rel)?;
         let mut hv = self.rv1.forward(rel)?;
         if let (Some(emb), Some(c)) = (&self.conn, conn) {
@@ -103,22 +140,92 @@ impl RelAttention {
             hk = (hk + &e)?;
             hv = (hv + e)?;
         }
-        let rk = self.rk2.forward(&hk.relu()?)?; // [B, N, M, d]
-        let rv = self.rv2.forward(&hv.relu()?)?;
-        let s =
-            (q.broadcast_mul(&k.broadcast_add(&rk)?)?.sum(D::Minus1)? / (self.d as f64).sqrt())?; // [B, N, M]
-                                                                                                  // Absent keys get a large negative score; a row with no key at all attends uniformly
-                                                                                                  // to padding, whose values are zero-masked below.
+        Ok((hk.relu()?, hv.relu()?))
+    }
+
+    /// Output projection, residual and feed-forward.
+    fn finish(&self, xq: &Tensor, out: &Tensor) -> Result<Tensor> {
+        let x = (xq + self.o.forward(out)?)?;
+        let f = self
+            .ff2
+            .forward(&self.ff1.forward(&self.ln2.forward(&x)?)?.relu()?)?;
+        x + f
+    }
+
+    /// The formula as written in the paper, every pair materialised: the reference that
+    /// [`RelAttention::forward`] must equal.
+    #[cfg(test)]
+    fn forward_direct(
+        &self,
+        xq: &Tensor,
+        xk: &Tensor,
+        rel: &Tensor,
+        mask: &Tensor,
+        conn: Option<&Tensor>,
+    ) -> Result<Tensor> {
+        let hq = self.ln1.forward(xq)?;
+        let q = self.q.forward(&hq)?.unsqueeze(2)?; // [B, N, 1, d]
+        let k = self.k.forward(xk)?.unsqueeze(1)?; // [B, 1, M, d]
+        let v = self.v.forward(xk)?.unsqueeze(1)?;
+        let (hk, hv) = self.pair_hidden(rel, conn)?;
+        let rk = self.rk2.forward(&hk)?;
+        let rv = self.rv2.forward(&hv)?;
+        let s = (q.broadcast_mul(&k.broadcast_add(&rk)?)?.sum(D::Minus1)?
+            / (hk.dim(3)? as f64).sqrt())?;
         let bias = ((mask.unsqueeze(1)? - 1.0)? * 1e9)?;
         let a = candle_nn::ops::softmax_last_dim(&s.broadcast_add(&bias)?)?;
         let vals = v
             .broadcast_add(&rv)?
             .broadcast_mul(&mask.unsqueeze(1)?.unsqueeze(3)?)?;
-        let out = a.unsqueeze(3)?.broadcast_mul(&vals)?.sum(2)?; // [B, N, d]
-        let x = (xq + self.o.forward(&out)?)?;
-        let f = self
-            .ff2
-            .forward(&self.ff1.forward(&self.ln2.forward(&x)?)?.relu()?)?;
-        x + f
+        let out = a.unsqueeze(3)?.broadcast_mul(&vals)?.sum(2)?;
+        self.finish(xq, &out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::{DType, Device};
+    use candle_nn::VarMap;
+
+    #[test]
+    fn the_factored_form_equals_the_direct_formula() {
+        let dev = Device::Cpu;
+        let vm = VarMap::new();
+        let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
+        let att = RelAttention::new(8, true, vb).unwrap();
+        let (b, n, m) = (2, 3, 5);
+        let xq = Tensor::randn(0f32, 1.0, (b, n, 8), &dev).unwrap();
+        let xk = Tensor::randn(0f32, 1.0, (b, m, 8), &dev).unwrap();
+        let rel = Tensor::randn(0f32, 1.0, (b, n, m, 4), &dev).unwrap();
+        let conn = Tensor::from_vec(
+            (0..b * n * m)
+                .map(|i| (i % CONNECTIONS) as u32)
+                .collect::<Vec<_>>(),
+            (b, n, m),
+            &dev,
+        )
+        .unwrap();
+        // Second window: only two keys present; a third window-row pattern with none present
+        // is covered by the zero-key case below.
+        let mask = Tensor::from_vec(
+            vec![1f32, 1.0, 1.0, 1.0, 1.0, 1.0, 0.0, 1.0, 0.0, 0.0],
+            (b, m),
+            &dev,
+        )
+        .unwrap();
+        let fast = att.forward(&xq, &xk, &rel, &mask, Some(&conn)).unwrap();
+        let slow = att
+            .forward_direct(&xq, &xk, &rel, &mask, Some(&conn))
+            .unwrap();
+        let diff = (fast - slow).unwrap().abs().unwrap().max_all().unwrap();
+        assert!(diff.to_scalar::<f32>().unwrap() < 1e-4, "{diff}");
+        let none = Tensor::zeros((b, m), DType::F32, &dev).unwrap();
+        let fast = att.forward(&xq, &xk, &rel, &none, Some(&conn)).unwrap();
+        let slow = att
+            .forward_direct(&xq, &xk, &rel, &none, Some(&conn))
+            .unwrap();
+        let diff = (fast - slow).unwrap().abs().unwrap().max_all().unwrap();
+        assert!(diff.to_scalar::<f32>().unwrap() < 1e-4, "no keys: {diff}");
     }
 }

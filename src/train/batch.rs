@@ -99,10 +99,24 @@ pub fn build(
     norm: &Normaliser,
     dev: &Device,
 ) -> Result<Batch> {
-    let (b, n, m, p, h, k) = (
+    // Lanes are padded to the batch's largest map, not to `max_lanes`: NGSIM windows hold 26
+    // lanes on average against 64 slots, and the lane-lane and agent-lane tensors grow with
+    // the square and the product of that count. Windows store connectivity with stride
+    // `max_lanes`.
+    let m = if cfg.pad_lanes {
+        cfg.max_lanes
+    } else {
+        windows
+            .iter()
+            .map(|w| w.lane_ids.len())
+            .max()
+            .unwrap_or(0)
+            .max(1)
+    };
+    let mw = cfg.max_lanes;
+    let (b, n, p, h, k) = (
         windows.len(),
         cfg.max_agents,
-        cfg.max_lanes,
         cfg.lane_points,
         cfg.history,
         norm.pca.k(),
@@ -134,7 +148,7 @@ pub fn build(
             for (l2, pose2) in poses.iter().enumerate() {
                 let o = ((wi * m + l) * m + l2) * 4;
                 lane_rel[o..o + 4].copy_from_slice(&rel(*pose, *pose2));
-                lane_conn[(wi * m + l) * m + l2] = w.lane_conn[l * m + l2] as u32;
+                lane_conn[(wi * m + l) * m + l2] = w.lane_conn[l * mw + l2] as u32;
             }
         }
         let na = w.agents.len();

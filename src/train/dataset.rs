@@ -25,6 +25,10 @@ pub struct WindowConfig {
     pub stride: usize,
     /// Centre agents per window position (vehicles observed over the whole window).
     pub centres_per_step: usize,
+    /// Pad every batch to `max_lanes` lanes instead of to its largest map (fixed tensor
+    /// shapes, as benchmarks at the paper's sizes need).
+    #[serde(default)]
+    pub pad_lanes: bool,
 }
 
 impl WindowConfig {
@@ -42,6 +46,7 @@ impl WindowConfig {
             lane_points: 20,
             stride: 10,
             centres_per_step: 2,
+            pad_lanes: false,
         }
     }
 
@@ -55,6 +60,7 @@ impl WindowConfig {
             lane_points: 20,
             stride: 91,
             centres_per_step: 1,
+            pad_lanes: false,
         }
     }
 

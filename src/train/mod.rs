@@ -9,5 +9,6 @@ pub mod trainer;
 pub use batch::{build, Batch, Normaliser};
 pub use dataset::{window_at, windows, Window, WindowConfig};
 pub use trainer::{
-    is_validation, load, save, train, CheckpointMeta, TrainConfig, TrainError, Trained,
+    is_validation, learning_rate, load, save, train, train_from, CheckpointMeta, TrainConfig,
+    TrainError, Trained,
 };

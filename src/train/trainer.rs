@@ -111,7 +111,8 @@ pub enum TrainError {
 }
 
 /// Overwrites every variable with seeded values: candle's own initialisers are not seedable.
-/// Weights ~ N(0, 1/fan_in), embeddings ~ N(0, 1/d), layer-norm gains 1, biases 0.
+/// Weights ~ N(0, 1/fan_in), embeddings ~ N(0, 1/d), layer-norm gains 1, biases 0, the
+/// output layer 0.
 fn seeded_init(varmap: &VarMap, rng: &mut Rng) -> candle_core::Result<()> {
     let data = varmap
         .data()
@@ -123,7 +124,11 @@ fn seeded_init(varmap: &VarMap, rng: &mut Rng) -> candle_core::Result<()> {
         let var: &Var = &data[name];
         let dims = var.dims().to_vec();
         let n: usize = dims.iter().product();
-        let vals: Vec<f32> = if dims.len() == 1 {
+        // The output layer starts at zero, so the first denoiser is D = c_skip·x and the loss
+        // starts near 1 instead of in the hundreds (random heads throw the early steps around).
+        let vals: Vec<f32> = if name.starts_with("head2.") {
+            vec![0.0; n]
+        } else if dims.len() == 1 {
             let one = name.contains(".ln") && name.ends_with("weight");
             vec![if one { 1.0 } else { 0.0 }; n]
         } else {
@@ -177,17 +182,62 @@ pub struct Trained {
     pub meta: CheckpointMeta,
 }
 
+/// Learning rate at `step` (1-based) of `total`: linear warm-up over the first 2 % of steps
+/// (at most 200), then cosine decay to a tenth of `lr`. Warm-up keeps AdamW's first, noisy
+/// moment estimates from throwing the fresh network around; the decay lets the last steps
+/// settle instead of bouncing at the full rate.
+pub fn learning_rate(lr: f64, step: usize, total: usize) -> f64 {
+    let warm = (total / 50).clamp(1, 200);
+    if step <= warm {
+        return lr * step as f64 / warm as f64;
+    }
+    let t = (step - warm) as f64 / (total.saturating_sub(warm)).max(1) as f64;
+    let floor = 0.1 * lr;
+    floor + (lr - floor) * 0.5 * (1.0 + (std::f64::consts::PI * t.min(1.0)).cos())
+}
+
 /// Trains on `scenes`, calling `progress(step, loss, val)` after every step (val only when
 /// evaluated). Writes the checkpoint to `out` (when given) at every validation and at the end.
 pub fn train(
     scenes: &[Scene],
+    cfg: TrainConfig,
+    out: Option<&Path>,
+    git_revision: Option<String>,
+    progress: impl FnMut(usize, f64, Option<f64>),
+) -> Result<Trained, TrainError> {
+    train_from(scenes, cfg, None, out, git_revision, progress)
+}
+
+/// [`train`], continuing from `resume` when given: its weights, PCA basis, normalisation,
+/// split, history and step count are kept, and training runs on from its `steps_done + 1` to
+/// `cfg.steps` (a total, not a number of extra steps) with `cfg`'s batch, rate and validation
+/// interval. AdamW's moment estimates are not stored in checkpoints, so they start afresh;
+/// batches, noise and augmentation are drawn from a stream seeded by the seed and the step
+/// reached, so a resumed run is deterministic too (but not identical to an uninterrupted one).
+pub fn train_from(
+    scenes: &[Scene],
     mut cfg: TrainConfig,
+    resume: Option<Trained>,
     out: Option<&Path>,
     git_revision: Option<String>,
     mut progress: impl FnMut(usize, f64, Option<f64>),
 ) -> Result<Trained, TrainError> {
     let dev = Device::Cpu;
-    let mut rng = Rng::new(cfg.seed);
+    if let Some(r) = &resume {
+        let c = &r.meta.config;
+        cfg.window = c.window;
+        cfg.model = c.model;
+        cfg.edm = c.edm;
+        cfg.seed = c.seed;
+        if r.meta.steps_done >= cfg.steps {
+            return Err(TrainError::Data(format!(
+                "the checkpoint has already done {} steps; ask for more than that (--steps is a total)",
+                r.meta.steps_done
+            )));
+        }
+    }
+    let start = resume.as_ref().map_or(1, |r| r.meta.steps_done + 1);
+    let mut rng = Rng::new(cfg.seed ^ (start as u64 - 1).wrapping_mul(0x9E37_79B9_7F4A_7C15));
     let (mut train_w, mut val_w): (Vec<Window>, Vec<Window>) = (Vec::new(), Vec::new());
     let (mut train_ids, mut val_ids) = (Vec::new(), Vec::new());
     for s in scenes {
@@ -217,14 +267,29 @@ pub fn train(
                 .collect::<Vec<_>>()
         })
         .collect();
-    let pca = Pca::fit(&futures, cfg.model.k)?;
-    let pca_rmse_m = pca.position_rmse(&futures);
-    let norm = Normaliser::new(pca, cfg.edm.sigma_data);
     cfg.model.history = cfg.window.history;
-    let varmap = VarMap::new();
-    let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
-    let model = Denoiser::new(cfg.model, cfg.edm, vb)?;
-    seeded_init(&varmap, &mut rng)?;
+    let (varmap, model, norm, pca_rmse_m, prior) = match resume {
+        Some(r) => {
+            let rmse = r.meta.normaliser.pca.position_rmse(&futures);
+            (
+                r.varmap,
+                r.model,
+                r.meta.normaliser.clone(),
+                rmse,
+                Some(r.meta),
+            )
+        }
+        None => {
+            let pca = Pca::fit(&futures, cfg.model.k)?;
+            let rmse = pca.position_rmse(&futures);
+            let norm = Normaliser::new(pca, cfg.edm.sigma_data);
+            let varmap = VarMap::new();
+            let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
+            let model = Denoiser::new(cfg.model, cfg.edm, vb)?;
+            seeded_init(&varmap, &mut rng)?;
+            (varmap, model, norm, rmse, None)
+        }
+    };
     let mut opt = AdamW::new(
         varmap.all_vars(),
         ParamsAdamW {
@@ -256,13 +321,14 @@ pub fn train(
         normaliser: norm.clone(),
         train_scenes: train_ids,
         val_scenes: val_ids,
-        steps_done: 0,
-        history: Vec::new(),
+        steps_done: start - 1,
+        history: prior.map(|p| p.history).unwrap_or_default(),
         git_revision,
         pca_rmse_m,
     };
     let (mut run_loss, mut run_n) = (0.0, 0usize);
-    for step in 1..=cfg.steps {
+    for step in start..=cfg.steps {
+        opt.set_learning_rate(learning_rate(cfg.lr, step, cfg.steps));
         let picked: Vec<Window> = (0..cfg.batch)
             .map(|_| {
                 train_w[rng.below(train_w.len())].rotated(rng.uniform() * std::f64::consts::TAU)
