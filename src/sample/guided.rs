@@ -113,30 +113,93 @@ pub struct Sample {
 
 struct Plan<'a> {
     trained: &'a Trained,
-    scene: &'a Scene,
-    window: Window,
-    /// `(slot, scene agent index, current world pose)` of modelled agents.
-    slots: Vec<(usize, usize, [f64; 3])>,
+    /// Windows covering every agent observed at the current step (see [`tile`]).
+    windows: Vec<Window>,
+    /// `(window, slot, scene agent index, current world pose)` of modelled agents, each agent
+    /// once, in the first window that holds it.
+    slots: Vec<(usize, usize, usize, [f64; 3])>,
+    /// Trajectories before the model fills them in: agents not observed at the current step
+    /// (they appear later in the recording) have no future, rather than their recorded one,
+    /// which the simulator must not know.
+    base: Trajectories,
+}
+
+/// Cuts windows until every agent observed at step `c` sits in one: the first centred on
+/// `centre`, each next one on the uncovered agent nearest to it. A window holds at most
+/// `max_agents` agents, and NGSIM scenes have up to a hundred; agents left outside would
+/// otherwise drift at constant velocity, ignored by the model and by guidance.
+fn tile(
+    scene: &Scene,
+    wcfg: &crate::train::WindowConfig,
+    c: usize,
+    centre: usize,
+) -> (Vec<Window>, Vec<(usize, usize, usize, [f64; 3])>) {
+    let observed = |i: usize| scene.agents[i].is_valid(c);
+    let pose = |i: usize| {
+        let s = scene.agents[i].states[c];
+        [s.x, s.y, s.heading]
+    };
+    let p0 = pose(centre);
+    let mut covered = vec![false; scene.agents.len()];
+    let (mut windows, mut slots) = (Vec::new(), Vec::new());
+    let mut next = Some(centre);
+    while let Some(ci) = next {
+        let w = window_at(scene, wcfg, c, ci);
+        let wi = windows.len();
+        let mut progressed = false;
+        for (slot, &ai) in w.agents.iter().enumerate() {
+            if observed(ai) && !covered[ai] {
+                covered[ai] = true;
+                progressed = true;
+                slots.push((wi, slot, ai, pose(ai)));
+            }
+        }
+        windows.push(w);
+        // The centre agent is always in its own window, so each round covers one more agent;
+        // the guard only protects against a window that somehow left its centre out.
+        covered[ci] = true;
+        next = if progressed || windows.len() == 1 {
+            (0..scene.agents.len())
+                .filter(|&i| observed(i) && !covered[i])
+                .min_by(|&a, &b| {
+                    let d = |i: usize| {
+                        let p = pose(i);
+                        (p[0] - p0[0]).hypot(p[1] - p0[1])
+                    };
+                    d(a).total_cmp(&d(b))
+                })
+        } else {
+            None
+        };
+    }
+    (windows, slots)
 }
 
 impl Plan<'_> {
-    fn dims(&self) -> (usize, usize, usize) {
+    /// `(agents per window, components, future steps, windows)`.
+    fn dims(&self) -> (usize, usize, usize, usize) {
         let c = &self.trained.meta.config;
-        (c.window.max_agents, c.model.k, c.window.future)
+        (
+            c.window.max_agents,
+            c.model.k,
+            c.window.future,
+            self.windows.len(),
+        )
     }
 
     /// World trajectories of every scene agent for each sample of `coeffs` `[K, N, k]`:
     /// modelled agents from the coefficients, the others at constant velocity.
     fn trajectories(&self, coeffs: &[f32]) -> Vec<Trajectories> {
-        let (n, k, f) = self.dims();
-        let samples = coeffs.len() / (n * k);
-        let base = Trajectories::filled(self.scene);
+        let (n, k, f, nw) = self.dims();
+        let samples = coeffs.len() / (nw * n * k);
+        let base = &self.base;
         let norm = &self.trained.meta.normaliser;
         (0..samples)
             .map(|s| {
                 let mut t = base.clone();
-                for &(slot, ai, p0) in &self.slots {
-                    let local = norm.decode(&coeffs[(s * n + slot) * k..(s * n + slot + 1) * k]);
+                for &(wi, slot, ai, p0) in &self.slots {
+                    let row = (s * nw + wi) * n + slot;
+                    let local = norm.decode(&coeffs[row * k..(row + 1) * k]);
                     let (sn, cs) = p0[2].sin_cos();
                     for j in 0..f.min(t.layout.steps) {
                         let (x, y, h) = (local[j * 3], local[j * 3 + 1], local[j * 3 + 2]);
@@ -152,10 +215,10 @@ impl Plan<'_> {
 
     /// Gradient of a dense world-coordinate gradient w.r.t. the normalised coefficients.
     fn to_coeffs(&self, world: &[f64], steps: usize, out: &mut [f32], sample: usize) {
-        let (n, k, f) = self.dims();
+        let (n, k, f, nw) = self.dims();
         let norm = &self.trained.meta.normaliser;
         let dim = norm.pca.dim;
-        for &(slot, ai, p0) in &self.slots {
+        for &(wi, slot, ai, p0) in &self.slots {
             let (sn, cs) = p0[2].sin_cos();
             let mut local = vec![0.0; dim];
             for j in 0..f.min(steps) {
@@ -168,7 +231,7 @@ impl Plan<'_> {
                 let comp = &norm.pca.components[c * dim..(c + 1) * dim];
                 let g: f64 = comp.iter().zip(&local).map(|(a, b)| a * b).sum::<f64>() * norm.std[c]
                     / norm.sigma_data;
-                out[(sample * n + slot) * k + c] += g as f32;
+                out[((sample * nw + wi) * n + slot) * k + c] += g as f32;
             }
         }
     }
@@ -192,35 +255,39 @@ pub fn sample(
         .filter(|&i| scene.agents[i].is_valid(c))
         .or_else(|| scene.agents.iter().position(|a| a.is_valid(c)))
         .ok_or_else(|| SampleError::Scene("no agent is observed at the current step".into()))?;
-    let window = window_at(scene, &wcfg, c, centre);
-    let slots: Vec<(usize, usize, [f64; 3])> = window
-        .agents
-        .iter()
-        .enumerate()
-        .filter_map(|(slot, &ai)| {
-            let s = scene.agents[ai].states[c];
-            s.valid.then_some((slot, ai, [s.x, s.y, s.heading]))
-        })
-        .collect();
+    let (windows, slots) = tile(scene, &wcfg, c, centre);
+    let mut base = Trajectories::filled(scene);
+    let mut modelled = vec![false; scene.agents.len()];
+    for &(_, _, ai, _) in &slots {
+        modelled[ai] = true;
+    }
+    for (ai, m) in modelled.iter().enumerate() {
+        if !m {
+            let n = base.layout.steps;
+            base.valid[ai * n..(ai + 1) * n].fill(false);
+        }
+    }
     let plan = Plan {
         trained,
-        scene,
-        window,
+        windows,
         slots,
+        base,
     };
-    let (n, k, _) = plan.dims();
+    let (n, k, _, nw) = plan.dims();
     let kk = cfg.samples.max(1);
-    let refs: Vec<&Window> = (0..kk).map(|_| &plan.window).collect();
+    // Batch row `s·W + w` is window w of sample s.
+    let refs: Vec<&Window> = (0..kk).flat_map(|_| plan.windows.iter()).collect();
+    let rows = kk * nw;
     let batch = build(&refs, &wcfg, &trained.meta.normaliser, &dev)?;
     let model = &trained.model;
     let map = model.encode_map(&batch.ctx)?;
     let edm = trained.meta.config.edm;
     let sigmas = edm.schedule(cfg.steps.max(1));
     let mut rng = crate::train::rng::Rng::new(cfg.seed);
-    let init: Vec<f32> = (0..kk * n * k)
+    let init: Vec<f32> = (0..rows * n * k)
         .map(|_| (rng.normal() * sigmas[0]) as f32)
         .collect();
-    let mut x = Tensor::from_vec(init, (kk, n, k), &dev)?;
+    let mut x = Tensor::from_vec(init, (rows, n, k), &dev)?;
     let recorded_end: Vec<Option<(f64, f64)>> = scene
         .agents
         .iter()
@@ -228,7 +295,7 @@ pub fn sample(
         .collect();
     let initial: std::cell::RefCell<Vec<Vec<CostReport>>> = std::cell::RefCell::new(Vec::new());
     let guided = |x: &Tensor, sigma: f64, step: usize| -> Result<Tensor, SampleError> {
-        let sig = vec![sigma; kk];
+        let sig = vec![sigma; rows];
         let (d, xv) = if cfg.guidance == Guidance::Denoiser && (cfg.lambda > 0.0) {
             let xv = Var::from_tensor(x)?;
             (
@@ -249,7 +316,7 @@ pub fn sample(
             return Ok(d.detach());
         }
         let trajs = plan.trajectories(&dv);
-        let mut g = vec![0f32; kk * n * k];
+        let mut g = vec![0f32; rows * n * k];
         let first = initial.borrow().is_empty();
         for (s, t) in trajs.iter().enumerate() {
             let mut world = vec![0.0; t.layout.len()];
@@ -265,7 +332,7 @@ pub fn sample(
                 initial.borrow_mut().push(reports);
             }
             if cfg.task == Task::Conditional {
-                for &(_, ai, _) in &plan.slots {
+                for &(_, _, ai, _) in &plan.slots {
                     if let Some((ex, ey)) = recorded_end[ai] {
                         let last = t.layout.steps - 1;
                         let (p, _) = t.state(ai, last);
@@ -284,7 +351,7 @@ pub fn sample(
             }
             plan.to_coeffs(&world, t.layout.steps, &mut g, s);
         }
-        let gd = Tensor::from_vec(g, (kk, n, k), &dev)?;
+        let gd = Tensor::from_vec(g, (rows, n, k), &dev)?;
         let grad = match xv {
             Some(xv) => {
                 // Pull the output-space gradient back through the denoiser: d(D·g)/dx = Jᵀ g.
@@ -419,6 +486,70 @@ mod tests {
     }
 
     #[test]
+    fn windows_tile_every_observed_agent_once() {
+        let (t, s) = setup();
+        let c = s.meta.current_step;
+        let wcfg = crate::train::WindowConfig {
+            max_agents: 2,
+            ..t.meta.config.window
+        };
+        let (windows, slots) = tile(&s, &wcfg, c, 0);
+        let observed: Vec<usize> = (0..s.agents.len())
+            .filter(|&i| s.agents[i].is_valid(c))
+            .collect();
+        assert!(observed.len() > 2);
+        assert!(windows.len() >= observed.len().div_ceil(2));
+        let mut got: Vec<usize> = slots.iter().map(|x| x.2).collect();
+        got.sort();
+        assert_eq!(got, observed, "each observed agent exactly once");
+        for &(wi, slot, ai, _) in &slots {
+            assert_eq!(windows[wi].agents[slot], ai);
+        }
+    }
+
+    #[test]
+    fn a_model_with_small_windows_still_moves_every_agent() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes");
+        let scenes: Vec<Scene> = ["highway.yaml", "highway_cut_in.yaml"]
+            .iter()
+            .map(|f| load_scene(&dir.join(f), 0, &LoadOptions::default()).unwrap())
+            .collect();
+        let mut cfg = crate::train::trainer::tiny_config(20, 3, 20);
+        cfg.window.max_agents = 2;
+        let t = train(&scenes, cfg, None, None, |_, _, _| {}).unwrap();
+        let s = prepare(&scenes[1], &t).unwrap();
+        let out = sample(
+            &t,
+            &s,
+            &[],
+            &SampleConfig {
+                steps: 6,
+                samples: 3,
+                lambda: 0.0,
+                task: Task::Unconditional,
+                ..SampleConfig::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(out.len(), 3);
+        let c = s.meta.current_step;
+        // Constant velocity is what agents outside every window would get.
+        let cv = crate::cost::Trajectories::filled(&s);
+        for o in &out {
+            for (ai, a) in o.scene.agents.iter().enumerate() {
+                let last = a.states.len() - 1;
+                let (p, _) = cv.state(ai, last - c - 1);
+                let st = a.states[last];
+                assert!(st.valid && st.x.is_finite());
+                assert!(
+                    (st.x - p[0]).abs() + (st.y - p[1]).abs() > 1e-6,
+                    "agent {ai} was left at constant velocity"
+                );
+            }
+        }
+    }
+
+    #[test]
     fn guidance_lowers_the_script_cost_in_both_modes() {
         let (t, s) = setup();
         let script = rightmost(&s);
@@ -446,7 +577,10 @@ mod tests {
                 &s,
                 std::slice::from_ref(&script),
                 &SampleConfig {
-                    lambda: 0.05,
+                    // Clamped gradients act like signs: every late step moves by λ whatever
+                    // the remaining error, so a large λ overshoots (0.05 doubles this tiny
+                    // model's cost; 0.01 halves it).
+                    lambda: 0.01,
                     guidance: mode,
                     ..base
                 },
