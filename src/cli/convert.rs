@@ -16,10 +16,33 @@ pub struct Args {
     /// Output: .yaml (map + agents), .json (rollout of the recorded trajectories) or .tfrecord.
     #[arg(short, long)]
     output: PathBuf,
+    /// Move the current step (history before it, future after): cuts several evaluation
+    /// instances from one long recording.
+    #[arg(long)]
+    current_step: Option<usize>,
+    /// New scenario id (instances of one recording need distinct ids for `eval --rollouts`).
+    #[arg(long)]
+    id: Option<String>,
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
-    let scene = load_scene(&args.scene, args.index, &LoadOptions::default())?;
+    let mut scene = load_scene(&args.scene, args.index, &LoadOptions::default())?;
+    if let Some(c) = args.current_step {
+        if c + 1 >= scene.num_steps() {
+            bail!(
+                "{}: --current-step {c} leaves no future (the scene has {} steps)",
+                args.scene.display(),
+                scene.num_steps()
+            );
+        }
+        if !scene.agents.iter().any(|a| a.is_valid(c)) {
+            bail!("{}: no agent is observed at step {c}", args.scene.display());
+        }
+        scene.meta.current_step = c;
+    }
+    if let Some(id) = &args.id {
+        scene.meta.scenario_id = id.clone();
+    }
     let name = args.output.to_string_lossy().to_lowercase();
     if name.ends_with(".yaml") || name.ends_with(".yml") {
         write_atomic(&args.output, yaml::to_yaml(&scene).as_bytes())?;

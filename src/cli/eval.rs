@@ -193,14 +193,6 @@ fn score(
 }
 
 /// The scene cut to `h` future steps.
-fn crop(mut s: Scene, h: usize) -> Result<Scene> {
-    let n = (s.meta.current_step + 1 + h).min(s.num_steps());
-    for a in &mut s.agents {
-        a.states.truncate(n);
-    }
-    Ok(Scene::new(s.meta.clone(), s.map.clone(), s.agents)?)
-}
-
 fn task_name(t: Task) -> &'static str {
     match t {
         Task::Conditional => "conditional",
@@ -279,10 +271,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             }
         };
         let scenes: Vec<Scene> = match args.horizon {
-            Some(h) => scenes
-                .into_iter()
-                .map(|s| crop(s, h))
-                .collect::<Result<_>>()?,
+            Some(h) => scenes.iter().map(|s| s.with_horizon(h)).collect(),
             None => scenes,
         };
         for scene in &scenes {

@@ -6,6 +6,7 @@ use std::rc::Rc;
 
 use anyhow::{Context, Result};
 use drivescript::cost::{CostScript, Limits, Params};
+use drivescript::eval::behaviors::{suggest, Behavior, ALL};
 use drivescript::io::{discover, load_scenes, rollout::Rollout, LoadOptions};
 use drivescript::render::RenderOptions;
 use drivescript::sample::{closed_loop, prepare, sample, Guidance, SampleConfig, ScriptSpec, Task};
@@ -59,6 +60,15 @@ pub struct Args {
     /// Re-plan at 2 Hz: execute 0.5 s of each plan, then sample again from there.
     #[arg(long)]
     closed_loop: bool,
+    /// Choose each scene's agents for this behaviour (e.g. cut_in) the way `eval --task
+    /// behaviour --auto` does, on the recording cut to the model's horizon; without --script
+    /// the script is scripts/NAME.rhai. --param values override the choice. Scenes without
+    /// suitable agents are skipped (and listed).
+    #[arg(long)]
+    auto: Option<String>,
+    /// Weight of the known-state cost (conditional end points).
+    #[arg(long, default_value_t = 1.0)]
+    known_weight: f64,
     /// Checkpoint directory (model.safetensors + config.json).
     #[arg(long)]
     checkpoint: PathBuf,
@@ -70,9 +80,23 @@ pub struct Args {
 
 pub fn run(args: Args) -> Result<ExitCode> {
     let trained = load(&args.checkpoint)?;
-    let params = Params::parse(&args.params)?;
-    let specs = args
-        .scripts
+    let auto = match &args.auto {
+        Some(name) => Some(Behavior::from_name(name).with_context(|| {
+            format!(
+                "--auto {name}: unknown behaviour; one of {}",
+                ALL.map(|b| b.name()).join(", ")
+            )
+        })?),
+        None => None,
+    };
+    let script_paths = match (auto, args.scripts.is_empty()) {
+        (Some(b), true) => {
+            vec![super::samples_dir().join(format!("../../scripts/{}.rhai", b.name()))]
+        }
+        _ => args.scripts.clone(),
+    };
+    let future = trained.meta.config.window.future;
+    let specs = script_paths
         .iter()
         .map(|p| {
             let source =
@@ -80,7 +104,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             Ok(ScriptSpec {
                 source,
                 name: p.display().to_string(),
-                params: params.clone(),
+                params: Params::default(),
             })
         })
         .collect::<Result<Vec<_>>>()?;
@@ -99,10 +123,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
         } else {
             Guidance::OutputSpace
         },
-        known_weight: 1.0,
+        known_weight: args.known_weight,
     };
     std::fs::create_dir_all(&args.output)
         .with_context(|| format!("creating {}", args.output.display()))?;
+    let mut skipped = 0;
     let mut sources = Vec::new();
     for s in &args.scenes {
         sources.extend(discover(s)?);
@@ -110,6 +135,34 @@ pub fn run(args: Args) -> Result<ExitCode> {
     for src in sources {
         for raw in load_scenes(&src, &LoadOptions::default())? {
             let id = raw.meta.scenario_id.clone();
+            // Suggested agents first, so that explicit --param values override them.
+            let mut kv: Vec<String> = Vec::new();
+            if let Some(b) = auto {
+                match suggest(b, &raw.with_horizon(future)) {
+                    Some(p) => kv.extend(p.iter().map(|(k, v)| {
+                        if v.fract() == 0.0 {
+                            format!("{k}={}", *v as i64)
+                        } else {
+                            format!("{k}={v}")
+                        }
+                    })),
+                    None => {
+                        println!("{id}: no agents suited to {}; skipped", b.name());
+                        skipped += 1;
+                        continue;
+                    }
+                }
+                println!("{id}: {}", kv.join(" "));
+            }
+            kv.extend(args.params.iter().cloned());
+            let params = Params::parse(&kv)?;
+            let specs: Vec<ScriptSpec> = specs
+                .iter()
+                .map(|s| ScriptSpec {
+                    params: params.clone(),
+                    ..s.clone()
+                })
+                .collect();
             let scene = prepare(&raw, &trained)?;
             let t0 = std::time::Instant::now();
             let samples = if args.closed_loop {
@@ -175,6 +228,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
             )?;
             println!("{id}: {} samples in {secs:.2} s", samples.len());
         }
+    }
+    if skipped > 0 {
+        println!("{skipped} scenes skipped (no agents suited to the behaviour)");
     }
     println!("wrote {}", args.output.display());
     Ok(ExitCode::SUCCESS)

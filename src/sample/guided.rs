@@ -11,6 +11,7 @@ use candle_core::{Device, Tensor, Var};
 
 use crate::cost::{CostError, CostReport, CostScript, Trajectories};
 use crate::scene::{AgentState, Scene};
+use crate::train::dataset::add_anchor;
 use crate::train::{build, window_at, Trained, Window};
 
 /// What the sampler is conditioned on.
@@ -193,13 +194,15 @@ impl Plan<'_> {
         let (n, k, f, nw) = self.dims();
         let samples = coeffs.len() / (nw * n * k);
         let base = &self.base;
+        let c = &self.trained.meta.config;
         let norm = &self.trained.meta.normaliser;
         (0..samples)
             .map(|s| {
                 let mut t = base.clone();
                 for &(wi, slot, ai, p0) in &self.slots {
                     let row = (s * nw + wi) * n + slot;
-                    let local = norm.decode(&coeffs[row * k..(row + 1) * k]);
+                    let mut local = norm.decode(&coeffs[row * k..(row + 1) * k]);
+                    add_anchor(&mut local, self.windows[wi].advance(&c.window, slot));
                     let (sn, cs) = p0[2].sin_cos();
                     for j in 0..f.min(t.layout.steps) {
                         let (x, y, h) = (local[j * 3], local[j * 3 + 1], local[j * 3 + 2]);

@@ -203,6 +203,17 @@ impl Scene {
         self.num_steps().saturating_sub(self.meta.current_step + 1)
     }
 
+    /// The scene with at most `future` steps after the current one (shorter recordings are
+    /// kept as they are): what a model with that horizon is scored on.
+    pub fn with_horizon(&self, future: usize) -> Scene {
+        let n = (self.meta.current_step + 1 + future).min(self.num_steps());
+        let mut s = self.clone();
+        for a in &mut s.agents {
+            a.states.truncate(n);
+        }
+        s
+    }
+
     /// The agent with this id.
     pub fn agent(&self, id: AgentId) -> Option<&Agent> {
         self.agents.iter().find(|a| a.id == id)

@@ -71,7 +71,8 @@ impl Normaliser {
         }
     }
 
-    /// Normalised coefficients of a future (`future × 3`, agent frame).
+    /// Normalised coefficients of a future residual (`future × 3`, agent frame, anchor removed:
+    /// see [`Window::agent_residual`]).
     pub fn encode(&self, v: &[f64]) -> Vec<f32> {
         self.pca
             .encode(v)
@@ -81,7 +82,8 @@ impl Normaliser {
             .collect()
     }
 
-    /// The future (`future × 3`, agent frame) of normalised coefficients.
+    /// The future residual (`future × 3`, agent frame, anchor not yet added back) of
+    /// normalised coefficients.
     pub fn decode(&self, c: &[f32]) -> Vec<f64> {
         let raw: Vec<f64> = c
             .iter()
@@ -178,7 +180,7 @@ pub fn build(
                 let o = ((wi * n + a) * n + a2) * 4;
                 agent_rel[o..o + 4].copy_from_slice(&rel(cur[a], cur[a2]));
             }
-            if let Some(f) = w.agent_future(cfg, a) {
+            if let Some(f) = w.agent_residual(cfg, a) {
                 let coeffs = norm.encode(&f);
                 target[(wi * n + a) * k..(wi * n + a + 1) * k].copy_from_slice(&coeffs);
                 loss_mask[wi * n + a] = 1.0;

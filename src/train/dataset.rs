@@ -218,6 +218,19 @@ fn window(scene: &Scene, cfg: &WindowConfig, c: usize, centre: usize) -> Window 
     }
 }
 
+/// Subtracts the constant-velocity anchor (`advance` metres per step along +x of the agent's
+/// frame) from a flattened `future × 3` trajectory.
+pub fn remove_anchor(v: &mut [f64], advance: f64) {
+    for (j, p) in v.chunks_mut(3).enumerate() {
+        p[0] -= advance * (j + 1) as f64;
+    }
+}
+
+/// Adds the anchor back: the inverse of [`remove_anchor`].
+pub fn add_anchor(v: &mut [f64], advance: f64) {
+    remove_anchor(v, -advance);
+}
+
 impl Window {
     /// The window rotated by `angle` about the centre agent (augmentation: the model should not
     /// learn a preferred direction).
@@ -237,6 +250,37 @@ impl Window {
             *p = [c * x - s * y, s * x + c * y];
         }
         w
+    }
+
+    /// Metres agent slot `k` moved per step along its current heading, averaged over its last
+    /// (up to 4) consecutively observed history steps; 0 without any. The constant-velocity
+    /// anchor of [`Window::agent_residual`].
+    pub fn advance(&self, cfg: &WindowConfig, k: usize) -> f64 {
+        let steps = cfg.steps();
+        let c = k * steps + cfg.history - 1;
+        if !self.valid[c] {
+            return 0.0;
+        }
+        let mut m = 0;
+        while m < 4 && m + 1 < cfg.history && self.valid[c - m - 1] {
+            m += 1;
+        }
+        if m == 0 {
+            return 0.0;
+        }
+        let (cur, past) = (self.states[c], self.states[c - m]);
+        let (s, co) = (cur[2] as f64).sin_cos();
+        ((cur[0] - past[0]) as f64 * co + (cur[1] - past[1]) as f64 * s) / m as f64
+    }
+
+    /// [`Window::agent_future`] minus the constant-velocity anchor (`advance` metres per step
+    /// straight ahead): what the model generates. Most of a future is its speed; against the
+    /// anchor the network only has to model how the agent deviates from holding it, and an
+    /// untrained or uncertain model falls back to constant velocity instead of standing still.
+    pub fn agent_residual(&self, cfg: &WindowConfig, k: usize) -> Option<Vec<f64>> {
+        let mut v = self.agent_future(cfg, k)?;
+        remove_anchor(&mut v, self.advance(cfg, k));
+        Some(v)
     }
 
     /// Future `(x, y, heading)` of agent slot `k` in its own current frame, flattened
@@ -301,6 +345,33 @@ mod tests {
         let d = |w: &Window, k: usize| (w.states[k][0].hypot(w.states[k][1])) as f64;
         assert!((d(first, steps + 12) - d(&r, steps + 12)).abs() < 1e-3);
         assert!((r.states[cfg.history - 1][2] - 0.7).abs() < 1e-5);
+    }
+
+    #[test]
+    fn residuals_remove_the_constant_velocity_anchor() {
+        // highway.yaml: agents following their lanes at constant speed, so their futures are
+        // almost exactly the anchor.
+        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes/highway.yaml");
+        let s = load_scene(&p, 0, &LoadOptions::default()).unwrap();
+        let cfg = WindowConfig::ngsim();
+        let w = &windows(&s, &cfg)[0];
+        for k in 0..w.agents.len() {
+            let f = w.agent_future(&cfg, k).unwrap();
+            let r = w.agent_residual(&cfg, k).unwrap();
+            let adv = w.advance(&cfg, k);
+            assert!(adv > 0.5, "agent {k} advances {adv} m per step");
+            let far = f.chunks(3).map(|p| p[0].abs()).fold(0.0, f64::max);
+            let left = r.chunks(3).map(|p| p[0].abs()).fold(0.0, f64::max);
+            assert!(
+                far > 20.0 && left < 0.05 * far,
+                "{far} m ahead, {left} m off the anchor"
+            );
+            let mut back = r.clone();
+            add_anchor(&mut back, adv);
+            for (a, b) in back.iter().zip(&f) {
+                assert!((a - b).abs() < 1e-9);
+            }
+        }
     }
 
     #[test]
