@@ -228,12 +228,45 @@ fn help_has_examples() {
 }
 
 #[test]
-fn demo_writes_the_gif() {
+fn demo_simulates_a_cut_in_with_the_shipped_checkpoint() {
     let dir = tempfile::tempdir().unwrap();
     let gif = dir.path().join("demo.gif");
-    let out = ok(&["demo", "-o", s(&gif)]);
-    assert!(out.contains("USA_Lanker-1_1_T-1"), "{out}");
+    let out = ok(&["demo", "--samples", "2", "-o", s(&gif)]);
+    assert!(out.contains("USA_US101-4_1_T-1"), "{out}");
+    assert!(out.contains("cut-in: vehicle"), "{out}");
+    assert!(
+        out.contains("ends_in_victim_lane") && out.contains("samples pass the cut-in checker"),
+        "{out}"
+    );
     assert_eq!(&std::fs::read(&gif).unwrap()[..6], b"GIF89a");
+    let report: Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("demo_costs.json")).unwrap())
+            .unwrap();
+    assert_eq!(report["behaviour"], "cut_in");
+    assert_eq!(report["samples"].as_array().unwrap().len(), 2);
+    assert!(dir.path().join("demo_1.json").exists());
+}
+
+#[test]
+fn convert_moves_the_current_step() {
+    let dir = tempfile::tempdir().unwrap();
+    let y = dir.path().join("c30.yaml");
+    let src = samples().join("commonroad/USA_US101-4_1_T-1.xml");
+    ok(&[
+        "convert",
+        s(&src),
+        "-o",
+        s(&y),
+        "--current-step",
+        "30",
+        "--id",
+        "us101_c30",
+    ]);
+    let v = inspect_json(s(&y));
+    assert_eq!(v[0]["current_step"], 30);
+    assert_eq!(v[0]["scenario_id"], "us101_c30");
+    let err = fails(&["convert", s(&src), "-o", s(&y), "--current-step", "100"]);
+    assert!(err.contains("leaves no future"), "{err}");
 }
 
 #[test]
@@ -453,6 +486,70 @@ fn train_then_simulate_end_to_end() {
     ]);
     assert!(out.contains("trained 4 steps"), "{out}");
     assert!(ckpt.join("model.safetensors").exists() && ckpt.join("config.json").exists());
+    // --steps is a total: resuming a 4-step checkpoint to 6 runs two more steps.
+    let out = ok(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--out",
+        s(&ckpt),
+        "--resume",
+        s(&ckpt),
+        "--steps",
+        "6",
+        "--batch",
+        "2",
+        "--eval-every",
+        "2",
+    ]);
+    assert!(
+        out.contains("resuming from") && out.contains("trained 6 steps"),
+        "{out}"
+    );
+    let err = fails(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--out",
+        s(&ckpt),
+        "--resume",
+        s(&ckpt),
+        "--steps",
+        "3",
+    ]);
+    assert!(err.contains("already done 6 steps"), "{err}");
+    // --auto picks the agents and the script for each scene.
+    let auto = dir.path().join("auto");
+    let out = ok(&[
+        "simulate",
+        s(&samples().join("yaml/highway_cut_in.yaml")),
+        "--checkpoint",
+        s(&ckpt),
+        "--auto",
+        "cut_in",
+        "--steps",
+        "4",
+        "-o",
+        s(&auto),
+    ]);
+    assert!(
+        out.contains("highway-cut-in: cutter=") && out.contains("ends_in_victim_lane"),
+        "{out}"
+    );
+    let err = fails(&[
+        "simulate",
+        s(&samples().join("yaml/highway_cut_in.yaml")),
+        "--checkpoint",
+        s(&ckpt),
+        "--auto",
+        "cut_inn",
+        "-o",
+        s(&auto),
+    ]);
+    assert!(
+        err.contains("unknown behaviour") && err.contains("cut_in"),
+        "{err}"
+    );
     let sim = dir.path().join("sim");
     let out = ok(&[
         "simulate",

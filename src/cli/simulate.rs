@@ -9,7 +9,9 @@ use drivescript::cost::{CostScript, Limits, Params};
 use drivescript::eval::behaviors::{suggest, Behavior, ALL};
 use drivescript::io::{discover, load_scenes, rollout::Rollout, LoadOptions};
 use drivescript::render::RenderOptions;
-use drivescript::sample::{closed_loop, prepare, sample, Guidance, SampleConfig, ScriptSpec, Task};
+use drivescript::sample::{
+    closed_loop, prepare, sample, Guidance, LambdaSchedule, SampleConfig, ScriptSpec, Task,
+};
 use drivescript::train::load;
 
 #[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -26,6 +28,14 @@ enum GuidanceArg {
     Denoiser,
     /// Cost gradient at the denoised output (cheaper).
     Output,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum ScheduleArg {
+    /// λ at every noise level.
+    Constant,
+    /// λ·σ/(σ + σ_data).
+    Fading,
 }
 
 #[derive(clap::Args)]
@@ -69,6 +79,9 @@ pub struct Args {
     /// Weight of the known-state cost (conditional end points).
     #[arg(long, default_value_t = 1.0)]
     known_weight: f64,
+    /// How λ varies with the noise level σ: constant or fading (λ·σ/(σ+σ_data)).
+    #[arg(long, value_enum, default_value = "constant")]
+    schedule: ScheduleArg,
     /// Checkpoint directory (model.safetensors + config.json).
     #[arg(long)]
     checkpoint: PathBuf,
@@ -124,6 +137,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
             Guidance::OutputSpace
         },
         known_weight: args.known_weight,
+        schedule: match args.schedule {
+            ScheduleArg::Constant => LambdaSchedule::Constant,
+            ScheduleArg::Fading => LambdaSchedule::Fading,
+        },
     };
     std::fs::create_dir_all(&args.output)
         .with_context(|| format!("creating {}", args.output.display()))?;

@@ -633,6 +633,10 @@ pub fn suggest(b: Behavior, scene: &Scene) -> Option<CheckParams> {
         .agents
         .iter()
         .filter(|a| a.agent_type == AgentType::Vehicle && (c..n).all(|t| a.is_valid(t)))
+        // The recording must end on a mapped lane: where the map stops short of the agent's
+        // future (NGSIM maps cover a few hundred metres), no lane-based behaviour can be
+        // judged at the end of the horizon, whatever the simulator does.
+        .filter(|a| lane_of(scene, a, n - 1).is_some())
         .filter_map(|a| Some((a, lane_of(scene, a, c)?, path_of(scene, a)?)))
         .collect();
     let centre = scene

@@ -32,6 +32,31 @@ pub enum Guidance {
     OutputSpace,
 }
 
+/// Guidance strength λ for behaviour scripts (unconditional task, [`LambdaSchedule::Fading`]),
+/// chosen on the held-out NGSIM instances with the shipped checkpoint (data/checkpoint/README.md).
+pub const BEHAVIOUR_LAMBDA: f64 = 2.0;
+
+/// How the guidance step depends on the noise level σ.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LambdaSchedule {
+    /// `λ` at every σ.
+    Constant,
+    /// `λ·σ/(σ + σ_data)`: full strength while the plan forms, fading as σ → 0, so that the
+    /// last steps (where clamped gradients act like signs and a constant step overshoots) are
+    /// fine corrections.
+    Fading,
+}
+
+impl LambdaSchedule {
+    /// The factor on λ at noise level `sigma`.
+    pub fn factor(self, sigma: f64, sigma_data: f64) -> f64 {
+        match self {
+            LambdaSchedule::Constant => 1.0,
+            LambdaSchedule::Fading => sigma / (sigma + sigma_data),
+        }
+    }
+}
+
 /// Sampler settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SampleConfig {
@@ -49,6 +74,8 @@ pub struct SampleConfig {
     pub guidance: Guidance,
     /// Weight of the known-state (end point) cost.
     pub known_weight: f64,
+    /// How λ varies with the noise level.
+    pub schedule: LambdaSchedule,
 }
 
 impl Default for SampleConfig {
@@ -61,6 +88,7 @@ impl Default for SampleConfig {
             task: Task::Conditional,
             guidance: Guidance::OutputSpace,
             known_weight: 1.0,
+            schedule: LambdaSchedule::Constant,
         }
     }
 }
@@ -216,6 +244,42 @@ impl Plan<'_> {
             .collect()
     }
 
+    /// Points each modelled agent's heading along its direction of motion wherever it moves
+    /// (central differences over more than 0.2 m per step; the model's heading where it is
+    /// slower). Positions and headings are separate PCA channels, and guidance that pushes
+    /// positions sideways drags the heading channel along arbitrarily; a car drives where it
+    /// points, so the output keeps its headings consistent with its path.
+    fn align_headings(&self, t: &mut Trajectories) {
+        let n = t.layout.steps;
+        for &(_, _, ai, p0) in &self.slots {
+            let at = |t: &Trajectories, j: isize| -> [f64; 3] {
+                if j < 0 {
+                    p0
+                } else {
+                    t.xyh[ai * n + (j as usize).min(n - 1)]
+                }
+            };
+            let fixed: Vec<f64> = (0..n as isize)
+                .map(|j| {
+                    let (a, b) = (at(t, j - 1), at(t, j + 1));
+                    let span = if j as usize + 1 >= n { 1.0 } else { 2.0 };
+                    let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
+                    let h = at(t, j)[2];
+                    if dx.hypot(dy) > 0.2 * span {
+                        h + crate::geom::wrap_angle(dy.atan2(dx) - h)
+                    } else {
+                        h
+                    }
+                })
+                .collect();
+            for (j, h) in fixed.into_iter().enumerate() {
+                if t.valid[ai * n + j] {
+                    t.xyh[ai * n + j][2] = h;
+                }
+            }
+        }
+    }
+
     /// Gradient of a dense world-coordinate gradient w.r.t. the normalised coefficients.
     fn to_coeffs(&self, world: &[f64], steps: usize, out: &mut [f32], sample: usize) {
         let (n, k, f, nw) = self.dims();
@@ -363,7 +427,8 @@ pub fn sample(
             }
             None => gd,
         };
-        let step_vec = (grad.clamp(-1f32, 1f32)? * cfg.lambda)?;
+        let lambda = cfg.lambda * cfg.schedule.factor(sigma, edm.sigma_data);
+        let step_vec = (grad.clamp(-1f32, 1f32)? * lambda)?;
         Ok((d.detach() - step_vec)?)
     };
     for i in 0..sigmas.len() - 1 {
@@ -385,7 +450,10 @@ pub fn sample(
             step: sigmas.len() - 1,
         });
     }
-    let trajs = plan.trajectories(&xv);
+    let mut trajs = plan.trajectories(&xv);
+    for t in &mut trajs {
+        plan.align_headings(t);
+    }
     let mut out = Vec::with_capacity(kk);
     for t in trajs {
         let mut sim = scene.clone();

@@ -4,4 +4,7 @@ pub mod closed_loop;
 pub mod guided;
 
 pub use closed_loop::{closed_loop, ScriptSpec};
-pub use guided::{prepare, sample, Guidance, Sample, SampleConfig, SampleError, Task};
+pub use guided::{
+    prepare, sample, Guidance, LambdaSchedule, Sample, SampleConfig, SampleError, Task,
+    BEHAVIOUR_LAMBDA,
+};

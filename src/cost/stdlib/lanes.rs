@@ -103,6 +103,26 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     doc(
         docs,
         S,
+        "lane_ahead(lane, x, y) -> float",
+        "Metres of mapped lane ahead of the point (x, y) projected onto the lane, following successors straight on at forks (up to 2 km): where a lane ends (an on-ramp, an exit, the edge of the map) within that distance, a vehicle cannot end in it.",
+    );
+    let sh = shared.clone();
+    e.register_fn(
+        "lane_ahead",
+        move |l: i64, x: f64, y: f64| -> RResult<f64> {
+            let ctx = sh.borrow();
+            let m = &ctx.scene.map;
+            check(m, l)?;
+            let path = m
+                .lane_path(l, 2000.0, 0.0, crate::scene::Turn::Straight)
+                .map_err(|e| format!("lane_ahead({l}): {e}"))?;
+            let s = path.frenet.project(crate::geom::Point::new(x, y)).s;
+            Ok((path.frenet.length() - s).max(0.0))
+        },
+    );
+    doc(
+        docs,
+        S,
         "lane_exists(lane) -> bool",
         "Whether the map has this lane id.",
     );
