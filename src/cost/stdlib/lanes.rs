@@ -103,8 +103,8 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     doc(
         docs,
         S,
-        "lane_ahead(lane, x, y) -> float",
-        "Metres of mapped lane ahead of the point (x, y) projected onto the lane, following successors straight on at forks (up to 2 km): where a lane ends (an on-ramp, an exit, the edge of the map) within that distance, a vehicle cannot end in it.",
+        "lane_ahead(lane, xpos, ypos) -> float",
+        "Metres of mapped lane ahead of the point (xpos, ypos) projected onto the lane, following successors straight on at forks (up to 2 km): where a lane ends (an on-ramp, an exit, the edge of the map) within that distance, a vehicle cannot end in it.",
     );
     let sh = shared.clone();
     e.register_fn(
