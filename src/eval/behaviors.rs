@@ -618,7 +618,8 @@ pub fn check(
 /// no suitable agent). Candidates are vehicles observed at the current step and through the
 /// recorded future, on a lane; ties go to the one nearest the scene's ego (or first vehicle).
 ///
-/// - one-vehicle behaviours: the nearest candidate; lane changes and `rightmost_lane` need a
+/// - one-vehicle behaviours: the nearest candidate (`stop` within 60 % of the horizon); lane
+///   changes and `rightmost_lane` need a
 ///   lane on that side (for `rightmost_lane`, not already the rightmost); `speed_limit` asks for
 ///   80 % of its current speed; `target_point` for a point 20 m to the left of its recorded end;
 /// - `cut_in`: a victim and a cutter in an adjacent lane within 15 m along the victim's path;
@@ -689,9 +690,17 @@ pub fn suggest(b: Behavior, scene: &Scene) -> Option<CheckParams> {
             .iter()
             .find(|x| !g.is_rightmost(x.1))
             .and_then(|x| p(&[("vehicle", x.0.id as f64)])),
-        Behavior::Reverse | Behavior::OffRoad | Behavior::Weave | Behavior::Stop => {
+        Behavior::Reverse | Behavior::OffRoad | Behavior::Weave => {
             cands.first().and_then(|x| p(&[("vehicle", x.0.id as f64)]))
         }
+        // The 4 s default assumes WOMD's 8 s future; stop within 60 % of the actual horizon.
+        Behavior::Stop => cands.first().and_then(|x| {
+            let horizon = (n - 1 - c) as f64 * scene.meta.dt;
+            p(&[
+                ("vehicle", x.0.id as f64),
+                ("within", (0.6 * horizon * 10.0).round() / 10.0),
+            ])
+        }),
         Behavior::CutIn => {
             for (victim, lv, path) in &cands {
                 let sv = path.frenet.project(victim.states[c].position()).s;

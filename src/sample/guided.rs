@@ -557,6 +557,41 @@ mod tests {
     }
 
     #[test]
+    fn a_script_that_overflows_stops_the_run_with_an_error() {
+        let (t, s) = setup();
+        // Finite on the recorded future is not required here: compile without validating,
+        // as a caller that skips validation would.
+        let script = CostScript::compile(
+            "let a = agent(3); let big = 1e300 * 1e300; term(\"boom\", a.x.last() * big);",
+            "boom.rhai",
+            Rc::new(s.clone()),
+            &Params::default(),
+            &Limits::default(),
+        )
+        .unwrap();
+        for guidance in [Guidance::OutputSpace, Guidance::Denoiser] {
+            let err = sample(
+                &t,
+                &s,
+                std::slice::from_ref(&script),
+                &SampleConfig {
+                    steps: 4,
+                    task: Task::Unconditional,
+                    guidance,
+                    ..SampleConfig::default()
+                },
+            )
+            .err()
+            .expect("an overflowing script must not yield samples");
+            let msg = err.to_string();
+            assert!(
+                msg.contains("non-finite") || msg.contains("boom"),
+                "{guidance:?}: {msg}"
+            );
+        }
+    }
+
+    #[test]
     fn windows_tile_every_observed_agent_once() {
         let (t, s) = setup();
         let c = s.meta.current_step;
