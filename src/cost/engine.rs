@@ -857,6 +857,42 @@ mod tests {
     }
 
     #[test]
+    fn lane_ahead_measures_the_mapped_lane_to_the_end_of_the_road() {
+        // A straight 500 m road along +x in two segments (lanes 100-102 then 200-202).
+        let p =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes/highway.yaml");
+        let scene =
+            Rc::new(crate::io::load_scene(&p, 0, &crate::io::LoadOptions::default()).unwrap());
+        let script = CostScript::compile(
+            "let a = agent(1);
+             term(\"own\", lane_ahead(a.lane, a.current_x, a.current_y) + a.current_x + 0.0 * a.x.last());
+             term(\"second\", lane_ahead(200, a.current_x, a.current_y) + a.current_x + 0.0 * a.x.last());",
+            "t",
+            scene.clone(),
+            &Params::default(),
+            &Limits::default(),
+        )
+        .unwrap();
+        let r = script
+            .evaluate(&crate::cost::Trajectories::recorded(&scene))
+            .unwrap();
+        for t in &r.terms {
+            assert!((t.value - 500.0).abs() < 0.5, "{}: {}", t.name, t.value);
+        }
+        let traj = crate::cost::Trajectories::recorded(&scene);
+        let err = CostScript::compile(
+            "term(\"x\", lane_ahead(999, 0.0, 0.0) + 0.0 * agent(1).x.last());",
+            "t",
+            scene,
+            &Params::default(),
+            &Limits::default(),
+        )
+        .and_then(|s| s.evaluate(&traj))
+        .unwrap_err();
+        assert!(err.to_string().contains("999"), "{err}");
+    }
+
+    #[test]
     fn reference_lists_sections_and_modules() {
         let md = reference_markdown();
         for s in [
