@@ -10,7 +10,7 @@ use drivescript::cost::{CostScript, Limits, Params};
 use drivescript::eval::behaviors::{check, suggest, Behavior};
 use drivescript::io::{load_scene, rollout::Rollout, write_atomic, LoadOptions};
 use drivescript::render::RenderOptions;
-use drivescript::sample::{prepare, sample, Guidance, SampleConfig, Task};
+use drivescript::sample::{prepare, sample, Guidance, LambdaSchedule, SampleConfig, Task};
 use drivescript::train::load;
 
 use super::render::write_picture;
@@ -87,12 +87,13 @@ pub fn run(args: Args) -> Result<ExitCode> {
         lambda: LAMBDA,
         task: Task::Unconditional,
         guidance: Guidance::OutputSpace,
+        schedule: LambdaSchedule::Fading,
         ..SampleConfig::default()
     };
     let t0 = std::time::Instant::now();
     let out = sample(&trained, &scene, std::slice::from_ref(&script), &cfg)?;
     println!(
-        "{} samples, {} Heun steps, guided in output space (λ = {LAMBDA}), in {:.1} s\n",
+        "{} samples, {} Heun steps, guided in output space (fading λ = {LAMBDA}), in {:.1} s\n",
         out.len(),
         cfg.steps,
         t0.elapsed().as_secs_f64()
