@@ -61,10 +61,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             scene_path.display()
         )
     })?;
-    let kv: Vec<String> = chosen
-        .iter()
-        .map(|(k, v)| format!("{k}={}", *v as i64))
-        .collect();
+    let kv = super::script_params(&chosen);
     println!(
         "cut-in: vehicle {} cuts in front of vehicle {} (chosen by eval::behaviors::suggest)",
         chosen["cutter"], chosen["victim"]

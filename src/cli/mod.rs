@@ -116,6 +116,20 @@ pub fn run() -> ExitCode {
 }
 
 /// Where the repository's sample data lives (next to the binary's crate, or the working dir).
+/// Checker parameters as `name=value` script parameters: whole numbers (agent ids) as integers,
+/// which `agent(...)` needs, the rest as floats.
+pub(crate) fn script_params(p: &drivescript::eval::behaviors::CheckParams) -> Vec<String> {
+    p.iter()
+        .map(|(k, v)| {
+            if v.fract() == 0.0 {
+                format!("{k}={}", *v as i64)
+            } else {
+                format!("{k}={v}")
+            }
+        })
+        .collect()
+}
+
 pub(crate) fn samples_dir() -> PathBuf {
     let here = PathBuf::from("data/samples");
     if here.exists() {

@@ -156,13 +156,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             let mut kv: Vec<String> = Vec::new();
             if let Some(b) = auto {
                 match suggest(b, &raw.with_horizon(future)) {
-                    Some(p) => kv.extend(p.iter().map(|(k, v)| {
-                        if v.fract() == 0.0 {
-                            format!("{k}={}", *v as i64)
-                        } else {
-                            format!("{k}={v}")
-                        }
-                    })),
+                    Some(p) => kv.extend(super::script_params(&p)),
                     None => {
                         println!("{id}: no agents suited to {}; skipped", b.name());
                         skipped += 1;

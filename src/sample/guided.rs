@@ -144,13 +144,27 @@ struct Plan<'a> {
     trained: &'a Trained,
     /// Windows covering every agent observed at the current step (see [`tile`]).
     windows: Vec<Window>,
-    /// `(window, slot, scene agent index, current world pose)` of modelled agents, each agent
-    /// once, in the first window that holds it.
-    slots: Vec<(usize, usize, usize, [f64; 3])>,
+    /// Modelled agents, each once, in the first window that holds it.
+    slots: Vec<Slot>,
     /// Trajectories before the model fills them in: agents not observed at the current step
     /// (they appear later in the recording) have no future, rather than their recorded one,
     /// which the simulator must not know.
     base: Trajectories,
+}
+
+/// Where a modelled agent sits in the batch, and what decoding its coefficients needs.
+#[derive(Debug, Clone, Copy)]
+struct Slot {
+    /// Window (batch row within a sample).
+    window: usize,
+    /// Agent slot within the window.
+    slot: usize,
+    /// Scene agent index.
+    agent: usize,
+    /// Current world pose `(x, y, heading)`.
+    pose: [f64; 3],
+    /// Constant-velocity anchor ([`Window::advance`]), fixed for the whole run.
+    advance: f64,
 }
 
 /// Cuts windows until every agent observed at step `c` sits in one: the first centred on
@@ -162,7 +176,7 @@ fn tile(
     wcfg: &crate::train::WindowConfig,
     c: usize,
     centre: usize,
-) -> (Vec<Window>, Vec<(usize, usize, usize, [f64; 3])>) {
+) -> (Vec<Window>, Vec<Slot>) {
     let observed = |i: usize| scene.agents[i].is_valid(c);
     let pose = |i: usize| {
         let s = scene.agents[i].states[c];
@@ -175,31 +189,28 @@ fn tile(
     while let Some(ci) = next {
         let w = window_at(scene, wcfg, c, ci);
         let wi = windows.len();
-        let mut progressed = false;
         for (slot, &ai) in w.agents.iter().enumerate() {
             if observed(ai) && !covered[ai] {
                 covered[ai] = true;
-                progressed = true;
-                slots.push((wi, slot, ai, pose(ai)));
+                slots.push(Slot {
+                    window: wi,
+                    slot,
+                    agent: ai,
+                    pose: pose(ai),
+                    advance: w.advance(wcfg, slot),
+                });
             }
         }
         windows.push(w);
-        // The centre agent is always in its own window, so each round covers one more agent;
-        // the guard only protects against a window that somehow left its centre out.
+        // Marking the centre guarantees progress, so the loop ends.
         covered[ci] = true;
-        next = if progressed || windows.len() == 1 {
-            (0..scene.agents.len())
-                .filter(|&i| observed(i) && !covered[i])
-                .min_by(|&a, &b| {
-                    let d = |i: usize| {
-                        let p = pose(i);
-                        (p[0] - p0[0]).hypot(p[1] - p0[1])
-                    };
-                    d(a).total_cmp(&d(b))
-                })
-        } else {
-            None
+        let dist = |i: usize| {
+            let p = pose(i);
+            (p[0] - p0[0]).hypot(p[1] - p0[1])
         };
+        next = (0..scene.agents.len())
+            .filter(|&i| observed(i) && !covered[i])
+            .min_by(|&a, &b| dist(a).total_cmp(&dist(b)));
     }
     (windows, slots)
 }
@@ -222,15 +233,15 @@ impl Plan<'_> {
         let (n, k, f, nw) = self.dims();
         let samples = coeffs.len() / (nw * n * k);
         let base = &self.base;
-        let c = &self.trained.meta.config;
         let norm = &self.trained.meta.normaliser;
         (0..samples)
             .map(|s| {
                 let mut t = base.clone();
-                for &(wi, slot, ai, p0) in &self.slots {
-                    let row = (s * nw + wi) * n + slot;
+                for sl in &self.slots {
+                    let (ai, p0) = (sl.agent, sl.pose);
+                    let row = (s * nw + sl.window) * n + sl.slot;
                     let mut local = norm.decode(&coeffs[row * k..(row + 1) * k]);
-                    add_anchor(&mut local, self.windows[wi].advance(&c.window, slot));
+                    add_anchor(&mut local, sl.advance);
                     let (sn, cs) = p0[2].sin_cos();
                     for j in 0..f.min(t.layout.steps) {
                         let (x, y, h) = (local[j * 3], local[j * 3 + 1], local[j * 3 + 2]);
@@ -251,7 +262,12 @@ impl Plan<'_> {
     /// points, so the output keeps its headings consistent with its path.
     fn align_headings(&self, t: &mut Trajectories) {
         let n = t.layout.steps;
-        for &(_, _, ai, p0) in &self.slots {
+        for &Slot {
+            agent: ai,
+            pose: p0,
+            ..
+        } in &self.slots
+        {
             let at = |t: &Trajectories, j: isize| -> [f64; 3] {
                 if j < 0 {
                     p0
@@ -285,7 +301,14 @@ impl Plan<'_> {
         let (n, k, f, nw) = self.dims();
         let norm = &self.trained.meta.normaliser;
         let dim = norm.pca.dim;
-        for &(wi, slot, ai, p0) in &self.slots {
+        for &Slot {
+            window: wi,
+            slot,
+            agent: ai,
+            pose: p0,
+            ..
+        } in &self.slots
+        {
             let (sn, cs) = p0[2].sin_cos();
             let mut local = vec![0.0; dim];
             for j in 0..f.min(steps) {
@@ -325,8 +348,8 @@ pub fn sample(
     let (windows, slots) = tile(scene, &wcfg, c, centre);
     let mut base = Trajectories::filled(scene);
     let mut modelled = vec![false; scene.agents.len()];
-    for &(_, _, ai, _) in &slots {
-        modelled[ai] = true;
+    for sl in &slots {
+        modelled[sl.agent] = true;
     }
     for (ai, m) in modelled.iter().enumerate() {
         if !m {
@@ -399,7 +422,7 @@ pub fn sample(
                 initial.borrow_mut().push(reports);
             }
             if cfg.task == Task::Conditional {
-                for &(_, _, ai, _) in &plan.slots {
+                for &Slot { agent: ai, .. } in &plan.slots {
                     if let Some((ex, ey)) = recorded_end[ai] {
                         let last = t.layout.steps - 1;
                         let (p, _) = t.state(ai, last);
@@ -605,11 +628,11 @@ mod tests {
             .collect();
         assert!(observed.len() > 2);
         assert!(windows.len() >= observed.len().div_ceil(2));
-        let mut got: Vec<usize> = slots.iter().map(|x| x.2).collect();
+        let mut got: Vec<usize> = slots.iter().map(|x| x.agent).collect();
         got.sort();
         assert_eq!(got, observed, "each observed agent exactly once");
-        for &(wi, slot, ai, _) in &slots {
-            assert_eq!(windows[wi].agents[slot], ai);
+        for sl in &slots {
+            assert_eq!(windows[sl.window].agents[sl.slot], sl.agent);
         }
     }
 
