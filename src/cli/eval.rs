@@ -307,6 +307,8 @@ pub fn run(args: Args) -> Result<ExitCode> {
                         }
                     },
                 };
+                // Every method, the log included, loses its cars where they leave the map.
+                let sims: Vec<Scene> = sims.iter().map(Scene::retire_exited).collect();
                 score(
                     args.task,
                     acc,

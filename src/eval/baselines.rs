@@ -27,13 +27,15 @@ impl Baseline {
         }
     }
 
-    /// The simulated scene.
+    /// The simulated scene; cars leave it where they reach a map exit
+    /// ([`Scene::retire_exited`]).
     pub fn simulate(self, scene: &Scene) -> Scene {
         match self {
             Baseline::Log => scene.clone(),
             Baseline::ConstantVelocity => constant_velocity(scene),
             Baseline::Lane => lane_following(scene),
         }
+        .retire_exited()
     }
 }
 

@@ -146,6 +146,9 @@ struct Plan<'a> {
     windows: Vec<Window>,
     /// Modelled agents, each once, in the first window that holds it.
     slots: Vec<Slot>,
+    /// Per modelled agent (as in `slots`), every `(window, slot)` that holds it: its own slot
+    /// first, then the windows where it is context (see [`Plan::consensus`]).
+    copies: Vec<Vec<(usize, usize)>>,
     /// Trajectories before the model fills them in: agents not observed at the current step
     /// (they appear later in the recording) have no future, rather than their recorded one,
     /// which the simulator must not know.
@@ -167,52 +170,73 @@ struct Slot {
     advance: f64,
 }
 
-/// Cuts windows until every agent observed at step `c` sits in one: the first centred on
-/// `centre`, each next one on the uncovered agent nearest to it. A window holds at most
-/// `max_agents` agents, and NGSIM scenes have up to a hundred; agents left outside would
-/// otherwise drift at constant velocity, ignored by the model and by guidance.
+/// Cuts windows until every agent observed at step `c` is among the nearest two thirds of
+/// some window's agents: the first centred on `centre`, each next one on the uncovered agent
+/// nearest to it. A window holds at most `max_agents` agents, and NGSIM scenes have up to a
+/// hundred; agents left outside would drift at constant velocity, ignored by the model and by
+/// guidance. Windows overlap, and each agent is modelled by (owned by) the window whose
+/// centre is nearest to it, where its lanes and neighbours are most completely in view; its
+/// other copies are context, kept equal to the owner's ([`Plan::consensus`]).
 fn tile(
     scene: &Scene,
     wcfg: &crate::train::WindowConfig,
     c: usize,
     centre: usize,
-) -> (Vec<Window>, Vec<Slot>) {
+) -> (Vec<Window>, Vec<Slot>, Vec<Vec<(usize, usize)>>) {
     let observed = |i: usize| scene.agents[i].is_valid(c);
     let pose = |i: usize| {
         let s = scene.agents[i].states[c];
         [s.x, s.y, s.heading]
     };
-    let p0 = pose(centre);
+    let dist = |i: usize, j: usize| {
+        let (p, q) = (pose(i), pose(j));
+        (p[0] - q[0]).hypot(p[1] - q[1])
+    };
+    let inner = (2 * wcfg.max_agents).div_ceil(3).max(1);
     let mut covered = vec![false; scene.agents.len()];
-    let (mut windows, mut slots) = (Vec::new(), Vec::new());
+    let mut windows = Vec::new();
+    // Per agent, in order of first appearance: (window, slot, distance to the window centre).
+    let mut seen: Vec<Vec<(usize, usize, f64)>> = vec![Vec::new(); scene.agents.len()];
+    let mut order = Vec::new();
     let mut next = Some(centre);
     while let Some(ci) = next {
         let w = window_at(scene, wcfg, c, ci);
         let wi = windows.len();
         for (slot, &ai) in w.agents.iter().enumerate() {
-            if observed(ai) && !covered[ai] {
+            if !observed(ai) {
+                continue;
+            }
+            if seen[ai].is_empty() {
+                order.push(ai);
+            }
+            seen[ai].push((wi, slot, dist(ai, ci)));
+            if slot < inner {
                 covered[ai] = true;
-                slots.push(Slot {
-                    window: wi,
-                    slot,
-                    agent: ai,
-                    pose: pose(ai),
-                    advance: w.advance(wcfg, slot),
-                });
             }
         }
         windows.push(w);
-        // Marking the centre guarantees progress, so the loop ends.
+        // The centre is slot 0, so each window covers at least its centre: the loop ends.
         covered[ci] = true;
-        let dist = |i: usize| {
-            let p = pose(i);
-            (p[0] - p0[0]).hypot(p[1] - p0[1])
-        };
         next = (0..scene.agents.len())
             .filter(|&i| observed(i) && !covered[i])
-            .min_by(|&a, &b| dist(a).total_cmp(&dist(b)));
+            .min_by(|&a, &b| dist(a, centre).total_cmp(&dist(b, centre)));
     }
-    (windows, slots)
+    let (mut slots, mut copies) = (Vec::new(), Vec::new());
+    for ai in order {
+        let mut list = std::mem::take(&mut seen[ai]);
+        // Stable: of equally near centres the earlier window owns the agent.
+        list.sort_by(|a, b| a.2.total_cmp(&b.2));
+        let (wi, slot, _) = list[0];
+        slots.push(Slot {
+            window: wi,
+            slot,
+            agent: ai,
+            pose: pose(ai),
+            advance: windows[wi].advance(wcfg, slot),
+        });
+        copies.push(list.iter().map(|&(w, s, _)| (w, s)).collect());
+    }
+    (windows, slots, copies)
 }
 
 impl Plan<'_> {
@@ -296,18 +320,55 @@ impl Plan<'_> {
         }
     }
 
+    /// Makes every window agree on each agent: the denoised estimate `d` becomes the owner's,
+    /// minus `lambda`·clamp(Σ copies of `grad`), written to every copy. Coefficients live in
+    /// each agent's own frame, so copies are comparable as they are. The copies share one
+    /// noisy input, so the gradient w.r.t. it is the sum over copies (through the denoiser,
+    /// context copies feed the owners in their windows). Without this an agent is context
+    /// in other windows with an independently sampled future, and its neighbours there plan
+    /// around a car that is not where its owner puts it.
+    fn consensus(&self, d: &mut [f32], grad: Option<&[f32]>, lambda: f64) {
+        let (n, k, _, nw) = self.dims();
+        let samples = d.len() / (nw * n * k);
+        let mut owned = vec![0f32; k];
+        let mut gsum = vec![0f32; k];
+        for s in 0..samples {
+            let at = |(w, slot): (usize, usize)| ((s * nw + w) * n + slot) * k;
+            for copies in &self.copies {
+                gsum.fill(0.0);
+                if let Some(g) = grad {
+                    for &c in copies {
+                        let o = at(c);
+                        for j in 0..k {
+                            gsum[j] += g[o + j];
+                        }
+                    }
+                }
+                let o = at(copies[0]);
+                for j in 0..k {
+                    owned[j] = d[o + j] - (lambda as f32) * gsum[j].clamp(-1.0, 1.0);
+                }
+                for &c in copies {
+                    let o = at(c);
+                    d[o..o + k].copy_from_slice(&owned);
+                }
+            }
+        }
+    }
+
     /// Gradient of a dense world-coordinate gradient w.r.t. the normalised coefficients.
     fn to_coeffs(&self, world: &[f64], steps: usize, out: &mut [f32], sample: usize) {
         let (n, k, f, nw) = self.dims();
         let norm = &self.trained.meta.normaliser;
         let dim = norm.pca.dim;
-        for &Slot {
-            window: wi,
-            slot,
-            agent: ai,
-            pose: p0,
-            ..
-        } in &self.slots
+        for (
+            &Slot {
+                agent: ai,
+                pose: p0,
+                ..
+            },
+            copies,
+        ) in self.slots.iter().zip(&self.copies)
         {
             let (sn, cs) = p0[2].sin_cos();
             let mut local = vec![0.0; dim];
@@ -321,6 +382,8 @@ impl Plan<'_> {
                 let comp = &norm.pca.components[c * dim..(c + 1) * dim];
                 let g: f64 = comp.iter().zip(&local).map(|(a, b)| a * b).sum::<f64>() * norm.std[c]
                     / norm.sigma_data;
+                // The trajectory decodes the owner's copy ([`Plan::consensus`]).
+                let (wi, slot) = copies[0];
                 out[((sample * nw + wi) * n + slot) * k + c] += g as f32;
             }
         }
@@ -345,7 +408,7 @@ pub fn sample(
         .filter(|&i| scene.agents[i].is_valid(c))
         .or_else(|| scene.agents.iter().position(|a| a.is_valid(c)))
         .ok_or_else(|| SampleError::Scene("no agent is observed at the current step".into()))?;
-    let (windows, slots) = tile(scene, &wcfg, c, centre);
+    let (windows, slots, copies) = tile(scene, &wcfg, c, centre);
     let mut base = Trajectories::filled(scene);
     let mut modelled = vec![false; scene.agents.len()];
     for sl in &slots {
@@ -361,6 +424,7 @@ pub fn sample(
         trained,
         windows,
         slots,
+        copies,
         base,
     };
     let (n, k, _, nw) = plan.dims();
@@ -374,9 +438,20 @@ pub fn sample(
     let edm = trained.meta.config.edm;
     let sigmas = edm.schedule(cfg.steps.max(1));
     let mut rng = crate::train::rng::Rng::new(cfg.seed);
-    let init: Vec<f32> = (0..rows * n * k)
+    let mut init: Vec<f32> = (0..rows * n * k)
         .map(|_| (rng.normal() * sigmas[0]) as f32)
         .collect();
+    // Every copy of an agent starts from its owner's noise: they are one variable.
+    for s in 0..kk {
+        for copies in &plan.copies {
+            let at = |(w, slot): (usize, usize)| ((s * nw + w) * n + slot) * k;
+            let o = at(copies[0]);
+            for &cp in &copies[1..] {
+                let c0 = at(cp);
+                init.copy_within(o..o + k, c0);
+            }
+        }
+    }
     let mut x = Tensor::from_vec(init, (rows, n, k), &dev)?;
     let recorded_end: Vec<Option<(f64, f64)>> = scene
         .agents
@@ -395,15 +470,17 @@ pub fn sample(
         } else {
             (model.denoise(&batch.ctx, &map, x, &sig)?, None)
         };
-        let dv: Vec<f32> = d.flatten_all()?.to_vec1()?;
-        if dv.iter().any(|v| !v.is_finite()) {
+        let raw: Vec<f32> = d.flatten_all()?.to_vec1()?;
+        if raw.iter().any(|v| !v.is_finite()) {
             return Err(SampleError::NonFinite {
                 what: "denoiser output",
                 step,
             });
         }
+        let mut dv = raw.clone();
+        plan.consensus(&mut dv, None, 0.0);
         if cfg.lambda <= 0.0 || (scripts.is_empty() && cfg.task == Task::Unconditional) {
-            return Ok(d.detach());
+            return Ok(Tensor::from_vec(dv, (rows, n, k), &dev)?);
         }
         let trajs = plan.trajectories(&dv);
         let mut g = vec![0f32; rows * n * k];
@@ -451,8 +528,10 @@ pub fn sample(
             None => gd,
         };
         let lambda = cfg.lambda * cfg.schedule.factor(sigma, edm.sigma_data);
-        let step_vec = (grad.clamp(-1f32, 1f32)? * lambda)?;
-        Ok((d.detach() - step_vec)?)
+        let gv: Vec<f32> = grad.flatten_all()?.to_vec1()?;
+        let mut out = raw;
+        plan.consensus(&mut out, Some(&gv), lambda);
+        Ok(Tensor::from_vec(out, (rows, n, k), &dev)?)
     };
     for i in 0..sigmas.len() - 1 {
         let (s0, s1) = (sigmas[i], sigmas[i + 1]);
@@ -502,7 +581,8 @@ pub fn sample(
             .map(|s| s.evaluate(&t))
             .collect::<Result<Vec<_>, _>>()?;
         out.push(Sample {
-            scene: sim,
+            // Cars that reach the end of the map leave the scene, as recorded ones do.
+            scene: sim.retire_exited(),
             initial_reports: Vec::new(),
             reports,
         });
@@ -622,7 +702,7 @@ mod tests {
             max_agents: 2,
             ..t.meta.config.window
         };
-        let (windows, slots) = tile(&s, &wcfg, c, 0);
+        let (windows, slots, copies) = tile(&s, &wcfg, c, 0);
         let observed: Vec<usize> = (0..s.agents.len())
             .filter(|&i| s.agents[i].is_valid(c))
             .collect();
@@ -631,8 +711,67 @@ mod tests {
         let mut got: Vec<usize> = slots.iter().map(|x| x.agent).collect();
         got.sort();
         assert_eq!(got, observed, "each observed agent exactly once");
-        for sl in &slots {
-            assert_eq!(windows[sl.window].agents[sl.slot], sl.agent);
+        let centre_dist = |w: usize, ai: usize| {
+            let (p, q) = (
+                s.agents[windows[w].agents[0]].states[c].position(),
+                s.agents[ai].states[c].position(),
+            );
+            (p - q).norm()
+        };
+        for (sl, cp) in slots.iter().zip(&copies) {
+            assert_eq!(cp[0], (sl.window, sl.slot), "the owner comes first");
+            let held: Vec<(usize, usize)> = windows
+                .iter()
+                .enumerate()
+                .flat_map(|(w, win)| {
+                    win.agents
+                        .iter()
+                        .enumerate()
+                        .filter(|(_, &a)| a == sl.agent)
+                        .map(move |(k, _)| (w, k))
+                })
+                .collect();
+            let mut sorted = cp.clone();
+            sorted.sort();
+            assert_eq!(sorted, held, "every window holding agent {}", sl.agent);
+            for &(w, _) in cp {
+                assert!(centre_dist(sl.window, sl.agent) <= centre_dist(w, sl.agent));
+            }
+        }
+    }
+
+    #[test]
+    fn consensus_writes_the_owner_estimate_less_the_summed_gradient_to_every_copy() {
+        let (mut t, s) = setup();
+        let c = s.meta.current_step;
+        // Windows of 3 agents: the plan's dimensions follow the model's window config.
+        t.meta.config.window.max_agents = 3;
+        let (windows, slots, copies) = tile(&s, &t.meta.config.window, c, 0);
+        assert!(copies.iter().any(|cp| cp.len() > 1), "windows overlap");
+        let plan = Plan {
+            trained: &t,
+            windows,
+            slots,
+            copies: copies.clone(),
+            base: Trajectories::filled(&s),
+        };
+        let (n, k, _, nw) = (3, t.meta.config.model.k, 0, plan.windows.len());
+        let len = nw * n * k;
+        let mut d: Vec<f32> = (0..len).map(|i| i as f32).collect();
+        let g: Vec<f32> = (0..len)
+            .map(|i| if i % 2 == 0 { 0.3 } else { -2.0 })
+            .collect();
+        let before = d.clone();
+        plan.consensus(&mut d, Some(&g), 0.5);
+        for cp in &copies {
+            let at = |(w, sl): (usize, usize)| (w * n + sl) * k;
+            for j in 0..k {
+                let gs: f32 = cp.iter().map(|&x| g[at(x) + j]).sum();
+                let want = before[at(cp[0]) + j] - 0.5 * gs.clamp(-1.0, 1.0);
+                for &x in cp {
+                    assert!((d[at(x) + j] - want).abs() < 1e-5);
+                }
+            }
         }
     }
 

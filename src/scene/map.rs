@@ -191,6 +191,51 @@ pub struct Map {
     parts: MapParts,
     graph: LaneGraph,
     edge_bounds: Vec<(Point, Point)>,
+    exits: Vec<MapExit>,
+}
+
+/// Where the mapped road stops: the open end of a lane with no successor and no mapped lane
+/// ahead of it. Recorded traffic leaves the scene there (the recording ends, not the road),
+/// so a simulated car that drives through it has left the map rather than the road.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MapExit {
+    /// The lane's last centre-line point.
+    pub point: Point,
+    /// Unit direction of travel there.
+    pub direction: Point,
+    /// Half the lane's width there (1.75 m when the lane has no boundaries).
+    pub half_width: f64,
+}
+
+/// How far beside a lane's end another lane may continue (metres, lateral) and still make the
+/// end a lane drop rather than the edge of the map.
+const EXIT_CORRIDOR: f64 = 15.0;
+
+fn find_exits(lanes: &[Lane]) -> Vec<MapExit> {
+    lanes
+        .iter()
+        .filter(|l| l.successors.is_empty() && l.lane_type.is_vehicle_lane())
+        .filter_map(|l| {
+            let n = l.centerline.segment_count();
+            let (point, direction) = (l.centerline.last(), l.centerline.segment_direction(n - 1));
+            let beyond = lanes.iter().flat_map(|o| o.centerline.points()).any(|q| {
+                let r = q - point;
+                r.dot(&direction) > 2.0 && r.perp(&direction).abs() < EXIT_CORRIDOR
+            });
+            if beyond {
+                return None;
+            }
+            let half_width = match (&l.left_boundary, &l.right_boundary) {
+                (Some(a), Some(b)) => 0.5 * (a.distance_to(&point) + b.distance_to(&point)),
+                _ => 1.75,
+            };
+            Some(MapExit {
+                point,
+                direction,
+                half_width,
+            })
+        })
+        .collect()
 }
 
 impl Map {
@@ -204,10 +249,12 @@ impl Map {
         }
         let graph = LaneGraph::build(&parts.lanes);
         let edge_bounds = parts.road_edges.iter().map(|e| e.line().bounds()).collect();
+        let exits = find_exits(&parts.lanes);
         Ok(Self {
             parts,
             graph,
             edge_bounds,
+            exits,
         })
     }
 
@@ -277,6 +324,22 @@ impl Map {
             .chain(self.parts.road_lines.iter().map(|l| l.line.bounds()))
             .chain(self.parts.drivable_areas.iter().map(|p| p.bounds()));
         lines.reduce(|(lo, hi), (a, b)| (lo.inf(&a), hi.sup(&b)))
+    }
+
+    /// The map's exits (see [`MapExit`]).
+    pub fn exits(&self) -> &[MapExit] {
+        &self.exits
+    }
+
+    /// Whether `p` is at an exit: from 0.5 m short of an exit lane's end to 10 m beyond it,
+    /// within a metre of the lane's width. Meant for a car's front bumper, which reaches the
+    /// end first.
+    pub fn at_exit(&self, p: Point) -> bool {
+        self.exits.iter().any(|e| {
+            let r = p - e.point;
+            let ahead = r.dot(&e.direction);
+            (-0.5..10.0).contains(&ahead) && r.perp(&e.direction).abs() <= e.half_width + 1.0
+        })
     }
 
     /// Signed distance from `p` to the nearest road edge: negative on the road, positive off it.
@@ -368,6 +431,38 @@ mod tests {
         assert!(
             (sd(50.0, 9.0) - 2.0).abs() < 1e-9,
             "2 m beyond the left edge"
+        );
+    }
+
+    #[test]
+    fn exits_are_lane_ends_with_no_road_ahead() {
+        // Lane 1 drops at x = 100 beside lane 2, which runs on to x = 200: only lane 2's end
+        // is where the map stops. Lane 3 ends at 150 but flows into lane 4.
+        let text = r#"
+steps: 1
+current_step: 0
+map:
+  lanes:
+    - {id: 1, centerline: [[0, 0], [100, 0]]}
+    - {id: 2, centerline: [[0, 3.5], [200, 3.5]]}
+    - {id: 3, centerline: [[0, 7], [150, 7]], successors: [4]}
+    - {id: 4, centerline: [[150, 7], [200, 7]]}
+"#;
+        let s = yaml::parse(Path::new("exits.yaml"), text).unwrap();
+        let ends: Vec<(f64, f64)> = s
+            .map
+            .exits()
+            .iter()
+            .map(|e| (e.point.x, e.point.y))
+            .collect();
+        assert_eq!(ends, vec![(200.0, 3.5), (200.0, 7.0)]);
+        assert!(s.map.at_exit(Point::new(201.0, 3.0)));
+        assert!(s.map.at_exit(Point::new(199.6, 7.5)));
+        assert!(!s.map.at_exit(Point::new(198.0, 3.5)), "short of the end");
+        assert!(!s.map.at_exit(Point::new(101.0, 0.0)), "a lane drop");
+        assert!(
+            !s.map.at_exit(Point::new(215.0, 3.5)),
+            "beyond the 10 m band"
         );
     }
 

@@ -14,7 +14,8 @@ pub use agents::{Agent, AgentId, AgentState, AgentType};
 pub use lane_graph::{EdgeCounts, LaneGraph};
 pub use lane_path::{LanePath, Turn, TURN_THRESHOLD};
 pub use map::{
-    Lane, LaneId, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind, RoadLine, RoadLineKind, StopLine,
+    Lane, LaneId, LaneType, Map, MapExit, MapParts, RoadEdge, RoadEdgeKind, RoadLine, RoadLineKind,
+    StopLine,
 };
 
 use crate::geom::GeomError;
@@ -214,6 +215,33 @@ impl Scene {
         s
     }
 
+    /// The scene with every vehicle removed (its states invalid) from the first future step at
+    /// which its front bumper reaches a map exit ([`Map::at_exit`]), as recorded traffic
+    /// leaves a recording where its map ends. Simulators and baselines keep driving there, onto
+    /// unmapped ground that every metric would count as off the road.
+    pub fn retire_exited(&self) -> Scene {
+        let mut s = self.clone();
+        if self.map.exits().is_empty() {
+            return s;
+        }
+        let c = self.meta.current_step;
+        for a in &mut s.agents {
+            if a.agent_type != AgentType::Vehicle {
+                continue;
+            }
+            let front = |st: &AgentState| {
+                let (sn, cs) = st.heading.sin_cos();
+                crate::geom::Point::new(st.x + 0.5 * a.length * cs, st.y + 0.5 * a.length * sn)
+            };
+            let first = (c + 1..a.states.len())
+                .find(|&t| a.states[t].valid && self.map.at_exit(front(&a.states[t])));
+            if let Some(t) = first {
+                a.states[t..].fill(AgentState::INVALID);
+            }
+        }
+        s
+    }
+
     /// The agent with this id.
     pub fn agent(&self, id: AgentId) -> Option<&Agent> {
         self.agents.iter().find(|a| a.id == id)
@@ -341,5 +369,36 @@ impl std::fmt::Display for SceneSummary {
             write!(f, "\nwarning     {w}")?;
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::io::yaml;
+    use std::path::Path;
+
+    #[test]
+    fn cars_leave_the_scene_where_the_map_ends() {
+        // A 100 m road: car 1 reaches its end within the recording, car 2 never does.
+        let text = r#"
+steps: 41
+current_step: 10
+road: {lanes: 2, lane_width: 3.5, length: 100}
+agents:
+  - {id: 1, lane: 0, s: 40, speed: 20}
+  - {id: 2, lane: 1, s: 10, speed: 10}
+"#;
+        let s = yaml::parse(Path::new("end.yaml"), text).unwrap();
+        let r = s.retire_exited();
+        let a = &s.agents[0];
+        let front = |t: usize| a.states[t].x + 0.5 * a.length;
+        let gone = (11..41)
+            .find(|&t| front(t) > 99.5)
+            .expect("car 1 reaches the end");
+        for t in 0..41 {
+            assert_eq!(r.agents[0].is_valid(t), t < gone, "car 1 at step {t}");
+        }
+        assert_eq!(r.agents[1].states, s.agents[1].states, "car 2 stays");
+        assert_eq!(r.retire_exited().agents[0].states, r.agents[0].states);
     }
 }

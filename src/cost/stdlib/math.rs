@@ -452,6 +452,15 @@ pub(super) fn register(e: &mut Engine, docs: &mut Vec<DocEntry>) {
     doc(
         docs,
         R,
+        "s.valid_count() -> int",
+        "Number of valid elements (0 for an agent with no future, e.g. one that appears later).",
+    );
+    e.register_fn("valid_count", |s: &mut Series| {
+        s.valid().iter().filter(|v| **v).count() as i64
+    });
+    doc(
+        docs,
+        R,
         "s.first(), s.last() -> Dual",
         "First / last valid element.",
     );
