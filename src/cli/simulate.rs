@@ -10,7 +10,7 @@ use drivescript::eval::behaviors::{suggest, Behavior, ALL};
 use drivescript::io::{discover, load_scenes, rollout::Rollout, LoadOptions};
 use drivescript::render::RenderOptions;
 use drivescript::sample::{
-    closed_loop, prepare, sample, Guidance, LambdaSchedule, SampleConfig, ScriptSpec, Task,
+    closed_loop, prepare, sample, Clamp, Guidance, LambdaSchedule, SampleConfig, ScriptSpec, Task,
 };
 use drivescript::train::load;
 
@@ -28,6 +28,14 @@ enum GuidanceArg {
     Denoiser,
     /// Cost gradient at the denoised output (cheaper).
     Output,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum ClampArg {
+    /// Each coefficient clipped on its own (the paper's rule).
+    Coordinate,
+    /// Each agent's gradient scaled as a whole until its largest entry is 1.
+    Agent,
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -82,6 +90,10 @@ pub struct Args {
     /// How λ varies with the noise level σ: constant or fading (λ·σ/(σ+σ_data)).
     #[arg(long, value_enum, default_value = "constant")]
     schedule: ScheduleArg,
+    /// How the guidance gradient is kept within (-1, 1): per coefficient (the paper's rule)
+    /// or per agent, scaled as a whole (keeps its direction).
+    #[arg(long, value_enum, default_value = "coordinate")]
+    clamp: ClampArg,
     /// Checkpoint directory (model.safetensors + config.json).
     #[arg(long)]
     checkpoint: PathBuf,
@@ -140,6 +152,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
         schedule: match args.schedule {
             ScheduleArg::Constant => LambdaSchedule::Constant,
             ScheduleArg::Fading => LambdaSchedule::Fading,
+        },
+        clamp: match args.clamp {
+            ClampArg::Coordinate => Clamp::Coordinate,
+            ClampArg::Agent => Clamp::Agent,
         },
     };
     std::fs::create_dir_all(&args.output)

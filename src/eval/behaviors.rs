@@ -686,10 +686,24 @@ pub fn suggest(b: Behavior, scene: &Scene) -> Option<CheckParams> {
             .iter()
             .find(|x| g.right(x.1).is_some())
             .and_then(|x| p(&[("vehicle", x.0.id as f64)])),
-        Behavior::RightmostLane => cands
-            .iter()
-            .find(|x| !g.is_rightmost(x.1))
-            .and_then(|x| p(&[("vehicle", x.0.id as f64)])),
+        // A lane change takes about 2 s, so the nearest vehicle with at most one lane per 2 s
+        // of horizon to go (at least one): five lanes across a US-101 in 4 s is no behaviour
+        // a driver shows.
+        Behavior::RightmostLane => {
+            let horizon = (n - 1 - c) as f64 * scene.meta.dt;
+            let reach = ((horizon / 2.0).floor() as usize).max(1);
+            let lanes_to_right = |mut l: i64| {
+                let mut k = 0;
+                while let Some(r) = g.right(l).filter(|_| k <= reach) {
+                    (l, k) = (r, k + 1);
+                }
+                k
+            };
+            cands
+                .iter()
+                .find(|x| (1..=reach).contains(&lanes_to_right(x.1)))
+                .and_then(|x| p(&[("vehicle", x.0.id as f64)]))
+        }
         Behavior::Reverse | Behavior::OffRoad | Behavior::Weave => {
             cands.first().and_then(|x| p(&[("vehicle", x.0.id as f64)]))
         }

@@ -312,6 +312,18 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
         suggest(Behavior::Yield, &base).is_none(),
         "parallel lanes never meet"
     );
+    // Rightmost lane: the nearest vehicle with at most one lane to go per 2 s of horizon.
+    let road = |steps: usize| {
+        let text = format!(
+            "steps: {steps}\ncurrent_step: 10\nego: 3\n\
+             road: {{lanes: 3, lane_width: 3.6, length: 500}}\n\
+             agents:\n  - {{id: 3, lane: 2, s: 50, speed: 10}}\n  - {{id: 5, lane: 1, s: 90, speed: 10}}\n"
+        );
+        yaml::parse(Path::new("r.yaml"), &text).unwrap()
+    };
+    let rightmost = |steps| suggest(Behavior::RightmostLane, &road(steps)).map(|p| p["vehicle"]);
+    assert_eq!(rightmost(31), Some(5.0), "2 s: one lane change at most");
+    assert_eq!(rightmost(51), Some(3.0), "4 s: two");
     // Every suggestion is something its checker can run on.
     for b in super::behaviors::ALL {
         if let Some(p) = suggest(b, &base) {

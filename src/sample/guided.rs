@@ -57,6 +57,18 @@ impl LambdaSchedule {
     }
 }
 
+/// How the guidance gradient is kept within (-1, 1).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Clamp {
+    /// Each coefficient clipped on its own (the paper's rule). A saturated gradient becomes
+    /// its sign pattern: every component of the agent moves by the same amount, rare shapes
+    /// as far as common ones, whatever the cost asked for.
+    Coordinate,
+    /// Each agent's coefficient gradient scaled down as a whole until its largest entry is
+    /// 1: within the same bounds, but in the direction of steepest descent.
+    Agent,
+}
+
 /// Sampler settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SampleConfig {
@@ -76,6 +88,8 @@ pub struct SampleConfig {
     pub known_weight: f64,
     /// How λ varies with the noise level.
     pub schedule: LambdaSchedule,
+    /// How the gradient is bounded.
+    pub clamp: Clamp,
 }
 
 impl Default for SampleConfig {
@@ -89,6 +103,7 @@ impl Default for SampleConfig {
             guidance: Guidance::OutputSpace,
             known_weight: 1.0,
             schedule: LambdaSchedule::Constant,
+            clamp: Clamp::Coordinate,
         }
     }
 }
@@ -281,7 +296,7 @@ impl Plan<'_> {
 
     /// Points each modelled agent's heading along its direction of motion wherever it moves
     /// (central differences over more than 0.2 m per step; the model's heading where it is
-    /// slower). Positions and headings are separate PCA channels, and guidance that pushes
+    /// slower, and where the motion is more than 45° across it), backwards where it reverses. Positions and headings are separate PCA channels, and guidance that pushes
     /// positions sideways drags the heading channel along arbitrarily; a car drives where it
     /// points, so the output keeps its headings consistent with its path.
     fn align_headings(&self, t: &mut Trajectories) {
@@ -305,10 +320,19 @@ impl Plan<'_> {
                     let span = if j as usize + 1 >= n { 1.0 } else { 2.0 };
                     let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
                     let h = at(t, j)[2];
-                    if dx.hypot(dy) > 0.2 * span {
-                        h + crate::geom::wrap_angle(dy.atan2(dx) - h)
-                    } else {
+                    if dx.hypot(dy) <= 0.2 * span {
+                        return h;
+                    }
+                    // A car moving against its heading reverses; one moving across it is
+                    // jitter of a near-standstill, not a reason to turn it sideways.
+                    let mut diff = crate::geom::wrap_angle(dy.atan2(dx) - h);
+                    if diff.abs() > std::f64::consts::FRAC_PI_2 {
+                        diff = crate::geom::wrap_angle(diff + std::f64::consts::PI);
+                    }
+                    if diff.abs() > std::f64::consts::FRAC_PI_4 {
                         h
+                    } else {
+                        h + diff
                     }
                 })
                 .collect();
@@ -327,7 +351,7 @@ impl Plan<'_> {
     /// context copies feed the owners in their windows). Without this an agent is context
     /// in other windows with an independently sampled future, and its neighbours there plan
     /// around a car that is not where its owner puts it.
-    fn consensus(&self, d: &mut [f32], grad: Option<&[f32]>, lambda: f64) {
+    fn consensus(&self, d: &mut [f32], grad: Option<&[f32]>, lambda: f64, clamp: Clamp) {
         let (n, k, _, nw) = self.dims();
         let samples = d.len() / (nw * n * k);
         let mut owned = vec![0f32; k];
@@ -344,9 +368,13 @@ impl Plan<'_> {
                         }
                     }
                 }
+                let scale = match clamp {
+                    Clamp::Coordinate => 1.0,
+                    Clamp::Agent => 1.0 / gsum.iter().fold(1f32, |m, v| m.max(v.abs())),
+                };
                 let o = at(copies[0]);
                 for j in 0..k {
-                    owned[j] = d[o + j] - (lambda as f32) * gsum[j].clamp(-1.0, 1.0);
+                    owned[j] = d[o + j] - (lambda as f32) * (gsum[j] * scale).clamp(-1.0, 1.0);
                 }
                 for &c in copies {
                     let o = at(c);
@@ -478,7 +506,7 @@ pub fn sample(
             });
         }
         let mut dv = raw.clone();
-        plan.consensus(&mut dv, None, 0.0);
+        plan.consensus(&mut dv, None, 0.0, cfg.clamp);
         if cfg.lambda <= 0.0 || (scripts.is_empty() && cfg.task == Task::Unconditional) {
             return Ok(Tensor::from_vec(dv, (rows, n, k), &dev)?);
         }
@@ -530,7 +558,7 @@ pub fn sample(
         let lambda = cfg.lambda * cfg.schedule.factor(sigma, edm.sigma_data);
         let gv: Vec<f32> = grad.flatten_all()?.to_vec1()?;
         let mut out = raw;
-        plan.consensus(&mut out, Some(&gv), lambda);
+        plan.consensus(&mut out, Some(&gv), lambda, cfg.clamp);
         Ok(Tensor::from_vec(out, (rows, n, k), &dev)?)
     };
     for i in 0..sigmas.len() - 1 {
@@ -741,6 +769,42 @@ mod tests {
     }
 
     #[test]
+    fn headings_follow_the_path_forwards_and_backwards_but_never_sideways() {
+        let (t, s) = setup();
+        let c = s.meta.current_step;
+        let (windows, slots, copies) = tile(&s, &t.meta.config.window, c, 0);
+        let sl = slots[0];
+        let plan = Plan {
+            trained: &t,
+            windows,
+            slots: vec![sl],
+            copies: vec![copies[0].clone()],
+            base: Trajectories::filled(&s),
+        };
+        let [x0, y0, h0] = sl.pose;
+        let drive = |angle: f64| {
+            let mut tr = plan.base.clone();
+            let n = tr.layout.steps;
+            for j in 0..n {
+                let r = 0.5 * (j + 1) as f64;
+                tr.xyh[sl.agent * n + j] =
+                    [x0 + r * (h0 + angle).cos(), y0 + r * (h0 + angle).sin(), h0];
+            }
+            plan.align_headings(&mut tr);
+            tr.xyh[sl.agent * n + n / 2][2] - h0
+        };
+        assert!(
+            (drive(0.1) - 0.1).abs() < 1e-9,
+            "forwards, 0.1 rad off: turned"
+        );
+        assert!(
+            (drive(std::f64::consts::PI + 0.1) - 0.1).abs() < 1e-9,
+            "reversing"
+        );
+        assert_eq!(drive(std::f64::consts::FRAC_PI_2), 0.0, "sideways: kept");
+    }
+
+    #[test]
     fn consensus_writes_the_owner_estimate_less_the_summed_gradient_to_every_copy() {
         let (mut t, s) = setup();
         let c = s.meta.current_step;
@@ -762,7 +826,7 @@ mod tests {
             .map(|i| if i % 2 == 0 { 0.3 } else { -2.0 })
             .collect();
         let before = d.clone();
-        plan.consensus(&mut d, Some(&g), 0.5);
+        plan.consensus(&mut d, Some(&g), 0.5, Clamp::Coordinate);
         for cp in &copies {
             let at = |(w, sl): (usize, usize)| (w * n + sl) * k;
             for j in 0..k {

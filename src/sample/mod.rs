@@ -5,6 +5,6 @@ pub mod guided;
 
 pub use closed_loop::{closed_loop, ScriptSpec};
 pub use guided::{
-    prepare, sample, Guidance, LambdaSchedule, Sample, SampleConfig, SampleError, Task,
+    prepare, sample, Clamp, Guidance, LambdaSchedule, Sample, SampleConfig, SampleError, Task,
     BEHAVIOUR_LAMBDA,
 };
