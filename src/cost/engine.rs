@@ -893,6 +893,31 @@ mod tests {
     }
 
     #[test]
+    fn valid_count_counts_observed_future_steps() {
+        let p =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes/highway.yaml");
+        let mut scene = crate::io::load_scene(&p, 0, &crate::io::LoadOptions::default()).unwrap();
+        // Agent 2 leaves the recording 30 steps after the current one.
+        let c = scene.meta.current_step;
+        scene.agents[1].states[c + 31..].fill(crate::scene::AgentState::INVALID);
+        let scene = Rc::new(scene);
+        let script = CostScript::compile(
+            "term(\"one\", agent(1).x.valid_count() + 0.0 * agent(1).x.last());
+             term(\"two\", agent(2).x.valid_count() + 0.0 * agent(1).x.last());",
+            "t",
+            scene.clone(),
+            &Params::default(),
+            &Limits::default(),
+        )
+        .unwrap();
+        let r = script
+            .evaluate(&crate::cost::Trajectories::recorded(&scene))
+            .unwrap();
+        let got: Vec<f64> = r.terms.iter().map(|t| t.value).collect();
+        assert_eq!(got, vec![scene.num_future_steps() as f64, 30.0]);
+    }
+
+    #[test]
     fn reference_lists_sections_and_modules() {
         let md = reference_markdown();
         for s in [
