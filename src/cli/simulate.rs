@@ -69,8 +69,9 @@ pub struct Args {
     /// Heun steps.
     #[arg(long, default_value_t = 32)]
     steps: usize,
-    /// Guidance strength.
-    #[arg(long, default_value_t = 0.05)]
+    /// Guidance strength (the default was chosen on held-out NGSIM behaviours with the
+    /// fading schedule: data/checkpoint/README.md).
+    #[arg(long, default_value_t = drivescript::sample::BEHAVIOUR_LAMBDA)]
     lambda: f64,
     /// Where the guidance gradient is taken.
     #[arg(long, value_enum, default_value = "denoiser")]
@@ -88,7 +89,7 @@ pub struct Args {
     #[arg(long, default_value_t = 1.0)]
     known_weight: f64,
     /// How λ varies with the noise level σ: constant or fading (λ·σ/(σ+σ_data)).
-    #[arg(long, value_enum, default_value = "constant")]
+    #[arg(long, value_enum, default_value = "fading")]
     schedule: ScheduleArg,
     /// How the guidance gradient is kept within (-1, 1): per coefficient (the paper's rule)
     /// or per agent, scaled as a whole (keeps its direction).
