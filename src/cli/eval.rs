@@ -307,12 +307,13 @@ pub fn run(args: Args) -> Result<ExitCode> {
                         }
                     },
                 };
-                // Every method, the log included, loses its cars where they leave the map.
+                // Every method, and the log it is compared with, loses its cars where they
+                // leave the map.
                 let sims: Vec<Scene> = sims.iter().map(Scene::retire_exited).collect();
                 score(
                     args.task,
                     acc,
-                    scene,
+                    &scene.retire_exited(),
                     &sims,
                     scene_params.as_ref().map(|(b, p)| (*b, p)),
                 );
