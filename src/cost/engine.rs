@@ -856,26 +856,38 @@ mod tests {
         assert!(stale.is_empty(), "documented but not registered: {stale:?}");
     }
 
-    #[test]
-    fn lane_ahead_measures_the_mapped_lane_to_the_end_of_the_road() {
-        // A straight 500 m road along +x in two segments (lanes 100-102 then 200-202).
+    /// The script test highway: a straight 500 m road along +x in two segments (lanes
+    /// 100-102 then 200-202).
+    fn highway() -> crate::scene::Scene {
         let p =
             std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes/highway.yaml");
-        let scene =
-            Rc::new(crate::io::load_scene(&p, 0, &crate::io::LoadOptions::default()).unwrap());
-        let script = CostScript::compile(
-            "let a = agent(1);
-             term(\"own\", lane_ahead(a.lane, a.current_x, a.current_y) + a.current_x + 0.0 * a.x.last());
-             term(\"second\", lane_ahead(200, a.current_x, a.current_y) + a.current_x + 0.0 * a.x.last());",
+        crate::io::load_scene(&p, 0, &crate::io::LoadOptions::default()).unwrap()
+    }
+
+    /// `src`'s report on the recorded future of `scene`.
+    fn evaluate_recorded(src: &str, scene: crate::scene::Scene) -> crate::cost::CostReport {
+        let scene = Rc::new(scene);
+        CostScript::compile(
+            src,
             "t",
             scene.clone(),
             &Params::default(),
             &Limits::default(),
         )
-        .unwrap();
-        let r = script
-            .evaluate(&crate::cost::Trajectories::recorded(&scene))
-            .unwrap();
+        .unwrap()
+        .evaluate(&crate::cost::Trajectories::recorded(&scene))
+        .unwrap()
+    }
+
+    #[test]
+    fn lane_ahead_measures_the_mapped_lane_to_the_end_of_the_road() {
+        let scene = Rc::new(highway());
+        let r = evaluate_recorded(
+            "let a = agent(1);
+             term(\"own\", lane_ahead(a.lane, a.current_x, a.current_y) + a.current_x + 0.0 * a.x.last());
+             term(\"second\", lane_ahead(200, a.current_x, a.current_y) + a.current_x + 0.0 * a.x.last());",
+            (*scene).clone(),
+        );
         for t in &r.terms {
             assert!((t.value - 500.0).abs() < 0.5, "{}: {}", t.name, t.value);
         }
@@ -894,27 +906,18 @@ mod tests {
 
     #[test]
     fn valid_count_counts_observed_future_steps() {
-        let p =
-            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes/highway.yaml");
-        let mut scene = crate::io::load_scene(&p, 0, &crate::io::LoadOptions::default()).unwrap();
+        let mut scene = highway();
         // Agent 2 leaves the recording 30 steps after the current one.
         let c = scene.meta.current_step;
         scene.agents[1].states[c + 31..].fill(crate::scene::AgentState::INVALID);
-        let scene = Rc::new(scene);
-        let script = CostScript::compile(
+        let future = scene.num_future_steps() as f64;
+        let r = evaluate_recorded(
             "term(\"one\", agent(1).x.valid_count() + 0.0 * agent(1).x.last());
              term(\"two\", agent(2).x.valid_count() + 0.0 * agent(1).x.last());",
-            "t",
-            scene.clone(),
-            &Params::default(),
-            &Limits::default(),
-        )
-        .unwrap();
-        let r = script
-            .evaluate(&crate::cost::Trajectories::recorded(&scene))
-            .unwrap();
+            scene,
+        );
         let got: Vec<f64> = r.terms.iter().map(|t| t.value).collect();
-        assert_eq!(got, vec![scene.num_future_steps() as f64, 30.0]);
+        assert_eq!(got, vec![future, 30.0]);
     }
 
     #[test]
