@@ -467,6 +467,19 @@ fn eval_prints_tables_for_baselines_and_rollouts() {
     );
 }
 
+/// `simulate SCENE --checkpoint CKPT EXTRA... -o OUT`.
+fn simulate_args<'a>(
+    scene: &'a str,
+    ckpt: &'a str,
+    extra: &[&'a str],
+    out: &'a str,
+) -> Vec<&'a str> {
+    let mut v = vec!["simulate", scene, "--checkpoint", ckpt];
+    v.extend_from_slice(extra);
+    v.extend(["-o", out]);
+    v
+}
+
 #[test]
 fn train_then_simulate_end_to_end() {
     let dir = tempfile::tempdir().unwrap();
@@ -519,55 +532,46 @@ fn train_then_simulate_end_to_end() {
     ]);
     assert!(err.contains("already done 6 steps"), "{err}");
     // --auto picks the agents and the script for each scene.
+    let cut_in_scene = samples().join("yaml/highway_cut_in.yaml");
+    let cut_in = s(&cut_in_scene);
     let auto = dir.path().join("auto");
-    let out = ok(&[
-        "simulate",
-        s(&samples().join("yaml/highway_cut_in.yaml")),
-        "--checkpoint",
+    let out = ok(&simulate_args(
+        cut_in,
         s(&ckpt),
-        "--auto",
-        "cut_in",
-        "--steps",
-        "4",
-        "-o",
+        &["--auto", "cut_in", "--steps", "4"],
         s(&auto),
-    ]);
+    ));
     assert!(
         out.contains("highway-cut-in: cutter=") && out.contains("ends_in_victim_lane"),
         "{out}"
     );
-    let err = fails(&[
-        "simulate",
-        s(&samples().join("yaml/highway_cut_in.yaml")),
-        "--checkpoint",
+    let err = fails(&simulate_args(
+        cut_in,
         s(&ckpt),
-        "--auto",
-        "cut_inn",
-        "-o",
+        &["--auto", "cut_inn"],
         s(&auto),
-    ]);
+    ));
     assert!(
         err.contains("unknown behaviour") && err.contains("cut_in"),
         "{err}"
     );
     let sim = dir.path().join("sim");
-    let out = ok(&[
-        "simulate",
-        s(&samples().join("yaml/highway_cut_in.yaml")),
-        "--checkpoint",
+    let out = ok(&simulate_args(
+        cut_in,
         s(&ckpt),
-        "--script",
-        "scripts/cut_in.rhai",
-        "--param",
-        "cutter=2",
-        "victim=1",
-        "--samples",
-        "2",
-        "--steps",
-        "4",
-        "-o",
+        &[
+            "--script",
+            "scripts/cut_in.rhai",
+            "--param",
+            "cutter=2",
+            "victim=1",
+            "--samples",
+            "2",
+            "--steps",
+            "4",
+        ],
         s(&sim),
-    ]);
+    ));
     assert!(
         out.contains("ends_in_victim_lane") && out.contains("2 samples"),
         "{out}"
@@ -587,7 +591,7 @@ fn train_then_simulate_end_to_end() {
     assert_eq!(r["format"], "drivescript-rollout");
     let out = ok(&[
         "eval",
-        s(&samples().join("yaml/highway_cut_in.yaml")),
+        cut_in,
         "--task",
         "behaviour",
         "--behaviour",
@@ -603,25 +607,18 @@ fn train_then_simulate_end_to_end() {
     assert!(out.contains("| cut_in | 1 |"), "{out}");
     // Closed loop re-plans every 0.5 s over the model's 4 s horizon.
     let cl = dir.path().join("cl");
-    let out = ok(&[
-        "simulate",
-        s(&samples().join("yaml/highway_cut_in.yaml")),
-        "--checkpoint",
+    let out = ok(&simulate_args(
+        cut_in,
         s(&ckpt),
-        "--closed-loop",
-        "--steps",
-        "2",
-        "-o",
+        &["--closed-loop", "--steps", "2"],
         s(&cl),
-    ]);
+    ));
     assert!(out.contains("highway-cut-in: 1 samples"), "{out}");
-    let err = fails(&[
-        "simulate",
-        s(&samples().join("yaml/highway_cut_in.yaml")),
-        "--checkpoint",
+    let err = fails(&simulate_args(
+        cut_in,
         s(&dir.path().join("nope")),
-        "-o",
+        &[],
         s(&sim),
-    ]);
+    ));
     assert!(err.contains("config.json"), "{err}");
 }

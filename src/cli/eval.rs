@@ -291,6 +291,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 (Some((b, given)), false) => Some((*b, given.clone())),
                 (None, _) => None,
             };
+            // Every method, and the log it is compared with, loses its cars where they leave
+            // the map.
+            let reference = scene.retire_exited();
             for ((_, m), acc) in methods.iter().zip(accs.iter_mut()) {
                 let sims = match m {
                     Some(b) => vec![b.simulate(scene)],
@@ -307,13 +310,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
                         }
                     },
                 };
-                // Every method, and the log it is compared with, loses its cars where they
-                // leave the map.
                 let sims: Vec<Scene> = sims.iter().map(Scene::retire_exited).collect();
                 score(
                     args.task,
                     acc,
-                    &scene.retire_exited(),
+                    &reference,
                     &sims,
                     scene_params.as_ref().map(|(b, p)| (*b, p)),
                 );

@@ -468,16 +468,7 @@ pub fn sample(
         .map(|_| (rng.normal() * sigmas[0]) as f32)
         .collect();
     // Every copy of an agent starts from its owner's noise: they are one variable.
-    for s in 0..kk {
-        for copies in &plan.copies {
-            let at = |(w, slot): (usize, usize)| ((s * nw + w) * n + slot) * k;
-            let o = at(copies[0]);
-            for &cp in &copies[1..] {
-                let c0 = at(cp);
-                init.copy_within(o..o + k, c0);
-            }
-        }
-    }
+    plan.consensus(&mut init, None, 0.0, cfg.clamp);
     let mut x = Tensor::from_vec(init, (rows, n, k), &dev)?;
     let recorded_end: Vec<Option<(f64, f64)>> = scene
         .agents
