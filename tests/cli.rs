@@ -467,6 +467,70 @@ fn eval_prints_tables_for_baselines_and_rollouts() {
     );
 }
 
+/// The off-road figure of the rollouts row of a conditional `eval` table.
+fn rollouts_offroad(out: &str) -> f64 {
+    let row = out
+        .lines()
+        .find(|l| l.starts_with("| rollouts in"))
+        .unwrap_or_else(|| panic!("no rollouts row: {out}"));
+    let cells: Vec<&str> = row.split('|').map(str::trim).collect();
+    cells[cells.len() - 3].parse().unwrap()
+}
+
+#[test]
+fn eval_scores_every_method_over_the_same_steps() {
+    // The recording of car 363 stops at step 20; a rollout drives it (and, from step 25, car
+    // 376) 50 m off the road.
+    let dir = tempfile::tempdir().unwrap();
+    let src = samples().join("commonroad/USA_US101-3_3_T-1.xml");
+    let yaml = dir.path().join("scene/USA_US101-3_3_T-1.yaml");
+    std::fs::create_dir(yaml.parent().unwrap()).unwrap();
+    ok(&["convert", s(&src), "-o", s(&yaml)]);
+    let rolls = dir.path().join("rollouts");
+    std::fs::create_dir(&rolls).unwrap();
+    let rollout = rolls.join("USA_US101-3_3_T-1.json");
+    ok(&["convert", s(&yaml), "-o", s(&rollout)]);
+    let mut doc: serde_yaml::Value =
+        serde_yaml::from_str(&std::fs::read_to_string(&yaml).unwrap()).unwrap();
+    let states = doc["agents"][0]["states"].as_sequence_mut().unwrap();
+    assert_eq!(states.len(), 32);
+    for st in &mut states[21..] {
+        *st = serde_yaml::Value::Null;
+    }
+    std::fs::write(&yaml, serde_yaml::to_string(&doc).unwrap()).unwrap();
+    let mut r: Value = serde_json::from_str(&std::fs::read_to_string(&rollout).unwrap()).unwrap();
+    for (agent, from) in [(0, 21), (1, 25)] {
+        for st in r["agents"][agent]["states"].as_array_mut().unwrap()[from..].iter_mut() {
+            st[1] = (st[1].as_f64().unwrap() + 50.0).into();
+        }
+    }
+    std::fs::write(&rollout, r.to_string()).unwrap();
+    let eval = |extra: &[&str]| {
+        let mut a = vec![
+            "eval",
+            s(&yaml),
+            "--task",
+            "conditional",
+            "--rollouts",
+            s(&rolls),
+        ];
+        a.extend_from_slice(extra);
+        rollouts_offroad(&ok(&a))
+    };
+    let n = 12.0_f64;
+    assert_eq!(eval(&[]), (1.0 / n * 1e3).round() / 1e3, "car 376 only");
+    assert_eq!(
+        eval(&["--all-steps"]),
+        (2.0 / n * 1e3).round() / 1e3,
+        "both cars"
+    );
+    assert_eq!(
+        eval(&["--horizon", "10", "--all-steps"]),
+        0.0,
+        "the rollout is cut to the 10 steps the baselines simulate"
+    );
+}
+
 /// `simulate SCENE --checkpoint CKPT EXTRA... -o OUT`.
 fn simulate_args<'a>(
     scene: &'a str,
@@ -605,6 +669,24 @@ fn train_then_simulate_end_to_end() {
         "2",
     ]);
     assert!(out.contains("| cut_in | 1 |"), "{out}");
+    // ... and costed over the model's horizon, however long the recording is.
+    let rollout = sim.join("highway-cut-in_0.json");
+    let out = ok(&[
+        "cost",
+        cut_in,
+        "--script",
+        "scripts/cut_in.rhai",
+        "--param",
+        "cutter=2",
+        "victim=1",
+        "--rollout",
+        s(&rollout),
+    ]);
+    let horizon = r["agents"][0]["states"].as_array().unwrap().len() - 1 - 10;
+    assert!(
+        out.contains(&format!("(rollout future, {horizon} steps)")),
+        "{out}"
+    );
     // Closed loop re-plans every 0.5 s over the model's 4 s horizon.
     let cl = dir.path().join("cl");
     let out = ok(&simulate_args(

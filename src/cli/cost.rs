@@ -7,6 +7,7 @@ use std::rc::Rc;
 use anyhow::{Context, Result};
 use drivescript::cost::{CostScript, Limits, Params, Trajectories};
 use drivescript::io::{load_scene, rollout::Rollout, LoadOptions};
+use drivescript::scene::{AgentState, Scene};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -30,24 +31,35 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
-    let scene = Rc::new(load_scene(
-        &args.scene,
-        args.index,
-        &LoadOptions::default(),
-    )?);
+    let mut scene = load_scene(&args.scene, args.index, &LoadOptions::default())?;
+    let rollout = match &args.rollout {
+        Some(p) => Some(Rollout::read(p)?),
+        None => None,
+    };
+    // A rollout's horizon is the model's, not the recording's: the script sees the rollout's
+    // steps, the scene cut to them or extended with unobserved ones.
+    if let Some(steps) = rollout
+        .as_ref()
+        .and_then(|r| r.agents.iter().map(|a| a.states.len()).max())
+        .filter(|&n| n != scene.num_steps() && n > scene.meta.current_step + 1)
+    {
+        let mut agents = scene.agents.clone();
+        for a in &mut agents {
+            a.states.resize(steps, AgentState::INVALID);
+        }
+        scene = Scene::new(scene.meta.clone(), scene.map.clone(), agents)?;
+    }
+    let scene = Rc::new(scene);
     let source = std::fs::read_to_string(&args.script)
         .with_context(|| format!("reading {}", args.script.display()))?;
     let params = Params::parse(&args.params)?;
     let name = args.script.display().to_string();
     let script = CostScript::compile(&source, &name, scene.clone(), &params, &Limits::default())?;
     script.validate()?;
-    let traj = match &args.rollout {
-        Some(p) => {
-            let r = Rollout::read(p)?;
-            Trajectories::from_rollout(&scene, &r)
-                .map_err(|m| anyhow::anyhow!("{}: {m}", p.display()))?
-        }
-        None => Trajectories::recorded(&scene),
+    let traj = match (&args.rollout, &rollout) {
+        (Some(p), Some(r)) => Trajectories::from_rollout(&scene, r)
+            .map_err(|m| anyhow::anyhow!("{}: {m}", p.display()))?,
+        _ => Trajectories::recorded(&scene),
     };
     let report = script.evaluate(&traj)?;
     let norms = report.agent_grad_norms();
@@ -76,14 +88,15 @@ pub fn run(args: Args) -> Result<ExitCode> {
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
         println!(
-            "{} on {} ({} future)",
+            "{} on {} ({} future, {} steps)",
             name,
             scene.meta.scenario_id,
             if args.rollout.is_some() {
                 "rollout"
             } else {
                 "recorded"
-            }
+            },
+            traj.layout.steps
         );
         println!(
             "| {:<24} | line | weight |        value |     weighted |  grad norm |",

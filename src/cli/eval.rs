@@ -63,6 +63,10 @@ pub struct Args {
     /// current step + 1 + HORIZON steps before anything is simulated or scored.
     #[arg(long)]
     horizon: Option<usize>,
+    /// Conditional task: score every simulated step, not only the steps where the agent is
+    /// in the recording (by default an agent is scored while its recorded track lasts).
+    #[arg(long)]
+    all_steps: bool,
     /// Write the table and per-scene results as JSON.
     #[arg(long)]
     json: Option<PathBuf>,
@@ -310,7 +314,19 @@ pub fn run(args: Args) -> Result<ExitCode> {
                         }
                     },
                 };
-                let sims: Vec<Scene> = sims.iter().map(Scene::retire_exited).collect();
+                // Every method is scored over the same steps: a model's rollout runs its
+                // whole horizon, the baselines only as far as the recording goes.
+                let sims: Vec<Scene> = sims
+                    .iter()
+                    .map(|s| {
+                        let s = s.with_horizon(scene.num_future_steps()).retire_exited();
+                        if args.task == Task::Conditional && !args.all_steps {
+                            s.with_lifetimes_of(&reference)
+                        } else {
+                            s
+                        }
+                    })
+                    .collect();
                 score(
                     args.task,
                     acc,

@@ -1,7 +1,7 @@
 //! Candidate trajectories: what a cost script is evaluated on and differentiated against.
 
 use crate::io::rollout::Rollout;
-use crate::scene::Scene;
+use crate::scene::{AgentType, Scene};
 
 /// Numbering of the trajectory coordinates that gradients refer to: agent (in scene order),
 /// future step, then x | y | heading.
@@ -162,6 +162,28 @@ impl Trajectories {
             }
         }
         Ok(t)
+    }
+
+    /// Marks every vehicle invalid from the first step at which it reaches a map exit, as
+    /// [`Scene::retire_exited`] does to a simulated scene: a sampler guides what it will
+    /// output, not a car driving on beyond the end of the map.
+    pub fn retire_exited(&mut self, scene: &Scene) {
+        if scene.map.exits().is_empty() {
+            return;
+        }
+        let n = self.layout.steps;
+        for (a, agent) in scene.agents.iter().enumerate() {
+            if agent.agent_type != AgentType::Vehicle {
+                continue;
+            }
+            let at = |k: usize| {
+                let [x, y, h] = self.xyh[a * n + k];
+                self.valid[a * n + k] && scene.map.bumper_at_exit(x, y, h, agent.length)
+            };
+            if let Some(k) = (0..n).find(|&k| at(k)) {
+                self.valid[a * n + k..(a + 1) * n].fill(false);
+            }
+        }
     }
 
     /// State of `agent` at future step `k`.

@@ -76,6 +76,18 @@ impl Polygon {
             .fold(f64::INFINITY, f64::min)
     }
 
+    /// The nearest point of the boundary to `p`, and its distance.
+    pub fn nearest_boundary_point(&self, p: &Point) -> (f64, Point) {
+        let n = self.points.len();
+        (0..n)
+            .map(|i| {
+                let (a, b) = (self.points[i], self.points[(i + 1) % n]);
+                let (d, t) = point_segment_distance(p, &a, &b);
+                (d, a + (b - a) * t)
+            })
+            .fold((f64::INFINITY, *p), |m, x| if x.0 < m.0 { x } else { m })
+    }
+
     /// Centroid of the vertices (good enough for label placement).
     pub fn vertex_centroid(&self) -> Point {
         self.points.iter().sum::<Point>() / self.points.len() as f64
@@ -97,6 +109,8 @@ mod tests {
         ])
         .unwrap();
         assert_eq!(sq.points().len(), 4);
+        let (d, q) = sq.nearest_boundary_point(&Point::new(1.5, 3.0));
+        assert!((d - 1.0).abs() < 1e-12 && (q - Point::new(1.5, 2.0)).norm() < 1e-12);
         assert!((sq.signed_area() - 4.0).abs() < 1e-12);
         assert!(sq.contains(&Point::new(1.0, 1.0)));
         assert!(!sq.contains(&Point::new(3.0, 1.0)));

@@ -17,7 +17,9 @@ use crate::train::{build, window_at, Trained, Window};
 /// What the sampler is conditioned on.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Task {
-    /// History and each agent's recorded end point (a known-state cost).
+    /// History and each agent's recorded end point (a known-state cost): its state at the
+    /// end of the horizon, or its last recorded one where its recording stops earlier, after
+    /// which the agent leaves the scene.
     Conditional,
     /// History only.
     Unconditional,
@@ -470,11 +472,32 @@ pub fn sample(
     // Every copy of an agent starts from its owner's noise: they are one variable.
     plan.consensus(&mut init, None, 0.0, cfg.clamp);
     let mut x = Tensor::from_vec(init, (rows, n, k), &dev)?;
-    let recorded_end: Vec<Option<(f64, f64)>> = scene
+    // An agent's end point is its last recorded future state: the end of the horizon, or
+    // earlier where its recording stops (it left the cameras' view, or the recording ends).
+    // Without it such an agent would be free, and drift wherever the prior takes it.
+    let recorded_end: Vec<Option<(usize, f64, f64)>> = scene
         .agents
         .iter()
-        .map(|a| a.states.last().filter(|s| s.valid).map(|s| (s.x, s.y)))
+        .map(|a| {
+            (c + 1..a.states.len())
+                .rev()
+                .find(|&t| a.states[t].valid)
+                .map(|t| (t - c - 1, a.states[t].x, a.states[t].y))
+        })
         .collect();
+    // Cars leave the scene where they reach the end of the map, as recorded ones do; in
+    // conditional simulation, also where their recording stops: when an agent leaves is as
+    // much a known state as where it ends up.
+    let retire = |t: &mut Trajectories| {
+        t.retire_exited(scene);
+        if cfg.task == Task::Conditional {
+            let n = t.layout.steps;
+            for &Slot { agent: ai, .. } in &plan.slots {
+                let gone = recorded_end[ai].map_or(0, |(k, _, _)| k + 1);
+                t.valid[ai * n + gone.min(n)..(ai + 1) * n].fill(false);
+            }
+        }
+    };
     let initial: std::cell::RefCell<Vec<Vec<CostReport>>> = std::cell::RefCell::new(Vec::new());
     let guided = |x: &Tensor, sigma: f64, step: usize| -> Result<Tensor, SampleError> {
         let sig = vec![sigma; rows];
@@ -499,7 +522,10 @@ pub fn sample(
         if cfg.lambda <= 0.0 || (scripts.is_empty() && cfg.task == Task::Unconditional) {
             return Ok(Tensor::from_vec(dv, (rows, n, k), &dev)?);
         }
-        let trajs = plan.trajectories(&dv);
+        let mut trajs = plan.trajectories(&dv);
+        for t in &mut trajs {
+            retire(t);
+        }
         let mut g = vec![0f32; rows * n * k];
         let first = initial.borrow().is_empty();
         for (s, t) in trajs.iter().enumerate() {
@@ -517,13 +543,11 @@ pub fn sample(
             }
             if cfg.task == Task::Conditional {
                 for &Slot { agent: ai, .. } in &plan.slots {
-                    if let Some((ex, ey)) = recorded_end[ai] {
-                        let last = t.layout.steps - 1;
-                        let (p, _) = t.state(ai, last);
-                        world[(ai * t.layout.steps + last) * 3] +=
-                            2.0 * cfg.known_weight * (p[0] - ex);
-                        world[(ai * t.layout.steps + last) * 3 + 1] +=
-                            2.0 * cfg.known_weight * (p[1] - ey);
+                    if let Some((k, ex, ey)) = recorded_end[ai] {
+                        let (p, _) = t.state(ai, k);
+                        let i = (ai * t.layout.steps + k) * 3;
+                        world[i] += 2.0 * cfg.known_weight * (p[0] - ex);
+                        world[i + 1] += 2.0 * cfg.known_weight * (p[1] - ey);
                     }
                 }
             }
@@ -572,6 +596,7 @@ pub fn sample(
     let mut trajs = plan.trajectories(&xv);
     for t in &mut trajs {
         plan.align_headings(t);
+        retire(t);
     }
     let mut out = Vec::with_capacity(kk);
     for t in trajs {
@@ -598,8 +623,7 @@ pub fn sample(
             .map(|s| s.evaluate(&t))
             .collect::<Result<Vec<_>, _>>()?;
         out.push(Sample {
-            // Cars that reach the end of the map leave the scene, as recorded ones do.
-            scene: sim.retire_exited(),
+            scene: sim,
             initial_reports: Vec::new(),
             reports,
         });

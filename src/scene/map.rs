@@ -166,6 +166,13 @@ pub struct StopLine {
     pub lanes: Vec<LaneId>,
 }
 
+/// The widest gap between two drivable areas that still counts as road. Adjacent lanelets
+/// store their shared boundary twice, and the copies need not match: the NGSIM maps leave
+/// cracks of a few centimetres between lanes (decimetres in places on Lankershim), where a
+/// point inside neither polygon would be metres "off the road", its nearest road edge being
+/// the far side of the carriageway. Half a metre is narrower than any kerbed median.
+pub const SEAM_GAP: f64 = 0.5;
+
 /// The parts a reader assembles into a [`Map`].
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct MapParts {
@@ -342,6 +349,14 @@ impl Map {
         })
     }
 
+    /// Whether the front bumper of a car `length` long at `(x, y)` facing `heading` is at an
+    /// exit ([`Map::at_exit`]).
+    pub fn bumper_at_exit(&self, x: f64, y: f64, heading: f64, length: f64) -> bool {
+        let (sn, cs) = heading.sin_cos();
+        !self.exits.is_empty()
+            && self.at_exit(Point::new(x + 0.5 * length * cs, y + 0.5 * length * sn))
+    }
+
     /// Signed distance from `p` to the nearest road edge: negative on the road, positive off it.
     ///
     /// With drivable areas the side comes from them (inside any area = on the road); otherwise
@@ -373,10 +388,35 @@ impl Map {
         let on_road = if self.parts.drivable_areas.is_empty() {
             edge.path.project(p).d >= 0.0
         } else {
-            self.parts.drivable_areas.iter().any(|a| a.contains(&p))
+            self.parts.drivable_areas.iter().any(|a| a.contains(&p)) || self.in_seam(p)
         };
         let q = edge.line().point_at(hit.s);
         Some((if on_road { -best } else { best }, q))
+    }
+
+    /// Whether `p`, outside every drivable area, lies in a seam between two of them: both
+    /// within [`SEAM_GAP`]` / 2`, on opposite sides of `p` (beside a single area, or at the
+    /// joint of two consecutive ones, both nearest points lie the same way).
+    fn in_seam(&self, p: Point) -> bool {
+        let half = 0.5 * SEAM_GAP;
+        let near: Vec<(f64, Point)> = self
+            .parts
+            .drivable_areas
+            .iter()
+            .filter(|a| {
+                let (lo, hi) = a.bounds();
+                (lo.x - half..=hi.x + half).contains(&p.x)
+                    && (lo.y - half..=hi.y + half).contains(&p.y)
+            })
+            .map(|a| a.nearest_boundary_point(&p))
+            .filter(|(d, _)| *d <= half)
+            .collect();
+        near.iter().any(|(d, _)| *d <= 1e-9)
+            || near.iter().enumerate().any(|(i, (_, qa))| {
+                near[i + 1..]
+                    .iter()
+                    .any(|(_, qb)| (qa - p).dot(&(qb - p)) < 0.0)
+            })
     }
 
     /// The nearest lane to a pose whose direction agrees with `heading` (within 90°).
@@ -464,6 +504,57 @@ map:
             !s.map.at_exit(Point::new(215.0, 3.5)),
             "beyond the 10 m band"
         );
+    }
+
+    #[test]
+    fn a_crack_between_lanes_is_road_but_a_notch_in_the_edge_is_not() {
+        // Two lanes whose shared boundary is stored twice, 2 cm apart (as NGSIM's lanelets do),
+        // then a third lane beyond a 1 m kerbed median.
+        let text = r#"
+steps: 1
+current_step: 0
+map:
+  road_edges:
+    - points: [[0, 0], [100, 0]]
+    - points: [[100, 7.02], [0, 7.02]]
+    - points: [[0, 8.02], [100, 8.02]]
+    - points: [[100, 11.52], [0, 11.52]]
+  drivable_areas:
+    - [[0, 0], [100, 0], [100, 3.5], [0, 3.5]]
+    - [[0, 3.52], [100, 3.52], [100, 7.02], [0, 7.02]]
+    - [[0, 8.02], [100, 8.02], [100, 11.52], [0, 11.52]]
+"#;
+        let s = yaml::parse(Path::new("crack.yaml"), text).unwrap();
+        let sd = |x, y| {
+            s.map
+                .signed_distance_to_road_edge(Point::new(x, y))
+                .unwrap()
+        };
+        assert!(
+            (sd(50.0, 3.51) + 3.51).abs() < 1e-9,
+            "in the crack: on the road, 3.51 m from the right edge, not off it"
+        );
+        assert!(sd(50.0, 7.5) > 0.0, "on the median");
+        assert!(sd(50.0, -0.1) > 0.0, "beyond the edge");
+        // Just beyond the edge where two consecutive areas meet: both nearest points lie
+        // the same way, so it is no seam.
+        let joint = r#"
+steps: 1
+current_step: 0
+map:
+  road_edges:
+    - points: [[0, 0], [100, 0]]
+    - points: [[100, 3.5], [0, 3.5]]
+  drivable_areas:
+    - [[0, 0], [50, 0], [50, 3.5], [0, 3.5]]
+    - [[50, 0], [100, 0], [100, 3.5], [50, 3.5]]
+"#;
+        let j = yaml::parse(Path::new("joint.yaml"), joint).unwrap();
+        let d = j
+            .map
+            .signed_distance_to_road_edge(Point::new(50.0, -0.1))
+            .unwrap();
+        assert!((d - 0.1).abs() < 1e-9, "{d}");
     }
 
     #[test]

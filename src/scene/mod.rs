@@ -229,14 +229,33 @@ impl Scene {
             if a.agent_type != AgentType::Vehicle {
                 continue;
             }
-            let front = |st: &AgentState| {
-                let (sn, cs) = st.heading.sin_cos();
-                crate::geom::Point::new(st.x + 0.5 * a.length * cs, st.y + 0.5 * a.length * sn)
-            };
-            let first = (c + 1..a.states.len())
-                .find(|&t| a.states[t].valid && self.map.at_exit(front(&a.states[t])));
+            let first = (c + 1..a.states.len()).find(|&t| {
+                let st = &a.states[t];
+                st.valid && self.map.bumper_at_exit(st.x, st.y, st.heading, a.length)
+            });
             if let Some(t) = first {
                 a.states[t..].fill(AgentState::INVALID);
+            }
+        }
+        s
+    }
+
+    /// The scene with each agent's future states kept only at steps where the same agent
+    /// (by id) is valid in `reference`: a simulation scored over the recorded agents'
+    /// lifetimes. NGSIM tracks stop where the cameras' view ends, and so does the map; a car
+    /// that leaves by a side street or a driveway drives on over ground the map does not have.
+    /// Agents that `reference` lacks are kept as they are.
+    pub fn with_lifetimes_of(&self, reference: &Scene) -> Scene {
+        let mut s = self.clone();
+        let c = self.meta.current_step;
+        for a in &mut s.agents {
+            let Some(r) = reference.agent(a.id) else {
+                continue;
+            };
+            for t in c + 1..a.states.len() {
+                if !r.is_valid(t) {
+                    a.states[t] = AgentState::INVALID;
+                }
             }
         }
         s
@@ -400,5 +419,17 @@ agents:
         }
         assert_eq!(r.agents[1].states, s.agents[1].states, "car 2 stays");
         assert_eq!(r.retire_exited().agents[0].states, r.agents[0].states);
+        // What the sampler guides is what it outputs: trajectories retire the same steps.
+        let mut t = crate::cost::Trajectories::recorded(&s);
+        t.retire_exited(&s);
+        assert_eq!(t.valid, crate::cost::Trajectories::recorded(&r).valid);
+        // Scored over the recorded lifetimes, car 1 of any simulation leaves where it did.
+        let mut sim = s.clone();
+        sim.agents[0].states[40].x += 1.0;
+        let life = sim.with_lifetimes_of(&r);
+        for t in 0..41 {
+            assert_eq!(life.agents[0].is_valid(t), t < gone, "car 1 at step {t}");
+        }
+        assert_eq!(life.agents[1].states, s.agents[1].states);
     }
 }
