@@ -905,6 +905,33 @@ mod tests {
     }
 
     #[test]
+    fn the_farthest_corner_is_the_largest_corner_distance() {
+        let scene = Rc::new(highway());
+        let r = evaluate_recorded(
+            "let a = agent(3);
+             let m = a.corner_edge_distance(0);
+             for i in 1..4 { let c = a.corner_edge_distance(i); m = m + relu(c - m); }
+             term(\"gap\", abs(m - a.box_edge_distance).max());",
+            (*scene).clone(),
+        );
+        assert!(r.terms[0].value < 1e-9, "{}", r.terms[0].value);
+        let traj = crate::cost::Trajectories::recorded(&scene);
+        let err = CostScript::compile(
+            "term(\"x\", agent(1).corner_edge_distance(4).sum());",
+            "t",
+            scene,
+            &Params::default(),
+            &Limits::default(),
+        )
+        .and_then(|s| s.evaluate(&traj))
+        .unwrap_err();
+        assert!(
+            err.to_string().contains("corner 4 is not 0, 1, 2 or 3"),
+            "{err}"
+        );
+    }
+
+    #[test]
     fn valid_count_counts_observed_future_steps() {
         let mut scene = highway();
         // Agent 2 leaves the recording 30 steps after the current one.

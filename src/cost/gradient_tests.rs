@@ -137,6 +137,7 @@ const EDGE_EXPRS: &[&str] = &[
     "term(\"t\", a.edge_distance.sum());",
     "term(\"t\", a.box_edge_distance.sum());",
     "term(\"t\", a.on_road(0.5).sum());",
+    "term(\"t\", a.corner_edge_distance(0).sum() + 2.0 * a.corner_edge_distance(2).sum());",
 ];
 
 const MATH_EXPRS: &[&str] = &[

@@ -174,6 +174,41 @@ struct Plan<'a> {
     base: Trajectories,
 }
 
+/// A heading that [`Plan::align_headings`] set from the motion between two states: a
+/// function of their positions, `atan2(dy, dx)` (or that plus π for a reversing car).
+struct Aligned {
+    /// The state whose heading was set (index into [`Trajectories::xyh`]).
+    at: usize,
+    /// The state behind it (`None`: the current state, which is fixed).
+    behind: Option<usize>,
+    /// The state ahead of it (itself at the last step).
+    ahead: usize,
+    dx: f64,
+    dy: f64,
+}
+
+impl Aligned {
+    /// Moves the cost gradient w.r.t. aligned headings onto the positions that decide them,
+    /// so that guidance acts on the trajectories that are output: the heading channel there is
+    /// overwritten, and a gradient on it would steer nothing.
+    fn chain(set: &[Aligned], world: &mut [f64]) {
+        for a in set {
+            let gh = std::mem::take(&mut world[a.at * 3 + 2]);
+            if gh == 0.0 {
+                continue;
+            }
+            let r2 = a.dx * a.dx + a.dy * a.dy;
+            let (gx, gy) = (-gh * a.dy / r2, gh * a.dx / r2);
+            world[a.ahead * 3] += gx;
+            world[a.ahead * 3 + 1] += gy;
+            if let Some(b) = a.behind {
+                world[b * 3] -= gx;
+                world[b * 3 + 1] -= gy;
+            }
+        }
+    }
+}
+
 /// Where a modelled agent sits in the batch, and what decoding its coefficients needs.
 #[derive(Debug, Clone, Copy)]
 struct Slot {
@@ -296,52 +331,53 @@ impl Plan<'_> {
 
     /// Points each modelled agent's heading along its direction of motion wherever it moves
     /// (central differences over more than 0.2 m per step; the model's heading where it is
-    /// slower, and where the motion is more than 45° across it), backwards where it reverses. Positions and headings are separate PCA channels, and guidance that pushes
-    /// positions sideways drags the heading channel along arbitrarily; a car drives where it
-    /// points, so the output keeps its headings consistent with its path.
-    fn align_headings(&self, t: &mut Trajectories) {
+    /// slower, and where the motion is more than 45° across it), backwards where it reverses.
+    /// Positions and headings are separate PCA channels, and guidance that pushes positions
+    /// sideways drags the heading channel along arbitrarily; a car drives where it points, so
+    /// the output keeps its headings consistent with its path. Returns the headings it set,
+    /// for [`Aligned::chain`].
+    fn align_headings(&self, t: &mut Trajectories) -> Vec<Aligned> {
         let n = t.layout.steps;
+        let mut set = Vec::new();
         for &Slot {
             agent: ai,
             pose: p0,
             ..
         } in &self.slots
         {
-            let at = |t: &Trajectories, j: isize| -> [f64; 3] {
-                if j < 0 {
-                    p0
-                } else {
-                    t.xyh[ai * n + (j as usize).min(n - 1)]
+            let idx = |j: isize| (j >= 0).then(|| ai * n + (j as usize).min(n - 1));
+            let at = |t: &Trajectories, j: isize| idx(j).map_or(p0, |i| t.xyh[i]);
+            let mut fixed = Vec::new();
+            for j in 0..n as isize {
+                let (a, b) = (at(t, j - 1), at(t, j + 1));
+                let span = if j as usize + 1 >= n { 1.0 } else { 2.0 };
+                let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
+                let h = at(t, j)[2];
+                if dx.hypot(dy) <= 0.2 * span {
+                    continue;
                 }
-            };
-            let fixed: Vec<f64> = (0..n as isize)
-                .map(|j| {
-                    let (a, b) = (at(t, j - 1), at(t, j + 1));
-                    let span = if j as usize + 1 >= n { 1.0 } else { 2.0 };
-                    let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
-                    let h = at(t, j)[2];
-                    if dx.hypot(dy) <= 0.2 * span {
-                        return h;
-                    }
-                    // A car moving against its heading reverses; one moving across it is
-                    // jitter of a near-standstill, not a reason to turn it sideways.
-                    let mut diff = crate::geom::wrap_angle(dy.atan2(dx) - h);
-                    if diff.abs() > std::f64::consts::FRAC_PI_2 {
-                        diff = crate::geom::wrap_angle(diff + std::f64::consts::PI);
-                    }
-                    if diff.abs() > std::f64::consts::FRAC_PI_4 {
-                        h
-                    } else {
-                        h + diff
-                    }
-                })
-                .collect();
-            for (j, h) in fixed.into_iter().enumerate() {
-                if t.valid[ai * n + j] {
-                    t.xyh[ai * n + j][2] = h;
+                // A car moving against its heading reverses; one moving across it is
+                // jitter of a near-standstill, not a reason to turn it sideways.
+                let mut diff = crate::geom::wrap_angle(dy.atan2(dx) - h);
+                if diff.abs() > std::f64::consts::FRAC_PI_2 {
+                    diff = crate::geom::wrap_angle(diff + std::f64::consts::PI);
+                }
+                if diff.abs() <= std::f64::consts::FRAC_PI_4 && t.valid[ai * n + j as usize] {
+                    fixed.push((j, h + diff));
+                    set.push(Aligned {
+                        at: ai * n + j as usize,
+                        behind: idx(j - 1),
+                        ahead: idx(j + 1).expect("j + 1 >= 0"),
+                        dx,
+                        dy,
+                    });
                 }
             }
+            for (j, h) in fixed {
+                t.xyh[ai * n + j as usize][2] = h;
+            }
         }
+        set
     }
 
     /// Makes every window agree on each agent: the denoised estimate `d` becomes the owner's,
@@ -523,9 +559,14 @@ pub fn sample(
             return Ok(Tensor::from_vec(dv, (rows, n, k), &dev)?);
         }
         let mut trajs = plan.trajectories(&dv);
-        for t in &mut trajs {
-            retire(t);
-        }
+        let aligned: Vec<Vec<Aligned>> = trajs
+            .iter_mut()
+            .map(|t| {
+                let a = plan.align_headings(t);
+                retire(t);
+                a
+            })
+            .collect();
         let mut g = vec![0f32; rows * n * k];
         let first = initial.borrow().is_empty();
         for (s, t) in trajs.iter().enumerate() {
@@ -551,6 +592,7 @@ pub fn sample(
                     }
                 }
             }
+            Aligned::chain(&aligned[s], &mut world);
             if world.iter().any(|v| !v.is_finite()) {
                 return Err(SampleError::NonFinite {
                     what: "cost gradient",
@@ -673,6 +715,51 @@ mod tests {
             &Limits::default(),
         )
         .unwrap()
+    }
+
+    #[test]
+    fn aligned_heading_gradients_land_on_the_positions_that_set_them() {
+        // A cost of 2·h at step 1, whose heading points from state 0 to state 2, and of 3·h at
+        // the last step (2), which points from state 1 to itself.
+        let xy = [[0.0, 0.0], [1.0, 0.3], [2.5, 0.2]];
+        let heading = |xy: &[[f64; 2]; 3], a: usize, b: usize| {
+            (xy[b][1] - xy[a][1]).atan2(xy[b][0] - xy[a][0])
+        };
+        let cost = |xy: &[[f64; 2]; 3]| 2.0 * heading(xy, 0, 2) + 3.0 * heading(xy, 1, 2);
+        let set = [
+            Aligned {
+                at: 1,
+                behind: Some(0),
+                ahead: 2,
+                dx: 2.5,
+                dy: 0.2,
+            },
+            Aligned {
+                at: 2,
+                behind: Some(1),
+                ahead: 2,
+                dx: 1.5,
+                dy: -0.1,
+            },
+        ];
+        let mut world = vec![0.0; 9];
+        world[1 * 3 + 2] = 2.0;
+        world[2 * 3 + 2] = 3.0;
+        Aligned::chain(&set, &mut world);
+        assert_eq!((world[5], world[8]), (0.0, 0.0), "headings are not free");
+        for k in 0..3 {
+            for c in 0..2 {
+                let (mut lo, mut hi) = (xy, xy);
+                lo[k][c] -= 1e-6;
+                hi[k][c] += 1e-6;
+                let fd = (cost(&hi) - cost(&lo)) / 2e-6;
+                assert!(
+                    (world[k * 3 + c] - fd).abs() < 1e-6,
+                    "state {k} coord {c}: {} vs {fd}",
+                    world[k * 3 + c]
+                );
+            }
+        }
     }
 
     #[test]

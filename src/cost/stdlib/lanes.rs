@@ -27,7 +27,20 @@ fn ids(v: &[i64]) -> Array {
 }
 
 /// Signed road-edge distance of the agent's centre, or of its worst box corner.
-fn edge_series(shared: &Shared, a: usize, corners: bool) -> RResult<Series> {
+/// Which point of an agent's box [`edge_series`] measures.
+#[derive(Clone, Copy)]
+enum BoxPoint {
+    Centre,
+    /// The corner farthest off the road (or nearest to leaving it).
+    Farthest,
+    /// One corner: 0 rear right, 1 front right, 2 front left, 3 rear left.
+    Corner(usize),
+}
+
+/// The box corners in the agent's frame, in units of half length and half width.
+const CORNERS: [(f64, f64); 4] = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)];
+
+fn edge_series(shared: &Shared, a: usize, point: BoxPoint) -> RResult<Series> {
     let xs = coord_series(shared, a, Coord::X);
     let ys = coord_series(shared, a, Coord::Y);
     let hs = coord_series(shared, a, Coord::Heading);
@@ -47,10 +60,10 @@ fn edge_series(shared: &Shared, a: usize, corners: bool) -> RResult<Series> {
         }
         let (cx, cy, th) = (x.val[k], y.val[k], h.val[k]);
         let (sn, cs) = th.sin_cos();
-        let offsets: &[(f64, f64)] = if corners {
-            &[(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)]
-        } else {
-            &[(0.0, 0.0)]
+        let offsets: &[(f64, f64)] = match point {
+            BoxPoint::Centre => &[(0.0, 0.0)],
+            BoxPoint::Farthest => &CORNERS,
+            BoxPoint::Corner(i) => &CORNERS[i..=i],
         };
         let mut best: Option<(f64, [f64; 3])> = None;
         for &(u, v) in offsets {
@@ -74,7 +87,7 @@ fn edge_series(shared: &Shared, a: usize, corners: bool) -> RResult<Series> {
         let row: Vec<(u32, f64)> = match (xs.row(k).first(), ys.row(k).first(), hs.row(k).first()) {
             (Some(&(vx, _)), Some(&(vy, _)), Some(&(vh, _))) => {
                 let mut r = vec![(vx, g[0]), (vy, g[1])];
-                if corners {
+                if !matches!(point, BoxPoint::Centre) {
                     r.push((vh, g[2]));
                 }
                 r
@@ -241,20 +254,33 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     doc(docs, R, "a.edge_distance -> Series", "Signed distance from the agent's centre to the nearest road edge, metres: negative on the road.");
     let sh = shared.clone();
     e.register_get("edge_distance", move |a: &mut AgentRef| {
-        edge_series(&sh, a.idx, false)
+        edge_series(&sh, a.idx, BoxPoint::Centre)
     });
     doc(docs, R, "a.box_edge_distance -> Series", "The same for the agent's box corner farthest off the road (positive as soon as any corner is off).");
     let sh = shared.clone();
     e.register_get("box_edge_distance", move |a: &mut AgentRef| {
-        edge_series(&sh, a.idx, true)
+        edge_series(&sh, a.idx, BoxPoint::Farthest)
     });
+    doc(docs, R, "a.corner_edge_distance(i) -> Series", "The same for one corner of the box: 0 rear right, 1 front right, 2 front left, 3 rear left. Summing a penalty over the four corners is smooth where two corners are equally far off (a car parallel to the edge), which the farthest corner is not: there its gradient turns the car, pushing the other corner out.");
+    let sh = shared.clone();
+    e.register_fn(
+        "corner_edge_distance",
+        move |a: &mut AgentRef, i: i64| -> RResult<Series> {
+            match usize::try_from(i).ok().filter(|&i| i < 4) {
+                Some(i) => edge_series(&sh, a.idx, BoxPoint::Corner(i)),
+                None => err(format!(
+                    "corner_edge_distance: corner {i} is not 0, 1, 2 or 3"
+                )),
+            }
+        },
+    );
     doc(docs, R, "a.on_road(k) -> Series", "Soft indicator of the whole box being on the road: sigmoid(-k · box_edge_distance), near 1 on the road, near 0 off it.");
     let sh = shared.clone();
     e.register_fn(
         "on_road",
         move |a: &mut AgentRef, k: Dynamic| -> RResult<Series> {
             let k = number(&k, "on_road k")?;
-            let d = edge_series(&sh, a.idx, true)?;
+            let d = edge_series(&sh, a.idx, BoxPoint::Farthest)?;
             d.map("on_road", |v| {
                 let s = 1.0 / (1.0 + (k * v).exp());
                 Some((s, -k * s * (1.0 - s)))
