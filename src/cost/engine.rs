@@ -865,6 +865,14 @@ mod tests {
     }
 
     /// `src`'s report on the recorded future of `scene`.
+    /// The error that compiling and evaluating `src` on the recorded future gives.
+    fn evaluation_error(src: &str, scene: Rc<crate::scene::Scene>) -> CostError {
+        let traj = crate::cost::Trajectories::recorded(&scene);
+        CostScript::compile(src, "t", scene, &Params::default(), &Limits::default())
+            .and_then(|s| s.evaluate(&traj))
+            .unwrap_err()
+    }
+
     fn evaluate_recorded(src: &str, scene: crate::scene::Scene) -> crate::cost::CostReport {
         let scene = Rc::new(scene);
         CostScript::compile(
@@ -891,16 +899,10 @@ mod tests {
         for t in &r.terms {
             assert!((t.value - 500.0).abs() < 0.5, "{}: {}", t.name, t.value);
         }
-        let traj = crate::cost::Trajectories::recorded(&scene);
-        let err = CostScript::compile(
+        let err = evaluation_error(
             "term(\"x\", lane_ahead(999, 0.0, 0.0) + 0.0 * agent(1).x.last());",
-            "t",
             scene,
-            &Params::default(),
-            &Limits::default(),
-        )
-        .and_then(|s| s.evaluate(&traj))
-        .unwrap_err();
+        );
         assert!(err.to_string().contains("999"), "{err}");
     }
 
@@ -915,16 +917,10 @@ mod tests {
             (*scene).clone(),
         );
         assert!(r.terms[0].value < 1e-9, "{}", r.terms[0].value);
-        let traj = crate::cost::Trajectories::recorded(&scene);
-        let err = CostScript::compile(
+        let err = evaluation_error(
             "term(\"x\", agent(1).corner_edge_distance(4).sum());",
-            "t",
             scene,
-            &Params::default(),
-            &Limits::default(),
-        )
-        .and_then(|s| s.evaluate(&traj))
-        .unwrap_err();
+        );
         assert!(
             err.to_string().contains("corner 4 is not 0, 1, 2 or 3"),
             "{err}"

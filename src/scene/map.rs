@@ -447,15 +447,17 @@ mod tests {
     use crate::io::yaml;
     use std::path::Path;
 
+    fn edge_distance(s: &crate::scene::Scene, x: f64, y: f64) -> f64 {
+        s.map
+            .signed_distance_to_road_edge(Point::new(x, y))
+            .unwrap()
+    }
+
     #[test]
     fn signed_distance_to_road_edge_is_negative_on_the_road() {
         let text = "road: {lanes: 2, lane_width: 3.5, length: 100}\nagents: []\n";
         let s = yaml::parse(Path::new("road.yaml"), text).unwrap();
-        let sd = |x, y| {
-            s.map
-                .signed_distance_to_road_edge(Point::new(x, y))
-                .unwrap()
-        };
+        let sd = |x, y| edge_distance(&s, x, y);
         assert!(
             (sd(50.0, 1.0) + 1.0).abs() < 1e-9,
             "1 m inside the right edge"
@@ -525,11 +527,7 @@ map:
     - [[0, 8.02], [100, 8.02], [100, 11.52], [0, 11.52]]
 "#;
         let s = yaml::parse(Path::new("crack.yaml"), text).unwrap();
-        let sd = |x, y| {
-            s.map
-                .signed_distance_to_road_edge(Point::new(x, y))
-                .unwrap()
-        };
+        let sd = |x, y| edge_distance(&s, x, y);
         assert!(
             (sd(50.0, 3.51) + 3.51).abs() < 1e-9,
             "in the crack: on the road, 3.51 m from the right edge, not off it"
@@ -550,10 +548,7 @@ map:
     - [[50, 0], [100, 0], [100, 3.5], [50, 3.5]]
 "#;
         let j = yaml::parse(Path::new("joint.yaml"), joint).unwrap();
-        let d = j
-            .map
-            .signed_distance_to_road_edge(Point::new(50.0, -0.1))
-            .unwrap();
+        let d = edge_distance(&j, 50.0, -0.1);
         assert!((d - 0.1).abs() < 1e-9, "{d}");
     }
 
@@ -569,11 +564,7 @@ map:
     - points: [[100, 7], [0, 7]]
 "#;
         let s = yaml::parse(Path::new("edges.yaml"), text).unwrap();
-        let sd = |x, y| {
-            s.map
-                .signed_distance_to_road_edge(Point::new(x, y))
-                .unwrap()
-        };
+        let sd = |x, y| edge_distance(&s, x, y);
         assert!(sd(50.0, 2.0) < 0.0 && sd(50.0, 5.0) < 0.0);
         assert!(sd(50.0, -0.5) > 0.0 && sd(50.0, 7.5) > 0.0);
         let empty =
