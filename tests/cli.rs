@@ -687,6 +687,32 @@ fn train_then_simulate_end_to_end() {
         out.contains(&format!("(rollout future, {horizon} steps)")),
         "{out}"
     );
+    // A scene that fails (no vehicle 4 on the merge) is reported, and the others go on.
+    let two = dir.path().join("two");
+    std::fs::create_dir(&two).unwrap();
+    for f in ["highway_cut_in.yaml", "merge.yaml"] {
+        std::fs::copy(format!("scripts/scenes/{f}"), two.join(f)).unwrap();
+    }
+    let partial = dir.path().join("partial");
+    let err = fails(&simulate_args(
+        s(&two),
+        s(&ckpt),
+        &[
+            "--script",
+            "scripts/cut_in.rhai",
+            "--param",
+            "cutter=4",
+            "victim=1",
+            "--steps",
+            "2",
+        ],
+        s(&partial),
+    ));
+    assert!(
+        err.contains("error: merge") && err.contains("1 scenes failed"),
+        "{err}"
+    );
+    assert!(partial.join("highway-cut-in_0.json").exists());
     // Closed loop re-plans every 0.5 s over the model's 4 s horizon.
     let cl = dir.path().join("cl");
     let out = ok(&simulate_args(

@@ -59,8 +59,9 @@ pub struct Args {
     /// (`eval::behaviors::suggest`); --param values override the suggestion.
     #[arg(long)]
     auto: bool,
-    /// Score only this many future steps (e.g. a model's horizon): scenes are cut to
-    /// current step + 1 + HORIZON steps before anything is simulated or scored.
+    /// Score exactly this many future steps (a model's horizon): scenes are cut, or extended
+    /// with unobserved steps, to current step + 1 + HORIZON before anything is simulated or
+    /// scored, so that baselines simulate as far as a model does.
     #[arg(long)]
     horizon: Option<usize>,
     /// Conditional task: score every simulated step, not only the steps where the agent is
@@ -294,6 +295,12 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 }
                 (Some((b, given)), false) => Some((*b, given.clone())),
                 (None, _) => None,
+            };
+            // Agents are chosen on the recording (as `simulate --auto` chooses them); every
+            // method then runs the whole horizon, past the end of a shorter recording.
+            let scene = &match args.horizon {
+                Some(h) => scene.over_horizon(h),
+                None => scene.clone(),
             };
             // Every method, and the log it is compared with, loses its cars where they leave
             // the map.

@@ -166,100 +166,119 @@ pub fn run(args: Args) -> Result<ExitCode> {
     for s in &args.scenes {
         sources.extend(discover(s)?);
     }
+    // One scene's failure (a script error on its agents, say) is reported and the others go
+    // on; the exit code says that something failed.
+    let run_one = |raw: &drivescript::scene::Scene| -> Result<bool> {
+        let id = raw.meta.scenario_id.clone();
+        // Suggested agents first, so that explicit --param values override them.
+        let mut kv: Vec<String> = Vec::new();
+        if let Some(b) = auto {
+            match suggest(b, &raw.with_horizon(future)) {
+                Some(p) => kv.extend(super::script_params(&p)),
+                None => {
+                    println!("{id}: no agents suited to {}; skipped", b.name());
+                    return Ok(false);
+                }
+            }
+            println!("{id}: {}", kv.join(" "));
+        }
+        kv.extend(args.params.iter().cloned());
+        let params = Params::parse(&kv)?;
+        let specs: Vec<ScriptSpec> = specs
+            .iter()
+            .map(|s| ScriptSpec {
+                params: params.clone(),
+                ..s.clone()
+            })
+            .collect();
+        let scene = prepare(raw, &trained)?;
+        let t0 = std::time::Instant::now();
+        let samples = if args.closed_loop {
+            closed_loop(&trained, raw, &specs, &cfg, 5)?
+        } else {
+            let shared = Rc::new(scene.clone());
+            let scripts = specs
+                .iter()
+                .map(|s| {
+                    let c = CostScript::compile(
+                        &s.source,
+                        &s.name,
+                        shared.clone(),
+                        &s.params,
+                        &Limits::default(),
+                    )?;
+                    c.validate()?;
+                    Ok(c)
+                })
+                .collect::<Result<Vec<_>>>()?;
+            sample(&trained, &scene, &scripts, &cfg)?
+        };
+        let secs = t0.elapsed().as_secs_f64();
+        let mut report = Vec::new();
+        for (k, s) in samples.iter().enumerate() {
+            let mut r = Rollout::from_scene(&s.scene);
+            for rep in &s.reports {
+                for t in &rep.terms {
+                    r.costs.insert(t.name.clone(), t.value);
+                }
+            }
+            r.write(&args.output.join(format!("{id}_{k}.json")))?;
+            let mut terms = Vec::new();
+            for (i, fin) in s.reports.iter().enumerate() {
+                for t in &fin.terms {
+                    let before = s
+                        .initial_reports
+                        .get(i)
+                        .and_then(|r| r.term(&t.name))
+                        .map(|x| x.value);
+                    println!(
+                        "{id} sample {k}  {:<28} initial {:>10}  final {:>10.4}",
+                        t.name,
+                        before.map_or("-".into(), |v| format!("{v:.4}")),
+                        t.value
+                    );
+                    terms.push(
+                        serde_json::json!({"term": t.name, "initial": before, "final": t.value}),
+                    );
+                }
+            }
+            report.push(serde_json::json!({"sample": k, "terms": terms}));
+        }
+        drivescript::io::write_atomic(
+            &args.output.join(format!("{id}_costs.json")),
+            serde_json::to_string_pretty(&report)?.as_bytes(),
+        )?;
+        super::render::write_picture(
+            &samples[0].scene,
+            &args.output.join(format!("{id}_0.gif")),
+            &RenderOptions {
+                width: 800,
+                ..Default::default()
+            },
+        )?;
+        println!("{id}: {} samples in {secs:.2} s", samples.len());
+        Ok(true)
+    };
+    let mut failed = 0;
     for src in sources {
         for raw in load_scenes(&src, &LoadOptions::default())? {
-            let id = raw.meta.scenario_id.clone();
-            // Suggested agents first, so that explicit --param values override them.
-            let mut kv: Vec<String> = Vec::new();
-            if let Some(b) = auto {
-                match suggest(b, &raw.with_horizon(future)) {
-                    Some(p) => kv.extend(super::script_params(&p)),
-                    None => {
-                        println!("{id}: no agents suited to {}; skipped", b.name());
-                        skipped += 1;
-                        continue;
-                    }
+            match run_one(&raw) {
+                Ok(true) => {}
+                Ok(false) => skipped += 1,
+                Err(e) => {
+                    eprintln!("error: {}: {e:#}", raw.meta.scenario_id);
+                    failed += 1;
                 }
-                println!("{id}: {}", kv.join(" "));
             }
-            kv.extend(args.params.iter().cloned());
-            let params = Params::parse(&kv)?;
-            let specs: Vec<ScriptSpec> = specs
-                .iter()
-                .map(|s| ScriptSpec {
-                    params: params.clone(),
-                    ..s.clone()
-                })
-                .collect();
-            let scene = prepare(&raw, &trained)?;
-            let t0 = std::time::Instant::now();
-            let samples = if args.closed_loop {
-                closed_loop(&trained, &raw, &specs, &cfg, 5)?
-            } else {
-                let shared = Rc::new(scene.clone());
-                let scripts = specs
-                    .iter()
-                    .map(|s| {
-                        let c = CostScript::compile(
-                            &s.source,
-                            &s.name,
-                            shared.clone(),
-                            &s.params,
-                            &Limits::default(),
-                        )?;
-                        c.validate()?;
-                        Ok(c)
-                    })
-                    .collect::<Result<Vec<_>>>()?;
-                sample(&trained, &scene, &scripts, &cfg)?
-            };
-            let secs = t0.elapsed().as_secs_f64();
-            let mut report = Vec::new();
-            for (k, s) in samples.iter().enumerate() {
-                let mut r = Rollout::from_scene(&s.scene);
-                for rep in &s.reports {
-                    for t in &rep.terms {
-                        r.costs.insert(t.name.clone(), t.value);
-                    }
-                }
-                r.write(&args.output.join(format!("{id}_{k}.json")))?;
-                let mut terms = Vec::new();
-                for (i, fin) in s.reports.iter().enumerate() {
-                    for t in &fin.terms {
-                        let before = s
-                            .initial_reports
-                            .get(i)
-                            .and_then(|r| r.term(&t.name))
-                            .map(|x| x.value);
-                        println!(
-                            "{id} sample {k}  {:<28} initial {:>10}  final {:>10.4}",
-                            t.name,
-                            before.map_or("-".into(), |v| format!("{v:.4}")),
-                            t.value
-                        );
-                        terms.push(serde_json::json!({"term": t.name, "initial": before, "final": t.value}));
-                    }
-                }
-                report.push(serde_json::json!({"sample": k, "terms": terms}));
-            }
-            drivescript::io::write_atomic(
-                &args.output.join(format!("{id}_costs.json")),
-                serde_json::to_string_pretty(&report)?.as_bytes(),
-            )?;
-            super::render::write_picture(
-                &samples[0].scene,
-                &args.output.join(format!("{id}_0.gif")),
-                &RenderOptions {
-                    width: 800,
-                    ..Default::default()
-                },
-            )?;
-            println!("{id}: {} samples in {secs:.2} s", samples.len());
         }
     }
     if skipped > 0 {
         println!("{skipped} scenes skipped (no agents suited to the behaviour)");
     }
     println!("wrote {}", args.output.display());
+    if failed > 0 {
+        eprintln!("{failed} scenes failed");
+        return Ok(ExitCode::FAILURE);
+    }
     Ok(ExitCode::SUCCESS)
 }

@@ -630,10 +630,15 @@ pub fn check(
 pub fn suggest(b: Behavior, scene: &Scene) -> Option<CheckParams> {
     let c = scene.meta.current_step;
     let n = scene.num_steps();
+    // Recorded over the whole horizon without reaching a map exit: a car that leaves the
+    // scene within it (every method's car leaves there too) cannot show a behaviour.
+    let kept = scene.retire_exited();
     let mut cands: Vec<(&Agent, i64, LanePath)> = scene
         .agents
         .iter()
-        .filter(|a| a.agent_type == AgentType::Vehicle && (c..n).all(|t| a.is_valid(t)))
+        .zip(&kept.agents)
+        .filter(|(a, k)| a.agent_type == AgentType::Vehicle && (c..n).all(|t| k.is_valid(t)))
+        .map(|(a, _)| a)
         // The recording must end on a mapped lane: where the map stops short of the agent's
         // future (NGSIM maps cover a few hundred metres), no lane-based behaviour can be
         // judged at the end of the horizon, whatever the simulator does.

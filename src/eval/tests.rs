@@ -324,6 +324,17 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
     let rightmost = |steps| suggest(Behavior::RightmostLane, &road(steps)).map(|p| p["vehicle"]);
     assert_eq!(rightmost(31), Some(5.0), "2 s: one lane change at most");
     assert_eq!(rightmost(51), Some(3.0), "4 s: two");
+    // A vehicle that reaches the end of the map within the horizon leaves every method's scene.
+    let ending = yaml::parse(
+        Path::new("end.yaml"),
+        "steps: 41\ncurrent_step: 10\nego: 1\nroad: {lanes: 2, lane_width: 3.5, length: 100}\n\
+         agents:\n  - {id: 1, lane: 0, s: 40, speed: 20}\n  - {id: 2, lane: 1, s: 10, speed: 10}\n",
+    )
+    .unwrap();
+    assert_eq!(
+        suggest(Behavior::SpeedLimit, &ending).map(|p| p["vehicle"]),
+        Some(2.0)
+    );
     // Every suggestion is something its checker can run on.
     for b in super::behaviors::ALL {
         if let Some(p) = suggest(b, &base) {

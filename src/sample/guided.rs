@@ -137,12 +137,7 @@ pub enum SampleError {
 /// The scene cut to the model's horizon: `current + 1 + future` steps, unobserved beyond the
 /// recording. Cost scripts are compiled against this scene.
 pub fn prepare(scene: &Scene, trained: &Trained) -> Result<Scene, SampleError> {
-    let cfg = &trained.meta.config.window;
-    let n = scene.meta.current_step + 1 + cfg.future;
-    let mut s = scene.clone();
-    for a in &mut s.agents {
-        a.states.resize(n, AgentState::INVALID);
-    }
+    let s = scene.over_horizon(trained.meta.config.window.future);
     Scene::new(s.meta.clone(), s.map.clone(), s.agents)
         .map_err(|e| SampleError::Scene(e.to_string()))
 }

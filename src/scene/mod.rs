@@ -215,6 +215,18 @@ impl Scene {
         s
     }
 
+    /// The scene with exactly `future` steps after the current one: a longer recording cut, a
+    /// shorter one extended with unobserved steps. What a model with that horizon simulates,
+    /// and what every method is scored over.
+    pub fn over_horizon(&self, future: usize) -> Scene {
+        let n = self.meta.current_step + 1 + future;
+        let mut s = self.clone();
+        for a in &mut s.agents {
+            a.states.resize(n, AgentState::INVALID);
+        }
+        s
+    }
+
     /// The scene with every vehicle removed (its states invalid) from the first future step at
     /// which its front bumper reaches a map exit ([`Map::at_exit`]), as recorded traffic
     /// leaves a recording where its map ends. Simulators and baselines keep driving there, onto
@@ -431,5 +443,13 @@ agents:
             assert_eq!(life.agents[0].is_valid(t), t < gone, "car 1 at step {t}");
         }
         assert_eq!(life.agents[1].states, s.agents[1].states);
+        // A horizon cuts a longer recording and extends a shorter one, unobserved.
+        let short = s.over_horizon(5);
+        assert_eq!(short.num_steps(), 16);
+        assert_eq!(short.agents[1].states[..], s.agents[1].states[..16]);
+        let long = s.over_horizon(40);
+        assert_eq!(long.num_steps(), 51);
+        assert!((41..51).all(|t| !long.agents[1].is_valid(t)));
+        assert_eq!(long.agents[1].states[..41], s.agents[1].states[..]);
     }
 }
