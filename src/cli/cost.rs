@@ -7,7 +7,6 @@ use std::rc::Rc;
 use anyhow::{Context, Result};
 use drivescript::cost::{CostScript, Limits, Params, Trajectories};
 use drivescript::io::{load_scene, rollout::Rollout, LoadOptions};
-use drivescript::scene::{AgentState, Scene};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -43,11 +42,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         .and_then(|r| r.agents.iter().map(|a| a.states.len()).max())
         .filter(|&n| n != scene.num_steps() && n > scene.meta.current_step + 1)
     {
-        let mut agents = scene.agents.clone();
-        for a in &mut agents {
-            a.states.resize(steps, AgentState::INVALID);
-        }
-        scene = Scene::new(scene.meta.clone(), scene.map.clone(), agents)?;
+        scene = scene.over_horizon(steps - scene.meta.current_step - 1);
     }
     let scene = Rc::new(scene);
     let source = std::fs::read_to_string(&args.script)

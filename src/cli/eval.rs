@@ -298,9 +298,13 @@ pub fn run(args: Args) -> Result<ExitCode> {
             };
             // Agents are chosen on the recording (as `simulate --auto` chooses them); every
             // method then runs the whole horizon, past the end of a shorter recording.
-            let scene = &match args.horizon {
-                Some(h) => scene.over_horizon(h),
-                None => scene.clone(),
+            let extended;
+            let scene = match args.horizon {
+                Some(h) => {
+                    extended = scene.over_horizon(h);
+                    &extended
+                }
+                None => scene,
             };
             // Every method, and the log it is compared with, loses its cars where they leave
             // the map.
@@ -321,8 +325,8 @@ pub fn run(args: Args) -> Result<ExitCode> {
                         }
                     },
                 };
-                // Every method is scored over the same steps: a model's rollout runs its
-                // whole horizon, the baselines only as far as the recording goes.
+                // Every method is scored over the scene's steps: a rollout may run longer
+                // (a model's horizon, without --horizon).
                 let sims: Vec<Scene> = sims
                     .iter()
                     .map(|s| {

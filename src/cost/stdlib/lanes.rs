@@ -26,7 +26,6 @@ fn ids(v: &[i64]) -> Array {
     v.iter().map(|l| Dynamic::from(*l)).collect()
 }
 
-/// Signed road-edge distance of the agent's centre, or of its worst box corner.
 /// Which point of an agent's box [`edge_series`] measures.
 #[derive(Clone, Copy)]
 enum BoxPoint {
@@ -40,6 +39,7 @@ enum BoxPoint {
 /// The box corners in the agent's frame, in units of half length and half width.
 const CORNERS: [(f64, f64); 4] = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)];
 
+/// Signed road-edge distance of one point of the agent's box, per step.
 fn edge_series(shared: &Shared, a: usize, point: BoxPoint) -> RResult<Series> {
     let xs = coord_series(shared, a, Coord::X);
     let ys = coord_series(shared, a, Coord::Y);
