@@ -34,6 +34,9 @@ fn inspect_commonroad_2018b_and_2020a() {
         .find(|v| v["scenario_id"] == "USA_Peach-4_8_T-1")
         .unwrap();
     assert!(peach["stop_lines"].as_u64().unwrap() > 0);
+    // The validation fold is a hash of the id (`train --val-fold`), fixed across releases.
+    assert_eq!(peach["val_fold"], 3);
+    assert_eq!(us101["val_fold"], 6);
     assert!(peach["lane_graph"]["successor"].as_u64().unwrap() > 0);
     for v in &all {
         assert!(v["road_edges"].as_u64().unwrap() > 0, "{v}");
@@ -560,9 +563,35 @@ fn train_then_simulate_end_to_end() {
         "2",
         "--eval-every",
         "2",
+        "--val-fold",
+        "3",
     ]);
     assert!(out.contains("trained 4 steps"), "{out}");
+    // A line per checkpoint even though the progress bar is hidden (no terminal here).
+    assert!(
+        out.contains("step      2  train") && out.contains("step      4  train"),
+        "{out}"
+    );
     assert!(ckpt.join("model.safetensors").exists() && ckpt.join("config.json").exists());
+    // Fold 3 of the script scenes is the cut-in scene alone (`inspect` prints each fold).
+    let config: Value =
+        serde_json::from_str(&std::fs::read_to_string(ckpt.join("config.json")).unwrap()).unwrap();
+    assert_eq!(config["config"]["val_fold"], 3);
+    assert_eq!(config["val_scenes"], serde_json::json!(["highway-cut-in"]));
+    let err = fails(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--out",
+        s(&ckpt),
+        "--resume",
+        s(&ckpt),
+        "--steps",
+        "6",
+        "--val-fold",
+        "2",
+    ]);
+    assert!(err.contains("held out fold 3"), "{err}");
     // --steps is a total: resuming a 4-step checkpoint to 6 runs two more steps.
     let out = ok(&[
         "train",

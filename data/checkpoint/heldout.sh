@@ -1,17 +1,21 @@
 #!/usr/bin/env bash
-# Cuts the held-out evaluation instances used in data/checkpoint/README.md.
-#   OUT/val        the 8 NGSIM validation scenes (the scenes whose id hashes to 0 mod 10, see
-#                  train::is_validation), one instance every 2 s of each recording from 1 s in
-#                  (11 history steps) while a future step remains: conditional and
-#                  unconditional evaluation.
-#   OUT/behaviour  the same scenes plus the two NGSIM CommonRoad samples that are not in the
-#                  training corpus (data/samples/commonroad/USA_Peach-4_8_T-1.xml,
-#                  USA_US101-3_3_T-1.xml), one instance every 1 s: behaviour success rates.
-# Usage: data/checkpoint/heldout.sh NGSIM_DIR OUT_DIR [DRIVESCRIPT]
+# Cuts the held-out evaluation instances used in data/checkpoint/README.md from the NGSIM
+# scenes of one validation fold (the scenes whose id hashes to FOLD mod 10, see
+# train::is_validation and `inspect`'s `fold` line; the shipped checkpoint holds out fold 0).
+#   OUT/val        one instance every 2 s of each recording from 1 s in (11 history steps)
+#                  while a future step remains: conditional and unconditional evaluation.
+#   OUT/behaviour  one instance every 1 s, and for fold 0 also of the two NGSIM CommonRoad
+#                  samples that are not in the training corpus (data/samples/commonroad/
+#                  USA_Peach-4_8_T-1.xml, USA_US101-3_3_T-1.xml): behaviour success rates.
+#   OUT/windows    one instance every 4 s of the same recordings: their 4 s futures do not
+#                  overlap, so each is a separate stretch of traffic (behaviour rates over
+#                  independent scenes).
+# Usage: data/checkpoint/heldout.sh NGSIM_DIR OUT_DIR [FOLD [DRIVESCRIPT]]
 set -euo pipefail
 src=${1:?NGSIM directory (../shared/data/commonroad-ngsim)}
 out=${2:?output directory}
-bin=${3:-target/release/drivescript}
+fold=${3:-0}
+bin=${4:-target/release/drivescript}
 here=$(cd "$(dirname "$0")/../.." && pwd)
 cut() { # file id every dir
   local steps
@@ -20,13 +24,22 @@ cut() { # file id every dir
     "$bin" convert "$1" -o "$4/${2}_c$c.yaml" --current-step "$c" --id "${2}_c$c" >/dev/null
   done
 }
-mkdir -p "$out/val" "$out/behaviour"
-for id in USA_Lanker-1_15_T-1 USA_Lanker-1_2_T-1 USA_Lanker-1_8_T-1 USA_Lanker-2_14_T-1 \
-          USA_Lanker-2_21_T-1 USA_US101-13_4_T-1 USA_US101-1_1_T-1 USA_US101-27_1_T-1; do
-  cut "$src/$id.xml.gz" "$id" 20 "$out/val"
-  cut "$src/$id.xml.gz" "$id" 10 "$out/behaviour"
+ids=$("$bin" inspect "$src" | awk -v f="$fold" '/^scene / {id = $2} /^fold / && $2 == f {print id}')
+if [ -z "$ids" ]; then
+  echo "no scene of $src lies in fold $fold" >&2
+  exit 1
+fi
+mkdir -p "$out/val" "$out/behaviour" "$out/windows"
+for id in $ids; do
+  file=$(ls "$src/$id".xml* | head -1)
+  cut "$file" "$id" 20 "$out/val"
+  cut "$file" "$id" 10 "$out/behaviour"
+  cut "$file" "$id" 40 "$out/windows"
 done
-for id in USA_Peach-4_8_T-1 USA_US101-3_3_T-1; do
-  cut "$here/data/samples/commonroad/$id.xml" "$id" 10 "$out/behaviour"
-done
-echo "$(ls "$out/val" | wc -l) validation instances, $(ls "$out/behaviour" | wc -l) behaviour instances"
+if [ "$fold" = 0 ]; then
+  for id in USA_Peach-4_8_T-1 USA_US101-3_3_T-1; do
+    cut "$here/data/samples/commonroad/$id.xml" "$id" 10 "$out/behaviour"
+    cut "$here/data/samples/commonroad/$id.xml" "$id" 40 "$out/windows"
+  done
+fi
+echo "fold $fold: $(echo $ids | wc -w) scenes; $(ls "$out/val" | wc -l) validation, $(ls "$out/behaviour" | wc -l) behaviour, $(ls "$out/windows" | wc -l) window instances"

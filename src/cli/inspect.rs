@@ -5,6 +5,7 @@ use std::process::ExitCode;
 
 use anyhow::Result;
 use drivescript::io::{discover, load_scenes, LoadOptions};
+use drivescript::train::{is_validation, VAL_FOLDS};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -14,6 +15,14 @@ pub struct Args {
     /// Print a JSON array of summaries instead of text.
     #[arg(long)]
     json: bool,
+}
+
+/// One scene's JSON record: its summary and validation fold.
+#[derive(serde::Serialize)]
+struct Entry {
+    #[serde(flatten)]
+    sum: drivescript::scene::SceneSummary,
+    val_fold: u64,
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
@@ -34,10 +43,22 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 Ok(scenes) => {
                     for s in scenes {
                         let sum = s.summary();
+                        // Which checkpoints never trained on it (`train --val-fold`), so that
+                        // held-out evaluation sets can be cut without recomputing the hash.
+                        let fold = (0..VAL_FOLDS)
+                            .find(|&f| is_validation(&s.meta.scenario_id, f))
+                            .expect("every id lies in one fold");
                         if !args.json {
-                            println!("{sum}\n");
+                            let text = sum.to_string();
+                            let nl = if text.ends_with('\n') { "" } else { "\n" };
+                            println!(
+                                "{text}{nl}fold        {fold} (held out by `train --val-fold {fold}`)\n"
+                            );
                         }
-                        summaries.push(sum);
+                        summaries.push(Entry {
+                            sum,
+                            val_fold: fold,
+                        });
                     }
                 }
                 Err(e) => {

@@ -31,6 +31,11 @@ pub struct Args {
     /// Validation (and checkpoint) every this many steps.
     #[arg(long, default_value_t = 100)]
     eval_every: usize,
+    /// Which tenth of the scenes to hold out for validation (0-9, by a hash of the scene id):
+    /// models trained on different folds cross-validate each other. Default 0, or the resumed
+    /// checkpoint's fold.
+    #[arg(long, value_parser = clap::value_parser!(u64).range(0..10))]
+    val_fold: Option<u64>,
     /// Continue from this checkpoint (its sizes, PCA basis and seed are kept; `--steps` is the
     /// total to reach). May be the `--out` directory itself.
     #[arg(long)]
@@ -63,6 +68,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         lr: args.lr,
         seed: args.seed,
         eval_every: args.eval_every,
+        val_fold: args.val_fold.unwrap_or(0),
         ..TrainConfig::ngsim()
     };
     println!(
@@ -76,6 +82,14 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let resume = match &args.resume {
         Some(dir) => {
             let r = load(dir).with_context(|| format!("resuming from {}", dir.display()))?;
+            let fold = r.meta.config.val_fold;
+            if args.val_fold.is_some_and(|f| f != fold) {
+                anyhow::bail!(
+                    "--val-fold {}: {} held out fold {fold}; a resumed run keeps its fold",
+                    args.val_fold.unwrap_or_default(),
+                    dir.display()
+                );
+            }
             println!(
                 "resuming from {} at step {}",
                 dir.display(),
@@ -95,16 +109,31 @@ pub fn run(args: Args) -> Result<ExitCode> {
     );
     let mut last_val = None;
     let mut avg = None::<f64>;
+    let mut since = (0.0f64, 0usize);
     let t = train_from(
         &scenes,
         cfg,
         resume,
         Some(&args.out),
         git_revision(),
-        |_, loss, val| {
+        |step, loss, val| {
             avg = Some(avg.map_or(loss, |a| 0.98 * a + 0.02 * loss));
+            since.0 += loss;
+            since.1 += 1;
             if val.is_some() {
                 last_val = val;
+            }
+            // A line per checkpoint (the loss history's row), also where the bar is hidden
+            // (a log file, CI) and its message never shows.
+            if step % args.eval_every.max(1) == 0 || step == args.steps {
+                bar.suspend(|| {
+                    println!(
+                        "step {step:>6}  train {:.4}  val {}",
+                        since.0 / since.1.max(1) as f64,
+                        val.map_or("-".into(), |v| format!("{v:.4}"))
+                    )
+                });
+                since = (0.0, 0);
             }
             bar.set_message(format!(
                 "loss {:.4}  val {}",
@@ -123,11 +152,5 @@ pub fn run(args: Args) -> Result<ExitCode> {
         t.meta.pca_rmse_m,
         args.out.display()
     );
-    for (step, tl, vl) in &t.meta.history {
-        println!(
-            "step {step:>6}  train {tl:.4}  val {}",
-            vl.map_or("-".into(), |v| format!("{v:.4}"))
-        );
-    }
     Ok(ExitCode::SUCCESS)
 }

@@ -10,5 +10,5 @@ pub use batch::{build, Batch, Normaliser};
 pub use dataset::{window_at, windows, Window, WindowConfig};
 pub use trainer::{
     is_validation, learning_rate, load, save, train, train_from, CheckpointMeta, TrainConfig,
-    TrainError, Trained,
+    TrainError, Trained, VAL_FOLDS,
 };
