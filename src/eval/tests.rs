@@ -236,6 +236,22 @@ fn yield_stop_reverse_off_road_weave_speed_and_target() {
         &base,
         &[("vehicle", 2.0), ("limit", 20.0)]
     ));
+    // Braking from 24 to 20 m/s over the first 2 s, then holding: over the limit only
+    // before `from`.
+    let mut braking = scene("highway.yaml");
+    edit(&mut braking, 2, |t| {
+        (-t.min(2.0).powi(2) - 4.0 * (t - 2.0).max(0.0), 0.0)
+    });
+    assert!(!passes(
+        Behavior::SpeedLimit,
+        &braking,
+        &[("vehicle", 2.0), ("limit", 20.0)]
+    ));
+    assert!(passes(
+        Behavior::SpeedLimit,
+        &braking,
+        &[("vehicle", 2.0), ("limit", 20.0), ("from", 2.0)]
+    ));
     assert!(passes(
         Behavior::TargetPoint,
         &base,
