@@ -55,7 +55,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     println!("{}\n", raw.summary());
     let future = trained.meta.config.window.future;
     let behaviour = Behavior::CutIn;
-    let chosen = suggest(behaviour, &raw.with_horizon(future)).with_context(|| {
+    let chosen = suggest(behaviour, &raw.with_horizon(future), future).with_context(|| {
         format!(
             "{}: no pair of vehicles in adjacent lanes for a cut-in",
             scene_path.display()

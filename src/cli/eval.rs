@@ -282,7 +282,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
         for scene in &scenes {
             let scene_params = match (&behaviour, args.auto) {
                 (Some((b, given)), true) => {
-                    match drivescript::eval::behaviors::suggest(*b, scene) {
+                    match drivescript::eval::behaviors::suggest(
+                        *b,
+                        scene,
+                        args.horizon.unwrap_or(scene.num_future_steps()),
+                    ) {
                         Some(mut p) => {
                             p.extend(given.iter().map(|(k, v)| (k.clone(), *v)));
                             Some((*b, p))

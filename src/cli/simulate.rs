@@ -173,7 +173,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         // Suggested agents first, so that explicit --param values override them.
         let mut kv: Vec<String> = Vec::new();
         if let Some(b) = auto {
-            match suggest(b, &raw.with_horizon(future)) {
+            match suggest(b, &raw.with_horizon(future), future) {
                 Some(p) => kv.extend(super::script_params(&p)),
                 None => {
                     println!("{id}: no agents suited to {}; skipped", b.name());

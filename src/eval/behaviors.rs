@@ -93,8 +93,8 @@ impl Behavior {
             Behavior::SpeedLimit => "the speed (from positions) never exceeds `limit` + 0.5 m/s from `from` seconds (default 0) on",
             Behavior::TargetPoint => "the final position is within `tol` (default 1 m) of (`x`, `y`)",
             Behavior::NoCollisions => "no two vehicles' boxes overlap at any future step",
-            Behavior::LaneChangeLeft => "the vehicle ends in the left neighbour of a lane on its starting lane's path, within 1 m of that lane's centre line",
-            Behavior::LaneChangeRight => "the vehicle ends in the right neighbour of a lane on its starting lane's path, within 1 m of that lane's centre line",
+            Behavior::LaneChangeLeft => "the vehicle ends in the left neighbour of a lane on its starting lane's path (or a lane straight on from one), within 1 m of that lane's centre line",
+            Behavior::LaneChangeRight => "the vehicle ends in the right neighbour of a lane on its starting lane's path (or a lane straight on from one), within 1 m of that lane's centre line",
             Behavior::RightmostLane => "the vehicle ends within 1 m of the centre line of a lane with no same-direction lane to its right",
             Behavior::CutIn => "A starts in a lane adjacent to B's, ends within 1 m of the centre of B's lane path ahead of B (bumper to bumper), and they never collide",
             Behavior::Yield => "B passes the point where their lane paths meet before A reaches it, and they never collide",
@@ -341,14 +341,28 @@ pub fn check(
             let t = x.last(a)?;
             let end = lane_of(s, a, t);
             let g = s.map.graph();
-            let back = |l: i64| {
+            let side = |l: i64| {
                 if behavior == Behavior::LaneChangeLeft {
-                    g.right(l)
-                } else {
                     g.left(l)
+                } else {
+                    g.right(l)
                 }
             };
-            let moved = end.and_then(back).is_some_and(|l| path.lanes.contains(&l));
+            // The neighbours of the path's lanes and the lanes straight on from them: maps
+            // miss adjacencies (NGSIM Lankershim's lanes just past an intersection list no
+            // neighbour on one side), and a car that moved over into the lane beyond one
+            // has changed lanes all the same.
+            let beside: Vec<i64> = path
+                .lanes
+                .iter()
+                .filter_map(|&l| side(l))
+                .flat_map(|l| {
+                    s.map
+                        .lane_path(l, 1000.0, 0.0, Turn::Straight)
+                        .map_or(vec![l], |p| p.lanes)
+                })
+                .collect();
+            let moved = end.is_some_and(|l| beside.contains(&l) && !path.lanes.contains(&l));
             let offset = end.map_or(f64::INFINITY, |l| {
                 s.map.lane(l).map_or(f64::INFINITY, |ln| {
                     ln.centerline.distance_to(&a.states[t].position())
@@ -552,10 +566,11 @@ pub fn check(
         Behavior::Weave => {
             let a = x.agent("vehicle")?;
             let path = path_of(s, a).ok_or_else(|| no_lane(behavior, a.id))?;
-            let d0 = path.frenet.project(a.states[c].position()).d;
+            // About the lane's centre line, as the definition says: a car that starts off
+            // centre and drifts back has not weaved.
             let ds: Vec<f64> = (c + 1..a.states.len())
                 .filter(|&t| a.is_valid(t))
-                .map(|t| path.frenet.project(a.states[t].position()).d - d0)
+                .map(|t| path.frenet.project(a.states[t].position()).d)
                 .collect();
             let crossings = ds
                 .windows(2)
@@ -571,7 +586,7 @@ pub fn check(
             x.verdict(
                 ok,
                 format!(
-                    "crosses its starting line {crossings} times, {hi:.2} m left and {:.2} m right",
+                    "crosses its lane's centre line {crossings} times, {hi:.2} m left and {:.2} m right",
                     -lo
                 ),
             )
@@ -622,19 +637,24 @@ pub fn check(
 /// so that success rates over many scenes need no hand-picked ids (`None` when the scene has
 /// no suitable agent). Candidates are vehicles observed at the current step and through the
 /// recorded future, on a lane; ties go to the one nearest the scene's ego (or first vehicle).
+/// `horizon` is the number of future steps the methods simulate, which may exceed the
+/// recording's (`eval --horizon`, a model's horizon): requests are timed by it.
 ///
-/// - one-vehicle behaviours: the nearest candidate (`stop` within 60 % of the horizon); lane
-///   changes and `rightmost_lane` need a
+/// - one-vehicle behaviours: the nearest candidate; lane changes and `rightmost_lane` need a
 ///   lane on that side (for `rightmost_lane`, not already the rightmost); `speed_limit` asks for
-///   80 % of its current speed from the time braking to it at 2.5 m/s² takes; `target_point` for a point 20 m to the left of its recorded end;
+///   80 % of its current speed from the time braking to it at 2.5 m/s² takes; `target_point`
+///   for a point 20 m to the left of its recorded end; `stop` within 60 % of the horizon or the
+///   time braking at 4 m/s² takes, if longer, for the nearest vehicle that can then stand
+///   still for the last 0.5 s;
 /// - `cut_in`: a victim and a cutter in an adjacent lane within 15 m along the victim's path;
 /// - `follow`: a leader ahead in the follower's lane within 60 m, asking for a 10 m gap;
 /// - `yield`: two vehicles whose lane paths meet ahead of both, within 1.2 times the distance
 ///   each covers over the horizon at its current speed plus 20 m;
 /// - `accident`: the nearest pair; `no_collisions`: no agents.
-pub fn suggest(b: Behavior, scene: &Scene) -> Option<CheckParams> {
+pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<CheckParams> {
     let c = scene.meta.current_step;
     let n = scene.num_steps();
+    let horizon = horizon as f64 * scene.meta.dt;
     // Recorded over the whole horizon without reaching a map exit: a car that leaves the
     // scene within it (every method's car leaves there too) cannot show a behaviour.
     let kept = scene.retire_exited();
@@ -704,7 +724,6 @@ pub fn suggest(b: Behavior, scene: &Scene) -> Option<CheckParams> {
         // of horizon to go (at least one): five lanes across a US-101 in 4 s is no behaviour
         // a driver shows.
         Behavior::RightmostLane => {
-            let horizon = (n - 1 - c) as f64 * scene.meta.dt;
             let reach = ((horizon / 2.0).floor() as usize).max(1);
             let lanes_to_right = |mut l: i64| {
                 let mut k = 0;
@@ -721,13 +740,13 @@ pub fn suggest(b: Behavior, scene: &Scene) -> Option<CheckParams> {
         Behavior::Reverse | Behavior::OffRoad | Behavior::Weave => {
             cands.first().and_then(|x| p(&[("vehicle", x.0.id as f64)]))
         }
-        // The 4 s default assumes WOMD's 8 s future; stop within 60 % of the actual horizon.
-        Behavior::Stop => cands.first().and_then(|x| {
-            let horizon = (n - 1 - c) as f64 * scene.meta.dt;
-            p(&[
-                ("vehicle", x.0.id as f64),
-                ("within", (0.6 * horizon * 10.0).round() / 10.0),
-            ])
+        // The 4 s default assumes WOMD's 8 s future; a car at 18 m/s cannot stop within
+        // 2.4 s, nor without braking harder than the script allows.
+        Behavior::Stop => cands.iter().find_map(|x| {
+            let braking = x.0.states[c].speed() / 4.0;
+            let within = ((0.6 * horizon).max(braking) * 10.0).ceil() / 10.0;
+            (within <= horizon - 0.5)
+                .then(|| p(&[("vehicle", x.0.id as f64), ("within", within)]))?
         }),
         Behavior::CutIn => {
             for (victim, lv, path) in &cands {
@@ -761,7 +780,6 @@ pub fn suggest(b: Behavior, scene: &Scene) -> Option<CheckParams> {
         }
         Behavior::Yield => {
             // How far an agent gets over the horizon at its current speed, with some slack.
-            let horizon = (n - 1 - c) as f64 * scene.meta.dt;
             let reach = |a: &Agent| 1.2 * a.states[c].speed() * horizon + 20.0;
             for (a, _, pa) in &cands {
                 let sa0 = pa.frenet.project(a.states[c].position()).s;

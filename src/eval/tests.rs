@@ -142,6 +142,23 @@ fn lane_change_passes_its_checker_and_fails_the_others() {
         &[("vehicle", 1.0)]
     ));
     assert!(passes(Behavior::RightmostLane, &base, &[("vehicle", 2.0)]));
+    // Past the first pair of lanes the map lists no adjacency (as NGSIM Lankershim's lanes
+    // just past an intersection): the lane straight on from the right neighbour still counts.
+    let text = "steps: 41\ncurrent_step: 10\nmap:\n  lanes:\n\
+        \x20   - {id: 1, centerline: [[0, 0], [50, 0]], successors: [2], right: [3]}\n\
+        \x20   - {id: 2, centerline: [[50, 0], [200, 0]]}\n\
+        \x20   - {id: 3, centerline: [[0, -3.6], [50, -3.6]], successors: [4]}\n\
+        \x20   - {id: 4, centerline: [[50, -3.6], [200, -3.6]]}\n\
+        agents:\n  - {id: 1, route: [1, 2], s: 10, speed: 10}\n";
+    let mut gap = yaml::parse(Path::new("gap.yaml"), text).unwrap();
+    assert!(!passes(
+        Behavior::LaneChangeRight,
+        &gap,
+        &[("vehicle", 1.0)]
+    ));
+    edit(&mut gap, 1, |t| (0.0, -3.6 * (t / 2.0).min(1.0)));
+    assert!(passes(Behavior::LaneChangeRight, &gap, &[("vehicle", 1.0)]));
+    assert!(!passes(Behavior::LaneChangeLeft, &gap, &[("vehicle", 1.0)]));
 }
 
 #[test]
@@ -309,7 +326,8 @@ fn one_agent_and_late_agents_are_handled() {
 
 #[test]
 fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
-    use super::behaviors::suggest;
+    // Over the recorded future.
+    let suggest = |b, s: &Scene| super::behaviors::suggest(b, s, s.num_future_steps());
     let base = scene("highway.yaml");
     let left = suggest(Behavior::LaneChangeLeft, &base).unwrap();
     // Vehicle 1 (ego, middle lane) has a lane to its left.
@@ -337,9 +355,28 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
         );
         yaml::parse(Path::new("r.yaml"), &text).unwrap()
     };
-    let rightmost = |steps| suggest(Behavior::RightmostLane, &road(steps)).map(|p| p["vehicle"]);
-    assert_eq!(rightmost(31), Some(5.0), "2 s: one lane change at most");
-    assert_eq!(rightmost(51), Some(3.0), "4 s: two");
+    // The horizon simulated, not the recording's, sets the reach.
+    let rightmost = |horizon| {
+        super::behaviors::suggest(Behavior::RightmostLane, &road(31), horizon).map(|p| p["vehicle"])
+    };
+    assert_eq!(rightmost(20), Some(5.0), "2 s: one lane change at most");
+    assert_eq!(rightmost(40), Some(3.0), "4 s: two");
+    // Stop: the nearest vehicle that can brake to a standstill at 4 m/s² with 0.5 s to spare.
+    let stop = yaml::parse(
+        Path::new("stop.yaml"),
+        concat!(
+            "steps: 41\ncurrent_step: 10\nego: 1\nroad: {lanes: 2, lane_width: 3.5, length: 600}\n",
+            "agents:\n  - {id: 1, lane: 0, s: 40, speed: 16}\n  - {id: 2, lane: 1, s: 30, speed: 10}\n",
+            "  - {id: 3, lane: 1, s: 10, speed: 5}\n",
+        ),
+    )
+    .unwrap();
+    let p = super::behaviors::suggest(Behavior::Stop, &stop, 40).unwrap();
+    assert_eq!(
+        (p["vehicle"], p["within"]),
+        (2.0, 2.5),
+        "10 m/s: 2.5 s of braking"
+    );
     // A vehicle that reaches the end of the map within the horizon leaves every method's scene.
     let ending = yaml::parse(
         Path::new("end.yaml"),
