@@ -578,51 +578,37 @@ fn train_then_simulate_end_to_end() {
         serde_json::from_str(&std::fs::read_to_string(ckpt.join("config.json")).unwrap()).unwrap();
     assert_eq!(config["config"]["val_fold"], 3);
     assert_eq!(config["val_scenes"], serde_json::json!(["highway-cut-in"]));
-    let err = fails(&[
-        "train",
-        "--data",
-        "scripts/scenes",
-        "--out",
-        s(&ckpt),
-        "--resume",
-        s(&ckpt),
-        "--steps",
-        "6",
-        "--val-fold",
-        "2",
-    ]);
+    let ck = s(&ckpt);
+    // `train --resume` of the checkpoint, with these arguments.
+    let resume = |more: &[&'static str]| {
+        let mut v = vec![
+            "train",
+            "--data",
+            "scripts/scenes",
+            "--out",
+            ck,
+            "--resume",
+            ck,
+        ];
+        v.extend_from_slice(more);
+        v
+    };
+    let err = fails(&resume(&["--steps", "6", "--val-fold", "2"]));
     assert!(err.contains("held out fold 3"), "{err}");
     // --steps is a total: resuming a 4-step checkpoint to 6 runs two more steps.
-    let out = ok(&[
-        "train",
-        "--data",
-        "scripts/scenes",
-        "--out",
-        s(&ckpt),
-        "--resume",
-        s(&ckpt),
+    let out = ok(&resume(&[
         "--steps",
         "6",
         "--batch",
         "2",
         "--eval-every",
         "2",
-    ]);
+    ]));
     assert!(
         out.contains("resuming from") && out.contains("trained 6 steps"),
         "{out}"
     );
-    let err = fails(&[
-        "train",
-        "--data",
-        "scripts/scenes",
-        "--out",
-        s(&ckpt),
-        "--resume",
-        s(&ckpt),
-        "--steps",
-        "3",
-    ]);
+    let err = fails(&resume(&["--steps", "3"]));
     assert!(err.contains("already done 6 steps"), "{err}");
     // --auto picks the agents and the script for each scene.
     let cut_in_scene = samples().join("yaml/highway_cut_in.yaml");

@@ -5,7 +5,7 @@ use std::process::ExitCode;
 
 use anyhow::Result;
 use drivescript::io::{discover, load_scenes, LoadOptions};
-use drivescript::train::{is_validation, VAL_FOLDS};
+use drivescript::train::val_fold;
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -45,9 +45,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                         let sum = s.summary();
                         // Which checkpoints never trained on it (`train --val-fold`), so that
                         // held-out evaluation sets can be cut without recomputing the hash.
-                        let fold = (0..VAL_FOLDS)
-                            .find(|&f| is_validation(&s.meta.scenario_id, f))
-                            .expect("every id lies in one fold");
+                        let fold = val_fold(&s.meta.scenario_id);
                         if !args.json {
                             let text = sum.to_string();
                             let nl = if text.ends_with('\n') { "" } else { "\n" };

@@ -9,6 +9,6 @@ pub mod trainer;
 pub use batch::{build, Batch, Normaliser};
 pub use dataset::{window_at, windows, Window, WindowConfig};
 pub use trainer::{
-    is_validation, learning_rate, load, save, train, train_from, CheckpointMeta, TrainConfig,
-    TrainError, Trained, VAL_FOLDS,
+    is_validation, learning_rate, load, save, train, train_from, val_fold, CheckpointMeta,
+    TrainConfig, TrainError, Trained, VAL_FOLDS,
 };

@@ -65,15 +65,19 @@ impl TrainConfig {
 /// Number of validation folds: each holds out about a tenth of the scenes.
 pub const VAL_FOLDS: u64 = 10;
 
-/// Which scenes train and which validate: every scene whose id hashes to `fold` mod
-/// [`VAL_FOLDS`] validates. The hash depends on the id alone, so a scene stays in its fold
-/// whatever else the corpus holds.
-pub fn is_validation(scenario_id: &str, fold: u64) -> bool {
+/// The validation fold of a scene: its id's hash mod [`VAL_FOLDS`]. The hash depends on the
+/// id alone, so a scene stays in its fold whatever else the corpus holds.
+pub fn val_fold(scenario_id: &str) -> u64 {
     // FNV-1a: stable across platforms and releases, unlike the std hasher.
     let h = scenario_id.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
         (h ^ b as u64).wrapping_mul(0x100_0000_01b3)
     });
-    h % VAL_FOLDS == fold
+    h % VAL_FOLDS
+}
+
+/// Which scenes train and which validate: the scenes of fold `fold` ([`val_fold`]) validate.
+pub fn is_validation(scenario_id: &str, fold: u64) -> bool {
+    val_fold(scenario_id) == fold
 }
 
 /// Version of the checkpoint format. 2: futures are residuals to the constant-velocity
