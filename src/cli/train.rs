@@ -91,9 +91,14 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 );
             }
             println!(
-                "resuming from {} at step {}",
+                "resuming from {} at step {}{}",
                 dir.display(),
-                r.meta.steps_done
+                r.meta.steps_done,
+                if r.optimizer.is_some() {
+                    ""
+                } else {
+                    " (no optimiser state saved with it: AdamW's moments restart)"
+                }
             );
             Some(r)
         }

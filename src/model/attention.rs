@@ -5,7 +5,9 @@
 //! where the scene sits in the world.
 
 use candle_core::{Module, Result, Tensor, D};
-use candle_nn::{embedding, linear, Embedding, Linear, VarBuilder};
+use candle_nn::{embedding, linear, linear_no_bias, Embedding, Linear, VarBuilder};
+
+use super::ops::softmax_last_dim;
 
 /// Number of lane-pair connectivity kinds: none, predecessor, successor, left, right.
 pub const CONNECTIONS: usize = 5;
@@ -58,11 +60,13 @@ impl RelAttention {
     pub fn new(d: usize, with_connectivity: bool, vb: VarBuilder) -> Result<Self> {
         Ok(Self {
             q: linear(d, d, vb.pp("q"))?,
-            k: linear(d, d, vb.pp("k"))?,
+            // No bias on keys or on the key MLP's output: either adds the same q·b to every
+            // score of a row, which the softmax ignores, so it could never learn.
+            k: linear_no_bias(d, d, vb.pp("k"))?,
             v: linear(d, d, vb.pp("v"))?,
             o: linear(d, d, vb.pp("o"))?,
             rk1: linear(4, d, vb.pp("rk1"))?,
-            rk2: linear(d, d, vb.pp("rk2"))?,
+            rk2: linear_no_bias(d, d, vb.pp("rk2"))?,
             rv1: linear(4, d, vb.pp("rv1"))?,
             rv2: linear(d, d, vb.pp("rv2"))?,
             conn: if with_connectivity {
@@ -98,26 +102,21 @@ impl RelAttention {
         let (b, n, m, d) = hk.dims4()?;
         // The second layers of the relative MLPs are linear, so they are applied after the
         // reduction over keys instead of to every pair:
-        //   q·(W h_ij + c) = (Wᵀq)·h_ij + q·c   and   Σ_j a_ij (W h_ij + c) = W (Σ_j a_ij h_ij) + c Σ_j a_ij.
+        //   q·(W h_ij) = (Wᵀq)·h_ij   and   Σ_j a_ij (W h_ij + c) = W (Σ_j a_ij h_ij) + c Σ_j a_ij.
         // This is the same function as the direct form (a test checks it) but replaces two
         // d×d products per pair and the [B, N, M, d] broadcasts by batched matrix products:
         // about 3x faster training on NGSIM windows.
-        let (wk, ck) = (
-            self.rk2.weight(),
-            self.rk2.bias().expect("linear has a bias"),
-        );
-        let qw = q.broadcast_matmul(wk)?; // [B, N, d]
+        let qw = q.broadcast_matmul(self.rk2.weight())?; // [B, N, d]
         let qh = hk
             .reshape((b * n, m, d))?
             .matmul(&qw.reshape((b * n, d, 1))?)?
             .reshape((b, n, m))?;
-        let qc = q.broadcast_mul(ck)?.sum_keepdim(D::Minus1)?; // [B, N, 1]
-        let s = ((q.matmul(&k.t()?)? + qh)?.broadcast_add(&qc)? / (d as f64).sqrt())?;
+        let s = ((q.matmul(&k.t()?)? + qh)? / (d as f64).sqrt())?;
         // Absent keys get a large negative score and zero weight afterwards, so a row with no
         // key at all reads nothing.
         let keep = mask.unsqueeze(1)?; // [B, 1, M]
         let bias = ((&keep - 1.0)? * 1e9)?;
-        let a = candle_nn::ops::softmax_last_dim(&s.broadcast_add(&bias)?)?.broadcast_mul(&keep)?;
+        let a = softmax_last_dim(&s.broadcast_add(&bias)?)?.broadcast_mul(&keep)?;
         let (wv, cv) = (
             self.rv2.weight(),
             self.rv2.bias().expect("linear has a bias"),
@@ -173,7 +172,7 @@ impl RelAttention {
         let s = (q.broadcast_mul(&k.broadcast_add(&rk)?)?.sum(D::Minus1)?
             / (hk.dim(3)? as f64).sqrt())?;
         let bias = ((mask.unsqueeze(1)? - 1.0)? * 1e9)?;
-        let a = candle_nn::ops::softmax_last_dim(&s.broadcast_add(&bias)?)?;
+        let a = softmax_last_dim(&s.broadcast_add(&bias)?)?;
         let vals = v
             .broadcast_add(&rv)?
             .broadcast_mul(&mask.unsqueeze(1)?.unsqueeze(3)?)?;

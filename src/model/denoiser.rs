@@ -47,6 +47,22 @@ pub struct Context {
     pub agent_rel: Tensor,
 }
 
+impl Context {
+    /// The same context with its float tensors in `dtype` (f64 for gradient checks).
+    pub fn to_dtype(&self, dtype: candle_core::DType) -> Result<Self> {
+        Ok(Self {
+            lane_points: self.lane_points.to_dtype(dtype)?,
+            lane_mask: self.lane_mask.to_dtype(dtype)?,
+            lane_rel: self.lane_rel.to_dtype(dtype)?,
+            lane_conn: self.lane_conn.clone(),
+            agent_hist: self.agent_hist.to_dtype(dtype)?,
+            agent_mask: self.agent_mask.to_dtype(dtype)?,
+            agent_lane_rel: self.agent_lane_rel.to_dtype(dtype)?,
+            agent_rel: self.agent_rel.to_dtype(dtype)?,
+        })
+    }
+}
+
 /// The denoiser network.
 #[derive(Debug, Clone)]
 pub struct Denoiser {
@@ -111,7 +127,7 @@ impl Denoiser {
         x: &Tensor,
         sigma: &[f64],
     ) -> Result<Tensor> {
-        let dev = x.device();
+        let (dev, dt) = (x.device(), x.dtype());
         let b = sigma.len();
         let pre: Vec<(f64, f64, f64, f64)> =
             sigma.iter().map(|s| self.edm.precondition(*s)).collect();
@@ -120,10 +136,12 @@ impl Denoiser {
                 pre.iter().map(|p| f(p) as f32).collect::<Vec<_>>(),
                 (b, 1, 1),
                 dev,
-            )
+            )?
+            .to_dtype(dt)
         };
         let (c_skip, c_out, c_in) = (col(|p| p.0)?, col(|p| p.1)?, col(|p| p.2)?);
-        let c_noise = Tensor::from_vec(pre.iter().map(|p| p.3 as f32).collect::<Vec<_>>(), b, dev)?;
+        let c_noise = Tensor::from_vec(pre.iter().map(|p| p.3 as f32).collect::<Vec<_>>(), b, dev)?
+            .to_dtype(dt)?;
         let n = x.dim(1)?;
         let noise = noise_features(&c_noise, self.cfg.noise_freqs)?
             .unsqueeze(1)?

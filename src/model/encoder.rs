@@ -32,7 +32,7 @@ impl MiniPointNet {
 /// Fourier features of the EDM noise input `c_noise` `[B]` → `[B, 2·freqs]`.
 pub fn noise_features(c_noise: &Tensor, freqs: usize) -> Result<Tensor> {
     let f: Vec<f32> = (0..freqs).map(|i| 2f32.powi(i as i32)).collect();
-    let f = Tensor::from_vec(f, (1, freqs), c_noise.device())?;
+    let f = Tensor::from_vec(f, (1, freqs), c_noise.device())?.to_dtype(c_noise.dtype())?;
     let x = c_noise.unsqueeze(1)?.broadcast_mul(&f)?;
     Tensor::cat(&[x.sin()?, x.cos()?], 1)
 }

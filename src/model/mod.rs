@@ -5,6 +5,9 @@ pub mod attention;
 pub mod denoiser;
 pub mod edm;
 pub mod encoder;
+#[cfg(test)]
+mod gradients;
+pub mod ops;
 pub mod pca;
 
 pub use denoiser::{Context, Denoiser, DenoiserConfig};

@@ -1,6 +1,7 @@
 //! Training the diffusion model: windows cut from scenes, their tensors, and the EDM training
 //! loop with checkpoints.
 
+pub mod adamw;
 pub mod batch;
 pub mod dataset;
 pub mod rng;
@@ -10,5 +11,5 @@ pub use batch::{build, Batch, Normaliser};
 pub use dataset::{window_at, windows, Window, WindowConfig};
 pub use trainer::{
     is_validation, learning_rate, load, save, train, train_from, val_fold, CheckpointMeta,
-    TrainConfig, TrainError, Trained, VAL_FOLDS,
+    TrainConfig, TrainError, Trained, OPTIMIZER_FILE, VAL_FOLDS,
 };

@@ -4,9 +4,10 @@
 use std::path::Path;
 
 use candle_core::{DType, Device, Tensor, Var, D};
-use candle_nn::{AdamW, Optimizer, ParamsAdamW, VarBuilder, VarMap};
+use candle_nn::{VarBuilder, VarMap};
 use serde::{Deserialize, Serialize};
 
+use super::adamw::AdamW;
 use super::batch::{build, Normaliser};
 use super::dataset::{windows, Window, WindowConfig};
 use super::rng::Rng;
@@ -163,7 +164,7 @@ fn seeded_init(varmap: &VarMap, rng: &mut Rng) -> candle_core::Result<()> {
 }
 
 /// The weighted EDM loss of a batch for given noise levels and noise.
-fn loss(
+pub(crate) fn loss(
     model: &Denoiser,
     edm: &Edm,
     b: &super::Batch,
@@ -172,11 +173,13 @@ fn loss(
 ) -> candle_core::Result<Tensor> {
     let dev = noise.device();
     let bsz = sigma.len();
+    let dt = noise.dtype();
     let s = Tensor::from_vec(
         sigma.iter().map(|x| *x as f32).collect::<Vec<_>>(),
         (bsz, 1, 1),
         dev,
-    )?;
+    )?
+    .to_dtype(dt)?;
     let x = (&b.target + noise.broadcast_mul(&s)?)?;
     let map = model.encode_map(&b.ctx)?;
     let d = model.denoise(&b.ctx, &map, &x, sigma)?;
@@ -189,9 +192,15 @@ fn loss(
             .collect::<Vec<_>>(),
         (bsz, 1),
         dev,
-    )?;
+    )?
+    .to_dtype(dt)?;
     let masked = err.broadcast_mul(&w)?.mul(&b.loss_mask)?;
-    masked.sum_all()? / b.loss_mask.sum_all()?.to_scalar::<f32>()?.max(1.0) as f64
+    let known = b
+        .loss_mask
+        .to_dtype(DType::F64)?
+        .sum_all()?
+        .to_scalar::<f64>()?;
+    masked.sum_all()? / known.max(1.0)
 }
 
 /// A trained model and its metadata.
@@ -202,6 +211,32 @@ pub struct Trained {
     pub model: Denoiser,
     /// Metadata.
     pub meta: CheckpointMeta,
+    /// The optimiser's state when the checkpoint has one (`optimizer.safetensors`), for an
+    /// exact `--resume`.
+    pub optimizer: Option<AdamW>,
+}
+
+impl Trained {
+    /// The network with its weights as constants rather than variables: what sampling uses.
+    /// A backward pass through it (guidance through the denoiser) then reaches only its input,
+    /// not the 400,000 weights nor the map encoding. The weights share storage with
+    /// [`Trained::varmap`], so nothing is copied.
+    pub fn frozen(&self) -> candle_core::Result<Denoiser> {
+        let vb = VarBuilder::from_tensors(self.detached_weights(), DType::F32, &Device::Cpu);
+        Denoiser::new(self.meta.config.model, self.meta.config.edm, vb)
+    }
+
+    /// Every weight by name, detached from its variable (same storage).
+    pub(crate) fn detached_weights(&self) -> std::collections::HashMap<String, Tensor> {
+        let data = self
+            .varmap
+            .data()
+            .lock()
+            .expect("the var map lock is not poisoned");
+        data.iter()
+            .map(|(k, v)| (k.clone(), v.as_tensor().detach()))
+            .collect()
+    }
 }
 
 /// Learning rate at `step` (1-based) of `total`: linear warm-up over the first 2 % of steps
@@ -231,11 +266,12 @@ pub fn train(
 }
 
 /// [`train`], continuing from `resume` when given: its weights, PCA basis, normalisation,
-/// split, history and step count are kept, and training runs on from its `steps_done + 1` to
-/// `cfg.steps` (a total, not a number of extra steps) with `cfg`'s batch, rate and validation
-/// interval. AdamW's moment estimates are not stored in checkpoints, so they start afresh;
-/// batches, noise and augmentation are drawn from a stream seeded by the seed and the step
-/// reached, so a resumed run is deterministic too (but not identical to an uninterrupted one).
+/// split, history, step count and optimiser state are kept, and training runs on from its
+/// `steps_done + 1` to `cfg.steps` (a total, not a number of extra steps) with `cfg`'s batch,
+/// rate and validation interval. Each step draws its batch, noise and augmentation from a
+/// stream seeded by the seed and the step number, so a resumed run with the same settings is
+/// identical to an uninterrupted one. A checkpoint without optimiser state (the shipped one,
+/// or one from before it was saved) restarts AdamW's moments.
 pub fn train_from(
     scenes: &[Scene],
     mut cfg: TrainConfig,
@@ -260,7 +296,9 @@ pub fn train_from(
         }
     }
     let start = resume.as_ref().map_or(1, |r| r.meta.steps_done + 1);
-    let mut rng = Rng::new(cfg.seed ^ (start as u64 - 1).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    let seed = cfg.seed;
+    let step_rng =
+        move |step: usize| Rng::new(seed ^ (step as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
     let (mut train_w, mut val_w): (Vec<Window>, Vec<Window>) = (Vec::new(), Vec::new());
     let (mut train_ids, mut val_ids) = (Vec::new(), Vec::new());
     for s in scenes {
@@ -291,7 +329,7 @@ pub fn train_from(
         })
         .collect();
     cfg.model.history = cfg.window.history;
-    let (varmap, model, norm, pca_rmse_m, prior) = match resume {
+    let (varmap, model, norm, pca_rmse_m, prior, opt) = match resume {
         Some(r) => {
             let rmse = r.meta.normaliser.pca.position_rmse(&futures);
             (
@@ -300,6 +338,7 @@ pub fn train_from(
                 r.meta.normaliser.clone(),
                 rmse,
                 Some(r.meta),
+                r.optimizer,
             )
         }
         None => {
@@ -309,18 +348,12 @@ pub fn train_from(
             let varmap = VarMap::new();
             let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
             let model = Denoiser::new(cfg.model, cfg.edm, vb)?;
-            seeded_init(&varmap, &mut rng)?;
-            (varmap, model, norm, rmse, None)
+            seeded_init(&varmap, &mut step_rng(0))?;
+            (varmap, model, norm, rmse, None, None)
         }
     };
-    let mut opt = AdamW::new(
-        varmap.all_vars(),
-        ParamsAdamW {
-            lr: cfg.lr,
-            weight_decay: 1e-4,
-            ..Default::default()
-        },
-    )?;
+    let mut opt = opt.unwrap_or_else(|| AdamW::new(&varmap, cfg.lr, WEIGHT_DECAY));
+    opt.weight_decay = WEIGHT_DECAY;
     // A fixed validation set: the same windows, noise levels and noise at every evaluation.
     let mut vrng = Rng::new(cfg.seed ^ 0xABCD);
     let val_batches: Vec<(Vec<usize>, Vec<f64>, Vec<f32>)> = if val_w.is_empty() {
@@ -352,7 +385,8 @@ pub fn train_from(
     };
     let (mut run_loss, mut run_n) = (0.0, 0usize);
     for step in start..=cfg.steps {
-        opt.set_learning_rate(learning_rate(cfg.lr, step, cfg.steps));
+        let mut rng = step_rng(step);
+        opt.lr = learning_rate(cfg.lr, step, cfg.steps);
         let picked: Vec<Window> = (0..cfg.batch)
             .map(|_| {
                 train_w[rng.below(train_w.len())].rotated(rng.uniform() * std::f64::consts::TAU)
@@ -368,7 +402,7 @@ pub fn train_from(
             .collect();
         let noise = Tensor::from_vec(noise, (cfg.batch, cfg.window.max_agents, cfg.model.k), &dev)?;
         let l = loss(&model, &cfg.edm, &b, &sigma, &noise)?;
-        opt.backward_step(&l)?;
+        opt.step(&l.backward()?)?;
         let lv = l.to_scalar::<f32>()? as f64;
         run_loss += lv;
         run_n += 1;
@@ -391,7 +425,7 @@ pub fn train_from(
             (run_loss, run_n) = (0.0, 0);
             val = v;
             if let Some(dir) = out {
-                save(dir, &varmap, &meta)?;
+                save(dir, &varmap, &meta, Some(&opt))?;
             }
         }
         progress(step, lv, val);
@@ -401,11 +435,24 @@ pub fn train_from(
         varmap,
         model,
         meta,
+        optimizer: Some(opt),
     })
 }
 
-/// Writes `model.safetensors` and `config.json` into `dir` (each atomically).
-pub fn save(dir: &Path, varmap: &VarMap, meta: &CheckpointMeta) -> Result<(), TrainError> {
+/// AdamW's decoupled weight decay.
+const WEIGHT_DECAY: f64 = 1e-4;
+
+/// File of the optimiser state beside a checkpoint's weights.
+pub const OPTIMIZER_FILE: &str = "optimizer.safetensors";
+
+/// Writes `model.safetensors`, `config.json` and, when given, the optimiser state
+/// ([`OPTIMIZER_FILE`]) into `dir` (each atomically).
+pub fn save(
+    dir: &Path,
+    varmap: &VarMap,
+    meta: &CheckpointMeta,
+    optimizer: Option<&AdamW>,
+) -> Result<(), TrainError> {
     let io = |path: &Path, e: String| TrainError::Io {
         path: path.display().to_string(),
         message: e,
@@ -415,6 +462,12 @@ pub fn save(dir: &Path, varmap: &VarMap, meta: &CheckpointMeta) -> Result<(), Tr
     let tmp = dir.join(".model.safetensors.tmp");
     varmap.save(&tmp).map_err(|e| io(&tmp, e.to_string()))?;
     std::fs::rename(&tmp, &weights).map_err(|e| io(&weights, e.to_string()))?;
+    if let Some(opt) = optimizer {
+        let path = dir.join(OPTIMIZER_FILE);
+        let tmp = dir.join(".optimizer.safetensors.tmp");
+        opt.save(&tmp).map_err(|e| io(&tmp, e.to_string()))?;
+        std::fs::rename(&tmp, &path).map_err(|e| io(&path, e.to_string()))?;
+    }
     let json = serde_json::to_string_pretty(meta).expect("metadata serialises");
     crate::io::write_atomic(&dir.join("config.json"), json.as_bytes())
         .map_err(|e| io(&dir.join("config.json"), e.to_string()))
@@ -448,10 +501,30 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
     let model = Denoiser::new(meta.config.model, meta.config.edm, vb)?;
     let w = dir.join("model.safetensors");
     varmap.load(&w).map_err(|e| io(&w, e.to_string()))?;
+    let opt_path = dir.join(OPTIMIZER_FILE);
+    let optimizer = if opt_path.exists() {
+        let mut opt = AdamW::new(&varmap, meta.config.lr, WEIGHT_DECAY);
+        opt.load(&opt_path)
+            .map_err(|e| io(&opt_path, e.to_string()))?;
+        if opt.steps() != meta.steps_done as u64 {
+            return Err(io(
+                &opt_path,
+                format!(
+                    "optimiser state of step {}, but the weights are of step {}",
+                    opt.steps(),
+                    meta.steps_done
+                ),
+            ));
+        }
+        Some(opt)
+    } else {
+        None
+    };
     Ok(Trained {
         varmap,
         model,
         meta,
+        optimizer,
     })
 }
 
@@ -521,6 +594,72 @@ mod tests {
             let folds: Vec<u64> = (0..VAL_FOLDS).filter(|&f| is_validation(id, f)).collect();
             assert_eq!(folds.len(), 1, "{id:?} validates in folds {folds:?}");
         }
+    }
+
+    fn weights(t: &Trained) -> Vec<(String, Vec<f32>)> {
+        let data = t.varmap.data().lock().unwrap();
+        let mut w: Vec<(String, Vec<f32>)> = data
+            .iter()
+            .map(|(k, v)| {
+                (
+                    k.clone(),
+                    v.as_tensor().flatten_all().unwrap().to_vec1().unwrap(),
+                )
+            })
+            .collect();
+        w.sort_by(|a, b| a.0.cmp(&b.0));
+        w
+    }
+
+    #[test]
+    fn a_resumed_run_is_identical_to_an_uninterrupted_one() {
+        // The uninterrupted run's checkpoint at step 10 is copied aside, as if the run had
+        // been stopped there, then resumed to the same total.
+        let (dir, half) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+        let whole = train(
+            &scenes(),
+            tiny_config(20, 5, 10),
+            Some(dir.path()),
+            None,
+            |step, _, _| {
+                if step == 10 {
+                    for f in ["model.safetensors", "config.json", OPTIMIZER_FILE] {
+                        std::fs::copy(dir.path().join(f), half.path().join(f)).unwrap();
+                    }
+                }
+            },
+        )
+        .unwrap();
+        let resume = |path: &Path| {
+            let r = load(path).unwrap();
+            train_from(
+                &scenes(),
+                tiny_config(20, 5, 10),
+                Some(r),
+                None,
+                None,
+                |_, _, _| (),
+            )
+            .unwrap()
+        };
+        assert_eq!(
+            load(half.path()).unwrap().optimizer.map(|o| o.steps()),
+            Some(10)
+        );
+        let resumed = resume(half.path());
+        let differing = |a: &Trained, b: &Trained| -> Vec<String> {
+            weights(a)
+                .into_iter()
+                .zip(weights(b))
+                .filter(|(x, y)| x != y)
+                .map(|(x, _)| x.0)
+                .collect()
+        };
+        assert_eq!(differing(&whole, &resumed), Vec::<String>::new());
+        assert_eq!(whole.meta.history, resumed.meta.history);
+        // Without the optimiser state the moments restart, and the run differs.
+        std::fs::remove_file(half.path().join(OPTIMIZER_FILE)).unwrap();
+        assert!(!differing(&whole, &resume(half.path())).is_empty());
     }
 
     #[test]
