@@ -2,12 +2,19 @@
 
 mod cli;
 
-// candle allocates a fresh buffer for every tensor op; the system allocator hands large ones
-// back to the kernel each time, and the page faults that follow took about as much CPU time as
-// the arithmetic (sampling and training, `bench sample`).
+// candle allocates a fresh buffer for every tensor op; mimalloc reuses freed pages where the
+// system allocator returned large blocks to the kernel and zeroed new ones.
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 fn main() -> std::process::ExitCode {
+    // candle sizes its matrix products' thread pool with num_cpus::get_physical(), which
+    // re-reads /proc/cpuinfo on every product unless RAYON_NUM_THREADS is set: a sixth of
+    // unguided sampling's time. A user's own setting is kept.
+    if std::env::var_os("RAYON_NUM_THREADS").is_none() {
+        let n = std::thread::available_parallelism().map_or(1, |n| n.get());
+        // Sound only while the process is single-threaded, as it is here.
+        std::env::set_var("RAYON_NUM_THREADS", n.to_string());
+    }
     cli::run()
 }

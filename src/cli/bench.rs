@@ -25,6 +25,19 @@ pub struct Args {
     /// scene 23_1 from ../shared/data when present, else the US-101 sample with its 22 agents).
     #[arg(long)]
     scene: Option<PathBuf>,
+    /// `bench sample`: the checkpoint to sample with (default: data/checkpoint).
+    #[arg(long)]
+    checkpoint: Option<PathBuf>,
+    /// `bench sample`: runs per row (the median is printed), 1-1000.
+    #[arg(long, default_value_t = 3)]
+    repeat: usize,
+    /// `bench sample`: only this row (train, unguided, output or denoiser).
+    #[arg(long, value_parser = ["train", "unguided", "output", "denoiser"])]
+    only: Option<String>,
+    /// `bench sample`: also write the unguided run's inputs and outputs (safetensors) for
+    /// benches/torch/, which checks a PyTorch port against them.
+    #[arg(long)]
+    export: Option<PathBuf>,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -267,11 +280,16 @@ fn peak_rss_mib() -> Option<f64> {
 fn bench_sample(args: &Args) -> Result<ExitCode> {
     use drivescript::cost::{CostScript, Limits, Params};
     use drivescript::model::{DenoiserConfig, Edm};
-    use drivescript::sample::{prepare, sample, Guidance, SampleConfig, Task};
-    use drivescript::train::{train, TrainConfig, WindowConfig};
+    use drivescript::sample::{prepare, reference_run, sample, Guidance, SampleConfig, Task};
+    use drivescript::train::{load, train, TrainConfig, WindowConfig};
     use std::rc::Rc;
     let samples = super::samples_dir();
-    // A model of the paper's sizes; one training step is enough for timing.
+    anyhow::ensure!(
+        (1..=1000).contains(&args.repeat),
+        "--repeat {}: give 1 to 1000 runs per row",
+        args.repeat
+    );
+    // The paper's sizes: 24 agents and 200 lanes (padded) per window.
     let window = WindowConfig {
         history: 11,
         future: 80,
@@ -287,29 +305,62 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
         .clone()
         .unwrap_or_else(|| samples.join("commonroad/USA_US101-4_1_T-1.xml"));
     let scene = drivescript::io::load_scene(&path, 0, &LoadOptions::default())?;
-    let steps = 3;
-    let cfg = TrainConfig {
-        steps,
-        batch: 4,
-        window,
-        model: DenoiserConfig {
-            d: 64,
-            layers: 3,
-            k: 12,
-            history: 11,
-            noise_freqs: 8,
-        },
-        edm: Edm::default(),
-        eval_every: 1000,
-        ..TrainConfig::ngsim()
+    let ckpt = args
+        .checkpoint
+        .clone()
+        .unwrap_or_else(|| samples.join("../checkpoint"));
+    let mut trained = load(&ckpt).with_context(|| format!("loading {}", ckpt.display()))?;
+    // The network does not depend on the window's size; its PCA horizon stays the checkpoint's.
+    trained.meta.config.window = WindowConfig {
+        future: trained.meta.config.window.future,
+        ..window
     };
-    let mut step_times = Vec::new();
-    let mut last = Instant::now();
-    let trained = train(std::slice::from_ref(&scene), cfg, None, None, |_, _, _| {
-        step_times.push(last.elapsed().as_secs_f64());
-        last = Instant::now();
-    })?;
-    let per_step = step_times[1..].iter().sum::<f64>() / (step_times.len() - 1) as f64;
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let want = |what: &str| args.only.as_deref().is_none_or(|o| o == what);
+    println!(
+        "scene {} ({} agents, {} lanes) in a window of 24 agents and 200 lanes (padded); checkpoint {} (d = {}, {} layers per attention module, {} PCA components); 32 Heun steps (63 denoiser calls), batch of 1; median of {} runs\n",
+        scene.meta.scenario_id,
+        scene.agents.len(),
+        scene.map.lanes().len(),
+        ckpt.display(),
+        trained.meta.config.model.d,
+        trained.meta.config.model.layers,
+        trained.meta.config.model.k,
+        args.repeat
+    );
+    println!("| what | seconds |\n|---|---|");
+    if want("train") {
+        // A fresh model of the same sizes; the first step (allocator warm-up) is not counted.
+        let steps = args.repeat + 1;
+        let cfg = TrainConfig {
+            steps,
+            batch: 4,
+            window,
+            model: DenoiserConfig {
+                d: 64,
+                layers: 3,
+                k: 12,
+                history: 11,
+                noise_freqs: 8,
+            },
+            edm: Edm::default(),
+            eval_every: usize::MAX,
+            ..TrainConfig::ngsim()
+        };
+        let mut step_times = Vec::new();
+        let mut last = Instant::now();
+        train(std::slice::from_ref(&scene), cfg, None, None, |_, _, _| {
+            step_times.push(last.elapsed().as_secs_f64());
+            last = Instant::now();
+        })?;
+        println!(
+            "| training step (batch 4 windows, forward + backward + AdamW) | {:.3} |",
+            median(step_times[1..].to_vec())
+        );
+    }
     let sim = prepare(&scene, &trained)?;
     let src = std::fs::read_to_string(samples.join("../../scripts/no_collisions.rhai"))?;
     let script = CostScript::compile(
@@ -319,27 +370,24 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
         &Params::default(),
         &Limits::default(),
     )?;
-    println!(
-        "scene {} ({} agents, {} lanes) in a window of 24 agents and 200 lanes (padded); model d = 64, 3 layers per attention module, 12 PCA components; 32 Heun steps (63 denoiser calls), batch of 1\n",
-        scene.meta.scenario_id,
-        scene.agents.len(),
-        scene.map.lanes().len()
-    );
-    println!("| what | seconds |\n|---|---|");
-    println!("| training step (batch 4 windows, forward + backward + AdamW) | {per_step:.3} |");
-    for (name, lambda, g) in [
-        ("sampling, unguided", 0.0, Guidance::OutputSpace),
+    for (what, name, lambda, g) in [
+        ("unguided", "sampling, unguided", 0.0, Guidance::OutputSpace),
         (
+            "output",
             "sampling, guided in output space (no_collisions)",
             0.05,
             Guidance::OutputSpace,
         ),
         (
+            "denoiser",
             "sampling, guided through the denoiser (no_collisions)",
             0.05,
             Guidance::Denoiser,
         ),
     ] {
+        if !want(what) {
+            continue;
+        }
         let cfg = SampleConfig {
             steps: 32,
             samples: 1,
@@ -348,14 +396,37 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
             task: Task::Unconditional,
             ..SampleConfig::default()
         };
-        let t = Instant::now();
-        sample(&trained, &sim, std::slice::from_ref(&script), &cfg)?;
-        println!("| {name} | {:.3} |", t.elapsed().as_secs_f64());
+        let mut times = Vec::new();
+        for _ in 0..args.repeat {
+            let t = Instant::now();
+            sample(&trained, &sim, std::slice::from_ref(&script), &cfg)?;
+            times.push(t.elapsed().as_secs_f64());
+        }
+        println!("| {name} | {:.3} |", median(times));
     }
     println!(
         "\npeak resident memory: {}",
         peak_rss_mib().map_or("unknown".into(), |m| format!("{m:.0} MiB"))
     );
+    if let Some(out) = &args.export {
+        let cfg = SampleConfig {
+            steps: 32,
+            samples: 1,
+            lambda: 0.0,
+            task: Task::Unconditional,
+            ..SampleConfig::default()
+        };
+        let tensors: std::collections::HashMap<String, candle_core::Tensor> =
+            reference_run(&trained, &sim, &cfg)?.into_iter().collect();
+        let tmp = out.with_extension("safetensors.tmp");
+        candle_core::safetensors::save(&tensors, &tmp)
+            .with_context(|| format!("writing {}", tmp.display()))?;
+        std::fs::rename(&tmp, out).with_context(|| format!("writing {}", out.display()))?;
+        println!(
+            "wrote {} (the unguided run's inputs and outputs)",
+            out.display()
+        );
+    }
     Ok(ExitCode::SUCCESS)
 }
 

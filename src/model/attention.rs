@@ -5,9 +5,9 @@
 //! where the scene sits in the world.
 
 use candle_core::{Module, Result, Tensor, D};
-use candle_nn::{embedding, linear, linear_no_bias, Embedding, Linear, VarBuilder};
+use candle_nn::{embedding, Embedding, VarBuilder};
 
-use super::ops::softmax_last_dim;
+use super::ops::{linear, linear_no_bias, softmax_last_dim, Linear};
 
 /// Number of lane-pair connectivity kinds: none, predecessor, successor, left, right.
 pub const CONNECTIONS: usize = 5;

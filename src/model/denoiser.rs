@@ -4,12 +4,13 @@
 //! all under EDM preconditioning.
 
 use candle_core::{Module, Result, Tensor};
-use candle_nn::{linear, Linear, VarBuilder};
+use candle_nn::VarBuilder;
 use serde::{Deserialize, Serialize};
 
 use super::attention::RelAttention;
 use super::edm::Edm;
 use super::encoder::{noise_features, AgentEncoder, MiniPointNet};
+use super::ops::{linear, Linear};
 
 /// Sizes of the network.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

@@ -2,7 +2,9 @@
 //! noisy PCA coefficients and the noise level).
 
 use candle_core::{Module, Result, Tensor, D};
-use candle_nn::{linear, Linear, VarBuilder};
+use candle_nn::VarBuilder;
+
+use super::ops::{linear, Linear};
 
 /// MiniPointNet: lane points in the lane's own frame → one vector per lane.
 #[derive(Debug, Clone)]

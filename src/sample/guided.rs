@@ -449,14 +449,24 @@ impl Plan<'_> {
     }
 }
 
-/// Samples `cfg.samples` futures of `scene` (already [`prepare`]d), guided by `scripts`
-/// (compiled against that scene; their weights are inside them).
-pub fn sample(
-    trained: &Trained,
+/// What a run fixes once per scene: the windows, their batch, the inference model and the
+/// scene encoding, the noise schedule and the initial noise.
+struct Setup<'a> {
+    plan: Plan<'a>,
+    batch: crate::train::Batch,
+    model: crate::model::Denoiser,
+    map: Tensor,
+    sigmas: Vec<f64>,
+    x0: Tensor,
+    /// Batch rows (samples × windows).
+    rows: usize,
+}
+
+fn setup<'a>(
+    trained: &'a Trained,
     scene: &Scene,
-    scripts: &[CostScript],
     cfg: &SampleConfig,
-) -> Result<Vec<Sample>, SampleError> {
+) -> Result<Setup<'a>, SampleError> {
     let dev = Device::Cpu;
     let wcfg = trained.meta.config.window;
     let c = scene.meta.current_step;
@@ -495,17 +505,115 @@ pub fn sample(
     // Weights as constants: a backward pass for guidance through the denoiser then walks only
     // from the output to the noisy coefficients, not into 400,000 weights and the map encoder
     // (10x the work, all of it thrown away).
-    let model = &trained.frozen()?;
+    let model = trained.frozen()?;
     let map = model.encode_map(&batch.ctx)?;
-    let edm = trained.meta.config.edm;
-    let sigmas = edm.schedule(cfg.steps.max(1));
+    let sigmas = trained.meta.config.edm.schedule(cfg.steps.max(1));
     let mut rng = crate::train::rng::Rng::new(cfg.seed);
     let mut init: Vec<f32> = (0..rows * n * k)
         .map(|_| (rng.normal() * sigmas[0]) as f32)
         .collect();
     // Every copy of an agent starts from its owner's noise: they are one variable.
     plan.consensus(&mut init, None, 0.0, cfg.clamp);
-    let mut x = Tensor::from_vec(init, (rows, n, k), &dev)?;
+    let x0 = Tensor::from_vec(init, (rows, n, k), &dev)?;
+    Ok(Setup {
+        plan,
+        batch,
+        model,
+        map,
+        sigmas,
+        x0,
+        rows,
+    })
+}
+
+/// EDM's Heun integrator from `x0` over `sigmas` (ending at 0), with `denoised(x, σ, step)`
+/// the (guided) denoiser.
+fn heun(
+    x0: Tensor,
+    sigmas: &[f64],
+    mut denoised: impl FnMut(&Tensor, f64, usize) -> Result<Tensor, SampleError>,
+) -> Result<Tensor, SampleError> {
+    let mut x = x0;
+    for i in 0..sigmas.len() - 1 {
+        let (s0, s1) = (sigmas[i], sigmas[i + 1]);
+        let d0 = denoised(&x, s0, i)?;
+        let slope = ((&x - &d0)? / s0)?;
+        let mut next = (&x + (&slope * (s1 - s0))?)?;
+        if s1 > 0.0 {
+            let d1 = denoised(&next, s1, i)?;
+            let slope1 = ((&next - &d1)? / s1)?;
+            next = (&x + ((slope + slope1)? * (0.5 * (s1 - s0)))?)?;
+        }
+        x = next;
+    }
+    Ok(x)
+}
+
+/// An unguided run's tensors, for checking a port of the denoiser against this one: the
+/// batch's context (`lane_points`, `lane_mask`, `lane_rel`, `lane_conn`, `agent_hist`,
+/// `agent_mask`, `agent_lane_rel`, `agent_rel`), the initial noise `x0`, the noise levels
+/// `sigmas`, the first denoised estimate `d0` (`D(x0; σ_0)`) and the final coefficients
+/// `x_final`. `benches/torch/` reads them.
+pub fn reference_run(
+    trained: &Trained,
+    scene: &Scene,
+    cfg: &SampleConfig,
+) -> Result<Vec<(String, Tensor)>, SampleError> {
+    let su = setup(trained, scene, cfg)?;
+    let unguided = |x: &Tensor, sigma: f64, _| -> Result<Tensor, SampleError> {
+        let d = su
+            .model
+            .denoise(&su.batch.ctx, &su.map, x, &vec![sigma; su.rows])?;
+        let mut dv: Vec<f32> = d.flatten_all()?.to_vec1()?;
+        su.plan.consensus(&mut dv, None, 0.0, cfg.clamp);
+        Ok(Tensor::from_vec(dv, d.dims(), d.device())?)
+    };
+    let d0 = unguided(&su.x0, su.sigmas[0], 0)?;
+    let last = heun(su.x0.clone(), &su.sigmas, unguided)?;
+    let c = &su.batch.ctx;
+    let sig = Tensor::new(su.sigmas.as_slice(), &Device::Cpu)?;
+    Ok([
+        ("lane_points", c.lane_points.clone()),
+        ("lane_mask", c.lane_mask.clone()),
+        ("lane_rel", c.lane_rel.clone()),
+        ("lane_conn", c.lane_conn.clone()),
+        ("agent_hist", c.agent_hist.clone()),
+        ("agent_mask", c.agent_mask.clone()),
+        ("agent_lane_rel", c.agent_lane_rel.clone()),
+        ("agent_rel", c.agent_rel.clone()),
+        ("x0", su.x0.clone()),
+        ("sigmas", sig),
+        ("d0", d0),
+        ("x_final", last),
+    ]
+    .into_iter()
+    .map(|(k, v)| (k.to_string(), v))
+    .collect())
+}
+
+/// Samples `cfg.samples` futures of `scene` (already [`prepare`]d), guided by `scripts`
+/// (compiled against that scene; their weights are inside them).
+pub fn sample(
+    trained: &Trained,
+    scene: &Scene,
+    scripts: &[CostScript],
+    cfg: &SampleConfig,
+) -> Result<Vec<Sample>, SampleError> {
+    let dev = Device::Cpu;
+    let c = scene.meta.current_step;
+    let Setup {
+        plan,
+        batch,
+        model,
+        map,
+        sigmas,
+        x0,
+        rows,
+    } = setup(trained, scene, cfg)?;
+    let model = &model;
+    let (n, k, _, _) = plan.dims();
+    let kk = cfg.samples.max(1);
+    let edm = trained.meta.config.edm;
     // An agent's end point is its last recorded future state: the end of the horizon, or
     // earlier where its recording stops (it left the cameras' view, or the recording ends).
     // Without it such an agent would be free, and drift wherever the prior takes it.
@@ -614,18 +722,7 @@ pub fn sample(
         plan.consensus(&mut out, Some(&gv), lambda, cfg.clamp);
         Ok(Tensor::from_vec(out, (rows, n, k), &dev)?)
     };
-    for i in 0..sigmas.len() - 1 {
-        let (s0, s1) = (sigmas[i], sigmas[i + 1]);
-        let d0 = guided(&x, s0, i)?;
-        let slope = ((&x - &d0)? / s0)?;
-        let mut next = (&x + (&slope * (s1 - s0))?)?;
-        if s1 > 0.0 {
-            let d1 = guided(&next, s1, i)?;
-            let slope1 = ((&next - &d1)? / s1)?;
-            next = (&x + ((slope + slope1)? * (0.5 * (s1 - s0)))?)?;
-        }
-        x = next;
-    }
+    let x = heun(x0, &sigmas, guided)?;
     let xv: Vec<f32> = x.flatten_all()?.to_vec1()?;
     if xv.iter().any(|v| !v.is_finite()) {
         return Err(SampleError::NonFinite {

@@ -5,6 +5,6 @@ pub mod guided;
 
 pub use closed_loop::{closed_loop, ScriptSpec};
 pub use guided::{
-    prepare, sample, Clamp, Guidance, LambdaSchedule, Sample, SampleConfig, SampleError, Task,
-    BEHAVIOUR_LAMBDA,
+    prepare, reference_run, sample, Clamp, Guidance, LambdaSchedule, Sample, SampleConfig,
+    SampleError, Task, BEHAVIOUR_LAMBDA,
 };

@@ -1,0 +1,130 @@
+"""A PyTorch port of drivescript's denoiser (src/model/) that loads a drivescript checkpoint.
+
+It exists to check drivescript against an independent implementation and to measure the speed
+ratio on the same machine (see README.md beside this file). It mirrors the Rust code
+operation for operation; nothing here is used by drivescript itself.
+"""
+
+import json
+import math
+import os
+
+import torch
+import torch.nn.functional as F
+from safetensors.torch import load_file
+
+
+class Weights:
+    """The checkpoint's tensors by name (`prefix.name`)."""
+
+    def __init__(self, tensors):
+        self.t = tensors
+
+    def linear(self, name, x, bias=True):
+        y = x @ self.t[name + ".weight"].T
+        if bias:
+            y = y + self.t[name + ".bias"]
+        return y
+
+    def norm(self, name, x):
+        w, b = self.t[name + ".weight"], self.t[name + ".bias"]
+        return F.layer_norm(x, (x.shape[-1],), w, b, 1e-5)
+
+
+def rel_attention(w, p, xq, xk, rel, mask, conn=None):
+    """src/model/attention.rs, RelAttention::forward (the factored form).
+
+    Checkpoints from before the softmax fix also hold `k.bias` and `rk2.bias`; both add the
+    same amount to every score of a row, which the softmax ignores, so they are not read.
+    """
+    hq = w.norm(p + ".ln1", xq)
+    q = w.linear(p + ".q", hq)
+    k = w.linear(p + ".k", xk, bias=False)
+    v = w.linear(p + ".v", xk)
+    hk = w.linear(p + ".rk1", rel)
+    hv = w.linear(p + ".rv1", rel)
+    if conn is not None:
+        e = w.t[p + ".conn.weight"][conn]
+        hk = hk + e
+        hv = hv + e
+    hk, hv = torch.relu(hk), torch.relu(hv)
+    b, n, m, d = hk.shape
+    qw = q @ w.t[p + ".rk2.weight"]
+    qh = (hk.reshape(b * n, m, d) @ qw.reshape(b * n, d, 1)).reshape(b, n, m)
+    s = (q @ k.transpose(1, 2) + qh) / math.sqrt(d)
+    keep = mask.unsqueeze(1)
+    a = torch.softmax(s + (keep - 1.0) * 1e9, dim=-1) * keep
+    ah = (a.reshape(b * n, 1, m) @ hv.reshape(b * n, m, d)).reshape(b, n, d)
+    out = a @ v + ah @ w.t[p + ".rv2.weight"].T + a.sum(-1, keepdim=True) * w.t[p + ".rv2.bias"]
+    x = xq + w.linear(p + ".o", out)
+    f = w.linear(p + ".ff2", torch.relu(w.linear(p + ".ff1", w.norm(p + ".ln2", x))))
+    return x + f
+
+
+class Denoiser:
+    """src/model/denoiser.rs with EDM preconditioning (src/model/edm.rs)."""
+
+    def __init__(self, checkpoint):
+        with open(os.path.join(checkpoint, "config.json")) as f:
+            self.meta = json.load(f)
+        cfg = self.meta["config"]
+        self.model = cfg["model"]
+        self.edm = cfg["edm"]
+        self.w = Weights(load_file(os.path.join(checkpoint, "model.safetensors")))
+
+    def encode_map(self, ctx):
+        w = self.w
+        h = torch.relu(w.linear("lanes.l1", ctx["lane_points"]))
+        h = torch.relu(w.linear("lanes.l2", h))
+        x = w.linear("lanes.l3", h.max(dim=-2).values)
+        for i in range(self.model["layers"]):
+            x = rel_attention(w, f"lane_lane{i}", x, x, ctx["lane_rel"], ctx["lane_mask"],
+                              ctx["lane_conn"])
+        return x
+
+    def precondition(self, sigma):
+        sd2 = self.edm["sigma_data"] ** 2
+        s2 = sigma * sigma
+        return (sd2 / (s2 + sd2), sigma * self.edm["sigma_data"] / math.sqrt(s2 + sd2),
+                1.0 / math.sqrt(s2 + sd2), math.log(sigma) / 4.0)
+
+    def denoise(self, ctx, enc, x, sigma):
+        w = self.w
+        b, n, _ = x.shape
+        c_skip, c_out, c_in, c_noise = (torch.tensor(v, dtype=torch.float32)
+                                        for v in self.precondition(sigma))
+        freqs = torch.tensor([2.0 ** i for i in range(self.model["noise_freqs"])])
+        z = c_noise * freqs
+        noise = torch.cat([z.sin(), z.cos()]).expand(b, n, -1)
+        feats = torch.cat([ctx["agent_hist"], x * c_in, noise], dim=2)
+        a = w.linear("agents.l2", torch.relu(w.linear("agents.l1", feats)))
+        for i in range(self.model["layers"]):
+            a = rel_attention(w, f"agent_lane{i}", a, enc, ctx["agent_lane_rel"], ctx["lane_mask"])
+            a = rel_attention(w, f"agent_agent{i}", a, a, ctx["agent_rel"], ctx["agent_mask"])
+        f = w.linear("head2", torch.relu(w.linear("head1", a)))
+        return x * c_skip + f * c_out
+
+    def sample(self, ctx, x0, sigmas):
+        """EDM's Heun sampler, unguided (src/sample/guided.rs, `heun`)."""
+        enc = self.encode_map(ctx)
+        x = x0
+        for i in range(len(sigmas) - 1):
+            s0, s1 = sigmas[i], sigmas[i + 1]
+            d0 = self.denoise(ctx, enc, x, s0)
+            slope = (x - d0) / s0
+            nxt = x + slope * (s1 - s0)
+            if s1 > 0:
+                d1 = self.denoise(ctx, enc, nxt, s1)
+                nxt = x + (slope + (nxt - d1) / s1) * (0.5 * (s1 - s0))
+            x = nxt
+        return x
+
+    def metres(self, coeffs):
+        """Normalised coefficients `[..., K]` -> future residual positions `[..., T, 2]` in metres
+        (src/train/batch.rs, Normaliser::decode): what a coefficient error means on the road."""
+        norm = self.meta["normaliser"]
+        pca = norm["pca"]
+        comps = torch.tensor(pca["components"], dtype=torch.float64).reshape(-1, pca["dim"])
+        scale = torch.tensor(norm["std"], dtype=torch.float64) / norm["sigma_data"]
+        v = (coeffs.double() * scale) @ comps
+        return v.reshape(*coeffs.shape[:-1], -1, 3)[..., :2]
