@@ -37,6 +37,22 @@ impl Module for Norm {
     }
 }
 
+/// The hidden layers of a block's key and value relative MLPs for every (query, key) pair,
+/// `[B, N, M, d]` each: they depend only on the relative poses (and lane connectivity), which
+/// do not change while a scene is sampled, so they are computed once per scene.
+#[derive(Debug, Clone)]
+pub struct Pairs {
+    hk: Tensor,
+    hv: Tensor,
+}
+
+impl Pairs {
+    /// Both tensors.
+    pub fn tensors(&self) -> [&Tensor; 2] {
+        [&self.hk, &self.hv]
+    }
+}
+
 /// One relative-attention block.
 #[derive(Debug, Clone)]
 pub struct RelAttention {
@@ -81,16 +97,21 @@ impl RelAttention {
         })
     }
 
-    /// Updates queries `xq` `[B, N, d]` from keys `xk` `[B, M, d]` with relative features
-    /// `rel` `[B, N, M, 4]`, key mask `mask` `[B, M]` (1 = present) and, for lanes,
-    /// connectivity `conn` `[B, N, M]` (u32 kinds).
+    /// The pair features of relative poses `rel` `[B, N, M, 4]` and, for lanes, connectivity
+    /// `conn` `[B, N, M]` (u32 kinds).
+    pub fn pairs(&self, rel: &Tensor, conn: Option<&Tensor>) -> Result<Pairs> {
+        let (hk, hv) = self.pair_hidden(rel, conn)?;
+        Ok(Pairs { hk, hv })
+    }
+
+    /// Updates queries `xq` `[B, N, d]` from keys `xk` `[B, M, d]` with their
+    /// [`RelAttention::pairs`] and key mask `mask` `[B, M]` (1 = present).
     pub fn forward(
         &self,
         xq: &Tensor,
         xk: &Tensor,
-        rel: &Tensor,
+        pairs: &Pairs,
         mask: &Tensor,
-        conn: Option<&Tensor>,
     ) -> Result<Tensor> {
         // Pre-norm: the residual stream carries the raw features (the agents' history and noisy
         // coefficients) straight through, which trains much faster than post-norm here.
@@ -98,7 +119,7 @@ impl RelAttention {
         let q = self.q.forward(&hq)?; // [B, N, d]
         let k = self.k.forward(xk)?; // [B, M, d]
         let v = self.v.forward(xk)?;
-        let (hk, hv) = self.pair_hidden(rel, conn)?; // [B, N, M, d] each
+        let (hk, hv) = (&pairs.hk, &pairs.hv); // [B, N, M, d] each
         let (b, n, m, d) = hk.dims4()?;
         // The second layers of the relative MLPs are linear, so they are applied after the
         // reduction over keys instead of to every pair:
@@ -213,14 +234,15 @@ mod tests {
             &dev,
         )
         .unwrap();
-        let fast = att.forward(&xq, &xk, &rel, &mask, Some(&conn)).unwrap();
+        let pairs = att.pairs(&rel, Some(&conn)).unwrap();
+        let fast = att.forward(&xq, &xk, &pairs, &mask).unwrap();
         let slow = att
             .forward_direct(&xq, &xk, &rel, &mask, Some(&conn))
             .unwrap();
         let diff = (fast - slow).unwrap().abs().unwrap().max_all().unwrap();
         assert!(diff.to_scalar::<f32>().unwrap() < 1e-4, "{diff}");
         let none = Tensor::zeros((b, m), DType::F32, &dev).unwrap();
-        let fast = att.forward(&xq, &xk, &rel, &none, Some(&conn)).unwrap();
+        let fast = att.forward(&xq, &xk, &pairs, &none).unwrap();
         let slow = att
             .forward_direct(&xq, &xk, &rel, &none, Some(&conn))
             .unwrap();

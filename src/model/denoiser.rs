@@ -7,7 +7,7 @@ use candle_core::{Module, Result, Tensor};
 use candle_nn::VarBuilder;
 use serde::{Deserialize, Serialize};
 
-use super::attention::RelAttention;
+use super::attention::{Pairs, RelAttention};
 use super::edm::Edm;
 use super::encoder::{noise_features, AgentEncoder, MiniPointNet};
 use super::ops::{linear, Linear};
@@ -64,6 +64,24 @@ impl Context {
     }
 }
 
+/// A scene's encoding ([`Denoiser::encode_scene`]).
+#[derive(Debug, Clone)]
+pub struct SceneEncoding {
+    lanes: Tensor,
+    agent_lane: Vec<Pairs>,
+    agent_agent: Vec<Pairs>,
+}
+
+impl SceneEncoding {
+    /// Every tensor of the encoding.
+    pub fn tensors(&self) -> Vec<&Tensor> {
+        let pairs = self.agent_lane.iter().chain(&self.agent_agent);
+        std::iter::once(&self.lanes)
+            .chain(pairs.flat_map(|p| p.tensors()))
+            .collect()
+    }
+}
+
 /// The denoiser network.
 #[derive(Debug, Clone)]
 pub struct Denoiser {
@@ -109,22 +127,36 @@ impl Denoiser {
         &self.cfg
     }
 
-    /// Lane features after lane-lane attention, `[B, M, d]`: depends only on the map, so a
-    /// sampler computes it once per scene.
-    pub fn encode_map(&self, ctx: &Context) -> Result<Tensor> {
+    /// What depends on the scene alone, so that a sampler computes it once: the lane features
+    /// after lane-lane attention and the agent-lane and agent-agent pair features of every
+    /// layer (agents' current poses do not change while their futures are sampled).
+    pub fn encode_scene(&self, ctx: &Context) -> Result<SceneEncoding> {
         let mut x = self.lanes.forward(&ctx.lane_points)?;
         for l in &self.lane_lane {
-            x = l.forward(&x, &x, &ctx.lane_rel, &ctx.lane_mask, Some(&ctx.lane_conn))?;
+            let pairs = l.pairs(&ctx.lane_rel, Some(&ctx.lane_conn))?;
+            x = l.forward(&x, &x, &pairs, &ctx.lane_mask)?;
         }
-        Ok(x)
+        Ok(SceneEncoding {
+            lanes: x,
+            agent_lane: self
+                .agent_lane
+                .iter()
+                .map(|l| l.pairs(&ctx.agent_lane_rel, None))
+                .collect::<Result<_>>()?,
+            agent_agent: self
+                .agent_agent
+                .iter()
+                .map(|l| l.pairs(&ctx.agent_rel, None))
+                .collect::<Result<_>>()?,
+        })
     }
 
     /// `D(x; σ)` for noisy coefficients `x` `[B, N, K]` and noise levels `sigma` (one per
-    /// window), given the encoded map.
+    /// window), given the scene's encoding.
     pub fn denoise(
         &self,
         ctx: &Context,
-        map: &Tensor,
+        enc: &SceneEncoding,
         x: &Tensor,
         sigma: &[f64],
     ) -> Result<Tensor> {
@@ -149,9 +181,10 @@ impl Denoiser {
             .repeat((1, n, 1))?;
         let feats = Tensor::cat(&[ctx.agent_hist.clone(), x.broadcast_mul(&c_in)?, noise], 2)?;
         let mut a = self.agents.forward(&feats)?;
-        for (al, aa) in self.agent_lane.iter().zip(&self.agent_agent) {
-            a = al.forward(&a, map, &ctx.agent_lane_rel, &ctx.lane_mask, None)?;
-            a = aa.forward(&a, &a, &ctx.agent_rel, &ctx.agent_mask, None)?;
+        let layers = self.agent_lane.iter().zip(&self.agent_agent);
+        for ((al, aa), (pl, pa)) in layers.zip(enc.agent_lane.iter().zip(&enc.agent_agent)) {
+            a = al.forward(&a, &enc.lanes, pl, &ctx.lane_mask)?;
+            a = aa.forward(&a, &a, pa, &ctx.agent_mask)?;
         }
         let f = self.head2.forward(&self.head1.forward(&a)?.relu()?)?;
         x.broadcast_mul(&c_skip)? + f.broadcast_mul(&c_out)?

@@ -133,7 +133,7 @@ fn the_input_gradient_matches_central_finite_differences_in_f64() {
     let model = f64_model(&cfg);
     let (b, _) = batch(&cfg, None);
     let ctx = b.ctx.to_dtype(DType::F64).unwrap();
-    let map = model.encode_map(&ctx).unwrap();
+    let map = model.encode_scene(&ctx).unwrap();
     let dims = b.target.dims3().unwrap();
     let n = dims.0 * dims.1 * dims.2;
     let mut rng = Rng::new(9);
@@ -201,7 +201,7 @@ fn the_frozen_model_gives_the_same_input_gradient_and_tracks_no_weight() {
     let sig = vec![0.7; dims.0];
     let mut got: HashMap<&str, Vec<f32>> = HashMap::new();
     for (name, model) in [("trained", &t.model), ("frozen", &frozen)] {
-        let map = model.encode_map(&b.ctx).unwrap();
+        let map = model.encode_scene(&b.ctx).unwrap();
         let xv = Var::from_vec(x.clone(), dims, &Device::Cpu).unwrap();
         let d = model.denoise(&b.ctx, &map, xv.as_tensor(), &sig).unwrap();
         let out = d.sum_all().unwrap();
@@ -211,8 +211,8 @@ fn the_frozen_model_gives_the_same_input_gradient_and_tracks_no_weight() {
             out.sorted_nodes().iter().map(|t| t.id()).collect();
         if name == "frozen" {
             assert!(
-                !walked.contains(&map.id()),
-                "the frozen model's backward walks through the map encoding"
+                map.tensors().iter().all(|t| !walked.contains(&t.id())),
+                "the frozen model's backward walks through the scene encoding"
             );
             for (k, w) in &weights {
                 assert!(
@@ -222,7 +222,7 @@ fn the_frozen_model_gives_the_same_input_gradient_and_tracks_no_weight() {
             }
         } else {
             // The same check on the trainable model finds both: it can fail.
-            assert!(walked.contains(&map.id()));
+            assert!(map.tensors().iter().all(|t| walked.contains(&t.id())));
             let data = t.varmap.data().lock().unwrap();
             assert!(data.values().all(|v| walked.contains(&v.as_tensor().id())));
         }

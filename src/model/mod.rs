@@ -10,6 +10,6 @@ mod gradients;
 pub mod ops;
 pub mod pca;
 
-pub use denoiser::{Context, Denoiser, DenoiserConfig};
+pub use denoiser::{Context, Denoiser, DenoiserConfig, SceneEncoding};
 pub use edm::Edm;
 pub use pca::{Pca, PcaError};

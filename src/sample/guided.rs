@@ -455,7 +455,7 @@ struct Setup<'a> {
     plan: Plan<'a>,
     batch: crate::train::Batch,
     model: crate::model::Denoiser,
-    map: Tensor,
+    map: crate::model::SceneEncoding,
     sigmas: Vec<f64>,
     x0: Tensor,
     /// Batch rows (samples × windows).
@@ -506,7 +506,7 @@ fn setup<'a>(
     // from the output to the noisy coefficients, not into 400,000 weights and the map encoder
     // (10x the work, all of it thrown away).
     let model = trained.frozen()?;
-    let map = model.encode_map(&batch.ctx)?;
+    let map = model.encode_scene(&batch.ctx)?;
     let sigmas = trained.meta.config.edm.schedule(cfg.steps.max(1));
     let mut rng = crate::train::rng::Rng::new(cfg.seed);
     let mut init: Vec<f32> = (0..rows * n * k)

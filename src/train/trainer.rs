@@ -181,8 +181,8 @@ pub(crate) fn loss(
     )?
     .to_dtype(dt)?;
     let x = (&b.target + noise.broadcast_mul(&s)?)?;
-    let map = model.encode_map(&b.ctx)?;
-    let d = model.denoise(&b.ctx, &map, &x, sigma)?;
+    let enc = model.encode_scene(&b.ctx)?;
+    let d = model.denoise(&b.ctx, &enc, &x, sigma)?;
     let k = b.target.dim(2)? as f64;
     let err = ((d - &b.target)?.sqr()?.sum(D::Minus1)? / k)?; // [B, N]
     let w = Tensor::from_vec(
