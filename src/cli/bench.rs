@@ -72,12 +72,25 @@ fn load_all(sources: &[PathBuf]) -> Result<usize> {
     Ok(n)
 }
 
+/// Bytes of the files under `p` (the file itself, or everything below a directory).
+fn bytes_of(p: &Path) -> u64 {
+    match std::fs::metadata(p) {
+        Ok(m) if m.is_file() => m.len(),
+        Ok(m) if m.is_dir() => std::fs::read_dir(p)
+            .map(|d| d.flatten().map(|e| bytes_of(&e.path())).sum())
+            .unwrap_or(0),
+        _ => 0,
+    }
+}
+
 fn row(name: &str, sources: &[PathBuf], min: Duration) -> Result<()> {
     let n = load_all(sources).with_context(|| format!("loading the {name} scenes"))?;
+    let bytes: u64 = sources.iter().map(|p| bytes_of(p)).sum();
     let (r, reps) = rate(min, n, || load_all(sources).map(|_| ()))?;
     println!(
-        "| {name:<40} | {n:>6} | {reps:>5} | {r:>10.1} | {:>9.2} |",
-        1000.0 / r
+        "| {name:<40} | {n:>6} | {reps:>5} | {r:>10.1} | {:>9.2} | {:>10.1} |",
+        1000.0 / r,
+        r * bytes as f64 / n as f64 / 1e6
     );
     Ok(())
 }
@@ -434,11 +447,11 @@ fn bench_io(args: &Args, min: Duration) -> Result<ExitCode> {
     let samples = super::samples_dir();
     println!("## Scene readers\n");
     println!(
-        "| {:<40} | scenes |  reps |   scenes/s |  ms/scene |",
+        "| {:<40} | scenes |  reps |   scenes/s |  ms/scene | input MB/s |",
         "format"
     );
     println!(
-        "|{}|--------|-------|------------|-----------|",
+        "|{}|--------|-------|------------|-----------|------------|",
         "-".repeat(42)
     );
     let cr = discover(&samples.join("commonroad"))?;

@@ -69,35 +69,11 @@ impl TfRecordError {
     }
 }
 
-const fn crc32c_table() -> [u32; 256] {
-    let mut table = [0u32; 256];
-    let mut i = 0;
-    while i < 256 {
-        let mut c = i as u32;
-        let mut k = 0;
-        while k < 8 {
-            c = if c & 1 != 0 {
-                0x82F6_3B78 ^ (c >> 1)
-            } else {
-                c >> 1
-            };
-            k += 1;
-        }
-        table[i] = c;
-        i += 1;
-    }
-    table
-}
-
-static CRC32C: [u32; 256] = crc32c_table();
-
-/// CRC-32C (Castagnoli) of `data`.
+/// CRC-32C (Castagnoli) of `data`, with the CPU's CRC32 instructions where it has them (SSE
+/// 4.2, ARMv8): a table-driven loop checked half a gigabyte a second, half of the reading time
+/// of a WOMD shard.
 pub fn crc32c(data: &[u8]) -> u32 {
-    let mut c = !0u32;
-    for &b in data {
-        c = CRC32C[((c ^ b as u32) & 0xff) as usize] ^ (c >> 8);
-    }
-    !c
+    ::crc32c::crc32c(data)
 }
 
 /// The masked CRC TFRecord stores (so that CRCs of CRCs stay well distributed).
@@ -234,6 +210,33 @@ pub fn frame_records<P: AsRef<[u8]>>(payloads: &[P]) -> Vec<u8> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn crc32c_matches_the_bitwise_definition_at_every_length_and_alignment() {
+        let bitwise = |data: &[u8]| {
+            let mut c = !0u32;
+            for &b in data {
+                c ^= b as u32;
+                for _ in 0..8 {
+                    c = if c & 1 != 0 {
+                        0x82F6_3B78 ^ (c >> 1)
+                    } else {
+                        c >> 1
+                    };
+                }
+            }
+            !c
+        };
+        let data: Vec<u8> = (0..4099u32)
+            .map(|i| (i.wrapping_mul(2_654_435_761) >> 13) as u8)
+            .collect();
+        for start in 0..9 {
+            for len in (0..300).chain([1024, 4090 - start]) {
+                let d = &data[start..start + len];
+                assert_eq!(crc32c(d), bitwise(d), "start {start}, length {len}");
+            }
+        }
+    }
 
     #[test]
     fn crc32c_known_vector() {
