@@ -18,10 +18,10 @@ from denoiser import Denoiser
 ROW = re.compile(r"^\| sampling, unguided \| ([0-9.]+) \|$", re.M)
 
 
-def drivescript_run(binary, args):
-    out = subprocess.run([binary, "bench", "sample", *args], check=True, capture_output=True,
-                         text=True).stdout
-    return out
+def drivescript_run(binary, args, threads):
+    env = dict(os.environ, RAYON_NUM_THREADS=str(threads))
+    return subprocess.run([binary, "bench", "sample", *args], check=True, capture_output=True,
+                          text=True, env=env).stdout
 
 
 def main():
@@ -38,7 +38,7 @@ def main():
     with tempfile.TemporaryDirectory() as tmp:
         ref_path = os.path.join(tmp, "ref.safetensors")
         drivescript_run(a.drivescript, common + ["--only", "unguided", "--repeat", "1",
-                                                 "--export", ref_path])
+                                                 "--export", ref_path], a.threads)
         ref = load_file(ref_path)
     ctx = {k: ref[k] for k in ["lane_points", "lane_mask", "lane_rel", "agent_hist",
                                "agent_mask", "agent_lane_rel", "agent_rel"]}
@@ -62,7 +62,8 @@ def main():
             t = time.perf_counter()
             model.sample(ctx, ref["x0"], sigmas)
             torch_times.append(time.perf_counter() - t)
-            out = drivescript_run(a.drivescript, common + ["--only", "unguided", "--repeat", "1"])
+            out = drivescript_run(a.drivescript, common + ["--only", "unguided", "--repeat", "1"],
+                                  a.threads)
             ds_times.append(float(ROW.search(out).group(1)))
     ratios = [d / t for d, t in zip(ds_times, torch_times)]
     print(f"unguided sampling, 32 Heun steps, {a.threads} threads, {a.rounds} interleaved rounds:")
