@@ -5,6 +5,7 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
+use drivescript::eval::kinematic::{self, KinematicLimits, Violation};
 use drivescript::eval::metrics::{self, JsdBins, Kinematics};
 use drivescript::eval::{check, Baseline, Behavior, CheckParams};
 use drivescript::io::{discover, load_scenes, rollout::Rollout, write_atomic, LoadOptions};
@@ -90,6 +91,9 @@ struct Acc {
     mmd_edge: Vec<f64>,
     passed: usize,
     checked: usize,
+    /// Per judged vehicle of every sample: implausible at all, then per [`Violation::ALL`].
+    implausible: Vec<Option<bool>>,
+    by_kind: [Vec<Option<bool>>; 6],
     per_scene: Vec<serde_json::Value>,
     seconds: f64,
 }
@@ -135,6 +139,18 @@ fn score(
     acc.scenes += 1;
     let sim = &sims[0];
     let mut row = json!({"scene": logged.meta.scenario_id});
+    let lim = KinematicLimits::default();
+    let mut flagged = 0;
+    for s in sims {
+        let judged = kinematic::judge(s, &lim);
+        let any = kinematic::flags(&judged, None);
+        flagged += any.iter().filter(|f| **f == Some(true)).count();
+        acc.implausible.extend(any);
+        for (k, v) in Violation::ALL.iter().enumerate() {
+            acc.by_kind[k].extend(kinematic::flags(&judged, Some(*v)));
+        }
+    }
+    row["implausible_vehicles"] = json!(flagged);
     match task {
         Task::Conditional => {
             let d = metrics::displacement(logged, sim);
@@ -358,16 +374,18 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let mut table = Vec::new();
     match args.task {
         Task::Conditional => {
-            println!("| method | scenes | ADE (m) | FDE (m) | minADE | minFDE | JSD speed | JSD ang. speed | JSD accel | JSD nearest | JSD mean | collision | off-road | ms/scene |");
-            println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+            println!("| method | scenes | ADE (m) | FDE (m) | minADE | minFDE | JSD speed | JSD ang. speed | JSD accel | JSD nearest | JSD mean | collision | off-road | implausible | ms/scene |");
+            println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
         }
         Task::Unconditional => {
-            println!("| method | scenes | scene collision rate | MMD² nearest object | MMD² road edge | ms/scene |");
-            println!("|---|---|---|---|---|---|");
+            println!("| method | scenes | scene collision rate | MMD² nearest object | MMD² road edge | implausible | ms/scene |");
+            println!("|---|---|---|---|---|---|---|");
         }
         Task::Behaviour => {
-            println!("| method | behaviour | scenes checked | success rate | ms/scene |");
-            println!("|---|---|---|---|---|");
+            println!(
+                "| method | behaviour | scenes checked | success rate | implausible | ms/scene |"
+            );
+            println!("|---|---|---|---|---|---|");
         }
     }
     for ((name, _), acc) in methods.iter().zip(&accs) {
@@ -376,11 +394,17 @@ pub fn run(args: Args) -> Result<ExitCode> {
         } else {
             f64::NAN
         };
-        let row = match args.task {
+        let implausible = metrics::rate(&acc.implausible);
+        let by_kind: serde_json::Map<String, serde_json::Value> = Violation::ALL
+            .iter()
+            .zip(&acc.by_kind)
+            .map(|(v, f)| (v.name().to_string(), json!(metrics::rate(f))))
+            .collect();
+        let mut row = match args.task {
             Task::Conditional => {
                 let r = metrics::realism(&acc.sim_kin, &acc.log_kin, &bins);
                 println!(
-                    "| {name} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {ms:.1} |",
+                    "| {name} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {ms:.1} |",
                     acc.scenes,
                     fmt(mean(&acc.ade), 2),
                     fmt(mean(&acc.fde), 2),
@@ -393,6 +417,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     fmt(r.map(|r| r.mean), 3),
                     fmt(mean(&acc.collision), 3),
                     fmt(mean(&acc.offroad), 3),
+                    fmt(implausible, 3),
                 );
                 json!({"method": name, "scenes": acc.scenes, "ade": mean(&acc.ade), "fde": mean(&acc.fde),
                     "min_ade": mean(&acc.min_ade), "min_fde": mean(&acc.min_fde), "jsd": r,
@@ -400,11 +425,12 @@ pub fn run(args: Args) -> Result<ExitCode> {
             }
             Task::Unconditional => {
                 println!(
-                    "| {name} | {} | {} | {} | {} | {ms:.1} |",
+                    "| {name} | {} | {} | {} | {} | {} | {ms:.1} |",
                     acc.scenes,
                     fmt(mean(&acc.scr), 3),
                     fmt(mean(&acc.mmd_near), 3),
-                    fmt(mean(&acc.mmd_edge), 3)
+                    fmt(mean(&acc.mmd_edge), 3),
+                    fmt(implausible, 3)
                 );
                 json!({"method": name, "scenes": acc.scenes, "scene_collision_rate": mean(&acc.scr),
                     "mmd2_nearest_object": mean(&acc.mmd_near), "mmd2_road_edge": mean(&acc.mmd_edge), "ms_per_scene": ms})
@@ -413,16 +439,22 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 let b = behaviour.as_ref().expect("behaviour task").0;
                 let rate = (acc.checked > 0).then(|| acc.passed as f64 / acc.checked as f64);
                 println!(
-                    "| {name} | {} | {} | {} | {ms:.1} |",
+                    "| {name} | {} | {} | {} | {} | {ms:.1} |",
                     b.name(),
                     acc.checked,
-                    fmt(rate, 2)
+                    fmt(rate, 2),
+                    fmt(implausible, 3)
                 );
                 json!({"method": name, "behaviour": b.name(), "definition": b.definition(), "checked": acc.checked, "success_rate": rate, "ms_per_scene": ms})
             }
         };
+        row["implausible_rate"] = json!(implausible);
+        row["implausible_by_kind"] = json!(by_kind);
         table.push(json!({"summary": row, "scenes": acc.per_scene}));
     }
+    println!(
+        "\nimplausible: fraction of vehicles (pooled over scenes and samples) whose future a car cannot drive: reversing, sprinting, braking or accelerating beyond 7 m/s², swerving, crabbing or turning tighter than Waymax's curvature bound (README, Evaluation)"
+    );
     if args.task == Task::Conditional {
         println!("\nJSD: Jensen-Shannon distance (natural log) of histograms pooled over agents, steps and scenes; bins {}", serde_json::to_string(&bins)?);
     }

@@ -3,10 +3,12 @@
 
 pub mod baselines;
 pub mod behaviors;
+pub mod kinematic;
 pub mod metrics;
 
 pub use baselines::Baseline;
 pub use behaviors::{check, Behavior, CheckError, CheckParams, Verdict};
+pub use kinematic::{judge, Judgement, KinematicLimits, Violation};
 
 #[cfg(test)]
 mod tests;

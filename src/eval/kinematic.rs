@@ -1,0 +1,464 @@
+//! Kinematic plausibility: whether a vehicle's future is motion a car can make. A pure function
+//! of a scene, applied alike to logged and simulated futures.
+//!
+//! The anchor is Waymax's kinematic-infeasibility metric (a transition is infeasible when the
+//! inverse of a kinematic bicycle model needs more than a bound on acceleration or on steering
+//! curvature), made robust to 10 Hz tracking noise and extended by the failures guidance
+//! produces: every quantity comes from centred differences of positions over a window of at
+//! least [`KinematicLimits::window`] seconds (0.6 s at 10 Hz), near the ends of a track the
+//! window is shifted inwards rather than shortened, and a track shorter than one window is
+//! not judged. A vehicle is flagged when at any future step it
+//!
+//! - **reverses**: its speed along its heading is below `reverse_speed` (−1 m/s);
+//! - **sprints**: its speed exceeds `max_speed` (40 m/s), or `sprint_factor` × its current
+//!   speed + `sprint_margin` (1.6 × v₀ + 8 m/s);
+//! - **brakes or accelerates** harder than `max_accel` (7 m/s², the change of its signed
+//!   speed along its heading);
+//! - **swerves**: its lateral acceleration v·ω exceeds `max_lateral` (5 m/s²) while faster
+//!   than `moving` (3 m/s);
+//! - **crabs**: its velocity points more than `max_crab` (35°) off its heading axis while
+//!   faster than `moving`;
+//! - **over-steers**: its path's curvature ω/v exceeds Waymax's `max_curvature` (0.3 1/m, a
+//!   3.3 m turning radius) while faster than `moving`.
+//!
+//! Only vehicles are judged: the bounds are a car's.
+
+use crate::geom::wrap_angle;
+use crate::scene::{Agent, AgentType, Scene};
+
+/// The bounds of plausible vehicle motion.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct KinematicLimits {
+    /// Shortest span of the centred differences, seconds.
+    pub window: f64,
+    /// Speed along the heading below which a vehicle reverses, m/s (negative).
+    pub reverse_speed: f64,
+    /// Speed above which a vehicle sprints whatever its current speed, m/s.
+    pub max_speed: f64,
+    /// A vehicle sprints above `sprint_factor` × its current speed + `sprint_margin`.
+    pub sprint_factor: f64,
+    /// See `sprint_factor`, m/s.
+    pub sprint_margin: f64,
+    /// Largest plausible longitudinal acceleration or deceleration, m/s².
+    pub max_accel: f64,
+    /// Largest plausible lateral acceleration, m/s².
+    pub max_lateral: f64,
+    /// Largest plausible angle between velocity and heading axis, radians.
+    pub max_crab: f64,
+    /// Largest plausible path curvature, 1/m (Waymax's steering bound).
+    pub max_curvature: f64,
+    /// Speed above which swerves, crabbing and curvature are judged, m/s (below it the
+    /// direction of a few centimetres of tracking noise means nothing).
+    pub moving: f64,
+}
+
+impl Default for KinematicLimits {
+    fn default() -> Self {
+        Self {
+            window: 0.5,
+            reverse_speed: -1.0,
+            max_speed: 40.0,
+            sprint_factor: 1.6,
+            sprint_margin: 8.0,
+            max_accel: 7.0,
+            max_lateral: 5.0,
+            max_crab: 35f64.to_radians(),
+            max_curvature: 0.3,
+            moving: 3.0,
+        }
+    }
+}
+
+/// The kinds of implausible motion.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Violation {
+    /// Speed along the heading below the reverse bound.
+    Reverse,
+    /// Speed above the sprint bound.
+    Sprint,
+    /// Longitudinal acceleration beyond the bound.
+    Accel,
+    /// Lateral acceleration beyond the bound.
+    Swerve,
+    /// Velocity too far off the heading axis.
+    Crab,
+    /// Path curvature beyond the bound.
+    Curvature,
+}
+
+impl Violation {
+    /// Every kind, in table order.
+    pub const ALL: [Violation; 6] = [
+        Violation::Reverse,
+        Violation::Sprint,
+        Violation::Accel,
+        Violation::Swerve,
+        Violation::Crab,
+        Violation::Curvature,
+    ];
+
+    /// Short name for tables and JSON.
+    pub fn name(self) -> &'static str {
+        match self {
+            Violation::Reverse => "reverse",
+            Violation::Sprint => "sprint",
+            Violation::Accel => "accel",
+            Violation::Swerve => "swerve",
+            Violation::Crab => "crab",
+            Violation::Curvature => "curvature",
+        }
+    }
+}
+
+/// The worst instance of one violation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Event {
+    /// What.
+    pub kind: Violation,
+    /// Seconds after the current step.
+    pub time: f64,
+    /// The offending value in SI units (m/s, m/s², radians or 1/m; signed where the sign
+    /// matters).
+    pub value: f64,
+}
+
+impl std::fmt::Display for Event {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let t = self.time;
+        match self.kind {
+            Violation::Reverse => write!(f, "reverses at {:.1} m/s at t = {t:.1} s", self.value),
+            Violation::Sprint => write!(f, "sprints at {:.1} m/s at t = {t:.1} s", self.value),
+            Violation::Accel if self.value < 0.0 => {
+                write!(f, "brakes at {:.1} m/s² at t = {t:.1} s", -self.value)
+            }
+            Violation::Accel => write!(f, "accelerates at {:.1} m/s² at t = {t:.1} s", self.value),
+            Violation::Swerve => write!(
+                f,
+                "swerves at {:.1} m/s² lateral at t = {t:.1} s",
+                self.value.abs()
+            ),
+            Violation::Crab => write!(
+                f,
+                "moves {:.0}° off its heading at t = {t:.1} s",
+                self.value.abs().to_degrees()
+            ),
+            Violation::Curvature => write!(
+                f,
+                "turns on a {:.1} m radius at t = {t:.1} s",
+                1.0 / self.value.abs()
+            ),
+        }
+    }
+}
+
+/// One vehicle's judgement: the worst event of each violation it commits (empty when
+/// plausible).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Judgement {
+    /// At most one event per [`Violation`], in [`Violation::ALL`] order.
+    pub events: Vec<Event>,
+}
+
+impl Judgement {
+    /// Whether the motion is plausible.
+    pub fn plausible(&self) -> bool {
+        self.events.is_empty()
+    }
+
+    /// Whether it commits `v`.
+    pub fn has(&self, v: Violation) -> bool {
+        self.events.iter().any(|e| e.kind == v)
+    }
+
+    /// The same judgement, with the violations `allowed` removed (a behaviour that asks for
+    /// reversing allows reversing).
+    pub fn without(&self, allowed: &[Violation]) -> Judgement {
+        Judgement {
+            events: self
+                .events
+                .iter()
+                .filter(|e| !allowed.contains(&e.kind))
+                .copied()
+                .collect(),
+        }
+    }
+}
+
+/// Velocity from positions `p[t ± h]`, the window shifted inside the valid run `[lo, hi]`.
+fn velocity(a: &Agent, t: usize, h: usize, lo: usize, hi: usize, dt: f64) -> [f64; 2] {
+    let start = t.saturating_sub(h).max(lo).min(hi - 2 * h);
+    let (p, q) = (&a.states[start], &a.states[start + 2 * h]);
+    let span = 2.0 * h as f64 * dt;
+    [(q.x - p.x) / span, (q.y - p.y) / span]
+}
+
+/// The valid run of steps containing `t`.
+fn run_around(a: &Agent, t: usize) -> (usize, usize) {
+    let (mut lo, mut hi) = (t, t);
+    while lo > 0 && a.states[lo - 1].valid {
+        lo -= 1;
+    }
+    while hi + 1 < a.states.len() && a.states[hi + 1].valid {
+        hi += 1;
+    }
+    (lo, hi)
+}
+
+/// Judges one agent's future (steps after `s.meta.current_step`); `None` when it is not a
+/// vehicle or no future step lies in a valid run long enough for one window.
+pub fn judge_agent(s: &Scene, a: &Agent, lim: &KinematicLimits) -> Option<Judgement> {
+    if a.agent_type != AgentType::Vehicle {
+        return None;
+    }
+    let (c, dt) = (s.meta.current_step, s.meta.dt);
+    let h = ((lim.window / (2.0 * dt)) - 1e-9).ceil().max(1.0) as usize;
+    let len = a.states.len();
+    // The current speed: the recorded state's, or the motion over the history window.
+    let v0 = if c < len && a.states[c].valid {
+        let (lo, hi) = run_around(a, c);
+        if c >= lo + 2 * h {
+            let v = velocity(a, c - h, h, lo, c.min(hi), dt);
+            v[0].hypot(v[1])
+        } else {
+            a.states[c].vx.hypot(a.states[c].vy)
+        }
+    } else {
+        0.0
+    };
+    let sprint = lim
+        .max_speed
+        .min(lim.sprint_factor * v0 + lim.sprint_margin);
+    // Per violation, the event furthest beyond its bound.
+    let mut worst: Vec<Option<(f64, Event)>> = vec![None; Violation::ALL.len()];
+    let mut note = |kind: Violation, t: usize, value: f64, beyond: f64| {
+        let slot = &mut worst[kind as usize];
+        if slot.is_none_or(|(b, _)| beyond > b) {
+            let time = (t - c) as f64 * dt;
+            *slot = Some((beyond, Event { kind, time, value }));
+        }
+    };
+    let mut judged = false;
+    for t in c + 1..len {
+        if !a.states[t].valid {
+            continue;
+        }
+        let (lo, hi) = run_around(a, t);
+        if hi - lo < 2 * h {
+            continue;
+        }
+        judged = true;
+        let st = &a.states[t];
+        let (sn, cs) = st.heading.sin_cos();
+        let v = velocity(a, t, h, lo, hi, dt);
+        let speed = v[0].hypot(v[1]);
+        let along = v[0] * cs + v[1] * sn;
+        if along < lim.reverse_speed {
+            note(Violation::Reverse, t, along, lim.reverse_speed - along);
+        }
+        if speed > sprint {
+            note(Violation::Sprint, t, speed, speed - sprint);
+        }
+        if speed > lim.moving {
+            let off = wrap_angle(v[1].atan2(v[0]) - st.heading).abs();
+            let crab = off.min(std::f64::consts::PI - off);
+            if crab > lim.max_crab {
+                note(Violation::Crab, t, crab, crab - lim.max_crab);
+            }
+        }
+        // Second differences: velocities a window apart, the pair shifted inside the run.
+        if hi - lo < 4 * h {
+            continue;
+        }
+        let mid = t.max(lo + 2 * h).min(hi - 2 * h);
+        let (va, vb) = (
+            velocity(a, mid - h, h, lo, hi, dt),
+            velocity(a, mid + h, h, lo, hi, dt),
+        );
+        let span = 2.0 * h as f64 * dt;
+        let signed = |v: [f64; 2]| {
+            let s = v[0].hypot(v[1]);
+            if v[0] * cs + v[1] * sn < 0.0 {
+                -s
+            } else {
+                s
+            }
+        };
+        let accel = (signed(vb) - signed(va)) / span;
+        if accel.abs() > lim.max_accel {
+            note(Violation::Accel, t, accel, accel.abs() - lim.max_accel);
+        }
+        let (sa, sb) = (va[0].hypot(va[1]), vb[0].hypot(vb[1]));
+        if sa > lim.moving && sb > lim.moving {
+            let omega = wrap_angle(vb[1].atan2(vb[0]) - va[1].atan2(va[0])) / span;
+            let lateral = speed * omega;
+            if lateral.abs() > lim.max_lateral {
+                note(
+                    Violation::Swerve,
+                    t,
+                    lateral,
+                    lateral.abs() - lim.max_lateral,
+                );
+            }
+            let kappa = omega / speed.max(lim.moving);
+            if kappa.abs() > lim.max_curvature {
+                note(
+                    Violation::Curvature,
+                    t,
+                    kappa,
+                    kappa.abs() - lim.max_curvature,
+                );
+            }
+        }
+    }
+    judged.then(|| Judgement {
+        events: worst.into_iter().flatten().map(|(_, e)| e).collect(),
+    })
+}
+
+/// Every agent's judgement (see [`judge_agent`]), in scene order.
+pub fn judge(s: &Scene, lim: &KinematicLimits) -> Vec<Option<Judgement>> {
+    s.agents.iter().map(|a| judge_agent(s, a, lim)).collect()
+}
+
+/// Per agent, whether it commits `v` (`None` for agents not judged): for [`super::metrics::rate`].
+pub fn flags(judged: &[Option<Judgement>], v: Option<Violation>) -> Vec<Option<bool>> {
+    judged
+        .iter()
+        .map(|j| {
+            j.as_ref().map(|j| match v {
+                Some(v) => j.has(v),
+                None => !j.plausible(),
+            })
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::io::yaml;
+    use std::path::Path;
+
+    /// A straight three-lane road with the given agents (YAML flow mappings).
+    fn road(agents: &[&str]) -> Scene {
+        let mut text = String::from(
+            "steps: 51\ncurrent_step: 10\nroad: {lanes: 3, lane_width: 3.6, length: 800}\nagents:\n",
+        );
+        for a in agents {
+            text.push_str(&format!("  - {a}\n"));
+        }
+        yaml::parse(Path::new("kinematic.yaml"), &text).unwrap()
+    }
+
+    fn only(s: &Scene) -> Judgement {
+        judge(s, &KinematicLimits::default())[0].clone().unwrap()
+    }
+
+    /// Moves the agent's future by `f(seconds after the current step)`, headings kept.
+    fn shift(s: &mut Scene, f: impl Fn(f64) -> (f64, f64)) {
+        let (c, dt) = (s.meta.current_step, s.meta.dt);
+        for t in c + 1..s.agents[0].states.len() {
+            let (dx, dy) = f((t - c) as f64 * dt);
+            s.agents[0].states[t].x += dx;
+            s.agents[0].states[t].y += dy;
+        }
+    }
+
+    #[test]
+    fn steady_driving_and_a_lane_change_are_plausible() {
+        for a in [
+            "{id: 1, lane: 0, s: 50, speed: 25}",
+            "{id: 1, lane: 0, s: 50, speed: 15, lane_change: {to: 1, start: 0.5, duration: 3.0}}",
+            "{id: 1, lane: 1, s: 50, speed: 20, accel: -4}",
+            "{id: 1, lane: 1, s: 50, speed: 0}",
+        ] {
+            let j = only(&road(&[a]));
+            assert!(j.plausible(), "{a}: {:?}", j.events);
+        }
+    }
+
+    #[test]
+    fn a_reversing_car_is_flagged_and_named() {
+        let j = only(&road(&["{id: 1, lane: 0, s: 200, speed: -5}"]));
+        assert_eq!(
+            j.events.iter().map(|e| e.kind).collect::<Vec<_>>(),
+            vec![Violation::Reverse]
+        );
+        let e = j.events[0];
+        assert!((e.value + 5.0).abs() < 0.05, "{e:?}");
+        assert!(
+            e.to_string().starts_with("reverses at -5.0 m/s at t = "),
+            "{e}"
+        );
+        assert!(j.without(&[Violation::Reverse]).plausible());
+    }
+
+    #[test]
+    fn a_sprint_is_flagged_at_50_m_s_and_against_the_current_speed() {
+        let j = only(&road(&["{id: 1, lane: 0, s: 50, speed: 50}"]));
+        assert!(
+            j.has(Violation::Sprint) && !j.has(Violation::Accel),
+            "{:?}",
+            j.events
+        );
+        // 10 m/s now, 30 m/s two seconds later: beyond 1.6·10 + 8 and at 10 m/s².
+        let mut s = road(&["{id: 1, lane: 0, s: 50, speed: 10}"]);
+        shift(&mut s, |t| (5.0 * t * t, 0.0));
+        let j = only(&s);
+        assert!(
+            j.has(Violation::Sprint) && j.has(Violation::Accel),
+            "{:?}",
+            j.events
+        );
+        let a = j
+            .events
+            .iter()
+            .find(|e| e.kind == Violation::Accel)
+            .unwrap();
+        assert!((a.value - 10.0).abs() < 0.1, "{a:?}");
+    }
+
+    #[test]
+    fn crabbing_sideways_is_flagged_but_tracking_jitter_is_not() {
+        let mut s = road(&["{id: 1, lane: 0, s: 50, speed: 10}"]);
+        shift(&mut s, |t| (0.0, 8.0 * t));
+        let j = only(&s);
+        assert!(j.has(Violation::Crab), "{:?}", j.events);
+        // ±5 cm of 10 Hz noise on a car at 12 m/s: nothing.
+        let mut s = road(&["{id: 1, lane: 1, s: 50, speed: 12}"]);
+        shift(&mut s, |t| {
+            let k = (t * 10.0).round() as i64;
+            (
+                0.05 * ((k * 7) % 3 - 1) as f64,
+                0.05 * ((k * 5) % 3 - 1) as f64,
+            )
+        });
+        assert!(only(&s).plausible(), "{:?}", only(&s).events);
+    }
+
+    #[test]
+    fn a_swerve_is_flagged() {
+        // 1.8 m of lateral motion over 0.6 s at 20 m/s, and back: a slalom no car makes.
+        let mut s = road(&["{id: 1, lane: 1, s: 50, speed: 20}"]);
+        shift(&mut s, |t| {
+            (0.0, 1.8 * (std::f64::consts::TAU * t / 1.2).sin())
+        });
+        let j = only(&s);
+        assert!(j.has(Violation::Swerve), "{:?}", j.events);
+    }
+
+    #[test]
+    fn only_vehicles_with_a_long_enough_future_are_judged() {
+        let s = road(&[
+            "{id: 1, lane: 0, s: 50, speed: 10, type: pedestrian}",
+            "{id: 2, lane: 1, s: 50, speed: 10}",
+        ]);
+        let j = judge(&s, &KinematicLimits::default());
+        assert!(j[0].is_none() && j[1].is_some());
+        assert_eq!(
+            flags(&j, None),
+            vec![None, Some(false)],
+            "the pedestrian is not counted"
+        );
+    }
+}
