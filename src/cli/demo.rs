@@ -108,7 +108,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
         let verdict = check(behaviour, &s.scene, &chosen)?;
         println!(
             "sample {k}: {}: {}",
-            if verdict.passed { "PASS" } else { "fail" },
+            match (verdict.passed, verdict.achieved) {
+                (true, _) => "PASS",
+                (false, true) => "fail (achieved, implausibly)",
+                (false, false) => "fail",
+            },
             verdict.reason
         );
         let mut terms = Vec::new();
@@ -130,6 +134,8 @@ pub fn run(args: Args) -> Result<ExitCode> {
         report.push(serde_json::json!({
             "sample": k,
             "passed": verdict.passed,
+            "achieved": verdict.achieved,
+            "violations": verdict.violations,
             "reason": verdict.reason,
             "measured": verdict.measured,
             "total": total,

@@ -90,6 +90,7 @@ struct Acc {
     mmd_near: Vec<f64>,
     mmd_edge: Vec<f64>,
     passed: usize,
+    achieved: usize,
     checked: usize,
     /// Per judged vehicle of every sample: implausible at all, then per [`Violation::ALL`].
     implausible: Vec<Option<bool>>,
@@ -203,6 +204,7 @@ fn score(
                 Ok(v) => {
                     acc.checked += 1;
                     acc.passed += v.passed as usize;
+                    acc.achieved += v.achieved as usize;
                     row["verdict"] = json!(v);
                 }
                 Err(e) => row["error"] = json!(e.to_string()),
@@ -382,10 +384,8 @@ pub fn run(args: Args) -> Result<ExitCode> {
             println!("|---|---|---|---|---|---|---|");
         }
         Task::Behaviour => {
-            println!(
-                "| method | behaviour | scenes checked | success rate | implausible | ms/scene |"
-            );
-            println!("|---|---|---|---|---|---|");
+            println!("| method | behaviour | scenes checked | achieved plausibly | achieved | implausible | ms/scene |");
+            println!("|---|---|---|---|---|---|---|");
         }
     }
     for ((name, _), acc) in methods.iter().zip(&accs) {
@@ -437,15 +437,18 @@ pub fn run(args: Args) -> Result<ExitCode> {
             }
             Task::Behaviour => {
                 let b = behaviour.as_ref().expect("behaviour task").0;
-                let rate = (acc.checked > 0).then(|| acc.passed as f64 / acc.checked as f64);
+                let of = |n: usize| (acc.checked > 0).then(|| n as f64 / acc.checked as f64);
+                let (rate, achieved) = (of(acc.passed), of(acc.achieved));
                 println!(
-                    "| {name} | {} | {} | {} | {} | {ms:.1} |",
+                    "| {name} | {} | {} | {} | {} | {} | {ms:.1} |",
                     b.name(),
                     acc.checked,
                     fmt(rate, 2),
+                    fmt(achieved, 2),
                     fmt(implausible, 3)
                 );
-                json!({"method": name, "behaviour": b.name(), "definition": b.definition(), "checked": acc.checked, "success_rate": rate, "ms_per_scene": ms})
+                json!({"method": name, "behaviour": b.name(), "definition": b.definition(), "checked": acc.checked,
+                    "success_rate": rate, "achieved_rate": achieved, "ms_per_scene": ms})
             }
         };
         row["implausible_rate"] = json!(implausible);

@@ -6,6 +6,7 @@ use std::collections::BTreeMap;
 
 use serde::Serialize;
 
+use super::kinematic::{self, KinematicLimits, Violation};
 use crate::geom::{wrap_angle, Point};
 use crate::scene::{Agent, AgentType, LanePath, Scene, Turn};
 
@@ -130,8 +131,16 @@ impl Behavior {
 /// A checker's verdict.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Verdict {
-    /// Whether the behaviour happened.
+    /// Whether the behaviour happened plausibly: its geometric condition holds
+    /// (`achieved`), every agent the behaviour names drives as a car can
+    /// ([`super::kinematic`]; reversing allowed where the behaviour asks for it), and named
+    /// agents do not collide with each other (except in `accident`). The headline.
     pub passed: bool,
+    /// Whether the geometric condition alone holds.
+    pub achieved: bool,
+    /// Each named agent's implausible motion, or a collision between named agents, in words
+    /// (`victim 389 reverses at -9.3 m/s at t = 3.9 s`).
+    pub violations: Vec<String>,
     /// The quantities behind the verdict.
     pub measured: BTreeMap<String, f64>,
     /// Why, in words.
@@ -167,6 +176,8 @@ struct Ctx<'a> {
     s: &'a Scene,
     p: &'a CheckParams,
     m: BTreeMap<String, f64>,
+    /// The agents the behaviour names, with their roles.
+    named: Vec<(&'static str, &'a Agent)>,
 }
 
 impl<'a> Ctx<'a> {
@@ -181,7 +192,7 @@ impl<'a> Ctx<'a> {
         self.p.get(name).copied().unwrap_or(default)
     }
 
-    fn agent(&self, name: &'static str) -> Result<&'a Agent, CheckError> {
+    fn agent(&mut self, name: &'static str) -> Result<&'a Agent, CheckError> {
         let id = self.get(name)? as i64;
         let a = self.s.agent(id).ok_or_else(|| CheckError::Agent {
             behavior: self.b.name(),
@@ -192,6 +203,9 @@ impl<'a> Ctx<'a> {
                 behavior: self.b.name(),
                 message: format!("agent {id} ({name}) is not observed at the current step"),
             });
+        }
+        if !self.named.iter().any(|(_, n)| n.id == a.id) {
+            self.named.push((name, a));
         }
         Ok(a)
     }
@@ -211,11 +225,45 @@ impl<'a> Ctx<'a> {
         self.m.insert(k.to_string(), v);
     }
 
-    fn verdict(self, passed: bool, reason: impl Into<String>) -> Verdict {
+    /// The verdict: `achieved` is the geometric condition; the named agents' motion decides
+    /// whether it passes.
+    fn verdict(self, achieved: bool, reason: impl Into<String>) -> Verdict {
+        let mut violations = Vec::new();
+        let lim = KinematicLimits::default();
+        let allowed: &[Violation] = match self.b {
+            Behavior::Reverse => &[Violation::Reverse],
+            _ => &[],
+        };
+        for (role, a) in &self.named {
+            if let Some(j) = kinematic::judge_agent(self.s, a, &lim) {
+                for e in j.without(allowed).events {
+                    violations.push(format!("{role} {} {e}", a.id));
+                }
+            }
+        }
+        if self.b != Behavior::Accident {
+            for (i, (ra, a)) in self.named.iter().enumerate() {
+                for (rb, b) in &self.named[i + 1..] {
+                    if let Some(&t) = overlap_steps(self.s, a, b).first() {
+                        let at = (t - self.s.meta.current_step) as f64 * self.s.meta.dt;
+                        violations.push(format!(
+                            "{ra} {} collides with {rb} {} at t = {at:.1} s",
+                            a.id, b.id
+                        ));
+                    }
+                }
+            }
+        }
+        let mut reason = reason.into();
+        if achieved && !violations.is_empty() {
+            reason = format!("{reason}, but {}", violations.join("; "));
+        }
         Verdict {
-            passed,
+            passed: achieved && violations.is_empty(),
+            achieved,
+            violations,
             measured: self.m,
-            reason: reason.into(),
+            reason,
         }
     }
 }
@@ -271,6 +319,7 @@ pub fn check(
         s: scene,
         p: params,
         m: BTreeMap::new(),
+        named: Vec::new(),
     };
     let s = scene;
     let c = s.meta.current_step;

@@ -289,7 +289,17 @@ pub fn judge_agent(s: &Scene, a: &Agent, lim: &KinematicLimits) -> Option<Judgem
         }
         let (sa, sb) = (va[0].hypot(va[1]), vb[0].hypot(vb[1]));
         if sa > lim.moving && sb > lim.moving {
-            let omega = wrap_angle(vb[1].atan2(vb[0]) - va[1].atan2(va[0])) / span;
+            // The direction the car's nose travels: a car that goes from forwards to reverse
+            // along its axis does not turn.
+            let nose = |v: [f64; 2]| {
+                let d = v[1].atan2(v[0]);
+                if signed(v) < 0.0 {
+                    d + std::f64::consts::PI
+                } else {
+                    d
+                }
+            };
+            let omega = wrap_angle(nose(vb) - nose(va)) / span;
             let lateral = speed * omega;
             if lateral.abs() > lim.max_lateral {
                 note(

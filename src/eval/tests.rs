@@ -395,3 +395,67 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
         }
     }
 }
+
+#[test]
+fn a_behaviour_achieved_by_implausible_motion_does_not_pass() {
+    let p = params(&[("cutter", 2.0), ("victim", 1.0)]);
+    // The victim falls back by driving backwards at 10 m/s: still a cut-in in geometry.
+    let mut back = scene("highway_cut_in.yaml");
+    edit(&mut back, 1, |t| (-30.0 * t, 0.0));
+    let v = check(Behavior::CutIn, &back, &p).unwrap();
+    assert!(v.achieved && !v.passed, "{v:?}");
+    // Reversing, and the 30 m/s change of speed within a window that it takes.
+    assert_eq!(v.violations.len(), 2, "{v:?}");
+    assert!(
+        v.violations[0].starts_with("victim 1 reverses at -10.0 m/s"),
+        "{v:?}"
+    );
+    assert!(v.violations[1].starts_with("victim 1 brakes at"), "{v:?}");
+    assert!(v.reason.contains("but victim 1 reverses"), "{}", v.reason);
+    // The cutter sprints ahead at 54 m/s.
+    let mut sprint = scene("highway_cut_in.yaml");
+    edit(&mut sprint, 2, |t| (30.0 * t, 0.0));
+    let v = check(Behavior::CutIn, &sprint, &p).unwrap();
+    assert!(v.achieved && !v.passed, "{v:?}");
+    assert!(
+        v.violations
+            .iter()
+            .any(|s| s.starts_with("cutter 2 sprints")),
+        "{v:?}"
+    );
+    // The recorded cut-in is plausible and passes; so does a reverse that asks for reversing.
+    let v = check(Behavior::CutIn, &scene("highway_cut_in.yaml"), &p).unwrap();
+    assert!(v.achieved && v.passed && v.violations.is_empty(), "{v:?}");
+    let v = check(
+        Behavior::Reverse,
+        &scene("highway_stop.yaml"),
+        &params(&[("vehicle", 4.0)]),
+    )
+    .unwrap();
+    assert!(v.passed && v.violations.is_empty(), "{v:?}");
+}
+
+#[test]
+fn named_agents_that_collide_fail_every_behaviour_but_accident() {
+    let crash = scene("highway_crash.yaml");
+    let v = check(
+        Behavior::Follow,
+        &crash,
+        &params(&[("follower", 4.0), ("leader", 2.0), ("gap", 10.0)]),
+    )
+    .unwrap();
+    assert!(
+        v.violations
+            .iter()
+            .any(|s| s.contains("collides with leader 2")),
+        "{v:?}"
+    );
+    assert!(!v.passed);
+    let v = check(
+        Behavior::Accident,
+        &crash,
+        &params(&[("attacker", 4.0), ("target", 2.0)]),
+    )
+    .unwrap();
+    assert!(v.passed && v.violations.is_empty(), "{v:?}");
+}
