@@ -225,3 +225,56 @@ fn math_and_series_gradients() {
         check(&s, e);
     }
 }
+
+/// `hold(b)` keeps every value and removes b's coordinates from the gradient, in every kind
+/// of term that reads two agents; the same terms without it do move b.
+#[test]
+fn held_agents_get_no_gradient() {
+    let s = scene("commonroad/USA_US101-4_1_T-1.xml");
+    let (a, b) = pair(&s);
+    let bi = s.agents.iter().position(|x| x.id == b).unwrap();
+    let params = Params::parse(&[format!("A={a}"), format!("B={b}")]).unwrap();
+    let traj = Trajectories::filled(&s);
+    let b_vars: Vec<u32> = (0..traj.layout.steps)
+        .flat_map(|t| {
+            [
+                crate::cost::trajectory::Coord::X,
+                crate::cost::trajectory::Coord::Y,
+                crate::cost::trajectory::Coord::Heading,
+            ]
+            .map(|c| traj.layout.var(bi, t, c))
+        })
+        .collect();
+    let eval = |body: &str| {
+        let src = format!("let a = agent(A); let b = agent(B);\n{body}");
+        let script = CostScript::compile(&src, "hold", s.clone(), &params, &Limits::default())
+            .unwrap_or_else(|e| panic!("{body}: {e}"));
+        let r = script.evaluate(&traj).unwrap();
+        let t = r.terms[0].clone();
+        let on_b = t
+            .grad
+            .iter()
+            .filter(|(v, g)| b_vars.contains(v) && *g != 0.0)
+            .count();
+        (
+            t.value,
+            on_b,
+            t.grad.iter().any(|(v, g)| !b_vars.contains(v) && *g != 0.0),
+        )
+    };
+    for body in [
+        "let p = a.lane_path(); term(\"t\", square(gap(a, B_, p) - 5.0).sum());",
+        "term(\"t\", square(distance(a, B_) - 3.0).sum());",
+        "term(\"t\", relu(4.0 - clearance(a, B_)).sum());",
+        "term(\"t\", no_collision_cost([a, B_], 30.0));",
+        "let p = a.lane_path(); term(\"t\", square(B_.frenet(p).d).sum() + square(a.frenet(p).d).sum());",
+        "term(\"t\", square(B_.speed - a.speed).sum());",
+    ] {
+        let (v_free, on_b_free, _) = eval(&body.replace("B_", "b"));
+        let (v_held, on_b_held, on_a) = eval(&body.replace("B_", "hold(b)"));
+        assert_eq!(v_free, v_held, "{body}: holding changed the value");
+        assert!(on_b_free > 0, "{body}: the free term does not move b (the test cannot fail)");
+        assert_eq!(on_b_held, 0, "{body}: the held agent still gets gradient");
+        assert!(on_a, "{body}: the other agent lost its gradient");
+    }
+}

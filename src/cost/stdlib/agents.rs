@@ -15,24 +15,29 @@ const HEAD: usize = 3;
 const SPEED_EPS: f64 = 1e-3;
 
 /// A script's handle on an agent.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AgentRef {
     pub(crate) idx: usize,
     pub(crate) id: i64,
+    /// Held ([`hold`]): its series carry no gradient, so terms about it move only the other
+    /// agents.
+    pub(crate) held: bool,
 }
 
 /// The coordinate series of agent `a`: hidden history constants, then the candidate future.
 /// Headings are unwrapped so that differences are turn rates, not jumps of 2π.
-pub(crate) fn coord_series(shared: &Shared, a: usize, c: Coord) -> Series {
-    if let Some(s) = shared.borrow().coords.get(&(a, c as u8)) {
+pub(crate) fn coord_series(shared: &Shared, a: AgentRef, c: Coord) -> Series {
+    let key = (a.idx, c as u8 + if a.held { 3 } else { 0 });
+    if let Some(s) = shared.borrow().coords.get(&key) {
         return s.clone();
     }
     let s = build_coord_series(shared, a, c);
-    shared.borrow_mut().coords.insert((a, c as u8), s.clone());
+    shared.borrow_mut().coords.insert(key, s.clone());
     s
 }
 
-fn build_coord_series(shared: &Shared, a: usize, c: Coord) -> Series {
+fn build_coord_series(shared: &Shared, agent: AgentRef, c: Coord) -> Series {
+    let a = agent.idx;
     let ctx = shared.borrow();
     let scene = &ctx.scene;
     let cur = scene.meta.current_step;
@@ -61,7 +66,8 @@ fn build_coord_series(shared: &Shared, a: usize, c: Coord) -> Series {
     for t in 0..lay.steps {
         let (xyh, valid) = ctx.traj.state(a, t);
         let v = if valid { unwrap(xyh[c as usize]) } else { 0.0 };
-        b.push_row(v, valid, [(lay.var(a, t, c), 1.0)]);
+        let var = (!agent.held).then(|| (lay.var(a, t, c), 1.0));
+        b.push_row(v, valid, var);
     }
     b.build()
 }
@@ -71,7 +77,7 @@ fn lift<T>(r: Result<T, String>) -> RResult<T> {
 }
 
 /// Speed series (smoothly floored at [`SPEED_EPS`]).
-pub(crate) fn speed(shared: &Shared, a: usize) -> RResult<Series> {
+pub(crate) fn speed(shared: &Shared, a: AgentRef) -> RResult<Series> {
     let vx = coord_series(shared, a, Coord::X).deriv();
     let vy = coord_series(shared, a, Coord::Y).deriv();
     lift(vx.zip(&vy, "speed", |x, y| {
@@ -81,7 +87,7 @@ pub(crate) fn speed(shared: &Shared, a: usize) -> RResult<Series> {
 }
 
 /// Velocity along the heading (negative when reversing).
-fn long_speed(shared: &Shared, a: usize) -> RResult<Series> {
+fn long_speed(shared: &Shared, a: AgentRef) -> RResult<Series> {
     let vx = coord_series(shared, a, Coord::X).deriv();
     let vy = coord_series(shared, a, Coord::Y).deriv();
     let h = coord_series(shared, a, Coord::Heading);
@@ -120,7 +126,11 @@ fn history(shared: &Shared, a: usize, field: &str) -> RResult<Series> {
 pub(crate) fn lookup(shared: &Shared, id: i64) -> RResult<AgentRef> {
     let ctx = shared.borrow();
     match ctx.scene.agents.iter().position(|a| a.id == id) {
-        Some(idx) => Ok(AgentRef { idx, id }),
+        Some(idx) => Ok(AgentRef {
+            idx,
+            id,
+            held: false,
+        }),
         None => {
             let ids: Vec<String> = ctx
                 .scene
@@ -177,7 +187,13 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
             .agents
             .iter()
             .enumerate()
-            .map(|(idx, a)| Dynamic::from(AgentRef { idx, id: a.id }))
+            .map(|(idx, a)| {
+                Dynamic::from(AgentRef {
+                    idx,
+                    id: a.id,
+                    held: false,
+                })
+            })
             .collect::<Array>()
     });
     doc(
@@ -211,6 +227,14 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
         "The scene's ego / focal agent; an error when the format names none.",
     );
     let sh = shared.clone();
+    doc(
+        docs,
+        S,
+        "hold(a) -> Agent, a.held -> bool",
+        "The same agent held fixed: its series carry no gradient, so a term about it moves only the other agents (gap(a, hold(b), path) pushes a, never b back). Values are unchanged. Use it wherever a behaviour has one actor.",
+    );
+    e.register_fn("hold", |a: AgentRef| AgentRef { held: true, ..a });
+    e.register_get("held", |a: &mut AgentRef| a.held);
     e.register_fn("ego", move || {
         let ego = sh.borrow().scene.meta.ego;
         match ego {
@@ -243,25 +267,21 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
 
     doc(docs, S, "a.x, a.y, a.heading -> Series", "Position and heading over the future steps (heading unwrapped, so it is continuous); these carry the gradient.");
     let sh = shared.clone();
-    e.register_get("x", move |a: &mut AgentRef| {
-        coord_series(&sh, a.idx, Coord::X)
-    });
+    e.register_get("x", move |a: &mut AgentRef| coord_series(&sh, *a, Coord::X));
     let sh = shared.clone();
-    e.register_get("y", move |a: &mut AgentRef| {
-        coord_series(&sh, a.idx, Coord::Y)
-    });
+    e.register_get("y", move |a: &mut AgentRef| coord_series(&sh, *a, Coord::Y));
     let sh = shared.clone();
     e.register_get("heading", move |a: &mut AgentRef| {
-        coord_series(&sh, a.idx, Coord::Heading)
+        coord_series(&sh, *a, Coord::Heading)
     });
     doc(docs, S, "a.vx, a.vy -> Series", "Velocity components, m/s.");
     let sh = shared.clone();
     e.register_get("vx", move |a: &mut AgentRef| {
-        coord_series(&sh, a.idx, Coord::X).deriv()
+        coord_series(&sh, *a, Coord::X).deriv()
     });
     let sh = shared.clone();
     e.register_get("vy", move |a: &mut AgentRef| {
-        coord_series(&sh, a.idx, Coord::Y).deriv()
+        coord_series(&sh, *a, Coord::Y).deriv()
     });
     doc(
         docs,
@@ -270,7 +290,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
         "Speed, m/s (never below 0.001, so that it stays differentiable at rest).",
     );
     let sh = shared.clone();
-    e.register_get("speed", move |a: &mut AgentRef| speed(&sh, a.idx));
+    e.register_get("speed", move |a: &mut AgentRef| speed(&sh, *a));
     doc(
         docs,
         S,
@@ -278,7 +298,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
         "Velocity along the heading, m/s: negative when driving in reverse.",
     );
     let sh = shared.clone();
-    e.register_get("long_speed", move |a: &mut AgentRef| long_speed(&sh, a.idx));
+    e.register_get("long_speed", move |a: &mut AgentRef| long_speed(&sh, *a));
     doc(
         docs,
         S,
@@ -287,7 +307,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     );
     let sh = shared.clone();
     e.register_get("accel", move |a: &mut AgentRef| {
-        Ok::<_, Box<rhai::EvalAltResult>>(speed(&sh, a.idx)?.deriv())
+        Ok::<_, Box<rhai::EvalAltResult>>(speed(&sh, *a)?.deriv())
     });
     doc(
         docs,
@@ -297,7 +317,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     );
     let sh = shared.clone();
     e.register_get("jerk", move |a: &mut AgentRef| {
-        Ok::<_, Box<rhai::EvalAltResult>>(speed(&sh, a.idx)?.deriv().deriv())
+        Ok::<_, Box<rhai::EvalAltResult>>(speed(&sh, *a)?.deriv().deriv())
     });
     doc(
         docs,
@@ -307,7 +327,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     );
     let sh = shared.clone();
     e.register_get("yaw_rate", move |a: &mut AgentRef| {
-        coord_series(&sh, a.idx, Coord::Heading).deriv()
+        coord_series(&sh, *a, Coord::Heading).deriv()
     });
 
     doc(
@@ -361,6 +381,12 @@ fn of_type(shared: &Shared, t: AgentType) -> Array {
         .iter()
         .enumerate()
         .filter(|(_, a)| a.agent_type == t)
-        .map(|(idx, a)| Dynamic::from(AgentRef { idx, id: a.id }))
+        .map(|(idx, a)| {
+            Dynamic::from(AgentRef {
+                idx,
+                id: a.id,
+                held: false,
+            })
+        })
         .collect()
 }

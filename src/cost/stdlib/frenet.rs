@@ -138,7 +138,7 @@ fn agent_path(shared: &Shared, a: &AgentRef, ahead: f64) -> RResult<PathRef> {
 }
 
 /// Frenet series of agent `a` on `p`.
-pub(crate) fn frenet(shared: &Shared, a: usize, p: &PathRef) -> FrenetRef {
+pub(crate) fn frenet(shared: &Shared, a: AgentRef, p: &PathRef) -> FrenetRef {
     let xs = super::agents::coord_series(shared, a, Coord::X);
     let ys = super::agents::coord_series(shared, a, Coord::Y);
     let (x, y) = (&xs.0, &ys.0);
@@ -258,7 +258,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     );
     let sh = shared.clone();
     e.register_fn("frenet", move |a: &mut AgentRef, p: PathRef| {
-        frenet(&sh, a.idx, &p)
+        frenet(&sh, *a, &p)
     });
     doc(docs, S, "f.s -> Series, f.d -> Series", "Arc length along the path and lateral offset from its centre line (left positive), metres.");
     e.register_get("s", |f: &mut FrenetRef| f.s.clone());

@@ -21,8 +21,8 @@ fn lift<T>(r: Result<T, String>) -> RResult<T> {
 /// A series over the aligned steps of two agents from `f(state_a, state_b) -> Fwd<6>`.
 fn pair_series(
     shared: &Shared,
-    a: usize,
-    b: usize,
+    a: AgentRef,
+    b: AgentRef,
     f: impl Fn([f64; 3], [f64; 3]) -> Fwd<6>,
 ) -> Series {
     pair_series_opt(shared, a, b, |p, q| Some(f(p, q)))
@@ -32,8 +32,8 @@ fn pair_series(
 /// structure), which lets callers skip work for pairs that are far apart.
 fn pair_series_opt(
     shared: &Shared,
-    a: usize,
-    b: usize,
+    a: AgentRef,
+    b: AgentRef,
     f: impl Fn([f64; 3], [f64; 3]) -> Option<Fwd<6>>,
 ) -> Series {
     let sa = [Coord::X, Coord::Y, Coord::Heading].map(|c| coord_series(shared, a, c));
@@ -71,9 +71,9 @@ fn pair_series_opt(
     out.build()
 }
 
-fn sizes(shared: &Shared, a: usize, b: usize) -> ((f64, f64), (f64, f64)) {
+fn sizes(shared: &Shared, a: AgentRef, b: AgentRef) -> ((f64, f64), (f64, f64)) {
     let ctx = shared.borrow();
-    let (x, y) = (&ctx.scene.agents[a], &ctx.scene.agents[b]);
+    let (x, y) = (&ctx.scene.agents[a.idx], &ctx.scene.agents[b.idx]);
     ((x.length, x.width), (y.length, y.width))
 }
 
@@ -85,7 +85,7 @@ fn distinct(a: &AgentRef, b: &AgentRef, what: &str) -> RResult<()> {
 }
 
 /// Signed box clearance series of two agents.
-pub(crate) fn clearance(shared: &Shared, a: usize, b: usize) -> Series {
+pub(crate) fn clearance(shared: &Shared, a: AgentRef, b: AgentRef) -> Series {
     let (za, zb) = sizes(shared, a, b);
     pair_series(shared, a, b, move |p, q| box_clearance(p, za, q, zb))
 }
@@ -95,7 +95,7 @@ fn ttc(shared: &Shared, a: &AgentRef, b: &AgentRef, cap: f64) -> RResult<Series>
     if !(cap.is_finite() && cap > 0.0) {
         return err(format!("ttc: cap must be positive, got {cap}"));
     }
-    let c = clearance(shared, a.idx, b.idx);
+    let c = clearance(shared, *a, *b);
     let rate = c.deriv();
     lift(c.zip(&rate, "ttc", move |gap, dgap| {
         let closing = -dgap;
@@ -110,7 +110,10 @@ fn ttc(shared: &Shared, a: &AgentRef, b: &AgentRef, cap: f64) -> RResult<Series>
 }
 
 /// Σ over pairs and steps of relu(margin - clearance)², with a broad phase on centre distance.
-pub(crate) fn no_collision_cost(shared: &Shared, agents: &[usize], margin: f64) -> Dual {
+/// `agents` are indices with their held flags: a held agent's coordinates get no gradient.
+pub(crate) fn no_collision_cost(shared: &Shared, list: &[(usize, bool)], margin: f64) -> Dual {
+    let agents: Vec<usize> = list.iter().map(|a| a.0).collect();
+    let free: Vec<f64> = list.iter().map(|a| if a.1 { 0.0 } else { 1.0 }).collect();
     let ctx = shared.borrow();
     let lay = ctx.traj.layout;
     let reach: Vec<f64> = agents
@@ -139,10 +142,11 @@ pub(crate) fn no_collision_cost(shared: &Shared, agents: &[usize], margin: f64) 
                 }
                 val += short * short;
                 let k = -2.0 * short;
+                let (ki, kj) = (k * free[ii], k * free[jj]);
                 let mut row = [(0u32, 0.0); 6];
                 for (s, coord) in [Coord::X, Coord::Y, Coord::Heading].into_iter().enumerate() {
-                    row[s] = (lay.var(i, t, coord), k * c.g[s]);
-                    row[3 + s] = (lay.var(j, t, coord), k * c.g[3 + s]);
+                    row[s] = (lay.var(i, t, coord), ki * c.g[s]);
+                    row[3 + s] = (lay.var(j, t, coord), kj * c.g[3 + s]);
                 }
                 rows.push(row);
             }
@@ -171,7 +175,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
         "gap",
         move |a: AgentRef, b: AgentRef, p: PathRef| -> RResult<Series> {
             distinct(&a, &b, "gap")?;
-            let (fa, fb) = (frenet(&sh, a.idx, &p), frenet(&sh, b.idx, &p));
+            let (fa, fb) = (frenet(&sh, a, &p), frenet(&sh, b, &p));
             let half = {
                 let ctx = sh.borrow();
                 0.5 * (ctx.scene.agents[a.idx].length + ctx.scene.agents[b.idx].length)
@@ -192,7 +196,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
         "distance",
         move |a: AgentRef, b: AgentRef| -> RResult<Series> {
             distinct(&a, &b, "distance")?;
-            Ok(pair_series(&sh, a.idx, b.idx, |p, q| {
+            Ok(pair_series(&sh, a, b, |p, q| {
                 let dx = Fwd::<6>::var(q[0], 3) - Fwd::var(p[0], 0);
                 let dy = Fwd::<6>::var(q[1], 4) - Fwd::var(p[1], 1);
                 (dx * dx + dy * dy).sqrt()
@@ -205,7 +209,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
         "clearance",
         move |a: AgentRef, b: AgentRef| -> RResult<Series> {
             distinct(&a, &b, "clearance")?;
-            Ok(clearance(&sh, a.idx, b.idx))
+            Ok(clearance(&sh, a, b))
         },
     );
     doc(docs, S, "ttc(a, b) or ttc(a, b, cap) -> Series", "Time until the boxes touch at the current closing rate of their clearance, seconds: 0 when overlapping, cap (10 s by default) when not closing in.");
@@ -229,11 +233,11 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
         move |a: AgentRef, b: AgentRef, m: Dynamic| -> RResult<Series> {
             distinct(&a, &b, "collision_penalty")?;
             let m = number(&m, "collision_penalty margin")?;
-            let (za, zb) = sizes(&sh, a.idx, b.idx);
+            let (za, zb) = sizes(&sh, a, b);
             // Boxes whose centres are farther apart than their half-diagonals plus the margin
             // cannot come within the margin: skip the exact clearance there.
             let near = 0.5 * za.0.hypot(za.1) + 0.5 * zb.0.hypot(zb.1) + m;
-            Ok(pair_series_opt(&sh, a.idx, b.idx, move |p, q| {
+            Ok(pair_series_opt(&sh, a, b, move |p, q| {
                 if (p[0] - q[0]).hypot(p[1] - q[1]) > near {
                     return None;
                 }
@@ -255,7 +259,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
             let mut idx = Vec::with_capacity(list.len());
             for (k, v) in list.iter().enumerate() {
                 match v.clone().try_cast::<AgentRef>() {
-                    Some(a) => idx.push(a.idx),
+                    Some(a) => idx.push((a.idx, a.held)),
                     None => {
                         return err(format!(
                             "no_collision_cost: element {k} is a {}, not an Agent",
@@ -264,8 +268,15 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
                     }
                 }
             }
+            // An agent listed both held and free is free.
             idx.sort_unstable();
-            idx.dedup();
+            idx.dedup_by(|later, first| {
+                let same = later.0 == first.0;
+                if same {
+                    first.1 &= later.1;
+                }
+                same
+            });
             if idx.len() < 2 {
                 return err("no_collision_cost needs at least two distinct agents");
             }

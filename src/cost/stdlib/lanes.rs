@@ -40,7 +40,7 @@ enum BoxPoint {
 const CORNERS: [(f64, f64); 4] = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)];
 
 /// Signed road-edge distance of one point of the agent's box, per step.
-fn edge_series(shared: &Shared, a: usize, point: BoxPoint) -> RResult<Series> {
+fn edge_series(shared: &Shared, a: AgentRef, point: BoxPoint) -> RResult<Series> {
     let xs = coord_series(shared, a, Coord::X);
     let ys = coord_series(shared, a, Coord::Y);
     let hs = coord_series(shared, a, Coord::Heading);
@@ -49,7 +49,7 @@ fn edge_series(shared: &Shared, a: usize, point: BoxPoint) -> RResult<Series> {
     if map.road_edges().is_empty() {
         return err("the map has no road edges");
     }
-    let agent = &ctx.scene.agents[a];
+    let agent = &ctx.scene.agents[a.idx];
     let (hl, hw) = (0.5 * agent.length, 0.5 * agent.width);
     let (x, y, h) = (&xs.0, &ys.0, &hs.0);
     let mut b = Builder::new(x.val.len(), x.head, x.dt, x.time0);
@@ -254,12 +254,12 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     doc(docs, R, "a.edge_distance -> Series", "Signed distance from the agent's centre to the nearest road edge, metres: negative on the road.");
     let sh = shared.clone();
     e.register_get("edge_distance", move |a: &mut AgentRef| {
-        edge_series(&sh, a.idx, BoxPoint::Centre)
+        edge_series(&sh, *a, BoxPoint::Centre)
     });
     doc(docs, R, "a.box_edge_distance -> Series", "The same for the agent's box corner farthest off the road (positive as soon as any corner is off).");
     let sh = shared.clone();
     e.register_get("box_edge_distance", move |a: &mut AgentRef| {
-        edge_series(&sh, a.idx, BoxPoint::Farthest)
+        edge_series(&sh, *a, BoxPoint::Farthest)
     });
     doc(docs, R, "a.corner_edge_distance(i) -> Series", "The same for one corner of the box: 0 rear right, 1 front right, 2 front left, 3 rear left. Summing a penalty over the four corners is smooth where two corners are equally far off (a car parallel to the edge), which the farthest corner is not: there its gradient turns the car, pushing the other corner out.");
     let sh = shared.clone();
@@ -267,7 +267,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
         "corner_edge_distance",
         move |a: &mut AgentRef, i: i64| -> RResult<Series> {
             match usize::try_from(i).ok().filter(|&i| i < 4) {
-                Some(i) => edge_series(&sh, a.idx, BoxPoint::Corner(i)),
+                Some(i) => edge_series(&sh, *a, BoxPoint::Corner(i)),
                 None => err(format!(
                     "corner_edge_distance: corner {i} is not 0, 1, 2 or 3"
                 )),
@@ -280,7 +280,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
         "on_road",
         move |a: &mut AgentRef, k: Dynamic| -> RResult<Series> {
             let k = number(&k, "on_road k")?;
-            let d = edge_series(&sh, a.idx, BoxPoint::Farthest)?;
+            let d = edge_series(&sh, *a, BoxPoint::Farthest)?;
             d.map("on_road", |v| {
                 let s = 1.0 / (1.0 + (k * v).exp());
                 Some((s, -k * s * (1.0 - s)))
