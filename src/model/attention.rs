@@ -7,7 +7,7 @@
 use candle_core::{Module, Result, Tensor, D};
 use candle_nn::{embedding, Embedding, VarBuilder};
 
-use super::ops::{linear, linear_no_bias, softmax_last_dim, Linear};
+use super::ops::{linear, linear_no_bias, matmul, softmax_last_dim, Linear};
 
 /// Number of lane-pair connectivity kinds: none, predecessor, successor, left, right.
 pub const CONNECTIONS: usize = 5;
@@ -128,11 +128,9 @@ impl RelAttention {
         // d×d products per pair and the [B, N, M, d] broadcasts by batched matrix products:
         // about 3x faster training on NGSIM windows.
         let qw = q.broadcast_matmul(self.rk2.weight())?; // [B, N, d]
-        let qh = hk
-            .reshape((b * n, m, d))?
-            .matmul(&qw.reshape((b * n, d, 1))?)?
-            .reshape((b, n, m))?;
-        let s = ((q.matmul(&k.t()?)? + qh)? / (d as f64).sqrt())?;
+        let qh =
+            matmul(&hk.reshape((b * n, m, d))?, &qw.reshape((b * n, d, 1))?)?.reshape((b, n, m))?;
+        let s = ((matmul(&q, &k.t()?)? + qh)? / (d as f64).sqrt())?;
         // Absent keys get a large negative score and zero weight afterwards, so a row with no
         // key at all reads nothing.
         let keep = mask.unsqueeze(1)?; // [B, 1, M]
@@ -142,11 +140,9 @@ impl RelAttention {
             self.rv2.weight(),
             self.rv2.bias().expect("linear has a bias"),
         );
-        let ah = a
-            .reshape((b * n, 1, m))?
-            .matmul(&hv.reshape((b * n, m, d))?)?
-            .reshape((b, n, d))?;
-        let out = ((a.matmul(&v)? + ah.broadcast_matmul(&wv.t()?)?)?
+        let ah =
+            matmul(&a.reshape((b * n, 1, m))?, &hv.reshape((b * n, m, d))?)?.reshape((b, n, d))?;
+        let out = ((matmul(&a, &v)? + ah.broadcast_matmul(&wv.t()?)?)?
             + a.sum_keepdim(D::Minus1)?.broadcast_mul(cv)?)?;
         self.finish(xq, &out)
     }

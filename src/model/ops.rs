@@ -6,6 +6,7 @@
 //! initial zeros). The operations here run one fused CPU kernel forward and give their exact
 //! gradient backward; `tests` in `model::gradients` keep every parameter and input honest.
 
+use candle_core::backend::BackendStorage;
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, Layout, Module, Result, Shape, Tensor, D};
 use candle_nn::VarBuilder;
 use rayon::prelude::*;
@@ -72,6 +73,64 @@ impl CustomOp1 for SoftmaxLastDim {
     fn bwd(&self, _arg: &Tensor, res: &Tensor, grad_res: &Tensor) -> Result<Option<Tensor>> {
         let dot = (grad_res * res)?.sum_keepdim(D::Minus1)?;
         Ok(Some(grad_res.broadcast_sub(&dot)?.mul(res)?))
+    }
+}
+
+/// Batched matrix product `a·b` (`[..., m, k]·[..., k, n]`, equal leading dimensions) whose
+/// backward pass computes only the gradients that something upstream needs. candle's own
+/// product always computes both: with constant weights and scene features (guidance through
+/// the denoiser), half of the backward pass was products nobody read, among them the largest
+/// (the per-pair agent-lane features).
+pub fn matmul(a: &Tensor, b: &Tensor) -> Result<Tensor> {
+    a.apply_op2(b, MatMul)
+}
+
+struct MatMul;
+
+impl CustomOp2 for MatMul {
+    fn name(&self) -> &'static str {
+        "drivescript-matmul"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (a, b) = (l1.dims(), l2.dims());
+        let r = a.len();
+        if r < 2 || b.len() != r || a[..r - 2] != b[..r - 2] || a[r - 1] != b[r - 2] {
+            candle_core::bail!("matmul: shapes {a:?} and {b:?} do not multiply");
+        }
+        let (m, k, n) = (a[r - 2], a[r - 1], b[r - 1]);
+        let batch: usize = a[..r - 2].iter().product();
+        let out = s1.matmul(s2, (batch, m, n, k), l1, l2)?;
+        let mut dims = a[..r - 2].to_vec();
+        dims.extend([m, n]);
+        Ok((out, Shape::from_dims(&dims)))
+    }
+
+    fn bwd(
+        &self,
+        a: &Tensor,
+        b: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let r = a.rank();
+        let ga = if a.track_op() {
+            Some(matmul(grad, &b.transpose(r - 2, r - 1)?)?)
+        } else {
+            None
+        };
+        let gb = if b.track_op() {
+            Some(matmul(&a.transpose(r - 2, r - 1)?, grad)?)
+        } else {
+            None
+        };
+        Ok((ga, gb))
     }
 }
 
@@ -200,6 +259,46 @@ mod tests {
     use super::*;
     use candle_core::{DType, Device, Var};
     use candle_nn::VarMap;
+
+    #[test]
+    fn matmul_matches_candle_and_skips_constant_operands() {
+        let dev = Device::Cpu;
+        let a = Var::from_tensor(&Tensor::randn(0f64, 1.0, (2, 3, 4, 5), &dev).unwrap()).unwrap();
+        let b = Var::from_tensor(&Tensor::randn(0f64, 1.0, (2, 3, 6, 5), &dev).unwrap()).unwrap();
+        let w = Tensor::randn(0f64, 1.0, (2, 3, 4, 6), &dev).unwrap();
+        let bt = b.as_tensor().transpose(2, 3).unwrap();
+        let ours = matmul(a.as_tensor(), &bt).unwrap();
+        let theirs = a.as_tensor().matmul(&bt).unwrap();
+        let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f64>().unwrap();
+        assert_eq!(flat(&ours), flat(&theirs));
+        let g1 = (&ours * &w).unwrap().sum_all().unwrap().backward().unwrap();
+        let g2 = (&theirs * &w)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap();
+        for v in [&a, &b] {
+            let (x, y) = (
+                flat(g1.get(v.as_tensor()).unwrap()),
+                flat(g2.get(v.as_tensor()).unwrap()),
+            );
+            let diff = x
+                .iter()
+                .zip(&y)
+                .fold(0f64, |m, (p, q)| m.max((p - q).abs()));
+            assert!(diff < 1e-12, "{diff}");
+        }
+        // A constant right operand: only the left gradient is computed.
+        let c = b.as_tensor().detach().transpose(2, 3).unwrap();
+        let g = (matmul(a.as_tensor(), &c).unwrap() * &w)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap();
+        assert!(g.get(a.as_tensor()).is_some() && g.get(&c).is_none());
+    }
 
     #[test]
     fn linear_matches_candle_nn_forward_and_backward() {
