@@ -13,6 +13,7 @@ use candle_nn::{VarBuilder, VarMap};
 use crate::io::{load_scene, LoadOptions};
 use crate::model::{Denoiser, Pca};
 use crate::scene::Scene;
+use crate::train::dataset::residual_futures;
 use crate::train::rng::Rng;
 use crate::train::trainer::{loss, tiny_config};
 use crate::train::{build, train, windows, Batch, Normaliser, TrainConfig, Window};
@@ -32,14 +33,7 @@ fn batch(cfg: &TrainConfig, norm: Option<&Normaliser>) -> (Batch, Normaliser) {
         .flat_map(|s| windows(s, &cfg.window))
         .collect();
     let norm = norm.cloned().unwrap_or_else(|| {
-        let futures: Vec<Vec<f64>> = w
-            .iter()
-            .flat_map(|w| {
-                (0..w.agents.len())
-                    .filter_map(|k| w.agent_residual(&cfg.window, k))
-                    .collect::<Vec<_>>()
-            })
-            .collect();
+        let futures = residual_futures(&w, &cfg.window);
         Normaliser::new(Pca::fit(&futures, cfg.model.k).unwrap(), cfg.edm.sigma_data)
     });
     // Windows from different scenes, one rotated, so that every lane connectivity kind and

@@ -338,6 +338,17 @@ mod tests {
         }
     }
 
+    fn max_diff(a: &Tensor, b: &Tensor) -> f64 {
+        (a - b)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .max_all()
+            .unwrap()
+            .to_scalar::<f64>()
+            .unwrap()
+    }
+
     #[test]
     fn softmax_matches_the_composed_formula_forward_and_backward() {
         let dev = Device::Cpu;
@@ -351,14 +362,7 @@ mod tests {
         let w = Tensor::randn(0f64, 1.0, (3, 4, 7), &dev).unwrap();
         let fused = softmax_last_dim(x.as_tensor()).unwrap();
         let composed = candle_nn::ops::softmax(x.as_tensor(), D::Minus1).unwrap();
-        let diff = (&fused - &composed)
-            .unwrap()
-            .abs()
-            .unwrap()
-            .max_all()
-            .unwrap()
-            .to_scalar::<f64>()
-            .unwrap();
+        let diff = max_diff(&fused, &composed);
         assert!(diff < 1e-12, "forward differs by {diff}");
         let g1 = (fused * &w).unwrap().sum_all().unwrap().backward().unwrap();
         let g2 = (composed * &w)
@@ -371,14 +375,7 @@ mod tests {
             g1.get(x.as_tensor()).unwrap(),
             g2.get(x.as_tensor()).unwrap(),
         );
-        let diff = (a - b)
-            .unwrap()
-            .abs()
-            .unwrap()
-            .max_all()
-            .unwrap()
-            .to_scalar::<f64>()
-            .unwrap();
+        let diff = max_diff(a, b);
         assert!(diff < 1e-12, "backward differs by {diff}");
         let norm = a
             .sqr()

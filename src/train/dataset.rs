@@ -309,6 +309,15 @@ impl Window {
     }
 }
 
+/// Every complete agent future of `windows` as a residual to its constant-velocity anchor
+/// ([`Window::agent_residual`]): what the PCA basis is fitted on.
+pub fn residual_futures(windows: &[Window], cfg: &WindowConfig) -> Vec<Vec<f64>> {
+    windows
+        .iter()
+        .flat_map(|w| (0..w.agents.len()).filter_map(|k| w.agent_residual(cfg, k)))
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

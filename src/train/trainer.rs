@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 
 use super::adamw::AdamW;
 use super::batch::{build, Normaliser};
-use super::dataset::{windows, Window, WindowConfig};
+use super::dataset::{residual_futures, windows, Window, WindowConfig};
 use super::rng::Rng;
 use crate::model::{Denoiser, DenoiserConfig, Edm, Pca};
 use crate::scene::Scene;
@@ -320,14 +320,7 @@ pub fn train_from(
             cfg.window.steps()
         )));
     }
-    let futures: Vec<Vec<f64>> = train_w
-        .iter()
-        .flat_map(|w| {
-            (0..w.agents.len())
-                .filter_map(|k| w.agent_residual(&cfg.window, k))
-                .collect::<Vec<_>>()
-        })
-        .collect();
+    let futures = residual_futures(&train_w, &cfg.window);
     cfg.model.history = cfg.window.history;
     let (varmap, model, norm, pca_rmse_m, prior, opt) = match resume {
         Some(r) => {
