@@ -27,20 +27,13 @@ class Weights:
         return y
 
     def norm(self, name, x):
-        w, b = self.t[name + ".weight"], self.t[name + ".bias"]
+        # Gain-only norms (`ln_k`, `ln_r`) have no bias tensor.
+        w, b = self.t[name + ".weight"], self.t.get(name + ".bias")
         return F.layer_norm(x, (x.shape[-1],), w, b, 1e-5)
 
 
-def rel_attention(w, p, xq, xk, rel, mask, conn=None):
-    """src/model/attention.rs, RelAttention::forward (the factored form).
-
-    Checkpoints from before the softmax fix also hold `k.bias` and `rk2.bias`; both add the
-    same amount to every score of a row, which the softmax ignores, so they are not read.
-    """
-    hq = w.norm(p + ".ln1", xq)
-    q = w.linear(p + ".q", hq)
-    k = w.linear(p + ".k", xk, bias=False)
-    v = w.linear(p + ".v", xk)
+def pairs(w, p, rel, scores, conn=None):
+    """RelAttention::pairs: the key and value pair features, computed once per scene."""
     hk = w.linear(p + ".rk1", rel)
     hv = w.linear(p + ".rv1", rel)
     if conn is not None:
@@ -48,8 +41,30 @@ def rel_attention(w, p, xq, xk, rel, mask, conn=None):
         hk = hk + e
         hv = hv + e
     hk, hv = torch.relu(hk), torch.relu(hv)
+    if scores == "normalised":
+        hk = w.norm(p + ".ln_r", hk @ w.t[p + ".rk2.weight"].T)
+    return hk, hv
+
+
+def rel_attention(w, p, xq, xk, pair, mask, scores):
+    """src/model/attention.rs, RelAttention::forward (the factored form).
+
+    Checkpoints from before the softmax fix also hold `k.bias` and `rk2.bias`; both add the
+    same amount to every score of a row, which the softmax ignores, so they are not read.
+    """
+    hq = w.norm(p + ".ln1", xq)
+    if scores == "normalised":
+        hk_in = w.norm(p + ".ln_kv", xk)
+        q = w.norm(p + ".ln_q", w.linear(p + ".q", hq))
+        k = w.norm(p + ".ln_k", w.linear(p + ".k", hk_in, bias=False))
+        v = w.linear(p + ".v", hk_in)
+    else:
+        q = w.linear(p + ".q", hq)
+        k = w.linear(p + ".k", xk, bias=False)
+        v = w.linear(p + ".v", xk)
+    hk, hv = pair
     b, n, m, d = hk.shape
-    qw = q @ w.t[p + ".rk2.weight"]
+    qw = q if scores == "normalised" else q @ w.t[p + ".rk2.weight"]
     qh = (hk.reshape(b * n, m, d) @ qw.reshape(b * n, d, 1)).reshape(b, n, m)
     s = (q @ k.transpose(1, 2) + qh) / math.sqrt(d)
     keep = mask.unsqueeze(1)
@@ -70,17 +85,27 @@ class Denoiser:
         cfg = self.meta["config"]
         self.model = cfg["model"]
         self.edm = cfg["edm"]
+        # A config without `scores` predates the normalised form (DenoiserConfig::scores).
+        self.scores = self.model.get("scores", "raw")
         self.w = Weights(load_file(os.path.join(checkpoint, "model.safetensors")))
 
     def encode_map(self, ctx):
-        w = self.w
+        """Denoiser::encode_scene: the lanes after lane-lane attention and every layer's
+        agent-lane and agent-agent pair features."""
+        w, sc = self.w, self.scores
         h = torch.relu(w.linear("lanes.l1", ctx["lane_points"]))
         h = torch.relu(w.linear("lanes.l2", h))
         x = w.linear("lanes.l3", h.max(dim=-2).values)
         for i in range(self.model["layers"]):
-            x = rel_attention(w, f"lane_lane{i}", x, x, ctx["lane_rel"], ctx["lane_mask"],
-                              ctx["lane_conn"])
-        return x
+            p = f"lane_lane{i}"
+            pair = pairs(w, p, ctx["lane_rel"], sc, ctx["lane_conn"])
+            x = rel_attention(w, p, x, x, pair, ctx["lane_mask"], sc)
+        layers = range(self.model["layers"])
+        return {
+            "lanes": x,
+            "agent_lane": [pairs(w, f"agent_lane{i}", ctx["agent_lane_rel"], sc) for i in layers],
+            "agent_agent": [pairs(w, f"agent_agent{i}", ctx["agent_rel"], sc) for i in layers],
+        }
 
     def precondition(self, sigma):
         sd2 = self.edm["sigma_data"] ** 2
@@ -98,9 +123,12 @@ class Denoiser:
         noise = torch.cat([z.sin(), z.cos()]).expand(b, n, -1)
         feats = torch.cat([ctx["agent_hist"], x * c_in, noise], dim=2)
         a = w.linear("agents.l2", torch.relu(w.linear("agents.l1", feats)))
+        sc = self.scores
         for i in range(self.model["layers"]):
-            a = rel_attention(w, f"agent_lane{i}", a, enc, ctx["agent_lane_rel"], ctx["lane_mask"])
-            a = rel_attention(w, f"agent_agent{i}", a, a, ctx["agent_rel"], ctx["agent_mask"])
+            a = rel_attention(w, f"agent_lane{i}", a, enc["lanes"], enc["agent_lane"][i],
+                              ctx["lane_mask"], sc)
+            a = rel_attention(w, f"agent_agent{i}", a, a, enc["agent_agent"][i],
+                              ctx["agent_mask"], sc)
         f = w.linear("head2", torch.relu(w.linear("head1", a)))
         return x * c_skip + f * c_out
 

@@ -292,7 +292,7 @@ fn peak_rss_mib() -> Option<f64> {
 
 fn bench_sample(args: &Args) -> Result<ExitCode> {
     use drivescript::cost::{CostScript, Limits, Params};
-    use drivescript::model::{DenoiserConfig, Edm};
+    use drivescript::model::{DenoiserConfig, Edm, Scores};
     use drivescript::sample::{prepare, reference_run, sample, Guidance, SampleConfig, Task};
     use drivescript::train::{load, train, TrainConfig, WindowConfig};
     use std::rc::Rc;
@@ -358,6 +358,7 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
                 k: 12,
                 history: 11,
                 noise_freqs: 8,
+                scores: Scores::Normalised,
             },
             edm: Edm::default(),
             eval_every: usize::MAX,

@@ -7,7 +7,7 @@ use candle_core::{Module, Result, Tensor};
 use candle_nn::VarBuilder;
 use serde::{Deserialize, Serialize};
 
-use super::attention::{Pairs, RelAttention};
+use super::attention::{Pairs, RelAttention, Scores};
 use super::edm::Edm;
 use super::encoder::{noise_features, AgentEncoder, MiniPointNet};
 use super::ops::{linear, Linear};
@@ -25,6 +25,10 @@ pub struct DenoiserConfig {
     pub history: usize,
     /// Fourier frequencies of the noise embedding.
     pub noise_freqs: usize,
+    /// How attention scores are formed; configs written before this field existed mean
+    /// [`Scores::Raw`].
+    #[serde(default)]
+    pub scores: Scores,
 }
 
 /// Tensors describing the map and the agents of a batch of windows (see `train::batch`).
@@ -102,7 +106,7 @@ impl Denoiser {
         let d = cfg.d;
         let stack = |name: &str, conn: bool| -> Result<Vec<RelAttention>> {
             (0..cfg.layers)
-                .map(|i| RelAttention::new(d, conn, vb.pp(format!("{name}{i}"))))
+                .map(|i| RelAttention::new(d, cfg.scores, conn, vb.pp(format!("{name}{i}"))))
                 .collect()
         };
         Ok(Self {

@@ -11,7 +11,7 @@ use candle_core::{DType, Device, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
 
 use crate::io::{load_scene, LoadOptions};
-use crate::model::{Denoiser, Pca};
+use crate::model::{Denoiser, Pca, Scores};
 use crate::scene::Scene;
 use crate::train::dataset::residual_futures;
 use crate::train::rng::Rng;
@@ -123,9 +123,17 @@ fn f64_model(cfg: &TrainConfig) -> Denoiser {
 
 #[test]
 fn the_input_gradient_matches_central_finite_differences_in_f64() {
-    let cfg = tiny_config(1, 3, 1);
-    let model = f64_model(&cfg);
-    let (b, _) = batch(&cfg, None);
+    // Both forms of the scores: checkpoints of either kind guide samples.
+    for scores in [Scores::Normalised, Scores::Raw] {
+        let mut cfg = tiny_config(1, 3, 1);
+        cfg.model.scores = scores;
+        input_gradient_matches_finite_differences(&cfg);
+    }
+}
+
+fn input_gradient_matches_finite_differences(cfg: &TrainConfig) {
+    let model = f64_model(cfg);
+    let (b, _) = batch(cfg, None);
     let ctx = b.ctx.to_dtype(DType::F64).unwrap();
     let map = model.encode_scene(&ctx).unwrap();
     let dims = b.target.dims3().unwrap();
@@ -167,7 +175,8 @@ fn the_input_gradient_matches_central_finite_differences_in_f64() {
         }
         assert!(
             worst.0 <= 1e-6 * scale.max(1.0),
-            "σ = {sigma}: input {} has analytic gradient {} but finite differences disagree by {} (largest gradient {scale})",
+            "{:?}, σ = {sigma}: input {} has analytic gradient {} but finite differences disagree by {} (largest gradient {scale})",
+            cfg.model.scores,
             worst.1,
             analytic[worst.1],
             worst.0

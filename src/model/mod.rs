@@ -10,6 +10,7 @@ mod gradients;
 pub mod ops;
 pub mod pca;
 
+pub use attention::Scores;
 pub use denoiser::{Context, Denoiser, DenoiserConfig, SceneEncoding};
 pub use edm::Edm;
 pub use pca::{Pca, PcaError};

@@ -11,7 +11,7 @@ use super::adamw::AdamW;
 use super::batch::{build, Normaliser};
 use super::dataset::{residual_futures, windows, Window, WindowConfig};
 use super::rng::Rng;
-use crate::model::{Denoiser, DenoiserConfig, Edm, Pca};
+use crate::model::{Denoiser, DenoiserConfig, Edm, Pca, Scores};
 use crate::scene::Scene;
 
 /// Everything a training run is configured by.
@@ -55,6 +55,7 @@ impl TrainConfig {
                 k: 12,
                 history: window.history,
                 noise_freqs: 8,
+                scores: Scores::Normalised,
             },
             edm: Edm::default(),
             eval_every: 100,
@@ -134,8 +135,9 @@ pub enum TrainError {
 }
 
 /// Overwrites every variable with seeded values: candle's own initialisers are not seedable.
-/// Weights ~ N(0, 1/fan_in), embeddings ~ N(0, 1/d), layer-norm gains 1, biases 0, the
-/// output layer 0.
+/// Weights ~ N(0, 1/fan_in), embeddings ~ N(0, 1/d), layer-norm gains 1 (norms are named
+/// `ln…`; a gain left at 0 would silence its block, which the every-parameter test catches),
+/// biases 0, the output layer 0.
 fn seeded_init(varmap: &VarMap, rng: &mut Rng) -> candle_core::Result<()> {
     let data = varmap
         .data()
@@ -543,6 +545,7 @@ pub(crate) fn tiny_config(steps: usize, seed: u64, eval_every: usize) -> TrainCo
             k: 6,
             history: window.history,
             noise_freqs: 4,
+            scores: Scores::Normalised,
         },
         edm: Edm::default(),
         eval_every,
