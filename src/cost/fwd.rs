@@ -264,8 +264,10 @@ fn mean<const N: usize>(v: &[Fwd<N>]) -> Fwd<N> {
 ///
 /// The active feature (the nearest vertex-edge pair, or the axis of least overlap) is found in
 /// plain floating point and only it is differentiated, which keeps this cheap enough to call
-/// for every pair of agents at every step. Ties are averaged (the smallest subgradient), so
-/// that exactly aligned boxes are not pushed one way by the order of the corners.
+/// for every pair of agents at every step. Ties between axes and corners are averaged (the
+/// smallest subgradient), so that aligned boxes are not pushed one way by the order of the
+/// corners; overlapping boxes whose centres are aligned get a non-zero derivative all the same
+/// (see the code), because a zero one would leave them stacked.
 pub fn box_clearance(a: [f64; 3], sa: (f64, f64), b: [f64; 3], sb: (f64, f64)) -> Fwd<6> {
     let (fa, axa) = corners_f64(a, sa.0, sa.1);
     let (fb, axb) = corners_f64(b, sb.0, sb.1);
@@ -301,23 +303,49 @@ pub fn box_clearance(a: [f64; 3], sa: (f64, f64), b: [f64; 3], sb: (f64, f64)) -
     if overlaps.iter().all(|o| *o > 0.0) {
         let depth = overlaps.iter().copied().fold(f64::INFINITY, f64::min);
         let fwd_axes = [ua[0], ua[1], ub[0], ub[1]];
+        // The overlap along `axis` from either side: (a's far end − b's near end, and the other
+        // way round); the penetration depth along it is the smaller.
+        let sides = |axis: V2<6>| {
+            let p = |cs: &[V2<6>; 4]| {
+                let v: Vec<Fwd<6>> = cs.iter().map(|c| c.dot(axis)).collect();
+                (
+                    v.iter().copied().reduce(Fwd::min).expect("4"),
+                    v.iter().copied().reduce(Fwd::max).expect("4"),
+                )
+            };
+            let ((alo, ahi), (blo, bhi)) = (p(&ca), p(&cb));
+            (ahi - blo, bhi - alo)
+        };
         let tied: Vec<Fwd<6>> = overlaps
             .iter()
             .zip(fwd_axes)
             .filter(|(o, _)| near(**o, depth))
-            .map(|(_, axis)| {
-                let p = |cs: &[V2<6>; 4]| {
-                    let v: Vec<Fwd<6>> = cs.iter().map(|c| c.dot(axis)).collect();
-                    (
-                        v.iter().copied().reduce(Fwd::min).expect("4"),
-                        v.iter().copied().reduce(Fwd::max).expect("4"),
-                    )
-                };
-                let ((alo, ahi), (blo, bhi)) = (p(&ca), p(&cb));
-                (ahi - blo).min(bhi - alo)
+            .filter_map(|(_, axis)| {
+                let (f1, f2) = sides(axis);
+                (!f1.ties(f2)).then(|| f1.min(f2))
             })
             .collect();
-        return -mean(&tied);
+        if !tied.is_empty() {
+            return -mean(&tied);
+        }
+        // The centres are aligned on every axis of least overlap (two cars stacked in one
+        // lane): there the depth's smallest subgradient is 0, and guidance could never separate
+        // them. The value stays the depth, but the derivative is that of the least overlap
+        // along an axis where the centres differ (along the lane for cars in one lane), or, for
+        // boxes exactly on top of each other, of moving a back and b forward along a's heading.
+        let alt = overlaps
+            .iter()
+            .zip(fwd_axes)
+            .filter_map(|(o, axis)| {
+                let (f1, f2) = sides(axis);
+                (!f1.ties(f2)).then(|| (*o, f1.min(f2)))
+            })
+            .min_by(|x, y| x.0.total_cmp(&y.0))
+            .map_or_else(|| sides(ua[0]).0, |(_, f)| f);
+        return Fwd {
+            v: -depth,
+            g: (-alt).g,
+        };
     }
     // Apart: the nearest vertex-edge pair, found in f64, differentiated alone.
     let mut cand: Vec<(f64, bool, usize, usize)> = Vec::with_capacity(32);
@@ -350,6 +378,28 @@ pub fn box_clearance(a: [f64; 3], sa: (f64, f64), b: [f64; 3], sb: (f64, f64)) -
 mod tests {
     use super::*;
     use crate::geom::OrientedBox;
+
+    #[test]
+    fn overlapping_aligned_boxes_are_pushed_apart() {
+        let s = (4.5, 1.8);
+        // One car 1 m behind another in the same lane: the least overlap is sideways (1.8 m
+        // against 3.5 m), where the centres are aligned. The push is along the lane: a back,
+        // b forward, nothing sideways.
+        let c = box_clearance([0.0, 0.0, 0.0], s, [1.0, 0.0, 0.0], s);
+        assert!((c.v + 1.8).abs() < 1e-12, "{}", c.v);
+        assert!(c.g[0] < -0.5 && c.g[3] > 0.5, "{:?}", c.g);
+        assert!(c.g[1].abs() < 1e-12 && c.g[4].abs() < 1e-12, "{:?}", c.g);
+        // b behind a: the other way round.
+        let c = box_clearance([0.0, 0.0, 0.0], s, [-1.0, 0.0, 0.0], s);
+        assert!(c.g[0] > 0.5 && c.g[3] < -0.5, "{:?}", c.g);
+        // Side by side, overlapping by 0.8 m, centres level: pushed sideways apart.
+        let c = box_clearance([0.0, 0.0, 0.0], s, [0.0, 1.0, 0.0], s);
+        assert!((c.v + 0.8).abs() < 1e-12, "{}", c.v);
+        assert!(c.g[1] < -0.5 && c.g[4] > 0.5, "{:?}", c.g);
+        // Exactly on top of each other: still a push.
+        let c = box_clearance([2.0, 3.0, 0.4], s, [2.0, 3.0, 0.4], s);
+        assert!(c.g.iter().any(|g| g.abs() > 0.5), "{:?}", c.g);
+    }
 
     #[test]
     fn clearance_matches_box_distance_and_finite_differences() {
