@@ -110,6 +110,10 @@ pub struct Expect {
     /// Against the gradient, this agent moves (summed over its future) along this direction.
     #[serde(default)]
     pub towards: Option<Towards>,
+    /// These agents get no gradient at all: the terms leave them where they are (an agent
+    /// held with `hold`, say, that no other term is about).
+    #[serde(default)]
+    pub still: Vec<i64>,
     /// Compiling, validating or evaluating fails with a message containing this.
     #[serde(default)]
     pub error: Option<String>,
@@ -422,6 +426,21 @@ impl Runner {
                     tw.agent, tw.direction
                 ),
             );
+        }
+        for id in &x.still {
+            let a = scene
+                .agents
+                .iter()
+                .position(|z| z.id == *id)
+                .ok_or(format!("still: no agent {id}"))?;
+            let n = traj.layout.steps;
+            let moved = report.gradient[a * n * 3..(a + 1) * n * 3]
+                .iter()
+                .map(|g| g * g)
+                .sum::<f64>()
+                .sqrt();
+            detail.push(format!("gradient on agent {id}: {moved:.3e}"));
+            fail(moved == 0.0, format!("agent {id} gets no gradient"));
         }
         let ok = failed.is_empty();
         detail.extend(failed);
