@@ -70,13 +70,13 @@ pub fn cut_in(
         total += v;
         add_xy(&mut g, traj, cutter, last, fa[last].d.signum(), fa[last].dd);
     }
-    // ends_ahead = relu(gap - (s_a - s_b - (la + lb) / 2))
+    // ends_ahead = relu(gap - (s_a - s_b - (la + lb) / 2)); the victim is held here and in
+    // no_contact, so only the cutter's coordinates get gradient.
     let half = 0.5 * (scene.agents[cutter].length + scene.agents[victim].length);
     let v = gap - (fa[last].s - fb[last].s - half);
     if v > 0.0 {
         total += v;
         add_xy(&mut g, traj, cutter, last, -1.0, fa[last].ds);
-        add_xy(&mut g, traj, victim, last, 1.0, fb[last].ds);
     }
     // no_contact = 5 · Σ relu(0.5 - clearance)²
     let (za, zb) = (
@@ -90,7 +90,6 @@ pub fn cut_in(
             total += 5.0 * short * short;
             for (s, coord) in [Coord::X, Coord::Y, Coord::Heading].into_iter().enumerate() {
                 g[traj.layout.var(cutter, k, coord) as usize] += -10.0 * short * c.g[s];
-                g[traj.layout.var(victim, k, coord) as usize] += -10.0 * short * c.g[3 + s];
             }
         }
     }

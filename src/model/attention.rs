@@ -12,7 +12,7 @@ use candle_core::{Module, Result, Tensor, D};
 use candle_nn::{embedding, Embedding, VarBuilder};
 use serde::{Deserialize, Serialize};
 
-use super::ops::{linear, linear_no_bias, matmul, softmax_last_dim, Linear};
+use super::ops::{layer_norm, linear, linear_no_bias, matmul, softmax_last_dim, Linear};
 
 /// Number of lane-pair connectivity kinds: none, predecessor, successor, left, right.
 pub const CONNECTIONS: usize = 5;
@@ -33,9 +33,9 @@ pub enum Scores {
     Normalised,
 }
 
-/// Layer normalisation built from differentiable tensor ops. candle-nn's `LayerNorm` module
-/// runs a fused kernel without a backward pass (`apply_op3_no_bwd`), which silently stops
-/// gradients at every normalisation; training through it barely learns.
+/// Layer normalisation with a backward pass ([`layer_norm`]). candle-nn's `LayerNorm` module
+/// runs a fused kernel without one (`apply_op3_no_bwd`), which silently stops gradients at
+/// every normalisation; training through it barely learns.
 #[derive(Debug, Clone)]
 pub struct Norm {
     weight: Tensor,
@@ -65,7 +65,7 @@ impl Norm {
 
 impl Module for Norm {
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        candle_nn::ops::layer_norm_slow(x, &self.weight, &self.bias, 1e-5)
+        layer_norm(x, &self.weight, &self.bias, 1e-5)
     }
 }
 

@@ -7,7 +7,9 @@
 //! gradient backward; `tests` in `model::gradients` keep every parameter and input honest.
 
 use candle_core::backend::BackendStorage;
-use candle_core::{CpuStorage, CustomOp1, CustomOp2, Layout, Module, Result, Shape, Tensor, D};
+use candle_core::{
+    CpuStorage, CustomOp1, CustomOp2, CustomOp3, DType, Layout, Module, Result, Shape, Tensor, D,
+};
 use candle_nn::VarBuilder;
 use rayon::prelude::*;
 
@@ -254,11 +256,263 @@ impl CustomOp2 for AddBias {
     }
 }
 
+/// Layer normalisation over the last dimension, `(x − mean) / √(var + eps) · w + b` (biased
+/// variance, as candle-nn's `layer_norm_slow` and PyTorch), in one pass forward and one
+/// backward. Built from tensor ops it took a dozen passes each way over the per-pair features
+/// of the normalised attention scores, most of a training step.
+pub fn layer_norm(x: &Tensor, w: &Tensor, b: &Tensor, eps: f64) -> Result<Tensor> {
+    x.contiguous()?
+        .apply_op3(&w.contiguous()?, &b.contiguous()?, LayerNorm { eps })
+}
+
+struct LayerNorm {
+    eps: f64,
+}
+
+/// Rows handed to one rayon task.
+const NORM_ROWS: usize = 64;
+
+fn contiguous<'a, T>(s: &'a [T], l: &Layout, what: &str) -> Result<&'a [T]> {
+    match l.contiguous_offsets() {
+        Some((a, b)) => Ok(&s[a..b]),
+        None => candle_core::bail!("layer norm: {what} has to be contiguous"),
+    }
+}
+
+fn norm_fwd<T: candle_core::WithDType + num_traits::Float + Send + Sync>(
+    x: &[T],
+    w: &[T],
+    b: &[T],
+    eps: f64,
+) -> Vec<T> {
+    let d = w.len().max(1);
+    let eps = T::from(eps).expect("eps fits");
+    let n = T::from(d).expect("width fits");
+    let mut y = vec![T::zero(); x.len()];
+    let row = |(xr, yr): (&[T], &mut [T])| {
+        let mean = xr.iter().fold(T::zero(), |a, &v| a + v) / n;
+        let var = xr
+            .iter()
+            .fold(T::zero(), |a, &v| a + (v - mean) * (v - mean))
+            / n;
+        let rstd = T::one() / (var + eps).sqrt();
+        for i in 0..xr.len() {
+            yr[i] = (xr[i] - mean) * rstd * w[i] + b[i];
+        }
+    };
+    if x.len() >= 1 << 14 {
+        x.par_chunks(d).zip(y.par_chunks_mut(d)).for_each(row);
+    } else {
+        x.chunks(d).zip(y.chunks_mut(d)).for_each(row);
+    }
+    y
+}
+
+/// `∂L/∂x`, and `∂L/∂w`, `∂L/∂b` where wanted, of [`layer_norm`] for upstream gradient `g`.
+#[allow(clippy::type_complexity)]
+fn norm_bwd<T: candle_core::WithDType + num_traits::Float + Send + Sync>(
+    x: &[T],
+    w: &[T],
+    g: &[T],
+    eps: f64,
+) -> (Vec<T>, Vec<T>, Vec<T>) {
+    let d = w.len().max(1);
+    let eps = T::from(eps).expect("eps fits");
+    let n = T::from(d).expect("width fits");
+    let mut dx = vec![T::zero(); x.len()];
+    let chunk = |((xc, gc), dxc): ((&[T], &[T]), &mut [T])| {
+        let (mut dw, mut db) = (vec![T::zero(); d], vec![T::zero(); d]);
+        let mut xhat = vec![T::zero(); d];
+        for ((xr, gr), dxr) in xc.chunks(d).zip(gc.chunks(d)).zip(dxc.chunks_mut(d)) {
+            let mean = xr.iter().fold(T::zero(), |a, &v| a + v) / n;
+            let var = xr
+                .iter()
+                .fold(T::zero(), |a, &v| a + (v - mean) * (v - mean))
+                / n;
+            let rstd = T::one() / (var + eps).sqrt();
+            let (mut m1, mut m2) = (T::zero(), T::zero());
+            for i in 0..d {
+                xhat[i] = (xr[i] - mean) * rstd;
+                let gw = gr[i] * w[i];
+                m1 = m1 + gw;
+                m2 = m2 + gw * xhat[i];
+                dw[i] = dw[i] + gr[i] * xhat[i];
+                db[i] = db[i] + gr[i];
+            }
+            let (m1, m2) = (m1 / n, m2 / n);
+            for i in 0..d {
+                dxr[i] = rstd * (gr[i] * w[i] - m1 - xhat[i] * m2);
+            }
+        }
+        (dw, db)
+    };
+    let add = |(mut w1, mut b1): (Vec<T>, Vec<T>), (w2, b2): (Vec<T>, Vec<T>)| {
+        for i in 0..w1.len() {
+            w1[i] = w1[i] + w2[i];
+            b1[i] = b1[i] + b2[i];
+        }
+        (w1, b1)
+    };
+    let zero = || (vec![T::zero(); d], vec![T::zero(); d]);
+    let rows = d * NORM_ROWS;
+    let (dw, db) = if x.len() >= 1 << 14 {
+        x.par_chunks(rows)
+            .zip(g.par_chunks(rows))
+            .zip(dx.par_chunks_mut(rows))
+            .map(chunk)
+            .reduce(zero, add)
+    } else {
+        x.chunks(rows)
+            .zip(g.chunks(rows))
+            .zip(dx.chunks_mut(rows))
+            .map(chunk)
+            .fold(zero(), add)
+    };
+    (dx, dw, db)
+}
+
+impl CustomOp3 for LayerNorm {
+    fn name(&self) -> &'static str {
+        "drivescript-layer-norm"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+        s3: &CpuStorage,
+        l3: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let d = *l1.dims().last().unwrap_or(&0);
+        if l2.dims() != [d] || l3.dims() != [d] {
+            candle_core::bail!(
+                "layer norm: input {:?} with gain {:?} and bias {:?}",
+                l1.dims(),
+                l2.dims(),
+                l3.dims()
+            );
+        }
+        let shape = Shape::from_dims(l1.dims());
+        let out = match (s1, s2, s3) {
+            (CpuStorage::F32(x), CpuStorage::F32(w), CpuStorage::F32(b)) => {
+                CpuStorage::F32(norm_fwd(
+                    contiguous(x, l1, "input")?,
+                    contiguous(w, l2, "gain")?,
+                    contiguous(b, l3, "bias")?,
+                    self.eps,
+                ))
+            }
+            (CpuStorage::F64(x), CpuStorage::F64(w), CpuStorage::F64(b)) => {
+                CpuStorage::F64(norm_fwd(
+                    contiguous(x, l1, "input")?,
+                    contiguous(w, l2, "gain")?,
+                    contiguous(b, l3, "bias")?,
+                    self.eps,
+                ))
+            }
+            _ => candle_core::bail!("layer norm: only f32 and f64 of one type are supported"),
+        };
+        Ok((out, shape))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        w: &Tensor,
+        b: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let shape = x.shape().clone();
+        let d = w.dims1()?;
+        macro_rules! run {
+            ($t:ty) => {{
+                let (dx, dw, db) = norm_bwd::<$t>(
+                    &x.flatten_all()?.to_vec1::<$t>()?,
+                    &w.to_vec1::<$t>()?,
+                    &grad.contiguous()?.flatten_all()?.to_vec1::<$t>()?,
+                    self.eps,
+                );
+                (
+                    Tensor::from_vec(dx, shape, x.device())?,
+                    Tensor::from_vec(dw, d, x.device())?,
+                    Tensor::from_vec(db, d, x.device())?,
+                )
+            }};
+        }
+        let (dx, dw, db) = match x.dtype() {
+            DType::F32 => run!(f32),
+            DType::F64 => run!(f64),
+            t => candle_core::bail!("layer norm: {t:?} is not supported"),
+        };
+        Ok((
+            x.track_op().then_some(dx),
+            w.track_op().then_some(dw),
+            b.track_op().then_some(db),
+        ))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use candle_core::{DType, Device, Var};
     use candle_nn::VarMap;
+
+    #[test]
+    fn layer_norm_matches_the_op_by_op_form_and_its_gradients() {
+        let dev = Device::Cpu;
+        // Large enough for the parallel path (≥ 2^14 elements) and a small one.
+        for shape in [vec![2usize, 3, 5, 8], vec![4, 40, 30, 16]] {
+            let d = shape[shape.len() - 1];
+            let x = Var::from_tensor(&Tensor::randn(0.5f64, 2.0, shape.as_slice(), &dev).unwrap())
+                .unwrap();
+            let w = Var::from_tensor(&Tensor::randn(1f64, 0.3, d, &dev).unwrap()).unwrap();
+            let b = Var::from_tensor(&Tensor::randn(0f64, 0.3, d, &dev).unwrap()).unwrap();
+            let up = Tensor::randn(0f64, 1.0, shape.as_slice(), &dev).unwrap();
+            let ours = layer_norm(x.as_tensor(), w.as_tensor(), b.as_tensor(), 1e-5).unwrap();
+            let theirs =
+                candle_nn::ops::layer_norm_slow(x.as_tensor(), w.as_tensor(), b.as_tensor(), 1e-5)
+                    .unwrap();
+            assert!(max_diff(&ours, &theirs) < 1e-12, "{shape:?}");
+            let g1 = (&ours * &up)
+                .unwrap()
+                .sum_all()
+                .unwrap()
+                .backward()
+                .unwrap();
+            let g2 = (&theirs * &up)
+                .unwrap()
+                .sum_all()
+                .unwrap()
+                .backward()
+                .unwrap();
+            for v in [&x, &w, &b] {
+                let (p, q) = (
+                    g1.get(v.as_tensor()).unwrap(),
+                    g2.get(v.as_tensor()).unwrap(),
+                );
+                assert!(max_diff(p, q) < 1e-9, "{shape:?}: {}", max_diff(p, q));
+            }
+        }
+        // Constant gain and bias (the frozen model): only the input's gradient is computed.
+        let x = Var::from_tensor(&Tensor::randn(0f64, 1.0, (3, 8), &dev).unwrap()).unwrap();
+        let (w, b) = (
+            Tensor::ones(8, DType::F64, &dev).unwrap(),
+            Tensor::zeros(8, DType::F64, &dev).unwrap(),
+        );
+        let g = layer_norm(x.as_tensor(), &w, &b, 1e-5)
+            .unwrap()
+            .sqr()
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap();
+        assert!(g.get(x.as_tensor()).is_some() && g.get(&w).is_none() && g.get(&b).is_none());
+    }
 
     #[test]
     fn matmul_matches_candle_and_skips_constant_operands() {
