@@ -745,3 +745,40 @@ fn train_then_simulate_end_to_end() {
     ));
     assert!(err.contains("config.json"), "{err}");
 }
+
+#[test]
+fn simulate_says_what_it_does_not_sample() {
+    // The AV2 sample records 6 s after its current step and holds pedestrians and other
+    // objects, which the NGSIM model has never seen (their motion is checked in
+    // sample::guided's tests).
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("av2/scenario_0a1e6f0a-1817-4a98-b02e-db8c9327d151.parquet");
+    for (task, what) in [
+        ("unconditional", "keep their current velocity"),
+        ("conditional", "follow their log"),
+    ] {
+        let out_dir = dir.path().join(task);
+        let out = ok(&simulate_args(
+            s(&scene),
+            "data/checkpoint",
+            &["--task", task, "--steps", "4"],
+            s(&out_dir),
+        ));
+        assert!(
+            out.contains("samples 4.0 s (40 steps)")
+                && out.contains("records 6.0 s (60 steps): the rest is not simulated"),
+            "{out}"
+        );
+        assert!(
+            out.contains(&format!("are not sampled: they {what}"))
+                && out.contains("pedestrian 139397")
+                && out.contains("8 agents in 1 scene were not sampled"),
+            "{out}"
+        );
+        assert_eq!(
+            out.matches("note: the model has seen only vehicles")
+                .count(),
+            1
+        );
+    }
+}

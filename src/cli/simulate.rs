@@ -10,7 +10,8 @@ use drivescript::eval::behaviors::{suggest, Behavior, ALL};
 use drivescript::io::{discover, load_scenes, rollout::Rollout, LoadOptions};
 use drivescript::render::RenderOptions;
 use drivescript::sample::{
-    closed_loop, prepare, sample, Clamp, Guidance, LambdaSchedule, SampleConfig, ScriptSpec, Task,
+    closed_loop, horizon_note, prepare, sample, Clamp, Guidance, LambdaSchedule, SampleConfig,
+    ScriptSpec, Task,
 };
 use drivescript::train::load;
 
@@ -166,10 +167,20 @@ pub fn run(args: Args) -> Result<ExitCode> {
     for s in &args.scenes {
         sources.extend(discover(s)?);
     }
+    // Said once per run: which recording lengths differ from the model's horizon, and that
+    // agents of types the model never saw are not sampled.
+    let horizons = std::cell::RefCell::new(std::collections::BTreeSet::new());
+    let fixed_total = std::cell::RefCell::new((0usize, 0usize));
     // One scene's failure (a script error on its agents, say) is reported and the others go
     // on; the exit code says that something failed.
     let run_one = |raw: &drivescript::scene::Scene| -> Result<bool> {
         let id = raw.meta.scenario_id.clone();
+        if let Some(note) = horizon_note(raw, &trained) {
+            let recorded = raw.num_steps() - raw.meta.current_step;
+            if horizons.borrow_mut().insert(recorded) {
+                println!("note: {note} (said once per recording length)");
+            }
+        }
         // Suggested agents first, so that explicit --param values override them.
         let mut kv: Vec<String> = Vec::new();
         if let Some(b) = auto {
@@ -214,6 +225,27 @@ pub fn run(args: Args) -> Result<ExitCode> {
             sample(&trained, &scene, &scripts, &cfg)?
         };
         let secs = t0.elapsed().as_secs_f64();
+        if let Some(s) = samples.first().filter(|s| !s.fixed.is_empty()) {
+            let mut total = fixed_total.borrow_mut();
+            if total.0 == 0 {
+                println!(
+                    "note: the model has seen only vehicles, so pedestrians, cyclists and other \
+                     objects are not sampled: they {} (said once per run; {id}: {})",
+                    if cfg.task == Task::Conditional {
+                        "follow their log"
+                    } else {
+                        "keep their current velocity"
+                    },
+                    s.fixed
+                        .iter()
+                        .map(|(a, t)| format!("{} {a}", t.name()))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                );
+            }
+            total.0 += s.fixed.len();
+            total.1 += 1;
+        }
         let mut report = Vec::new();
         for (k, s) in samples.iter().enumerate() {
             let mut r = Rollout::from_scene(&s.scene);
@@ -274,6 +306,15 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
     if skipped > 0 {
         println!("{skipped} scenes skipped (no agents suited to the behaviour)");
+    }
+    let (agents, scenes) = fixed_total.into_inner();
+    if agents > 0 {
+        let plural = |n: usize, what: &str| format!("{n} {what}{}", if n == 1 { "" } else { "s" });
+        println!(
+            "{} in {} were not sampled (types the model never saw)",
+            plural(agents, "agent"),
+            plural(scenes, "scene")
+        );
     }
     println!("wrote {}", args.output.display());
     if failed > 0 {

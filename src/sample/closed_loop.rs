@@ -41,6 +41,7 @@ pub fn closed_loop(
         let mut state = start.clone();
         let mut done = 0;
         let mut first_reports: Option<Vec<crate::cost::CostReport>> = None;
+        let mut fixed = Vec::new();
         let mut round = 0u64;
         while done < future {
             // The scene as seen from the round's current step, with the model's full horizon.
@@ -78,6 +79,7 @@ pub fn closed_loop(
             round += 1;
             if first_reports.is_none() {
                 first_reports = Some(s.initial_reports.clone());
+                fixed = s.fixed.clone();
             }
         }
         // Score the executed trajectory over the whole horizon, as seen from the start.
@@ -99,6 +101,7 @@ pub fn closed_loop(
             scene: state,
             initial_reports: first_reports.take().unwrap_or_default(),
             reports,
+            fixed,
         });
     }
     Ok(out)

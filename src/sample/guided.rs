@@ -10,9 +10,9 @@
 use candle_core::{Device, Tensor, Var};
 
 use crate::cost::{CostError, CostReport, CostScript, Trajectories};
-use crate::scene::{AgentState, Scene};
+use crate::scene::{AgentId, AgentState, AgentType, Scene};
 use crate::train::dataset::add_anchor;
-use crate::train::{build, window_at, Trained, Window};
+use crate::train::{build, window_among, Trained, Window};
 
 /// What the sampler is conditioned on.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -142,6 +142,41 @@ pub fn prepare(scene: &Scene, trained: &Trained) -> Result<Scene, SampleError> {
         .map_err(|e| SampleError::Scene(e.to_string()))
 }
 
+/// Whether the model samples agents of this type: its training data (NGSIM) holds only
+/// vehicles, so pedestrians, cyclists and other objects are not moved by it; they follow their
+/// log in the conditional task and keep their current velocity otherwise
+/// ([`Sample::fixed`]), and the model does not see them.
+pub fn modelled_type(t: AgentType) -> bool {
+    t == AgentType::Vehicle
+}
+
+/// What a run samples against what `scene` records after its current step, when they differ:
+/// the model's horizon is fixed (`trained`'s window), so a longer recording is simulated only
+/// in part and a shorter one leaves steps with nothing to compare with. `None` when they match.
+pub fn horizon_note(scene: &Scene, trained: &Trained) -> Option<String> {
+    let model = trained.meta.config.window.future;
+    let c = scene.meta.current_step;
+    let recorded = (c + 1..scene.num_steps())
+        .rev()
+        .find(|&t| scene.agents.iter().any(|a| a.states[t].valid))
+        .map_or(0, |t| t - c);
+    let secs = |n: usize| n as f64 * scene.meta.dt;
+    let what = if recorded > model {
+        "the rest is not simulated"
+    } else if recorded < model {
+        "the steps past the recording have no log to compare with"
+    } else {
+        return None;
+    };
+    Some(format!(
+        "the model samples {:.1} s ({model} steps) after the current step; {} records {:.1} s \
+         ({recorded} steps): {what}",
+        secs(model),
+        scene.meta.scenario_id,
+        secs(recorded)
+    ))
+}
+
 /// One sample's outcome.
 #[derive(Debug, Clone)]
 pub struct Sample {
@@ -152,6 +187,10 @@ pub struct Sample {
     pub initial_reports: Vec<CostReport>,
     /// The cost scripts' report on the final trajectories, per script.
     pub reports: Vec<CostReport>,
+    /// Agents observed at the current step that the model does not move
+    /// ([`modelled_type`]): they followed their log (conditional task) or kept their current
+    /// velocity (unconditional).
+    pub fixed: Vec<(AgentId, AgentType)>,
 }
 
 struct Plan<'a> {
@@ -167,6 +206,8 @@ struct Plan<'a> {
     /// (they appear later in the recording) have no future, rather than their recorded one,
     /// which the simulator must not know.
     base: Trajectories,
+    /// Agents of types the model does not move ([`Sample::fixed`]).
+    fixed: Vec<(AgentId, AgentType)>,
 }
 
 /// A heading that [`Plan::align_headings`] set from the motion between two states: a
@@ -233,7 +274,8 @@ fn tile(
     c: usize,
     centre: usize,
 ) -> (Vec<Window>, Vec<Slot>, Vec<Vec<(usize, usize)>>) {
-    let observed = |i: usize| scene.agents[i].is_valid(c);
+    let observed =
+        |i: usize| scene.agents[i].is_valid(c) && modelled_type(scene.agents[i].agent_type);
     let pose = |i: usize| {
         let s = scene.agents[i].states[c];
         [s.x, s.y, s.heading]
@@ -249,7 +291,9 @@ fn tile(
     let mut order = Vec::new();
     let mut next = Some(centre);
     while let Some(ci) = next {
-        let w = window_at(scene, wcfg, c, ci);
+        let w = window_among(scene, wcfg, c, ci, &|i| {
+            modelled_type(scene.agents[i].agent_type)
+        });
         let wi = windows.len();
         for (slot, &ai) in w.agents.iter().enumerate() {
             if !observed(ai) {
@@ -474,19 +518,51 @@ fn setup<'a>(
         .meta
         .ego
         .and_then(|e| scene.agents.iter().position(|a| a.id == e))
-        .filter(|&i| scene.agents[i].is_valid(c))
-        .or_else(|| scene.agents.iter().position(|a| a.is_valid(c)))
-        .ok_or_else(|| SampleError::Scene("no agent is observed at the current step".into()))?;
+        .filter(|&i| scene.agents[i].is_valid(c) && modelled_type(scene.agents[i].agent_type))
+        .or_else(|| {
+            scene
+                .agents
+                .iter()
+                .position(|a| a.is_valid(c) && modelled_type(a.agent_type))
+        })
+        .ok_or_else(|| {
+            SampleError::Scene(
+                "no vehicle is observed at the current step: the model has nothing to simulate"
+                    .into(),
+            )
+        })?;
     let (windows, slots, copies) = tile(scene, &wcfg, c, centre);
     let mut base = Trajectories::filled(scene);
     let mut modelled = vec![false; scene.agents.len()];
     for sl in &slots {
         modelled[sl.agent] = true;
     }
+    let n = base.layout.steps;
+    let mut fixed = Vec::new();
     for (ai, m) in modelled.iter().enumerate() {
-        if !m {
-            let n = base.layout.steps;
+        let agent = &scene.agents[ai];
+        if *m {
+            continue;
+        }
+        if !agent.is_valid(c) {
             base.valid[ai * n..(ai + 1) * n].fill(false);
+            continue;
+        }
+        // A type the model never saw: its log where recorded (conditional), or its current
+        // velocity (unconditional: the future is not known).
+        fixed.push((agent.id, agent.agent_type));
+        let s = agent.states[c];
+        for k in 0..n {
+            let i = ai * n + k;
+            if cfg.task == Task::Conditional {
+                let r = agent.states[c + 1 + k];
+                base.xyh[i] = [r.x, r.y, r.heading];
+                base.valid[i] = r.valid;
+            } else {
+                let tau = (k + 1) as f64 * scene.meta.dt;
+                base.xyh[i] = [s.x + s.vx * tau, s.y + s.vy * tau, s.heading];
+                base.valid[i] = true;
+            }
         }
     }
     let plan = Plan {
@@ -495,6 +571,7 @@ fn setup<'a>(
         slots,
         copies,
         base,
+        fixed,
     };
     let (n, k, _, nw) = plan.dims();
     let kk = cfg.samples.max(1);
@@ -739,6 +816,14 @@ pub fn sample(
     for t in trajs {
         let mut sim = scene.clone();
         for (ai, a) in sim.agents.iter_mut().enumerate() {
+            // A fixed agent keeping its velocity says so, so that a closed loop's next round,
+            // which starts from these states, keeps it going.
+            let keeps = cfg.task == Task::Unconditional && plan.fixed.iter().any(|f| f.0 == a.id);
+            let (vx, vy) = if keeps {
+                (a.states[c].vx, a.states[c].vy)
+            } else {
+                (0.0, 0.0)
+            };
             for j in 0..t.layout.steps {
                 let (p, valid) = t.state(ai, j);
                 a.states[c + 1 + j] = if valid {
@@ -746,8 +831,8 @@ pub fn sample(
                         x: p[0],
                         y: p[1],
                         heading: p[2],
-                        vx: 0.0,
-                        vy: 0.0,
+                        vx,
+                        vy,
                         valid,
                     }
                 } else {
@@ -763,6 +848,7 @@ pub fn sample(
             scene: sim,
             initial_reports: Vec::new(),
             reports,
+            fixed: plan.fixed.clone(),
         });
     }
     for (o, r) in out.iter_mut().zip(initial.into_inner()) {
@@ -883,6 +969,55 @@ mod tests {
     }
 
     #[test]
+    fn agents_of_types_the_model_never_saw_follow_their_log_or_keep_velocity() {
+        let (t, mut s) = setup();
+        let c = s.meta.current_step;
+        let ped = (0..s.agents.len())
+            .find(|&i| s.agents[i].is_valid(c) && s.agents[i].states[c].speed() > 1.0)
+            .expect("a moving agent");
+        s.agents[ped].agent_type = AgentType::Pedestrian;
+        let id = s.agents[ped].id;
+        for task in [Task::Unconditional, Task::Conditional] {
+            let cfg = SampleConfig {
+                steps: 8,
+                lambda: 0.0,
+                task,
+                ..SampleConfig::default()
+            };
+            let out = sample(&t, &s, &[], &cfg).unwrap().remove(0);
+            assert_eq!(out.fixed, vec![(id, AgentType::Pedestrian)], "{task:?}");
+            let now = s.agents[ped].states[c];
+            for k in c + 1..s.num_steps() {
+                let (got, log) = (out.scene.agents[ped].states[k], s.agents[ped].states[k]);
+                let want = match task {
+                    Task::Conditional => log,
+                    Task::Unconditional => {
+                        let tau = (k - c) as f64 * s.meta.dt;
+                        AgentState {
+                            x: now.x + now.vx * tau,
+                            y: now.y + now.vy * tau,
+                            ..now
+                        }
+                    }
+                };
+                assert_eq!(got.valid, want.valid, "{task:?} step {k}");
+                if want.valid {
+                    assert!(
+                        (got.x - want.x).abs() < 1e-9 && (got.y - want.y).abs() < 1e-9,
+                        "{task:?} step {k}: {got:?} vs {want:?}"
+                    );
+                }
+            }
+            // The vehicles are still sampled: the model moved at least one off its log.
+            let moved = (0..s.agents.len()).filter(|&i| i != ped).any(|i| {
+                let (a, b) = (&out.scene.agents[i].states, &s.agents[i].states);
+                (c + 1..s.num_steps()).any(|k| a[k].valid && (a[k].x - b[k].x).abs() > 1e-6)
+            });
+            assert!(moved, "{task:?}");
+        }
+    }
+
+    #[test]
     fn a_script_that_overflows_stops_the_run_with_an_error() {
         let (t, s) = setup();
         // Finite on the recorded future is not required here: compile without validating,
@@ -975,6 +1110,7 @@ mod tests {
             slots: vec![sl],
             copies: vec![copies[0].clone()],
             base: Trajectories::filled(&s),
+            fixed: Vec::new(),
         };
         let [x0, y0, h0] = sl.pose;
         let drive = |angle: f64| {
@@ -1013,6 +1149,7 @@ mod tests {
             slots,
             copies: copies.clone(),
             base: Trajectories::filled(&s),
+            fixed: Vec::new(),
         };
         let (n, k, _, nw) = (3, t.meta.config.model.k, 0, plan.windows.len());
         let len = nw * n * k;

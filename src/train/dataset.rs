@@ -139,12 +139,33 @@ pub fn window_at(scene: &Scene, cfg: &WindowConfig, c: usize, centre: usize) -> 
     window(scene, cfg, c, centre)
 }
 
+/// [`window_at`] holding only the agents for which `keep` is true (and `centre`).
+pub fn window_among(
+    scene: &Scene,
+    cfg: &WindowConfig,
+    c: usize,
+    centre: usize,
+    keep: &dyn Fn(usize) -> bool,
+) -> Window {
+    window_of(scene, cfg, c, centre, keep)
+}
+
 fn window(scene: &Scene, cfg: &WindowConfig, c: usize, centre: usize) -> Window {
+    window_of(scene, cfg, c, centre, &|_| true)
+}
+
+fn window_of(
+    scene: &Scene,
+    cfg: &WindowConfig,
+    c: usize,
+    centre: usize,
+    keep: &dyn Fn(usize) -> bool,
+) -> Window {
     let s0 = scene.agents[centre].states[c];
     let origin = [s0.x, s0.y, s0.heading];
     let here = s0.position();
     let mut others: Vec<(f64, usize)> = (0..scene.agents.len())
-        .filter(|&i| i != centre && scene.agents[i].is_valid(c))
+        .filter(|&i| i != centre && scene.agents[i].is_valid(c) && keep(i))
         .map(|i| ((scene.agents[i].states[c].position() - here).norm(), i))
         .collect();
     others.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));

@@ -8,7 +8,7 @@ pub mod rng;
 pub mod trainer;
 
 pub use batch::{build, Batch, Normaliser};
-pub use dataset::{window_at, windows, Window, WindowConfig};
+pub use dataset::{window_among, window_at, windows, Window, WindowConfig};
 pub use trainer::{
     is_validation, learning_rate, load, save, train, train_from, val_fold, CheckpointMeta,
     TrainConfig, TrainError, Trained, OPTIMIZER_FILE, VAL_FOLDS,
