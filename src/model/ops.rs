@@ -279,6 +279,16 @@ fn contiguous<'a, T>(s: &'a [T], l: &Layout, what: &str) -> Result<&'a [T]> {
     }
 }
 
+/// A row's mean and `1/√(var + eps)` (biased variance); `n` is the row's length.
+fn row_stats<T: num_traits::Float>(xr: &[T], n: T, eps: T) -> (T, T) {
+    let mean = xr.iter().fold(T::zero(), |a, &v| a + v) / n;
+    let var = xr
+        .iter()
+        .fold(T::zero(), |a, &v| a + (v - mean) * (v - mean))
+        / n;
+    (mean, T::one() / (var + eps).sqrt())
+}
+
 fn norm_fwd<T: candle_core::WithDType + num_traits::Float + Send + Sync>(
     x: &[T],
     w: &[T],
@@ -290,12 +300,7 @@ fn norm_fwd<T: candle_core::WithDType + num_traits::Float + Send + Sync>(
     let n = T::from(d).expect("width fits");
     let mut y = vec![T::zero(); x.len()];
     let row = |(xr, yr): (&[T], &mut [T])| {
-        let mean = xr.iter().fold(T::zero(), |a, &v| a + v) / n;
-        let var = xr
-            .iter()
-            .fold(T::zero(), |a, &v| a + (v - mean) * (v - mean))
-            / n;
-        let rstd = T::one() / (var + eps).sqrt();
+        let (mean, rstd) = row_stats(xr, n, eps);
         for i in 0..xr.len() {
             yr[i] = (xr[i] - mean) * rstd * w[i] + b[i];
         }
@@ -308,8 +313,7 @@ fn norm_fwd<T: candle_core::WithDType + num_traits::Float + Send + Sync>(
     y
 }
 
-/// `∂L/∂x`, and `∂L/∂w`, `∂L/∂b` where wanted, of [`layer_norm`] for upstream gradient `g`.
-#[allow(clippy::type_complexity)]
+/// `∂L/∂x`, `∂L/∂w` and `∂L/∂b` of [`layer_norm`] for upstream gradient `g`.
 fn norm_bwd<T: candle_core::WithDType + num_traits::Float + Send + Sync>(
     x: &[T],
     w: &[T],
@@ -324,12 +328,7 @@ fn norm_bwd<T: candle_core::WithDType + num_traits::Float + Send + Sync>(
         let (mut dw, mut db) = (vec![T::zero(); d], vec![T::zero(); d]);
         let mut xhat = vec![T::zero(); d];
         for ((xr, gr), dxr) in xc.chunks(d).zip(gc.chunks(d)).zip(dxc.chunks_mut(d)) {
-            let mean = xr.iter().fold(T::zero(), |a, &v| a + v) / n;
-            let var = xr
-                .iter()
-                .fold(T::zero(), |a, &v| a + (v - mean) * (v - mean))
-                / n;
-            let rstd = T::one() / (var + eps).sqrt();
+            let (mean, rstd) = row_stats(xr, n, eps);
             let (mut m1, mut m2) = (T::zero(), T::zero());
             for i in 0..d {
                 xhat[i] = (xr[i] - mean) * rstd;

@@ -139,22 +139,12 @@ pub fn window_at(scene: &Scene, cfg: &WindowConfig, c: usize, centre: usize) -> 
     window(scene, cfg, c, centre)
 }
 
+fn window(scene: &Scene, cfg: &WindowConfig, c: usize, centre: usize) -> Window {
+    window_among(scene, cfg, c, centre, &|_| true)
+}
+
 /// [`window_at`] holding only the agents for which `keep` is true (and `centre`).
 pub fn window_among(
-    scene: &Scene,
-    cfg: &WindowConfig,
-    c: usize,
-    centre: usize,
-    keep: &dyn Fn(usize) -> bool,
-) -> Window {
-    window_of(scene, cfg, c, centre, keep)
-}
-
-fn window(scene: &Scene, cfg: &WindowConfig, c: usize, centre: usize) -> Window {
-    window_of(scene, cfg, c, centre, &|_| true)
-}
-
-fn window_of(
     scene: &Scene,
     cfg: &WindowConfig,
     c: usize,
