@@ -766,7 +766,9 @@ fn simulate_says_what_it_does_not_sample() {
         ));
         assert!(
             out.contains("samples 4.0 s (40 steps)")
-                && out.contains("records 6.0 s (60 steps): the rest is not simulated"),
+                && out.contains("records 6.0 s (60 steps): the rest is not simulated")
+                && out
+                    .contains("horizon: 40 steps sampled; 0 of the scenes recorded fewer, 1 more"),
             "{out}"
         );
         assert!(

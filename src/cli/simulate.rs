@@ -10,8 +10,8 @@ use drivescript::eval::behaviors::{suggest, Behavior, ALL};
 use drivescript::io::{discover, load_scenes, rollout::Rollout, LoadOptions};
 use drivescript::render::RenderOptions;
 use drivescript::sample::{
-    closed_loop, horizon_note, prepare, sample, Clamp, Guidance, LambdaSchedule, SampleConfig,
-    ScriptSpec, Task,
+    closed_loop, horizon_note, prepare, recorded_future, sample, Clamp, Guidance, LambdaSchedule,
+    SampleConfig, ScriptSpec, Task,
 };
 use drivescript::train::load;
 
@@ -169,16 +169,22 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
     // Said once per run: which recording lengths differ from the model's horizon, and that
     // agents of types the model never saw are not sampled.
-    let horizons = std::cell::RefCell::new(std::collections::BTreeSet::new());
+    // (scenes recording less than the model's horizon, more).
+    let horizons = std::cell::RefCell::new((0usize, 0usize));
     let fixed_total = std::cell::RefCell::new((0usize, 0usize));
     // One scene's failure (a script error on its agents, say) is reported and the others go
     // on; the exit code says that something failed.
     let run_one = |raw: &drivescript::scene::Scene| -> Result<bool> {
         let id = raw.meta.scenario_id.clone();
         if let Some(note) = horizon_note(raw, &trained) {
-            let recorded = raw.num_steps() - raw.meta.current_step;
-            if horizons.borrow_mut().insert(recorded) {
-                println!("note: {note} (said once per recording length)");
+            let mut h = horizons.borrow_mut();
+            if h.0 + h.1 == 0 {
+                println!("note: {note} (said once per run; the end of the run counts such scenes)");
+            }
+            if recorded_future(raw) < future {
+                h.0 += 1;
+            } else {
+                h.1 += 1;
             }
         }
         // Suggested agents first, so that explicit --param values override them.
@@ -307,9 +313,15 @@ pub fn run(args: Args) -> Result<ExitCode> {
     if skipped > 0 {
         println!("{skipped} scenes skipped (no agents suited to the behaviour)");
     }
+    let plural = |n: usize, what: &str| format!("{n} {what}{}", if n == 1 { "" } else { "s" });
+    let (shorter, longer) = horizons.into_inner();
+    if shorter + longer > 0 {
+        println!(
+            "horizon: {future} steps sampled; {shorter} of the scenes recorded fewer, {longer} more"
+        );
+    }
     let (agents, scenes) = fixed_total.into_inner();
     if agents > 0 {
-        let plural = |n: usize, what: &str| format!("{n} {what}{}", if n == 1 { "" } else { "s" });
         println!(
             "{} in {} were not sampled (types the model never saw)",
             plural(agents, "agent"),

@@ -150,16 +150,22 @@ pub fn modelled_type(t: AgentType) -> bool {
     t == AgentType::Vehicle
 }
 
+/// How many steps `scene` records after its current step (up to the last step at which any
+/// agent is observed).
+pub fn recorded_future(scene: &Scene) -> usize {
+    let c = scene.meta.current_step;
+    (c + 1..scene.num_steps())
+        .rev()
+        .find(|&t| scene.agents.iter().any(|a| a.states[t].valid))
+        .map_or(0, |t| t - c)
+}
+
 /// What a run samples against what `scene` records after its current step, when they differ:
 /// the model's horizon is fixed (`trained`'s window), so a longer recording is simulated only
 /// in part and a shorter one leaves steps with nothing to compare with. `None` when they match.
 pub fn horizon_note(scene: &Scene, trained: &Trained) -> Option<String> {
     let model = trained.meta.config.window.future;
-    let c = scene.meta.current_step;
-    let recorded = (c + 1..scene.num_steps())
-        .rev()
-        .find(|&t| scene.agents.iter().any(|a| a.states[t].valid))
-        .map_or(0, |t| t - c);
+    let recorded = recorded_future(scene);
     let secs = |n: usize| n as f64 * scene.meta.dt;
     let what = if recorded > model {
         "the rest is not simulated"

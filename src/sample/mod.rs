@@ -5,6 +5,6 @@ pub mod guided;
 
 pub use closed_loop::{closed_loop, ScriptSpec};
 pub use guided::{
-    horizon_note, modelled_type, prepare, reference_run, sample, Clamp, Guidance, LambdaSchedule,
-    Sample, SampleConfig, SampleError, Task, BEHAVIOUR_LAMBDA,
+    horizon_note, modelled_type, prepare, recorded_future, reference_run, sample, Clamp, Guidance,
+    LambdaSchedule, Sample, SampleConfig, SampleError, Task, BEHAVIOUR_LAMBDA,
 };
