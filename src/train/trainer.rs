@@ -112,6 +112,111 @@ pub struct CheckpointMeta {
     pub pca_rmse_m: f64,
 }
 
+impl CheckpointMeta {
+    /// Checks that the configuration can be built and sampled from: sizes within bounds (a
+    /// model of `layers` 10^6 or windows of 10^9 agents would abort on allocation), noise
+    /// settings positive and finite, and a PCA basis of the right shape with finite,
+    /// unit-length components and positive scales. A checkpoint is shared data: without this, a
+    /// zero standard deviation or ρ = 0 sampled garbage with exit 0, and a basis one value
+    /// short panicked. The message names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        let c = &self.config;
+        let (w, m, e) = (&c.window, &c.model, &c.edm);
+        let within = |name: &str, v: usize, lo: usize, hi: usize| {
+            if (lo..=hi).contains(&v) {
+                Ok(())
+            } else {
+                Err(format!("{name} = {v}: must be {lo} to {hi}"))
+            }
+        };
+        within("config.batch", c.batch, 1, 4096)?;
+        within("config.window.history", w.history, 1, 100)?;
+        within("config.window.future", w.future, 1, 1000)?;
+        within("config.window.max_agents", w.max_agents, 1, 1024)?;
+        within("config.window.max_lanes", w.max_lanes, 1, 2048)?;
+        within("config.window.lane_points", w.lane_points, 2, 1000)?;
+        within("config.model.d", m.d, 1, 1024)?;
+        within("config.model.layers", m.layers, 1, 32)?;
+        within("config.model.k", m.k, 1, 3 * w.future)?;
+        within("config.model.noise_freqs", m.noise_freqs, 1, 64)?;
+        if m.history != w.history {
+            return Err(format!(
+                "config.model.history = {} but config.window.history = {}: they must agree",
+                m.history, w.history
+            ));
+        }
+        let positive = |name: &str, v: f64| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(format!("{name} = {v}: must be positive and finite"))
+            }
+        };
+        positive("config.lr", c.lr)?;
+        positive("config.edm.sigma_data", e.sigma_data)?;
+        positive("config.edm.sigma_min", e.sigma_min)?;
+        positive("config.edm.sigma_max", e.sigma_max)?;
+        positive("config.edm.rho", e.rho)?;
+        positive("config.edm.p_std", e.p_std)?;
+        if !e.p_mean.is_finite() {
+            return Err(format!("config.edm.p_mean = {}: must be finite", e.p_mean));
+        }
+        if e.sigma_min >= e.sigma_max {
+            return Err(format!(
+                "config.edm.sigma_min = {} is not below sigma_max = {}",
+                e.sigma_min, e.sigma_max
+            ));
+        }
+        let n = &self.normaliser;
+        positive("normaliser.sigma_data", n.sigma_data)?;
+        let (pca, dim, k) = (&n.pca, 3 * w.future, m.k);
+        let len = |name: &str, got: usize, want: usize| {
+            if got == want {
+                Ok(())
+            } else {
+                Err(format!(
+                    "{name} has {got} values; config (k = {k}, {dim} future coordinates) needs {want}"
+                ))
+            }
+        };
+        if pca.dim != dim {
+            return Err(format!(
+                "normaliser.pca.dim = {}: config.window.future = {} needs {dim}",
+                pca.dim, w.future
+            ));
+        }
+        len("normaliser.pca.mean", pca.mean.len(), dim)?;
+        len("normaliser.pca.components", pca.components.len(), k * dim)?;
+        len("normaliser.pca.variances", pca.variances.len(), k)?;
+        len("normaliser.std", n.std.len(), k)?;
+        if let Some(i) = pca.mean.iter().position(|v| !v.is_finite()) {
+            return Err(format!("normaliser.pca.mean[{i}] is not finite"));
+        }
+        for (i, row) in pca.components.chunks(dim).enumerate() {
+            let norm = row.iter().map(|v| v * v).sum::<f64>().sqrt();
+            if !(norm - 1.0).abs().lt(&1e-3) {
+                return Err(format!(
+                    "normaliser.pca.components row {i} has length {norm}: components must be unit vectors"
+                ));
+            }
+        }
+        for (i, v) in n.std.iter().enumerate() {
+            positive(&format!("normaliser.std[{i}]"), *v)?;
+        }
+        if let Some(i) = pca
+            .variances
+            .iter()
+            .position(|v| !v.is_finite() || *v < 0.0)
+        {
+            return Err(format!(
+                "normaliser.pca.variances[{i}] = {}: must be finite and not negative",
+                pca.variances[i]
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// Errors of a training run.
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {
@@ -491,6 +596,7 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
             ),
         ));
     }
+    meta.validate().map_err(|e| io(&cfg_path, e))?;
     let mut varmap = VarMap::new();
     let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
     let model = Denoiser::new(meta.config.model, meta.config.edm, vb)?;
@@ -656,6 +762,93 @@ mod tests {
         // Without the optimiser state the moments restart, and the run differs.
         std::fs::remove_file(half.path().join(OPTIMIZER_FILE)).unwrap();
         assert!(!differing(&whole, &resume(half.path())).is_empty());
+    }
+
+    #[test]
+    fn a_checkpoint_config_that_cannot_sample_is_refused_naming_the_field() {
+        let dir = tempfile::tempdir().unwrap();
+        train(
+            &scenes(),
+            tiny_config(1, 1, 1),
+            Some(dir.path()),
+            None,
+            |_, _, _| (),
+        )
+        .unwrap();
+        let path = dir.path().join("config.json");
+        let good: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+        let k = good["config"]["model"]["k"].as_u64().unwrap() as usize;
+        let cases: Vec<(&str, serde_json::Value, &str)> = vec![
+            (
+                "/config/edm/sigma_data",
+                0.0.into(),
+                "config.edm.sigma_data = 0",
+            ),
+            ("/config/edm/rho", 0.0.into(), "config.edm.rho = 0"),
+            ("/config/edm/p_std", (-1.0).into(), "config.edm.p_std = -1"),
+            (
+                "/config/edm/sigma_min",
+                100.0.into(),
+                "is not below sigma_max",
+            ),
+            (
+                "/config/window/future",
+                0.into(),
+                "config.window.future = 0",
+            ),
+            (
+                "/config/window/max_agents",
+                1_000_000_000u64.into(),
+                "max_agents = 1000000000",
+            ),
+            (
+                "/config/model/layers",
+                1_000_000u64.into(),
+                "config.model.layers = 1000000",
+            ),
+            ("/config/lr", (-1.0).into(), "config.lr = -1"),
+            ("/normaliser/std/0", 0.0.into(), "normaliser.std[0] = 0"),
+            ("/normaliser/std/1", (-1.0).into(), "normaliser.std[1] = -1"),
+            (
+                "/normaliser/sigma_data",
+                0.0.into(),
+                "normaliser.sigma_data = 0",
+            ),
+        ];
+        let write = |v: &serde_json::Value| {
+            std::fs::write(&path, serde_json::to_string(v).unwrap()).unwrap();
+        };
+        let refused = |v: &serde_json::Value, want: &str| {
+            write(v);
+            let e = load(dir.path()).err().expect(want).to_string();
+            assert!(e.contains("config.json") && e.contains(want), "{want}: {e}");
+        };
+        for (ptr, value, want) in cases {
+            let mut v = good.clone();
+            *v.pointer_mut(ptr).unwrap() = value;
+            refused(&v, want);
+        }
+        // A zero basis, and one a value short (it panicked in PCA decoding).
+        let mut v = good.clone();
+        for c in v["normaliser"]["pca"]["components"].as_array_mut().unwrap() {
+            *c = 0.0.into();
+        }
+        refused(&v, "components must be unit vectors");
+        let mut v = good.clone();
+        v["normaliser"]["pca"]["components"]
+            .as_array_mut()
+            .unwrap()
+            .pop();
+        refused(&v, "normaliser.pca.components has");
+        let mut v = good.clone();
+        v["normaliser"]["std"]
+            .as_array_mut()
+            .unwrap()
+            .truncate(k - 1);
+        refused(&v, "normaliser.std has");
+        write(&good);
+        load(dir.path()).unwrap();
     }
 
     #[test]
