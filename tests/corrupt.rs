@@ -333,3 +333,64 @@ fn random_mutations_never_panic() {
         );
     }
 }
+
+#[test]
+fn implausible_coordinates_speeds_and_sizes_are_refused_at_read_time() {
+    let dir = tempfile::tempdir().unwrap();
+    // A lanelet bound at 1e200 m panicked in `inspect` after other commands accepted it.
+    let f = copy_to(
+        dir.path(),
+        &samples().join("commonroad/USA_US101-3_3_T-1.xml"),
+        "far.xml",
+    );
+    edit(&f, |t| t.replacen("<x>-44.8542</x>", "<x>1e200</x>", 1));
+    for cmd in ["inspect", "render"] {
+        let mut args = vec![cmd, s(&f)];
+        let out = dir.path().join("far.svg");
+        if cmd == "render" {
+            args.extend(["-o", s(&out)]);
+        }
+        let err = fails(&args);
+        assert!(
+            err.contains("far.xml") && err.contains("more than 1e7 m from the origin"),
+            "{cmd}: {err}"
+        );
+    }
+    // A YAML road whose origin is 1e20 m out panicked while building its lanes.
+    let yaml = samples().join("yaml/curved_two_lanes.yaml");
+    let f = copy_to(dir.path(), &yaml, "origin.yaml");
+    edit(&f, |t| {
+        t.replacen("origin: [10, -5]", "origin: [1e20, -5]", 1)
+    });
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("origin.yaml") && err.contains("road.origin") && err.contains("within 1e7 m"),
+        "{err}"
+    );
+    // Agents: a speed of 1e300 m/s (the YAML scene drives it back over its history too) and
+    // of 1e6 m/s, and a 1e30 m car. Huge numbers print in exponent form.
+    let src = samples().join("yaml/highway_cut_in.yaml");
+    let f = copy_to(dir.path(), &src, "fast.yaml");
+    edit(&f, |t| t.replacen("speed: 24", "speed: 1.0e300", 1));
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("fast.yaml")
+            && err.contains("agent 1 step 0: implausible position (-1e300, 5.4)"),
+        "{err}"
+    );
+    let f = copy_to(dir.path(), &src, "faster.yaml");
+    edit(&f, |t| t.replacen("speed: 24", "speed: 1.0e6", 1));
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("agent 1 step 0: implausible speed 1000000 m/s (at most 100000)")
+            && err.matches("implausible").count() == 1,
+        "{err}"
+    );
+    let f = copy_to(dir.path(), &src, "big.yaml");
+    edit(&f, |t| t.replacen("length: 12.0", "length: 1.0e30", 1));
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("big.yaml") && err.contains("agent 4: implausible size 1e30 x 2.6 m"),
+        "{err}"
+    );
+}

@@ -27,6 +27,16 @@ pub enum GeomError {
         /// How many distinct points there were.
         got: usize,
     },
+    /// A coordinate farther from the origin than [`MAX_COORD`].
+    #[error("point {index} ({}, {}) lies more than {MAX_COORD:e} m from the origin: not a plausible map coordinate", num(*.x), num(*.y))]
+    OutOfRange {
+        /// Index of the offending point in the input.
+        index: usize,
+        /// Its x coordinate.
+        x: f64,
+        /// Its y coordinate.
+        y: f64,
+    },
     /// A coordinate was NaN or infinite.
     #[error("point {index} is not finite: ({x}, {y})")]
     NonFinite {
@@ -39,8 +49,23 @@ pub enum GeomError {
     },
 }
 
-/// Checks that every point is finite and drops each point closer than `eps` to the one kept
-/// before it.
+/// A number for a message: plain, or in exponent form when huge (a value of 1e300 printed
+/// plainly is 301 digits).
+pub fn num(v: f64) -> String {
+    if v.abs() >= 1e7 {
+        format!("{v:e}")
+    } else {
+        format!("{v}")
+    }
+}
+
+/// The largest |x| or |y| accepted, metres. Real maps use local or UTM coordinates (at most a
+/// few million metres); beyond this, f64 keeps too few digits below the metre for resampling
+/// and projections, which then fail where they cannot (1e200 panicked in resampling).
+pub const MAX_COORD: f64 = 1.0e7;
+
+/// Checks that every point is finite and within [`MAX_COORD`], and drops each point closer than
+/// `eps` to the one kept before it.
 pub(crate) fn finite_deduped(
     points: impl IntoIterator<Item = Point>,
     eps: f64,
@@ -49,6 +74,13 @@ pub(crate) fn finite_deduped(
     for (index, p) in points.into_iter().enumerate() {
         if !p.x.is_finite() || !p.y.is_finite() {
             return Err(GeomError::NonFinite {
+                index,
+                x: p.x,
+                y: p.y,
+            });
+        }
+        if p.x.abs() > MAX_COORD || p.y.abs() > MAX_COORD {
+            return Err(GeomError::OutOfRange {
                 index,
                 x: p.x,
                 y: p.y,

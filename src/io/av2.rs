@@ -95,7 +95,7 @@ pub fn read(path: &Path) -> Result<Scene, IoError> {
     Scene::new(meta, map, agents).map_err(|e| IoError::Scene {
         path: parquet.display().to_string(),
         location: "scenario".into(),
-        source: e,
+        error: e,
     })
 }
 
@@ -443,6 +443,6 @@ fn read_map(path: &Path) -> Result<Map, IoError> {
     Map::new(parts).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
         location: "lane_segments".into(),
-        source: e,
+        error: e,
     })
 }

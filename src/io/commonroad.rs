@@ -156,7 +156,7 @@ pub fn parse(path: &Path, text: &str, opts: &LoadOptions) -> Result<Scene, IoErr
     Scene::new(meta, map, agents).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
         location: "scenario".into(),
-        source: e,
+        error: e,
     })
 }
 
@@ -380,7 +380,7 @@ fn read_map(cx: &Ctx, root: Node, speed_signs: &HashMap<i64, f64>) -> Result<Map
     Map::new(parts).map_err(|e| IoError::Scene {
         path: cx.path.display().to_string(),
         location: "lanelet network".into(),
-        source: e,
+        error: e,
     })
 }
 

@@ -67,15 +67,15 @@ pub enum IoError {
         message: String,
     },
     /// The content parsed but makes an inconsistent scene.
-    #[error("{path}: {location}: {source}")]
+    #[error("{path}: {location}: {error}")]
     Scene {
         /// The file.
         path: String,
         /// Which scene in the file.
         location: String,
-        /// What is inconsistent.
-        #[source]
-        source: SceneError,
+        /// What is inconsistent (in the message, not a separate source: a chain printer would
+        /// say it twice).
+        error: SceneError,
     },
 }
 

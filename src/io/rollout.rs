@@ -223,7 +223,7 @@ impl Rollout {
         Scene::new(meta, scene.map.clone(), agents).map_err(|e| IoError::Scene {
             path: what.display().to_string(),
             location: "rollout".into(),
-            source: e,
+            error: e,
         })
     }
 }

@@ -311,7 +311,7 @@ pub fn scenario_to_scene(sc: &pb::Scenario, path: &Path, index: usize) -> Result
     let map = Map::new(parts).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
         location: loc.clone(),
-        source: e,
+        error: e,
     })?;
     let meta = SceneMeta {
         source_format: SourceFormat::Womd,
@@ -329,7 +329,7 @@ pub fn scenario_to_scene(sc: &pb::Scenario, path: &Path, index: usize) -> Result
     Scene::new(meta, map, agents).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
         location: loc,
-        source: e,
+        error: e,
     })
 }
 

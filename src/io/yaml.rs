@@ -370,7 +370,7 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
     let map = Map::new(parts).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
         location: "map".into(),
-        source: e,
+        error: e,
     })?;
 
     let mut agents = Vec::new();
@@ -458,7 +458,7 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
     Scene::new(meta, map, agents).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
         location: "agents".into(),
-        source: e,
+        error: e,
     })
 }
 
@@ -482,6 +482,21 @@ fn road_parts(path: &Path, r: &YamlRoad) -> Result<(MapParts, FrenetPath), IoErr
         return Err(bad(
             "road.radius",
             format!("|radius| must exceed the road width ({max_offset} m)"),
+        ));
+    }
+    let reach = r.length + max_offset;
+    if !(r.origin[0].is_finite() && r.origin[1].is_finite())
+        || r.origin[0].abs() + reach > crate::geom::MAX_COORD
+        || r.origin[1].abs() + reach > crate::geom::MAX_COORD
+    {
+        return Err(bad(
+            "road.origin".into(),
+            format!(
+                "({}, {}): the road must lie within {:e} m of the origin",
+                r.origin[0],
+                r.origin[1],
+                crate::geom::MAX_COORD
+            ),
         ));
     }
     let reference = FrenetPath::new(reference_line(r));

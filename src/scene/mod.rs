@@ -18,7 +18,20 @@ pub use map::{
     StopLine,
 };
 
-use crate::geom::GeomError;
+use crate::geom::{num, GeomError, MAX_COORD};
+
+/// The largest speed a state's velocity may have, m/s. A bound on numbers, not on driving:
+/// rollouts of a bad model must still be read and scored (`eval`'s kinematic check judges
+/// whether a car could drive them), but velocities of 1e300 from a corrupt file are refused
+/// where they are read.
+pub const MAX_SPEED: f64 = 1.0e5;
+/// The largest agent length, metres (road trains reach about 55 m).
+pub const MAX_LENGTH: f64 = 100.0;
+/// The largest agent width, metres.
+pub const MAX_WIDTH: f64 = 20.0;
+/// The largest |heading|, radians: formats give headings in (−π, π] or unwrapped over a
+/// recording; beyond this, sin and cos lose their digits.
+pub const MAX_HEADING: f64 = 1.0e4;
 
 /// Errors that make a scene inconsistent.
 #[derive(Debug, thiserror::Error)]
@@ -73,6 +86,17 @@ pub enum SceneError {
         current: usize,
         /// Number of steps.
         steps: usize,
+    },
+    /// A value no real agent has (see [`MAX_SPEED`], [`MAX_LENGTH`], [`MAX_WIDTH`],
+    /// [`MAX_HEADING`], [`crate::geom::MAX_COORD`]).
+    #[error("agent {agent}{}: implausible {what}", step.map_or(String::new(), |s| format!(" step {s}")))]
+    Implausible {
+        /// The agent.
+        agent: AgentId,
+        /// The step, for a state.
+        step: Option<usize>,
+        /// What is wrong.
+        what: String,
     },
     /// Geometry that could not be built.
     #[error("{what}: {source}")]
@@ -171,6 +195,17 @@ impl Scene {
                     width: a.width,
                 });
             }
+            if size_ok && (a.length > MAX_LENGTH || a.width > MAX_WIDTH) {
+                return Err(SceneError::Implausible {
+                    agent: a.id,
+                    step: None,
+                    what: format!(
+                        "size {} x {} m (at most {MAX_LENGTH} x {MAX_WIDTH} m)",
+                        num(a.length),
+                        num(a.width)
+                    ),
+                });
+            }
             for (step, s) in a.states.iter().enumerate() {
                 let finite = [s.x, s.y, s.heading, s.vx, s.vy]
                     .iter()
@@ -178,6 +213,30 @@ impl Scene {
                 if s.valid && !finite {
                     return Err(SceneError::NonFiniteState { agent: a.id, step });
                 }
+                if !s.valid {
+                    continue;
+                }
+                let what = if s.x.abs() > MAX_COORD || s.y.abs() > MAX_COORD {
+                    format!(
+                        "position ({}, {}) is more than {MAX_COORD:e} m from the origin",
+                        num(s.x),
+                        num(s.y)
+                    )
+                } else if s.vx.hypot(s.vy) > MAX_SPEED {
+                    format!("speed {} m/s (at most {MAX_SPEED})", num(s.vx.hypot(s.vy)))
+                } else if s.heading.abs() > MAX_HEADING {
+                    format!(
+                        "heading {} rad (at most {MAX_HEADING} in magnitude)",
+                        num(s.heading)
+                    )
+                } else {
+                    continue;
+                };
+                return Err(SceneError::Implausible {
+                    agent: a.id,
+                    step: Some(step),
+                    what,
+                });
             }
         }
         if steps > 0 && meta.current_step >= steps {
