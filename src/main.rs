@@ -8,6 +8,13 @@ mod cli;
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 fn main() -> std::process::ExitCode {
+    // Rust ignores SIGPIPE, so printing into a closed pipe (`drivescript ... | head`) makes
+    // println! panic. A command-line tool should end quietly there, as cat and grep do.
+    #[cfg(unix)]
+    // SAFETY: restores the default disposition of one signal before any thread starts.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
     // candle sizes its matrix products' thread pool with num_cpus::get_physical(), which
     // re-reads /proc/cpuinfo on every product unless RAYON_NUM_THREADS is set: a sixth of
     // unguided sampling's time. A user's own setting is kept.

@@ -784,3 +784,21 @@ fn simulate_says_what_it_does_not_sample() {
         );
     }
 }
+
+#[test]
+fn output_into_a_closed_pipe_ends_quietly() {
+    // `drivescript ... | head`: the reader goes away before the output is written. println!
+    // panicked there (exit 101); a command-line tool ends on SIGPIPE like cat or grep.
+    use std::process::{Command, Stdio};
+    let mut child = Command::new(env!("CARGO_BIN_EXE_drivescript"))
+        .arg("stdlib-doc")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("panicked"), "{err}");
+    assert_ne!(out.status.code(), Some(101), "{err}");
+}

@@ -394,3 +394,20 @@ fn implausible_coordinates_speeds_and_sizes_are_refused_at_read_time() {
         "{err}"
     );
 }
+
+#[test]
+fn cost_on_a_scene_without_a_future_is_an_error_not_a_panic() {
+    let dir = tempfile::tempdir().unwrap();
+    let f = copy_to(
+        dir.path(),
+        &samples().join("yaml/highway_cut_in.yaml"),
+        "nofuture.yaml",
+    );
+    // 11 steps with current step 10: nothing after it (it panicked in the cost report).
+    edit(&f, |t| t.replacen("steps: 91", "steps: 11", 1));
+    let err = fails(&["cost", s(&f), "--script", "scripts/no_collisions.rhai"]);
+    assert!(
+        err.contains("scene highway-cut-in has no step after its current step 10"),
+        "{err}"
+    );
+}

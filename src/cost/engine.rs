@@ -129,6 +129,16 @@ pub enum CostError {
         /// What is wrong.
         message: String,
     },
+    /// The scene has no step after its current one: there is no future to score or guide.
+    #[error("{script}: scene {scene} has no step after its current step {current}: there is no future to score")]
+    NoFuture {
+        /// Script name.
+        script: String,
+        /// The scene's id.
+        scene: String,
+        /// Its current step (its last).
+        current: usize,
+    },
     /// The script declared nothing.
     #[error("{script}: the script declares no term; call term(name, value) at least once")]
     NoTerms {
@@ -685,6 +695,13 @@ impl CostScript {
     pub fn evaluate(&self, traj: &Trajectories) -> Result<CostReport, CostError> {
         {
             let mut c = self.shared.borrow_mut();
+            if traj.layout.steps == 0 {
+                return Err(CostError::NoFuture {
+                    script: self.name.clone(),
+                    scene: c.scene.meta.scenario_id.clone(),
+                    current: c.scene.meta.current_step,
+                });
+            }
             let expect = Trajectories::empty(&c.scene).layout;
             if traj.layout != expect || traj.xyh.len() != expect.agents * expect.steps {
                 return Err(CostError::Shape {
