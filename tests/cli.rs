@@ -802,3 +802,31 @@ fn output_into_a_closed_pipe_ends_quietly() {
     assert!(!err.contains("panicked"), "{err}");
     assert_ne!(out.status.code(), Some(101), "{err}");
 }
+
+#[test]
+fn train_refuses_settings_it_cannot_train_with_before_reading_data() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("ckpt");
+    for (flag, value, want) in [
+        ("--lr", "nan", "lr = NaN: must be positive and finite"),
+        ("--lr", "inf", "lr = inf: must be positive and finite"),
+        ("--lr", "-1", "lr = -1: must be positive and finite"),
+        ("--steps", "0", "steps = 0: must be 1 to"),
+        ("--batch", "0", "batch = 0: must be 1 to 4096"),
+        (
+            "--batch",
+            "1000000000",
+            "batch = 1000000000: must be 1 to 4096",
+        ),
+        ("--eval-every", "0", "eval_every = 0: must be at least 1"),
+    ] {
+        // A data directory that does not exist: the settings are refused first.
+        let arg = format!("{flag}={value}");
+        let err = fails(&["train", "--data", "no/such/dir", "--out", s(&out), &arg]);
+        assert!(
+            err.contains("training settings") && err.contains(want),
+            "{flag} {value}: {err}"
+        );
+        assert!(!out.exists(), "{flag} {value} wrote {}", out.display());
+    }
+}

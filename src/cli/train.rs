@@ -53,15 +53,6 @@ fn git_revision() -> Option<String> {
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
-    let mut scenes = Vec::new();
-    for root in &args.data {
-        for src in discover(root)? {
-            scenes.extend(
-                load_scenes(&src, &LoadOptions::default())
-                    .with_context(|| format!("loading {}", src.display()))?,
-            );
-        }
-    }
     let cfg = TrainConfig {
         steps: args.steps,
         batch: args.batch,
@@ -71,6 +62,19 @@ pub fn run(args: Args) -> Result<ExitCode> {
         val_fold: args.val_fold.unwrap_or(0),
         ..TrainConfig::ngsim()
     };
+    // Before any data is read: --steps, --batch, --lr and --eval-every.
+    if let Err(e) = cfg.validate() {
+        anyhow::bail!("training settings: {e}");
+    }
+    let mut scenes = Vec::new();
+    for root in &args.data {
+        for src in discover(root)? {
+            scenes.extend(
+                load_scenes(&src, &LoadOptions::default())
+                    .with_context(|| format!("loading {}", src.display()))?,
+            );
+        }
+    }
     println!(
         "{} scenes; window {} + {} steps, {} agents, {} lanes",
         scenes.len(),

@@ -112,15 +112,13 @@ pub struct CheckpointMeta {
     pub pca_rmse_m: f64,
 }
 
-impl CheckpointMeta {
-    /// Checks that the configuration can be built and sampled from: sizes within bounds (a
-    /// model of `layers` 10^6 or windows of 10^9 agents would abort on allocation), noise
-    /// settings positive and finite, and a PCA basis of the right shape with finite,
-    /// unit-length components and positive scales. A checkpoint is shared data: without this, a
-    /// zero standard deviation or ρ = 0 sampled garbage with exit 0, and a basis one value
-    /// short panicked. The message names the field.
+impl TrainConfig {
+    /// Checks that training can run with these settings, before any data is read: sizes within
+    /// bounds (windows of 10^9 agents or 10^6 layers would abort on allocation), at least one
+    /// step, and a learning rate and noise settings that are positive and finite (a NaN rate
+    /// trained on NaN and wrote the checkpoint). The message names the field.
     pub fn validate(&self) -> Result<(), String> {
-        let c = &self.config;
+        let c = self;
         let (w, m, e) = (&c.window, &c.model, &c.edm);
         let within = |name: &str, v: usize, lo: usize, hi: usize| {
             if (lo..=hi).contains(&v) {
@@ -129,19 +127,23 @@ impl CheckpointMeta {
                 Err(format!("{name} = {v}: must be {lo} to {hi}"))
             }
         };
-        within("config.batch", c.batch, 1, 4096)?;
-        within("config.window.history", w.history, 1, 100)?;
-        within("config.window.future", w.future, 1, 1000)?;
-        within("config.window.max_agents", w.max_agents, 1, 1024)?;
-        within("config.window.max_lanes", w.max_lanes, 1, 2048)?;
-        within("config.window.lane_points", w.lane_points, 2, 1000)?;
-        within("config.model.d", m.d, 1, 1024)?;
-        within("config.model.layers", m.layers, 1, 32)?;
-        within("config.model.k", m.k, 1, 3 * w.future)?;
-        within("config.model.noise_freqs", m.noise_freqs, 1, 64)?;
+        within("steps", c.steps, 1, 100_000_000)?;
+        within("batch", c.batch, 1, 4096)?;
+        if c.eval_every == 0 {
+            return Err("eval_every = 0: must be at least 1".into());
+        }
+        within("window.history", w.history, 1, 100)?;
+        within("window.future", w.future, 1, 1000)?;
+        within("window.max_agents", w.max_agents, 1, 1024)?;
+        within("window.max_lanes", w.max_lanes, 1, 2048)?;
+        within("window.lane_points", w.lane_points, 2, 1000)?;
+        within("model.d", m.d, 1, 1024)?;
+        within("model.layers", m.layers, 1, 32)?;
+        within("model.k", m.k, 1, 3 * w.future)?;
+        within("model.noise_freqs", m.noise_freqs, 1, 64)?;
         if m.history != w.history {
             return Err(format!(
-                "config.model.history = {} but config.window.history = {}: they must agree",
+                "model.history = {} but window.history = {}: they must agree",
                 m.history, w.history
             ));
         }
@@ -152,21 +154,43 @@ impl CheckpointMeta {
                 Err(format!("{name} = {v}: must be positive and finite"))
             }
         };
-        positive("config.lr", c.lr)?;
-        positive("config.edm.sigma_data", e.sigma_data)?;
-        positive("config.edm.sigma_min", e.sigma_min)?;
-        positive("config.edm.sigma_max", e.sigma_max)?;
-        positive("config.edm.rho", e.rho)?;
-        positive("config.edm.p_std", e.p_std)?;
+        positive("lr", c.lr)?;
+        positive("edm.sigma_data", e.sigma_data)?;
+        positive("edm.sigma_min", e.sigma_min)?;
+        positive("edm.sigma_max", e.sigma_max)?;
+        positive("edm.rho", e.rho)?;
+        positive("edm.p_std", e.p_std)?;
         if !e.p_mean.is_finite() {
-            return Err(format!("config.edm.p_mean = {}: must be finite", e.p_mean));
+            return Err(format!("edm.p_mean = {}: must be finite", e.p_mean));
         }
         if e.sigma_min >= e.sigma_max {
             return Err(format!(
-                "config.edm.sigma_min = {} is not below sigma_max = {}",
+                "edm.sigma_min = {} is not below sigma_max = {}",
                 e.sigma_min, e.sigma_max
             ));
         }
+        Ok(())
+    }
+}
+
+impl CheckpointMeta {
+    /// Checks that the configuration can be built and sampled from: sizes within bounds (a
+    /// model of `layers` 10^6 or windows of 10^9 agents would abort on allocation), noise
+    /// settings positive and finite, and a PCA basis of the right shape with finite,
+    /// unit-length components and positive scales. A checkpoint is shared data: without this, a
+    /// zero standard deviation or ρ = 0 sampled garbage with exit 0, and a basis one value
+    /// short panicked. The message names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        let c = &self.config;
+        c.validate().map_err(|e| format!("config.{e}"))?;
+        let (w, m) = (&c.window, &c.model);
+        let positive = |name: &str, v: f64| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(format!("{name} = {v}: must be positive and finite"))
+            }
+        };
         let n = &self.normaliser;
         positive("normaliser.sigma_data", n.sigma_data)?;
         let (pca, dim, k) = (&n.pca, 3 * w.future, m.k);
@@ -223,6 +247,9 @@ pub enum TrainError {
     /// Not enough data.
     #[error("{0}")]
     Data(String),
+    /// Settings training cannot run with ([`TrainConfig::validate`]).
+    #[error("training settings: {0}")]
+    Config(String),
     /// The tensor library failed.
     #[error("model: {0}")]
     Candle(#[from] candle_core::Error),
@@ -395,6 +422,9 @@ pub fn train_from(
         cfg.edm = c.edm;
         cfg.seed = c.seed;
         cfg.val_fold = c.val_fold;
+    }
+    cfg.validate().map_err(TrainError::Config)?;
+    if let Some(r) = &resume {
         if r.meta.steps_done >= cfg.steps {
             return Err(TrainError::Data(format!(
                 "the checkpoint has already done {} steps; ask for more than that (--steps is a total)",
