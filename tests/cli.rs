@@ -830,3 +830,47 @@ fn train_refuses_settings_it_cannot_train_with_before_reading_data() {
         assert!(!out.exists(), "{flag} {value} wrote {}", out.display());
     }
 }
+
+#[test]
+fn sampler_flags_are_checked_before_any_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("sim");
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    for (arg, want) in [
+        ("--steps=0", "steps = 0: must be 2 to 1000"),
+        ("--steps=1", "steps = 1: must be 2 to 1000"),
+        ("--samples=0", "samples = 0: must be 1 to 1024"),
+        (
+            "--samples=100000000",
+            "samples = 100000000: must be 1 to 1024",
+        ),
+        (
+            "--lambda=-1",
+            "lambda = -1: must be finite and not negative",
+        ),
+        (
+            "--known-weight=-2",
+            "known weight = -2: must be finite and not negative",
+        ),
+        (
+            "--known-weight=nan",
+            "known weight = NaN: must be finite and not negative",
+        ),
+    ] {
+        let err = fails(&simulate_args(
+            s(&scene),
+            "data/checkpoint",
+            &["--task", "unconditional", arg],
+            s(&out),
+        ));
+        assert!(
+            err.contains("sampler settings") && err.contains(want),
+            "{arg}: {err}"
+        );
+        assert!(!out.exists(), "{arg} created {}", out.display());
+    }
+    let err = fails(&["demo", "--samples", "0"]);
+    assert!(err.contains("samples = 0: must be 1 to 1024"), "{err}");
+    let err = fails(&["eval", s(&scene), "--task", "conditional", "--samples", "0"]);
+    assert!(err.contains("--samples 0: must be 1 to 1024"), "{err}");
+}

@@ -41,6 +41,18 @@ pub struct Args {
 const LAMBDA: f64 = drivescript::sample::BEHAVIOUR_LAMBDA;
 
 pub fn run(args: Args) -> Result<ExitCode> {
+    let cfg = SampleConfig {
+        samples: args.samples,
+        seed: args.seed,
+        lambda: LAMBDA,
+        task: Task::Unconditional,
+        guidance: Guidance::OutputSpace,
+        schedule: LambdaSchedule::Fading,
+        ..SampleConfig::default()
+    };
+    if let Err(e) = cfg.validate() {
+        anyhow::bail!("sampler settings: {e}");
+    }
     let samples = super::samples_dir();
     let ckpt = args
         .checkpoint
@@ -78,15 +90,6 @@ pub fn run(args: Args) -> Result<ExitCode> {
         &Limits::default(),
     )?;
     script.validate()?;
-    let cfg = SampleConfig {
-        samples: args.samples.max(1),
-        seed: args.seed,
-        lambda: LAMBDA,
-        task: Task::Unconditional,
-        guidance: Guidance::OutputSpace,
-        schedule: LambdaSchedule::Fading,
-        ..SampleConfig::default()
-    };
     let t0 = std::time::Instant::now();
     let out = sample(&trained, &scene, std::slice::from_ref(&script), &cfg)?;
     println!(

@@ -225,6 +225,9 @@ fn task_name(t: Task) -> &'static str {
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
+    if !(1..=1024).contains(&args.samples) {
+        anyhow::bail!("--samples {}: must be 1 to 1024", args.samples);
+    }
     let mut methods: Vec<(String, Option<Baseline>)> = Vec::new();
     let baselines = if args.baselines.is_empty() && args.rollouts.is_none() {
         vec![BaselineArg::Log, BaselineArg::Cv, BaselineArg::Lane]

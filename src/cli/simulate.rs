@@ -160,6 +160,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
             ClampArg::Agent => Clamp::Agent,
         },
     };
+    if let Err(e) = cfg.validate() {
+        anyhow::bail!("sampler settings: {e}");
+    }
     std::fs::create_dir_all(&args.output)
         .with_context(|| format!("creating {}", args.output.display()))?;
     let mut skipped = 0;

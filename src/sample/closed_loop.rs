@@ -32,6 +32,7 @@ pub fn closed_loop(
     cfg: &SampleConfig,
     execute: usize,
 ) -> Result<Vec<Sample>, SampleError> {
+    cfg.validate().map_err(SampleError::Settings)?;
     let future = trained.meta.config.window.future;
     let execute = execute.clamp(1, future);
     let start = prepare(scene, trained)?;

@@ -96,6 +96,27 @@ pub struct SampleConfig {
     pub clamp: Clamp,
 }
 
+impl SampleConfig {
+    /// Checks the settings before any work: 2 to 1000 Heun steps (one step from σ_max
+    /// straight to 0 is not a sample), 1 to 1024 samples, and a guidance strength and
+    /// known-state weight that are finite and not negative (a negative one pushes towards the
+    /// costs). The message names the setting and its range.
+    pub fn validate(&self) -> Result<(), String> {
+        if !(2..=1000).contains(&self.steps) {
+            return Err(format!("steps = {}: must be 2 to 1000", self.steps));
+        }
+        if !(1..=1024).contains(&self.samples) {
+            return Err(format!("samples = {}: must be 1 to 1024", self.samples));
+        }
+        for (name, v) in [("lambda", self.lambda), ("known weight", self.known_weight)] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!("{name} = {v}: must be finite and not negative"));
+            }
+        }
+        Ok(())
+    }
+}
+
 impl Default for SampleConfig {
     fn default() -> Self {
         Self {
@@ -132,6 +153,9 @@ pub enum SampleError {
     /// The scene cannot be simulated.
     #[error("{0}")]
     Scene(String),
+    /// Settings sampling cannot run with ([`SampleConfig::validate`]).
+    #[error("sampler settings: {0}")]
+    Settings(String),
 }
 
 /// The scene cut to the model's horizon: `current + 1 + future` steps, unobserved beyond the
@@ -517,6 +541,7 @@ fn setup<'a>(
     scene: &Scene,
     cfg: &SampleConfig,
 ) -> Result<Setup<'a>, SampleError> {
+    cfg.validate().map_err(SampleError::Settings)?;
     let dev = Device::Cpu;
     let wcfg = trained.meta.config.window;
     let c = scene.meta.current_step;
