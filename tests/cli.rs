@@ -874,3 +874,16 @@ fn sampler_flags_are_checked_before_any_work() {
     let err = fails(&["eval", s(&scene), "--task", "conditional", "--samples", "0"]);
     assert!(err.contains("--samples 0: must be 1 to 1024"), "{err}");
 }
+
+#[test]
+fn dataset_window_flags_are_checked() {
+    // --history 0 and --future 0 panicked; --stride 0 behaved like 1.
+    for (arg, want) in [
+        ("--history=0", "--history: history = 0: must be 1 to 100"),
+        ("--future=0", "--future: future = 0: must be 1 to 1000"),
+        ("--stride=0", "--stride: stride = 0: must be 1 to 100000"),
+    ] {
+        let err = fails(&["dataset", "scripts/scenes", arg]);
+        assert!(err.contains(want), "{arg}: {err}");
+    }
+}

@@ -31,6 +31,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
         stride: args.stride,
         ..WindowConfig::ngsim()
     };
+    if let Err(e) = cfg.validate() {
+        let flag = e.split(' ').next().unwrap_or_default();
+        anyhow::bail!("--{flag}: {e}");
+    }
     let (mut scenes, mut used, mut wins, mut agents, mut lanes) = (0, 0, 0, 0usize, 0usize);
     let mut futures = Vec::new();
     for root in &args.scenes {

@@ -32,6 +32,26 @@ pub struct WindowConfig {
 }
 
 impl WindowConfig {
+    /// Checks the sizes before any window is cut: history 1–100, future 1–1000, stride at
+    /// least 1, 1–1024 agents, 1–2048 lanes of 2–1000 points, at least one centre per step.
+    /// The message names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        let within = |name: &str, v: usize, lo: usize, hi: usize| {
+            if (lo..=hi).contains(&v) {
+                Ok(())
+            } else {
+                Err(format!("{name} = {v}: must be {lo} to {hi}"))
+            }
+        };
+        within("history", self.history, 1, 100)?;
+        within("future", self.future, 1, 1000)?;
+        within("stride", self.stride, 1, 100_000)?;
+        within("max_agents", self.max_agents, 1, 1024)?;
+        within("max_lanes", self.max_lanes, 1, 2048)?;
+        within("lane_points", self.lane_points, 2, 1000)?;
+        within("centres_per_step", self.centres_per_step, 1, 1024)
+    }
+
     /// The NGSIM setting: 1.1 s of history (11 steps, current included) and 4 s of future
     /// (40 steps) at 10 Hz. Half of the 108 NGSIM scenes are 8 s or longer but only a quarter
     /// reach 9 s, so WOMD's 8 s future would drop most of the corpus; 51 steps keep 89 of the

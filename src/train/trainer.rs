@@ -132,11 +132,7 @@ impl TrainConfig {
         if c.eval_every == 0 {
             return Err("eval_every = 0: must be at least 1".into());
         }
-        within("window.history", w.history, 1, 100)?;
-        within("window.future", w.future, 1, 1000)?;
-        within("window.max_agents", w.max_agents, 1, 1024)?;
-        within("window.max_lanes", w.max_lanes, 1, 2048)?;
-        within("window.lane_points", w.lane_points, 2, 1000)?;
+        w.validate().map_err(|e| format!("window.{e}"))?;
         within("model.d", m.d, 1, 1024)?;
         within("model.layers", m.layers, 1, 32)?;
         within("model.k", m.k, 1, 3 * w.future)?;
