@@ -873,6 +873,13 @@ fn sampler_flags_are_checked_before_any_work() {
     assert!(err.contains("samples = 0: must be 1 to 1024"), "{err}");
     let err = fails(&["eval", s(&scene), "--task", "conditional", "--samples", "0"]);
     assert!(err.contains("--samples 0: must be 1 to 1024"), "{err}");
+    for h in ["0", "100000000"] {
+        let err = fails(&["eval", s(&scene), "--task", "conditional", "--horizon", h]);
+        assert!(
+            err.contains(&format!("--horizon {h}: must be 1 to 10000 steps")),
+            "{err}"
+        );
+    }
 }
 
 #[test]

@@ -228,6 +228,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
     if !(1..=1024).contains(&args.samples) {
         anyhow::bail!("--samples {}: must be 1 to 1024", args.samples);
     }
+    // Every method is simulated over the horizon, so 10^8 steps aborted on allocation; a
+    // horizon of 0 scores nothing.
+    if let Some(h) = args.horizon.filter(|h| !(1..=10_000).contains(h)) {
+        anyhow::bail!("--horizon {h}: must be 1 to 10000 steps");
+    }
     let mut methods: Vec<(String, Option<Baseline>)> = Vec::new();
     let baselines = if args.baselines.is_empty() && args.rollouts.is_none() {
         vec![BaselineArg::Log, BaselineArg::Cv, BaselineArg::Lane]
