@@ -2,7 +2,7 @@
 
 mod common;
 
-use common::{fails, ok, s, samples};
+use common::{drivescript, fails, ok, s, samples};
 use serde_json::Value;
 
 fn inspect_json(path: &str) -> Vec<Value> {
@@ -892,5 +892,39 @@ fn dataset_window_flags_are_checked() {
     ] {
         let err = fails(&["dataset", "scripts/scenes", arg]);
         assert!(err.contains(want), "{arg}: {err}");
+    }
+}
+
+#[test]
+fn test_scripts_refuses_to_pass_when_nothing_was_tested() {
+    let dir = tempfile::tempdir().unwrap();
+    // A directory without test files.
+    let err = fails(&["test-scripts", s(dir.path())]);
+    assert!(err.contains("no *.test.yaml files in"), "{err}");
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    std::fs::copy(
+        root.join("scripts/cut_in.rhai"),
+        dir.path().join("cut_in.rhai"),
+    )
+    .unwrap();
+    let scenes = root.join("scripts/scenes/highway.yaml");
+    // A file without cases, and a case that expects nothing.
+    for (name, cases, want) in [
+        ("empty.test.yaml", "cases: []\n".to_string(), "no cases"),
+        (
+            "nothing.test.yaml",
+            format!(
+                "cases:\n  - name: anything goes\n    scene: {}\n    params: {{cutter: 2, victim: 1}}\n    expect: {{}}\n",
+                scenes.display()
+            ),
+            "`expect` checks nothing",
+        ),
+    ] {
+        let f = dir.path().join(name);
+        std::fs::write(&f, format!("script: cut_in.rhai\n{cases}")).unwrap();
+        let out = drivescript(&["test-scripts", s(&f)]);
+        let text = String::from_utf8_lossy(&out.stdout);
+        assert_eq!(out.status.code(), Some(1), "{name}: {text}");
+        assert!(text.contains(want) && text.contains("0 passed, 1 failed"), "{name}: {text}");
     }
 }

@@ -22,6 +22,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
         args.paths
     };
     let files = find_test_files(&roots)?;
+    if files.is_empty() {
+        let names: Vec<String> = roots.iter().map(|r| r.display().to_string()).collect();
+        anyhow::bail!("no *.test.yaml files in {}", names.join(", "));
+    }
     let (mut passed, mut failed) = (0, 0);
     println!("| {:<28} | {:<56} | result |", "test file", "case");
     println!("|{}|{}|--------|", "-".repeat(30), "-".repeat(58));

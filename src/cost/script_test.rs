@@ -119,6 +119,21 @@ pub struct Expect {
     pub error: Option<String>,
 }
 
+impl Expect {
+    /// Whether the case would pass whatever the script does (`expect: {}`).
+    pub fn checks_nothing(&self) -> bool {
+        self.total_below.is_none()
+            && self.total_above.is_none()
+            && self.terms_below.is_empty()
+            && self.terms_above.is_empty()
+            && self.largest_term.is_none()
+            && !self.descends
+            && self.towards.is_none()
+            && self.still.is_empty()
+            && self.error.is_none()
+    }
+}
+
 /// A direction the descent should move an agent.
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -461,6 +476,19 @@ pub fn run_test_file(path: &Path) -> Result<Vec<CaseResult>, ScriptTestError> {
             None => e.to_string(),
         },
     })?;
+    let invalid = |message: String| ScriptTestError::Read {
+        path: path.display().to_string(),
+        message,
+    };
+    if file.cases.is_empty() {
+        return Err(invalid("no cases: a test file needs at least one".into()));
+    }
+    if let Some(c) = file.cases.iter().find(|c| c.expect.checks_nothing()) {
+        return Err(invalid(format!(
+            "case {:?}: `expect` checks nothing (give at least one of total_below, total_above, terms_below, terms_above, largest_term, descends, towards, still, error)",
+            c.name
+        )));
+    }
     let dir = path.parent().unwrap_or(Path::new("."));
     let script_path = dir.join(&file.script);
     let source = std::fs::read_to_string(&script_path).map_err(|e| ScriptTestError::Read {
