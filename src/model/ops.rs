@@ -475,7 +475,10 @@ mod tests {
             let theirs =
                 candle_nn::ops::layer_norm_slow(x.as_tensor(), w.as_tensor(), b.as_tensor(), 1e-5)
                     .unwrap();
-            assert!(max_diff(&ours, &theirs) < 1e-12, "{shape:?}");
+            // Summation order differs (one pass here, op by op there): f64 round-off only,
+            // measured at 2e-13 to 3e-12.
+            let d = max_diff(&ours, &theirs);
+            assert!(d < 1e-9, "{shape:?}: {d}");
             let g1 = (&ours * &up)
                 .unwrap()
                 .sum_all()

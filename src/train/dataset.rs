@@ -31,18 +31,20 @@ pub struct WindowConfig {
     pub pad_lanes: bool,
 }
 
+/// `Ok` when `lo ≤ v ≤ hi`, else a message naming the setting and its range.
+pub(crate) fn within(name: &str, v: usize, lo: usize, hi: usize) -> Result<(), String> {
+    if (lo..=hi).contains(&v) {
+        Ok(())
+    } else {
+        Err(format!("{name} = {v}: must be {lo} to {hi}"))
+    }
+}
+
 impl WindowConfig {
     /// Checks the sizes before any window is cut: history 1–100, future 1–1000, stride at
     /// least 1, 1–1024 agents, 1–2048 lanes of 2–1000 points, at least one centre per step.
     /// The message names the field.
     pub fn validate(&self) -> Result<(), String> {
-        let within = |name: &str, v: usize, lo: usize, hi: usize| {
-            if (lo..=hi).contains(&v) {
-                Ok(())
-            } else {
-                Err(format!("{name} = {v}: must be {lo} to {hi}"))
-            }
-        };
         within("history", self.history, 1, 100)?;
         within("future", self.future, 1, 1000)?;
         within("stride", self.stride, 1, 100_000)?;

@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 
 use super::adamw::AdamW;
 use super::batch::{build, Normaliser};
-use super::dataset::{residual_futures, windows, Window, WindowConfig};
+use super::dataset::{residual_futures, windows, within, Window, WindowConfig};
 use super::rng::Rng;
 use crate::model::{Denoiser, DenoiserConfig, Edm, Pca, Scores};
 use crate::scene::Scene;
@@ -120,13 +120,6 @@ impl TrainConfig {
     pub fn validate(&self) -> Result<(), String> {
         let c = self;
         let (w, m, e) = (&c.window, &c.model, &c.edm);
-        let within = |name: &str, v: usize, lo: usize, hi: usize| {
-            if (lo..=hi).contains(&v) {
-                Ok(())
-            } else {
-                Err(format!("{name} = {v}: must be {lo} to {hi}"))
-            }
-        };
         within("steps", c.steps, 1, 100_000_000)?;
         within("batch", c.batch, 1, 4096)?;
         if c.eval_every == 0 {
