@@ -170,9 +170,8 @@ pub fn run(args: Args) -> Result<ExitCode> {
     for s in &args.scenes {
         sources.extend(discover(s)?);
     }
-    // Said once per run: which recording lengths differ from the model's horizon, and that
-    // agents of types the model never saw are not sampled.
-    // (scenes recording less than the model's horizon, more).
+    // Said once per run, and counted at the end: scenes recording less or more than the
+    // model's horizon, and agents of types the model never saw (agents, scenes).
     let horizons = std::cell::RefCell::new((0usize, 0usize));
     let fixed_total = std::cell::RefCell::new((0usize, 0usize));
     // One scene's failure (a script error on its agents, say) is reported and the others go

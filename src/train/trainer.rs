@@ -112,6 +112,15 @@ pub struct CheckpointMeta {
     pub pca_rmse_m: f64,
 }
 
+/// `Ok` when `v` is positive and finite, else a message naming the setting.
+fn positive(name: &str, v: f64) -> Result<(), String> {
+    if v.is_finite() && v > 0.0 {
+        Ok(())
+    } else {
+        Err(format!("{name} = {v}: must be positive and finite"))
+    }
+}
+
 impl TrainConfig {
     /// Checks that training can run with these settings, before any data is read: sizes within
     /// bounds (windows of 10^9 agents or 10^6 layers would abort on allocation), at least one
@@ -136,13 +145,6 @@ impl TrainConfig {
                 m.history, w.history
             ));
         }
-        let positive = |name: &str, v: f64| {
-            if v.is_finite() && v > 0.0 {
-                Ok(())
-            } else {
-                Err(format!("{name} = {v}: must be positive and finite"))
-            }
-        };
         positive("lr", c.lr)?;
         positive("edm.sigma_data", e.sigma_data)?;
         positive("edm.sigma_min", e.sigma_min)?;
@@ -173,13 +175,6 @@ impl CheckpointMeta {
         let c = &self.config;
         c.validate().map_err(|e| format!("config.{e}"))?;
         let (w, m) = (&c.window, &c.model);
-        let positive = |name: &str, v: f64| {
-            if v.is_finite() && v > 0.0 {
-                Ok(())
-            } else {
-                Err(format!("{name} = {v}: must be positive and finite"))
-            }
-        };
         let n = &self.normaliser;
         positive("normaliser.sigma_data", n.sigma_data)?;
         let (pca, dim, k) = (&n.pca, 3 * w.future, m.k);
