@@ -3,14 +3,14 @@
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::rc::Rc;
 
 use anyhow::{Context, Result};
-use drivescript::cost::{CostScript, Limits, Params};
-use drivescript::eval::behaviors::{check, suggest, Behavior};
-use drivescript::io::{load_scene, rollout::Rollout, write_atomic, LoadOptions};
+use drivescript::eval::behaviors::{suggest, Behavior};
+use drivescript::io::{load_scene, LoadOptions};
 use drivescript::render::RenderOptions;
-use drivescript::sample::{prepare, sample, Guidance, LambdaSchedule, SampleConfig, Task};
+use drivescript::sample::{
+    attempt, AttemptSpec, Guidance, LambdaSchedule, SampleConfig, ScriptSpec, Task,
+};
 use drivescript::train::load;
 
 use super::render::write_picture;
@@ -73,30 +73,31 @@ pub fn run(args: Args) -> Result<ExitCode> {
             scene_path.display()
         )
     })?;
-    let kv = super::script_params(&chosen);
     println!(
         "cut-in: vehicle {} cuts in front of vehicle {} (chosen by eval::behaviors::suggest)",
-        chosen["cutter"], chosen["victim"]
+        chosen.get("cutter").expect("suggest names the cutter"),
+        chosen.get("victim").expect("suggest names the victim")
     );
-    let scene = prepare(&raw, &trained)?;
     let script_path = samples.join("../../scripts/cut_in.rhai");
     let source = std::fs::read_to_string(&script_path)
         .with_context(|| format!("reading {}", script_path.display()))?;
-    let script = CostScript::compile(
-        &source,
-        "scripts/cut_in.rhai",
-        Rc::new(scene.clone()),
-        &Params::parse(&kv)?,
-        &Limits::default(),
-    )?;
-    script.validate()?;
-    let t0 = std::time::Instant::now();
-    let out = sample(&trained, &scene, std::slice::from_ref(&script), &cfg)?;
+    let spec = AttemptSpec {
+        scripts: vec![ScriptSpec::new(
+            source,
+            "scripts/cut_in.rhai",
+            chosen.clone(),
+        )],
+        checker: Some((behaviour, chosen)),
+        cfg,
+        replan: None,
+    };
+    let done = attempt(&trained, &raw, &spec)?;
+    let report = &done.report;
     println!(
         "{} samples, {} Heun steps, guided in output space (fading λ = {LAMBDA}), in {:.1} s\n",
-        out.len(),
+        report.samples.len(),
         cfg.steps,
-        t0.elapsed().as_secs_f64()
+        report.seconds
     );
     let dir = args
         .output
@@ -104,78 +105,24 @@ pub fn run(args: Args) -> Result<ExitCode> {
         .filter(|p| !p.as_os_str().is_empty())
         .unwrap_or(Path::new("."))
         .to_path_buf();
-    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-    let mut report = Vec::new();
-    let mut best: Option<(bool, f64, usize)> = None;
-    for (k, s) in out.iter().enumerate() {
-        let verdict = check(behaviour, &s.scene, &chosen)?;
-        println!(
-            "sample {k}: {}: {}",
-            match (verdict.passed, verdict.achieved) {
-                (true, _) => "PASS",
-                (false, true) => "fail (achieved, implausibly)",
-                (false, false) => "fail",
-            },
-            verdict.reason
-        );
-        let mut terms = Vec::new();
-        for t in &s.reports[0].terms {
-            let before = s.initial_reports.first().and_then(|r| r.term(&t.name));
-            println!(
-                "  {:<22} initial {:>9}  final {:>9.4}",
-                t.name,
-                before.map_or("-".into(), |b| format!("{:.4}", b.value)),
-                t.value
-            );
-            terms.push(serde_json::json!({
-                "term": t.name,
-                "initial": before.map(|b| b.value),
-                "final": t.value,
-            }));
-        }
-        let total = s.reports[0].total;
-        report.push(serde_json::json!({
-            "sample": k,
-            "passed": verdict.passed,
-            "achieved": verdict.achieved,
-            "violations": verdict.violations,
-            "reason": verdict.reason,
-            "measured": verdict.measured,
-            "total": total,
-            "terms": terms,
-        }));
-        let mut r = Rollout::from_scene(&s.scene);
-        for t in &s.reports[0].terms {
-            r.costs.insert(t.name.clone(), t.value);
-        }
-        r.write(&dir.join(format!("demo_{k}.json")))?;
-        // Prefer a passing sample, then the lowest cost.
-        let key = (verdict.passed, -total, k);
-        if best.is_none_or(|b| (key.0, key.1) > (b.0, b.1)) {
-            best = Some(key);
-        }
+    for o in &report.samples {
+        super::print_outcome(&format!("sample {}", o.sample), o);
     }
-    let passed = report.iter().filter(|r| r["passed"] == true).count();
-    write_atomic(
-        &dir.join("demo_costs.json"),
-        serde_json::to_string_pretty(&serde_json::json!({
-            "scene": raw.meta.scenario_id,
-            "behaviour": behaviour.name(),
-            "params": chosen,
-            "lambda": LAMBDA,
-            "samples": report,
-        }))?
-        .as_bytes(),
-    )?;
-    let (_, _, k) = best.expect("at least one sample");
+    done.write(&dir, "demo")?;
+    let k = done.best();
     let opts = RenderOptions {
         width: 900,
         ..RenderOptions::default()
     };
-    write_picture(&out[k].scene, &args.output, &opts)?;
+    write_picture(&done.samples[k].scene, &args.output, &opts)?;
+    let passed = report
+        .samples
+        .iter()
+        .filter(|o| o.passed() == Some(true))
+        .count();
     println!(
         "\n{passed} of {} samples pass the cut-in checker; wrote {} (sample {k}), demo_K.json and demo_costs.json in {}",
-        out.len(),
+        report.samples.len(),
         args.output.display(),
         dir.display()
     );

@@ -5,9 +5,10 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
+use drivescript::cost::Params;
 use drivescript::eval::kinematic::{self, KinematicLimits, Violation};
 use drivescript::eval::metrics::{self, JsdBins, Kinematics};
-use drivescript::eval::{check, Baseline, Behavior, CheckParams};
+use drivescript::eval::{check, Baseline, Behavior};
 use drivescript::io::{discover, load_scenes, rollout::Rollout, write_atomic, LoadOptions};
 use drivescript::scene::Scene;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -134,7 +135,7 @@ fn score(
     acc: &mut Acc,
     logged: &Scene,
     sims: &[Scene],
-    behaviour: Option<(Behavior, &CheckParams)>,
+    behaviour: Option<(Behavior, &Params)>,
 ) {
     let t0 = Instant::now();
     acc.scenes += 1;
@@ -257,16 +258,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
         (Task::Behaviour, None) => bail!("--task behaviour needs --behaviour NAME"),
         (Task::Behaviour, Some(n)) => {
             let b = Behavior::from_name(n).with_context(|| format!("unknown behaviour {n:?}"))?;
-            let mut p = CheckParams::new();
-            for kv in &args.params {
-                let (k, v) = kv
-                    .split_once('=')
-                    .with_context(|| format!("--param {kv}: expected name=value"))?;
-                p.insert(
-                    k.to_string(),
-                    v.parse()
-                        .with_context(|| format!("--param {kv}: the value must be a number"))?,
-                );
+            let p = Params::parse(&args.params).context("--param")?;
+            for (k, v) in &p.0 {
+                if v.as_f64().is_none() {
+                    bail!("--param {k}={v}: the value must be a number");
+                }
             }
             Some((b, p))
         }
@@ -313,10 +309,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                         scene,
                         args.horizon.unwrap_or(scene.num_future_steps()),
                     ) {
-                        Some(mut p) => {
-                            p.extend(given.iter().map(|(k, v)| (k.clone(), *v)));
-                            Some((*b, p))
-                        }
+                        Some(p) => Some((*b, p.overridden_by(given))),
                         None => {
                             skipped += 1;
                             continue;

@@ -115,21 +115,46 @@ pub fn run() -> ExitCode {
     }
 }
 
-/// Where the repository's sample data lives (next to the binary's crate, or the working dir).
-/// Checker parameters as `name=value` script parameters: whole numbers (agent ids) as integers,
-/// which `agent(...)` needs, the rest as floats.
-pub(crate) fn script_params(p: &drivescript::eval::behaviors::CheckParams) -> Vec<String> {
-    p.iter()
-        .map(|(k, v)| {
-            if v.fract() == 0.0 {
-                format!("{k}={}", *v as i64)
-            } else {
-                format!("{k}={v}")
-            }
-        })
-        .collect()
+/// Prints one sample's outcome: the checker's verdict (when there is one), each term's first
+/// estimate and final value, and the implausible motion of any vehicle.
+pub(crate) fn print_outcome(label: &str, o: &drivescript::sample::SampleOutcome) {
+    if let Some(v) = &o.verdict {
+        let head = match (v.passed, v.achieved) {
+            (true, _) => "PASS",
+            (false, true) => "fail (achieved, implausibly)",
+            (false, false) => "fail",
+        };
+        println!("{label}: {head}: {}", v.reason);
+    } else {
+        println!("{label}: total cost {:.4}", o.total);
+    }
+    println!(
+        "  {:<28} {:>7} {:>10} {:>10}",
+        "term (unweighted)", "weight", "initial", "final"
+    );
+    for t in &o.terms {
+        println!(
+            "  {:<28} {:>7} {:>10} {:>10.4}",
+            t.term,
+            format!("{}", t.weight),
+            t.initial.map_or("-".into(), |v| format!("{v:.4}")),
+            t.value
+        );
+    }
+    let shown = 4;
+    for e in o.realism.iter().take(shown) {
+        let who = e.role.as_deref().map_or(String::new(), |r| format!("{r} "));
+        println!("  implausible: {who}{} {}", e.agent, e.text);
+    }
+    if o.realism.len() > shown {
+        println!(
+            "  implausible: {} more events (all in the costs JSON)",
+            o.realism.len() - shown
+        );
+    }
 }
 
+/// Where the repository's sample data lives (next to the binary's crate, or the working dir).
 pub(crate) fn samples_dir() -> PathBuf {
     let here = PathBuf::from("data/samples");
     if here.exists() {

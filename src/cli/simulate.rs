@@ -2,15 +2,14 @@
 
 use std::path::PathBuf;
 use std::process::ExitCode;
-use std::rc::Rc;
 
 use anyhow::{Context, Result};
-use drivescript::cost::{CostScript, Limits, Params};
+use drivescript::cost::Params;
 use drivescript::eval::behaviors::{suggest, Behavior, ALL};
-use drivescript::io::{discover, load_scenes, rollout::Rollout, LoadOptions};
+use drivescript::io::{discover, load_scenes, output_stem, LoadOptions};
 use drivescript::render::RenderOptions;
 use drivescript::sample::{
-    closed_loop, horizon_note, prepare, recorded_future, sample, Clamp, Guidance, LambdaSchedule,
+    attempt, horizon_note, recorded_future, AttemptSpec, Clamp, Guidance, LambdaSchedule,
     SampleConfig, ScriptSpec, Task,
 };
 use drivescript::train::load;
@@ -128,11 +127,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
         .map(|p| {
             let source =
                 std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
-            Ok(ScriptSpec {
+            Ok(ScriptSpec::new(
                 source,
-                name: p.display().to_string(),
-                params: Params::default(),
-            })
+                p.display().to_string(),
+                Params::default(),
+            ))
         })
         .collect::<Result<Vec<_>>>()?;
     let cfg = SampleConfig {
@@ -163,6 +162,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     if let Err(e) = cfg.validate() {
         anyhow::bail!("sampler settings: {e}");
     }
+    let explicit = Params::parse(&args.params)?;
     std::fs::create_dir_all(&args.output)
         .with_context(|| format!("creating {}", args.output.display()))?;
     let mut skipped = 0;
@@ -190,50 +190,33 @@ pub fn run(args: Args) -> Result<ExitCode> {
             }
         }
         // Suggested agents first, so that explicit --param values override them.
-        let mut kv: Vec<String> = Vec::new();
+        let mut params = Params::default();
         if let Some(b) = auto {
             match suggest(b, &raw.with_horizon(future), future) {
-                Some(p) => kv.extend(super::script_params(&p)),
+                Some(p) => params = p,
                 None => {
                     println!("{id}: no agents suited to {}; skipped", b.name());
                     return Ok(false);
                 }
             }
-            println!("{id}: {}", kv.join(" "));
+            println!("{id}: {params}");
         }
-        kv.extend(args.params.iter().cloned());
-        let params = Params::parse(&kv)?;
-        let specs: Vec<ScriptSpec> = specs
-            .iter()
-            .map(|s| ScriptSpec {
-                params: params.clone(),
-                ..s.clone()
-            })
-            .collect();
-        let scene = prepare(raw, &trained)?;
-        let t0 = std::time::Instant::now();
-        let samples = if args.closed_loop {
-            closed_loop(&trained, raw, &specs, &cfg, 5)?
-        } else {
-            let shared = Rc::new(scene.clone());
-            let scripts = specs
+        let params = params.overridden_by(&explicit);
+        let spec = AttemptSpec {
+            scripts: specs
                 .iter()
-                .map(|s| {
-                    let c = CostScript::compile(
-                        &s.source,
-                        &s.name,
-                        shared.clone(),
-                        &s.params,
-                        &Limits::default(),
-                    )?;
-                    c.validate()?;
-                    Ok(c)
+                .map(|s| ScriptSpec {
+                    params: params.clone(),
+                    ..s.clone()
                 })
-                .collect::<Result<Vec<_>>>()?;
-            sample(&trained, &scene, &scripts, &cfg)?
+                .collect(),
+            checker: auto.map(|b| (b, params.clone())),
+            cfg,
+            replan: args.closed_loop.then_some(5),
         };
-        let secs = t0.elapsed().as_secs_f64();
-        if let Some(s) = samples.first().filter(|s| !s.fixed.is_empty()) {
+        let done = attempt(&trained, raw, &spec)?;
+        let (samples, report) = (&done.samples, &done.report);
+        if !report.not_sampled.is_empty() {
             let mut total = fixed_total.borrow_mut();
             if total.0 == 0 {
                 println!(
@@ -244,59 +227,25 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     } else {
                         "keep their current velocity"
                     },
-                    s.fixed
-                        .iter()
-                        .map(|(a, t)| format!("{} {a}", t.name()))
-                        .collect::<Vec<_>>()
-                        .join(", ")
+                    report.not_sampled.join(", ")
                 );
             }
-            total.0 += s.fixed.len();
+            total.0 += report.not_sampled.len();
             total.1 += 1;
         }
-        let mut report = Vec::new();
-        for (k, s) in samples.iter().enumerate() {
-            let mut r = Rollout::from_scene(&s.scene);
-            for rep in &s.reports {
-                for t in &rep.terms {
-                    r.costs.insert(t.name.clone(), t.value);
-                }
-            }
-            r.write(&args.output.join(format!("{id}_{k}.json")))?;
-            let mut terms = Vec::new();
-            for (i, fin) in s.reports.iter().enumerate() {
-                for t in &fin.terms {
-                    let before = s
-                        .initial_reports
-                        .get(i)
-                        .and_then(|r| r.term(&t.name))
-                        .map(|x| x.value);
-                    println!(
-                        "{id} sample {k}  {:<28} initial {:>10}  final {:>10.4}",
-                        t.name,
-                        before.map_or("-".into(), |v| format!("{v:.4}")),
-                        t.value
-                    );
-                    terms.push(
-                        serde_json::json!({"term": t.name, "initial": before, "final": t.value}),
-                    );
-                }
-            }
-            report.push(serde_json::json!({"sample": k, "terms": terms}));
+        for o in &report.samples {
+            super::print_outcome(&format!("{id} sample {}", o.sample), o);
         }
-        drivescript::io::write_atomic(
-            &args.output.join(format!("{id}_costs.json")),
-            serde_json::to_string_pretty(&report)?.as_bytes(),
-        )?;
+        done.write(&args.output, &id)?;
         super::render::write_picture(
             &samples[0].scene,
-            &args.output.join(format!("{id}_0.gif")),
+            &args.output.join(format!("{}_0.gif", output_stem(&id)?)),
             &RenderOptions {
                 width: 800,
                 ..Default::default()
             },
         )?;
-        println!("{id}: {} samples in {secs:.2} s", samples.len());
+        println!("{id}: {} samples in {:.2} s", samples.len(), report.seconds);
         Ok(true)
     };
     let mut failed = 0;

@@ -21,6 +21,7 @@ use rhai::{
 };
 
 use super::dual::Dual;
+use super::params::{ParamValue, Params};
 use super::report::{CostReport, TermReport};
 use super::series::Series;
 use super::stdlib::{self, Ctx, DocEntry, Shared, Term};
@@ -161,75 +162,6 @@ pub enum CostError {
         /// What does not fit.
         message: String,
     },
-}
-
-/// Script parameters (`--param cutter=1 victim=2`), visible to the script as constants.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct Params(pub Vec<(String, ParamValue)>);
-
-/// A parameter's value.
-#[derive(Debug, Clone, PartialEq)]
-pub enum ParamValue {
-    /// An integer (agent and lane ids).
-    Int(i64),
-    /// A number.
-    Float(f64),
-    /// A boolean.
-    Bool(bool),
-    /// Anything else.
-    Str(String),
-}
-
-impl Params {
-    /// Parses `name=value` arguments: integers, floats and booleans are typed, the rest strings.
-    pub fn parse<S: AsRef<str>>(args: &[S]) -> Result<Self, CostError> {
-        let mut out = Vec::new();
-        for a in args {
-            let a = a.as_ref();
-            let Some((k, v)) = a.split_once('=') else {
-                return Err(CostError::Param {
-                    name: a.into(),
-                    message: "expected name=value".into(),
-                });
-            };
-            let k = k.trim();
-            let ident = k
-                .chars()
-                .next()
-                .is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
-                && k.chars().all(|c| c.is_ascii_alphanumeric() || c == '_');
-            if !ident {
-                return Err(CostError::Param {
-                    name: k.into(),
-                    message: "not a valid identifier".into(),
-                });
-            }
-            if out.iter().any(|(n, _): &(String, ParamValue)| n == k) {
-                return Err(CostError::Param {
-                    name: k.into(),
-                    message: "given twice".into(),
-                });
-            }
-            let v = v.trim();
-            let val = if let Ok(i) = v.parse::<i64>() {
-                ParamValue::Int(i)
-            } else if let Ok(f) = v.parse::<f64>() {
-                if !f.is_finite() {
-                    return Err(CostError::Param {
-                        name: k.into(),
-                        message: format!("{v} is not finite"),
-                    });
-                }
-                ParamValue::Float(f)
-            } else if v == "true" || v == "false" {
-                ParamValue::Bool(v == "true")
-            } else {
-                ParamValue::Str(v.to_string())
-            };
-            out.push((k.to_string(), val));
-        }
-        Ok(Params(out))
-    }
 }
 
 /// Only the embedded stdlib modules, by bare name.

@@ -8,6 +8,7 @@
 mod dual;
 mod engine;
 mod fwd;
+mod params;
 mod report;
 mod series;
 pub mod stdlib;
@@ -15,10 +16,10 @@ mod trajectory;
 
 pub use dual::{Dual, Grad};
 pub use engine::{
-    module_functions, reference, reference_markdown, CostError, CostScript, Limits, ParamValue,
-    Params, STDLIB_MODULES,
+    module_functions, reference, reference_markdown, CostError, CostScript, Limits, STDLIB_MODULES,
 };
 pub use fwd::{box_clearance, Fwd};
+pub use params::{ParamValue, Params};
 pub use report::{CostReport, TermReport};
 pub use series::Series;
 pub use stdlib::DocEntry;

@@ -7,6 +7,7 @@ use std::collections::BTreeMap;
 use serde::Serialize;
 
 use super::kinematic::{self, KinematicLimits, Violation};
+use crate::cost::{ParamValue, Params};
 use crate::geom::{wrap_angle, Point};
 use crate::scene::{Agent, AgentType, LanePath, Scene, Turn};
 
@@ -126,6 +127,14 @@ impl Behavior {
             Behavior::Accident => &["attacker", "target"],
         }
     }
+
+    /// The parameters that name agents (their roles), a subset of [`Behavior::required`].
+    pub fn roles(self) -> &'static [&'static str] {
+        match self {
+            Behavior::SpeedLimit | Behavior::TargetPoint => &["vehicle"],
+            b => b.required(),
+        }
+    }
 }
 
 /// A checker's verdict.
@@ -158,6 +167,16 @@ pub enum CheckError {
         /// The parameter.
         name: &'static str,
     },
+    /// A parameter is not a finite number.
+    #[error("{behavior}: parameter {name:?} = {value:?} must be a number")]
+    NotANumber {
+        /// The behaviour.
+        behavior: &'static str,
+        /// The parameter.
+        name: &'static str,
+        /// Its value as given.
+        value: String,
+    },
     /// An agent is missing or unusable.
     #[error("{behavior}: {message}")]
     Agent {
@@ -168,13 +187,10 @@ pub enum CheckError {
     },
 }
 
-/// Checker parameters by name (agent ids as numbers).
-pub type CheckParams = BTreeMap<String, f64>;
-
 struct Ctx<'a> {
     b: Behavior,
     s: &'a Scene,
-    p: &'a CheckParams,
+    p: &'a Params,
     m: BTreeMap<String, f64>,
     /// The agents the behaviour names, with their roles.
     named: Vec<(&'static str, &'a Agent)>,
@@ -182,14 +198,30 @@ struct Ctx<'a> {
 
 impl<'a> Ctx<'a> {
     fn get(&self, name: &'static str) -> Result<f64, CheckError> {
-        self.p.get(name).copied().ok_or(CheckError::MissingParam {
-            behavior: self.b.name(),
-            name,
-        })
+        match self.p.get(name) {
+            None => Err(CheckError::MissingParam {
+                behavior: self.b.name(),
+                name,
+            }),
+            Some(v) => self.numeric(name, v),
+        }
     }
 
-    fn or(&self, name: &str, default: f64) -> f64 {
-        self.p.get(name).copied().unwrap_or(default)
+    fn or(&self, name: &'static str, default: f64) -> Result<f64, CheckError> {
+        match self.p.get(name) {
+            None => Ok(default),
+            Some(v) => self.numeric(name, v),
+        }
+    }
+
+    fn numeric(&self, name: &'static str, v: &ParamValue) -> Result<f64, CheckError> {
+        v.as_f64()
+            .filter(|x| x.is_finite())
+            .ok_or_else(|| CheckError::NotANumber {
+                behavior: self.b.name(),
+                name,
+                value: v.to_string(),
+            })
     }
 
     fn agent(&mut self, name: &'static str) -> Result<&'a Agent, CheckError> {
@@ -309,11 +341,7 @@ fn overlap_steps(s: &Scene, a: &Agent, b: &Agent) -> Vec<usize> {
 }
 
 /// Decides whether `behavior` happened in `scene` (a simulated or logged scene).
-pub fn check(
-    behavior: Behavior,
-    scene: &Scene,
-    params: &CheckParams,
-) -> Result<Verdict, CheckError> {
+pub fn check(behavior: Behavior, scene: &Scene, params: &Params) -> Result<Verdict, CheckError> {
     let mut x = Ctx {
         b: behavior,
         s: scene,
@@ -331,7 +359,7 @@ pub fn check(
         Behavior::SpeedLimit => {
             let a = x.agent("vehicle")?;
             let limit = x.get("limit")?;
-            let from = c + (x.or("from", 0.0) / s.meta.dt).round() as usize;
+            let from = c + (x.or("from", 0.0)? / s.meta.dt).round() as usize;
             let vmax = speeds(s, a)
                 .iter()
                 .filter(|(t, _)| *t > from)
@@ -351,7 +379,7 @@ pub fn check(
         }
         Behavior::TargetPoint => {
             let a = x.agent("vehicle")?;
-            let (tx, ty, tol) = (x.get("x")?, x.get("y")?, x.or("tol", 1.0));
+            let (tx, ty, tol) = (x.get("x")?, x.get("y")?, x.or("tol", 1.0)?);
             let end = a.states[x.last(a)?].position();
             let d = (end - Point::new(tx, ty)).norm();
             x.measure("final_distance", d);
@@ -539,7 +567,7 @@ pub fn check(
         }
         Behavior::Follow => {
             let (a, b) = (x.agent("follower")?, x.agent("leader")?);
-            let want = x.or("gap", 10.0);
+            let want = x.or("gap", 10.0)?;
             let path = path_of(s, b).ok_or_else(|| no_lane(behavior, b.id))?;
             let n = s.num_steps();
             let from = c + 1 + (n - c - 1) / 2;
@@ -642,7 +670,7 @@ pub fn check(
         }
         Behavior::Stop => {
             let a = x.agent("vehicle")?;
-            let within = x.or("within", 4.0);
+            let within = x.or("within", 4.0)?;
             let from = c + (within / s.meta.dt).round() as usize;
             let after: Vec<f64> = speeds(s, a)
                 .into_iter()
@@ -700,7 +728,7 @@ pub fn check(
 /// - `yield`: two vehicles whose lane paths meet ahead of both, within 1.2 times the distance
 ///   each covers over the horizon at its current speed plus 20 m;
 /// - `accident`: the nearest pair; `no_collisions`: no agents.
-pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<CheckParams> {
+pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
     let c = scene.meta.current_step;
     let n = scene.num_steps();
     let horizon = horizon as f64 * scene.meta.dt;
@@ -731,13 +759,7 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<CheckParams
         d(x.0).total_cmp(&d(y.0)).then(x.0.id.cmp(&y.0.id))
     });
     let g = scene.map.graph();
-    let p = |kv: &[(&str, f64)]| {
-        Some(
-            kv.iter()
-                .map(|(k, v)| (k.to_string(), *v))
-                .collect::<CheckParams>(),
-        )
-    };
+    let p = |kv: &[(&str, f64)]| Some(Params::numbers(kv));
     match b {
         Behavior::NoCollisions => p(&[]),
         // The limit is below the current speed; braking to it at a moderate 2.5 m/s² takes

@@ -7,7 +7,7 @@ pub mod kinematic;
 pub mod metrics;
 
 pub use baselines::Baseline;
-pub use behaviors::{check, Behavior, CheckError, CheckParams, Verdict};
+pub use behaviors::{check, Behavior, CheckError, Verdict};
 pub use kinematic::{judge, Judgement, KinematicLimits, Violation};
 
 #[cfg(test)]

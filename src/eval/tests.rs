@@ -3,7 +3,8 @@
 use std::path::Path;
 
 use super::metrics::*;
-use super::{check, Baseline, Behavior, CheckParams};
+use super::{check, Baseline, Behavior};
+use crate::cost::Params;
 use crate::io::{load_scene, yaml, LoadOptions};
 use crate::scene::Scene;
 
@@ -14,8 +15,8 @@ fn scene(name: &str) -> Scene {
     load_scene(&p, 0, &LoadOptions::default()).unwrap()
 }
 
-fn params(kv: &[(&str, f64)]) -> CheckParams {
-    kv.iter().map(|(k, v)| (k.to_string(), *v)).collect()
+fn params(kv: &[(&str, f64)]) -> Params {
+    Params::numbers(kv)
 }
 
 fn passes(b: Behavior, s: &Scene, kv: &[(&str, f64)]) -> bool {
@@ -331,17 +332,26 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
     let base = scene("highway.yaml");
     let left = suggest(Behavior::LaneChangeLeft, &base).unwrap();
     // Vehicle 1 (ego, middle lane) has a lane to its left.
-    assert_eq!(left["vehicle"], 1.0);
+    assert_eq!(left.number("vehicle").unwrap(), 1.0);
     assert_eq!(
-        suggest(Behavior::RightmostLane, &base).unwrap()["vehicle"],
+        suggest(Behavior::RightmostLane, &base)
+            .unwrap()
+            .number("vehicle")
+            .unwrap(),
         1.0
     );
     let cut = suggest(Behavior::CutIn, &base).unwrap();
-    assert_eq!((cut["cutter"], cut["victim"]), (2.0, 1.0));
+    assert_eq!(
+        (cut.number("cutter").unwrap(), cut.number("victim").unwrap()),
+        (2.0, 1.0)
+    );
     let f = suggest(Behavior::Follow, &scene("highway_crash.yaml")).unwrap();
-    assert_eq!((f["follower"], f["leader"]), (3.0, 1.0));
+    assert_eq!(
+        (f.number("follower").unwrap(), f.number("leader").unwrap()),
+        (3.0, 1.0)
+    );
     let y = suggest(Behavior::Yield, &scene("merge.yaml")).unwrap();
-    assert!(y.contains_key("yielder") && y.contains_key("other"));
+    assert!(y.get("yielder").is_some() && y.get("other").is_some());
     assert!(
         suggest(Behavior::Yield, &base).is_none(),
         "parallel lanes never meet"
@@ -357,7 +367,8 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
     };
     // The horizon simulated, not the recording's, sets the reach.
     let rightmost = |horizon| {
-        super::behaviors::suggest(Behavior::RightmostLane, &road(31), horizon).map(|p| p["vehicle"])
+        super::behaviors::suggest(Behavior::RightmostLane, &road(31), horizon)
+            .map(|p| p.number("vehicle").unwrap())
     };
     assert_eq!(rightmost(20), Some(5.0), "2 s: one lane change at most");
     assert_eq!(rightmost(40), Some(3.0), "4 s: two");
@@ -373,7 +384,7 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
     .unwrap();
     let p = super::behaviors::suggest(Behavior::Stop, &stop, 40).unwrap();
     assert_eq!(
-        (p["vehicle"], p["within"]),
+        (p.number("vehicle").unwrap(), p.number("within").unwrap()),
         (2.0, 2.5),
         "10 m/s: 2.5 s of braking"
     );
@@ -385,7 +396,7 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
     )
     .unwrap();
     assert_eq!(
-        suggest(Behavior::SpeedLimit, &ending).map(|p| p["vehicle"]),
+        suggest(Behavior::SpeedLimit, &ending).map(|p| p.number("vehicle").unwrap()),
         Some(2.0)
     );
     // Every suggestion is something its checker can run on.

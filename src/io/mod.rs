@@ -66,6 +66,14 @@ pub enum IoError {
         /// What is wrong.
         message: String,
     },
+    /// A scenario id that cannot name output files (a path, a dot name, control characters).
+    #[error("scenario id {id:?} cannot name an output file: {message}")]
+    Name {
+        /// The id, as read.
+        id: String,
+        /// What is wrong.
+        message: String,
+    },
     /// The content parsed but makes an inconsistent scene.
     #[error("{path}: {location}: {error}")]
     Scene {
@@ -237,6 +245,33 @@ pub fn discover(path: &Path) -> Result<Vec<PathBuf>, IoError> {
     Ok(out)
 }
 
+/// `id` when it can start a file name inside an output directory: scene files are untrusted,
+/// and an id such as `../../x` must not write outside the directory the user named.
+pub fn output_stem(id: &str) -> Result<&str, IoError> {
+    let bad = |message: &str| {
+        Err(IoError::Name {
+            id: id.chars().take(120).collect(),
+            message: message.into(),
+        })
+    };
+    if id.is_empty() {
+        return bad("it is empty");
+    }
+    if id.len() > 200 {
+        return bad("it is longer than 200 bytes");
+    }
+    if id.starts_with('.') {
+        return bad("it starts with a dot");
+    }
+    if let Some(c) = id
+        .chars()
+        .find(|&c| c == '/' || c == '\\' || c == ':' || c.is_control())
+    {
+        return bad(&format!("it contains {c:?}"));
+    }
+    Ok(id)
+}
+
 /// Writes `bytes` to `path` atomically: a temporary file beside it, then a rename.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     let err = |source| IoError::Write {
@@ -298,5 +333,30 @@ pub(crate) fn push_unique_road_line(
     });
     if !dup {
         lines.push(line);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::output_stem;
+
+    #[test]
+    fn output_stems_are_single_plain_names() {
+        for ok in ["USA_US101-3_3_T-1", "a1b2#3", "0a1e6f0a-uuid", "demo"] {
+            assert_eq!(output_stem(ok).unwrap(), ok);
+        }
+        let long = "x".repeat(201);
+        for (bad, why) in [
+            ("", "empty"),
+            ("../x", "starts with a dot"),
+            ("a/../../b", "'/'"),
+            ("a\\b", "'\\\\'"),
+            ("C:x", "':'"),
+            ("a\u{1b}[2Jb", "'\\u{1b}'"),
+            (long.as_str(), "longer than 200"),
+        ] {
+            let e = output_stem(bad).unwrap_err().to_string();
+            assert!(e.contains(why), "{bad:?}: {e}");
+        }
     }
 }

@@ -9,8 +9,9 @@ use crate::cost::{CostScript, Limits, Params};
 use crate::scene::Scene;
 use crate::train::Trained;
 
-/// A cost script's source, name and parameters: closed loop recompiles scripts at every round,
-/// because the scene's current step (and so the future a script sees) moves on.
+/// A cost script's source, name, parameters and limits: everything needed to compile it again,
+/// which closed loop does at every round because the scene's current step (and so the future a
+/// script sees) moves on.
 #[derive(Debug, Clone)]
 pub struct ScriptSpec {
     /// Source text.
@@ -19,6 +20,20 @@ pub struct ScriptSpec {
     pub name: String,
     /// Parameters.
     pub params: Params,
+    /// Resource limits, the same at every compilation.
+    pub limits: Limits,
+}
+
+impl ScriptSpec {
+    /// A script with default limits.
+    pub fn new(source: impl Into<String>, name: impl Into<String>, params: Params) -> Self {
+        Self {
+            source: source.into(),
+            name: name.into(),
+            params,
+            limits: Limits::default(),
+        }
+    }
 }
 
 /// Simulates `scene` in closed loop, executing `execute` steps per round (5 = 0.5 s at 10 Hz).
@@ -57,7 +72,7 @@ pub fn closed_loop(
                         &s.name,
                         Rc::new(view.clone()),
                         &s.params,
-                        &Limits::default(),
+                        &s.limits,
                     )
                 })
                 .collect::<Result<Vec<_>, _>>()?;
@@ -93,7 +108,7 @@ pub fn closed_loop(
                     &s.name,
                     Rc::new(start.clone()),
                     &s.params,
-                    &Limits::default(),
+                    &s.limits,
                 )?
                 .evaluate(&traj)
             })

@@ -1,8 +1,13 @@
 //! Sampling from the diffusion model, guided by cost scripts, open or closed loop.
 
+pub mod attempt;
 pub mod closed_loop;
 pub mod guided;
 
+pub use attempt::{
+    attempt, Attempt, AttemptError, AttemptReport, AttemptSpec, RealismEvent, SampleOutcome,
+    Settings, TermOutcome,
+};
 pub use closed_loop::{closed_loop, ScriptSpec};
 pub use guided::{
     horizon_note, modelled_type, prepare, recorded_future, reference_run, sample, Clamp, Guidance,

@@ -1,0 +1,240 @@
+//! Parameters: the one name → value map shared by cost scripts (constants), behaviour checkers
+//! (agent roles, limits) and the command line (`--param cutter=1 victim=2`).
+
+use std::fmt;
+
+use serde::ser::{Serialize, SerializeMap, Serializer};
+
+use super::engine::CostError;
+
+/// Named parameters in the order given. A script sees them as constants; a checker reads its
+/// roles and limits from them ([`Params::number`]).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Params(pub Vec<(String, ParamValue)>);
+
+/// A parameter's value.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ParamValue {
+    /// An integer (agent and lane ids).
+    Int(i64),
+    /// A number.
+    Float(f64),
+    /// A boolean.
+    Bool(bool),
+    /// Anything else.
+    Str(String),
+}
+
+impl ParamValue {
+    /// The value as a number, when it is one.
+    pub fn as_f64(&self) -> Option<f64> {
+        match self {
+            ParamValue::Int(i) => Some(*i as f64),
+            ParamValue::Float(f) => Some(*f),
+            _ => None,
+        }
+    }
+
+    /// A number as a parameter: whole numbers (agent ids) become integers, which `agent(...)`
+    /// needs, the rest floats.
+    pub fn number(v: f64) -> Self {
+        if v.fract() == 0.0 && v.abs() < 9.0e15 {
+            ParamValue::Int(v as i64)
+        } else {
+            ParamValue::Float(v)
+        }
+    }
+}
+
+impl fmt::Display for ParamValue {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            ParamValue::Int(i) => write!(f, "{i}"),
+            // `{:?}` keeps the point (1.0, not 1), so the value parses back as a float.
+            ParamValue::Float(x) => write!(f, "{x:?}"),
+            ParamValue::Bool(b) => write!(f, "{b}"),
+            ParamValue::Str(s) => write!(f, "{s}"),
+        }
+    }
+}
+
+impl Serialize for ParamValue {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        match self {
+            ParamValue::Int(i) => s.serialize_i64(*i),
+            ParamValue::Float(x) => s.serialize_f64(*x),
+            ParamValue::Bool(b) => s.serialize_bool(*b),
+            ParamValue::Str(v) => s.serialize_str(v),
+        }
+    }
+}
+
+/// A map in the given order: `{"cutter": 401, "victim": 399}`.
+impl Serialize for Params {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        let mut m = s.serialize_map(Some(self.0.len()))?;
+        for (k, v) in &self.0 {
+            m.serialize_entry(k, v)?;
+        }
+        m.end()
+    }
+}
+
+/// `cutter=401 victim=399`, the form `--param` reads.
+impl fmt::Display for Params {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for (i, (k, v)) in self.0.iter().enumerate() {
+            if i > 0 {
+                f.write_str(" ")?;
+            }
+            write!(f, "{k}={v}")?;
+        }
+        Ok(())
+    }
+}
+
+impl Params {
+    /// Parses `name=value` arguments: integers, floats and booleans are typed, the rest strings.
+    /// A name given twice is an error.
+    pub fn parse<S: AsRef<str>>(args: &[S]) -> Result<Self, CostError> {
+        let mut out = Params::default();
+        for a in args {
+            let a = a.as_ref();
+            let Some((k, v)) = a.split_once('=') else {
+                return Err(CostError::Param {
+                    name: a.into(),
+                    message: "expected name=value".into(),
+                });
+            };
+            let k = k.trim();
+            let ident = k
+                .chars()
+                .next()
+                .is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
+                && k.chars().all(|c| c.is_ascii_alphanumeric() || c == '_');
+            if !ident {
+                return Err(CostError::Param {
+                    name: k.into(),
+                    message: "not a valid identifier".into(),
+                });
+            }
+            if out.get(k).is_some() {
+                return Err(CostError::Param {
+                    name: k.into(),
+                    message: "given twice".into(),
+                });
+            }
+            let v = v.trim();
+            let val = if let Ok(i) = v.parse::<i64>() {
+                ParamValue::Int(i)
+            } else if let Ok(f) = v.parse::<f64>() {
+                if !f.is_finite() {
+                    return Err(CostError::Param {
+                        name: k.into(),
+                        message: format!("{v} is not finite"),
+                    });
+                }
+                ParamValue::Float(f)
+            } else if v == "true" || v == "false" {
+                ParamValue::Bool(v == "true")
+            } else {
+                ParamValue::Str(v.to_string())
+            };
+            out.0.push((k.to_string(), val));
+        }
+        Ok(out)
+    }
+
+    /// Numbers by name, whole numbers as integers ([`ParamValue::number`]).
+    pub fn numbers<K: AsRef<str>>(kv: &[(K, f64)]) -> Self {
+        Params(
+            kv.iter()
+                .map(|(k, v)| (k.as_ref().to_string(), ParamValue::number(*v)))
+                .collect(),
+        )
+    }
+
+    /// The value named `name`.
+    pub fn get(&self, name: &str) -> Option<&ParamValue> {
+        self.0.iter().find(|(k, _)| k == name).map(|(_, v)| v)
+    }
+
+    /// The value named `name` as a number (`None` when absent or not a number).
+    pub fn number(&self, name: &str) -> Option<f64> {
+        self.get(name).and_then(ParamValue::as_f64)
+    }
+
+    /// Sets `name`, replacing an earlier value in place.
+    pub fn set(&mut self, name: &str, value: ParamValue) {
+        match self.0.iter_mut().find(|(k, _)| k == name) {
+            Some(slot) => slot.1 = value,
+            None => self.0.push((name.to_string(), value)),
+        }
+    }
+
+    /// These parameters with `over`'s values set on top (explicit `--param` values over
+    /// suggested ones).
+    pub fn overridden_by(&self, over: &Params) -> Params {
+        let mut out = self.clone();
+        for (k, v) in &over.0 {
+            out.set(k, v.clone());
+        }
+        out
+    }
+
+    /// Names in order.
+    pub fn names(&self) -> impl Iterator<Item = &str> {
+        self.0.iter().map(|(k, _)| k.as_str())
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.0.is_empty()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parse_types_values_and_round_trips_through_display() {
+        let p = Params::parse(&["a=3", "b=2.5", "c=true", "d=left", "e=-1e3"]).unwrap();
+        assert_eq!(p.get("a"), Some(&ParamValue::Int(3)));
+        assert_eq!(p.get("b"), Some(&ParamValue::Float(2.5)));
+        assert_eq!(p.get("c"), Some(&ParamValue::Bool(true)));
+        assert_eq!(p.get("d"), Some(&ParamValue::Str("left".into())));
+        assert_eq!(p.number("e"), Some(-1000.0));
+        assert_eq!(p.number("d"), None);
+        assert_eq!(p.to_string(), "a=3 b=2.5 c=true d=left e=-1000.0");
+        let again: Vec<String> = p.to_string().split(' ').map(String::from).collect();
+        assert_eq!(Params::parse(&again).unwrap(), p);
+    }
+
+    #[test]
+    fn parse_rejects_bad_arguments() {
+        for (args, want) in [
+            (vec!["a"], "expected name=value"),
+            (vec!["1a=2"], "not a valid identifier"),
+            (vec!["a=1", "a=2"], "given twice"),
+            (vec!["a=inf"], "not finite"),
+            (vec!["a=NaN"], "not finite"),
+        ] {
+            let e = Params::parse(&args).unwrap_err().to_string();
+            assert!(e.contains(want), "{args:?}: {e}");
+        }
+    }
+
+    #[test]
+    fn numbers_make_ids_integers_and_overrides_replace_in_place() {
+        let p = Params::numbers(&[("cutter", 401.0), ("gap", 2.5)]);
+        assert_eq!(p.get("cutter"), Some(&ParamValue::Int(401)));
+        assert_eq!(p.get("gap"), Some(&ParamValue::Float(2.5)));
+        let q = p.overridden_by(&Params::parse(&["cutter=7", "extra=1"]).unwrap());
+        assert_eq!(q.to_string(), "cutter=7 gap=2.5 extra=1");
+        assert_eq!(
+            serde_json::to_string(&q).unwrap(),
+            r#"{"cutter":7,"gap":2.5,"extra":1}"#
+        );
+    }
+}

@@ -1,0 +1,445 @@
+//! One attempt at a request: compile and validate the cost scripts on the scene the sampler
+//! will use, sample (open or closed loop), and report per sample each term's first estimate and
+//! final value, the behaviour checker's verdict and every vehicle's implausible motion.
+//!
+//! `demo`, `simulate` and the LLM loop all run [`attempt`], so scripts are compiled under one
+//! set of rules ([`ScriptSpec`] carries its [`Limits`]) and validated once before any sampling,
+//! whichever loop samples them.
+
+use std::path::Path;
+use std::rc::Rc;
+use std::time::Instant;
+
+use serde::Serialize;
+
+use super::closed_loop::{closed_loop, ScriptSpec};
+use super::guided::{prepare, sample, Guidance, Sample, SampleConfig, SampleError, Task};
+use crate::cost::{CostError, CostScript, Params};
+use crate::eval::behaviors::{check, Behavior, CheckError, Verdict};
+use crate::eval::kinematic::{judge, KinematicLimits};
+use crate::io::{output_stem, rollout::Rollout, write_atomic, IoError};
+use crate::scene::Scene;
+use crate::train::Trained;
+
+/// What to attempt on one scene.
+#[derive(Debug, Clone)]
+pub struct AttemptSpec {
+    /// The cost scripts, each with its parameters and limits.
+    pub scripts: Vec<ScriptSpec>,
+    /// The independent checker that judges the result, with its parameters (agent roles), when
+    /// the request is a known behaviour.
+    pub checker: Option<(Behavior, Params)>,
+    /// Sampler settings.
+    pub cfg: SampleConfig,
+    /// Closed loop: steps executed before re-planning (5 = 2 Hz at 10 Hz); `None` samples the
+    /// whole horizon at once.
+    pub replan: Option<usize>,
+}
+
+/// Why an attempt did not produce samples.
+#[derive(Debug, thiserror::Error)]
+pub enum AttemptError {
+    /// A script failed to compile or validate on the scene (the message names the script,
+    /// line and term); nothing was sampled.
+    #[error("{0}")]
+    Script(CostError),
+    /// Sampling failed.
+    #[error(transparent)]
+    Sample(#[from] SampleError),
+    /// The checker cannot judge this scene with these parameters.
+    #[error(transparent)]
+    Check(#[from] CheckError),
+}
+
+/// One term of one sample.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TermOutcome {
+    /// The script that declares it.
+    pub script: String,
+    /// Its name.
+    pub term: String,
+    /// Line of its `term(...)` call.
+    pub line: usize,
+    /// Its weight.
+    pub weight: f64,
+    /// Unweighted value on the first denoised estimate, before any guidance (absent in closed
+    /// loop when the term appears only later).
+    pub initial: Option<f64>,
+    /// Unweighted value on the final trajectories.
+    #[serde(rename = "final")]
+    pub value: f64,
+}
+
+/// One vehicle's implausible motion in a sample.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct RealismEvent {
+    /// The agent.
+    pub agent: i64,
+    /// Its role in the checked behaviour, when it has one.
+    pub role: Option<String>,
+    /// Which violation ([`crate::eval::kinematic::Violation::name`]).
+    pub kind: &'static str,
+    /// Seconds after the current step.
+    pub time: f64,
+    /// The offending value in SI units.
+    pub value: f64,
+    /// In words (`reverses at -9.3 m/s at t = 3.9 s`).
+    pub text: String,
+}
+
+/// One sample's outcome.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SampleOutcome {
+    /// Index in the batch.
+    pub sample: usize,
+    /// Weighted total of every script's terms on the final trajectories.
+    pub total: f64,
+    /// Every term of every script, in script then declaration order.
+    pub terms: Vec<TermOutcome>,
+    /// The checker's verdict, when there is a checker.
+    pub verdict: Option<Verdict>,
+    /// Implausible motion of any sampled vehicle (named or not), worst event per kind.
+    pub realism: Vec<RealismEvent>,
+}
+
+impl SampleOutcome {
+    /// Whether the checker passed it (`None` without a checker).
+    pub fn passed(&self) -> Option<bool> {
+        self.verdict.as_ref().map(|v| v.passed)
+    }
+}
+
+/// An attempt's report: settings and per-sample outcomes. Serialises to the `*_costs.json`
+/// files that `demo`, `simulate` and `ask` write.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct AttemptReport {
+    /// The scene.
+    pub scenario: String,
+    /// The checked behaviour, when there is one.
+    pub behaviour: Option<&'static str>,
+    /// The checker's parameters (empty without a checker).
+    pub params: Params,
+    /// The scripts, by name.
+    pub scripts: Vec<String>,
+    /// Sampler settings in words: task, guidance, λ and its schedule, steps, seed, loop.
+    pub settings: Settings,
+    /// Seconds spent sampling.
+    pub seconds: f64,
+    /// Per sample.
+    pub samples: Vec<SampleOutcome>,
+    /// Agents the model does not move (types it never saw), as `type id`.
+    pub not_sampled: Vec<String>,
+}
+
+/// The sampler settings of an attempt, for reports.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Settings {
+    /// `conditional` or `unconditional`.
+    pub task: &'static str,
+    /// `denoiser` or `output`.
+    pub guidance: &'static str,
+    /// Guidance strength.
+    pub lambda: f64,
+    /// Heun steps.
+    pub steps: usize,
+    /// Samples.
+    pub samples: usize,
+    /// Seed of the initial noise.
+    pub seed: u64,
+    /// Steps executed per re-plan in closed loop (absent in open loop).
+    pub replan: Option<usize>,
+}
+
+/// The sampled scenes with their report.
+#[derive(Debug, Clone)]
+pub struct Attempt {
+    /// The samples, as the sampler returned them.
+    pub samples: Vec<Sample>,
+    /// What happened.
+    pub report: AttemptReport,
+}
+
+impl Attempt {
+    /// The sample to show: the first that passes the checker, else the one with the lowest
+    /// total cost (the first of equals).
+    pub fn best(&self) -> usize {
+        let o = &self.report.samples;
+        o.iter()
+            .position(|s| s.passed() == Some(true))
+            .or_else(|| {
+                (0..o.len()).min_by(|&a, &b| o[a].total.total_cmp(&o[b].total).then(a.cmp(&b)))
+            })
+            .unwrap_or(0)
+    }
+
+    /// Writes into `dir` (created if needed), each file atomically: `STEM_K.json` per sample
+    /// (the rollout `eval --rollouts` reads, with each term's final value) and
+    /// `STEM_costs.json` (this report). A stem that cannot name a file (a scenario id read
+    /// from an untrusted scene, say) is an error ([`output_stem`]).
+    pub fn write(&self, dir: &Path, stem: &str) -> Result<(), IoError> {
+        let id = output_stem(stem)?;
+        for (k, s) in self.samples.iter().enumerate() {
+            let mut r = Rollout::from_scene(&s.scene);
+            for t in &self.report.samples[k].terms {
+                r.costs.insert(t.term.clone(), t.value);
+            }
+            r.write(&dir.join(format!("{id}_{k}.json")))?;
+        }
+        let text = serde_json::to_string_pretty(&self.report).expect("reports serialise");
+        write_atomic(&dir.join(format!("{id}_costs.json")), text.as_bytes())
+    }
+}
+
+/// Runs `spec` on `raw` (a scene as read): every script is compiled and validated on the scene
+/// cut to the model's horizon before anything is sampled, then the samples are scored and
+/// judged.
+pub fn attempt(
+    trained: &Trained,
+    raw: &Scene,
+    spec: &AttemptSpec,
+) -> Result<Attempt, AttemptError> {
+    let cfg = &spec.cfg;
+    cfg.validate().map_err(SampleError::Settings)?;
+    let scene = prepare(raw, trained)?;
+    let shared = Rc::new(scene.clone());
+    let scripts = spec
+        .scripts
+        .iter()
+        .map(|s| {
+            let c = CostScript::compile(&s.source, &s.name, shared.clone(), &s.params, &s.limits)?;
+            c.validate()?;
+            Ok(c)
+        })
+        .collect::<Result<Vec<_>, CostError>>()
+        .map_err(AttemptError::Script)?;
+    let t0 = Instant::now();
+    let samples = match spec.replan {
+        Some(every) => closed_loop(trained, raw, &spec.scripts, cfg, every)?,
+        None => sample(trained, &scene, &scripts, cfg)?,
+    };
+    let seconds = t0.elapsed().as_secs_f64();
+    let roles: Vec<(String, i64)> = spec
+        .checker
+        .iter()
+        .flat_map(|(b, p)| {
+            b.roles()
+                .iter()
+                .filter_map(|r| Some((r.to_string(), p.number(r)? as i64)))
+        })
+        .collect();
+    let mut outcomes = Vec::with_capacity(samples.len());
+    for (k, s) in samples.iter().enumerate() {
+        let mut terms = Vec::new();
+        let mut total = 0.0;
+        for (i, rep) in s.reports.iter().enumerate() {
+            total += rep.total;
+            for t in &rep.terms {
+                terms.push(TermOutcome {
+                    script: spec.scripts[i].name.clone(),
+                    term: t.name.clone(),
+                    line: t.line,
+                    weight: t.weight,
+                    initial: s
+                        .initial_reports
+                        .get(i)
+                        .and_then(|r| r.term(&t.name))
+                        .map(|x| x.value),
+                    value: t.value,
+                });
+            }
+        }
+        let verdict = match &spec.checker {
+            Some((b, p)) => Some(check(*b, &s.scene, p)?),
+            None => None,
+        };
+        let judged = judge(&s.scene, &KinematicLimits::default());
+        let mut realism = Vec::new();
+        for (a, j) in s.scene.agents.iter().zip(&judged) {
+            for e in j.iter().flat_map(|j| &j.events) {
+                realism.push(RealismEvent {
+                    agent: a.id,
+                    role: roles
+                        .iter()
+                        .find(|(_, id)| *id == a.id)
+                        .map(|(r, _)| r.clone()),
+                    kind: e.kind.name(),
+                    time: e.time,
+                    value: e.value,
+                    text: e.to_string(),
+                });
+            }
+        }
+        outcomes.push(SampleOutcome {
+            sample: k,
+            total,
+            terms,
+            verdict,
+            realism,
+        });
+    }
+    let report = AttemptReport {
+        scenario: raw.meta.scenario_id.clone(),
+        behaviour: spec.checker.as_ref().map(|(b, _)| b.name()),
+        params: spec
+            .checker
+            .as_ref()
+            .map(|(_, p)| p.clone())
+            .unwrap_or_default(),
+        scripts: spec.scripts.iter().map(|s| s.name.clone()).collect(),
+        settings: Settings {
+            task: match cfg.task {
+                Task::Conditional => "conditional",
+                Task::Unconditional => "unconditional",
+            },
+            guidance: match cfg.guidance {
+                Guidance::Denoiser => "denoiser",
+                Guidance::OutputSpace => "output",
+            },
+            lambda: cfg.lambda,
+            steps: cfg.steps,
+            samples: cfg.samples,
+            seed: cfg.seed,
+            replan: spec.replan,
+        },
+        seconds,
+        not_sampled: samples
+            .first()
+            .map(|s| {
+                s.fixed
+                    .iter()
+                    .map(|(a, t)| format!("{} {a}", t.name()))
+                    .collect()
+            })
+            .unwrap_or_default(),
+        samples: outcomes,
+    };
+    Ok(Attempt { samples, report })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cost::Limits;
+    use crate::io::{load_scene, LoadOptions};
+    use crate::train::train;
+    use std::path::Path;
+
+    fn root() -> &'static Path {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+    }
+
+    fn setup() -> (Trained, Scene) {
+        let dir = root().join("scripts/scenes");
+        let scenes: Vec<Scene> = ["highway.yaml", "highway_cut_in.yaml"]
+            .iter()
+            .map(|f| load_scene(&dir.join(f), 0, &LoadOptions::default()).unwrap())
+            .collect();
+        let cfg = crate::train::trainer::tiny_config(20, 3, 40);
+        let t = train(&scenes, cfg, None, None, |_, _, _| {}).unwrap();
+        (t, scenes[1].clone())
+    }
+
+    fn cut_in(params: &Params) -> ScriptSpec {
+        let src = std::fs::read_to_string(root().join("scripts/cut_in.rhai")).unwrap();
+        ScriptSpec::new(src, "scripts/cut_in.rhai", params.clone())
+    }
+
+    fn cfg() -> SampleConfig {
+        SampleConfig {
+            steps: 3,
+            samples: 2,
+            ..SampleConfig::default()
+        }
+    }
+
+    #[test]
+    fn an_attempt_reports_terms_verdicts_and_realism_per_sample_and_writes_them() {
+        let (t, scene) = setup();
+        let p = Params::numbers(&[("cutter", 2.0), ("victim", 1.0)]);
+        let spec = AttemptSpec {
+            scripts: vec![cut_in(&p)],
+            checker: Some((Behavior::CutIn, p.clone())),
+            cfg: cfg(),
+            replan: None,
+        };
+        let a = attempt(&t, &scene, &spec).unwrap();
+        let r = &a.report;
+        assert_eq!((a.samples.len(), r.samples.len()), (2, 2));
+        assert_eq!(r.behaviour, Some("cut_in"));
+        for (k, o) in r.samples.iter().enumerate() {
+            // The totals and verdicts are those of the scored scenes, not copies of one.
+            let rep = &a.samples[k].reports[0];
+            assert_eq!(o.total, rep.total);
+            assert_eq!(o.terms.len(), rep.terms.len());
+            for (x, y) in o.terms.iter().zip(&rep.terms) {
+                assert_eq!(
+                    (x.term.as_str(), x.value, x.weight),
+                    (y.name.as_str(), y.value, y.weight)
+                );
+                assert!(x.initial.is_some(), "{} has no first estimate", x.term);
+            }
+            let v = check(Behavior::CutIn, &a.samples[k].scene, &p).unwrap();
+            assert_eq!(o.verdict.as_ref(), Some(&v));
+            let judged = judge(&a.samples[k].scene, &KinematicLimits::default());
+            let events: usize = judged.iter().flatten().map(|j| j.events.len()).sum();
+            assert_eq!(o.realism.len(), events);
+            for e in &o.realism {
+                let role = match e.agent {
+                    2 => Some("cutter"),
+                    1 => Some("victim"),
+                    _ => None,
+                };
+                assert_eq!(e.role.as_deref(), role);
+            }
+        }
+        let best = a.best();
+        match r.samples.iter().position(|o| o.passed() == Some(true)) {
+            Some(k) => assert_eq!(best, k),
+            None => assert!(r.samples.iter().all(|o| o.total >= r.samples[best].total)),
+        }
+        let dir = tempfile::tempdir().unwrap();
+        a.write(dir.path(), "run").unwrap();
+        for f in ["run_0.json", "run_1.json", "run_costs.json"] {
+            assert!(dir.path().join(f).exists(), "{f} missing");
+        }
+        let json: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(dir.path().join("run_costs.json")).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(json["params"]["cutter"], 2);
+        assert_eq!(
+            json["samples"][1]["terms"][0]["final"],
+            r.samples[1].terms[0].value
+        );
+        let e = a.write(dir.path(), "../escape").unwrap_err().to_string();
+        assert!(e.contains("cannot name an output file"), "{e}");
+    }
+
+    #[test]
+    fn scripts_are_validated_before_sampling_and_closed_loop_keeps_their_limits() {
+        let (t, scene) = setup();
+        // An agent the scene lacks: an error naming the script, and nothing sampled.
+        let spec = AttemptSpec {
+            scripts: vec![cut_in(&Params::numbers(&[
+                ("cutter", 2.0),
+                ("victim", 77.0),
+            ]))],
+            checker: None,
+            cfg: cfg(),
+            replan: Some(5),
+        };
+        let e = attempt(&t, &scene, &spec).unwrap_err();
+        assert!(matches!(e, AttemptError::Script(_)), "{e}");
+        assert!(e.to_string().contains("scripts/cut_in.rhai"), "{e}");
+        // Closed loop compiles at every round with the script's own limits, not the defaults.
+        let mut s = cut_in(&Params::numbers(&[("cutter", 2.0), ("victim", 1.0)]));
+        s.limits = Limits {
+            max_operations: 50,
+            ..Limits::default()
+        };
+        let e = closed_loop(&t, &scene, &[s], &cfg(), 5)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("limit exceeded: operations (max 50)"), "{e}");
+    }
+}
