@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::{Context, Result};
+use drivescript::cost::Realism;
 use drivescript::eval::behaviors::{suggest, Behavior};
 use drivescript::io::{load_scene, LoadOptions};
 use drivescript::render::RenderOptions;
@@ -48,6 +49,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
         task: Task::Unconditional,
         guidance: Guidance::OutputSpace,
         schedule: LambdaSchedule::Fading,
+        realism: Realism {
+            weight: drivescript::sample::REALISM_WEIGHT,
+            ..Realism::default()
+        },
         ..SampleConfig::default()
     };
     if let Err(e) = cfg.validate() {

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::{Context, Result};
-use drivescript::cost::Params;
+use drivescript::cost::{Params, Realism};
 use drivescript::eval::behaviors::{suggest, Behavior, ALL};
 use drivescript::io::{discover, load_scenes, output_stem, LoadOptions};
 use drivescript::render::RenderOptions;
@@ -85,6 +85,11 @@ pub struct Args {
     /// suitable agents are skipped (and listed).
     #[arg(long)]
     auto: Option<String>,
+    /// Weight of the realism terms that keep every sampled vehicle driving as a car can
+    /// (speed, reversing, acceleration, lateral acceleration, crabbing); 0 turns realism off.
+    /// A script exempts an agent it asks to back up with `allow(a, "reverse")`.
+    #[arg(long, default_value_t = drivescript::sample::REALISM_WEIGHT)]
+    realism: f64,
     /// Weight of the known-state cost (conditional end points).
     #[arg(long, default_value_t = 1.0)]
     known_weight: f64,
@@ -157,6 +162,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
         clamp: match args.clamp {
             ClampArg::Coordinate => Clamp::Coordinate,
             ClampArg::Agent => Clamp::Agent,
+        },
+        realism: Realism {
+            weight: args.realism,
+            ..Realism::default()
         },
     };
     if let Err(e) = cfg.validate() {

@@ -502,6 +502,7 @@ impl CostScript {
             paths: HashMap::new(),
             widths: HashMap::new(),
             coords: HashMap::new(),
+            may_reverse: Vec::new(),
             params: params
                 .0
                 .iter()
@@ -648,6 +649,7 @@ impl CostScript {
             c.terms.clear();
             c.prints.clear();
             c.coords.clear();
+            c.may_reverse.clear();
         }
         let t0 = Instant::now();
         self.started.set(t0);
@@ -667,12 +669,9 @@ impl CostScript {
                 grad: (*t.value.grad).clone(),
             })
             .collect();
-        Ok(CostReport::new(
-            terms,
-            traj.layout,
-            c.prints.clone(),
-            t0.elapsed(),
-        ))
+        let mut report = CostReport::new(terms, traj.layout, c.prints.clone(), t0.elapsed());
+        report.may_reverse = c.may_reverse.clone();
+        Ok(report)
     }
 
     /// Evaluates a batch of candidates (K samples of one scene).

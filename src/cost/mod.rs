@@ -9,6 +9,7 @@ mod dual;
 mod engine;
 mod fwd;
 mod params;
+mod realism;
 mod report;
 mod series;
 pub mod stdlib;
@@ -20,6 +21,7 @@ pub use engine::{
 };
 pub use fwd::{box_clearance, Fwd};
 pub use params::{ParamValue, Params};
+pub use realism::{Realism, TERMS as REALISM_TERMS};
 pub use report::{CostReport, TermReport};
 pub use series::Series;
 pub use stdlib::DocEntry;

@@ -45,6 +45,9 @@ pub struct CostReport {
     pub prints: Vec<String>,
     /// Time taken by the evaluation.
     pub elapsed: Duration,
+    /// Agents (scene indices) the script allows to reverse (`allow(a, "reverse")`), which
+    /// realism then does not hold back ([`super::Realism`]).
+    pub may_reverse: Vec<usize>,
 }
 
 impl CostReport {
@@ -69,6 +72,7 @@ impl CostReport {
             layout,
             prints,
             elapsed,
+            may_reverse: Vec::new(),
         }
     }
 

@@ -92,9 +92,10 @@ pub struct RealismEvent {
 pub struct SampleOutcome {
     /// Index in the batch.
     pub sample: usize,
-    /// Weighted total of every script's terms on the final trajectories.
+    /// Weighted total of every term (realism's included) on the final trajectories.
     pub total: f64,
-    /// Every term of every script, in script then declaration order.
+    /// Every term of every script, in script then declaration order, then realism's terms
+    /// (script `realism`) when realism guided.
     pub terms: Vec<TermOutcome>,
     /// The checker's verdict, when there is a checker.
     pub verdict: Option<Verdict>,
@@ -244,6 +245,19 @@ pub fn attempt(
                         .get(i)
                         .and_then(|r| r.term(&t.name))
                         .map(|x| x.value),
+                    value: t.value,
+                });
+            }
+        }
+        if let Some((first, fin)) = &s.realism {
+            total += fin.total;
+            for t in &fin.terms {
+                terms.push(TermOutcome {
+                    script: "realism".into(),
+                    term: t.name.clone(),
+                    line: 0,
+                    weight: t.weight,
+                    initial: first.term(&t.name).map(|x| x.value),
                     value: t.value,
                 });
             }
@@ -413,6 +427,19 @@ mod tests {
         );
         let e = a.write(dir.path(), "../escape").unwrap_err().to_string();
         assert!(e.contains("cannot name an output file"), "{e}");
+        // With realism on, its terms follow the script's and count in the total.
+        let mut spec = spec;
+        spec.cfg.realism.weight = 2.0;
+        let a = attempt(&t, &scene, &spec).unwrap();
+        for (k, o) in a.report.samples.iter().enumerate() {
+            let real: Vec<&TermOutcome> =
+                o.terms.iter().filter(|t| t.script == "realism").collect();
+            let names: Vec<&str> = real.iter().map(|t| t.term.as_str()).collect();
+            assert_eq!(names, crate::cost::REALISM_TERMS);
+            assert!(real.iter().all(|t| t.weight == 2.0 && t.initial.is_some()));
+            let (_, fin) = a.samples[k].realism.as_ref().unwrap();
+            assert_eq!(o.total, a.samples[k].reports[0].total + fin.total);
+        }
     }
 
     #[test]

@@ -4,7 +4,7 @@
 
 use std::rc::Rc;
 
-use super::guided::{prepare, sample, Sample, SampleConfig, SampleError};
+use super::guided::{modelled_type, prepare, sample, Sample, SampleConfig, SampleError};
 use crate::cost::{CostScript, Limits, Params};
 use crate::scene::Scene;
 use crate::train::Trained;
@@ -57,6 +57,7 @@ pub fn closed_loop(
         let mut state = start.clone();
         let mut done = 0;
         let mut first_reports: Option<Vec<crate::cost::CostReport>> = None;
+        let mut first_realism = None;
         let mut fixed = Vec::new();
         let mut round = 0u64;
         while done < future {
@@ -95,6 +96,7 @@ pub fn closed_loop(
             round += 1;
             if first_reports.is_none() {
                 first_reports = Some(s.initial_reports.clone());
+                first_realism = s.realism.as_ref().map(|r| r.0.clone());
                 fixed = s.fixed.clone();
             }
         }
@@ -113,10 +115,29 @@ pub fn closed_loop(
                 .evaluate(&traj)
             })
             .collect::<Result<Vec<_>, _>>()?;
+        // Realism on the executed trajectory, for the agents the model moved.
+        let realism = first_realism.map(|first| {
+            let moved: Vec<bool> = start
+                .agents
+                .iter()
+                .map(|a| modelled_type(a.agent_type) && a.states[c0].valid)
+                .collect();
+            let mut may_reverse = vec![false; moved.len()];
+            for r in &reports {
+                for &a in &r.may_reverse {
+                    may_reverse[a] = true;
+                }
+            }
+            (
+                first,
+                cfg.realism.evaluate(&start, &traj, &moved, &may_reverse),
+            )
+        });
         out.push(Sample {
             scene: state,
             initial_reports: first_reports.take().unwrap_or_default(),
             reports,
+            realism,
             fixed,
         });
     }

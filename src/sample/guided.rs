@@ -9,7 +9,7 @@
 
 use candle_core::{Device, Tensor, Var};
 
-use crate::cost::{CostError, CostReport, CostScript, Trajectories};
+use crate::cost::{CostError, CostReport, CostScript, Realism, Trajectories};
 use crate::scene::{AgentId, AgentState, AgentType, Scene};
 use crate::train::dataset::add_anchor;
 use crate::train::{build, window_among, Trained, Window};
@@ -39,6 +39,10 @@ pub enum Guidance {
 /// 2 suited the 10,000-step model, the 18,000-step one follows the data more closely and
 /// needs 3).
 pub const BEHAVIOUR_LAMBDA: f64 = 3.0;
+
+/// Weight of the realism terms in `simulate`, `demo` and `ask` unless told otherwise
+/// ([`Realism`]; data/checkpoint/README.md has the measurements behind it).
+pub const REALISM_WEIGHT: f64 = 1.0;
 
 /// How the guidance step depends on the noise level σ.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -94,6 +98,9 @@ pub struct SampleConfig {
     pub schedule: LambdaSchedule,
     /// How the gradient is bounded.
     pub clamp: Clamp,
+    /// Realism for every agent the model moves, guided beside the scripts whenever anything
+    /// guides (weight 0: off).
+    pub realism: Realism,
 }
 
 impl SampleConfig {
@@ -108,10 +115,18 @@ impl SampleConfig {
         if !(1..=1024).contains(&self.samples) {
             return Err(format!("samples = {}: must be 1 to 1024", self.samples));
         }
-        for (name, v) in [("lambda", self.lambda), ("known weight", self.known_weight)] {
+        for (name, v) in [
+            ("lambda", self.lambda),
+            ("known weight", self.known_weight),
+            ("realism weight", self.realism.weight),
+        ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!("{name} = {v}: must be finite and not negative"));
             }
+        }
+        let m = self.realism.margin;
+        if !(m > 0.0 && m <= 1.0) {
+            return Err(format!("realism margin = {m}: must be in (0, 1]"));
         }
         Ok(())
     }
@@ -129,6 +144,10 @@ impl Default for SampleConfig {
             known_weight: 1.0,
             schedule: LambdaSchedule::Constant,
             clamp: Clamp::Coordinate,
+            realism: Realism {
+                weight: 0.0,
+                ..Realism::default()
+            },
         }
     }
 }
@@ -217,6 +236,9 @@ pub struct Sample {
     pub initial_reports: Vec<CostReport>,
     /// The cost scripts' report on the final trajectories, per script.
     pub reports: Vec<CostReport>,
+    /// Realism's report on the first denoised estimate and on the final trajectories, when
+    /// realism guided ([`SampleConfig::realism`]).
+    pub realism: Option<(CostReport, CostReport)>,
     /// Agents observed at the current step that the model does not move
     /// ([`modelled_type`]): they followed their log (conditional task) or kept their current
     /// velocity (unconditional).
@@ -749,6 +771,21 @@ pub fn sample(
         }
     };
     let initial: std::cell::RefCell<Vec<Vec<CostReport>>> = std::cell::RefCell::new(Vec::new());
+    let initial_realism: std::cell::RefCell<Vec<CostReport>> = std::cell::RefCell::new(Vec::new());
+    let mut moved = vec![false; scene.agents.len()];
+    for sl in &plan.slots {
+        moved[sl.agent] = true;
+    }
+    let realism_on = cfg.realism.weight > 0.0;
+    let realism = |t: &Trajectories, reports: &[CostReport]| {
+        let mut may_reverse = vec![false; scene.agents.len()];
+        for r in reports {
+            for &a in &r.may_reverse {
+                may_reverse[a] = true;
+            }
+        }
+        cfg.realism.evaluate(scene, t, &moved, &may_reverse)
+    };
     let guided = |x: &Tensor, sigma: f64, step: usize| -> Result<Tensor, SampleError> {
         let sig = vec![sigma; rows];
         let (d, xv) = if cfg.guidance == Guidance::Denoiser && (cfg.lambda > 0.0) {
@@ -792,6 +829,15 @@ pub fn sample(
                     *w += v;
                 }
                 reports.push(r);
+            }
+            if realism_on {
+                let r = realism(t, &reports);
+                for (w, v) in world.iter_mut().zip(&r.gradient) {
+                    *w += v;
+                }
+                if first {
+                    initial_realism.borrow_mut().push(r);
+                }
             }
             if first {
                 initial.borrow_mut().push(reports);
@@ -875,15 +921,25 @@ pub fn sample(
             .iter()
             .map(|s| s.evaluate(&t))
             .collect::<Result<Vec<_>, _>>()?;
+        let fin = realism_on.then(|| realism(&t, &reports));
         out.push(Sample {
             scene: sim,
             initial_reports: Vec::new(),
             reports,
+            realism: None,
             fixed: plan.fixed.clone(),
         });
+        if let (Some(f), Some(o)) = (fin, out.last_mut()) {
+            o.realism = Some((f.clone(), f));
+        }
     }
     for (o, r) in out.iter_mut().zip(initial.into_inner()) {
         o.initial_reports = r;
+    }
+    for (o, r) in out.iter_mut().zip(initial_realism.into_inner()) {
+        if let Some(pair) = &mut o.realism {
+            pair.0 = r;
+        }
     }
     Ok(out)
 }

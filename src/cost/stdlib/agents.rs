@@ -227,6 +227,13 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
         "The scene's ego / focal agent; an error when the format names none.",
     );
     let sh = shared.clone();
+    e.register_fn("ego", move || {
+        let ego = sh.borrow().scene.meta.ego;
+        match ego {
+            Some(id) => lookup(&sh, id),
+            None => err("this scene names no ego agent; use agent(id)"),
+        }
+    });
     doc(
         docs,
         S,
@@ -235,12 +242,24 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     );
     e.register_fn("hold", |a: AgentRef| AgentRef { held: true, ..a });
     e.register_get("held", |a: &mut AgentRef| a.held);
-    e.register_fn("ego", move || {
-        let ego = sh.borrow().scene.meta.ego;
-        match ego {
-            Some(id) => lookup(&sh, id),
-            None => err("this scene names no ego agent; use agent(id)"),
+    doc(
+        docs,
+        S,
+        "allow(a, \"reverse\")",
+        "Tells the sampler that the behaviour asks `a` to back up, so realism (on by default in simulate) does not push it forwards. Reversing is the only motion a script can allow; the other bounds of plausible driving hold for every agent.",
+    );
+    let sh = shared.clone();
+    e.register_fn("allow", move |a: AgentRef, what: &str| {
+        if what != "reverse" {
+            return err(format!(
+                "allow: {what:?} cannot be allowed; only \"reverse\" (the other bounds of plausible driving hold for every agent)"
+            ));
         }
+        let mut c = sh.borrow_mut();
+        if !c.may_reverse.contains(&a.idx) {
+            c.may_reverse.push(a.idx);
+        }
+        Ok(())
     });
     doc(
         docs,

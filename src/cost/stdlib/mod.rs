@@ -56,6 +56,8 @@ pub(crate) struct Ctx {
     pub params: std::collections::BTreeMap<String, Dynamic>,
     /// Agent coordinate series of the current evaluation, built once per agent and coordinate.
     pub coords: HashMap<(usize, u8), Series>,
+    /// Agents (scene indices) the script allows to reverse (`allow(a, "reverse")`).
+    pub may_reverse: Vec<usize>,
 }
 
 pub(crate) type Shared = Rc<RefCell<Ctx>>;
