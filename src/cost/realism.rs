@@ -95,6 +95,9 @@ impl Realism {
             let sprint = lim
                 .max_speed
                 .min(lim.sprint_factor * v0 + lim.sprint_margin);
+            // The margin applies to the speed-up the checker allows, not to the speed: a car
+            // cruising at 30 m/s is not held back.
+            let cap = v0 + m * (sprint - v0).max(0.0);
             let reverse_ok = may_reverse.get(a).copied().unwrap_or(false);
             // Adds `coef · d(quantity)/d(coordinates)` for a velocity-like vector built from
             // positions `taps` (index, factor) and a heading at `th`.
@@ -127,7 +130,7 @@ impl Realism {
                 let lat = -v[0] * sn + v[1] * cs;
                 let speed = v[0].hypot(v[1]);
                 let taps = [(w + h, 1.0 / span), (w - h, -1.0 / span)];
-                let x = speed - m * sprint;
+                let x = speed - cap;
                 if x > 0.0 && speed > 0.0 {
                     vals[0] += x * x;
                     let k = 2.0 * x / speed;

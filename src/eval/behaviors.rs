@@ -723,7 +723,10 @@ pub fn check(behavior: Behavior, scene: &Scene, params: &Params) -> Result<Verdi
 ///   for a point 20 m to the left of its recorded end; `stop` within 60 % of the horizon or the
 ///   time braking at 4 m/s² takes, if longer, for the nearest vehicle that can then stand
 ///   still for the last 0.5 s;
-/// - `cut_in`: a victim and a cutter in an adjacent lane within 15 m along the victim's path;
+/// - `cut_in`: a victim and a cutter in an adjacent lane within 15 m along the victim's path
+///   that can end 5 m (bumper to bumper) ahead of the victim holding its speed, accelerating at
+///   2.5 m/s² and no faster than 0.75 of the sprint bound allows (the kinematic checker's and
+///   realism's bounds): a slower car far behind cannot cut in plausibly;
 /// - `follow`: a leader ahead in the follower's lane within 60 m, asking for a 10 m gap;
 /// - `yield`: two vehicles whose lane paths meet ahead of both, within 1.2 times the distance
 ///   each covers over the horizon at its current speed plus 20 m;
@@ -826,7 +829,23 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
                     let adjacent =
                         g.left_neighbors(*lv).contains(lc) || g.right_neighbors(*lv).contains(lc);
                     let sc = path.frenet.project(cutter.states[c].position()).s;
-                    if cutter.id != victim.id && adjacent && (sc - sv).abs() <= 15.0 {
+                    let speed = |a: &Agent| a.states[c].vx.hypot(a.states[c].vy);
+                    let (vc, vv) = (speed(cutter), speed(victim));
+                    // Speed gain at 2.5 m/s² up to the cap, as a ramp over the horizon.
+                    let lim = KinematicLimits::default();
+                    let cap = vc
+                        + 0.75
+                            * (lim
+                                .max_speed
+                                .min(lim.sprint_factor * vc + lim.sprint_margin)
+                                - vc)
+                                .max(0.0);
+                    let gain = (2.5 * horizon).min(cap - vc);
+                    let reach = sc - sv - 0.5 * (cutter.length + victim.length)
+                        + (vc - vv) * horizon
+                        + 0.5 * gain * horizon;
+                    if cutter.id != victim.id && adjacent && (sc - sv).abs() <= 15.0 && reach >= 5.0
+                    {
                         return p(&[("cutter", cutter.id as f64), ("victim", victim.id as f64)]);
                     }
                 }
