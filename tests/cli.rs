@@ -72,6 +72,31 @@ fn inspect_yaml_and_text_output() {
 }
 
 #[test]
+fn inspect_agents_lists_lanes_gaps_and_neighbours() {
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let out = ok(&[
+        "inspect",
+        "--agents",
+        s(&scene),
+        "--max-agents",
+        "2",
+        "--keep",
+        "4",
+    ]);
+    assert!(out.contains("40 future steps of 0.1 s"), "{out}");
+    assert!(out.contains("- vehicle 4:"), "{out}");
+    assert!(out.contains("not listed (cap 2)"), "{out}");
+    let v: Value =
+        serde_json::from_str(&ok(&["inspect", "--agents", "--json", s(&scene)])).unwrap();
+    let agents = v[0]["agents"].as_array().unwrap();
+    assert_eq!(agents.len(), 4);
+    for a in agents {
+        assert!(a["lane"].is_i64() && a["speed"].is_f64(), "{a}");
+    }
+    assert!(v[0]["lanes"].as_array().unwrap().len() >= 2);
+}
+
+#[test]
 fn womd_files_written_by_convert_inspect_and_render() {
     let dir = tempfile::tempdir().unwrap();
     let shard = dir.path().join("test.tfrecord-00000-of-00001");

@@ -5,6 +5,7 @@ use std::process::ExitCode;
 
 use anyhow::Result;
 use drivescript::io::{discover, load_scenes, LoadOptions};
+use drivescript::scene::{describe, DescribeOptions};
 use drivescript::train::val_fold;
 
 #[derive(clap::Args)]
@@ -15,6 +16,27 @@ pub struct Args {
     /// Print a JSON array of summaries instead of text.
     #[arg(long)]
     json: bool,
+    /// Describe the agents instead: each one's lane, Frenet position, speed, the agents ahead,
+    /// behind and beside it, and the lanes around them (what the LLM prompt shows).
+    #[arg(long)]
+    agents: bool,
+    /// With --agents: most agents listed, nearest the ego (or the first --keep) first.
+    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..=100000))]
+    max_agents: u64,
+    /// With --agents: agents always listed, whatever the cap.
+    #[arg(long, num_args = 1..)]
+    keep: Vec<i64>,
+    /// With --agents: future steps the sampler simulates (the shipped model's 40).
+    #[arg(long, default_value_t = 40, value_parser = clap::value_parser!(u64).range(1..=10000))]
+    horizon: u64,
+}
+
+/// One scene's JSON record with --agents.
+#[derive(serde::Serialize)]
+#[serde(untagged)]
+enum Record {
+    Summary(Entry),
+    Agents(drivescript::scene::SceneDescription),
 }
 
 /// One scene's JSON record: its summary and validation fold.
@@ -42,6 +64,21 @@ pub fn run(args: Args) -> Result<ExitCode> {
             match load_scenes(&src, &opts) {
                 Ok(scenes) => {
                     for s in scenes {
+                        if args.agents {
+                            let d = describe(
+                                &s,
+                                &DescribeOptions {
+                                    max_agents: args.max_agents as usize,
+                                    keep: args.keep.clone(),
+                                    horizon: args.horizon as usize,
+                                },
+                            );
+                            if !args.json {
+                                println!("{d}");
+                            }
+                            summaries.push(Record::Agents(d));
+                            continue;
+                        }
                         let sum = s.summary();
                         // Which checkpoints never trained on it (`train --val-fold`), so that
                         // held-out evaluation sets can be cut without recomputing the hash.
@@ -53,10 +90,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
                                 "{text}{nl}fold        {fold} (held out by `train --val-fold {fold}`)\n"
                             );
                         }
-                        summaries.push(Entry {
+                        summaries.push(Record::Summary(Entry {
                             sum,
                             val_fold: fold,
-                        });
+                        }));
                     }
                 }
                 Err(e) => {

@@ -2,6 +2,7 @@
 //! and where it all came from. World frame, SI units.
 
 mod agents;
+pub mod description;
 mod lane_graph;
 mod lane_path;
 mod map;
@@ -11,6 +12,7 @@ use std::collections::{BTreeMap, HashSet};
 use serde::Serialize;
 
 pub use agents::{Agent, AgentId, AgentState, AgentType};
+pub use description::{describe, DescribeOptions, SceneDescription};
 pub use lane_graph::{EdgeCounts, LaneGraph};
 pub use lane_path::{LanePath, Turn, TURN_THRESHOLD};
 pub use map::{
