@@ -325,6 +325,26 @@ fn cost_prints_terms_and_gradients() {
     let v: Value = serde_json::from_str(&out).unwrap();
     assert!(v["total"].as_f64().unwrap() > 1.0, "{v}");
     assert_eq!(v["agent_grad_norms"][0]["agent"], 3);
+    // On the sampler's horizon: a script valid on the 80 recorded steps indexes past 40.
+    let dir = tempfile::tempdir().unwrap();
+    let late = dir.path().join("late.rhai");
+    std::fs::write(&late, "term(\"late\", agent(1).x.at(60));\n").unwrap();
+    let out = ok(&["cost", s(&scene), "--script", s(&late)]);
+    assert!(out.contains("80 steps"), "{out}");
+    let err = fails(&["cost", s(&scene), "--script", s(&late), "--horizon", "40"]);
+    assert!(err.contains("late.rhai:1"), "{err}");
+    let out = ok(&[
+        "cost",
+        s(&scene),
+        "--script",
+        "scripts/cut_in.rhai",
+        "--param",
+        "cutter=2",
+        "victim=1",
+        "--horizon",
+        "40",
+    ]);
+    assert!(out.contains("40 steps"), "{out}");
     // A rollout as the candidate, and errors with the script's line.
     let dir = tempfile::tempdir().unwrap();
     let json = dir.path().join("r.json");

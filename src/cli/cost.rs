@@ -24,6 +24,12 @@ pub struct Args {
     /// Which scene of a multi-scene source.
     #[arg(long, default_value_t = 0)]
     index: usize,
+    /// Future steps to validate and evaluate on, as the sampler will (the shipped model
+    /// samples 40): the recording is cut to them, or extended with unobserved steps (a script
+    /// that indexes past the recording fails here rather than in `simulate`). Default: the
+    /// recorded future, or the rollout's.
+    #[arg(long, conflicts_with = "rollout", value_parser = clap::value_parser!(u64).range(1..=10000))]
+    horizon: Option<u64>,
     /// Print JSON instead of a table.
     #[arg(long)]
     json: bool,
@@ -43,6 +49,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
         .filter(|&n| n != scene.num_steps() && n > scene.meta.current_step + 1)
     {
         scene = scene.over_horizon(steps - scene.meta.current_step - 1);
+    }
+    if let Some(h) = args.horizon {
+        scene = scene.over_horizon(h as usize);
     }
     let scene = Rc::new(scene);
     let source = std::fs::read_to_string(&args.script)
