@@ -416,7 +416,7 @@ pub(super) fn register(e: &mut Engine, docs: &mut Vec<DocEntry>) {
         docs,
         S,
         "smooth_max(a, b, beta), smooth_min(a, b, beta) -> Series|Dual",
-        "Elementwise log-sum-exp maximum / minimum of two values, sharper as beta grows.",
+        "Elementwise log-sum-exp maximum / minimum of two values, sharper as beta grows: above the max (below the min) by at most ln(2)/beta, reached where a = b.",
     );
     e.register_fn("smooth_max", |a: Dynamic, b: Dynamic, beta: Dynamic| {
         let beta = positive(number(&beta, "smooth_max beta")?, "smooth_max beta")?;
@@ -520,7 +520,7 @@ pub(super) fn register(e: &mut Engine, docs: &mut Vec<DocEntry>) {
         docs,
         R,
         "s.smooth_max(beta), s.smooth_min(beta) -> Dual",
-        "log-sum-exp maximum / minimum over the elements (beta > 0, sharper as it grows).",
+        "Softmax-weighted mean of the elements, Σ softmax(beta·v)·v (beta > 0, sharper as it grows): between the mean and the max (min), never beyond it, and equal to the common value when all elements are equal.",
     );
     e.register_fn("smooth_max", |s: &mut Series, b: Dynamic| {
         lift(s.smooth_max(number(&b, "smooth_max beta")?))
