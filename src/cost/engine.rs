@@ -836,6 +836,52 @@ mod tests {
     }
 
     #[test]
+    fn small_words_have_known_answers() {
+        // Agent 1 drives along +x at 20 m/s in lane 101 (3.6 m wide) for STEPS steps.
+        let r = evaluate_recorded(
+            "let a = agent(1);
+             let x = a.x - a.current_x;
+             term(\"sign\", sign(a.vx).sum() + sign(-2.5) + sign(0.0));
+             term(\"ever_below\", x.ever_below(10.0));
+             term(\"always_below\", x.always_below(10.0) - (x.max() - 10.0));
+             term(\"ever_above\", x.ever_above(1000.0) - (1000.0 - x.max()));
+             term(\"always_above\", x.always_above(0.0) + x.always_above(5.0) - (5.0 - x.min()));
+             term(\"decides\", x.always_below(10.0));
+             term(\"words\", (if a.present && a.has_future { 1.0 } else { 0.0 }) + 0.0 * a.x.last());
+             term(\"width\", lane_width(a.lane, a.current_x, a.current_y) + 0.0 * a.x.last());",
+            highway(),
+        );
+        let v = |n: &str| r.term(n).unwrap().value;
+        assert_eq!(v("sign"), r.layout.steps as f64 - 1.0);
+        for n in ["ever_below", "always_below", "ever_above", "always_above"] {
+            assert!(v(n).abs() < 1e-9, "{n}: {}", v(n));
+        }
+        assert_eq!((v("words"), v("width")), (1.0, 3.6));
+        // The gradient of "at every step" moves the step that decides: the last.
+        let g = &r.term("decides").unwrap().grad;
+        let last = r.layout.var(0, r.layout.steps - 1, crate::cost::Coord::X);
+        assert!(g.iter().any(|&(k, d)| k == last && d != 0.0), "{g:?}");
+        // Agent 2 starts 10 m behind agent 1 in the next lane and 12 m/s faster: level at
+        // 0.83 s, ahead from the step at 0.9 s; agent 1 never passes agent 2.
+        let text = "steps: 41\ncurrent_step: 0\nroad: {lanes: 2, lane_width: 3.5, length: 300}\nagents:\n  - {id: 1, lane: 0, s: 50, speed: 10}\n  - {id: 2, lane: 1, s: 40, speed: 22}\n";
+        let s = crate::io::yaml::parse(std::path::Path::new("t.yaml"), text).unwrap();
+        let r = evaluate_recorded(
+            "let p = agent(1).lane_path();
+             let t = pass_time(agent(2), agent(1), p);
+             let never = pass_time(agent(1), agent(2), p);
+             term(\"t\", t + 0.0 * agent(1).x.last());
+             term(\"never\", (if type_of(never) == \"()\" { 1.0 } else { 0.0 }) + 0.0 * agent(1).x.last());",
+            s,
+        );
+        assert!(
+            (r.term("t").unwrap().value - 0.9).abs() < 1e-9,
+            "{:?}",
+            r.terms
+        );
+        assert_eq!(r.term("never").unwrap().value, 1.0);
+    }
+
+    #[test]
     fn lane_ahead_measures_the_mapped_lane_to_the_end_of_the_road() {
         let scene = Rc::new(highway());
         let r = evaluate_recorded(

@@ -13,7 +13,6 @@ use std::fmt;
 use serde::Serialize;
 
 use super::{Agent, AgentId, LaneId, Scene, Turn};
-use crate::geom::Point;
 
 /// Lane width assumed where the map gives no boundaries, metres.
 const DEFAULT_LANE_WIDTH: f64 = 3.6;
@@ -125,24 +124,6 @@ pub struct SceneDescription {
     pub lanes: Vec<LaneDescription>,
 }
 
-/// Width of `lane` near `p` (between its boundaries), or the default.
-fn lane_width(scene: &Scene, lane: LaneId, p: Point) -> f64 {
-    let Some(l) = scene.map.lane(lane) else {
-        return DEFAULT_LANE_WIDTH;
-    };
-    match (&l.left_boundary, &l.right_boundary) {
-        (Some(a), Some(b)) => {
-            let w = a.nearest(&p).distance + b.nearest(&p).distance;
-            if w.is_finite() && w > 1.0 {
-                w
-            } else {
-                DEFAULT_LANE_WIDTH
-            }
-        }
-        _ => DEFAULT_LANE_WIDTH,
-    }
-}
-
 /// Describes `scene` at its current step.
 pub fn describe(scene: &Scene, opts: &DescribeOptions) -> SceneDescription {
     let c = scene.meta.current_step;
@@ -224,7 +205,11 @@ pub fn describe(scene: &Scene, opts: &DescribeOptions) -> SceneDescription {
             };
             let me = path.frenet.project(pos(a));
             desc.d = Some(round(me.d, 2));
-            let w = lane_width(scene, lane, pos(a));
+            let w = scene
+                .map
+                .lane_width_at(lane, pos(a))
+                .filter(|w| *w > 1.0)
+                .unwrap_or(DEFAULT_LANE_WIDTH);
             for o in &present {
                 if o.id == a.id {
                     continue;

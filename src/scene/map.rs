@@ -419,6 +419,16 @@ impl Map {
             })
     }
 
+    /// Width of `lane` at the point of its centre line nearest `p`: the distances from there to
+    /// its two boundaries (`None` when the lane or a boundary is unknown).
+    pub fn lane_width_at(&self, lane: LaneId, p: Point) -> Option<f64> {
+        let l = self.lane(lane)?;
+        let (a, b) = (l.left_boundary.as_ref()?, l.right_boundary.as_ref()?);
+        let q = l.centerline.point_at(l.centerline.nearest(&p).s);
+        let w = a.distance_to(&q) + b.distance_to(&q);
+        w.is_finite().then_some(w)
+    }
+
     /// The nearest lane to a pose whose direction agrees with `heading` (within 90°).
     ///
     /// Ranks lanes by distance to the centre line plus 2 m per radian of heading difference,

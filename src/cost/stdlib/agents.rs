@@ -245,6 +245,23 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     doc(
         docs,
         S,
+        "a.present -> bool, a.has_future -> bool",
+        "Whether the agent is observed at the current step (a.lane, a.lane_path() and the current_* values need it), and whether it has any future step in the candidate (first(), last() and the reductions of its series need one; an agent that appears later has none).",
+    );
+    let sh = shared.clone();
+    e.register_get("present", move |a: &mut AgentRef| {
+        let c = sh.borrow();
+        c.scene.agents[a.idx].states[c.scene.meta.current_step].valid
+    });
+    let sh = shared.clone();
+    e.register_get("has_future", move |a: &mut AgentRef| {
+        let c = sh.borrow();
+        let n = c.traj.layout.steps;
+        c.traj.valid[a.idx * n..(a.idx + 1) * n].iter().any(|v| *v)
+    });
+    doc(
+        docs,
+        S,
         "allow(a, \"reverse\")",
         "Tells the sampler that the behaviour asks `a` to back up, so realism (on by default in simulate) does not push it forwards. Reversing is the only motion a script can allow; the other bounds of plausible driving hold for every agent.",
     );

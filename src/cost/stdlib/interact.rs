@@ -188,6 +188,33 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     doc(
         docs,
         S,
+        "pass_time(a, b, path) -> float or ()",
+        "Seconds after the current step at which a's centre first gets ahead of b's along the path (s_a > s_b after s_a <= s_b), or () when it never does in the candidate; a plain number (for if and print, not a cost).",
+    );
+    let sh = shared.clone();
+    e.register_fn(
+        "pass_time",
+        move |a: AgentRef, b: AgentRef, p: PathRef| -> RResult<Dynamic> {
+            distinct(&a, &b, "pass_time")?;
+            let (fa, fb) = (frenet(&sh, a, &p), frenet(&sh, b, &p));
+            let (sa, sb) = (&fa.s.0, &fb.s.0);
+            let mut behind = None;
+            for k in 0..sa.val.len() {
+                if !(sa.valid[k] && sb.valid[k]) {
+                    continue;
+                }
+                let ahead = sa.val[k] > sb.val[k];
+                if ahead && behind == Some(true) && k >= sa.head {
+                    return Ok(Dynamic::from(sa.time0 + (k - sa.head) as f64 * sa.dt));
+                }
+                behind = Some(!ahead);
+            }
+            Ok(Dynamic::UNIT)
+        },
+    );
+    doc(
+        docs,
+        S,
         "distance(a, b) -> Series",
         "Distance between the two agents' centres, metres.",
     );

@@ -136,6 +136,28 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     doc(
         docs,
         S,
+        "lane_width(lane, xpos, ypos) -> float",
+        "Width of the lane (between its boundaries) where the point (xpos, ypos) projects onto it, metres; 3.6 where the map gives no boundaries.",
+    );
+    let sh = shared.clone();
+    e.register_fn(
+        "lane_width",
+        move |l: i64, x: Dynamic, y: Dynamic| -> RResult<f64> {
+            let p = Point::new(number(&x, "lane_width x")?, number(&y, "lane_width y")?);
+            let ctx = sh.borrow();
+            if ctx.scene.map.lane(l).is_none() {
+                return err(format!("lane_width: no lane {l} in the map"));
+            }
+            Ok(ctx
+                .scene
+                .map
+                .lane_width_at(l, p)
+                .unwrap_or(2.0 * super::frenet::DEFAULT_HALF_WIDTH))
+        },
+    );
+    doc(
+        docs,
+        S,
         "lane_exists(lane) -> bool",
         "Whether the map has this lane id.",
     );

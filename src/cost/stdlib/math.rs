@@ -429,6 +429,27 @@ pub(super) fn register(e: &mut Engine, docs: &mut Vec<DocEntry>) {
     doc(
         docs,
         S,
+        "sign(x) -> same kind",
+        "-1, 0 or 1 elementwise, without gradient (a direction to multiply by, not a cost).",
+    );
+    e.register_fn("sign", |x: Dynamic| {
+        unary(Val::from_dynamic(&x, "sign")?, "sign", |v| {
+            Some((
+                if v > 0.0 {
+                    1.0
+                } else if v < 0.0 {
+                    -1.0
+                } else {
+                    0.0
+                },
+                0.0,
+            ))
+        })
+        .map(Val::into_dynamic)
+    });
+    doc(
+        docs,
+        S,
         "norm(x, y) -> same kind",
         "sqrt(x² + y²) elementwise (derivative 0 at the origin).",
     );
@@ -528,6 +549,33 @@ pub(super) fn register(e: &mut Engine, docs: &mut Vec<DocEntry>) {
     e.register_fn("smooth_min", |s: &mut Series, b: Dynamic| {
         lift(s.smooth_min(number(&b, "smooth_min beta")?))
     });
+    doc(
+        docs,
+        R,
+        "s.ever_below(v), s.always_below(v), s.ever_above(v), s.always_above(v) -> Dual",
+        "\"At some step\" / \"at every step\" as costs that are 0 when it holds, else how far it misses: ever_below = relu(min - v), always_below = relu(max - v), ever_above = relu(v - max), always_above = relu(v - min). The gradient moves the step that decides.",
+    );
+    for (name, use_min, below) in [
+        ("ever_below", true, true),
+        ("always_below", false, true),
+        ("ever_above", false, false),
+        ("always_above", true, false),
+    ] {
+        e.register_fn(name, move |s: &mut Series, v: Dynamic| -> RResult<Dual> {
+            let v = number(&v, name)?;
+            let m = lift(if use_min { s.min() } else { s.max() })?;
+            let miss = if below {
+                m.add_f(-v)
+            } else {
+                m.mul_f(-1.0).add_f(v)
+            };
+            Ok(if miss.val > 0.0 {
+                miss
+            } else {
+                Dual::constant(0.0)
+            })
+        });
+    }
     doc(
         docs,
         R,
