@@ -119,17 +119,19 @@ fn atan2_(y: f64, x: f64) -> Option<(f64, f64, f64)> {
 fn relu(v: f64) -> Option<(f64, f64)> {
     Some(if v > 0.0 { (v, 1.0) } else { (0.0, 0.0) })
 }
+/// -1, 0 or 1 (`f64::signum` gives ±1 at ±0).
+fn sign(v: f64) -> f64 {
+    if v > 0.0 {
+        1.0
+    } else if v < 0.0 {
+        -1.0
+    } else {
+        0.0
+    }
+}
+
 fn abs(v: f64) -> Option<(f64, f64)> {
-    Some((
-        v.abs(),
-        if v > 0.0 {
-            1.0
-        } else if v < 0.0 {
-            -1.0
-        } else {
-            0.0
-        },
-    ))
+    Some((v.abs(), sign(v)))
 }
 fn sqrt(v: f64) -> Option<(f64, f64)> {
     (v >= 0.0).then(|| {
@@ -434,16 +436,7 @@ pub(super) fn register(e: &mut Engine, docs: &mut Vec<DocEntry>) {
     );
     e.register_fn("sign", |x: Dynamic| {
         unary(Val::from_dynamic(&x, "sign")?, "sign", |v| {
-            Some((
-                if v > 0.0 {
-                    1.0
-                } else if v < 0.0 {
-                    -1.0
-                } else {
-                    0.0
-                },
-                0.0,
-            ))
+            Some((sign(v), 0.0))
         })
         .map(Val::into_dynamic)
     });
