@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Behaviour success on held-out instances, every behaviour in one run, with the figures the
 # plausibility issue asks for side by side: for each behaviour, the instances checked, the
-# rate achieved plausibly (the headline), the rate achieved (geometry alone), the fraction of
+# rate achieved plausibly (the headline), the rate achieved (geometry alone), the baselines'
+# rates achieved plausibly (log replay / constant velocity / lane following), the fraction of
 # all vehicles a car could not drive in the guided samples, and the same fraction in the log
 # and in unguided samples of the same instances (same seed).
 #   INSTANCES  a directory cut by heldout.sh (OUT/behaviour or OUT/windows)
@@ -25,19 +26,21 @@ mkdir -p "$out"
     "${extra[@]}" >"$out/unguided.log"
 unguided=$("$bin" eval "$inst" --task unconditional --rollouts "$out/unguided" \
     --horizon "$horizon" | awk -F'|' '/^\| rollouts/ {gsub(/ /, "", $7); print $7}')
-printf '| behaviour | instances | achieved plausibly | achieved | implausible vehicles (log) | unguided |\n'
-printf '|---|---|---|---|---|---|\n'
+printf '| behaviour | instances | achieved plausibly | achieved | baselines: log / cv / lane | implausible vehicles (log) | unguided |\n'
+printf '|---|---|---|---|---|---|---|\n'
 for b in cut_in rightmost_lane off_road yield speed_limit target_point no_collisions \
     lane_change_left lane_change_right follow reverse weave stop accident; do
     # A scene that fails is reported and the rest go on, as in simulate itself.
     "$bin" simulate "$inst" --checkpoint "$ckpt" --task unconditional --auto "$b" \
         -o "$out/$b" "${extra[@]}" >"$out/$b.log" 2>&1 ||
         echo "$b: simulate reported failures, see $out/$b.log" >&2
-    "$bin" eval "$inst" --task behaviour --behaviour "$b" --auto --baseline log \
+    "$bin" eval "$inst" --task behaviour --behaviour "$b" --auto --baseline log --baseline cv --baseline lane \
         --rollouts "$out/$b" --horizon "$horizon" --json "$out/$b.json" >"$out/$b.eval"
     awk -F'|' -v b="$b" -v u="$unguided" '
-        /^\| log replay/ {gsub(/ /, "", $7); log_rate = $7}
+        /^\| log replay/ {gsub(/ /, "", $5); gsub(/ /, "", $7); log_p = $5; log_rate = $7}
+        /^\| constant velocity/ {gsub(/ /, "", $5); cv_p = $5}
+        /^\| constant speed along lane/ {gsub(/ /, "", $5); lane_p = $5}
         /^\| rollouts/ {for (i = 4; i <= 7; i++) gsub(/ /, "", $i); n = $4; p = $5; a = $6; m = $7}
-        END {printf "| %s | %s | %s | %s | %s (%s) | %s |\n", b, n, p, a, m, log_rate, u}
+        END {printf "| %s | %s | %s | %s | %s / %s / %s | %s (%s) | %s |\n", b, n, p, a, log_p, cv_p, lane_p, m, log_rate, u}
     ' "$out/$b.eval"
 done
