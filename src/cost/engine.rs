@@ -264,15 +264,18 @@ fn build_engine(
     e.on_print(move |s| {
         let mut c = sh.borrow_mut();
         if c.prints.len() < max_lines {
-            c.prints.push(s.to_string());
+            c.prints.push(printable(s));
         }
     });
     let sh = shared.clone();
     e.on_debug(move |s, _, pos| {
         let mut c = sh.borrow_mut();
         if c.prints.len() < max_lines {
-            c.prints
-                .push(format!("[line {}] {s}", pos.line().unwrap_or(0)));
+            c.prints.push(format!(
+                "[line {}] {}",
+                pos.line().unwrap_or(0),
+                printable(s)
+            ));
         }
     });
     e.set_module_resolver(StdlibResolver {
@@ -301,6 +304,24 @@ fn term_value(v: &Dynamic, name: &str) -> Result<Dual, Box<EvalAltResult>> {
     }
 }
 
+/// What a script printed, as terminals may show it: control characters (escape sequences)
+/// written as escapes.
+fn printable(s: &str) -> String {
+    s.chars()
+        .flat_map(|ch| {
+            let v: Vec<char> = if ch.is_control() {
+                ch.escape_default().collect()
+            } else {
+                vec![ch]
+            };
+            v
+        })
+        .collect()
+}
+
+/// Longest term name, characters.
+const MAX_TERM_NAME: usize = 64;
+
 fn add_term(
     shared: &Shared,
     pos: Position,
@@ -327,6 +348,25 @@ fn add_term(
     }
     if name.trim().is_empty() {
         return stdlib::err("term names must not be empty");
+    }
+    // Names reach terminals, reports and the LLM's prompt: no escape sequences, no essays, and
+    // none of the sampler's own terms.
+    if let Some(ch) = name.chars().find(|c| c.is_control()) {
+        return stdlib::err(format!(
+            "term {:?}: names must not contain control characters ({ch:?})",
+            name.chars().take(64).collect::<String>()
+        ));
+    }
+    if name.chars().count() > MAX_TERM_NAME {
+        return stdlib::err(format!(
+            "term {:?}...: names are at most {MAX_TERM_NAME} characters",
+            name.chars().take(MAX_TERM_NAME).collect::<String>()
+        ));
+    }
+    if name.starts_with("realism_") {
+        return stdlib::err(format!(
+            "term {name:?}: names starting with realism_ belong to the sampler's realism terms"
+        ));
     }
     let mut c = shared.borrow_mut();
     if let Some(t) = c.terms.iter().find(|t| t.name == name) {
@@ -833,6 +873,27 @@ mod tests {
         .unwrap()
         .evaluate(&crate::cost::Trajectories::recorded(&scene))
         .unwrap()
+    }
+
+    #[test]
+    fn term_names_and_prints_cannot_carry_escape_sequences() {
+        let scene = Rc::new(highway());
+        for (name, want) in [
+            ("\\x1b[2Jx", "control characters"),
+            ("realism_speed", "belong to the sampler"),
+            (&"n".repeat(65), "at most 64 characters"),
+        ] {
+            let src = format!("term(\"{name}\", agent(1).x.last());");
+            let e = evaluation_error(&src, scene.clone()).to_string();
+            assert!(e.contains(want) && !e.contains('\u{1b}'), "{name}: {e}");
+        }
+        let r = evaluate_recorded(
+            "print(\"a\u{1b}[31mred\"); debug(\"b\u{7}\"); term(\"x\", agent(1).x.last());",
+            highway(),
+        );
+        assert_eq!(r.prints[0], "a\\u{1b}[31mred");
+        assert!(r.prints[1].ends_with("\\u{7}\""), "{:?}", r.prints);
+        assert!(r.prints.iter().all(|p| !p.chars().any(char::is_control)));
     }
 
     #[test]
