@@ -773,6 +773,28 @@ fn train_then_simulate_end_to_end() {
         "{err}"
     );
     assert!(partial.join("highway-cut-in_0.json").exists());
+    // When every scene fails, nothing claims to be written.
+    let none = dir.path().join("none");
+    let out = drivescript(&simulate_args(
+        s(&two.join("merge.yaml")),
+        s(&ckpt),
+        &[
+            "--script",
+            "scripts/cut_in.rhai",
+            "--param",
+            "cutter=4",
+            "victim=1",
+            "--steps",
+            "2",
+        ],
+        s(&none),
+    ));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(
+        stdout.contains("no scene simulated: nothing written") && !stdout.contains("wrote"),
+        "{stdout}"
+    );
     // Closed loop re-plans every 0.5 s over the model's 4 s horizon.
     let cl = dir.path().join("cl");
     let out = ok(&simulate_args(

@@ -257,11 +257,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
         println!("{id}: {} samples in {:.2} s", samples.len(), report.seconds);
         Ok(true)
     };
-    let mut failed = 0;
+    let (mut failed, mut done) = (0, 0);
     for src in sources {
         for raw in load_scenes(&src, &LoadOptions::default())? {
             match run_one(&raw) {
-                Ok(true) => {}
+                Ok(true) => done += 1,
                 Ok(false) => skipped += 1,
                 Err(e) => {
                     eprintln!("error: {}: {e:#}", raw.meta.scenario_id);
@@ -288,7 +288,16 @@ pub fn run(args: Args) -> Result<ExitCode> {
             plural(scenes, "scene")
         );
     }
-    println!("wrote {}", args.output.display());
+    if done > 0 {
+        println!(
+            "wrote {} scene{} to {}",
+            done,
+            if done == 1 { "" } else { "s" },
+            args.output.display()
+        );
+    } else {
+        println!("no scene simulated: nothing written");
+    }
     if failed > 0 {
         eprintln!("{failed} scenes failed");
         return Ok(ExitCode::FAILURE);
