@@ -113,8 +113,73 @@ pub fn read(path: &Path, opts: &LoadOptions) -> Result<Scene, IoError> {
     parse(path, text, opts)
 }
 
+/// Deepest element nesting accepted (CommonRoad files nest about 8 deep). The XML parser
+/// recurses per level: a file nested 200,000 deep overflowed the stack and aborted.
+pub const MAX_XML_DEPTH: usize = 256;
+
+/// The first position (byte offset) where elements nest deeper than `limit`, if any. Comments,
+/// CDATA, processing instructions, declarations and quoted attribute values are skipped.
+fn too_deep(text: &str, limit: usize) -> Option<usize> {
+    let b = text.as_bytes();
+    let skip_to = |from: usize, end: &[u8]| {
+        b[from..]
+            .windows(end.len())
+            .position(|w| w == end)
+            .map_or(b.len(), |k| from + k + end.len())
+    };
+    let (mut i, mut depth) = (0, 0usize);
+    while i < b.len() {
+        if b[i] != b'<' {
+            i += 1;
+            continue;
+        }
+        let rest = &b[i..];
+        if rest.starts_with(b"<!--") {
+            i = skip_to(i + 4, b"-->");
+        } else if rest.starts_with(b"<![CDATA[") {
+            i = skip_to(i + 9, b"]]>");
+        } else if rest.starts_with(b"<?") {
+            i = skip_to(i + 2, b"?>");
+        } else if rest.starts_with(b"<!") {
+            i = skip_to(i + 2, b">");
+        } else if rest.starts_with(b"</") {
+            depth = depth.saturating_sub(1);
+            i = skip_to(i + 2, b">");
+        } else {
+            let (mut j, mut quote) = (i + 1, None);
+            while j < b.len() {
+                let c = b[j];
+                match quote {
+                    Some(q) if c == q => quote = None,
+                    Some(_) => {}
+                    None if c == b'"' || c == b'\'' => quote = Some(c),
+                    None if c == b'>' => break,
+                    None => {}
+                }
+                j += 1;
+            }
+            if j < b.len() && b[j - 1] != b'/' {
+                depth += 1;
+                if depth > limit {
+                    return Some(i);
+                }
+            }
+            i = j + 1;
+        }
+    }
+    None
+}
+
 /// Parses CommonRoad XML text (`path` is used for messages and metadata).
 pub fn parse(path: &Path, text: &str, opts: &LoadOptions) -> Result<Scene, IoError> {
+    if let Some(at) = too_deep(text, MAX_XML_DEPTH) {
+        let line = text[..at].matches('\n').count() + 1;
+        return Err(IoError::invalid(
+            path,
+            format!("line {line}"),
+            format!("elements nested more than {MAX_XML_DEPTH} deep"),
+        ));
+    }
     let doc = Document::parse(text).map_err(|e| {
         let pos = e.pos();
         IoError::invalid(
@@ -555,4 +620,34 @@ fn read_agents(cx: &Ctx, root: Node) -> Result<(Vec<Agent>, usize), IoError> {
         })
         .collect();
     Ok((agents, steps))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn nesting_depth_is_checked_before_parsing() {
+        assert_eq!(
+            too_deep("<a><b/><c x='>'><!-- <d> --><![CDATA[<e>]]></c></a>", 2),
+            None
+        );
+        assert_eq!(
+            too_deep("<?xml version=\"1.0\"?><a><b><c/></b></a>", 2),
+            None
+        );
+        assert_eq!(too_deep("<a>\n<b>\n<c></c></b></a>", 2), Some(8));
+        let deep = format!(
+            "<commonRoad>{}{}</commonRoad>",
+            "<a>".repeat(200_000),
+            "</a>".repeat(200_000)
+        );
+        let e = parse(Path::new("deep.xml"), &deep, &LoadOptions::default())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("deep.xml: line 1: elements nested more than 256 deep"),
+            "{e}"
+        );
+    }
 }
