@@ -129,6 +129,28 @@ fn render_svg_png_gif() {
     ok(&["render", s(&scene), "-o", s(&svg)]);
     let text = std::fs::read_to_string(&svg).unwrap();
     assert!(text.starts_with("<svg") && text.contains("<polygon") && text.contains(">1261<"));
+    // A named agent is drawn in the highlight colour and labelled with its role.
+    let roles = dir.path().join("roles.svg");
+    ok(&[
+        "render",
+        s(&scene),
+        "--role",
+        "1261=cutter",
+        "-o",
+        s(&roles),
+    ]);
+    let text = std::fs::read_to_string(&roles).unwrap();
+    assert!(
+        text.contains(">1261 cutter<") && text.contains("#d21e3c"),
+        "{}",
+        &text[..400]
+    );
+    let out = drivescript(&["render", s(&scene), "--role", "cutter", "-o", s(&roles)]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        out.status.code() == Some(2) && err.contains("expected ID=ROLE"),
+        "{err}"
+    );
     let png = dir.path().join("a.png");
     ok(&[
         "render",

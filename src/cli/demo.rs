@@ -117,6 +117,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let k = done.best();
     let opts = RenderOptions {
         width: 900,
+        roles: report.roles(),
         ..RenderOptions::default()
     };
     write_picture(&done.samples[k].scene, &args.output, &opts)?;

@@ -24,9 +24,29 @@ pub struct Args {
     /// Image width in pixels.
     #[arg(long, default_value_t = 1000)]
     width: u32,
+    /// Highlight an agent and label it with a role, ID=ROLE (e.g. 389=cutter); repeatable.
+    #[arg(long = "role", value_parser = parse_role)]
+    roles: Vec<(i64, String)>,
     /// Output: .svg, .png or .gif.
     #[arg(short, long)]
     output: PathBuf,
+}
+
+fn parse_role(s: &str) -> Result<(i64, String), String> {
+    let (id, role) = s
+        .split_once('=')
+        .ok_or_else(|| format!("{s:?}: expected ID=ROLE"))?;
+    let id = id
+        .trim()
+        .parse()
+        .map_err(|_| format!("{s:?}: {id:?} is not an agent id"))?;
+    let role = role.trim();
+    if role.is_empty() || role.len() > 32 || role.chars().any(char::is_control) {
+        return Err(format!(
+            "{s:?}: the role must be 1 to 32 printable characters"
+        ));
+    }
+    Ok((id, role.to_string()))
 }
 
 /// Writes `scene` as SVG, PNG or GIF by the output's extension.
@@ -64,6 +84,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let opts = RenderOptions {
         width: args.width,
         step: args.step,
+        roles: args.roles.clone(),
         ..RenderOptions::default()
     };
     write_picture(&scene, &args.output, &opts)?;

@@ -251,6 +251,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             &args.output.join(format!("{}_0.gif", output_stem(&id)?)),
             &RenderOptions {
                 width: 800,
+                roles: report.roles(),
                 ..Default::default()
             },
         )?;

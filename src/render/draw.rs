@@ -13,6 +13,8 @@ const YELLOW_LINE: Rgba = Rgba(240, 190, 20, 255);
 const CROSSWALK: Rgba = Rgba(255, 255, 255, 150);
 const STOP: Rgba = Rgba(200, 30, 30, 255);
 const BUMP: Rgba = Rgba(230, 140, 40, 160);
+/// Agents a request names.
+const HIGHLIGHT: Rgba = Rgba(210, 30, 60, 255);
 
 fn agent_color(t: AgentType, ego: bool) -> Rgba {
     if ego {
@@ -208,24 +210,40 @@ pub(crate) fn draw_agents(
         out.push(run);
         out.into_iter().filter(|r| r.len() >= 2).collect()
     };
-    for a in &scene.agents {
-        let mut col = agent_color(a.agent_type, scene.meta.ego == Some(a.id));
+    let role = |a: &crate::scene::Agent| {
+        opts.roles
+            .iter()
+            .find(|(id, _)| *id == a.id)
+            .map(|(_, r)| r.as_str())
+    };
+    let colour = |a: &crate::scene::Agent| match role(a) {
+        Some(_) => HIGHLIGHT,
+        None => agent_color(a.agent_type, scene.meta.ego == Some(a.id)),
+    };
+    // Highlighted agents last, so that their trails lie on top.
+    let mut order: Vec<&crate::scene::Agent> = scene.agents.iter().collect();
+    order.sort_by_key(|a| role(a).is_some());
+    for &a in &order {
+        let mut col = colour(a);
+        let width = if role(a).is_some() { 3.0 } else { 2.0 };
+        // Solid up to the drawn step (the motion so far, simulated or recorded), dashed after
+        // it (the future from the current step on when the current step is drawn).
         if opts.history {
             col.3 = 200;
-            for r in runs(a, 0, step.min(current)) {
-                c.stroke(&r, 2.0, col, None, false);
+            for r in runs(a, 0, step) {
+                c.stroke(&r, width, col, None, false);
             }
         }
         if opts.future && step < a.states.len() {
             col.3 = 160;
             for r in runs(a, step.max(current), a.states.len() - 1) {
-                c.stroke(&r, 1.5, col, Some([5.0, 4.0]), false);
+                c.stroke(&r, width - 0.5, col, Some([5.0, 4.0]), false);
             }
         }
     }
-    for a in &scene.agents {
+    for &a in &order {
         let Some(b) = a.footprint(step) else { continue };
-        let col = agent_color(a.agent_type, scene.meta.ego == Some(a.id));
+        let col = colour(a);
         let corners = v.pxs(&b.corners());
         c.fill_polygon(&corners, col);
         c.stroke(&corners, 1.0, Rgba(20, 20, 20, 255), None, true);
@@ -248,10 +266,14 @@ pub(crate) fn draw_agents(
             .iter()
             .map(|p| p.x)
             .fold(f64::NEG_INFINITY, f64::max);
+        let (text, size) = match role(a) {
+            Some(r) => (format!("{} {r}", a.id), 11.0),
+            None => (a.id.to_string(), 9.0),
+        };
         c.label(
-            Point::new(tr_x + 2.0, tl.y - 9.0),
-            &a.id.to_string(),
-            9.0,
+            Point::new(tr_x + 2.0, tl.y - size),
+            &text,
+            size as f32,
             Rgba(15, 15, 15, 255),
         );
     }

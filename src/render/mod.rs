@@ -47,6 +47,9 @@ pub struct RenderOptions {
     pub future: bool,
     /// Caption written in the top-left corner.
     pub caption: Option<String>,
+    /// Agents to highlight, each labelled with its role (`389 cutter`): the agents a request
+    /// names.
+    pub roles: Vec<(crate::scene::AgentId, String)>,
 }
 
 impl Default for RenderOptions {
@@ -58,6 +61,7 @@ impl Default for RenderOptions {
             history: true,
             future: true,
             caption: None,
+            roles: Vec::new(),
         }
     }
 }

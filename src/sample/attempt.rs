@@ -132,6 +132,20 @@ pub struct AttemptReport {
     pub not_sampled: Vec<String>,
 }
 
+impl AttemptReport {
+    /// The agents the checked behaviour names, with their roles (`[(401, "cutter"), ...]`):
+    /// what pictures highlight.
+    pub fn roles(&self) -> Vec<(i64, String)> {
+        let Some(b) = self.behaviour.and_then(Behavior::from_name) else {
+            return Vec::new();
+        };
+        b.roles()
+            .iter()
+            .filter_map(|r| Some((self.params.number(r)? as i64, r.to_string())))
+            .collect()
+    }
+}
+
 /// The sampler settings of an attempt, for reports.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Settings {
