@@ -226,6 +226,20 @@ impl Realism {
     }
 }
 
+/// Per agent of a scene with `agents` agents, whether any of `reports`' scripts allowed it to
+/// reverse (`allow(a, "reverse")`).
+pub fn may_reverse(reports: &[CostReport], agents: usize) -> Vec<bool> {
+    let mut out = vec![false; agents];
+    for r in reports {
+        for &a in &r.may_reverse {
+            if let Some(x) = out.get_mut(a) {
+                *x = true;
+            }
+        }
+    }
+    out
+}
+
 /// Agent `a`'s track: up to `history` recorded steps before and including the current one
 /// (within its valid run), then its valid future in `traj` up to the first gap.
 fn track(scene: &Scene, traj: &Trajectories, a: usize, history: usize) -> Option<Track> {

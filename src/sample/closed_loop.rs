@@ -122,16 +122,8 @@ pub fn closed_loop(
                 .iter()
                 .map(|a| modelled_type(a.agent_type) && a.states[c0].valid)
                 .collect();
-            let mut may_reverse = vec![false; moved.len()];
-            for r in &reports {
-                for &a in &r.may_reverse {
-                    may_reverse[a] = true;
-                }
-            }
-            (
-                first,
-                cfg.realism.evaluate(&start, &traj, &moved, &may_reverse),
-            )
+            let exempt = crate::cost::may_reverse(&reports, moved.len());
+            (first, cfg.realism.evaluate(&start, &traj, &moved, &exempt))
         });
         out.push(Sample {
             scene: state,

@@ -778,13 +778,8 @@ pub fn sample(
     }
     let realism_on = cfg.realism.weight > 0.0;
     let realism = |t: &Trajectories, reports: &[CostReport]| {
-        let mut may_reverse = vec![false; scene.agents.len()];
-        for r in reports {
-            for &a in &r.may_reverse {
-                may_reverse[a] = true;
-            }
-        }
-        cfg.realism.evaluate(scene, t, &moved, &may_reverse)
+        let exempt = crate::cost::may_reverse(reports, scene.agents.len());
+        cfg.realism.evaluate(scene, t, &moved, &exempt)
     };
     let guided = |x: &Tensor, sigma: f64, step: usize| -> Result<Tensor, SampleError> {
         let sig = vec![sigma; rows];
