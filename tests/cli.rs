@@ -776,18 +776,19 @@ fn train_then_simulate_end_to_end() {
         std::fs::copy(format!("scripts/scenes/{f}"), two.join(f)).unwrap();
     }
     let partial = dir.path().join("partial");
+    let no_vehicle_4 = [
+        "--script",
+        "scripts/cut_in.rhai",
+        "--param",
+        "cutter=4",
+        "victim=1",
+        "--steps",
+        "2",
+    ];
     let err = fails(&simulate_args(
         s(&two),
         s(&ckpt),
-        &[
-            "--script",
-            "scripts/cut_in.rhai",
-            "--param",
-            "cutter=4",
-            "victim=1",
-            "--steps",
-            "2",
-        ],
+        &no_vehicle_4,
         s(&partial),
     ));
     assert!(
@@ -800,15 +801,7 @@ fn train_then_simulate_end_to_end() {
     let out = drivescript(&simulate_args(
         s(&two.join("merge.yaml")),
         s(&ckpt),
-        &[
-            "--script",
-            "scripts/cut_in.rhai",
-            "--param",
-            "cutter=4",
-            "victim=1",
-            "--steps",
-            "2",
-        ],
+        &no_vehicle_4,
         s(&none),
     ));
     let stdout = String::from_utf8_lossy(&out.stdout);

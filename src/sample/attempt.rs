@@ -161,6 +161,8 @@ pub struct Settings {
     pub samples: usize,
     /// Seed of the initial noise.
     pub seed: u64,
+    /// Weight of the realism terms (0: off).
+    pub realism: f64,
     /// Steps executed per re-plan in closed loop (absent in open loop).
     pub replan: Option<usize>,
 }
@@ -327,6 +329,7 @@ pub fn attempt(
             steps: cfg.steps,
             samples: cfg.samples,
             seed: cfg.seed,
+            realism: cfg.realism.weight,
             replan: spec.replan,
         },
         seconds,
