@@ -10,6 +10,7 @@ pub mod cost;
 pub mod eval;
 pub mod geom;
 pub mod io;
+pub mod llm;
 pub mod model;
 pub mod render;
 pub mod sample;

@@ -92,7 +92,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             "scripts/cut_in.rhai",
             chosen.clone(),
         )],
-        checker: Some((behaviour, chosen)),
+        checks: vec![(behaviour, chosen)],
         cfg,
         replan: None,
     };

@@ -1,5 +1,6 @@
 //! Command-line interface: argument definitions and dispatch.
 
+mod ask;
 mod bench;
 mod convert;
 mod cost;
@@ -7,6 +8,7 @@ mod dataset;
 mod demo;
 mod eval;
 mod inspect;
+mod prompt;
 mod render;
 mod simulate;
 mod stdlib_doc;
@@ -75,6 +77,26 @@ enum Command {
     Eval(eval::Args),
     /// Run the demo: render a sample scene to out/demo.gif and print its summary.
     Demo(demo::Args),
+    /// Words → cost script → guided samples → repaired script: the LLM in the loop.
+    #[command(
+        after_help = "Backends: an OpenAI-compatible server (DRIVESCRIPT_LLM_URL, DRIVESCRIPT_LLM_MODEL,
+DRIVESCRIPT_LLM_KEY where needed; --llm-url and --model override), --llm manual (prompts
+as files, --resume after saving each reply), or --llm rules (a fixed vocabulary, the default
+when no LLM is configured). Exit status: 0 accepted (or a manual round waiting), 2 not
+accepted or gave up, 1 an error.
+
+Examples:
+  drivescript ask data/samples/commonroad/USA_US101-3_3_T-1.xml \\
+      \"vehicle 401 cuts in front of vehicle 399, vehicle 405 drives off the road\" -o runs/ask1
+  drivescript ask --continue runs/ask1 \"make the cut-in more abrupt\"
+  drivescript ask scene.xml \"vehicle 3 yields to vehicle 5\" --llm manual -o runs/m1
+  drivescript ask --resume runs/m1"
+    )]
+    Ask(ask::Args),
+    /// Show the prompts `ask` sends.
+    #[command(after_help = "Examples:
+  drivescript prompt show data/samples/commonroad/USA_US101-3_3_T-1.xml \"vehicle 401 cuts in front of vehicle 399\"")]
+    Prompt(prompt::Args),
     /// Run cost-script unit tests (*.test.yaml) and print a pass/fail table.
     #[command(after_help = "Examples:
   drivescript test-scripts
@@ -102,6 +124,8 @@ pub fn run() -> ExitCode {
         Command::Simulate(a) => simulate::run(a),
         Command::Dataset(a) => dataset::run(a),
         Command::Demo(a) => demo::run(a),
+        Command::Ask(a) => ask::run(a),
+        Command::Prompt(a) => prompt::run(a),
         Command::StdlibDoc(a) => stdlib_doc::run(a),
         Command::TestScripts(a) => test_scripts::run(a),
         Command::Bench(a) => bench::run(a),
@@ -118,15 +142,16 @@ pub fn run() -> ExitCode {
 /// Prints one sample's outcome: the checker's verdict (when there is one), each term's first
 /// estimate and final value, and the implausible motion of any vehicle.
 pub(crate) fn print_outcome(label: &str, o: &drivescript::sample::SampleOutcome) {
-    if let Some(v) = &o.verdict {
+    if o.verdicts.is_empty() {
+        println!("{label}: total cost {:.4}", o.total);
+    }
+    for v in &o.verdicts {
         let head = match (v.passed, v.achieved) {
             (true, _) => "PASS",
             (false, true) => "fail (achieved, implausibly)",
             (false, false) => "fail",
         };
         println!("{label}: {head}: {}", v.reason);
-    } else {
-        println!("{label}: total cost {:.4}", o.total);
     }
     println!(
         "  {:<28} {:>7} {:>10} {:>10}",

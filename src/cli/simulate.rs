@@ -219,7 +219,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     ..s.clone()
                 })
                 .collect(),
-            checker: auto.map(|b| (b, params.clone())),
+            checks: auto.map(|b| (b, params.clone())).into_iter().collect(),
             cfg,
             replan: args.closed_loop.then_some(5),
         };

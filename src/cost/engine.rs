@@ -487,6 +487,13 @@ pub fn module_functions(source: &str) -> Vec<(String, String)> {
 
 /// The reference `drivescript stdlib-doc` prints and the LLM prompts include (markdown).
 pub fn reference_markdown() -> String {
+    reference_markdown_without(&[])
+}
+
+/// [`reference_markdown`] without the named sections (`"Frenet frame"`: the reference a model
+/// gets in the paper's no-Frenet ablation); a module that uses a left-out section's functions
+/// is left out too.
+pub fn reference_markdown_without(sections: &[&str]) -> String {
     let mut md = String::from(
         "# drivescript cost-script reference\n\n\
 Scripts are Rhai. They see the scene and one set of candidate trajectories, and declare named \
@@ -497,7 +504,22 @@ them freely. Units are metres, seconds and radians; `d` is positive to the left.
 given with `--param name=value` are constants, as are `DT` (seconds per step) and `STEPS` \
 (number of future steps). Steps where an agent is not observed are skipped by reductions.\n",
     );
-    let docs = reference();
+    let docs: Vec<DocEntry> = reference()
+        .into_iter()
+        .filter(|d| !sections.contains(&d.section))
+        .collect();
+    let dropped: Vec<String> = reference()
+        .into_iter()
+        .filter(|d| sections.contains(&d.section))
+        .filter_map(|d| {
+            let name = d
+                .signature
+                .split(['(', ' ', ','])
+                .next()?
+                .trim_start_matches("a.");
+            (!name.is_empty()).then(|| name.to_string())
+        })
+        .collect();
     let mut section = "";
     for d in &docs {
         if d.section != section {
@@ -513,6 +535,12 @@ given with `--param name=value` are constants, as are `DT` (seconds per step) an
         ));
     }
     for (name, src) in STDLIB_MODULES {
+        if dropped
+            .iter()
+            .any(|f| src.contains(&format!("{f}(")) || src.contains(&format!(".{f}")))
+        {
+            continue;
+        }
         md.push_str(&format!(
             "\n## Module `{name}` (stdlib/{name}.rhai)\n\nImport with `import \"{name}\" as m;` and call `m::function(...)`.\n\n| function | meaning |\n|---|---|\n"
         ));
@@ -543,6 +571,7 @@ impl CostScript {
             widths: HashMap::new(),
             coords: HashMap::new(),
             may_reverse: Vec::new(),
+            named: Vec::new(),
             params: params
                 .0
                 .iter()
@@ -690,6 +719,7 @@ impl CostScript {
             c.prints.clear();
             c.coords.clear();
             c.may_reverse.clear();
+            c.named.clear();
         }
         let t0 = Instant::now();
         self.started.set(t0);
@@ -711,6 +741,7 @@ impl CostScript {
             .collect();
         let mut report = CostReport::new(terms, traj.layout, c.prints.clone(), t0.elapsed());
         report.may_reverse = c.may_reverse.clone();
+        report.named = c.named.clone();
         Ok(report)
     }
 

@@ -17,7 +17,8 @@ mod trajectory;
 
 pub use dual::{Dual, Grad};
 pub use engine::{
-    module_functions, reference, reference_markdown, CostError, CostScript, Limits, STDLIB_MODULES,
+    module_functions, reference, reference_markdown, reference_markdown_without, CostError,
+    CostScript, Limits, STDLIB_MODULES,
 };
 pub use fwd::{box_clearance, Fwd};
 pub use params::{ParamValue, Params};

@@ -80,6 +80,35 @@ impl Serialize for Params {
     }
 }
 
+impl Params {
+    /// Parameters from a JSON (or YAML, through serde) object of scalars, by name:
+    /// integers stay integers (agent ids), other numbers are floats. Anything else
+    /// (arrays, objects, null) is an error naming the key.
+    pub fn from_json(v: &serde_json::Value) -> Result<Self, String> {
+        let obj = v
+            .as_object()
+            .ok_or_else(|| format!("parameters must be a map of name: value, not {v}"))?;
+        let mut p = Params::default();
+        for (k, v) in obj {
+            let value = match v {
+                serde_json::Value::Number(n) => match n.as_i64() {
+                    Some(i) => ParamValue::Int(i),
+                    None => ParamValue::Float(n.as_f64().unwrap_or(f64::NAN)),
+                },
+                serde_json::Value::Bool(b) => ParamValue::Bool(*b),
+                serde_json::Value::String(s) => ParamValue::Str(s.clone()),
+                other => {
+                    return Err(format!(
+                        "parameter {k:?}: {other} is not a number, boolean or string"
+                    ))
+                }
+            };
+            p.set(k, value);
+        }
+        Ok(p)
+    }
+}
+
 /// `cutter=401 victim=399`, the form `--param` reads.
 impl fmt::Display for Params {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {

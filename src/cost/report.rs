@@ -48,6 +48,8 @@ pub struct CostReport {
     /// Agents (scene indices) the script allows to reverse (`allow(a, "reverse")`), which
     /// realism then does not hold back ([`super::Realism`]).
     pub may_reverse: Vec<usize>,
+    /// Agent ids the script named with `agent(id)`, in first-lookup order.
+    pub named: Vec<i64>,
 }
 
 impl CostReport {
@@ -73,6 +75,7 @@ impl CostReport {
             prints,
             elapsed,
             may_reverse: Vec::new(),
+            named: Vec::new(),
         }
     }
 

@@ -26,9 +26,10 @@ use crate::train::Trained;
 pub struct AttemptSpec {
     /// The cost scripts, each with its parameters and limits.
     pub scripts: Vec<ScriptSpec>,
-    /// The independent checker that judges the result, with its parameters (agent roles), when
-    /// the request is a known behaviour.
-    pub checker: Option<(Behavior, Params)>,
+    /// The independent checkers that judge the result, each with its parameters (agent roles):
+    /// one per event of the request that is a known behaviour. A sample passes when every
+    /// checker passes it.
+    pub checks: Vec<(Behavior, Params)>,
     /// Sampler settings.
     pub cfg: SampleConfig,
     /// Closed loop: steps executed before re-planning (5 = 2 Hz at 10 Hz); `None` samples the
@@ -97,16 +98,23 @@ pub struct SampleOutcome {
     /// Every term of every script, in script then declaration order, then realism's terms
     /// (script `realism`) when realism guided.
     pub terms: Vec<TermOutcome>,
-    /// The checker's verdict, when there is a checker.
-    pub verdict: Option<Verdict>,
+    /// Each checker's verdict, in [`AttemptSpec::checks`] order.
+    pub verdicts: Vec<Verdict>,
     /// Implausible motion of any sampled vehicle (named or not), worst event per kind.
     pub realism: Vec<RealismEvent>,
 }
 
 impl SampleOutcome {
-    /// Whether the checker passed it (`None` without a checker).
+    /// Whether every checker passed it (`None` without checkers).
     pub fn passed(&self) -> Option<bool> {
-        self.verdict.as_ref().map(|v| v.passed)
+        (!self.verdicts.is_empty()).then(|| self.verdicts.iter().all(|v| v.passed))
+    }
+
+    /// Implausible motion of the given agents (the ones a script names, say).
+    pub fn implausible<'a>(&'a self, agents: &'a [i64]) -> impl Iterator<Item = &'a RealismEvent> {
+        self.realism
+            .iter()
+            .filter(move |e| agents.contains(&e.agent))
     }
 }
 
@@ -116,12 +124,12 @@ impl SampleOutcome {
 pub struct AttemptReport {
     /// The scene.
     pub scenario: String,
-    /// The checked behaviour, when there is one.
-    pub behaviour: Option<&'static str>,
-    /// The checker's parameters (empty without a checker).
-    pub params: Params,
+    /// The checkers, in [`AttemptSpec::checks`] order.
+    pub checks: Vec<CheckSpec>,
     /// The scripts, by name.
     pub scripts: Vec<String>,
+    /// The agents the scripts name with `agent(id)`, in first-lookup order.
+    pub named: Vec<i64>,
     /// Sampler settings in words: task, guidance, λ and its schedule, steps, seed, loop.
     pub settings: Settings,
     /// Seconds spent sampling.
@@ -133,17 +141,43 @@ pub struct AttemptReport {
 }
 
 impl AttemptReport {
-    /// The agents the checked behaviour names, with their roles (`[(401, "cutter"), ...]`):
-    /// what pictures highlight.
+    /// The agents the checked behaviours name, with their roles (`[(401, "cutter"), ...]`;
+    /// an agent with two roles has them joined by `/`): what pictures highlight.
     pub fn roles(&self) -> Vec<(i64, String)> {
-        let Some(b) = self.behaviour.and_then(Behavior::from_name) else {
-            return Vec::new();
-        };
-        b.roles()
-            .iter()
-            .filter_map(|r| Some((self.params.number(r)? as i64, r.to_string())))
-            .collect()
+        roles(
+            self.checks
+                .iter()
+                .filter_map(|c| Some((Behavior::from_name(c.behaviour)?, &c.params))),
+        )
     }
+}
+
+/// One checker of an attempt, for reports.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CheckSpec {
+    /// The behaviour's name.
+    pub behaviour: &'static str,
+    /// Its parameters.
+    pub params: Params,
+}
+
+fn roles<'a>(checks: impl Iterator<Item = (Behavior, &'a Params)>) -> Vec<(i64, String)> {
+    let mut out: Vec<(i64, String)> = Vec::new();
+    for (b, p) in checks {
+        for r in b.roles() {
+            let Some(id) = p.number(r) else { continue };
+            let id = id as i64;
+            match out.iter_mut().find(|(a, _)| *a == id) {
+                Some((_, have)) if !have.split('/').any(|h| h == *r) => {
+                    have.push('/');
+                    have.push_str(r);
+                }
+                Some(_) => {}
+                None => out.push((id, r.to_string())),
+            }
+        }
+    }
+    out
 }
 
 /// The sampler settings of an attempt, for reports.
@@ -177,7 +211,7 @@ pub struct Attempt {
 }
 
 impl Attempt {
-    /// The sample to show: the first that passes the checker, else the one with the lowest
+    /// The sample to show: the first that passes every checker, else the one with the lowest
     /// total cost (the first of equals).
     pub fn best(&self) -> usize {
         let o = &self.report.samples;
@@ -235,15 +269,7 @@ pub fn attempt(
         None => sample(trained, &scene, &scripts, cfg)?,
     };
     let seconds = t0.elapsed().as_secs_f64();
-    let roles: Vec<(String, i64)> = spec
-        .checker
-        .iter()
-        .flat_map(|(b, p)| {
-            b.roles()
-                .iter()
-                .filter_map(|r| Some((r.to_string(), p.number(r)? as i64)))
-        })
-        .collect();
+    let roles = roles(spec.checks.iter().map(|(b, p)| (*b, p)));
     let mut outcomes = Vec::with_capacity(samples.len());
     for (k, s) in samples.iter().enumerate() {
         let mut terms = Vec::new();
@@ -278,10 +304,11 @@ pub fn attempt(
                 });
             }
         }
-        let verdict = match &spec.checker {
-            Some((b, p)) => Some(check(*b, &s.scene, p)?),
-            None => None,
-        };
+        let verdicts = spec
+            .checks
+            .iter()
+            .map(|(b, p)| check(*b, &s.scene, p))
+            .collect::<Result<Vec<_>, _>>()?;
         let judged = judge(&s.scene, &KinematicLimits::default());
         let mut realism = Vec::new();
         for (a, j) in s.scene.agents.iter().zip(&judged) {
@@ -290,8 +317,8 @@ pub fn attempt(
                     agent: a.id,
                     role: roles
                         .iter()
-                        .find(|(_, id)| *id == a.id)
-                        .map(|(r, _)| r.clone()),
+                        .find(|(id, _)| *id == a.id)
+                        .map(|(_, r)| r.clone()),
                     kind: e.kind.name(),
                     time: e.time,
                     value: e.value,
@@ -303,19 +330,32 @@ pub fn attempt(
             sample: k,
             total,
             terms,
-            verdict,
+            verdicts,
             realism,
         });
     }
     let report = AttemptReport {
         scenario: raw.meta.scenario_id.clone(),
-        behaviour: spec.checker.as_ref().map(|(b, _)| b.name()),
-        params: spec
-            .checker
-            .as_ref()
-            .map(|(_, p)| p.clone())
-            .unwrap_or_default(),
+        checks: spec
+            .checks
+            .iter()
+            .map(|(b, p)| CheckSpec {
+                behaviour: b.name(),
+                params: p.clone(),
+            })
+            .collect(),
         scripts: spec.scripts.iter().map(|s| s.name.clone()).collect(),
+        named: {
+            let mut named: Vec<i64> = Vec::new();
+            for r in samples.iter().flat_map(|s| &s.reports) {
+                for id in &r.named {
+                    if !named.contains(id) {
+                        named.push(*id);
+                    }
+                }
+            }
+            named
+        },
         settings: Settings {
             task: match cfg.task {
                 Task::Conditional => "conditional",
@@ -389,14 +429,16 @@ mod tests {
         let p = Params::numbers(&[("cutter", 2.0), ("victim", 1.0)]);
         let spec = AttemptSpec {
             scripts: vec![cut_in(&p)],
-            checker: Some((Behavior::CutIn, p.clone())),
+            checks: vec![(Behavior::CutIn, p.clone())],
             cfg: cfg(),
             replan: None,
         };
         let a = attempt(&t, &scene, &spec).unwrap();
         let r = &a.report;
         assert_eq!((a.samples.len(), r.samples.len()), (2, 2));
-        assert_eq!(r.behaviour, Some("cut_in"));
+        assert_eq!(r.checks[0].behaviour, "cut_in");
+        assert_eq!(r.named, vec![2, 1]);
+        assert_eq!(r.roles(), vec![(2, "cutter".into()), (1, "victim".into())]);
         for (k, o) in r.samples.iter().enumerate() {
             // The totals and verdicts are those of the scored scenes, not copies of one.
             let rep = &a.samples[k].reports[0];
@@ -410,7 +452,8 @@ mod tests {
                 assert!(x.initial.is_some(), "{} has no first estimate", x.term);
             }
             let v = check(Behavior::CutIn, &a.samples[k].scene, &p).unwrap();
-            assert_eq!(o.verdict.as_ref(), Some(&v));
+            assert_eq!(o.verdicts, vec![v.clone()]);
+            assert_eq!(o.passed(), Some(v.passed));
             let judged = judge(&a.samples[k].scene, &KinematicLimits::default());
             let events: usize = judged.iter().flatten().map(|j| j.events.len()).sum();
             assert_eq!(o.realism.len(), events);
@@ -437,7 +480,7 @@ mod tests {
             &std::fs::read_to_string(dir.path().join("run_costs.json")).unwrap(),
         )
         .unwrap();
-        assert_eq!(json["params"]["cutter"], 2);
+        assert_eq!(json["checks"][0]["params"]["cutter"], 2);
         assert_eq!(
             json["samples"][1]["terms"][0]["final"],
             r.samples[1].terms[0].value
@@ -468,7 +511,7 @@ mod tests {
                 ("cutter", 2.0),
                 ("victim", 77.0),
             ]))],
-            checker: None,
+            checks: Vec::new(),
             cfg: cfg(),
             replan: Some(5),
         };

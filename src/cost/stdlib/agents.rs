@@ -124,13 +124,18 @@ fn history(shared: &Shared, a: usize, field: &str) -> RResult<Series> {
 }
 
 pub(crate) fn lookup(shared: &Shared, id: i64) -> RResult<AgentRef> {
-    let ctx = shared.borrow();
+    let mut ctx = shared.borrow_mut();
     match ctx.scene.agents.iter().position(|a| a.id == id) {
-        Some(idx) => Ok(AgentRef {
-            idx,
-            id,
-            held: false,
-        }),
+        Some(idx) => {
+            if !ctx.named.contains(&id) {
+                ctx.named.push(id);
+            }
+            Ok(AgentRef {
+                idx,
+                id,
+                held: false,
+            })
+        }
         None => {
             let ids: Vec<String> = ctx
                 .scene

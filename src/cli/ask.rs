@@ -1,0 +1,386 @@
+//! `drivescript ask`: words → cost script → guided samples → repaired script, with an
+//! OpenAI-compatible server, a person (manual) or the rules planner answering. The loop is
+//! [`drivescript::llm::Session`]; this file parses flags and prints progress.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
+use drivescript::io::{load_scene, LoadOptions};
+use drivescript::llm::{
+    Backend, Cot, HttpClient, HttpConfig, LlmError, Outcome, PromptOptions, Prompts, Session,
+    SessionConfig,
+};
+use drivescript::train::{load, Trained};
+
+/// Which backend answers.
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Llm {
+    /// An OpenAI-compatible server when one is configured (URL and model), else the rules
+    /// planner (announced).
+    Auto,
+    /// An OpenAI-compatible chat-completions server.
+    Http,
+    /// Write each prompt to a file and stop until its reply is saved; `--resume` continues.
+    Manual,
+    /// The deterministic rules planner over scripts/ (not a language model).
+    Rules,
+}
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// SCENE "REQUEST" for a new run; only "REQUEST" with --continue; nothing with --resume.
+    words: Vec<String>,
+    /// Run directory (prompts, replies, scripts, rollouts, transcript, final.rhai, final.gif).
+    #[arg(short, long)]
+    output: Option<PathBuf>,
+    /// Continue the run in this directory where it stopped (a manual round's reply saved, or
+    /// a run that was killed).
+    #[arg(long, value_name = "DIR", conflicts_with = "follow_up")]
+    resume: Option<PathBuf>,
+    /// Revise the run in this directory with a follow-up request instead of starting over.
+    #[arg(long = "continue", value_name = "DIR")]
+    follow_up: Option<PathBuf>,
+    /// Who answers.
+    #[arg(long, value_enum, default_value = "auto")]
+    llm: Llm,
+    /// Server base URL (overrides DRIVESCRIPT_LLM_URL), e.g. http://127.0.0.1:11434/v1.
+    #[arg(long)]
+    llm_url: Option<String>,
+    /// Model name (overrides DRIVESCRIPT_LLM_MODEL). The key is read only from
+    /// DRIVESCRIPT_LLM_KEY, never from a flag, so it stays out of shell history.
+    #[arg(long)]
+    model: Option<String>,
+    /// Sampling temperature sent with every request.
+    #[arg(long, default_value_t = 0.2)]
+    temperature: f64,
+    /// Most tokens per reply.
+    #[arg(long, default_value_t = 4096)]
+    max_tokens: u32,
+    /// The request field for --max-tokens: max_tokens (most servers) or max_completion_tokens
+    /// (OpenAI's newer models).
+    #[arg(long, default_value = "max_tokens")]
+    max_tokens_field: String,
+    /// Seconds to wait for a reply.
+    #[arg(long, default_value_t = 300.0)]
+    llm_timeout: f64,
+    /// Attempts per request on 429 and 5xx answers.
+    #[arg(long, default_value_t = 3)]
+    attempts: u32,
+    /// First wait between attempts, seconds (doubles each time unless the server sends
+    /// Retry-After).
+    #[arg(long, default_value_t = 2.0)]
+    backoff: f64,
+    /// Refinement rounds after the first sampling (0: the first script is final).
+    #[arg(long, default_value_t = 3)]
+    rounds: usize,
+    /// Unusable replies, failed validations and rejected ACCEPTs allowed in a row.
+    #[arg(long, default_value_t = 3)]
+    fixes: usize,
+    /// Samples per round.
+    #[arg(long, default_value_t = 4)]
+    samples: usize,
+    /// Seed of the initial noise (also sent to the server, which treats it as best effort).
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Largest unweighted script term a sample may keep and still meet the request.
+    #[arg(long, default_value_t = 0.05)]
+    tolerance: f64,
+    /// Most agents in the scene summary (the request's are always listed).
+    #[arg(long, default_value_t = 30)]
+    max_agents: usize,
+    /// Checkpoint directory (default: the one shipped in data/checkpoint).
+    #[arg(long)]
+    checkpoint: Option<PathBuf>,
+    /// Prompt templates (default: prompts/).
+    #[arg(long)]
+    prompts: Option<PathBuf>,
+    /// Ablation: request → script with no reasoning.
+    #[arg(long, conflicts_with = "zero_shot_cot")]
+    no_cot: bool,
+    /// Ablation: "think step by step" instead of the designed chain of thought.
+    #[arg(long)]
+    zero_shot_cot: bool,
+    /// Ablation: the reference without the Frenet-frame functions.
+    #[arg(long)]
+    no_frenet: bool,
+    /// Guide through the denoiser (the paper's rule) instead of in output space.
+    #[arg(long)]
+    through_denoiser: bool,
+}
+
+fn env(name: &str) -> Option<String> {
+    std::env::var(name).ok().filter(|v| !v.trim().is_empty())
+}
+
+/// The backend the flags and environment choose, with a line saying which.
+pub(crate) fn backend(
+    llm: Llm,
+    url: Option<&str>,
+    model: Option<&str>,
+    args_http: impl FnOnce(String, String) -> HttpConfig,
+) -> Result<(Backend, String), LlmError> {
+    let url = url
+        .map(str::to_string)
+        .or_else(|| env("DRIVESCRIPT_LLM_URL"));
+    let model = model
+        .map(str::to_string)
+        .or_else(|| env("DRIVESCRIPT_LLM_MODEL"));
+    let http = |url: String, model: String| -> Result<(Backend, String), LlmError> {
+        let mut cfg = args_http(url, model);
+        cfg.key = env("DRIVESCRIPT_LLM_KEY");
+        let line = format!(
+            "LLM: {} at {}",
+            cfg.model,
+            drivescript::llm::client::redact_url(&cfg.endpoint())
+        );
+        Ok((Backend::Http(HttpClient::new(cfg)?), line))
+    };
+    match llm {
+        Llm::Rules => Ok((
+            Backend::Rules,
+            "LLM: none; the rules planner (a fixed vocabulary, not a language model) writes the scripts".into(),
+        )),
+        Llm::Manual => Ok((
+            Backend::Manual,
+            "LLM: manual; each prompt is written to a file for you to paste into any chat".into(),
+        )),
+        Llm::Http => match (url, model) {
+            (Some(u), Some(m)) => http(u, m),
+            (u, m) => Err(LlmError::Setup(format!(
+                "--llm http needs {}: set DRIVESCRIPT_LLM_URL and DRIVESCRIPT_LLM_MODEL or pass --llm-url and --model",
+                match (u, m) {
+                    (None, None) => "a server URL and a model",
+                    (None, _) => "a server URL",
+                    _ => "a model name",
+                }
+            ))),
+        },
+        Llm::Auto => match (url, model) {
+            (Some(u), Some(m)) => http(u, m),
+            (Some(_), None) => Err(LlmError::Setup(
+                "an LLM URL is set but no model: set DRIVESCRIPT_LLM_MODEL or pass --model".into(),
+            )),
+            _ => Ok((
+                Backend::Rules,
+                "LLM: none configured (DRIVESCRIPT_LLM_URL and DRIVESCRIPT_LLM_MODEL are unset), so the rules planner writes the scripts: a fixed vocabulary of behaviours, not a language model".into(),
+            )),
+        },
+    }
+}
+
+impl Args {
+    fn http_config(&self, url: String, model: String) -> HttpConfig {
+        let mut c = HttpConfig::new(url, model);
+        c.temperature = self.temperature;
+        c.max_tokens = self.max_tokens;
+        c.max_tokens_field = self.max_tokens_field.clone();
+        c.seed = Some(self.seed);
+        c.read_timeout = Duration::from_secs_f64(self.llm_timeout.max(0.001));
+        c.attempts = self.attempts;
+        c.backoff = Duration::from_secs_f64(self.backoff.max(0.0));
+        c
+    }
+
+    fn session_config(&self) -> SessionConfig {
+        SessionConfig {
+            rounds: self.rounds,
+            fixes: self.fixes,
+            prompt: self.prompt_options(),
+            tolerance: self.tolerance,
+            max_agents: self.max_agents,
+            samples: self.samples,
+            seed: self.seed,
+            through_denoiser: self.through_denoiser,
+            ..SessionConfig::default()
+        }
+    }
+
+    pub(crate) fn prompt_options(&self) -> PromptOptions {
+        prompt_options(self.no_cot, self.zero_shot_cot, self.no_frenet)
+    }
+}
+
+pub(crate) fn prompt_options(no_cot: bool, zero_shot: bool, no_frenet: bool) -> PromptOptions {
+    PromptOptions {
+        cot: if no_cot {
+            Cot::None
+        } else if zero_shot {
+            Cot::ZeroShot
+        } else {
+            Cot::Designed
+        },
+        frenet: !no_frenet,
+    }
+}
+
+pub(crate) fn checkpoint(path: Option<&Path>) -> Result<Trained> {
+    let ckpt = path
+        .map(Path::to_path_buf)
+        .unwrap_or_else(|| super::samples_dir().join("../checkpoint"));
+    load(&ckpt).with_context(|| format!("loading the diffusion checkpoint {}", ckpt.display()))
+}
+
+fn load_one(path: &Path) -> Result<drivescript::scene::Scene, LlmError> {
+    load_scene(path, 0, &LoadOptions::default()).map_err(|e| LlmError::Run {
+        dir: path.to_path_buf(),
+        message: format!("cannot load the scene: {e}"),
+    })
+}
+
+pub fn run(args: Args) -> Result<ExitCode> {
+    if !(args.tolerance.is_finite() && args.tolerance >= 0.0) {
+        bail!(
+            "--tolerance {} must be a finite number >= 0",
+            args.tolerance
+        );
+    }
+    if args.samples == 0 {
+        bail!("--samples must be at least 1");
+    }
+    if !(args.temperature.is_finite() && args.temperature >= 0.0) {
+        bail!(
+            "--temperature {} must be a finite number >= 0",
+            args.temperature
+        );
+    }
+    if !(args.llm_timeout.is_finite() && args.llm_timeout > 0.0) {
+        bail!(
+            "--llm-timeout {} must be a positive number of seconds",
+            args.llm_timeout
+        );
+    }
+    let trained = checkpoint(args.checkpoint.as_deref())?;
+    let mut progress = |line: &str| println!("{line}");
+    let mut session = if let Some(dir) = &args.resume {
+        if !args.words.is_empty() {
+            bail!("--resume DIR takes no scene or request (the run recorded them)");
+        }
+        let (llm, url, model) = (args.llm, args.llm_url.clone(), args.model.clone());
+        let s = Session::resume(
+            dir,
+            &trained,
+            |recorded, rec_model, _rec_url| {
+                // The run's own backend unless the flags choose another.
+                let chosen = match (llm, recorded) {
+                    (Llm::Auto, "http") => Llm::Http,
+                    (Llm::Auto, "manual") => Llm::Manual,
+                    (Llm::Auto, _) => Llm::Rules,
+                    (l, _) => l,
+                };
+                let model = model.or_else(|| rec_model.map(str::to_string));
+                let (b, line) = backend(chosen, url.as_deref(), model.as_deref(), |u, m| {
+                    args.http_config(u, m)
+                })?;
+                println!("{line}");
+                Ok(b)
+            },
+            load_one,
+        )?;
+        println!("resuming {}", dir.display());
+        s
+    } else if let Some(dir) = &args.follow_up {
+        let [request] = args.words.as_slice() else {
+            bail!("--continue DIR takes one argument, the follow-up request in quotes");
+        };
+        let (llm, url, model) = (args.llm, args.llm_url.clone(), args.model.clone());
+        let mut s = Session::resume(
+            dir,
+            &trained,
+            |recorded, rec_model, _| {
+                let chosen = match (llm, recorded) {
+                    (Llm::Auto, "http") => Llm::Http,
+                    (Llm::Auto, "manual") => Llm::Manual,
+                    (Llm::Auto, _) => Llm::Rules,
+                    (l, _) => l,
+                };
+                let model = model.or_else(|| rec_model.map(str::to_string));
+                let (b, line) = backend(chosen, url.as_deref(), model.as_deref(), |u, m| {
+                    args.http_config(u, m)
+                })?;
+                println!("{line}");
+                Ok(b)
+            },
+            load_one,
+        )?;
+        s.follow_up(request)?;
+        println!("follow-up on {}: {request}", dir.display());
+        s
+    } else {
+        let [scene, request] = args.words.as_slice() else {
+            bail!(
+                "ask needs a scene and a request in quotes: drivescript ask SCENE \"vehicle 3 cuts in front of vehicle 5\" -o runs/ask1 (or --resume DIR, or --continue DIR \"follow-up\")"
+            );
+        };
+        let Some(dir) = &args.output else {
+            bail!("ask needs -o DIR, the run directory");
+        };
+        let (b, line) = backend(
+            args.llm,
+            args.llm_url.as_deref(),
+            args.model.as_deref(),
+            |u, m| args.http_config(u, m),
+        )?;
+        println!("{line}");
+        let path = PathBuf::from(scene);
+        let raw = load_one(&path)?;
+        let prompts_dir = args.prompts.clone().unwrap_or_else(Prompts::default_dir);
+        let prompts = Prompts::load(&prompts_dir)?;
+        let s = Session::start(
+            dir,
+            &path,
+            raw,
+            request,
+            &trained,
+            b,
+            prompts,
+            args.session_config(),
+            None,
+        )?;
+        let checks = s.checks();
+        if checks.is_empty() {
+            println!("checkers: none (the request is not in the rules planner's vocabulary; acceptance is judged on the terms and the named agents' motion)");
+        } else {
+            for (b, p) in &checks {
+                println!("checker: {} ({p}): {}", b.name(), b.definition());
+            }
+        }
+        s
+    };
+    let outcome = session.run(&mut progress)?;
+    let dir = session.dir().to_path_buf();
+    match outcome {
+        Outcome::Waiting { prompt, reply } => {
+            println!(
+                "waiting for a reply: paste {} into a chat, save the answer as {}, then run: drivescript ask --resume {}",
+                prompt.display(),
+                reply.display(),
+                dir.display()
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        Outcome::Accepted { .. } => {
+            println!(
+                "wrote {}, {} and {}",
+                dir.join("final.rhai").display(),
+                dir.join("final.gif").display(),
+                dir.join("report.md").display()
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        Outcome::RoundsUsed { .. } => {
+            println!(
+                "wrote {}, {} and {} (not accepted)",
+                dir.join("final.rhai").display(),
+                dir.join("final.gif").display(),
+                dir.join("report.md").display()
+            );
+            Ok(ExitCode::from(2))
+        }
+        Outcome::GaveUp { reason } => {
+            eprintln!("error: {reason} (see {})", dir.join("report.md").display());
+            Ok(ExitCode::from(2))
+        }
+    }
+}

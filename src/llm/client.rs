@@ -1,0 +1,468 @@
+//! An OpenAI-compatible chat-completions client (OpenAI, Ollama's `/v1`, vLLM, llama.cpp's
+//! server, LM Studio): one blocking POST per completion, retried with backoff on 429 and 5xx.
+//!
+//! The key travels only in the `Authorization` header: [`Exchange`] records the request body,
+//! the URL without credentials and what came back, never the key.
+
+use std::time::{Duration, Instant};
+
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
+
+use super::LlmError;
+
+/// How to reach the server.
+#[derive(Clone)]
+pub struct HttpConfig {
+    /// Base URL (`http://127.0.0.1:11434/v1`); `/chat/completions` is appended unless the URL
+    /// already ends with it.
+    pub url: String,
+    /// Model name as the server knows it.
+    pub model: String,
+    /// Bearer key, where the server needs one.
+    pub key: Option<String>,
+    /// Sampling temperature, always sent (Ollama's default is 1.0).
+    pub temperature: f64,
+    /// Most tokens in a reply.
+    pub max_tokens: u32,
+    /// The JSON field that carries `max_tokens`: `max_tokens` for most servers,
+    /// `max_completion_tokens` for OpenAI's newer models.
+    pub max_tokens_field: String,
+    /// Seed sent with the request (servers treat it as best effort).
+    pub seed: Option<u64>,
+    /// Time to establish the connection.
+    pub connect_timeout: Duration,
+    /// Time for the whole reply once connected.
+    pub read_timeout: Duration,
+    /// Attempts in all for 429 and 5xx answers (at least 1).
+    pub attempts: u32,
+    /// First wait between attempts; it doubles each time (capped at a minute) unless the
+    /// server says `Retry-After`.
+    pub backoff: Duration,
+}
+
+impl std::fmt::Debug for HttpConfig {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        // Never the key.
+        f.debug_struct("HttpConfig")
+            .field("url", &redact_url(&self.url))
+            .field("model", &self.model)
+            .field("key", &self.key.as_ref().map(|_| "(set)"))
+            .field("temperature", &self.temperature)
+            .finish_non_exhaustive()
+    }
+}
+
+impl HttpConfig {
+    /// Defaults for a server at `url` serving `model`.
+    pub fn new(url: impl Into<String>, model: impl Into<String>) -> Self {
+        Self {
+            url: url.into(),
+            model: model.into(),
+            key: None,
+            temperature: 0.2,
+            max_tokens: 4096,
+            max_tokens_field: "max_tokens".into(),
+            seed: None,
+            connect_timeout: Duration::from_secs(10),
+            read_timeout: Duration::from_secs(300),
+            attempts: 3,
+            backoff: Duration::from_secs(2),
+        }
+    }
+
+    /// The endpoint the requests go to.
+    pub fn endpoint(&self) -> String {
+        let u = self.url.trim_end_matches('/');
+        if u.ends_with("/chat/completions") {
+            u.to_string()
+        } else {
+            format!("{u}/chat/completions")
+        }
+    }
+}
+
+/// The URL with any `user:password@` removed and query parameters dropped (some gateways
+/// take the key there), for transcripts and messages.
+pub fn redact_url(url: &str) -> String {
+    let (scheme, rest) = url.split_once("://").unwrap_or(("", url));
+    let rest = match rest.find('/') {
+        Some(i) => {
+            let (host, path) = rest.split_at(i);
+            let host = host.rsplit_once('@').map_or(host, |(_, h)| h);
+            format!("{host}{}", path.split('?').next().unwrap_or(""))
+        }
+        None => rest.rsplit_once('@').map_or(rest, |(_, h)| h).to_string(),
+    };
+    if scheme.is_empty() {
+        rest
+    } else {
+        format!("{scheme}://{rest}")
+    }
+}
+
+/// One chat message.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Message {
+    /// `system`, `user` or `assistant`.
+    pub role: String,
+    /// Its text.
+    pub content: String,
+}
+
+impl Message {
+    /// A message with this role.
+    pub fn new(role: &str, content: impl Into<String>) -> Self {
+        Self {
+            role: role.into(),
+            content: content.into(),
+        }
+    }
+}
+
+/// Token counts the server reported.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct Usage {
+    /// Prompt tokens.
+    pub prompt_tokens: u64,
+    /// Completion tokens.
+    pub completion_tokens: u64,
+}
+
+/// One completion with what it took: what a transcript records.
+#[derive(Debug, Clone, Serialize)]
+pub struct Exchange {
+    /// Endpoint, without credentials.
+    pub url: String,
+    /// The request body as sent (model, messages, temperature, ...).
+    pub request: Value,
+    /// The reply's text.
+    pub reply: String,
+    /// Token usage, when the server reported it.
+    pub usage: Option<Usage>,
+    /// Seconds from the first attempt to the reply.
+    pub latency: f64,
+    /// Attempts that failed and were retried, each as `status: message (waited N s)`.
+    pub retries: Vec<String>,
+}
+
+/// A blocking chat-completions client.
+pub struct HttpClient {
+    cfg: HttpConfig,
+    http: reqwest::blocking::Client,
+}
+
+impl HttpClient {
+    /// A client for `cfg`.
+    pub fn new(cfg: HttpConfig) -> Result<Self, LlmError> {
+        let http = reqwest::blocking::Client::builder()
+            .connect_timeout(cfg.connect_timeout)
+            .timeout(cfg.read_timeout)
+            .build()
+            .map_err(|e| LlmError::Setup(format!("HTTP client: {e}")))?;
+        Ok(Self { cfg, http })
+    }
+
+    /// The settings.
+    pub fn config(&self) -> &HttpConfig {
+        &self.cfg
+    }
+
+    /// The request body for `messages`.
+    pub fn body(&self, messages: &[Message]) -> Value {
+        let mut body = json!({
+            "model": self.cfg.model,
+            "messages": messages,
+            "temperature": self.cfg.temperature,
+            "stream": false,
+        });
+        body[self.cfg.max_tokens_field.as_str()] = json!(self.cfg.max_tokens);
+        if let Some(s) = self.cfg.seed {
+            body["seed"] = json!(s);
+        }
+        body
+    }
+
+    /// Sends `messages` and returns the first choice's text.
+    pub fn complete(&self, messages: &[Message]) -> Result<Exchange, LlmError> {
+        let url = self.cfg.endpoint();
+        let shown = redact_url(&url);
+        let body = self.body(messages);
+        let t0 = Instant::now();
+        let mut retries = Vec::new();
+        let attempts = self.cfg.attempts.max(1);
+        let mut wait = self.cfg.backoff;
+        for attempt in 1..=attempts {
+            let mut req = self.http.post(&url).json(&body);
+            if let Some(k) = &self.cfg.key {
+                req = req.bearer_auth(k);
+            }
+            let resp = match req.send() {
+                Ok(r) => r,
+                Err(e) => return Err(transport_error(&e, &shown, &self.cfg)),
+            };
+            let status = resp.status().as_u16();
+            let retry_after = resp
+                .headers()
+                .get(reqwest::header::RETRY_AFTER)
+                .and_then(|v| v.to_str().ok())
+                .and_then(|v| v.trim().parse::<f64>().ok())
+                .filter(|s| s.is_finite() && *s >= 0.0);
+            let text = match resp.text() {
+                Ok(t) => t,
+                Err(e) => return Err(transport_error(&e, &shown, &self.cfg)),
+            };
+            if (200..300).contains(&status) {
+                let (reply, usage) = parse_completion(&text, &shown)?;
+                return Ok(Exchange {
+                    url: shown,
+                    request: body,
+                    reply,
+                    usage,
+                    latency: t0.elapsed().as_secs_f64(),
+                    retries,
+                });
+            }
+            let message = error_message(&text);
+            let retryable = status == 429 || (500..600).contains(&status);
+            if !retryable {
+                return Err(match status {
+                    401 | 403 => LlmError::Auth {
+                        url: shown,
+                        status,
+                        message,
+                    },
+                    404 => LlmError::NotFound {
+                        url: shown,
+                        model: self.cfg.model.clone(),
+                        message,
+                    },
+                    _ => LlmError::Status {
+                        url: shown,
+                        status,
+                        attempts: attempt,
+                        message,
+                    },
+                });
+            }
+            if attempt == attempts {
+                return Err(LlmError::Status {
+                    url: shown,
+                    status,
+                    attempts,
+                    message,
+                });
+            }
+            // Retry-After is honoured up to ten minutes; an absurd value is the server's bug,
+            // not a reason to hang.
+            let pause = match retry_after {
+                Some(s) => Duration::from_secs_f64(s.min(600.0)),
+                None => wait,
+            };
+            retries.push(format!(
+                "{status}: {message} (waited {:.1} s{})",
+                pause.as_secs_f64(),
+                if retry_after.is_some() {
+                    ", as Retry-After asked"
+                } else {
+                    ""
+                }
+            ));
+            std::thread::sleep(pause);
+            wait = (wait * 2).min(Duration::from_secs(60));
+        }
+        unreachable!("the last attempt returns")
+    }
+}
+
+fn transport_error(e: &reqwest::Error, url: &str, cfg: &HttpConfig) -> LlmError {
+    if e.is_timeout() {
+        LlmError::Timeout {
+            url: url.into(),
+            seconds: if e.is_connect() {
+                cfg.connect_timeout.as_secs_f64()
+            } else {
+                cfg.read_timeout.as_secs_f64()
+            },
+            connecting: e.is_connect(),
+        }
+    } else if e.is_connect() {
+        LlmError::Connect { url: url.into() }
+    } else {
+        // reqwest's Display omits the cause chain, where the useful part is.
+        let mut msg = e.to_string();
+        let mut src = std::error::Error::source(e);
+        while let Some(s) = src {
+            msg.push_str(&format!(": {s}"));
+            src = s.source();
+        }
+        LlmError::Transport {
+            url: url.into(),
+            message: msg,
+        }
+    }
+}
+
+/// The error message of a failed request's body: `{"error": {"message": ..., "code": ...}}`
+/// (code a string, number or null), `{"error": "..."}`, `{"message": "..."}`, or the bare text.
+pub fn error_message(body: &str) -> String {
+    let text = body.trim();
+    let short = |s: &str| {
+        let s = s.trim();
+        let mut out: String = s.chars().take(300).collect();
+        if s.chars().count() > 300 {
+            out.push_str("...");
+        }
+        out.replace(['\n', '\r'], " ")
+    };
+    let Ok(v) = serde_json::from_str::<Value>(text) else {
+        return if text.is_empty() {
+            "(empty body)".into()
+        } else {
+            short(text)
+        };
+    };
+    let code = |e: &Value| match &e["code"] {
+        Value::String(s) => format!(" ({s})"),
+        Value::Number(n) => format!(" ({n})"),
+        _ => String::new(),
+    };
+    match &v {
+        Value::String(s) => short(s),
+        Value::Object(o) => match o.get("error") {
+            Some(Value::String(s)) => short(s),
+            Some(e @ Value::Object(_)) => match e["message"].as_str() {
+                Some(m) => format!("{}{}", short(m), code(e)),
+                None => short(&e.to_string()),
+            },
+            _ => match o.get("message").and_then(Value::as_str) {
+                Some(m) => short(m),
+                None => short(text),
+            },
+        },
+        _ => short(text),
+    }
+}
+
+/// The first choice's text and the usage of a successful reply body.
+fn parse_completion(text: &str, url: &str) -> Result<(String, Option<Usage>), LlmError> {
+    let bad = |why: String| LlmError::BadReply {
+        url: url.into(),
+        message: why,
+    };
+    let v: Value = serde_json::from_str(text).map_err(|e| {
+        let head: String = text.trim().chars().take(120).collect();
+        bad(format!("the reply is not JSON ({e}); it begins {head:?}"))
+    })?;
+    let choices = v["choices"]
+        .as_array()
+        .ok_or_else(|| bad("the reply has no \"choices\" array".into()))?;
+    let first = choices
+        .first()
+        .ok_or_else(|| bad("the reply's \"choices\" is empty".into()))?;
+    let content = match &first["message"]["content"] {
+        Value::String(s) => s.clone(),
+        // Some servers return content parts.
+        Value::Array(parts) => parts
+            .iter()
+            .filter_map(|p| p["text"].as_str())
+            .collect::<Vec<_>>()
+            .join(""),
+        _ => match first["text"].as_str() {
+            Some(s) => s.to_string(),
+            None => {
+                return Err(bad(
+                    "the first choice has no message content (a refusal or a tool call?)".into(),
+                ))
+            }
+        },
+    };
+    let usage = v
+        .get("usage")
+        .and_then(|u| serde_json::from_value::<Usage>(u.clone()).ok());
+    Ok((content, usage))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn error_bodies_in_every_shape_become_one_line() {
+        assert_eq!(
+            error_message(
+                r#"{"error": {"message": "model not found", "code": "model_not_found"}}"#
+            ),
+            "model not found (model_not_found)"
+        );
+        assert_eq!(
+            error_message(r#"{"error": {"message": "slow down", "code": 429}}"#),
+            "slow down (429)"
+        );
+        assert_eq!(
+            error_message(r#"{"error": {"message": "x", "code": null}}"#),
+            "x"
+        );
+        assert_eq!(error_message(r#"{"error": "overloaded"}"#), "overloaded");
+        assert_eq!(error_message(r#""bare json string""#), "bare json string");
+        assert_eq!(error_message("Bad Gateway\n"), "Bad Gateway");
+        assert_eq!(error_message(""), "(empty body)");
+        assert_eq!(error_message(r#"{"message": "m"}"#), "m");
+        assert!(error_message(&"x".repeat(1000)).ends_with("..."));
+    }
+
+    #[test]
+    fn completions_parse_and_bad_replies_say_why() {
+        let ok = r#"{"choices":[{"message":{"role":"assistant","content":"hi"}}],"usage":{"prompt_tokens":5,"completion_tokens":2,"total_tokens":7}}"#;
+        let (c, u) = parse_completion(ok, "u").unwrap();
+        assert_eq!(
+            (c.as_str(), u),
+            (
+                "hi",
+                Some(Usage {
+                    prompt_tokens: 5,
+                    completion_tokens: 2
+                })
+            )
+        );
+        let e = parse_completion("<html>oops</html>", "u").unwrap_err();
+        assert!(e.to_string().contains("not JSON"), "{e}");
+        let e = parse_completion(r#"{"choices": []}"#, "u").unwrap_err();
+        assert!(e.to_string().contains("empty"), "{e}");
+        let e = parse_completion(r#"{"id": 1}"#, "u").unwrap_err();
+        assert!(e.to_string().contains("no \"choices\""), "{e}");
+    }
+
+    #[test]
+    fn urls_lose_credentials_and_gain_the_endpoint() {
+        assert_eq!(
+            redact_url("https://user:secret@host:8080/v1?key=abc"),
+            "https://host:8080/v1"
+        );
+        assert_eq!(
+            redact_url("http://127.0.0.1:11434/v1"),
+            "http://127.0.0.1:11434/v1"
+        );
+        let c = HttpConfig::new("http://h/v1/", "m");
+        assert_eq!(c.endpoint(), "http://h/v1/chat/completions");
+        let c = HttpConfig::new("http://h/v1/chat/completions", "m");
+        assert_eq!(c.endpoint(), "http://h/v1/chat/completions");
+        let mut c = HttpConfig::new("http://h/v1", "m");
+        c.key = Some("sk-secret".into());
+        assert!(!format!("{c:?}").contains("sk-secret"));
+    }
+
+    #[test]
+    fn the_body_always_carries_temperature_and_the_chosen_token_field() {
+        let mut cfg = HttpConfig::new("http://h/v1", "m");
+        cfg.max_tokens_field = "max_completion_tokens".into();
+        cfg.seed = Some(7);
+        let c = HttpClient::new(cfg).unwrap();
+        let b = c.body(&[Message::new("user", "x")]);
+        assert_eq!(b["temperature"], 0.2);
+        assert_eq!(b["max_completion_tokens"], 4096);
+        assert!(b.get("max_tokens").is_none());
+        assert_eq!(b["seed"], 7);
+        assert_eq!(b["messages"][0]["role"], "user");
+    }
+}

@@ -1,0 +1,310 @@
+//! What the model reads after sampling (low-level refinement): per term, its first estimate and
+//! final value with the spread over the samples; per sample, the checkers' verdicts, the named
+//! agents' motion at 1 Hz in world and Frenet coordinates, gaps between them, and their
+//! collisions, road departures and implausible motion. Also the acceptance test an ACCEPT must
+//! pass.
+
+use std::fmt::Write as _;
+
+use crate::eval::metrics::{collided, offroad};
+use crate::sample::{Attempt, AttemptReport, SampleOutcome};
+use crate::scene::{Scene, Turn};
+
+/// When a sample counts as meeting the request.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Acceptance {
+    /// Largest unweighted value of any script term (realism's excluded: plausibility is judged
+    /// on the motion itself).
+    pub tolerance: f64,
+}
+
+impl Default for Acceptance {
+    fn default() -> Self {
+        Self { tolerance: 0.05 }
+    }
+}
+
+impl Acceptance {
+    /// Why `o`, a sample of `report`, does not meet the request (empty when it does): script
+    /// terms above tolerance, failed checkers, implausible motion of the named agents.
+    pub fn reasons(&self, o: &SampleOutcome, report: &AttemptReport) -> Vec<String> {
+        let named = &report.named;
+        let mut out = Vec::new();
+        for t in o.terms.iter().filter(|t| t.script != "realism") {
+            if !(t.value <= self.tolerance) {
+                out.push(format!(
+                    "term {} = {:.4} is above the tolerance {} (line {})",
+                    t.term, t.value, self.tolerance, t.line
+                ));
+            }
+        }
+        for (v, c) in o.verdicts.iter().zip(&report.checks) {
+            if !v.passed {
+                out.push(format!("checker {}: {}", c.behaviour, v.reason));
+            }
+        }
+        for e in o.implausible(named) {
+            out.push(format!(
+                "implausible motion: {}{} {}",
+                e.role.as_deref().map_or(String::new(), |r| format!("{r} ")),
+                e.agent,
+                e.text
+            ));
+        }
+        out
+    }
+
+    /// The first sample that meets the request.
+    pub fn chosen(&self, a: &Attempt) -> Option<usize> {
+        a.report
+            .samples
+            .iter()
+            .position(|o| self.reasons(o, &a.report).is_empty())
+    }
+}
+
+/// The refinement text for an attempt. `max_agents` caps the agents whose motion is listed
+/// (the named ones first).
+pub fn feedback(a: &Attempt, acc: &Acceptance) -> String {
+    let r = &a.report;
+    let mut s = String::new();
+    let named = &r.named;
+    let _ = writeln!(
+        s,
+        "Agents your script names: {}.",
+        if named.is_empty() {
+            "none".to_string()
+        } else {
+            named
+                .iter()
+                .map(|i| i.to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        }
+    );
+    if !r.checks.is_empty() {
+        let _ = writeln!(
+            s,
+            "Independent checkers of the request: {}.",
+            r.checks
+                .iter()
+                .map(|c| format!("{} ({})", c.behaviour, c.params))
+                .collect::<Vec<_>>()
+                .join("; ")
+        );
+    }
+    let _ = writeln!(
+        s,
+        "A sample meets the request when every term is at most {} (unweighted), every checker \
+         passes and no named agent moves implausibly.",
+        acc.tolerance
+    );
+    // Terms over the samples.
+    let _ = writeln!(
+        s,
+        "\n## Terms (unweighted values; the total is the weighted sum)\n\n\
+         | term | line | weight | first estimate (mean) | final min | final mean | final max | note |\n\
+         |---|---|---|---|---|---|---|---|"
+    );
+    let first = r.samples.first();
+    let n = r.samples.len().max(1) as f64;
+    for (i, t) in first
+        .map(|o| o.terms.as_slice())
+        .unwrap_or(&[])
+        .iter()
+        .enumerate()
+    {
+        let finals: Vec<f64> = r
+            .samples
+            .iter()
+            .filter_map(|o| o.terms.get(i).map(|x| x.value))
+            .collect();
+        let inits: Vec<f64> = r
+            .samples
+            .iter()
+            .filter_map(|o| o.terms.get(i).and_then(|x| x.initial))
+            .collect();
+        let mean = finals.iter().sum::<f64>() / n;
+        let min = finals.iter().copied().fold(f64::INFINITY, f64::min);
+        let max = finals.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let init = (!inits.is_empty()).then(|| inits.iter().sum::<f64>() / inits.len() as f64);
+        let mut note = Vec::new();
+        if t.script == "realism" {
+            note.push("sampler's realism term".to_string());
+        } else {
+            if let Some(i0) = init {
+                if mean > acc.tolerance && (mean - i0).abs() <= 0.05 * i0.abs().max(1e-3) {
+                    note.push("never moves: this term is not pulling".into());
+                }
+            }
+            let total: f64 = r.samples.iter().map(|o| o.total).sum::<f64>() / n;
+            let share = t.weight * mean / total.max(1e-12);
+            if share > 0.8 && first.is_some_and(|o| o.terms.len() > 1) && mean > acc.tolerance {
+                note.push(format!("dominates ({:.0} % of the total)", 100.0 * share));
+            }
+            if max <= acc.tolerance {
+                note.push("met in every sample".into());
+            }
+        }
+        let _ = writeln!(
+            s,
+            "| {} | {} | {} | {} | {:.4} | {:.4} | {:.4} | {} |",
+            t.term,
+            if t.line > 0 {
+                t.line.to_string()
+            } else {
+                "-".into()
+            },
+            t.weight,
+            init.map_or("-".into(), |v| format!("{v:.4}")),
+            min,
+            mean,
+            max,
+            note.join("; ")
+        );
+    }
+    for (k, o) in r.samples.iter().enumerate() {
+        let scene = &a.samples[k].scene;
+        let reasons = acc.reasons(o, r);
+        let _ = writeln!(
+            s,
+            "\n## Sample {k}: {} (total cost {:.4})",
+            if reasons.is_empty() {
+                "meets the request".to_string()
+            } else {
+                format!("does not meet it ({} reasons)", reasons.len())
+            },
+            o.total
+        );
+        for (v, c) in o.verdicts.iter().zip(&r.checks) {
+            let _ = writeln!(
+                s,
+                "- checker {}: {}: {}",
+                c.behaviour,
+                if v.passed {
+                    "PASS"
+                } else if v.achieved {
+                    "fail (achieved, implausibly)"
+                } else {
+                    "fail"
+                },
+                v.reason
+            );
+        }
+        for why in reasons.iter().filter(|w| !w.starts_with("checker")) {
+            let _ = writeln!(s, "- {why}");
+        }
+        motion(&mut s, scene, named);
+    }
+    s
+}
+
+/// The named agents at 1 Hz: world position, speed, acceleration, lane, Frenet s and d on
+/// the agent's starting lane path, gaps to the other named agents; then their events.
+fn motion(s: &mut String, scene: &Scene, named: &[i64]) {
+    let c = scene.meta.current_step;
+    let dt = scene.meta.dt;
+    let every = ((1.0 / dt).round() as usize).max(1);
+    let hits = collided(scene);
+    let off = offroad(scene);
+    for id in named {
+        let Some(idx) = scene.agents.iter().position(|a| a.id == *id) else {
+            continue;
+        };
+        let a = &scene.agents[idx];
+        let st0 = a.states[c];
+        let lane0 = st0
+            .valid
+            .then(|| scene.map.lane_at(st0.position(), st0.heading))
+            .flatten();
+        let path = lane0.and_then(|l| {
+            let s0 = scene.map.lane(l)?.centerline.nearest(&st0.position()).s;
+            scene
+                .map
+                .lane_path(l, s0 + 300.0, 50.0, Turn::Straight)
+                .ok()
+        });
+        let _ = writeln!(
+            s,
+            "\nAgent {id}{}: t (s), x, y (m), speed (m/s), accel (m/s²), lane, s, d (m) on the path of lane {}{}",
+            match (hits[idx], off[idx]) {
+                (Some(true), Some(true)) => " (collides; leaves the road)",
+                (Some(true), _) => " (collides)",
+                (_, Some(true)) => " (leaves the road)",
+                _ => "",
+            },
+            lane0.map_or("-".into(), |l| l.to_string()),
+            if named.len() > 1 { ", gaps (centre distance, m)" } else { "" }
+        );
+        let mut t = c;
+        while t < scene.num_steps() {
+            let st = a.states[t];
+            if st.valid {
+                let speed = velocity(a, t, dt).map_or(0.0, |(vx, vy)| vx.hypot(vy));
+                let accel = accel_at(a, t, dt);
+                let lane = scene.map.lane_at(st.position(), st.heading);
+                let fr = path.as_ref().map(|p| p.frenet.project(st.position()));
+                let mut gaps = Vec::new();
+                for other in named.iter().filter(|o| *o != id) {
+                    if let Some(b) = scene.agent(*other) {
+                        let sb = b.states[t];
+                        if sb.valid {
+                            gaps.push(format!(
+                                "{other}: {:.1}",
+                                (sb.position() - st.position()).norm()
+                            ));
+                        }
+                    }
+                }
+                let _ = writeln!(
+                    s,
+                    "  {:.0} s: ({:.1}, {:.1}), {:.1}, {}, {}, {}{}",
+                    (t - c) as f64 * dt,
+                    st.x,
+                    st.y,
+                    speed,
+                    accel.map_or("-".into(), |x| format!("{x:+.1}")),
+                    lane.map_or("off lane".into(), |l| l.to_string()),
+                    fr.map_or("-, -".into(), |f| format!("{:.1}, {:+.2}", f.s, f.d)),
+                    if gaps.is_empty() {
+                        String::new()
+                    } else {
+                        format!("; {}", gaps.join(", "))
+                    }
+                );
+            } else {
+                let _ = writeln!(s, "  {:.0} s: not in the scene", (t - c) as f64 * dt);
+            }
+            t += every;
+        }
+    }
+}
+
+/// Velocity at step `t` from positions (sampled scenes carry positions; their velocity
+/// fields are not the model's): central where both neighbours are valid, else one-sided.
+fn velocity(a: &crate::scene::Agent, t: usize, dt: f64) -> Option<(f64, f64)> {
+    let at = |k: usize| a.states.get(k).filter(|s| s.valid);
+    let here = at(t)?;
+    let prev = t.checked_sub(1).and_then(at);
+    let next = at(t + 1);
+    Some(match (prev, next) {
+        (Some(p), Some(q)) => ((q.x - p.x) / (2.0 * dt), (q.y - p.y) / (2.0 * dt)),
+        (Some(p), None) => ((here.x - p.x) / dt, (here.y - p.y) / dt),
+        (None, Some(q)) => ((q.x - here.x) / dt, (q.y - here.y) / dt),
+        (None, None) => return None,
+    })
+}
+
+/// Acceleration along the direction of travel at step `t`, from positions.
+fn accel_at(a: &crate::scene::Agent, t: usize, dt: f64) -> Option<f64> {
+    let (vx, vy) = velocity(a, t, dt)?;
+    let speed = vx.hypot(vy);
+    let (p, q) = (velocity(a, t.checked_sub(1)?, dt)?, velocity(a, t + 1, dt)?);
+    let (ux, uy) = if speed > 0.1 {
+        (vx / speed, vy / speed)
+    } else {
+        let h = a.states[t].heading;
+        (h.cos(), h.sin())
+    };
+    Some(((q.0 - p.0) * ux + (q.1 - p.1) * uy) / (2.0 * dt))
+}

@@ -1,0 +1,129 @@
+//! The LLM in the loop: words → cost script → guided samples → repaired script.
+//!
+//! A [`session`] runs the paper's two modules over one run directory. High-level understanding
+//! sends the system prompt ([`prompt`]: a designed chain of thought, worked examples and the
+//! stdlib reference generated from the engine) and a scene summary written for a language
+//! model; the reply's one ```rhai block ([`reply`]) is validated on the sampler's own horizon
+//! before anything is sampled. Low-level refinement sends back, per round, the named agents'
+//! trajectories, events and every term's value with its spread over the samples
+//! ([`feedback`]); the model answers ACCEPT or a repaired script. Three backends answer: an
+//! OpenAI-compatible server ([`client`]), a person pasting files (manual), and a deterministic
+//! planner over `scripts/` ([`rules`]), which also names the independent checkers of a
+//! request whatever backend writes its script.
+
+pub mod client;
+pub mod feedback;
+pub mod prompt;
+pub mod reply;
+pub mod rules;
+pub mod session;
+
+use std::path::PathBuf;
+
+pub use client::{HttpClient, HttpConfig, Message};
+pub use prompt::{Cot, PromptOptions, Prompts};
+pub use session::{Backend, Outcome, Session, SessionConfig};
+
+/// What can go wrong in the loop.
+#[derive(Debug, thiserror::Error)]
+pub enum LlmError {
+    /// No server listens at the URL.
+    #[error(
+        "cannot connect to the LLM server at {url} (connection refused or no such host): start \
+         one (`ollama serve`, `vllm serve MODEL`, `llama-server -m MODEL.gguf`) or point \
+         DRIVESCRIPT_LLM_URL / --llm-url at one; without a server, --llm rules plans known \
+         behaviours and --llm manual lets you paste prompts into any chat"
+    )]
+    Connect {
+        /// The endpoint, without credentials.
+        url: String,
+    },
+    /// The connection or the reply took too long.
+    #[error("{url}: no {} within {seconds} s (raise --llm-timeout for slow models)", if *connecting { "connection" } else { "reply" })]
+    Timeout {
+        /// The endpoint.
+        url: String,
+        /// The limit.
+        seconds: f64,
+        /// Whether connecting (not reading) timed out.
+        connecting: bool,
+    },
+    /// 401 or 403.
+    #[error(
+        "{url}: the server refused the request ({status}: {message}); check DRIVESCRIPT_LLM_KEY"
+    )]
+    Auth {
+        /// The endpoint.
+        url: String,
+        /// HTTP status.
+        status: u16,
+        /// The server's message.
+        message: String,
+    },
+    /// 404.
+    #[error(
+        "{url}: not found (404: {message}); check the model name {model:?} and that the URL \
+         is the API's base (it usually ends in /v1)"
+    )]
+    NotFound {
+        /// The endpoint.
+        url: String,
+        /// The model asked for.
+        model: String,
+        /// The server's message.
+        message: String,
+    },
+    /// Another status, or 429/5xx on every attempt.
+    #[error("{url}: HTTP {status} after {attempts} attempt(s): {message}")]
+    Status {
+        /// The endpoint.
+        url: String,
+        /// HTTP status of the last attempt.
+        status: u16,
+        /// Attempts made.
+        attempts: u32,
+        /// The server's message.
+        message: String,
+    },
+    /// A successful status with a body that is not a completion.
+    #[error("{url}: unusable reply: {message}")]
+    BadReply {
+        /// The endpoint.
+        url: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// Any other transport failure.
+    #[error("{url}: {message}")]
+    Transport {
+        /// The endpoint.
+        url: String,
+        /// What failed.
+        message: String,
+    },
+    /// The client could not be built.
+    #[error("{0}")]
+    Setup(String),
+    /// A prompt template is missing or malformed.
+    #[error("prompt template {}: {message}", path.display())]
+    Prompt {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+    /// The rules planner cannot plan the request.
+    #[error(transparent)]
+    Rules(#[from] rules::RulesError),
+    /// The run directory is missing something or cannot be written.
+    #[error("run directory {}: {message}", dir.display())]
+    Run {
+        /// The directory.
+        dir: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+    /// Sampling failed (not a script error: those go back to the model).
+    #[error(transparent)]
+    Attempt(#[from] crate::sample::AttemptError),
+}

@@ -1,0 +1,371 @@
+//! Prompt assembly from the plain files in `prompts/` (editable without recompiling): the
+//! system prompt with its chain of thought, the worked examples and the stdlib reference
+//! generated from the engine's own registry, and the messages of later rounds.
+//!
+//! A file is a template: `{{name}}` is replaced by the named part. A placeholder a file may not
+//! use, or a file that is missing, is an error naming the file.
+
+use std::path::{Path, PathBuf};
+
+use super::LlmError;
+
+/// How the model is asked to reason (the paper's ablations).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Cot {
+    /// The designed chain: events, agents, behaviours, map, lane graph, costs.
+    Designed,
+    /// "Think step by step".
+    ZeroShot,
+    /// Request → script directly.
+    None,
+}
+
+/// Prompt options.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct PromptOptions {
+    /// The reasoning asked for.
+    pub cot: Cot,
+    /// Whether the reference includes the Frenet-frame functions.
+    pub frenet: bool,
+}
+
+impl Default for PromptOptions {
+    fn default() -> Self {
+        Self {
+            cot: Cot::Designed,
+            frenet: true,
+        }
+    }
+}
+
+/// The templates, read from a directory.
+#[derive(Debug, Clone)]
+pub struct Prompts {
+    dir: PathBuf,
+    system: String,
+    chain_of_thought: String,
+    zero_shot_cot: String,
+    no_cot: String,
+    request: String,
+    refine: String,
+    validation: String,
+    unusable: String,
+    accept_rejected: String,
+    followup: String,
+    examples: Vec<(String, String)>,
+}
+
+/// Each template and the placeholders it may use.
+const FILES: &[(&str, &[&str])] = &[
+    ("system.md", &["reasoning", "examples", "reference"]),
+    ("chain_of_thought.md", &[]),
+    ("zero_shot_cot.md", &[]),
+    ("no_cot.md", &[]),
+    ("request.md", &["scene", "request"]),
+    ("refine.md", &["samples", "feedback"]),
+    ("validation.md", &["horizon", "dt", "error"]),
+    ("unusable.md", &["error"]),
+    ("accept_rejected.md", &["reasons"]),
+    ("followup.md", &["request", "script"]),
+];
+
+impl Prompts {
+    /// The repository's `prompts/` (next to the working directory's `data/`, else the
+    /// crate's).
+    pub fn default_dir() -> PathBuf {
+        let here = PathBuf::from("prompts");
+        if here.join("system.md").exists() {
+            return here;
+        }
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("prompts")
+    }
+
+    /// Reads every template from `dir` (examples from `dir/examples/*.md`, in name order) and
+    /// checks their placeholders.
+    pub fn load(dir: &Path) -> Result<Self, LlmError> {
+        let read = |name: &str, allowed: &[&str]| -> Result<String, LlmError> {
+            let p = dir.join(name);
+            let text = std::fs::read_to_string(&p).map_err(|e| LlmError::Prompt {
+                path: p.clone(),
+                message: format!("cannot read it: {e}"),
+            })?;
+            check_placeholders(&text, allowed).map_err(|message| LlmError::Prompt {
+                path: p.clone(),
+                message,
+            })?;
+            Ok(text)
+        };
+        let mut got = Vec::new();
+        for (name, allowed) in FILES {
+            got.push(read(name, allowed)?);
+        }
+        let mut examples = Vec::new();
+        let ex = dir.join("examples");
+        if ex.is_dir() {
+            let mut files: Vec<PathBuf> = std::fs::read_dir(&ex)
+                .map_err(|e| LlmError::Prompt {
+                    path: ex.clone(),
+                    message: format!("cannot list it: {e}"),
+                })?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| p.extension().is_some_and(|x| x == "md"))
+                .collect();
+            files.sort();
+            for p in files {
+                let name = p
+                    .file_name()
+                    .unwrap_or_default()
+                    .to_string_lossy()
+                    .into_owned();
+                examples.push((name.clone(), read(&format!("examples/{name}"), &[])?));
+            }
+        }
+        let mut it = got.into_iter();
+        let mut next = || it.next().expect("one text per file");
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            system: next(),
+            chain_of_thought: next(),
+            zero_shot_cot: next(),
+            no_cot: next(),
+            request: next(),
+            refine: next(),
+            validation: next(),
+            unusable: next(),
+            accept_rejected: next(),
+            followup: next(),
+            examples,
+        })
+    }
+
+    /// Where they were read from.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// The worked examples, by file name.
+    pub fn examples(&self) -> &[(String, String)] {
+        &self.examples
+    }
+
+    /// The system prompt: rules, the chosen reasoning, the examples and the reference.
+    pub fn system(&self, opts: &PromptOptions) -> String {
+        let reasoning = match opts.cot {
+            Cot::Designed => &self.chain_of_thought,
+            Cot::ZeroShot => &self.zero_shot_cot,
+            Cot::None => &self.no_cot,
+        };
+        let examples = if self.examples.is_empty() {
+            String::new()
+        } else {
+            let body: Vec<String> = self
+                .examples
+                .iter()
+                .map(|(_, t)| match opts.cot {
+                    // Without the chain, the examples are request → script.
+                    Cot::Designed => t.trim().to_string(),
+                    _ => strip_reasoning(t),
+                })
+                .collect();
+            format!("# Worked examples\n\n{}", body.join("\n\n"))
+        };
+        let reference = if opts.frenet {
+            crate::cost::reference_markdown()
+        } else {
+            crate::cost::reference_markdown_without(&["Frenet frame"])
+        };
+        fill(
+            &self.system,
+            &[
+                ("reasoning", reasoning.trim()),
+                ("examples", &examples),
+                ("reference", reference.trim()),
+            ],
+        )
+    }
+
+    /// The first user message: the scene summary and the request.
+    pub fn request(&self, scene: &str, request: &str) -> String {
+        fill(
+            &self.request,
+            &[("scene", scene.trim()), ("request", request.trim())],
+        )
+    }
+
+    /// The refinement message after sampling.
+    pub fn refine(&self, samples: usize, feedback: &str) -> String {
+        fill(
+            &self.refine,
+            &[
+                ("samples", &samples.to_string()),
+                ("feedback", feedback.trim()),
+            ],
+        )
+    }
+
+    /// The message after a failed validation.
+    pub fn validation(&self, horizon: usize, dt: f64, error: &str) -> String {
+        fill(
+            &self.validation,
+            &[
+                ("horizon", &horizon.to_string()),
+                ("dt", &dt.to_string()),
+                ("error", error.trim()),
+            ],
+        )
+    }
+
+    /// The message after an unusable reply.
+    pub fn unusable(&self, error: &str) -> String {
+        fill(&self.unusable, &[("error", error.trim())])
+    }
+
+    /// The message after an ACCEPT the numbers contradict.
+    pub fn accept_rejected(&self, reasons: &str) -> String {
+        fill(&self.accept_rejected, &[("reasons", reasons.trim())])
+    }
+
+    /// A follow-up request on an earlier run's script.
+    pub fn followup(&self, request: &str, script: &str) -> String {
+        fill(
+            &self.followup,
+            &[("request", request.trim()), ("script", script.trim_end())],
+        )
+    }
+}
+
+/// The example without its numbered reasoning: its title and its code block.
+fn strip_reasoning(t: &str) -> String {
+    let mut out = Vec::new();
+    let mut in_code = false;
+    for line in t.lines() {
+        if line.trim_start().starts_with("```") {
+            in_code = !in_code;
+            out.push(line);
+        } else if in_code || line.starts_with('#') {
+            out.push(line);
+        }
+    }
+    out.join("\n")
+}
+
+fn check_placeholders(text: &str, allowed: &[&str]) -> Result<(), String> {
+    let mut rest = text;
+    while let Some(i) = rest.find("{{") {
+        let Some(j) = rest[i..].find("}}") else {
+            return Err("a `{{` is never closed with `}}`".into());
+        };
+        let name = rest[i + 2..i + j].trim();
+        if !allowed.contains(&name) {
+            return Err(format!(
+                "unknown placeholder {{{{{name}}}}}; this file may use {}",
+                if allowed.is_empty() {
+                    "none".to_string()
+                } else {
+                    allowed
+                        .iter()
+                        .map(|a| format!("{{{{{a}}}}}"))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                }
+            ));
+        }
+        rest = &rest[i + j + 2..];
+    }
+    Ok(())
+}
+
+fn fill(template: &str, parts: &[(&str, &str)]) -> String {
+    let mut out = String::with_capacity(template.len());
+    let mut rest = template;
+    while let Some(i) = rest.find("{{") {
+        out.push_str(&rest[..i]);
+        let Some(j) = rest[i..].find("}}") else { break };
+        let name = rest[i + 2..i + j].trim();
+        match parts.iter().find(|(n, _)| *n == name) {
+            Some((_, v)) => out.push_str(v),
+            None => out.push_str(&rest[i..i + j + 2]),
+        }
+        rest = &rest[i + j + 2..];
+    }
+    out.push_str(rest);
+    out.trim().to_string() + "\n"
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn shipped() -> Prompts {
+        Prompts::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("prompts")).unwrap()
+    }
+
+    #[test]
+    fn the_system_prompt_carries_the_generated_reference_and_the_chosen_reasoning() {
+        let p = shipped();
+        let s = p.system(&PromptOptions::default());
+        assert!(s.contains(crate::cost::reference_markdown().trim()));
+        assert!(s.contains("explore the"), "the designed chain is missing");
+        assert!(
+            s.contains("```rhai\nlet a = agent(2);"),
+            "the examples are missing"
+        );
+        assert!(!s.contains("{{"), "a placeholder was left: {s}");
+        let z = p.system(&PromptOptions {
+            cot: Cot::ZeroShot,
+            frenet: false,
+        });
+        assert!(z.contains("Think step by step") && !z.contains("explore the"));
+        assert!(!z.contains("## Frenet frame") && s.contains("## Frenet frame"));
+        // Without the chain the examples keep their scripts, not their reasoning.
+        assert!(z.contains("let a = agent(2);") && !z.contains("1. Events: one, a cut-in."));
+    }
+
+    #[test]
+    fn every_example_script_compiles_and_the_cut_in_validates_on_the_test_highway() {
+        let p = shipped();
+        assert!(p.examples().len() >= 3);
+        let scene = std::rc::Rc::new(
+            crate::io::load_scene(
+                &Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes/highway.yaml"),
+                0,
+                &crate::io::LoadOptions::default(),
+            )
+            .unwrap(),
+        );
+        for (name, text) in p.examples() {
+            let Ok(super::super::reply::Reply::Script { source, .. }) =
+                super::super::reply::parse_reply(text)
+            else {
+                panic!("{name}: no script block");
+            };
+            let c = crate::cost::CostScript::compile(
+                &source,
+                name,
+                scene.clone(),
+                &crate::cost::Params::default(),
+                &crate::cost::Limits::default(),
+            )
+            .unwrap_or_else(|e| panic!("{name}: {e}"));
+            if name == "cut_in.md" {
+                c.validate().unwrap_or_else(|e| panic!("{name}: {e}"));
+            }
+        }
+    }
+
+    #[test]
+    fn a_bad_template_names_its_file_and_placeholder() {
+        let dir = tempfile::tempdir().unwrap();
+        let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("prompts");
+        for (name, _) in FILES {
+            std::fs::copy(src.join(name), dir.path().join(name)).unwrap();
+        }
+        std::fs::write(dir.path().join("refine.md"), "{{feedback}} {{secret}}").unwrap();
+        let e = Prompts::load(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("refine.md") && e.contains("{{secret}}"), "{e}");
+        std::fs::remove_file(dir.path().join("request.md")).unwrap();
+        let e = Prompts::load(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("request.md") && e.contains("cannot read"), "{e}");
+    }
+}

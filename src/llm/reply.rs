@@ -1,0 +1,174 @@
+//! A model's reply: its reasoning and either one ```rhai block (a script) or `ACCEPT`.
+
+/// What a reply says.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Reply {
+    /// A (new or repaired) script.
+    Script {
+        /// The text outside the code block: the chain of thought's result.
+        reasoning: String,
+        /// The script.
+        source: String,
+    },
+    /// The samples do what was asked.
+    Accept {
+        /// Why, in the model's words.
+        reasoning: String,
+    },
+}
+
+/// Why a reply cannot be used; the message goes back to the model.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ReplyError {
+    /// Neither a code block nor ACCEPT.
+    #[error(
+        "the reply has no ```rhai code block and does not ACCEPT: send the whole script in one \
+         ```rhai block, or the single word ACCEPT on its own line"
+    )]
+    NoScript,
+    /// More than one candidate block.
+    #[error("the reply has {0} ```rhai code blocks: send the whole script in exactly one block")]
+    Several(usize),
+    /// A block that never closes.
+    #[error("the reply's ```rhai block starting on line {0} is never closed with ```")]
+    Unclosed(usize),
+    /// An empty block.
+    #[error("the reply's ```rhai block is empty")]
+    Empty,
+}
+
+/// Parses a reply. A script is the one block tagged `rhai`; where there is none, a single
+/// untagged block is taken (models forget the tag). `ACCEPT` counts when it stands on a line
+/// of its own (markdown emphasis allowed) and the reply carries no script.
+pub fn parse_reply(text: &str) -> Result<Reply, ReplyError> {
+    let mut blocks: Vec<(String, String)> = Vec::new(); // (tag, body)
+    let mut outside = String::new();
+    let mut open: Option<(usize, String, String)> = None; // (line, tag, body)
+    for (i, line) in text.lines().enumerate() {
+        let t = line.trim_start();
+        match &mut open {
+            None => {
+                if let Some(rest) = t.strip_prefix("```") {
+                    open = Some((i + 1, rest.trim().to_ascii_lowercase(), String::new()));
+                } else {
+                    outside.push_str(line);
+                    outside.push('\n');
+                }
+            }
+            Some((_, tag, body)) => {
+                if t.trim_end() == "```" {
+                    blocks.push((std::mem::take(tag), std::mem::take(body)));
+                    open = None;
+                } else {
+                    body.push_str(line);
+                    body.push('\n');
+                }
+            }
+        }
+    }
+    let reasoning = outside.trim().to_string();
+    let rhai: Vec<&(String, String)> = blocks.iter().filter(|(t, _)| t == "rhai").collect();
+    let chosen = match rhai.len() {
+        1 => Some(rhai[0]),
+        0 => {
+            let untagged: Vec<&(String, String)> =
+                blocks.iter().filter(|(t, _)| t.is_empty()).collect();
+            (untagged.len() == 1).then(|| untagged[0])
+        }
+        n => return Err(ReplyError::Several(n)),
+    };
+    if let Some((_, body)) = chosen {
+        if body.trim().is_empty() {
+            return Err(ReplyError::Empty);
+        }
+        return Ok(Reply::Script {
+            reasoning,
+            source: body.clone(),
+        });
+    }
+    if let Some((line, tag, _)) = open {
+        if tag == "rhai" || tag.is_empty() {
+            return Err(ReplyError::Unclosed(line));
+        }
+    }
+    let accepts = reasoning.lines().any(|l| {
+        let w = l
+            .trim()
+            .trim_matches(|c: char| c == '*' || c == '_' || c == '#' || c == '`');
+        let w = w.trim().trim_end_matches(['.', '!']);
+        w == "ACCEPT" || w.starts_with("ACCEPT:") || w.starts_with("ACCEPT -")
+    });
+    if accepts {
+        Ok(Reply::Accept { reasoning })
+    } else {
+        Err(ReplyError::NoScript)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_script_block_with_its_reasoning() {
+        let r = parse_reply(
+            "Events: one.\n\n```rhai\nlet a = agent(1);\nterm(\"x\", 0.0);\n```\nDone.",
+        )
+        .unwrap();
+        assert_eq!(
+            r,
+            Reply::Script {
+                reasoning: "Events: one.\n\nDone.".into(),
+                source: "let a = agent(1);\nterm(\"x\", 0.0);\n".into()
+            }
+        );
+    }
+
+    #[test]
+    fn accept_alone_on_a_line_and_not_inside_words() {
+        assert!(matches!(
+            parse_reply("The cut-in happens.\n**ACCEPT**").unwrap(),
+            Reply::Accept { .. }
+        ));
+        assert!(matches!(
+            parse_reply("ACCEPT: all terms are zero").unwrap(),
+            Reply::Accept { .. }
+        ));
+        assert_eq!(
+            parse_reply("I cannot ACCEPT this yet").unwrap_err(),
+            ReplyError::NoScript
+        );
+        // A script wins over a stray ACCEPT: the model is still repairing.
+        assert!(matches!(
+            parse_reply("ACCEPT\n```rhai\nterm(\"x\", 0.0);\n```").unwrap(),
+            Reply::Script { .. }
+        ));
+    }
+
+    #[test]
+    fn unusable_replies_say_what_to_send() {
+        assert_eq!(parse_reply("just words").unwrap_err(), ReplyError::NoScript);
+        assert_eq!(
+            parse_reply("```rhai\na\n```\n```rhai\nb\n```").unwrap_err(),
+            ReplyError::Several(2)
+        );
+        assert_eq!(
+            parse_reply("text\n```rhai\nlet a = 1;").unwrap_err(),
+            ReplyError::Unclosed(2)
+        );
+        assert_eq!(
+            parse_reply("```rhai\n\n```").unwrap_err(),
+            ReplyError::Empty
+        );
+        // One untagged block is taken; a python block is not a script.
+        assert!(matches!(
+            parse_reply("```\nterm(\"x\", 0.0);\n```").unwrap(),
+            Reply::Script { .. }
+        ));
+        assert_eq!(
+            parse_reply("```python\nprint(1)\n```").unwrap_err(),
+            ReplyError::NoScript
+        );
+        assert!(ReplyError::NoScript.to_string().contains("ACCEPT"));
+    }
+}

@@ -1,0 +1,976 @@
+//! The loop's state machine over a run directory.
+//!
+//! Every exchange with the model is a numbered `round_N/` holding `prompt.md` (the messages
+//! sent, readable), `messages.json`, `reply.md`, and, as they happen, `script.rhai`,
+//! `validation.txt`, the rollouts and cost report of the samples (`sample_K.json`,
+//! `sample_costs.json`), `feedback.md` and `sample.gif`. `state.json` is rewritten atomically
+//! after every step, so a run stopped anywhere (a manual round waiting for its reply, a killed
+//! process) continues from it with [`Session::resume`]; `transcript.json` records the
+//! backend, the URL without credentials, every request body, token usage, latency, retries
+//! and the time of every phase. When the loop ends, `final.rhai`, `final.gif` and `report.md`
+//! are written next to them.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
+
+use super::client::{redact_url, HttpClient, Message};
+use super::feedback::{feedback, Acceptance};
+use super::prompt::{PromptOptions, Prompts};
+use super::reply::{parse_reply, Reply};
+use super::rules::{self, understand_request, Event, Tuning};
+use super::LlmError;
+use crate::cost::{Limits, ParamValue, Params};
+use crate::eval::behaviors::Behavior;
+use crate::io::write_atomic;
+use crate::render::{render_gif, RenderOptions};
+use crate::sample::{attempt, Attempt, AttemptError, AttemptSpec, SampleConfig, ScriptSpec};
+use crate::scene::description::{describe, DescribeOptions};
+use crate::scene::Scene;
+use crate::train::Trained;
+
+/// Who answers.
+pub enum Backend {
+    /// An OpenAI-compatible server.
+    Http(HttpClient),
+    /// A person: each round's prompt is written to a file and the run stops until the reply
+    /// is saved next to it.
+    Manual,
+    /// The rules planner over `scripts/`.
+    Rules,
+}
+
+impl Backend {
+    fn name(&self) -> &'static str {
+        match self {
+            Backend::Http(_) => "http",
+            Backend::Manual => "manual",
+            Backend::Rules => "rules",
+        }
+    }
+}
+
+/// Settings of a session.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct SessionConfig {
+    /// Refinement rounds after the first sampling (0: the first script is final).
+    pub rounds: usize,
+    /// Unusable replies, failed validations and rejected ACCEPTs allowed in a row before the
+    /// run gives up.
+    pub fixes: usize,
+    /// Prompt options (the paper's ablations).
+    pub prompt: PromptOptions,
+    /// Largest unweighted script term a sample may keep and still meet the request.
+    pub tolerance: f64,
+    /// Most agents in the scene summary (the request's are always listed).
+    pub max_agents: usize,
+    /// Samples per round.
+    pub samples: usize,
+    /// Seed of the initial noise.
+    pub seed: u64,
+    /// Guidance strength.
+    pub lambda: f64,
+    /// Weight of the realism terms.
+    pub realism: f64,
+    /// Whether to guide through the denoiser (the paper's rule) instead of in output space.
+    pub through_denoiser: bool,
+    /// Closed loop: steps executed per re-plan.
+    pub replan: Option<usize>,
+}
+
+impl Default for SessionConfig {
+    fn default() -> Self {
+        Self {
+            rounds: 3,
+            fixes: 3,
+            prompt: PromptOptions::default(),
+            tolerance: Acceptance::default().tolerance,
+            max_agents: 30,
+            samples: 4,
+            seed: 1,
+            lambda: crate::sample::BEHAVIOUR_LAMBDA,
+            realism: crate::sample::REALISM_WEIGHT,
+            through_denoiser: false,
+            replan: None,
+        }
+    }
+}
+
+impl SessionConfig {
+    /// The sampler settings: `simulate`'s defaults for behaviours.
+    pub fn sample_config(&self) -> SampleConfig {
+        SampleConfig {
+            samples: self.samples,
+            seed: self.seed,
+            lambda: self.lambda,
+            task: crate::sample::Task::Unconditional,
+            guidance: if self.through_denoiser {
+                crate::sample::Guidance::Denoiser
+            } else {
+                crate::sample::Guidance::OutputSpace
+            },
+            schedule: crate::sample::LambdaSchedule::Fading,
+            realism: crate::cost::Realism {
+                weight: self.realism,
+                ..crate::cost::Realism::default()
+            },
+            ..SampleConfig::default()
+        }
+    }
+}
+
+/// A checker of the request, stored by name.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct StoredCheck {
+    /// The behaviour's name.
+    pub behaviour: String,
+    /// Its parameters.
+    pub params: Value,
+}
+
+/// How a run ended.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum Outcome {
+    /// A script whose samples meet the request, accepted.
+    Accepted {
+        /// The round whose samples were accepted.
+        round: usize,
+        /// The sample that meets the request.
+        sample: usize,
+    },
+    /// The rounds ran out; the last valid script is final.
+    RoundsUsed {
+        /// The last sampled round.
+        round: usize,
+        /// A sample that meets the request, if one does (the model did not get to ACCEPT it).
+        sample: Option<usize>,
+    },
+    /// The model could not produce a usable script.
+    GaveUp {
+        /// Why.
+        reason: String,
+    },
+    /// A manual round waits for its reply.
+    Waiting {
+        /// The prompt to paste.
+        prompt: PathBuf,
+        /// Where the reply goes.
+        reply: PathBuf,
+    },
+}
+
+/// What persists between steps (`state.json`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct State {
+    version: u32,
+    scene: PathBuf,
+    requests: Vec<String>,
+    backend: String,
+    model: Option<String>,
+    url: Option<String>,
+    config: SessionConfig,
+    prompts: PathBuf,
+    checks: Vec<StoredCheck>,
+    messages: Vec<Message>,
+    /// Next exchange (`round_N`).
+    exchange: usize,
+    /// Sampling rounds done.
+    sampled: usize,
+    /// Unusable replies in a row.
+    misses: usize,
+    /// The last script that validated and was sampled, with its round.
+    script: Option<(usize, String)>,
+    /// Of the last sampling: a sample that meets the request, and why the best one does not.
+    meets: Option<usize>,
+    reasons: Vec<String>,
+    /// Rules planner: per event, its tuning and whether it passed / was achieved on the best
+    /// sample of the last sampling.
+    tunings: Vec<(f64, Vec<(String, f64)>)>,
+    event_results: Vec<(bool, bool)>,
+    /// Set when the run is over.
+    outcome: Option<Outcome>,
+}
+
+const STATE_VERSION: u32 = 1;
+
+/// One record of `transcript.json`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct Record {
+    round: usize,
+    phase: String,
+    seconds: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    detail: Option<Value>,
+}
+
+/// A run of the loop.
+pub struct Session<'a> {
+    dir: PathBuf,
+    state: State,
+    prompts: Prompts,
+    backend: Backend,
+    trained: &'a Trained,
+    raw: Scene,
+    transcript: Vec<Record>,
+}
+
+fn run_err(dir: &Path, message: impl Into<String>) -> LlmError {
+    LlmError::Run {
+        dir: dir.to_path_buf(),
+        message: message.into(),
+    }
+}
+
+fn write(dir: &Path, name: &str, text: &str) -> Result<(), LlmError> {
+    let p = dir.join(name);
+    if let Some(parent) = p.parent() {
+        std::fs::create_dir_all(parent)
+            .map_err(|e| run_err(parent, format!("cannot create it: {e}")))?;
+    }
+    write_atomic(&p, text.as_bytes()).map_err(|e| run_err(dir, e.to_string()))
+}
+
+/// The checkers of `requests` that the rules planner recognises (none when it does not).
+pub fn checks_for(requests: &[String]) -> Vec<(Behavior, Params)> {
+    let mut out = Vec::new();
+    for r in requests {
+        if let Ok(events) = understand_request(r) {
+            out.extend(events.into_iter().map(|e| (e.behaviour, e.params)));
+        }
+    }
+    out
+}
+
+impl<'a> Session<'a> {
+    /// Starts a run in `dir` (created; it must not hold another run).
+    #[allow(clippy::too_many_arguments)]
+    pub fn start(
+        dir: &Path,
+        scene_path: &Path,
+        raw: Scene,
+        request: &str,
+        trained: &'a Trained,
+        backend: Backend,
+        prompts: Prompts,
+        config: SessionConfig,
+        checks: Option<Vec<(Behavior, Params)>>,
+    ) -> Result<Self, LlmError> {
+        if dir.join("state.json").exists() {
+            return Err(run_err(
+                dir,
+                "it already holds a run (state.json): continue it with --resume, revise it with \
+                 --continue, or choose another -o",
+            ));
+        }
+        std::fs::create_dir_all(dir).map_err(|e| run_err(dir, format!("cannot create it: {e}")))?;
+        let requests = vec![request.trim().to_string()];
+        if let Backend::Rules = backend {
+            // Fails early, with the message that says an LLM is needed.
+            understand_request(request)?;
+        }
+        let checks = checks.unwrap_or_else(|| checks_for(&requests));
+        let (model, url) = match &backend {
+            Backend::Http(c) => (
+                Some(c.config().model.clone()),
+                Some(redact_url(&c.config().endpoint())),
+            ),
+            _ => (None, None),
+        };
+        let mut s = Self {
+            dir: dir.to_path_buf(),
+            state: State {
+                version: STATE_VERSION,
+                scene: scene_path.to_path_buf(),
+                requests,
+                backend: backend.name().into(),
+                model,
+                url,
+                config,
+                prompts: prompts.dir().to_path_buf(),
+                checks: checks
+                    .iter()
+                    .map(|(b, p)| StoredCheck {
+                        behaviour: b.name().into(),
+                        params: serde_json::to_value(p).expect("params serialise"),
+                    })
+                    .collect(),
+                messages: Vec::new(),
+                exchange: 0,
+                sampled: 0,
+                misses: 0,
+                script: None,
+                meets: None,
+                reasons: Vec::new(),
+                tunings: Vec::new(),
+                event_results: Vec::new(),
+                outcome: None,
+            },
+            prompts,
+            backend,
+            trained,
+            raw,
+            transcript: Vec::new(),
+        };
+        s.state.messages = first_messages(
+            &s.prompts,
+            &s.state.config,
+            &s.raw,
+            &s.state.requests,
+            trained.meta.config.window.future,
+        );
+        s.save()?;
+        Ok(s)
+    }
+
+    /// Reopens the run in `dir` where it stopped. `load` reads the scene the run recorded.
+    pub fn resume(
+        dir: &Path,
+        trained: &'a Trained,
+        backend: impl FnOnce(&str, Option<&str>, Option<&str>) -> Result<Backend, LlmError>,
+        load: impl FnOnce(&Path) -> Result<Scene, LlmError>,
+    ) -> Result<Self, LlmError> {
+        let p = dir.join("state.json");
+        let text = std::fs::read_to_string(&p).map_err(|e| {
+            run_err(
+                dir,
+                format!("no run to resume here: cannot read state.json ({e}); start one with `drivescript ask SCENE \"request\" -o DIR`"),
+            )
+        })?;
+        let state: State = serde_json::from_str(&text)
+            .map_err(|e| run_err(dir, format!("state.json is damaged ({e})")))?;
+        if state.version != STATE_VERSION {
+            return Err(run_err(
+                dir,
+                format!(
+                    "state.json has version {}, this drivescript reads {STATE_VERSION}",
+                    state.version
+                ),
+            ));
+        }
+        let prompts = Prompts::load(&state.prompts)?;
+        let backend = backend(&state.backend, state.model.as_deref(), state.url.as_deref())?;
+        let raw = load(&state.scene)?;
+        let transcript = std::fs::read_to_string(dir.join("transcript.json"))
+            .ok()
+            .and_then(|t| serde_json::from_str::<Value>(&t).ok())
+            .and_then(|v| serde_json::from_value(v["records"].clone()).ok())
+            .unwrap_or_default();
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            state,
+            prompts,
+            backend,
+            trained,
+            raw,
+            transcript,
+        })
+    }
+
+    /// Adds a follow-up request to a finished (or stopped) run: the model revises the last
+    /// script instead of starting over. The rounds start counting again.
+    pub fn follow_up(&mut self, request: &str) -> Result<(), LlmError> {
+        let script = self
+            .state
+            .script
+            .as_ref()
+            .map(|(_, s)| s.clone())
+            .ok_or_else(|| run_err(&self.dir, "the run has no sampled script to revise yet"))?;
+        if let Backend::Rules = self.backend {
+            understand_request(request)?;
+        }
+        self.state.requests.push(request.trim().to_string());
+        let added = checks_for(&self.state.requests[self.state.requests.len() - 1..]);
+        for (b, p) in added {
+            self.state.checks.push(StoredCheck {
+                behaviour: b.name().into(),
+                params: serde_json::to_value(&p).expect("params serialise"),
+            });
+        }
+        self.state.messages.push(Message::new(
+            "user",
+            self.prompts.followup(request, &script),
+        ));
+        self.state.outcome = None;
+        self.state.sampled = 0;
+        self.state.misses = 0;
+        self.save()
+    }
+
+    /// The run directory.
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    /// The checkers of the request.
+    pub fn checks(&self) -> Vec<(Behavior, Params)> {
+        self.state
+            .checks
+            .iter()
+            .filter_map(|c| {
+                Some((
+                    Behavior::from_name(&c.behaviour)?,
+                    Params::from_json(&c.params).ok()?,
+                ))
+            })
+            .collect()
+    }
+
+    /// The first prompt, as `prompt show` prints it.
+    pub fn first_prompt(&self) -> String {
+        render_messages(&self.state.messages[..2.min(self.state.messages.len())])
+    }
+
+    fn save(&self) -> Result<(), LlmError> {
+        let text = serde_json::to_string_pretty(&self.state).expect("state serialises");
+        write(&self.dir, "state.json", &text)?;
+        let t = json!({
+            "backend": self.state.backend,
+            "model": self.state.model,
+            "url": self.state.url,
+            "scene": self.state.scene,
+            "requests": self.state.requests,
+            "config": self.state.config,
+            "records": self.transcript,
+            "outcome": self.state.outcome,
+        });
+        write(
+            &self.dir,
+            "transcript.json",
+            &serde_json::to_string_pretty(&t).expect("transcript serialises"),
+        )
+    }
+
+    fn record(&mut self, round: usize, phase: &str, t0: Instant, detail: Option<Value>) {
+        self.transcript.push(Record {
+            round,
+            phase: phase.into(),
+            seconds: t0.elapsed().as_secs_f64(),
+            detail,
+        });
+    }
+
+    /// Runs until the loop ends or a manual round waits. `progress` receives one line per
+    /// phase (the CLI prints them).
+    pub fn run(&mut self, progress: &mut dyn FnMut(&str)) -> Result<Outcome, LlmError> {
+        loop {
+            if let Some(o) = &self.state.outcome {
+                return Ok(o.clone());
+            }
+            let n = self.state.exchange;
+            let rdir = self.dir.join(format!("round_{n}"));
+            let last_user = self
+                .state
+                .messages
+                .iter()
+                .rposition(|m| m.role == "user")
+                .unwrap_or(0);
+            // The prompt of this exchange: everything sent (the manual backend's user pastes
+            // the whole of it in a fresh chat, or the last message in the same one).
+            if !rdir.join("prompt.md").exists() {
+                let shown = if n == 0 {
+                    render_messages(&self.state.messages)
+                } else {
+                    render_messages(&self.state.messages[last_user..])
+                };
+                write(&rdir, "prompt.md", &shown)?;
+                write(
+                    &rdir,
+                    "messages.json",
+                    &serde_json::to_string_pretty(&self.state.messages).expect("serialises"),
+                )?;
+            }
+            let reply = match self.get_reply(n, &rdir, progress)? {
+                Got::Text(t) => t,
+                Got::Wait(o) => {
+                    self.save()?;
+                    return Ok(o);
+                }
+                Got::GiveUp(reason) => {
+                    return self.finish(Outcome::GaveUp { reason }, None, progress);
+                }
+            };
+            if !matches!(self.backend, Backend::Manual) {
+                write(&rdir, "reply.md", &reply)?;
+            }
+            self.state
+                .messages
+                .push(Message::new("assistant", reply.clone()));
+            self.state.exchange = n + 1;
+            match parse_reply(&reply) {
+                Err(e) => {
+                    progress(&format!("round {n}: unusable reply: {e}"));
+                    let msg = self.prompts.unusable(&e.to_string());
+                    if let Some(o) = self.miss(msg)? {
+                        return self.finish(o, None, progress);
+                    }
+                }
+                Ok(Reply::Accept { .. }) => {
+                    if let (Some(k), Some((round, _))) = (self.state.meets, &self.state.script) {
+                        let round = *round;
+                        progress(&format!(
+                            "round {n}: ACCEPT (sample {k} of round {round} meets the request)"
+                        ));
+                        return self.finish(Outcome::Accepted { round, sample: k }, None, progress);
+                    }
+                    let reasons = if self.state.script.is_none() {
+                        "nothing has been sampled yet: send a script first".to_string()
+                    } else {
+                        self.state
+                            .reasons
+                            .iter()
+                            .map(|r| format!("- {r}"))
+                            .collect::<Vec<_>>()
+                            .join("\n")
+                    };
+                    progress(&format!(
+                        "round {n}: ACCEPT not accepted: no sample meets the request"
+                    ));
+                    let msg = self.prompts.accept_rejected(&reasons);
+                    if let Some(o) = self.miss(msg)? {
+                        return self.finish(o, None, progress);
+                    }
+                }
+                Ok(Reply::Script { reasoning, source }) => {
+                    if !reasoning.is_empty() {
+                        progress(&format!("round {n}: plan:\n{}", indent(&reasoning)));
+                    }
+                    write(&rdir, "script.rhai", &source)?;
+                    progress(&format!(
+                        "round {n}: script ({} lines), validating on the sampler's horizon and sampling {} ...",
+                        source.lines().count(),
+                        self.state.config.samples
+                    ));
+                    let t1 = Instant::now();
+                    match self.sample(&source) {
+                        Err(AttemptError::Script(e)) => {
+                            self.record(n, "validation failed", t1, None);
+                            let err = e.to_string();
+                            write(&rdir, "validation.txt", &err)?;
+                            progress(&format!("round {n}: validation failed: {err}"));
+                            let horizon = self.trained.meta.config.window.future;
+                            let msg = self.prompts.validation(horizon, self.raw.meta.dt, &err);
+                            if let Some(o) = self.miss(msg)? {
+                                return self.finish(o, None, progress);
+                            }
+                        }
+                        Err(e) => return Err(e.into()),
+                        Ok(done) => {
+                            self.record(
+                                n,
+                                "sample",
+                                t1,
+                                Some(json!({"seconds_sampling": done.report.seconds})),
+                            );
+                            self.after_sampling(n, &rdir, &source, &done, progress)?;
+                            if self.state.sampled > self.state.config.rounds {
+                                let o = Outcome::RoundsUsed {
+                                    round: n,
+                                    sample: self.state.meets,
+                                };
+                                return self.finish(o, Some(&done), progress);
+                            }
+                        }
+                    }
+                }
+            }
+            self.save()?;
+        }
+    }
+
+    /// An unusable exchange: the message goes back, or the run gives up after too many.
+    fn miss(&mut self, msg: String) -> Result<Option<Outcome>, LlmError> {
+        self.state.misses += 1;
+        if self.state.misses > self.state.config.fixes {
+            return Ok(Some(Outcome::GaveUp {
+                reason: format!(
+                    "{} unusable replies in a row (--fixes {}); the last: {}",
+                    self.state.misses,
+                    self.state.config.fixes,
+                    msg.lines().next().unwrap_or("")
+                ),
+            }));
+        }
+        self.state.messages.push(Message::new("user", msg));
+        Ok(None)
+    }
+
+    fn sample(&self, source: &str) -> Result<Attempt, AttemptError> {
+        let spec = AttemptSpec {
+            scripts: vec![ScriptSpec {
+                source: source.to_string(),
+                name: "script.rhai".into(),
+                params: Params::default(),
+                limits: Limits::default(),
+            }],
+            checks: self.checks(),
+            cfg: self.state.config.sample_config(),
+            replan: self.state.config.replan,
+        };
+        attempt(self.trained, &self.raw, &spec)
+    }
+
+    fn after_sampling(
+        &mut self,
+        n: usize,
+        rdir: &Path,
+        source: &str,
+        done: &Attempt,
+        progress: &mut dyn FnMut(&str),
+    ) -> Result<(), LlmError> {
+        let acc = Acceptance {
+            tolerance: self.state.config.tolerance,
+        };
+        done.write(rdir, "sample")
+            .map_err(|e| run_err(rdir, e.to_string()))?;
+        let text = feedback(done, &acc);
+        write(rdir, "feedback.md", &text)?;
+        let meets = acc.chosen(done);
+        let best = meets.unwrap_or_else(|| done.best());
+        let gif = render_gif(
+            &done.samples[best].scene,
+            &RenderOptions {
+                width: 800,
+                roles: self.roles(done),
+                ..RenderOptions::default()
+            },
+        )
+        .map_err(|e| run_err(rdir, format!("rendering sample.gif: {e}")))?;
+        write_atomic(&rdir.join("sample.gif"), &gif).map_err(|e| run_err(rdir, e.to_string()))?;
+        for o in &done.report.samples {
+            let reasons = acc.reasons(o, &done.report);
+            let verdicts: Vec<String> = o
+                .verdicts
+                .iter()
+                .zip(&done.report.checks)
+                .map(|(v, c)| format!("{} {}", c.behaviour, if v.passed { "PASS" } else { "fail" }))
+                .collect();
+            progress(&format!(
+                "round {n}: sample {}: {}{}",
+                o.sample,
+                if reasons.is_empty() {
+                    "meets the request".to_string()
+                } else {
+                    format!("{} reason(s) it does not: {}", reasons.len(), reasons[0])
+                },
+                if verdicts.is_empty() {
+                    String::new()
+                } else {
+                    format!(" [{}]", verdicts.join(", "))
+                }
+            ));
+        }
+        self.state.sampled += 1;
+        self.state.misses = 0;
+        self.state.script = Some((n, source.to_string()));
+        self.state.meets = meets;
+        self.state.reasons = acc.reasons(&done.report.samples[best], &done.report);
+        self.state.event_results = done.report.samples[best]
+            .verdicts
+            .iter()
+            .map(|v| (v.passed, v.achieved))
+            .collect();
+        if self.state.sampled <= self.state.config.rounds {
+            let msg = self.prompts.refine(done.report.samples.len(), &text);
+            self.state.messages.push(Message::new("user", msg));
+        }
+        Ok(())
+    }
+
+    fn roles(&self, done: &Attempt) -> Vec<(i64, String)> {
+        let mut r = done.report.roles();
+        for id in &done.report.named {
+            if !r.iter().any(|(a, _)| a == id) {
+                r.push((*id, "named".into()));
+            }
+        }
+        r
+    }
+
+    fn finish(
+        &mut self,
+        o: Outcome,
+        _last: Option<&Attempt>,
+        progress: &mut dyn FnMut(&str),
+    ) -> Result<Outcome, LlmError> {
+        let mut report = String::new();
+        report.push_str(&format!(
+            "# drivescript ask\n\nScene: {}\n\nRequest{}:\n{}\n\nBackend: {}{}\n\n",
+            self.state.scene.display(),
+            if self.state.requests.len() > 1 {
+                "s"
+            } else {
+                ""
+            },
+            self.state
+                .requests
+                .iter()
+                .map(|r| format!("- {r}"))
+                .collect::<Vec<_>>()
+                .join("\n"),
+            self.state.backend,
+            self.state
+                .model
+                .as_ref()
+                .map(|m| format!(" ({m})"))
+                .unwrap_or_default()
+        ));
+        let sampled_rounds = self.state.sampled;
+        match &o {
+            Outcome::Accepted { round, sample } => report.push_str(&format!(
+                "Outcome: accepted: sample {sample} of round {round} meets the request.\n"
+            )),
+            Outcome::RoundsUsed { round, sample } => report.push_str(&format!(
+                "Outcome: the rounds ran out ({} sampled); round {round} is final; {}.\n",
+                sampled_rounds,
+                match sample {
+                    Some(k) => format!("its sample {k} meets the request"),
+                    None => "none of its samples meets the request".into(),
+                }
+            )),
+            Outcome::GaveUp { reason } => report.push_str(&format!("Outcome: gave up: {reason}\n")),
+            Outcome::Waiting { .. } => {}
+        }
+        if let Some((round, script)) = &self.state.script {
+            write(&self.dir, "final.rhai", script)?;
+            let from = self.dir.join(format!("round_{round}"));
+            if let Ok(bytes) = std::fs::read(from.join("sample.gif")) {
+                write_atomic(&self.dir.join("final.gif"), &bytes)
+                    .map_err(|e| run_err(&self.dir, e.to_string()))?;
+            }
+            report.push_str(&format!(
+                "\nFinal script: final.rhai (round {round}); picture: final.gif; rollouts and costs: round_{round}/sample_K.json, round_{round}/sample_costs.json.\n"
+            ));
+            if !self.state.reasons.is_empty() {
+                report.push_str("\nWhy the best sample of that round falls short:\n");
+                for r in &self.state.reasons {
+                    report.push_str(&format!("- {r}\n"));
+                }
+            }
+        }
+        let calls = self.transcript.iter().filter(|r| r.phase == "llm").count();
+        report.push_str(&format!(
+            "\nExchanges: {}; sampling rounds: {}; LLM calls: {calls}.\n",
+            self.state.exchange, sampled_rounds
+        ));
+        write(&self.dir, "report.md", &report)?;
+        self.state.outcome = Some(o.clone());
+        self.save()?;
+        progress(
+            report
+                .lines()
+                .find(|l| l.starts_with("Outcome"))
+                .unwrap_or(""),
+        );
+        Ok(o)
+    }
+
+    /// The rules planner's reply to the current state: a composed script first, ACCEPT when
+    /// a sample meets the request, else the script with the failing events strengthened.
+    fn rules_reply(&mut self) -> Result<String, String> {
+        let events: Vec<Event> = self
+            .state
+            .requests
+            .iter()
+            .map(|r| understand_request(r))
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| e.to_string())?
+            .into_iter()
+            .flatten()
+            .collect();
+        let mut tunings: Vec<Tuning> = self
+            .state
+            .tunings
+            .iter()
+            .map(|(w, m)| Tuning {
+                weight: *w,
+                margins: Params(
+                    m.iter()
+                        .map(|(k, v)| (k.clone(), ParamValue::Float(*v)))
+                        .collect(),
+                ),
+            })
+            .collect();
+        tunings.resize(events.len(), Tuning::default());
+        let last_user = self
+            .state
+            .messages
+            .iter()
+            .rev()
+            .find(|m| m.role == "user")
+            .map(|m| m.content.clone())
+            .unwrap_or_default();
+        let mut reasoning = String::new();
+        if self.state.script.is_some() && self.state.sampled > 0 {
+            if self.state.meets.is_some() && self.state.misses == 0 {
+                return Ok(format!(
+                    "ACCEPT\nA sample meets the request: every term is within tolerance, every checker passes and no named agent moves implausibly.\n"
+                ));
+            }
+            if self.state.misses > 0 && last_user.contains("validation") {
+                return Err(format!(
+                    "the rules planner cannot repair a script that fails validation: {}",
+                    last_user.lines().take(4).collect::<Vec<_>>().join(" ")
+                ));
+            }
+            let mut changed = Vec::new();
+            for (k, e) in events.iter().enumerate() {
+                match self.state.event_results.get(k) {
+                    Some((true, _)) => {}
+                    Some((false, achieved)) => {
+                        let (t, why) = rules::retune(e, &tunings[k], *achieved);
+                        tunings[k] = t;
+                        changed.push(why);
+                    }
+                    None => {}
+                }
+            }
+            if changed.is_empty() {
+                // Every checker passed but a term or a named agent's motion did not: pull
+                // every event a little harder.
+                for (k, e) in events.iter().enumerate() {
+                    let (t, why) = rules::retune(e, &tunings[k], false);
+                    tunings[k] = t;
+                    changed.push(why);
+                }
+            }
+            reasoning.push_str(&format!(
+                "Repair (rules planner): the best sample fails; {}.\n",
+                changed.join("; ")
+            ));
+        } else if self.state.script.is_none() && self.state.exchange > 0 {
+            return Err(format!(
+                "the rules planner's script did not validate: {}",
+                last_user.lines().take(6).collect::<Vec<_>>().join(" ")
+            ));
+        } else {
+            reasoning.push_str(&rules::plan_text(&events));
+        }
+        self.state.tunings = tunings
+            .iter()
+            .map(|t| {
+                (
+                    t.weight,
+                    t.margins
+                        .0
+                        .iter()
+                        .filter_map(|(k, v)| Some((k.clone(), v.as_f64()?)))
+                        .collect(),
+                )
+            })
+            .collect();
+        Ok(format!(
+            "{reasoning}\n```rhai\n{}```\n",
+            rules::compose(&events, &tunings)
+        ))
+    }
+}
+
+enum Got {
+    Text(String),
+    Wait(Outcome),
+    GiveUp(String),
+}
+
+impl Session<'_> {
+    fn get_reply(
+        &mut self,
+        n: usize,
+        rdir: &Path,
+        progress: &mut dyn FnMut(&str),
+    ) -> Result<Got, LlmError> {
+        let t0 = Instant::now();
+        if let Backend::Http(c) = &self.backend {
+            progress(&format!("round {n}: asking {} ...", c.config().model));
+            let ex = c.complete(&self.state.messages)?;
+            let usage = ex
+                .usage
+                .map(|u| format!(", {} + {} tokens", u.prompt_tokens, u.completion_tokens))
+                .unwrap_or_default();
+            progress(&format!(
+                "round {n}: reply in {:.1} s{usage}{}",
+                ex.latency,
+                if ex.retries.is_empty() {
+                    String::new()
+                } else {
+                    format!(" after {} retries", ex.retries.len())
+                }
+            ));
+            let reply = ex.reply.clone();
+            let detail = serde_json::to_value(&ex).expect("exchange serialises");
+            self.record(n, "llm", t0, Some(detail));
+            return Ok(Got::Text(reply));
+        }
+        if let Backend::Manual = self.backend {
+            return Ok(match std::fs::read_to_string(rdir.join("reply.md")) {
+                Ok(t) if !t.trim().is_empty() => {
+                    self.record(n, "manual reply read", t0, None);
+                    Got::Text(t)
+                }
+                _ => Got::Wait(Outcome::Waiting {
+                    prompt: rdir.join("prompt.md"),
+                    reply: rdir.join("reply.md"),
+                }),
+            });
+        }
+        let r = self.rules_reply();
+        self.record(n, "rules", t0, None);
+        Ok(match r {
+            Ok(t) => Got::Text(t),
+            Err(reason) => Got::GiveUp(reason),
+        })
+    }
+}
+
+/// The first two messages of a run: the system prompt and the scene summary with the request
+/// (what `prompt show` prints). `horizon` is the sampler's (the checkpoint's future steps).
+pub fn first_messages(
+    prompts: &Prompts,
+    config: &SessionConfig,
+    raw: &Scene,
+    requests: &[String],
+    horizon: usize,
+) -> Vec<Message> {
+    let keep: Vec<i64> = requests
+        .iter()
+        .flat_map(|r| numbers(r))
+        .filter(|id| raw.agent(*id).is_some())
+        .collect();
+    let summary = describe(
+        &raw.with_horizon(horizon),
+        &DescribeOptions {
+            max_agents: config.max_agents,
+            keep,
+            horizon,
+        },
+    )
+    .to_string();
+    vec![
+        Message::new("system", prompts.system(&config.prompt)),
+        Message::new("user", prompts.request(&summary, &requests.join("\n"))),
+    ]
+}
+
+/// Numbers in a request (candidate agent ids the summary keeps).
+fn numbers(text: &str) -> Vec<i64> {
+    text.split(|c: char| !c.is_ascii_digit())
+        .filter_map(|w| w.parse().ok())
+        .collect()
+}
+
+fn indent(t: &str) -> String {
+    t.lines()
+        .map(|l| format!("    {l}"))
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+/// Messages as one markdown document: what a person pastes into a chat.
+pub fn render_messages(messages: &[Message]) -> String {
+    let mut s = String::new();
+    for m in messages {
+        s.push_str(&format!("<!-- {} -->\n\n{}\n\n", m.role, m.content.trim()));
+    }
+    s
+}
