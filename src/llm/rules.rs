@@ -39,7 +39,11 @@ pub enum RulesError {
         vocabulary: String,
     },
     /// A behaviour without the vehicles or numbers it needs.
-    #[error("{clause:?}: {behaviour} needs {what}")]
+    #[error(
+        "{clause:?}: the rules planner reads this as {behaviour}, which needs {what}; for \
+         requests outside its fixed vocabulary, configure an LLM (DRIVESCRIPT_LLM_URL and \
+         DRIVESCRIPT_LLM_MODEL, or --llm manual)"
+    )]
     Missing {
         /// The clause.
         clause: String,
@@ -57,10 +61,14 @@ const PHRASES: &[(Behavior, &[&str])] = &[
         Behavior::NoCollisions,
         &[
             "no collision",
+            "no collisions",
             "without collision",
+            "without collisions",
             "without colliding",
             "avoid collision",
+            "avoid collisions",
             "avoids collision",
+            "avoids collisions",
             "collision-free",
             "collision free",
             "never collide",
@@ -599,6 +607,11 @@ fn bind_params(src: &str, params: &Params) -> String {
             .trim_start_matches(',')
             .trim();
         match params.get(name) {
+            // A float default keeps the value a float (`gap=8` binds 8.0): the stdlib's
+            // arithmetic on series takes floats.
+            Some(ParamValue::Int(i)) if default.contains('.') => {
+                out.push_str(&literal(&ParamValue::Float(*i as f64)))
+            }
             Some(v) => out.push_str(&literal(v)),
             None if !default.is_empty() => out.push_str(default),
             None => out.push_str(call),

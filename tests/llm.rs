@@ -1,0 +1,570 @@
+//! The LLM loop against a real HTTP server on 127.0.0.1 with scripted replies (no network),
+//! the manual backend's files, `--resume`, and the rules planner, through the library's
+//! client and through `drivescript ask`.
+
+mod common;
+
+use std::path::Path;
+use std::process::Output;
+use std::time::{Duration, Instant};
+
+use common::llm_server::{refused_url, Canned, Server};
+use common::{s, samples};
+use drivescript::llm::{HttpClient, HttpConfig, LlmError, Message};
+
+fn client(url: &str) -> HttpClient {
+    let mut c = HttpConfig::new(url, "test-model");
+    c.backoff = Duration::from_millis(20);
+    c.read_timeout = Duration::from_secs(20);
+    HttpClient::new(c).unwrap()
+}
+
+fn ask_one(c: &HttpClient) -> Result<drivescript::llm::client::Exchange, LlmError> {
+    c.complete(&[Message::new("user", "hello")])
+}
+
+#[test]
+fn a_completion_sends_the_model_temperature_key_and_reads_usage() {
+    let srv = Server::start(vec![Canned::chat("hi there")]);
+    let mut cfg = HttpConfig::new(&srv.url, "qwen2.5-coder:32b");
+    cfg.key = Some("sk-test-secret".into());
+    let ex = HttpClient::new(cfg)
+        .unwrap()
+        .complete(&[Message::new("user", "x")])
+        .unwrap();
+    assert_eq!(ex.reply, "hi there");
+    assert_eq!(ex.usage.unwrap().completion_tokens, 200);
+    let r = &srv.received()[0];
+    assert_eq!(
+        (r.method.as_str(), r.path.as_str()),
+        ("POST", "/v1/chat/completions")
+    );
+    assert_eq!(r.header("authorization"), Some("Bearer sk-test-secret"));
+    let body = r.json();
+    assert_eq!(body["model"], "qwen2.5-coder:32b");
+    assert_eq!(body["temperature"], 0.2);
+    assert_eq!(body["max_tokens"], 4096);
+    // The record keeps the body, never the key.
+    assert!(!serde_json::to_string(&ex)
+        .unwrap()
+        .contains("sk-test-secret"));
+}
+
+#[test]
+fn garbage_json_and_string_error_bodies_are_one_line_errors() {
+    let srv = Server::start(vec![
+        Canned::raw(200, "<html>proxy error</html>"),
+        Canned::raw(400, r#"{"error": "context length exceeded"}"#),
+        Canned::raw(200, r#"{"choices": []}"#),
+    ]);
+    let c = client(&srv.url);
+    let e = ask_one(&c).unwrap_err().to_string();
+    assert!(e.contains("not JSON") && e.contains("<html>"), "{e}");
+    let e = ask_one(&c).unwrap_err().to_string();
+    assert!(
+        e.contains("HTTP 400") && e.contains("context length exceeded"),
+        "{e}"
+    );
+    let e = ask_one(&c).unwrap_err().to_string();
+    assert!(e.contains("\"choices\" is empty"), "{e}");
+}
+
+#[test]
+fn rate_limits_are_retried_honouring_retry_after() {
+    let srv = Server::start(vec![
+        Canned::raw(
+            429,
+            r#"{"error": {"message": "rate limited", "code": 429}}"#,
+        )
+        .header("Retry-After", "1"),
+        Canned::chat("after the wait"),
+        Canned::raw(
+            429,
+            r#"{"error": {"message": "slow down", "code": "rate_limit"}}"#,
+        ),
+        Canned::chat("after backoff"),
+    ]);
+    let c = client(&srv.url);
+    let t0 = Instant::now();
+    let ex = ask_one(&c).unwrap();
+    assert_eq!(ex.reply, "after the wait");
+    assert!(
+        t0.elapsed() >= Duration::from_millis(950),
+        "Retry-After was not honoured"
+    );
+    assert_eq!(ex.retries.len(), 1);
+    assert!(ex.retries[0].contains("Retry-After"), "{:?}", ex.retries);
+    let t0 = Instant::now();
+    let ex = ask_one(&c).unwrap();
+    assert_eq!(ex.reply, "after backoff");
+    assert!(t0.elapsed() < Duration::from_millis(900));
+    assert!(
+        ex.retries[0].contains("slow down (rate_limit)"),
+        "{:?}",
+        ex.retries
+    );
+}
+
+#[test]
+fn server_errors_give_up_after_the_attempts_with_the_message() {
+    let e500 = Canned::raw(
+        500,
+        r#"{"error": {"message": "CUDA out of memory", "code": null}}"#,
+    );
+    let srv = Server::start(vec![e500.clone(), e500.clone(), e500]);
+    let e = ask_one(&client(&srv.url)).unwrap_err();
+    assert!(
+        matches!(
+            e,
+            LlmError::Status {
+                status: 500,
+                attempts: 3,
+                ..
+            }
+        ),
+        "{e}"
+    );
+    assert!(e.to_string().contains("CUDA out of memory"), "{e}");
+    assert_eq!(srv.received().len(), 3);
+}
+
+#[test]
+fn timeouts_refusals_bad_keys_and_unknown_models_say_what_to_do() {
+    let srv = Server::start(vec![Canned::chat("late").after(Duration::from_secs(3))]);
+    let mut cfg = HttpConfig::new(&srv.url, "m");
+    cfg.read_timeout = Duration::from_millis(300);
+    let e = ask_one(&HttpClient::new(cfg).unwrap()).unwrap_err();
+    assert!(
+        matches!(
+            e,
+            LlmError::Timeout {
+                connecting: false,
+                ..
+            }
+        ),
+        "{e}"
+    );
+    assert!(e.to_string().contains("--llm-timeout"), "{e}");
+
+    let e = ask_one(&client(&refused_url())).unwrap_err();
+    assert!(matches!(e, LlmError::Connect { .. }), "{e}");
+    assert!(e.to_string().contains("ollama serve"), "{e}");
+
+    let srv = Server::start(vec![
+        Canned::raw(
+            401,
+            r#"{"error": {"message": "Incorrect API key provided", "code": "invalid_api_key"}}"#,
+        ),
+        Canned::raw(404, r#"{"error": {"message": "model 'nope' not found"}}"#),
+    ]);
+    let e = ask_one(&client(&srv.url)).unwrap_err();
+    assert!(matches!(e, LlmError::Auth { status: 401, .. }), "{e}");
+    assert!(e.to_string().contains("DRIVESCRIPT_LLM_KEY"), "{e}");
+    let e = ask_one(&client(&srv.url)).unwrap_err().to_string();
+    assert!(
+        e.contains("404") && e.contains("test-model") && e.contains("/v1"),
+        "{e}"
+    );
+    // Neither is retried.
+    assert_eq!(srv.received().len(), 2);
+}
+
+// ---- drivescript ask, end to end ----
+
+const SCENE: &str = "commonroad/USA_US101-3_3_T-1.xml";
+const REQUEST: &str = "vehicle 401 cuts in front of vehicle 399";
+
+fn cut_in_script(cutter: i64, victim: i64) -> String {
+    std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/cut_in.rhai"))
+        .unwrap()
+        .replace("param(\"cutter\")", &cutter.to_string())
+        .replace("param(\"victim\")", &victim.to_string())
+}
+
+fn reply(script: &str) -> String {
+    format!("1. Events: one cut-in.\n2. Agents: 401 acts.\n\n```rhai\n{script}```\n")
+}
+
+fn ask(args: &[&str], url: Option<&str>) -> Output {
+    let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_drivescript"));
+    cmd.arg("ask")
+        .args(args)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .env_remove("DRIVESCRIPT_LLM_URL")
+        .env_remove("DRIVESCRIPT_LLM_MODEL")
+        .env("DRIVESCRIPT_LLM_KEY", "sk-test-secret");
+    if let Some(u) = url {
+        cmd.env("DRIVESCRIPT_LLM_URL", u)
+            .env("DRIVESCRIPT_LLM_MODEL", "test-model")
+            .args(["--backoff", "0.02"]);
+    }
+    cmd.output().expect("the binary runs")
+}
+
+fn text(o: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+/// No file of the run holds the key.
+fn assert_no_key(dir: &Path) {
+    for e in walk(dir) {
+        let bytes = std::fs::read(&e).unwrap();
+        assert!(
+            !String::from_utf8_lossy(&bytes).contains("sk-test-secret"),
+            "{} holds the key",
+            e.display()
+        );
+    }
+}
+
+fn walk(dir: &Path) -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_dir() {
+            out.extend(walk(&p));
+        } else {
+            out.push(p);
+        }
+    }
+    out
+}
+
+fn last_user(srv: &Server, k: usize) -> String {
+    let body = srv.received()[k].json();
+    let msgs = body["messages"].as_array().unwrap();
+    msgs.iter().rev().find(|m| m["role"] == "user").unwrap()["content"]
+        .as_str()
+        .unwrap()
+        .to_string()
+}
+
+#[test]
+fn http_happy_path_writes_the_run_and_keeps_the_key_out() {
+    let srv = Server::start(vec![
+        Canned::chat(&reply(&cut_in_script(401, 399))),
+        Canned::chat("The cutter ends ahead in the victim's lane.\nACCEPT"),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask(
+        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    assert!(t.contains("LLM: test-model at http://127.0.0.1"), "{t}");
+    assert!(t.contains("checker: cut_in (cutter=401 victim=399)"), "{t}");
+    assert!(t.contains("round 1: ACCEPT"), "{t}");
+    for f in [
+        "final.rhai",
+        "final.gif",
+        "report.md",
+        "transcript.json",
+        "state.json",
+        "round_0/prompt.md",
+        "round_0/reply.md",
+        "round_0/script.rhai",
+        "round_0/feedback.md",
+        "round_0/sample_0.json",
+        "round_0/sample_costs.json",
+        "round_1/reply.md",
+    ] {
+        assert!(dir.path().join(f).exists(), "{f} missing:\n{t}");
+    }
+    assert_eq!(
+        std::fs::read_to_string(dir.path().join("final.rhai")).unwrap(),
+        cut_in_script(401, 399)
+    );
+    // The first prompt has the generated reference, the summary naming the agents and the request.
+    let first = srv.received()[0].json();
+    let system = first["messages"][0]["content"].as_str().unwrap();
+    assert!(system.contains(drivescript::cost::reference_markdown().trim()));
+    let user = last_user(&srv, 0);
+    assert!(
+        user.contains("- vehicle 401:") && user.contains("- vehicle 399:"),
+        "{user}"
+    );
+    assert!(user.contains(REQUEST), "{user}");
+    // The refinement carries the term table with spreads, the checker and the motion at 1 Hz.
+    let refine = last_user(&srv, 1);
+    for want in [
+        "| ends_ahead |",
+        "final min",
+        "checker cut_in",
+        "Agent 401: t (s)",
+        "  4 s: (",
+    ] {
+        assert!(refine.contains(want), "{want:?} missing from:\n{refine}");
+    }
+    let tr: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("transcript.json")).unwrap())
+            .unwrap();
+    assert_eq!(tr["model"], "test-model");
+    let llm: Vec<&serde_json::Value> = tr["records"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|r| r["phase"] == "llm")
+        .collect();
+    assert_eq!(llm.len(), 2);
+    assert_eq!(llm[0]["detail"]["usage"]["prompt_tokens"], 1000);
+    assert_eq!(llm[0]["detail"]["request"]["model"], "test-model");
+    assert!(tr["records"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .any(|r| r["phase"] == "sample"));
+    assert_no_key(dir.path());
+}
+
+#[test]
+fn syntax_errors_and_unknown_agents_go_back_with_line_numbers_before_any_sampling() {
+    let broken = "let a = agent(401);\nterm(\"x\", relu(a.x.last() - );\n";
+    let unknown = cut_in_script(401, 9999);
+    let srv = Server::start(vec![
+        Canned::chat(&reply(broken)),
+        Canned::chat(&reply(&unknown)),
+        Canned::chat("Sorry, here it is fixed, no code."),
+        Canned::chat(&reply(&cut_in_script(401, 399))),
+        Canned::chat("ACCEPT"),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask(
+        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    let v0 = std::fs::read_to_string(dir.path().join("round_0/validation.txt")).unwrap();
+    assert!(v0.contains("script.rhai:2:"), "{v0}");
+    let back = last_user(&srv, 1);
+    assert!(
+        back.contains("nothing was sampled") && back.contains("script.rhai:2:"),
+        "{back}"
+    );
+    let back = last_user(&srv, 2);
+    assert!(back.contains("unknown agent id 9999"), "{back}");
+    let back = last_user(&srv, 3);
+    assert!(back.contains("no ```rhai code block"), "{back}");
+    // Sampling happened once, in round 3.
+    assert!(!dir.path().join("round_0/sample_costs.json").exists());
+    assert!(!dir.path().join("round_1/sample_costs.json").exists());
+    assert!(dir.path().join("round_3/sample_costs.json").exists());
+}
+
+#[test]
+fn a_failing_behaviour_is_repaired_and_an_accept_against_the_numbers_is_refused() {
+    // A script that pulls nobody: the cut-in checker fails, so ACCEPT is answered with the
+    // numbers; the repaired script passes.
+    let idle = "let a = agent(401);\nterm(\"idle\", 0.0 * a.x.last());\n";
+    let srv = Server::start(vec![
+        Canned::chat(&reply(idle)),
+        Canned::chat("Looks fine to me.\nACCEPT"),
+        Canned::chat(&reply(&cut_in_script(401, 399))),
+        Canned::chat("ACCEPT"),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask(
+        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    assert!(t.contains("ACCEPT not accepted"), "{t}");
+    let refused = last_user(&srv, 2);
+    assert!(
+        refused.contains("ACCEPT is not accepted") && refused.contains("checker cut_in"),
+        "{refused}"
+    );
+    let report = std::fs::read_to_string(dir.path().join("report.md")).unwrap();
+    assert!(report.contains("accepted: sample"), "{report}");
+    assert!(report.contains("round 2"), "{report}");
+}
+
+#[test]
+fn rounds_run_out_with_exit_2_and_a_final_script() {
+    let idle = "let a = agent(401);\nterm(\"idle\", 0.0 * a.x.last());\n";
+    let srv = Server::start(vec![Canned::chat(&reply(idle)), Canned::chat(&reply(idle))]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask(
+        &[
+            s(&samples().join(SCENE)),
+            REQUEST,
+            "-o",
+            s(dir.path()),
+            "--rounds",
+            "1",
+        ],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(2), "{t}");
+    assert!(t.contains("the rounds ran out"), "{t}");
+    assert_eq!(srv.received().len(), 2);
+    assert!(dir.path().join("final.rhai").exists());
+}
+
+#[test]
+fn a_run_stopped_by_server_errors_resumes_where_it_stopped() {
+    let e500 = Canned::raw(503, "Service Unavailable");
+    let srv = Server::start(vec![
+        Canned::chat(&reply(&cut_in_script(401, 399))),
+        e500.clone(),
+        e500.clone(),
+        e500,
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask(
+        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("HTTP 503 after 3 attempt(s): Service Unavailable"),
+        "{t}"
+    );
+    assert!(!t.contains("panicked"), "{t}");
+    // A second server answers the round that was interrupted.
+    let srv2 = Server::start(vec![Canned::chat("ACCEPT")]);
+    let out = ask(&["--resume", s(dir.path())], Some(&srv2.url));
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    assert!(t.contains("round 1: ACCEPT"), "{t}");
+    assert_eq!(srv2.received().len(), 1);
+    // Starting over in the same directory is refused with what to do instead.
+    let out = ask(
+        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
+        Some(&srv2.url),
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(t.contains("--resume") && t.contains("--continue"), "{t}");
+}
+
+#[test]
+fn the_manual_backend_round_trips_through_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = s(dir.path());
+    let out = ask(
+        &[
+            s(&samples().join(SCENE)),
+            REQUEST,
+            "-o",
+            d,
+            "--llm",
+            "manual",
+        ],
+        None,
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    assert!(
+        t.contains("round_0/prompt.md") && t.contains("round_0/reply.md"),
+        "{t}"
+    );
+    assert!(t.contains("--resume"), "{t}");
+    let prompt = std::fs::read_to_string(dir.path().join("round_0/prompt.md")).unwrap();
+    assert!(prompt.contains("# Reference (generated from the engine)") && prompt.contains(REQUEST));
+    // Resuming without a reply says the same again.
+    let t = text(&ask(&["--resume", d], None));
+    assert!(t.contains("waiting for a reply"), "{t}");
+    std::fs::write(
+        dir.path().join("round_0/reply.md"),
+        reply(&cut_in_script(401, 399)),
+    )
+    .unwrap();
+    let t = text(&ask(&["--resume", d], None));
+    assert!(t.contains("round 0: sample 0"), "{t}");
+    assert!(t.contains("round_1/prompt.md"), "{t}");
+    let p1 = std::fs::read_to_string(dir.path().join("round_1/prompt.md")).unwrap();
+    assert!(p1.contains("| ends_ahead |"), "{p1}");
+    std::fs::write(dir.path().join("round_1/reply.md"), "ACCEPT\n").unwrap();
+    let out = ask(&["--resume", d], None);
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    assert!(t.contains("accepted"), "{t}");
+    assert!(dir.path().join("final.rhai").exists());
+}
+
+#[test]
+fn the_rules_planner_is_the_default_without_an_llm_and_follow_ups_revise_its_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = s(dir.path());
+    let out = ask(
+        &[
+            s(&samples().join(SCENE)),
+            "vehicle 401 cuts in front of vehicle 399, vehicle 405 drives off the road",
+            "-o",
+            d,
+        ],
+        None,
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    assert!(
+        t.contains("none configured") && t.contains("rules planner"),
+        "{t}"
+    );
+    assert!(t.contains("checker: off_road (vehicle=405)"), "{t}");
+    let script = std::fs::read_to_string(dir.path().join("final.rhai")).unwrap();
+    assert!(
+        script.contains("agent(401)") && script.contains("agent(405)"),
+        "{script}"
+    );
+    // A follow-up it understands adds an event and samples again.
+    let out = ask(&["--continue", d, "vehicle 399 keeps below 40 km/h"], None);
+    let t = text(&out);
+    assert!(
+        out.status.code() == Some(0) || out.status.code() == Some(2),
+        "{t}"
+    );
+    assert!(t.contains("follow-up"), "{t}");
+    let script = std::fs::read_to_string(dir.path().join("final.rhai")).unwrap();
+    assert!(script.contains("speed_limit"), "{script}");
+    // One it does not understand says an LLM is needed.
+    let out = ask(&["--continue", d, "make the cut-in more abrupt"], None);
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(t.contains("DRIVESCRIPT_LLM_URL"), "{t}");
+    // As does a first request it does not know.
+    let dir2 = tempfile::tempdir().unwrap();
+    let out = ask(
+        &[
+            s(&samples().join(SCENE)),
+            "a bus driver sneezes",
+            "-o",
+            s(dir2.path()),
+        ],
+        None,
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("does not understand") && t.contains("--llm manual"),
+        "{t}"
+    );
+}
+
+#[test]
+fn prompt_show_prints_the_first_prompt() {
+    let out = common::ok(&[
+        "prompt",
+        "show",
+        s(&samples().join(SCENE)),
+        REQUEST,
+        "--no-frenet",
+    ]);
+    assert!(
+        out.contains("<!-- system -->") && out.contains("<!-- user -->"),
+        "{out}"
+    );
+    assert!(out.contains("- vehicle 401:") && out.contains(REQUEST));
+    assert!(!out.contains("## Frenet frame"));
+    let out = common::ok(&["prompt", "show", s(&samples().join(SCENE)), REQUEST]);
+    assert!(out.contains(drivescript::cost::reference_markdown().trim()));
+}
