@@ -278,23 +278,36 @@ fn help_has_examples() {
 }
 
 #[test]
-fn demo_simulates_a_cut_in_with_the_shipped_checkpoint() {
+fn demo_runs_the_loop_with_a_repair_round_and_writes_the_run() {
     let dir = tempfile::tempdir().unwrap();
-    let gif = dir.path().join("demo.gif");
-    let out = ok(&["demo", "--samples", "2", "-o", s(&gif)]);
+    let run = dir.path().join("demo");
+    let out = ok(&["demo", "-o", s(&run)]);
     assert!(out.contains("USA_US101-4_1_T-1"), "{out}");
-    assert!(out.contains("cut-in: vehicle"), "{out}");
-    assert!(
-        out.contains("ends_in_victim_lane") && out.contains("samples pass the cut-in checker"),
-        "{out}"
-    );
-    assert_eq!(&std::fs::read(&gif).unwrap()[..6], b"GIF89a");
-    let report: Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.path().join("demo_costs.json")).unwrap())
-            .unwrap();
-    assert_eq!(report["behaviour"], "cut_in");
-    assert_eq!(report["samples"].as_array().unwrap().len(), 2);
-    assert!(dir.path().join("demo_1.json").exists());
+    // Every phase: plan, script, validation, sampling, per-term costs, verdicts, repair.
+    for want in [
+        "round 0: plan:",
+        "cut_in (cutter=401 victim=405)",
+        "round 0: script (",
+        "round 0: validating on the sampler's horizon",
+        "| ends_ahead |",
+        "round 0: sample 0:",
+        "round 1: plan:\n    Repair (rules planner)",
+        "Outcome: accepted",
+    ] {
+        assert!(out.contains(want), "{want:?} missing:\n{out}");
+    }
+    let gif = std::fs::read(run.join("final.gif")).unwrap();
+    assert_eq!(&gif[..6], b"GIF89a");
+    let script = std::fs::read_to_string(run.join("final.rhai")).unwrap();
+    assert!(script.contains("agent(401)") && script.contains("agent(389)"));
+    let costs: Value = serde_json::from_str(
+        &std::fs::read_to_string(run.join("round_1/sample_costs.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(costs["checks"][0]["behaviour"], "cut_in");
+    assert_eq!(costs["checks"][1]["behaviour"], "off_road");
+    // Running it again replaces the run instead of refusing.
+    ok(&["demo", "-o", s(&run)]);
 }
 
 #[test]

@@ -99,11 +99,52 @@ pub fn feedback(a: &Attempt, acc: &Acceptance) -> String {
          passes and no named agent moves implausibly.",
         acc.tolerance
     );
-    // Terms over the samples.
+    s.push_str("\n## Terms (unweighted values; the total is the weighted sum)\n\n");
+    s.push_str(&term_table(r, acc));
+    for (k, o) in r.samples.iter().enumerate() {
+        let scene = &a.samples[k].scene;
+        let reasons = acc.reasons(o, r);
+        let _ = writeln!(
+            s,
+            "\n## Sample {k}: {} (total cost {:.4})",
+            if reasons.is_empty() {
+                "meets the request".to_string()
+            } else {
+                format!("does not meet it ({} reasons)", reasons.len())
+            },
+            o.total
+        );
+        for (v, c) in o.verdicts.iter().zip(&r.checks) {
+            let _ = writeln!(
+                s,
+                "- checker {}: {}: {}",
+                c.behaviour,
+                if v.passed {
+                    "PASS"
+                } else if v.achieved {
+                    "fail (achieved, implausibly)"
+                } else {
+                    "fail"
+                },
+                v.reason
+            );
+        }
+        for why in reasons.iter().filter(|w| !w.starts_with("checker")) {
+            let _ = writeln!(s, "- {why}");
+        }
+        motion(&mut s, scene, named);
+    }
+    s
+}
+
+/// Every term's weight, first estimate (mean over the samples) and final value (min, mean,
+/// max over the samples), with a note where a term never moves, dominates, or is met
+/// everywhere: a markdown table.
+pub fn term_table(r: &AttemptReport, acc: &Acceptance) -> String {
+    let mut s = String::new();
     let _ = writeln!(
         s,
-        "\n## Terms (unweighted values; the total is the weighted sum)\n\n\
-         | term | line | weight | first estimate (mean) | final min | final mean | final max | note |\n\
+        "| term | line | weight | first estimate (mean) | final min | final mean | final max | note |\n\
          |---|---|---|---|---|---|---|---|"
     );
     let first = r.samples.first();
@@ -162,39 +203,6 @@ pub fn feedback(a: &Attempt, acc: &Acceptance) -> String {
             max,
             note.join("; ")
         );
-    }
-    for (k, o) in r.samples.iter().enumerate() {
-        let scene = &a.samples[k].scene;
-        let reasons = acc.reasons(o, r);
-        let _ = writeln!(
-            s,
-            "\n## Sample {k}: {} (total cost {:.4})",
-            if reasons.is_empty() {
-                "meets the request".to_string()
-            } else {
-                format!("does not meet it ({} reasons)", reasons.len())
-            },
-            o.total
-        );
-        for (v, c) in o.verdicts.iter().zip(&r.checks) {
-            let _ = writeln!(
-                s,
-                "- checker {}: {}: {}",
-                c.behaviour,
-                if v.passed {
-                    "PASS"
-                } else if v.achieved {
-                    "fail (achieved, implausibly)"
-                } else {
-                    "fail"
-                },
-                v.reason
-            );
-        }
-        for why in reasons.iter().filter(|w| !w.starts_with("checker")) {
-            let _ = writeln!(s, "- {why}");
-        }
-        motion(&mut s, scene, named);
     }
     s
 }

@@ -539,6 +539,12 @@ pub fn retune(e: &Event, t: &Tuning, achieved: bool) -> (Tuning, String) {
 /// parameters bound as literals (so that the script runs as it stands with `simulate
 /// --script`), its term weights multiplied by its tuning, and term names made unique.
 pub fn compose(events: &[Event], tunings: &[Tuning]) -> String {
+    compose_with_terms(events, tunings).0
+}
+
+/// [`compose`], also returning each event's term names as the composed script declares them.
+pub fn compose_with_terms(events: &[Event], tunings: &[Tuning]) -> (String, Vec<Vec<String>>) {
+    let mut per_event = Vec::new();
     let mut out = String::from(
         "// Written by drivescript's rules planner (not a language model) from scripts/.\n",
     );
@@ -547,7 +553,9 @@ pub fn compose(events: &[Event], tunings: &[Tuning]) -> String {
         let t = tunings.get(k).cloned().unwrap_or_default();
         let bound = e.params.overridden_by(&t.margins);
         let body = bind_params(script_source(e.behaviour), &bound);
+        let before = names.len();
         let body = reweight_terms(&body, t.weight, &mut names);
+        per_event.push(names[before..].to_vec());
         let _ = writeln!(
             out,
             "\n// Event {}: {} — {} ({}).",
@@ -570,7 +578,7 @@ pub fn compose(events: &[Event], tunings: &[Tuning]) -> String {
         }
         out.push_str("}\n");
     }
-    out
+    (out, per_event)
 }
 
 fn literal(v: &ParamValue) -> String {

@@ -189,6 +189,12 @@ struct State {
     /// sample of the last sampling.
     tunings: Vec<(f64, Vec<(String, f64)>)>,
     event_results: Vec<(bool, bool)>,
+    /// Script terms above tolerance on that sample.
+    #[serde(default)]
+    failing_terms: Vec<String>,
+    /// The last validation error, while the script that caused it is not yet repaired.
+    #[serde(default)]
+    last_error: Option<String>,
     /// Set when the run is over.
     outcome: Option<Outcome>,
 }
@@ -305,6 +311,8 @@ impl<'a> Session<'a> {
                 reasons: Vec::new(),
                 tunings: Vec::new(),
                 event_results: Vec::new(),
+                failing_terms: Vec::new(),
+                last_error: None,
                 outcome: None,
             },
             prompts,
@@ -538,8 +546,13 @@ impl<'a> Session<'a> {
                     }
                     write(&rdir, "script.rhai", &source)?;
                     progress(&format!(
-                        "round {n}: script ({} lines), validating on the sampler's horizon and sampling {} ...",
+                        "round {n}: script ({} lines, {}):\n{}",
                         source.lines().count(),
+                        rdir.join("script.rhai").display(),
+                        indent(&source)
+                    ));
+                    progress(&format!(
+                        "round {n}: validating on the sampler's horizon, then sampling {} ...",
                         self.state.config.samples
                     ));
                     let t1 = Instant::now();
@@ -548,6 +561,7 @@ impl<'a> Session<'a> {
                             self.record(n, "validation failed", t1, None);
                             let err = e.to_string();
                             write(&rdir, "validation.txt", &err)?;
+                            self.state.last_error = Some(err.clone());
                             progress(&format!("round {n}: validation failed: {err}"));
                             let horizon = self.trained.meta.config.window.future;
                             let msg = self.prompts.validation(horizon, self.raw.meta.dt, &err);
@@ -638,6 +652,12 @@ impl<'a> Session<'a> {
         )
         .map_err(|e| run_err(rdir, format!("rendering sample.gif: {e}")))?;
         write_atomic(&rdir.join("sample.gif"), &gif).map_err(|e| run_err(rdir, e.to_string()))?;
+        progress(&format!(
+            "round {n}: {} samples in {:.1} s; terms (unweighted) over the samples:\n{}",
+            done.report.samples.len(),
+            done.report.seconds,
+            indent(&super::feedback::term_table(&done.report, &acc))
+        ));
         for o in &done.report.samples {
             let reasons = acc.reasons(o, &done.report);
             let verdicts: Vec<String> = o
@@ -663,9 +683,16 @@ impl<'a> Session<'a> {
         }
         self.state.sampled += 1;
         self.state.misses = 0;
+        self.state.last_error = None;
         self.state.script = Some((n, source.to_string()));
         self.state.meets = meets;
         self.state.reasons = acc.reasons(&done.report.samples[best], &done.report);
+        self.state.failing_terms = done.report.samples[best]
+            .terms
+            .iter()
+            .filter(|t| t.script != "realism" && !(t.value <= acc.tolerance))
+            .map(|t| t.term.clone())
+            .collect();
         self.state.event_results = done.report.samples[best]
             .verdicts
             .iter()
@@ -793,14 +820,6 @@ impl<'a> Session<'a> {
             })
             .collect();
         tunings.resize(events.len(), Tuning::default());
-        let last_user = self
-            .state
-            .messages
-            .iter()
-            .rev()
-            .find(|m| m.role == "user")
-            .map(|m| m.content.clone())
-            .unwrap_or_default();
         let mut reasoning = String::new();
         if self.state.script.is_some() && self.state.sampled > 0 {
             if self.state.meets.is_some() && self.state.misses == 0 {
@@ -808,29 +827,50 @@ impl<'a> Session<'a> {
                     "ACCEPT\nA sample meets the request: every term is within tolerance, every checker passes and no named agent moves implausibly.\n"
                 ));
             }
-            if self.state.misses > 0 && last_user.contains("validation") {
+            if let Some(e) = &self.state.last_error {
                 return Err(format!(
-                    "the rules planner cannot repair a script that fails validation: {}",
-                    last_user.lines().take(4).collect::<Vec<_>>().join(" ")
+                    "the rules planner cannot repair a script that fails validation: {e}"
                 ));
             }
+            // An event fails when its checker fails or one of its terms is above tolerance on
+            // the best sample; only failing events change.
+            let (_, terms) = rules::compose_with_terms(&events, &tunings);
             let mut changed = Vec::new();
             for (k, e) in events.iter().enumerate() {
-                match self.state.event_results.get(k) {
-                    Some((true, _)) => {}
-                    Some((false, achieved)) => {
-                        let (t, why) = rules::retune(e, &tunings[k], *achieved);
-                        tunings[k] = t;
-                        changed.push(why);
-                    }
-                    None => {}
+                let (passed, achieved) = self
+                    .state
+                    .event_results
+                    .get(k)
+                    .copied()
+                    .unwrap_or((true, true));
+                let over: Vec<&String> = terms
+                    .get(k)
+                    .into_iter()
+                    .flatten()
+                    .filter(|t| self.state.failing_terms.contains(t))
+                    .collect();
+                if passed && over.is_empty() {
+                    continue;
                 }
+                // A checker that passes with terms still short is a near miss: pull harder.
+                let (t, why) = rules::retune(e, &tunings[k], !passed && achieved);
+                tunings[k] = t;
+                changed.push(if over.is_empty() {
+                    why
+                } else {
+                    format!(
+                        "{why} ({} above tolerance)",
+                        over.iter()
+                            .map(|s| s.as_str())
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    )
+                });
             }
             if changed.is_empty() {
-                // Every checker passed but a term or a named agent's motion did not: pull
-                // every event a little harder.
+                // Only a named agent's motion fails: every event pulls less hard.
                 for (k, e) in events.iter().enumerate() {
-                    let (t, why) = rules::retune(e, &tunings[k], false);
+                    let (t, why) = rules::retune(e, &tunings[k], true);
                     tunings[k] = t;
                     changed.push(why);
                 }
@@ -839,10 +879,9 @@ impl<'a> Session<'a> {
                 "Repair (rules planner): the best sample fails; {}.\n",
                 changed.join("; ")
             ));
-        } else if self.state.script.is_none() && self.state.exchange > 0 {
+        } else if let Some(e) = &self.state.last_error {
             return Err(format!(
-                "the rules planner's script did not validate: {}",
-                last_user.lines().take(6).collect::<Vec<_>>().join(" ")
+                "the rules planner's script does not fit this scene: {e}"
             ));
         } else {
             reasoning.push_str(&rules::plan_text(&events));

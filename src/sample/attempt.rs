@@ -142,7 +142,8 @@ pub struct AttemptReport {
 
 impl AttemptReport {
     /// The agents the checked behaviours name, with their roles (`[(401, "cutter"), ...]`;
-    /// an agent with two roles has them joined by `/`): what pictures highlight.
+    /// a behaviour's lone `vehicle` is named by the behaviour, `off_road`; an agent with two
+    /// roles has them joined by `/`): what pictures highlight.
     pub fn roles(&self) -> Vec<(i64, String)> {
         roles(
             self.checks
@@ -167,6 +168,8 @@ fn roles<'a>(checks: impl Iterator<Item = (Behavior, &'a Params)>) -> Vec<(i64, 
         for r in b.roles() {
             let Some(id) = p.number(r) else { continue };
             let id = id as i64;
+            // "vehicle" says nothing in a picture; the behaviour does.
+            let r = &if *r == "vehicle" { b.name() } else { r };
             match out.iter_mut().find(|(a, _)| *a == id) {
                 Some((_, have)) if !have.split('/').any(|h| h == *r) => {
                     have.push('/');
@@ -500,6 +503,29 @@ mod tests {
             let (_, fin) = a.samples[k].realism.as_ref().unwrap();
             assert_eq!(o.total, a.samples[k].reports[0].total + fin.total);
         }
+    }
+
+    #[test]
+    fn roles_of_several_checkers_join_and_name_lone_vehicles_by_behaviour() {
+        let cut = Params::numbers(&[("cutter", 2.0), ("victim", 1.0)]);
+        let off = Params::numbers(&[("vehicle", 2.0)]);
+        let stop = Params::numbers(&[("vehicle", 3.0)]);
+        let got = roles(
+            [
+                (Behavior::CutIn, &cut),
+                (Behavior::OffRoad, &off),
+                (Behavior::Stop, &stop),
+            ]
+            .into_iter(),
+        );
+        assert_eq!(
+            got,
+            vec![
+                (2, "cutter/off_road".to_string()),
+                (1, "victim".to_string()),
+                (3, "stop".to_string())
+            ]
+        );
     }
 
     #[test]
