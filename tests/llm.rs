@@ -568,3 +568,63 @@ fn prompt_show_prints_the_first_prompt() {
     let out = common::ok(&["prompt", "show", s(&samples().join(SCENE)), REQUEST]);
     assert!(out.contains(drivescript::cost::reference_markdown().trim()));
 }
+
+#[test]
+fn a_batch_runs_every_pair_and_writes_a_summary_and_rollouts_eval_reads() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join(SCENE);
+    let file = dir.path().join("requests.yaml");
+    std::fs::write(
+        &file,
+        format!(
+            "scenes: {}\nentries:\n  - request: \"vehicle 401 cuts in front of vehicle 399\"\n    behaviour: cut_in\n    params: {{cutter: 401, victim: 399}}\n  - request: \"vehicle {{vehicle}} drives off the road\"\n    behaviour: off_road\n",
+            scene.display()
+        ),
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    let o = ask(&["--batch", s(&file), "-o", s(&out), "--rounds", "1"], None);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(0), "{t}");
+    assert!(t.contains("2 pairs") && t.contains("[2/2]"), "{t}");
+    let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    assert!(
+        summary.contains("| cut_in | 1 |") && summary.contains("| off_road | 1 |"),
+        "{summary}"
+    );
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(json["instances"].as_array().unwrap().len(), 2);
+    let rollouts = out.join("rollouts/cut_in");
+    assert!(rollouts.join("USA_US101-3_3_T-1_3.json").exists());
+    // `eval` scores those rollouts with the same checker.
+    let e = common::ok(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "behaviour",
+        "--behaviour",
+        "cut_in",
+        "--param",
+        "cutter=401",
+        "victim=399",
+        "--rollouts",
+        s(&rollouts),
+        "--samples",
+        "4",
+    ]);
+    assert!(e.contains("cut_in"), "{e}");
+    // A bad entry names its line.
+    std::fs::write(
+        &file,
+        "entries:\n  - request: x\n    behaviour: flying\n    scene: a.xml\n",
+    )
+    .unwrap();
+    let o = ask(&["--batch", s(&file), "-o", s(&out)], None);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("entry 1 (line 2)") && t.contains("flying"),
+        "{t}"
+    );
+}

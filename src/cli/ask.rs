@@ -40,8 +40,18 @@ pub struct Args {
     #[arg(long, value_name = "DIR", conflicts_with = "follow_up")]
     resume: Option<PathBuf>,
     /// Revise the run in this directory with a follow-up request instead of starting over.
-    #[arg(long = "continue", value_name = "DIR")]
+    #[arg(long = "continue", value_name = "DIR", conflicts_with = "batch")]
     follow_up: Option<PathBuf>,
+    /// Run every (scene, request) pair of this YAML file into -o DIR and write a summary table
+    /// per behaviour (before refinement and after each round) and rollouts for `eval`.
+    #[arg(long, value_name = "FILE", conflicts_with = "resume")]
+    batch: Option<PathBuf>,
+    /// With --batch: scenes (files or directories) replacing the file's top-level `scenes:`.
+    #[arg(long, value_name = "PATH", requires = "batch")]
+    scenes: Vec<PathBuf>,
+    /// Print every round's progress in --batch runs (default: one line per pair).
+    #[arg(short, long)]
+    verbose: bool,
     /// Who answers.
     #[arg(long, value_enum, default_value = "auto")]
     llm: Llm,
@@ -252,6 +262,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
         );
     }
     let trained = checkpoint(args.checkpoint.as_deref())?;
+    if let Some(file) = &args.batch {
+        return batch(&args, file, &trained);
+    }
     let mut progress = |line: &str| println!("{line}");
     let mut session = if let Some(dir) = &args.resume {
         if !args.words.is_empty() {
@@ -383,4 +396,181 @@ pub fn run(args: Args) -> Result<ExitCode> {
             Ok(ExitCode::from(2))
         }
     }
+}
+
+fn batch(args: &Args, file: &Path, trained: &Trained) -> Result<ExitCode> {
+    use drivescript::llm::batch::{expand, markdown, read_batch, summarise, InstanceResult};
+    if !args.words.is_empty() {
+        bail!("--batch FILE takes no scene or request (the file lists them)");
+    }
+    let Some(out) = &args.output else {
+        bail!("--batch needs -o DIR for the runs, rollouts and summary");
+    };
+    if args.llm == Llm::Manual {
+        bail!("--batch runs without a person: use --llm http or --llm rules");
+    }
+    let mut entries = read_batch(file)?;
+    if !args.scenes.is_empty() {
+        for e in entries.iter_mut().filter(|e| e.default_scenes) {
+            e.scenes = args.scenes.clone();
+        }
+    }
+    let horizon = trained.meta.config.window.future;
+    let (instances, skipped) = expand(&entries, horizon)?;
+    for s in &skipped {
+        println!("skipped: {s}");
+    }
+    if instances.is_empty() {
+        bail!("{}: no (scene, request) pair to run", file.display());
+    }
+    let (_, line) = backend(
+        args.llm,
+        args.llm_url.as_deref(),
+        args.model.as_deref(),
+        |u, m| args.http_config(u, m),
+    )?;
+    println!("{line}");
+    println!(
+        "{} pairs; runs in {}",
+        instances.len(),
+        out.join("runs").display()
+    );
+    let prompts = Prompts::load(&args.prompts.clone().unwrap_or_else(Prompts::default_dir))?;
+    let mut results: Vec<InstanceResult> = Vec::new();
+    let write_summary = |results: &[InstanceResult]| -> Result<()> {
+        let rows = summarise(results, args.rounds);
+        let mut md = format!(
+            "# drivescript ask --batch {}\n\n{} of {} pairs done; {} skipped (no suitable agents).\n\n",
+            file.display(),
+            results.len(),
+            instances.len(),
+            skipped.len()
+        );
+        md.push_str(&markdown(&rows, args.rounds));
+        drivescript::io::write_atomic(&out.join("summary.md"), md.as_bytes())?;
+        let json = serde_json::json!({"rows": rows, "instances": results, "skipped": skipped});
+        drivescript::io::write_atomic(
+            &out.join("summary.json"),
+            serde_json::to_string_pretty(&json)?.as_bytes(),
+        )?;
+        Ok(())
+    };
+    for (k, inst) in instances.iter().enumerate() {
+        let id = &inst.scene.meta.scenario_id;
+        let stem = drivescript::io::output_stem(id)?;
+        let dir = out
+            .join("runs")
+            .join(format!("{k:03}_{}_{stem}", inst.label));
+        let (b, _) = backend(
+            args.llm,
+            args.llm_url.as_deref(),
+            args.model.as_deref(),
+            |u, m| args.http_config(u, m),
+        )?;
+        let started = Session::start(
+            &dir,
+            &inst.scene_path,
+            inst.scene.clone(),
+            &inst.request,
+            trained,
+            b,
+            prompts.clone(),
+            args.session_config(),
+            Some(inst.checks.clone()),
+        );
+        let mut session = match started {
+            Ok(s) => s,
+            Err(LlmError::Rules(e)) => {
+                println!(
+                    "[{}/{}] {id}: {}: not planned: {e}",
+                    k + 1,
+                    instances.len(),
+                    inst.label
+                );
+                results.push(InstanceResult {
+                    label: inst.label.clone(),
+                    scenario: id.clone(),
+                    request: inst.request.clone(),
+                    dir,
+                    rounds: Vec::new(),
+                    llm_calls: 0,
+                    tokens: 0,
+                    outcome: format!("not planned: {e}"),
+                });
+                write_summary(&results)?;
+                continue;
+            }
+            Err(e) => return Err(e.into()),
+        };
+        let verbose = args.verbose;
+        let outcome = session.run(&mut |l| {
+            if verbose {
+                println!("  {l}");
+            }
+        })?;
+        let (calls, tokens) = session.usage();
+        let history = session.history().to_vec();
+        let text = match &outcome {
+            Outcome::Accepted { round, .. } => format!("accepted in round {round}"),
+            Outcome::RoundsUsed { .. } => "rounds ran out".to_string(),
+            Outcome::GaveUp { reason } => format!("gave up: {reason}"),
+            Outcome::Waiting { .. } => "waiting".to_string(),
+        };
+        // The last sampled round's rollouts, where `eval --task behaviour --rollouts` finds them.
+        if let Some(last) = history.last() {
+            let from = dir.join(format!("round_{}", last.exchange));
+            let to = out.join("rollouts").join(&inst.label);
+            std::fs::create_dir_all(&to)?;
+            for i in 0..args.samples {
+                let src = from.join(format!("sample_{i}.json"));
+                if let Ok(bytes) = std::fs::read(&src) {
+                    drivescript::io::write_atomic(&to.join(format!("{stem}_{i}.json")), &bytes)?;
+                }
+            }
+        }
+        println!(
+            "[{}/{}] {id}: {}: {text}; {}",
+            k + 1,
+            instances.len(),
+            inst.label,
+            history
+                .iter()
+                .enumerate()
+                .map(|(r, h)| format!(
+                    "round {r} {}",
+                    if h.passed {
+                        "pass"
+                    } else if h.achieved {
+                        "achieved implausibly"
+                    } else {
+                        "fail"
+                    }
+                ))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+        results.push(InstanceResult {
+            label: inst.label.clone(),
+            scenario: id.clone(),
+            request: inst.request.clone(),
+            dir,
+            rounds: history,
+            llm_calls: calls,
+            tokens,
+            outcome: text,
+        });
+        write_summary(&results)?;
+    }
+    println!();
+    print!(
+        "{}",
+        markdown(&summarise(&results, args.rounds), args.rounds)
+    );
+    println!(
+        "wrote {}, {} and rollouts per behaviour in {}",
+        out.join("summary.md").display(),
+        out.join("summary.json").display(),
+        out.join("rollouts").display()
+    );
+    Ok(ExitCode::SUCCESS)
 }

@@ -147,6 +147,7 @@ pub struct Exchange {
 }
 
 /// A blocking chat-completions client.
+#[derive(Clone)]
 pub struct HttpClient {
     cfg: HttpConfig,
     http: reqwest::blocking::Client,

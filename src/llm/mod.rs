@@ -11,6 +11,7 @@
 //! planner over `scripts/` ([`rules`]), which also names the independent checkers of a
 //! request whatever backend writes its script.
 
+pub mod batch;
 pub mod client;
 pub mod feedback;
 pub mod prompt;

@@ -161,6 +161,23 @@ pub enum Outcome {
     },
 }
 
+/// One sampling round, judged on the sample it shows (the first that meets the request, else
+/// the first that passes every checker, else the cheapest).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RoundRecord {
+    /// The exchange (`round_N`) whose script was sampled.
+    pub exchange: usize,
+    /// Whether a sample meets the request (terms, checkers, plausible named agents).
+    pub meets: bool,
+    /// Whether the shown sample's checkers all see the behaviour's geometry (false without
+    /// checkers).
+    pub achieved: bool,
+    /// Whether they all pass it: geometry and plausible motion of the agents they name.
+    pub passed: bool,
+    /// Why the shown sample does not meet the request.
+    pub reasons: Vec<String>,
+}
+
 /// What persists between steps (`state.json`).
 #[derive(Debug, Clone, Serialize, Deserialize)]
 struct State {
@@ -192,6 +209,9 @@ struct State {
     /// Script terms above tolerance on that sample.
     #[serde(default)]
     failing_terms: Vec<String>,
+    /// One record per sampling round, for batch tables.
+    #[serde(default)]
+    history: Vec<RoundRecord>,
     /// The last validation error, while the script that caused it is not yet repaired.
     #[serde(default)]
     last_error: Option<String>,
@@ -312,6 +332,7 @@ impl<'a> Session<'a> {
                 tunings: Vec::new(),
                 event_results: Vec::new(),
                 failing_terms: Vec::new(),
+                history: Vec::new(),
                 last_error: None,
                 outcome: None,
             },
@@ -404,6 +425,30 @@ impl<'a> Session<'a> {
         self.state.sampled = 0;
         self.state.misses = 0;
         self.save()
+    }
+
+    /// One record per sampling round so far.
+    pub fn history(&self) -> &[RoundRecord] {
+        &self.state.history
+    }
+
+    /// Calls to the LLM server and the tokens they used (prompt + completion), from the
+    /// transcript.
+    pub fn usage(&self) -> (usize, u64) {
+        let llm: Vec<&Record> = self
+            .transcript
+            .iter()
+            .filter(|r| r.phase == "llm")
+            .collect();
+        let tokens = llm
+            .iter()
+            .filter_map(|r| r.detail.as_ref())
+            .map(|d| {
+                d["usage"]["prompt_tokens"].as_u64().unwrap_or(0)
+                    + d["usage"]["completion_tokens"].as_u64().unwrap_or(0)
+            })
+            .sum();
+        (llm.len(), tokens)
     }
 
     /// The run directory.
@@ -687,6 +732,14 @@ impl<'a> Session<'a> {
         self.state.script = Some((n, source.to_string()));
         self.state.meets = meets;
         self.state.reasons = acc.reasons(&done.report.samples[best], &done.report);
+        let shown = &done.report.samples[best];
+        self.state.history.push(RoundRecord {
+            exchange: n,
+            meets: meets.is_some(),
+            achieved: !shown.verdicts.is_empty() && shown.verdicts.iter().all(|v| v.achieved),
+            passed: shown.passed() == Some(true),
+            reasons: acc.reasons(shown, &done.report),
+        });
         self.state.failing_terms = done.report.samples[best]
             .terms
             .iter()

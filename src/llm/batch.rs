@@ -1,0 +1,529 @@
+//! Batch evaluation of the loop (the paper's Tables 1 and 3): many (scene, request) pairs from
+//! a YAML file, each judged by independent checkers, summarised per behaviour before
+//! refinement and after each round.
+//!
+//! ```yaml
+//! # Paths are relative to this file. A directory means every scene in it.
+//! scenes: ../runs/heldout/windows          # default for entries without their own
+//! entries:
+//!   - request: "vehicle {cutter} cuts in front of vehicle {victim}"
+//!     behaviour: cut_in       # {role}s are chosen per scene by eval::behaviors::suggest
+//!   - scene: ../data/samples/commonroad/USA_US101-3_3_T-1.xml
+//!     request: "vehicle 401 cuts in front of vehicle 399"
+//!     behaviour: cut_in
+//!     params: {cutter: 401, victim: 399}
+//!   - request: "vehicle {vehicle} drives off the road"   # checker from the request's words
+//! ```
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde::Serialize;
+
+use super::rules::understand_request;
+use super::session::RoundRecord;
+use super::LlmError;
+use crate::cost::Params;
+use crate::eval::behaviors::{suggest, Behavior};
+use crate::io::{discover, load_scenes, LoadOptions};
+use crate::scene::Scene;
+
+/// One line of a batch file.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Entry {
+    /// Scene files or directories.
+    pub scenes: Vec<PathBuf>,
+    /// The request, with `{role}` placeholders where agents are chosen per scene.
+    pub request: String,
+    /// The checker, when given (else the rules planner's reading of the request, if any).
+    pub behaviour: Option<Behavior>,
+    /// The checker's parameters (the roles fill the placeholders).
+    pub params: Option<Params>,
+    /// Line in the batch file, for messages.
+    pub line: usize,
+    /// Whether the scenes are the file's top-level `scenes:` (which `--scenes` replaces).
+    pub default_scenes: bool,
+}
+
+/// One (scene, request) pair to run.
+#[derive(Debug, Clone)]
+pub struct Instance {
+    /// Where the scene came from.
+    pub scene_path: PathBuf,
+    /// The scene.
+    pub scene: Scene,
+    /// The request with its agents filled in.
+    pub request: String,
+    /// Its checkers.
+    pub checks: Vec<(Behavior, Params)>,
+    /// The row of the summary it counts in: the behaviour, or `request` without checkers.
+    pub label: String,
+}
+
+fn bad(path: &Path, message: String) -> LlmError {
+    LlmError::Run {
+        dir: path.to_path_buf(),
+        message,
+    }
+}
+
+/// Reads a batch file.
+pub fn read_batch(path: &Path) -> Result<Vec<Entry>, LlmError> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| bad(path, format!("cannot read the batch file: {e}")))?;
+    let v: serde_yaml::Value =
+        serde_yaml::from_str(&text).map_err(|e| bad(path, format!("not YAML: {e}")))?;
+    let base = path.parent().unwrap_or(Path::new("."));
+    let paths = |v: &serde_yaml::Value, what: &str| -> Result<Vec<PathBuf>, LlmError> {
+        match v {
+            serde_yaml::Value::String(s) => Ok(vec![base.join(s)]),
+            serde_yaml::Value::Sequence(items) => items
+                .iter()
+                .map(|i| {
+                    i.as_str()
+                        .map(|s| base.join(s))
+                        .ok_or_else(|| bad(path, format!("{what}: every item must be a path")))
+                })
+                .collect(),
+            serde_yaml::Value::Null => Ok(Vec::new()),
+            _ => Err(bad(
+                path,
+                format!("{what} must be a path or a list of paths"),
+            )),
+        }
+    };
+    let default_scenes = paths(&v["scenes"], "scenes")?;
+    let entries = v["entries"]
+        .as_sequence()
+        .ok_or_else(|| bad(path, "no `entries:` list".into()))?;
+    // Line numbers: the n-th "- " item under entries, found by scanning the text.
+    let item_lines: Vec<usize> = {
+        let mut lines = Vec::new();
+        let mut inside = false;
+        let mut indent = None;
+        for (i, l) in text.lines().enumerate() {
+            if l.trim_start().starts_with("entries:") {
+                inside = true;
+                continue;
+            }
+            if inside {
+                let t = l.trim_start();
+                if let Some(rest) = t.strip_prefix("- ") {
+                    let ind = l.len() - t.len();
+                    if indent.is_none() {
+                        indent = Some(ind);
+                    }
+                    if Some(ind) == indent {
+                        lines.push(i + 1);
+                    }
+                    let _ = rest;
+                }
+            }
+        }
+        lines
+    };
+    let mut out = Vec::new();
+    for (k, e) in entries.iter().enumerate() {
+        let line = item_lines.get(k).copied().unwrap_or(0);
+        let at = |m: String| bad(path, format!("entry {} (line {line}): {m}", k + 1));
+        let request = e["request"]
+            .as_str()
+            .ok_or_else(|| at("`request:` (text) is missing".into()))?
+            .trim()
+            .to_string();
+        let (scenes, default) = match &e["scene"] {
+            serde_yaml::Value::Null => (default_scenes.clone(), true),
+            v => (paths(v, "scene")?, false),
+        };
+        if scenes.is_empty() && !default {
+            return Err(at("no scene: give `scene:` or a top-level `scenes:`".into()));
+        }
+        let behaviour = match &e["behaviour"] {
+            serde_yaml::Value::Null => None,
+            serde_yaml::Value::String(s) => Some(Behavior::from_name(s).ok_or_else(|| {
+                at(format!(
+                    "unknown behaviour {s:?}; known: {}",
+                    crate::eval::behaviors::ALL
+                        .iter()
+                        .map(|b| b.name())
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ))
+            })?),
+            _ => return Err(at("`behaviour:` must be a name".into())),
+        };
+        let params = match &e["params"] {
+            serde_yaml::Value::Null => None,
+            v => {
+                let j = serde_json::to_value(v).map_err(|e| at(format!("params: {e}")))?;
+                Some(Params::from_json(&j).map_err(|m| at(format!("params: {m}")))?)
+            }
+        };
+        if params.is_some() && behaviour.is_none() {
+            return Err(at("`params:` without `behaviour:`".into()));
+        }
+        out.push(Entry {
+            scenes,
+            request,
+            behaviour,
+            params,
+            line,
+            default_scenes: default,
+        });
+    }
+    Ok(out)
+}
+
+/// Placeholders `{name}` in a request.
+fn placeholders(request: &str) -> Vec<String> {
+    let mut out = Vec::new();
+    let mut rest = request;
+    while let Some(i) = rest.find('{') {
+        let Some(j) = rest[i..].find('}') else { break };
+        out.push(rest[i + 1..i + j].to_string());
+        rest = &rest[i + j + 1..];
+    }
+    out
+}
+
+/// Every (scene, request) pair of `entries`, with agents chosen for `{role}` placeholders.
+/// Pairs whose scene has no agents suited to the behaviour are returned as skip messages,
+/// never dropped silently. `horizon` is the sampler's.
+pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<String>), LlmError> {
+    let mut out = Vec::new();
+    let mut skipped = Vec::new();
+    for e in entries {
+        let mut files = Vec::new();
+        for s in &e.scenes {
+            files.extend(discover(s).map_err(|err| bad(s, err.to_string()))?);
+        }
+        if files.is_empty() {
+            return Err(bad(
+                Path::new("batch"),
+                format!(
+                    "entry on line {}: no scene (give `scene:`, a top-level `scenes:`, or --scenes)",
+                    e.line
+                ),
+            ));
+        }
+        files.sort();
+        let holes = placeholders(&e.request);
+        for f in files {
+            for scene in
+                load_scenes(&f, &LoadOptions::default()).map_err(|err| bad(&f, err.to_string()))?
+            {
+                let id = scene.meta.scenario_id.clone();
+                let mut params = e.params.clone().unwrap_or_default();
+                if !holes.is_empty() {
+                    let b = e.behaviour.ok_or_else(|| {
+                        bad(
+                            &f,
+                            format!(
+                                "entry on line {}: {{placeholders}} need `behaviour:` to choose agents",
+                                e.line
+                            ),
+                        )
+                    })?;
+                    if holes.iter().any(|h| params.get(h).is_none()) {
+                        match suggest(b, &scene.with_horizon(horizon), horizon) {
+                            Some(p) => params = p.overridden_by(&params),
+                            None => {
+                                skipped.push(format!(
+                                    "{id}: no agents suited to {} (line {})",
+                                    b.name(),
+                                    e.line
+                                ));
+                                continue;
+                            }
+                        }
+                    }
+                }
+                let mut request = e.request.clone();
+                for h in &holes {
+                    let v = params.get(h).ok_or_else(|| {
+                        bad(
+                            &f,
+                            format!("entry on line {}: no value for {{{h}}}", e.line),
+                        )
+                    })?;
+                    request = request.replace(&format!("{{{h}}}"), &v.to_string());
+                }
+                let checks = match e.behaviour {
+                    Some(b) => vec![(b, params.clone())],
+                    None => understand_request(&request)
+                        .map(|ev| ev.into_iter().map(|e| (e.behaviour, e.params)).collect())
+                        .unwrap_or_default(),
+                };
+                let label = match checks.as_slice() {
+                    [] => "request".to_string(),
+                    [(b, _)] => b.name().to_string(),
+                    many => many
+                        .iter()
+                        .map(|(b, _)| b.name())
+                        .collect::<Vec<_>>()
+                        .join("+"),
+                };
+                out.push(Instance {
+                    scene_path: f.clone(),
+                    scene,
+                    request,
+                    checks,
+                    label,
+                });
+            }
+        }
+    }
+    Ok((out, skipped))
+}
+
+/// One finished instance, for the summary.
+#[derive(Debug, Clone, Serialize)]
+pub struct InstanceResult {
+    /// The summary row.
+    pub label: String,
+    /// The scene's id.
+    pub scenario: String,
+    /// The request as sent.
+    pub request: String,
+    /// The run directory.
+    pub dir: PathBuf,
+    /// Per sampling round.
+    pub rounds: Vec<RoundRecord>,
+    /// Calls to the LLM server.
+    pub llm_calls: usize,
+    /// Tokens they used.
+    pub tokens: u64,
+    /// How the run ended, in words.
+    pub outcome: String,
+}
+
+/// One row of the summary.
+#[derive(Debug, Clone, Serialize)]
+pub struct Row {
+    /// Behaviour (or `request`).
+    pub label: String,
+    /// Instances.
+    pub n: usize,
+    /// Per sampling round r (0 = before refinement): instances whose shown sample achieves
+    /// the behaviour by round r, counting a run that stopped earlier with its last round.
+    pub achieved: Vec<usize>,
+    /// The same, with plausible motion of the named agents (the checkers' pass).
+    pub passed: Vec<usize>,
+    /// Mean sampling rounds used.
+    pub mean_rounds: f64,
+    /// Mean LLM calls.
+    pub mean_calls: f64,
+    /// Mean tokens.
+    pub mean_tokens: f64,
+    /// Why the final shown samples fall short, by kind, with counts.
+    pub failures: BTreeMap<String, usize>,
+}
+
+/// The summary table over `results`, with `rounds` refinement rounds.
+pub fn summarise(results: &[InstanceResult], rounds: usize) -> Vec<Row> {
+    let mut labels: Vec<String> = results.iter().map(|r| r.label.clone()).collect();
+    labels.sort();
+    labels.dedup();
+    labels
+        .into_iter()
+        .map(|label| {
+            let rs: Vec<&InstanceResult> = results.iter().filter(|r| r.label == label).collect();
+            let n = rs.len();
+            let at = |r: &InstanceResult, k: usize| -> Option<RoundRecord> {
+                r.rounds
+                    .get(k.min(r.rounds.len().saturating_sub(1)))
+                    .cloned()
+            };
+            let achieved = (0..=rounds)
+                .map(|k| {
+                    rs.iter()
+                        .filter(|r| at(r, k).is_some_and(|x| x.achieved))
+                        .count()
+                })
+                .collect();
+            let passed = (0..=rounds)
+                .map(|k| {
+                    rs.iter()
+                        .filter(|r| at(r, k).is_some_and(|x| x.passed))
+                        .count()
+                })
+                .collect();
+            let mut failures = BTreeMap::new();
+            for r in &rs {
+                let last = r.rounds.last();
+                let kinds: Vec<String> = match last {
+                    None => vec![format!("no script sampled ({})", r.outcome)],
+                    Some(x) => x
+                        .reasons
+                        .iter()
+                        .map(|w| {
+                            if let Some(rest) = w.strip_prefix("checker ") {
+                                format!("checker {}", rest.split(':').next().unwrap_or(""))
+                            } else if w.starts_with("term ") {
+                                format!(
+                                    "term {} above tolerance",
+                                    w.split_whitespace().nth(1).unwrap_or("")
+                                )
+                            } else {
+                                "implausible named agent".to_string()
+                            }
+                        })
+                        .collect(),
+                };
+                let mut kinds = kinds;
+                kinds.sort();
+                kinds.dedup();
+                for k in kinds {
+                    *failures.entry(k).or_insert(0) += 1;
+                }
+            }
+            let mean = |f: &dyn Fn(&InstanceResult) -> f64| {
+                if n == 0 {
+                    0.0
+                } else {
+                    rs.iter().map(|r| f(r)).sum::<f64>() / n as f64
+                }
+            };
+            Row {
+                label,
+                n,
+                achieved,
+                passed,
+                mean_rounds: mean(&|r| r.rounds.len() as f64),
+                mean_calls: mean(&|r| r.llm_calls as f64),
+                mean_tokens: mean(&|r| r.tokens as f64),
+                failures,
+            }
+        })
+        .collect()
+}
+
+/// The summary as markdown.
+pub fn markdown(rows: &[Row], rounds: usize) -> String {
+    let mut s = String::from("| behaviour | n |");
+    for k in 0..=rounds {
+        s.push_str(&format!(" round {k} |"));
+    }
+    s.push_str(" mean rounds | LLM calls | tokens | why the final sample falls short |\n|---|---|");
+    for _ in 0..=rounds {
+        s.push_str("---|");
+    }
+    s.push_str("---|---|---|---|\n");
+    for r in rows {
+        s.push_str(&format!("| {} | {} |", r.label, r.n));
+        for k in 0..=rounds {
+            let f = |x: usize| {
+                if r.n == 0 {
+                    "-".to_string()
+                } else {
+                    format!("{:.2}", x as f64 / r.n as f64)
+                }
+            };
+            s.push_str(&format!(" {} ({}) |", f(r.passed[k]), f(r.achieved[k])));
+        }
+        let why: Vec<String> = r
+            .failures
+            .iter()
+            .map(|(k, v)| format!("{k}: {v}"))
+            .collect();
+        s.push_str(&format!(
+            " {:.2} | {:.1} | {:.0} | {} |\n",
+            r.mean_rounds,
+            r.mean_calls,
+            r.mean_tokens,
+            if why.is_empty() {
+                "-".into()
+            } else {
+                why.join("; ")
+            }
+        ));
+    }
+    s.push_str(
+        "\nRound k: the share of instances whose shown sample passes every checker with plausible \
+         motion after k refinement rounds (in brackets: the geometry alone). A run that stopped \
+         earlier counts with its last round.\n",
+    );
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn batch_files_resolve_paths_fill_roles_and_name_bad_entries() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+        let scenes = root.join("scripts/scenes");
+        let f = dir.path().join("b.yaml");
+        std::fs::write(
+            &f,
+            format!(
+                "scenes: {}\nentries:\n  - request: \"vehicle {{cutter}} cuts in front of vehicle {{victim}}\"\n    behaviour: cut_in\n  - scene: {}\n    request: \"vehicle 2 drives off the road\"\n",
+                scenes.join("highway_cut_in.yaml").display(),
+                scenes.join("highway.yaml").display()
+            ),
+        )
+        .unwrap();
+        let e = read_batch(&f).unwrap();
+        assert_eq!((e.len(), e[0].line, e[1].line), (2, 3, 5));
+        let (inst, skipped) = expand(&e, 40).unwrap();
+        assert!(skipped.is_empty(), "{skipped:?}");
+        assert_eq!(inst.len(), 2);
+        assert_eq!(inst[0].label, "cut_in");
+        assert!(!inst[0].request.contains('{'), "{}", inst[0].request);
+        assert_eq!(inst[1].label, "off_road");
+        assert_eq!(inst[1].checks[0].1.to_string(), "vehicle=2");
+        std::fs::write(
+            &f,
+            "entries:\n  - request: x\n    scene: a.yaml\n  - request: y\n    scene: a.yaml\n    behaviour: flying\n",
+        )
+        .unwrap();
+        let err = read_batch(&f).unwrap_err().to_string();
+        assert!(
+            err.contains("entry 2 (line 4)") && err.contains("unknown behaviour \"flying\""),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn the_summary_carries_finished_runs_forward() {
+        let rec = |achieved, passed| RoundRecord {
+            exchange: 0,
+            meets: passed,
+            achieved,
+            passed,
+            reasons: if passed {
+                vec![]
+            } else {
+                vec!["checker cut_in: short".into()]
+            },
+        };
+        let r = |rounds| InstanceResult {
+            label: "cut_in".into(),
+            scenario: "s".into(),
+            request: "r".into(),
+            dir: PathBuf::new(),
+            rounds,
+            llm_calls: 2,
+            tokens: 100,
+            outcome: "o".into(),
+        };
+        let rows = summarise(
+            &[
+                r(vec![rec(true, true)]),
+                r(vec![rec(false, false), rec(true, false), rec(true, true)]),
+            ],
+            2,
+        );
+        assert_eq!(rows[0].passed, vec![1, 1, 2]);
+        assert_eq!(rows[0].achieved, vec![1, 2, 2]);
+        assert_eq!(rows[0].mean_rounds, 2.0);
+        assert!(rows[0].failures.is_empty());
+        let md = markdown(&rows, 2);
+        assert!(
+            md.contains("| cut_in | 2 | 0.50 (0.50) | 0.50 (1.00) | 1.00 (1.00) |"),
+            "{md}"
+        );
+    }
+}
