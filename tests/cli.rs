@@ -1023,3 +1023,38 @@ fn test_scripts_refuses_to_pass_when_nothing_was_tested() {
         assert!(text.contains(want) && text.contains("0 passed, 1 failed"), "{name}: {text}");
     }
 }
+
+#[test]
+fn unknown_and_reserved_params_are_refused_with_the_scripts_parameters() {
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let err = fails(&[
+        "cost",
+        s(&scene),
+        "--script",
+        "scripts/no_collisions.rhai",
+        "--param",
+        "margn=30",
+    ]);
+    assert!(
+        err.contains("\"margn\"") && err.contains("their parameters are margin, weight"),
+        "{err}"
+    );
+    let err = fails(&[
+        "cost",
+        s(&scene),
+        "--script",
+        "scripts/no_collisions.rhai",
+        "--param",
+        "DT=5",
+    ]);
+    assert!(err.contains("built-in constant"), "{err}");
+    // Known names still run.
+    ok(&[
+        "cost",
+        s(&scene),
+        "--script",
+        "scripts/no_collisions.rhai",
+        "--param",
+        "margin=30",
+    ]);
+}

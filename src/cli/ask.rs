@@ -232,6 +232,29 @@ pub(crate) fn checkpoint(path: Option<&Path>) -> Result<Trained> {
     load(&ckpt).with_context(|| format!("loading the diffusion checkpoint {}", ckpt.display()))
 }
 
+/// Reopens the run in `dir` with its own backend, unless the flags choose another.
+fn reopen<'a>(args: &Args, dir: &Path, trained: &'a Trained) -> Result<Session<'a>, LlmError> {
+    Session::resume(
+        dir,
+        trained,
+        |recorded, rec_model, _| {
+            let chosen = match (args.llm, recorded) {
+                (Llm::Auto, "http") => Llm::Http,
+                (Llm::Auto, "manual") => Llm::Manual,
+                (Llm::Auto, _) => Llm::Rules,
+                (l, _) => l,
+            };
+            let model = args.model.clone().or_else(|| rec_model.map(str::to_string));
+            let (b, line) = backend(chosen, args.llm_url.as_deref(), model.as_deref(), |u, m| {
+                args.http_config(u, m)
+            })?;
+            println!("{line}");
+            Ok(b)
+        },
+        load_one,
+    )
+}
+
 fn load_one(path: &Path) -> Result<drivescript::scene::Scene, LlmError> {
     load_scene(path, 0, &LoadOptions::default()).map_err(|e| LlmError::Run {
         dir: path.to_path_buf(),
@@ -270,53 +293,14 @@ pub fn run(args: Args) -> Result<ExitCode> {
         if !args.words.is_empty() {
             bail!("--resume DIR takes no scene or request (the run recorded them)");
         }
-        let (llm, url, model) = (args.llm, args.llm_url.clone(), args.model.clone());
-        let s = Session::resume(
-            dir,
-            &trained,
-            |recorded, rec_model, _rec_url| {
-                // The run's own backend unless the flags choose another.
-                let chosen = match (llm, recorded) {
-                    (Llm::Auto, "http") => Llm::Http,
-                    (Llm::Auto, "manual") => Llm::Manual,
-                    (Llm::Auto, _) => Llm::Rules,
-                    (l, _) => l,
-                };
-                let model = model.or_else(|| rec_model.map(str::to_string));
-                let (b, line) = backend(chosen, url.as_deref(), model.as_deref(), |u, m| {
-                    args.http_config(u, m)
-                })?;
-                println!("{line}");
-                Ok(b)
-            },
-            load_one,
-        )?;
+        let s = reopen(&args, dir, &trained)?;
         println!("resuming {}", dir.display());
         s
     } else if let Some(dir) = &args.follow_up {
         let [request] = args.words.as_slice() else {
             bail!("--continue DIR takes one argument, the follow-up request in quotes");
         };
-        let (llm, url, model) = (args.llm, args.llm_url.clone(), args.model.clone());
-        let mut s = Session::resume(
-            dir,
-            &trained,
-            |recorded, rec_model, _| {
-                let chosen = match (llm, recorded) {
-                    (Llm::Auto, "http") => Llm::Http,
-                    (Llm::Auto, "manual") => Llm::Manual,
-                    (Llm::Auto, _) => Llm::Rules,
-                    (l, _) => l,
-                };
-                let model = model.or_else(|| rec_model.map(str::to_string));
-                let (b, line) = backend(chosen, url.as_deref(), model.as_deref(), |u, m| {
-                    args.http_config(u, m)
-                })?;
-                println!("{line}");
-                Ok(b)
-            },
-            load_one,
-        )?;
+        let mut s = reopen(&args, dir, &trained)?;
         s.follow_up(request)?;
         println!("follow-up on {}: {request}", dir.display());
         s

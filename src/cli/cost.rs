@@ -57,6 +57,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let source = std::fs::read_to_string(&args.script)
         .with_context(|| format!("reading {}", args.script.display()))?;
     let params = Params::parse(&args.params)?;
+    drivescript::cost::check_params(&[&source], &params)?;
     let name = args.script.display().to_string();
     let script = CostScript::compile(&source, &name, scene.clone(), &params, &Limits::default())?;
     script.validate()?;

@@ -206,6 +206,76 @@ impl rhai::ModuleResolver for StdlibResolver {
     }
 }
 
+/// The parameters `source` names: `param("name"...)` calls, in order of first use.
+pub fn script_params(source: &str) -> Vec<String> {
+    let mut out: Vec<String> = Vec::new();
+    let mut rest = source;
+    while let Some(i) = rest.find("param(\"") {
+        let after = &rest[i + 7..];
+        let Some(q) = after.find('"') else { break };
+        let name = after[..q].to_string();
+        if !out.contains(&name) {
+            out.push(name);
+        }
+        rest = &after[q..];
+    }
+    out
+}
+
+/// Whether `source` uses `name` at all: in a `param("name")` call or as the constant `name`.
+pub fn uses_param(source: &str, name: &str) -> bool {
+    let ident = |c: char| c.is_alphanumeric() || c == '_';
+    source.match_indices(name).any(|(i, _)| {
+        let before = source[..i].chars().next_back();
+        let after = source[i + name.len()..].chars().next();
+        let quoted = before == Some('"') && after == Some('"');
+        quoted || (!before.is_some_and(ident) && !after.is_some_and(ident))
+    })
+}
+
+/// `DT` and `STEPS` are the engine's constants, not parameters.
+fn no_reserved(params: &Params) -> Result<(), CostError> {
+    for reserved in ["DT", "STEPS"] {
+        if params.get(reserved).is_some() {
+            return Err(CostError::Param {
+                name: reserved.into(),
+                message:
+                    "is a built-in constant (seconds per step, future steps) and cannot be set"
+                        .into(),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// Every parameter in `params` is read by one of `sources`: a name none uses is a typo
+/// (`margn=30` would run with the default margin), an error listing the scripts' parameters.
+pub fn check_params(sources: &[&str], params: &Params) -> Result<(), CostError> {
+    no_reserved(params)?;
+    for name in params.names() {
+        if !sources.iter().any(|src| uses_param(src, name)) {
+            let mut known: Vec<String> = Vec::new();
+            for p in sources.iter().flat_map(|src| script_params(src)) {
+                if !known.contains(&p) {
+                    known.push(p);
+                }
+            }
+            return Err(CostError::Param {
+                name: name.to_string(),
+                message: format!(
+                    "no script reads it; {}",
+                    if known.is_empty() {
+                        "the scripts take no parameters".to_string()
+                    } else {
+                        format!("their parameters are {}", known.join(", "))
+                    }
+                ),
+            });
+        }
+    }
+    Ok(())
+}
+
 /// Marker returned by the progress callback when the wall time is up.
 const WALL_TIME_MARK: &str = "drivescript:wall-time";
 
@@ -586,6 +656,7 @@ impl CostScript {
                 })
                 .collect(),
         }));
+        no_reserved(params)?;
         let started = Rc::new(Cell::new(Instant::now()));
         let (engine, docs) = build_engine(&shared, limits, &started);
         let mut scope = Scope::new();
@@ -825,6 +896,14 @@ fn strip_position(s: &str) -> String {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn parameters_are_found_as_calls_and_as_constants_not_inside_words() {
+        let src = "let m = param(\"margin\", 0.5);\nlet w = weight * 2.0; // reweighted\n";
+        assert_eq!(super::script_params(src), vec!["margin".to_string()]);
+        assert!(super::uses_param(src, "margin") && super::uses_param(src, "weight"));
+        assert!(!super::uses_param(src, "m2") && !super::uses_param(src, "eight"));
+    }
+
     use super::*;
 
     /// Names a documentation signature covers: functions, `get$` properties and operators.

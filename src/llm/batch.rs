@@ -487,6 +487,32 @@ mod tests {
     }
 
     #[test]
+    fn the_rules_planner_reads_every_shipped_request_as_its_behaviour() {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/requests");
+        for file in ["table1.yaml", "table3.yaml"] {
+            let entries = read_batch(&root.join(file)).unwrap();
+            assert_eq!(entries.len(), if file == "table1.yaml" { 4 } else { 9 });
+            for e in entries {
+                let mut req = e.request.clone();
+                for (k, h) in placeholders(&e.request).iter().enumerate() {
+                    let v = match h.as_str() {
+                        "x" | "y" => format!("{}.5", 10 + k),
+                        "limit" => "12.5".to_string(),
+                        _ => (400 + k).to_string(),
+                    };
+                    req = req.replace(&format!("{{{h}}}"), &v);
+                }
+                let ev = understand_request(&req).unwrap_or_else(|err| panic!("{req}: {err}"));
+                assert_eq!(ev.len(), 1, "{req}");
+                assert_eq!(Some(ev[0].behaviour), e.behaviour, "{req}");
+                for h in placeholders(&e.request) {
+                    assert!(ev[0].params.get(&h).is_some(), "{req}: {h} not read");
+                }
+            }
+        }
+    }
+
+    #[test]
     fn the_summary_carries_finished_runs_forward() {
         let rec = |achieved, passed| RoundRecord {
             exchange: 0,

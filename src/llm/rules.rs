@@ -371,9 +371,10 @@ fn round3(v: f64) -> f64 {
     (v * 1000.0).round() / 1000.0
 }
 
-/// A speed in m/s from "15 m/s", "50 km/h", "30 mph", "50kph".
-fn speed(clause: &str) -> Option<f64> {
+/// Each number of a clause with its unit (written on or after it: "15m", "15 m").
+fn numbers_with_units(clause: &str) -> Vec<(f64, String)> {
     let w = words(clause);
+    let mut out = Vec::new();
     for (i, word) in w.iter().enumerate() {
         let (num, unit) = split_number(word);
         let Some(v) = num else { continue };
@@ -382,15 +383,24 @@ fn speed(clause: &str) -> Option<f64> {
         } else {
             unit
         };
-        let factor = match unit {
-            "m/s" | "mps" => 1.0,
-            "km/h" | "kmh" | "kph" | "kmph" => 1.0 / 3.6,
-            "mph" => 0.44704,
-            _ => continue,
-        };
-        return Some(v * factor);
+        out.push((v, unit.to_string()));
     }
-    None
+    out
+}
+
+/// A speed in m/s from "15 m/s", "50 km/h", "30 mph", "50kph".
+fn speed(clause: &str) -> Option<f64> {
+    numbers_with_units(clause)
+        .into_iter()
+        .find_map(|(v, unit)| {
+            let factor = match unit.as_str() {
+                "m/s" | "mps" => 1.0,
+                "km/h" | "kmh" | "kph" | "kmph" => 1.0 / 3.6,
+                "mph" => 0.44704,
+                _ => return None,
+            };
+            Some(v * factor)
+        })
 }
 
 fn split_number(word: &str) -> (Option<f64>, &str) {
@@ -403,20 +413,9 @@ fn split_number(word: &str) -> (Option<f64>, &str) {
 
 /// The number before one of `units` ("at 15 m", "within 3 s", "15m").
 fn number_before(clause: &str, units: &[&str]) -> Option<f64> {
-    let w = words(clause);
-    for (i, word) in w.iter().enumerate() {
-        let (num, unit) = split_number(word);
-        let Some(v) = num else { continue };
-        let unit = if unit.is_empty() {
-            w.get(i + 1).map(String::as_str).unwrap_or("")
-        } else {
-            unit
-        };
-        if units.contains(&unit) {
-            return Some(v);
-        }
-    }
-    None
+    numbers_with_units(clause)
+        .into_iter()
+        .find_map(|(v, unit)| units.contains(&unit.as_str()).then_some(v))
 }
 
 /// "(x, y)" in the original clause.

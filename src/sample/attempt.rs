@@ -14,7 +14,7 @@ use serde::Serialize;
 
 use super::closed_loop::{closed_loop, ScriptSpec};
 use super::guided::{prepare, sample, Guidance, Sample, SampleConfig, SampleError, Task};
-use crate::cost::{CostError, CostScript, Params};
+use crate::cost::{check_params, CostError, CostScript, Params};
 use crate::eval::behaviors::{check, Behavior, CheckError, Verdict};
 use crate::eval::kinematic::{judge, KinematicLimits};
 use crate::io::{output_stem, rollout::Rollout, write_atomic, IoError};
@@ -256,6 +256,10 @@ pub fn attempt(
     cfg.validate().map_err(SampleError::Settings)?;
     let scene = prepare(raw, trained)?;
     let shared = Rc::new(scene.clone());
+    for s in &spec.scripts {
+        let sources: Vec<&str> = spec.scripts.iter().map(|t| t.source.as_str()).collect();
+        check_params(&sources, &s.params).map_err(AttemptError::Script)?;
+    }
     let scripts = spec
         .scripts
         .iter()
