@@ -271,7 +271,16 @@ fn unknown_formats_list_the_supported_ones() {
 
 #[test]
 fn help_has_examples() {
-    for cmd in ["inspect", "render", "convert", "bench"] {
+    for cmd in [
+        "inspect",
+        "render",
+        "convert",
+        "bench",
+        "demo",
+        "stdlib-doc",
+        "ask",
+        "prompt",
+    ] {
         let out = ok(&[cmd, "--help"]);
         assert!(out.contains("Examples:"), "{cmd} --help has no examples");
     }

@@ -75,7 +75,13 @@ enum Command {
   drivescript eval scene.yaml --task behaviour --behaviour cut_in --param cutter=2 victim=1 --rollouts sims/
   drivescript eval data/samples --task conditional --rollouts sims/ --samples 4 --json out/eval.json")]
     Eval(eval::Args),
-    /// Run the demo: render a sample scene to out/demo.gif and print its summary.
+    /// The product in one command: `ask` with the rules planner on a US-101 sample ("vehicle 401
+    /// cuts in front of vehicle 405, vehicle 389 drives off the road"), every phase printed, a
+    /// repair round, and out/demo/final.gif with the named agents highlighted.
+    #[command(after_help = "Examples:
+  drivescript demo
+  drivescript demo -o /tmp/demo --samples 8 --seed 2
+  drivescript demo --scene data/samples/commonroad/USA_US101-3_3_T-1.xml --request \"vehicle 401 cuts in front of vehicle 399\"")]
     Demo(demo::Args),
     /// Words → cost script → guided samples → repaired script: the LLM in the loop.
     #[command(
@@ -103,6 +109,9 @@ Examples:
   drivescript test-scripts scripts/cut_in.test.yaml -v")]
     TestScripts(test_scripts::Args),
     /// Print the cost-script reference (markdown), generated from what the engine registers.
+    #[command(after_help = "Examples:
+  drivescript stdlib-doc > reference.md
+  drivescript stdlib-doc | grep frenet")]
     StdlibDoc(stdlib_doc::Args),
     /// Measure throughput and print a table.
     #[command(after_help = "Examples:

@@ -541,7 +541,7 @@ impl<'a> Session<'a> {
                     return Ok(o);
                 }
                 Got::GiveUp(reason) => {
-                    return self.finish(Outcome::GaveUp { reason }, None, progress);
+                    return self.finish(Outcome::GaveUp { reason }, progress);
                 }
             };
             if !matches!(self.backend, Backend::Manual) {
@@ -556,7 +556,7 @@ impl<'a> Session<'a> {
                     progress(&format!("round {n}: unusable reply: {e}"));
                     let msg = self.prompts.unusable(&e.to_string());
                     if let Some(o) = self.miss(msg)? {
-                        return self.finish(o, None, progress);
+                        return self.finish(o, progress);
                     }
                 }
                 Ok(Reply::Accept { .. }) => {
@@ -565,7 +565,7 @@ impl<'a> Session<'a> {
                         progress(&format!(
                             "round {n}: ACCEPT (sample {k} of round {round} meets the request)"
                         ));
-                        return self.finish(Outcome::Accepted { round, sample: k }, None, progress);
+                        return self.finish(Outcome::Accepted { round, sample: k }, progress);
                     }
                     let reasons = if self.state.script.is_none() {
                         "nothing has been sampled yet: send a script first".to_string()
@@ -582,7 +582,7 @@ impl<'a> Session<'a> {
                     ));
                     let msg = self.prompts.accept_rejected(&reasons);
                     if let Some(o) = self.miss(msg)? {
-                        return self.finish(o, None, progress);
+                        return self.finish(o, progress);
                     }
                 }
                 Ok(Reply::Script { reasoning, source }) => {
@@ -611,7 +611,7 @@ impl<'a> Session<'a> {
                             let horizon = self.trained.meta.config.window.future;
                             let msg = self.prompts.validation(horizon, self.raw.meta.dt, &err);
                             if let Some(o) = self.miss(msg)? {
-                                return self.finish(o, None, progress);
+                                return self.finish(o, progress);
                             }
                         }
                         Err(e) => return Err(e.into()),
@@ -628,7 +628,7 @@ impl<'a> Session<'a> {
                                     round: n,
                                     sample: self.state.meets,
                                 };
-                                return self.finish(o, Some(&done), progress);
+                                return self.finish(o, progress);
                             }
                         }
                     }
@@ -768,12 +768,7 @@ impl<'a> Session<'a> {
         r
     }
 
-    fn finish(
-        &mut self,
-        o: Outcome,
-        _last: Option<&Attempt>,
-        progress: &mut dyn FnMut(&str),
-    ) -> Result<Outcome, LlmError> {
+    fn finish(&mut self, o: Outcome, progress: &mut dyn FnMut(&str)) -> Result<Outcome, LlmError> {
         let mut report = String::new();
         report.push_str(&format!(
             "# drivescript ask\n\nScene: {}\n\nRequest{}:\n{}\n\nBackend: {}{}\n\n",
