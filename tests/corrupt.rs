@@ -5,7 +5,7 @@ mod common;
 
 use std::path::{Path, PathBuf};
 
-use common::{fails, s, samples};
+use common::{fails, ok, s, samples};
 use drivescript::io::{load_scenes, LoadOptions};
 
 fn copy_to(dir: &Path, src: &Path, name: &str) -> PathBuf {
@@ -410,4 +410,33 @@ fn cost_on_a_scene_without_a_future_is_an_error_not_a_panic() {
         err.contains("scene highway-cut-in has no step after its current step 10"),
         "{err}"
     );
+}
+
+#[cfg(unix)]
+#[test]
+fn directory_walks_read_regular_files_once_and_refuse_fifos() {
+    let dir = tempfile::tempdir().unwrap();
+    let src = samples().join("yaml/highway_cut_in.yaml");
+    std::fs::copy(&src, dir.path().join("a.yaml")).unwrap();
+    // A symlink loop and a second link to the same directory: the scene is read once.
+    std::os::unix::fs::symlink(dir.path(), dir.path().join("loop")).unwrap();
+    let sub = dir.path().join("sub");
+    std::fs::create_dir(&sub).unwrap();
+    std::os::unix::fs::symlink(dir.path(), sub.join("up")).unwrap();
+    let out = ok(&["inspect", s(dir.path())]);
+    assert_eq!(out.matches("scene ").count(), 1, "{out}");
+    // A FIFO named like a scene is an error naming it, not a hang.
+    let fifo = dir.path().join("b.yaml");
+    let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+    if made.map(|s| s.success()).unwrap_or(false) {
+        let err = fails(&["inspect", s(dir.path())]);
+        assert!(
+            err.contains("b.yaml") && err.contains("not a regular file"),
+            "{err}"
+        );
+        let err = fails(&["inspect", s(&fifo)]);
+        assert!(err.contains("not a regular file"), "{err}");
+    } else {
+        println!("skipped the FIFO half: mkfifo is not available");
+    }
 }

@@ -215,34 +215,74 @@ pub fn load_scene(path: &Path, index: usize, opts: &LoadOptions) -> Result<Scene
 }
 
 /// The scene sources under `path`: the path itself if it is a file or an AV2 / WOMD directory,
-/// else every readable source found in it (recursively), sorted.
+/// else every readable source found in it (recursively), sorted. Only regular files are read: a
+/// FIFO, socket or device named like a scene is an error (reading it would block or never
+/// end), and a directory reached twice (a symlink loop, or two links to one directory) is
+/// walked once.
 pub fn discover(path: &Path) -> Result<Vec<PathBuf>, IoError> {
-    if !path.exists() {
-        return Err(IoError::read(
-            path,
-            std::io::Error::new(std::io::ErrorKind::NotFound, "no such file or directory"),
-        ));
+    let meta = std::fs::metadata(path).map_err(|e| IoError::read(path, e))?;
+    if !meta.is_dir() {
+        if !meta.is_file() {
+            return Err(not_regular(path));
+        }
+        return Ok(vec![path.to_path_buf()]);
     }
-    if !path.is_dir() || detect_format(path).is_ok() {
+    if detect_format(path).is_ok() {
         return Ok(vec![path.to_path_buf()]);
     }
     let mut out = Vec::new();
-    let mut entries: Vec<PathBuf> = std::fs::read_dir(path)
-        .map_err(|e| IoError::read(path, e))?
+    let mut seen = std::collections::HashSet::new();
+    walk(path, &mut seen, &mut out)?;
+    Ok(out)
+}
+
+fn not_regular(path: &Path) -> IoError {
+    IoError::invalid(
+        path,
+        "file",
+        "not a regular file (a FIFO, socket or device): reading it could block forever",
+    )
+}
+
+fn walk(
+    dir: &Path,
+    seen: &mut std::collections::HashSet<PathBuf>,
+    out: &mut Vec<PathBuf>,
+) -> Result<(), IoError> {
+    let canonical = std::fs::canonicalize(dir).map_err(|e| IoError::read(dir, e))?;
+    if !seen.insert(canonical) {
+        return Ok(());
+    }
+    let mut entries: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(|e| IoError::read(dir, e))?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .collect();
     entries.sort();
     for p in entries {
-        if p.is_dir() {
-            out.extend(discover(&p)?);
-        } else if matches!(
+        let scene_like = matches!(
             detect_format(&p),
             Ok(SceneFormat::CommonRoad | SceneFormat::Yaml | SceneFormat::Womd)
-        ) {
+        );
+        let meta = match std::fs::metadata(&p) {
+            Ok(m) => m,
+            // A dangling link named like a scene is an error; anything else is not ours.
+            Err(e) if scene_like => return Err(IoError::read(&p, e)),
+            Err(_) => continue,
+        };
+        if meta.is_dir() {
+            if detect_format(&p).is_ok() {
+                out.push(p);
+            } else {
+                walk(&p, seen, out)?;
+            }
+        } else if scene_like {
+            if !meta.is_file() {
+                return Err(not_regular(&p));
+            }
             out.push(p);
         }
     }
-    Ok(out)
+    Ok(())
 }
 
 /// `id` when it can start a file name inside an output directory: scene files are untrusted,
