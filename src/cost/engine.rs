@@ -398,7 +398,15 @@ fn add_term(
     name: &str,
     v: &Dynamic,
     weight: f64,
+    tolerance: Option<f64>,
 ) -> Result<(), Box<EvalAltResult>> {
+    if let Some(t) = tolerance {
+        if !(t.is_finite() && t >= 0.0) {
+            return stdlib::err(format!(
+                "term {name:?}: tolerance {t} must be finite and non-negative"
+            ));
+        }
+    }
     let value = term_value(v, name)?;
     if !value.val.is_finite() {
         return stdlib::err(format!(
@@ -450,6 +458,7 @@ fn add_term(
         weight,
         value,
         line: pos.line(),
+        tolerance,
     });
     Ok(())
 }
@@ -484,7 +493,7 @@ fn register_terms(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>) {
     e.register_fn(
         "term",
         move |ctx: NativeCallContext, name: &str, v: Dynamic| {
-            add_term(&sh, ctx.call_position(), name, &v, 1.0)
+            add_term(&sh, ctx.call_position(), name, &v, 1.0, None)
         },
     );
     stdlib::doc(
@@ -503,6 +512,27 @@ fn register_terms(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>) {
                 name,
                 &v,
                 stdlib::number(&w, "term weight")?,
+                None,
+            )
+        },
+    );
+    stdlib::doc(
+        docs,
+        S,
+        "term(name, value, weight, tolerance)",
+        "The same with the value at or below which the term counts as met (the LLM loop accepts a sample only when every term is within its tolerance; default `--tolerance`, 0.05).",
+    );
+    let sh = shared.clone();
+    e.register_fn(
+        "term",
+        move |ctx: NativeCallContext, name: &str, v: Dynamic, w: Dynamic, tol: Dynamic| {
+            add_term(
+                &sh,
+                ctx.call_position(),
+                name,
+                &v,
+                stdlib::number(&w, "term weight")?,
+                Some(stdlib::number(&tol, "term tolerance")?),
             )
         },
     );
@@ -807,6 +837,7 @@ impl CostScript {
                 weight: t.weight,
                 value: t.value.val,
                 line: t.line.unwrap_or(0),
+                tolerance: t.tolerance,
                 grad: (*t.value.grad).clone(),
             })
             .collect();
@@ -1004,6 +1035,31 @@ mod tests {
         assert_eq!(r.prints[0], "a\\u{1b}[31mred");
         assert!(r.prints[1].ends_with("\\u{7}\""), "{:?}", r.prints);
         assert!(r.prints.iter().all(|p| !p.chars().any(char::is_control)));
+    }
+
+    #[test]
+    fn terms_carry_the_tolerance_the_script_gives() {
+        let r = evaluate_recorded(
+            "let a = agent(1);
+             term(\"plain\", a.x.last());
+             term(\"loose\", a.x.last(), 2.0, 0.25);",
+            highway(),
+        );
+        let t = |n: &str| r.term(n).unwrap();
+        assert_eq!(
+            (t("plain").tolerance, t("loose").tolerance),
+            (None, Some(0.25))
+        );
+        assert_eq!(t("loose").weight, 2.0);
+        let e = evaluation_error(
+            "term(\"bad\", agent(1).x.last(), 1.0, -1.0);",
+            Rc::new(highway()),
+        )
+        .to_string();
+        assert!(
+            e.contains("tolerance -1 must be finite and non-negative"),
+            "{e}"
+        );
     }
 
     #[test]

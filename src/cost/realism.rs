@@ -218,6 +218,7 @@ impl Realism {
                     weight: self.weight,
                     value,
                     line: 0,
+                    tolerance: None,
                     grad: g.into(),
                 }
             })

@@ -18,6 +18,10 @@ pub struct TermReport {
     pub value: f64,
     /// Line of the `term(...)` call.
     pub line: usize,
+    /// The value at or below which the term counts as met, when the script says
+    /// (`term(name, value, weight, tolerance)`); the LLM loop's acceptance uses it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub tolerance: Option<f64>,
     /// Sparse gradient of the unweighted value.
     #[serde(skip)]
     pub grad: Grad,

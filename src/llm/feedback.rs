@@ -31,10 +31,15 @@ impl Acceptance {
         let named = &report.named;
         let mut out = Vec::new();
         for t in o.terms.iter().filter(|t| t.script != "realism") {
-            if !(t.value <= self.tolerance) {
+            let tol = t.tolerance.unwrap_or(self.tolerance);
+            if !(t.value <= tol) {
                 out.push(format!(
-                    "term {} = {:.4} is above the tolerance {} (line {})",
-                    t.term, t.value, self.tolerance, t.line
+                    "term {} = {:.4} is above {} tolerance {} (line {})",
+                    t.term,
+                    t.value,
+                    if t.tolerance.is_some() { "its" } else { "the" },
+                    tol,
+                    t.line
                 ));
             }
         }
@@ -95,7 +100,8 @@ pub fn feedback(a: &Attempt, acc: &Acceptance) -> String {
     }
     let _ = writeln!(
         s,
-        "A sample meets the request when every term is at most {} (unweighted), every checker \
+        "A sample meets the request when every term is at most its tolerance (unweighted; {} \
+         unless the script gives one with term(name, value, weight, tolerance)), every checker \
          passes and no named agent moves implausibly.",
         acc.tolerance
     );
@@ -169,21 +175,22 @@ pub fn term_table(r: &AttemptReport, acc: &Acceptance) -> String {
         let min = finals.iter().copied().fold(f64::INFINITY, f64::min);
         let max = finals.iter().copied().fold(f64::NEG_INFINITY, f64::max);
         let init = (!inits.is_empty()).then(|| inits.iter().sum::<f64>() / inits.len() as f64);
+        let tol = t.tolerance.unwrap_or(acc.tolerance);
         let mut note = Vec::new();
         if t.script == "realism" {
             note.push("sampler's realism term".to_string());
         } else {
             if let Some(i0) = init {
-                if mean > acc.tolerance && (mean - i0).abs() <= 0.05 * i0.abs().max(1e-3) {
+                if mean > tol && (mean - i0).abs() <= 0.05 * i0.abs().max(1e-3) {
                     note.push("never moves: this term is not pulling".into());
                 }
             }
             let total: f64 = r.samples.iter().map(|o| o.total).sum::<f64>() / n;
             let share = t.weight * mean / total.max(1e-12);
-            if share > 0.8 && first.is_some_and(|o| o.terms.len() > 1) && mean > acc.tolerance {
+            if share > 0.8 && first.is_some_and(|o| o.terms.len() > 1) && mean > tol {
                 note.push(format!("dominates ({:.0} % of the total)", 100.0 * share));
             }
-            if max <= acc.tolerance {
+            if max <= tol {
                 note.push("met in every sample".into());
             }
         }

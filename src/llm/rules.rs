@@ -702,7 +702,7 @@ fn reweight_terms(src: &str, factor: f64, names: &mut Vec<String>) -> String {
         let inner = &rest[i + 5..i + 4 + close];
         let args = split_args(inner);
         out.push_str(&rest[..i]);
-        if !(2..=3).contains(&args.len()) {
+        if !(2..=4).contains(&args.len()) {
             out.push_str(&rest[i..i + 4 + close + 1]);
             rest = &rest[i + 4 + close + 1..];
             continue;
@@ -719,15 +719,17 @@ fn reweight_terms(src: &str, factor: f64, names: &mut Vec<String>) -> String {
             name = format!("{unique:?}");
         }
         let value = args[1].trim();
+        let tolerance = args.get(3).map(|t| t.trim());
         let weight = match (args.get(2).map(|w| w.trim()), factor == 1.0) {
-            (None, true) => None,
-            (None, false) => Some(format!("{factor:?}")),
+            (None, true) if tolerance.is_none() => None,
+            (None, _) => Some(format!("{factor:?}")),
             (Some(w), true) => Some(w.to_string()),
             (Some(w), false) => Some(format!("{factor:?} * {w}")),
         };
-        match weight {
-            Some(w) => out.push_str(&format!("term({name}, {value}, {w})")),
-            None => out.push_str(&format!("term({name}, {value})")),
+        match (weight, tolerance) {
+            (Some(w), Some(t)) => out.push_str(&format!("term({name}, {value}, {w}, {t})")),
+            (Some(w), None) => out.push_str(&format!("term({name}, {value}, {w})")),
+            (None, _) => out.push_str(&format!("term({name}, {value})")),
         }
         rest = &rest[i + 4 + close + 1..];
     }
@@ -902,6 +904,19 @@ mod tests {
         assert!(
             s.contains("term(\"starts_beside\", relu(1.5 - abs(fa.d.first())), 2.0)"),
             "{s}"
+        );
+        // A term with a tolerance keeps it, its weight scaled.
+        let r = understand_request("vehicle 4 moves to the rightmost lane").unwrap();
+        let s2 = compose(
+            &r,
+            &[Tuning {
+                weight: 2.0,
+                margins: Params::default(),
+            }],
+        );
+        assert!(
+            s2.contains("term(\"settled_in_rightmost_lane\", relu(abs(settle) - tol).mean(), 2.0 * 0.5, 0.25)"),
+            "{s2}"
         );
         // The follow block's contact term is renamed, its weight untouched.
         assert!(

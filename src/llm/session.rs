@@ -743,7 +743,7 @@ impl<'a> Session<'a> {
         self.state.failing_terms = done.report.samples[best]
             .terms
             .iter()
-            .filter(|t| t.script != "realism" && !(t.value <= acc.tolerance))
+            .filter(|t| t.script != "realism" && !(t.value <= t.tolerance.unwrap_or(acc.tolerance)))
             .map(|t| t.term.clone())
             .collect();
         self.state.event_results = done.report.samples[best]

@@ -69,6 +69,9 @@ pub struct TermOutcome {
     /// Unweighted value on the final trajectories.
     #[serde(rename = "final")]
     pub value: f64,
+    /// The script's tolerance for it, when it gives one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub tolerance: Option<f64>,
 }
 
 /// One vehicle's implausible motion in a sample.
@@ -295,6 +298,7 @@ pub fn attempt(
                         .and_then(|r| r.term(&t.name))
                         .map(|x| x.value),
                     value: t.value,
+                    tolerance: t.tolerance,
                 });
             }
         }
@@ -308,6 +312,7 @@ pub fn attempt(
                     weight: t.weight,
                     initial: first.term(&t.name).map(|x| x.value),
                     value: t.value,
+                    tolerance: None,
                 });
             }
         }

@@ -42,6 +42,7 @@ pub(crate) struct Term {
     pub weight: f64,
     pub value: Dual,
     pub line: Option<usize>,
+    pub tolerance: Option<f64>,
 }
 
 /// What native functions see: the scene, the candidate trajectories and what the script has
