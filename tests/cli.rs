@@ -1067,3 +1067,23 @@ fn unknown_and_reserved_params_are_refused_with_the_scripts_parameters() {
         "margin=30",
     ]);
 }
+
+#[test]
+fn nothing_read_simulated_or_scored_is_an_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let empty = dir.path().join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    let err = fails(&["inspect", s(&empty)]);
+    assert!(err.contains("no scene found"), "{err}");
+    let err = fails(&["eval", s(&empty), "--task", "conditional"]);
+    assert!(err.contains("nothing was scored"), "{err}");
+    let err = fails(&[
+        "simulate",
+        s(&empty),
+        "--checkpoint",
+        "data/checkpoint",
+        "-o",
+        s(&dir.path().join("out")),
+    ]);
+    assert!(err.contains("no scene was simulated"), "{err}");
+}

@@ -477,5 +477,20 @@ pub fn run(args: Args) -> Result<ExitCode> {
         eprintln!("{failures} sources or rollouts failed");
         return Ok(ExitCode::FAILURE);
     }
+    let scored = accs.iter().any(|a| match args.task {
+        Task::Behaviour => a.checked > 0,
+        _ => a.scenes > 0,
+    });
+    if !scored {
+        eprintln!(
+            "error: nothing was scored: no scene with agents and a future{} was read from the given paths",
+            if args.task == Task::Behaviour {
+                " and agents for the behaviour"
+            } else {
+                ""
+            }
+        );
+        return Ok(ExitCode::FAILURE);
+    }
     Ok(ExitCode::SUCCESS)
 }

@@ -112,6 +112,12 @@ pub fn run(args: Args) -> Result<ExitCode> {
             failures
         );
     }
+    if summaries.is_empty() && failures == 0 {
+        eprintln!(
+            "error: no scene found (scene files: *.xml, *.xml.gz, *.yaml, *.yml, *.tfrecord*, an AV2 scenario directory)"
+        );
+        return Ok(ExitCode::FAILURE);
+    }
     Ok(if failures == 0 {
         ExitCode::SUCCESS
     } else {

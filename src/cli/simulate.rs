@@ -303,5 +303,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
         eprintln!("{failed} scenes failed");
         return Ok(ExitCode::FAILURE);
     }
+    if done == 0 {
+        eprintln!(
+            "error: no scene was simulated (none found, or none with agents suited to --auto)"
+        );
+        return Ok(ExitCode::FAILURE);
+    }
     Ok(ExitCode::SUCCESS)
 }
