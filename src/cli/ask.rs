@@ -357,23 +357,20 @@ pub fn run(args: Args) -> Result<ExitCode> {
             );
             Ok(ExitCode::SUCCESS)
         }
-        Outcome::Accepted { .. } => {
+        Outcome::Accepted { .. } | Outcome::RoundsUsed { .. } => {
+            let accepted = matches!(outcome, Outcome::Accepted { .. });
             println!(
-                "wrote {}, {} and {}",
+                "wrote {}, {} and {}{}",
                 dir.join("final.rhai").display(),
                 dir.join("final.gif").display(),
-                dir.join("report.md").display()
+                dir.join("report.md").display(),
+                if accepted { "" } else { " (not accepted)" }
             );
-            Ok(ExitCode::SUCCESS)
-        }
-        Outcome::RoundsUsed { .. } => {
-            println!(
-                "wrote {}, {} and {} (not accepted)",
-                dir.join("final.rhai").display(),
-                dir.join("final.gif").display(),
-                dir.join("report.md").display()
-            );
-            Ok(ExitCode::from(2))
+            Ok(if accepted {
+                ExitCode::SUCCESS
+            } else {
+                ExitCode::from(2)
+            })
         }
         Outcome::GaveUp { reason } => {
             eprintln!("error: {reason} (see {})", dir.join("report.md").display());
