@@ -1087,3 +1087,22 @@ fn nothing_read_simulated_or_scored_is_an_error() {
     ]);
     assert!(err.contains("no scene was simulated"), "{err}");
 }
+
+#[test]
+fn convert_refuses_to_write_over_its_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let y = dir.path().join("s.yaml");
+    std::fs::copy(samples().join("yaml/highway_cut_in.yaml"), &y).unwrap();
+    let before = std::fs::read(&y).unwrap();
+    let err = fails(&["convert", s(&y), "-o", s(&y)]);
+    assert!(err.contains("-o is the input itself"), "{err}");
+    assert_eq!(std::fs::read(&y).unwrap(), before);
+    // The same file by another name is the same file.
+    let err = fails(&[
+        "convert",
+        s(&y),
+        "-o",
+        &format!("{}/./s.yaml", s(dir.path())),
+    ]);
+    assert!(err.contains("-o is the input itself"), "{err}");
+}

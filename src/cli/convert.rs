@@ -26,6 +26,19 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
+    // Writing over the input would replace a many-scene file with one scene, or a compact
+    // YAML with its explicit form: refuse before reading anything.
+    if let (Ok(a), Ok(b)) = (
+        std::fs::canonicalize(&args.scene),
+        std::fs::canonicalize(&args.output),
+    ) {
+        if a == b {
+            bail!(
+                "{}: -o is the input itself; write the conversion to another file",
+                args.output.display()
+            );
+        }
+    }
     let mut scene = load_scene(&args.scene, args.index, &LoadOptions::default())?;
     if let Some(c) = args.current_step {
         if c + 1 >= scene.num_steps() {
