@@ -841,7 +841,44 @@ impl CostScript {
                 grad: (*t.value.grad).clone(),
             })
             .collect();
+        // Finite weights times finite values can still overflow; a total of inf would reach
+        // the sampler as a gradient naming neither term nor script.
+        for t in &terms {
+            let w = t.weight * t.value;
+            let g = t
+                .grad
+                .iter()
+                .map(|(_, g)| (t.weight * g).abs())
+                .fold(0.0, f64::max);
+            if !(w.is_finite() && g.is_finite()) {
+                return Err(CostError::Term {
+                    script: self.name.clone(),
+                    term: t.name.clone(),
+                    line: t.line,
+                    message: format!(
+                        "weight {:e} × value {:e} (or its gradient) overflows to infinity; use a smaller weight",
+                        t.weight, t.value
+                    ),
+                });
+            }
+        }
         let mut report = CostReport::new(terms, traj.layout, c.prints.clone(), t0.elapsed());
+        if !report.total.is_finite() {
+            return Err(CostError::Term {
+                script: self.name.clone(),
+                term: report
+                    .terms
+                    .iter()
+                    .max_by(|a, b| (a.weight * a.value).total_cmp(&(b.weight * b.value)))
+                    .map(|t| t.name.clone())
+                    .unwrap_or_default(),
+                line: 0,
+                message: format!(
+                    "the weighted total overflows to {}; use smaller weights",
+                    report.total
+                ),
+            });
+        }
         report.may_reverse = c.may_reverse.clone();
         report.named = c.named.clone();
         Ok(report)
@@ -1035,6 +1072,22 @@ mod tests {
         assert_eq!(r.prints[0], "a\\u{1b}[31mred");
         assert!(r.prints[1].ends_with("\\u{7}\""), "{:?}", r.prints);
         assert!(r.prints.iter().all(|p| !p.chars().any(char::is_control)));
+    }
+
+    #[test]
+    fn weights_that_overflow_name_their_term() {
+        let e = evaluation_error(
+            "term(\"small\", agent(1).x.last());\nterm(\"huge\", agent(1).x.last(), 1.0e308);",
+            Rc::new(highway()),
+        )
+        .to_string();
+        assert!(e.contains("\"huge\"") && e.contains("overflows"), "{e}");
+        let e = evaluation_error(
+            "term(\"a\", agent(1).x.last(), 5.0e305);\nterm(\"b\", agent(1).x.last(), 5.0e305);",
+            Rc::new(highway()),
+        )
+        .to_string();
+        assert!(e.contains("weighted total overflows"), "{e}");
     }
 
     #[test]
