@@ -667,6 +667,42 @@ fn train_then_simulate_end_to_end() {
         serde_json::from_str(&std::fs::read_to_string(ckpt.join("config.json")).unwrap()).unwrap();
     assert_eq!(config["config"]["val_fold"], 3);
     assert_eq!(config["val_scenes"], serde_json::json!(["highway-cut-in"]));
+    // Every file of the checkpoint has one mode, and no temporary file is left.
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        for f in ["model.safetensors", "config.json", "optimizer.safetensors"] {
+            let mode = std::fs::metadata(ckpt.join(f))
+                .unwrap()
+                .permissions()
+                .mode();
+            assert_eq!(mode & 0o777, 0o644, "{f}");
+        }
+    }
+    let names: Vec<String> = std::fs::read_dir(&ckpt)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert!(names.iter().all(|n| !n.ends_with(".tmp")), "{names:?}");
+    // Training from scratch over it is refused without --force.
+    let before = std::fs::read(ckpt.join("model.safetensors")).unwrap();
+    let err = fails(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--out",
+        s(&ckpt),
+        "--steps",
+        "2",
+    ]);
+    assert!(
+        err.contains("already holds a checkpoint") && err.contains("--force"),
+        "{err}"
+    );
+    assert_eq!(
+        std::fs::read(ckpt.join("model.safetensors")).unwrap(),
+        before
+    );
     let ck = s(&ckpt);
     // `train --resume` of the checkpoint, with these arguments.
     let resume = |more: &[&'static str]| {
@@ -1105,4 +1141,27 @@ fn convert_refuses_to_write_over_its_input() {
         &format!("{}/./s.yaml", s(dir.path())),
     ]);
     assert!(err.contains("-o is the input itself"), "{err}");
+}
+
+#[test]
+fn a_diverging_training_stops_with_an_error_and_writes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("dv");
+    let err = fails(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--out",
+        s(&out),
+        "--steps",
+        "30",
+        "--lr",
+        "1e30",
+        "--batch",
+        "2",
+        "--eval-every",
+        "5",
+    ]);
+    assert!(err.contains("training diverged"), "{err}");
+    assert!(!out.join("model.safetensors").exists());
 }

@@ -40,6 +40,10 @@ pub struct Args {
     /// total to reach). May be the `--out` directory itself.
     #[arg(long)]
     resume: Option<PathBuf>,
+    /// Train from scratch into an --out directory that already holds a checkpoint (which is
+    /// replaced at the first validation). Without it, that is refused.
+    #[arg(long)]
+    force: bool,
 }
 
 fn git_revision() -> Option<String> {
@@ -62,6 +66,15 @@ pub fn run(args: Args) -> Result<ExitCode> {
         val_fold: args.val_fold.unwrap_or(0),
         ..TrainConfig::ngsim()
     };
+    // A good checkpoint is never overwritten by accident.
+    if args.out.join("model.safetensors").exists() && args.resume.is_none() && !args.force {
+        anyhow::bail!(
+            "{} already holds a checkpoint: continue it with --resume {}, choose another --out, \
+             or pass --force to replace it",
+            args.out.display(),
+            args.out.display()
+        );
+    }
     // Before any data is read: --steps, --batch, --lr and --eval-every.
     if let Err(e) = cfg.validate() {
         anyhow::bail!("training settings: {e}");

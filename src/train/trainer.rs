@@ -1,7 +1,7 @@
 //! The EDM training loop: windows from scenes, a held-out validation split, AdamW, and
 //! checkpoints as safetensors plus a JSON config.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use candle_core::{DType, Device, Tensor, Var, D};
 use candle_nn::{VarBuilder, VarMap};
@@ -240,6 +240,17 @@ pub enum TrainError {
     /// Fitting PCA failed.
     #[error("PCA: {0}")]
     Pca(#[from] crate::model::PcaError),
+    /// The loss stopped being a number: training stops before the step is applied and
+    /// before anything is written, so the last checkpoint stays good.
+    #[error("{which} loss is {value} at step {step}: training diverged (lower --lr); the last checkpoint written is kept")]
+    Diverged {
+        /// `training` or `validation`.
+        which: &'static str,
+        /// The step.
+        step: usize,
+        /// The loss.
+        value: f64,
+    },
     /// Reading or writing the checkpoint failed.
     #[error("{path}: {message}")]
     Io {
@@ -516,8 +527,15 @@ pub fn train_from(
             .collect();
         let noise = Tensor::from_vec(noise, (cfg.batch, cfg.window.max_agents, cfg.model.k), &dev)?;
         let l = loss(&model, &cfg.edm, &b, &sigma, &noise)?;
-        opt.step(&l.backward()?)?;
         let lv = l.to_scalar::<f32>()? as f64;
+        if !lv.is_finite() {
+            return Err(TrainError::Diverged {
+                which: "training",
+                step,
+                value: lv,
+            });
+        }
+        opt.step(&l.backward()?)?;
         run_loss += lv;
         run_n += 1;
         let mut val = None;
@@ -534,6 +552,13 @@ pub fn train_from(
                 total += loss(&model, &cfg.edm, &b, sig, &noise)?.to_scalar::<f32>()? as f64;
             }
             let v = (!val_batches.is_empty()).then(|| total / val_batches.len() as f64);
+            if let Some(x) = v.filter(|x| !x.is_finite()) {
+                return Err(TrainError::Diverged {
+                    which: "validation",
+                    step,
+                    value: x,
+                });
+            }
             meta.history.push((step, run_loss / run_n.max(1) as f64, v));
             meta.steps_done = step;
             (run_loss, run_n) = (0.0, 0);
@@ -572,19 +597,42 @@ pub fn save(
         message: e,
     };
     std::fs::create_dir_all(dir).map_err(|e| io(dir, e.to_string()))?;
+    // Every file is written under a name of this process first and renamed only when all
+    // are complete, config last: a kill leaves the previous checkpoint whole (or, in the
+    // instant between renames, new weights beside the old config of the same model), and two
+    // trainers never write into one temporary file.
+    let pid = std::process::id();
+    let mut staged: Vec<(PathBuf, PathBuf)> = Vec::new();
     let weights = dir.join("model.safetensors");
-    let tmp = dir.join(".model.safetensors.tmp");
+    let tmp = dir.join(format!(".model.safetensors.{pid}.tmp"));
     varmap.save(&tmp).map_err(|e| io(&tmp, e.to_string()))?;
-    std::fs::rename(&tmp, &weights).map_err(|e| io(&weights, e.to_string()))?;
+    staged.push((tmp, weights));
     if let Some(opt) = optimizer {
         let path = dir.join(OPTIMIZER_FILE);
-        let tmp = dir.join(".optimizer.safetensors.tmp");
+        let tmp = dir.join(format!(".optimizer.safetensors.{pid}.tmp"));
         opt.save(&tmp).map_err(|e| io(&tmp, e.to_string()))?;
-        std::fs::rename(&tmp, &path).map_err(|e| io(&path, e.to_string()))?;
+        staged.push((tmp, path));
     }
     let json = serde_json::to_string_pretty(meta).expect("metadata serialises");
-    crate::io::write_atomic(&dir.join("config.json"), json.as_bytes())
-        .map_err(|e| io(&dir.join("config.json"), e.to_string()))
+    let tmp = dir.join(format!(".config.json.{pid}.tmp"));
+    std::fs::write(&tmp, json.as_bytes()).map_err(|e| io(&tmp, e.to_string()))?;
+    staged.push((tmp, dir.join("config.json")));
+    for (tmp, _) in &staged {
+        // One mode for every file of a checkpoint (the tensor writer creates 0600).
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            std::fs::set_permissions(tmp, std::fs::Permissions::from_mode(0o644))
+                .map_err(|e| io(tmp, e.to_string()))?;
+        }
+        std::fs::File::open(tmp)
+            .and_then(|f| f.sync_all())
+            .map_err(|e| io(tmp, e.to_string()))?;
+    }
+    for (tmp, dst) in staged {
+        std::fs::rename(&tmp, &dst).map_err(|e| io(&dst, e.to_string()))?;
+    }
+    Ok(())
 }
 
 /// Reads a checkpoint written by [`save`].
