@@ -97,27 +97,56 @@ pub struct Args {
     /// Largest unweighted script term a sample may keep and still meet the request.
     #[arg(long, default_value_t = 0.05)]
     tolerance: f64,
-    /// Most agents in the scene summary (the request's are always listed).
-    #[arg(long, default_value_t = 30)]
-    max_agents: usize,
     /// Checkpoint directory (default: the one shipped in data/checkpoint).
     #[arg(long)]
     checkpoint: Option<PathBuf>,
-    /// Prompt templates (default: prompts/).
-    #[arg(long)]
-    prompts: Option<PathBuf>,
-    /// Ablation: request → script with no reasoning.
-    #[arg(long, conflicts_with = "zero_shot_cot")]
-    no_cot: bool,
-    /// Ablation: "think step by step" instead of the designed chain of thought.
-    #[arg(long)]
-    zero_shot_cot: bool,
-    /// Ablation: the reference without the Frenet-frame functions.
-    #[arg(long)]
-    no_frenet: bool,
+    #[command(flatten)]
+    prompt: PromptFlags,
     /// Guide through the denoiser (the paper's rule) instead of in output space.
     #[arg(long)]
     through_denoiser: bool,
+}
+
+/// What the first prompt holds: shared by `ask` and `prompt show`, so that the prompt shown is
+/// the prompt sent.
+#[derive(clap::Args)]
+pub(crate) struct PromptFlags {
+    /// Most agents in the scene summary (the request's are always listed).
+    #[arg(long, default_value_t = 30)]
+    pub max_agents: usize,
+    /// Prompt templates (default: prompts/).
+    #[arg(long)]
+    pub prompts: Option<PathBuf>,
+    /// Ablation: request → script with no reasoning.
+    #[arg(long, conflicts_with = "zero_shot_cot")]
+    pub no_cot: bool,
+    /// Ablation: "think step by step" instead of the designed chain of thought.
+    #[arg(long)]
+    pub zero_shot_cot: bool,
+    /// Ablation: the reference without the Frenet-frame functions.
+    #[arg(long)]
+    pub no_frenet: bool,
+}
+
+impl PromptFlags {
+    /// The prompt options these flags choose.
+    pub(crate) fn options(&self) -> PromptOptions {
+        PromptOptions {
+            cot: if self.no_cot {
+                Cot::None
+            } else if self.zero_shot_cot {
+                Cot::ZeroShot
+            } else {
+                Cot::Designed
+            },
+            frenet: !self.no_frenet,
+        }
+    }
+
+    /// The templates, from --prompts or prompts/.
+    pub(crate) fn load(&self) -> Result<Prompts, LlmError> {
+        Prompts::load(&self.prompts.clone().unwrap_or_else(Prompts::default_dir))
+    }
 }
 
 fn env(name: &str) -> Option<String> {
@@ -197,9 +226,9 @@ impl Args {
         SessionConfig {
             rounds: self.rounds,
             fixes: self.fixes,
-            prompt: self.prompt_options(),
+            prompt: self.prompt.options(),
             tolerance: self.tolerance,
-            max_agents: self.max_agents,
+            max_agents: self.prompt.max_agents,
             samples: self.samples,
             seed: self.seed,
             through_denoiser: self.through_denoiser,
@@ -207,21 +236,14 @@ impl Args {
         }
     }
 
-    pub(crate) fn prompt_options(&self) -> PromptOptions {
-        prompt_options(self.no_cot, self.zero_shot_cot, self.no_frenet)
-    }
-}
-
-pub(crate) fn prompt_options(no_cot: bool, zero_shot: bool, no_frenet: bool) -> PromptOptions {
-    PromptOptions {
-        cot: if no_cot {
-            Cot::None
-        } else if zero_shot {
-            Cot::ZeroShot
-        } else {
-            Cot::Designed
-        },
-        frenet: !no_frenet,
+    /// The backend the flags and environment choose, with the line that says which.
+    fn backend(&self) -> Result<(Backend, String), LlmError> {
+        backend(
+            self.llm,
+            self.llm_url.as_deref(),
+            self.model.as_deref(),
+            |u, m| self.http_config(u, m),
+        )
     }
 }
 
@@ -313,17 +335,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
         let Some(dir) = &args.output else {
             bail!("ask needs -o DIR, the run directory");
         };
-        let (b, line) = backend(
-            args.llm,
-            args.llm_url.as_deref(),
-            args.model.as_deref(),
-            |u, m| args.http_config(u, m),
-        )?;
+        let (b, line) = args.backend()?;
         println!("{line}");
         let path = PathBuf::from(scene);
         let raw = load_one(&path)?;
-        let prompts_dir = args.prompts.clone().unwrap_or_else(Prompts::default_dir);
-        let prompts = Prompts::load(&prompts_dir)?;
+        let prompts = args.prompt.load()?;
         let s = Session::start(
             dir,
             &path,
@@ -404,19 +420,14 @@ fn batch(args: &Args, file: &Path, trained: &Trained) -> Result<ExitCode> {
     if instances.is_empty() {
         bail!("{}: no (scene, request) pair to run", file.display());
     }
-    let (_, line) = backend(
-        args.llm,
-        args.llm_url.as_deref(),
-        args.model.as_deref(),
-        |u, m| args.http_config(u, m),
-    )?;
+    let (b, line) = args.backend()?;
     println!("{line}");
     println!(
         "{} pairs; runs in {}",
         instances.len(),
         out.join("runs").display()
     );
-    let prompts = Prompts::load(&args.prompts.clone().unwrap_or_else(Prompts::default_dir))?;
+    let prompts = args.prompt.load()?;
     let mut results: Vec<InstanceResult> = Vec::new();
     let write_summary = |results: &[InstanceResult]| -> Result<()> {
         let rows = summarise(results, args.rounds);
@@ -442,19 +453,13 @@ fn batch(args: &Args, file: &Path, trained: &Trained) -> Result<ExitCode> {
         let dir = out
             .join("runs")
             .join(format!("{k:03}_{}_{stem}", inst.label));
-        let (b, _) = backend(
-            args.llm,
-            args.llm_url.as_deref(),
-            args.model.as_deref(),
-            |u, m| args.http_config(u, m),
-        )?;
         let started = Session::start(
             &dir,
             &inst.scene_path,
             inst.scene.clone(),
             &inst.request,
             trained,
-            b,
+            b.clone(),
             prompts.clone(),
             args.session_config(),
             Some(inst.checks.clone()),

@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use anyhow::{Context, Result};
 use drivescript::io::{load_scene, LoadOptions};
 use drivescript::llm::session::{first_messages, render_messages};
-use drivescript::llm::{Prompts, SessionConfig};
+use drivescript::llm::SessionConfig;
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -26,24 +26,11 @@ struct ShowArgs {
     scene: PathBuf,
     /// The request, in quotes.
     request: String,
-    /// Prompt templates (default: prompts/).
-    #[arg(long)]
-    prompts: Option<PathBuf>,
     /// Checkpoint whose horizon the summary states (default: data/checkpoint).
     #[arg(long)]
     checkpoint: Option<PathBuf>,
-    /// Most agents in the scene summary.
-    #[arg(long, default_value_t = 30)]
-    max_agents: usize,
-    /// As `ask --no-cot`.
-    #[arg(long, conflicts_with = "zero_shot_cot")]
-    no_cot: bool,
-    /// As `ask --zero-shot-cot`.
-    #[arg(long)]
-    zero_shot_cot: bool,
-    /// As `ask --no-frenet`.
-    #[arg(long)]
-    no_frenet: bool,
+    #[command(flatten)]
+    prompt: super::ask::PromptFlags,
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
@@ -51,10 +38,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let trained = super::ask::checkpoint(a.checkpoint.as_deref())?;
     let raw = load_scene(&a.scene, 0, &LoadOptions::default())
         .with_context(|| format!("loading {}", a.scene.display()))?;
-    let prompts = Prompts::load(&a.prompts.unwrap_or_else(Prompts::default_dir))?;
+    let prompts = a.prompt.load()?;
     let cfg = SessionConfig {
-        prompt: super::ask::prompt_options(a.no_cot, a.zero_shot_cot, a.no_frenet),
-        max_agents: a.max_agents,
+        prompt: a.prompt.options(),
+        max_agents: a.prompt.max_agents,
         ..SessionConfig::default()
     };
     let m = first_messages(

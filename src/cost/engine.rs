@@ -841,17 +841,17 @@ impl CostScript {
                 grad: (*t.value.grad).clone(),
             })
             .collect();
+        let mut report = CostReport::new(terms, traj.layout, c.prints.clone(), t0.elapsed());
         // Finite weights times finite values can still overflow; a total of inf would reach
-        // the sampler as a gradient naming neither term nor script.
-        for t in &terms {
-            let w = t.weight * t.value;
-            let g = t
-                .grad
-                .iter()
-                .map(|(_, g)| (t.weight * g).abs())
-                .fold(0.0, f64::max);
-            if !(w.is_finite() && g.is_finite()) {
-                return Err(CostError::Term {
+        // the sampler as a gradient naming neither term nor script. The per-term search runs
+        // only when the sums say something overflowed.
+        if !(report.total.is_finite() && report.gradient.iter().all(|g| g.is_finite())) {
+            let culprit = report.terms.iter().find(|t| {
+                !(t.weight * t.value).is_finite()
+                    || t.grad.iter().any(|(_, g)| !(t.weight * g).is_finite())
+            });
+            return Err(match culprit {
+                Some(t) => CostError::Term {
                     script: self.name.clone(),
                     term: t.name.clone(),
                     line: t.line,
@@ -859,24 +859,21 @@ impl CostScript {
                         "weight {:e} × value {:e} (or its gradient) overflows to infinity; use a smaller weight",
                         t.weight, t.value
                     ),
-                });
-            }
-        }
-        let mut report = CostReport::new(terms, traj.layout, c.prints.clone(), t0.elapsed());
-        if !report.total.is_finite() {
-            return Err(CostError::Term {
-                script: self.name.clone(),
-                term: report
-                    .terms
-                    .iter()
-                    .max_by(|a, b| (a.weight * a.value).total_cmp(&(b.weight * b.value)))
-                    .map(|t| t.name.clone())
-                    .unwrap_or_default(),
-                line: 0,
-                message: format!(
-                    "the weighted total overflows to {}; use smaller weights",
-                    report.total
-                ),
+                },
+                None => CostError::Term {
+                    script: self.name.clone(),
+                    term: report
+                        .terms
+                        .iter()
+                        .max_by(|a, b| (a.weight * a.value).total_cmp(&(b.weight * b.value)))
+                        .map(|t| t.name.clone())
+                        .unwrap_or_default(),
+                    line: 0,
+                    message: format!(
+                        "the weighted total overflows to {}; use smaller weights",
+                        report.total
+                    ),
+                },
             });
         }
         report.may_reverse = c.may_reverse.clone();

@@ -108,7 +108,7 @@ pub fn read_batch(path: &Path) -> Result<Vec<Entry>, LlmError> {
             }
             if inside {
                 let t = l.trim_start();
-                if let Some(rest) = t.strip_prefix("- ") {
+                if t.starts_with("- ") {
                     let ind = l.len() - t.len();
                     if indent.is_none() {
                         indent = Some(ind);
@@ -116,7 +116,6 @@ pub fn read_batch(path: &Path) -> Result<Vec<Entry>, LlmError> {
                     if Some(ind) == indent {
                         lines.push(i + 1);
                     }
-                    let _ = rest;
                 }
             }
         }

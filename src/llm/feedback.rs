@@ -58,14 +58,6 @@ impl Acceptance {
         }
         out
     }
-
-    /// The first sample that meets the request.
-    pub fn chosen(&self, a: &Attempt) -> Option<usize> {
-        a.report
-            .samples
-            .iter()
-            .position(|o| self.reasons(o, &a.report).is_empty())
-    }
 }
 
 /// The refinement text for an attempt. `max_agents` caps the agents whose motion is listed

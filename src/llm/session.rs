@@ -32,6 +32,7 @@ use crate::scene::Scene;
 use crate::train::Trained;
 
 /// Who answers.
+#[derive(Clone)]
 pub enum Backend {
     /// An OpenAI-compatible server.
     Http(HttpClient),
@@ -199,9 +200,8 @@ struct State {
     misses: usize,
     /// The last script that validated and was sampled, with its round.
     script: Option<(usize, String)>,
-    /// Of the last sampling: a sample that meets the request, and why the best one does not.
+    /// Of the last sampling: a sample that meets the request.
     meets: Option<usize>,
-    reasons: Vec<String>,
     /// Rules planner: per event, its tuning and whether it passed / was achieved on the best
     /// sample of the last sampling.
     tunings: Vec<(f64, Vec<(String, f64)>)>,
@@ -328,7 +328,6 @@ impl<'a> Session<'a> {
                 misses: 0,
                 script: None,
                 meets: None,
-                reasons: Vec::new(),
                 tunings: Vec::new(),
                 event_results: Vec::new(),
                 failing_terms: Vec::new(),
@@ -425,6 +424,14 @@ impl<'a> Session<'a> {
         self.state.sampled = 0;
         self.state.misses = 0;
         self.save()
+    }
+
+    /// Why the sample the last sampling round shows does not meet the request.
+    fn last_reasons(&self) -> &[String] {
+        self.state
+            .history
+            .last()
+            .map_or(&[], |h| h.reasons.as_slice())
     }
 
     /// One record per sampling round so far.
@@ -570,8 +577,7 @@ impl<'a> Session<'a> {
                     let reasons = if self.state.script.is_none() {
                         "nothing has been sampled yet: send a script first".to_string()
                     } else {
-                        self.state
-                            .reasons
+                        self.last_reasons()
                             .iter()
                             .map(|r| format!("- {r}"))
                             .collect::<Vec<_>>()
@@ -685,7 +691,15 @@ impl<'a> Session<'a> {
             .map_err(|e| run_err(rdir, e.to_string()))?;
         let text = feedback(done, &acc);
         write(rdir, "feedback.md", &text)?;
-        let meets = acc.chosen(done);
+        // Why each sample misses the request, computed once for the choice, the progress lines
+        // and the round's record.
+        let reasons: Vec<Vec<String>> = done
+            .report
+            .samples
+            .iter()
+            .map(|o| acc.reasons(o, &done.report))
+            .collect();
+        let meets = reasons.iter().position(Vec::is_empty);
         let best = meets.unwrap_or_else(|| done.best());
         let gif = render_gif(
             &done.samples[best].scene,
@@ -703,8 +717,7 @@ impl<'a> Session<'a> {
             done.report.seconds,
             indent(&super::feedback::term_table(&done.report, &acc))
         ));
-        for o in &done.report.samples {
-            let reasons = acc.reasons(o, &done.report);
+        for (o, reasons) in done.report.samples.iter().zip(&reasons) {
             let verdicts: Vec<String> = o
                 .verdicts
                 .iter()
@@ -731,22 +744,21 @@ impl<'a> Session<'a> {
         self.state.last_error = None;
         self.state.script = Some((n, source.to_string()));
         self.state.meets = meets;
-        self.state.reasons = acc.reasons(&done.report.samples[best], &done.report);
         let shown = &done.report.samples[best];
         self.state.history.push(RoundRecord {
             exchange: n,
             meets: meets.is_some(),
             achieved: !shown.verdicts.is_empty() && shown.verdicts.iter().all(|v| v.achieved),
             passed: shown.passed() == Some(true),
-            reasons: acc.reasons(shown, &done.report),
+            reasons: reasons[best].clone(),
         });
-        self.state.failing_terms = done.report.samples[best]
+        self.state.failing_terms = shown
             .terms
             .iter()
             .filter(|t| t.script != "realism" && !(t.value <= t.tolerance.unwrap_or(acc.tolerance)))
             .map(|t| t.term.clone())
             .collect();
-        self.state.event_results = done.report.samples[best]
+        self.state.event_results = shown
             .verdicts
             .iter()
             .map(|v| (v.passed, v.achieved))
@@ -817,9 +829,10 @@ impl<'a> Session<'a> {
             report.push_str(&format!(
                 "\nFinal script: final.rhai (round {round}); picture: final.gif; rollouts and costs: round_{round}/sample_K.json, round_{round}/sample_costs.json.\n"
             ));
-            if !self.state.reasons.is_empty() {
+            let reasons = self.last_reasons().to_vec();
+            if !reasons.is_empty() {
                 report.push_str("\nWhy the best sample of that round falls short:\n");
-                for r in &self.state.reasons {
+                for r in &reasons {
                     report.push_str(&format!("- {r}\n"));
                 }
             }

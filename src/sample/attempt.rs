@@ -259,8 +259,8 @@ pub fn attempt(
     cfg.validate().map_err(SampleError::Settings)?;
     let scene = prepare(raw, trained)?;
     let shared = Rc::new(scene.clone());
+    let sources: Vec<&str> = spec.scripts.iter().map(|t| t.source.as_str()).collect();
     for s in &spec.scripts {
-        let sources: Vec<&str> = spec.scripts.iter().map(|t| t.source.as_str()).collect();
         check_params(&sources, &s.params).map_err(AttemptError::Script)?;
     }
     let scripts = spec
