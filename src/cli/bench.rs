@@ -38,6 +38,13 @@ pub struct Args {
     /// benches/torch/, which checks a PyTorch port against them.
     #[arg(long)]
     export: Option<PathBuf>,
+    /// `bench io`: keep the re-encoded WOMD file (of --data when given, else of the samples)
+    /// at this path, for benches/womd/read.py to read with Python's protobuf.
+    #[arg(long, value_name = "FILE", conflicts_with = "womd")]
+    womd_out: Option<PathBuf>,
+    /// `bench io`: time only reading this WOMD TFRecord file (into scenes, and into protos).
+    #[arg(long, value_name = "FILE")]
+    womd: Option<PathBuf>,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -455,6 +462,10 @@ fn bench_io(args: &Args, min: Duration) -> Result<ExitCode> {
         "|{}|--------|-------|------------|-----------|------------|",
         "-".repeat(42)
     );
+    if let Some(f) = &args.womd {
+        womd_file_rows(&f.display().to_string(), f, min)?;
+        return Ok(ExitCode::SUCCESS);
+    }
     let cr = discover(&samples.join("commonroad"))?;
     row("CommonRoad XML (samples)", &cr, min)?;
     if let Some(d) = &args.data {
@@ -463,23 +474,33 @@ fn bench_io(args: &Args, min: Duration) -> Result<ExitCode> {
     }
     row("Argoverse 2 (sample)", &[samples.join("av2")], min)?;
     row("YAML (samples)", &discover(&samples.join("yaml"))?, min)?;
-    let tmp =
-        std::env::temp_dir().join(format!("drivescript-bench-{}.tfrecord", std::process::id()));
-    let scenes: Vec<_> = cr
-        .iter()
-        .map(|p| load_scenes(p, &LoadOptions::default()))
-        .collect::<Result<Vec<_>, _>>()?
-        .into_iter()
-        .flatten()
-        .collect();
-    womd::write_file(&tmp, &scenes)?;
-    let res = row(
-        "WOMD TFRecord (samples, re-encoded)",
-        std::slice::from_ref(&tmp),
-        min,
-    );
-    let _ = std::fs::remove_file(&tmp);
-    res?;
+    // WOMD files are re-encoded from the scenes above (no WOMD file ships), each set into one
+    // multi-record file; the larger --data set is the one closest to WOMD's record sizes.
+    let mut sets = vec![("samples".to_string(), cr.clone())];
+    if let Some(d) = &args.data {
+        sets.push((d.display().to_string(), discover(d)?));
+    }
+    let last = sets.len() - 1;
+    for (k, (name, sources)) in sets.iter().enumerate() {
+        let keep = args.womd_out.as_ref().filter(|_| k == last);
+        let tmp = keep.cloned().unwrap_or_else(|| {
+            std::env::temp_dir().join(format!(
+                "drivescript-bench-{}-{k}.tfrecord",
+                std::process::id()
+            ))
+        });
+        let res = womd_rows(name, sources, &tmp, min);
+        if keep.is_none() {
+            let _ = std::fs::remove_file(&tmp);
+        }
+        res?;
+    }
+    if let Some(p) = &args.womd_out {
+        println!(
+            "\nkept the last re-encoded WOMD file at {} (for benches/womd/read.py)",
+            p.display()
+        );
+    }
 
     println!("\n## Frenet projection\n");
     let path = bench_path(&samples)?;
@@ -511,6 +532,51 @@ fn bench_io(args: &Args, min: Duration) -> Result<ExitCode> {
         1e6 * pts.len() as f64 / r
     );
     Ok(ExitCode::SUCCESS)
+}
+
+/// Re-encodes `sources` as one WOMD TFRecord file at `path` and prints its rows.
+fn womd_rows(name: &str, sources: &[PathBuf], path: &Path, min: Duration) -> Result<()> {
+    let opts = LoadOptions::default();
+    let mut scenes = Vec::new();
+    for s in sources {
+        scenes.extend(load_scenes(s, &opts).with_context(|| format!("loading {}", s.display()))?);
+    }
+    womd::write_file(path, &scenes)?;
+    womd_file_rows(&format!("{name}, re-encoded"), path, min)
+}
+
+/// Two rows for one WOMD file: reading it into scenes (what every command does), and decoding
+/// its Scenario protos only (what a protobuf library's parse does: the figure
+/// benches/womd/compare.py sets against Python's protobuf).
+fn womd_file_rows(name: &str, path: &Path, min: Duration) -> Result<()> {
+    row(
+        &format!("WOMD → scenes ({name})"),
+        std::slice::from_ref(&path.to_path_buf()),
+        min,
+    )?;
+    let bytes = std::fs::metadata(path)?.len();
+    let decode = || -> Result<usize> {
+        let f = std::fs::File::open(path)?;
+        let reader = drivescript::io::tfrecord::TfRecordReader::new(
+            std::io::BufReader::with_capacity(1 << 20, f),
+        );
+        let mut n = 0;
+        for rec in reader {
+            let sc = drivescript::io::womd_wire::decode_scenario(&rec?)?;
+            std::hint::black_box(&sc);
+            n += 1;
+        }
+        Ok(n)
+    };
+    let n = decode()?;
+    let (r, reps) = rate(min, n, || decode().map(|_| ()))?;
+    println!(
+        "| {:<40} | {n:>6} | {reps:>5} | {r:>10.1} | {:>9.2} | {:>10.1} |",
+        format!("WOMD → protos only ({name})"),
+        1000.0 / r,
+        r * bytes as f64 / n as f64 / 1e6
+    );
+    Ok(())
 }
 
 /// A real lane path from the Lankershim sample, resampled to 200 points.

@@ -15,6 +15,7 @@ pub mod rollout;
 pub mod tfrecord;
 pub mod womd;
 pub mod womd_proto;
+pub mod womd_wire;
 pub mod yaml;
 
 use std::path::{Path, PathBuf};

@@ -76,7 +76,7 @@ pub fn read_shards(dir: &Path) -> Result<impl Iterator<Item = Result<Scene, IoEr
 /// Decodes record `index` of `path` into a scene.
 pub fn decode_record(path: &Path, index: usize, bytes: &[u8]) -> Result<Scene, IoError> {
     let loc = format!("record {index}");
-    let scenario = pb::Scenario::decode(bytes)
+    let scenario = super::womd_wire::decode_scenario(bytes)
         .map_err(|e| IoError::invalid(path, &loc, format!("not a Scenario proto: {e}")))?;
     scenario_to_scene(&scenario, path, index)
 }
@@ -528,7 +528,7 @@ pub fn write_file(path: &Path, scenes: &[Scene]) -> Result<(), IoError> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::io::tfrecord::frame_records;
 
@@ -563,7 +563,7 @@ mod tests {
     }
 
     /// A scenario with every kind of map feature, encoded by prost as WOMD files are.
-    fn scenario() -> pb::Scenario {
+    pub(crate) fn scenario() -> pb::Scenario {
         let lane = |pts: Vec<pb::MapPoint>, exit: Vec<i64>, left: Vec<i64>| {
             pb::FeatureData::Lane(pb::LaneCenter {
                 speed_limit_mph: Some(25.0),
