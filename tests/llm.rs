@@ -628,3 +628,104 @@ fn a_batch_runs_every_pair_and_writes_a_summary_and_rollouts_eval_reads() {
         "{t}"
     );
 }
+
+#[test]
+fn a_run_killed_after_the_reply_resumes_without_asking_again() {
+    // The only reply is the round-0 script; the run is killed as soon as it is on disk
+    // (while sampling, most likely), and --resume must go on from that reply.
+    let srv = Server::start(vec![Canned::chat(&reply(&cut_in_script(401, 399)))]);
+    let dir = tempfile::tempdir().unwrap();
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_drivescript"))
+        .args([
+            "ask",
+            s(&samples().join(SCENE)),
+            REQUEST,
+            "-o",
+            s(dir.path()),
+        ])
+        .args(["--backoff", "0.02"])
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .env("DRIVESCRIPT_LLM_URL", &srv.url)
+        .env("DRIVESCRIPT_LLM_MODEL", "test-model")
+        .env("DRIVESCRIPT_LLM_KEY", "sk-test-secret")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let reply_md = dir.path().join("round_0/reply.md");
+    let t0 = std::time::Instant::now();
+    while !reply_md.exists() {
+        assert!(t0.elapsed().as_secs() < 120, "no reply.md after 2 minutes");
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert_eq!(srv.received().len(), 1);
+    let srv2 = Server::start(vec![Canned::chat("ACCEPT")]);
+    let out = ask(&["--resume", s(dir.path())], Some(&srv2.url));
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    assert!(t.contains("round 1: ACCEPT"), "{t}");
+    // Round 0 was not asked again: the second server answered round 1 only.
+    let got = srv2.received();
+    assert_eq!(got.len(), 1, "{t}");
+    assert!(
+        got[0].body.contains("```rhai"),
+        "round 1 carries round 0's script"
+    );
+    let transcript = std::fs::read_to_string(dir.path().join("transcript.json")).unwrap();
+    assert!(transcript.contains("\"llm\""), "{transcript}");
+    assert_no_key(dir.path());
+}
+
+#[test]
+fn a_batch_stopped_by_an_error_continues_when_run_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join(SCENE);
+    let file = dir.path().join("requests.yaml");
+    let write = |first: &str| {
+        std::fs::write(
+            &file,
+            format!(
+                "scenes: {}\nentries:\n  - request: \"{first}\"\n    behaviour: cut_in\n    params: {{cutter: 401, victim: 399}}\n  - request: \"vehicle 401 cuts in front of vehicle 405\"\n    behaviour: cut_in\n    params: {{cutter: 401, victim: 405}}\n",
+                scene.display()
+            ),
+        )
+        .unwrap()
+    };
+    write("vehicle 401 cuts in front of vehicle 399");
+    let out = dir.path().join("out");
+    let e503 = Canned::raw(503, "Service Unavailable");
+    let srv = Server::start(vec![
+        Canned::chat(&reply(&cut_in_script(401, 399))),
+        e503.clone(),
+        e503.clone(),
+        e503,
+    ]);
+    let args = ["--batch", s(&file), "-o", s(&out), "--rounds", "0"];
+    let o = ask(&args, Some(&srv.url));
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("pair 2 of 2") && t.contains("run the same command again"),
+        "{t}"
+    );
+    assert!(t.contains("HTTP 503"), "{t}");
+    let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    assert!(summary.contains("1 of 2 pairs done"), "{summary}");
+    // Run again: the finished pair is read back, not asked again; the stopped one runs.
+    let srv2 = Server::start(vec![Canned::chat(&reply(&cut_in_script(401, 405)))]);
+    let o = ask(&args, Some(&srv2.url));
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(0), "{t}");
+    assert!(t.contains("[1/2]") && t.contains("(continued run)"), "{t}");
+    assert_eq!(srv2.received().len(), 1, "{t}");
+    let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    assert!(summary.contains("2 of 2 pairs done"), "{summary}");
+    // A batch file whose pair changed does not reuse the old run.
+    write("vehicle 401 cuts in front of vehicle 399 abruptly");
+    let o = ask(&args, Some(&srv2.url));
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("holds a run of the request"), "{t}");
+}

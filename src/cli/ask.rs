@@ -396,7 +396,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
 }
 
 fn batch(args: &Args, file: &Path, trained: &Trained) -> Result<ExitCode> {
-    use drivescript::llm::batch::{expand, markdown, read_batch, summarise, InstanceResult};
+    use drivescript::llm::batch::{expand, markdown, read_batch, summarise, Batch, Progress};
     if !args.words.is_empty() {
         bail!("--batch FILE takes no scene or request (the file lists them)");
     }
@@ -420,106 +420,37 @@ fn batch(args: &Args, file: &Path, trained: &Trained) -> Result<ExitCode> {
     if instances.is_empty() {
         bail!("{}: no (scene, request) pair to run", file.display());
     }
-    let (b, line) = args.backend()?;
+    let (backend, line) = args.backend()?;
     println!("{line}");
     println!(
         "{} pairs; runs in {}",
         instances.len(),
         out.join("runs").display()
     );
-    let prompts = args.prompt.load()?;
-    let mut results: Vec<InstanceResult> = Vec::new();
-    let write_summary = |results: &[InstanceResult]| -> Result<()> {
-        let rows = summarise(results, args.rounds);
-        let mut md = format!(
-            "# drivescript ask --batch {}\n\n{} of {} pairs done; {} skipped (no suitable agents).\n\n",
-            file.display(),
-            results.len(),
-            instances.len(),
-            skipped.len()
-        );
-        md.push_str(&markdown(&rows, args.rounds));
-        drivescript::io::write_atomic(&out.join("summary.md"), md.as_bytes())?;
-        let json = serde_json::json!({"rows": rows, "instances": results, "skipped": skipped});
-        drivescript::io::write_atomic(
-            &out.join("summary.json"),
-            serde_json::to_string_pretty(&json)?.as_bytes(),
-        )?;
-        Ok(())
+    let n = instances.len();
+    let batch = Batch {
+        file: file.to_path_buf(),
+        instances,
+        skipped,
+        out: out.clone(),
+        trained,
+        backend,
+        prompts: args.prompt.load()?,
+        config: args.session_config(),
     };
-    for (k, inst) in instances.iter().enumerate() {
-        let id = &inst.scene.meta.scenario_id;
-        let stem = drivescript::io::output_stem(id)?;
-        let dir = out
-            .join("runs")
-            .join(format!("{k:03}_{}_{stem}", inst.label));
-        let started = Session::start(
-            &dir,
-            &inst.scene_path,
-            inst.scene.clone(),
-            &inst.request,
-            trained,
-            b.clone(),
-            prompts.clone(),
-            args.session_config(),
-            Some(inst.checks.clone()),
-        );
-        let mut session = match started {
-            Ok(s) => s,
-            Err(LlmError::Rules(e)) => {
-                println!(
-                    "[{}/{}] {id}: {}: not planned: {e}",
-                    k + 1,
-                    instances.len(),
-                    inst.label
-                );
-                results.push(InstanceResult {
-                    label: inst.label.clone(),
-                    scenario: id.clone(),
-                    request: inst.request.clone(),
-                    dir,
-                    rounds: Vec::new(),
-                    llm_calls: 0,
-                    tokens: 0,
-                    outcome: format!("not planned: {e}"),
-                });
-                write_summary(&results)?;
-                continue;
-            }
-            Err(e) => return Err(e.into()),
-        };
-        let verbose = args.verbose;
-        let outcome = session.run(&mut |l| {
-            if verbose {
-                println!("  {l}");
-            }
-        })?;
-        let (calls, tokens) = session.usage();
-        let history = session.history().to_vec();
-        let text = match &outcome {
-            Outcome::Accepted { round, .. } => format!("accepted in round {round}"),
-            Outcome::RoundsUsed { .. } => "rounds ran out".to_string(),
-            Outcome::GaveUp { reason } => format!("gave up: {reason}"),
-            Outcome::Waiting { .. } => "waiting".to_string(),
-        };
-        // The last sampled round's rollouts, where `eval --task behaviour --rollouts` finds them.
-        if let Some(last) = history.last() {
-            let from = dir.join(format!("round_{}", last.exchange));
-            let to = out.join("rollouts").join(&inst.label);
-            std::fs::create_dir_all(&to)?;
-            for i in 0..args.samples {
-                let src = from.join(format!("sample_{i}.json"));
-                if let Ok(bytes) = std::fs::read(&src) {
-                    drivescript::io::write_atomic(&to.join(format!("{stem}_{i}.json")), &bytes)?;
-                }
-            }
-        }
-        println!(
-            "[{}/{}] {id}: {}: {text}; {}",
+    let verbose = args.verbose;
+    let results = batch.run(&mut |p| match p {
+        Progress::Line(l) if verbose => println!("  {l}"),
+        Progress::Line(_) => {}
+        Progress::Done { k, result, resumed } => println!(
+            "[{}/{n}] {}: {}: {}{}; {}",
             k + 1,
-            instances.len(),
-            inst.label,
-            history
+            result.scenario,
+            result.label,
+            result.outcome,
+            if resumed { " (continued run)" } else { "" },
+            result
+                .rounds
                 .iter()
                 .enumerate()
                 .map(|(r, h)| format!(
@@ -534,19 +465,8 @@ fn batch(args: &Args, file: &Path, trained: &Trained) -> Result<ExitCode> {
                 ))
                 .collect::<Vec<_>>()
                 .join(", ")
-        );
-        results.push(InstanceResult {
-            label: inst.label.clone(),
-            scenario: id.clone(),
-            request: inst.request.clone(),
-            dir,
-            rounds: history,
-            llm_calls: calls,
-            tokens,
-            outcome: text,
-        });
-        write_summary(&results)?;
-    }
+        ),
+    })?;
     println!();
     print!(
         "{}",

@@ -20,13 +20,15 @@ use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
+use super::prompt::Prompts;
 use super::rules::understand_request;
-use super::session::RoundRecord;
+use super::session::{Backend, Outcome, RoundRecord, Session, SessionConfig};
 use super::LlmError;
 use crate::cost::Params;
 use crate::eval::behaviors::{suggest, Behavior};
-use crate::io::{discover, load_scenes, LoadOptions};
+use crate::io::{discover, load_scenes, output_stem, write_atomic, LoadOptions};
 use crate::scene::Scene;
+use crate::train::Trained;
 
 /// One line of a batch file.
 #[derive(Debug, Clone, PartialEq)]
@@ -550,5 +552,227 @@ mod tests {
             md.contains("| cut_in | 2 | 0.50 (0.50) | 0.50 (1.00) | 1.00 (1.00) |"),
             "{md}"
         );
+    }
+}
+
+/// A batch to run: its pairs and where the runs, rollouts and summary go.
+pub struct Batch<'a> {
+    /// The batch file (named in the summary).
+    pub file: PathBuf,
+    /// The pairs, from [`expand`].
+    pub instances: Vec<Instance>,
+    /// Pairs [`expand`] skipped, with why.
+    pub skipped: Vec<String>,
+    /// The output directory.
+    pub out: PathBuf,
+    /// The model.
+    pub trained: &'a Trained,
+    /// The backend every pair uses (not the manual one: nobody is there to paste).
+    pub backend: Backend,
+    /// The prompt templates.
+    pub prompts: Prompts,
+    /// The loop's settings (a resumed pair keeps those it was started with).
+    pub config: SessionConfig,
+}
+
+/// What [`Batch::run`] reports as it goes.
+pub enum Progress<'e> {
+    /// A line of the current pair's session.
+    Line(&'e str),
+    /// A pair is finished (`resumed`: its run directory held a finished or stopped run).
+    Done {
+        /// Its position, from 0.
+        k: usize,
+        /// Its result.
+        result: &'e InstanceResult,
+        /// Whether it continued an earlier run instead of starting one.
+        resumed: bool,
+    },
+}
+
+impl Batch<'_> {
+    /// The run directory of pair `k`.
+    pub fn run_dir(&self, k: usize) -> Result<PathBuf, LlmError> {
+        let inst = &self.instances[k];
+        let stem = output_stem(&inst.scene.meta.scenario_id)
+            .map_err(|e| bad(&inst.scene_path, e.to_string()))?;
+        Ok(self
+            .out
+            .join("runs")
+            .join(format!("{k:03}_{}_{stem}", inst.label)))
+    }
+
+    /// Runs every pair in order, writing the summary after each. A pair whose run directory
+    /// already holds a run of the same scene, request and backend continues it (a finished
+    /// one is only read back), so a batch stopped by an error, a full disk or Ctrl-C is
+    /// finished by running the same command again. An error in a pair stops the batch with
+    /// the pair named; the pairs before it are in the summary.
+    pub fn run(&self, progress: &mut dyn FnMut(Progress)) -> Result<Vec<InstanceResult>, LlmError> {
+        if matches!(self.backend, Backend::Manual) {
+            return Err(bad(
+                &self.file,
+                "a batch runs without a person: use the http or rules backend".into(),
+            ));
+        }
+        let mut results = Vec::new();
+        for (k, inst) in self.instances.iter().enumerate() {
+            let dir = self.run_dir(k)?;
+            let stopped = |e: LlmError| {
+                bad(
+                    &dir,
+                    format!(
+                        "pair {} of {} ({}, {:?}) stopped the batch: {e}. The {k} pairs before it \
+                         are in the summary; run the same command again to continue from here",
+                        k + 1,
+                        self.instances.len(),
+                        inst.scene.meta.scenario_id,
+                        inst.request
+                    ),
+                )
+            };
+            let resumed = dir.join("state.json").exists();
+            let session = if resumed {
+                self.reopen(inst, &dir)
+            } else {
+                Session::start(
+                    &dir,
+                    &inst.scene_path,
+                    inst.scene.clone(),
+                    &inst.request,
+                    self.trained,
+                    self.backend.clone(),
+                    self.prompts.clone(),
+                    self.config.clone(),
+                    Some(inst.checks.clone()),
+                )
+            };
+            let result = match session {
+                Err(LlmError::Rules(e)) => InstanceResult {
+                    label: inst.label.clone(),
+                    scenario: inst.scene.meta.scenario_id.clone(),
+                    request: inst.request.clone(),
+                    dir,
+                    rounds: Vec::new(),
+                    llm_calls: 0,
+                    tokens: 0,
+                    outcome: format!("not planned: {e}"),
+                },
+                Err(e) => return Err(stopped(e)),
+                Ok(mut session) => {
+                    let outcome = session
+                        .run(&mut |l| progress(Progress::Line(l)))
+                        .map_err(stopped)?;
+                    self.copy_rollouts(k, &session).map_err(stopped)?;
+                    let (llm_calls, tokens) = session.usage();
+                    InstanceResult {
+                        label: inst.label.clone(),
+                        scenario: inst.scene.meta.scenario_id.clone(),
+                        request: inst.request.clone(),
+                        dir,
+                        rounds: session.history().to_vec(),
+                        llm_calls,
+                        tokens,
+                        outcome: match outcome {
+                            Outcome::Accepted { round, .. } => format!("accepted in round {round}"),
+                            Outcome::RoundsUsed { .. } => "rounds ran out".to_string(),
+                            Outcome::GaveUp { reason } => format!("gave up: {reason}"),
+                            Outcome::Waiting { .. } => "waiting".to_string(),
+                        },
+                    }
+                }
+            };
+            results.push(result);
+            self.write_summary(&results)?;
+            progress(Progress::Done {
+                k,
+                result: results.last().expect("just pushed"),
+                resumed,
+            });
+        }
+        Ok(results)
+    }
+
+    /// Reopens the run in `dir`, refusing one of another scene, request or backend.
+    fn reopen(&self, inst: &Instance, dir: &Path) -> Result<Session<'_>, LlmError> {
+        let other = |what: String| {
+            bad(
+                dir,
+                format!("holds a run of {what}, not of this batch's pair: choose another -o"),
+            )
+        };
+        let session = Session::resume(
+            dir,
+            self.trained,
+            |name, _, _| {
+                if name == self.backend.name() {
+                    Ok(self.backend.clone())
+                } else {
+                    Err(other(format!("the {name} backend")))
+                }
+            },
+            |path| {
+                if path == inst.scene_path {
+                    Ok(inst.scene.clone())
+                } else {
+                    Err(other(format!("the scene {}", path.display())))
+                }
+            },
+        )?;
+        if session.requests().first() != Some(&inst.request) {
+            return Err(other(format!(
+                "the request {:?}",
+                session.requests().first()
+            )));
+        }
+        Ok(session)
+    }
+
+    /// The last sampled round's rollouts of pair `k`, where `eval --task behaviour
+    /// --rollouts OUT/rollouts/LABEL` finds them.
+    fn copy_rollouts(&self, k: usize, session: &Session) -> Result<(), LlmError> {
+        let Some(last) = session.history().last() else {
+            return Ok(());
+        };
+        let inst = &self.instances[k];
+        let stem = output_stem(&inst.scene.meta.scenario_id)
+            .map_err(|e| bad(&inst.scene_path, e.to_string()))?;
+        let from = session.dir().join(format!("round_{}", last.exchange));
+        let to = self.out.join("rollouts").join(&inst.label);
+        std::fs::create_dir_all(&to).map_err(|e| bad(&to, format!("cannot create it: {e}")))?;
+        for i in 0.. {
+            let src = from.join(format!("sample_{i}.json"));
+            let Ok(bytes) = std::fs::read(&src) else {
+                break;
+            };
+            let dst = to.join(format!("{stem}_{i}.json"));
+            write_atomic(&dst, &bytes).map_err(|e| bad(&dst, e.to_string()))?;
+        }
+        Ok(())
+    }
+
+    /// Writes `summary.md` and `summary.json` for the pairs done so far.
+    fn write_summary(&self, results: &[InstanceResult]) -> Result<(), LlmError> {
+        let rounds = self.config.rounds;
+        let rows = summarise(results, rounds);
+        let mut md = format!(
+            "# drivescript ask --batch {}\n\n{} of {} pairs done; {} skipped (no suitable agents).\n\n",
+            self.file.display(),
+            results.len(),
+            self.instances.len(),
+            self.skipped.len()
+        );
+        md.push_str(&markdown(&rows, rounds));
+        let json = serde_json::json!({"rows": rows, "instances": results, "skipped": self.skipped});
+        for (name, text) in [
+            ("summary.md", md),
+            (
+                "summary.json",
+                serde_json::to_string_pretty(&json).expect("summary serialises"),
+            ),
+        ] {
+            let p = self.out.join(name);
+            write_atomic(&p, text.as_bytes()).map_err(|e| bad(&p, e.to_string()))?;
+        }
+        Ok(())
     }
 }

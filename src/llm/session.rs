@@ -44,7 +44,8 @@ pub enum Backend {
 }
 
 impl Backend {
-    fn name(&self) -> &'static str {
+    /// `http`, `manual` or `rules`, as `--llm` and state.json name it.
+    pub fn name(&self) -> &'static str {
         match self {
             Backend::Http(_) => "http",
             Backend::Manual => "manual",
@@ -458,6 +459,11 @@ impl<'a> Session<'a> {
         (llm.len(), tokens)
     }
 
+    /// The requests of the run: the first, then each follow-up.
+    pub fn requests(&self) -> &[String] {
+        &self.state.requests
+    }
+
     /// The run directory.
     pub fn dir(&self) -> &Path {
         &self.dir
@@ -541,19 +547,41 @@ impl<'a> Session<'a> {
                     &serde_json::to_string_pretty(&self.state.messages).expect("serialises"),
                 )?;
             }
-            let reply = match self.get_reply(n, &rdir, progress)? {
-                Got::Text(t) => t,
-                Got::Wait(o) => {
-                    self.save()?;
-                    return Ok(o);
-                }
-                Got::GiveUp(reason) => {
-                    return self.finish(Outcome::GaveUp { reason }, progress);
-                }
+            // A run stopped after the reply came (killed while sampling, say) goes on with
+            // that reply: the model is not asked, or paid, twice for one round.
+            let received = match self.backend {
+                Backend::Manual => None,
+                _ => std::fs::read_to_string(rdir.join("reply.md"))
+                    .ok()
+                    .filter(|t| !t.trim().is_empty()),
             };
-            if !matches!(self.backend, Backend::Manual) {
-                write(&rdir, "reply.md", &reply)?;
-            }
+            let reply = match received {
+                Some(t) => {
+                    progress(&format!(
+                        "round {n}: the reply received before the run stopped ({})",
+                        rdir.join("reply.md").display()
+                    ));
+                    t
+                }
+                None => match self.get_reply(n, &rdir, progress)? {
+                    Got::Text(t) => {
+                        if !matches!(self.backend, Backend::Manual) {
+                            write(&rdir, "reply.md", &t)?;
+                            // Keeps the exchange's record (tokens, latency) if the run stops
+                            // while sampling.
+                            self.save()?;
+                        }
+                        t
+                    }
+                    Got::Wait(o) => {
+                        self.save()?;
+                        return Ok(o);
+                    }
+                    Got::GiveUp(reason) => {
+                        return self.finish(Outcome::GaveUp { reason }, progress);
+                    }
+                },
+            };
             self.state
                 .messages
                 .push(Message::new("assistant", reply.clone()));
