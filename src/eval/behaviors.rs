@@ -710,6 +710,13 @@ pub fn check(behavior: Behavior, scene: &Scene, params: &Params) -> Result<Verdi
     })
 }
 
+/// Speed (m/s) above which `suggest` counts a car as moving.
+const MOVING: f64 = 2.0;
+
+/// How far inside the road edge (m, centre to edge) `suggest` looks for a car to drive off
+/// it: the outer lane.
+const OFF_ROAD_REACH: f64 = 4.0;
+
 /// Agents for which a behaviour is a meaningful request in `scene`, chosen by geometry alone,
 /// so that success rates over many scenes need no hand-picked ids (`None` when the scene has
 /// no suitable agent). Candidates are vehicles observed at the current step and through the
@@ -723,13 +730,17 @@ pub fn check(behavior: Behavior, scene: &Scene, params: &Params) -> Result<Verdi
 ///   for a point 20 m to the left of its recorded end; `stop` within 60 % of the horizon or the
 ///   time braking at 4 m/s² takes, if longer, for the nearest vehicle that can then stand
 ///   still for the last 0.5 s;
-/// - `cut_in`: a victim and a cutter in an adjacent lane within 15 m along the victim's path
-///   that can end 5 m (bumper to bumper) ahead of the victim holding its speed, accelerating at
+/// - `cut_in`: a victim and a cutter moving at 2 m/s or more in an adjacent lane within 15 m
+///   along the victim's path that can end 5 m (bumper to bumper) ahead of the victim holding its speed, accelerating at
 ///   2.5 m/s² and no faster than 0.75 of the sprint bound allows (the kinematic checker's and
 ///   realism's bounds): a slower car far behind cannot cut in plausibly;
 /// - `follow`: a leader ahead in the follower's lane within 60 m, asking for a 10 m gap;
+/// - `off_road`: the nearest car moving at 2 m/s or more with its centre within 4 m of the
+///   road edge (a car queued at a light, or boxed in mid-road, has no way off it);
 /// - `yield`: two vehicles whose lane paths meet ahead of both, within 1.2 times the distance
-///   each covers over the horizon at its current speed plus 20 m;
+///   the yielder covers over the horizon at its current speed plus 20 m, and that the other,
+///   moving at 2 m/s or more, passes by 2 m within the horizon at its current speed (yielding
+///   to a car that waits at a light or is too far away to arrive asks for nothing);
 /// - `accident`: the nearest pair; `no_collisions`: no agents.
 pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
     let c = scene.meta.current_step;
@@ -811,9 +822,23 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
                 .find(|x| (1..=reach).contains(&lanes_to_right(x.1)))
                 .and_then(|x| p(&[("vehicle", x.0.id as f64)]))
         }
-        Behavior::Reverse | Behavior::OffRoad | Behavior::Weave => {
+        Behavior::Reverse | Behavior::Weave => {
             cands.first().and_then(|x| p(&[("vehicle", x.0.id as f64)]))
         }
+        // A moving car within a lane of the road's edge. A car at rest in a queue, or one in
+        // a middle lane with traffic on both sides, has no way off the road a driver could
+        // take in a few seconds (held-out NGSIM: most failed requests were such cars).
+        Behavior::OffRoad => cands
+            .iter()
+            .find(|x| {
+                let s = x.0.states[c];
+                s.speed() >= MOVING
+                    && scene
+                        .map
+                        .signed_distance_to_road_edge(s.position())
+                        .is_some_and(|d| d >= -OFF_ROAD_REACH)
+            })
+            .and_then(|x| p(&[("vehicle", x.0.id as f64)])),
         // The 4 s default assumes WOMD's 8 s future; a car at 18 m/s cannot stop within
         // 2.4 s, nor without braking harder than the script allows.
         Behavior::Stop => cands.iter().find_map(|x| {
@@ -844,7 +869,12 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
                     let reach = sc - sv - 0.5 * (cutter.length + victim.length)
                         + (vc - vv) * horizon
                         + 0.5 * gain * horizon;
-                    if cutter.id != victim.id && adjacent && (sc - sv).abs() <= 15.0 && reach >= 5.0
+                    // A cutter at rest (a queue at a light) does not cut in.
+                    if cutter.id != victim.id
+                        && adjacent
+                        && vc >= MOVING
+                        && (sc - sv).abs() <= 15.0
+                        && reach >= 5.0
                     {
                         return p(&[("cutter", cutter.id as f64), ("victim", victim.id as f64)]);
                     }
@@ -869,8 +899,16 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
             None
         }
         Behavior::Yield => {
-            // How far an agent gets over the horizon at its current speed, with some slack.
+            // How far the yielder could get over the horizon: its current speed with some
+            // slack (2.5 m/s² of acceleration).
             let reach = |a: &Agent| 1.2 * a.states[c].speed() * horizon + 20.0;
+            // The other must be coming: moving, and past the meeting point (by the checker's
+            // 2 m) within the horizon at its current speed. Yielding to a car that is waiting
+            // at a light, or that is too far to arrive, asks for nothing a driver can show.
+            let coming = |o: &Agent, to_go: f64| {
+                let v = o.states[c].speed();
+                v >= MOVING && to_go + 2.0 <= v * horizon
+            };
             for (a, _, pa) in &cands {
                 let sa0 = pa.frenet.project(a.states[c].position()).s;
                 for (o, _, po) in &cands {
@@ -879,7 +917,7 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
                     }
                     let so0 = po.frenet.project(o.states[c].position()).s;
                     if let Some((sa, so, _)) = pa.first_meeting(po) {
-                        if sa > sa0 && so > so0 && sa - sa0 <= reach(a) && so - so0 <= reach(o) {
+                        if sa > sa0 && so > so0 && sa - sa0 <= reach(a) && coming(o, so - so0) {
                             return p(&[("yielder", a.id as f64), ("other", o.id as f64)]);
                         }
                     }

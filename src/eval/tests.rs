@@ -356,6 +356,42 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
         suggest(Behavior::Yield, &base).is_none(),
         "parallel lanes never meet"
     );
+    // Yield: the other must be coming. Vehicle 10 is 100 m from the merge at 15 m/s: it gets
+    // there within 7 s, not within 5.5 s; at rest 20 m before it, it never does (both were
+    // suggested before the rule).
+    let merge = scene("merge.yaml");
+    let y = super::behaviors::suggest(Behavior::Yield, &merge, 70).unwrap();
+    assert_eq!(
+        (y.number("yielder").unwrap(), y.number("other").unwrap()),
+        (11.0, 10.0)
+    );
+    assert!(super::behaviors::suggest(Behavior::Yield, &merge, 55).is_none());
+    let text = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes/merge.yaml"),
+    )
+    .unwrap();
+    let waiting = yaml::parse(
+        Path::new("waiting.yaml"),
+        &text.replace("s: 50, speed: 15", "s: 130, speed: 0"),
+    )
+    .unwrap();
+    assert!(super::behaviors::suggest(Behavior::Yield, &waiting, 70).is_none());
+    // Off road: the nearest car that moves, within a lane of the edge (lane 0 and lane 2 are
+    // the outer lanes). The ego (1) is in the middle lane, 2 waits in an outer lane.
+    let off = yaml::parse(
+        Path::new("off.yaml"),
+        concat!(
+            "steps: 41\ncurrent_step: 10\nego: 1\nroad: {lanes: 3, lane_width: 3.6, length: 600}\n",
+            "agents:\n  - {id: 1, lane: 1, s: 50, speed: 12}\n  - {id: 2, lane: 0, s: 52, speed: 0}\n",
+            "  - {id: 3, lane: 2, s: 150, speed: 12}\n  - {id: 4, lane: 0, s: 80, speed: 12}\n",
+        ),
+    )
+    .unwrap();
+    assert_eq!(
+        super::behaviors::suggest(Behavior::OffRoad, &off, 40)
+            .map(|p| p.number("vehicle").unwrap()),
+        Some(4.0)
+    );
     // Rightmost lane: the nearest vehicle with at most one lane to go per 2 s of horizon.
     let road = |steps: usize| {
         let text = format!(
