@@ -440,3 +440,156 @@ fn directory_walks_read_regular_files_once_and_refuse_fifos() {
         println!("skipped the FIFO half: mkfifo is not available");
     }
 }
+
+/// One record's bytes, framed, for a scenario edited after decoding a converted sample.
+fn womd_record(edit: impl FnOnce(&mut drivescript::io::womd_proto::Scenario)) -> Vec<u8> {
+    use prost::Message;
+    let scene = load_scenes(
+        &samples().join("yaml/highway_cut_in.yaml"),
+        &LoadOptions::default(),
+    )
+    .unwrap()
+    .remove(0);
+    let mut sc = drivescript::io::womd::scene_to_scenario(&scene);
+    edit(&mut sc);
+    drivescript::io::tfrecord::frame_records(&[sc.encode_to_vec()])
+}
+
+#[test]
+fn a_bad_womd_record_is_reported_and_the_good_ones_are_kept() {
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("three.tfrecord");
+    let good = |id: &str| {
+        let id = id.to_string();
+        womd_record(move |sc| sc.scenario_id = Some(id))
+    };
+    // Record 1 has valid framing but a track whose states do not match the timestamps.
+    let bad = womd_record(|sc| {
+        sc.scenario_id = Some("broken".into());
+        sc.tracks[0].states.pop();
+    });
+    std::fs::write(&f, [good("first"), bad, good("third")].concat()).unwrap();
+    let out = common::drivescript(&["inspect", s(&f)]);
+    let (o, e) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert_eq!(out.status.code(), Some(1), "{o}{e}");
+    assert!(
+        o.contains("first") && o.contains("third") && o.contains("2 scenes read, 1 failed"),
+        "{o}"
+    );
+    assert!(
+        e.contains("three.tfrecord: record 1 (scenario broken)") && e.contains("states for"),
+        "{e}"
+    );
+    // eval scores the good records and says which one it could not read.
+    let out = common::drivescript(&[
+        "eval",
+        s(&f),
+        "--task",
+        "unconditional",
+        "--baseline",
+        "log",
+    ]);
+    let (o, e) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert_eq!(out.status.code(), Some(1), "{o}{e}");
+    assert!(e.contains("record 1 (scenario broken)"), "{e}");
+    assert!(o.contains("| log replay"), "{o}");
+}
+
+#[test]
+fn empty_womd_files_scenarios_and_timestamp_gaps_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("empty.tfrecord");
+    std::fs::write(&f, b"").unwrap();
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("empty.tfrecord") && err.contains("empty"),
+        "{err}"
+    );
+    // An empty Scenario: a record of zero bytes.
+    std::fs::write(&f, drivescript::io::tfrecord::frame_records(&[Vec::new()])).unwrap();
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("record 0") && err.contains("no timestamps"),
+        "{err}"
+    );
+    // A 2 s hole in the timestamps.
+    std::fs::write(
+        &f,
+        womd_record(|sc| {
+            let k = sc.timestamps_seconds.len() / 2;
+            for t in &mut sc.timestamps_seconds[k..] {
+                *t += 2.0;
+            }
+        }),
+    )
+    .unwrap();
+    let err = fails(&["inspect", s(&f)]);
+    assert!(err.contains("timestamps jump from"), "{err}");
+}
+
+#[test]
+fn files_named_like_shards_are_read_by_content_and_shards_hide_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    // JSON (a rollout, say) with a shard-like name is not taken for a TFRecord.
+    let json = dir.path().join("tfrecord-00000-of-01000_4.json");
+    std::fs::write(&json, "{\"scenario_id\": \"x\"}").unwrap();
+    let err = fails(&["inspect", s(&json)]);
+    assert!(
+        err.contains("named like a WOMD shard, but its content is JSON text"),
+        "{err}"
+    );
+    let shard = dir.path().join("training.tfrecord-00000-of-00001");
+    std::fs::write(&shard, "{\"scenario_id\": \"x\"}").unwrap();
+    let err = fails(&["inspect", s(&shard)]);
+    assert!(
+        err.contains("named like a WOMD shard, but its content is JSON text"),
+        "{err}"
+    );
+    // A shard beside a YAML scene: both are read, the shard does not stand for the folder.
+    std::fs::write(
+        &shard,
+        womd_record(|sc| sc.scenario_id = Some("from_womd".into())),
+    )
+    .unwrap();
+    std::fs::copy(
+        samples().join("yaml/curved_two_lanes.yaml"),
+        dir.path().join("curved.yaml"),
+    )
+    .unwrap();
+    std::fs::remove_file(&json).unwrap();
+    let o = ok(&["inspect", s(dir.path())]);
+    assert!(
+        o.contains("from_womd") && o.contains("2 scenes read, 0 failed"),
+        "{o}"
+    );
+}
+
+#[test]
+fn two_scenes_with_one_name_are_not_scored_against_the_same_rollouts() {
+    let dir = tempfile::tempdir().unwrap();
+    let src = samples().join("yaml/highway_cut_in.yaml");
+    copy_to(dir.path(), &src, "a.yaml");
+    copy_to(dir.path(), &src, "b.yaml");
+    let out = common::drivescript(&[
+        "eval",
+        s(dir.path()),
+        "--task",
+        "unconditional",
+        "--baseline",
+        "log",
+    ]);
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{e}");
+    assert!(
+        e.contains("b.yaml")
+            && e.contains("has the name of a scene already read from")
+            && e.contains("a.yaml"),
+        "{e}"
+    );
+}

@@ -9,7 +9,7 @@ use drivescript::cost::Params;
 use drivescript::eval::kinematic::{self, KinematicLimits, Violation};
 use drivescript::eval::metrics::{self, JsdBins, Kinematics};
 use drivescript::eval::{check, Baseline, Behavior};
-use drivescript::io::{discover, load_scenes, rollout::Rollout, write_atomic, LoadOptions};
+use drivescript::io::{discover, read_each, rollout::Rollout, write_atomic, LoadOptions};
 use drivescript::scene::Scene;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
@@ -282,21 +282,46 @@ pub fn run(args: Args) -> Result<ExitCode> {
     );
     let mut failures = 0;
     let mut skipped = 0;
+    let mut names: std::collections::HashMap<String, PathBuf> = Default::default();
     for src in &sources {
         bar.set_message(
             src.file_name()
                 .map(|n| n.to_string_lossy().into_owned())
                 .unwrap_or_default(),
         );
-        let scenes = match load_scenes(src, &LoadOptions::default()) {
-            Ok(s) => s,
-            Err(e) => {
-                bar.suspend(|| eprintln!("error: {e}"));
-                failures += 1;
-                bar.inc(1);
-                continue;
+        // A bad record is reported and the good ones of its file are scored; two scenes with
+        // one name would be scored against the same rollouts, so the second is refused.
+        let mut scenes = Vec::new();
+        for item in read_each(src, &LoadOptions::default()) {
+            match item.map_err(anyhow::Error::from).and_then(|s| {
+                let stem = drivescript::io::output_stem(&s.meta.scenario_id)?.to_string();
+                Ok((stem, s))
+            }) {
+                Ok((stem, s)) => match names.get(&stem) {
+                    Some(first) => {
+                        bar.suspend(|| {
+                            eprintln!(
+                                "error: {}: scenario {:?} has the name of a scene already read \
+                                 from {}: the two would be scored against the same rollouts \
+                                 ({stem}_K.json); not scored",
+                                src.display(),
+                                s.meta.scenario_id,
+                                first.display()
+                            )
+                        });
+                        failures += 1;
+                    }
+                    None => {
+                        names.insert(stem, src.clone());
+                        scenes.push(s);
+                    }
+                },
+                Err(e) => {
+                    bar.suspend(|| eprintln!("error: {e:#}"));
+                    failures += 1;
+                }
             }
-        };
+        }
         let scenes: Vec<Scene> = match args.horizon {
             Some(h) => scenes.iter().map(|s| s.with_horizon(h)).collect(),
             None => scenes,

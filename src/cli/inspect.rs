@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::Result;
-use drivescript::io::{discover, load_scenes, LoadOptions};
+use drivescript::io::{discover, read_each, LoadOptions};
 use drivescript::scene::{describe, DescribeOptions};
 use drivescript::train::val_fold;
 
@@ -61,9 +61,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
             }
         };
         for src in sources {
-            match load_scenes(&src, &opts) {
-                Ok(scenes) => {
-                    for s in scenes {
+            // A bad WOMD record is reported among the good ones, which are still printed.
+            for item in read_each(&src, &opts) {
+                match item {
+                    Ok(s) => {
                         if args.agents {
                             let d = describe(
                                 &s,
@@ -95,10 +96,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
                             val_fold: fold,
                         }));
                     }
-                }
-                Err(e) => {
-                    eprintln!("error: {e}");
-                    failures += 1;
+                    Err(e) => {
+                        eprintln!("error: {e}");
+                        failures += 1;
+                    }
                 }
             }
         }
@@ -106,11 +107,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     if args.json {
         println!("{}", serde_json::to_string_pretty(&summaries)?);
     } else {
-        println!(
-            "{} scenes read, {} sources failed",
-            summaries.len(),
-            failures
-        );
+        println!("{} scenes read, {} failed", summaries.len(), failures);
     }
     if summaries.is_empty() && failures == 0 {
         eprintln!(

@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use anyhow::{Context, Result};
 use drivescript::cost::{Params, Realism};
 use drivescript::eval::behaviors::{suggest, Behavior, ALL};
-use drivescript::io::{discover, load_scenes, output_stem, LoadOptions};
+use drivescript::io::{discover, output_stem, read_each, LoadOptions};
 use drivescript::render::RenderOptions;
 use drivescript::sample::{
     attempt, horizon_note, recorded_future, AttemptSpec, Clamp, Guidance, LambdaSchedule,
@@ -259,8 +259,33 @@ pub fn run(args: Args) -> Result<ExitCode> {
         Ok(true)
     };
     let (mut failed, mut done) = (0, 0);
+    // Output names come from scenario ids: a second scene with the same name would overwrite
+    // the first's rollouts.
+    let mut names: std::collections::HashMap<String, std::path::PathBuf> = Default::default();
     for src in sources {
-        for raw in load_scenes(&src, &LoadOptions::default())? {
+        for item in read_each(&src, &LoadOptions::default()) {
+            let raw = match item {
+                Ok(raw) => raw,
+                Err(e) => {
+                    eprintln!("error: {e}");
+                    failed += 1;
+                    continue;
+                }
+            };
+            let stem = output_stem(&raw.meta.scenario_id)?.to_string();
+            if let Some(first) = names.get(&stem) {
+                eprintln!(
+                    "error: {}: scenario {:?} names its outputs {stem}_K.json like a scene \
+                     already simulated from {}: not simulated (give one of them another id, \
+                     `convert --id`)",
+                    src.display(),
+                    raw.meta.scenario_id,
+                    first.display()
+                );
+                failed += 1;
+                continue;
+            }
+            names.insert(stem, src.clone());
             match run_one(&raw) {
                 Ok(true) => done += 1,
                 Ok(false) => skipped += 1,

@@ -139,18 +139,137 @@ pub fn detect_format(path: &Path) -> Result<SceneFormat, IoError> {
             path: path.display().to_string(),
         });
     }
-    if name.ends_with(".tfrecord") || name.contains(".tfrecord-") || name.starts_with("tfrecord-") {
-        Ok(SceneFormat::Womd)
-    } else if name.ends_with(".xml") || name.ends_with(".xml.gz") {
+    // The extension decides first: `tfrecord-00000-of-01000_4.json` is JSON, not a shard.
+    if name.ends_with(".xml") || name.ends_with(".xml.gz") {
         Ok(SceneFormat::CommonRoad)
     } else if name.ends_with(".parquet") {
         Ok(SceneFormat::Av2)
     } else if name.ends_with(".yaml") || name.ends_with(".yml") {
         Ok(SceneFormat::Yaml)
+    } else if name.ends_with(".tfrecord") {
+        Ok(SceneFormat::Womd)
+    } else if womd::is_shard_name(&name) {
+        // WOMD's own names (`training.tfrecord-00000-of-01000`) carry no extension: the
+        // content tells a shard from a file of another kind named like one.
+        match sniff(path) {
+            Some(Content::TfRecord) | None => Ok(SceneFormat::Womd),
+            Some(other) => Err(IoError::invalid(
+                path,
+                "file",
+                format!(
+                    "named like a WOMD shard, but its content is {}, not a TFRecord",
+                    other.describe()
+                ),
+            )),
+        }
     } else {
         Err(IoError::UnknownFormat {
             path: path.display().to_string(),
         })
+    }
+}
+
+/// What a file's first bytes say it is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Content {
+    /// A TFRecord (its first length matches its checksum).
+    TfRecord,
+    /// gzip-compressed data.
+    Gzip,
+    /// A Parquet file.
+    Parquet,
+    /// JSON text.
+    Json,
+    /// XML text.
+    Xml,
+    /// Some other text.
+    Text,
+    /// Neither of the above, or empty.
+    Unknown,
+}
+
+impl Content {
+    /// The kind in words, for messages.
+    pub fn describe(self) -> &'static str {
+        match self {
+            Content::TfRecord => "a TFRecord",
+            Content::Gzip => "gzip-compressed (decompress it first)",
+            Content::Parquet => "a Parquet file",
+            Content::Json => "JSON text",
+            Content::Xml => "XML text",
+            Content::Text => "text",
+            Content::Unknown => "unrecognised binary data (or empty)",
+        }
+    }
+}
+
+/// Reads a file's first bytes and says what it appears to be (`None` when it cannot be read:
+/// the reader reports that).
+pub fn sniff(path: &Path) -> Option<Content> {
+    use std::io::Read;
+    let mut head = [0u8; 16];
+    let mut f = std::fs::File::open(path).ok()?;
+    let mut n = 0;
+    while n < head.len() {
+        match f.read(&mut head[n..]) {
+            Ok(0) => break,
+            Ok(k) => n += k,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(_) => return None,
+        }
+    }
+    Some(classify(&head[..n]))
+}
+
+fn classify(head: &[u8]) -> Content {
+    if head.len() >= 12
+        && u32::from_le_bytes(head[8..12].try_into().expect("4 bytes"))
+            == tfrecord::masked_crc32c(&head[..8])
+    {
+        return Content::TfRecord;
+    }
+    if head.starts_with(&[0x1f, 0x8b]) {
+        return Content::Gzip;
+    }
+    if head.starts_with(b"PAR1") {
+        return Content::Parquet;
+    }
+    let text = head
+        .iter()
+        .skip_while(|b| b.is_ascii_whitespace() || **b == 0xef || **b == 0xbb || **b == 0xbf);
+    match text.clone().next() {
+        Some(b'{') | Some(b'[') => Content::Json,
+        Some(b'<') => Content::Xml,
+        Some(_)
+            if head
+                .iter()
+                .all(|b| b.is_ascii_graphic() || b.is_ascii_whitespace()) =>
+        {
+            Content::Text
+        }
+        _ => Content::Unknown,
+    }
+}
+
+/// Every scene of a source, each read on its own: a WOMD record that is not a valid scenario
+/// is one error among the good records (which are kept), and a source that cannot be read at
+/// all is a single error. Commands that go over many scenes report the errors, go on, and
+/// exit non-zero at the end.
+pub fn read_each(path: &Path, opts: &LoadOptions) -> Vec<Result<Scene, IoError>> {
+    match detect_format(path) {
+        Ok(SceneFormat::Womd) => {
+            let records = if path.is_dir() {
+                womd::read_shards(path).map(|it| it.collect::<Vec<_>>())
+            } else {
+                womd::read_file(path).map(|it| it.collect::<Vec<_>>())
+            };
+            records.unwrap_or_else(|e| vec![Err(e)])
+        }
+        Ok(_) => match load_scenes(path, opts) {
+            Ok(scenes) => scenes.into_iter().map(Ok).collect(),
+            Err(e) => vec![Err(e)],
+        },
+        Err(e) => vec![Err(e)],
     }
 }
 

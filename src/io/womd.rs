@@ -29,20 +29,33 @@ pub fn is_shard_dir(dir: &Path) -> bool {
     shard_files(dir).is_ok_and(|v| !v.is_empty())
 }
 
+/// Whether a (lower-case) file name is one WOMD gives its shards, extension or not.
+pub fn is_shard_name(name: &str) -> bool {
+    name.ends_with(".tfrecord") || name.contains(".tfrecord-") || name.starts_with("tfrecord-")
+}
+
+/// The shards of a directory that holds nothing but shards (and files of no scene format): a
+/// directory with other scene files beside a shard is not a shard directory, so that each of
+/// its files is read on its own instead of the shard hiding them.
 fn shard_files(dir: &Path) -> Result<Vec<PathBuf>, IoError> {
-    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
-        .map_err(|e| IoError::read(dir, e))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| {
-            p.is_file()
-                && p.file_name().is_some_and(|n| {
-                    let n = n.to_string_lossy();
-                    n.ends_with(".tfrecord")
-                        || n.contains(".tfrecord-")
-                        || n.starts_with("tfrecord-")
-                })
-        })
-        .collect();
+    let mut files = Vec::new();
+    for e in std::fs::read_dir(dir).map_err(|e| IoError::read(dir, e))? {
+        let Ok(e) = e else { continue };
+        let p = e.path();
+        if !p.is_file() {
+            continue;
+        }
+        let name = e.file_name().to_string_lossy().to_lowercase();
+        let other_scene = [".xml", ".xml.gz", ".yaml", ".yml", ".parquet"]
+            .iter()
+            .any(|x| name.ends_with(x));
+        if other_scene {
+            return Ok(Vec::new());
+        }
+        if is_shard_name(&name) {
+            files.push(p);
+        }
+    }
     files.sort();
     Ok(files)
 }
@@ -50,6 +63,13 @@ fn shard_files(dir: &Path) -> Result<Vec<PathBuf>, IoError> {
 /// Streams the scenarios of one TFRecord file.
 pub fn read_file(path: &Path) -> Result<impl Iterator<Item = Result<Scene, IoError>>, IoError> {
     let file = File::open(path).map_err(|e| IoError::read(path, e))?;
+    if file.metadata().map_err(|e| IoError::read(path, e))?.len() == 0 {
+        return Err(IoError::invalid(
+            path,
+            "file",
+            "empty: a WOMD file holds at least one record",
+        ));
+    }
     let path = path.to_path_buf();
     let reader = TfRecordReader::new(BufReader::with_capacity(1 << 20, file));
     Ok(reader.enumerate().map(move |(i, rec)| {
@@ -93,6 +113,9 @@ pub fn scenario_to_scene(sc: &pb::Scenario, path: &Path, index: usize) -> Result
     let steps = sc.timestamps_seconds.len();
     let mut warnings = Vec::new();
 
+    if steps == 0 {
+        return Err(bad("no timestamps: an empty scenario".into()));
+    }
     let dt = if steps >= 2 {
         let mut diffs: Vec<f64> = sc
             .timestamps_seconds
@@ -100,7 +123,26 @@ pub fn scenario_to_scene(sc: &pb::Scenario, path: &Path, index: usize) -> Result
             .map(|w| w[1] - w[0])
             .collect();
         diffs.sort_by(f64::total_cmp);
-        diffs[diffs.len() / 2]
+        let dt = diffs[diffs.len() / 2];
+        // The scene model has one time step: a gap or a jump back would be read as motion
+        // at the wrong speed. WOMD's own jitter is far below 10 %.
+        if !(dt.is_finite() && dt > 0.0) {
+            return Err(bad(format!(
+                "timestamps do not increase (median step {dt} s)"
+            )));
+        }
+        if let Some(k) = sc
+            .timestamps_seconds
+            .windows(2)
+            .position(|w| ((w[1] - w[0]) - dt).abs() > 0.1 * dt)
+        {
+            let (a, b) = (sc.timestamps_seconds[k], sc.timestamps_seconds[k + 1]);
+            return Err(bad(format!(
+                "timestamps jump from {a} s to {b} s at step {k} where every other step is {dt:.3} s: \
+                 a gap or reordering the scene model cannot represent"
+            )));
+        }
+        dt
     } else {
         0.1
     };
