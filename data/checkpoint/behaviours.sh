@@ -8,6 +8,7 @@
 #   INSTANCES  a directory cut by heldout.sh (OUT/behaviour or OUT/windows)
 #   OUT        where rollouts and eval JSON go (one directory per behaviour, plus unguided/)
 #   extra arguments go to every `simulate` (e.g. --guidance denoiser, --lambda 2)
+#   BEHAVIOURS="cut_in yield" in the environment measures only those (default: all fourteen)
 # Usage: data/checkpoint/behaviours.sh INSTANCES OUT [CHECKPOINT [DRIVESCRIPT]] [-- SIMULATE_ARGS...]
 set -euo pipefail
 inst=${1:?instances directory (heldout.sh OUT/behaviour)}
@@ -28,8 +29,9 @@ unguided=$("$bin" eval "$inst" --task unconditional --rollouts "$out/unguided" \
     --horizon "$horizon" | awk -F'|' '/^\| rollouts/ {gsub(/ /, "", $7); print $7}')
 printf '| behaviour | instances | achieved plausibly | achieved | baselines: log / cv / lane | implausible vehicles (log) | unguided |\n'
 printf '|---|---|---|---|---|---|---|\n'
-for b in cut_in rightmost_lane off_road yield speed_limit target_point no_collisions \
-    lane_change_left lane_change_right follow reverse weave stop accident; do
+all="cut_in rightmost_lane off_road yield speed_limit target_point no_collisions
+    lane_change_left lane_change_right follow reverse weave stop accident"
+for b in ${BEHAVIOURS:-$all}; do
     # A scene that fails is reported and the rest go on, as in simulate itself.
     "$bin" simulate "$inst" --checkpoint "$ckpt" --task unconditional --auto "$b" \
         -o "$out/$b" "${extra[@]}" >"$out/$b.log" 2>&1 ||

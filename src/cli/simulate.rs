@@ -8,6 +8,7 @@ use drivescript::cost::{Params, Realism};
 use drivescript::eval::behaviors::{suggest, Behavior, ALL};
 use drivescript::io::{discover, output_stem, read_each, LoadOptions};
 use drivescript::render::RenderOptions;
+use drivescript::sample::provenance::{file_crc32c, text_crc32c, RunRecord};
 use drivescript::sample::{
     attempt, horizon_note, recorded_future, AttemptSpec, Clamp, Guidance, LambdaSchedule,
     SampleConfig, ScriptSpec, Task,
@@ -104,9 +105,18 @@ pub struct Args {
     #[arg(long)]
     checkpoint: PathBuf,
     /// Output directory: SCENARIO_K.json per sample (what `eval --rollouts` reads),
-    /// SCENARIO_0.gif and SCENARIO_costs.json.
+    /// SCENARIO_0.gif and SCENARIO_costs.json, and run.json (what made them). A directory
+    /// holding another run is refused.
     #[arg(short, long)]
     output: PathBuf,
+    /// Only the scenes of shard I of N (0 <= I < N), a stable partition by scenario id: run
+    /// the N shards as an array job (Slurm, Kubernetes Indexed Job) into one -o with --resume.
+    #[arg(long, value_name = "I/N")]
+    shard: Option<drivescript::io::shard::Shard>,
+    /// Continue the run in -o (same settings, checked against its run.json): scenes whose
+    /// outputs are complete are skipped.
+    #[arg(long)]
+    resume: bool,
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
@@ -174,6 +184,33 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let explicit = Params::parse(&args.params)?;
     std::fs::create_dir_all(&args.output)
         .with_context(|| format!("creating {}", args.output.display()))?;
+    let record = RunRecord {
+        command: "simulate".into(),
+        version: env!("CARGO_PKG_VERSION").into(),
+        checkpoint: args.checkpoint.display().to_string(),
+        weights_crc32c: file_crc32c(&args.checkpoint.join("model.safetensors"))?,
+        settings: serde_json::json!({
+            "task": format!("{:?}", cfg.task),
+            "samples": cfg.samples,
+            "seed": cfg.seed,
+            "steps": cfg.steps,
+            "lambda": cfg.lambda,
+            "guidance": format!("{:?}", cfg.guidance),
+            "schedule": format!("{:?}", cfg.schedule),
+            "clamp": format!("{:?}", cfg.clamp),
+            "realism": cfg.realism.weight,
+            "known_weight": cfg.known_weight,
+            "closed_loop": args.closed_loop,
+            "auto": args.auto,
+        }),
+        scripts: specs
+            .iter()
+            .map(|s| (s.name.clone(), text_crc32c(s.source.as_bytes())))
+            .collect(),
+        params: explicit.to_string(),
+    };
+    record.claim(&args.output, args.resume)?;
+    let run_value = serde_json::to_value(&record)?;
     let mut skipped = 0;
     let mut sources = Vec::new();
     for s in &args.scenes {
@@ -245,7 +282,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         for o in &report.samples {
             super::print_outcome(&format!("{id} sample {}", o.sample), o);
         }
-        done.write(&args.output, &id)?;
+        done.write(&args.output, &id, Some(&run_value))?;
         super::render::write_picture(
             &samples[0].scene,
             &args.output.join(format!("{}_0.gif", output_stem(&id)?)),
@@ -258,7 +295,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         println!("{id}: {} samples in {:.2} s", samples.len(), report.seconds);
         Ok(true)
     };
-    let (mut failed, mut done) = (0, 0);
+    let (mut failed, mut done, mut resumed, mut seen) = (0, 0, 0, 0);
     // Output names come from scenario ids: a second scene with the same name would overwrite
     // the first's rollouts.
     let mut names: std::collections::HashMap<String, std::path::PathBuf> = Default::default();
@@ -272,7 +309,25 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     continue;
                 }
             };
+            seen += 1;
+            if args
+                .shard
+                .is_some_and(|sh| !sh.contains(&raw.meta.scenario_id))
+            {
+                continue;
+            }
             let stem = output_stem(&raw.meta.scenario_id)?.to_string();
+            // Complete: every sample's rollout, the cost report and the picture (written last).
+            if args.resume
+                && (0..cfg.samples)
+                    .map(|k| format!("{stem}_{k}.json"))
+                    .chain([format!("{stem}_costs.json"), format!("{stem}_0.gif")])
+                    .all(|f| args.output.join(f).is_file())
+            {
+                names.insert(stem, src.clone());
+                resumed += 1;
+                continue;
+            }
             if let Some(first) = names.get(&stem) {
                 eprintln!(
                     "error: {}: scenario {:?} names its outputs {stem}_K.json like a scene \
@@ -314,6 +369,13 @@ pub fn run(args: Args) -> Result<ExitCode> {
             plural(scenes, "scene")
         );
     }
+    if resumed > 0 {
+        println!(
+            "{} already complete in {} (--resume): not simulated again",
+            plural(resumed, "scene"),
+            args.output.display()
+        );
+    }
     if done > 0 {
         println!(
             "wrote {} scene{} to {}",
@@ -321,14 +383,23 @@ pub fn run(args: Args) -> Result<ExitCode> {
             if done == 1 { "" } else { "s" },
             args.output.display()
         );
-    } else {
+    } else if resumed == 0 {
         println!("no scene simulated: nothing written");
     }
     if failed > 0 {
         eprintln!("{failed} scenes failed");
         return Ok(ExitCode::FAILURE);
     }
-    if done == 0 {
+    if done + resumed == 0 && seen > 0 && args.shard.is_some() {
+        // Every scene fell in other shards: this shard's work is done.
+        println!(
+            "shard {} holds none of the {} scenes",
+            args.shard.expect("checked"),
+            seen
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    if done + resumed == 0 {
         eprintln!(
             "error: no scene was simulated (none found, or none with agents suited to --auto)"
         );

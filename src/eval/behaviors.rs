@@ -739,8 +739,9 @@ const OFF_ROAD_REACH: f64 = 4.0;
 ///   road edge (a car queued at a light, or boxed in mid-road, has no way off it);
 /// - `yield`: two vehicles whose lane paths meet ahead of both, within 1.2 times the distance
 ///   the yielder covers over the horizon at its current speed plus 20 m, and that the other,
-///   moving at 2 m/s or more, passes by 2 m within the horizon at its current speed (yielding
-///   to a car that waits at a light or is too far away to arrive asks for nothing);
+///   moving at 2 m/s or more, passes by 2 m within the horizon at its current speed, while the
+///   yielder, moving too, would get there first at its own (yielding to a car that waits at a
+///   light, is too far away to arrive, or passes first anyway asks for nothing);
 /// - `accident`: the nearest pair; `no_collisions`: no agents.
 pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
     let c = scene.meta.current_step;
@@ -909,6 +910,12 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
                 let v = o.states[c].speed();
                 v >= MOVING && to_go + 2.0 <= v * horizon
             };
+            // And the yielder, holding its speed, would get there first: otherwise the other
+            // passes first by itself and "yield" asks for nothing either.
+            let first = |a: &Agent, a_to_go: f64, o: &Agent, o_to_go: f64| {
+                let (va, vo) = (a.states[c].speed(), o.states[c].speed());
+                va >= MOVING && a_to_go / va <= o_to_go / vo
+            };
             for (a, _, pa) in &cands {
                 let sa0 = pa.frenet.project(a.states[c].position()).s;
                 for (o, _, po) in &cands {
@@ -917,7 +924,12 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
                     }
                     let so0 = po.frenet.project(o.states[c].position()).s;
                     if let Some((sa, so, _)) = pa.first_meeting(po) {
-                        if sa > sa0 && so > so0 && sa - sa0 <= reach(a) && coming(o, so - so0) {
+                        if sa > sa0
+                            && so > so0
+                            && sa - sa0 <= reach(a)
+                            && coming(o, so - so0)
+                            && first(a, sa - sa0, o, so - so0)
+                        {
                             return p(&[("yielder", a.id as f64), ("other", o.id as f64)]);
                         }
                     }

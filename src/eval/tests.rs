@@ -350,29 +350,35 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
         (f.number("follower").unwrap(), f.number("leader").unwrap()),
         (3.0, 1.0)
     );
-    let y = suggest(Behavior::Yield, &scene("merge.yaml")).unwrap();
-    assert!(y.get("yielder").is_some() && y.get("other").is_some());
     assert!(
         suggest(Behavior::Yield, &base).is_none(),
         "parallel lanes never meet"
     );
-    // Yield: the other must be coming. Vehicle 10 is 100 m from the merge at 15 m/s: it gets
-    // there within 7 s, not within 5.5 s; at rest 20 m before it, it never does (both were
-    // suggested before the rule).
-    let merge = scene("merge.yaml");
-    let y = super::behaviors::suggest(Behavior::Yield, &merge, 70).unwrap();
-    assert_eq!(
-        (y.number("yielder").unwrap(), y.number("other").unwrap()),
-        (11.0, 10.0)
-    );
-    assert!(super::behaviors::suggest(Behavior::Yield, &merge, 55).is_none());
+    // Yield asks for something only when the other is coming and the yielder would get there
+    // first. In merge.yaml vehicle 10 (main lane, 100 m to the merge at 15 m/s) passes first
+    // by itself: nothing to ask. With the ramp car (11) 60 m further on, 11 would be first:
+    // "11 yields to 10" means something within 7 s, but not within 5.5 s (10 is not there
+    // yet), and not when 10 waits 20 m before the merge.
     let text = std::fs::read_to_string(
         Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes/merge.yaml"),
     )
     .unwrap();
+    let variant =
+        |from: &str, to: &str| yaml::parse(Path::new("v.yaml"), &text.replace(from, to)).unwrap();
+    let merge = scene("merge.yaml");
+    assert!(super::behaviors::suggest(Behavior::Yield, &merge, 70).is_none());
+    let ahead = variant("s: 30, speed: 14", "s: 90, speed: 14");
+    let y = super::behaviors::suggest(Behavior::Yield, &ahead, 70).unwrap();
+    assert_eq!(
+        (y.number("yielder").unwrap(), y.number("other").unwrap()),
+        (11.0, 10.0)
+    );
+    assert!(super::behaviors::suggest(Behavior::Yield, &ahead, 55).is_none());
     let waiting = yaml::parse(
         Path::new("waiting.yaml"),
-        &text.replace("s: 50, speed: 15", "s: 130, speed: 0"),
+        &text
+            .replace("s: 30, speed: 14", "s: 90, speed: 14")
+            .replace("s: 50, speed: 15", "s: 130, speed: 0"),
     )
     .unwrap();
     assert!(super::behaviors::suggest(Behavior::Yield, &waiting, 70).is_none());

@@ -12,6 +12,7 @@
 pub mod av2;
 pub mod commonroad;
 pub mod rollout;
+pub mod shard;
 pub mod tfrecord;
 pub mod womd;
 pub mod womd_proto;

@@ -63,6 +63,10 @@ pub struct Rollout {
     /// Per-term cost values, when a cost script was evaluated.
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub costs: BTreeMap<String, f64>,
+    /// What made it (`simulate`'s run record: command, version, checkpoint, task, seed,
+    /// scripts, params), when a run wrote it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub run: Option<serde_json::Value>,
 }
 
 impl Rollout {
@@ -96,6 +100,7 @@ impl Rollout {
                 })
                 .collect(),
             costs: BTreeMap::new(),
+            run: None,
         }
     }
 

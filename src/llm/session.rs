@@ -715,7 +715,7 @@ impl<'a> Session<'a> {
         let acc = Acceptance {
             tolerance: self.state.config.tolerance,
         };
-        done.write(rdir, "sample")
+        done.write(rdir, "sample", None)
             .map_err(|e| run_err(rdir, e.to_string()))?;
         let text = feedback(done, &acc);
         write(rdir, "feedback.md", &text)?;

@@ -233,10 +233,16 @@ impl Attempt {
     /// (the rollout `eval --rollouts` reads, with each term's final value) and
     /// `STEM_costs.json` (this report). A stem that cannot name a file (a scenario id read
     /// from an untrusted scene, say) is an error ([`output_stem`]).
-    pub fn write(&self, dir: &Path, stem: &str) -> Result<(), IoError> {
+    pub fn write(
+        &self,
+        dir: &Path,
+        stem: &str,
+        run: Option<&serde_json::Value>,
+    ) -> Result<(), IoError> {
         let id = output_stem(stem)?;
         for (k, s) in self.samples.iter().enumerate() {
             let mut r = Rollout::from_scene(&s.scene);
+            r.run = run.cloned();
             for t in &self.report.samples[k].terms {
                 r.costs.insert(t.term.clone(), t.value);
             }
@@ -484,7 +490,7 @@ mod tests {
             None => assert!(r.samples.iter().all(|o| o.total >= r.samples[best].total)),
         }
         let dir = tempfile::tempdir().unwrap();
-        a.write(dir.path(), "run").unwrap();
+        a.write(dir.path(), "run", None).unwrap();
         for f in ["run_0.json", "run_1.json", "run_costs.json"] {
             assert!(dir.path().join(f).exists(), "{f} missing");
         }
@@ -497,7 +503,10 @@ mod tests {
             json["samples"][1]["terms"][0]["final"],
             r.samples[1].terms[0].value
         );
-        let e = a.write(dir.path(), "../escape").unwrap_err().to_string();
+        let e = a
+            .write(dir.path(), "../escape", None)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("cannot name an output file"), "{e}");
         // With realism on, its terms follow the script's and count in the total.
         let mut spec = spec;

@@ -3,6 +3,7 @@
 pub mod attempt;
 pub mod closed_loop;
 pub mod guided;
+pub mod provenance;
 
 pub use attempt::{
     attempt, Attempt, AttemptError, AttemptReport, AttemptSpec, RealismEvent, SampleOutcome,

@@ -1,0 +1,218 @@
+//! What made a run directory, so that one directory holds one run's outputs.
+//!
+//! `simulate` writes a [`RunRecord`] as `run.json` before its first rollout and puts it in
+//! every rollout: the command, drivescript's version, the checkpoint (a CRC-32C of its
+//! weights), the sampler settings with task and seed, the scripts (name and a CRC-32C of their
+//! text) and the parameters. A second run into the directory with another record is refused
+//! (its `_K.json` would lie beside the first run's and `eval` would score the mixture); the same
+//! record continues the run only with `--resume`, which is also how the shards of one run share
+//! a directory.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+
+use crate::io::{tfrecord::crc32c, write_atomic};
+
+/// The run record's file name in a run directory.
+pub const RUN_FILE: &str = "run.json";
+
+/// What made a run.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RunRecord {
+    /// The subcommand (`simulate`).
+    pub command: String,
+    /// drivescript's version.
+    pub version: String,
+    /// The checkpoint directory as given.
+    pub checkpoint: String,
+    /// CRC-32C of the checkpoint's weights file, hex.
+    pub weights_crc32c: String,
+    /// Task, seed, samples, steps, guidance settings, behaviour: what the sampler was told.
+    pub settings: Value,
+    /// Each script: its file name and a CRC-32C of its text.
+    pub scripts: Vec<(String, String)>,
+    /// The `--param` values.
+    pub params: String,
+}
+
+/// Why a run may not write into a directory.
+#[derive(Debug, thiserror::Error)]
+pub enum ProvenanceError {
+    /// The directory holds another run.
+    #[error(
+        "{dir}: holds the outputs of another run ({RUN_FILE} differs in {field}: {theirs} there, \
+         {ours} here); its rollouts and this run's would mix: choose another -o"
+    )]
+    OtherRun {
+        /// The directory.
+        dir: String,
+        /// The first field that differs.
+        field: String,
+        /// Its value in the directory.
+        theirs: String,
+        /// Its value in this run.
+        ours: String,
+    },
+    /// The directory holds this run's outputs already.
+    #[error(
+        "{dir}: already holds this run's outputs ({RUN_FILE}); continue it with --resume (which \
+         skips the scenes already done, and is how the shards of a run share a directory), or \
+         choose another -o"
+    )]
+    SameRun {
+        /// The directory.
+        dir: String,
+    },
+    /// The directory holds rollouts no record accounts for.
+    #[error(
+        "{dir}: holds rollouts ({example}) but no {RUN_FILE} saying what made them: choose an \
+         empty -o"
+    )]
+    Unattributed {
+        /// The directory.
+        dir: String,
+        /// One such file.
+        example: String,
+    },
+    /// Reading or writing failed.
+    #[error("{path}: {message}")]
+    Io {
+        /// The file.
+        path: String,
+        /// What failed.
+        message: String,
+    },
+}
+
+/// CRC-32C of a file's bytes, as 8 hex digits.
+pub fn file_crc32c(path: &Path) -> Result<String, ProvenanceError> {
+    let bytes = std::fs::read(path).map_err(|e| ProvenanceError::Io {
+        path: path.display().to_string(),
+        message: e.to_string(),
+    })?;
+    Ok(text_crc32c(&bytes))
+}
+
+/// CRC-32C of bytes, as 8 hex digits.
+pub fn text_crc32c(bytes: &[u8]) -> String {
+    format!("{:08x}", crc32c(bytes))
+}
+
+impl RunRecord {
+    /// Claims `dir` for this run: a fresh directory gets the record; one holding the same
+    /// record is continued only when `resume`; anything else is refused.
+    pub fn claim(&self, dir: &Path, resume: bool) -> Result<(), ProvenanceError> {
+        let file = dir.join(RUN_FILE);
+        let shown = dir.display().to_string();
+        let io = |p: &Path, e: String| ProvenanceError::Io {
+            path: p.display().to_string(),
+            message: e,
+        };
+        match std::fs::read_to_string(&file) {
+            Ok(text) => {
+                let theirs: Value = serde_json::from_str(&text)
+                    .map_err(|e| io(&file, format!("not a run record: {e}")))?;
+                let ours = serde_json::to_value(self).expect("records serialise");
+                if let Some((field, a, b)) = first_difference("", &theirs, &ours) {
+                    return Err(ProvenanceError::OtherRun {
+                        dir: shown,
+                        field,
+                        theirs: a,
+                        ours: b,
+                    });
+                }
+                if resume {
+                    Ok(())
+                } else {
+                    Err(ProvenanceError::SameRun { dir: shown })
+                }
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                let rollouts = std::fs::read_dir(dir)
+                    .map_err(|e| io(dir, e.to_string()))?
+                    .filter_map(|e| e.ok())
+                    .map(|e| e.file_name().to_string_lossy().into_owned())
+                    .find(|n| n.ends_with(".json"));
+                if let Some(example) = rollouts {
+                    return Err(ProvenanceError::Unattributed {
+                        dir: shown,
+                        example,
+                    });
+                }
+                let text = serde_json::to_string_pretty(self).expect("records serialise");
+                write_atomic(&file, text.as_bytes()).map_err(|e| io(&file, e.to_string()))
+            }
+            Err(e) => Err(io(&file, e.to_string())),
+        }
+    }
+}
+
+/// The first field (a dotted path) where two JSON values differ, with both values.
+fn first_difference(at: &str, a: &Value, b: &Value) -> Option<(String, String, String)> {
+    match (a, b) {
+        (Value::Object(x), Value::Object(y)) => {
+            let mut keys: Vec<&String> = x.keys().chain(y.keys()).collect();
+            keys.sort();
+            keys.dedup();
+            keys.into_iter().find_map(|k| {
+                let path = if at.is_empty() {
+                    k.clone()
+                } else {
+                    format!("{at}.{k}")
+                };
+                first_difference(
+                    &path,
+                    x.get(k).unwrap_or(&Value::Null),
+                    y.get(k).unwrap_or(&Value::Null),
+                )
+            })
+        }
+        _ if a == b => None,
+        _ => Some((at.to_string(), a.to_string(), b.to_string())),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn record(seed: u64) -> RunRecord {
+        RunRecord {
+            command: "simulate".into(),
+            version: "0.1.0".into(),
+            checkpoint: "data/checkpoint".into(),
+            weights_crc32c: "0123abcd".into(),
+            settings: serde_json::json!({"task": "unconditional", "seed": seed}),
+            scripts: vec![("cut_in.rhai".into(), "deadbeef".into())],
+            params: String::new(),
+        }
+    }
+
+    #[test]
+    fn a_directory_takes_one_run() {
+        let dir = tempfile::tempdir().unwrap();
+        record(1).claim(dir.path(), false).unwrap();
+        assert!(dir.path().join(RUN_FILE).exists());
+        // The same run again: only with --resume.
+        let e = record(1).claim(dir.path(), false).unwrap_err().to_string();
+        assert!(e.contains("--resume"), "{e}");
+        record(1).claim(dir.path(), true).unwrap();
+        // Another run: never, and the message says what differs.
+        let e = record(2).claim(dir.path(), true).unwrap_err().to_string();
+        assert!(e.contains("settings.seed: 1 there, 2 here"), "{e}");
+    }
+
+    #[test]
+    fn rollouts_without_a_record_are_not_mixed_with() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("scene_0.json"), "{}").unwrap();
+        let e = record(1).claim(dir.path(), true).unwrap_err().to_string();
+        assert!(
+            e.contains("scene_0.json") && e.contains("no run.json"),
+            "{e}"
+        );
+    }
+}
