@@ -1165,3 +1165,144 @@ fn a_diverging_training_stops_with_an_error_and_writes_nothing() {
     assert!(err.contains("training diverged"), "{err}");
     assert!(!out.join("model.safetensors").exists());
 }
+
+/// The table rows of an `eval` output, without the timing column.
+fn table_rows(out: &str) -> Vec<String> {
+    out.lines()
+        .filter(|l| l.starts_with("| ") && !l.starts_with("| method"))
+        .map(|l| l.rsplitn(3, '|').nth(2).unwrap_or(l).to_string())
+        .collect()
+}
+
+#[test]
+fn three_shards_and_a_merge_equal_the_single_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let scenes = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes");
+    let sim = |out: &std::path::Path, extra: &[&str]| {
+        let mut a = vec![
+            "simulate",
+            s(&scenes),
+            "--checkpoint",
+            "data/checkpoint",
+            "--task",
+            "unconditional",
+            "--lambda",
+            "0",
+            "-o",
+            s(out),
+        ];
+        a.extend_from_slice(extra);
+        drivescript(&a)
+    };
+    let (all, sharded) = (dir.path().join("all"), dir.path().join("sharded"));
+    assert!(sim(&all, &[]).status.success());
+    for i in 0..3 {
+        let shard = format!("{i}/3");
+        let o = sim(&sharded, &["--shard", &shard, "--resume"]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    // The same rollouts, whichever way the scenes were split.
+    let names = |d: &std::path::Path| {
+        let mut v: Vec<String> = std::fs::read_dir(d)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.ends_with(".json") && !n.ends_with("_costs.json"))
+            .collect();
+        v.sort();
+        v
+    };
+    assert_eq!(names(&all), names(&sharded));
+    assert!(names(&all).len() > 3);
+    for n in names(&all) {
+        assert_eq!(
+            std::fs::read(all.join(&n)).unwrap(),
+            std::fs::read(sharded.join(&n)).unwrap(),
+            "{n}"
+        );
+    }
+    let r: Value =
+        serde_json::from_str(&std::fs::read_to_string(all.join("highway_0.json")).unwrap())
+            .unwrap();
+    assert_eq!(
+        r["run"]["settings"]["seed"], 1,
+        "every rollout says what made it"
+    );
+    // eval per shard, then merged: the single run's table.
+    let eval = |extra: &[&str]| {
+        let mut a = vec![
+            "eval",
+            s(&scenes),
+            "--task",
+            "conditional",
+            "--baseline",
+            "cv",
+            "--rollouts",
+            s(&all),
+        ];
+        a.extend_from_slice(extra);
+        ok(&a)
+    };
+    let single = eval(&[]);
+    let mut files = Vec::new();
+    for i in 0..3 {
+        let f = dir.path().join(format!("s{i}.json"));
+        eval(&["--shard", &format!("{i}/3"), "--json", s(&f)]);
+        files.push(f);
+    }
+    let fs: Vec<&str> = files.iter().map(|f| s(f)).collect();
+    let mut args = vec!["eval", "--merge"];
+    args.extend(&fs);
+    let merged = ok(&args);
+    assert!(merged.contains("merged 3 of 3 shards"), "{merged}");
+    assert_eq!(table_rows(&single), table_rows(&merged));
+    // A missing or repeated shard is refused.
+    let err = fails(&["eval", "--merge", fs[0], fs[1]]);
+    assert!(err.contains("shards 2/3 are missing"), "{err}");
+    let err = fails(&["eval", "--merge", fs[0], fs[1], fs[2], fs[1]]);
+    assert!(err.contains("is in both"), "{err}");
+}
+
+#[test]
+fn a_run_directory_takes_one_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let sim = |extra: &[&str]| {
+        let mut a = vec![
+            "simulate",
+            s(&scene),
+            "--checkpoint",
+            "data/checkpoint",
+            "--task",
+            "unconditional",
+            "--lambda",
+            "0",
+            "-o",
+            s(&out),
+        ];
+        a.extend_from_slice(extra);
+        drivescript(&a)
+    };
+    assert!(sim(&[]).status.success());
+    let run: Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
+    assert_eq!(run["command"], "simulate");
+    assert_eq!(run["weights_crc32c"].as_str().unwrap().len(), 8);
+    // The same command again: only with --resume, which finds the scene complete.
+    let o = sim(&[]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{e}");
+    assert!(
+        e.contains("already holds this run's outputs") && e.contains("--resume"),
+        "{e}"
+    );
+    let o = sim(&["--resume"]);
+    let t = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("1 scene already complete"), "{t}");
+    // Another seed into the same directory: never.
+    let o = sim(&["--resume", "--seed", "2"]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{e}");
+    assert!(e.contains("settings.seed: 1 there, 2 here"), "{e}");
+}

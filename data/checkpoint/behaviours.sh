@@ -21,6 +21,12 @@ if [ $# -gt 0 ] && [ "$1" != "--" ]; then bin=$1; shift; fi
 if [ $# -gt 0 ] && [ "$1" = "--" ]; then shift; fi
 extra=("$@")
 horizon=$(grep -o '"future": *[0-9]*' "$ckpt/config.json" | head -1 | grep -o '[0-9]*$')
+# Each behaviour's rollouts go to a fresh OUT/NAME: a directory from an earlier run would be
+# refused by simulate and its old rollouts scored by eval.
+if [ -e "$out" ] && [ -n "$(ls -A "$out")" ]; then
+    echo "$out is not empty: give a new OUT" >&2
+    exit 1
+fi
 mkdir -p "$out"
 # The model's own rate: unguided samples of the same instances.
 "$bin" simulate "$inst" --checkpoint "$ckpt" --task unconditional -o "$out/unguided" \

@@ -37,11 +37,11 @@ enum BaselineArg {
 #[derive(clap::Args)]
 pub struct Args {
     /// Scene files or directories.
-    #[arg(required = true)]
+    #[arg(required_unless_present = "merge")]
     scenes: Vec<PathBuf>,
     /// What to evaluate.
-    #[arg(long, value_enum)]
-    task: Task,
+    #[arg(long, value_enum, required_unless_present = "merge")]
+    task: Option<Task>,
     /// Baselines to score (repeatable; default: all three unless --rollouts is given).
     #[arg(long = "baseline", value_enum)]
     baselines: Vec<BaselineArg>,
@@ -70,13 +70,22 @@ pub struct Args {
     /// in the recording (by default an agent is scored while its recorded track lasts).
     #[arg(long)]
     all_steps: bool,
-    /// Write the table and per-scene results as JSON.
+    /// Write the table and per-scene results as JSON (with what `--merge` needs to combine
+    /// shards).
     #[arg(long)]
     json: Option<PathBuf>,
+    /// Only the scenes of shard I of N (0 <= I < N, a stable partition by scenario id, the
+    /// same as `simulate --shard`); write --json, then combine the shards with --merge.
+    #[arg(long, value_name = "I/N")]
+    shard: Option<drivescript::io::shard::Shard>,
+    /// Combine the --json files of the shards of one evaluation (same task, methods,
+    /// behaviour, parameters and horizon; every shard once) into the table a single run prints.
+    #[arg(long, value_name = "JSON", num_args = 1.., conflicts_with_all = ["scenes", "task", "shard", "rollouts", "baselines"])]
+    merge: Vec<PathBuf>,
 }
 
-/// One method's results over all scenes.
-#[derive(Default)]
+/// One method's results over all scenes (what a shard's --json keeps for --merge).
+#[derive(Default, serde::Serialize, serde::Deserialize)]
 struct Acc {
     scenes: usize,
     ade: Vec<f64>,
@@ -226,6 +235,10 @@ fn task_name(t: Task) -> &'static str {
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
+    if !args.merge.is_empty() {
+        return merge(&args.merge, args.json.as_deref());
+    }
+    let task = args.task.expect("clap requires --task without --merge");
     if !(1..=1024).contains(&args.samples) {
         anyhow::bail!("--samples {}: must be 1 to 1024", args.samples);
     }
@@ -254,7 +267,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         }
         methods.push((format!("rollouts in {}", d.display()), None));
     }
-    let behaviour = match (args.task, &args.behaviour) {
+    let behaviour = match (task, &args.behaviour) {
         (Task::Behaviour, None) => bail!("--task behaviour needs --behaviour NAME"),
         (Task::Behaviour, Some(n)) => {
             let b = Behavior::from_name(n).with_context(|| format!("unknown behaviour {n:?}"))?;
@@ -297,6 +310,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 let stem = drivescript::io::output_stem(&s.meta.scenario_id)?.to_string();
                 Ok((stem, s))
             }) {
+                Ok((_, s))
+                    if args
+                        .shard
+                        .is_some_and(|sh| !sh.contains(&s.meta.scenario_id)) => {}
                 Ok((stem, s)) => match names.get(&stem) {
                     Some(first) => {
                         bar.suspend(|| {
@@ -379,7 +396,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     .iter()
                     .map(|s| {
                         let s = s.with_horizon(scene.num_future_steps()).retire_exited();
-                        if args.task == Task::Conditional && !args.all_steps {
+                        if task == Task::Conditional && !args.all_steps {
                             s.with_lifetimes_of(&reference)
                         } else {
                             s
@@ -387,7 +404,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     })
                     .collect();
                 score(
-                    args.task,
+                    task,
                     acc,
                     &reference,
                     &sims,
@@ -398,9 +415,57 @@ pub fn run(args: Args) -> Result<ExitCode> {
         bar.inc(1);
     }
     bar.finish_and_clear();
+    let settings = json!({
+        "task": task_name(task),
+        "methods": methods.iter().map(|m| m.0.clone()).collect::<Vec<_>>(),
+        "behaviour": behaviour.as_ref().map(|b| b.0.name()),
+        "params": args.params,
+        "auto": args.auto,
+        "horizon": args.horizon,
+        "samples": args.samples,
+        "all_steps": args.all_steps,
+        "shards": args.shard.map_or(1, |s| s.count),
+    });
+    let shard = args.shard.map(|s| s.index);
+    report(
+        task,
+        &methods.iter().map(|m| m.0.clone()).collect::<Vec<_>>(),
+        &accs,
+        behaviour.as_ref().map(|b| b.0),
+        args.json.as_deref(),
+        &Merge {
+            settings,
+            shards: shard.into_iter().collect(),
+            skipped,
+            failures,
+        },
+    )
+}
+
+/// What a shard's --json carries for --merge besides the accumulators.
+#[derive(serde::Serialize, serde::Deserialize)]
+struct Merge {
+    /// Everything the shards must agree on.
+    settings: serde_json::Value,
+    /// The shard indices combined (empty: an unsharded run).
+    shards: Vec<usize>,
+    skipped: usize,
+    failures: usize,
+}
+
+/// Prints the table over `accs` (one per method), writes --json, and says how the run went.
+fn report(
+    task: Task,
+    methods: &[String],
+    accs: &[Acc],
+    behaviour: Option<Behavior>,
+    json_out: Option<&Path>,
+    merge: &Merge,
+) -> Result<ExitCode> {
+    let (skipped, failures) = (merge.skipped, merge.failures);
     let bins = JsdBins::default();
     let mut table = Vec::new();
-    match args.task {
+    match task {
         Task::Conditional => {
             println!("| method | scenes | ADE (m) | FDE (m) | minADE | minFDE | JSD speed | JSD ang. speed | JSD accel | JSD nearest | JSD mean | collision | off-road | implausible | ms/scene |");
             println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
@@ -414,7 +479,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             println!("|---|---|---|---|---|---|---|");
         }
     }
-    for ((name, _), acc) in methods.iter().zip(&accs) {
+    for (name, acc) in methods.iter().zip(accs) {
         let ms = if acc.scenes > 0 {
             1000.0 * acc.seconds / acc.scenes as f64
         } else {
@@ -426,7 +491,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             .zip(&acc.by_kind)
             .map(|(v, f)| (v.name().to_string(), json!(metrics::rate(f))))
             .collect();
-        let mut row = match args.task {
+        let mut row = match task {
             Task::Conditional => {
                 let r = metrics::realism(&acc.sim_kin, &acc.log_kin, &bins);
                 println!(
@@ -462,7 +527,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     "mmd2_nearest_object": mean(&acc.mmd_near), "mmd2_road_edge": mean(&acc.mmd_edge), "ms_per_scene": ms})
             }
             Task::Behaviour => {
-                let b = behaviour.as_ref().expect("behaviour task").0;
+                let b = behaviour.expect("behaviour task");
                 let of = |n: usize| (acc.checked > 0).then(|| n as f64 / acc.checked as f64);
                 let (rate, achieved) = (of(acc.passed), of(acc.achieved));
                 println!(
@@ -484,14 +549,18 @@ pub fn run(args: Args) -> Result<ExitCode> {
     println!(
         "\nimplausible: fraction of vehicles (pooled over scenes and samples) whose future a car cannot drive: reversing, sprinting, braking or accelerating beyond 7 m/s², swerving, crabbing or turning tighter than Waymax's curvature bound (README, Evaluation)"
     );
-    if args.task == Task::Conditional {
+    if task == Task::Conditional {
         println!("\nJSD: Jensen-Shannon distance (natural log) of histograms pooled over agents, steps and scenes; bins {}", serde_json::to_string(&bins)?);
     }
-    if let Some(out) = &args.json {
+    if let Some(out) = json_out {
         write_atomic(
             out,
-            serde_json::to_string_pretty(&json!({"task": task_name(args.task), "methods": table}))?
-                .as_bytes(),
+            serde_json::to_string_pretty(&json!({
+                "task": task_name(task),
+                "methods": table,
+                "merge": {"accumulators": accs, "run": merge},
+            }))?
+            .as_bytes(),
         )?;
         println!("wrote {}", out.display());
     }
@@ -502,14 +571,14 @@ pub fn run(args: Args) -> Result<ExitCode> {
         eprintln!("{failures} sources or rollouts failed");
         return Ok(ExitCode::FAILURE);
     }
-    let scored = accs.iter().any(|a| match args.task {
+    let scored = accs.iter().any(|a| match task {
         Task::Behaviour => a.checked > 0,
         _ => a.scenes > 0,
     });
     if !scored {
         eprintln!(
             "error: nothing was scored: no scene with agents and a future{} was read from the given paths",
-            if args.task == Task::Behaviour {
+            if task == Task::Behaviour {
                 " and agents for the behaviour"
             } else {
                 ""
@@ -518,4 +587,139 @@ pub fn run(args: Args) -> Result<ExitCode> {
         return Ok(ExitCode::FAILURE);
     }
     Ok(ExitCode::SUCCESS)
+}
+
+impl Acc {
+    /// Adds another shard's results for the same method.
+    fn absorb(&mut self, o: Acc) {
+        self.scenes += o.scenes;
+        for (a, b) in [
+            (&mut self.ade, o.ade),
+            (&mut self.fde, o.fde),
+            (&mut self.min_ade, o.min_ade),
+            (&mut self.min_fde, o.min_fde),
+            (&mut self.collision, o.collision),
+            (&mut self.offroad, o.offroad),
+            (&mut self.scr, o.scr),
+            (&mut self.mmd_near, o.mmd_near),
+            (&mut self.mmd_edge, o.mmd_edge),
+        ] {
+            a.extend(b);
+        }
+        self.sim_kin.extend(&o.sim_kin);
+        self.log_kin.extend(&o.log_kin);
+        self.passed += o.passed;
+        self.achieved += o.achieved;
+        self.checked += o.checked;
+        self.implausible.extend(o.implausible);
+        for (a, b) in self.by_kind.iter_mut().zip(o.by_kind) {
+            a.extend(b);
+        }
+        self.per_scene.extend(o.per_scene);
+        self.seconds += o.seconds;
+    }
+}
+
+/// `eval --merge`: the shards' --json files combined into the table of a single run.
+fn merge(files: &[PathBuf], json_out: Option<&Path>) -> Result<ExitCode> {
+    let mut first: Option<(PathBuf, serde_json::Value)> = None;
+    let mut accs: Vec<Acc> = Vec::new();
+    let mut seen: Vec<(usize, PathBuf)> = Vec::new();
+    let (mut skipped, mut failures) = (0, 0);
+    for f in files {
+        let text =
+            std::fs::read_to_string(f).with_context(|| format!("reading {}", f.display()))?;
+        let mut v: serde_json::Value =
+            serde_json::from_str(&text).with_context(|| format!("{}: not JSON", f.display()))?;
+        let m: Merge = serde_json::from_value(v["merge"]["run"].take()).with_context(|| {
+            format!(
+                "{}: no shard record (write one with `eval ... --shard I/N --json FILE`)",
+                f.display()
+            )
+        })?;
+        let a: Vec<Acc> = serde_json::from_value(v["merge"]["accumulators"].take())
+            .with_context(|| format!("{}: damaged accumulators", f.display()))?;
+        match &first {
+            None => {
+                first = Some((f.clone(), m.settings.clone()));
+                accs = a;
+            }
+            Some((f0, s0)) => {
+                if m.settings != *s0 {
+                    bail!(
+                        "{} and {}: not shards of one evaluation (settings {} against {})",
+                        f0.display(),
+                        f.display(),
+                        s0,
+                        m.settings
+                    );
+                }
+                if a.len() != accs.len() {
+                    bail!("{}: damaged accumulators (one per method)", f.display());
+                }
+                for (acc, o) in accs.iter_mut().zip(a) {
+                    acc.absorb(o);
+                }
+            }
+        }
+        skipped += m.skipped;
+        failures += m.failures;
+        seen.extend(m.shards.iter().map(|&s| (s, f.clone())));
+    }
+    let (f0, settings) = first.context("--merge needs at least one file")?;
+    let n = settings["shards"].as_u64().unwrap_or(1) as usize;
+    seen.sort();
+    for w in seen.windows(2) {
+        if w[0].0 == w[1].0 {
+            bail!(
+                "shard {}/{n} is in both {} and {}: each shard once",
+                w[0].0,
+                w[0].1.display(),
+                w[1].1.display()
+            );
+        }
+    }
+    let missing: Vec<String> = (0..n)
+        .filter(|i| !seen.iter().any(|s| s.0 == *i))
+        .map(|i| format!("{i}/{n}"))
+        .collect();
+    if n > 1 && !missing.is_empty() {
+        bail!(
+            "{}: shards {} are missing: the merged table would leave their scenes out",
+            f0.display(),
+            missing.join(", ")
+        );
+    }
+    let task = match settings["task"].as_str() {
+        Some("conditional") => Task::Conditional,
+        Some("unconditional") => Task::Unconditional,
+        Some("behaviour") => Task::Behaviour,
+        other => bail!("{}: unknown task {other:?}", f0.display()),
+    };
+    let behaviour = match settings["behaviour"].as_str() {
+        Some(b) => {
+            Some(Behavior::from_name(b).with_context(|| format!("unknown behaviour {b:?}"))?)
+        }
+        None => None,
+    };
+    let methods: Vec<String> = serde_json::from_value(settings["methods"].clone())?;
+    println!(
+        "merged {} of {n} shard{} from {} files",
+        seen.len().max(1),
+        if n == 1 { "" } else { "s" },
+        files.len()
+    );
+    report(
+        task,
+        &methods,
+        &accs,
+        behaviour,
+        json_out,
+        &Merge {
+            settings,
+            shards: seen.iter().map(|s| s.0).collect(),
+            skipped,
+            failures,
+        },
+    )
 }

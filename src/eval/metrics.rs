@@ -142,7 +142,7 @@ pub fn rate(flags: &[Option<bool>]) -> Option<f64> {
 }
 
 /// Kinematic samples pooled over agents and future steps, for the realism histograms.
-#[derive(Debug, Clone, Default, PartialEq)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, serde::Deserialize)]
 pub struct Kinematics {
     /// Linear speed, m/s.
     pub speed: Vec<f64>,

@@ -69,15 +69,10 @@ mod tests {
 
     #[test]
     fn every_id_falls_in_exactly_one_shard_and_always_the_same() {
-        // Known answers keep the partition stable across versions.
-        assert_eq!(
-            shard_of("USA_US101-3_3_T-1", 4),
-            shard_of("USA_US101-3_3_T-1", 4)
-        );
-        assert_eq!(
-            crate::io::tfrecord::crc32c(b"USA_US101-3_3_T-1") as usize % 7,
-            shard_of("USA_US101-3_3_T-1", 7)
-        );
+        // Known answers (CRC-32C 0x750d0d16, computed independently) keep the partition
+        // stable across versions: a rerun of a shard takes the same scenes.
+        assert_eq!(shard_of("USA_US101-3_3_T-1", 1000), 590);
+        assert_eq!(shard_of("USA_US101-3_3_T-1", 7), 0);
         let ids: Vec<String> = (0..400).map(|k| format!("scene_{k}")).collect();
         let n = 5;
         let mut sizes = vec![0; n];
