@@ -740,8 +740,10 @@ const OFF_ROAD_REACH: f64 = 4.0;
 /// - `yield`: two vehicles whose lane paths meet ahead of both, within 1.2 times the distance
 ///   the yielder covers over the horizon at its current speed plus 20 m, and that the other,
 ///   moving at 2 m/s or more, passes by 2 m within the horizon at its current speed, while the
-///   yielder, moving too, would get there first at its own (yielding to a car that waits at a
-///   light, is too far away to arrive, or passes first anyway asks for nothing);
+///   yielder, moving too, would get there first at its own but can hold back 2 m before the
+///   point until then braking at 3 m/s² at most (yielding to a car that waits at a light, is
+///   too far away to arrive or passes first anyway asks for nothing; yielding from the
+///   junction's edge asks for an emergency stop);
 /// - `accident`: the nearest pair; `no_collisions`: no agents.
 pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
     let c = scene.meta.current_step;
@@ -910,11 +912,18 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
                 let v = o.states[c].speed();
                 v >= MOVING && to_go + 2.0 <= v * horizon
             };
-            // And the yielder, holding its speed, would get there first: otherwise the other
-            // passes first by itself and "yield" asks for nothing either.
+            // And the yielder, holding its speed, would get there first (otherwise the other
+            // passes first by itself and "yield" asks for nothing either), yet can hold back,
+            // braking at most 3 m/s², until the other is 2 m past: a car already at the
+            // junction cannot yield without an emergency stop.
             let first = |a: &Agent, a_to_go: f64, o: &Agent, o_to_go: f64| {
                 let (va, vo) = (a.states[c].speed(), o.states[c].speed());
-                va >= MOVING && a_to_go / va <= o_to_go / vo
+                let (room, other_past) = (a_to_go - 2.0, (o_to_go + 2.0) / vo);
+                let brake = 3.0;
+                let holds = room > 0.0
+                    && (va * va / (2.0 * brake) <= room
+                        || (va - (va * va - 2.0 * brake * room).sqrt()) / brake >= other_past);
+                va >= MOVING && a_to_go / va <= o_to_go / vo && holds
             };
             for (a, _, pa) in &cands {
                 let sa0 = pa.frenet.project(a.states[c].position()).s;

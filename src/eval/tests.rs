@@ -374,6 +374,9 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
         (11.0, 10.0)
     );
     assert!(super::behaviors::suggest(Behavior::Yield, &ahead, 55).is_none());
+    // 11 m before the merge at 14 m/s, 11 cannot hold back at 3 m/s² (33 m to stop).
+    let late = variant("s: 30, speed: 14", "s: 140, speed: 14");
+    assert!(super::behaviors::suggest(Behavior::Yield, &late, 70).is_none());
     let waiting = yaml::parse(
         Path::new("waiting.yaml"),
         &text
