@@ -1166,6 +1166,28 @@ fn a_diverging_training_stops_with_an_error_and_writes_nothing() {
     assert!(!out.join("model.safetensors").exists());
 }
 
+/// `simulate` unguided (λ = 0) with the shipped checkpoint, plus `extra` flags.
+fn unguided(
+    scenes: &std::path::Path,
+    out: &std::path::Path,
+    extra: &[&str],
+) -> std::process::Output {
+    let mut a = vec![
+        "simulate",
+        s(scenes),
+        "--checkpoint",
+        "data/checkpoint",
+        "--task",
+        "unconditional",
+        "--lambda",
+        "0",
+        "-o",
+        s(out),
+    ];
+    a.extend_from_slice(extra);
+    drivescript(&a)
+}
+
 /// The table rows of an `eval` output, without the timing column.
 fn table_rows(out: &str) -> Vec<String> {
     out.lines()
@@ -1178,22 +1200,7 @@ fn table_rows(out: &str) -> Vec<String> {
 fn three_shards_and_a_merge_equal_the_single_run() {
     let dir = tempfile::tempdir().unwrap();
     let scenes = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes");
-    let sim = |out: &std::path::Path, extra: &[&str]| {
-        let mut a = vec![
-            "simulate",
-            s(&scenes),
-            "--checkpoint",
-            "data/checkpoint",
-            "--task",
-            "unconditional",
-            "--lambda",
-            "0",
-            "-o",
-            s(out),
-        ];
-        a.extend_from_slice(extra);
-        drivescript(&a)
-    };
+    let sim = |out: &std::path::Path, extra: &[&str]| unguided(&scenes, out, extra);
     let (all, sharded) = (dir.path().join("all"), dir.path().join("sharded"));
     assert!(sim(&all, &[]).status.success());
     for i in 0..3 {
@@ -1267,22 +1274,7 @@ fn a_run_directory_takes_one_run() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("run");
     let scene = samples().join("yaml/highway_cut_in.yaml");
-    let sim = |extra: &[&str]| {
-        let mut a = vec![
-            "simulate",
-            s(&scene),
-            "--checkpoint",
-            "data/checkpoint",
-            "--task",
-            "unconditional",
-            "--lambda",
-            "0",
-            "-o",
-            s(&out),
-        ];
-        a.extend_from_slice(extra);
-        drivescript(&a)
-    };
+    let sim = |extra: &[&str]| unguided(&scene, &out, extra);
     assert!(sim(&[]).status.success());
     let run: Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();

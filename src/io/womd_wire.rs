@@ -551,28 +551,31 @@ fn lane_center(l: &mut pb::LaneCenter, b: &[u8], d: u32) -> Result<()> {
     .map_err(|e| e.within("LaneCenter"))
 }
 
-fn road_line(l: &mut pb::RoadLine, b: &[u8], d: u32) -> Result<()> {
+/// Road lines and road edges: a type (field 1) and a polyline (field 2).
+fn typed_polyline(
+    ty: &mut Option<i32>,
+    pts: &mut Vec<pb::MapPoint>,
+    b: &[u8],
+    d: u32,
+    name: &'static str,
+) -> Result<()> {
     fields(b, d, |r, tag, wire| {
         match tag {
-            1 => l.r#type = Some(int(r, wire)? as i32),
-            2 => push_point(r, wire, d, &mut l.polyline)?,
+            1 => *ty = Some(int(r, wire)? as i32),
+            2 => push_point(r, wire, d, pts)?,
             _ => return Ok(false),
         }
         Ok(true)
     })
-    .map_err(|e| e.within("RoadLine"))
+    .map_err(|e| e.within(name))
+}
+
+fn road_line(l: &mut pb::RoadLine, b: &[u8], d: u32) -> Result<()> {
+    typed_polyline(&mut l.r#type, &mut l.polyline, b, d, "RoadLine")
 }
 
 fn road_edge(l: &mut pb::RoadEdge, b: &[u8], d: u32) -> Result<()> {
-    fields(b, d, |r, tag, wire| {
-        match tag {
-            1 => l.r#type = Some(int(r, wire)? as i32),
-            2 => push_point(r, wire, d, &mut l.polyline)?,
-            _ => return Ok(false),
-        }
-        Ok(true)
-    })
-    .map_err(|e| e.within("RoadEdge"))
+    typed_polyline(&mut l.r#type, &mut l.polyline, b, d, "RoadEdge")
 }
 
 fn stop_sign(s: &mut pb::StopSign, b: &[u8], d: u32) -> Result<()> {
