@@ -551,6 +551,18 @@ fn files_named_like_shards_are_read_by_content_and_shards_hide_nothing() {
         err.contains("named like a WOMD shard, but its content is JSON text"),
         "{err}"
     );
+    // With the .tfrecord extension the name decides; the error says what the file is, and
+    // names the record once.
+    let ext = dir.path().join("scenes.tfrecord");
+    std::fs::write(&ext, "{\"scenario_id\": \"x\"}").unwrap();
+    let err = fails(&["inspect", s(&ext)]);
+    assert!(
+        err.contains("scenes.tfrecord: record 0 at byte 0: file ends inside")
+            && err.contains("(the file is JSON text, not a TFRecord)")
+            && err.matches("record 0").count() == 1,
+        "{err}"
+    );
+    std::fs::remove_file(&ext).unwrap();
     // A shard beside a YAML scene: both are read, the shard does not stand for the folder.
     std::fs::write(
         &shard,

@@ -57,6 +57,28 @@ pub enum TfRecordError {
 }
 
 impl TfRecordError {
+    /// Where the record starts (what `Display` prefixes with the record index).
+    pub fn location(&self) -> String {
+        match self {
+            TfRecordError::Io { record, .. } => format!("record {record}"),
+            TfRecordError::Truncated { record, offset, .. }
+            | TfRecordError::LengthCrc { record, offset }
+            | TfRecordError::DataCrc { record, offset }
+            | TfRecordError::TooLarge { record, offset, .. } => {
+                format!("record {record} at byte {offset}")
+            }
+        }
+    }
+
+    /// What is wrong, without the location.
+    pub fn fault(&self) -> String {
+        let full = self.to_string();
+        let loc = self.location();
+        full.strip_prefix(&loc)
+            .and_then(|r| r.strip_prefix(": "))
+            .map_or(full.clone(), str::to_string)
+    }
+
     /// Index of the record the error is about.
     pub fn record(&self) -> usize {
         match self {

@@ -74,7 +74,14 @@ pub fn read_file(path: &Path) -> Result<impl Iterator<Item = Result<Scene, IoErr
     let reader = TfRecordReader::new(BufReader::with_capacity(1 << 20, file));
     Ok(reader.enumerate().map(move |(i, rec)| {
         let bytes = rec.map_err(|e| {
-            IoError::invalid(&path, format!("record {}", e.record()), e.to_string())
+            let mut fault = e.fault();
+            // A file that fails on its first record may be no TFRecord at all: say what it is.
+            if e.record() == 0 {
+                if let Some(c) = super::sniff(&path).filter(|c| *c != super::Content::TfRecord) {
+                    fault.push_str(&format!(" (the file is {}, not a TFRecord)", c.describe()));
+                }
+            }
+            IoError::invalid(&path, e.location(), fault)
         })?;
         decode_record(&path, i, &bytes)
     }))
