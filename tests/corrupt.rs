@@ -557,7 +557,7 @@ fn files_named_like_shards_are_read_by_content_and_shards_hide_nothing() {
     std::fs::write(&ext, "{\"scenario_id\": \"x\"}").unwrap();
     let err = fails(&["inspect", s(&ext)]);
     assert!(
-        err.contains("scenes.tfrecord: record 0 at byte 0: file ends inside")
+        err.contains("scenes.tfrecord: record 0 at byte 0: length checksum mismatch")
             && err.contains("(the file is JSON text, not a TFRecord)")
             && err.matches("record 0").count() == 1,
         "{err}"
