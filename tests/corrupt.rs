@@ -605,3 +605,103 @@ fn two_scenes_with_one_name_are_not_scored_against_the_same_rollouts() {
         "{e}"
     );
 }
+
+#[test]
+fn every_consumer_checks_a_rollout_against_its_scene_the_same_way() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let good = dir.path().join("recorded.json");
+    ok(&["convert", s(&scene), "-o", s(&good)]);
+    let base: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&good).unwrap()).unwrap();
+    type Edit = fn(&mut serde_json::Value);
+    let cases: [(&str, Edit, &str); 7] = [
+        (
+            "missing agent",
+            |r| {
+                r["agents"].as_array_mut().unwrap().remove(2);
+            },
+            "the rollout has no agent 3 (the scene's)",
+        ),
+        (
+            "extra agent",
+            |r| {
+                let mut a = r["agents"][0].clone();
+                a["id"] = 99.into();
+                r["agents"].as_array_mut().unwrap().push(a);
+            },
+            "agents[4] (id 99): the scene has no agent with this id",
+        ),
+        (
+            "relabelled",
+            |r| r["agents"][1]["type"] = "pedestrian".into(),
+            "agents[1] (id 2): a Pedestrian in the rollout, a Vehicle in the scene",
+        ),
+        (
+            "resized",
+            |r| r["agents"][1]["length"] = 1.0.into(),
+            "agents[1] (id 2): 1 x",
+        ),
+        (
+            "rewritten history",
+            |r| r["agents"][0]["states"][3][0] = 12345.0.into(),
+            "agents[0] (id 1): step 3 of the history differs",
+        ),
+        (
+            "another scene",
+            |r| r["scene_id"] = "highway".into(),
+            "the rollout is of scene \"highway\", not of \"highway-cut-in\"",
+        ),
+        (
+            "another dt",
+            |r| r["dt"] = 0.2.into(),
+            "dt: 0.2 s, the scene's is 0.1 s",
+        ),
+    ];
+    for (what, edit, want) in cases {
+        let mut r = base.clone();
+        edit(&mut r);
+        let rdir = dir.path().join(what.replace(' ', "_"));
+        std::fs::create_dir_all(&rdir).unwrap();
+        let f = rdir.join("highway-cut-in.json");
+        std::fs::write(&f, r.to_string()).unwrap();
+        let runs: [Vec<&str>; 3] = [
+            vec![
+                "eval",
+                s(&scene),
+                "--task",
+                "conditional",
+                "--rollouts",
+                s(&rdir),
+            ],
+            vec![
+                "cost",
+                s(&scene),
+                "--script",
+                "scripts/cut_in.rhai",
+                "--param",
+                "cutter=2",
+                "victim=1",
+                "--rollout",
+                s(&f),
+            ],
+            vec![
+                "render",
+                s(&scene),
+                "--rollout",
+                s(&f),
+                "-o",
+                "/dev/null/x.svg",
+            ],
+        ];
+        for args in runs {
+            let err = fails(&args);
+            assert!(err.contains(want), "{what}, {}: {err}", args[0]);
+            assert!(
+                err.contains("highway-cut-in.json"),
+                "{what}, {}: {err}",
+                args[0]
+            );
+        }
+    }
+}

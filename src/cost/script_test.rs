@@ -305,12 +305,14 @@ impl Runner {
                         script: name.clone(),
                         message: m,
                     })?;
-                    Trajectories::from_rollout(&scene, &Rollout::from_scene(&other)).map_err(
-                        |m| CostError::Shape {
-                            script: name.clone(),
-                            message: format!("{p}: {m}"),
-                        },
-                    )?
+                    // Another recording of the same agents stands for a future of this
+                    // scene: everything else about it must match.
+                    let mut r = Rollout::from_scene(&other);
+                    r.scene_id = scene.meta.scenario_id.clone();
+                    Trajectories::from_rollout(&scene, &r).map_err(|m| CostError::Shape {
+                        script: name.clone(),
+                        message: format!("{p}: {m}"),
+                    })?
                 }
                 (None, Some(p)) => {
                     let r = Rollout::read(&dir.join(p)).map_err(|e| CostError::Shape {

@@ -133,6 +133,8 @@ impl Trajectories {
 
     /// The future part of a rollout of this scene (agents matched by id).
     pub fn from_rollout(scene: &Scene, r: &Rollout) -> Result<Self, String> {
+        r.check_against(scene, std::path::Path::new("rollout"))
+            .map_err(|e| e.to_string())?;
         if r.current_step != scene.meta.current_step {
             return Err(format!(
                 "the rollout's current step is {}, the scene's {}",

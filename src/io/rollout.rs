@@ -27,6 +27,9 @@ pub const VERSION: u32 = 1;
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct RolloutState(pub f64, pub f64, pub f64, pub bool);
 
+/// The most steps a rollout may hold after the current step (`eval --horizon`'s bound).
+pub const MAX_ROLLOUT_FUTURE: usize = 10_000;
+
 /// One agent's trajectory.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -151,14 +154,114 @@ impl Rollout {
         Ok(())
     }
 
+    /// Checks that this is a rollout of `scene`, as every consumer (`eval`, `cost`, `render`,
+    /// script tests) needs it: the same scenario id, dt and current step; exactly the scene's
+    /// agents, with the scene's types and sizes; a history equal to the scene's; at least the
+    /// current step and at most [`MAX_ROLLOUT_FUTURE`] steps after it. `what` names the file.
+    pub fn check_against(&self, scene: &Scene, what: &Path) -> Result<(), IoError> {
+        let bad = |loc: String, msg: String| IoError::invalid(what, loc, msg);
+        let m = &scene.meta;
+        if self.scene_id != m.scenario_id {
+            return Err(bad(
+                "scene_id".into(),
+                format!(
+                    "the rollout is of scene {:?}, not of {:?}",
+                    self.scene_id, m.scenario_id
+                ),
+            ));
+        }
+        if (self.dt - m.dt).abs() > 1e-9 * m.dt {
+            return Err(bad(
+                "dt".into(),
+                format!("{} s, the scene's is {} s", self.dt, m.dt),
+            ));
+        }
+        if self.current_step != m.current_step {
+            return Err(bad(
+                "current_step".into(),
+                format!("{}, the scene's is {}", self.current_step, m.current_step),
+            ));
+        }
+        let steps = self.agents.first().map_or(0, |a| a.states.len());
+        if steps > m.current_step + 1 + MAX_ROLLOUT_FUTURE {
+            return Err(bad(
+                "agents".into(),
+                format!(
+                    "{steps} steps: at most {MAX_ROLLOUT_FUTURE} after the current step {}",
+                    m.current_step
+                ),
+            ));
+        }
+        for (i, ra) in self.agents.iter().enumerate() {
+            let loc = || format!("agents[{i}] (id {})", ra.id);
+            if self.agents[..i].iter().any(|o| o.id == ra.id) {
+                return Err(bad(loc(), "a second agent with this id".into()));
+            }
+            let Some(a) = scene.agent(ra.id) else {
+                return Err(bad(loc(), "the scene has no agent with this id".into()));
+            };
+            if ra.agent_type != a.agent_type {
+                return Err(bad(
+                    loc(),
+                    format!(
+                        "a {:?} in the rollout, a {:?} in the scene",
+                        ra.agent_type, a.agent_type
+                    ),
+                ));
+            }
+            if (ra.length - a.length).abs() > 1e-6 || (ra.width - a.width).abs() > 1e-6 {
+                return Err(bad(
+                    loc(),
+                    format!(
+                        "{} x {} m in the rollout, {} x {} m in the scene",
+                        ra.length, ra.width, a.length, a.width
+                    ),
+                ));
+            }
+            for k in 0..=m.current_step.min(a.states.len() - 1) {
+                let (r, s) = (ra.states[k], a.states[k]);
+                let same = r.3 == s.valid
+                    && (!s.valid
+                        || ((r.0 - s.x).abs() <= 1e-6
+                            && (r.1 - s.y).abs() <= 1e-6
+                            && crate::geom::wrap_angle(r.2 - s.heading).abs() <= 1e-6));
+                if !same {
+                    return Err(bad(
+                        loc(),
+                        format!(
+                            "step {k} of the history differs from the scene's (a rollout keeps \
+                             the recorded history up to the current step)"
+                        ),
+                    ));
+                }
+            }
+        }
+        if let Some(a) = scene
+            .agents
+            .iter()
+            .find(|a| !self.agents.iter().any(|r| r.id == a.id))
+        {
+            return Err(bad(
+                "agents".into(),
+                format!("the rollout has no agent {} (the scene's)", a.id),
+            ));
+        }
+        Ok(())
+    }
+
     /// Reads and checks a rollout file.
     pub fn read(path: &Path) -> Result<Self, IoError> {
         let text = std::fs::read_to_string(path).map_err(|e| IoError::read(path, e))?;
         let r: Rollout = serde_json::from_str(&text).map_err(|e| {
+            // serde's message ends with the position, which the location already gives.
+            let msg = e.to_string();
+            let msg = msg
+                .rsplit_once(" at line ")
+                .map_or(msg.as_str(), |(m, _)| m);
             IoError::invalid(
                 path,
                 format!("line {}, column {}", e.line(), e.column()),
-                e.to_string(),
+                msg.to_string(),
             )
         })?;
         r.validate(path)?;
@@ -175,6 +278,7 @@ impl Rollout {
     /// The scene's map and metadata with this rollout's agents (velocities from differences).
     pub fn apply_to(&self, scene: &Scene, what: &Path) -> Result<Scene, IoError> {
         self.validate(what)?;
+        self.check_against(scene, what)?;
         let agents = self
             .agents
             .iter()
