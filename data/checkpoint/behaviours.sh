@@ -43,7 +43,13 @@ for b in ${BEHAVIOURS:-$all}; do
         -o "$out/$b" "${extra[@]}" >"$out/$b.log" 2>&1 ||
         echo "$b: simulate reported failures, see $out/$b.log" >&2
     "$bin" eval "$inst" --task behaviour --behaviour "$b" --auto --baseline log --baseline cv --baseline lane \
-        --rollouts "$out/$b" --horizon "$horizon" --json "$out/$b.json" >"$out/$b.eval"
+        --rollouts "$out/$b" --horizon "$horizon" --json "$out/$b.json" >"$out/$b.eval" 2>"$out/$b.eval.err" ||
+        echo "$b: eval reported errors, see $out/$b.eval.err" >&2
+    # No instance of a behaviour (no agents suited to it in any scene) is a row saying so.
+    if ! grep -q '^| rollouts' "$out/$b.eval"; then
+        printf '| %s | 0 | - | - | - | - | %s |\n' "$b" "$unguided"
+        continue
+    fi
     awk -F'|' -v b="$b" -v u="$unguided" '
         /^\| log replay/ {gsub(/ /, "", $5); gsub(/ /, "", $7); log_p = $5; log_rate = $7}
         /^\| constant velocity/ {gsub(/ /, "", $5); cv_p = $5}
