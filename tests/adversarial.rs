@@ -160,6 +160,13 @@ fn imports_outside_stdlib_are_refused() {
         "import \"behaviours/../../Cargo\" as p;",
         &["only the stdlib modules"],
     );
+    // Located at the import, not at 0:0.
+    let e = fails(
+        "let a = agent(1);\n  import \"nonexist\" as x;\nterm(\"t\", 1.0);",
+        &["nonexist"],
+    )
+    .to_string();
+    assert!(e.contains(":2:3:"), "{e}");
     // The real stdlib module works.
     let ok =
         run("import \"behaviours\" as b;\nterm(\"t\", b::over_speed(agent(1), 10.0));").unwrap();

@@ -167,6 +167,11 @@ fn yaml_errors_name_line_or_agent() {
             && err.contains("at least 2 distinct points"),
         "{err}"
     );
+    // A scene-level fault is located at its key, not at `agents:`.
+    let dt = dir.path().join("dt.yaml");
+    std::fs::write(&dt, "road: {lanes: 1, length: 50}\ndt: 0\nagents: []\n").unwrap();
+    let err = fails(&["inspect", s(&dt)]);
+    assert!(err.contains("dt.yaml: dt: time step dt = 0"), "{err}");
 }
 
 #[test]

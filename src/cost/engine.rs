@@ -700,7 +700,24 @@ impl CostScript {
             .compile_into_self_contained(&scope, source)
             .map_err(|e| {
                 let pos = e.position();
-                let (line, column) = (pos.line().unwrap_or(0), pos.position().unwrap_or(0));
+                let (mut line, mut column) = (pos.line().unwrap_or(0), pos.position().unwrap_or(0));
+                // Imports are resolved while compiling, without a position: find the import.
+                let module = match &*e {
+                    EvalAltResult::ErrorModuleNotFound(m, _) => m.split(' ').next(),
+                    EvalAltResult::ErrorInModule(m, ..) => Some(m.as_str()),
+                    _ => None,
+                };
+                if let (0, Some(m)) = (line, module) {
+                    let quoted = format!("\"{m}\"");
+                    if let Some((k, l)) = source
+                        .lines()
+                        .enumerate()
+                        .find(|(_, l)| l.contains("import") && l.contains(&quoted))
+                    {
+                        line = k + 1;
+                        column = l.find("import").map_or(1, |c| c + 1);
+                    }
+                }
                 match *e {
                     EvalAltResult::ErrorParsing(ParseErrorType::ExprTooDeep, _) => {
                         CostError::Limit {

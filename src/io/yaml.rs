@@ -16,7 +16,7 @@ use super::IoError;
 use crate::geom::{FrenetPath, Point, Polygon, Polyline};
 use crate::scene::{
     Agent, AgentState, AgentType, Lane, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind, RoadLine,
-    RoadLineKind, Scene, SceneMeta, SourceFormat, StopLine,
+    RoadLineKind, Scene, SceneError, SceneMeta, SourceFormat, StopLine,
 };
 
 /// A YAML scene file.
@@ -457,7 +457,16 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
     };
     Scene::new(meta, map, agents).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
-        location: "agents".into(),
+        // The key of the file the fault is under.
+        location: match &e {
+            SceneError::BadDt(_) => "dt",
+            SceneError::CurrentStep { .. } => "current_step",
+            SceneError::DuplicateLane(_) | SceneError::UnknownLane(_) => "map",
+            // Scene::new checks only the ego's id against the agents.
+            SceneError::UnknownAgent(_) => "ego",
+            _ => "agents",
+        }
+        .into(),
         error: e,
     })
 }
