@@ -710,3 +710,26 @@ fn every_consumer_checks_a_rollout_against_its_scene_the_same_way() {
         }
     }
 }
+
+#[test]
+fn a_gzip_bomb_is_refused_before_it_fills_memory() {
+    use std::io::Write;
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("bomb.xml.gz");
+    let mut gz = flate2::write::GzEncoder::new(
+        std::fs::File::create(&f).unwrap(),
+        flate2::Compression::fast(),
+    );
+    let block = vec![b' '; 1 << 20];
+    gz.write_all(b"<").unwrap();
+    for _ in 0..70 {
+        gz.write_all(&block).unwrap();
+    }
+    gz.finish().unwrap();
+    assert!(std::fs::metadata(&f).unwrap().len() < 1 << 20);
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("bomb.xml.gz") && err.contains("inflates to more than 64 MB"),
+        "{err}"
+    );
+}

@@ -458,18 +458,42 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
 
 /// Reads a whole file, transparently gunzipping `.gz` files.
 pub(crate) fn read_maybe_gz(path: &Path) -> Result<Vec<u8>, IoError> {
+    use std::io::Read;
+    let too_big = |what: &str| {
+        IoError::invalid(
+            path,
+            "file",
+            format!(
+                "{what} more than {} MB: far beyond a real scene (NGSIM's largest CommonRoad \
+                 file is 2.6 MB), so it is refused before it fills memory",
+                MAX_SCENE_BYTES >> 20
+            ),
+        )
+    };
+    let meta = std::fs::metadata(path).map_err(|e| IoError::read(path, e))?;
+    if meta.len() > MAX_SCENE_BYTES {
+        return Err(too_big("holds"));
+    }
     let raw = std::fs::read(path).map_err(|e| IoError::read(path, e))?;
     if path.extension().is_some_and(|e| e == "gz") {
-        use std::io::Read;
         let mut out = Vec::new();
+        // Inflated as a stream, at most one byte past the cap: a small file can inflate to
+        // gigabytes.
         flate2::read::GzDecoder::new(&raw[..])
+            .take(MAX_SCENE_BYTES + 1)
             .read_to_end(&mut out)
             .map_err(|e| IoError::invalid(path, "gzip stream", e.to_string()))?;
+        if out.len() as u64 > MAX_SCENE_BYTES {
+            return Err(too_big("inflates to"));
+        }
         Ok(out)
     } else {
         Ok(raw)
     }
 }
+
+/// The largest scene text (plain or inflated) the XML reader takes, in bytes.
+pub const MAX_SCENE_BYTES: u64 = 64 << 20;
 
 /// The file name without extensions, as a fallback scenario id.
 pub(crate) fn file_stem(path: &Path) -> String {
