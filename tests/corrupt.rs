@@ -543,19 +543,15 @@ fn files_named_like_shards_are_read_by_content_and_shards_hide_nothing() {
     let dir = tempfile::tempdir().unwrap();
     // JSON (a rollout, say) with a shard-like name is not taken for a TFRecord.
     let json = dir.path().join("tfrecord-00000-of-01000_4.json");
-    std::fs::write(&json, "{\"scenario_id\": \"x\"}").unwrap();
-    let err = fails(&["inspect", s(&json)]);
-    assert!(
-        err.contains("named like a WOMD shard, but its content is JSON text"),
-        "{err}"
-    );
     let shard = dir.path().join("training.tfrecord-00000-of-00001");
-    std::fs::write(&shard, "{\"scenario_id\": \"x\"}").unwrap();
-    let err = fails(&["inspect", s(&shard)]);
-    assert!(
-        err.contains("named like a WOMD shard, but its content is JSON text"),
-        "{err}"
-    );
+    for f in [&json, &shard] {
+        std::fs::write(f, "{\"scenario_id\": \"x\"}").unwrap();
+        let err = fails(&["inspect", s(f)]);
+        assert!(
+            err.contains("named like a WOMD shard, but its content is JSON text"),
+            "{err}"
+        );
+    }
     // With the .tfrecord extension the name decides; the error says what the file is, and
     // names the record once.
     let ext = dir.path().join("scenes.tfrecord");
