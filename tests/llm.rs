@@ -729,3 +729,54 @@ fn a_batch_stopped_by_an_error_continues_when_run_again() {
     assert_eq!(o.status.code(), Some(1), "{t}");
     assert!(t.contains("holds a run of the request"), "{t}");
 }
+
+#[test]
+fn batch_shards_share_one_directory_and_a_plain_run_summarises_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let scenes = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes");
+    let file = dir.path().join("requests.yaml");
+    std::fs::write(
+        &file,
+        format!(
+            "scenes: {}\nentries:\n  - request: \"vehicle {{vehicle}} drives off the road\"\n    behaviour: off_road\n",
+            scenes.display()
+        ),
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    let run = |extra: &[&str]| {
+        let mut a = vec![
+            "--batch",
+            s(&file),
+            "-o",
+            s(&out),
+            "--rounds",
+            "0",
+            "--samples",
+            "1",
+        ];
+        a.extend_from_slice(extra);
+        let o = ask(&a, None);
+        let t = text(&o);
+        assert_eq!(o.status.code(), Some(0), "{t}");
+        t
+    };
+    let done = |t: &str| t.lines().filter(|l| l.starts_with('[')).count();
+    let (a, b) = (run(&["--shard", "0/2"]), run(&["--shard", "1/2"]));
+    let all = run(&[]);
+    let n = done(&all);
+    assert!(n >= 2, "{all}");
+    assert_eq!(
+        done(&a) + done(&b),
+        n,
+        "each pair in exactly one shard:\n{a}\n{b}"
+    );
+    assert!(done(&a) > 0 && done(&b) > 0, "{a}\n{b}");
+    // The plain run only read the shards' finished runs back.
+    assert_eq!(all.matches("(continued run)").count(), n, "{all}");
+    let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    assert!(
+        summary.contains(&format!("{n} of {n} pairs done")),
+        "{summary}"
+    );
+}

@@ -49,6 +49,11 @@ pub struct Args {
     /// With --batch: scenes (files or directories) replacing the file's top-level `scenes:`.
     #[arg(long, value_name = "PATH", requires = "batch")]
     scenes: Vec<PathBuf>,
+    /// With --batch: only the pairs whose scene falls in shard I of N (a stable partition by
+    /// scenario id, as `simulate --shard`). Run the shards into one -o, then the same command
+    /// without --shard: it reads every finished pair back and writes the whole summary.
+    #[arg(long, value_name = "I/N", requires = "batch")]
+    shard: Option<drivescript::io::shard::Shard>,
     /// Print every round's progress in --batch runs (default: one line per pair).
     #[arg(short, long)]
     verbose: bool,
@@ -437,6 +442,7 @@ fn batch(args: &Args, file: &Path, trained: &Trained) -> Result<ExitCode> {
         backend,
         prompts: args.prompt.load()?,
         config: args.session_config(),
+        shard: args.shard,
     };
     let verbose = args.verbose;
     let results = batch.run(&mut |p| match p {

@@ -26,6 +26,7 @@ use super::session::{Backend, Outcome, RoundRecord, Session, SessionConfig};
 use super::LlmError;
 use crate::cost::Params;
 use crate::eval::behaviors::{suggest, Behavior};
+use crate::io::shard::Shard;
 use crate::io::{discover, load_scenes, output_stem, write_atomic, LoadOptions};
 use crate::scene::Scene;
 use crate::train::Trained;
@@ -573,6 +574,9 @@ pub struct Batch<'a> {
     pub prompts: Prompts,
     /// The loop's settings (a resumed pair keeps those it was started with).
     pub config: SessionConfig,
+    /// Only the pairs whose scene falls in this shard (pair numbers stay those of the whole
+    /// batch, so shards share one output directory).
+    pub shard: Option<Shard>,
 }
 
 /// What [`Batch::run`] reports as it goes.
@@ -616,13 +620,19 @@ impl Batch<'_> {
         }
         let mut results = Vec::new();
         for (k, inst) in self.instances.iter().enumerate() {
+            if self
+                .shard
+                .is_some_and(|sh| !sh.contains(&inst.scene.meta.scenario_id))
+            {
+                continue;
+            }
             let dir = self.run_dir(k)?;
             let stopped = |e: LlmError| {
                 bad(
                     &dir,
                     format!(
-                        "pair {} of {} ({}, {:?}) stopped the batch: {e}. The {k} pairs before it \
-                         are in the summary; run the same command again to continue from here",
+                        "pair {} of {} ({}, {:?}) stopped the batch: {e}. The pairs finished before \
+                         it are in the summary; run the same command again to continue from here",
                         k + 1,
                         self.instances.len(),
                         inst.scene.meta.scenario_id,
@@ -754,11 +764,18 @@ impl Batch<'_> {
     fn write_summary(&self, results: &[InstanceResult]) -> Result<(), LlmError> {
         let rounds = self.config.rounds;
         let rows = summarise(results, rounds);
+        let of = match self.shard {
+            Some(sh) => format!(
+                "{} pairs of shard {sh} done (the batch has {}; run it without --shard for the \
+                 whole summary)",
+                results.len(),
+                self.instances.len()
+            ),
+            None => format!("{} of {} pairs done", results.len(), self.instances.len()),
+        };
         let mut md = format!(
-            "# drivescript ask --batch {}\n\n{} of {} pairs done; {} skipped (no suitable agents).\n\n",
+            "# drivescript ask --batch {}\n\n{of}; {} skipped (no suitable agents).\n\n",
             self.file.display(),
-            results.len(),
-            self.instances.len(),
             self.skipped.len()
         );
         md.push_str(&markdown(&rows, rounds));
