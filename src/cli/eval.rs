@@ -9,7 +9,9 @@ use drivescript::cost::Params;
 use drivescript::eval::kinematic::{self, KinematicLimits, Violation};
 use drivescript::eval::metrics::{self, JsdBins, Kinematics};
 use drivescript::eval::{check, Baseline, Behavior};
-use drivescript::io::{discover, read_each, rollout::Rollout, write_atomic, LoadOptions};
+use drivescript::io::{
+    discover, read_each, rollout::Rollout, write_atomic, LoadOptions, OutputNames,
+};
 use drivescript::scene::Scene;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
@@ -295,7 +297,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     );
     let mut failures = 0;
     let mut skipped = 0;
-    let mut names: std::collections::HashMap<String, PathBuf> = Default::default();
+    let mut names = OutputNames::default();
     for src in &sources {
         bar.set_message(
             src.file_name()
@@ -306,35 +308,20 @@ pub fn run(args: Args) -> Result<ExitCode> {
         // one name would be scored against the same rollouts, so the second is refused.
         let mut scenes = Vec::new();
         for item in read_each(src, &LoadOptions::default()) {
-            match item.map_err(anyhow::Error::from).and_then(|s| {
-                let stem = drivescript::io::output_stem(&s.meta.scenario_id)?.to_string();
-                Ok((stem, s))
-            }) {
-                Ok((_, s))
-                    if args
-                        .shard
-                        .is_some_and(|sh| !sh.contains(&s.meta.scenario_id)) => {}
-                Ok((stem, s)) => match names.get(&stem) {
-                    Some(first) => {
-                        bar.suspend(|| {
-                            eprintln!(
-                                "error: {}: scenario {:?} has the name of a scene already read \
-                                 from {}: the two would be scored against the same rollouts \
-                                 ({stem}_K.json); not scored",
-                                src.display(),
-                                s.meta.scenario_id,
-                                first.display()
-                            )
-                        });
-                        failures += 1;
-                    }
-                    None => {
-                        names.insert(stem, src.clone());
-                        scenes.push(s);
-                    }
-                },
+            let claimed = item.and_then(|s| {
+                if args
+                    .shard
+                    .is_some_and(|sh| !sh.contains(&s.meta.scenario_id))
+                {
+                    return Ok(None);
+                }
+                names.claim(&s.meta.scenario_id, src).map(|_| Some(s))
+            });
+            match claimed {
+                Ok(Some(s)) => scenes.push(s),
+                Ok(None) => {}
                 Err(e) => {
-                    bar.suspend(|| eprintln!("error: {e:#}"));
+                    bar.suspend(|| eprintln!("error: {e}"));
                     failures += 1;
                 }
             }

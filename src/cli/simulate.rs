@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use anyhow::{Context, Result};
 use drivescript::cost::{Params, Realism};
 use drivescript::eval::behaviors::{suggest, Behavior, ALL};
-use drivescript::io::{discover, output_stem, read_each, LoadOptions};
+use drivescript::io::{discover, output_stem, read_each, LoadOptions, OutputNames};
 use drivescript::render::RenderOptions;
 use drivescript::sample::provenance::{file_crc32c, text_crc32c, RunRecord};
 use drivescript::sample::{
@@ -298,7 +298,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let (mut failed, mut done, mut resumed, mut seen) = (0, 0, 0, 0);
     // Output names come from scenario ids: a second scene with the same name would overwrite
     // the first's rollouts.
-    let mut names: std::collections::HashMap<String, std::path::PathBuf> = Default::default();
+    let mut names = OutputNames::default();
     for src in sources {
         for item in read_each(&src, &LoadOptions::default()) {
             let raw = match item {
@@ -316,7 +316,17 @@ pub fn run(args: Args) -> Result<ExitCode> {
             {
                 continue;
             }
-            let stem = output_stem(&raw.meta.scenario_id)?.to_string();
+            // An id that cannot name a file stops the run; a second scene of one name is
+            // reported and left out.
+            output_stem(&raw.meta.scenario_id)?;
+            let stem = match names.claim(&raw.meta.scenario_id, &src) {
+                Ok(stem) => stem,
+                Err(e) => {
+                    eprintln!("error: {e}");
+                    failed += 1;
+                    continue;
+                }
+            };
             // Complete: every sample's rollout, the cost report and the picture (written last).
             if args.resume
                 && (0..cfg.samples)
@@ -324,23 +334,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     .chain([format!("{stem}_costs.json"), format!("{stem}_0.gif")])
                     .all(|f| args.output.join(f).is_file())
             {
-                names.insert(stem, src.clone());
                 resumed += 1;
                 continue;
             }
-            if let Some(first) = names.get(&stem) {
-                eprintln!(
-                    "error: {}: scenario {:?} names its outputs {stem}_K.json like a scene \
-                     already simulated from {}: not simulated (give one of them another id, \
-                     `convert --id`)",
-                    src.display(),
-                    raw.meta.scenario_id,
-                    first.display()
-                );
-                failed += 1;
-                continue;
-            }
-            names.insert(stem, src.clone());
             match run_one(&raw) {
                 Ok(true) => done += 1,
                 Ok(false) => skipped += 1,

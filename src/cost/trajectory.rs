@@ -135,12 +135,6 @@ impl Trajectories {
     pub fn from_rollout(scene: &Scene, r: &Rollout) -> Result<Self, String> {
         r.check_against(scene, std::path::Path::new("rollout"))
             .map_err(|e| e.to_string())?;
-        if r.current_step != scene.meta.current_step {
-            return Err(format!(
-                "the rollout's current step is {}, the scene's {}",
-                r.current_step, scene.meta.current_step
-            ));
-        }
         let mut t = Self::empty(scene);
         let n = t.layout.steps;
         for (a, agent) in scene.agents.iter().enumerate() {

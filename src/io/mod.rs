@@ -235,10 +235,11 @@ fn classify(head: &[u8]) -> Content {
     if head.starts_with(b"PAR1") {
         return Content::Parquet;
     }
-    let text = head
+    // The first byte past whitespace and a UTF-8 byte-order mark.
+    let first = head
         .iter()
-        .skip_while(|b| b.is_ascii_whitespace() || **b == 0xef || **b == 0xbb || **b == 0xbf);
-    match text.clone().next() {
+        .find(|b| !(b.is_ascii_whitespace() || [0xef, 0xbb, 0xbf].contains(*b)));
+    match first {
         Some(b'{') | Some(b'[') => Content::Json,
         Some(b'<') => Content::Xml,
         Some(_)
@@ -431,6 +432,33 @@ pub fn output_stem(id: &str) -> Result<&str, IoError> {
         return bad(&format!("it contains {c:?}"));
     }
     Ok(id)
+}
+
+/// The output names claimed by the scenes of one run, so that two scenes with one name
+/// neither overwrite each other's outputs nor are scored against the same rollouts.
+#[derive(Debug, Default)]
+pub struct OutputNames(std::collections::HashMap<String, PathBuf>);
+
+impl OutputNames {
+    /// Claims the output name of `scenario_id` (read from `source`): the name, or an error
+    /// naming the source that claimed it first.
+    pub fn claim(&mut self, scenario_id: &str, source: &Path) -> Result<String, IoError> {
+        let stem = output_stem(scenario_id)?.to_string();
+        if let Some(first) = self.0.get(&stem) {
+            return Err(IoError::invalid(
+                source,
+                format!("scenario {scenario_id:?}"),
+                format!(
+                    "has the name of a scene already read from {}: the two would share \
+                     outputs ({stem}_K.json), so it is left out (give one of them another id, \
+                     `convert --id`)",
+                    first.display()
+                ),
+            ));
+        }
+        self.0.insert(stem.clone(), source.to_path_buf());
+        Ok(stem)
+    }
 }
 
 /// Writes `bytes` to `path` atomically: a temporary file beside it, then a rename.
