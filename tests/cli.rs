@@ -269,20 +269,96 @@ fn unknown_formats_list_the_supported_ones() {
     assert!(err.contains("no/such/file.xml"), "{err}");
 }
 
+/// The subcommands `drivescript --help` lists (but `help`).
+fn subcommands() -> Vec<String> {
+    let help = ok(&["--help"]);
+    let listing = help
+        .split("Commands:\n")
+        .nth(1)
+        .expect("a command list")
+        .split("\n\n")
+        .next()
+        .unwrap();
+    listing
+        .lines()
+        .filter(|l| l.starts_with("  ") && !l.starts_with("   "))
+        .filter_map(|l| l.split_whitespace().next())
+        .filter(|c| *c != "help")
+        .map(String::from)
+        .collect()
+}
+
+/// The examples of a `--help` text: shell command lines, with `\\`-continued lines joined.
+fn examples(cmd: &str, help: &str) -> Vec<String> {
+    let section = help
+        .split("Examples:\n")
+        .nth(1)
+        .unwrap_or_else(|| panic!("{cmd} --help has no examples"));
+    let mut out: Vec<String> = Vec::new();
+    for line in section.lines().take_while(|l| !l.trim().is_empty()) {
+        let continued = out.last().is_some_and(|l| l.ends_with('\\'));
+        if line.starts_with("      ") {
+            // A line clap wrapped would land here without a `\\` before it.
+            assert!(
+                continued,
+                "{cmd} --help: example wrapped, shorten it: {line:?}"
+            );
+            let last = out.last_mut().unwrap();
+            last.push('\n');
+            last.push_str(line);
+        } else {
+            assert!(
+                !continued,
+                "{cmd} --help: a `\\` continues nothing before {line:?}"
+            );
+            let e = line.trim();
+            assert!(
+                line.starts_with("  ") && (e.starts_with("drivescript ") || e.starts_with('(')),
+                "{cmd} --help: not a command (an example wrapped? shorten it): {line:?}"
+            );
+            out.push(e.to_string());
+        }
+    }
+    assert!(!out.is_empty(), "{cmd} --help has no examples");
+    out
+}
+
 #[test]
-fn help_has_examples() {
-    for cmd in [
-        "inspect",
-        "render",
-        "convert",
-        "bench",
-        "demo",
-        "stdlib-doc",
-        "ask",
-        "prompt",
-    ] {
-        let out = ok(&[cmd, "--help"]);
-        assert!(out.contains("Examples:"), "{cmd} --help has no examples");
+fn every_help_example_runs_as_written_from_a_fresh_clone() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let bin = std::path::Path::new(env!("CARGO_BIN_EXE_drivescript"));
+    let path = format!(
+        "{}:{}",
+        bin.parent().unwrap().display(),
+        std::env::var("PATH").unwrap_or_default()
+    );
+    let commands = subcommands();
+    assert!(commands.len() >= 14, "{commands:?}");
+    for cmd in &commands {
+        let help = ok(&[cmd, "--help"]);
+        // A clone's tracked directories, and nothing it would not have (out/, runs/).
+        let clone = tempfile::tempdir().unwrap();
+        for d in ["data", "scripts", "prompts", "stdlib"] {
+            std::os::unix::fs::symlink(root.join(d), clone.path().join(d)).unwrap();
+        }
+        for e in examples(cmd, &help) {
+            assert!(!e.contains("shared/"), "{cmd} --help needs ../shared: {e}");
+            let run = std::process::Command::new("bash")
+                .args(["-c", &e])
+                .current_dir(clone.path())
+                .env("PATH", &path)
+                .env_remove("DRIVESCRIPT_LLM_URL")
+                .env_remove("DRIVESCRIPT_LLM_MODEL")
+                .output()
+                .unwrap();
+            assert!(
+                run.status.success(),
+                "{cmd} --help example failed ({:?}): {e}\n{}{}",
+                run.status.code(),
+                String::from_utf8_lossy(&run.stdout),
+                String::from_utf8_lossy(&run.stderr)
+            );
+        }
     }
 }
 
@@ -310,11 +386,28 @@ fn demo_runs_the_loop_with_a_repair_round_and_writes_the_run() {
     let script = std::fs::read_to_string(run.join("final.rhai")).unwrap();
     assert!(script.contains("agent(401)") && script.contains("agent(389)"));
     let costs: Value = serde_json::from_str(
-        &std::fs::read_to_string(run.join("round_1/sample_costs.json")).unwrap(),
+        &std::fs::read_to_string(run.join("round_1/USA_US101-4_1_T-1_costs.json")).unwrap(),
     )
     .unwrap();
     assert_eq!(costs["checks"][0]["behaviour"], "cut_in");
     assert_eq!(costs["checks"][1]["behaviour"], "off_road");
+    // The rollouts are named as `simulate` names them, listed, and scored by the eval command
+    // the demo prints for each checker.
+    let listed = format!(
+        "rollouts of the final round, in {}: round_1/USA_US101-4_1_T-1_0.json … round_1/USA_US101-4_1_T-1_3.json and round_1/USA_US101-4_1_T-1_costs.json",
+        run.display()
+    );
+    assert!(out.contains(&listed), "{listed:?} missing:\n{out}");
+    let evals: Vec<&str> = out
+        .lines()
+        .filter_map(|l| l.trim().strip_prefix("score them: drivescript "))
+        .collect();
+    assert_eq!(evals.len(), 2, "{out}");
+    for e in evals {
+        let args: Vec<&str> = e.split(' ').collect();
+        let table = ok(&args);
+        assert!(table.contains("| 1 |"), "{e}:\n{table}");
+    }
     // Running it again replaces the run instead of refusing.
     ok(&["demo", "-o", s(&run)]);
 }
@@ -1122,6 +1215,48 @@ fn nothing_read_simulated_or_scored_is_an_error() {
         s(&dir.path().join("out")),
     ]);
     assert!(err.contains("no scene was simulated"), "{err}");
+    // A behaviour's agents that cannot be checked are named, not scored as a row of dashes.
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    for (params, want) in [
+        (
+            ["cutter=2", "victim=77"],
+            "error: highway-cut-in: cut_in: no agent 77 (victim)",
+        ),
+        (
+            ["cutter=2", "victim=2"],
+            "error: highway-cut-in: cut_in: cutter and victim are both agent 2",
+        ),
+    ] {
+        let mut args = vec![
+            "eval",
+            s(&scene),
+            "--task",
+            "behaviour",
+            "--behaviour",
+            "cut_in",
+        ];
+        args.push("--param");
+        args.extend(params);
+        let err = fails(&args);
+        assert!(err.contains(want), "{err}");
+        assert!(err.contains("1 failed (the errors above)"), "{err}");
+    }
+}
+
+#[test]
+fn an_error_names_its_cause_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("nope.json");
+    let err = fails(&[
+        "render",
+        s(&samples().join("yaml/highway_cut_in.yaml")),
+        "--rollout",
+        s(&missing),
+        "-o",
+        s(&dir.path().join("x.gif")),
+    ]);
+    assert_eq!(err.matches("No such file or directory").count(), 1, "{err}");
+    assert!(err.contains("nope.json"), "{err}");
 }
 
 #[test]

@@ -269,8 +269,8 @@ fn http_happy_path_writes_the_run_and_keeps_the_key_out() {
         "round_0/reply.md",
         "round_0/script.rhai",
         "round_0/feedback.md",
-        "round_0/sample_0.json",
-        "round_0/sample_costs.json",
+        "round_0/USA_US101-3_3_T-1_0.json",
+        "round_0/USA_US101-3_3_T-1_costs.json",
         "round_1/reply.md",
     ] {
         assert!(dir.path().join(f).exists(), "{f} missing:\n{t}");
@@ -351,9 +351,18 @@ fn syntax_errors_and_unknown_agents_go_back_with_line_numbers_before_any_samplin
     let back = last_user(&srv, 3);
     assert!(back.contains("no ```rhai code block"), "{back}");
     // Sampling happened once, in round 3.
-    assert!(!dir.path().join("round_0/sample_costs.json").exists());
-    assert!(!dir.path().join("round_1/sample_costs.json").exists());
-    assert!(dir.path().join("round_3/sample_costs.json").exists());
+    assert!(!dir
+        .path()
+        .join("round_0/USA_US101-3_3_T-1_costs.json")
+        .exists());
+    assert!(!dir
+        .path()
+        .join("round_1/USA_US101-3_3_T-1_costs.json")
+        .exists());
+    assert!(dir
+        .path()
+        .join("round_3/USA_US101-3_3_T-1_costs.json")
+        .exists());
 }
 
 #[test]

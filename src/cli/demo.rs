@@ -72,6 +72,20 @@ pub fn run(args: Args) -> Result<ExitCode> {
     println!(
         "\nwrote {dir}/final.gif (named agents highlighted), {dir}/final.rhai, {dir}/report.md, every round in {dir}/round_N/ and {dir}/transcript.json"
     );
+    if let Outcome::Accepted { round, .. } | Outcome::RoundsUsed { round, .. } = &outcome {
+        println!(
+            "rollouts of the final round, in {dir}: {}",
+            session.rollout_files(*round)
+        );
+        for (b, p) in session.checks() {
+            println!(
+                "  score them: drivescript eval {} --task behaviour --behaviour {} --param {p} --rollouts {dir}/round_{round} --samples {}",
+                scene_path.display(),
+                b.name(),
+                args.samples
+            );
+        }
+    }
     Ok(match outcome {
         Outcome::Accepted { .. } => ExitCode::SUCCESS,
         _ => ExitCode::from(2),

@@ -358,6 +358,15 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 }
                 None => scene,
             };
+            // Parameters that cannot be checked on this scene (an agent it lacks, say) are
+            // said once here, not hidden in the JSON of every method's row.
+            if let Some((b, p)) = &scene_params {
+                if let Err(e) = check(*b, scene, p) {
+                    bar.suspend(|| eprintln!("error: {}: {e}", scene.meta.scenario_id));
+                    failures += 1;
+                    continue;
+                }
+            }
             // Every method, and the log it is compared with, loses its cars where they leave
             // the map.
             let reference = scene.retire_exited();
@@ -371,7 +380,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     ) {
                         Ok(s) => s,
                         Err(e) => {
-                            bar.suspend(|| eprintln!("error: {e:#}"));
+                            bar.suspend(|| eprintln!("error: {}", super::describe(&e)));
                             failures += 1;
                             continue;
                         }
@@ -555,7 +564,9 @@ fn report(
         println!("{skipped} scenes skipped: no agents for which the behaviour is meaningful");
     }
     if failures > 0 {
-        eprintln!("{failures} sources or rollouts failed");
+        eprintln!(
+            "{failures} failed (the errors above): a file, a scene's rollouts or the behaviour's agents"
+        );
         return Ok(ExitCode::FAILURE);
     }
     let scored = accs.iter().any(|a| match task {

@@ -34,54 +34,75 @@ enum Command {
     #[command(after_help = "Examples:
   drivescript inspect data/samples/commonroad/USA_US101-3_3_T-1.xml
   drivescript inspect data/samples --json
-  drivescript inspect ~/womd/validation/   # every shard, every scenario")]
+  drivescript inspect data/samples/commonroad/USA_US101-3_3_T-1.xml --agents --max-agents 5
+  drivescript convert data/samples/commonroad/USA_US101-3_3_T-1.xml -o out/us101.tfrecord
+  drivescript inspect out/us101.tfrecord   # WOMD: every scenario of a file (or of a directory)")]
     Inspect(inspect::Args),
     /// Draw a scene (or a rollout on its map) as SVG, PNG or animated GIF.
     #[command(after_help = "Examples:
-  drivescript render data/samples/commonroad/USA_Lanker-1_1_T-1.xml -o lanker.png
-  drivescript render scene.yaml --rollout sim.json -o sim.gif
-  drivescript render training.tfrecord-00000-of-01000 --index 3 --step 0 -o s3.svg")]
+  drivescript render data/samples/commonroad/USA_Lanker-1_1_T-1.xml -o out/lanker.png
+  drivescript convert data/samples/yaml/highway_cut_in.yaml -o out/recorded.json
+  drivescript render data/samples/yaml/highway_cut_in.yaml --rollout out/recorded.json \\
+      -o out/recorded.gif
+  drivescript convert data/samples/commonroad/USA_US101-3_3_T-1.xml -o out/us101.tfrecord
+  drivescript render out/us101.tfrecord --index 0 --step 0 -o out/us101.svg")]
     Render(render::Args),
     /// Convert a scene to YAML (map and agents) or TFRecord, or its trajectories to rollout JSON.
     #[command(after_help = "Examples:
-  drivescript convert data/samples/av2/ -o av2.yaml
-  drivescript convert data/samples/commonroad/USA_US101-3_3_T-1.xml -o us101.tfrecord
-  drivescript convert scene.yaml -o recorded.json")]
+  drivescript convert data/samples/av2/ -o out/av2.yaml
+  drivescript convert data/samples/commonroad/USA_US101-3_3_T-1.xml -o out/us101.tfrecord
+  drivescript convert data/samples/yaml/highway_cut_in.yaml -o out/recorded.json")]
     Convert(convert::Args),
     /// Evaluate a cost script on a scene's recorded future (or a rollout): per-term values and gradients.
     #[command(after_help = "Examples:
-  drivescript cost data/samples/yaml/highway_cut_in.yaml --script scripts/cut_in.rhai --param cutter=2 victim=1
-  drivescript cost scene.xml --script my.rhai --rollout sim.json --json")]
+  drivescript cost data/samples/yaml/highway_cut_in.yaml --script scripts/cut_in.rhai \\
+      --param cutter=2 victim=1
+  drivescript simulate data/samples/yaml/highway_cut_in.yaml --checkpoint data/checkpoint \\
+      --script scripts/cut_in.rhai --param cutter=2 victim=1 -o out/sim
+  drivescript cost data/samples/yaml/highway_cut_in.yaml --script scripts/cut_in.rhai \\
+      --param cutter=2 victim=1 --rollout out/sim/highway-cut-in_0.json --json")]
     Cost(cost::Args),
     /// Training windows a corpus gives (for the diffusion model) and PCA reconstruction errors.
     #[command(after_help = "Examples:
-  drivescript dataset ../shared/data/commonroad-ngsim
+  drivescript dataset data/samples
   drivescript dataset data/samples --history 11 --future 30")]
     Dataset(dataset::Args),
     /// Sample futures of a scene with the diffusion model, guided by cost scripts.
     #[command(after_help = "Examples:
-  drivescript simulate scene.yaml --checkpoint runs/ngsim --script scripts/cut_in.rhai --param cutter=2 victim=1 -o out/sim
-  drivescript simulate scene.xml --checkpoint runs/ngsim --task unconditional --samples 4 -o out/uncond")]
+  drivescript simulate data/samples/yaml/highway_cut_in.yaml --checkpoint data/checkpoint \\
+      --script scripts/cut_in.rhai --param cutter=2 victim=1 -o out/sim
+  drivescript simulate data/samples/commonroad/USA_US101-3_3_T-1.xml \\
+      --checkpoint data/checkpoint --task unconditional --samples 4 -o out/uncond
+  drivescript simulate data/samples/commonroad --checkpoint data/checkpoint \\
+      --task unconditional --auto off_road -o out/off_road   # agents chosen per scene
+  drivescript simulate data/samples --checkpoint data/checkpoint --shard 0/2 --resume -o out/s
+  drivescript simulate data/samples --checkpoint data/checkpoint --shard 1/2 --resume -o out/s")]
     Simulate(simulate::Args),
     /// Train the diffusion model (EDM) on scenes; checkpoints as safetensors + JSON.
     #[command(after_help = "Examples:
-  drivescript train --data ../shared/data/commonroad-ngsim --out runs/ngsim --steps 20000
-  drivescript train --data scripts/scenes --out /tmp/tiny --steps 50 --batch 4")]
+  drivescript train --data data/samples --out out/tiny --steps 50 --batch 4
+  drivescript train --data data/samples --out out/tiny --resume out/tiny --steps 100 --batch 4")]
     Train(train::Args),
     /// Score baselines or rollouts: conditional, unconditional or behaviour tables.
     #[command(after_help = "Examples:
-  drivescript eval ../shared/data/commonroad-ngsim --task conditional
-  drivescript eval scenes/ --task unconditional --baseline cv
-  drivescript eval scene.yaml --task behaviour --behaviour cut_in --param cutter=2 victim=1 --rollouts sims/
-  drivescript eval data/samples --task conditional --rollouts sims/ --samples 4 --json out/eval.json")]
+  drivescript eval data/samples --task conditional
+  drivescript eval data/samples --task unconditional --baseline cv
+  drivescript simulate data/samples/yaml/highway_cut_in.yaml --checkpoint data/checkpoint \\
+      --script scripts/cut_in.rhai --param cutter=2 victim=1 -o out/sim
+  drivescript eval data/samples/yaml/highway_cut_in.yaml --task behaviour --behaviour cut_in \\
+      --param cutter=2 victim=1 --rollouts out/sim
+  drivescript simulate data/samples --checkpoint data/checkpoint --samples 4 -o out/cond
+  drivescript eval data/samples --task conditional --rollouts out/cond --samples 4 \\
+      --json out/eval.json")]
     Eval(eval::Args),
     /// The product in one command: `ask` with the rules planner on a US-101 sample ("vehicle 401
     /// cuts in front of vehicle 405, vehicle 389 drives off the road"), every phase printed, a
     /// repair round, and out/demo/final.gif with the named agents highlighted.
     #[command(after_help = "Examples:
   drivescript demo
-  drivescript demo -o /tmp/demo --samples 8 --seed 2
-  drivescript demo --scene data/samples/commonroad/USA_US101-3_3_T-1.xml --request \"vehicle 401 cuts in front of vehicle 399\"")]
+  drivescript demo -o out/demo2 --samples 8 --seed 2
+  drivescript demo --scene data/samples/commonroad/USA_US101-3_3_T-1.xml \\
+      --request \"vehicle 401 cuts in front of vehicle 399\" -o out/demo399")]
     Demo(demo::Args),
     /// Words → cost script → guided samples → repaired script: the LLM in the loop.
     #[command(
@@ -93,15 +114,20 @@ accepted or gave up, 1 an error.
 
 Examples:
   drivescript ask data/samples/commonroad/USA_US101-3_3_T-1.xml \\
-      \"vehicle 401 cuts in front of vehicle 399, vehicle 405 drives off the road\" -o runs/ask1
-  drivescript ask --continue runs/ask1 \"make the cut-in more abrupt\"
-  drivescript ask scene.xml \"vehicle 3 yields to vehicle 5\" --llm manual -o runs/m1
-  drivescript ask --resume runs/m1"
+      \"vehicle 401 cuts in front of vehicle 399, vehicle 405 drives off the road\" -o out/ask1
+  drivescript ask --continue out/ask1 \"vehicle 402 drives off the road\"
+  drivescript ask data/samples/commonroad/USA_US101-3_3_T-1.xml \\
+      \"vehicle 401 cuts in front of vehicle 399\" --llm manual -o out/m1
+  (echo '```rhai'; cat out/ask1/final.rhai; echo '```') > out/m1/round_0/reply.md  # the reply
+  drivescript ask --resume out/m1
+  drivescript ask --batch data/requests/table1.yaml --scenes data/samples/commonroad \\
+      --llm rules --rounds 1 -o out/batch"
     )]
     Ask(ask::Args),
     /// Show the prompts `ask` sends.
     #[command(after_help = "Examples:
-  drivescript prompt show data/samples/commonroad/USA_US101-3_3_T-1.xml \"vehicle 401 cuts in front of vehicle 399\"")]
+  drivescript prompt show data/samples/commonroad/USA_US101-3_3_T-1.xml \\
+      \"vehicle 401 cuts in front of vehicle 399\"")]
     Prompt(prompt::Args),
     /// Run cost-script unit tests (*.test.yaml) and print a pass/fail table.
     #[command(after_help = "Examples:
@@ -116,7 +142,8 @@ Examples:
     /// Measure throughput and print a table.
     #[command(after_help = "Examples:
   drivescript bench io
-  drivescript bench io --data ../shared/data/commonroad-ngsim")]
+  drivescript bench cost --seconds 0.2
+  drivescript bench sample --only output --repeat 1")]
     Bench(bench::Args),
 }
 
@@ -142,10 +169,24 @@ pub fn run() -> ExitCode {
     match result {
         Ok(code) => code,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", describe(&e));
             ExitCode::FAILURE
         }
     }
+}
+
+/// An error and its causes on one line, each cause once: many errors already quote their
+/// source (`FILE: No such file or directory`), and anyhow's `{:#}` would repeat it.
+pub(crate) fn describe(e: &anyhow::Error) -> String {
+    let mut text = e.to_string();
+    for cause in e.chain().skip(1) {
+        let c = cause.to_string();
+        if !text.contains(&c) {
+            text.push_str(": ");
+            text.push_str(&c);
+        }
+    }
+    text
 }
 
 /// Prints one sample's outcome: the checker's verdict (when there is one), each term's first

@@ -341,7 +341,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 Ok(true) => done += 1,
                 Ok(false) => skipped += 1,
                 Err(e) => {
-                    eprintln!("error: {}: {e:#}", raw.meta.scenario_id);
+                    eprintln!("error: {}: {}", raw.meta.scenario_id, super::describe(&e));
                     failed += 1;
                 }
             }

@@ -236,8 +236,17 @@ impl<'a> Ctx<'a> {
                 message: format!("agent {id} ({name}) is not observed at the current step"),
             });
         }
-        if !self.named.iter().any(|(_, n)| n.id == a.id) {
-            self.named.push((name, a));
+        match self.named.iter().find(|(_, n)| n.id == a.id) {
+            None => self.named.push((name, a)),
+            Some((role, _)) if *role != name => {
+                return Err(CheckError::Agent {
+                    behavior: self.b.name(),
+                    message: format!(
+                        "{role} and {name} are both agent {id}: the roles need different agents"
+                    ),
+                })
+            }
+            Some(_) => {}
         }
         Ok(a)
     }

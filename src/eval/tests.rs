@@ -289,6 +289,17 @@ fn checkers_explain_missing_parameters_and_agents() {
     assert_eq!(e.to_string(), "cut_in: parameter \"victim\" is required");
     let e = check(Behavior::Stop, &base, &params(&[("vehicle", 99.0)])).unwrap_err();
     assert!(e.to_string().contains("no agent 99"));
+    // One agent in two roles is no cut-in (it used to be judged as one).
+    let e = check(
+        Behavior::CutIn,
+        &base,
+        &params(&[("cutter", 2.0), ("victim", 2.0)]),
+    )
+    .unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "cut_in: cutter and victim are both agent 2: the roles need different agents"
+    );
     assert_eq!(Behavior::from_name("yield"), Some(Behavior::Yield));
     for b in super::behaviors::ALL {
         assert!(!b.definition().is_empty());

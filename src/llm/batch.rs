@@ -750,7 +750,7 @@ impl Batch<'_> {
         let to = self.out.join("rollouts").join(&inst.label);
         std::fs::create_dir_all(&to).map_err(|e| bad(&to, format!("cannot create it: {e}")))?;
         for i in 0.. {
-            let src = from.join(format!("sample_{i}.json"));
+            let src = from.join(format!("{stem}_{i}.json"));
             let Ok(bytes) = std::fs::read(&src) else {
                 break;
             };

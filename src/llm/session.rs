@@ -2,8 +2,9 @@
 //!
 //! Every exchange with the model is a numbered `round_N/` holding `prompt.md` (the messages
 //! sent, readable), `messages.json`, `reply.md`, and, as they happen, `script.rhai`,
-//! `validation.txt`, the rollouts and cost report of the samples (`sample_K.json`,
-//! `sample_costs.json`), `feedback.md` and `sample.gif`. `state.json` is rewritten atomically
+//! `validation.txt`, the rollouts and cost report of the samples (`SCENARIO_K.json`,
+//! `SCENARIO_costs.json`, named as `simulate` names them so that `eval --rollouts round_N`
+//! scores them), `feedback.md` and `sample.gif`. `state.json` is rewritten atomically
 //! after every step, so a run stopped anywhere (a manual round waiting for its reply, a killed
 //! process) continues from it with [`Session::resume`]; `transcript.json` records the
 //! backend, the URL without credentials, every request body, token usage, latency, retries
@@ -24,7 +25,7 @@ use super::rules::{self, understand_request, Event, Tuning};
 use super::LlmError;
 use crate::cost::{Limits, ParamValue, Params};
 use crate::eval::behaviors::Behavior;
-use crate::io::write_atomic;
+use crate::io::{output_stem, write_atomic};
 use crate::render::{render_gif, RenderOptions};
 use crate::sample::{attempt, Attempt, AttemptError, AttemptSpec, SampleConfig, ScriptSpec};
 use crate::scene::description::{describe, DescribeOptions};
@@ -291,6 +292,8 @@ impl<'a> Session<'a> {
                  --continue, or choose another -o",
             ));
         }
+        // Refused before anything is asked: the rollouts are named after the scenario.
+        output_stem(&raw.meta.scenario_id).map_err(|e| run_err(scene_path, e.to_string()))?;
         std::fs::create_dir_all(dir).map_err(|e| run_err(dir, format!("cannot create it: {e}")))?;
         let requests = vec![request.trim().to_string()];
         if let Backend::Rules = backend {
@@ -433,6 +436,19 @@ impl<'a> Session<'a> {
             .history
             .last()
             .map_or(&[], |h| h.reasons.as_slice())
+    }
+
+    /// The rollouts and cost report that sampling round `round` wrote, relative to the run
+    /// directory, for messages: `round_1/ID_0.json … round_1/ID_3.json and round_1/ID_costs.json`.
+    pub fn rollout_files(&self, round: usize) -> String {
+        let id = &self.raw.meta.scenario_id;
+        let last = self.state.config.samples.saturating_sub(1);
+        let rollouts = if last == 0 {
+            format!("round_{round}/{id}_0.json")
+        } else {
+            format!("round_{round}/{id}_0.json … round_{round}/{id}_{last}.json")
+        };
+        format!("{rollouts} and round_{round}/{id}_costs.json")
     }
 
     /// One record per sampling round so far.
@@ -715,7 +731,7 @@ impl<'a> Session<'a> {
         let acc = Acceptance {
             tolerance: self.state.config.tolerance,
         };
-        done.write(rdir, "sample", None)
+        done.write(rdir, &self.raw.meta.scenario_id, None)
             .map_err(|e| run_err(rdir, e.to_string()))?;
         let text = feedback(done, &acc);
         write(rdir, "feedback.md", &text)?;
@@ -855,7 +871,8 @@ impl<'a> Session<'a> {
                     .map_err(|e| run_err(&self.dir, e.to_string()))?;
             }
             report.push_str(&format!(
-                "\nFinal script: final.rhai (round {round}); picture: final.gif; rollouts and costs: round_{round}/sample_K.json, round_{round}/sample_costs.json.\n"
+                "\nFinal script: final.rhai (round {round}); picture: final.gif; rollouts and costs: {}.\n",
+                self.rollout_files(*round)
             ));
             let reasons = self.last_reasons().to_vec();
             if !reasons.is_empty() {
