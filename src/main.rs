@@ -2,6 +2,8 @@
 
 mod cli;
 
+use std::io::Write;
+
 // candle allocates a fresh buffer for every tensor op; mimalloc reuses freed pages where the
 // system allocator returned large blocks to the kernel and zeroed new ones.
 #[global_allocator]
@@ -15,6 +17,30 @@ fn main() -> std::process::ExitCode {
     unsafe {
         libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
+    // println! panics when stdout cannot take the text (a full disk, /dev/full): a failed
+    // write of the output is an error of the run, said in one line, not a crash.
+    let default_hook = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let payload = info.payload();
+        let message = payload
+            .downcast_ref::<String>()
+            .map(String::as_str)
+            .or_else(|| payload.downcast_ref::<&str>().copied());
+        match message {
+            Some(m) if m.starts_with("failed printing to stdout") => {
+                let why = m.trim_start_matches("failed printing to stdout: ");
+                // Not eprintln!: a second failure inside the hook would abort.
+                let _ = writeln!(
+                    std::io::stderr(),
+                    "error: cannot write the output to standard output: {why}"
+                );
+                std::process::exit(1);
+            }
+            // Nowhere left to say it.
+            Some(m) if m.starts_with("failed printing to stderr") => std::process::exit(1),
+            _ => default_hook(info),
+        }
+    }));
     // candle sizes its matrix products' thread pool with num_cpus::get_physical(), which
     // re-reads /proc/cpuinfo on every product unless RAYON_NUM_THREADS is set: a sixth of
     // unguided sampling's time. A user's own setting is kept.

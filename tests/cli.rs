@@ -1037,6 +1037,43 @@ fn output_into_a_closed_pipe_ends_quietly() {
 }
 
 #[test]
+fn output_onto_a_full_disk_is_an_error_not_a_crash() {
+    // /dev/full answers every write with ENOSPC, as a full disk does.
+    let Ok(full) = std::fs::OpenOptions::new().write(true).open("/dev/full") else {
+        eprintln!("skipped: no /dev/full here");
+        return;
+    };
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    for args in [
+        vec!["stdlib-doc"],
+        vec!["inspect", s(&scene)],
+        vec!["eval", s(&scene), "--task", "conditional"],
+    ] {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_drivescript"))
+            .args(&args)
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .stdout(full.try_clone().unwrap())
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{args:?}: {err}");
+        assert!(
+            err.contains("error: cannot write the output to standard output: No space left"),
+            "{args:?}: {err}"
+        );
+        assert!(!err.contains("panicked"), "{args:?}: {err}");
+    }
+    // With stderr full too, nothing can be said: still exit 1, not an abort.
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_drivescript"))
+        .arg("stdlib-doc")
+        .stdout(full.try_clone().unwrap())
+        .stderr(full)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+}
+
+#[test]
 fn train_refuses_settings_it_cannot_train_with_before_reading_data() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("ckpt");

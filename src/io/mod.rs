@@ -484,6 +484,40 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     })
 }
 
+/// Writes `bytes` to `path` only if nothing is there, atomically: the file appears complete or
+/// not at all, and of several processes racing to create it exactly one succeeds. Returns
+/// `false` (writing nothing) when the file already exists.
+pub fn create_atomic(path: &Path, bytes: &[u8]) -> Result<bool, IoError> {
+    let err = |source| IoError::Write {
+        path: path.display().to_string(),
+        source,
+    };
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    std::fs::create_dir_all(&dir).map_err(err)?;
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "out".into());
+    // The thread too: racing claims may come from one process.
+    let tmp = dir.join(format!(
+        ".{name}.tmp{}-{:?}",
+        std::process::id(),
+        std::thread::current().id()
+    ));
+    std::fs::write(&tmp, bytes).map_err(err)?;
+    // A hard link, unlike a rename, never replaces what is there.
+    let linked = std::fs::hard_link(&tmp, path);
+    let _ = std::fs::remove_file(&tmp);
+    match linked {
+        Ok(()) => Ok(true),
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => Ok(false),
+        Err(e) => Err(err(e)),
+    }
+}
+
 /// Reads a whole file, transparently gunzipping `.gz` files.
 pub(crate) fn read_maybe_gz(path: &Path) -> Result<Vec<u8>, IoError> {
     use std::io::Read;

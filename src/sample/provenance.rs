@@ -13,7 +13,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
-use crate::io::{tfrecord::crc32c, write_atomic};
+use crate::io::{create_atomic, tfrecord::crc32c};
 
 /// The run record's file name in a run directory.
 pub const RUN_FILE: &str = "run.json";
@@ -111,42 +111,56 @@ impl RunRecord {
             path: p.display().to_string(),
             message: e,
         };
-        match std::fs::read_to_string(&file) {
-            Ok(text) => {
-                let theirs: Value = serde_json::from_str(&text)
-                    .map_err(|e| io(&file, format!("not a run record: {e}")))?;
-                let ours = serde_json::to_value(self).expect("records serialise");
-                if let Some((field, a, b)) = first_difference("", &theirs, &ours) {
-                    return Err(ProvenanceError::OtherRun {
-                        dir: shown,
-                        field,
-                        theirs: a,
-                        ours: b,
-                    });
+        // Twice at most: a run that loses the race to create the record compares with the
+        // winner's.
+        for _ in 0..2 {
+            match std::fs::read_to_string(&file) {
+                Ok(text) => {
+                    let theirs: Value = serde_json::from_str(&text)
+                        .map_err(|e| io(&file, format!("not a run record: {e}")))?;
+                    let ours = serde_json::to_value(self).expect("records serialise");
+                    if let Some((field, a, b)) = first_difference("", &theirs, &ours) {
+                        return Err(ProvenanceError::OtherRun {
+                            dir: shown,
+                            field,
+                            theirs: a,
+                            ours: b,
+                        });
+                    }
+                    return if resume {
+                        Ok(())
+                    } else {
+                        Err(ProvenanceError::SameRun { dir: shown })
+                    };
                 }
-                if resume {
-                    Ok(())
-                } else {
-                    Err(ProvenanceError::SameRun { dir: shown })
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                    if dir.exists() {
+                        let rollouts = std::fs::read_dir(dir)
+                            .map_err(|e| io(dir, e.to_string()))?
+                            .filter_map(|e| e.ok())
+                            .map(|e| e.file_name().to_string_lossy().into_owned())
+                            .find(|n| n.ends_with(".json"));
+                        if let Some(example) = rollouts {
+                            return Err(ProvenanceError::Unattributed {
+                                dir: shown,
+                                example,
+                            });
+                        }
+                    }
+                    let text = serde_json::to_string_pretty(self).expect("records serialise");
+                    if create_atomic(&file, text.as_bytes())
+                        .map_err(|e| io(&file, e.to_string()))?
+                    {
+                        return Ok(());
+                    }
                 }
+                Err(e) => return Err(io(&file, e.to_string())),
             }
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-                let rollouts = std::fs::read_dir(dir)
-                    .map_err(|e| io(dir, e.to_string()))?
-                    .filter_map(|e| e.ok())
-                    .map(|e| e.file_name().to_string_lossy().into_owned())
-                    .find(|n| n.ends_with(".json"));
-                if let Some(example) = rollouts {
-                    return Err(ProvenanceError::Unattributed {
-                        dir: shown,
-                        example,
-                    });
-                }
-                let text = serde_json::to_string_pretty(self).expect("records serialise");
-                write_atomic(&file, text.as_bytes()).map_err(|e| io(&file, e.to_string()))
-            }
-            Err(e) => Err(io(&file, e.to_string())),
         }
+        Err(io(
+            &file,
+            "it appeared and vanished while this run claimed the directory".into(),
+        ))
     }
 }
 
@@ -214,5 +228,35 @@ mod tests {
             e.contains("scene_0.json") && e.contains("no run.json"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn of_runs_racing_for_a_fresh_directory_exactly_one_wins() {
+        for round in 0..20 {
+            let dir = tempfile::tempdir().unwrap();
+            let out = dir.path().join("out");
+            let n = 8;
+            let barrier = std::sync::Barrier::new(n);
+            let won: Vec<bool> = std::thread::scope(|s| {
+                let handles: Vec<_> = (0..n)
+                    .map(|k| {
+                        let (out, barrier) = (&out, &barrier);
+                        s.spawn(move || {
+                            barrier.wait();
+                            record(k as u64).claim(out, true).is_ok()
+                        })
+                    })
+                    .collect();
+                handles.into_iter().map(|h| h.join().unwrap()).collect()
+            });
+            assert_eq!(
+                won.iter().filter(|w| **w).count(),
+                1,
+                "round {round}: {won:?}"
+            );
+            let text = std::fs::read_to_string(out.join(RUN_FILE)).unwrap();
+            let seed = won.iter().position(|w| *w).unwrap();
+            assert!(text.contains(&format!("\"seed\": {seed}")), "{text}");
+        }
     }
 }
