@@ -259,23 +259,6 @@ pub(crate) fn draw_agents(
             v.px(front + (cs[1] - front) * 0.8),
         ];
         c.fill_polygon(&bar, Rgba(255, 255, 255, 170));
-        let tl = corners
-            .iter()
-            .fold(Point::new(f64::INFINITY, f64::INFINITY), |m, p| m.inf(p));
-        let tr_x = corners
-            .iter()
-            .map(|p| p.x)
-            .fold(f64::NEG_INFINITY, f64::max);
-        let (text, size) = match role(a) {
-            Some(r) => (format!("{} {r}", a.id), 11.0),
-            None => (a.id.to_string(), 9.0),
-        };
-        c.label(
-            Point::new(tr_x + 2.0, tl.y - size),
-            &text,
-            size as f32,
-            Rgba(15, 15, 15, 255),
-        );
     }
 }
 
@@ -284,16 +267,292 @@ pub fn draw_scene(c: &mut dyn Canvas, scene: &Scene, v: &View, opts: &RenderOpti
     draw_map(c, scene, v);
     let step = opts.step.unwrap_or(scene.meta.current_step);
     draw_agents(c, scene, v, step, opts);
-    draw_caption(c, scene, v, step, opts);
+    draw_overlay(c, scene, v, step, opts);
 }
 
-pub(crate) fn draw_caption(
+/// A rectangle in pixels: top-left and bottom-right.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Rect {
+    pub(crate) lo: Point,
+    pub(crate) hi: Point,
+}
+
+impl Rect {
+    fn of(pts: &[Point]) -> Self {
+        let (lo, hi) = bounds(pts);
+        Self { lo, hi }
+    }
+
+    fn overlap(&self, o: &Rect) -> f64 {
+        let w = self.hi.x.min(o.hi.x) - self.lo.x.max(o.lo.x);
+        let h = self.hi.y.min(o.hi.y) - self.lo.y.max(o.lo.y);
+        if w > 0.0 && h > 0.0 {
+            w * h
+        } else {
+            0.0
+        }
+    }
+
+    fn inside(&self, v: &View) -> bool {
+        self.lo.x >= 0.0
+            && self.lo.y >= 0.0
+            && self.hi.x <= v.width as f64
+            && self.hi.y <= v.height as f64
+    }
+}
+
+/// A label to place beside a box: what it says, how big, and whether it must be shown.
+pub(crate) struct LabelRequest {
+    pub(crate) text: String,
+    pub(crate) size: f32,
+    pub(crate) target: Rect,
+    pub(crate) named: bool,
+}
+
+/// Places labels beside their boxes, clear of every obstacle (boxes, caption, legend) and of
+/// each other: the first clear spot of eight around the box, then the same farther out. A
+/// label with no clear spot is left out, unless it names an agent of the request, which takes
+/// its least covered spot. Returns where each label's `at` goes.
+pub(crate) fn place_labels(
+    c: &dyn Canvas,
+    v: &View,
+    requests: &[LabelRequest],
+    obstacles: &[Rect],
+) -> Vec<Option<Point>> {
+    let mut placed: Vec<Rect> = Vec::new();
+    let mut out = vec![None; requests.len()];
+    // Named agents choose first.
+    let mut order: Vec<usize> = (0..requests.len()).collect();
+    order.sort_by_key(|&i| !requests[i].named);
+    for i in order {
+        let r = &requests[i];
+        let [l0, l1] = c.label_box(Point::new(0.0, 0.0), &r.text, r.size);
+        let (w, h) = (l1.x - l0.x, l1.y - l0.y);
+        let (lo, hi) = (r.target.lo, r.target.hi);
+        let (cx, cy) = (0.5 * (lo.x + hi.x), 0.5 * (lo.y + hi.y));
+        let mut spots = Vec::with_capacity(16);
+        for gap in [2.0, 2.0 + h] {
+            spots.extend([
+                Point::new(hi.x + gap, lo.y - h),
+                Point::new(hi.x + gap, hi.y),
+                Point::new(lo.x - w - gap, lo.y - h),
+                Point::new(lo.x - w - gap, hi.y),
+                Point::new(cx - 0.5 * w, lo.y - h - gap),
+                Point::new(cx - 0.5 * w, hi.y + gap),
+                Point::new(hi.x + gap, cy - 0.5 * h),
+                Point::new(lo.x - w - gap, cy - 0.5 * h),
+            ]);
+        }
+        let covered = |tl: Point| {
+            let rect = Rect {
+                lo: tl,
+                hi: tl + Point::new(w, h),
+            };
+            let area: f64 = obstacles
+                .iter()
+                .chain(placed.iter())
+                .map(|o| o.overlap(&rect))
+                .sum();
+            (rect, area)
+        };
+        let clear = spots
+            .iter()
+            .map(|&p| covered(p))
+            .find(|(rect, area)| *area == 0.0 && rect.inside(v));
+        let chosen = match clear {
+            Some((rect, _)) => Some(rect),
+            None if r.named => spots
+                .iter()
+                .map(|&p| covered(p))
+                .filter(|(rect, _)| rect.inside(v))
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+                .map(|(rect, _)| rect),
+            None => None,
+        };
+        if let Some(rect) = chosen {
+            placed.push(rect);
+            // `at` is the label's anchor; its box starts at `l0` from it.
+            out[i] = Some(rect.lo - l0);
+        }
+    }
+    out
+}
+
+/// One legend row: a swatch (a box in a colour, or a solid or dashed line) and its meaning.
+enum Swatch {
+    Box(Rgba),
+    Line { dashed: bool },
+}
+
+/// The legend's rows for this scene and these options: only what the picture shows.
+fn legend_rows(scene: &Scene, opts: &RenderOptions) -> Vec<(Swatch, &'static str)> {
+    let mut rows = Vec::new();
+    if opts.history {
+        rows.push((Swatch::Line { dashed: false }, "motion so far"));
+    }
+    if opts.future {
+        rows.push((Swatch::Line { dashed: true }, "future"));
+    }
+    let has = |t: AgentType| {
+        scene
+            .agents
+            .iter()
+            .any(|a| a.agent_type == t && scene.meta.ego != Some(a.id))
+    };
+    for (t, name) in [
+        (AgentType::Vehicle, "vehicle"),
+        (AgentType::Pedestrian, "pedestrian"),
+        (AgentType::Cyclist, "cyclist"),
+        (AgentType::Other, "other"),
+    ] {
+        if has(t) {
+            rows.push((Swatch::Box(agent_color(t, false)), name));
+        }
+    }
+    if scene.meta.ego.is_some() {
+        rows.push((Swatch::Box(agent_color(AgentType::Vehicle, true)), "ego"));
+    }
+    if !opts.roles.is_empty() {
+        rows.push((Swatch::Box(HIGHLIGHT), "named in the request"));
+    }
+    rows
+}
+
+const LEGEND_TEXT: f32 = 9.0;
+
+/// The legend's rectangle: in the right-hand corner (top or bottom) that the agents' paths
+/// cross least, the same in every frame of an animation.
+fn legend_rect(c: &dyn Canvas, scene: &Scene, v: &View, opts: &RenderOptions) -> Option<Rect> {
+    let rows = legend_rows(scene, opts);
+    if rows.is_empty() {
+        return None;
+    }
+    let text_w = rows
+        .iter()
+        .map(|(_, t)| {
+            let [lo, hi] = c.label_box(Point::new(0.0, 0.0), t, LEGEND_TEXT);
+            hi.x - lo.x
+        })
+        .fold(0.0, f64::max);
+    let (w, h) = (text_w + 26.0, rows.len() as f64 * 14.0 + 6.0);
+    let (vw, vh) = (v.width as f64, v.height as f64);
+    let at = |y: f64| Rect {
+        lo: Point::new(vw - w - 6.0, y),
+        hi: Point::new(vw - 6.0, y + h),
+    };
+    let candidates = [at(6.0), at(vh - h - 6.0)];
+    let crossed = |r: &Rect| {
+        scene
+            .agents
+            .iter()
+            .flat_map(|a| a.states.iter().filter(|s| s.valid))
+            .map(|s| v.px(s.position()))
+            .filter(|p| p.x >= r.lo.x && p.x <= r.hi.x && p.y >= r.lo.y && p.y <= r.hi.y)
+            .count()
+    };
+    candidates.into_iter().min_by_key(crossed)
+}
+
+fn draw_legend(c: &mut dyn Canvas, scene: &Scene, r: &Rect, opts: &RenderOptions) {
+    let frame = [
+        r.lo,
+        Point::new(r.hi.x, r.lo.y),
+        r.hi,
+        Point::new(r.lo.x, r.hi.y),
+    ];
+    c.fill_polygon(&frame, Rgba(255, 255, 255, 215));
+    c.stroke(&frame, 1.0, Rgba(90, 90, 90, 255), None, true);
+    for (k, (swatch, text)) in legend_rows(scene, opts).iter().enumerate() {
+        let y = r.lo.y + 5.0 + k as f64 * 14.0;
+        let x = r.lo.x + 5.0;
+        match swatch {
+            Swatch::Box(col) => {
+                let b = [
+                    Point::new(x + 2.0, y + 1.0),
+                    Point::new(x + 14.0, y + 1.0),
+                    Point::new(x + 14.0, y + 9.0),
+                    Point::new(x + 2.0, y + 9.0),
+                ];
+                c.fill_polygon(&b, *col);
+                c.stroke(&b, 1.0, Rgba(20, 20, 20, 255), None, true);
+            }
+            Swatch::Line { dashed } => {
+                let dash = dashed.then_some([4.0, 3.0]);
+                c.stroke(
+                    &[Point::new(x, y + 5.0), Point::new(x + 16.0, y + 5.0)],
+                    2.0,
+                    Rgba(40, 100, 200, 255),
+                    dash,
+                    false,
+                );
+            }
+        }
+        c.label(
+            Point::new(x + 21.0, y + 1.0),
+            text,
+            LEGEND_TEXT,
+            Rgba(15, 15, 15, 255),
+        );
+    }
+}
+
+/// Everything drawn over the agents at `step`: caption, scale bar, legend, and the agents'
+/// labels, placed clear of the boxes, of each other and of the rest.
+pub(crate) fn draw_overlay(
     c: &mut dyn Canvas,
     scene: &Scene,
     v: &View,
     step: usize,
     opts: &RenderOptions,
 ) {
+    let mut obstacles = draw_caption(c, scene, v, step, opts);
+    if let Some(r) = legend_rect(c, scene, v, opts) {
+        draw_legend(c, scene, &r, opts);
+        obstacles.push(r);
+    }
+    let role = |id| {
+        opts.roles
+            .iter()
+            .find(|(a, _)| *a == id)
+            .map(|(_, r)| r.as_str())
+    };
+    let mut requests = Vec::new();
+    for a in &scene.agents {
+        let Some(b) = a.footprint(step) else { continue };
+        let target = Rect::of(&v.pxs(&b.corners()));
+        // One pixel of air around every box.
+        obstacles.push(Rect {
+            lo: target.lo - Point::new(1.0, 1.0),
+            hi: target.hi + Point::new(1.0, 1.0),
+        });
+        let (text, size) = match role(a.id) {
+            Some(r) => (format!("{} {r}", a.id), 11.0),
+            None => (a.id.to_string(), 9.0),
+        };
+        requests.push(LabelRequest {
+            text,
+            size,
+            target,
+            named: role(a.id).is_some(),
+        });
+    }
+    let spots = place_labels(c, v, &requests, &obstacles);
+    for (r, at) in requests.iter().zip(spots) {
+        if let Some(at) = at {
+            c.label(at, &r.text, r.size, Rgba(15, 15, 15, 255));
+        }
+    }
+}
+
+/// The caption (top left) and a 10 m scale bar (bottom left); returns the rectangles they
+/// cover.
+fn draw_caption(
+    c: &mut dyn Canvas,
+    scene: &Scene,
+    v: &View,
+    step: usize,
+    opts: &RenderOptions,
+) -> Vec<Rect> {
     let text = opts.caption.clone().unwrap_or_else(|| {
         format!(
             "{}  t = {:.1} s  step {}/{}",
@@ -303,7 +562,10 @@ pub(crate) fn draw_caption(
             scene.num_steps().saturating_sub(1)
         )
     });
-    c.label(Point::new(6.0, 6.0), &text, 11.0, Rgba(10, 10, 10, 255));
+    let at = Point::new(6.0, 6.0);
+    c.label(at, &text, 11.0, Rgba(10, 10, 10, 255));
+    let [lo, hi] = c.label_box(at, &text, 11.0);
+    let mut covered = vec![Rect { lo, hi }];
     // A 10 m scale bar in the bottom-left corner.
     let y = v.height as f64 - 12.0;
     let len = 10.0 * v.scale;
@@ -314,10 +576,116 @@ pub(crate) fn draw_caption(
         None,
         false,
     );
-    c.label(
-        Point::new(12.0 + len, y - 6.0),
-        "10 m",
-        9.0,
-        Rgba(10, 10, 10, 255),
-    );
+    let at = Point::new(12.0 + len, y - 6.0);
+    c.label(at, "10 m", 9.0, Rgba(10, 10, 10, 255));
+    let [_, hi] = c.label_box(at, "10 m", 9.0);
+    covered.push(Rect {
+        lo: Point::new(6.0, y - 8.0),
+        hi,
+    });
+    covered
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::io::{load_scene, LoadOptions};
+
+    /// A canvas that keeps what was written and where (with the SVG canvas's text metrics).
+    #[derive(Default)]
+    struct Recorder {
+        labels: Vec<(String, Rect)>,
+    }
+
+    impl Canvas for Recorder {
+        fn fill_polygon(&mut self, _: &[Point], _: Rgba) {}
+        fn stroke(&mut self, _: &[Point], _: f32, _: Rgba, _: Option<[f32; 2]>, _: bool) {}
+        fn label(&mut self, at: Point, text: &str, size: f32, _: Rgba) {
+            let [lo, hi] = self.label_box(at, text, size);
+            self.labels.push((text.to_string(), Rect { lo, hi }));
+        }
+        fn label_box(&self, at: Point, text: &str, size: f32) -> [Point; 2] {
+            let w = (text.chars().count() as f32 * size * 0.62 + 4.0) as f64;
+            let lo = Point::new(at.x - 2.0, at.y - 1.0);
+            [lo, lo + Point::new(w, size as f64 + 3.0)]
+        }
+    }
+
+    fn sample(name: &str) -> Scene {
+        let p = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("data/samples/commonroad")
+            .join(name);
+        load_scene(&p, 0, &LoadOptions::default()).unwrap()
+    }
+
+    #[test]
+    fn labels_keep_clear_of_boxes_and_of_each_other_and_the_legend_says_what_is_drawn() {
+        let scene = sample("USA_US101-3_3_T-1.xml");
+        for width in [1000, 400, 160] {
+            let opts = RenderOptions {
+                width,
+                roles: vec![(401, "cutter".into()), (399, "victim".into())],
+                ..RenderOptions::default()
+            };
+            let v = View::fit(&scene, &opts).unwrap();
+            let mut c = Recorder::default();
+            draw_scene(&mut c, &scene, &v, &opts);
+            let step = scene.meta.current_step;
+            let boxes: Vec<(i64, Rect)> = scene
+                .agents
+                .iter()
+                .filter_map(|a| Some((a.id, Rect::of(&v.pxs(&a.footprint(step)?.corners())))))
+                .collect();
+            let ids: Vec<&(String, Rect)> = c
+                .labels
+                .iter()
+                .filter(|(t, _)| {
+                    let first = t.split(' ').next().and_then(|w| w.parse::<i64>().ok());
+                    boxes.iter().any(|(id, _)| Some(*id) == first)
+                })
+                .collect();
+            for (t, r) in &ids {
+                // A named agent's label takes its least covered spot when no spot is clear,
+                // as on a picture 160 pixels wide; the others are left out instead.
+                if width < 400 && t.contains(' ') {
+                    continue;
+                }
+                for (id, b) in &boxes {
+                    assert_eq!(r.overlap(b), 0.0, "width {width}: label {t:?} on box {id}");
+                }
+                for (u, o) in &c.labels {
+                    if u != t {
+                        assert_eq!(r.overlap(o), 0.0, "width {width}: {t:?} on {u:?}");
+                    }
+                }
+                assert!(r.inside(&v), "width {width}: {t:?} outside the picture");
+            }
+            for want in ["401 cutter", "399 victim"] {
+                assert!(
+                    ids.iter().any(|(t, _)| t == want),
+                    "width {width}: {want} missing"
+                );
+            }
+            if width == 1000 {
+                // Every agent is labelled where there is room.
+                assert_eq!(ids.len(), boxes.len(), "{:?}", ids);
+            }
+            let texts: Vec<&str> = c.labels.iter().map(|(t, _)| t.as_str()).collect();
+            for row in ["motion so far", "future", "vehicle", "named in the request"] {
+                assert!(texts.contains(&row), "width {width}: legend lacks {row}");
+            }
+            assert!(!texts.contains(&"pedestrian") && !texts.contains(&"ego"));
+        }
+    }
+
+    #[test]
+    fn the_legend_lists_only_what_is_drawn() {
+        let scene = sample("USA_Lanker-1_1_T-1.xml");
+        let opts = RenderOptions {
+            history: false,
+            ..RenderOptions::default()
+        };
+        let rows: Vec<&str> = legend_rows(&scene, &opts).iter().map(|r| r.1).collect();
+        assert_eq!(rows, ["future", "vehicle"]);
+    }
 }

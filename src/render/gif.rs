@@ -1,6 +1,6 @@
 //! Animated GIFs of rollouts: one frame per step over a map drawn once.
 
-use super::draw::{draw_agents, draw_caption, draw_map, View};
+use super::draw::{draw_agents, draw_map, draw_overlay, View};
 use super::raster::RasterCanvas;
 use super::{RenderError, RenderOptions};
 use crate::scene::Scene;
@@ -77,7 +77,7 @@ pub fn render_gif(scene: &Scene, opts: &RenderOptions) -> Result<Vec<u8>, Render
                 ..opts.clone()
             };
             draw_agents(&mut c, scene, &view, step, &frame_opts);
-            draw_caption(&mut c, scene, &view, step, &frame_opts);
+            draw_overlay(&mut c, scene, &view, step, &frame_opts);
             let px: Vec<u8> = c
                 .pixmap
                 .data()

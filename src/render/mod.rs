@@ -95,4 +95,7 @@ pub trait Canvas {
     );
     /// Writes a short label with its top-left corner at `at`, `size` pixels tall, on a halo.
     fn label(&mut self, at: Point, text: &str, size: f32, color: Rgba);
+    /// The pixels `label` covers (halo included), top-left and bottom-right: what label
+    /// placement keeps clear of boxes and of other labels.
+    fn label_box(&self, at: Point, text: &str, size: f32) -> [Point; 2];
 }

@@ -70,10 +70,15 @@ impl Canvas for RasterCanvas {
     }
 
     fn label(&mut self, at: Point, text: &str, size: f32, c: Rgba) {
-        let px = (size / 7.0).round().max(1.0);
-        let w = text.chars().count() as f32 * 6.0 * px + 2.0 * px;
+        let px = glyph_pixel(size);
         let (x0, y0) = (at.x as f32, at.y as f32);
-        if let Some(r) = tiny_skia::Rect::from_xywh(x0 - px, y0 - px, w, 9.0 * px) {
+        let [lo, hi] = self.label_box(at, text, size);
+        if let Some(r) = tiny_skia::Rect::from_xywh(
+            lo.x as f32,
+            lo.y as f32,
+            (hi.x - lo.x) as f32,
+            (hi.y - lo.y) as f32,
+        ) {
             self.pixmap.fill_rect(
                 r,
                 &paint(Rgba(255, 255, 255, 190)),
@@ -97,6 +102,19 @@ impl Canvas for RasterCanvas {
             }
         }
     }
+
+    fn label_box(&self, at: Point, text: &str, size: f32) -> [Point; 2] {
+        // 5×7 glyphs on a 6-pixel pitch, scaled by whole pixels, on a one-pixel halo.
+        let px = glyph_pixel(size) as f64;
+        let w = text.chars().count() as f64 * 6.0 * px + 2.0 * px;
+        let lo = Point::new(at.x - px, at.y - px);
+        [lo, lo + Point::new(w, 9.0 * px)]
+    }
+}
+
+/// The size of one font pixel for a label `size` pixels tall.
+fn glyph_pixel(size: f32) -> f32 {
+    (size / 7.0).round().max(1.0)
 }
 
 /// The scene as a PNG image.

@@ -52,18 +52,26 @@ impl Canvas for SvgCanvas {
     }
 
     fn label(&mut self, at: Point, text: &str, size: f32, c: Rgba) {
-        let w = text.chars().count() as f32 * size * 0.62 + 4.0;
+        let [lo, hi] = self.label_box(at, text, size);
         let _ = writeln!(
             self.body,
-            r#"<rect x="{:.1}" y="{:.1}" width="{w:.1}" height="{:.1}" fill="white" fill-opacity="0.75"/><text x="{:.1}" y="{:.1}" font-family="monospace" font-size="{size:.1}" fill="{}">{}</text>"#,
-            at.x - 2.0,
-            at.y - 1.0,
-            size + 3.0,
+            r#"<rect x="{:.1}" y="{:.1}" width="{:.1}" height="{:.1}" fill="white" fill-opacity="0.75"/><text x="{:.1}" y="{:.1}" font-family="monospace" font-size="{size:.1}" fill="{}">{}</text>"#,
+            lo.x,
+            lo.y,
+            hi.x - lo.x,
+            hi.y - lo.y,
             at.x,
             at.y + size as f64 * 0.9,
             c.hex(),
             escape(text)
         );
+    }
+
+    fn label_box(&self, at: Point, text: &str, size: f32) -> [Point; 2] {
+        // Monospace glyphs are about 0.62 em wide.
+        let w = (text.chars().count() as f32 * size * 0.62 + 4.0) as f64;
+        let lo = Point::new(at.x - 2.0, at.y - 1.0);
+        [lo, lo + Point::new(w, size as f64 + 3.0)]
     }
 }
 
