@@ -1150,6 +1150,14 @@ fn sampler_flags_are_checked_before_any_work() {
             "{err}"
         );
     }
+    // 1e308 panicked converting to a Duration; -1 and NaN ran with the floor of 0.05 s.
+    for sec in ["1e308", "-1", "NaN", "0"] {
+        let err = fails(&["bench", "io", "--seconds", sec]);
+        assert!(
+            err.contains("give 0.05 to 3600 seconds per row"),
+            "{sec}: {err}"
+        );
+    }
 }
 
 #[test]

@@ -18,8 +18,8 @@ pub struct Args {
     /// Extra directory of scenes to time (e.g. ../shared/data/commonroad-ngsim).
     #[arg(long)]
     data: Option<PathBuf>,
-    /// Minimum time spent on each row.
-    #[arg(long, default_value_t = 1.0)]
+    /// Minimum time spent on each row, 0.05 to 3600 seconds (`bench io` and `bench cost`).
+    #[arg(long, default_value_t = 1.0, allow_negative_numbers = true)]
     seconds: f64,
     /// Scene for `bench cost`, cropped to 24 agents x 80 future steps (default: NGSIM US-101
     /// scene 23_1 from ../shared/data when present, else the US-101 sample with its 22 agents).
@@ -103,7 +103,13 @@ fn row(name: &str, sources: &[PathBuf], min: Duration) -> Result<()> {
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
-    let min = Duration::from_secs_f64(args.seconds.max(0.05));
+    if !(0.05..=3600.0).contains(&args.seconds) {
+        anyhow::bail!(
+            "--seconds {}: give 0.05 to 3600 seconds per row",
+            args.seconds
+        );
+    }
+    let min = Duration::from_secs_f64(args.seconds);
     match args.what {
         What::Io => bench_io(&args, min),
         What::Cost => bench_cost(&args, min),
