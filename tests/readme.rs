@@ -45,3 +45,16 @@ fn ci_runs_the_readme_test_command() {
     let cmds: Vec<&str> = ci.lines().filter(|l| l.starts_with("cargo ")).collect();
     assert_eq!(cmds, vec!["cargo fmt --check", "cargo test --release"]);
 }
+
+#[test]
+fn readme_listing_of_the_cut_in_script_is_the_file() {
+    let text = readme();
+    let head = "`scripts/cut_in.rhai`:\n\n```rhai\n";
+    let start = text.find(head).expect("the listing") + head.len();
+    let len = text[start..].find("```").expect("its end");
+    let file = std::fs::read_to_string(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/cut_in.rhai"),
+    )
+    .unwrap();
+    assert_eq!(&text[start..start + len], file);
+}
