@@ -1324,6 +1324,27 @@ fn convert_refuses_to_write_over_its_input() {
 }
 
 #[test]
+fn convert_refuses_agent_ids_the_format_cannot_hold() {
+    let dir = tempfile::tempdir().unwrap();
+    let y = dir.path().join("big.yaml");
+    std::fs::write(
+        &y,
+        "scenario_id: big\ndt: 0.1\nsteps: 3\ncurrent_step: 1\nroad: {lanes: 2, length: 100}\n\
+         agents:\n  - id: 5000000000\n    type: vehicle\n    states: [[0,1.75,0], [1,1.75,0], [2,1.75,0]]\n",
+    )
+    .unwrap();
+    let out = dir.path().join("big.tfrecord");
+    let err = fails(&["convert", s(&y), "-o", s(&out)]);
+    assert!(
+        err.contains("scene big, agent 5000000000: WOMD track ids are 32-bit"),
+        "{err}"
+    );
+    assert!(!out.exists());
+    // YAML and rollout JSON hold 64-bit ids.
+    ok(&["convert", s(&y), "-o", s(&dir.path().join("big2.yaml"))]);
+}
+
+#[test]
 fn a_diverging_training_stops_with_an_error_and_writes_nothing() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("dv");

@@ -474,7 +474,12 @@ pub fn run_test_file(path: &Path) -> Result<Vec<CaseResult>, ScriptTestError> {
     let file: TestFile = serde_yaml::from_str(&text).map_err(|e| ScriptTestError::Read {
         path: path.display().to_string(),
         message: match e.location() {
-            Some(l) => format!("line {}, column {}: {e}", l.line(), l.column()),
+            Some(l) => format!(
+                "line {}, column {}: {}",
+                l.line(),
+                l.column(),
+                crate::io::without_position(&e.to_string(), l.line(), l.column())
+            ),
             None => e.to_string(),
         },
     })?;

@@ -355,7 +355,7 @@ fn read_map(path: &Path) -> Result<Map, IoError> {
         IoError::invalid(
             path,
             format!("line {}, column {}", e.line(), e.column()),
-            e.to_string(),
+            super::without_position(&e.to_string(), e.line(), e.column()),
         )
     })?;
     let mut parts = MapParts::default();

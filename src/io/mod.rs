@@ -484,6 +484,13 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     })
 }
 
+/// A serde error's message without the position serde writes into it (` at line 4 column
+/// 31`), for messages that give that position themselves; other positions (where an
+/// unclosed bracket opened, say) stay.
+pub(crate) fn without_position(message: &str, line: usize, column: usize) -> String {
+    message.replacen(&format!(" at line {line} column {column}"), "", 1)
+}
+
 /// Writes `bytes` to `path` only if nothing is there, atomically: the file appears complete or
 /// not at all, and of several processes racing to create it exactly one succeeds. Returns
 /// `false` (writing nothing) when the file already exists.
@@ -585,7 +592,32 @@ pub(crate) fn push_unique_road_line(
 
 #[cfg(test)]
 mod tests {
-    use super::output_stem;
+    use super::{output_stem, without_position};
+
+    #[test]
+    fn serde_positions_are_said_once() {
+        let e = serde_yaml::from_str::<serde_yaml::Value>("road: [1, 2").unwrap_err();
+        let l = e.location().unwrap();
+        assert_eq!(
+            without_position(&e.to_string(), l.line(), l.column()),
+            "did not find expected ',' or ']', while parsing a flow sequence at line 1 column 7"
+        );
+        let e = serde_json::from_str::<serde_json::Value>("{\"a\": }").unwrap_err();
+        assert_eq!(
+            without_position(&e.to_string(), e.line(), e.column()),
+            "expected value"
+        );
+    }
+
+    #[test]
+    fn a_yaml_scene_error_gives_its_position_once() {
+        let text = "scenario_id: x\ndt: 0.1\nroad: {lanes: 2, width: 3}\n";
+        let e = super::yaml::parse(std::path::Path::new("s.yaml"), text)
+            .unwrap_err()
+            .to_string();
+        assert_eq!(e.matches("line 3").count(), 1, "{e}");
+        assert!(e.contains("unknown field `width`"), "{e}");
+    }
 
     #[test]
     fn output_stems_are_single_plain_names() {

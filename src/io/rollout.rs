@@ -254,14 +254,10 @@ impl Rollout {
         let text = std::fs::read_to_string(path).map_err(|e| IoError::read(path, e))?;
         let r: Rollout = serde_json::from_str(&text).map_err(|e| {
             // serde's message ends with the position, which the location already gives.
-            let msg = e.to_string();
-            let msg = msg
-                .rsplit_once(" at line ")
-                .map_or(msg.as_str(), |(m, _)| m);
             IoError::invalid(
                 path,
                 format!("line {}, column {}", e.line(), e.column()),
-                msg.to_string(),
+                super::without_position(&e.to_string(), e.line(), e.column()),
             )
         })?;
         r.validate(path)?;

@@ -392,12 +392,14 @@ fn map_point(p: Point) -> pb::MapPoint {
 
 /// Encodes a scene as a WOMD `Scenario` (lanes, edges, lines, crosswalks, speed bumps, stop
 /// signs, tracks). Used to write test shards and to convert other datasets for WOMD tools.
+/// Agent ids must fit the format's 32-bit track ids, as [`write_file`] checks.
 pub fn scene_to_scenario(scene: &Scene) -> pb::Scenario {
     let steps = scene.num_steps();
     let tracks: Vec<pb::Track> = scene
         .agents
         .iter()
         .map(|a| pb::Track {
+            // Checked by `write_file`; ids in range convert exactly.
             id: Some(a.id as i32),
             object_type: Some(match a.agent_type {
                 AgentType::Vehicle => pb::object_type::VEHICLE,
@@ -569,6 +571,20 @@ pub fn scene_to_scenario(scene: &Scene) -> pb::Scenario {
 
 /// Writes scenes as one TFRecord file of `Scenario` records (atomically).
 pub fn write_file(path: &Path, scenes: &[Scene]) -> Result<(), IoError> {
+    // A track id is an int32 in the format: a wider id would wrap into another agent's.
+    for s in scenes {
+        if let Some(a) = s.agents.iter().find(|a| i32::try_from(a.id).is_err()) {
+            return Err(IoError::invalid(
+                path,
+                format!("scene {}, agent {}", s.meta.scenario_id, a.id),
+                format!(
+                    "WOMD track ids are 32-bit ({} to {}); this id cannot be written",
+                    i32::MIN,
+                    i32::MAX
+                ),
+            ));
+        }
+    }
     let payloads: Vec<Vec<u8>> = scenes
         .iter()
         .map(|s| scene_to_scenario(s).encode_to_vec())

@@ -302,12 +302,13 @@ pub fn read(path: &Path) -> Result<Scene, IoError> {
 
 /// Parses YAML scene text (`path` is used for messages and metadata).
 pub fn parse(path: &Path, text: &str) -> Result<Scene, IoError> {
-    let y: YamlScene = serde_yaml::from_str(text).map_err(|e| {
-        let loc = e
-            .location()
-            .map(|l| format!("line {}, column {}", l.line(), l.column()))
-            .unwrap_or_else(|| "document".into());
-        IoError::invalid(path, loc, e.to_string())
+    let y: YamlScene = serde_yaml::from_str(text).map_err(|e| match e.location() {
+        Some(l) => IoError::invalid(
+            path,
+            format!("line {}, column {}", l.line(), l.column()),
+            super::without_position(&e.to_string(), l.line(), l.column()),
+        ),
+        None => IoError::invalid(path, "document", e.to_string()),
     })?;
     build(path, &y)
 }

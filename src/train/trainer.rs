@@ -646,7 +646,12 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
     let meta: CheckpointMeta = serde_json::from_str(&text).map_err(|e| {
         io(
             &cfg_path,
-            format!("line {}, column {}: {e}", e.line(), e.column()),
+            format!(
+                "line {}, column {}: {}",
+                e.line(),
+                e.column(),
+                crate::io::without_position(&e.to_string(), e.line(), e.column())
+            ),
         )
     })?;
     if meta.version != CHECKPOINT_VERSION {
