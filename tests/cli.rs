@@ -1289,6 +1289,49 @@ fn nothing_read_simulated_or_scored_is_an_error() {
 }
 
 #[test]
+fn a_script_that_does_not_compile_is_said_once_before_any_scene() {
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("bad.rhai");
+    std::fs::write(&bad, "let a = agent(2)\nterm(\"x\" a.x.last());\n").unwrap();
+    let out = dir.path().join("out");
+    let err = fails(&[
+        "simulate",
+        s(&samples()),
+        "--checkpoint",
+        "data/checkpoint",
+        "--script",
+        s(&bad),
+        "-o",
+        s(&out),
+    ]);
+    // It was one error per scene (seven), and a run directory with run.json was left.
+    assert_eq!(err.matches("syntax error").count(), 1, "{err}");
+    assert!(
+        err.contains("bad.rhai:2:1: syntax error: Expecting ';' to terminate this statement"),
+        "{err}"
+    );
+    assert!(!err.contains("Syntax error"), "{err}");
+    assert!(!out.exists());
+    // A script that fails on every scene (an agent none has): nothing written, not even
+    // the run record, which would refuse the next run's settings.
+    std::fs::write(&bad, "let a = agent(999);\nterm(\"x\", a.x.last());\n").unwrap();
+    let yaml = samples().join("yaml");
+    let args = [
+        "simulate",
+        s(&yaml),
+        "--checkpoint",
+        "data/checkpoint",
+        "--script",
+        s(&bad),
+        "-o",
+        s(&out),
+    ];
+    let err = fails(&args);
+    assert!(err.contains("2 scenes failed"), "{err}");
+    assert!(!out.exists());
+}
+
+#[test]
 fn an_error_names_its_cause_once() {
     let dir = tempfile::tempdir().unwrap();
     let missing = dir.path().join("nope.json");

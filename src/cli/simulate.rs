@@ -8,7 +8,7 @@ use drivescript::cost::{Params, Realism};
 use drivescript::eval::behaviors::{suggest, Behavior, ALL};
 use drivescript::io::{discover, output_stem, read_each, LoadOptions, OutputNames};
 use drivescript::render::RenderOptions;
-use drivescript::sample::provenance::{file_crc32c, text_crc32c, RunRecord};
+use drivescript::sample::provenance::{file_crc32c, text_crc32c, RunRecord, RUN_FILE};
 use drivescript::sample::{
     attempt, horizon_note, recorded_future, AttemptSpec, Clamp, Guidance, LambdaSchedule,
     SampleConfig, ScriptSpec, Task,
@@ -149,6 +149,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
             ))
         })
         .collect::<Result<Vec<_>>>()?;
+    // Said once, before any scene is read or the output directory is claimed.
+    for spec in &specs {
+        spec.check_syntax()?;
+    }
     let cfg = SampleConfig {
         steps: args.steps,
         samples: args.samples,
@@ -182,6 +186,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         anyhow::bail!("sampler settings: {e}");
     }
     let explicit = Params::parse(&args.params)?;
+    let existed = args.output.exists();
     std::fs::create_dir_all(&args.output)
         .with_context(|| format!("creating {}", args.output.display()))?;
     let record = RunRecord {
@@ -209,7 +214,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             .collect(),
         params: explicit.to_string(),
     };
-    record.claim(&args.output, args.resume)?;
+    let fresh = record.claim(&args.output, args.resume)?;
     let run_value = serde_json::to_value(&record)?;
     let mut skipped = 0;
     let mut sources = Vec::new();
@@ -380,6 +385,14 @@ pub fn run(args: Args) -> Result<ExitCode> {
             args.output.display()
         );
     } else if resumed == 0 {
+        // A run that wrote nothing leaves nothing, not a record that would refuse the next
+        // run's settings; shards share the record, so theirs stays.
+        if fresh && args.shard.is_none() {
+            let _ = std::fs::remove_file(args.output.join(RUN_FILE));
+            if !existed {
+                let _ = std::fs::remove_dir(&args.output);
+            }
+        }
         println!("no scene simulated: nothing written");
     }
     if failed > 0 {

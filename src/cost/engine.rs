@@ -736,11 +736,12 @@ impl CostScript {
                         line,
                         column,
                     },
-                    EvalAltResult::ErrorParsing(..) => CostError::Syntax {
+                    EvalAltResult::ErrorParsing(ref kind, _) => CostError::Syntax {
                         script: name.into(),
                         line,
                         column,
-                        message: strip_position(&e.to_string()),
+                        // The variant's own text: the whole error's repeats "Syntax error".
+                        message: strip_position(&kind.to_string()),
                     },
                     EvalAltResult::ErrorModuleNotFound(..) | EvalAltResult::ErrorInModule(..) => {
                         CostError::Runtime {
@@ -768,6 +769,23 @@ impl CostScript {
             limits: limits.clone(),
             docs,
         })
+    }
+
+    /// Compiles `source` without a scene: what fails here (syntax, imports, size limits) fails
+    /// on every scene, so a command with many scenes says it once, before any work.
+    pub fn check_syntax(source: &str, name: &str, limits: &Limits) -> Result<(), CostError> {
+        let meta = crate::scene::SceneMeta {
+            source_format: crate::scene::SourceFormat::Yaml,
+            source_file: String::new(),
+            scenario_id: "syntax-check".into(),
+            dt: 0.1,
+            current_step: 0,
+            ego: None,
+            warnings: Vec::new(),
+        };
+        let scene = Scene::new(meta, crate::scene::Map::empty(), Vec::new())
+            .expect("an empty scene is consistent");
+        Self::compile(source, name, Rc::new(scene), &Params::default(), limits).map(|_| ())
     }
 
     /// The script's name.

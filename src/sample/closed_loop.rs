@@ -34,6 +34,12 @@ impl ScriptSpec {
             limits: Limits::default(),
         }
     }
+
+    /// Compiles the script without a scene ([`crate::cost::CostScript::check_syntax`]): a run
+    /// over many scenes checks its scripts once, before the first.
+    pub fn check_syntax(&self) -> Result<(), crate::cost::CostError> {
+        crate::cost::CostScript::check_syntax(&self.source, &self.name, &self.limits)
+    }
 }
 
 /// Simulates `scene` in closed loop, executing `execute` steps per round (5 = 0.5 s at 10 Hz).

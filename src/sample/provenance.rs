@@ -103,8 +103,9 @@ pub fn text_crc32c(bytes: &[u8]) -> String {
 
 impl RunRecord {
     /// Claims `dir` for this run: a fresh directory gets the record; one holding the same
-    /// record is continued only when `resume`; anything else is refused.
-    pub fn claim(&self, dir: &Path, resume: bool) -> Result<(), ProvenanceError> {
+    /// record is continued only when `resume`; anything else is refused. Returns whether
+    /// this call wrote the record.
+    pub fn claim(&self, dir: &Path, resume: bool) -> Result<bool, ProvenanceError> {
         let file = dir.join(RUN_FILE);
         let shown = dir.display().to_string();
         let io = |p: &Path, e: String| ProvenanceError::Io {
@@ -128,7 +129,7 @@ impl RunRecord {
                         });
                     }
                     return if resume {
-                        Ok(())
+                        Ok(false)
                     } else {
                         Err(ProvenanceError::SameRun { dir: shown })
                     };
@@ -151,7 +152,7 @@ impl RunRecord {
                     if create_atomic(&file, text.as_bytes())
                         .map_err(|e| io(&file, e.to_string()))?
                     {
-                        return Ok(());
+                        return Ok(true);
                     }
                 }
                 Err(e) => return Err(io(&file, e.to_string())),
