@@ -789,3 +789,50 @@ fn batch_shards_share_one_directory_and_a_plain_run_summarises_them() {
         "{summary}"
     );
 }
+
+#[test]
+fn loop_flags_are_checked_before_any_work() {
+    // --rounds 10^6 or --fixes 10^5 would have paid for a million requests; --backoff 1e308
+    // panicked converting to a Duration; --max-agents 0 sent a summary of no agents.
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join(SCENE);
+    for (flag, value, want) in [
+        ("--rounds", "1000000", "1000000 is not in 0..=20"),
+        ("--fixes", "100000", "100000 is not in 0..=20"),
+        ("--samples", "0", "0 is not in 1..=1024"),
+        ("--max-agents", "0", "0 is not in 1..=1000"),
+        ("--attempts", "0", "0 is not in 1..=20"),
+        ("--max-tokens", "0", "0 is not in 1..=1000000"),
+        (
+            "--backoff",
+            "1e308",
+            "--backoff 1e308: must be 0 to 600 seconds",
+        ),
+        ("--temperature", "3", "--temperature 3.0: must be 0 to 2"),
+        ("--temperature", "NaN", "--temperature NaN: must be 0 to 2"),
+        (
+            "--llm-timeout",
+            "-1",
+            "--llm-timeout -1.0: must be more than 0",
+        ),
+        (
+            "--tolerance",
+            "-1",
+            "--tolerance -1.0: must be finite and not negative",
+        ),
+    ] {
+        let out = dir.path().join("run");
+        let arg = format!("{flag}={value}");
+        let run = ask(
+            &[s(&scene), REQUEST, "-o", s(&out), "--llm", "rules", &arg],
+            None,
+        );
+        let err = String::from_utf8_lossy(&run.stderr);
+        assert!(
+            matches!(run.status.code(), Some(1) | Some(2)) && err.contains(want),
+            "{arg}: {err}"
+        );
+        assert!(!err.contains("panicked"), "{arg}: {err}");
+        assert!(!out.exists(), "{arg}: wrote {}", out.display());
+    }
+}

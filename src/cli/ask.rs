@@ -67,40 +67,41 @@ pub struct Args {
     /// DRIVESCRIPT_LLM_KEY, never from a flag, so it stays out of shell history.
     #[arg(long)]
     model: Option<String>,
-    /// Sampling temperature sent with every request.
-    #[arg(long, default_value_t = 0.2)]
+    /// Sampling temperature sent with every request, 0 to 2.
+    #[arg(long, default_value_t = 0.2, allow_negative_numbers = true)]
     temperature: f64,
-    /// Most tokens per reply.
-    #[arg(long, default_value_t = 4096)]
+    /// Most tokens per reply, 1 to 1,000,000.
+    #[arg(long, default_value_t = 4096, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
     max_tokens: u32,
     /// The request field for --max-tokens: max_tokens (most servers) or max_completion_tokens
     /// (OpenAI's newer models).
     #[arg(long, default_value = "max_tokens")]
     max_tokens_field: String,
-    /// Seconds to wait for a reply.
-    #[arg(long, default_value_t = 300.0)]
+    /// Seconds to wait for a reply (more than 0, at most 3600).
+    #[arg(long, default_value_t = 300.0, allow_negative_numbers = true)]
     llm_timeout: f64,
-    /// Attempts per request on 429 and 5xx answers.
-    #[arg(long, default_value_t = 3)]
+    /// Attempts per request on 429 and 5xx answers, 1 to 20.
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=20))]
     attempts: u32,
     /// First wait between attempts, seconds (doubles each time unless the server sends
-    /// Retry-After).
-    #[arg(long, default_value_t = 2.0)]
+    /// Retry-After), 0 to 600.
+    #[arg(long, default_value_t = 2.0, allow_negative_numbers = true)]
     backoff: f64,
-    /// Refinement rounds after the first sampling (0: the first script is final).
-    #[arg(long, default_value_t = 3)]
+    /// Refinement rounds after the first sampling (0: the first script is final), at most 20.
+    #[arg(long, default_value_t = 3, value_parser = usize_in(0, 20))]
     rounds: usize,
-    /// Unusable replies, failed validations and rejected ACCEPTs allowed in a row.
-    #[arg(long, default_value_t = 3)]
+    /// Unusable replies, failed validations and rejected ACCEPTs allowed in a row, at most 20.
+    #[arg(long, default_value_t = 3, value_parser = usize_in(0, 20))]
     fixes: usize,
-    /// Samples per round.
-    #[arg(long, default_value_t = 4)]
+    /// Samples per round, 1 to 1024.
+    #[arg(long, default_value_t = 4, value_parser = usize_in(1, 1024))]
     samples: usize,
     /// Seed of the initial noise (also sent to the server, which treats it as best effort).
     #[arg(long, default_value_t = 1)]
     seed: u64,
-    /// Largest unweighted script term a sample may keep and still meet the request.
-    #[arg(long, default_value_t = 0.05)]
+    /// Largest unweighted script term a sample may keep and still meet the request (finite,
+    /// not negative).
+    #[arg(long, default_value_t = 0.05, allow_negative_numbers = true)]
     tolerance: f64,
     /// Checkpoint directory (default: the one shipped in data/checkpoint).
     #[arg(long)]
@@ -116,8 +117,8 @@ pub struct Args {
 /// the prompt sent.
 #[derive(clap::Args)]
 pub(crate) struct PromptFlags {
-    /// Most agents in the scene summary (the request's are always listed).
-    #[arg(long, default_value_t = 30)]
+    /// Most agents in the scene summary (the request's are always listed), 1 to 1000.
+    #[arg(long, default_value_t = 30, value_parser = usize_in(1, 1000))]
     pub max_agents: usize,
     /// Prompt templates (default: prompts/).
     #[arg(long)]
@@ -282,6 +283,18 @@ fn reopen<'a>(args: &Args, dir: &Path, trained: &'a Trained) -> Result<Session<'
     )
 }
 
+/// A clap parser for a `usize` in `lo..=hi` (clap's ranged parsers are for the fixed-width
+/// integer types).
+pub(crate) fn usize_in(
+    lo: usize,
+    hi: usize,
+) -> impl clap::builder::TypedValueParser<Value = usize> {
+    clap::builder::TypedValueParser::map(
+        clap::value_parser!(u64).range(lo as u64..=hi as u64),
+        |v| v as usize,
+    )
+}
+
 fn load_one(path: &Path) -> Result<drivescript::scene::Scene, LlmError> {
     load_scene(path, 0, &LoadOptions::default()).map_err(|e| LlmError::Run {
         dir: path.to_path_buf(),
@@ -292,24 +305,21 @@ fn load_one(path: &Path) -> Result<drivescript::scene::Scene, LlmError> {
 pub fn run(args: Args) -> Result<ExitCode> {
     if !(args.tolerance.is_finite() && args.tolerance >= 0.0) {
         bail!(
-            "--tolerance {} must be a finite number >= 0",
+            "--tolerance {:?}: must be finite and not negative",
             args.tolerance
         );
     }
-    if args.samples == 0 {
-        bail!("--samples must be at least 1");
+    if !(0.0..=2.0).contains(&args.temperature) {
+        bail!("--temperature {:?}: must be 0 to 2", args.temperature);
     }
-    if !(args.temperature.is_finite() && args.temperature >= 0.0) {
+    if !(args.llm_timeout > 0.0 && args.llm_timeout <= 3600.0) {
         bail!(
-            "--temperature {} must be a finite number >= 0",
-            args.temperature
-        );
-    }
-    if !(args.llm_timeout.is_finite() && args.llm_timeout > 0.0) {
-        bail!(
-            "--llm-timeout {} must be a positive number of seconds",
+            "--llm-timeout {:?}: must be more than 0 and at most 3600 seconds",
             args.llm_timeout
         );
+    }
+    if !(0.0..=600.0).contains(&args.backoff) {
+        bail!("--backoff {:?}: must be 0 to 600 seconds", args.backoff);
     }
     let trained = checkpoint(args.checkpoint.as_deref())?;
     if let Some(file) = &args.batch {

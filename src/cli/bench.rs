@@ -105,7 +105,7 @@ fn row(name: &str, sources: &[PathBuf], min: Duration) -> Result<()> {
 pub fn run(args: Args) -> Result<ExitCode> {
     if !(0.05..=3600.0).contains(&args.seconds) {
         anyhow::bail!(
-            "--seconds {}: give 0.05 to 3600 seconds per row",
+            "--seconds {:?}: give 0.05 to 3600 seconds per row",
             args.seconds
         );
     }
