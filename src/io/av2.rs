@@ -12,44 +12,103 @@ use std::fs::File;
 use std::path::{Path, PathBuf};
 
 use parquet::file::reader::{FileReader, SerializedFileReader};
+use parquet::file::statistics::Statistics;
 use parquet::record::Field;
 use serde::Deserialize;
 
 use super::IoError;
-use crate::geom::{Point, Polygon, Polyline};
+use crate::geom::{num, Point, Polygon, Polyline};
 use crate::scene::{
     Agent, AgentState, AgentType, Lane, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind, RoadLine,
     RoadLineKind, Scene, SceneMeta, SourceFormat,
 };
 
-/// The scenario parquet and map JSON of an AV2 scenario directory.
-pub fn find_scenario_in_dir(dir: &Path) -> Result<(PathBuf, PathBuf), IoError> {
-    let mut parquet = None;
-    let mut map = None;
+/// The scenario id a file name carries: `scenario_ID.parquet` or `log_map_archive_ID.json`.
+fn named_id<'a>(path: &'a Path, prefix: &str, suffix: &str) -> Option<&'a str> {
+    path.file_name()?
+        .to_str()?
+        .strip_prefix(prefix)?
+        .strip_suffix(suffix)
+}
+
+fn listing(paths: &[PathBuf]) -> String {
+    paths
+        .iter()
+        .map(|p| p.file_name().unwrap_or_default().to_string_lossy())
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// The map JSON of the scenario whose parquet is `parquet`, in `dir`: the one named with its
+/// scenario id, or the only one there.
+fn map_for(parquet: &Path, dir: &Path, maps: &[PathBuf]) -> Result<PathBuf, IoError> {
+    let id = named_id(parquet, "scenario_", ".parquet");
+    if let Some(m) = maps
+        .iter()
+        .find(|m| id.is_some() && named_id(m, "log_map_archive_", ".json") == id)
+    {
+        return Ok(m.clone());
+    }
+    match maps {
+        [] => Err(IoError::invalid(
+            dir,
+            "directory",
+            "no log_map_archive_*.json file",
+        )),
+        [one] => Ok(one.clone()),
+        _ => Err(IoError::invalid(
+            dir,
+            "directory",
+            format!(
+                "{} map files ({}) and none is named for {}: which map is the scenario's?",
+                maps.len(),
+                listing(maps),
+                parquet.display()
+            ),
+        )),
+    }
+}
+
+fn scenario_files(dir: &Path) -> Result<(Vec<PathBuf>, Vec<PathBuf>), IoError> {
+    let (mut parquets, mut maps) = (Vec::new(), Vec::new());
     for e in std::fs::read_dir(dir).map_err(|e| IoError::read(dir, e))? {
         let p = e.map_err(|e| IoError::read(dir, e))?.path();
-        let name = p
-            .file_name()
-            .unwrap_or_default()
-            .to_string_lossy()
-            .into_owned();
-        if name.starts_with("scenario_") && name.ends_with(".parquet") {
-            parquet = Some(p);
-        } else if name.starts_with("log_map_archive_") && name.ends_with(".json") {
-            map = Some(p);
+        if named_id(&p, "scenario_", ".parquet").is_some() {
+            parquets.push(p);
+        } else if named_id(&p, "log_map_archive_", ".json").is_some() {
+            maps.push(p);
         }
     }
-    match (parquet, map) {
-        (Some(p), Some(m)) => Ok((p, m)),
-        (None, _) => Err(IoError::invalid(
+    parquets.sort();
+    maps.sort();
+    Ok((parquets, maps))
+}
+
+/// Whether `dir` is meant as an AV2 scenario directory: it holds a `scenario_*.parquet`.
+/// Whether it is a good one (one scenario, its map) is the reader's to say, by name.
+pub fn is_scenario_dir(dir: &Path) -> bool {
+    scenario_files(dir).is_ok_and(|(parquets, _)| !parquets.is_empty())
+}
+
+/// The scenario parquet and map JSON of an AV2 scenario directory: exactly one parquet, and
+/// its map (named with its scenario id, or the only one).
+pub fn find_scenario_in_dir(dir: &Path) -> Result<(PathBuf, PathBuf), IoError> {
+    let (parquets, maps) = scenario_files(dir)?;
+    match parquets.as_slice() {
+        [] => Err(IoError::invalid(
             dir,
             "directory",
             "no scenario_*.parquet file",
         )),
-        (_, None) => Err(IoError::invalid(
+        [one] => Ok((one.clone(), map_for(one, dir, &maps)?)),
+        _ => Err(IoError::invalid(
             dir,
             "directory",
-            "no log_map_archive_*.json file",
+            format!(
+                "{} scenario files ({}): name the parquet file to read",
+                parquets.len(),
+                listing(&parquets)
+            ),
         )),
     }
 }
@@ -80,23 +139,78 @@ pub fn read(path: &Path) -> Result<Scene, IoError> {
     let (parquet, map_json) = if path.is_dir() {
         find_scenario_in_dir(path)?
     } else {
-        let dir = path.parent().unwrap_or(Path::new("."));
-        let (_, m) = find_scenario_in_dir(dir).map_err(|_| {
-            IoError::invalid(
+        let dir = match path.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d,
+            _ => Path::new("."),
+        };
+        let (_, maps) = scenario_files(dir)?;
+        let m = map_for(path, dir, &maps).map_err(|e| match maps.is_empty() {
+            true => IoError::invalid(
                 path,
                 "map",
                 "no log_map_archive_*.json beside the parquet file",
-            )
+            ),
+            false => e,
         })?;
         (path.to_path_buf(), m)
     };
     let map = read_map(&map_json)?;
     let (agents, meta) = read_tracks(&parquet)?;
-    Scene::new(meta, map, agents).map_err(|e| IoError::Scene {
+    // The ids in the file names are the scenario's: a map of another scenario would be read
+    // as this one's without a word.
+    for (file, named) in [
+        (&parquet, named_id(&parquet, "scenario_", ".parquet")),
+        (&map_json, named_id(&map_json, "log_map_archive_", ".json")),
+    ] {
+        if let Some(named) = named.filter(|n| *n != meta.scenario_id) {
+            return Err(IoError::invalid(
+                file,
+                "file name",
+                format!(
+                    "named for scenario {named}, but the scenario is {}",
+                    meta.scenario_id
+                ),
+            ));
+        }
+    }
+    Scene::recorded(meta, map, agents).map_err(|e| IoError::Scene {
         path: parquet.display().to_string(),
         location: "scenario".into(),
         error: e,
     })
+}
+
+/// What a column chunk's statistics say its values are.
+enum Range {
+    Number(f64, f64),
+    Integer(i64, i64),
+    Constant(Vec<u8>),
+}
+
+impl Range {
+    /// The value and the recorded range, when `field` lies outside it.
+    fn refuses(&self, field: &Field) -> Option<(String, String)> {
+        let outside = |v: f64, lo: f64, hi: f64| v.is_finite() && !(lo..=hi).contains(&v);
+        match (self, field) {
+            (&Range::Number(lo, hi), &Field::Double(v)) if outside(v, lo, hi) => {
+                Some((num(v), format!("{} to {}", num(lo), num(hi))))
+            }
+            (&Range::Number(lo, hi), &Field::Float(v)) if outside(v as f64, lo, hi) => {
+                Some((num(v as f64), format!("{} to {}", num(lo), num(hi))))
+            }
+            (&Range::Integer(lo, hi), &Field::Long(v)) if !(lo..=hi).contains(&v) => {
+                Some((v.to_string(), format!("{lo} to {hi}")))
+            }
+            (&Range::Integer(lo, hi), &Field::Int(v)) if !(lo..=hi).contains(&(v as i64)) => {
+                Some((v.to_string(), format!("{lo} to {hi}")))
+            }
+            (Range::Constant(c), Field::Str(v)) if v.as_bytes() != c.as_slice() => Some((
+                format!("{v:?}"),
+                format!("only {:?}", String::from_utf8_lossy(c)),
+            )),
+            _ => None,
+        }
+    }
 }
 
 #[derive(Default)]
@@ -120,65 +234,113 @@ fn read_tracks(path: &Path) -> Result<(Vec<Agent>, SceneMeta), IoError> {
     let reader = SerializedFileReader::new(file).map_err(|e| {
         IoError::invalid(path, "footer", format!("not a readable parquet file: {e}"))
     })?;
-    let iter = reader
-        .get_row_iter(None)
-        .map_err(|e| IoError::invalid(path, "schema", e.to_string()))?;
+    // Parquet pages written without checksums (AV2's) cannot be verified, but each column
+    // chunk records its smallest and largest value: a damaged value usually lies outside.
+    let chunk_ranges = |g: usize| -> HashMap<String, Range> {
+        reader
+            .metadata()
+            .row_group(g)
+            .columns()
+            .iter()
+            .filter_map(|c| {
+                let range = match c.statistics()? {
+                    Statistics::Double(v) => Range::Number(*v.min_opt()?, *v.max_opt()?),
+                    Statistics::Float(v) => {
+                        Range::Number(*v.min_opt()? as f64, *v.max_opt()? as f64)
+                    }
+                    Statistics::Int64(v) => Range::Integer(*v.min_opt()?, *v.max_opt()?),
+                    Statistics::Int32(v) => {
+                        Range::Integer(*v.min_opt()? as i64, *v.max_opt()? as i64)
+                    }
+                    // Writers have ordered bytes differently; a column holding one value
+                    // (scenario_id, focal_track_id) is checked whatever the order.
+                    Statistics::ByteArray(v) if v.min_opt()? == v.max_opt()? => {
+                        Range::Constant(v.min_opt()?.data().to_vec())
+                    }
+                    _ => return None,
+                };
+                Some((c.column_path().string(), range))
+            })
+            .collect()
+    };
     let mut rows = Vec::new();
-    for (i, row) in iter.enumerate() {
-        let row = row.map_err(|e| IoError::invalid(path, format!("row {i}"), e.to_string()))?;
-        let mut r = Row::default();
-        for (name, field) in row.get_column_iter() {
-            let f = |v: &Field| match v {
-                Field::Double(d) => Some(*d),
-                Field::Float(d) => Some(*d as f64),
-                _ => None,
-            };
-            let int = |v: &Field| match v {
-                Field::Long(d) => Some(*d),
-                Field::Int(d) => Some(*d as i64),
-                Field::ULong(d) => i64::try_from(*d).ok(),
-                _ => None,
-            };
-            let s = |v: &Field| match v {
-                Field::Str(s) => Some(s.clone()),
-                _ => None,
-            };
-            match name.as_str() {
-                "observed" => {
-                    r.observed = matches!(field, Field::Bool(true))
-                        .then_some(true)
-                        .or(Some(false))
+    let mut i = 0usize;
+    for g in 0..reader.num_row_groups() {
+        let ranges = chunk_ranges(g);
+        let group = reader
+            .get_row_group(g)
+            .map_err(|e| IoError::invalid(path, format!("row group {g}"), e.to_string()))?;
+        let iter = group
+            .get_row_iter(None)
+            .map_err(|e| IoError::invalid(path, "schema", e.to_string()))?;
+        for row in iter {
+            let row = row.map_err(|e| IoError::invalid(path, format!("row {i}"), e.to_string()))?;
+            let mut r = Row::default();
+            for (name, field) in row.get_column_iter() {
+                if let Some(range) = ranges.get(name.as_str()) {
+                    if let Some((value, recorded)) = range.refuses(field) {
+                        return Err(IoError::invalid(
+                            path,
+                            format!("row {i}"),
+                            format!(
+                                "{name} = {value} lies outside what the file records for its column ({recorded}): the file is damaged"
+                            ),
+                        ));
+                    }
                 }
-                "track_id" => r.track_id = s(field),
-                "object_type" => r.object_type = s(field),
-                "timestep" => r.timestep = int(field),
-                "position_x" => r.x = f(field),
-                "position_y" => r.y = f(field),
-                "heading" => r.heading = f(field),
-                "velocity_x" => r.vx = f(field),
-                "velocity_y" => r.vy = f(field),
-                "scenario_id" => r.scenario_id = s(field),
-                "focal_track_id" => r.focal = s(field),
-                "num_timestamps" => r.num_timestamps = int(field),
-                _ => {}
+                let f = |v: &Field| match v {
+                    Field::Double(d) => Some(*d),
+                    Field::Float(d) => Some(*d as f64),
+                    _ => None,
+                };
+                let int = |v: &Field| match v {
+                    Field::Long(d) => Some(*d),
+                    Field::Int(d) => Some(*d as i64),
+                    Field::ULong(d) => i64::try_from(*d).ok(),
+                    _ => None,
+                };
+                let s = |v: &Field| match v {
+                    Field::Str(s) => Some(s.clone()),
+                    _ => None,
+                };
+                match name.as_str() {
+                    "observed" => {
+                        r.observed = matches!(field, Field::Bool(true))
+                            .then_some(true)
+                            .or(Some(false))
+                    }
+                    "track_id" => r.track_id = s(field),
+                    "object_type" => r.object_type = s(field),
+                    "timestep" => r.timestep = int(field),
+                    "position_x" => r.x = f(field),
+                    "position_y" => r.y = f(field),
+                    "heading" => r.heading = f(field),
+                    "velocity_x" => r.vx = f(field),
+                    "velocity_y" => r.vy = f(field),
+                    "scenario_id" => r.scenario_id = s(field),
+                    "focal_track_id" => r.focal = s(field),
+                    "num_timestamps" => r.num_timestamps = int(field),
+                    _ => {}
+                }
             }
+            let missing = [
+                ("track_id", r.track_id.is_none()),
+                ("object_type", r.object_type.is_none()),
+                ("timestep", r.timestep.is_none()),
+                ("position_x", r.x.is_none()),
+                ("position_y", r.y.is_none()),
+                ("heading", r.heading.is_none()),
+            ];
+            if let Some((col, _)) = missing.iter().find(|(_, m)| *m) {
+                return Err(IoError::invalid(
+                    path,
+                    format!("row {i}"),
+                    format!("column {col} is missing or null"),
+                ));
+            }
+            rows.push(r);
+            i += 1;
         }
-        let missing = [
-            ("track_id", r.track_id.is_none()),
-            ("object_type", r.object_type.is_none()),
-            ("timestep", r.timestep.is_none()),
-            ("position_x", r.x.is_none()),
-            ("position_y", r.y.is_none()),
-            ("heading", r.heading.is_none()),
-        ];
-        if let Some((col, _)) = missing.iter().find(|(_, m)| *m) {
-            return Err(IoError::invalid(
-                path,
-                format!("row {i}"),
-                format!("column {col} is missing or null"),
-            ));
-        }
-        rows.push(r);
     }
     if rows.is_empty() {
         return Err(IoError::invalid(
@@ -216,6 +378,9 @@ fn read_tracks(path: &Path) -> Result<(Vec<Agent>, SceneMeta), IoError> {
                 format!("timestep {t} outside 0..{steps}"),
             ));
         }
+        if !tracks.contains_key(&tid) {
+            super::check_states(path, &format!("row {i}"), tracks.len() + 1, steps)?;
+        }
         let entry = tracks.entry(tid.clone()).or_insert_with(|| {
             order.push(tid.clone());
             (
@@ -233,6 +398,13 @@ fn read_tracks(path: &Path) -> Result<(Vec<Agent>, SceneMeta), IoError> {
                 path,
                 format!("row {i}"),
                 "non-finite position or heading",
+            ));
+        }
+        if entry.1[t as usize].valid {
+            return Err(IoError::invalid(
+                path,
+                format!("row {i}"),
+                format!("track {tid} has a second state at timestep {t}"),
             ));
         }
         entry.1[t as usize] = AgentState {

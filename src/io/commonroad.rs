@@ -218,7 +218,7 @@ pub fn parse(path: &Path, text: &str, opts: &LoadOptions) -> Result<Scene, IoErr
         ego: None,
         warnings: Vec::new(),
     };
-    Scene::new(meta, map, agents).map_err(|e| IoError::Scene {
+    Scene::recorded(meta, map, agents).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
         location: "scenario".into(),
         error: e,
@@ -582,7 +582,19 @@ fn read_agents(cx: &Ctx, root: Node) -> Result<(Vec<Agent>, usize), IoError> {
         let mut states = vec![read_state(cx, cx.need(node, "initialState")?)?];
         if let Some(traj) = cx.child(node, "trajectory") {
             for s in traj.children().filter(|c| c.has_tag_name("state")) {
-                states.push(read_state(cx, s)?);
+                let (t, state) = read_state(cx, s)?;
+                // A CommonRoad trajectory is a state per consecutive step: a time given twice
+                // would overwrite a state unseen, one far ahead stretch the scene.
+                let last = states.last().expect("the initial state").0;
+                if t != last + 1 {
+                    return Err(cx.err(
+                        s,
+                        format!(
+                            "time {t} does not follow the previous state's time {last} (a trajectory has one state per step)"
+                        ),
+                    ));
+                }
+                states.push((t, state));
             }
         }
         raws.push(Raw {
@@ -599,6 +611,7 @@ fn read_agents(cx: &Ctx, root: Node) -> Result<(Vec<Agent>, usize), IoError> {
         .flat_map(|r| r.states.iter().map(|(t, _)| *t))
         .max()
         .map_or(0, |t| t as usize + 1);
+    super::check_states(cx.path, "obstacles", raws.len(), steps)?;
     let agents = raws
         .into_iter()
         .map(|r| {

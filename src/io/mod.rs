@@ -30,6 +30,30 @@ CommonRoad XML (.xml, .xml.gz), Argoverse 2 scenario (.parquet or its directory)
 /// Most time steps a scene may have (over 2.7 hours at 10 Hz): a corrupted step index must
 /// not turn into a huge allocation.
 pub const MAX_STEPS: usize = 100_000;
+/// The most states (agents × steps) a scene may hold: 5 million, 280 MB in memory, fifty
+/// times a whole NGSIM recording cut into the CommonRoad benchmark's largest scene and 400
+/// times a WOMD scenario (128 agents × 91 steps). Checked before the states are allocated,
+/// so that a 46 KB file cannot ask for gigabytes.
+pub const MAX_STATES: usize = 5_000_000;
+
+/// Refuses a scene of `agents` × `steps` states beyond [`MAX_STATES`], before allocating.
+pub(crate) fn check_states(
+    path: &Path,
+    location: &str,
+    agents: usize,
+    steps: usize,
+) -> Result<(), IoError> {
+    match agents.checked_mul(steps) {
+        Some(n) if n <= MAX_STATES => Ok(()),
+        _ => Err(IoError::invalid(
+            path,
+            location,
+            format!(
+                "{agents} agents x {steps} steps is more states than a scene may hold ({MAX_STATES})"
+            ),
+        )),
+    }
+}
 
 /// Errors from reading or writing scenes and rollouts.
 #[derive(Debug, thiserror::Error)]
@@ -130,7 +154,7 @@ pub fn detect_format(path: &Path) -> Result<SceneFormat, IoError> {
         .map(|n| n.to_string_lossy().to_lowercase())
         .unwrap_or_default();
     if path.is_dir() {
-        if av2::find_scenario_in_dir(path).is_ok() {
+        if av2::is_scenario_dir(path) {
             return Ok(SceneFormat::Av2);
         }
         if womd::is_shard_dir(path) {

@@ -160,6 +160,7 @@ pub fn scenario_to_scene(sc: &pb::Scenario, path: &Path, index: usize) -> Result
         )));
     }
 
+    super::check_states(path, &loc, sc.tracks.len(), steps)?;
     let mut agents = Vec::with_capacity(sc.tracks.len());
     for (ti, track) in sc.tracks.iter().enumerate() {
         let tid = track
@@ -375,7 +376,7 @@ pub fn scenario_to_scene(sc: &pb::Scenario, path: &Path, index: usize) -> Result
         ego,
         warnings,
     };
-    Scene::new(meta, map, agents).map_err(|e| IoError::Scene {
+    Scene::recorded(meta, map, agents).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
         location: loc,
         error: e,

@@ -346,6 +346,7 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
             ),
         ));
     }
+    super::check_states(path, "agents", y.agents.len(), y.steps)?;
     if y.steps == 0 || y.current_step >= y.steps {
         return Err(bad(
             "current_step".into(),
@@ -456,11 +457,11 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
         ego: y.ego,
         warnings: Vec::new(),
     };
-    Scene::new(meta, map, agents).map_err(|e| IoError::Scene {
+    Scene::recorded(meta, map, agents).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
         // The key of the file the fault is under.
         location: match &e {
-            SceneError::BadDt(_) => "dt",
+            SceneError::BadDt(_) | SceneError::RecordedDt(_) => "dt",
             SceneError::CurrentStep { .. } => "current_step",
             SceneError::DuplicateLane(_) | SceneError::UnknownLane(_) => "map",
             // Scene::new checks only the ego's id against the agents.

@@ -27,6 +27,13 @@ use crate::geom::{num, GeomError, MAX_COORD};
 /// whether a car could drive them), but velocities of 1e300 from a corrupt file are refused
 /// where they are read.
 pub const MAX_SPEED: f64 = 1.0e5;
+/// The time steps recorded data may have, seconds: from 1 ms (1 kHz) to 10 s. A file with
+/// `timeStepSize` 1e-9 or 1e9 is damaged or not traffic.
+pub const RECORDED_DT: std::ops::RangeInclusive<f64> = 1.0e-3..=10.0;
+/// The largest speed between two recorded positions of one agent, m/s (720 km/h): real
+/// tracks stay far below it, and a damaged value (a y of 1330 m read as 7e-204) jumps far
+/// above it. Rollouts are not held to it (see [`MAX_SPEED`]).
+pub const MAX_RECORDED_SPEED: f64 = 200.0;
 /// The largest agent length, metres (road trains reach about 55 m).
 pub const MAX_LENGTH: f64 = 100.0;
 /// The largest agent width, metres.
@@ -81,6 +88,9 @@ pub enum SceneError {
     /// The time step must be positive and finite.
     #[error("time step dt = {0} must be positive and finite")]
     BadDt(f64),
+    /// Recorded data's time step is outside [`RECORDED_DT`].
+    #[error("time step dt = {} s is implausible for recorded traffic (0.001 to 10 s)", num(*.0))]
+    RecordedDt(f64),
     /// The current step must be one of the scene's steps.
     #[error("current step {current} is outside the scene's {steps} steps")]
     CurrentStep {
@@ -253,6 +263,41 @@ impl Scene {
             }
         }
         Ok(Self { meta, map, agents })
+    }
+
+    /// A scene read from a recording: [`Scene::new`]'s checks, a time step in
+    /// [`RECORDED_DT`], and no agent moving faster than [`MAX_RECORDED_SPEED`] between two
+    /// of its recorded positions. What a format cannot verify itself (a flipped byte in a
+    /// Parquet page without checksums) shows up here as a jump.
+    pub fn recorded(meta: SceneMeta, map: Map, agents: Vec<Agent>) -> Result<Self, SceneError> {
+        if !RECORDED_DT.contains(&meta.dt) {
+            return Err(SceneError::RecordedDt(meta.dt));
+        }
+        let scene = Self::new(meta, map, agents)?;
+        let dt = scene.meta.dt;
+        for a in &scene.agents {
+            let mut last: Option<(usize, &AgentState)> = None;
+            for (t, s) in a.states.iter().enumerate().filter(|(_, s)| s.valid) {
+                if let Some((t0, s0)) = last {
+                    let d = (s.x - s0.x).hypot(s.y - s0.y);
+                    let seconds = (t - t0) as f64 * dt;
+                    if d > MAX_RECORDED_SPEED * seconds {
+                        return Err(SceneError::Implausible {
+                            agent: a.id,
+                            step: Some(t),
+                            what: format!(
+                                "jump: {} m from step {t0} in {} s ({} m/s; recorded motion is at most {MAX_RECORDED_SPEED} m/s)",
+                                num(d),
+                                num(seconds),
+                                num(d / seconds)
+                            ),
+                        });
+                    }
+                }
+                last = Some((t, s));
+            }
+        }
+        Ok(scene)
     }
 
     /// Number of time steps.
