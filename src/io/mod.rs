@@ -30,10 +30,10 @@ CommonRoad XML (.xml, .xml.gz), Argoverse 2 scenario (.parquet or its directory)
 /// Most time steps a scene may have (over 2.7 hours at 10 Hz): a corrupted step index must
 /// not turn into a huge allocation.
 pub const MAX_STEPS: usize = 100_000;
-/// The most states (agents × steps) a scene may hold: 5 million, 280 MB in memory, fifty
-/// times a whole NGSIM recording cut into the CommonRoad benchmark's largest scene and 400
-/// times a WOMD scenario (128 agents × 91 steps). Checked before the states are allocated,
-/// so that a 46 KB file cannot ask for gigabytes.
+/// The most states (agents × steps) a scene may hold: 5 million, 280 MB in memory; 550 times
+/// the largest CommonRoad NGSIM scene (54 agents × 167 steps) and 400 times a WOMD scenario
+/// (128 agents × 91 steps). Checked before the states are allocated, so that a 46 KB file
+/// cannot ask for gigabytes.
 pub const MAX_STATES: usize = 5_000_000;
 
 /// Refuses a scene of `agents` × `steps` states beyond [`MAX_STATES`], before allocating.
