@@ -10,7 +10,7 @@
 
 use serde::Serialize;
 
-use crate::geom::{wrap_angle, OrientedBox, Point};
+use crate::geom::{nearest_distances, pairs_within, wrap_angle, OrientedBox, Point};
 use crate::scene::{AgentType, Scene};
 
 /// Displacement errors of one agent.
@@ -70,6 +70,17 @@ pub fn min_displacement(logged: &Scene, samples: &[Scene]) -> Vec<Displacement> 
         .collect()
 }
 
+/// Pairs of `boxes` (indices into it) whose centres are within their half-diagonals plus
+/// `extra`: the only ones that can overlap.
+fn near_boxes(boxes: &[(usize, OrientedBox)], extra: f64) -> Vec<(usize, usize)> {
+    let centres: Vec<Point> = boxes.iter().map(|(_, b)| b.center).collect();
+    let reach: Vec<f64> = boxes
+        .iter()
+        .map(|(_, b)| 0.5 * b.length.hypot(b.width))
+        .collect();
+    pairs_within(&centres, &reach, extra)
+}
+
 fn future_boxes(s: &Scene, t: usize) -> Vec<(usize, OrientedBox)> {
     s.agents
         .iter()
@@ -84,15 +95,14 @@ pub fn collided(s: &Scene) -> Vec<Option<bool>> {
     let mut hit: Vec<Option<bool>> = vec![None; s.agents.len()];
     for t in s.meta.current_step + 1..s.num_steps() {
         let boxes = future_boxes(s, t);
-        for (k, (i, bi)) in boxes.iter().enumerate() {
+        for (i, _) in &boxes {
             hit[*i].get_or_insert(false);
-            let reach = 0.5 * bi.length.hypot(bi.width);
-            for (j, bj) in &boxes[k + 1..] {
-                let r = reach + 0.5 * bj.length.hypot(bj.width);
-                if (bi.center - bj.center).norm() <= r && bi.overlaps(bj) {
-                    hit[*i] = Some(true);
-                    hit[*j] = Some(true);
-                }
+        }
+        for (a, b) in near_boxes(&boxes, 0.0) {
+            let ((i, bi), (j, bj)) = (&boxes[a], &boxes[b]);
+            if bi.overlaps(bj) {
+                hit[*i] = Some(true);
+                hit[*j] = Some(true);
             }
         }
     }
@@ -162,22 +172,6 @@ impl Kinematics {
         self.accel.extend(&o.accel);
         self.nearest_vehicle.extend(&o.nearest_vehicle);
     }
-}
-
-/// For each point, the distance to the nearest other point (`None` when it is alone).
-fn nearest_distances(pts: &[Point]) -> Vec<Option<f64>> {
-    pts.iter()
-        .enumerate()
-        .map(|(i, p)| {
-            let n = pts
-                .iter()
-                .enumerate()
-                .filter(|(j, _)| *j != i)
-                .map(|(_, q)| (p - q).norm())
-                .fold(f64::INFINITY, f64::min);
-            n.is_finite().then_some(n)
-        })
-        .collect()
 }
 
 /// Kinematic samples of every agent's future (history steps only provide differences).
@@ -342,15 +336,15 @@ pub fn scene_collision_rate(s: &Scene, iou: f64) -> Option<f64> {
     let mut hit: Vec<Option<bool>> = vec![None; s.agents.len()];
     for t in s.meta.current_step + 1..s.num_steps() {
         let boxes = future_boxes(s, t);
-        for (k, (i, bi)) in boxes.iter().enumerate() {
+        for (i, _) in &boxes {
             hit[*i].get_or_insert(false);
-            for (j, bj) in &boxes[k + 1..] {
-                if (bi.center - bj.center).norm() <= 0.5 * (bi.length + bj.length) + bi.width
-                    && bi.iou(bj) > iou
-                {
-                    hit[*i] = Some(true);
-                    hit[*j] = Some(true);
-                }
+        }
+        // Boxes that overlap at all are within their half-diagonals of each other.
+        for (a, b) in near_boxes(&boxes, 0.0) {
+            let ((i, bi), (j, bj)) = (&boxes[a], &boxes[b]);
+            if bi.iou(bj) > iou {
+                hit[*i] = Some(true);
+                hit[*j] = Some(true);
             }
         }
     }

@@ -1,15 +1,18 @@
-//! Planar geometry: polylines, the Frenet frame of a path, oriented boxes and polygons.
+//! Planar geometry: polylines, the Frenet frame of a path, oriented boxes, polygons and
+//! neighbour queries.
 //!
 //! Everything is in a right-handed world frame in metres; angles are radians counter-clockwise
 //! from +x. "Left" is the side a driver going along a polyline sees on the left (positive `d`).
 
 mod boxes;
 mod frenet;
+mod neighbours;
 mod polygon;
 mod polyline;
 
 pub use boxes::OrientedBox;
 pub use frenet::{FrenetPath, FrenetPoint};
+pub use neighbours::{nearest_distances, pairs_within};
 pub use polygon::Polygon;
 pub use polyline::{Polyline, SegmentHit};
 

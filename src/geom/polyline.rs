@@ -5,11 +5,17 @@ use super::{point_segment_distance, GeomError, Point};
 /// Consecutive points closer than this are merged: zero-length segments have no direction.
 const MERGE_EPS: f64 = 1e-6;
 
+/// Segments per bounding box of [`Polyline::nearest`]'s broad phase.
+const CHUNK: usize = 16;
+
 /// An open polyline of at least two distinct points, with its cumulative arc length.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Polyline {
     points: Vec<Point>,
     cum: Vec<f64>,
+    /// Bounding boxes of each run of [`CHUNK`] segments, so that `nearest` skips the runs
+    /// farther than the best segment so far (a 2 km road edge has 2,000 segments).
+    chunks: Vec<(Point, Point)>,
 }
 
 /// The closest point of a polyline to a query point.
@@ -44,7 +50,15 @@ impl Polyline {
             s += (w[1] - w[0]).norm();
             cum.push(s);
         }
-        Ok(Self { points: out, cum })
+        let chunks = (0..out.len() - 1)
+            .step_by(CHUNK)
+            .map(|i| bounds_of(&out[i..(i + CHUNK + 1).min(out.len())]))
+            .collect();
+        Ok(Self {
+            points: out,
+            cum,
+            chunks,
+        })
     }
 
     /// The points, consecutive duplicates removed.
@@ -143,6 +157,7 @@ impl Polyline {
     }
 
     /// The closest point of the polyline to `p`.
+    /// Ties go to the first segment, as in a scan of them all.
     pub fn nearest(&self, p: &Point) -> SegmentHit {
         let mut best = SegmentHit {
             segment: 0,
@@ -150,15 +165,35 @@ impl Polyline {
             s: 0.0,
             distance: f64::INFINITY,
         };
-        for i in 0..self.segment_count() {
-            let (d, t) = point_segment_distance(p, &self.points[i], &self.points[i + 1]);
-            if d < best.distance {
-                best = SegmentHit {
-                    segment: i,
-                    t,
-                    s: self.cum[i] + t * (self.cum[i + 1] - self.cum[i]),
-                    distance: d,
-                };
+        // Squared: no square root per box.
+        let below = |(lo, hi): &(Point, Point)| {
+            let dx = (lo.x - p.x).max(p.x - hi.x).max(0.0);
+            let dy = (lo.y - p.y).max(p.y - hi.y).max(0.0);
+            dx * dx + dy * dy
+        };
+        let scan = |c: usize, best: &mut SegmentHit| {
+            let end = ((c + 1) * CHUNK).min(self.segment_count());
+            for i in c * CHUNK..end {
+                let (d, t) = point_segment_distance(p, &self.points[i], &self.points[i + 1]);
+                if d < best.distance || (d == best.distance && i < best.segment) {
+                    *best = SegmentHit {
+                        segment: i,
+                        t,
+                        s: self.cum[i] + t * (self.cum[i + 1] - self.cum[i]),
+                        distance: d,
+                    };
+                }
+            }
+        };
+        // The run whose box is nearest first, for a good bound; then every run that may hold
+        // a segment as near (an equal one with a lower index included).
+        let first = (0..self.chunks.len())
+            .min_by(|&a, &b| below(&self.chunks[a]).total_cmp(&below(&self.chunks[b])))
+            .expect("a polyline has a segment");
+        scan(first, &mut best);
+        for c in 0..self.chunks.len() {
+            if c != first && !(below(&self.chunks[c]) > best.distance * best.distance) {
+                scan(c, &mut best);
             }
         }
         best
@@ -226,6 +261,34 @@ mod tests {
             Polyline::new([Point::new(0.0, 0.0), Point::new(f64::NAN, 1.0)]),
             Err(GeomError::NonFinite { index: 1, .. })
         ));
+    }
+
+    #[test]
+    fn nearest_is_the_first_nearest_segment_of_a_full_scan() {
+        // A winding line of 500 segments that doubles back on itself (equal distances to
+        // several segments), queried near, on and far from it.
+        let pts: Vec<Point> = (0..501)
+            .map(|k| {
+                let a = k as f64 * 0.05;
+                Point::new(
+                    a * 10.0 * a.cos(),
+                    (k % 50) as f64 * 0.7 - if k % 100 < 50 { 0.0 } else { 35.0 },
+                )
+            })
+            .collect();
+        let line = Polyline::new(pts).unwrap();
+        for q in 0..400 {
+            let p = Point::new((q % 20) as f64 * 12.0 - 100.0, (q / 20) as f64 * 7.0 - 70.0);
+            let mut want = (f64::INFINITY, 0);
+            for i in 0..line.segment_count() {
+                let (d, _) = point_segment_distance(&p, &line.points[i], &line.points[i + 1]);
+                if d < want.0 {
+                    want = (d, i);
+                }
+            }
+            let got = line.nearest(&p);
+            assert_eq!((got.distance, got.segment), want, "query {q}");
+        }
     }
 
     #[test]

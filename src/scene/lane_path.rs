@@ -280,8 +280,8 @@ agents:
         let lanes: Vec<Lane> = (0..n)
             .map(|k| {
                 let x = 10.0 * k as f64;
-                let line = Polyline::new(vec![Point::new(x, 0.0), Point::new(x + 10.0, 0.0)])
-                    .unwrap();
+                let line =
+                    Polyline::new(vec![Point::new(x, 0.0), Point::new(x + 10.0, 0.0)]).unwrap();
                 let mut l = Lane::new(k, line);
                 l.successors = vec![(k + 1) % n];
                 l

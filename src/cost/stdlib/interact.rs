@@ -1,8 +1,6 @@
 //! Interactions between agents: gaps along a path, distances, box clearance, time to collision
 //! and collision penalties.
 
-use std::collections::HashMap;
-
 use rhai::{Array, Dynamic, Engine};
 
 use super::agents::{coord_series, AgentRef};
@@ -12,6 +10,7 @@ use crate::cost::dual::{accumulate, Dual};
 use crate::cost::fwd::{box_clearance, Fwd};
 use crate::cost::series::{Builder, Series};
 use crate::cost::trajectory::Coord;
+use crate::geom::{pairs_within, Point};
 
 /// TTC reported when the agents are not closing in, seconds.
 const TTC_CAP: f64 = 10.0;
@@ -124,46 +123,26 @@ pub(crate) fn no_collision_cost(shared: &Shared, list: &[(usize, bool)], margin:
         .collect();
     let mut val = 0.0;
     let mut rows: Vec<[(u32, f64); 6]> = Vec::new();
-    // A grid per step with cells as wide as the farthest reach of any pair: only agents in
-    // neighbouring cells can be near, so the cost grows with the agents, not their pairs.
-    let cell = 2.0 * reach.iter().cloned().fold(0.0, f64::max) + margin.max(0.0) + 1e-9;
-    let mut grid: HashMap<(i64, i64), Vec<usize>> = HashMap::new();
-    let mut pairs: Vec<(usize, usize)> = Vec::new();
+    // Only pairs within reach at a step are looked at: the cost grows with the agents, not
+    // their pairs (3,000 cars took 31 s per evaluation).
+    let mut centres: Vec<Point> = vec![Point::new(f64::NAN, f64::NAN); agents.len()];
     for t in 0..lay.steps {
-        grid.clear();
         for (ii, &i) in agents.iter().enumerate() {
-            let (p, vp) = ctx.traj.state(i, t);
-            if vp {
-                let key = ((p[0] / cell).floor() as i64, (p[1] / cell).floor() as i64);
-                grid.entry(key).or_default().push(ii);
-            }
+            let (p, valid) = ctx.traj.state(i, t);
+            centres[ii] = if valid {
+                Point::new(p[0], p[1])
+            } else {
+                Point::new(f64::NAN, f64::NAN)
+            };
         }
-        pairs.clear();
-        for (&(cx, cy), members) in &grid {
-            for dx in -1..=1 {
-                for dy in -1..=1 {
-                    if let Some(other) = grid.get(&(cx + dx, cy + dy)) {
-                        for &a in members {
-                            pairs.extend(other.iter().filter(|&&b| b > a).map(|&b| (a, b)));
-                        }
-                    }
-                }
-            }
-        }
-        // The same order as a scan over all pairs, so that sums do not depend on the grid.
-        pairs.sort_unstable();
-        for &(ii, jj) in &pairs {
+        for (ii, jj) in pairs_within(&centres, &reach, margin) {
             let (i, j) = (agents[ii], agents[jj]);
             let (zi, zj) = (
                 (ctx.scene.agents[i].length, ctx.scene.agents[i].width),
                 (ctx.scene.agents[j].length, ctx.scene.agents[j].width),
             );
-            let near = reach[ii] + reach[jj] + margin;
             let (p, _) = ctx.traj.state(i, t);
             let (q, _) = ctx.traj.state(j, t);
-            if (p[0] - q[0]).hypot(p[1] - q[1]) > near {
-                continue;
-            }
             let c = box_clearance(p, zi, q, zj);
             let short = margin - c.v;
             if short <= 0.0 {
