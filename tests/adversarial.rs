@@ -150,6 +150,39 @@ fn wall_time_is_limited() {
 }
 
 #[test]
+fn the_wall_time_limit_fires_inside_a_long_native_call() {
+    // 3,000 cars on one spot: every pair near at every step, one no_collision_cost call of
+    // many seconds that the engine's between-operations check never interrupted.
+    let mut y = String::from(
+        "scenario_id: pile\ndt: 0.1\nsteps: 51\ncurrent_step: 10\nroad: {lanes: 1, length: 200}\nagents:\n",
+    );
+    for k in 0..3000 {
+        y.push_str(&format!("  - {{id: {k}, lane: 0, s: 100, speed: 0}}\n"));
+    }
+    let scene = drivescript::io::yaml::parse(std::path::Path::new("pile.yaml"), &y).unwrap();
+    let limits = Limits {
+        wall_time: Duration::from_millis(300),
+        ..Limits::default()
+    };
+    let s = CostScript::compile(
+        "term(\"c\", no_collision_cost(vehicles(), 0.5));",
+        "evil.rhai",
+        Rc::new(scene),
+        &Params::default(),
+        &limits,
+    )
+    .unwrap();
+    let t0 = Instant::now();
+    let e = s.validate().unwrap_err();
+    assert!(
+        matches!(&e, CostError::Limit { line: 1, .. })
+            && e.to_string().contains("wall time (max 0.3 s)"),
+        "{e}"
+    );
+    assert!(t0.elapsed() < Duration::from_secs(3), "{:?}", t0.elapsed());
+}
+
+#[test]
 fn imports_outside_stdlib_are_refused() {
     fails(
         "import \"../../../etc/passwd\" as p;",

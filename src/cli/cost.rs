@@ -60,7 +60,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     drivescript::cost::check_params(&[&source], &params)?;
     let name = args.script.display().to_string();
     let script = CostScript::compile(&source, &name, scene.clone(), &params, &Limits::default())?;
-    script.validate()?;
+    let validation = script.validate()?.elapsed;
     let traj = match (&args.rollout, &rollout) {
         (Some(p), Some(r)) => Trajectories::from_rollout(&scene, r)
             .map_err(|m| anyhow::anyhow!("{}: {m}", p.display()))?,
@@ -88,6 +88,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             })).collect::<Vec<_>>(),
             "agent_grad_norms": agents.iter().map(|(id, n)| serde_json::json!({"agent": id, "grad_norm": n})).collect::<Vec<_>>(),
             "eval_ms": report.elapsed.as_secs_f64() * 1000.0,
+            "validation_ms": validation.as_secs_f64() * 1000.0,
             "prints": report.prints,
         });
         println!("{}", serde_json::to_string_pretty(&v)?);
@@ -139,9 +140,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
         for p in &report.prints {
             println!("print: {p}");
         }
+        // Both runs count against the user's patience, and each against the wall-time limit.
         println!(
-            "evaluated in {:.3} ms",
-            report.elapsed.as_secs_f64() * 1000.0
+            "evaluated in {:.3} ms (and validated, on the recorded scene, in {:.3} ms)",
+            report.elapsed.as_secs_f64() * 1000.0,
+            validation.as_secs_f64() * 1000.0
         );
     }
     Ok(ExitCode::SUCCESS)

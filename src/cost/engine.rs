@@ -277,7 +277,7 @@ pub fn check_params(sources: &[&str], params: &Params) -> Result<(), CostError> 
 }
 
 /// Marker returned by the progress callback when the wall time is up.
-const WALL_TIME_MARK: &str = "drivescript:wall-time";
+pub(crate) const WALL_TIME_MARK: &str = "drivescript:wall-time";
 
 /// A compiled cost script bound to a scene.
 pub struct CostScript {
@@ -662,7 +662,9 @@ impl CostScript {
         limits: &Limits,
     ) -> Result<Self, CostError> {
         let traj = Trajectories::filled(&scene);
+        let started = Rc::new(Cell::new(Instant::now()));
         let shared: Shared = Rc::new(RefCell::new(Ctx {
+            clock: (started.clone(), limits.wall_time),
             scene: scene.clone(),
             traj,
             terms: Vec::new(),
@@ -687,7 +689,6 @@ impl CostScript {
                 .collect(),
         }));
         no_reserved(params)?;
-        let started = Rc::new(Cell::new(Instant::now()));
         let (engine, docs) = build_engine(&shared, limits, &started);
         let mut scope = Scope::new();
         scope.push_constant("DT", scene.meta.dt);

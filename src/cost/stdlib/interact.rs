@@ -5,7 +5,7 @@ use rhai::{Array, Dynamic, Engine};
 
 use super::agents::{coord_series, AgentRef};
 use super::frenet::{frenet, PathRef};
-use super::{doc, err, number, DocEntry, RResult, Shared};
+use super::{doc, err, number, over_time, DocEntry, RResult, Shared};
 use crate::cost::dual::{accumulate, Dual};
 use crate::cost::fwd::{box_clearance, Fwd};
 use crate::cost::series::{Builder, Series};
@@ -112,7 +112,11 @@ fn ttc(shared: &Shared, a: &AgentRef, b: &AgentRef, cap: f64) -> RResult<Series>
 
 /// Σ over pairs and steps of relu(margin - clearance)², with a broad phase on centre distance.
 /// `agents` are indices with their held flags: a held agent's coordinates get no gradient.
-pub(crate) fn no_collision_cost(shared: &Shared, list: &[(usize, bool)], margin: f64) -> Dual {
+pub(crate) fn no_collision_cost(
+    shared: &Shared,
+    list: &[(usize, bool)],
+    margin: f64,
+) -> RResult<Dual> {
     let agents: Vec<usize> = list.iter().map(|a| a.0).collect();
     let free: Vec<f64> = list.iter().map(|a| if a.1 { 0.0 } else { 1.0 }).collect();
     let ctx = shared.borrow();
@@ -127,6 +131,8 @@ pub(crate) fn no_collision_cost(shared: &Shared, list: &[(usize, bool)], margin:
     // their pairs (3,000 cars took 31 s per evaluation).
     let mut centres: Vec<Point> = vec![Point::new(f64::NAN, f64::NAN); agents.len()];
     for t in 0..lay.steps {
+        // Thousands of agents stacked in one place make every pair near: a long native call.
+        over_time(&ctx)?;
         for (ii, &i) in agents.iter().enumerate() {
             let (p, valid) = ctx.traj.state(i, t);
             centres[ii] = if valid {
@@ -135,7 +141,13 @@ pub(crate) fn no_collision_cost(shared: &Shared, list: &[(usize, bool)], margin:
                 Point::new(f64::NAN, f64::NAN)
             };
         }
-        for (ii, jj) in pairs_within(&centres, &reach, margin) {
+        for (k, (ii, jj)) in pairs_within(&centres, &reach, margin)
+            .into_iter()
+            .enumerate()
+        {
+            if k % 16_384 == 16_383 {
+                over_time(&ctx)?;
+            }
             let (i, j) = (agents[ii], agents[jj]);
             let (zi, zj) = (
                 (ctx.scene.agents[i].length, ctx.scene.agents[i].width),
@@ -171,7 +183,7 @@ pub(crate) fn no_collision_cost(shared: &Shared, list: &[(usize, bool)], margin:
             .map(|r| (&r[..], 1.0))
             .chain(std::iter::once((&zero[..], 1.0))),
     );
-    Dual::new(val, grad)
+    Ok(Dual::new(val, grad))
 }
 
 pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>) {
@@ -314,7 +326,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
             if idx.len() < 2 {
                 return err("no_collision_cost needs at least two distinct agents");
             }
-            Ok(no_collision_cost(&sh, &idx, m))
+            no_collision_cost(&sh, &idx, m)
         },
     );
 }

@@ -62,6 +62,22 @@ pub(crate) struct Ctx {
     /// Agent ids the script looked up by `agent(id)`, in first-lookup order: the agents it
     /// names (the loop judges their motion).
     pub named: Vec<i64>,
+    /// When the current evaluation started (shared with the engine's progress callback), and
+    /// its wall-time limit: long native calls check it themselves, since the engine's
+    /// callback runs only between script operations.
+    pub clock: (Rc<std::cell::Cell<std::time::Instant>>, std::time::Duration),
+}
+
+/// The error that ends an evaluation past its wall time, inside a native call (the engine's
+/// progress callback reports the same between operations).
+pub(crate) fn over_time(ctx: &Ctx) -> RResult<()> {
+    if ctx.clock.0.get().elapsed() > ctx.clock.1 {
+        return Err(Box::new(EvalAltResult::ErrorTerminated(
+            Dynamic::from(crate::cost::engine::WALL_TIME_MARK.to_string()),
+            Position::NONE,
+        )));
+    }
+    Ok(())
 }
 
 pub(crate) type Shared = Rc<RefCell<Ctx>>;
