@@ -915,3 +915,148 @@ fn a_gzip_bomb_is_refused_before_it_fills_memory() {
         "{err}"
     );
 }
+
+#[test]
+fn random_mutations_of_rollouts_never_panic_and_name_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene_path = samples().join("yaml/highway_cut_in.yaml");
+    let scene = load_scenes(&scene_path, &LoadOptions::default())
+        .unwrap()
+        .remove(0);
+    let good = dir.path().join("recorded.json");
+    ok(&["convert", s(&scene_path), "-o", s(&good)]);
+    let original = std::fs::read(&good).unwrap();
+    let target = dir.path().join("m.json");
+    let mut rng = Lcg(0x2011);
+    let (mut refused, n) = (0, 300);
+    for k in 0..n {
+        std::fs::write(&target, mutate(&mut rng, &original)).unwrap();
+        // Every consumer reads, checks against the scene and builds the rolled-out scene.
+        let built = drivescript::io::rollout::Rollout::read(&target)
+            .and_then(|r| r.apply_to(&scene, &target));
+        match built {
+            Ok(rolled) => {
+                // What passes is the scene's own agents and history: only the future moved.
+                assert_eq!(rolled.agents.len(), scene.agents.len());
+                for (a, b) in rolled.agents.iter().zip(&scene.agents) {
+                    assert_eq!((a.id, a.agent_type), (b.id, b.agent_type));
+                }
+            }
+            Err(e) => {
+                refused += 1;
+                assert!(e.to_string().contains("m.json"), "mutation {k}: {e}");
+            }
+        }
+    }
+    assert!(
+        refused > n / 2,
+        "only {refused} of {n} mutated rollouts refused"
+    );
+}
+
+#[test]
+fn random_mutations_of_a_checkpoint_config_never_panic() {
+    // Byte damage mostly breaks the JSON; value damage (a number set to 0, -1, 1e308, a key
+    // dropped, an array cut) reaches the validation and, where it passes, the sampler.
+    use serde_json::Value;
+    let dir = tempfile::tempdir().unwrap();
+    let ck = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("data/checkpoint");
+    std::fs::copy(
+        ck.join("model.safetensors"),
+        dir.path().join("model.safetensors"),
+    )
+    .unwrap();
+    let text = std::fs::read_to_string(ck.join("config.json")).unwrap();
+    let original: Value = serde_json::from_str(&text).unwrap();
+    let scene = load_scenes(
+        &samples().join("yaml/highway_cut_in.yaml"),
+        &LoadOptions::default(),
+    )
+    .unwrap()
+    .remove(0);
+    let mut rng = Lcg(0xc0f1);
+    let (mut refused, mut sampled) = (0, 0);
+    // Every leaf's JSON pointer, so that each mutation picks one.
+    fn leaves(v: &Value, at: String, out: &mut Vec<String>) {
+        match v {
+            Value::Object(m) => m
+                .iter()
+                .for_each(|(k, x)| leaves(x, format!("{at}/{k}"), out)),
+            // Long arrays (the PCA basis) count once, by their first elements.
+            Value::Array(a) => a
+                .iter()
+                .take(3)
+                .enumerate()
+                .for_each(|(i, x)| leaves(x, format!("{at}/{i}"), out)),
+            _ => out.push(at),
+        }
+    }
+    let mut all = Vec::new();
+    leaves(&original, String::new(), &mut all);
+    for k in 0..120 {
+        let bytes = if k % 4 == 0 {
+            mutate(&mut rng, text.as_bytes())
+        } else {
+            let mut v = original.clone();
+            let at = &all[rng.below(all.len())];
+            let (parent, key) = at.rsplit_once('/').unwrap();
+            let replacement = [
+                Value::from(0),
+                Value::from(-1),
+                Value::from(1e308),
+                Value::from(1e-308),
+                Value::from(u64::MAX),
+                Value::from(3.5),
+                Value::Null,
+                Value::from("x"),
+                Value::Array(vec![]),
+            ][rng.below(9)]
+            .clone();
+            match v.pointer_mut(parent).unwrap() {
+                Value::Object(m) if rng.below(5) == 0 => {
+                    m.remove(key);
+                }
+                Value::Array(a) if rng.below(3) == 0 => a.truncate(a.len() / 2),
+                p => *p.pointer_mut(&format!("/{key}")).unwrap() = replacement,
+            }
+            serde_json::to_vec(&v).unwrap()
+        };
+        std::fs::write(dir.path().join("config.json"), &bytes).unwrap();
+        match drivescript::train::trainer::load(dir.path()) {
+            Err(e) => {
+                refused += 1;
+                assert!(e.to_string().contains("config.json"), "mutation {k}: {e}");
+            }
+            Ok(trained) => {
+                let spec = drivescript::sample::AttemptSpec {
+                    scripts: vec![],
+                    checks: vec![],
+                    cfg: drivescript::sample::SampleConfig {
+                        steps: 3,
+                        ..Default::default()
+                    },
+                    replan: None,
+                };
+                // An error is fine; a panic or a non-finite rollout is not.
+                if let Ok(a) = drivescript::sample::attempt(&trained, &scene, &spec) {
+                    sampled += 1;
+                    for s in &a.samples {
+                        for ag in &s.scene.agents {
+                            assert!(
+                                ag.states
+                                    .iter()
+                                    .all(|st| !st.valid || (st.x.is_finite() && st.y.is_finite())),
+                                "mutation {k}: non-finite sample"
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
+    eprintln!("checkpoint config mutations: {refused} refused, {sampled} sampled");
+    assert!(
+        refused > 30 && sampled > 5,
+        "{refused} refused, {sampled} sampled"
+    );
+}
