@@ -310,6 +310,33 @@ fn scenes_asking_for_more_states_than_reason_are_refused_before_allocating() {
 }
 
 #[test]
+fn deeply_nested_yaml_is_refused_before_parsing() {
+    // 100,000 brackets took 36 s to refuse (the parser is quadratic in the depth).
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("deep.yaml");
+    std::fs::write(
+        &f,
+        format!(
+            "scenario_id: deep\nagents: {}{}\n",
+            "[".repeat(100_000),
+            "]".repeat(100_000)
+        ),
+    )
+    .unwrap();
+    let t0 = std::time::Instant::now();
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("deep.yaml: line 2") && err.contains("nested more than 128 deep"),
+        "{err}"
+    );
+    assert!(
+        t0.elapsed() < std::time::Duration::from_secs(5),
+        "{:?}",
+        t0.elapsed()
+    );
+}
+
+#[test]
 fn yaml_errors_name_line_or_agent() {
     let dir = tempfile::tempdir().unwrap();
     let src = samples().join("yaml/highway_cut_in.yaml");

@@ -300,8 +300,60 @@ pub fn read(path: &Path) -> Result<Scene, IoError> {
     parse(path, &text)
 }
 
+/// The deepest flow nesting (`[`, `{`) a YAML scene may have; real scenes nest four deep.
+pub const MAX_YAML_DEPTH: usize = 128;
+
+/// The line of the first flow collection nested deeper than `max`, if one is: the YAML
+/// parser's time grows with the square of the depth (100,000 brackets took 36 s to refuse).
+/// Brackets inside quotes and comments do not count.
+fn too_deep(text: &str, max: usize) -> Option<usize> {
+    let (mut depth, mut line) = (0usize, 1usize);
+    let mut quote: Option<char> = None;
+    let mut chars = text.chars().peekable();
+    let mut prev = '\n';
+    while let Some(c) = chars.next() {
+        match (quote, c) {
+            (_, '\n') => {
+                line += 1;
+                // Flow scalars may span lines, but a quote left open is the parser's to report.
+            }
+            (Some('"'), '\\') => {
+                chars.next();
+            }
+            (Some(q), c) if c == q => quote = None,
+            (Some(_), _) => {}
+            // A quote opens a scalar only where a token starts (`O'Brien` is plain).
+            (None, '"' | '\'') if prev.is_whitespace() || "[{,:-".contains(prev) => quote = Some(c),
+            (None, '#') if prev.is_whitespace() => {
+                while chars.peek().is_some_and(|&n| n != '\n') {
+                    chars.next();
+                }
+            }
+            (None, '[' | '{') => {
+                depth += 1;
+                if depth > max {
+                    return Some(line);
+                }
+            }
+            (None, ']' | '}') => depth = depth.saturating_sub(1),
+            _ => {}
+        }
+        prev = c;
+    }
+    None
+}
+
 /// Parses YAML scene text (`path` is used for messages and metadata).
 pub fn parse(path: &Path, text: &str) -> Result<Scene, IoError> {
+    if let Some(line) = too_deep(text, MAX_YAML_DEPTH) {
+        return Err(IoError::invalid(
+            path,
+            format!("line {line}"),
+            format!(
+                "collections nested more than {MAX_YAML_DEPTH} deep: not a scene (refused before parsing)"
+            ),
+        ));
+    }
     let y: YamlScene = serde_yaml::from_str(text).map_err(|e| match e.location() {
         Some(l) => IoError::invalid(
             path,
@@ -898,4 +950,22 @@ fn lane_motion(a: &YamlAgent, y: &YamlScene, reference: &FrenetPath, w: f64) -> 
             }
         })
         .collect()
+}
+
+#[cfg(test)]
+mod depth_tests {
+    use super::too_deep;
+
+    #[test]
+    fn flow_nesting_is_measured_outside_quotes_and_comments() {
+        assert_eq!(too_deep("a: [[1, 2], {b: [3]}]\n", 3), None);
+        assert_eq!(too_deep("a: [[1, 2], {b: [[3]]}]\n", 3), Some(1));
+        let text = "x: 1\ny: '[[[['\nz: \"{{{{\\\"\"\n# [[[[\nw: O'Brien\n";
+        assert_eq!(too_deep(text, 2), None);
+        // The apostrophe in a plain word opens no quote that would hide what follows.
+        assert_eq!(too_deep(&format!("{text}v: [[[1]]]\n"), 2), Some(6));
+        assert_eq!(too_deep("x: 1\ny: [\n [\n  [\n", 2), Some(4));
+        let deep = format!("a: {}{}", "[".repeat(100_000), "]".repeat(100_000));
+        assert_eq!(too_deep(&deep, 128), Some(1));
+    }
 }
