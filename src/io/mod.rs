@@ -485,8 +485,9 @@ impl OutputNames {
     }
 }
 
-/// Writes `bytes` to `path` atomically: a temporary file beside it, then a rename.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
+/// Writes `bytes` to a temporary file beside `path` (its directory created if needed), named
+/// for this process and thread so that concurrent writers never share one; returns its path.
+fn write_beside(path: &Path, bytes: &[u8]) -> Result<PathBuf, IoError> {
     let err = |source| IoError::Write {
         path: path.display().to_string(),
         source,
@@ -500,11 +501,24 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_else(|| "out".into());
-    let tmp = dir.join(format!(".{name}.tmp{}", std::process::id()));
+    let tmp = dir.join(format!(
+        ".{name}.tmp{}-{:?}",
+        std::process::id(),
+        std::thread::current().id()
+    ));
     std::fs::write(&tmp, bytes).map_err(err)?;
-    std::fs::rename(&tmp, path).map_err(|e| {
+    Ok(tmp)
+}
+
+/// Writes `bytes` to `path` atomically: a temporary file beside it, then a rename.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
+    let tmp = write_beside(path, bytes)?;
+    std::fs::rename(&tmp, path).map_err(|source| {
         let _ = std::fs::remove_file(&tmp);
-        err(e)
+        IoError::Write {
+            path: path.display().to_string(),
+            source,
+        }
     })
 }
 
@@ -523,22 +537,7 @@ pub fn create_atomic(path: &Path, bytes: &[u8]) -> Result<bool, IoError> {
         path: path.display().to_string(),
         source,
     };
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    std::fs::create_dir_all(&dir).map_err(err)?;
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "out".into());
-    // The thread too: racing claims may come from one process.
-    let tmp = dir.join(format!(
-        ".{name}.tmp{}-{:?}",
-        std::process::id(),
-        std::thread::current().id()
-    ));
-    std::fs::write(&tmp, bytes).map_err(err)?;
+    let tmp = write_beside(path, bytes)?;
     // A hard link, unlike a rename, never replaces what is there.
     let linked = std::fs::hard_link(&tmp, path);
     let _ = std::fs::remove_file(&tmp);
