@@ -3,7 +3,7 @@
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 use drivescript::io::{load_scene, rollout::Rollout, write_atomic, LoadOptions};
 use drivescript::render::{render_gif, render_png, render_svg, RenderOptions};
 use drivescript::scene::Scene;
@@ -72,9 +72,8 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let mut scene = load_scene(&args.scene, args.index, &LoadOptions::default())?;
     if let Some(r) = &args.rollout {
         let rollout = Rollout::read(r)?;
-        scene = rollout
-            .apply_to(&scene, r)
-            .with_context(|| format!("applying {} to {}", r.display(), args.scene.display()))?;
+        // The error names the rollout and what in it does not fit the scene.
+        scene = rollout.apply_to(&scene, r)?;
     }
     if let Some(step) = args.step {
         if step >= scene.num_steps() {
