@@ -310,6 +310,53 @@ fn scenes_asking_for_more_states_than_reason_are_refused_before_allocating() {
 }
 
 #[test]
+fn files_far_larger_than_any_scene_are_refused_before_reading() {
+    // YAML scenes, AV2 maps and parquets and rollouts were read whole, whatever their size.
+    let dir = tempfile::tempdir().unwrap();
+    let huge = |name: &str| {
+        let p = dir.path().join(name);
+        // Sparse: the size is what is checked, before a byte is read.
+        std::fs::File::create(&p)
+            .unwrap()
+            .set_len(65 << 20)
+            .unwrap();
+        p
+    };
+    let err = fails(&["inspect", s(&huge("big.yaml"))]);
+    assert!(
+        err.contains("big.yaml: file: holds more than 64 MB"),
+        "{err}"
+    );
+    let av2 = dir.path().join("av2");
+    std::fs::create_dir(&av2).unwrap();
+    std::fs::copy(
+        samples().join(format!("av2/scenario_{AV2_ID}.parquet")),
+        av2.join(format!("scenario_{AV2_ID}.parquet")),
+    )
+    .unwrap();
+    let map = av2.join(format!("log_map_archive_{AV2_ID}.json"));
+    std::fs::File::create(&map)
+        .unwrap()
+        .set_len(65 << 20)
+        .unwrap();
+    let err = fails(&["inspect", s(&av2)]);
+    assert!(
+        err.contains("log_map_archive") && err.contains("more than 64 MB"),
+        "{err}"
+    );
+    let rollout = huge("r.json");
+    let err = fails(&[
+        "render",
+        s(&samples().join("yaml/highway_cut_in.yaml")),
+        "--rollout",
+        s(&rollout),
+        "-o",
+        s(&dir.path().join("x.svg")),
+    ]);
+    assert!(err.contains("r.json: file: holds more than 64 MB"), "{err}");
+}
+
+#[test]
 fn deeply_nested_yaml_is_refused_before_parsing() {
     // 100,000 brackets took 36 s to refuse (the parser is quadratic in the depth).
     let dir = tempfile::tempdir().unwrap();

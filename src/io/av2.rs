@@ -230,6 +230,7 @@ struct Row {
 }
 
 fn read_tracks(path: &Path) -> Result<(Vec<Agent>, SceneMeta), IoError> {
+    super::check_file_size(path)?;
     let file = File::open(path).map_err(|e| IoError::read(path, e))?;
     let reader = SerializedFileReader::new(file).map_err(|e| {
         IoError::invalid(path, "footer", format!("not a readable parquet file: {e}"))
@@ -522,7 +523,7 @@ fn pts(v: &[JsonPoint]) -> Vec<Point> {
 }
 
 fn read_map(path: &Path) -> Result<Map, IoError> {
-    let text = std::fs::read_to_string(path).map_err(|e| IoError::read(path, e))?;
+    let text = super::read_text(path)?;
     let m: JsonMap = serde_json::from_str(&text).map_err(|e| {
         IoError::invalid(
             path,

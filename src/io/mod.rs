@@ -548,6 +548,31 @@ pub fn create_atomic(path: &Path, bytes: &[u8]) -> Result<bool, IoError> {
     }
 }
 
+/// Reads a whole text file (a YAML scene, an AV2 map) within [`MAX_SCENE_BYTES`].
+pub(crate) fn read_text(path: &Path) -> Result<String, IoError> {
+    String::from_utf8(read_maybe_gz(path)?)
+        .map_err(|e| IoError::invalid(path, "file", format!("not UTF-8 text: {e}")))
+}
+
+/// Refuses a file larger than [`MAX_SCENE_BYTES`] before it is read.
+pub(crate) fn check_file_size(path: &Path) -> Result<(), IoError> {
+    let len = std::fs::metadata(path)
+        .map_err(|e| IoError::read(path, e))?
+        .len();
+    if len > MAX_SCENE_BYTES {
+        return Err(IoError::invalid(
+            path,
+            "file",
+            format!(
+                "holds {} MB, more than {} MB: far beyond a real scene file, so it is refused before it fills memory",
+                len >> 20,
+                MAX_SCENE_BYTES >> 20
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// Reads a whole file, transparently gunzipping `.gz` files.
 pub(crate) fn read_maybe_gz(path: &Path) -> Result<Vec<u8>, IoError> {
     use std::io::Read;
@@ -556,8 +581,8 @@ pub(crate) fn read_maybe_gz(path: &Path) -> Result<Vec<u8>, IoError> {
             path,
             "file",
             format!(
-                "{what} more than {} MB: far beyond a real scene (NGSIM's largest CommonRoad \
-                 file is 2.6 MB), so it is refused before it fills memory",
+                "{what} more than {} MB: far beyond a real scene file (NGSIM's largest CommonRoad \
+                 file is 2.6 MB, an AV2 map a few MB), so it is refused before it fills memory",
                 MAX_SCENE_BYTES >> 20
             ),
         )
@@ -584,7 +609,9 @@ pub(crate) fn read_maybe_gz(path: &Path) -> Result<Vec<u8>, IoError> {
     }
 }
 
-/// The largest scene text (plain or inflated) the XML reader takes, in bytes.
+/// The largest scene or rollout file (plain or inflated) a reader takes, in bytes: CommonRoad,
+/// YAML, AV2 maps and parquets, rollout JSON. (WOMD files are read record by record, each
+/// within [`tfrecord::MAX_RECORD_BYTES`].)
 pub const MAX_SCENE_BYTES: u64 = 64 << 20;
 
 /// The file name without extensions, as a fallback scenario id.

@@ -251,7 +251,7 @@ impl Rollout {
 
     /// Reads and checks a rollout file.
     pub fn read(path: &Path) -> Result<Self, IoError> {
-        let text = std::fs::read_to_string(path).map_err(|e| IoError::read(path, e))?;
+        let text = super::read_text(path)?;
         let r: Rollout = serde_json::from_str(&text).map_err(|e| {
             // serde's message ends with the position, which the location already gives.
             IoError::invalid(

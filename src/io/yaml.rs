@@ -296,7 +296,7 @@ pub fn default_size(t: AgentType) -> (f64, f64) {
 
 /// Reads a YAML scene file.
 pub fn read(path: &Path) -> Result<Scene, IoError> {
-    let text = std::fs::read_to_string(path).map_err(|e| IoError::read(path, e))?;
+    let text = super::read_text(path)?;
     parse(path, &text)
 }
 
