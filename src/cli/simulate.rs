@@ -342,7 +342,15 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 resumed += 1;
                 continue;
             }
-            match run_one(&raw) {
+            // A bug that panics on one scene costs that scene, not the run.
+            let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| run_one(&raw)))
+                .unwrap_or_else(|payload| {
+                    Err(anyhow::anyhow!(
+                        "internal error: {} (a bug in drivescript: please report it with this scene)",
+                        drivescript::io::panic_message(&*payload)
+                    ))
+                });
+            match outcome {
                 Ok(true) => done += 1,
                 Ok(false) => skipped += 1,
                 Err(e) => {

@@ -282,6 +282,31 @@ fn classify(head: &[u8]) -> Content {
 /// all is a single error. Commands that go over many scenes report the errors, go on, and
 /// exit non-zero at the end.
 pub fn read_each(path: &Path, opts: &LoadOptions) -> Vec<Result<Scene, IoError>> {
+    // A reader that panics on some input is a bug, but it must cost that source only, not a
+    // whole directory run.
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| read_each_unguarded(path, opts)))
+        .unwrap_or_else(|payload| {
+            vec![Err(IoError::invalid(
+                path,
+                "reader",
+                format!(
+                    "internal error: {} (a bug in drivescript: please report it with this file)",
+                    panic_message(&*payload)
+                ),
+            ))]
+        })
+}
+
+/// The text of a panic's payload.
+pub fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+    payload
+        .downcast_ref::<String>()
+        .cloned()
+        .or_else(|| payload.downcast_ref::<&str>().map(|s| s.to_string()))
+        .unwrap_or_else(|| "a panic".into())
+}
+
+fn read_each_unguarded(path: &Path, opts: &LoadOptions) -> Vec<Result<Scene, IoError>> {
     match detect_format(path) {
         Ok(SceneFormat::Womd) => {
             let records = if path.is_dir() {
