@@ -284,17 +284,19 @@ fn classify(head: &[u8]) -> Content {
 pub fn read_each(path: &Path, opts: &LoadOptions) -> Vec<Result<Scene, IoError>> {
     // A reader that panics on some input is a bug, but it must cost that source only, not a
     // whole directory run.
-    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| read_each_unguarded(path, opts)))
-        .unwrap_or_else(|payload| {
-            vec![Err(IoError::invalid(
-                path,
-                "reader",
-                format!(
-                    "internal error: {} (a bug in drivescript: please report it with this file)",
-                    panic_message(&*payload)
-                ),
-            ))]
-        })
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        read_each_unguarded(path, opts)
+    }))
+    .unwrap_or_else(|payload| {
+        vec![Err(IoError::invalid(
+            path,
+            "reader",
+            format!(
+                "internal error: {} (a bug in drivescript: please report it with this file)",
+                panic_message(&*payload)
+            ),
+        ))]
+    })
 }
 
 /// The text of a panic's payload.
