@@ -357,6 +357,34 @@ fn files_far_larger_than_any_scene_are_refused_before_reading() {
 }
 
 #[test]
+fn a_gif_of_a_long_scene_is_refused_not_rendered_for_minutes() {
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("long.yaml");
+    std::fs::write(
+        &f,
+        "scenario_id: long\ndt: 0.1\nsteps: 99999\ncurrent_step: 10\nroad: {lanes: 2, length: 100}\n\
+         agents:\n  - {id: 1, lane: 0, s: 1, speed: 0}\n",
+    )
+    .unwrap();
+    let out = dir.path().join("long.gif");
+    let err = fails(&["render", s(&f), "-o", s(&out)]);
+    assert!(
+        err.contains("a GIF of 99999 steps is more than 2000 frames"),
+        "{err}"
+    );
+    assert!(!out.exists());
+    // One step of it draws at once.
+    ok(&[
+        "render",
+        s(&f),
+        "--step",
+        "5",
+        "-o",
+        s(&dir.path().join("one.svg")),
+    ]);
+}
+
+#[test]
 fn deeply_nested_yaml_is_refused_before_parsing() {
     // 100,000 brackets took 36 s to refuse (the parser is quadratic in the depth).
     let dir = tempfile::tempdir().unwrap();

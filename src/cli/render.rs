@@ -5,7 +5,7 @@ use std::process::ExitCode;
 
 use anyhow::{bail, Result};
 use drivescript::io::{load_scene, rollout::Rollout, write_atomic, LoadOptions};
-use drivescript::render::{render_gif, render_png, render_svg, RenderOptions};
+use drivescript::render::{render_gif, render_png, render_svg, RenderOptions, MAX_GIF_FRAMES};
 use drivescript::scene::Scene;
 
 #[derive(clap::Args)]
@@ -79,6 +79,19 @@ pub fn run(args: Args) -> Result<ExitCode> {
         if step >= scene.num_steps() {
             bail!("--step {step}: the scene has {} steps", scene.num_steps());
         }
+    }
+    // Asked for in so many words, a GIF is all the steps or nothing (`simulate`'s own
+    // pictures show the last frames of a longer scene).
+    let gif = args
+        .output
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("gif"));
+    if gif && scene.num_steps() > MAX_GIF_FRAMES {
+        bail!(
+            "a GIF of {} steps is more than {MAX_GIF_FRAMES} frames; draw one step (--step N, as \
+             SVG or PNG) or cut the scene first (convert --current-step)",
+            scene.num_steps()
+        );
     }
     let opts = RenderOptions {
         width: args.width,

@@ -9,7 +9,7 @@ mod gif;
 mod raster;
 mod svg;
 
-pub use self::gif::render_gif;
+pub use self::gif::{render_gif, MAX_GIF_FRAMES};
 pub use draw::View;
 pub use raster::render_png;
 pub use svg::render_svg;
