@@ -345,10 +345,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
             // A bug that panics on one scene costs that scene, not the run.
             let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| run_one(&raw)))
                 .unwrap_or_else(|payload| {
-                    Err(anyhow::anyhow!(
-                        "internal error: {} (a bug in drivescript: please report it with this scene)",
-                        drivescript::io::panic_message(&*payload)
-                    ))
+                    Err(anyhow::anyhow!(drivescript::io::internal_error(
+                        &*payload, "scene"
+                    )))
                 });
             match outcome {
                 Ok(true) => done += 1,

@@ -187,8 +187,12 @@ impl Polyline {
         };
         // The run whose box is nearest first, for a good bound; then every run that may hold
         // a segment as near (an equal one with a lower index included).
-        let first = (0..self.chunks.len())
-            .min_by(|&a, &b| below(&self.chunks[a]).total_cmp(&below(&self.chunks[b])))
+        let (_, first) = self
+            .chunks
+            .iter()
+            .enumerate()
+            .map(|(c, b)| (below(b), c))
+            .min_by(|a, b| a.0.total_cmp(&b.0))
             .expect("a polyline has a segment");
         scan(first, &mut best);
         for c in 0..self.chunks.len() {

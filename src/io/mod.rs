@@ -291,21 +291,20 @@ pub fn read_each(path: &Path, opts: &LoadOptions) -> Vec<Result<Scene, IoError>>
         vec![Err(IoError::invalid(
             path,
             "reader",
-            format!(
-                "internal error: {} (a bug in drivescript: please report it with this file)",
-                panic_message(&*payload)
-            ),
+            internal_error(&*payload, "file"),
         ))]
     })
 }
 
-/// The text of a panic's payload.
-pub fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
-    payload
+/// What to say of a panic caught while working on one input (`what`: "file", "scene"): its
+/// message, and that it is a bug to report with that input.
+pub fn internal_error(payload: &(dyn std::any::Any + Send), what: &str) -> String {
+    let message = payload
         .downcast_ref::<String>()
         .cloned()
         .or_else(|| payload.downcast_ref::<&str>().map(|s| s.to_string()))
-        .unwrap_or_else(|| "a panic".into())
+        .unwrap_or_else(|| "a panic".into());
+    format!("internal error: {message} (a bug in drivescript: please report it with this {what})")
 }
 
 fn read_each_unguarded(path: &Path, opts: &LoadOptions) -> Vec<Result<Scene, IoError>> {

@@ -210,12 +210,7 @@ pub(crate) fn draw_agents(
         out.push(run);
         out.into_iter().filter(|r| r.len() >= 2).collect()
     };
-    let role = |a: &crate::scene::Agent| {
-        opts.roles
-            .iter()
-            .find(|(id, _)| *id == a.id)
-            .map(|(_, r)| r.as_str())
-    };
+    let role = |a: &crate::scene::Agent| opts.role(a.id);
     let colour = |a: &crate::scene::Agent| match role(a) {
         Some(_) => HIGHLIGHT,
         None => agent_color(a.agent_type, scene.meta.ego == Some(a.id)),
@@ -267,7 +262,8 @@ pub fn draw_scene(c: &mut dyn Canvas, scene: &Scene, v: &View, opts: &RenderOpti
     draw_map(c, scene, v);
     let step = opts.step.unwrap_or(scene.meta.current_step);
     draw_agents(c, scene, v, step, opts);
-    draw_overlay(c, scene, v, step, opts);
+    let legend = legend_rect(c, scene, v, opts);
+    draw_overlay(c, scene, v, step, opts, legend);
 }
 
 /// A rectangle in pixels: top-left and bottom-right.
@@ -422,7 +418,12 @@ const LEGEND_TEXT: f32 = 9.0;
 
 /// The legend's rectangle: in the right-hand corner (top or bottom) that the agents' paths
 /// cross least, the same in every frame of an animation.
-fn legend_rect(c: &dyn Canvas, scene: &Scene, v: &View, opts: &RenderOptions) -> Option<Rect> {
+pub(crate) fn legend_rect(
+    c: &dyn Canvas,
+    scene: &Scene,
+    v: &View,
+    opts: &RenderOptions,
+) -> Option<Rect> {
     let rows = legend_rows(scene, opts);
     if rows.is_empty() {
         return None;
@@ -496,26 +497,23 @@ fn draw_legend(c: &mut dyn Canvas, scene: &Scene, r: &Rect, opts: &RenderOptions
     }
 }
 
-/// Everything drawn over the agents at `step`: caption, scale bar, legend, and the agents'
-/// labels, placed clear of the boxes, of each other and of the rest.
+/// Everything drawn over the agents at `step`: caption, scale bar, the legend (in `legend`,
+/// from [`legend_rect`], found once for every frame of an animation), and the agents' labels,
+/// placed clear of the boxes, of each other and of the rest.
 pub(crate) fn draw_overlay(
     c: &mut dyn Canvas,
     scene: &Scene,
     v: &View,
     step: usize,
     opts: &RenderOptions,
+    legend: Option<Rect>,
 ) {
     let mut obstacles = draw_caption(c, scene, v, step, opts);
-    if let Some(r) = legend_rect(c, scene, v, opts) {
+    if let Some(r) = legend {
         draw_legend(c, scene, &r, opts);
         obstacles.push(r);
     }
-    let role = |id| {
-        opts.roles
-            .iter()
-            .find(|(a, _)| *a == id)
-            .map(|(_, r)| r.as_str())
-    };
+    let role = |id| opts.role(id);
     let mut requests = Vec::new();
     for a in &scene.agents {
         let Some(b) = a.footprint(step) else { continue };

@@ -1,6 +1,6 @@
 //! Animated GIFs of rollouts: one frame per step over a map drawn once.
 
-use super::draw::{draw_agents, draw_map, draw_overlay, View};
+use super::draw::{draw_agents, draw_map, draw_overlay, legend_rect, View};
 use super::raster::RasterCanvas;
 use super::{RenderError, RenderOptions};
 use crate::scene::Scene;
@@ -63,6 +63,8 @@ pub fn render_gif(scene: &Scene, opts: &RenderOptions) -> Result<Vec<u8>, Render
     let view = View::fit(scene, opts)?;
     let mut base = RasterCanvas::new(&view)?;
     draw_map(&mut base, scene, &view);
+    // In the same corner in every frame: placed once, by the whole recording.
+    let legend = legend_rect(&base, scene, &view, opts);
     let (w, h) = (view.width as u16, view.height as u16);
     let err = |e: gif::EncodingError| RenderError::Encode {
         format: "GIF",
@@ -83,7 +85,7 @@ pub fn render_gif(scene: &Scene, opts: &RenderOptions) -> Result<Vec<u8>, Render
                 ..opts.clone()
             };
             draw_agents(&mut c, scene, &view, step, &frame_opts);
-            draw_overlay(&mut c, scene, &view, step, &frame_opts);
+            draw_overlay(&mut c, scene, &view, step, &frame_opts, legend);
             let px: Vec<u8> = c
                 .pixmap
                 .data()

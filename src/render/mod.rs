@@ -66,6 +66,16 @@ impl Default for RenderOptions {
     }
 }
 
+impl RenderOptions {
+    /// The role `id` is labelled with, when the request names it.
+    pub(crate) fn role(&self, id: crate::scene::AgentId) -> Option<&str> {
+        self.roles
+            .iter()
+            .find(|(a, _)| *a == id)
+            .map(|(_, r)| r.as_str())
+    }
+}
+
 /// An RGBA colour.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Rgba(pub u8, pub u8, pub u8, pub u8);
