@@ -101,6 +101,10 @@ pub struct Args {
     /// or per agent, scaled as a whole (keeps its direction).
     #[arg(long, value_enum, default_value = "coordinate")]
     clamp: ClampArg,
+    /// Descent steps on the guidance cost after the last denoising step: what guidance
+    /// planned, finished within realism's bounds (0: none).
+    #[arg(long, default_value_t = drivescript::sample::POLISH_STEPS)]
+    polish: usize,
     /// Checkpoint directory (model.safetensors + config.json).
     #[arg(long)]
     checkpoint: PathBuf,
@@ -181,6 +185,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             weight: args.realism,
             ..Realism::default()
         },
+        polish: args.polish,
     };
     if let Err(e) = cfg.validate() {
         anyhow::bail!("sampler settings: {e}");
@@ -205,6 +210,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             "clamp": format!("{:?}", cfg.clamp),
             "realism": cfg.realism.weight,
             "known_weight": cfg.known_weight,
+            "polish": cfg.polish,
             "closed_loop": args.closed_loop,
             "auto": args.auto,
         }),

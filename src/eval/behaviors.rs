@@ -722,6 +722,10 @@ pub fn check(behavior: Behavior, scene: &Scene, params: &Params) -> Result<Verdi
 /// Speed (m/s) above which `suggest` counts a car as moving.
 const MOVING: f64 = 2.0;
 
+/// Farthest a neighbouring lane's centre may lie from the recorded end (m) for `target_point`:
+/// a lane beside it, not one that stops short of it.
+const TARGET_BESIDE: f64 = 5.0;
+
 /// How far inside the road edge (m, centre to edge) `suggest` looks for a car to drive off
 /// it: the outer lane.
 const OFF_ROAD_REACH: f64 = 4.0;
@@ -736,7 +740,8 @@ const OFF_ROAD_REACH: f64 = 4.0;
 /// - one-vehicle behaviours: the nearest candidate; lane changes and `rightmost_lane` need a
 ///   lane on that side (for `rightmost_lane`, not already the rightmost); `speed_limit` asks for
 ///   80 % of its current speed from the time braking to it at 2.5 m/s² takes; `target_point`
-///   for a point 20 m to the left of its recorded end; `stop` within 60 % of the horizon or the
+///   for the point level with its recorded end on the centre line of the lane beside it (left
+///   where there is one, else right; within 5 m of the end); `stop` within 60 % of the horizon or the
 ///   time braking at 4 m/s² takes, if longer, for the nearest vehicle that can then stand
 ///   still for the last 0.5 s;
 /// - `cut_in`: a victim and a cutter moving at 2 m/s or more in an adjacent lane within 15 m
@@ -799,16 +804,22 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
                 ("from", (0.2 * v / 2.5 * 10.0).ceil() / 10.0),
             ])
         }
-        Behavior::TargetPoint => {
-            let (a, _, _) = cands.first()?;
-            let end = a.states[n - 1];
-            let left = Point::new(-end.heading.sin(), end.heading.cos()) * 20.0;
-            p(&[
-                ("vehicle", a.id as f64),
-                ("x", end.x + left.x),
-                ("y", end.y + left.y),
-            ])
-        }
+        // The point level with the recorded end in the lane beside it (the left one where
+        // there is one): a lane change, ended where the recorded car ended. The request 20 m
+        // to the left it replaces crossed five lanes, or the road's edge, within 4 s.
+        Behavior::TargetPoint => cands.iter().find_map(|(a, _, _)| {
+            let end = a.states[n - 1].position();
+            let lane = lane_of(scene, a, n - 1)?;
+            let centre = &scene
+                .map
+                .lane(g.left(lane).or_else(|| g.right(lane))?)?
+                .centerline;
+            let hit = centre.nearest(&end);
+            // Beside the end, not where a neighbour that stops short of it ends.
+            (hit.distance <= TARGET_BESIDE).then_some(())?;
+            let at = centre.point_at(hit.s);
+            p(&[("vehicle", a.id as f64), ("x", at.x), ("y", at.y)])
+        }),
         Behavior::LaneChangeLeft => cands
             .iter()
             .find(|x| g.left(x.1).is_some())

@@ -455,6 +455,43 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
         suggest(Behavior::SpeedLimit, &ending).map(|p| p.number("vehicle").unwrap()),
         Some(2.0)
     );
+    // Target point: level with the recorded end, one lane (3.6 m) to the left; the recorded
+    // car, which keeps its lane, misses it, and the same car moved over by a lane meets it.
+    let t = suggest(Behavior::TargetPoint, &base).unwrap();
+    assert_eq!(t.number("vehicle").unwrap(), 1.0);
+    let end = base.agent(1).unwrap().states.last().unwrap().position();
+    let target = crate::geom::Point::new(t.number("x").unwrap(), t.number("y").unwrap());
+    assert!(
+        ((target - end).norm() - 3.6).abs() < 1e-6,
+        "{target:?} {end:?}"
+    );
+    assert!(!passes(
+        Behavior::TargetPoint,
+        &base,
+        &[("vehicle", 1.0), ("x", target.x), ("y", target.y)]
+    ));
+    let mut over = scene("highway.yaml");
+    let side = target - end;
+    edit(&mut over, 1, |t| {
+        let f = (t / 4.0).min(1.0);
+        (side.x * f, side.y * f)
+    });
+    assert!(passes(
+        Behavior::TargetPoint,
+        &over,
+        &[("vehicle", 1.0), ("x", target.x), ("y", target.y)]
+    ));
+    // A car in the leftmost lane is sent one lane to its right.
+    let leftmost = yaml::parse(
+        Path::new("leftmost.yaml"),
+        "steps: 41\ncurrent_step: 10\nego: 1\nroad: {lanes: 2, lane_width: 3.5, length: 600}\n\
+         agents:\n  - {id: 1, lane: 1, s: 40, speed: 10}\n",
+    )
+    .unwrap();
+    let t = suggest(Behavior::TargetPoint, &leftmost).unwrap();
+    let end = leftmost.agent(1).unwrap().states.last().unwrap().position();
+    let side = crate::geom::Point::new(t.number("x").unwrap(), t.number("y").unwrap()) - end;
+    assert!((side.norm() - 3.5).abs() < 1e-6 && side.y < 0.0, "{side:?}");
     // Every suggestion is something its checker can run on.
     for b in super::behaviors::ALL {
         if let Some(p) = suggest(b, &base) {
