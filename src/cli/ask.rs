@@ -111,6 +111,9 @@ pub struct Args {
     /// Guide through the denoiser (the paper's rule) instead of in output space.
     #[arg(long)]
     through_denoiser: bool,
+    /// Descent steps on the guidance cost after the last denoising step, 0 to 1000 (0: none).
+    #[arg(long, default_value_t = drivescript::sample::POLISH_STEPS, value_parser = usize_in(0, 1000))]
+    polish: usize,
 }
 
 /// What the first prompt holds: shared by `ask` and `prompt show`, so that the prompt shown is
@@ -238,6 +241,7 @@ impl Args {
             samples: self.samples,
             seed: self.seed,
             through_denoiser: self.through_denoiser,
+            polish: self.polish,
             ..SessionConfig::default()
         }
     }

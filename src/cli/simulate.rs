@@ -101,9 +101,9 @@ pub struct Args {
     /// or per agent, scaled as a whole (keeps its direction).
     #[arg(long, value_enum, default_value = "coordinate")]
     clamp: ClampArg,
-    /// Descent steps on the guidance cost after the last denoising step: what guidance
-    /// planned, finished within realism's bounds (0: none).
-    #[arg(long, default_value_t = drivescript::sample::POLISH_STEPS)]
+    /// Descent steps on the guidance cost after the last denoising step, 0 to 1000: what
+    /// guidance planned, finished within realism's bounds (0: none).
+    #[arg(long, default_value_t = drivescript::sample::POLISH_STEPS, value_parser = super::ask::usize_in(0, 1000))]
     polish: usize,
     /// Checkpoint directory (model.safetensors + config.json).
     #[arg(long)]

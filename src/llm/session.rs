@@ -79,6 +79,10 @@ pub struct SessionConfig {
     pub realism: f64,
     /// Whether to guide through the denoiser (the paper's rule) instead of in output space.
     pub through_denoiser: bool,
+    /// Descent steps on the guidance cost after the last denoising step
+    /// ([`SampleConfig::polish`]); runs recorded before it existed had none.
+    #[serde(default)]
+    pub polish: usize,
     /// Closed loop: steps executed per re-plan.
     pub replan: Option<usize>,
 }
@@ -96,6 +100,7 @@ impl Default for SessionConfig {
             lambda: crate::sample::BEHAVIOUR_LAMBDA,
             realism: crate::sample::REALISM_WEIGHT,
             through_denoiser: false,
+            polish: crate::sample::POLISH_STEPS,
             replan: None,
         }
     }
@@ -119,6 +124,7 @@ impl SessionConfig {
                 weight: self.realism,
                 ..crate::cost::Realism::default()
             },
+            polish: self.polish,
             ..SampleConfig::default()
         }
     }
