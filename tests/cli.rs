@@ -363,20 +363,23 @@ fn every_help_example_runs_as_written_from_a_fresh_clone() {
 }
 
 #[test]
-fn demo_runs_the_loop_with_a_repair_round_and_writes_the_run() {
+fn demo_runs_the_loop_and_writes_the_run() {
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("demo");
     let out = ok(&["demo", "-o", s(&run)]);
     assert!(out.contains("USA_US101-4_1_T-1"), "{out}");
-    // Every phase: plan, script, validation, sampling, per-term costs, verdicts, repair.
+    // Every phase: plan, script, validation, sampling, per-term costs, verdicts and why a
+    // sample does not meet the request, the planner's answer. With polish, three of the first
+    // script's four samples meet the request, and the planner accepts one.
     for want in [
         "round 0: plan:",
         "cut_in (cutter=401 victim=405)",
         "round 0: script (",
         "round 0: validating on the sampler's horizon",
         "| ends_ahead |",
-        "round 0: sample 0:",
-        "round 1: plan:\n    Repair (rules planner)",
+        "round 0: sample 0: meets the request [cut_in PASS, off_road PASS]",
+        "round 0: sample 2: 2 reason(s) it does not: term ends_ahead",
+        "round 1: ACCEPT (sample 0 of round 0 meets the request)",
         "Outcome: accepted",
     ] {
         assert!(out.contains(want), "{want:?} missing:\n{out}");
@@ -386,7 +389,7 @@ fn demo_runs_the_loop_with_a_repair_round_and_writes_the_run() {
     let script = std::fs::read_to_string(run.join("final.rhai")).unwrap();
     assert!(script.contains("agent(401)") && script.contains("agent(389)"));
     let costs: Value = serde_json::from_str(
-        &std::fs::read_to_string(run.join("round_1/USA_US101-4_1_T-1_costs.json")).unwrap(),
+        &std::fs::read_to_string(run.join("round_0/USA_US101-4_1_T-1_costs.json")).unwrap(),
     )
     .unwrap();
     assert_eq!(costs["checks"][0]["behaviour"], "cut_in");
@@ -394,7 +397,7 @@ fn demo_runs_the_loop_with_a_repair_round_and_writes_the_run() {
     // The rollouts are named as `simulate` names them, listed, and scored by the eval command
     // the demo prints for each checker.
     let listed = format!(
-        "rollouts of the final round, in {}: round_1/USA_US101-4_1_T-1_0.json … round_1/USA_US101-4_1_T-1_3.json and round_1/USA_US101-4_1_T-1_costs.json",
+        "rollouts of the final round, in {}: round_0/USA_US101-4_1_T-1_0.json … round_0/USA_US101-4_1_T-1_3.json and round_0/USA_US101-4_1_T-1_costs.json",
         run.display()
     );
     assert!(out.contains(&listed), "{listed:?} missing:\n{out}");
@@ -410,6 +413,38 @@ fn demo_runs_the_loop_with_a_repair_round_and_writes_the_run() {
     }
     // Running it again replaces the run instead of refusing.
     ok(&["demo", "-o", s(&run)]);
+}
+
+#[test]
+fn the_rules_planner_repairs_a_script_whose_samples_fail() {
+    // The demo's request without polish: no sample of the first script gets the cutter far
+    // enough ahead, and the planner repairs the script.
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("ask");
+    let scene = samples().join("commonroad/USA_US101-4_1_T-1.xml");
+    let out = ok(&[
+        "ask",
+        s(&scene),
+        "vehicle 401 cuts in front of vehicle 405, vehicle 389 drives off the road",
+        "--llm",
+        "rules",
+        "--polish",
+        "0",
+        "-o",
+        s(&run),
+    ]);
+    for want in [
+        "round 0: sample 0: ",
+        "round 1: plan:\n    Repair (rules planner): the best sample fails",
+        "Outcome: accepted",
+    ] {
+        assert!(out.contains(want), "{want:?} missing:\n{out}");
+    }
+    assert!(
+        !out.contains("round 0: sample 0: meets the request"),
+        "{out}"
+    );
+    assert!(run.join("round_1/USA_US101-4_1_T-1_costs.json").exists());
 }
 
 #[test]

@@ -99,7 +99,7 @@ impl Behavior {
             Behavior::LaneChangeRight => "the vehicle ends in the right neighbour of a lane on its starting lane's path (or a lane straight on from one), within 1 m of that lane's centre line",
             Behavior::RightmostLane => "the vehicle ends within 1 m of the centre line of a lane with no same-direction lane to its right",
             Behavior::CutIn => "A starts in a lane adjacent to B's, ends within 1 m of the centre of B's lane path ahead of B (bumper to bumper), and they never collide",
-            Behavior::Yield => "B passes the point where their lane paths meet before A reaches it, and they never collide",
+            Behavior::Yield => "B passes the point where their lane paths (taking `yielder_turn` / `other_turn` at forks, default straight) meet before A reaches it, and they never collide",
             Behavior::Follow => "over the last half of the horizon A stays within 1.5 m of B's lane path, behind B at a bumper-to-bumper gap between gap/2 and 2·gap",
             Behavior::Reverse => "the vehicle ends at least 1 m behind its start along its starting heading, its heading never more than 30 degrees off",
             Behavior::OffRoad => "the vehicle's centre ends beyond the road edge",
@@ -177,6 +177,18 @@ pub enum CheckError {
         /// Its value as given.
         value: String,
     },
+    /// A parameter is not one of the words it may be.
+    #[error("{behavior}: parameter {name:?} = {value:?} must be {expected}")]
+    NotAWord {
+        /// The behaviour.
+        behavior: &'static str,
+        /// The parameter.
+        name: &'static str,
+        /// Its value as given.
+        value: String,
+        /// The words it may be.
+        expected: &'static str,
+    },
     /// An agent is missing or unusable.
     #[error("{behavior}: {message}")]
     Agent {
@@ -211,6 +223,25 @@ impl<'a> Ctx<'a> {
         match self.p.get(name) {
             None => Ok(default),
             Some(v) => self.numeric(name, v),
+        }
+    }
+
+    /// Which way a route goes at forks: `"straight"` (the default), `"left"` or `"right"`.
+    fn turn(&self, name: &'static str) -> Result<Turn, CheckError> {
+        let v = match self.p.get(name) {
+            None => return Ok(Turn::Straight),
+            Some(v) => v,
+        };
+        match v {
+            ParamValue::Str(t) if t == "straight" => Ok(Turn::Straight),
+            ParamValue::Str(t) if t == "left" => Ok(Turn::Left),
+            ParamValue::Str(t) if t == "right" => Ok(Turn::Right),
+            _ => Err(CheckError::NotAWord {
+                behavior: self.b.name(),
+                name,
+                value: v.to_string(),
+                expected: "\"straight\", \"left\" or \"right\"",
+            }),
         }
     }
 
@@ -315,6 +346,11 @@ fn lane_of(s: &Scene, a: &Agent, t: usize) -> Option<i64> {
 }
 
 fn path_of(s: &Scene, a: &Agent) -> Option<LanePath> {
+    route_of(s, a, Turn::Straight)
+}
+
+/// The path from `a`'s lane at the current step, taking `turn` at forks.
+fn route_of(s: &Scene, a: &Agent, turn: Turn) -> Option<LanePath> {
     let c = s.meta.current_step;
     let lane = lane_of(s, a, c)?;
     let along = s
@@ -323,9 +359,39 @@ fn path_of(s: &Scene, a: &Agent) -> Option<LanePath> {
         .centerline
         .nearest(&a.states[c].position())
         .s;
-    s.map
-        .lane_path(lane, along + 400.0, 50.0, Turn::Straight)
-        .ok()
+    s.map.lane_path(lane, along + 400.0, 50.0, turn).ok()
+}
+
+/// The word for `t` in parameters and scripts.
+fn turn_name(t: Turn) -> &'static str {
+    match t {
+        Turn::Straight => "straight",
+        Turn::Left => "left",
+        Turn::Right => "right",
+    }
+}
+
+/// The route `a` drives in `s`: of the paths straight on, left and right at forks, the one its
+/// last observed state lies nearest (the first of equals), with the turn that makes it.
+fn driven_route(s: &Scene, a: &Agent) -> Option<(Turn, LanePath)> {
+    let last = (s.meta.current_step + 1..a.states.len())
+        .rev()
+        .find(|&t| a.is_valid(t))?;
+    let end = a.states[last].position();
+    let mut best: Option<(f64, Turn, LanePath)> = None;
+    for turn in [Turn::Straight, Turn::Left, Turn::Right] {
+        let Some(p) = route_of(s, a, turn) else {
+            continue;
+        };
+        if best.as_ref().is_some_and(|b| b.2.lanes == p.lanes) {
+            continue;
+        }
+        let off = p.frenet.project(end).d.abs();
+        if best.as_ref().is_none_or(|b| off < b.0) {
+            best = Some((off, turn, p));
+        }
+    }
+    best.map(|(_, t, p)| (t, p))
 }
 
 fn speeds(s: &Scene, a: &Agent) -> Vec<(usize, f64)> {
@@ -536,9 +602,10 @@ pub fn check(behavior: Behavior, scene: &Scene, params: &Params) -> Result<Verdi
         }
         Behavior::Yield => {
             let (a, b) = (x.agent("yielder")?, x.agent("other")?);
+            let (ta, tb) = (x.turn("yielder_turn")?, x.turn("other_turn")?);
             let (pa, pb) = (
-                path_of(s, a).ok_or_else(|| no_lane(behavior, a.id))?,
-                path_of(s, b).ok_or_else(|| no_lane(behavior, b.id))?,
+                route_of(s, a, ta).ok_or_else(|| no_lane(behavior, a.id))?,
+                route_of(s, b, tb).ok_or_else(|| no_lane(behavior, b.id))?,
             );
             let Some((sa, sb, _)) = pa.first_meeting(&pb) else {
                 x.measure("paths_meet", 0.0);
@@ -751,7 +818,8 @@ const OFF_ROAD_REACH: f64 = 4.0;
 /// - `follow`: a leader ahead in the follower's lane within 60 m, asking for a 10 m gap;
 /// - `off_road`: the nearest car moving at 2 m/s or more with its centre within 4 m of the
 ///   road edge (a car queued at a light, or boxed in mid-road, has no way off it);
-/// - `yield`: two vehicles whose lane paths meet ahead of both, within 1.2 times the distance
+/// - `yield`: two vehicles whose routes (the lane paths, straight on, left or right at forks,
+///   that their recorded ends lie nearest) meet ahead of both, within 1.2 times the distance
 ///   the yielder covers over the horizon at its current speed plus 20 m, and that the other,
 ///   moving at 2 m/s or more, passes by 2 m within the horizon at its current speed, while the
 ///   yielder, moving too, would get there first at its own but can hold back 2 m before the
@@ -945,9 +1013,15 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
                         || (va - (va * va - 2.0 * brake * room).sqrt()) / brake >= other_past);
                 va >= MOVING && a_to_go / va <= o_to_go / vo && holds
             };
-            for (a, _, pa) in &cands {
+            // Each car's route as recorded: a car that turned left at the junction meets the
+            // oncoming traffic there, which its path straight on never does.
+            let routes: Vec<(&Agent, Turn, LanePath)> = cands
+                .iter()
+                .filter_map(|(a, _, _)| driven_route(scene, a).map(|(t, p)| (*a, t, p)))
+                .collect();
+            for (a, ta, pa) in &routes {
                 let sa0 = pa.frenet.project(a.states[c].position()).s;
-                for (o, _, po) in &cands {
+                for (o, to, po) in &routes {
                     if o.id == a.id {
                         continue;
                     }
@@ -959,7 +1033,13 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
                             && coming(o, so - so0)
                             && first(a, sa - sa0, o, so - so0)
                         {
-                            return p(&[("yielder", a.id as f64), ("other", o.id as f64)]);
+                            let mut p = Params::numbers(&[
+                                ("yielder", a.id as f64),
+                                ("other", o.id as f64),
+                            ]);
+                            p.set("yielder_turn", ParamValue::Str(turn_name(*ta).into()));
+                            p.set("other_turn", ParamValue::Str(turn_name(*to).into()));
+                            return Some(p);
                         }
                     }
                 }

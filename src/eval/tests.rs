@@ -4,7 +4,7 @@ use std::path::Path;
 
 use super::metrics::*;
 use super::{check, Baseline, Behavior};
-use crate::cost::Params;
+use crate::cost::{ParamValue, Params};
 use crate::io::{load_scene, yaml, LoadOptions};
 use crate::scene::Scene;
 
@@ -283,6 +283,44 @@ fn yield_stop_reverse_off_road_weave_speed_and_target() {
 }
 
 #[test]
+fn yield_is_judged_on_the_routes_the_request_names() {
+    let junction = scene("junction.yaml");
+    let turning = |yielder_turn: &str| {
+        let mut p = params(&[("yielder", 1.0), ("other", 2.0)]);
+        p.set("yielder_turn", ParamValue::Str(yielder_turn.into()));
+        p
+    };
+    // As recorded, the turning car crosses first.
+    let v = check(Behavior::Yield, &junction, &turning("left")).unwrap();
+    assert!(
+        !v.achieved && v.reason.contains("reaches the meeting point first"),
+        "{v:?}"
+    );
+    // At half the speed it is still short of the crossing when 2 has passed.
+    let text = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes/junction.yaml"),
+    )
+    .unwrap()
+    .replace("s: 40, speed: 8", "s: 40, speed: 4");
+    let waits = yaml::parse(Path::new("waits.yaml"), &text).unwrap();
+    let v = check(Behavior::Yield, &waits, &turning("left")).unwrap();
+    assert!(v.achieved, "{v:?}");
+    // Straight on, there is nothing to yield at.
+    let v = check(
+        Behavior::Yield,
+        &waits,
+        &params(&[("yielder", 1.0), ("other", 2.0)]),
+    )
+    .unwrap();
+    assert!(!v.achieved && v.reason.contains("never meet"), "{v:?}");
+    let e = check(Behavior::Yield, &junction, &turning("sideways")).unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "yield: parameter \"yielder_turn\" = \"sideways\" must be \"straight\", \"left\" or \"right\""
+    );
+}
+
+#[test]
 fn checkers_explain_missing_parameters_and_agents() {
     let base = scene("highway.yaml");
     let e = check(Behavior::CutIn, &base, &params(&[("cutter", 2.0)])).unwrap_err();
@@ -396,6 +434,16 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
     )
     .unwrap();
     assert!(super::behaviors::suggest(Behavior::Yield, &waiting, 70).is_none());
+    // A left turn across oncoming traffic: straight on, vehicle 1's path never meets vehicle
+    // 2's; on the route it drives (left at the fork) it would cross just before 2 arrives.
+    let junction = scene("junction.yaml");
+    let y = suggest(Behavior::Yield, &junction).unwrap();
+    assert_eq!(
+        (y.number("yielder").unwrap(), y.number("other").unwrap()),
+        (1.0, 2.0)
+    );
+    assert_eq!(y.get("yielder_turn").unwrap().to_string(), "left");
+    assert_eq!(y.get("other_turn").unwrap().to_string(), "straight");
     // Off road: the nearest car that moves, within a lane of the edge (lane 0 and lane 2 are
     // the outer lanes). The ego (1) is in the middle lane, 2 waits in an outer lane.
     let off = yaml::parse(

@@ -121,7 +121,7 @@ pub(crate) fn agent_lane(shared: &Shared, a: &AgentRef) -> RResult<i64> {
     }
 }
 
-fn agent_path(shared: &Shared, a: &AgentRef, ahead: f64) -> RResult<PathRef> {
+fn agent_path(shared: &Shared, a: &AgentRef, ahead: f64, turn: Turn) -> RResult<PathRef> {
     let lane = agent_lane(shared, a)?;
     let along = {
         let ctx = shared.borrow();
@@ -134,7 +134,7 @@ fn agent_path(shared: &Shared, a: &AgentRef, ahead: f64) -> RResult<PathRef> {
             .nearest(&Point::new(s.x, s.y))
             .s
     };
-    make_path(shared, lane, along + ahead, BEHIND, Turn::Straight)
+    make_path(shared, lane, along + ahead, BEHIND, turn)
 }
 
 /// Frenet series of agent `a` on `p`.
@@ -228,7 +228,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     );
     let sh = shared.clone();
     e.register_fn("lane_path", move |a: &mut AgentRef| {
-        agent_path(&sh, a, AGENT_AHEAD)
+        agent_path(&sh, a, AGENT_AHEAD, Turn::Straight)
     });
     doc(
         docs,
@@ -238,8 +238,21 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     );
     let sh = shared.clone();
     e.register_fn("lane_path", move |a: &mut AgentRef, len: Dynamic| {
-        agent_path(&sh, a, number(&len, "lane_path length")?)
+        agent_path(&sh, a, number(&len, "lane_path length")?, Turn::Straight)
     });
+    doc(
+        docs,
+        S,
+        "a.lane_path(length, turn) -> Path",
+        "The same, taking \"left\", \"right\" or \"straight\" at forks (a turning agent's route).",
+    );
+    let sh = shared.clone();
+    e.register_fn(
+        "lane_path",
+        move |a: &mut AgentRef, len: Dynamic, t: &str| {
+            agent_path(&sh, a, number(&len, "lane_path length")?, turn(t)?)
+        },
+    );
     doc(docs, S, "p.lanes -> array of int, p.length -> float, p.origin_s -> float", "The path's lanes in driving order, its length, and the s at which the requested lane starts.");
     e.register_get("lanes", |p: &mut PathRef| {
         p.path
