@@ -744,6 +744,37 @@ fn polish(
     Ok(())
 }
 
+/// Sets the velocity of every valid state after step `c` from the positions around it: the
+/// centred difference where both neighbours are valid (the state at `c` counts), else the
+/// one-sided one, else zero. A sampled state's velocity is what the next closed-loop round, a
+/// script's `current_speed` and realism's speed-up bound read as the current one; left at zero,
+/// a car that was driving at 15 m/s starts the next round standing, and realism brakes it at
+/// 10 m/s².
+fn velocities_from_positions(states: &mut [AgentState], c: usize, dt: f64) {
+    let valid = |t: usize| states.get(t).is_some_and(|s| s.valid);
+    let v: Vec<Option<(f64, f64)>> = (c + 1..states.len())
+        .map(|t| {
+            if !valid(t) {
+                return None;
+            }
+            let before = if valid(t - 1) { t - 1 } else { t };
+            let after = if valid(t + 1) { t + 1 } else { t };
+            if before == after {
+                return Some((0.0, 0.0));
+            }
+            let span = (after - before) as f64 * dt;
+            let (p, q) = (&states[before], &states[after]);
+            Some(((q.x - p.x) / span, (q.y - p.y) / span))
+        })
+        .collect();
+    for (s, v) in states[c + 1..].iter_mut().zip(v) {
+        if let Some((vx, vy)) = v {
+            s.vx = vx;
+            s.vy = vy;
+        }
+    }
+}
+
 /// EDM's Heun integrator from `x0` over `sigmas` (ending at 0), with `denoised(x, σ, step)`
 /// the (guided) denoiser.
 fn heun(
@@ -1022,6 +1053,9 @@ pub fn sample(
                 } else {
                     AgentState::INVALID
                 };
+            }
+            if !keeps {
+                velocities_from_positions(&mut a.states, c, scene.meta.dt);
             }
         }
         let reports = scripts
@@ -1551,5 +1585,63 @@ mod tests {
                 .total
         };
         assert_eq!(unguided(0), unguided(50));
+    }
+
+    #[test]
+    fn sampled_states_carry_the_velocity_of_their_positions() {
+        let (t, s) = setup();
+        let out = sample(
+            &t,
+            &s,
+            &[],
+            &SampleConfig {
+                steps: 4,
+                task: Task::Unconditional,
+                ..SampleConfig::default()
+            },
+        )
+        .unwrap();
+        let (c, dt) = (s.meta.current_step, s.meta.dt);
+        let mut checked = 0;
+        for a in &out[0].scene.agents {
+            for k in c + 1..a.states.len() - 1 {
+                let (p, q, st) = (&a.states[k - 1], &a.states[k + 1], &a.states[k]);
+                if p.valid && q.valid && st.valid {
+                    assert!(
+                        (st.vx - (q.x - p.x) / (2.0 * dt)).abs() < 1e-9,
+                        "agent {} step {k}",
+                        a.id
+                    );
+                    assert!(
+                        (st.vy - (q.y - p.y) / (2.0 * dt)).abs() < 1e-9,
+                        "agent {} step {k}",
+                        a.id
+                    );
+                    checked += 1;
+                }
+            }
+        }
+        assert!(checked > 0);
+        // A state whose neighbours are invalid takes the one-sided difference, and a lone one
+        // stands still.
+        let at = |x: f64, valid: bool| AgentState {
+            x,
+            y: 0.0,
+            heading: 0.0,
+            vx: 9.0,
+            vy: 9.0,
+            valid,
+        };
+        let mut states = vec![
+            at(0.0, true),
+            at(1.0, true),
+            at(3.0, true),
+            at(0.0, false),
+            at(5.0, true),
+        ];
+        velocities_from_positions(&mut states, 0, 0.5);
+        let vx: Vec<f64> = states.iter().map(|s| s.vx).collect();
+        assert_eq!(vx, vec![9.0, 3.0, 4.0, 9.0, 0.0]);
+        assert!(states[1..].iter().filter(|s| s.valid).all(|s| s.vy == 0.0));
     }
 }
