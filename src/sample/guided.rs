@@ -699,7 +699,17 @@ fn polish(
     let per = x.len() / samples;
     let k = variances.len();
     let top = variances.iter().fold(0f64, |m, &v| m.max(v));
-    let prior: Vec<f32> = variances.iter().map(|&v| (v / top).sqrt() as f32).collect();
+    // A basis with no variance anywhere (a degenerate checkpoint) gets equal weights.
+    let prior: Vec<f32> = variances
+        .iter()
+        .map(|&v| {
+            if top > 0.0 {
+                (v / top).sqrt() as f32
+            } else {
+                1.0
+            }
+        })
+        .collect();
     let (c, mut cost, mut g) = eval(x)?;
     x.copy_from_slice(&c);
     let mut step = vec![0.1f32; samples];
