@@ -228,21 +228,19 @@ impl<'a> Ctx<'a> {
 
     /// Which way a route goes at forks: `"straight"` (the default), `"left"` or `"right"`.
     fn turn(&self, name: &'static str) -> Result<Turn, CheckError> {
-        let v = match self.p.get(name) {
-            None => return Ok(Turn::Straight),
-            Some(v) => v,
+        let Some(v) = self.p.get(name) else {
+            return Ok(Turn::Straight);
         };
-        match v {
-            ParamValue::Str(t) if t == "straight" => Ok(Turn::Straight),
-            ParamValue::Str(t) if t == "left" => Ok(Turn::Left),
-            ParamValue::Str(t) if t == "right" => Ok(Turn::Right),
-            _ => Err(CheckError::NotAWord {
-                behavior: self.b.name(),
-                name,
-                value: v.to_string(),
-                expected: "\"straight\", \"left\" or \"right\"",
-            }),
-        }
+        let word = match v {
+            ParamValue::Str(t) => Turn::from_word(t),
+            _ => None,
+        };
+        word.ok_or_else(|| CheckError::NotAWord {
+            behavior: self.b.name(),
+            name,
+            value: v.to_string(),
+            expected: "\"straight\", \"left\" or \"right\"",
+        })
     }
 
     fn numeric(&self, name: &'static str, v: &ParamValue) -> Result<f64, CheckError> {
@@ -360,15 +358,6 @@ fn route_of(s: &Scene, a: &Agent, turn: Turn) -> Option<LanePath> {
         .nearest(&a.states[c].position())
         .s;
     s.map.lane_path(lane, along + 400.0, 50.0, turn).ok()
-}
-
-/// The word for `t` in parameters and scripts.
-fn turn_name(t: Turn) -> &'static str {
-    match t {
-        Turn::Straight => "straight",
-        Turn::Left => "left",
-        Turn::Right => "right",
-    }
 }
 
 /// The route `a` drives in `s`: of the paths straight on, left and right at forks, the one its
@@ -1037,8 +1026,8 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
                                 ("yielder", a.id as f64),
                                 ("other", o.id as f64),
                             ]);
-                            p.set("yielder_turn", ParamValue::Str(turn_name(*ta).into()));
-                            p.set("other_turn", ParamValue::Str(turn_name(*to).into()));
+                            p.set("yielder_turn", ParamValue::Str(ta.word().into()));
+                            p.set("other_turn", ParamValue::Str(to.word().into()));
                             return Some(p);
                         }
                     }

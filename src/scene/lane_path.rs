@@ -20,6 +20,24 @@ pub enum Turn {
     Right,
 }
 
+impl Turn {
+    /// The word for this turn in scripts and behaviour parameters.
+    pub fn word(self) -> &'static str {
+        match self {
+            Turn::Straight => "straight",
+            Turn::Left => "left",
+            Turn::Right => "right",
+        }
+    }
+
+    /// The turn a word names (`"straight"`, `"left"` or `"right"`).
+    pub fn from_word(w: &str) -> Option<Self> {
+        [Turn::Straight, Turn::Left, Turn::Right]
+            .into_iter()
+            .find(|t| t.word() == w)
+    }
+}
+
 /// Heading change (radians) beyond which a lane counts as a turn.
 pub const TURN_THRESHOLD: f64 = 30.0 * std::f64::consts::PI / 180.0;
 

@@ -8,7 +8,7 @@ use super::{doc, err, number, turn, DocEntry, RResult, Shared};
 use crate::cost::series::{Builder, Series};
 use crate::cost::trajectory::Coord;
 use crate::geom::Point;
-use crate::scene::{Map, Turn};
+use crate::scene::Map;
 
 fn check(map: &Map, lane: i64) -> RResult<()> {
     if map.graph().contains(lane) {
@@ -225,11 +225,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
         "Lanes flowing into this lane.",
         |m, l| Dynamic::from(ids(m.graph().predecessors(l)))
     );
-    lanefn!("turn_of", "turn_of(lane) -> string", "\"left\", \"right\" or \"straight\" by the lane's heading change (more than 30 degrees is a turn).", |m, l| Dynamic::from(match m.turn_of(l).expect("checked") {
-        Turn::Left => "left",
-        Turn::Right => "right",
-        Turn::Straight => "straight",
-    }.to_string()));
+    lanefn!("turn_of", "turn_of(lane) -> string", "\"left\", \"right\" or \"straight\" by the lane's heading change (more than 30 degrees is a turn).", |m, l| Dynamic::from(m.turn_of(l).expect("checked").word().to_string()));
     doc(docs, S, "successor(lane, turn) -> int or ()", "The successor that turns \"left\" / \"right\" (by more than 30 degrees) or goes \"straight\", or () if none does.");
     let sh = shared.clone();
     e.register_fn("successor", move |l: i64, t: &str| -> RResult<Dynamic> {

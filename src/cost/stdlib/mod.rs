@@ -170,11 +170,9 @@ pub(crate) fn doc(
 
 /// Parses a turn name.
 pub(crate) fn turn(s: &str) -> RResult<Turn> {
-    match s {
-        "straight" => Ok(Turn::Straight),
-        "left" => Ok(Turn::Left),
-        "right" => Ok(Turn::Right),
-        _ => err(format!(
+    match Turn::from_word(s) {
+        Some(t) => Ok(t),
+        None => err(format!(
             "turn must be \"straight\", \"left\" or \"right\", got {s:?}"
         )),
     }
