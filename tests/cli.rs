@@ -1577,3 +1577,98 @@ fn a_run_directory_takes_one_run() {
     assert_eq!(o.status.code(), Some(1), "{e}");
     assert!(e.contains("settings.seed: 1 there, 2 here"), "{e}");
 }
+
+#[test]
+fn eval_judges_the_rest_of_the_scene_against_the_unguided_twin() {
+    // The twin drives the highway as recorded; the guided sample keeps vehicle 1 under its
+    // speed limit, but stacks vehicle 3 on vehicle 1 and vehicle 4 on vehicle 2 from the
+    // current step on: three vehicles the behaviour does not name collide, against none.
+    let dir = tempfile::tempdir().unwrap();
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let scene = root.join("scripts/scenes/highway.yaml");
+    let (guided, twin) = (dir.path().join("guided"), dir.path().join("twin"));
+    for d in [&guided, &twin] {
+        std::fs::create_dir(d).unwrap();
+    }
+    ok(&["convert", s(&scene), "-o", s(&twin.join("highway.json"))]);
+    let mut r: Value =
+        serde_json::from_str(&std::fs::read_to_string(twin.join("highway.json")).unwrap()).unwrap();
+    let c = r["current_step"].as_u64().unwrap() as usize;
+    for (onto, from) in [(0, 2), (1, 3)] {
+        let target = r["agents"][onto]["states"].as_array().unwrap().clone();
+        let st = r["agents"][from]["states"].as_array_mut().unwrap();
+        for (k, x) in st.iter_mut().enumerate().skip(c + 1) {
+            *x = target[k].clone();
+        }
+    }
+    std::fs::write(guided.join("highway.json"), r.to_string()).unwrap();
+    fn eval<'a>(scene: &'a str, guided: &'a str, extra: &[&'a str]) -> Vec<&'a str> {
+        let mut a = vec![
+            "eval",
+            scene,
+            "--task",
+            "behaviour",
+            "--behaviour",
+            "speed_limit",
+            "--param",
+            "vehicle=1",
+            "limit=30",
+            "--rollouts",
+            guided,
+        ];
+        a.extend_from_slice(extra);
+        a
+    }
+    let (sc, gd) = (s(&scene), s(&guided));
+    // Without the twin, only what the behaviour names is judged: it passes.
+    let out = ok(&eval(sc, gd, &[]));
+    let row = out
+        .lines()
+        .find(|l| l.starts_with("| rollouts in"))
+        .unwrap();
+    assert!(
+        row.contains("| speed_limit | 1 | 1.00 | 1.00 | 1.000 | 0.500 |"),
+        "{out}"
+    );
+    // With it, the wreck behind is the guidance's doing.
+    let json = dir.path().join("e.json");
+    let out = ok(&eval(sc, gd, &["--unguided", s(&twin), "--json", s(&json)]));
+    let row = out
+        .lines()
+        .find(|l| l.starts_with("| rollouts in"))
+        .unwrap();
+    assert!(
+        row.contains("| speed_limit | 1 | 0.00 | 1.00 | 1.000 | 0.500 |"),
+        "{out}"
+    );
+    let v: Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let verdict = &v["methods"][0]["scenes"][0]["verdict"];
+    assert_eq!(verdict["collateral"]["collided"], 3, "{verdict}");
+    assert_eq!(verdict["collateral"]["collided_unguided"], 0, "{verdict}");
+    assert!(
+        verdict["reason"]
+            .as_str()
+            .unwrap()
+            .contains("3 other vehicles collide (unguided: 0)"),
+        "{verdict}"
+    );
+    // The twin is the same scene's, or nothing is judged.
+    let elsewhere = dir.path().join("elsewhere");
+    std::fs::create_dir(&elsewhere).unwrap();
+    let out = common::drivescript(&eval(sc, gd, &["--unguided", s(&elsewhere)]));
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("missing rollout for scene highway"), "{err}");
+    let out = common::drivescript(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "unconditional",
+        "--rollouts",
+        s(&guided),
+        "--unguided",
+        s(&twin),
+    ]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("only --task behaviour"));
+}

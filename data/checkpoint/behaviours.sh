@@ -2,9 +2,11 @@
 # Behaviour success on held-out instances, every behaviour in one run, with the figures the
 # plausibility issue asks for side by side: for each behaviour, the instances checked, the
 # rate achieved plausibly (the headline), the rate achieved (geometry alone), the baselines'
-# rates achieved plausibly (log replay / constant velocity / lane following), the fraction of
-# all vehicles a car could not drive in the guided samples, and the same fraction in the log
-# and in unguided samples of the same instances (same seed).
+# rates achieved plausibly (log replay / constant velocity / lane following), the fractions of
+# all vehicles that collide and that a car could not drive in the guided samples, and the same
+# fractions in the log and in unguided samples of the same instances (same seed). Each guided
+# sample is judged against its unguided twin (`eval --unguided`): it passes only when the
+# vehicles the behaviour does not name fare no worse, within the tolerance in README.
 #   INSTANCES  a directory cut by heldout.sh (OUT/behaviour or OUT/windows)
 #   OUT        where rollouts and eval JSON go (one directory per behaviour, plus unguided/)
 #   extra arguments go to every `simulate` (e.g. --guidance denoiser, --lambda 2)
@@ -32,9 +34,9 @@ mkdir -p "$out"
 "$bin" simulate "$inst" --checkpoint "$ckpt" --task unconditional -o "$out/unguided" \
     "${extra[@]}" >"$out/unguided.log"
 unguided=$("$bin" eval "$inst" --task unconditional --rollouts "$out/unguided" \
-    --horizon "$horizon" | awk -F'|' '/^\| rollouts/ {gsub(/ /, "", $7); print $7}')
-printf '| behaviour | instances | achieved plausibly | achieved | baselines: log / cv / lane | implausible vehicles (log) | unguided |\n'
-printf '|---|---|---|---|---|---|---|\n'
+    --horizon "$horizon" | awk -F'|' '/^\| rollouts/ {gsub(/ /, "", $7); gsub(/ /, "", $8); print $7 " / " $8}')
+printf '| behaviour | instances | achieved plausibly | achieved | baselines: log / cv / lane | collided vehicles (log) | implausible vehicles (log) | unguided: collided / implausible |\n'
+printf '|---|---|---|---|---|---|---|---|\n'
 all="cut_in rightmost_lane off_road yield speed_limit target_point no_collisions
     lane_change_left lane_change_right follow reverse weave stop accident"
 for b in ${BEHAVIOURS:-$all}; do
@@ -43,18 +45,18 @@ for b in ${BEHAVIOURS:-$all}; do
         -o "$out/$b" "${extra[@]}" >"$out/$b.log" 2>&1 ||
         echo "$b: simulate reported failures, see $out/$b.log" >&2
     "$bin" eval "$inst" --task behaviour --behaviour "$b" --auto --baseline log --baseline cv --baseline lane \
-        --rollouts "$out/$b" --horizon "$horizon" --json "$out/$b.json" >"$out/$b.eval" 2>"$out/$b.eval.err" ||
+        --rollouts "$out/$b" --unguided "$out/unguided" --horizon "$horizon" --json "$out/$b.json" >"$out/$b.eval" 2>"$out/$b.eval.err" ||
         echo "$b: eval reported errors, see $out/$b.eval.err" >&2
     # No instance of a behaviour (no agents suited to it in any scene) is a row saying so.
     if ! grep -q '^| rollouts' "$out/$b.eval"; then
-        printf '| %s | 0 | - | - | - | - | %s |\n' "$b" "$unguided"
+        printf '| %s | 0 | - | - | - | - | - | %s |\n' "$b" "$unguided"
         continue
     fi
     awk -F'|' -v b="$b" -v u="$unguided" '
-        /^\| log replay/ {gsub(/ /, "", $5); gsub(/ /, "", $7); log_p = $5; log_rate = $7}
+        /^\| log replay/ {for (i = 5; i <= 8; i++) gsub(/ /, "", $i); log_p = $5; log_c = $7; log_rate = $8}
         /^\| constant velocity/ {gsub(/ /, "", $5); cv_p = $5}
         /^\| constant speed along lane/ {gsub(/ /, "", $5); lane_p = $5}
-        /^\| rollouts/ {for (i = 4; i <= 7; i++) gsub(/ /, "", $i); n = $4; p = $5; a = $6; m = $7}
-        END {printf "| %s | %s | %s | %s | %s / %s / %s | %s (%s) | %s |\n", b, n, p, a, log_p, cv_p, lane_p, m, log_rate, u}
+        /^\| rollouts/ {for (i = 4; i <= 8; i++) gsub(/ /, "", $i); n = $4; p = $5; a = $6; c = $7; m = $8}
+        END {printf "| %s | %s | %s | %s | %s / %s / %s | %s (%s) | %s (%s) | %s |\n", b, n, p, a, log_p, cv_p, lane_p, c, log_c, m, log_rate, u}
     ' "$out/$b.eval"
 done

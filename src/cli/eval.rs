@@ -8,11 +8,11 @@ use anyhow::{bail, Context, Result};
 use drivescript::cost::Params;
 use drivescript::eval::kinematic::{self, KinematicLimits, Violation};
 use drivescript::eval::metrics::{self, JsdBins, Kinematics};
-use drivescript::eval::{check, Baseline, Behavior};
+use drivescript::eval::{check, check_against_unguided, Baseline, Behavior};
 use drivescript::io::{
     discover, read_each, rollout::Rollout, write_atomic, LoadOptions, OutputNames,
 };
-use drivescript::scene::Scene;
+use drivescript::scene::{AgentType, Scene};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
@@ -63,6 +63,12 @@ pub struct Args {
     /// (`eval::behaviors::suggest`); --param values override the suggestion.
     #[arg(long)]
     auto: bool,
+    /// For --task behaviour with --rollouts: the same scenes sampled unguided (same seed and
+    /// samples, e.g. `simulate` without a script). A sample then passes only when the vehicles
+    /// the behaviour does not name collide and drive implausibly no more than in its unguided
+    /// twin, within the tolerance in README (Evaluation).
+    #[arg(long, value_name = "DIR", requires = "rollouts")]
+    unguided: Option<PathBuf>,
     /// Score exactly this many future steps (a model's horizon): scenes are cut, or extended
     /// with unobserved steps, to current step + 1 + HORIZON before anything is simulated or
     /// scored, so that baselines simulate as far as a model does.
@@ -106,6 +112,10 @@ struct Acc {
     checked: usize,
     /// Per judged vehicle of every sample: implausible at all, then per [`Violation::ALL`].
     implausible: Vec<Option<bool>>,
+    /// Per vehicle of the first sample (unconditional and behaviour tasks): whether its box
+    /// overlaps another's at some future step (the pair an accident names excepted).
+    #[serde(default)]
+    collided: Vec<Option<bool>>,
     by_kind: [Vec<Option<bool>>; 6],
     per_scene: Vec<serde_json::Value>,
     seconds: f64,
@@ -147,6 +157,7 @@ fn score(
     logged: &Scene,
     sims: &[Scene],
     behaviour: Option<(Behavior, &Params)>,
+    unguided: Option<&Scene>,
 ) {
     let t0 = Instant::now();
     acc.scenes += 1;
@@ -198,6 +209,8 @@ fn score(
             row["offroad_rate"] = json!(off);
         }
         Task::Unconditional => {
+            acc.collided
+                .extend(vehicles_only(sim, metrics::collided(sim)));
             let scr = metrics::scene_collision_rate(sim, 0.1);
             acc.scr.extend(scr);
             let (gn, ge) = metrics::placement(sim);
@@ -212,8 +225,21 @@ fn score(
         }
         Task::Behaviour => {
             let (b, p) = behaviour.expect("checked by the caller");
-            match check(b, sim, p) {
+            let verdict = match unguided {
+                Some(u) => check_against_unguided(b, sim, u, p),
+                None => check(b, sim, p),
+            };
+            match verdict {
                 Ok(v) => {
+                    let touch: Vec<(usize, usize)> = match (b, v.named.as_slice()) {
+                        (Behavior::Accident, [x, y]) => {
+                            let idx = |id: i64| sim.agents.iter().position(|a| a.id == id);
+                            idx(*x).zip(idx(*y)).into_iter().collect()
+                        }
+                        _ => Vec::new(),
+                    };
+                    acc.collided
+                        .extend(vehicles_only(sim, metrics::collided_except(sim, &touch)));
                     acc.checked += 1;
                     acc.passed += v.passed as usize;
                     acc.achieved += v.achieved as usize;
@@ -227,7 +253,16 @@ fn score(
     acc.per_scene.push(row);
 }
 
-/// The scene cut to `h` future steps.
+/// `flags` (one per agent of `s`) with every agent that is not a vehicle left out (`None`).
+fn vehicles_only(s: &Scene, mut flags: Vec<Option<bool>>) -> Vec<Option<bool>> {
+    for (f, a) in flags.iter_mut().zip(&s.agents) {
+        if a.agent_type != AgentType::Vehicle {
+            *f = None;
+        }
+    }
+    flags
+}
+
 fn task_name(t: Task) -> &'static str {
     match t {
         Task::Conditional => "conditional",
@@ -268,6 +303,12 @@ pub fn run(args: Args) -> Result<ExitCode> {
             bail!("{}: --rollouts must be a directory", d.display());
         }
         methods.push((format!("rollouts in {}", d.display()), None));
+    }
+    if args.unguided.is_some() && task != Task::Behaviour {
+        bail!("--unguided: only --task behaviour judges a sample against its unguided twin");
+    }
+    if let Some(d) = args.unguided.as_ref().filter(|d| !d.is_dir()) {
+        bail!("{}: --unguided must be a directory", d.display());
     }
     let behaviour = match (task, &args.behaviour) {
         (Task::Behaviour, None) => bail!("--task behaviour needs --behaviour NAME"),
@@ -388,23 +429,34 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 };
                 // Every method is scored over the scene's steps: a rollout may run longer
                 // (a model's horizon, without --horizon).
-                let sims: Vec<Scene> = sims
-                    .iter()
-                    .map(|s| {
-                        let s = s.with_horizon(scene.num_future_steps()).retire_exited();
-                        if task == Task::Conditional && !args.all_steps {
-                            s.with_lifetimes_of(&reference)
-                        } else {
-                            s
+                let fit = |s: &Scene| {
+                    let s = s.with_horizon(scene.num_future_steps()).retire_exited();
+                    if task == Task::Conditional && !args.all_steps {
+                        s.with_lifetimes_of(&reference)
+                    } else {
+                        s
+                    }
+                };
+                let sims: Vec<Scene> = sims.iter().map(fit).collect();
+                // The rollouts' unguided twins (baselines have none: nothing guided them).
+                let twin = match (m, &args.unguided) {
+                    (None, Some(dir)) => match rollouts_for(dir, scene, args.samples) {
+                        Ok(u) => u.first().map(fit),
+                        Err(e) => {
+                            bar.suspend(|| eprintln!("error: {}", super::describe(&e)));
+                            failures += 1;
+                            continue;
                         }
-                    })
-                    .collect();
+                    },
+                    _ => None,
+                };
                 score(
                     task,
                     acc,
                     &reference,
                     &sims,
                     scene_params.as_ref().map(|(b, p)| (*b, p)),
+                    twin.as_ref(),
                 );
             }
         }
@@ -420,6 +472,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         "horizon": args.horizon,
         "samples": args.samples,
         "all_steps": args.all_steps,
+        "unguided": args.unguided,
         "shards": args.shard.map_or(1, |s| s.count),
     });
     let shard = args.shard.map(|s| s.index);
@@ -467,12 +520,12 @@ fn report(
             println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
         }
         Task::Unconditional => {
-            println!("| method | scenes | scene collision rate | MMD² nearest object | MMD² road edge | implausible | ms/scene |");
-            println!("|---|---|---|---|---|---|---|");
+            println!("| method | scenes | scene collision rate | MMD² nearest object | MMD² road edge | collided | implausible | ms/scene |");
+            println!("|---|---|---|---|---|---|---|---|");
         }
         Task::Behaviour => {
-            println!("| method | behaviour | scenes checked | achieved plausibly | achieved | implausible | ms/scene |");
-            println!("|---|---|---|---|---|---|---|");
+            println!("| method | behaviour | scenes checked | achieved plausibly | achieved | collided | implausible | ms/scene |");
+            println!("|---|---|---|---|---|---|---|---|");
         }
     }
     for (name, acc) in methods.iter().zip(accs) {
@@ -482,6 +535,7 @@ fn report(
             f64::NAN
         };
         let implausible = metrics::rate(&acc.implausible);
+        let collided = metrics::rate(&acc.collided);
         let by_kind: serde_json::Map<String, serde_json::Value> = Violation::ALL
             .iter()
             .zip(&acc.by_kind)
@@ -512,11 +566,12 @@ fn report(
             }
             Task::Unconditional => {
                 println!(
-                    "| {name} | {} | {} | {} | {} | {} | {ms:.1} |",
+                    "| {name} | {} | {} | {} | {} | {} | {} | {ms:.1} |",
                     acc.scenes,
                     fmt(mean(&acc.scr), 3),
                     fmt(mean(&acc.mmd_near), 3),
                     fmt(mean(&acc.mmd_edge), 3),
+                    fmt(collided, 3),
                     fmt(implausible, 3)
                 );
                 json!({"method": name, "scenes": acc.scenes, "scene_collision_rate": mean(&acc.scr),
@@ -527,11 +582,12 @@ fn report(
                 let of = |n: usize| (acc.checked > 0).then(|| n as f64 / acc.checked as f64);
                 let (rate, achieved) = (of(acc.passed), of(acc.achieved));
                 println!(
-                    "| {name} | {} | {} | {} | {} | {} | {ms:.1} |",
+                    "| {name} | {} | {} | {} | {} | {} | {} | {ms:.1} |",
                     b.name(),
                     acc.checked,
                     fmt(rate, 2),
                     fmt(achieved, 2),
+                    fmt(collided, 3),
                     fmt(implausible, 3)
                 );
                 json!({"method": name, "behaviour": b.name(), "definition": b.definition(), "checked": acc.checked,
@@ -539,8 +595,17 @@ fn report(
             }
         };
         row["implausible_rate"] = json!(implausible);
+        if task != Task::Conditional {
+            row["collided_rate"] = json!(collided);
+        }
         row["implausible_by_kind"] = json!(by_kind);
         table.push(json!({"summary": row, "scenes": acc.per_scene}));
+    }
+    if task != Task::Conditional {
+        println!(
+            "\ncollided: fraction of vehicles (pooled over scenes) whose box overlaps another agent's at some future step{}",
+            if task == Task::Behaviour { " (an accident's own pair excepted)" } else { "" }
+        );
     }
     println!(
         "\nimplausible: fraction of vehicles (pooled over scenes and samples) whose future a car cannot drive: reversing, sprinting, braking or accelerating beyond 7 m/s², swerving, crabbing or turning tighter than Waymax's curvature bound (README, Evaluation)"
@@ -610,6 +675,7 @@ impl Acc {
         self.achieved += o.achieved;
         self.checked += o.checked;
         self.implausible.extend(o.implausible);
+        self.collided.extend(o.collided);
         for (a, b) in self.by_kind.iter_mut().zip(o.by_kind) {
             a.extend(b);
         }

@@ -87,8 +87,9 @@ pub struct Args {
     #[arg(long)]
     auto: Option<String>,
     /// Weight of the realism terms that keep every sampled vehicle driving as a car can
-    /// (speed, reversing, acceleration, lateral acceleration, crabbing); 0 turns realism off.
-    /// A script exempts an agent it asks to back up with `allow(a, "reverse")`.
+    /// (speed, reversing, acceleration, lateral acceleration, crabbing) and clear of every
+    /// other agent; 0 turns realism off. A script exempts an agent it asks to back up with
+    /// `allow(a, "reverse")`, and two it asks to collide with `allow(a, "collide", b)`.
     #[arg(long, default_value_t = drivescript::sample::REALISM_WEIGHT)]
     realism: f64,
     /// Weight of the known-state cost (conditional end points).

@@ -673,6 +673,7 @@ impl CostScript {
             widths: HashMap::new(),
             coords: HashMap::new(),
             may_reverse: Vec::new(),
+            may_collide: Vec::new(),
             named: Vec::new(),
             params: params
                 .0
@@ -856,6 +857,7 @@ impl CostScript {
             c.prints.clear();
             c.coords.clear();
             c.may_reverse.clear();
+            c.may_collide.clear();
             c.named.clear();
         }
         let t0 = Instant::now();
@@ -913,6 +915,7 @@ impl CostScript {
             });
         }
         report.may_reverse = c.may_reverse.clone();
+        report.may_collide = c.may_collide.clone();
         report.named = c.named.clone();
         Ok(report)
     }

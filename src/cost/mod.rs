@@ -22,7 +22,7 @@ pub use engine::{
 };
 pub use fwd::{box_clearance, Fwd};
 pub use params::{ParamValue, Params};
-pub use realism::{may_reverse, Realism, TERMS as REALISM_TERMS};
+pub use realism::{Allowed, Realism, TERMS as REALISM_TERMS};
 pub use report::{CostReport, TermReport};
 pub use series::Series;
 pub use stdlib::DocEntry;

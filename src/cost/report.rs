@@ -52,6 +52,9 @@ pub struct CostReport {
     /// Agents (scene indices) the script allows to reverse (`allow(a, "reverse")`), which
     /// realism then does not hold back ([`super::Realism`]).
     pub may_reverse: Vec<usize>,
+    /// Pairs of agents (scene indices, smaller first) the script allows to touch
+    /// (`allow(a, "collide", b)`), which realism then does not hold apart.
+    pub may_collide: Vec<(usize, usize)>,
     /// Agent ids the script named with `agent(id)`, in first-lookup order.
     pub named: Vec<i64>,
 }
@@ -79,6 +82,7 @@ impl CostReport {
             prints,
             elapsed,
             may_reverse: Vec::new(),
+            may_collide: Vec::new(),
             named: Vec::new(),
         }
     }

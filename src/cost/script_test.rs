@@ -114,9 +114,24 @@ pub struct Expect {
     /// held with `hold`, say, that no other term is about).
     #[serde(default)]
     pub still: Vec<i64>,
+    /// Exactly these exemptions from realism are asked for (`allow(...)`), by agent id.
+    #[serde(default)]
+    pub allows: Option<Allows>,
     /// Compiling, validating or evaluating fails with a message containing this.
     #[serde(default)]
     pub error: Option<String>,
+}
+
+/// The exemptions from realism a script asks for, by agent id (order does not matter).
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Allows {
+    /// Agents allowed to back up (`allow(a, "reverse")`).
+    #[serde(default)]
+    pub reverse: Vec<i64>,
+    /// Pairs allowed to touch (`allow(a, "collide", b)`).
+    #[serde(default)]
+    pub collide: Vec<[i64; 2]>,
 }
 
 impl Expect {
@@ -130,6 +145,7 @@ impl Expect {
             && !self.descends
             && self.towards.is_none()
             && self.still.is_empty()
+            && self.allows.is_none()
             && self.error.is_none()
     }
 }
@@ -459,6 +475,34 @@ impl Runner {
             detail.push(format!("gradient on agent {id}: {moved:.3e}"));
             fail(moved == 0.0, format!("agent {id} gets no gradient"));
         }
+        if let Some(want) = &x.allows {
+            let id = |i: usize| scene.agents[i].id;
+            let mut got_rev: Vec<i64> = report.may_reverse.iter().map(|&i| id(i)).collect();
+            let mut got_col: Vec<[i64; 2]> = report
+                .may_collide
+                .iter()
+                .map(|&(i, j)| [id(i).min(id(j)), id(i).max(id(j))])
+                .collect();
+            let mut want_rev = want.reverse.clone();
+            let mut want_col: Vec<[i64; 2]> = want
+                .collide
+                .iter()
+                .map(|p| [p[0].min(p[1]), p[0].max(p[1])])
+                .collect();
+            for v in [&mut got_rev, &mut want_rev] {
+                v.sort_unstable();
+                v.dedup();
+            }
+            for v in [&mut got_col, &mut want_col] {
+                v.sort_unstable();
+                v.dedup();
+            }
+            detail.push(format!("allows reverse {got_rev:?}, collide {got_col:?}"));
+            fail(
+                got_rev == want_rev && got_col == want_col,
+                format!("allows exactly reverse {want_rev:?} and collide {want_col:?}"),
+            );
+        }
         let ok = failed.is_empty();
         detail.extend(failed);
         Ok((ok, detail.join(", ")))
@@ -520,4 +564,56 @@ pub fn run_test_file(path: &Path) -> Result<Vec<CaseResult>, ScriptTestError> {
             }
         })
         .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Runs one case of `script` (under scripts/) on the highway scene with `expect`.
+    fn case(script: &str, params: &str, expect: &str) -> CaseResult {
+        let dir = tempfile::tempdir().unwrap();
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts");
+        let t = dir.path().join("x.test.yaml");
+        std::fs::write(
+            &t,
+            format!(
+                "script: {}\ncases:\n  - name: c\n    scene: {}\n    params: {params}\n    expect: {expect}\n",
+                root.join(script).display(),
+                root.join("scenes/highway.yaml").display()
+            ),
+        )
+        .unwrap();
+        let mut r = run_test_file(&t).unwrap();
+        assert_eq!(r.len(), 1);
+        r.remove(0)
+    }
+
+    #[test]
+    fn allows_must_match_the_script_s_exemptions_exactly() {
+        let acc = "{attacker: 4, target: 2}";
+        let pass = case("accident.rhai", acc, "{allows: {collide: [[2, 4]]}}");
+        assert!(pass.passed, "{}", pass.detail);
+        assert!(pass.detail.contains("collide [[2, 4]]"), "{}", pass.detail);
+        for wrong in [
+            "{allows: {collide: [[2, 3]]}}",
+            "{allows: {collide: [[2, 4]], reverse: [4]}}",
+            "{allows: {}}",
+        ] {
+            let r = case("accident.rhai", acc, wrong);
+            assert!(
+                !r.passed && r.detail.contains("FAILED allows"),
+                "{wrong}: {}",
+                r.detail
+            );
+        }
+        let rev = case("reverse.rhai", "{vehicle: 4}", "{allows: {reverse: [4]}}");
+        assert!(rev.passed, "{}", rev.detail);
+        let none = case(
+            "speed_limit.rhai",
+            "{vehicle: 1}",
+            "{allows: {reverse: [1]}}",
+        );
+        assert!(!none.passed, "{}", none.detail);
+    }
 }

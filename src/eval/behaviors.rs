@@ -6,6 +6,7 @@ use std::collections::BTreeMap;
 
 use serde::Serialize;
 
+use super::collateral::{collateral, Collateral};
 use super::kinematic::{self, KinematicLimits, Violation};
 use crate::cost::{ParamValue, Params};
 use crate::geom::{wrap_angle, Point};
@@ -154,6 +155,44 @@ pub struct Verdict {
     pub measured: BTreeMap<String, f64>,
     /// Why, in words.
     pub reason: String,
+    /// The ids of the agents the behaviour names, in the order the checker looked them up.
+    pub named: Vec<i64>,
+    /// What the sample did to the vehicles the behaviour does not name, against the same
+    /// sample unguided, when one was given ([`check_against_unguided`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub collateral: Option<Collateral>,
+}
+
+impl Verdict {
+    /// The verdict with the rest of the scene judged too: it no longer passes when the sample
+    /// wrecked more of the scene than its unguided twin, beyond [`Collateral::allowance`].
+    pub fn with_collateral(mut self, c: Collateral) -> Verdict {
+        let found = c.violations();
+        if self.achieved && !found.is_empty() {
+            let sep = if self.violations.is_empty() {
+                ", but "
+            } else {
+                "; "
+            };
+            self.reason = format!("{}{sep}{}", self.reason, found.join("; "));
+        }
+        self.violations.extend(found);
+        self.passed = self.achieved && self.violations.is_empty();
+        for (k, v) in [
+            ("other_vehicles", c.others),
+            ("other_vehicles_collided", c.collided),
+            ("other_vehicles_collided_unguided", c.collided_unguided),
+            ("other_vehicles_implausible", c.implausible),
+            (
+                "other_vehicles_implausible_unguided",
+                c.implausible_unguided,
+            ),
+        ] {
+            self.measured.insert(k.to_string(), v as f64);
+        }
+        self.collateral = Some(c);
+        self
+    }
 }
 
 /// Why a checker cannot run.
@@ -192,6 +231,14 @@ pub enum CheckError {
     /// An agent is missing or unusable.
     #[error("{behavior}: {message}")]
     Agent {
+        /// The behaviour.
+        behavior: &'static str,
+        /// What is wrong.
+        message: String,
+    },
+    /// The unguided sample to judge the rest of the scene against does not fit.
+    #[error("{behavior}: {message}")]
+    Unguided {
         /// The behaviour.
         behavior: &'static str,
         /// What is wrong.
@@ -334,6 +381,8 @@ impl<'a> Ctx<'a> {
             violations,
             measured: self.m,
             reason,
+            named: self.named.iter().map(|(_, a)| a.id).collect(),
+            collateral: None,
         }
     }
 }
@@ -402,6 +451,34 @@ fn overlap_steps(s: &Scene, a: &Agent, b: &Agent) -> Vec<usize> {
             |&t| matches!((a.footprint(t), b.footprint(t)), (Some(x), Some(y)) if x.overlaps(&y)),
         )
         .collect()
+}
+
+/// [`check`] on a guided sample, with the rest of the scene judged against `unguided`, the
+/// same scene sampled without guidance (same seed): see [`super::collateral`]. The pair an
+/// `accident` names may collide.
+pub fn check_against_unguided(
+    behavior: Behavior,
+    guided: &Scene,
+    unguided: &Scene,
+    params: &Params,
+) -> Result<Verdict, CheckError> {
+    let v = check(behavior, guided, params)?;
+    let touch: Vec<(i64, i64)> = match (behavior, v.named.as_slice()) {
+        (Behavior::Accident, [a, b]) => vec![(*a, *b)],
+        _ => Vec::new(),
+    };
+    let c = collateral(
+        guided,
+        unguided,
+        &v.named,
+        &touch,
+        &KinematicLimits::default(),
+    )
+    .map_err(|e| CheckError::Unguided {
+        behavior: behavior.name(),
+        message: e.to_string(),
+    })?;
+    Ok(v.with_collateral(c))
 }
 
 /// Decides whether `behavior` happened in `scene` (a simulated or logged scene).

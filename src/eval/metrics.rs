@@ -92,6 +92,12 @@ fn future_boxes(s: &Scene, t: usize) -> Vec<(usize, OrientedBox)> {
 /// Per agent with any valid future step: whether its box overlaps another valid agent's box at
 /// some future step (`None` for agents never valid in the future).
 pub fn collided(s: &Scene) -> Vec<Option<bool>> {
+    collided_except(s, &[])
+}
+
+/// [`collided`], except that the pairs of agents (scene indices, either order) in `exempt`
+/// may touch: a collision a behaviour asks for is not one it caused by accident.
+pub fn collided_except(s: &Scene, exempt: &[(usize, usize)]) -> Vec<Option<bool>> {
     let mut hit: Vec<Option<bool>> = vec![None; s.agents.len()];
     for t in s.meta.current_step + 1..s.num_steps() {
         let boxes = future_boxes(s, t);
@@ -100,6 +106,9 @@ pub fn collided(s: &Scene) -> Vec<Option<bool>> {
         }
         for (a, b) in near_boxes(&boxes, 0.0) {
             let ((i, bi), (j, bj)) = (&boxes[a], &boxes[b]);
+            if exempt.contains(&(*i, *j)) || exempt.contains(&(*j, *i)) {
+                continue;
+            }
             if bi.overlaps(bj) {
                 hit[*i] = Some(true);
                 hit[*j] = Some(true);

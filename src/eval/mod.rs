@@ -3,11 +3,13 @@
 
 pub mod baselines;
 pub mod behaviors;
+pub mod collateral;
 pub mod kinematic;
 pub mod metrics;
 
 pub use baselines::Baseline;
-pub use behaviors::{check, Behavior, CheckError, Verdict};
+pub use behaviors::{check, check_against_unguided, Behavior, CheckError, Verdict};
+pub use collateral::{collateral, Collateral, CollateralError};
 pub use kinematic::{judge, Judgement, KinematicLimits, Violation};
 
 #[cfg(test)]

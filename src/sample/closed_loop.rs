@@ -128,7 +128,7 @@ pub fn closed_loop(
                 .iter()
                 .map(|a| modelled_type(a.agent_type) && a.states[c0].valid)
                 .collect();
-            let exempt = crate::cost::may_reverse(&reports, moved.len());
+            let exempt = crate::cost::Allowed::from_reports(&reports, &start);
             (first, cfg.realism.evaluate(&start, &traj, &moved, &exempt))
         });
         out.push(Sample {

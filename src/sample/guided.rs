@@ -907,7 +907,7 @@ pub fn sample(
     }
     let realism_on = cfg.realism.weight > 0.0;
     let realism = |t: &Trajectories, reports: &[CostReport]| {
-        let exempt = crate::cost::may_reverse(reports, scene.agents.len());
+        let exempt = crate::cost::Allowed::from_reports(reports, scene);
         cfg.realism.evaluate(scene, t, &moved, &exempt)
     };
     // Every sample's guidance cost (scripts, realism, known states) at the coefficients

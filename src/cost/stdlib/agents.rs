@@ -267,19 +267,47 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     doc(
         docs,
         S,
-        "allow(a, \"reverse\")",
-        "Tells the sampler that the behaviour asks `a` to back up, so realism (on by default in simulate) does not push it forwards. Reversing is the only motion a script can allow; the other bounds of plausible driving hold for every agent.",
+        "allow(a, \"reverse\"), allow(a, \"collide\", b)",
+        "Tells the sampler what the behaviour asks for that realism (on by default in simulate) would otherwise fight: `allow(a, \"reverse\")` lets `a` back up; `allow(a, \"collide\", b)` lets the boxes of `a` and `b` touch (an accident). These are the only exemptions; the other bounds of plausible driving, and keeping clear of every other agent, hold for every agent.",
     );
     let sh = shared.clone();
     e.register_fn("allow", move |a: AgentRef, what: &str| {
-        if what != "reverse" {
-            return err(format!(
-                "allow: {what:?} cannot be allowed; only \"reverse\" (the other bounds of plausible driving hold for every agent)"
-            ));
+        match what {
+            "reverse" => {}
+            "collide" => {
+                return err(
+                    "allow: \"collide\" needs the other agent: allow(a, \"collide\", b)",
+                )
+            }
+            _ => {
+                return err(format!(
+                    "allow: {what:?} cannot be allowed; only \"reverse\" and \"collide\" (the other bounds of plausible driving hold for every agent)"
+                ))
+            }
         }
         let mut c = sh.borrow_mut();
         if !c.may_reverse.contains(&a.idx) {
             c.may_reverse.push(a.idx);
+        }
+        Ok(())
+    });
+    let sh = shared.clone();
+    e.register_fn("allow", move |a: AgentRef, what: &str, b: AgentRef| {
+        if what != "collide" {
+            return err(format!(
+                "allow: {what:?} with a second agent cannot be allowed; only allow(a, \"collide\", b)"
+            ));
+        }
+        if a.idx == b.idx {
+            return err(format!(
+                "allow: an agent cannot collide with itself (both arguments are agent {})",
+                a.id
+            ));
+        }
+        let pair = (a.idx.min(b.idx), a.idx.max(b.idx));
+        let mut c = sh.borrow_mut();
+        if !c.may_collide.contains(&pair) {
+            c.may_collide.push(pair);
         }
         Ok(())
     });

@@ -59,6 +59,9 @@ pub(crate) struct Ctx {
     pub coords: HashMap<(usize, u8), Series>,
     /// Agents (scene indices) the script allows to reverse (`allow(a, "reverse")`).
     pub may_reverse: Vec<usize>,
+    /// Pairs of agents (scene indices, smaller first) the script allows to touch
+    /// (`allow(a, "collide", b)`).
+    pub may_collide: Vec<(usize, usize)>,
     /// Agent ids the script looked up by `agent(id)`, in first-lookup order: the agents it
     /// names (the loop judges their motion).
     pub named: Vec<i64>,
