@@ -11,11 +11,9 @@
 //!
 //! A sixth term keeps every moved agent clear of every other agent's box by
 //! [`Realism::clearance`]: guidance that pushes a car forwards would otherwise push it through
-//! the one ahead, and the sample's other cars pay for the behaviour. It moves positions only,
-//! with the headings held: cars get out of each other's way by driving, and a heading turned
-//! to clear a box is a car turning on the spot (headings follow the path where cars move).
-//! Where an agent a script names meets one it does not, only the other gives way: the traffic
-//! behind a car asked to stop brakes, rather than shoving the stopped car on.
+//! the one ahead, and the sample's other cars pay for the behaviour. Where an agent a script
+//! names meets one it does not, only the other gives way: the traffic behind a car asked to
+//! stop brakes, rather than shoving the stopped car on.
 //!
 //! A script exempts an agent from the reverse bound with `allow(a, "reverse")`, and a pair from
 //! the collision term with `allow(a, "collide", b)`: a behaviour that asks a car to back up, or
@@ -297,8 +295,8 @@ impl Realism {
     }
 
     /// The collision term: Σ over steps and pairs with a moved agent (and not allowed to touch)
-    /// of relu(clearance − box clearance)², and its gradient w.r.t. the positions of the agents
-    /// that give way (headings held). Agents the sampler does not move are obstacles, as they
+    /// of relu(clearance − box clearance)², and its gradient w.r.t. the poses of the agents
+    /// that give way. Agents the sampler does not move are obstacles, as they
     /// are to a driver; of a named and an unnamed moved agent, the unnamed one gives way.
     fn collisions(
         &self,
@@ -347,6 +345,7 @@ impl Realism {
                     if is_moved(a) && !leads {
                         grad.push((lay.var(a, t, Coord::X), k * c.g[side]));
                         grad.push((lay.var(a, t, Coord::Y), k * c.g[side + 1]));
+                        grad.push((lay.var(a, t, Coord::Heading), k * c.g[side + 2]));
                     }
                 }
             }
@@ -608,8 +607,7 @@ mod tests {
             ..Allowed::default()
         };
         assert_eq!(collision(&t, &all, &other).value, hit.value);
-        // Where a script names agent 1, agent 2 gives way alone, by position (never by turning
-        // on the spot).
+        // Where a script names agent 1, agent 2 gives way alone.
         let named = Allowed {
             named: vec![true, false, false, false],
             ..Allowed::default()
@@ -617,10 +615,6 @@ mod tests {
         let yields = collision(&t, &all, &named);
         assert_eq!(yields.value, hit.value);
         assert_eq!(agents_in(&yields.grad), vec![1]);
-        assert!(yields
-            .grad
-            .iter()
-            .all(|&(k, _)| t.layout.decode(k).2 != Coord::Heading));
         // Unless it cannot: an agent the sampler does not move is an obstacle to named ones too.
         let mut only0 = vec![false; n];
         only0[0] = true;
@@ -706,11 +700,6 @@ mod tests {
             for var in 0..t.layout.len() {
                 let (a, k, c) = t.layout.decode(var as u32);
                 if a != 0 && a != 2 {
-                    continue;
-                }
-                // The collision term holds headings (a stop-gradient, see the module).
-                if term.name == "realism_collision" && c == Coord::Heading {
-                    assert_eq!(dense[var], 0.0);
                     continue;
                 }
                 let idx = a * t.layout.steps + k;
