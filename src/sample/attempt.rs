@@ -15,7 +15,7 @@ use serde::Serialize;
 use super::closed_loop::{closed_loop, ScriptSpec};
 use super::guided::{prepare, sample, Guidance, Sample, SampleConfig, SampleError, Task};
 use crate::cost::{check_params, CostError, CostScript, Params};
-use crate::eval::behaviors::{check, Behavior, CheckError, Verdict};
+use crate::eval::behaviors::{check, check_against_unguided, Behavior, CheckError, Verdict};
 use crate::eval::kinematic::{judge, KinematicLimits};
 use crate::io::{output_stem, rollout::Rollout, write_atomic, IoError};
 use crate::scene::Scene;
@@ -285,6 +285,17 @@ pub fn attempt(
         None => sample(trained, &scene, &scripts, cfg)?,
     };
     let seconds = t0.elapsed().as_secs_f64();
+    // The rest of the scene is judged against the same samples drawn unguided (same seed, so
+    // the same noise): a sample whose guidance wrecked the cars it does not name has not shown
+    // the behaviour (`eval::collateral`).
+    let twins = if spec.checks.is_empty() || spec.scripts.is_empty() {
+        None
+    } else {
+        Some(match spec.replan {
+            Some(every) => closed_loop(trained, raw, &[], cfg, every)?,
+            None => sample(trained, &scene, &[], cfg)?,
+        })
+    };
     let roles = roles(spec.checks.iter().map(|(b, p)| (*b, p)));
     let mut outcomes = Vec::with_capacity(samples.len());
     for (k, s) in samples.iter().enumerate() {
@@ -322,10 +333,14 @@ pub fn attempt(
                 });
             }
         }
+        let twin = twins.as_ref().and_then(|t| t.get(k));
         let verdicts = spec
             .checks
             .iter()
-            .map(|(b, p)| check(*b, &s.scene, p))
+            .map(|(b, p)| match twin {
+                Some(u) => check_against_unguided(*b, &s.scene, &u.scene, p),
+                None => check(*b, &s.scene, p),
+            })
             .collect::<Result<Vec<_>, _>>()?;
         let judged = judge(&s.scene, &KinematicLimits::default());
         let mut realism = Vec::new();
@@ -469,7 +484,12 @@ mod tests {
                 );
                 assert!(x.initial.is_some(), "{} has no first estimate", x.term);
             }
-            let v = check(Behavior::CutIn, &a.samples[k].scene, &p).unwrap();
+            // Judged with the rest of the scene against the same sample drawn unguided.
+            let twins = sample(&t, &prepare(&scene, &t).unwrap(), &[], &cfg()).unwrap();
+            let v =
+                check_against_unguided(Behavior::CutIn, &a.samples[k].scene, &twins[k].scene, &p)
+                    .unwrap();
+            assert!(v.collateral.is_some());
             assert_eq!(o.verdicts, vec![v.clone()]);
             assert_eq!(o.passed(), Some(v.passed));
             let judged = judge(&a.samples[k].scene, &KinematicLimits::default());
