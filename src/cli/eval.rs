@@ -231,13 +231,7 @@ fn score(
             };
             match verdict {
                 Ok(v) => {
-                    let touch: Vec<(usize, usize)> = match (b, v.named.as_slice()) {
-                        (Behavior::Accident, [x, y]) => {
-                            let idx = |id: i64| sim.agents.iter().position(|a| a.id == id);
-                            idx(*x).zip(idx(*y)).into_iter().collect()
-                        }
-                        _ => Vec::new(),
-                    };
+                    let touch = b.contacts(&v.named);
                     acc.collided
                         .extend(vehicles_only(sim, metrics::collided_except(sim, &touch)));
                     acc.checked += 1;

@@ -129,6 +129,15 @@ impl Behavior {
         }
     }
 
+    /// The pairs of `named` agents (ids, in a verdict's order) the behaviour asks to touch:
+    /// an accident's attacker and target; no pair for any other behaviour.
+    pub fn contacts(self, named: &[i64]) -> Vec<(i64, i64)> {
+        match (self, named) {
+            (Behavior::Accident, [a, b]) => vec![(*a, *b)],
+            _ => Vec::new(),
+        }
+    }
+
     /// The parameters that name agents (their roles), a subset of [`Behavior::required`].
     pub fn roles(self) -> &'static [&'static str] {
         match self {
@@ -463,15 +472,11 @@ pub fn check_against_unguided(
     params: &Params,
 ) -> Result<Verdict, CheckError> {
     let v = check(behavior, guided, params)?;
-    let touch: Vec<(i64, i64)> = match (behavior, v.named.as_slice()) {
-        (Behavior::Accident, [a, b]) => vec![(*a, *b)],
-        _ => Vec::new(),
-    };
     let c = collateral(
         guided,
         unguided,
         &v.named,
-        &touch,
+        &behavior.contacts(&v.named),
         &KinematicLimits::default(),
     )
     .map_err(|e| CheckError::Unguided {

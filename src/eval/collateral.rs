@@ -95,12 +95,7 @@ pub fn collateral(
     }
     // Per agent id: (collided, implausible), for the vehicles not named.
     let counts = |s: &Scene| {
-        let idx = |id: i64| s.agents.iter().position(|a| a.id == id);
-        let exempt: Vec<(usize, usize)> = may_touch
-            .iter()
-            .filter_map(|&(a, b)| Some((idx(a)?, idx(b)?)))
-            .collect();
-        let hit = collided_except(s, &exempt);
+        let hit = collided_except(s, may_touch);
         let bad = kinematic::flags(&kinematic::judge(s, lim), None);
         s.agents
             .iter()

@@ -95,9 +95,16 @@ pub fn collided(s: &Scene) -> Vec<Option<bool>> {
     collided_except(s, &[])
 }
 
-/// [`collided`], except that the pairs of agents (scene indices, either order) in `exempt`
-/// may touch: a collision a behaviour asks for is not one it caused by accident.
-pub fn collided_except(s: &Scene, exempt: &[(usize, usize)]) -> Vec<Option<bool>> {
+/// [`collided`], except that the pairs of agents (ids, either order) in `exempt` may touch: a
+/// collision a behaviour asks for is not one it caused by accident.
+pub fn collided_except(s: &Scene, exempt: &[(i64, i64)]) -> Vec<Option<bool>> {
+    let exempt: Vec<(usize, usize)> = exempt
+        .iter()
+        .filter_map(|&(a, b)| {
+            let idx = |id: i64| s.agents.iter().position(|x| x.id == id);
+            Some((idx(a)?, idx(b)?))
+        })
+        .collect();
     let mut hit: Vec<Option<bool>> = vec![None; s.agents.len()];
     for t in s.meta.current_step + 1..s.num_steps() {
         let boxes = future_boxes(s, t);
