@@ -1672,3 +1672,69 @@ fn eval_judges_the_rest_of_the_scene_against_the_unguided_twin() {
     assert_eq!(out.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&out.stderr).contains("only --task behaviour"));
 }
+
+#[test]
+fn eval_does_not_count_what_a_behaviour_asks_of_the_agents_it_names() {
+    // Vehicle 1 stands, then backs up at up to 2 m/s: what `reverse` asks of it, so neither
+    // its verdict nor the implausible column holds it against it; judged as a speed limit, the
+    // same motion is a reversing car.
+    let dir = tempfile::tempdir().unwrap();
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let text = std::fs::read_to_string(root.join("scripts/scenes/highway.yaml"))
+        .unwrap()
+        .replace(
+            "{id: 1, lane: 1, s: 60, speed: 20}",
+            "{id: 1, lane: 1, s: 60, speed: 0}",
+        );
+    let scene = dir.path().join("highway.yaml");
+    std::fs::write(&scene, text).unwrap();
+    let rollouts = dir.path().join("r");
+    std::fs::create_dir(&rollouts).unwrap();
+    let file = rollouts.join("highway.json");
+    ok(&["convert", s(&scene), "-o", s(&file)]);
+    let mut r: Value = serde_json::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
+    let c = r["current_step"].as_u64().unwrap() as usize;
+    let st = r["agents"][0]["states"].as_array_mut().unwrap();
+    let (x0, y0, h) = (
+        st[c][0].as_f64().unwrap(),
+        st[c][1].as_f64().unwrap(),
+        st[c][2].as_f64().unwrap(),
+    );
+    let mut back = 0.0;
+    for (k, x) in st.iter_mut().enumerate().skip(c + 1) {
+        let t = (k - c) as f64 * 0.1;
+        back += 0.1 * 2.0 * t.min(1.0);
+        x[0] = serde_json::json!(x0 - back * h.cos());
+        x[1] = serde_json::json!(y0 - back * h.sin());
+    }
+    std::fs::write(&file, r.to_string()).unwrap();
+    let row = |behaviour: &str, params: &[&str]| {
+        let mut a = vec![
+            "eval",
+            s(&scene),
+            "--task",
+            "behaviour",
+            "--behaviour",
+            behaviour,
+            "--rollouts",
+            s(&rollouts),
+            "--param",
+        ];
+        a.extend_from_slice(params);
+        let out = ok(&a);
+        out.lines()
+            .find(|l| l.starts_with("| rollouts in"))
+            .unwrap_or_else(|| panic!("{out}"))
+            .to_string()
+    };
+    let asked = row("reverse", &["vehicle=1"]);
+    assert!(
+        asked.contains("| reverse | 1 | 1.00 | 1.00 | 0.000 | 0.000 |"),
+        "{asked}"
+    );
+    let not_asked = row("speed_limit", &["vehicle=1", "limit=30"]);
+    assert!(
+        not_asked.contains("| speed_limit | 1 | 0.00 | 1.00 | 0.000 | 0.250 |"),
+        "{not_asked}"
+    );
+}

@@ -164,9 +164,27 @@ fn score(
     let sim = &sims[0];
     let mut row = json!({"scene": logged.meta.scenario_id});
     let lim = KinematicLimits::default();
+    let verdict = behaviour.map(|(b, p)| {
+        let v = match unguided {
+            Some(u) => check_against_unguided(b, sim, u, p),
+            None => check(b, sim, p),
+        };
+        (b, v)
+    });
+    // What a behaviour asks of the agents it names (a reverse's backing up) is not counted
+    // against the sample, as its verdict does not count it.
+    let (named, allowed): (&[i64], &[Violation]) = match &verdict {
+        Some((b, Ok(v))) => (&v.named, b.allowed_motion()),
+        _ => (&[], &[]),
+    };
     let mut flagged = 0;
     for s in sims {
-        let judged = kinematic::judge(s, &lim);
+        let mut judged = kinematic::judge(s, &lim);
+        for (j, a) in judged.iter_mut().zip(&s.agents) {
+            if let Some(j) = j.as_mut().filter(|_| named.contains(&a.id)) {
+                *j = j.without(allowed);
+            }
+        }
         let any = kinematic::flags(&judged, None);
         flagged += any.iter().filter(|f| **f == Some(true)).count();
         acc.implausible.extend(any);
@@ -224,11 +242,7 @@ fn score(
             row["mmd2_road_edge"] = json!(me);
         }
         Task::Behaviour => {
-            let (b, p) = behaviour.expect("checked by the caller");
-            let verdict = match unguided {
-                Some(u) => check_against_unguided(b, sim, u, p),
-                None => check(b, sim, p),
-            };
+            let (b, verdict) = verdict.expect("checked by the caller");
             match verdict {
                 Ok(v) => {
                     let touch = b.contacts(&v.named);
@@ -602,7 +616,7 @@ fn report(
         );
     }
     println!(
-        "\nimplausible: fraction of vehicles (pooled over scenes and samples) whose future a car cannot drive: reversing, sprinting, braking or accelerating beyond 7 m/s², swerving, crabbing or turning tighter than Waymax's curvature bound (README, Evaluation)"
+        "\nimplausible: fraction of vehicles (pooled over scenes and samples) whose future a car cannot drive: reversing, sprinting, braking or accelerating beyond 7 m/s², swerving, crabbing or turning tighter than Waymax's curvature bound (README, Evaluation); not counted: what a behaviour asks of the agents it names (the car reverse asks to back up)"
     );
     if task == Task::Conditional {
         println!("\nJSD: Jensen-Shannon distance (natural log) of histograms pooled over agents, steps and scenes; bins {}", serde_json::to_string(&bins)?);

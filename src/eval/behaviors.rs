@@ -138,6 +138,16 @@ impl Behavior {
         }
     }
 
+    /// The motion the behaviour asks of the agents it names that is otherwise implausible:
+    /// reversing, for `reverse`. Neither its verdict nor eval's implausible count holds it
+    /// against them.
+    pub fn allowed_motion(self) -> &'static [Violation] {
+        match self {
+            Behavior::Reverse => &[Violation::Reverse],
+            _ => &[],
+        }
+    }
+
     /// The parameters that name agents (their roles), a subset of [`Behavior::required`].
     pub fn roles(self) -> &'static [&'static str] {
         match self {
@@ -356,10 +366,7 @@ impl<'a> Ctx<'a> {
     fn verdict(self, achieved: bool, reason: impl Into<String>) -> Verdict {
         let mut violations = Vec::new();
         let lim = KinematicLimits::default();
-        let allowed: &[Violation] = match self.b {
-            Behavior::Reverse => &[Violation::Reverse],
-            _ => &[],
-        };
+        let allowed = self.b.allowed_motion();
         for (role, a) in &self.named {
             if let Some(j) = kinematic::judge_agent(self.s, a, &lim) {
                 for e in j.without(allowed).events {
