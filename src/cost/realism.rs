@@ -15,6 +15,14 @@
 //! names meets one it does not, only the other gives way: the traffic behind a car asked to
 //! stop brakes, rather than shoving the stopped car on.
 //!
+//! The sampler adds the collision term last ([`Realism::keep_clear`]): it denoises, then
+//! descends without it (every car takes its route), then with it (the boxes come apart). A
+//! barrier while the route is still open locks a car on whichever side of another it happens
+//! to be: at a Lankershim junction the guided denoiser put a northbound car in the southbound
+//! lanes, and the term then held it there, head-on, 10 m from its recorded end. Conditional
+//! simulation of the fold-0 validation windows collided 0.006 of vehicles with the term
+//! while denoising and in descent, against 0.002 without the term at all.
+//!
 //! A script exempts an agent from the reverse bound with `allow(a, "reverse")`, and a pair from
 //! the collision term with `allow(a, "collide", b)`: a behaviour that asks a car to back up, or
 //! to hit another, must not be fought by realism.
@@ -50,6 +58,9 @@ pub struct Realism {
     /// The clearance (metres, box to box) a moved agent keeps from every other agent; the
     /// collision term is the squared shortfall.
     pub clearance: f64,
+    /// Whether the collision term is evaluated (else it is 0). The sampler leaves it out
+    /// until every route is chosen ([`crate::sample`]'s polish).
+    pub keep_clear: bool,
 }
 
 /// What scripts allow that realism would otherwise hold back.
@@ -110,6 +121,7 @@ impl Default for Realism {
             margin: 0.75,
             limits: KinematicLimits::default(),
             clearance: 0.3,
+            keep_clear: true,
         }
     }
 }
@@ -308,7 +320,7 @@ impl Realism {
         let lay = traj.layout;
         let margin = self.clearance;
         let is_moved = |a: usize| moved.get(a).copied().unwrap_or(false);
-        if !(0..lay.agents).any(is_moved) {
+        if !self.keep_clear || !(0..lay.agents).any(is_moved) {
             return (0.0, Vec::new());
         }
         let size = |a: usize| (scene.agents[a].length, scene.agents[a].width);
@@ -621,6 +633,22 @@ mod tests {
         assert_eq!(agents_in(&collision(&t, &only0, &named).grad), vec![0]);
         // Passing in the next lane, 3.6 m apart centre to centre, is clear.
         assert_eq!(collision(&rec, &all, &Allowed::default()).value, 0.0);
+        // Left out (the sampler's route stage), the term is 0 and the others are as they were.
+        let full = on().evaluate(&s, &t, &all, &Allowed::default());
+        let routes = Realism {
+            keep_clear: false,
+            ..on()
+        }
+        .evaluate(&s, &t, &all, &Allowed::default());
+        let clear = routes.term("realism_collision").unwrap();
+        assert_eq!((clear.value, clear.grad.len()), (0.0, 0));
+        for name in &TERMS[..5] {
+            assert_eq!(
+                routes.term(name).unwrap().value,
+                full.term(name).unwrap().value,
+                "{name}"
+            );
+        }
     }
 
     #[test]

@@ -875,6 +875,53 @@ const TARGET_BESIDE: f64 = 5.0;
 /// it: the outer lane.
 const OFF_ROAD_REACH: f64 = 4.0;
 
+/// Braking and backing up as [`suggest`] times a `reverse` request: to a stop at
+/// [`REVERSE_BRAKE`], then backwards at [`REVERSE_ACCEL`] up to [`REVERSE_SPEED`] (the script's
+/// default speed), until [`REVERSE_MARGIN`] beyond the checker's metre behind the start.
+const REVERSE_BRAKE: f64 = 4.0;
+/// See [`REVERSE_BRAKE`].
+const REVERSE_ACCEL: f64 = 2.0;
+/// See [`REVERSE_BRAKE`].
+const REVERSE_SPEED: f64 = 2.0;
+/// See [`REVERSE_BRAKE`].
+const REVERSE_MARGIN: f64 = 0.5;
+
+/// Whether `a` can stop and back up 1 m behind where it is now (plus [`REVERSE_MARGIN`])
+/// within `horizon` seconds less 0.5 s, and the nearest vehicle behind it in its lane (a box
+/// overlapping its corridor) can stop at [`REVERSE_BRAKE`] short of where it backs to, 1 m
+/// clear.
+fn can_back_up(scene: &Scene, a: &Agent, horizon: f64) -> bool {
+    let c = scene.meta.current_step;
+    let s = a.states[c];
+    let v = s.speed();
+    // Forward while braking, then back past the start.
+    let ahead = v * v / (2.0 * REVERSE_BRAKE);
+    let back = ahead + 1.0 + REVERSE_MARGIN;
+    let ramp = REVERSE_SPEED * REVERSE_SPEED / (2.0 * REVERSE_ACCEL);
+    let backing = if back <= ramp {
+        (2.0 * back / REVERSE_ACCEL).sqrt()
+    } else {
+        REVERSE_SPEED / REVERSE_ACCEL + (back - ramp) / REVERSE_SPEED
+    };
+    if v / REVERSE_BRAKE + backing > horizon - 0.5 {
+        return false;
+    }
+    let dir = Point::new(s.heading.cos(), s.heading.sin());
+    let room = 1.0 + REVERSE_MARGIN + 1.0;
+    scene
+        .agents
+        .iter()
+        .filter(|o| o.id != a.id && o.agent_type == AgentType::Vehicle && o.is_valid(c))
+        .all(|o| {
+            let r = o.states[c].position() - s.position();
+            let (lon, lat) = (r.dot(&dir), dir.x * r.y - dir.y * r.x);
+            let behind = lon < 0.0 && lat.abs() < 0.5 * (a.width + o.width);
+            let gap = -lon - 0.5 * (a.length + o.length);
+            let vo = o.states[c].speed();
+            !behind || gap >= room + vo * vo / (2.0 * REVERSE_BRAKE)
+        })
+}
+
 /// Agents for which a behaviour is a meaningful request in `scene`, chosen by geometry alone,
 /// so that success rates over many scenes need no hand-picked ids (`None` when the scene has
 /// no suitable agent). Candidates are vehicles observed at the current step and through the
@@ -888,7 +935,9 @@ const OFF_ROAD_REACH: f64 = 4.0;
 ///   for the point level with its recorded end on the centre line of the lane beside it (left
 ///   where there is one, else right; within 5 m of the end); `stop` within 60 % of the horizon or the
 ///   time braking at 4 m/s² takes, if longer, for the nearest vehicle that can then stand
-///   still for the last 0.5 s;
+///   still for the last 0.5 s; `reverse` for the nearest one that can brake to a stop at 4 m/s²
+///   and back up 1.5 m behind its start (at 2 m/s² up to 2 m/s) within the horizon less 0.5 s,
+///   with room for the vehicle behind it in its lane to stop at 4 m/s² 1 m short of that;
 /// - `cut_in`: a victim and a cutter moving at 2 m/s or more in an adjacent lane within 15 m
 ///   along the victim's path that can end 5 m (bumper to bumper) ahead of the victim holding its speed, accelerating at
 ///   2.5 m/s² and no faster than 0.75 of the sprint bound allows (the kinematic checker's and
@@ -991,9 +1040,14 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
                 .find(|x| (1..=reach).contains(&lanes_to_right(x.1)))
                 .and_then(|x| p(&[("vehicle", x.0.id as f64)]))
         }
-        Behavior::Reverse | Behavior::Weave => {
-            cands.first().and_then(|x| p(&[("vehicle", x.0.id as f64)]))
-        }
+        Behavior::Weave => cands.first().and_then(|x| p(&[("vehicle", x.0.id as f64)])),
+        // A car that can stop, then back up past the checker's metre within the horizon, with
+        // room behind it for the car that follows to stop: a 15 m/s car cannot do it in
+        // 4 s, and one with a car on its bumper can only back into it.
+        Behavior::Reverse => cands
+            .iter()
+            .find(|x| can_back_up(scene, x.0, horizon))
+            .and_then(|x| p(&[("vehicle", x.0.id as f64)])),
         // A moving car within a lane of the road's edge. A car at rest in a queue, or one in
         // a middle lane with traffic on both sides, has no way off the road a driver could
         // take in a few seconds (held-out NGSIM: most failed requests were such cars).

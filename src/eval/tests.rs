@@ -460,6 +460,27 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
             .map(|p| p.number("vehicle").unwrap()),
         Some(4.0)
     );
+    // Reverse: the nearest car that can stop and back up 1.5 m within the horizon, with room
+    // behind. The ego (1) is too fast at 20 m/s; 2 creeps at 3 m/s but 3 follows 10 m behind at
+    // 10 m/s (it needs 15 m to stop short); 4 creeps with nobody behind. Within 2.5 s, 4 has no
+    // time (0.75 s to stop, 1.8 s back) and 5, standing, is asked instead.
+    let rev = yaml::parse(
+        Path::new("rev.yaml"),
+        concat!(
+            "steps: 41\ncurrent_step: 10\nego: 1\nroad: {lanes: 3, lane_width: 3.6, length: 600}\n",
+            "agents:\n  - {id: 1, lane: 1, s: 100, speed: 20}\n  - {id: 2, lane: 0, s: 105, speed: 3}\n",
+            "  - {id: 3, lane: 0, s: 95, speed: 10}\n  - {id: 4, lane: 2, s: 120, speed: 3}\n",
+            "  - {id: 5, lane: 2, s: 200, speed: 0}\n",
+        ),
+    )
+    .unwrap();
+    let reverser = |steps| {
+        super::behaviors::suggest(Behavior::Reverse, &rev, steps)
+            .map(|p| p.number("vehicle").unwrap())
+    };
+    assert_eq!(reverser(40), Some(4.0));
+    assert_eq!(reverser(25), Some(5.0));
+    assert_eq!(reverser(15), None);
     // Rightmost lane: the nearest vehicle with at most one lane to go per 2 s of horizon.
     let road = |steps: usize| {
         let text = format!(

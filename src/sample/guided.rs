@@ -106,7 +106,9 @@ pub struct SampleConfig {
     /// guides (weight 0: off).
     pub realism: Realism,
     /// Descent steps on the guidance cost after the last denoising step (0: none), where
-    /// anything guides.
+    /// anything guides: this many without realism's collision term, then (realism on) this
+    /// many with it. Realism keeps cars clear only here, or while denoising when this is 0
+    /// (the realism module says why).
     pub polish: usize,
 }
 
@@ -667,6 +669,9 @@ fn setup<'a>(
     })
 }
 
+/// Every sample's guidance cost and the gradient w.r.t. the owners' coefficients.
+type CostsAndGradient = Result<(Vec<f64>, Vec<f32>), SampleError>;
+
 /// Largest step of [`polish`], in normalised coefficient units (σ_data is 0.5 of them: a
 /// step moves an agent's most-pulled coefficient by at most 2 data deviations).
 const POLISH_MAX_STEP: f32 = 1.0;
@@ -906,14 +911,19 @@ pub fn sample(
         moved[sl.agent] = true;
     }
     let realism_on = cfg.realism.weight > 0.0;
-    let realism = |t: &Trajectories, reports: &[CostReport]| {
+    let realism = |t: &Trajectories, reports: &[CostReport], keep_clear: bool| {
         let exempt = crate::cost::Allowed::from_reports(reports, scene);
-        cfg.realism.evaluate(scene, t, &moved, &exempt)
+        let r = Realism {
+            keep_clear,
+            ..cfg.realism
+        };
+        r.evaluate(scene, t, &moved, &exempt)
     };
     // Every sample's guidance cost (scripts, realism, known states) at the coefficients
     // `dv` (each agent's copies equal to its owner's) and its gradient w.r.t. the owners'
-    // coefficients; the first call keeps its reports as the samples' initial ones.
-    let objective = |dv: &[f32], step: usize| -> Result<(Vec<f64>, Vec<f32>), SampleError> {
+    // coefficients, with realism's collision term where `keep_clear`; the first call keeps
+    // its reports (the collision term's included) as the samples' initial ones.
+    let objective = |dv: &[f32], step: usize, keep_clear: bool| -> CostsAndGradient {
         let mut trajs = plan.trajectories(dv);
         let aligned: Vec<Vec<Aligned>> = trajs
             .iter_mut()
@@ -939,13 +949,18 @@ pub fn sample(
                 reports.push(r);
             }
             if realism_on {
-                let r = realism(t, &reports);
+                let r = realism(t, &reports, keep_clear);
                 for (w, v) in world.iter_mut().zip(&r.gradient) {
                     *w += v;
                 }
                 total += r.total;
                 if first {
-                    initial_realism.borrow_mut().push(r);
+                    let whole = if keep_clear {
+                        r
+                    } else {
+                        realism(t, &reports, true)
+                    };
+                    initial_realism.borrow_mut().push(whole);
                 }
             }
             if first {
@@ -999,7 +1014,8 @@ pub fn sample(
         if !guiding {
             return Ok(Tensor::from_vec(dv, (rows, n, k), &dev)?);
         }
-        let (_, g) = objective(&dv, step)?;
+        // Without polish there is no later stage to keep clear in.
+        let (_, g) = objective(&dv, step, cfg.polish == 0)?;
         let gd = Tensor::from_vec(g, (rows, n, k), &dev)?;
         let grad = match xv {
             Some(xv) => {
@@ -1025,12 +1041,20 @@ pub fn sample(
     }
     if guiding && cfg.polish > 0 {
         let variances = &trained.meta.normaliser.pca.variances;
-        polish(&mut xv, kk, variances, cfg.polish, |c| {
-            let mut c = c.to_vec();
-            plan.consensus(&mut c, None, 0.0, cfg.clamp);
-            let (j, g) = objective(&c, sigmas.len() - 1)?;
-            Ok((c, j, g))
-        })?;
+        // Routes first, then clearance: see the realism module.
+        let keep_clear = if realism_on {
+            &[false, true][..]
+        } else {
+            &[false]
+        };
+        for &clear in keep_clear {
+            polish(&mut xv, kk, variances, cfg.polish, |c| {
+                let mut c = c.to_vec();
+                plan.consensus(&mut c, None, 0.0, cfg.clamp);
+                let (j, g) = objective(&c, sigmas.len() - 1, clear)?;
+                Ok((c, j, g))
+            })?;
+        }
     }
     let mut trajs = plan.trajectories(&xv);
     for t in &mut trajs {
@@ -1072,7 +1096,7 @@ pub fn sample(
             .iter()
             .map(|s| s.evaluate(&t))
             .collect::<Result<Vec<_>, _>>()?;
-        let fin = realism_on.then(|| realism(&t, &reports));
+        let fin = realism_on.then(|| realism(&t, &reports, true));
         out.push(Sample {
             scene: sim,
             initial_reports: Vec::new(),
@@ -1595,6 +1619,49 @@ mod tests {
                 .total
         };
         assert_eq!(unguided(0), unguided(50));
+    }
+
+    #[test]
+    fn polish_takes_the_routes_then_keeps_the_cars_clear() {
+        // Agent 4 recorded on top of agent 1: the model's samples start where the boxes
+        // overlap. Realism's collision term is reported from the start, and polish (its second
+        // stage) clears most of it; without polish, denoising alone carries the term.
+        let (t, mut s) = setup();
+        let c = s.meta.current_step;
+        let on_top = s.agents[0].states[..=c].to_vec();
+        s.agents[3].states[..=c].clone_from_slice(&on_top);
+        let script = rightmost(&s);
+        let run = |polish| {
+            let out = sample(
+                &t,
+                &s,
+                std::slice::from_ref(&script),
+                &SampleConfig {
+                    steps: 8,
+                    samples: 2,
+                    task: Task::Unconditional,
+                    lambda: 0.01,
+                    realism: Realism::default(),
+                    polish,
+                    ..SampleConfig::default()
+                },
+            )
+            .unwrap();
+            out.into_iter()
+                .map(|o| {
+                    let (first, last) = o.realism.unwrap();
+                    let v = |r: &CostReport| r.term("realism_collision").unwrap().value;
+                    (v(&first), v(&last))
+                })
+                .collect::<Vec<_>>()
+        };
+        for (first, last) in run(60) {
+            assert!(first > 1.0, "{first}");
+            assert!(last < 0.1 * first, "{first} -> {last}");
+        }
+        for (first, last) in run(0) {
+            assert!(first > 1.0 && last > 0.0, "{first} -> {last}");
+        }
     }
 
     #[test]
