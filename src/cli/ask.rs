@@ -111,7 +111,8 @@ pub struct Args {
     /// Guide through the denoiser (the paper's rule) instead of in output space.
     #[arg(long)]
     through_denoiser: bool,
-    /// Descent steps on the guidance cost after the last denoising step, 0 to 1000 (0: none).
+    /// Descent steps on the guidance cost after the last denoising step, 0 to 1000, then as
+    /// many with realism's collision term (0: none).
     #[arg(long, default_value_t = drivescript::sample::POLISH_STEPS, value_parser = usize_in(0, 1000))]
     polish: usize,
 }

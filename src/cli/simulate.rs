@@ -103,7 +103,8 @@ pub struct Args {
     #[arg(long, value_enum, default_value = "coordinate")]
     clamp: ClampArg,
     /// Descent steps on the guidance cost after the last denoising step, 0 to 1000: what
-    /// guidance planned, finished within realism's bounds (0: none).
+    /// guidance planned, finished within realism's bounds; as many again with realism's
+    /// collision term (0: none, and that term acts while denoising).
     #[arg(long, default_value_t = drivescript::sample::POLISH_STEPS, value_parser = super::ask::usize_in(0, 1000))]
     polish: usize,
     /// Checkpoint directory (model.safetensors + config.json).
