@@ -1145,6 +1145,16 @@ mod tests {
         (t, s)
     }
 
+    /// Two unconditional samples in 8 steps: the guided tests' sampler.
+    fn quick() -> SampleConfig {
+        SampleConfig {
+            steps: 8,
+            samples: 2,
+            task: Task::Unconditional,
+            ..SampleConfig::default()
+        }
+    }
+
     fn rightmost(scene: &Scene) -> CostScript {
         let src = std::fs::read_to_string(
             Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/rightmost_lane.rhai"),
@@ -1479,12 +1489,7 @@ mod tests {
     fn guidance_lowers_the_script_cost_in_both_modes() {
         let (t, s) = setup();
         let script = rightmost(&s);
-        let base = SampleConfig {
-            steps: 8,
-            samples: 2,
-            task: Task::Unconditional,
-            ..SampleConfig::default()
-        };
+        let base = quick();
         let unguided = sample(
             &t,
             &s,
@@ -1578,11 +1583,8 @@ mod tests {
         let (t, s) = setup();
         let script = rightmost(&s);
         let base = SampleConfig {
-            steps: 8,
-            samples: 2,
-            task: Task::Unconditional,
             lambda: 0.01,
-            ..SampleConfig::default()
+            ..quick()
         };
         let run = |polish| {
             sample(
@@ -1637,13 +1639,10 @@ mod tests {
                 &s,
                 std::slice::from_ref(&script),
                 &SampleConfig {
-                    steps: 8,
-                    samples: 2,
-                    task: Task::Unconditional,
                     lambda: 0.01,
                     realism: Realism::default(),
                     polish,
-                    ..SampleConfig::default()
+                    ..quick()
                 },
             )
             .unwrap();
