@@ -1066,7 +1066,6 @@ mod tests {
         crate::io::load_scene(&p, 0, &crate::io::LoadOptions::default()).unwrap()
     }
 
-    /// `src`'s report on the recorded future of `scene`.
     /// The error that compiling and evaluating `src` on the recorded future gives.
     fn evaluation_error(src: &str, scene: Rc<crate::scene::Scene>) -> CostError {
         let traj = crate::cost::Trajectories::recorded(&scene);
@@ -1075,6 +1074,7 @@ mod tests {
             .unwrap_err()
     }
 
+    /// `src`'s report on the recorded future of `scene`.
     fn evaluate_recorded(src: &str, scene: crate::scene::Scene) -> crate::cost::CostReport {
         let scene = Rc::new(scene);
         CostScript::compile(
@@ -1087,6 +1087,48 @@ mod tests {
         .unwrap()
         .evaluate(&crate::cost::Trajectories::recorded(&scene))
         .unwrap()
+    }
+
+    #[test]
+    fn a_closed_loop_round_is_judged_on_the_original_horizon_and_moves_only_what_is_left() {
+        use crate::cost::{Coord, Trajectories};
+        let scene = Rc::new(highway());
+        let src = "let a = agent(1); term(\"first\", a.x.first()); term(\"last\", a.x.last());";
+        let script = CostScript::compile(
+            src,
+            "t",
+            scene.clone(),
+            &Params::default(),
+            &Limits::default(),
+        )
+        .unwrap();
+        let executed = Trajectories::recorded(&scene);
+        let n = executed.layout.steps;
+        let ai = scene.agents.iter().position(|a| a.id == 1).unwrap();
+        // A round's sample has the model's whole horizon, past the original one.
+        let mut rest = executed.clone();
+        for s in &mut rest.xyh {
+            s[0] += 100.0;
+        }
+        let done = 30;
+        let whole = executed.spliced(done, &rest);
+        assert_eq!(whole.state(ai, done - 1), executed.state(ai, done - 1));
+        assert_eq!(whole.state(ai, done), rest.state(ai, 0));
+        let r = script.evaluate(&whole).unwrap().shifted(done, rest.layout);
+        assert_eq!(r.layout, rest.layout);
+        assert_eq!(r.gradient.len(), rest.layout.len());
+        // The first step was executed: it counts, and nothing can move it.
+        let first = r.term("first").unwrap();
+        assert_eq!(first.value, executed.state(ai, 0).0[0]);
+        assert!(first.grad.is_empty(), "{:?}", first.grad);
+        // The original horizon ends at the round's step n - 1 - done, not at its last.
+        let last = r.term("last").unwrap();
+        assert_eq!(last.value, rest.state(ai, n - 1 - done).0[0]);
+        assert_eq!(
+            last.grad,
+            vec![(rest.layout.var(ai, n - 1 - done, Coord::X), 1.0)]
+        );
+        assert_eq!(r.total, first.value + last.value);
     }
 
     #[test]

@@ -87,6 +87,35 @@ impl CostReport {
         }
     }
 
+    /// This report, made on [`Trajectories::spliced`](super::Trajectories::spliced)
+    /// trajectories, with its gradients moved to the layout `to` of the part spliced in at
+    /// step `done`: a coordinate at step `j ≥ done` becomes step `j − done`, and the executed
+    /// steps before `done`, which nothing can move any more, drop out. Values and total stay
+    /// those of the whole horizon.
+    pub fn shifted(self, done: usize, to: VarLayout) -> Self {
+        let from = self.layout;
+        let terms = self
+            .terms
+            .into_iter()
+            .map(|mut t| {
+                t.grad = t
+                    .grad
+                    .iter()
+                    .filter_map(|&(v, g)| {
+                        let (a, j, c) = from.decode(v);
+                        (j >= done && j - done < to.steps).then(|| (to.var(a, j - done, c), g))
+                    })
+                    .collect();
+                t
+            })
+            .collect();
+        let mut out = Self::new(terms, to, self.prints, self.elapsed);
+        out.may_reverse = self.may_reverse;
+        out.may_collide = self.may_collide;
+        out.named = self.named;
+        out
+    }
+
     /// The term with this name.
     pub fn term(&self, name: &str) -> Option<&TermReport> {
         self.terms.iter().find(|t| t.name == name)

@@ -189,6 +189,24 @@ impl Trajectories {
         (self.xyh[i], self.valid[i])
     }
 
+    /// These trajectories with their steps from `done` on replaced by the first steps of
+    /// `rest`: a closed loop's executed part (`self`, steps before `done`) followed by the
+    /// round's sample, so that a script compiled at the original current step judges the
+    /// whole original horizon. `rest` must have as many agents; its steps past the original
+    /// horizon are not used.
+    pub fn spliced(&self, done: usize, rest: &Trajectories) -> Self {
+        let (n, m) = (self.layout.steps, rest.layout.steps);
+        debug_assert_eq!(self.layout.agents, rest.layout.agents);
+        let mut out = self.clone();
+        for a in 0..self.layout.agents {
+            for j in done.min(n)..n.min(done + m) {
+                out.xyh[a * n + j] = rest.xyh[a * m + j - done];
+                out.valid[a * n + j] = rest.valid[a * m + j - done];
+            }
+        }
+        out
+    }
+
     /// Adds `step * gradient` to the coordinates (for tests and simple descent).
     pub fn apply(&mut self, gradient: &[f64], step: f64) {
         for (i, g) in gradient.iter().enumerate() {

@@ -582,7 +582,7 @@ mod tests {
         let e = attempt(&t, &scene, &spec).unwrap_err();
         assert!(matches!(e, AttemptError::Script(_)), "{e}");
         assert!(e.to_string().contains("scripts/cut_in.rhai"), "{e}");
-        // Closed loop compiles at every round with the script's own limits, not the defaults.
+        // Closed loop compiles with the script's own limits, not the defaults.
         let mut s = cut_in(&Params::numbers(&[("cutter", 2.0), ("victim", 1.0)]));
         s.limits = Limits {
             max_operations: 50,

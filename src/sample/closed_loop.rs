@@ -1,17 +1,20 @@
 //! Closed-loop simulation: re-plan at 2 Hz. Each round samples a full future, executes its
 //! first 0.5 s (appended to the history as if observed), and samples again from there, until
-//! the model's horizon is covered.
+//! the model's horizon is covered. The scripts are compiled once, at the first current step,
+//! and every round's guidance judges the executed steps followed by the round's sample: the
+//! request's horizon stays where the user put it.
 
 use std::rc::Rc;
 
-use super::guided::{modelled_type, prepare, sample, Sample, SampleConfig, SampleError};
+use super::guided::{
+    modelled_type, prepare, sample_after, Executed, Sample, SampleConfig, SampleError,
+};
 use crate::cost::{CostScript, Limits, Params};
 use crate::scene::Scene;
 use crate::train::Trained;
 
-/// A cost script's source, name, parameters and limits: everything needed to compile it again,
-/// which closed loop does at every round because the scene's current step (and so the future a
-/// script sees) moves on.
+/// A cost script's source, name, parameters and limits: everything needed to compile it, which
+/// closed loop does itself, against the scene cut to the model's horizon ([`prepare`]).
 #[derive(Debug, Clone)]
 pub struct ScriptSpec {
     /// Source text.
@@ -58,6 +61,18 @@ pub fn closed_loop(
     let execute = execute.clamp(1, future);
     let start = prepare(scene, trained)?;
     let c0 = start.meta.current_step;
+    let compiled = scripts
+        .iter()
+        .map(|s| {
+            CostScript::compile(
+                &s.source,
+                &s.name,
+                Rc::new(start.clone()),
+                &s.params,
+                &s.limits,
+            )
+        })
+        .collect::<Result<Vec<_>, _>>()?;
     let mut out = Vec::with_capacity(cfg.samples.max(1));
     for k in 0..cfg.samples.max(1) {
         let mut state = start.clone();
@@ -71,24 +86,19 @@ pub fn closed_loop(
             let mut view = state.clone();
             view.meta.current_step = c0 + done;
             let view = prepare(&view, trained)?;
-            let compiled = scripts
-                .iter()
-                .map(|s| {
-                    CostScript::compile(
-                        &s.source,
-                        &s.name,
-                        Rc::new(view.clone()),
-                        &s.params,
-                        &s.limits,
-                    )
-                })
-                .collect::<Result<Vec<_>, _>>()?;
             let round_cfg = SampleConfig {
                 samples: 1,
                 seed: cfg.seed.wrapping_add(1000 * k as u64 + round),
                 ..*cfg
             };
-            let s = sample(trained, &view, &compiled, &round_cfg)?.remove(0);
+            // The scripts judge the original horizon, the executed steps followed by the
+            // round's sample: a request for the end of the horizon keeps its deadline.
+            let executed = crate::cost::Trajectories::recorded(&state);
+            let executed = Executed {
+                trajectories: &executed,
+                steps: done,
+            };
+            let s = sample_after(trained, &view, &compiled, Some(executed), &round_cfg)?.remove(0);
             let take = execute.min(future - done);
             for (a, b) in state.agents.iter_mut().zip(&s.scene.agents) {
                 for t in 0..take {
@@ -108,18 +118,9 @@ pub fn closed_loop(
         }
         // Score the executed trajectory over the whole horizon, as seen from the start.
         let traj = crate::cost::Trajectories::recorded(&state);
-        let reports = scripts
+        let reports = compiled
             .iter()
-            .map(|s| {
-                CostScript::compile(
-                    &s.source,
-                    &s.name,
-                    Rc::new(start.clone()),
-                    &s.params,
-                    &s.limits,
-                )?
-                .evaluate(&traj)
-            })
+            .map(|s| s.evaluate(&traj))
             .collect::<Result<Vec<_>, _>>()?;
         // Realism on the executed trajectory, for the agents the model moved.
         let realism = first_realism.map(|first| {
@@ -140,4 +141,43 @@ pub fn closed_loop(
         });
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cost::Params;
+    use crate::sample::guided::tests::{quick, setup};
+
+    #[test]
+    fn every_round_guides_towards_the_deadline_the_user_gave() {
+        let (t, scene) = setup();
+        let c = scene.meta.current_step;
+        let a = &scene.agents[0];
+        // Agent 1, 15 m past its recorded position 2 s on: the rounds after the first must
+        // still aim at that step, not at 2 s after their own start.
+        let target = a.states[c + 20].x + 15.0;
+        let spec = ScriptSpec::new(
+            "term(\"at\", square(agent(param(\"id\")).x.at(19) - param(\"x\")));",
+            "deadline",
+            Params::numbers(&[("id", a.id as f64), ("x", target)]),
+        );
+        let cfg = SampleConfig {
+            samples: 1,
+            polish: 100,
+            ..quick()
+        };
+        let run = |scripts: &[ScriptSpec]| closed_loop(&t, &scene, scripts, &cfg, 5).unwrap();
+        let guided = run(std::slice::from_ref(&spec)).remove(0);
+        let miss = guided.reports[0].term("at").unwrap().value.sqrt();
+        let unguided = run(&[]).remove(0).scene.agents[0].states[c + 20].x;
+        assert!(
+            miss < 1.0 && (unguided - target).abs() > 5.0,
+            "guided ends {miss:.2} m from the target, unguided {:.2} m",
+            (unguided - target).abs()
+        );
+        // The executed trajectory is what the reports judge.
+        let x = guided.scene.agents[0].states[c + 20].x;
+        assert!((x - target).abs() - miss < 1e-9, "{x} vs {target}");
+    }
 }

@@ -863,6 +863,37 @@ pub fn sample(
     scripts: &[CostScript],
     cfg: &SampleConfig,
 ) -> Result<Vec<Sample>, SampleError> {
+    sample_after(trained, scene, scripts, None, cfg)
+}
+
+/// What a closed loop has executed so far: the trajectories over the original horizon (in
+/// the layout of the scene the scripts were compiled against, its current step the loop's
+/// first) and how many of their steps are executed.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Executed<'a> {
+    pub(crate) trajectories: &'a Trajectories,
+    pub(crate) steps: usize,
+}
+
+/// [`sample`], with `scripts` compiled at the closed loop's first current step rather than
+/// `scene`'s when `executed` is given: each candidate is spliced after the executed steps
+/// ([`Trajectories::spliced`]), so that a request keeps the deadline it was given instead
+/// of moving it a round further every round.
+pub(crate) fn sample_after(
+    trained: &Trained,
+    scene: &Scene,
+    scripts: &[CostScript],
+    executed: Option<Executed>,
+    cfg: &SampleConfig,
+) -> Result<Vec<Sample>, SampleError> {
+    let evaluate = |script: &CostScript, t: &Trajectories| -> Result<CostReport, CostError> {
+        match executed {
+            None => script.evaluate(t),
+            Some(e) => Ok(script
+                .evaluate(&e.trajectories.spliced(e.steps, t))?
+                .shifted(e.steps, t.layout)),
+        }
+    };
     let dev = Device::Cpu;
     let c = scene.meta.current_step;
     let Setup {
@@ -941,7 +972,7 @@ pub fn sample(
             let mut total = 0.0;
             let mut reports = Vec::with_capacity(scripts.len());
             for script in scripts {
-                let r = script.evaluate(t)?;
+                let r = evaluate(script, t)?;
                 for (w, v) in world.iter_mut().zip(&r.gradient) {
                     *w += v;
                 }
@@ -1094,7 +1125,7 @@ pub fn sample(
         }
         let reports = scripts
             .iter()
-            .map(|s| s.evaluate(&t))
+            .map(|s| evaluate(s, &t))
             .collect::<Result<Vec<_>, _>>()?;
         let fin = realism_on.then(|| realism(&t, &reports, true));
         out.push(Sample {
@@ -1120,7 +1151,7 @@ pub fn sample(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::cost::{Limits, Params};
     use crate::io::{load_scene, LoadOptions};
@@ -1128,7 +1159,8 @@ mod tests {
     use std::path::Path;
     use std::rc::Rc;
 
-    fn setup() -> (Trained, Scene) {
+    /// A tiny model trained on the script-test highways, and the first of them prepared.
+    pub(crate) fn setup() -> (Trained, Scene) {
         let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes");
         let scenes: Vec<Scene> = [
             "highway.yaml",
@@ -1146,7 +1178,7 @@ mod tests {
     }
 
     /// Two unconditional samples in 8 steps: the guided tests' sampler.
-    fn quick() -> SampleConfig {
+    pub(crate) fn quick() -> SampleConfig {
         SampleConfig {
             steps: 8,
             samples: 2,
