@@ -606,7 +606,8 @@ fn a_batch_runs_every_pair_and_writes_a_summary_and_rollouts_eval_reads() {
     assert_eq!(json["instances"].as_array().unwrap().len(), 2);
     let rollouts = out.join("rollouts/cut_in");
     assert!(rollouts.join("USA_US101-3_3_T-1_3.json").exists());
-    // `eval` scores those rollouts with the same checker.
+    assert!(rollouts.join("unguided/USA_US101-3_3_T-1_3.json").exists());
+    // `eval` scores those rollouts with the same checker, against the same unguided twins.
     let e = common::ok(&[
         "eval",
         s(&scene),
@@ -619,6 +620,8 @@ fn a_batch_runs_every_pair_and_writes_a_summary_and_rollouts_eval_reads() {
         "victim=399",
         "--rollouts",
         s(&rollouts),
+        "--unguided",
+        s(&rollouts.join("unguided")),
         "--samples",
         "4",
     ]);

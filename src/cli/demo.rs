@@ -82,7 +82,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         );
         for (b, p) in session.checks() {
             println!(
-                "  score them: drivescript eval {} --task behaviour --behaviour {} --param {p} --rollouts {dir}/round_{round} --samples {}",
+                "  score them: drivescript eval {} --task behaviour --behaviour {} --param {p} --rollouts {dir}/round_{round} --unguided {dir}/round_{round}/unguided --samples {}",
                 scene_path.display(),
                 b.name(),
                 args.samples

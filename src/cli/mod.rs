@@ -190,7 +190,8 @@ pub(crate) fn describe(e: &anyhow::Error) -> String {
 }
 
 /// Prints one sample's outcome: the checker's verdict (when there is one), each term's first
-/// estimate and final value, and the implausible motion of any vehicle.
+/// estimate and final value, and the implausible motion of any vehicle (motion the checked
+/// behaviour asks for, `reverse`'s backing up, as "asked for").
 pub(crate) fn print_outcome(label: &str, o: &drivescript::sample::SampleOutcome) {
     if o.verdicts.is_empty() {
         println!("{label}: total cost {:.4}", o.total);
@@ -219,7 +220,12 @@ pub(crate) fn print_outcome(label: &str, o: &drivescript::sample::SampleOutcome)
     let shown = 4;
     for e in o.realism.iter().take(shown) {
         let who = e.role.as_deref().map_or(String::new(), |r| format!("{r} "));
-        println!("  implausible: {who}{} {}", e.agent, e.text);
+        let what = if e.requested {
+            "asked for"
+        } else {
+            "implausible"
+        };
+        println!("  {what}: {who}{} {}", e.agent, e.text);
     }
     if o.realism.len() > shown {
         println!(

@@ -111,8 +111,9 @@ pub struct Args {
     #[arg(long)]
     checkpoint: PathBuf,
     /// Output directory: SCENARIO_K.json per sample (what `eval --rollouts` reads),
-    /// SCENARIO_0.gif and SCENARIO_costs.json, and run.json (what made them). A directory
-    /// holding another run is refused.
+    /// SCENARIO_0.gif and SCENARIO_costs.json, and run.json (what made them); with --auto
+    /// also unguided/SCENARIO_K.json, the unguided twins the verdicts judged the rest of the
+    /// scene against (`eval --unguided`). A directory holding another run is refused.
     #[arg(short, long)]
     output: PathBuf,
     /// Only the scenes of shard I of N (0 <= I < N), a stable partition by scenario id: run

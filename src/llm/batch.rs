@@ -737,8 +737,9 @@ impl Batch<'_> {
         Ok(session)
     }
 
-    /// The last sampled round's rollouts of pair `k`, where `eval --task behaviour
-    /// --rollouts OUT/rollouts/LABEL` finds them.
+    /// The last sampled round's rollouts of pair `k`, and their unguided twins in
+    /// `unguided/`, where `eval --task behaviour --rollouts OUT/rollouts/LABEL --unguided
+    /// OUT/rollouts/LABEL/unguided` finds them.
     fn copy_rollouts(&self, k: usize, session: &Session) -> Result<(), LlmError> {
         let Some(last) = session.history().last() else {
             return Ok(());
@@ -749,13 +750,15 @@ impl Batch<'_> {
         let from = session.dir().join(format!("round_{}", last.exchange));
         let to = self.out.join("rollouts").join(&inst.label);
         std::fs::create_dir_all(&to).map_err(|e| bad(&to, format!("cannot create it: {e}")))?;
-        for i in 0.. {
-            let src = from.join(format!("{stem}_{i}.json"));
-            let Ok(bytes) = std::fs::read(&src) else {
-                break;
-            };
-            let dst = to.join(format!("{stem}_{i}.json"));
-            write_atomic(&dst, &bytes).map_err(|e| bad(&dst, e.to_string()))?;
+        for sub in ["", "unguided"] {
+            for i in 0.. {
+                let src = from.join(sub).join(format!("{stem}_{i}.json"));
+                let Ok(bytes) = std::fs::read(&src) else {
+                    break;
+                };
+                let dst = to.join(sub).join(format!("{stem}_{i}.json"));
+                write_atomic(&dst, &bytes).map_err(|e| bad(&dst, e.to_string()))?;
+            }
         }
         Ok(())
     }

@@ -94,7 +94,8 @@ pub fn feedback(a: &Attempt, acc: &Acceptance) -> String {
         s,
         "A sample meets the request when every term is at most its tolerance (unweighted; {} \
          unless the script gives one with term(name, value, weight, tolerance)), every checker \
-         passes and no named agent moves implausibly.",
+         passes and no named agent moves implausibly (beyond what a checked behaviour asks \
+         of it, such as backing up for reverse).",
         acc.tolerance
     );
     s.push_str("\n## Terms (unweighted values; the total is the weighted sum)\n\n");

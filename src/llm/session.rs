@@ -4,7 +4,7 @@
 //! sent, readable), `messages.json`, `reply.md`, and, as they happen, `script.rhai`,
 //! `validation.txt`, the rollouts and cost report of the samples (`SCENARIO_K.json`,
 //! `SCENARIO_costs.json`, named as `simulate` names them so that `eval --rollouts round_N`
-//! scores them), `feedback.md` and `sample.gif`. `state.json` is rewritten atomically
+//! scores them, and the unguided twins in `unguided/`), `feedback.md` and `sample.gif`. `state.json` is rewritten atomically
 //! after every step, so a run stopped anywhere (a manual round waiting for its reply, a killed
 //! process) continues from it with [`Session::resume`]; `transcript.json` records the
 //! backend, the URL without credentials, every request body, token usage, latency, retries

@@ -16,7 +16,7 @@ use super::closed_loop::{closed_loop, ScriptSpec};
 use super::guided::{prepare, sample, Guidance, Sample, SampleConfig, SampleError, Task};
 use crate::cost::{check_params, CostError, CostScript, Params};
 use crate::eval::behaviors::{check, check_against_unguided, Behavior, CheckError, Verdict};
-use crate::eval::kinematic::{judge, KinematicLimits};
+use crate::eval::kinematic::{judge, KinematicLimits, Violation};
 use crate::io::{output_stem, rollout::Rollout, write_atomic, IoError};
 use crate::scene::Scene;
 use crate::train::Trained;
@@ -89,6 +89,9 @@ pub struct RealismEvent {
     pub value: f64,
     /// In words (`reverses at -9.3 m/s at t = 3.9 s`).
     pub text: String,
+    /// Whether a checked behaviour asks this of the agent it names (`reverse`'s backing up,
+    /// [`Behavior::allowed_motion`]): reported, but no fault, as in the verdicts.
+    pub requested: bool,
 }
 
 /// One sample's outcome.
@@ -113,11 +116,12 @@ impl SampleOutcome {
         (!self.verdicts.is_empty()).then(|| self.verdicts.iter().all(|v| v.passed))
     }
 
-    /// Implausible motion of the given agents (the ones a script names, say).
+    /// Implausible motion of the given agents (the ones a script names, say), less what a
+    /// checked behaviour asks of them ([`RealismEvent::requested`]).
     pub fn implausible<'a>(&'a self, agents: &'a [i64]) -> impl Iterator<Item = &'a RealismEvent> {
         self.realism
             .iter()
-            .filter(move |e| agents.contains(&e.agent))
+            .filter(move |e| !e.requested && agents.contains(&e.agent))
     }
 }
 
@@ -163,6 +167,15 @@ pub struct CheckSpec {
     pub behaviour: &'static str,
     /// Its parameters.
     pub params: Params,
+}
+
+/// Whether one of `checks` names agent `id` in a role and asks of it motion of this kind
+/// ([`Behavior::allowed_motion`]).
+fn requested(checks: &[(Behavior, Params)], id: i64, kind: Violation) -> bool {
+    checks.iter().any(|(b, p)| {
+        b.allowed_motion().contains(&kind)
+            && b.roles().iter().any(|r| p.number(r) == Some(id as f64))
+    })
 }
 
 fn roles<'a>(checks: impl Iterator<Item = (Behavior, &'a Params)>) -> Vec<(i64, String)> {
@@ -212,6 +225,9 @@ pub struct Settings {
 pub struct Attempt {
     /// The samples, as the sampler returned them.
     pub samples: Vec<Sample>,
+    /// The same samples drawn unguided (same seed, so the same noise), against which the
+    /// verdicts judged the rest of the scene; absent when nothing was guided or checked.
+    pub unguided: Option<Vec<Sample>>,
     /// What happened.
     pub report: AttemptReport,
 }
@@ -230,9 +246,11 @@ impl Attempt {
     }
 
     /// Writes into `dir` (created if needed), each file atomically: `STEM_K.json` per sample
-    /// (the rollout `eval --rollouts` reads, with each term's final value) and
-    /// `STEM_costs.json` (this report). A stem that cannot name a file (a scenario id read
-    /// from an untrusted scene, say) is an error ([`output_stem`]).
+    /// (the rollout `eval --rollouts` reads, with each term's final value),
+    /// `unguided/STEM_K.json` per unguided twin (what `eval --unguided` reads, so that `eval`
+    /// judges the rest of the scene as these verdicts did) and `STEM_costs.json` (this
+    /// report). A stem that cannot name a file (a scenario id read from an untrusted scene,
+    /// say) is an error ([`output_stem`]).
     pub fn write(
         &self,
         dir: &Path,
@@ -247,6 +265,11 @@ impl Attempt {
                 r.costs.insert(t.term.clone(), t.value);
             }
             r.write(&dir.join(format!("{id}_{k}.json")))?;
+        }
+        for (k, s) in self.unguided.iter().flatten().enumerate() {
+            let mut r = Rollout::from_scene(&s.scene);
+            r.run = run.cloned();
+            r.write(&dir.join("unguided").join(format!("{id}_{k}.json")))?;
         }
         let text = serde_json::to_string_pretty(&self.report).expect("reports serialise");
         write_atomic(&dir.join(format!("{id}_costs.json")), text.as_bytes())
@@ -356,6 +379,7 @@ pub fn attempt(
                     time: e.time,
                     value: e.value,
                     text: e.to_string(),
+                    requested: requested(&spec.checks, a.id, e.kind),
                 });
             }
         }
@@ -417,7 +441,11 @@ pub fn attempt(
             .unwrap_or_default(),
         samples: outcomes,
     };
-    Ok(Attempt { samples, report })
+    Ok(Attempt {
+        samples,
+        unguided: twins,
+        report,
+    })
 }
 
 #[cfg(test)]
@@ -511,8 +539,29 @@ mod tests {
         }
         let dir = tempfile::tempdir().unwrap();
         a.write(dir.path(), "run", None).unwrap();
-        for f in ["run_0.json", "run_1.json", "run_costs.json"] {
+        for f in [
+            "run_0.json",
+            "run_1.json",
+            "unguided/run_0.json",
+            "unguided/run_1.json",
+            "run_costs.json",
+        ] {
             assert!(dir.path().join(f).exists(), "{f} missing");
+        }
+        // The twins written are those the verdicts were judged against.
+        let prepared = prepare(&scene, &t).unwrap();
+        let twins = sample(&t, &prepared, &[], &cfg()).unwrap();
+        let written = Rollout::read(&dir.path().join("unguided/run_1.json"))
+            .unwrap()
+            .apply_to(&prepared, Path::new("unguided/run_1.json"))
+            .unwrap();
+        let c = scene.meta.current_step;
+        for (w, u) in written.agents.iter().zip(&twins[1].scene.agents) {
+            let (p, q) = (w.states[c + 5], u.states[c + 5]);
+            assert!(
+                (p.x - q.x).abs() < 1e-4 && (p.y - q.y).abs() < 1e-4,
+                "{p:?} vs {q:?}"
+            );
         }
         let json: serde_json::Value = serde_json::from_str(
             &std::fs::read_to_string(dir.path().join("run_costs.json")).unwrap(),
@@ -541,6 +590,45 @@ mod tests {
             let (_, fin) = a.samples[k].realism.as_ref().unwrap();
             assert_eq!(o.total, a.samples[k].reports[0].total + fin.total);
         }
+    }
+
+    #[test]
+    fn what_a_checked_behaviour_asks_of_its_agents_is_not_implausible() {
+        let checks = vec![
+            (Behavior::Reverse, Params::numbers(&[("vehicle", 3.0)])),
+            (
+                Behavior::CutIn,
+                Params::numbers(&[("cutter", 2.0), ("victim", 1.0)]),
+            ),
+        ];
+        assert!(requested(&checks, 3, Violation::Reverse));
+        assert!(!requested(&checks, 3, Violation::Sprint));
+        assert!(
+            !requested(&checks, 1, Violation::Reverse),
+            "a victim reversing"
+        );
+        assert!(
+            !requested(&checks, 4, Violation::Reverse),
+            "a car not named"
+        );
+        let event = |agent, requested| RealismEvent {
+            agent,
+            role: None,
+            kind: Violation::Reverse.name(),
+            time: 1.0,
+            value: -2.0,
+            text: "reverses".into(),
+            requested,
+        };
+        let o = SampleOutcome {
+            sample: 0,
+            total: 0.0,
+            terms: Vec::new(),
+            verdicts: Vec::new(),
+            realism: vec![event(3, true), event(1, false)],
+        };
+        let flagged: Vec<i64> = o.implausible(&[1, 3]).map(|e| e.agent).collect();
+        assert_eq!(flagged, vec![1]);
     }
 
     #[test]
