@@ -495,7 +495,7 @@ fn margin(b: Behavior) -> Option<(&'static str, f64, f64, f64)> {
         Behavior::OffRoad => ("distance", 1.0, 1.0, 4.0),
         Behavior::Yield => ("margin", 2.0, 2.0, 8.0),
         Behavior::Follow => ("tol", 0.5, -0.15, 0.2),
-        Behavior::Reverse => ("speed", 2.0, 1.0, 5.0),
+        Behavior::Reverse => ("distance", 1.5, 0.5, 3.0),
         Behavior::Weave => ("amplitude", 0.8, 0.2, 1.2),
         Behavior::Stop => ("max_decel", 6.0, 1.0, 8.0),
         Behavior::Accident => ("depth", 0.3, 0.3, 1.5),
