@@ -100,7 +100,7 @@ impl Behavior {
             Behavior::LaneChangeRight => "the vehicle ends in the right neighbour of a lane on its starting lane's path (or a lane straight on from one), within 1 m of that lane's centre line",
             Behavior::RightmostLane => "the vehicle ends within 1 m of the centre line of a lane with no same-direction lane to its right",
             Behavior::CutIn => "A starts in a lane adjacent to B's, ends within 1 m of the centre of B's lane path ahead of B (bumper to bumper), and they never collide",
-            Behavior::Yield => "B passes the point where their lane paths (taking `yielder_turn` / `other_turn` at forks, default straight) meet before A reaches it, and they never collide",
+            Behavior::Yield => "B passes the point where their lane paths (taking `yielder_turn` / `other_turn` at forks, default straight) meet before A reaches it, both stay within 2 m of those paths, and they never collide",
             Behavior::Follow => "over the last half of the horizon A stays within 1.5 m of B's lane path, behind B at a bumper-to-bumper gap between gap/2 and 2·gap",
             Behavior::Reverse => "the vehicle ends at least 1 m behind its start along its starting heading, its heading never more than 30 degrees off",
             Behavior::OffRoad => "the vehicle's centre ends beyond the road edge",
@@ -681,6 +681,7 @@ pub fn check(behavior: Behavior, scene: &Scene, params: &Params) -> Result<Verdi
         Behavior::Yield => {
             let (a, b) = (x.agent("yielder")?, x.agent("other")?);
             let (ta, tb) = (x.turn("yielder_turn")?, x.turn("other_turn")?);
+            let (ta_word, tb_word) = (ta.word(), tb.word());
             let (pa, pb) = (
                 route_of(s, a, ta).ok_or_else(|| no_lane(behavior, a.id))?,
                 route_of(s, b, tb).ok_or_else(|| no_lane(behavior, b.id))?,
@@ -694,6 +695,15 @@ pub fn check(behavior: Behavior, scene: &Scene, params: &Params) -> Result<Verdi
                     .find(|&t| ag.is_valid(t) && p.frenet.project(ag.states[t].position()).s >= at)
             };
             let (ta, tb) = (first(a, &pa, sa), first(b, &pb, sb));
+            // A car that drives off its route (straight on instead of turning) yields to
+            // nobody: it only avoids the meeting point.
+            let off_route = |ag: &Agent, p: &LanePath| {
+                (c + 1..ag.states.len())
+                    .filter(|&t| ag.is_valid(t))
+                    .map(|t| p.frenet.project(ag.states[t].position()).d.abs())
+                    .fold(0.0f64, f64::max)
+            };
+            let (da, db) = (off_route(a, &pa), off_route(b, &pb));
             let hits = overlap_steps(s, a, b).len();
             let dt = s.meta.dt;
             x.measure(
@@ -701,15 +711,25 @@ pub fn check(behavior: Behavior, scene: &Scene, params: &Params) -> Result<Verdi
                 ta.map_or(-1.0, |t| (t - c) as f64 * dt),
             );
             x.measure("other_passes_s", tb.map_or(-1.0, |t| (t - c) as f64 * dt));
+            x.measure("yielder_off_route_m", da);
+            x.measure("other_off_route_m", db);
             x.measure("collision_steps", hits as f64);
+            let on_route = da <= ROUTE_TOLERANCE && db <= ROUTE_TOLERANCE;
             let ok = match (ta, tb) {
                 (_, None) => false,
                 (None, Some(_)) => true,
                 (Some(ta), Some(tb)) => tb < ta,
-            } && hits == 0;
+            } && hits == 0
+                && on_route;
             x.verdict(
                 ok,
                 match (ta, tb) {
+                    _ if da > ROUTE_TOLERANCE => format!(
+                        "the yielder leaves its route ({da:.1} m off its lane path, {ta_word} at forks)"
+                    ),
+                    _ if db > ROUTE_TOLERANCE => format!(
+                        "the other agent leaves its route ({db:.1} m off its lane path, {tb_word} at forks)"
+                    ),
                     (_, None) => "the other agent never reaches the meeting point".to_string(),
                     (Some(ta), Some(tb)) if ta <= tb => {
                         "the yielder reaches the meeting point first".into()
@@ -866,6 +886,9 @@ pub fn check(behavior: Behavior, scene: &Scene, params: &Params) -> Result<Verdi
 
 /// Speed (m/s) above which `suggest` counts a car as moving.
 const MOVING: f64 = 2.0;
+/// How far (metres, from the lane path's centre line) a yielder or the car it yields to may
+/// be from the route the request names: within its lane, with room to cut a junction's corner.
+const ROUTE_TOLERANCE: f64 = 2.0;
 
 /// Farthest a neighbouring lane's centre may lie from the recorded end (m) for `target_point`:
 /// a lane beside it, not one that stops short of it.

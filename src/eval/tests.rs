@@ -305,6 +305,15 @@ fn yield_is_judged_on_the_routes_the_request_names() {
     let waits = yaml::parse(Path::new("waits.yaml"), &text).unwrap();
     let v = check(Behavior::Yield, &waits, &turning("left")).unwrap();
     assert!(v.achieved, "{v:?}");
+    // Going straight on where the request says the yielder turns left only avoids the
+    // meeting point: that is no yield.
+    let straight = scene("junction_straight.yaml");
+    let v = check(Behavior::Yield, &straight, &turning("left")).unwrap();
+    assert!(
+        !v.achieved && v.reason.contains("the yielder leaves its route"),
+        "{v:?}"
+    );
+    assert!(v.measured["yielder_off_route_m"] > 2.0, "{v:?}");
     // Straight on, there is nothing to yield at.
     let v = check(
         Behavior::Yield,
