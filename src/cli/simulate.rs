@@ -77,7 +77,9 @@ pub struct Args {
     /// Where the guidance gradient is taken.
     #[arg(long, value_enum, default_value = "denoiser")]
     guidance: GuidanceArg,
-    /// Re-plan at 2 Hz: execute 0.5 s of each plan, then sample again from there.
+    /// Re-plan at 2 Hz: execute 0.5 s of each plan, then sample again from there. The scripts
+    /// keep judging the horizon from the scene's current step (executed steps included), so a
+    /// request keeps its deadline.
     #[arg(long)]
     closed_loop: bool,
     /// Choose each scene's agents for this behaviour (e.g. cut_in) the way `eval --task
