@@ -16,7 +16,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use super::IoError;
-use crate::scene::{Agent, AgentState, AgentType, Scene, SceneMeta};
+use crate::scene::{velocities_from_positions, Agent, AgentState, AgentType, Scene, SceneMeta};
 
 /// The `format` tag of rollout files.
 pub const FORMAT_TAG: &str = "drivescript-rollout";
@@ -271,7 +271,8 @@ impl Rollout {
         super::write_atomic(path, text.as_bytes())
     }
 
-    /// The scene's map and metadata with this rollout's agents (velocities from differences).
+    /// The scene's map and metadata with this rollout's agents, velocities from the positions
+    /// as the sampler sets them ([`velocities_from_positions`]).
     pub fn apply_to(&self, scene: &Scene, what: &Path) -> Result<Scene, IoError> {
         self.validate(what)?;
         self.check_against(scene, what)?;
@@ -279,38 +280,25 @@ impl Rollout {
             .agents
             .iter()
             .map(|a| {
-                let n = a.states.len();
-                let states = (0..n)
-                    .map(|k| {
-                        let s = a.states[k];
-                        if !s.3 {
-                            return AgentState::INVALID;
-                        }
-                        let (lo, hi) = (k.saturating_sub(1), (k + 1).min(n - 1));
-                        let (lo, hi) = if a.states[lo].3 && a.states[hi].3 {
-                            (lo, hi)
+                let mut states: Vec<AgentState> = a
+                    .states
+                    .iter()
+                    .map(|s| {
+                        if s.3 {
+                            AgentState {
+                                x: s.0,
+                                y: s.1,
+                                heading: s.2,
+                                vx: 0.0,
+                                vy: 0.0,
+                                valid: true,
+                            }
                         } else {
-                            (k, k)
-                        };
-                        let span = (hi - lo) as f64 * self.dt;
-                        let (vx, vy) = if span > 0.0 {
-                            (
-                                (a.states[hi].0 - a.states[lo].0) / span,
-                                (a.states[hi].1 - a.states[lo].1) / span,
-                            )
-                        } else {
-                            (0.0, 0.0)
-                        };
-                        AgentState {
-                            x: s.0,
-                            y: s.1,
-                            heading: s.2,
-                            vx,
-                            vy,
-                            valid: true,
+                            AgentState::INVALID
                         }
                     })
                     .collect();
+                velocities_from_positions(&mut states, 0, self.dt);
                 Agent {
                     id: a.id,
                     agent_type: a.agent_type,
@@ -330,5 +318,36 @@ impl Rollout {
             location: "rollout".into(),
             error: e,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn read_back_a_rollout_moves_as_the_sampler_set_it_even_beside_gaps() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes/highway.yaml");
+        let scene = crate::io::load_scene(&path, 0, &crate::io::LoadOptions::default()).unwrap();
+        let mut r = Rollout::from_scene(&scene);
+        // Agent 0 leaves the view for one step at 15: the steps beside the gap keep the
+        // one-sided difference of their positions, not zero.
+        r.agents[0].states[15].3 = false;
+        let read = r.apply_to(&scene, Path::new("r.json")).unwrap();
+        let mut want = scene.agents[0].states.clone();
+        want[15] = AgentState::INVALID;
+        velocities_from_positions(&mut want, 0, scene.meta.dt);
+        let got = &read.agents[0].states;
+        for t in [0, 14, 16, want.len() - 1] {
+            assert!(
+                (got[t].vx - want[t].vx).abs() < 1e-9 && (got[t].vy - want[t].vy).abs() < 1e-9,
+                "step {t}: {:?} vs {:?}",
+                got[t],
+                want[t]
+            );
+        }
+        let (p, q) = (&scene.agents[0].states[13], &scene.agents[0].states[14]);
+        assert!((got[14].vx - (q.x - p.x) / scene.meta.dt).abs() < 1e-9);
+        assert!(got[14].vx.abs() > 1.0, "a car driving at 20 m/s");
     }
 }

@@ -10,7 +10,7 @@
 use candle_core::{Device, Tensor, Var};
 
 use crate::cost::{CostError, CostReport, CostScript, Realism, Trajectories};
-use crate::scene::{AgentId, AgentState, AgentType, Scene};
+use crate::scene::{velocities_from_positions, AgentId, AgentState, AgentType, Scene};
 use crate::train::dataset::add_anchor;
 use crate::train::{build, window_among, Trained, Window};
 
@@ -759,37 +759,6 @@ fn polish(
     Ok(())
 }
 
-/// Sets the velocity of every valid state after step `c` from the positions around it: the
-/// centred difference where both neighbours are valid (the state at `c` counts), else the
-/// one-sided one, else zero. A sampled state's velocity is what the next closed-loop round, a
-/// script's `current_speed` and realism's speed-up bound read as the current one; left at zero,
-/// a car that was driving at 15 m/s starts the next round standing, and realism brakes it at
-/// 10 m/s².
-fn velocities_from_positions(states: &mut [AgentState], c: usize, dt: f64) {
-    let valid = |t: usize| states.get(t).is_some_and(|s| s.valid);
-    let v: Vec<Option<(f64, f64)>> = (c + 1..states.len())
-        .map(|t| {
-            if !valid(t) {
-                return None;
-            }
-            let before = if valid(t - 1) { t - 1 } else { t };
-            let after = if valid(t + 1) { t + 1 } else { t };
-            if before == after {
-                return Some((0.0, 0.0));
-            }
-            let span = (after - before) as f64 * dt;
-            let (p, q) = (&states[before], &states[after]);
-            Some(((q.x - p.x) / span, (q.y - p.y) / span))
-        })
-        .collect();
-    for (s, v) in states[c + 1..].iter_mut().zip(v) {
-        if let Some((vx, vy)) = v {
-            s.vx = vx;
-            s.vy = vy;
-        }
-    }
-}
-
 /// EDM's Heun integrator from `x0` over `sigmas` (ending at 0), with `denoised(x, σ, step)`
 /// the (guided) denoiser.
 fn heun(
@@ -1120,7 +1089,10 @@ pub(crate) fn sample_after(
                 };
             }
             if !keeps {
-                velocities_from_positions(&mut a.states, c, scene.meta.dt);
+                // A sampled state's velocity is what the next closed-loop round, a script's
+                // `current_speed` and realism's speed-up bound read as the current one; left
+                // at zero, a car driving at 15 m/s would start the next round standing.
+                velocities_from_positions(&mut a.states, c + 1, scene.meta.dt);
             }
         }
         let reports = scripts
@@ -1747,7 +1719,7 @@ pub(crate) mod tests {
             at(0.0, false),
             at(5.0, true),
         ];
-        velocities_from_positions(&mut states, 0, 0.5);
+        velocities_from_positions(&mut states, 1, 0.5);
         let vx: Vec<f64> = states.iter().map(|s| s.vx).collect();
         assert_eq!(vx, vec![9.0, 3.0, 4.0, 9.0, 0.0]);
         assert!(states[1..].iter().filter(|s| s.valid).all(|s| s.vy == 0.0));

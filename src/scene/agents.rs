@@ -128,3 +128,33 @@ impl Agent {
         Some((first, last))
     }
 }
+
+/// Sets the velocity of every valid state from step `from` on from the positions around it:
+/// the centred difference where both neighbours are valid, else the one-sided one, else zero.
+/// The sampler and the rollout reader both use it, so that a rollout read back from its file
+/// moves as the sample did in memory.
+pub fn velocities_from_positions(states: &mut [AgentState], from: usize, dt: f64) {
+    let valid = |t: Option<usize>| t.and_then(|t| states.get(t)).is_some_and(|s| s.valid);
+    let v: Vec<Option<(f64, f64)>> = (from..states.len())
+        .map(|t| {
+            if !valid(Some(t)) {
+                return None;
+            }
+            let before = if valid(t.checked_sub(1)) { t - 1 } else { t };
+            let after = if valid(Some(t + 1)) { t + 1 } else { t };
+            if before == after {
+                return Some((0.0, 0.0));
+            }
+            let span = (after - before) as f64 * dt;
+            let (p, q) = (&states[before], &states[after]);
+            Some(((q.x - p.x) / span, (q.y - p.y) / span))
+        })
+        .collect();
+    let start = from.min(states.len());
+    for (s, v) in states[start..].iter_mut().zip(v) {
+        if let Some((vx, vy)) = v {
+            s.vx = vx;
+            s.vy = vy;
+        }
+    }
+}

@@ -11,7 +11,7 @@ use std::collections::{BTreeMap, HashSet};
 
 use serde::Serialize;
 
-pub use agents::{Agent, AgentId, AgentState, AgentType};
+pub use agents::{velocities_from_positions, Agent, AgentId, AgentState, AgentType};
 pub use description::{describe, DescribeOptions, SceneDescription};
 pub use lane_graph::{EdgeCounts, LaneGraph};
 pub use lane_path::{LanePath, Turn, TURN_THRESHOLD};
