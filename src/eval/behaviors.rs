@@ -886,6 +886,8 @@ pub fn check(behavior: Behavior, scene: &Scene, params: &Params) -> Result<Verdi
 
 /// Speed (m/s) above which `suggest` counts a car as moving.
 const MOVING: f64 = 2.0;
+/// The bumper-to-bumper gap (metres) `suggest` asks a follower to keep.
+const FOLLOW_GAP: f64 = 10.0;
 /// How far (metres, from the lane path's centre line) a yielder or the car it yields to may
 /// be from the route the request names: within its lane, with room to cut a junction's corner.
 const ROUTE_TOLERANCE: f64 = 2.0;
@@ -965,7 +967,9 @@ fn can_back_up(scene: &Scene, a: &Agent, horizon: f64) -> bool {
 ///   along the victim's path that can end 5 m (bumper to bumper) ahead of the victim holding its speed, accelerating at
 ///   2.5 m/s² and no faster than 0.75 of the sprint bound allows (the kinematic checker's and
 ///   realism's bounds): a slower car far behind cannot cut in plausibly;
-/// - `follow`: a leader ahead in the follower's lane within 60 m, asking for a 10 m gap;
+/// - `follow`: a leader ahead in the follower's lane within 60 m, asking for a 10 m gap that
+///   the follower can bring within the checker's 5–20 m by half the horizon with the leader
+///   holding its speed, braking at up to 3 m/s² (never backing up) or speeding up at 2 m/s²;
 /// - `off_road`: the nearest car moving at 2 m/s or more with its centre within 4 m of the
 ///   road edge (a car queued at a light, or boxed in mid-road, has no way off it);
 /// - `yield`: two vehicles whose routes (the lane paths, straight on, left or right at forks,
@@ -1129,15 +1133,35 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
             None
         }
         Behavior::Follow => {
+            let want = FOLLOW_GAP;
+            // The checker wants the bumper gap within gap/2 .. 2·gap over the last half of
+            // the horizon. With the leader holding its speed, the follower can open the gap
+            // at most by braking to a standstill at 3 m/s² and close it at most by speeding
+            // up at 2 m/s², never backing up: a car queued 3 m behind a standing one cannot
+            // drop back to 5 m.
+            let reachable = |f: &Agent, l: &Agent, ahead: f64| {
+                let half = horizon / 2.0;
+                let gap0 = ahead - 0.5 * (f.length + l.length);
+                let (vf, vl) = (f.states[c].speed(), l.states[c].speed());
+                let stop = (vf / 3.0).min(half);
+                let widest = gap0 + vl * half - (vf * stop - 1.5 * stop * stop);
+                let closest = gap0 + vl * half - (vf * half + half * half);
+                widest >= want / 2.0 && closest <= 2.0 * want
+            };
             for (f, lf, path) in &cands {
                 let sf = path.frenet.project(f.states[c].position()).s;
                 for (l, ll, _) in &cands {
                     let ahead = path.frenet.project(l.states[c].position()).s - sf;
-                    if l.id != f.id && ll == lf && ahead > 0.0 && ahead <= 60.0 {
+                    if l.id != f.id
+                        && ll == lf
+                        && ahead > 0.0
+                        && ahead <= 60.0
+                        && reachable(f, l, ahead)
+                    {
                         return p(&[
                             ("follower", f.id as f64),
                             ("leader", l.id as f64),
-                            ("gap", 10.0),
+                            ("gap", want),
                         ]);
                     }
                 }

@@ -408,6 +408,21 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
         (f.number("follower").unwrap(), f.number("leader").unwrap()),
         (3.0, 1.0)
     );
+    // A follower queued 3 m (bumper to bumper) behind a standing leader cannot drop back to
+    // the checker's 5 m without reversing; 8 m behind, or with the leader driving off, it can.
+    let queue = |gap: f64, leader_speed: f64| {
+        let text = format!(
+            "scenario_id: q\nsteps: 51\nroad: {{lanes: 1, length: 300}}\nagents:\n  \
+             - {{id: 1, lane: 0, s: 100, speed: {leader_speed}}}\n  \
+             - {{id: 2, lane: 0, s: {}, speed: 0}}\n",
+            100.0 - 4.5 - gap
+        );
+        let s = yaml::parse(Path::new("q.yaml"), &text).unwrap();
+        suggest(Behavior::Follow, &s).map(|p| p.number("follower").unwrap())
+    };
+    assert_eq!(queue(3.0, 0.0), None);
+    assert_eq!(queue(8.0, 0.0), Some(2.0));
+    assert_eq!(queue(3.0, 3.0), Some(2.0));
     assert!(
         suggest(Behavior::Yield, &base).is_none(),
         "parallel lanes never meet"
