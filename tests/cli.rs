@@ -406,10 +406,17 @@ fn demo_runs_the_loop_and_writes_the_run() {
         .filter_map(|l| l.trim().strip_prefix("score them: drivescript "))
         .collect();
     assert_eq!(evals.len(), 2, "{out}");
-    for e in evals {
+    // Each scores every sample against its unguided twin, with the demo's verdicts.
+    for (e, checker) in evals.iter().zip(["cut_in", "off_road"]) {
+        let passed = out
+            .lines()
+            .filter(|l| l.starts_with("round 0: sample "))
+            .filter(|l| l.contains(&format!("{checker} PASS")))
+            .count();
         let args: Vec<&str> = e.split(' ').collect();
         let table = ok(&args);
-        assert!(table.contains("| 1 |"), "{e}:\n{table}");
+        let want = format!("| {checker} | 4 | {:.2} |", passed as f64 / 4.0);
+        assert!(table.contains(&want), "{e}: {want:?} missing:\n{table}");
     }
     // Running it again replaces the run instead of refusing.
     ok(&["demo", "-o", s(&run)]);
@@ -1642,7 +1649,7 @@ fn eval_judges_the_rest_of_the_scene_against_the_unguided_twin() {
         "{out}"
     );
     let v: Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
-    let verdict = &v["methods"][0]["scenes"][0]["verdict"];
+    let verdict = &v["methods"][0]["scenes"][0]["verdicts"][0];
     assert_eq!(verdict["collateral"]["collided"], 3, "{verdict}");
     assert_eq!(verdict["collateral"]["collided_unguided"], 0, "{verdict}");
     assert!(

@@ -8,7 +8,7 @@ use anyhow::{bail, Context, Result};
 use drivescript::cost::Params;
 use drivescript::eval::kinematic::{self, KinematicLimits, Violation};
 use drivescript::eval::metrics::{self, JsdBins, Kinematics};
-use drivescript::eval::{check, check_against_unguided, Baseline, Behavior};
+use drivescript::eval::{check, check_against_unguided, Baseline, Behavior, Verdict};
 use drivescript::io::{
     discover, read_each, rollout::Rollout, write_atomic, LoadOptions, OutputNames,
 };
@@ -50,7 +50,8 @@ pub struct Args {
     /// Directory of rollout JSON files to score: SCENARIO_ID.json or SCENARIO_ID_K.json.
     #[arg(long)]
     rollouts: Option<PathBuf>,
-    /// Samples per scene expected in --rollouts (minADE/minFDE over them).
+    /// Samples per scene expected in --rollouts: minADE/minFDE over them (conditional), and
+    /// every one judged, each against its own unguided twin (behaviour: rates per sample).
     #[arg(long, default_value_t = 1)]
     samples: usize,
     /// Behaviour for --task behaviour (a script name, e.g. cut_in).
@@ -157,24 +158,30 @@ fn score(
     logged: &Scene,
     sims: &[Scene],
     behaviour: Option<(Behavior, &Params)>,
-    unguided: Option<&Scene>,
+    unguided: Option<&[Scene]>,
 ) {
     let t0 = Instant::now();
     acc.scenes += 1;
     let sim = &sims[0];
     let mut row = json!({"scene": logged.meta.scenario_id});
     let lim = KinematicLimits::default();
-    let verdict = behaviour.map(|(b, p)| {
-        let v = match unguided {
-            Some(u) => check_against_unguided(b, sim, u, p),
-            None => check(b, sim, p),
-        };
-        (b, v)
-    });
+    // Every sample is judged, each against its own unguided twin: the rate is per sample, as
+    // `simulate` and `ask` judge them.
+    let verdicts: Vec<Result<Verdict, _>> = match behaviour {
+        Some((b, p)) => sims
+            .iter()
+            .enumerate()
+            .map(|(k, s)| match unguided.and_then(|u| u.get(k)) {
+                Some(u) => check_against_unguided(b, s, u, p),
+                None => check(b, s, p),
+            })
+            .collect(),
+        None => Vec::new(),
+    };
     // What a behaviour asks of the agents it names (a reverse's backing up) is not counted
     // against the sample, as its verdict does not count it.
-    let (named, allowed): (&[i64], &[Violation]) = match &verdict {
-        Some((b, Ok(v))) => (&v.named, b.allowed_motion()),
+    let (named, allowed): (&[i64], &[Violation]) = match (behaviour, verdicts.first()) {
+        (Some((b, _)), Some(Ok(v))) => (&v.named, b.allowed_motion()),
         _ => (&[], &[]),
     };
     let mut flagged = 0;
@@ -242,19 +249,26 @@ fn score(
             row["mmd2_road_edge"] = json!(me);
         }
         Task::Behaviour => {
-            let (b, verdict) = verdict.expect("checked by the caller");
-            match verdict {
-                Ok(v) => {
-                    let touch = b.contacts(&v.named);
-                    acc.collided
-                        .extend(vehicles_only(sim, metrics::collided_except(sim, &touch)));
-                    acc.checked += 1;
-                    acc.passed += v.passed as usize;
-                    acc.achieved += v.achieved as usize;
-                    row["verdict"] = json!(v);
+            let (b, _) = behaviour.expect("checked by the caller");
+            let mut rows = Vec::with_capacity(verdicts.len());
+            for (s, verdict) in sims.iter().zip(verdicts) {
+                match verdict {
+                    Ok(v) => {
+                        let touch = b.contacts(&v.named);
+                        acc.collided
+                            .extend(vehicles_only(s, metrics::collided_except(s, &touch)));
+                        acc.checked += 1;
+                        acc.passed += v.passed as usize;
+                        acc.achieved += v.achieved as usize;
+                        rows.push(json!(v));
+                    }
+                    Err(e) => {
+                        row["error"] = json!(e.to_string());
+                        break;
+                    }
                 }
-                Err(e) => row["error"] = json!(e.to_string()),
             }
+            row["verdicts"] = json!(rows);
         }
     }
     acc.seconds += t0.elapsed().as_secs_f64();
@@ -447,9 +461,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 };
                 let sims: Vec<Scene> = sims.iter().map(fit).collect();
                 // The rollouts' unguided twins (baselines have none: nothing guided them).
-                let twin = match (m, &args.unguided) {
+                let twins = match (m, &args.unguided) {
                     (None, Some(dir)) => match rollouts_for(dir, scene, args.samples) {
-                        Ok(u) => u.first().map(fit),
+                        Ok(u) => Some(u.iter().map(fit).collect::<Vec<_>>()),
                         Err(e) => {
                             bar.suspend(|| eprintln!("error: {}", super::describe(&e)));
                             failures += 1;
@@ -464,7 +478,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     &reference,
                     &sims,
                     scene_params.as_ref().map(|(b, p)| (*b, p)),
-                    twin.as_ref(),
+                    twins.as_deref(),
                 );
             }
         }
@@ -532,7 +546,7 @@ fn report(
             println!("|---|---|---|---|---|---|---|---|");
         }
         Task::Behaviour => {
-            println!("| method | behaviour | scenes checked | achieved plausibly | achieved | collided | implausible | ms/scene |");
+            println!("| method | behaviour | samples checked | achieved plausibly | achieved | collided | implausible | ms/scene |");
             println!("|---|---|---|---|---|---|---|---|");
         }
     }
