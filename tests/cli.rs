@@ -943,7 +943,8 @@ fn train_then_simulate_end_to_end() {
         "--samples",
         "2",
     ]);
-    assert!(out.contains("| cut_in | 1 |"), "{out}");
+    // Both samples are judged.
+    assert!(out.contains("| cut_in | 2 |"), "{out}");
     // ... and costed over the model's horizon, however long the recording is.
     let rollout = sim.join("highway-cut-in_0.json");
     let out = ok(&[
