@@ -1182,8 +1182,18 @@ fn sampler_flags_are_checked_before_any_work() {
         );
         assert!(!out.exists(), "{arg} created {}", out.display());
     }
-    let err = fails(&["demo", "--samples", "0"]);
+    // The demo checks its settings before it clears the previous run away.
+    let demo = dir.path().join("demo");
+    std::fs::create_dir(&demo).unwrap();
+    std::fs::write(demo.join("state.json"), "{}").unwrap();
+    let err = fails(&["demo", "--samples", "0", "-o", s(&demo)]);
     assert!(err.contains("samples = 0: must be 1 to 1024"), "{err}");
+    assert_eq!(
+        std::fs::read_to_string(demo.join("state.json")).unwrap(),
+        "{}",
+        "the previous run was cleared"
+    );
+    assert!(!demo.join("round_0").exists());
     let err = fails(&["eval", s(&scene), "--task", "conditional", "--samples", "0"]);
     assert!(err.contains("--samples 0: must be 1 to 1024"), "{err}");
     for h in ["0", "100000000"] {

@@ -50,8 +50,15 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let request = args.request.unwrap_or_else(|| REQUEST.to_string());
     println!("request: {request}");
     println!("LLM: the rules planner (a fixed vocabulary, not a language model); `drivescript ask` takes any OpenAI-compatible server\n");
-    clear_run(&args.output)?;
+    let config = SessionConfig {
+        samples: args.samples,
+        seed: args.seed,
+        ..SessionConfig::default()
+    };
+    // Before the previous run is cleared away.
+    config.validate()?;
     let prompts = Prompts::load(&Prompts::default_dir())?;
+    clear_run(&args.output)?;
     let mut session = Session::start(
         &args.output,
         &scene_path,
@@ -60,11 +67,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         &trained,
         Backend::Rules,
         prompts,
-        SessionConfig {
-            samples: args.samples,
-            seed: args.seed,
-            ..SessionConfig::default()
-        },
+        config,
         None,
     )?;
     for (b, p) in session.checks() {

@@ -107,6 +107,17 @@ impl Default for SessionConfig {
 }
 
 impl SessionConfig {
+    /// Checks the sampler settings ([`SampleConfig::validate`]): done before a run writes
+    /// anything, so that a bad setting does not fail after the first reply, with the run
+    /// directory (or the demo's previous run) already replaced.
+    pub fn validate(&self) -> Result<(), LlmError> {
+        self.sample_config().validate().map_err(|e| {
+            LlmError::Attempt(crate::sample::AttemptError::Sample(
+                crate::sample::SampleError::Settings(e),
+            ))
+        })
+    }
+
     /// The sampler settings: `simulate`'s defaults for behaviours.
     pub fn sample_config(&self) -> SampleConfig {
         SampleConfig {
@@ -300,6 +311,7 @@ impl<'a> Session<'a> {
         }
         // Refused before anything is asked: the rollouts are named after the scenario.
         output_stem(&raw.meta.scenario_id).map_err(|e| run_err(scene_path, e.to_string()))?;
+        config.validate()?;
         std::fs::create_dir_all(dir).map_err(|e| run_err(dir, format!("cannot create it: {e}")))?;
         let requests = vec![request.trim().to_string()];
         if let Backend::Rules = backend {
