@@ -680,11 +680,10 @@ pub fn check(behavior: Behavior, scene: &Scene, params: &Params) -> Result<Verdi
         }
         Behavior::Yield => {
             let (a, b) = (x.agent("yielder")?, x.agent("other")?);
-            let (ta, tb) = (x.turn("yielder_turn")?, x.turn("other_turn")?);
-            let (ta_word, tb_word) = (ta.word(), tb.word());
+            let (turn_a, turn_b) = (x.turn("yielder_turn")?, x.turn("other_turn")?);
             let (pa, pb) = (
-                route_of(s, a, ta).ok_or_else(|| no_lane(behavior, a.id))?,
-                route_of(s, b, tb).ok_or_else(|| no_lane(behavior, b.id))?,
+                route_of(s, a, turn_a).ok_or_else(|| no_lane(behavior, a.id))?,
+                route_of(s, b, turn_b).ok_or_else(|| no_lane(behavior, b.id))?,
             );
             let Some((sa, sb, _)) = pa.first_meeting(&pb) else {
                 x.measure("paths_meet", 0.0);
@@ -725,10 +724,12 @@ pub fn check(behavior: Behavior, scene: &Scene, params: &Params) -> Result<Verdi
                 ok,
                 match (ta, tb) {
                     _ if da > ROUTE_TOLERANCE => format!(
-                        "the yielder leaves its route ({da:.1} m off its lane path, {ta_word} at forks)"
+                        "the yielder leaves its route ({da:.1} m off its lane path, {} at forks)",
+                        turn_a.word()
                     ),
                     _ if db > ROUTE_TOLERANCE => format!(
-                        "the other agent leaves its route ({db:.1} m off its lane path, {tb_word} at forks)"
+                        "the other agent leaves its route ({db:.1} m off its lane path, {} at forks)",
+                        turn_b.word()
                     ),
                     (_, None) => "the other agent never reaches the meeting point".to_string(),
                     (Some(ta), Some(tb)) if ta <= tb => {

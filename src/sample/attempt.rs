@@ -500,6 +500,9 @@ mod tests {
         assert_eq!(r.checks[0].behaviour, "cut_in");
         assert_eq!(r.named, vec![2, 1]);
         assert_eq!(r.roles(), vec![(2, "cutter".into()), (1, "victim".into())]);
+        // The same samples drawn unguided, drawn here independently of the attempt.
+        let prepared = prepare(&scene, &t).unwrap();
+        let twins = sample(&t, &prepared, &[], &cfg()).unwrap();
         for (k, o) in r.samples.iter().enumerate() {
             // The totals and verdicts are those of the scored scenes, not copies of one.
             let rep = &a.samples[k].reports[0];
@@ -513,7 +516,6 @@ mod tests {
                 assert!(x.initial.is_some(), "{} has no first estimate", x.term);
             }
             // Judged with the rest of the scene against the same sample drawn unguided.
-            let twins = sample(&t, &prepare(&scene, &t).unwrap(), &[], &cfg()).unwrap();
             let v =
                 check_against_unguided(Behavior::CutIn, &a.samples[k].scene, &twins[k].scene, &p)
                     .unwrap();
@@ -549,8 +551,6 @@ mod tests {
             assert!(dir.path().join(f).exists(), "{f} missing");
         }
         // The twins written are those the verdicts were judged against.
-        let prepared = prepare(&scene, &t).unwrap();
-        let twins = sample(&t, &prepared, &[], &cfg()).unwrap();
         let written = Rollout::read(&dir.path().join("unguided/run_1.json"))
             .unwrap()
             .apply_to(&prepared, Path::new("unguided/run_1.json"))
