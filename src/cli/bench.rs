@@ -325,6 +325,7 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
         stride: 10,
         centres_per_step: 8,
         pad_lanes: true,
+        min_future: 0,
     };
     let path = args
         .scene
@@ -372,6 +373,7 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
                 history: 11,
                 noise_freqs: 8,
                 scores: Scores::Normalised,
+                attrs: 0,
             },
             edm: Edm::default(),
             eval_every: usize::MAX,

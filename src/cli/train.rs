@@ -4,18 +4,40 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::{Context, Result};
-use drivescript::io::{discover, load_scenes, LoadOptions};
-use drivescript::train::{load, train_from, TrainConfig};
+use drivescript::train::{
+    load, train_from, Corpus, Holdout, SplitBy, TrainConfig, WindowSource, WindowStore,
+};
 use indicatif::{ProgressBar, ProgressStyle};
+
+/// Window sizes and network of a new run.
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum Setting {
+    /// 4 s futures, vehicles only (the NGSIM checkpoint's setting).
+    Ngsim,
+    /// 8 s futures, with each agent's type and size as inputs: highways and cities.
+    Cities,
+}
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// Scene files or directories to train on (about 10 % of scenes are held out by id).
-    #[arg(long, required = true, num_args = 1..)]
+    /// Scene files or directories to train on; about 10 % of their scenes are held out, by
+    /// scene id (for recordings of a few long roads, such as NGSIM).
+    #[arg(long, num_args = 1..)]
     data: Vec<PathBuf>,
+    /// Scene files or directories of many towns or cities (CommonRoad ids, `DEU_Flensburg-…`):
+    /// held out a town at a time, so that validation measures places the model never saw.
+    #[arg(long, num_args = 1..)]
+    urban: Vec<PathBuf>,
+    /// Window sizes and network of a new run (a resumed run keeps its checkpoint's).
+    #[arg(long, value_enum, default_value = "ngsim")]
+    setting: Setting,
     /// Checkpoint directory (model.safetensors + config.json, written at every validation).
     #[arg(long)]
     out: PathBuf,
+    /// Directory for the training windows, cut from the scenes once and read back a batch at
+    /// a time (default: OUT/windows; rewritten at every start).
+    #[arg(long)]
+    cache: Option<PathBuf>,
     /// Optimiser steps.
     #[arg(long, default_value_t = 2000)]
     steps: usize,
@@ -36,6 +58,10 @@ pub struct Args {
     /// checkpoint's fold.
     #[arg(long, value_parser = clap::value_parser!(u64).range(0..10))]
     val_fold: Option<u64>,
+    /// A town or city of the --urban corpora to hold out besides the fold's (repeatable;
+    /// the name before the first `-` of its scene ids, e.g. DEU_Reutlingen).
+    #[arg(long)]
+    val_town: Vec<String>,
     /// Continue from this checkpoint (its sizes, PCA basis and seed are kept; `--steps` is the
     /// total to reach). May be the `--out` directory itself.
     #[arg(long)]
@@ -57,15 +83,23 @@ fn git_revision() -> Option<String> {
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
-    let cfg = TrainConfig {
+    let base = match args.setting {
+        Setting::Ngsim => TrainConfig::ngsim(),
+        Setting::Cities => TrainConfig::cities(),
+    };
+    let mut cfg = TrainConfig {
         steps: args.steps,
         batch: args.batch,
         lr: args.lr,
         seed: args.seed,
         eval_every: args.eval_every,
         val_fold: args.val_fold.unwrap_or(0),
-        ..TrainConfig::ngsim()
+        val_towns: args.val_town.clone(),
+        ..base
     };
+    if args.data.is_empty() && args.urban.is_empty() {
+        anyhow::bail!("nothing to train on: give --data or --urban (or both)");
+    }
     // A good checkpoint is never overwritten by accident.
     if args.out.join("model.safetensors").exists() && args.resume.is_none() && !args.force {
         anyhow::bail!(
@@ -79,23 +113,6 @@ pub fn run(args: Args) -> Result<ExitCode> {
     if let Err(e) = cfg.validate() {
         anyhow::bail!("training settings: {e}");
     }
-    let mut scenes = Vec::new();
-    for root in &args.data {
-        for src in discover(root)? {
-            scenes.extend(
-                load_scenes(&src, &LoadOptions::default())
-                    .with_context(|| format!("loading {}", src.display()))?,
-            );
-        }
-    }
-    println!(
-        "{} scenes; window {} + {} steps, {} agents, {} lanes",
-        scenes.len(),
-        cfg.window.history,
-        cfg.window.future,
-        cfg.window.max_agents,
-        cfg.window.max_lanes
-    );
     let resume = match &args.resume {
         Some(dir) => {
             let r = load(dir).with_context(|| format!("resuming from {}", dir.display()))?;
@@ -105,6 +122,14 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     "--val-fold {}: {} held out fold {fold}; a resumed run keeps its fold",
                     args.val_fold.unwrap_or_default(),
                     dir.display()
+                );
+            }
+            if !args.val_town.is_empty() && args.val_town != r.meta.config.val_towns {
+                anyhow::bail!(
+                    "--val-town {}: {} held out {:?}; a resumed run keeps its towns",
+                    args.val_town.join(" "),
+                    dir.display(),
+                    r.meta.config.val_towns
                 );
             }
             println!(
@@ -121,6 +146,49 @@ pub fn run(args: Args) -> Result<ExitCode> {
         }
         None => None,
     };
+    // The windows are cut with the sizes and the fold training will use: a resumed run's own.
+    if let Some(r) = &resume {
+        cfg.window = r.meta.config.window;
+        cfg.val_fold = r.meta.config.val_fold;
+        cfg.val_towns = r.meta.config.val_towns.clone();
+    }
+    let corpora: Vec<Corpus> = args
+        .data
+        .iter()
+        .map(|p| (p, SplitBy::Scene))
+        .chain(args.urban.iter().map(|p| (p, SplitBy::Town)))
+        .map(|(p, split)| Corpus {
+            path: p.clone(),
+            split,
+        })
+        .collect();
+    let cache = args
+        .cache
+        .clone()
+        .unwrap_or_else(|| args.out.join("windows"));
+    let started = std::time::Instant::now();
+    let holdout = Holdout {
+        fold: cfg.val_fold,
+        towns: cfg.val_towns.clone(),
+    };
+    let store = WindowStore::build(&corpora, &cfg.window, &holdout, &cache, |n, w| {
+        if n % 100 == 0 {
+            eprintln!("  {n} scenes read, {w} windows");
+        }
+    })?;
+    println!(
+        "{} training and {} validation windows ({} and {} scenes) in {} ({:.0} s); window {} + {} steps, {} agents, {} lanes",
+        store.train_len(),
+        store.val_len(),
+        store.train_scenes().len(),
+        store.val_scenes().len(),
+        cache.display(),
+        started.elapsed().as_secs_f64(),
+        cfg.window.history,
+        cfg.window.future,
+        cfg.window.max_agents,
+        cfg.window.max_lanes
+    );
     let bar = ProgressBar::new(args.steps as u64);
     if let Some(r) = &resume {
         bar.set_position(r.meta.steps_done as u64);
@@ -133,7 +201,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let mut avg = None::<f64>;
     let mut since = (0.0f64, 0usize);
     let t = train_from(
-        &scenes,
+        &store,
         cfg,
         resume,
         Some(&args.out),

@@ -449,6 +449,7 @@ fn read_tracks(path: &Path) -> Result<(Vec<Agent>, SceneMeta), IoError> {
                 length,
                 width,
                 states,
+                is_static: ty == "static",
             }
         })
         .collect();

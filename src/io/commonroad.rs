@@ -216,7 +216,7 @@ pub fn parse(path: &Path, text: &str, opts: &LoadOptions) -> Result<Scene, IoErr
         dt,
         current_step,
         ego: None,
-        warnings: Vec::new(),
+        warnings: warnings(root),
     };
     Scene::recorded(meta, map, agents).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
@@ -481,6 +481,50 @@ fn push_edge_runs(out: &mut Vec<RoadEdge>, line: &Polyline, own: i64, surfaces: 
     flush(&mut run, out);
 }
 
+/// What the scene model leaves out or folds together, said once per scene: traffic lights
+/// (their states are not modelled) and the kinds of vehicle read as `vehicle`.
+fn warnings(root: Node) -> Vec<String> {
+    let mut out = Vec::new();
+    let lights = root
+        .descendants()
+        .filter(|n| n.has_tag_name("trafficLight"))
+        .count();
+    if lights > 0 {
+        out.push(format!(
+            "{lights} traffic light{} not read: signal states are not part of the scene model, so no agent is held at a red light",
+            if lights == 1 { "" } else { "s" }
+        ));
+    }
+    let mut kinds: std::collections::BTreeMap<&str, usize> = Default::default();
+    for n in root.children().filter(|n| {
+        matches!(
+            n.tag_name().name(),
+            "dynamicObstacle" | "staticObstacle" | "obstacle"
+        )
+    }) {
+        let t = n
+            .children()
+            .find(|c| c.has_tag_name("type"))
+            .and_then(|t| t.text())
+            .unwrap_or("")
+            .trim();
+        if matches!(
+            t,
+            "truck" | "bus" | "motorcycle" | "priorityVehicle" | "taxi"
+        ) {
+            *kinds.entry(t).or_default() += 1;
+        }
+    }
+    if !kinds.is_empty() {
+        let list: Vec<String> = kinds.iter().map(|(k, n)| format!("{n} {k}")).collect();
+        out.push(format!(
+            "{} read as vehicles: a model that reads agents' sizes tells them apart by their length and width, the NGSIM checkpoint moves them as cars",
+            list.join(", ")
+        ));
+    }
+    out
+}
+
 fn agent_type(name: &str) -> AgentType {
     match name {
         "car" | "truck" | "bus" | "motorcycle" | "priorityVehicle" | "parkedVehicle" | "taxi" => {
@@ -629,6 +673,7 @@ fn read_agents(cx: &Ctx, root: Node) -> Result<(Vec<Agent>, usize), IoError> {
                 length: r.length,
                 width: r.width,
                 states,
+                is_static: r.is_static,
             }
         })
         .collect();

@@ -305,6 +305,7 @@ impl Rollout {
                     length: a.length,
                     width: a.width,
                     states,
+                    is_static: false,
                 }
             })
             .collect();

@@ -214,6 +214,7 @@ pub fn scenario_to_scene(sc: &pb::Scenario, path: &Path, index: usize) -> Result
             length,
             width,
             states,
+            is_static: false,
         });
     }
     let ego = match sc.sdc_track_index {

@@ -495,6 +495,7 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
             length,
             width,
             states,
+            is_static: false,
         });
     }
     let meta = SceneMeta {

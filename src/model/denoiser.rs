@@ -29,6 +29,11 @@ pub struct DenoiserConfig {
     /// [`Scores::Raw`].
     #[serde(default)]
     pub scores: Scores,
+    /// Features per agent that say what it is (`train::dataset::AGENT_ATTRS`: type, static,
+    /// size). 0, as in configs written before the field, feeds none: such a model has seen
+    /// one kind of road user only.
+    #[serde(default)]
+    pub attrs: usize,
 }
 
 /// Tensors describing the map and the agents of a batch of windows (see `train::batch`).
@@ -50,6 +55,9 @@ pub struct Context {
     pub agent_lane_rel: Tensor,
     /// Agent j's pose in agent i's frame, `[B, N, N, 4]`.
     pub agent_rel: Tensor,
+    /// What each agent is, `[B, N, A]` (`train::dataset::agent_attributes`); a model reads the
+    /// first [`DenoiserConfig::attrs`] of them.
+    pub agent_attr: Tensor,
 }
 
 impl Context {
@@ -64,6 +72,7 @@ impl Context {
             agent_mask: self.agent_mask.to_dtype(dtype)?,
             agent_lane_rel: self.agent_lane_rel.to_dtype(dtype)?,
             agent_rel: self.agent_rel.to_dtype(dtype)?,
+            agent_attr: self.agent_attr.to_dtype(dtype)?,
         })
     }
 }
@@ -113,7 +122,7 @@ impl Denoiser {
             lanes: MiniPointNet::new(d, vb.pp("lanes"))?,
             lane_lane: stack("lane_lane", true)?,
             agents: AgentEncoder::new(
-                cfg.history * 4 + cfg.k + 2 * cfg.noise_freqs,
+                cfg.history * 4 + cfg.attrs + cfg.k + 2 * cfg.noise_freqs,
                 d,
                 vb.pp("agents"),
             )?,
@@ -183,7 +192,12 @@ impl Denoiser {
         let noise = noise_features(&c_noise, self.cfg.noise_freqs)?
             .unsqueeze(1)?
             .repeat((1, n, 1))?;
-        let feats = Tensor::cat(&[ctx.agent_hist.clone(), x.broadcast_mul(&c_in)?, noise], 2)?;
+        let mut parts = vec![ctx.agent_hist.clone()];
+        if self.cfg.attrs > 0 {
+            parts.push(ctx.agent_attr.narrow(2, 0, self.cfg.attrs)?);
+        }
+        parts.extend([x.broadcast_mul(&c_in)?, noise]);
+        let feats = Tensor::cat(&parts, 2)?;
         let mut a = self.agents.forward(&feats)?;
         let layers = self.agent_lane.iter().zip(&self.agent_agent);
         for ((al, aa), (pl, pa)) in layers.zip(enc.agent_lane.iter().zip(&enc.agent_agent)) {

@@ -111,6 +111,41 @@ impl Pca {
             .collect()
     }
 
+    /// Coefficients of `v` where only the `(x, y, heading)` triples with `seen[j]` are known:
+    /// the most probable coefficients under the basis' own variances (a Gaussian prior per
+    /// component) given those triples, observed with noise of standard deviation `noise`.
+    /// With every triple seen and small noise this is [`Pca::encode`]; with none it is the
+    /// mean (all zeros), and in between the unseen steps follow what the seen ones imply.
+    pub fn encode_seen(&self, v: &[f64], seen: &[bool], noise: f64) -> Vec<f64> {
+        let k = self.k();
+        let mut a = DMatrix::<f64>::zeros(k, k);
+        let mut b = DVector::<f64>::zeros(k);
+        let rows: Vec<usize> = seen
+            .iter()
+            .enumerate()
+            .filter(|(_, s)| **s)
+            .flat_map(|(j, _)| 3 * j..3 * j + 3)
+            .filter(|&r| r < self.dim)
+            .collect();
+        let comp = |i: usize, r: usize| self.components[i * self.dim + r];
+        for i in 0..k {
+            for j in i..k {
+                let s: f64 = rows.iter().map(|&r| comp(i, r) * comp(j, r)).sum();
+                a[(i, j)] = s;
+                a[(j, i)] = s;
+            }
+            b[i] = rows
+                .iter()
+                .map(|&r| comp(i, r) * (v[r] - self.mean[r]))
+                .sum();
+            a[(i, i)] += noise * noise / self.variances[i].max(1e-12);
+        }
+        match a.cholesky() {
+            Some(ch) => ch.solve(&b).iter().copied().collect(),
+            None => vec![0.0; k],
+        }
+    }
+
     /// The vector with coefficients `c`.
     pub fn decode(&self, c: &[f64]) -> Vec<f64> {
         let mut v = self.mean.clone();
@@ -165,6 +200,35 @@ mod tests {
             "one component cannot hold both"
         );
         assert!(p.variances[0] >= p.variances[1]);
+    }
+
+    #[test]
+    fn a_future_seen_in_part_is_completed_from_what_is_seen() {
+        let samples: Vec<Vec<f64>> = (0..50)
+            .map(|i| {
+                let (v, drift) = (5.0 + i as f64 * 0.3, (i % 7) as f64 * 0.1 - 0.3);
+                (1..=10)
+                    .flat_map(|t| [v * t as f64 * 0.1, drift * t as f64 * 0.1, 0.0])
+                    .collect()
+            })
+            .collect();
+        let p = Pca::fit(&samples, 2).unwrap();
+        let s = &samples[17];
+        let all = vec![true; 10];
+        let full = p.encode(s);
+        let seen_all = p.encode_seen(s, &all, 1e-6);
+        for (a, b) in full.iter().zip(&seen_all) {
+            assert!((a - b).abs() < 1e-6, "{a} {b}");
+        }
+        // The first four steps alone pin a straight line: the last six follow.
+        let first: Vec<bool> = (0..10).map(|t| t < 4).collect();
+        let back = p.decode(&p.encode_seen(s, &first, 1e-6));
+        for (a, b) in back.iter().zip(s) {
+            assert!((a - b).abs() < 1e-4, "{a} {b}");
+        }
+        // Nothing seen: the mean.
+        let none = p.encode_seen(s, &[false; 10], 0.05);
+        assert!(none.iter().all(|c| c.abs() < 1e-12), "{none:?}");
     }
 
     #[test]

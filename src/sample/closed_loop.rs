@@ -6,9 +6,7 @@
 
 use std::rc::Rc;
 
-use super::guided::{
-    modelled_type, prepare, sample_after, Executed, Sample, SampleConfig, SampleError,
-};
+use super::guided::{modelled, prepare, sample_after, Executed, Sample, SampleConfig, SampleError};
 use crate::cost::{CostScript, Limits, Params};
 use crate::scene::Scene;
 use crate::train::Trained;
@@ -127,7 +125,7 @@ pub fn closed_loop(
             let moved: Vec<bool> = start
                 .agents
                 .iter()
-                .map(|a| modelled_type(a.agent_type) && a.states[c0].valid)
+                .map(|a| modelled(trained, a) && a.states[c0].valid)
                 .collect();
             let exempt = crate::cost::Allowed::from_reports(&reports, &start);
             (first, cfg.realism.evaluate(&start, &traj, &moved, &exempt))

@@ -198,12 +198,12 @@ pub fn prepare(scene: &Scene, trained: &Trained) -> Result<Scene, SampleError> {
         .map_err(|e| SampleError::Scene(e.to_string()))
 }
 
-/// Whether the model samples agents of this type: its training data (NGSIM) holds only
-/// vehicles, so pedestrians, cyclists and other objects are not moved by it; they follow their
-/// log in the conditional task and keep their current velocity otherwise
-/// ([`Sample::fixed`]), and the model does not see them.
-pub fn modelled_type(t: AgentType) -> bool {
-    t == AgentType::Vehicle
+/// Whether the model moves `agent`: a road user that is not a static obstacle, of a type
+/// the checkpoint learnt from ([`crate::train::CheckpointMeta::models`]; the NGSIM checkpoint
+/// saw vehicles only). Others follow their log in the conditional task and keep their
+/// current velocity otherwise ([`Sample::fixed`]); static obstacles stay where they are.
+pub fn modelled(trained: &Trained, agent: &crate::scene::Agent) -> bool {
+    trained.meta.models(agent)
 }
 
 /// How many steps `scene` records after its current step (up to the last step at which any
@@ -253,7 +253,7 @@ pub struct Sample {
     /// realism guided ([`SampleConfig::realism`]).
     pub realism: Option<(CostReport, CostReport)>,
     /// Agents observed at the current step that the model does not move
-    /// ([`modelled_type`]): they followed their log (conditional task) or kept their current
+    /// ([`modelled`]): they followed their log (conditional task) or kept their current
     /// velocity (unconditional).
     pub fixed: Vec<(AgentId, AgentType)>,
 }
@@ -338,9 +338,13 @@ fn tile(
     wcfg: &crate::train::WindowConfig,
     c: usize,
     centre: usize,
+    meta: &crate::train::CheckpointMeta,
 ) -> (Vec<Window>, Vec<Slot>, Vec<Vec<(usize, usize)>>) {
-    let observed =
-        |i: usize| scene.agents[i].is_valid(c) && modelled_type(scene.agents[i].agent_type);
+    let moves = |i: usize| meta.models(&scene.agents[i]);
+    let observed = |i: usize| scene.agents[i].is_valid(c) && moves(i);
+    // A model that reads what each agent is was trained with every road user and obstacle in
+    // its windows; one that does not (NGSIM's) saw only the vehicles it moves.
+    let context = |i: usize| meta.config.model.attrs > 0 || moves(i);
     let pose = |i: usize| {
         let s = scene.agents[i].states[c];
         [s.x, s.y, s.heading]
@@ -356,9 +360,7 @@ fn tile(
     let mut order = Vec::new();
     let mut next = Some(centre);
     while let Some(ci) = next {
-        let w = window_among(scene, wcfg, c, ci, &|i| {
-            modelled_type(scene.agents[i].agent_type)
-        });
+        let w = window_among(scene, wcfg, c, ci, &context);
         let wi = windows.len();
         for (slot, &ai) in w.agents.iter().enumerate() {
             if !observed(ai) {
@@ -584,12 +586,12 @@ fn setup<'a>(
         .meta
         .ego
         .and_then(|e| scene.agents.iter().position(|a| a.id == e))
-        .filter(|&i| scene.agents[i].is_valid(c) && modelled_type(scene.agents[i].agent_type))
+        .filter(|&i| scene.agents[i].is_valid(c) && modelled(trained, &scene.agents[i]))
         .or_else(|| {
             scene
                 .agents
                 .iter()
-                .position(|a| a.is_valid(c) && modelled_type(a.agent_type))
+                .position(|a| a.is_valid(c) && modelled(trained, a))
         })
         .ok_or_else(|| {
             SampleError::Scene(
@@ -597,7 +599,7 @@ fn setup<'a>(
                     .into(),
             )
         })?;
-    let (windows, slots, copies) = tile(scene, &wcfg, c, centre);
+    let (windows, slots, copies) = tile(scene, &wcfg, c, centre, &trained.meta);
     let mut base = Trajectories::filled(scene);
     let mut modelled = vec![false; scene.agents.len()];
     for sl in &slots {
@@ -614,13 +616,19 @@ fn setup<'a>(
             base.valid[ai * n..(ai + 1) * n].fill(false);
             continue;
         }
-        // A type the model never saw: its log where recorded (conditional), or its current
-        // velocity (unconditional: the future is not known).
-        fixed.push((agent.id, agent.agent_type));
+        // A static obstacle holds its pose. A type the model never saw: its log where
+        // recorded (conditional), or its current velocity (unconditional: the future is not
+        // known).
+        if !agent.is_static {
+            fixed.push((agent.id, agent.agent_type));
+        }
         let s = agent.states[c];
         for k in 0..n {
             let i = ai * n + k;
-            if cfg.task == Task::Conditional {
+            if agent.is_static {
+                base.xyh[i] = [s.x, s.y, s.heading];
+                base.valid[i] = true;
+            } else if cfg.task == Task::Conditional {
                 let r = agent.states[c + 1 + k];
                 base.xyh[i] = [r.x, r.y, r.heading];
                 base.valid[i] = r.valid;
@@ -1336,7 +1344,7 @@ pub(crate) mod tests {
             max_agents: 2,
             ..t.meta.config.window
         };
-        let (windows, slots, copies) = tile(&s, &wcfg, c, 0);
+        let (windows, slots, copies) = tile(&s, &wcfg, c, 0, &t.meta);
         let observed: Vec<usize> = (0..s.agents.len())
             .filter(|&i| s.agents[i].is_valid(c))
             .collect();
@@ -1378,7 +1386,7 @@ pub(crate) mod tests {
     fn headings_follow_the_path_forwards_and_backwards_but_never_sideways() {
         let (t, s) = setup();
         let c = s.meta.current_step;
-        let (windows, slots, copies) = tile(&s, &t.meta.config.window, c, 0);
+        let (windows, slots, copies) = tile(&s, &t.meta.config.window, c, 0, &t.meta);
         let sl = slots[0];
         let plan = Plan {
             trained: &t,
@@ -1417,7 +1425,7 @@ pub(crate) mod tests {
         let c = s.meta.current_step;
         // Windows of 3 agents: the plan's dimensions follow the model's window config.
         t.meta.config.window.max_agents = 3;
-        let (windows, slots, copies) = tile(&s, &t.meta.config.window, c, 0);
+        let (windows, slots, copies) = tile(&s, &t.meta.config.window, c, 0, &t.meta);
         assert!(copies.iter().any(|cp| cp.len() > 1), "windows overlap");
         let plan = Plan {
             trained: &t,

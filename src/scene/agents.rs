@@ -96,6 +96,9 @@ pub struct Agent {
     pub width: f64,
     /// One state per scene step (same length for every agent of a scene).
     pub states: Vec<AgentState>,
+    /// A static obstacle (a parked car, a barrier): it holds its pose, and no sampler moves
+    /// it, whatever its type.
+    pub is_static: bool,
 }
 
 impl Agent {

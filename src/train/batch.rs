@@ -2,7 +2,7 @@
 
 use candle_core::{Device, Result, Tensor};
 
-use super::dataset::{Window, WindowConfig};
+use super::dataset::{Window, WindowConfig, AGENT_ATTRS};
 use crate::model::{Context, Pca};
 
 /// Metres per unit of the relative-pose features (keeps them near 1).
@@ -33,16 +33,32 @@ fn lane_pose(w: &Window, cfg: &WindowConfig, k: usize) -> [f32; 3] {
     ]
 }
 
-/// A batch: the context, the normalised target coefficients `[B, N, K]` and the loss mask
-/// `[B, N]` (agents whose whole future is known).
+/// A batch: the context, the normalised target coefficients `[B, N, K]`, the loss mask
+/// `[B, N]` (agents with a future to learn from) and which future coordinates are observed
+/// `[B, N, 3·future]`.
 pub struct Batch {
     /// Model inputs.
     pub ctx: Context,
-    /// Targets (zeros where unknown).
+    /// Targets (zeros where unknown; fitted to the observed steps where the future is partly
+    /// unobserved, [`Normaliser::encode_seen`]).
     pub target: Tensor,
-    /// 1 where the target is known.
+    /// 1 where the agent has a target.
     pub loss_mask: Tensor,
+    /// 1 for each observed `(x, y, heading)` coordinate of each agent's future: the loss is
+    /// taken over these only.
+    pub seen: Tensor,
+    /// The PCA components, `[K, 3·future]`: normalised coefficients times these are the
+    /// future in the normaliser's common scale.
+    pub basis: Tensor,
 }
+
+/// Observed future steps an agent needs to have a target: fewer say too little about where
+/// it goes.
+pub const MIN_SEEN_STEPS: usize = 5;
+
+/// Standard deviation (metres, radians) with which observed future steps pin the fitted
+/// coefficients of a partly observed future: about the PCA basis' own reconstruction error.
+const SEEN_NOISE: f64 = 0.05;
 
 /// PCA plus per-component scaling to the EDM data standard deviation.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -76,6 +92,20 @@ impl Normaliser {
     pub fn encode(&self, v: &[f64]) -> Vec<f32> {
         self.pca
             .encode(v)
+            .iter()
+            .zip(&self.std)
+            .map(|(c, s)| (c / s * self.sigma_data) as f32)
+            .collect()
+    }
+
+    /// [`Normaliser::encode`] of a future observed only at the steps marked in `seen`
+    /// ([`crate::model::Pca::encode_seen`]).
+    pub fn encode_seen(&self, v: &[f64], seen: &[bool]) -> Vec<f32> {
+        if seen.iter().all(|s| *s) {
+            return self.encode(v);
+        }
+        self.pca
+            .encode_seen(v, seen, SEEN_NOISE)
             .iter()
             .zip(&self.std)
             .map(|(c, s)| (c / s * self.sigma_data) as f32)
@@ -134,6 +164,9 @@ pub fn build(
     let mut agent_rel = vec![0f32; b * n * n * 4];
     let mut target = vec![0f32; b * n * k];
     let mut loss_mask = vec![0f32; b * n];
+    let dim = 3 * cfg.future;
+    let mut seen_mask = vec![0f32; b * n * dim];
+    let mut agent_attr = vec![0f32; b * n * AGENT_ATTRS];
     for (wi, w) in windows.iter().enumerate() {
         let nl = w.lane_ids.len();
         let poses: Vec<[f32; 3]> = (0..nl).map(|l| lane_pose(w, cfg, l)).collect();
@@ -160,6 +193,8 @@ pub fn build(
                 continue;
             }
             agent_mask[wi * n + a] = 1.0;
+            agent_attr[(wi * n + a) * AGENT_ATTRS..(wi * n + a + 1) * AGENT_ATTRS]
+                .copy_from_slice(&w.attrs[a]);
             let (s, c) = cur[a][2].sin_cos();
             for t in 0..h {
                 if w.valid[a * steps + t] {
@@ -180,10 +215,22 @@ pub fn build(
                 let o = ((wi * n + a) * n + a2) * 4;
                 agent_rel[o..o + 4].copy_from_slice(&rel(cur[a], cur[a2]));
             }
-            if let Some(f) = w.agent_residual(cfg, a) {
-                let coeffs = norm.encode(&f);
+            if !w.is_mover_slot(a) {
+                continue;
+            }
+            if let Some((f, seen)) = w
+                .agent_residual_seen(cfg, a)
+                .filter(|(_, seen)| seen.iter().filter(|s| **s).count() >= MIN_SEEN_STEPS)
+            {
+                let coeffs = norm.encode_seen(&f, &seen);
                 target[(wi * n + a) * k..(wi * n + a + 1) * k].copy_from_slice(&coeffs);
                 loss_mask[wi * n + a] = 1.0;
+                let row = &mut seen_mask[(wi * n + a) * dim..(wi * n + a + 1) * dim];
+                for (r, s) in row.chunks_mut(3).zip(&seen) {
+                    if *s {
+                        r.fill(1.0);
+                    }
+                }
             }
         }
     }
@@ -198,8 +245,14 @@ pub fn build(
             agent_mask: t(agent_mask, &[b, n])?,
             agent_lane_rel: t(agent_lane_rel, &[b, n, m, 4])?,
             agent_rel: t(agent_rel, &[b, n, n, 4])?,
+            agent_attr: t(agent_attr, &[b, n, AGENT_ATTRS])?,
         },
         target: t(target, &[b, n, k])?,
         loss_mask: t(loss_mask, &[b, n])?,
+        seen: t(seen_mask, &[b, n, dim])?,
+        basis: t(
+            norm.pca.components.iter().map(|v| *v as f32).collect(),
+            &[k, dim],
+        )?,
     })
 }

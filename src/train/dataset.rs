@@ -29,6 +29,12 @@ pub struct WindowConfig {
     /// shapes, as benchmarks at the paper's sizes need).
     #[serde(default)]
     pub pad_lanes: bool,
+    /// Future steps a centre agent must be observed for (from the current step on) for a
+    /// window to be cut; the rest of its future, and of every other agent's, is masked out of
+    /// the loss. 0 (configurations written before the field) means the whole future, so
+    /// recordings shorter than the window trained nothing.
+    #[serde(default)]
+    pub min_future: usize,
 }
 
 /// `Ok` when `lo ≤ v ≤ hi`, else a message naming the setting and its range.
@@ -51,7 +57,17 @@ impl WindowConfig {
         within("max_agents", self.max_agents, 1, 1024)?;
         within("max_lanes", self.max_lanes, 1, 2048)?;
         within("lane_points", self.lane_points, 2, 1000)?;
-        within("centres_per_step", self.centres_per_step, 1, 1024)
+        within("centres_per_step", self.centres_per_step, 1, 1024)?;
+        within("min_future", self.min_future, 0, self.future)
+    }
+
+    /// Future steps a centre must be observed for ([`WindowConfig::min_future`], 0 meaning all).
+    pub fn centre_future(&self) -> usize {
+        if self.min_future == 0 {
+            self.future
+        } else {
+            self.min_future
+        }
     }
 
     /// The NGSIM setting: 1.1 s of history (11 steps, current included) and 4 s of future
@@ -69,6 +85,19 @@ impl WindowConfig {
             stride: 10,
             centres_per_step: 2,
             pad_lanes: false,
+            min_future: 0,
+        }
+    }
+
+    /// Highways and cities at the paper's horizon: 1.1 s of history and 8 s of future (80
+    /// steps) at 10 Hz, 24 agents and 64 lanes as for NGSIM. A window needs its centre
+    /// observed for 2 s of future: the urban scenes of 3.5 s and the NGSIM recordings shorter
+    /// than 9.1 s still train, with what they do not record masked out of the loss.
+    pub fn cities() -> Self {
+        Self {
+            future: 80,
+            min_future: 20,
+            ..Self::ngsim()
         }
     }
 
@@ -83,6 +112,7 @@ impl WindowConfig {
             stride: 91,
             centres_per_step: 1,
             pad_lanes: false,
+            min_future: 0,
         }
     }
 
@@ -114,6 +144,32 @@ pub struct Window {
     /// `[lane i][lane j]` connectivity, `max_lanes × max_lanes`: 0 none, 1 j precedes i,
     /// 2 j succeeds i, 3 j is i's left neighbour, 4 its right neighbour.
     pub lane_conn: Vec<u8>,
+    /// What each agent slot is ([`agent_attributes`]), `max_agents` rows (zeros for padding).
+    pub attrs: Vec<[f32; AGENT_ATTRS]>,
+}
+
+/// Features that say what a road user is: vehicle, cyclist, pedestrian (one-hot; other types
+/// all zero), static, and its length and width (so that a bus is not a car).
+pub const AGENT_ATTRS: usize = 6;
+
+/// [`AGENT_ATTRS`] features of `a`: the model's input that tells a truck from a car from a
+/// cyclist, and a parked car from one that drives.
+pub fn agent_attributes(a: &crate::scene::Agent) -> [f32; AGENT_ATTRS] {
+    let one = |t: AgentType| if a.agent_type == t { 1.0 } else { 0.0 };
+    [
+        one(AgentType::Vehicle),
+        one(AgentType::Cyclist),
+        one(AgentType::Pedestrian),
+        if a.is_static { 1.0 } else { 0.0 },
+        (a.length / 5.0) as f32,
+        (a.width / 2.0) as f32,
+    ]
+}
+
+/// Whether a model learns (and samples) how agents like `a` move: any road user that is not a
+/// static obstacle and not of an unknown type.
+pub fn is_mover(a: &crate::scene::Agent) -> bool {
+    !a.is_static && a.agent_type != AgentType::Other
 }
 
 /// Pose of `p` (world) in the frame at `origin`.
@@ -131,16 +187,17 @@ pub fn to_frame(origin: [f64; 3], p: Point, heading: f64) -> [f64; 3] {
 pub fn windows(scene: &Scene, cfg: &WindowConfig) -> Vec<Window> {
     let n = scene.num_steps();
     let mut out = Vec::new();
-    if n < cfg.steps() || scene.agents.is_empty() {
+    let need = cfg.centre_future();
+    if n < cfg.history + need || scene.agents.is_empty() {
         return out;
     }
     let mut c = cfg.history - 1;
-    while c + cfg.future < n {
-        let span = c + 1 - cfg.history..=c + cfg.future;
+    while c + need < n {
+        let span = c + 1 - cfg.history..=c + need;
         let full: Vec<usize> = (0..scene.agents.len())
             .filter(|&i| {
                 let a = &scene.agents[i];
-                a.agent_type == AgentType::Vehicle && span.clone().all(|t| a.is_valid(t))
+                is_mover(a) && span.clone().all(|t| a.is_valid(t))
             })
             .collect();
         let k = cfg.centres_per_step.min(full.len());
@@ -186,7 +243,9 @@ pub fn window_among(
     let steps = cfg.steps();
     let mut states = vec![[0f32; 3]; cfg.max_agents * steps];
     let mut valid = vec![false; cfg.max_agents * steps];
+    let mut attrs = vec![[0f32; AGENT_ATTRS]; cfg.max_agents];
     for (k, &i) in agents.iter().enumerate() {
+        attrs[k] = agent_attributes(&scene.agents[i]);
         for j in 0..steps {
             let Some(s) = (c + 1 + j)
                 .checked_sub(cfg.history)
@@ -248,6 +307,7 @@ pub fn window_among(
         lanes,
         lane_ids,
         lane_conn,
+        attrs,
     }
 }
 
@@ -265,6 +325,22 @@ pub fn add_anchor(v: &mut [f64], advance: f64) {
 }
 
 impl Window {
+    /// Whether slot `k` holds a road user the model learns to move ([`is_mover`]).
+    pub fn is_mover_slot(&self, k: usize) -> bool {
+        self.attrs
+            .get(k)
+            .is_some_and(|a| a[3] == 0.0 && a[..3].iter().any(|v| *v > 0.0))
+    }
+
+    /// The complete futures of this window's moving agents, as residuals
+    /// ([`residual_futures`]).
+    pub fn residual_futures(&self, cfg: &WindowConfig) -> Vec<Vec<f64>> {
+        (0..self.agents.len())
+            .filter(|&k| self.is_mover_slot(k))
+            .filter_map(|k| self.agent_residual(cfg, k))
+            .collect()
+    }
+
     /// The window rotated by `angle` about the centre agent (augmentation: the model should not
     /// learn a preferred direction).
     pub fn rotated(&self, angle: f64) -> Window {
@@ -320,34 +396,66 @@ impl Window {
     /// (`future × 3`), or `None` unless the agent is valid at the current step and every future
     /// step: the vectors PCA is fitted on.
     pub fn agent_future(&self, cfg: &WindowConfig, k: usize) -> Option<Vec<f64>> {
+        let (v, seen) = self.agent_future_seen(cfg, k)?;
+        seen.iter().all(|s| *s).then_some(v)
+    }
+
+    /// [`Window::agent_future`] of an agent whose future is partly unobserved: the future
+    /// (zeros where unobserved) and which steps are observed, or `None` unless the agent is
+    /// valid at the current step.
+    pub fn agent_future_seen(&self, cfg: &WindowConfig, k: usize) -> Option<(Vec<f64>, Vec<bool>)> {
         let steps = cfg.steps();
         let cur = self.states[k * steps + cfg.history - 1];
-        if !(0..cfg.future).all(|j| self.valid[k * steps + cfg.history + j])
-            || !self.valid[k * steps + cfg.history - 1]
-        {
+        if !self.valid[k * steps + cfg.history - 1] {
             return None;
         }
         let origin = [cur[0] as f64, cur[1] as f64, cur[2] as f64];
         let mut v = Vec::with_capacity(cfg.future * 3);
+        let mut seen = Vec::with_capacity(cfg.future);
         let mut prev = 0.0;
         for j in 0..cfg.future {
-            let s = self.states[k * steps + cfg.history + j];
+            let i = k * steps + cfg.history + j;
+            if !self.valid[i] {
+                v.extend_from_slice(&[0.0; 3]);
+                seen.push(false);
+                continue;
+            }
+            let s = self.states[i];
             let f = to_frame(origin, Point::new(s[0] as f64, s[1] as f64), s[2] as f64);
             // Unwrapped heading: continuous through ±π.
             let h = prev + wrap_angle(f[2] - prev);
             prev = h;
             v.extend_from_slice(&[f[0], f[1], h]);
+            seen.push(true);
         }
-        Some(v)
+        Some((v, seen))
+    }
+
+    /// [`Window::agent_future_seen`] minus the constant-velocity anchor (see
+    /// [`Window::agent_residual`]); unobserved steps stay zero.
+    pub fn agent_residual_seen(
+        &self,
+        cfg: &WindowConfig,
+        k: usize,
+    ) -> Option<(Vec<f64>, Vec<bool>)> {
+        let (mut v, seen) = self.agent_future_seen(cfg, k)?;
+        remove_anchor(&mut v, self.advance(cfg, k));
+        for (p, s) in v.chunks_mut(3).zip(&seen) {
+            if !s {
+                p.fill(0.0);
+            }
+        }
+        Some((v, seen))
     }
 }
 
-/// Every complete agent future of `windows` as a residual to its constant-velocity anchor
-/// ([`Window::agent_residual`]): what the PCA basis is fitted on.
+/// Every complete future of a moving agent ([`Window::is_mover_slot`]) of `windows` as a
+/// residual to its constant-velocity anchor ([`Window::agent_residual`]): what the PCA basis
+/// is fitted on.
 pub fn residual_futures(windows: &[Window], cfg: &WindowConfig) -> Vec<Vec<f64>> {
     windows
         .iter()
-        .flat_map(|w| (0..w.agents.len()).filter_map(|k| w.agent_residual(cfg, k)))
+        .flat_map(|w| w.residual_futures(cfg))
         .collect()
 }
 

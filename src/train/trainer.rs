@@ -9,10 +9,11 @@ use serde::{Deserialize, Serialize};
 
 use super::adamw::AdamW;
 use super::batch::{build, Normaliser};
-use super::dataset::{residual_futures, windows, within, Window, WindowConfig};
+use super::dataset::{within, Window, WindowConfig, AGENT_ATTRS};
 use super::rng::Rng;
+use super::store::{SceneWindows, WindowSource};
 use crate::model::{Denoiser, DenoiserConfig, Edm, Pca, Scores};
-use crate::scene::Scene;
+use crate::scene::{AgentType, Scene};
 
 /// Everything a training run is configured by.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -37,6 +38,11 @@ pub struct TrainConfig {
     /// folds cross-validate each other. Checkpoints from before the option held out fold 0.
     #[serde(default)]
     pub val_fold: u64,
+    /// Towns or cities held out besides those of the fold, in corpora split by town
+    /// ([`crate::train::SplitBy::Town`]): a place with recordings long enough to validate
+    /// the full horizon, say.
+    #[serde(default)]
+    pub val_towns: Vec<String>,
 }
 
 impl TrainConfig {
@@ -56,10 +62,27 @@ impl TrainConfig {
                 history: window.history,
                 noise_freqs: 8,
                 scores: Scores::Normalised,
+                attrs: 0,
             },
             edm: Edm::default(),
             eval_every: 100,
             val_fold: 0,
+            val_towns: Vec::new(),
+        }
+    }
+
+    /// Defaults for highways and cities at the paper's horizon ([`WindowConfig::cities`]):
+    /// the agent's type and size are inputs, and 8 s futures take 20 PCA components.
+    pub fn cities() -> Self {
+        let base = Self::ngsim();
+        Self {
+            window: WindowConfig::cities(),
+            model: DenoiserConfig {
+                k: 20,
+                attrs: AGENT_ATTRS,
+                ..base.model
+            },
+            ..base
         }
     }
 }
@@ -110,6 +133,23 @@ pub struct CheckpointMeta {
     pub git_revision: Option<String>,
     /// PCA position RMSE on the training futures, metres.
     pub pca_rmse_m: f64,
+    /// Agents with a future to learn from in the training windows, per type: the types the
+    /// model moves ([`CheckpointMeta::models`]). Checkpoints written before the field were
+    /// trained on NGSIM's vehicles alone.
+    #[serde(default = "vehicles_only")]
+    pub types: std::collections::BTreeMap<AgentType, usize>,
+}
+
+fn vehicles_only() -> std::collections::BTreeMap<AgentType, usize> {
+    [(AgentType::Vehicle, 1)].into_iter().collect()
+}
+
+impl CheckpointMeta {
+    /// Whether the model moves `a`: a road user that is not static, of a type the model
+    /// learnt from. Others keep to their log or their current velocity.
+    pub fn models(&self, a: &crate::scene::Agent) -> bool {
+        super::dataset::is_mover(a) && self.types.get(&a.agent_type).is_some_and(|n| *n > 0)
+    }
 }
 
 /// `Ok` when `v` is positive and finite, else a message naming the setting.
@@ -312,8 +352,16 @@ pub(crate) fn loss(
     let x = (&b.target + noise.broadcast_mul(&s)?)?;
     let enc = model.encode_scene(&b.ctx)?;
     let d = model.denoise(&b.ctx, &enc, &x, sigma)?;
-    let k = b.target.dim(2)? as f64;
-    let err = ((d - &b.target)?.sqr()?.sum(D::Minus1)? / k)?; // [B, N]
+    let (_, n, k) = b.target.dims3()?;
+    let dim = b.seen.dim(2)?;
+    // The error is taken over the future's observed coordinates: the basis is orthonormal, so
+    // for a future observed throughout this is the error of the coefficients themselves, and
+    // a future cut short by the recording teaches only what it shows.
+    let traj = (d - &b.target)?
+        .reshape((bsz * n, k))?
+        .matmul(&b.basis.to_dtype(dt)?)?
+        .reshape((bsz, n, dim))?;
+    let err = (traj.sqr()?.mul(&b.seen.to_dtype(dt)?)?.sum(D::Minus1)? / k as f64)?; // [B, N]
     let w = Tensor::from_vec(
         sigma
             .iter()
@@ -391,7 +439,9 @@ pub fn train(
     git_revision: Option<String>,
     progress: impl FnMut(usize, f64, Option<f64>),
 ) -> Result<Trained, TrainError> {
-    train_from(scenes, cfg, None, out, git_revision, progress)
+    cfg.validate().map_err(TrainError::Config)?;
+    let source = SceneWindows::new(scenes, &cfg.window, cfg.val_fold);
+    train_from(&source, cfg, None, out, git_revision, progress)
 }
 
 /// [`train`], continuing from `resume` when given: its weights, PCA basis, normalisation,
@@ -402,7 +452,7 @@ pub fn train(
 /// identical to an uninterrupted one. A checkpoint without optimiser state (the shipped one,
 /// or one from before it was saved) restarts AdamW's moments.
 pub fn train_from(
-    scenes: &[Scene],
+    source: &dyn WindowSource,
     mut cfg: TrainConfig,
     resume: Option<Trained>,
     out: Option<&Path>,
@@ -417,6 +467,7 @@ pub fn train_from(
         cfg.edm = c.edm;
         cfg.seed = c.seed;
         cfg.val_fold = c.val_fold;
+        cfg.val_towns = c.val_towns.clone();
     }
     cfg.validate().map_err(TrainError::Config)?;
     if let Some(r) = &resume {
@@ -431,32 +482,17 @@ pub fn train_from(
     let seed = cfg.seed;
     let step_rng =
         move |step: usize| Rng::new(seed ^ (step as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
-    let (mut train_w, mut val_w): (Vec<Window>, Vec<Window>) = (Vec::new(), Vec::new());
-    let (mut train_ids, mut val_ids) = (Vec::new(), Vec::new());
-    for s in scenes {
-        let w = windows(s, &cfg.window);
-        if w.is_empty() {
-            continue;
-        }
-        if is_validation(&s.meta.scenario_id, cfg.val_fold) {
-            val_ids.push(s.meta.scenario_id.clone());
-            val_w.extend(w);
-        } else {
-            train_ids.push(s.meta.scenario_id.clone());
-            train_w.extend(w);
-        }
-    }
-    if train_w.is_empty() {
+    if source.train_len() == 0 {
         return Err(TrainError::Data(format!(
             "no scene is long enough for {} steps",
-            cfg.window.steps()
+            cfg.window.history + cfg.window.centre_future()
         )));
     }
-    let futures = residual_futures(&train_w, &cfg.window);
+    let futures = source.futures();
     cfg.model.history = cfg.window.history;
     let (varmap, model, norm, pca_rmse_m, prior, opt) = match resume {
         Some(r) => {
-            let rmse = r.meta.normaliser.pca.position_rmse(&futures);
+            let rmse = r.meta.normaliser.pca.position_rmse(futures);
             (
                 r.varmap,
                 r.model,
@@ -467,8 +503,8 @@ pub fn train_from(
             )
         }
         None => {
-            let pca = Pca::fit(&futures, cfg.model.k)?;
-            let rmse = pca.position_rmse(&futures);
+            let pca = Pca::fit(futures, cfg.model.k)?;
+            let rmse = pca.position_rmse(futures);
             let norm = Normaliser::new(pca, cfg.edm.sigma_data);
             let varmap = VarMap::new();
             let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
@@ -481,12 +517,14 @@ pub fn train_from(
     opt.weight_decay = WEIGHT_DECAY;
     // A fixed validation set: the same windows, noise levels and noise at every evaluation.
     let mut vrng = Rng::new(cfg.seed ^ 0xABCD);
-    let val_batches: Vec<(Vec<usize>, Vec<f64>, Vec<f32>)> = if val_w.is_empty() {
+    let val_batches: Vec<(Vec<usize>, Vec<f64>, Vec<f32>)> = if source.val_len() == 0 {
         vec![]
     } else {
         (0..8)
             .map(|_| {
-                let idx: Vec<usize> = (0..cfg.batch).map(|_| vrng.below(val_w.len())).collect();
+                let idx: Vec<usize> = (0..cfg.batch)
+                    .map(|_| vrng.below(source.val_len()))
+                    .collect();
                 let sig: Vec<f64> = (0..cfg.batch)
                     .map(|_| cfg.edm.train_sigma(vrng.normal()))
                     .collect();
@@ -501,12 +539,13 @@ pub fn train_from(
         version: CHECKPOINT_VERSION,
         config: cfg.clone(),
         normaliser: norm.clone(),
-        train_scenes: train_ids,
-        val_scenes: val_ids,
+        train_scenes: source.train_scenes(),
+        val_scenes: source.val_scenes(),
         steps_done: start - 1,
         history: prior.map(|p| p.history).unwrap_or_default(),
         git_revision,
         pca_rmse_m,
+        types: source.type_counts(),
     };
     let (mut run_loss, mut run_n) = (0.0, 0usize);
     for step in start..=cfg.steps {
@@ -514,9 +553,10 @@ pub fn train_from(
         opt.lr = learning_rate(cfg.lr, step, cfg.steps);
         let picked: Vec<Window> = (0..cfg.batch)
             .map(|_| {
-                train_w[rng.below(train_w.len())].rotated(rng.uniform() * std::f64::consts::TAU)
+                let w = source.train_window(rng.below(source.train_len()))?;
+                Ok(w.rotated(rng.uniform() * std::f64::consts::TAU))
             })
-            .collect();
+            .collect::<Result<_, TrainError>>()?;
         let refs: Vec<&Window> = picked.iter().collect();
         let b = build(&refs, &cfg.window, &norm, &dev)?;
         let sigma: Vec<f64> = (0..cfg.batch)
@@ -542,7 +582,11 @@ pub fn train_from(
         if step % cfg.eval_every.max(1) == 0 || step == cfg.steps {
             let mut total = 0.0;
             for (idx, sig, n) in &val_batches {
-                let refs: Vec<&Window> = idx.iter().map(|i| &val_w[*i]).collect();
+                let ws: Vec<Window> = idx
+                    .iter()
+                    .map(|i| source.val_window(*i))
+                    .collect::<Result<_, _>>()?;
+                let refs: Vec<&Window> = ws.iter().collect();
                 let b = build(&refs, &cfg.window, &norm, &dev)?;
                 let noise = Tensor::from_vec(
                     n.clone(),
@@ -719,10 +763,12 @@ pub(crate) fn tiny_config(steps: usize, seed: u64, eval_every: usize) -> TrainCo
             history: window.history,
             noise_freqs: 4,
             scores: Scores::Normalised,
+            attrs: AGENT_ATTRS,
         },
         edm: Edm::default(),
         eval_every,
         val_fold: 0,
+        val_towns: Vec::new(),
     }
 }
 
@@ -801,9 +847,10 @@ mod tests {
         .unwrap();
         let resume = |path: &Path| {
             let r = load(path).unwrap();
+            let cfg = tiny_config(20, 5, 10);
             train_from(
-                &scenes(),
-                tiny_config(20, 5, 10),
+                &SceneWindows::new(&scenes(), &cfg.window, cfg.val_fold),
+                cfg,
                 Some(r),
                 None,
                 None,

@@ -1,0 +1,624 @@
+//! Where training windows come from: a scene list held in memory (tests, small corpora), or a
+//! window store on disk that a corpus of any size is streamed into once, one scene at a time,
+//! and read back a batch at a time, so that memory stays flat as the corpus grows.
+
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use super::dataset::{windows, Window, WindowConfig, AGENT_ATTRS};
+use super::rng::Rng;
+use super::trainer::{is_validation, TrainError};
+use crate::scene::{AgentType, Scene};
+
+/// How many complete futures are kept for fitting the PCA basis (a uniform sample of all of
+/// them): enough for a basis of a few dozen components, and bounded whatever the corpus.
+pub const PCA_SAMPLE: usize = 20_000;
+
+/// A corpus of training and validation windows.
+pub trait WindowSource {
+    /// Number of training windows.
+    fn train_len(&self) -> usize;
+    /// Number of validation windows.
+    fn val_len(&self) -> usize;
+    /// Training window `i`.
+    fn train_window(&self, i: usize) -> Result<Window, TrainError>;
+    /// Validation window `i`.
+    fn val_window(&self, i: usize) -> Result<Window, TrainError>;
+    /// Complete residual futures of the training windows' moving agents (all of them, or a
+    /// uniform sample of at most [`PCA_SAMPLE`]): what the PCA basis is fitted on.
+    fn futures(&self) -> &[Vec<f64>];
+    /// Ids of the scenes that gave training windows.
+    fn train_scenes(&self) -> Vec<String>;
+    /// Ids of the scenes that gave validation windows.
+    fn val_scenes(&self) -> Vec<String>;
+    /// Agents with a future to learn from in the training windows, per type.
+    fn type_counts(&self) -> BTreeMap<AgentType, usize>;
+}
+
+/// How a corpus is split into training and validation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SplitBy {
+    /// By scene id ([`is_validation`]): for recordings of a few long roads (NGSIM), where a
+    /// place held out whole would leave too little.
+    Scene,
+    /// By town or city ([`town`]): every scene of a place trains or every one validates, so
+    /// that validation measures places the model never saw.
+    Town,
+}
+
+/// The place a CommonRoad-style scene id names: `DEU_Flensburg-10_1_T-1` → `DEU_Flensburg`
+/// (the part before the first `-`; the whole id where there is none).
+pub fn town(scenario_id: &str) -> &str {
+    scenario_id.split('-').next().unwrap_or(scenario_id)
+}
+
+/// Which scenes validate: those of fold `fold` ([`is_validation`] of the scene id or of its
+/// town, as each corpus is split), and in corpora split by town those of `towns` as well.
+#[derive(Debug, Clone, Default)]
+pub struct Holdout {
+    /// The fold.
+    pub fold: u64,
+    /// Towns held out besides the fold's.
+    pub towns: Vec<String>,
+}
+
+impl Holdout {
+    /// Whether `scenario_id` validates under `split`.
+    pub fn validates(&self, scenario_id: &str, split: SplitBy) -> bool {
+        match split {
+            SplitBy::Scene => is_validation(scenario_id, self.fold),
+            SplitBy::Town => {
+                let t = town(scenario_id);
+                is_validation(t, self.fold) || self.towns.iter().any(|x| x == t)
+            }
+        }
+    }
+}
+
+/// Complete futures and agent types of windows, and a uniform sample of at most
+/// [`PCA_SAMPLE`] futures (reservoir sampling with a fixed seed: the same corpus gives the
+/// same sample).
+struct Tally {
+    futures: Vec<Vec<f64>>,
+    seen: usize,
+    rng: Rng,
+    types: BTreeMap<AgentType, usize>,
+}
+
+impl Tally {
+    fn new() -> Self {
+        Self {
+            futures: Vec::new(),
+            seen: 0,
+            rng: Rng::new(0x5EED_F00D),
+            types: BTreeMap::new(),
+        }
+    }
+
+    fn add(&mut self, w: &Window, cfg: &WindowConfig) {
+        for f in w.residual_futures(cfg) {
+            self.seen += 1;
+            if self.futures.len() < PCA_SAMPLE {
+                self.futures.push(f);
+            } else {
+                let j = self.rng.below(self.seen);
+                if j < PCA_SAMPLE {
+                    self.futures[j] = f;
+                }
+            }
+        }
+        for k in 0..w.agents.len() {
+            if w.is_mover_slot(k) && w.agent_future_seen(cfg, k).is_some() {
+                let a = &w.attrs[k];
+                let t = if a[0] > 0.0 {
+                    AgentType::Vehicle
+                } else if a[1] > 0.0 {
+                    AgentType::Cyclist
+                } else {
+                    AgentType::Pedestrian
+                };
+                *self.types.entry(t).or_default() += 1;
+            }
+        }
+    }
+}
+
+/// Windows cut from scenes in memory, split by scene id.
+pub struct SceneWindows {
+    train: Vec<Window>,
+    val: Vec<Window>,
+    train_ids: Vec<String>,
+    val_ids: Vec<String>,
+    tally: Tally,
+}
+
+impl SceneWindows {
+    /// Cuts the windows of `scenes`; the scenes of fold `fold` validate ([`is_validation`]).
+    pub fn new(scenes: &[Scene], cfg: &WindowConfig, fold: u64) -> Self {
+        let mut out = Self {
+            train: Vec::new(),
+            val: Vec::new(),
+            train_ids: Vec::new(),
+            val_ids: Vec::new(),
+            tally: Tally::new(),
+        };
+        for s in scenes {
+            let w = windows(s, cfg);
+            if w.is_empty() {
+                continue;
+            }
+            let id = s.meta.scenario_id.clone();
+            if is_validation(&id, fold) {
+                out.val_ids.push(id);
+                out.val.extend(w);
+            } else {
+                out.train_ids.push(id);
+                for x in &w {
+                    out.tally.add(x, cfg);
+                }
+                out.train.extend(w);
+            }
+        }
+        out
+    }
+}
+
+impl WindowSource for SceneWindows {
+    fn train_len(&self) -> usize {
+        self.train.len()
+    }
+    fn val_len(&self) -> usize {
+        self.val.len()
+    }
+    fn train_window(&self, i: usize) -> Result<Window, TrainError> {
+        Ok(self.train[i].clone())
+    }
+    fn val_window(&self, i: usize) -> Result<Window, TrainError> {
+        Ok(self.val[i].clone())
+    }
+    fn futures(&self) -> &[Vec<f64>] {
+        &self.tally.futures
+    }
+    fn train_scenes(&self) -> Vec<String> {
+        self.train_ids.clone()
+    }
+    fn val_scenes(&self) -> Vec<String> {
+        self.val_ids.clone()
+    }
+    fn type_counts(&self) -> BTreeMap<AgentType, usize> {
+        self.tally.types.clone()
+    }
+}
+
+/// First bytes of a window file.
+const MAGIC: &[u8; 8] = b"DSWIN01\n";
+
+/// Training and validation windows in two files of a cache directory, read back one window at
+/// a time: memory holds the offsets and the PCA sample, not the windows.
+pub struct WindowStore {
+    cfg: WindowConfig,
+    train: Part,
+    val: Part,
+    train_ids: Vec<String>,
+    val_ids: Vec<String>,
+    tally: Tally,
+}
+
+/// One file of windows and where each starts.
+struct Part {
+    path: PathBuf,
+    file: File,
+    offsets: Vec<u64>,
+}
+
+impl Part {
+    fn get(&self, i: usize, cfg: &WindowConfig) -> Result<Window, TrainError> {
+        let start = self.offsets[i];
+        let end = self.offsets[i + 1];
+        let mut buf = vec![0u8; (end - start) as usize];
+        read_at(&self.file, &mut buf, start).map_err(|e| io_err(&self.path, e.to_string()))?;
+        decode(&buf, cfg).map_err(|m| io_err(&self.path, format!("window {i}: {m}")))
+    }
+}
+
+#[cfg(unix)]
+fn read_at(f: &File, buf: &mut [u8], off: u64) -> std::io::Result<()> {
+    use std::os::unix::fs::FileExt;
+    f.read_exact_at(buf, off)
+}
+
+#[cfg(not(unix))]
+fn read_at(f: &File, buf: &mut [u8], off: u64) -> std::io::Result<()> {
+    use std::io::{Read, Seek, SeekFrom};
+    let mut f = f;
+    f.seek(SeekFrom::Start(off))?;
+    f.read_exact(buf)
+}
+
+fn io_err(path: &Path, message: String) -> TrainError {
+    TrainError::Io {
+        path: path.display().to_string(),
+        message,
+    }
+}
+
+/// One source of scenes and how it is split.
+#[derive(Debug, Clone)]
+pub struct Corpus {
+    /// Scene files or directories.
+    pub path: PathBuf,
+    /// How its scenes are held out.
+    pub split: SplitBy,
+}
+
+impl WindowStore {
+    /// Cuts the windows of every scene of `corpora`, one scene at a time, into `dir`
+    /// (`train.windows`, `val.windows`; replaced if present). The scenes `holdout` names
+    /// validate, by scene or by town as each corpus says. `progress(scenes read, windows)` is
+    /// called after each scene. Files are read in the order `io::discover` gives, so the same
+    /// corpus gives the same windows in the same order (a resumed run draws the same batches).
+    pub fn build(
+        corpora: &[Corpus],
+        cfg: &WindowConfig,
+        holdout: &Holdout,
+        dir: &Path,
+        mut progress: impl FnMut(usize, usize),
+    ) -> Result<Self, TrainError> {
+        std::fs::create_dir_all(dir).map_err(|e| io_err(dir, e.to_string()))?;
+        let open = |name: &str| -> Result<(PathBuf, BufWriter<File>), TrainError> {
+            let p = dir.join(name);
+            let f = File::create(&p).map_err(|e| io_err(&p, e.to_string()))?;
+            let mut w = BufWriter::new(f);
+            w.write_all(MAGIC).map_err(|e| io_err(&p, e.to_string()))?;
+            Ok((p, w))
+        };
+        let (tp, mut tw) = open("train.windows")?;
+        let (vp, mut vw) = open("val.windows")?;
+        let mut toff = vec![MAGIC.len() as u64];
+        let mut voff = vec![MAGIC.len() as u64];
+        let (mut train_ids, mut val_ids) = (Vec::new(), Vec::new());
+        let mut tally = Tally::new();
+        let (mut read, mut cut) = (0usize, 0usize);
+        let opts = crate::io::LoadOptions::default();
+        for c in corpora {
+            let files =
+                crate::io::discover(&c.path).map_err(|e| TrainError::Data(e.to_string()))?;
+            for f in files {
+                let scenes = crate::io::load_scenes(&f, &opts)
+                    .map_err(|e| TrainError::Data(format!("loading {}: {e}", f.display())))?;
+                for s in scenes {
+                    read += 1;
+                    let ws = windows(&s, cfg);
+                    if ws.is_empty() {
+                        progress(read, cut);
+                        continue;
+                    }
+                    let id = s.meta.scenario_id.clone();
+                    let val = holdout.validates(&id, c.split);
+                    let (path, out, offs) = if val {
+                        val_ids.push(id);
+                        (&vp, &mut vw, &mut voff)
+                    } else {
+                        train_ids.push(id);
+                        (&tp, &mut tw, &mut toff)
+                    };
+                    for w in &ws {
+                        if !val {
+                            tally.add(w, cfg);
+                        }
+                        let bytes = encode(w, cfg);
+                        out.write_all(&bytes)
+                            .map_err(|e| io_err(path, e.to_string()))?;
+                        offs.push(
+                            offs.last().expect("starts with the header") + bytes.len() as u64,
+                        );
+                        cut += 1;
+                    }
+                    progress(read, cut);
+                }
+            }
+        }
+        for (p, w) in [(&tp, tw), (&vp, vw)] {
+            w.into_inner()
+                .map_err(|e| io_err(p, e.to_string()))?
+                .sync_all()
+                .map_err(|e| io_err(p, e.to_string()))?;
+        }
+        let part = |path: PathBuf, offsets: Vec<u64>| -> Result<Part, TrainError> {
+            let file = File::open(&path).map_err(|e| io_err(&path, e.to_string()))?;
+            Ok(Part {
+                path,
+                file,
+                offsets,
+            })
+        };
+        Ok(Self {
+            cfg: *cfg,
+            train: part(tp, toff)?,
+            val: part(vp, voff)?,
+            train_ids,
+            val_ids,
+            tally,
+        })
+    }
+}
+
+impl WindowSource for WindowStore {
+    fn train_len(&self) -> usize {
+        self.train.offsets.len() - 1
+    }
+    fn val_len(&self) -> usize {
+        self.val.offsets.len() - 1
+    }
+    fn train_window(&self, i: usize) -> Result<Window, TrainError> {
+        self.train.get(i, &self.cfg)
+    }
+    fn val_window(&self, i: usize) -> Result<Window, TrainError> {
+        self.val.get(i, &self.cfg)
+    }
+    fn futures(&self) -> &[Vec<f64>] {
+        &self.tally.futures
+    }
+    fn train_scenes(&self) -> Vec<String> {
+        self.train_ids.clone()
+    }
+    fn val_scenes(&self) -> Vec<String> {
+        self.val_ids.clone()
+    }
+    fn type_counts(&self) -> BTreeMap<AgentType, usize> {
+        self.tally.types.clone()
+    }
+}
+
+/// A window's bytes: only the agent slots and lanes it holds, little-endian.
+fn encode(w: &Window, cfg: &WindowConfig) -> Vec<u8> {
+    let steps = cfg.steps();
+    let (na, nl, p, m) = (
+        w.agents.len(),
+        w.lane_ids.len(),
+        cfg.lane_points,
+        cfg.max_lanes,
+    );
+    let mut b = Vec::with_capacity(64 + na * steps * 13 + nl * (p * 8 + 8 + nl));
+    b.extend((w.scene_id.len() as u32).to_le_bytes());
+    b.extend(w.scene_id.as_bytes());
+    b.extend((w.current as u64).to_le_bytes());
+    for o in w.origin {
+        b.extend(o.to_le_bytes());
+    }
+    b.extend((na as u32).to_le_bytes());
+    b.extend((nl as u32).to_le_bytes());
+    for (k, &a) in w.agents.iter().enumerate() {
+        b.extend((a as u64).to_le_bytes());
+        for v in w.attrs[k] {
+            b.extend(v.to_le_bytes());
+        }
+        for t in 0..steps {
+            let i = k * steps + t;
+            b.push(w.valid[i] as u8);
+            for v in w.states[i] {
+                b.extend(v.to_le_bytes());
+            }
+        }
+    }
+    for (l, id) in w.lane_ids.iter().enumerate() {
+        b.extend(id.to_le_bytes());
+        for q in &w.lanes[l * p..(l + 1) * p] {
+            b.extend(q[0].to_le_bytes());
+            b.extend(q[1].to_le_bytes());
+        }
+        b.extend(&w.lane_conn[l * m..l * m + nl]);
+    }
+    b
+}
+
+/// Reads what [`encode`] wrote, checking every count against the configuration.
+fn decode(b: &[u8], cfg: &WindowConfig) -> Result<Window, String> {
+    let mut r = Reader { b, at: 0 };
+    let steps = cfg.steps();
+    let (p, m) = (cfg.lane_points, cfg.max_lanes);
+    let len = r.u32()? as usize;
+    let scene_id = String::from_utf8(r.take(len)?.to_vec()).map_err(|e| e.to_string())?;
+    let current = r.u64()? as usize;
+    let origin = [r.f64()?, r.f64()?, r.f64()?];
+    let na = r.u32()? as usize;
+    let nl = r.u32()? as usize;
+    if na > cfg.max_agents || nl > m {
+        return Err(format!(
+            "{na} agents and {nl} lanes, more than the configuration's {} and {m}",
+            cfg.max_agents
+        ));
+    }
+    let mut w = Window {
+        scene_id,
+        current,
+        origin,
+        agents: Vec::with_capacity(na),
+        states: vec![[0f32; 3]; cfg.max_agents * steps],
+        valid: vec![false; cfg.max_agents * steps],
+        lanes: vec![[0f32; 2]; m * p],
+        lane_ids: Vec::with_capacity(nl),
+        lane_conn: vec![0u8; m * m],
+        attrs: vec![[0f32; AGENT_ATTRS]; cfg.max_agents],
+    };
+    for k in 0..na {
+        w.agents.push(r.u64()? as usize);
+        for v in w.attrs[k].iter_mut() {
+            *v = r.f32()?;
+        }
+        for t in 0..steps {
+            let i = k * steps + t;
+            w.valid[i] = r.take(1)?[0] != 0;
+            w.states[i] = [r.f32()?, r.f32()?, r.f32()?];
+        }
+    }
+    for l in 0..nl {
+        w.lane_ids.push(r.i64()?);
+        for q in &mut w.lanes[l * p..(l + 1) * p] {
+            *q = [r.f32()?, r.f32()?];
+        }
+        w.lane_conn[l * m..l * m + nl].copy_from_slice(r.take(nl)?);
+    }
+    if r.at != b.len() {
+        return Err(format!("{} bytes left over", b.len() - r.at));
+    }
+    Ok(w)
+}
+
+struct Reader<'a> {
+    b: &'a [u8],
+    at: usize,
+}
+
+impl Reader<'_> {
+    fn take(&mut self, n: usize) -> Result<&[u8], String> {
+        let s = self
+            .b
+            .get(self.at..self.at + n)
+            .ok_or_else(|| "cut short".to_string())?;
+        self.at += n;
+        Ok(s)
+    }
+    fn arr<const N: usize>(&mut self) -> Result<[u8; N], String> {
+        Ok(self.take(N)?.try_into().expect("N bytes"))
+    }
+    fn u32(&mut self) -> Result<u32, String> {
+        Ok(u32::from_le_bytes(self.arr()?))
+    }
+    fn u64(&mut self) -> Result<u64, String> {
+        Ok(u64::from_le_bytes(self.arr()?))
+    }
+    fn i64(&mut self) -> Result<i64, String> {
+        Ok(i64::from_le_bytes(self.arr()?))
+    }
+    fn f32(&mut self) -> Result<f32, String> {
+        Ok(f32::from_le_bytes(self.arr()?))
+    }
+    fn f64(&mut self) -> Result<f64, String> {
+        Ok(f64::from_le_bytes(self.arr()?))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::io::{load_scene, LoadOptions};
+
+    fn scenes_dir() -> PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes")
+    }
+
+    #[test]
+    fn a_window_read_back_from_the_store_is_the_window_cut() {
+        // Futures of 4 s, centres observed for 2 s: some windows' futures are complete.
+        let cfg = WindowConfig {
+            stride: 20,
+            min_future: 20,
+            ..WindowConfig::ngsim()
+        };
+        let dir = tempfile::tempdir().unwrap();
+        let corpus = [Corpus {
+            path: scenes_dir().join("highway_cut_in.yaml"),
+            split: SplitBy::Scene,
+        }];
+        // Fold of the scene, so that it validates, then another, so that it trains.
+        let id = load_scene(&corpus[0].path, 0, &LoadOptions::default())
+            .unwrap()
+            .meta
+            .scenario_id;
+        let fold = super::super::trainer::val_fold(&id);
+        for (f, val) in [(fold, true), ((fold + 1) % 10, false)] {
+            let store = WindowStore::build(
+                &corpus,
+                &cfg,
+                &Holdout {
+                    fold: f,
+                    towns: vec![],
+                },
+                dir.path(),
+                |_, _| (),
+            )
+            .unwrap();
+            let scene = load_scene(&corpus[0].path, 0, &LoadOptions::default()).unwrap();
+            let cut = windows(&scene, &cfg);
+            assert!(!cut.is_empty());
+            let (n, get): (usize, Box<dyn Fn(usize) -> Window>) = if val {
+                (store.val_len(), Box::new(|i| store.val_window(i).unwrap()))
+            } else {
+                (
+                    store.train_len(),
+                    Box::new(|i| store.train_window(i).unwrap()),
+                )
+            };
+            assert_eq!(n, cut.len());
+            for (i, w) in cut.iter().enumerate() {
+                assert_eq!(&get(i), w, "window {i}");
+            }
+            assert_eq!(store.train_len() + store.val_len(), cut.len());
+            assert_eq!(store.futures().is_empty(), val);
+        }
+    }
+
+    #[test]
+    fn a_damaged_window_file_is_an_error_naming_it() {
+        let cfg = WindowConfig::cities();
+        let dir = tempfile::tempdir().unwrap();
+        let corpus = [Corpus {
+            path: scenes_dir().join("highway_cut_in.yaml"),
+            split: SplitBy::Scene,
+        }];
+        let id = load_scene(&corpus[0].path, 0, &LoadOptions::default())
+            .unwrap()
+            .meta
+            .scenario_id;
+        let fold = (super::super::trainer::val_fold(&id) + 1) % 10;
+        let store = WindowStore::build(
+            &corpus,
+            &cfg,
+            &Holdout {
+                fold,
+                towns: vec![],
+            },
+            dir.path(),
+            |_, _| (),
+        )
+        .unwrap();
+        let path = dir.path().join("train.windows");
+        let len = std::fs::metadata(&path).unwrap().len();
+        std::fs::OpenOptions::new()
+            .write(true)
+            .open(&path)
+            .unwrap()
+            .set_len(len - 10)
+            .unwrap();
+        let last = store.train_len() - 1;
+        let e = store.train_window(last).unwrap_err().to_string();
+        assert!(e.contains("train.windows"), "{e}");
+    }
+
+    #[test]
+    fn towns_split_whole() {
+        assert_eq!(town("DEU_Flensburg-10_1_T-1"), "DEU_Flensburg");
+        assert_eq!(town("plain"), "plain");
+        for fold in 0..10 {
+            let h = Holdout {
+                fold,
+                towns: vec![],
+            };
+            let a = h.validates("DEU_Flensburg-10_1_T-1", SplitBy::Town);
+            let b = h.validates("DEU_Flensburg-77_3_T-1", SplitBy::Town);
+            assert_eq!(a, b, "fold {fold}");
+        }
+        let h = Holdout {
+            fold: 0,
+            towns: vec!["DEU_Reutlingen".into()],
+        };
+        assert!(h.validates("DEU_Reutlingen-3_1_T-1", SplitBy::Town));
+        assert!(
+            !h.validates("DEU_Reutlingen-3_1_T-1", SplitBy::Scene)
+                || is_validation("DEU_Reutlingen-3_1_T-1", 0)
+        );
+    }
+}
