@@ -1026,7 +1026,7 @@ fn train_then_simulate_end_to_end() {
 fn simulate_says_what_it_does_not_sample() {
     // The AV2 sample records 6 s after its current step and holds pedestrians and other
     // objects, which the NGSIM model has never seen (their motion is checked in
-    // sample::guided's tests).
+    // sample::guided's tests), and one static object, which holds its pose.
     let dir = tempfile::tempdir().unwrap();
     let scene = samples().join("av2/scenario_0a1e6f0a-1817-4a98-b02e-db8c9327d151.parquet");
     for (task, what) in [
@@ -1050,7 +1050,7 @@ fn simulate_says_what_it_does_not_sample() {
         assert!(
             out.contains(&format!("are not sampled: they {what}"))
                 && out.contains("pedestrian 139397")
-                && out.contains("8 agents in 1 scene were not sampled"),
+                && out.contains("7 agents in 1 scene were not sampled"),
             "{out}"
         );
         assert_eq!(

@@ -282,8 +282,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
             let mut total = fixed_total.borrow_mut();
             if total.0 == 0 {
                 println!(
-                    "note: the model has seen only vehicles, so pedestrians, cyclists and other \
-                     objects are not sampled: they {} (said once per run; {id}: {})",
+                    "note: the model has seen only {}, so agents of other types are not \
+                     sampled: they {} (said once per run; {id}: {})",
+                    trained.meta.seen_types(),
                     if cfg.task == Task::Conditional {
                         "follow their log"
                     } else {

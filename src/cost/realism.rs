@@ -238,13 +238,27 @@ impl Realism {
                 }
             }
             // Accelerations: second differences over two windows, centred at the step where
-            // the track is long enough, against the step's heading.
-            if n < 4 * h + 1 {
+            // the track is long enough, against the step's heading; and, as the checker looks
+            // closer there, over two short windows meeting at the current step (the joint of
+            // history and future) and before the track's last step.
+            let j = lim.joint_steps(dt);
+            let mut short = vec![];
+            if ff > j && ff - 1 + j < n {
+                short.push(ff - 1);
+            }
+            if n > ff + 2 * j {
+                short.push(n - 1 - j);
+            }
+            if n < 4 * h + 1 && short.is_empty() {
                 continue;
             }
-            for t in ff..n {
-                let mid = t.clamp(2 * h, n - 1 - 2 * h);
-                let (p, q, r) = (tr.p[mid - 2 * h], tr.p[mid], tr.p[mid + 2 * h]);
+            let long = if n < 4 * h + 1 { 0..0 } else { ff..n };
+            let wins = long
+                .map(|t| (t.clamp(2 * h, n - 1 - 2 * h), 2 * h, t))
+                .chain(short.into_iter().map(|m| (m, j, m)));
+            for (mid, w, t) in wins {
+                let span = w as f64 * dt;
+                let (p, q, r) = (tr.p[mid - w], tr.p[mid], tr.p[mid + w]);
                 let s2 = span * span;
                 let acc = [
                     (r[0] - 2.0 * q[0] + p[0]) / s2,
@@ -253,18 +267,16 @@ impl Realism {
                 let (sn, cs) = tr.head[t].sin_cos();
                 let along = acc[0] * cs + acc[1] * sn;
                 let lat = -acc[0] * sn + acc[1] * cs;
-                let taps = [
-                    (mid + 2 * h, 1.0 / s2),
-                    (mid, -2.0 / s2),
-                    (mid - 2 * h, 1.0 / s2),
-                ];
+                let taps = [(mid + w, 1.0 / s2), (mid, -2.0 / s2), (mid - w, 1.0 / s2)];
                 let x = along.abs() - m * lim.max_accel;
                 if x > 0.0 {
                     vals[2] += x * x;
                     let k = 2.0 * x * along.signum();
                     push(2, &taps, [k * cs, k * sn], Some((t, k * lat)));
                 }
-                let moving = {
+                // Lateral acceleration over the long windows only: over short ones it is
+                // tracking noise.
+                let moving = w == 2 * h && {
                     let (va, vb) = (vel(mid - h), vel(mid + h));
                     va[0].hypot(va[1]) > lim.moving && vb[0].hypot(vb[1]) > lim.moving
                 };
@@ -692,6 +704,28 @@ mod tests {
             let e = run(src).unwrap_err().to_string();
             assert!(e.contains(says) && e.contains("acc.rhai:1"), "{src}: {e}");
         }
+    }
+
+    #[test]
+    fn a_jump_in_speed_across_the_current_step_costs_and_is_pulled_back() {
+        // Agent 1 records 20 m/s; a future that starts 3 m/s faster changes speed at 10 m/s²
+        // across the current step, which the 0.6 s windows alone read as 4.2 m/s².
+        let s = highway();
+        let all = vec![true; s.agents.len()];
+        let mut t = Trajectories::recorded(&s);
+        edit(&s, &mut t, 0, |t| [3.0 * t, 0.0, 0.0]);
+        let r = on().evaluate(&s, &t, &all, &Allowed::default());
+        let acc = r.term("realism_accel").unwrap();
+        assert!(acc.value > 1.0, "{:?}", r.terms);
+        // The gradient pushes the first future steps back, towards the recorded speed.
+        let n = t.layout.steps;
+        let first = acc
+            .grad
+            .iter()
+            .find(|(v, _)| *v == t.layout.var(0, 2, Coord::X))
+            .map(|g| g.1)
+            .unwrap_or(0.0);
+        assert!(first > 0.0, "d/dx at step 3: {first} (n = {n})");
     }
 
     #[test]

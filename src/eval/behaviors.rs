@@ -614,7 +614,10 @@ pub fn check(behavior: Behavior, scene: &Scene, params: &Params) -> Result<Verdi
                 } else if moved {
                     format!("reaches the {side} lane but ends {offset:.2} m off its centre")
                 } else {
-                    format!("does not end in the lane to the {side} (ends in {end:?})")
+                    format!(
+                        "does not end in the lane to the {side} (ends {})",
+                        lane_words(end)
+                    )
                 },
             )
         }
@@ -636,10 +639,13 @@ pub fn check(behavior: Behavior, scene: &Scene, params: &Params) -> Result<Verdi
                 if ok {
                     "ends in the rightmost lane".into()
                 } else {
-                    format!(
-                        "ends in lane {end:?}, {} the rightmost, {offset:.2} m off its centre",
-                        if rightmost { "which is" } else { "not" }
-                    )
+                    match end {
+                        Some(l) => format!(
+                            "ends in lane {l}, {} the rightmost, {offset:.2} m off its centre",
+                            if rightmost { "which is" } else { "not" }
+                        ),
+                        None => "ends on no lane".into(),
+                    }
                 },
             )
         }
@@ -1232,4 +1238,8 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
             p(&[("attacker", a.id as f64), ("target", b.id as f64)])
         }
     }
+}
+/// Where a lane query ended, in words: "in lane 695", or "on no lane".
+fn lane_words(lane: Option<i64>) -> String {
+    lane.map_or_else(|| "on no lane".into(), |l| format!("in lane {l}"))
 }

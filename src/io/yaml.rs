@@ -271,6 +271,9 @@ pub struct YamlAgent {
     /// `[x, y, heading, vx, vy]`, or `~` (null) where the agent is not observed.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub states: Option<Vec<Option<Vec<f64>>>>,
+    /// A static obstacle (a parked car): it holds its current pose and no sampler moves it.
+    #[serde(default, rename = "static", skip_serializing_if = "std::ops::Not::not")]
+    pub is_static: bool,
 }
 
 fn is_zero_f64(v: &f64) -> bool {
@@ -489,13 +492,25 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
         for s in states.iter_mut().take(a.valid_from) {
             *s = AgentState::INVALID;
         }
+        if a.is_static {
+            // It holds its first observed pose, standing still.
+            if let Some(first) = states.iter().find(|s| s.valid).copied() {
+                for s in states.iter_mut().skip(a.valid_from) {
+                    *s = AgentState {
+                        vx: 0.0,
+                        vy: 0.0,
+                        ..first
+                    };
+                }
+            }
+        }
         agents.push(Agent {
             id: a.id,
             agent_type: a.agent_type,
             length,
             width,
             states,
-            is_static: false,
+            is_static: a.is_static,
         });
     }
     let meta = SceneMeta {
@@ -787,6 +802,7 @@ pub fn to_yaml(scene: &Scene) -> String {
             lane_change: None,
             valid_from: 0,
             route: None,
+            is_static: a.is_static,
             states: Some(
                 a.states
                     .iter()

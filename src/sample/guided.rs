@@ -1253,6 +1253,39 @@ pub(crate) mod tests {
     }
 
     #[test]
+    fn static_obstacles_stay_where_they_are() {
+        // A parked car (CommonRoad's `parkedVehicle` static obstacle) is a vehicle the model
+        // has seen, yet it must not drive away, whatever the task and however it was
+        // recorded moving.
+        let (t, mut s) = setup();
+        let c = s.meta.current_step;
+        let parked = (0..s.agents.len())
+            .find(|&i| s.agents[i].is_valid(c) && s.agents[i].states[c].speed() > 1.0)
+            .expect("a moving agent");
+        s.agents[parked].is_static = true;
+        let now = s.agents[parked].states[c];
+        for task in [Task::Unconditional, Task::Conditional] {
+            let cfg = SampleConfig {
+                steps: 8,
+                lambda: 0.0,
+                task,
+                ..SampleConfig::default()
+            };
+            let out = sample(&t, &s, &[], &cfg).unwrap().remove(0);
+            assert!(out.fixed.is_empty(), "{task:?}: {:?}", out.fixed);
+            for k in c + 1..s.num_steps() {
+                let got = out.scene.agents[parked].states[k];
+                assert!(got.valid, "{task:?} step {k}");
+                assert_eq!(
+                    (got.x, got.y, got.heading),
+                    (now.x, now.y, now.heading),
+                    "{task:?} step {k}"
+                );
+            }
+        }
+    }
+
+    #[test]
     fn agents_of_types_the_model_never_saw_follow_their_log_or_keep_velocity() {
         let (t, mut s) = setup();
         let c = s.meta.current_step;

@@ -150,6 +150,21 @@ impl CheckpointMeta {
     pub fn models(&self, a: &crate::scene::Agent) -> bool {
         super::dataset::is_mover(a) && self.types.get(&a.agent_type).is_some_and(|n| *n > 0)
     }
+
+    /// The types the model moves, in words: "vehicles", "vehicles and cyclists".
+    pub fn seen_types(&self) -> String {
+        let names: Vec<String> = self
+            .types
+            .iter()
+            .filter(|(_, n)| **n > 0)
+            .map(|(t, _)| format!("{}s", t.name()))
+            .collect();
+        match names.split_last() {
+            None => "nothing".into(),
+            Some((last, [])) => last.clone(),
+            Some((last, rest)) => format!("{} and {last}", rest.join(", ")),
+        }
+    }
 }
 
 /// `Ok` when `v` is positive and finite, else a message naming the setting.
