@@ -1756,3 +1756,89 @@ fn eval_does_not_count_what_a_behaviour_asks_of_the_agents_it_names() {
         "{not_asked}"
     );
 }
+
+#[test]
+fn scenes_an_auto_run_skipped_are_skipped_by_eval_over_the_same_list() {
+    // `simulate --auto cut_in` finds a cutter on the cut-in highway but not at the junction;
+    // `eval` over both scenes and the run's unguided twins used to stop at the junction's
+    // missing rollout.
+    let dir = tempfile::tempdir().unwrap();
+    let scenes = dir.path().join("scenes");
+    std::fs::create_dir(&scenes).unwrap();
+    for f in ["highway_cut_in.yaml", "junction.yaml"] {
+        std::fs::copy(
+            std::path::Path::new("scripts/scenes").join(f),
+            scenes.join(f),
+        )
+        .unwrap();
+    }
+    let out_dir = dir.path().join("out");
+    let out = ok(&simulate_args(
+        s(&scenes),
+        "data/checkpoint",
+        &[
+            "--auto",
+            "cut_in",
+            "--steps",
+            "2",
+            "--task",
+            "unconditional",
+        ],
+        s(&out_dir),
+    ));
+    assert!(out.contains("no agents suited to cut_in; skipped"), "{out}");
+    for d in [out_dir.clone(), out_dir.join("unguided")] {
+        assert!(d.join("junction_skipped.json").is_file(), "{}", d.display());
+    }
+    let out = ok(&[
+        "eval",
+        s(&scenes),
+        "--task",
+        "unconditional",
+        "--rollouts",
+        s(&out_dir.join("unguided")),
+    ]);
+    assert!(
+        out.contains("1 scenes skipped: the run that wrote --rollouts left them out"),
+        "{out}"
+    );
+    // --resume counts the skipped scene as done.
+    let out = ok(&simulate_args(
+        s(&scenes),
+        "data/checkpoint",
+        &[
+            "--auto",
+            "cut_in",
+            "--steps",
+            "2",
+            "--task",
+            "unconditional",
+            "--resume",
+        ],
+        s(&out_dir),
+    ));
+    assert!(!out.contains("no agents suited"), "{out}");
+}
+
+#[test]
+fn a_conditional_eval_with_no_recorded_future_is_an_error_not_a_row_of_dashes() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("now.yaml");
+    std::fs::write(
+        &scene,
+        "steps: 11\ncurrent_step: 10\nroad: {lanes: 2, lane_width: 3.6, length: 300}\nagents:\n  - {id: 1, lane: 0, s: 50, speed: 20}\n",
+    )
+    .unwrap();
+    let err = fails(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "conditional",
+        "--baseline",
+        "cv",
+    ]);
+    assert!(
+        err.contains("nothing was scored") && err.contains("recorded future"),
+        "{err}"
+    );
+}

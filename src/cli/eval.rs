@@ -130,8 +130,18 @@ fn fmt(v: Option<f64>, prec: usize) -> String {
     v.map_or("-".into(), |x| format!("{x:.prec$}"))
 }
 
+/// A scene the run that wrote the rollouts left out on purpose (`simulate --auto` found no
+/// agents for its behaviour): counted as skipped, as the run counted it.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+struct LeftOut(String);
+
 fn rollouts_for(dir: &Path, scene: &Scene, k: usize) -> Result<Vec<Scene>> {
     let id = &scene.meta.scenario_id;
+    let marker = drivescript::sample::attempt::skipped_file(dir, id);
+    if marker.is_file() {
+        return Err(LeftOut(format!("{}: the run skipped this scene", marker.display())).into());
+    }
     let mut out = Vec::new();
     let single = dir.join(format!("{id}.json"));
     if k == 1 && single.exists() {
@@ -360,6 +370,8 @@ pub fn run(args: Args) -> Result<ExitCode> {
     );
     let mut failures = 0;
     let mut skipped = 0;
+    // Scenes the rollouts' run left out (per method that reads rollouts).
+    let mut run_skipped = 0;
     let mut names = OutputNames::default();
     for src in &sources {
         bar.set_message(
@@ -442,6 +454,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
                         args.samples,
                     ) {
                         Ok(s) => s,
+                        Err(e) if e.is::<LeftOut>() => {
+                            run_skipped += 1;
+                            continue;
+                        }
                         Err(e) => {
                             bar.suspend(|| eprintln!("error: {}", super::describe(&e)));
                             failures += 1;
@@ -509,6 +525,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             shards: shard.into_iter().collect(),
             skipped,
             failures,
+            run_skipped,
         },
     )
 }
@@ -522,6 +539,9 @@ struct Merge {
     shards: Vec<usize>,
     skipped: usize,
     failures: usize,
+    /// Scenes the rollouts' run left out.
+    #[serde(default)]
+    run_skipped: usize,
 }
 
 /// Prints the table over `accs` (one per method), writes --json, and says how the run went.
@@ -533,7 +553,7 @@ fn report(
     json_out: Option<&Path>,
     merge: &Merge,
 ) -> Result<ExitCode> {
-    let (skipped, failures) = (merge.skipped, merge.failures);
+    let (skipped, failures, run_skipped) = (merge.skipped, merge.failures, merge.run_skipped);
     let bins = JsdBins::default();
     let mut table = Vec::new();
     match task {
@@ -650,19 +670,32 @@ fn report(
     if skipped > 0 {
         println!("{skipped} scenes skipped: no agents for which the behaviour is meaningful");
     }
+    if run_skipped > 0 {
+        println!(
+            "{run_skipped} scenes skipped: the run that wrote --rollouts left them out (their _skipped.json says why)"
+        );
+    }
     if failures > 0 {
         eprintln!(
             "{failures} failed (the errors above): a file, a scene's rollouts or the behaviour's agents"
         );
         return Ok(ExitCode::FAILURE);
     }
+    // A conditional table needs an agent with a recorded future to compare with: scenes read
+    // but holding none printed a row of dashes and passed.
     let scored = accs.iter().any(|a| match task {
         Task::Behaviour => a.checked > 0,
-        _ => a.scenes > 0,
+        Task::Conditional => !a.ade.is_empty(),
+        Task::Unconditional => a.scenes > 0,
     });
     if !scored {
         eprintln!(
-            "error: nothing was scored: no scene with agents and a future{} was read from the given paths",
+            "error: nothing was scored: no scene with agents and a {}{} was read from the given paths",
+            if task == Task::Conditional {
+                "recorded future to compare with"
+            } else {
+                "future"
+            },
             if task == Task::Behaviour {
                 " and agents for the behaviour"
             } else {
@@ -711,7 +744,7 @@ fn merge(files: &[PathBuf], json_out: Option<&Path>) -> Result<ExitCode> {
     let mut first: Option<(PathBuf, serde_json::Value)> = None;
     let mut accs: Vec<Acc> = Vec::new();
     let mut seen: Vec<(usize, PathBuf)> = Vec::new();
-    let (mut skipped, mut failures) = (0, 0);
+    let (mut skipped, mut failures, mut run_skipped) = (0, 0, 0);
     for f in files {
         let text =
             std::fs::read_to_string(f).with_context(|| format!("reading {}", f.display()))?;
@@ -750,6 +783,7 @@ fn merge(files: &[PathBuf], json_out: Option<&Path>) -> Result<ExitCode> {
         }
         skipped += m.skipped;
         failures += m.failures;
+        run_skipped += m.run_skipped;
         seen.extend(m.shards.iter().map(|&s| (s, f.clone())));
     }
     let (f0, settings) = first.context("--merge needs at least one file")?;
@@ -806,6 +840,7 @@ fn merge(files: &[PathBuf], json_out: Option<&Path>) -> Result<ExitCode> {
             shards: seen.iter().map(|s| s.0).collect(),
             skipped,
             failures,
+            run_skipped,
         },
     )
 }

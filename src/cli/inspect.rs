@@ -45,6 +45,8 @@ struct Entry {
     #[serde(flatten)]
     sum: drivescript::scene::SceneSummary,
     val_fold: u64,
+    /// The fold of its town, as `train --urban` holds scenes out.
+    town_fold: u64,
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
@@ -84,16 +86,20 @@ pub fn run(args: Args) -> Result<ExitCode> {
                         // Which checkpoints never trained on it (`train --val-fold`), so that
                         // held-out evaluation sets can be cut without recomputing the hash.
                         let fold = val_fold(&s.meta.scenario_id);
+                        let town = drivescript::train::store::town(&s.meta.scenario_id);
+                        let town_fold = val_fold(town);
                         if !args.json {
                             let text = sum.to_string();
                             let nl = if text.ends_with('\n') { "" } else { "\n" };
                             println!(
-                                "{text}{nl}fold        {fold} (held out by `train --val-fold {fold}`)\n"
+                                "{text}{nl}fold        {fold} (held out by `train --val-fold {fold}` from --data)\n\
+                                 town fold   {town_fold} ({town}: held out by `train --val-fold {town_fold}` from --urban)\n"
                             );
                         }
                         summaries.push(Record::Summary(Entry {
                             sum,
                             val_fold: fold,
+                            town_fold,
                         }));
                     }
                     Err(e) => {

@@ -70,6 +70,9 @@ pub struct Args {
     /// Heun steps.
     #[arg(long, default_value_t = 32)]
     steps: usize,
+    /// Future steps to sample, up to the model's horizon (default: the model's horizon).
+    #[arg(long)]
+    horizon: Option<usize>,
     /// Guidance strength (the default was chosen on held-out NGSIM behaviours with the
     /// fading schedule: data/checkpoint/README.md).
     #[arg(long, default_value_t = drivescript::sample::BEHAVIOUR_LAMBDA)]
@@ -145,7 +148,15 @@ pub fn run(args: Args) -> Result<ExitCode> {
         }
         _ => args.scripts.clone(),
     };
-    let future = trained.meta.config.window.future;
+    // The horizon is checked against the model before anything is read or written.
+    let future = match args.horizon {
+        Some(h) if h > trained.meta.config.window.future => anyhow::bail!(
+            "--horizon {h}: the model samples at most {} steps",
+            trained.meta.config.window.future
+        ),
+        Some(h) => h,
+        None => trained.meta.config.window.future,
+    };
     let specs = script_paths
         .iter()
         .map(|p| {
@@ -191,6 +202,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             ..Realism::default()
         },
         polish: args.polish,
+        horizon: args.horizon,
     };
     if let Err(e) = cfg.validate() {
         anyhow::bail!("sampler settings: {e}");
@@ -240,7 +252,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     // on; the exit code says that something failed.
     let run_one = |raw: &drivescript::scene::Scene| -> Result<bool> {
         let id = raw.meta.scenario_id.clone();
-        if let Some(note) = horizon_note(raw, &trained) {
+        if let Some(note) = horizon_note(raw, future) {
             let mut h = horizons.borrow_mut();
             if h.0 + h.1 == 0 {
                 println!("note: {note} (said once per run; the end of the run counts such scenes)");
@@ -257,7 +269,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
             match suggest(b, &raw.with_horizon(future), future) {
                 Some(p) => params = p,
                 None => {
-                    println!("{id}: no agents suited to {}; skipped", b.name());
+                    let reason = format!("no agents suited to {}", b.name());
+                    drivescript::sample::attempt::write_skipped(&args.output, &id, &reason, true)?;
+                    println!("{id}: {reason}; skipped");
                     return Ok(false);
                 }
             }
@@ -345,11 +359,14 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 }
             };
             // Complete: every sample's rollout, the cost report and the picture (written last).
+            let left_out =
+                drivescript::sample::attempt::skipped_file(&args.output, &stem).is_file();
             if args.resume
-                && (0..cfg.samples)
-                    .map(|k| format!("{stem}_{k}.json"))
-                    .chain([format!("{stem}_costs.json"), format!("{stem}_0.gif")])
-                    .all(|f| args.output.join(f).is_file())
+                && (left_out
+                    || (0..cfg.samples)
+                        .map(|k| format!("{stem}_{k}.json"))
+                        .chain([format!("{stem}_costs.json"), format!("{stem}_0.gif")])
+                        .all(|f| args.output.join(f).is_file()))
             {
                 resumed += 1;
                 continue;

@@ -149,9 +149,8 @@ impl Realism {
         allowed: &Allowed,
     ) -> CostReport {
         let t0 = Instant::now();
-        let lim = &self.limits;
         let dt = scene.meta.dt;
-        let h = ((lim.window / (2.0 * dt)) - 1e-9).ceil().max(1.0) as usize;
+        let h = ((self.limits.window / (2.0 * dt)) - 1e-9).ceil().max(1.0) as usize;
         let span = 2.0 * h as f64 * dt;
         let m = self.margin;
         let mut vals = [0.0; 6];
@@ -160,6 +159,11 @@ impl Realism {
             if !moved.get(a).copied().unwrap_or(false) {
                 continue;
             }
+            // Each road user within the checker's bounds for its type.
+            let Some(lim) = self.limits.for_type(agent.agent_type) else {
+                continue;
+            };
+            let lim = &lim;
             let Some(tr) = track(scene, traj, a, 2 * h) else {
                 continue;
             };
@@ -220,7 +224,8 @@ impl Realism {
                     let k = 2.0 * x;
                     push(1, &taps, [-k * cs, -k * sn], Some((t, -k * lat)));
                 }
-                if speed > lim.moving {
+                // A pedestrian steps any way it faces: no crab bound.
+                if speed > lim.moving && lim.max_crab < std::f64::consts::FRAC_PI_2 {
                     let tan = (m * lim.max_crab).tan();
                     let x = lat.abs() - tan * along.abs();
                     if x > 0.0 {

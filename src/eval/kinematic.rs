@@ -32,7 +32,8 @@
 //! track such short windows would flag a sixth of the recorded cars for tracking noise; at
 //! these two places alone they flag few.
 //!
-//! Only vehicles are judged: the bounds are a car's.
+//! The bounds are a car's; cyclists and pedestrians are judged against their own
+//! ([`KinematicLimits::for_type`]), other objects not at all.
 
 use crate::geom::wrap_angle;
 use crate::scene::{Agent, AgentType, Scene};
@@ -67,6 +68,39 @@ pub struct KinematicLimits {
 }
 
 impl KinematicLimits {
+    /// The bounds for a road user of type `t`, these being a car's: a cyclist's are lower
+    /// (15 m/s, 5 m/s², a 2 m turning radius; the simulated cyclists of the urban corpora reach
+    /// 11.4 m/s and 4.1 m/s² over 0.6 s), a pedestrian's lower still and without a heading to
+    /// reverse, crab or steer against (people step any way they face). `None` for objects of
+    /// unknown type.
+    pub fn for_type(&self, t: AgentType) -> Option<KinematicLimits> {
+        match t {
+            AgentType::Vehicle => Some(*self),
+            AgentType::Cyclist => Some(KinematicLimits {
+                max_speed: 15.0,
+                sprint_margin: 4.0,
+                max_accel: 5.0,
+                max_lateral: 4.0,
+                max_curvature: 0.5,
+                moving: 2.0,
+                ..*self
+            }),
+            AgentType::Pedestrian => Some(KinematicLimits {
+                reverse_speed: f64::NEG_INFINITY,
+                max_speed: 5.0,
+                sprint_factor: 1.6,
+                sprint_margin: 3.0,
+                max_accel: 4.0,
+                max_lateral: 4.0,
+                max_crab: std::f64::consts::FRAC_PI_2,
+                max_curvature: f64::INFINITY,
+                moving: 1.0,
+                ..*self
+            }),
+            AgentType::Other => None,
+        }
+    }
+
     /// Steps of each [`KinematicLimits::joint_window`] at step length `dt`.
     pub fn joint_steps(&self, dt: f64) -> usize {
         ((self.joint_window / dt) - 1e-9).ceil().max(1.0) as usize
@@ -226,12 +260,15 @@ fn run_around(a: &Agent, t: usize) -> (usize, usize) {
     (lo, hi)
 }
 
-/// Judges one agent's future (steps after `s.meta.current_step`); `None` when it is not a
-/// vehicle or no future step lies in a valid run long enough for one window.
+/// Judges one agent's future (steps after `s.meta.current_step`) against the bounds of its
+/// type ([`KinematicLimits::for_type`] of `lim`, a car's); `None` for a static obstacle, an
+/// object of unknown type, or where no future step lies in a valid run long enough for one
+/// window.
 pub fn judge_agent(s: &Scene, a: &Agent, lim: &KinematicLimits) -> Option<Judgement> {
-    if a.agent_type != AgentType::Vehicle {
+    if a.is_static {
         return None;
     }
+    let lim = &lim.for_type(a.agent_type)?;
     let (c, dt) = (s.meta.current_step, s.meta.dt);
     let h = ((lim.window / (2.0 * dt)) - 1e-9).ceil().max(1.0) as usize;
     let len = a.states.len();
@@ -489,6 +526,27 @@ mod tests {
     }
 
     #[test]
+    fn cyclists_are_judged_against_a_cyclist_s_bounds() {
+        // 9 m/s braking at 4.5 m/s² is plausible for a car and for a cyclist; 12 m/s at 6
+        // m/s² is plausible for a car only; a static object is not judged at all.
+        let brake = |v: f64, a: f64| {
+            let mut s = road(&[&format!(
+                "{{id: 1, lane: 0, s: 100, speed: {v}, accel: {a}, type: cyclist}}"
+            )]);
+            s.agents[0].length = 1.8;
+            s
+        };
+        assert!(only(&brake(9.0, -4.5)).plausible());
+        let j = only(&brake(12.0, -6.0));
+        assert!(j.has(Violation::Accel), "{:?}", j.events);
+        let mut car = brake(12.0, -6.0);
+        car.agents[0].agent_type = AgentType::Vehicle;
+        assert!(only(&car).plausible(), "{:?}", only(&car).events);
+        car.agents[0].is_static = true;
+        assert!(judge(&car, &KinematicLimits::default())[0].is_none());
+    }
+
+    #[test]
     fn a_reversing_car_is_flagged_and_named() {
         let j = only(&road(&["{id: 1, lane: 0, s: 200, speed: -5}"]));
         assert_eq!(
@@ -559,17 +617,19 @@ mod tests {
     }
 
     #[test]
-    fn only_vehicles_with_a_long_enough_future_are_judged() {
+    fn only_road_users_with_a_long_enough_future_are_judged() {
         let s = road(&[
-            "{id: 1, lane: 0, s: 50, speed: 10, type: pedestrian}",
+            "{id: 1, lane: 0, s: 50, speed: 10, type: other}",
             "{id: 2, lane: 1, s: 50, speed: 10}",
+            "{id: 3, lane: 2, s: 50, speed: 10, type: pedestrian}",
         ]);
         let j = judge(&s, &KinematicLimits::default());
         assert!(j[0].is_none() && j[1].is_some());
         assert_eq!(
             flags(&j, None),
-            vec![None, Some(false)],
-            "the pedestrian is not counted"
+            vec![None, Some(false), Some(true)],
+            "the object is not counted; a pedestrian at 10 m/s sprints"
         );
+        assert!(j[2].as_ref().unwrap().has(Violation::Sprint));
     }
 }

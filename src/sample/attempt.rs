@@ -13,7 +13,9 @@ use std::time::Instant;
 use serde::Serialize;
 
 use super::closed_loop::{closed_loop, ScriptSpec};
-use super::guided::{prepare, sample, Guidance, Sample, SampleConfig, SampleError, Task};
+use super::guided::{
+    prepare_for, sample, sampled_horizon, Guidance, Sample, SampleConfig, SampleError, Task,
+};
 use crate::cost::{check_params, CostError, CostScript, Params};
 use crate::eval::behaviors::{check, check_against_unguided, Behavior, CheckError, Verdict};
 use crate::eval::kinematic::{judge, KinematicLimits, Violation};
@@ -276,6 +278,34 @@ impl Attempt {
     }
 }
 
+/// The file that says a run left scene `stem` out on purpose (no agents suited to the
+/// behaviour it asks for): `STEM_skipped.json`, beside the rollouts and their unguided twins,
+/// so that `eval` over the same scene list counts the scene as skipped, as the run did,
+/// rather than as a missing rollout.
+pub fn skipped_file(dir: &Path, stem: &str) -> std::path::PathBuf {
+    dir.join(format!("{stem}_skipped.json"))
+}
+
+/// Writes [`skipped_file`] into `dir` and, where `twins` is true, into `dir/unguided`, with the
+/// reason; atomically, as every output.
+pub fn write_skipped(dir: &Path, stem: &str, reason: &str, twins: bool) -> Result<(), IoError> {
+    let stem = output_stem(stem)?;
+    let text = serde_json::to_string_pretty(&serde_json::json!({
+        "scenario_id": stem,
+        "skipped": reason,
+    }))
+    .expect("a JSON object serialises");
+    let mut dirs = vec![dir.to_path_buf()];
+    if twins {
+        dirs.push(dir.join("unguided"));
+    }
+    for d in dirs {
+        std::fs::create_dir_all(&d).map_err(|e| IoError::read(&d, e))?;
+        write_atomic(&skipped_file(&d, stem), text.as_bytes())?;
+    }
+    Ok(())
+}
+
 /// Runs `spec` on `raw` (a scene as read): every script is compiled and validated on the scene
 /// cut to the model's horizon before anything is sampled, then the samples are scored and
 /// judged.
@@ -286,7 +316,7 @@ pub fn attempt(
 ) -> Result<Attempt, AttemptError> {
     let cfg = &spec.cfg;
     cfg.validate().map_err(SampleError::Settings)?;
-    let scene = prepare(raw, trained)?;
+    let scene = prepare_for(raw, sampled_horizon(trained, cfg)?)?;
     let shared = Rc::new(scene.clone());
     let sources: Vec<&str> = spec.scripts.iter().map(|t| t.source.as_str()).collect();
     for s in &spec.scripts {
@@ -501,7 +531,7 @@ mod tests {
         assert_eq!(r.named, vec![2, 1]);
         assert_eq!(r.roles(), vec![(2, "cutter".into()), (1, "victim".into())]);
         // The same samples drawn unguided, drawn here independently of the attempt.
-        let prepared = prepare(&scene, &t).unwrap();
+        let prepared = crate::sample::prepare(&scene, &t).unwrap();
         let twins = sample(&t, &prepared, &[], &cfg()).unwrap();
         for (k, o) in r.samples.iter().enumerate() {
             // The totals and verdicts are those of the scored scenes, not copies of one.

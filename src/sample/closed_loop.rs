@@ -6,7 +6,10 @@
 
 use std::rc::Rc;
 
-use super::guided::{modelled, prepare, sample_after, Executed, Sample, SampleConfig, SampleError};
+use super::guided::{
+    modelled, prepare, prepare_for, sample_after, sampled_horizon, Executed, Sample, SampleConfig,
+    SampleError,
+};
 use crate::cost::{CostScript, Limits, Params};
 use crate::scene::Scene;
 use crate::train::Trained;
@@ -55,9 +58,9 @@ pub fn closed_loop(
     execute: usize,
 ) -> Result<Vec<Sample>, SampleError> {
     cfg.validate().map_err(SampleError::Settings)?;
-    let future = trained.meta.config.window.future;
+    let future = sampled_horizon(trained, cfg)?;
     let execute = execute.clamp(1, future);
-    let start = prepare(scene, trained)?;
+    let start = prepare_for(scene, future)?;
     let c0 = start.meta.current_step;
     let compiled = scripts
         .iter()

@@ -110,6 +110,10 @@ pub struct SampleConfig {
     /// many with it. Realism keeps cars clear only here, or while denoising when this is 0
     /// (the realism module says why).
     pub polish: usize,
+    /// Future steps to sample, at most the model's horizon (`None`: the model's horizon). A
+    /// model of 8 s samples 4 s by generating its whole future and keeping the first 40
+    /// steps: guidance and the conditional end point act on those alone.
+    pub horizon: Option<usize>,
 }
 
 impl SampleConfig {
@@ -132,6 +136,9 @@ impl SampleConfig {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!("{name} = {v}: must be finite and not negative"));
             }
+        }
+        if self.horizon == Some(0) {
+            return Err("horizon = 0: must be at least 1 step".into());
         }
         if self.polish > 1000 {
             return Err(format!("polish = {}: must be 0 to 1000", self.polish));
@@ -161,6 +168,7 @@ impl Default for SampleConfig {
                 ..Realism::default()
             },
             polish: 0,
+            horizon: None,
         }
     }
 }
@@ -193,7 +201,26 @@ pub enum SampleError {
 /// The scene cut to the model's horizon: `current + 1 + future` steps, unobserved beyond the
 /// recording. Cost scripts are compiled against this scene.
 pub fn prepare(scene: &Scene, trained: &Trained) -> Result<Scene, SampleError> {
-    let s = scene.over_horizon(trained.meta.config.window.future);
+    prepare_for(scene, trained.meta.config.window.future)
+}
+
+/// The future steps `cfg` samples with `trained`: its `horizon`, or the model's whole one;
+/// an error names both when more is asked than the model generates.
+pub fn sampled_horizon(trained: &Trained, cfg: &SampleConfig) -> Result<usize, SampleError> {
+    let model = trained.meta.config.window.future;
+    match cfg.horizon {
+        None => Ok(model),
+        Some(h) if h <= model => Ok(h),
+        Some(h) => Err(SampleError::Settings(format!(
+            "horizon = {h} steps: the model samples at most {model}"
+        ))),
+    }
+}
+
+/// [`prepare`] for a horizon of `future` steps (at most the model's: see
+/// [`sampled_horizon`]).
+pub fn prepare_for(scene: &Scene, future: usize) -> Result<Scene, SampleError> {
+    let s = scene.over_horizon(future);
     Scene::new(s.meta.clone(), s.map.clone(), s.agents)
         .map_err(|e| SampleError::Scene(e.to_string()))
 }
@@ -217,10 +244,9 @@ pub fn recorded_future(scene: &Scene) -> usize {
 }
 
 /// What a run samples against what `scene` records after its current step, when they differ:
-/// the model's horizon is fixed (`trained`'s window), so a longer recording is simulated only
+/// the sampled horizon (`model` steps, [`sampled_horizon`]) is fixed, so a longer recording is simulated only
 /// in part and a shorter one leaves steps with nothing to compare with. `None` when they match.
-pub fn horizon_note(scene: &Scene, trained: &Trained) -> Option<String> {
-    let model = trained.meta.config.window.future;
+pub fn horizon_note(scene: &Scene, model: usize) -> Option<String> {
     let recorded = recorded_future(scene);
     let secs = |n: usize| n as f64 * scene.meta.dt;
     let what = if recorded > model {
@@ -231,7 +257,7 @@ pub fn horizon_note(scene: &Scene, trained: &Trained) -> Option<String> {
         return None;
     };
     Some(format!(
-        "the model samples {:.1} s ({model} steps) after the current step; {} records {:.1} s \
+        "the run samples {:.1} s ({model} steps) after the current step; {} records {:.1} s \
          ({recorded} steps): {what}",
         secs(model),
         scene.meta.scenario_id,

@@ -11,7 +11,7 @@ pub use attempt::{
 };
 pub use closed_loop::{closed_loop, ScriptSpec};
 pub use guided::{
-    horizon_note, modelled, prepare, recorded_future, reference_run, sample, Clamp, Guidance,
-    LambdaSchedule, Sample, SampleConfig, SampleError, Task, BEHAVIOUR_LAMBDA, POLISH_STEPS,
-    REALISM_WEIGHT,
+    horizon_note, modelled, prepare, prepare_for, recorded_future, reference_run, sample,
+    sampled_horizon, Clamp, Guidance, LambdaSchedule, Sample, SampleConfig, SampleError, Task,
+    BEHAVIOUR_LAMBDA, POLISH_STEPS, REALISM_WEIGHT,
 };
