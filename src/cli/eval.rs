@@ -713,8 +713,11 @@ fn merge(files: &[PathBuf], json_out: Option<&Path>) -> Result<ExitCode> {
     let mut seen: Vec<(usize, PathBuf)> = Vec::new();
     let (mut skipped, mut failures) = (0, 0);
     for f in files {
-        let text =
-            std::fs::read_to_string(f).with_context(|| format!("reading {}", f.display()))?;
+        let text = drivescript::io::read_regular_text(
+            f,
+            drivescript::io::MAX_SCENE_BYTES,
+            "an `eval --json` file",
+        )?;
         let mut v: serde_json::Value =
             serde_json::from_str(&text).with_context(|| format!("{}: not JSON", f.display()))?;
         let m: Merge = serde_json::from_value(v["merge"]["run"].take()).with_context(|| {

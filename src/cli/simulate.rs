@@ -149,8 +149,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let specs = script_paths
         .iter()
         .map(|p| {
-            let source =
-                std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+            let source = drivescript::cost::read_script(p)?;
             Ok(ScriptSpec::new(
                 source,
                 p.display().to_string(),

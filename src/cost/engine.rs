@@ -78,6 +78,16 @@ impl Default for Limits {
     }
 }
 
+/// The most a script file read from disk may hold (the largest hand-written one is under 2 KB).
+pub const MAX_SOURCE_BYTES: usize = 64 << 10;
+
+/// Reads a cost script file: a regular file of at most [`MAX_SOURCE_BYTES`] in UTF-8 (a FIFO
+/// or a device is refused before it is read: it could block or never end).
+pub fn read_script(path: &std::path::Path) -> Result<String, CostError> {
+    crate::io::read_regular_text(path, MAX_SOURCE_BYTES as u64, "a cost script")
+        .map_err(|e| CostError::Read(e.to_string()))
+}
+
 /// Errors from compiling, validating or evaluating a cost script. Each names the script and,
 /// where there is one, the line and column.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -154,6 +164,9 @@ pub enum CostError {
         /// What is wrong.
         message: String,
     },
+    /// The script file cannot be read (the message names it).
+    #[error("{0}")]
+    Read(String),
     /// Trajectories that do not belong to the scene.
     #[error("{script}: trajectories do not fit the scene: {message}")]
     Shape {

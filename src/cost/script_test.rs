@@ -224,7 +224,13 @@ pub enum ScriptTestError {
         /// Why.
         message: String,
     },
+    /// A file it names cannot be read (the message names the file).
+    #[error("{0}")]
+    Io(String),
 }
+
+/// The most a test file may hold: the largest in scripts/ is under 2 KB.
+pub const MAX_TEST_FILE_BYTES: u64 = 1 << 20;
 
 /// Test files (`*.test.yaml`) under the given files or directories, sorted.
 pub fn find_test_files(roots: &[PathBuf]) -> Result<Vec<PathBuf>, ScriptTestError> {
@@ -548,10 +554,9 @@ impl Runner {
 
 /// Runs every case of a test file.
 pub fn run_test_file(path: &Path) -> Result<Vec<CaseResult>, ScriptTestError> {
-    let text = std::fs::read_to_string(path).map_err(|e| ScriptTestError::Read {
-        path: path.display().to_string(),
-        message: e.to_string(),
-    })?;
+    // The I/O error names the file itself.
+    let text = crate::io::read_regular_text(path, MAX_TEST_FILE_BYTES, "a script test file")
+        .map_err(|e| ScriptTestError::Io(e.to_string()))?;
     let file: TestFile = serde_yaml::from_str(&text).map_err(|e| ScriptTestError::Read {
         path: path.display().to_string(),
         message: match e.location() {
@@ -591,10 +596,8 @@ pub fn run_test_file(path: &Path) -> Result<Vec<CaseResult>, ScriptTestError> {
     }
     let dir = path.parent().unwrap_or(Path::new("."));
     let script_path = dir.join(&file.script);
-    let source = std::fs::read_to_string(&script_path).map_err(|e| ScriptTestError::Read {
-        path: script_path.display().to_string(),
-        message: e.to_string(),
-    })?;
+    let source =
+        super::read_script(&script_path).map_err(|e| ScriptTestError::Io(e.to_string()))?;
     let mut runner = Runner {
         scenes: HashMap::new(),
     };

@@ -114,6 +114,22 @@ pub enum IoError {
 }
 
 impl IoError {
+    /// What is wrong, without the file's name: for errors of other modules that name the file
+    /// themselves.
+    pub fn reason(&self) -> String {
+        match self {
+            IoError::Read { source, .. } => source.to_string(),
+            IoError::Write { source, .. } => format!("cannot write: {source}"),
+            IoError::Invalid {
+                location, message, ..
+            } if location == "file" => message.clone(),
+            IoError::Invalid {
+                location, message, ..
+            } => format!("{location}: {message}"),
+            other => other.to_string(),
+        }
+    }
+
     pub(crate) fn invalid(
         path: &Path,
         location: impl Into<String>,
@@ -233,7 +249,7 @@ impl Content {
 pub fn sniff(path: &Path) -> Option<Content> {
     use std::io::Read;
     let mut head = [0u8; 16];
-    let mut f = std::fs::File::open(path).ok()?;
+    let mut f = open_regular(path, u64::MAX, "a scene file").ok()?;
     let mut n = 0;
     while n < head.len() {
         match f.read(&mut head[n..]) {
@@ -580,44 +596,88 @@ pub(crate) fn read_text(path: &Path) -> Result<String, IoError> {
         .map_err(|e| IoError::invalid(path, "file", format!("not UTF-8 text: {e}")))
 }
 
-/// Refuses a file larger than [`MAX_SCENE_BYTES`] before it is read.
-pub(crate) fn check_file_size(path: &Path) -> Result<(), IoError> {
-    let len = std::fs::metadata(path)
-        .map_err(|e| IoError::read(path, e))?
-        .len();
-    if len > MAX_SCENE_BYTES {
+/// Opens `path` for reading if it is a regular file of at most `max` bytes (`what` says what
+/// the file is, for the error: "a cost script"), refusing anything else before reading a byte.
+/// A FIFO would block forever (even opening it, which is why it is opened non-blocking and
+/// checked on the open handle) and a device such as `/dev/zero` never ends; a directory is not
+/// a file. Every file drivescript reads comes through here.
+pub fn open_regular(path: &Path, max: u64, what: &str) -> Result<std::fs::File, IoError> {
+    let mut options = std::fs::OpenOptions::new();
+    options.read(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        // Without it, opening a FIFO waits for a writer; reading a regular file ignores it.
+        options.custom_flags(libc::O_NONBLOCK);
+    }
+    let file = options.open(path).map_err(|e| IoError::read(path, e))?;
+    let meta = file.metadata().map_err(|e| IoError::read(path, e))?;
+    if meta.is_dir() {
         return Err(IoError::invalid(
             path,
             "file",
-            format!(
-                "holds {} MB, more than {} MB: far beyond a real scene file, so it is refused before it fills memory",
-                len >> 20,
-                MAX_SCENE_BYTES >> 20
-            ),
+            format!("is a directory, not {what}"),
         ));
     }
-    Ok(())
+    if !meta.is_file() {
+        return Err(not_regular(path));
+    }
+    if meta.len() > max {
+        return Err(too_large(path, "holds", meta.len(), max, what));
+    }
+    Ok(file)
 }
 
-/// Reads a whole file, transparently gunzipping `.gz` files.
+/// Reads the whole of `path` through [`open_regular`], at most `max` bytes even if the file
+/// grows while it is read.
+pub fn read_regular(path: &Path, max: u64, what: &str) -> Result<Vec<u8>, IoError> {
+    use std::io::Read;
+    let file = open_regular(path, max, what)?;
+    let mut out = Vec::new();
+    file.take(max.saturating_add(1))
+        .read_to_end(&mut out)
+        .map_err(|e| IoError::read(path, e))?;
+    if out.len() as u64 > max {
+        return Err(too_large(path, "grew to", out.len() as u64, max, what));
+    }
+    Ok(out)
+}
+
+/// [`read_regular`] for a text file: UTF-8, or an error naming the file and the byte.
+pub fn read_regular_text(path: &Path, max: u64, what: &str) -> Result<String, IoError> {
+    String::from_utf8(read_regular(path, max, what)?)
+        .map_err(|e| IoError::invalid(path, "file", format!("not UTF-8 text: {e}")))
+}
+
+fn too_large(path: &Path, verb: &str, len: u64, max: u64, what: &str) -> IoError {
+    let size = |b: u64| {
+        if b >= 10 << 20 {
+            format!("{} MB", b >> 20)
+        } else if b >= 10 << 10 {
+            format!("{} KB", b >> 10)
+        } else {
+            format!("{b} bytes")
+        }
+    };
+    IoError::invalid(
+        path,
+        "file",
+        format!(
+            "{verb} {}, more than {} (the most for {what}): far beyond a real one, so it is \
+             refused before it fills memory",
+            size(len),
+            size(max)
+        ),
+    )
+}
+
+/// Reads a whole scene file, transparently gunzipping `.gz` files, within [`MAX_SCENE_BYTES`]
+/// before and after inflating (NGSIM's largest CommonRoad file is 2.6 MB, an AV2 map a few
+/// MB).
 pub(crate) fn read_maybe_gz(path: &Path) -> Result<Vec<u8>, IoError> {
     use std::io::Read;
-    let too_big = |what: &str| {
-        IoError::invalid(
-            path,
-            "file",
-            format!(
-                "{what} more than {} MB: far beyond a real scene file (NGSIM's largest CommonRoad \
-                 file is 2.6 MB, an AV2 map a few MB), so it is refused before it fills memory",
-                MAX_SCENE_BYTES >> 20
-            ),
-        )
-    };
-    let meta = std::fs::metadata(path).map_err(|e| IoError::read(path, e))?;
-    if meta.len() > MAX_SCENE_BYTES {
-        return Err(too_big("holds"));
-    }
-    let raw = std::fs::read(path).map_err(|e| IoError::read(path, e))?;
+    const WHAT: &str = "a scene file";
+    let raw = read_regular(path, MAX_SCENE_BYTES, WHAT)?;
     if path.extension().is_some_and(|e| e == "gz") {
         let mut out = Vec::new();
         // Inflated as a stream, at most one byte past the cap: a small file can inflate to
@@ -627,7 +687,13 @@ pub(crate) fn read_maybe_gz(path: &Path) -> Result<Vec<u8>, IoError> {
             .read_to_end(&mut out)
             .map_err(|e| IoError::invalid(path, "gzip stream", e.to_string()))?;
         if out.len() as u64 > MAX_SCENE_BYTES {
-            return Err(too_big("inflates to"));
+            return Err(too_large(
+                path,
+                "inflates to",
+                out.len() as u64,
+                MAX_SCENE_BYTES,
+                WHAT,
+            ));
         }
         Ok(out)
     } else {
@@ -669,6 +735,42 @@ pub(crate) fn push_unique_road_line(
 #[cfg(test)]
 mod tests {
     use super::{output_stem, without_position};
+
+    #[cfg(unix)]
+    #[test]
+    fn only_regular_files_within_their_cap_are_read() {
+        use super::read_regular;
+        let dir = tempfile::tempdir().unwrap();
+        let e = read_regular(std::path::Path::new("/dev/zero"), 1 << 20, "a prompt")
+            .unwrap_err()
+            .to_string();
+        assert!(e.starts_with("/dev/zero: file: not a regular file"), "{e}");
+        let e = read_regular(dir.path(), 1 << 20, "a prompt")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("is a directory, not a prompt"), "{e}");
+        let big = dir.path().join("big.md");
+        std::fs::write(&big, vec![b'x'; 3000]).unwrap();
+        let e = read_regular(&big, 2048, "a prompt")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains(
+                "big.md: file: holds 3000 bytes, more than 2048 bytes (the most for a prompt)"
+            ),
+            "{e}"
+        );
+        assert_eq!(read_regular(&big, 3000, "a prompt").unwrap().len(), 3000);
+        let fifo = dir.path().join("f");
+        let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+        if made.is_ok_and(|s| s.success()) {
+            // Opening alone would block without a writer.
+            let e = read_regular(&fifo, 1 << 20, "a prompt")
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("not a regular file"), "{e}");
+        }
+    }
 
     #[test]
     fn serde_positions_are_said_once() {

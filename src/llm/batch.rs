@@ -70,10 +70,14 @@ fn bad(path: &Path, message: String) -> LlmError {
     }
 }
 
+/// The most a batch file may hold (the paper's tables need a few hundred entries, a few
+/// dozen KB).
+pub const MAX_BATCH_BYTES: u64 = 4 << 20;
+
 /// Reads a batch file.
 pub fn read_batch(path: &Path) -> Result<Vec<Entry>, LlmError> {
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| bad(path, format!("cannot read the batch file: {e}")))?;
+    let text = crate::io::read_regular_text(path, MAX_BATCH_BYTES, "a batch file")
+        .map_err(|e| bad(path, format!("cannot read the batch file: {}", e.reason())))?;
     let v: serde_yaml::Value =
         serde_yaml::from_str(&text).map_err(|e| bad(path, format!("not YAML: {e}")))?;
     let base = path.parent().unwrap_or(Path::new("."));
@@ -753,7 +757,9 @@ impl Batch<'_> {
         for sub in ["", "unguided"] {
             for i in 0.. {
                 let src = from.join(sub).join(format!("{stem}_{i}.json"));
-                let Ok(bytes) = std::fs::read(&src) else {
+                let Ok(bytes) =
+                    crate::io::read_regular(&src, crate::io::MAX_SCENE_BYTES, "a rollout file")
+                else {
                     break;
                 };
                 let dst = to.join(sub).join(format!("{stem}_{i}.json"));

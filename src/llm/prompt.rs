@@ -57,6 +57,10 @@ pub struct Prompts {
 }
 
 /// Each template and the placeholders it may use.
+/// The most a prompt template or example may hold: the system prompt is a few KB, and every
+/// template goes to the model with each request.
+pub const MAX_TEMPLATE_BYTES: u64 = 256 << 10;
+
 const FILES: &[(&str, &[&str])] = &[
     ("system.md", &["reasoning", "examples", "reference"]),
     ("chain_of_thought.md", &[]),
@@ -86,10 +90,11 @@ impl Prompts {
     pub fn load(dir: &Path) -> Result<Self, LlmError> {
         let read = |name: &str, allowed: &[&str]| -> Result<String, LlmError> {
             let p = dir.join(name);
-            let text = std::fs::read_to_string(&p).map_err(|e| LlmError::Prompt {
-                path: p.clone(),
-                message: format!("cannot read it: {e}"),
-            })?;
+            let text = crate::io::read_regular_text(&p, MAX_TEMPLATE_BYTES, "a prompt template")
+                .map_err(|e| LlmError::Prompt {
+                    path: p.clone(),
+                    message: format!("cannot read it: {}", e.reason()),
+                })?;
             check_placeholders(&text, allowed).map_err(|message| LlmError::Prompt {
                 path: p.clone(),
                 message,

@@ -261,6 +261,15 @@ pub struct Session<'a> {
     transcript: Vec<Record>,
 }
 
+/// The most a file of a run directory that drivescript reads back may hold (`state.json`
+/// keeps every message of the run: a few hundred KB after many rounds).
+pub const MAX_RUN_FILE_BYTES: u64 = 64 << 20;
+
+/// Reads back a text file of a run directory: a planted FIFO or device must not hang `--resume`.
+fn read_run_file(path: &Path) -> Result<String, crate::io::IoError> {
+    crate::io::read_regular_text(path, MAX_RUN_FILE_BYTES, "a run directory's file")
+}
+
 fn run_err(dir: &Path, message: impl Into<String>) -> LlmError {
     LlmError::Run {
         dir: dir.to_path_buf(),
@@ -382,10 +391,10 @@ impl<'a> Session<'a> {
         load: impl FnOnce(&Path) -> Result<Scene, LlmError>,
     ) -> Result<Self, LlmError> {
         let p = dir.join("state.json");
-        let text = std::fs::read_to_string(&p).map_err(|e| {
+        let text = read_run_file(&p).map_err(|e| {
             run_err(
                 dir,
-                format!("no run to resume here: cannot read state.json ({e}); start one with `drivescript ask SCENE \"request\" -o DIR`"),
+                format!("no run to resume here: cannot read state.json ({}); start one with `drivescript ask SCENE \"request\" -o DIR`", e.reason()),
             )
         })?;
         let state: State = serde_json::from_str(&text)
@@ -402,7 +411,7 @@ impl<'a> Session<'a> {
         let prompts = Prompts::load(&state.prompts)?;
         let backend = backend(&state.backend, state.model.as_deref(), state.url.as_deref())?;
         let raw = load(&state.scene)?;
-        let transcript = std::fs::read_to_string(dir.join("transcript.json"))
+        let transcript = read_run_file(&dir.join("transcript.json"))
             .ok()
             .and_then(|t| serde_json::from_str::<Value>(&t).ok())
             .and_then(|v| serde_json::from_value(v["records"].clone()).ok())
@@ -585,7 +594,7 @@ impl<'a> Session<'a> {
             // that reply: the model is not asked, or paid, twice for one round.
             let received = match self.backend {
                 Backend::Manual => None,
-                _ => std::fs::read_to_string(rdir.join("reply.md"))
+                _ => read_run_file(&rdir.join("reply.md"))
                     .ok()
                     .filter(|t| !t.trim().is_empty()),
             };
@@ -884,7 +893,9 @@ impl<'a> Session<'a> {
         if let Some((round, script)) = &self.state.script {
             write(&self.dir, "final.rhai", script)?;
             let from = self.dir.join(format!("round_{round}"));
-            if let Ok(bytes) = std::fs::read(from.join("sample.gif")) {
+            if let Ok(bytes) =
+                crate::io::read_regular(&from.join("sample.gif"), MAX_RUN_FILE_BYTES, "a picture")
+            {
                 write_atomic(&self.dir.join("final.gif"), &bytes)
                     .map_err(|e| run_err(&self.dir, e.to_string()))?;
             }
@@ -1066,7 +1077,7 @@ impl Session<'_> {
             return Ok(Got::Text(reply));
         }
         if let Backend::Manual = self.backend {
-            return Ok(match std::fs::read_to_string(rdir.join("reply.md")) {
+            return Ok(match read_run_file(&rdir.join("reply.md")) {
                 Ok(t) if !t.trim().is_empty() => {
                     self.record(n, "manual reply read", t0, None);
                     Got::Text(t)
