@@ -58,6 +58,10 @@ pub struct Limits {
     pub wall_time: Duration,
     /// Lines kept from `print`.
     pub max_print_lines: usize,
+    /// Bytes of source: checked before compiling, because Rhai's parser takes time quadratic
+    /// in the number of distinct variables (20,000 `let`s took 8 s to reach the variables
+    /// limit, 100,000 did not finish in a minute).
+    pub max_source_bytes: usize,
 }
 
 impl Default for Limits {
@@ -74,11 +78,15 @@ impl Default for Limits {
             max_modules: 8,
             wall_time: Duration::from_secs(5),
             max_print_lines: 200,
+            // The largest hand-written script is under 2 KB; 64 KB of the worst case
+            // compiles in a fraction of a second.
+            max_source_bytes: MAX_SOURCE_BYTES,
         }
     }
 }
 
-/// The most a script file read from disk may hold (the largest hand-written one is under 2 KB).
+/// The default [`Limits::max_source_bytes`], also the most a script file read from disk may
+/// hold.
 pub const MAX_SOURCE_BYTES: usize = 64 << 10;
 
 /// Reads a cost script file: a regular file of at most [`MAX_SOURCE_BYTES`] in UTF-8 (a FIFO
@@ -702,6 +710,18 @@ impl CostScript {
                 })
                 .collect(),
         }));
+        if source.len() > limits.max_source_bytes {
+            return Err(CostError::Limit {
+                script: name.into(),
+                limit: format!(
+                    "script size ({} bytes, max {}): a cost script is a few dozen lines",
+                    source.len(),
+                    limits.max_source_bytes
+                ),
+                line: 1,
+                column: 1,
+            });
+        }
         no_reserved(params)?;
         let (engine, docs) = build_engine(&shared, limits, &started);
         let mut scope = Scope::new();
