@@ -1407,7 +1407,7 @@ fn convert_refuses_to_write_over_its_input() {
     std::fs::copy(samples().join("yaml/highway_cut_in.yaml"), &y).unwrap();
     let before = std::fs::read(&y).unwrap();
     let err = fails(&["convert", s(&y), "-o", s(&y)]);
-    assert!(err.contains("-o is the input itself"), "{err}");
+    assert!(err.contains("-o: is the input itself"), "{err}");
     assert_eq!(std::fs::read(&y).unwrap(), before);
     // The same file by another name is the same file.
     let err = fails(&[
@@ -1416,7 +1416,50 @@ fn convert_refuses_to_write_over_its_input() {
         "-o",
         &format!("{}/./s.yaml", s(dir.path())),
     ]);
-    assert!(err.contains("-o is the input itself"), "{err}");
+    assert!(err.contains("-o: is the input itself"), "{err}");
+}
+
+#[test]
+fn eval_json_refuses_its_inputs_and_files_it_did_not_write() {
+    let dir = tempfile::tempdir().unwrap();
+    let y = dir.path().join("s.yaml");
+    std::fs::copy(samples().join("yaml/highway_cut_in.yaml"), &y).unwrap();
+    let before = std::fs::read(&y).unwrap();
+    let eval = |json: &std::path::Path, scenes: &std::path::Path| {
+        fails(&[
+            "eval",
+            s(scenes),
+            "--task",
+            "conditional",
+            "--json",
+            s(json),
+        ])
+    };
+    // Its own input scene, by name or inside the directory given.
+    let err = eval(&y, &y);
+    assert!(err.contains("--json: is the input itself"), "{err}");
+    let err = eval(&y, dir.path());
+    assert!(
+        err.contains("--json: is a scene file inside the input directory"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read(&y).unwrap(), before);
+    // A checkpoint's config.json (or any file that is not an earlier `eval --json`).
+    let ckpt = dir.path().join("ckpt");
+    std::fs::create_dir(&ckpt).unwrap();
+    let config = ckpt.join("config.json");
+    std::fs::copy("data/checkpoint/config.json", &config).unwrap();
+    let before = std::fs::read(&config).unwrap();
+    let err = eval(&config, &y);
+    assert!(
+        err.contains("config.json: --json: already exists and is not an `eval --json` file"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read(&config).unwrap(), before);
+    // An earlier evaluation's file is replaced.
+    let e = dir.path().join("e.json");
+    ok(&["eval", s(&y), "--task", "conditional", "--json", s(&e)]);
+    ok(&["eval", s(&y), "--task", "conditional", "--json", s(&e)]);
 }
 
 #[test]

@@ -839,3 +839,141 @@ fn loop_flags_are_checked_before_any_work() {
         assert!(!out.exists(), "{arg}: wrote {}", out.display());
     }
 }
+
+/// `ask` started in the background (its output discarded), for a run that is still going.
+fn ask_spawn(args: &[&str], url: &str) -> std::process::Child {
+    std::process::Command::new(env!("CARGO_BIN_EXE_drivescript"))
+        .arg("ask")
+        .args(args)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .env("DRIVESCRIPT_LLM_KEY", "sk-test-secret")
+        .env("DRIVESCRIPT_LLM_URL", url)
+        .env("DRIVESCRIPT_LLM_MODEL", "test-model")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("the binary runs")
+}
+
+/// Waits (at most a minute) until `p` exists.
+fn wait_for(p: &Path) {
+    let t0 = Instant::now();
+    while !p.exists() {
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "{} never appeared",
+            p.display()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn a_run_still_going_is_locked_against_resume_continue_and_a_second_batch() {
+    // The first request is answered only after a while: the run is still going meanwhile.
+    let srv = Server::start(vec![Canned::chat("ACCEPT").after(Duration::from_secs(20))]);
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let mut first = ask_spawn(
+        &[s(&samples().join(SCENE)), REQUEST, "-o", s(&run)],
+        &srv.url,
+    );
+    wait_for(&run.join("round_0/prompt.md"));
+    for args in [
+        vec!["--resume", s(&run)],
+        vec!["--continue", s(&run), "make it more abrupt"],
+    ] {
+        let out = ask(&args, Some(&srv.url));
+        let t = text(&out);
+        assert_eq!(out.status.code(), Some(1), "{args:?}: {t}");
+        assert!(
+            t.contains("another drivescript process is running in it"),
+            "{args:?}: {t}"
+        );
+    }
+    let _ = first.kill();
+    let _ = first.wait();
+    // Two identical batches into one -o.
+    let file = dir.path().join("requests.yaml");
+    std::fs::write(
+        &file,
+        format!(
+            "scenes: {}\nentries:\n  - request: \"vehicle 401 cuts in front of vehicle 399\"\n    behaviour: cut_in\n    params: {{cutter: 401, victim: 399}}\n",
+            samples().join(SCENE).display()
+        ),
+    )
+    .unwrap();
+    let srv = Server::start(vec![Canned::chat("ACCEPT").after(Duration::from_secs(20))]);
+    let out = dir.path().join("batch");
+    let batch = ["--batch", s(&file), "-o", s(&out), "--llm", "http"];
+    let mut first = ask_spawn(&batch, &srv.url);
+    let t0 = Instant::now();
+    while srv.received().is_empty() {
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "the batch never asked"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let o = ask(&batch, Some(&srv.url));
+    let t = text(&o);
+    let _ = first.kill();
+    let _ = first.wait();
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("another drivescript process is running in it"),
+        "{t}"
+    );
+}
+
+#[test]
+fn ask_keeps_the_user_s_files_and_writes_nothing_through_a_planted_round_link() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    std::fs::create_dir(&run).unwrap();
+    std::fs::write(run.join("report.md"), "my own report").unwrap();
+    let o = ask(
+        &[
+            s(&samples().join(SCENE)),
+            REQUEST,
+            "-o",
+            s(&run),
+            "--llm",
+            "rules",
+        ],
+        None,
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("report.md") && t.contains("will not replace it"),
+        "{t}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(run.join("report.md")).unwrap(),
+        "my own report"
+    );
+    std::fs::remove_file(run.join("report.md")).unwrap();
+    // A round_0 link to a directory outside -o.
+    #[cfg(unix)]
+    {
+        let outside = dir.path().join("outside");
+        std::fs::create_dir(&outside).unwrap();
+        std::os::unix::fs::symlink(&outside, run.join("round_0")).unwrap();
+        let o = ask(
+            &[
+                s(&samples().join(SCENE)),
+                REQUEST,
+                "-o",
+                s(&run),
+                "--llm",
+                "rules",
+            ],
+            None,
+        );
+        let t = text(&o);
+        assert_eq!(o.status.code(), Some(1), "{t}");
+        assert!(t.contains("round_0"), "{t}");
+        assert_eq!(std::fs::read_dir(&outside).unwrap().count(), 0, "{t}");
+    }
+}

@@ -10,7 +10,8 @@ use drivescript::eval::kinematic::{self, KinematicLimits, Violation};
 use drivescript::eval::metrics::{self, JsdBins, Kinematics};
 use drivescript::eval::{check, check_against_unguided, Baseline, Behavior, Verdict};
 use drivescript::io::{
-    discover, read_each, rollout::Rollout, write_atomic, LoadOptions, OutputNames,
+    check_output_not_input, check_replaces_own_json, discover, read_each, rollout::Rollout,
+    write_atomic, LoadOptions, OutputNames,
 };
 use drivescript::scene::{AgentType, Scene};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -294,6 +295,19 @@ fn task_name(t: Task) -> &'static str {
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
+    if let Some(out) = &args.json {
+        // Refused before any work: an evaluation can take hours.
+        let inputs: Vec<&Path> = args
+            .scenes
+            .iter()
+            .chain(&args.merge)
+            .chain(&args.rollouts)
+            .chain(&args.unguided)
+            .map(|p| p.as_path())
+            .collect();
+        check_output_not_input(out, &inputs, "--json")?;
+        check_replaces_own_json(out, "merge", "an `eval --json` file", "--json")?;
+    }
     if !args.merge.is_empty() {
         return merge(&args.merge, args.json.as_deref());
     }

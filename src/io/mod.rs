@@ -552,8 +552,32 @@ fn write_beside(path: &Path, bytes: &[u8]) -> Result<PathBuf, IoError> {
     Ok(tmp)
 }
 
-/// Writes `bytes` to `path` atomically: a temporary file beside it, then a rename.
+/// Writes `bytes` to `path` atomically: a temporary file beside it, then a rename. Only a new
+/// path or a regular file (or a link to one) is replaced so; a device or a FIFO (`/dev/null`,
+/// `/dev/stdout`, a pipe) is written in place, as a shell's `>` would: renaming over
+/// `/dev/null` would replace it for the whole machine. A directory is an error.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
+    let err = |source| IoError::Write {
+        path: path.display().to_string(),
+        source,
+    };
+    if let Ok(meta) = std::fs::metadata(path) {
+        if meta.is_dir() {
+            return Err(IoError::invalid(
+                path,
+                "file",
+                "is a directory: name a file to write",
+            ));
+        }
+        if !meta.is_file() {
+            use std::io::Write;
+            let mut f = std::fs::OpenOptions::new()
+                .write(true)
+                .open(path)
+                .map_err(err)?;
+            return f.write_all(bytes).and_then(|()| f.flush()).map_err(err);
+        }
+    }
     let tmp = write_beside(path, bytes)?;
     std::fs::rename(&tmp, path).map_err(|source| {
         let _ = std::fs::remove_file(&tmp);
@@ -671,6 +695,78 @@ fn too_large(path: &Path, verb: &str, len: u64, max: u64, what: &str) -> IoError
     )
 }
 
+/// Refuses an output path that is one of the command's `inputs` (the same file by any name:
+/// writing would replace what is being read), or a scene file inside an input directory.
+/// `flag` names the output option in the message (`-o`, `--json`).
+pub fn check_output_not_input(output: &Path, inputs: &[&Path], flag: &str) -> Result<(), IoError> {
+    let Ok(out) = std::fs::canonicalize(output) else {
+        // Nothing there yet: it cannot be an input.
+        return Ok(());
+    };
+    for input in inputs {
+        let Ok(inp) = std::fs::canonicalize(input) else {
+            continue;
+        };
+        // Inside a directory read as one scene (AV2, WOMD shards) every file is an input;
+        // inside a directory of scenes, every scene file is.
+        let inside_scene_dir = inp.is_dir()
+            && out != inp
+            && out.starts_with(&inp)
+            && (detect_format(&inp).is_ok() || detect_format(&out).is_ok());
+        if out == inp || inside_scene_dir {
+            return Err(IoError::invalid(
+                output,
+                flag,
+                if out == inp {
+                    format!(
+                        "is the input itself ({}): writing would replace what is read; write \
+                         to another file",
+                        input.display()
+                    )
+                } else {
+                    format!(
+                        "is a scene file inside the input directory {}: writing would replace \
+                         it; write to another file",
+                        input.display()
+                    )
+                },
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Refuses to replace an existing regular file at `output` unless it is a JSON object with the
+/// top-level `key` that the command writes (`what` names that kind of file): a previous run's
+/// output may be replaced, anything else (a checkpoint's `config.json`, a rollout, a scene) is
+/// someone's data. New paths, devices and pipes pass.
+pub fn check_replaces_own_json(
+    output: &Path,
+    key: &str,
+    what: &str,
+    flag: &str,
+) -> Result<(), IoError> {
+    match std::fs::metadata(output) {
+        Ok(m) if m.is_file() => {}
+        _ => return Ok(()),
+    }
+    let ours = read_regular(output, MAX_SCENE_BYTES, what)
+        .ok()
+        .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok())
+        .is_some_and(|v| v.get(key).is_some());
+    if ours {
+        return Ok(());
+    }
+    Err(IoError::invalid(
+        output,
+        flag,
+        format!(
+            "already exists and is not {what}: writing would replace it; remove it first or \
+             write to another file"
+        ),
+    ))
+}
+
 /// Reads a whole scene file, transparently gunzipping `.gz` files, within [`MAX_SCENE_BYTES`]
 /// before and after inflating (NGSIM's largest CommonRoad file is 2.6 MB, an AV2 map a few
 /// MB).
@@ -770,6 +866,37 @@ mod tests {
                 .to_string();
             assert!(e.contains("not a regular file"), "{e}");
         }
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_fifo_output_is_written_in_place_and_a_directory_is_refused() {
+        use std::io::Read;
+        use std::os::unix::fs::FileTypeExt;
+        let dir = tempfile::tempdir().unwrap();
+        let e = super::write_atomic(dir.path(), b"x")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("is a directory"), "{e}");
+        let fifo = dir.path().join("out.json");
+        let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+        if !made.is_ok_and(|s| s.success()) {
+            return;
+        }
+        let f = fifo.clone();
+        // Left running if the FIFO is replaced (then nobody ever writes to it).
+        let reader = std::thread::spawn(move || {
+            let mut t = String::new();
+            std::fs::File::open(&f)
+                .unwrap()
+                .read_to_string(&mut t)
+                .unwrap();
+            t
+        });
+        super::write_atomic(&fifo, b"{\"a\": 1}").unwrap();
+        let kind = std::fs::symlink_metadata(&fifo).unwrap().file_type();
+        assert!(kind.is_fifo(), "the FIFO was replaced by {kind:?}");
+        assert_eq!(reader.join().unwrap(), "{\"a\": 1}");
     }
 
     #[test]

@@ -622,6 +622,17 @@ impl Batch<'_> {
                 "a batch runs without a person: use the http or rules backend".into(),
             ));
         }
+        std::fs::create_dir_all(&self.out)
+            .map_err(|e| bad(&self.out, format!("cannot create it: {e}")))?;
+        // One process per batch (per shard: the shards of one batch share -o by design); the
+        // pairs' own run directories are locked too, should two overlap.
+        let _lock = super::rundir::lock_named(
+            &self.out,
+            &match self.shard {
+                Some(sh) => format!(".drivescript.batch-{}-of-{}.lock", sh.index, sh.count),
+                None => ".drivescript.batch.lock".to_string(),
+            },
+        )?;
         let mut results = Vec::new();
         for (k, inst) in self.instances.iter().enumerate() {
             if self

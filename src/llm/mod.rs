@@ -17,6 +17,7 @@ pub mod feedback;
 pub mod prompt;
 pub mod reply;
 pub mod rules;
+pub mod rundir;
 pub mod session;
 
 use std::path::PathBuf;

@@ -259,6 +259,8 @@ pub struct Session<'a> {
     trained: &'a Trained,
     raw: Scene,
     transcript: Vec<Record>,
+    /// Held while the session lives: every way into a run directory takes it.
+    _lock: Option<super::rundir::RunLock>,
 }
 
 /// The most a file of a run directory that drivescript reads back may hold (`state.json`
@@ -278,12 +280,18 @@ fn run_err(dir: &Path, message: impl Into<String>) -> LlmError {
 }
 
 fn write(dir: &Path, name: &str, text: &str) -> Result<(), LlmError> {
+    write_bytes(dir, name, text.as_bytes())
+}
+
+/// Writes a file of the run, never through a link planted in its place.
+fn write_bytes(dir: &Path, name: &str, bytes: &[u8]) -> Result<(), LlmError> {
     let p = dir.join(name);
     if let Some(parent) = p.parent() {
         std::fs::create_dir_all(parent)
             .map_err(|e| run_err(parent, format!("cannot create it: {e}")))?;
     }
-    write_atomic(&p, text.as_bytes()).map_err(|e| run_err(dir, e.to_string()))
+    super::rundir::check_not_link(&p)?;
+    write_atomic(&p, bytes).map_err(|e| run_err(dir, e.to_string()))
 }
 
 /// The checkers of `requests` that the rules planner recognises (none when it does not).
@@ -322,6 +330,16 @@ impl<'a> Session<'a> {
         output_stem(&raw.meta.scenario_id).map_err(|e| run_err(scene_path, e.to_string()))?;
         config.validate()?;
         std::fs::create_dir_all(dir).map_err(|e| run_err(dir, format!("cannot create it: {e}")))?;
+        let lock = super::rundir::lock(dir)?;
+        // Checked again under the lock: another `ask` may have started here meanwhile.
+        if dir.join("state.json").exists() {
+            return Err(run_err(
+                dir,
+                "it already holds a run (state.json): continue it with --resume, revise it with \
+                 --continue, or choose another -o",
+            ));
+        }
+        super::rundir::check_fresh(dir)?;
         let requests = vec![request.trim().to_string()];
         if let Backend::Rules = backend {
             // Fails early, with the message that says an LLM is needed.
@@ -371,6 +389,7 @@ impl<'a> Session<'a> {
             trained,
             raw,
             transcript: Vec::new(),
+            _lock: Some(lock),
         };
         s.state.messages = first_messages(
             &s.prompts,
@@ -390,6 +409,12 @@ impl<'a> Session<'a> {
         backend: impl FnOnce(&str, Option<&str>, Option<&str>) -> Result<Backend, LlmError>,
         load: impl FnOnce(&Path) -> Result<Scene, LlmError>,
     ) -> Result<Self, LlmError> {
+        // Taken before state.json is read: a run still going there would go on writing it.
+        let lock = if dir.is_dir() {
+            Some(super::rundir::lock(dir)?)
+        } else {
+            None
+        };
         let p = dir.join("state.json");
         let text = read_run_file(&p).map_err(|e| {
             run_err(
@@ -424,6 +449,7 @@ impl<'a> Session<'a> {
             trained,
             raw,
             transcript,
+            _lock: lock,
         })
     }
 
@@ -568,7 +594,9 @@ impl<'a> Session<'a> {
                 return Ok(o.clone());
             }
             let n = self.state.exchange;
-            let rdir = self.dir.join(format!("round_{n}"));
+            // A `round_N` link planted in the run directory must not take its files elsewhere.
+            let rdir = super::rundir::own_subdir(&self.dir, &format!("round_{n}"))?;
+            super::rundir::check_not_link(&rdir.join("unguided"))?;
             let last_user = self
                 .state
                 .messages
@@ -781,7 +809,7 @@ impl<'a> Session<'a> {
             },
         )
         .map_err(|e| run_err(rdir, format!("rendering sample.gif: {e}")))?;
-        write_atomic(&rdir.join("sample.gif"), &gif).map_err(|e| run_err(rdir, e.to_string()))?;
+        write_bytes(rdir, "sample.gif", &gif)?;
         progress(&format!(
             "round {n}: {} samples in {:.1} s; terms (unweighted) over the samples:\n{}",
             done.report.samples.len(),
@@ -896,8 +924,7 @@ impl<'a> Session<'a> {
             if let Ok(bytes) =
                 crate::io::read_regular(&from.join("sample.gif"), MAX_RUN_FILE_BYTES, "a picture")
             {
-                write_atomic(&self.dir.join("final.gif"), &bytes)
-                    .map_err(|e| run_err(&self.dir, e.to_string()))?;
+                write_bytes(&self.dir, "final.gif", &bytes)?;
             }
             report.push_str(&format!(
                 "\nFinal script: final.rhai (round {round}); picture: final.gif; rollouts and costs: {}.\n",
