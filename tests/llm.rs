@@ -977,3 +977,46 @@ fn ask_keeps_the_user_s_files_and_writes_nothing_through_a_planted_round_link() 
         assert_eq!(std::fs::read_dir(&outside).unwrap().count(), 0, "{t}");
     }
 }
+
+#[test]
+fn a_server_echoing_the_key_gets_it_into_no_output_and_no_file() {
+    // In an error body: quoted in the error on stderr.
+    let srv = Server::start(vec![Canned::raw(
+        400,
+        r#"{"error": {"message": "bad request; you sent Authorization: Bearer sk-test-secret"}}"#,
+    )]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask(
+        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(!t.contains("sk-test-secret"), "{t}");
+    assert!(t.contains("Bearer [redacted]"), "{t}");
+    assert_no_key(dir.path());
+    // Quoted in completions, plainly and behind JSON escapes.
+    let escaped = serde_json::json!({
+        "choices": [{"index": 0, "message": {"role": "assistant", "content": "The cutter ends ahead (key: \u{1}KEY).\nACCEPT"}, "finish_reason": "stop"}],
+    })
+    .to_string()
+    .replace("\\u0001KEY", "\\u0073k-test-secret");
+    let srv = Server::start(vec![
+        Canned::chat(&format!(
+            "{}\nI was called with Bearer sk-test-secret.\n",
+            reply(&cut_in_script(401, 399))
+        )),
+        Canned::raw(200, &escaped),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask(
+        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert!(!t.contains("sk-test-secret"), "{t}");
+    assert!(srv.received().len() >= 2, "{t}");
+    assert_no_key(dir.path());
+    let reply0 = std::fs::read_to_string(dir.path().join("round_0/reply.md")).unwrap();
+    assert!(reply0.contains("Bearer [redacted]"), "{reply0}");
+}

@@ -200,7 +200,7 @@ impl HttpClient {
             }
             let resp = match req.send() {
                 Ok(r) => r,
-                Err(e) => return Err(transport_error(&e, &shown, &self.cfg)),
+                Err(e) => return Err(self.redact_error(transport_error(&e, &shown, &self.cfg))),
             };
             let status = resp.status().as_u16();
             let retry_after = resp
@@ -210,21 +210,23 @@ impl HttpClient {
                 .and_then(|v| v.trim().parse::<f64>().ok())
                 .filter(|s| s.is_finite() && *s >= 0.0);
             let text = match resp.text() {
-                Ok(t) => t,
-                Err(e) => return Err(transport_error(&e, &shown, &self.cfg)),
+                Ok(t) => self.redact(&t),
+                Err(e) => return Err(self.redact_error(transport_error(&e, &shown, &self.cfg))),
             };
             if (200..300).contains(&status) {
-                let (reply, usage) = parse_completion(&text, &shown)?;
+                let (reply, usage) =
+                    parse_completion(&text, &shown).map_err(|e| self.redact_error(e))?;
                 return Ok(Exchange {
                     url: shown,
                     request: body,
-                    reply,
+                    // Again after decoding: JSON escapes (`\u0073k-...`) hide it from the first.
+                    reply: self.redact(&reply),
                     usage,
                     latency: t0.elapsed().as_secs_f64(),
                     retries,
                 });
             }
-            let message = error_message(&text);
+            let message = self.redact(&error_message(&text));
             let retryable = status == 429 || (500..600).contains(&status);
             if !retryable {
                 return Err(match status {
@@ -273,6 +275,40 @@ impl HttpClient {
             wait = (wait * 2).min(Duration::from_secs(60));
         }
         unreachable!("the last attempt returns")
+    }
+}
+
+/// `text` with every occurrence of `key` replaced by `[redacted]`. Keys shorter than 8 bytes
+/// are left alone: no real key is that short, and replacing a common word everywhere would
+/// garble replies.
+pub fn redact_key(text: &str, key: Option<&str>) -> String {
+    match key.map(str::trim) {
+        Some(k) if k.len() >= 8 && text.contains(k) => text.replace(k, "[redacted]"),
+        _ => text.to_string(),
+    }
+}
+
+impl HttpClient {
+    /// Everything the server sends passes here before anyone else sees it: a server that
+    /// echoes the `Authorization` header (in an error body, or quoted in a completion) must not
+    /// get the key onto the terminal or into the run directory's files.
+    fn redact(&self, text: &str) -> String {
+        redact_key(text, self.cfg.key.as_deref())
+    }
+
+    fn redact_error(&self, e: LlmError) -> LlmError {
+        let r = |m: String| self.redact(&m);
+        match e {
+            LlmError::BadReply { url, message } => LlmError::BadReply {
+                url,
+                message: r(message),
+            },
+            LlmError::Transport { url, message } => LlmError::Transport {
+                url,
+                message: r(message),
+            },
+            other => other,
+        }
     }
 }
 
@@ -387,6 +423,17 @@ fn parse_completion(text: &str, url: &str) -> Result<(String, Option<Usage>), Ll
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_key_is_redacted_wherever_it_appears_but_short_keys_do_not_garble_text() {
+        let k = Some("sk-abcdef123");
+        assert_eq!(
+            redact_key("Bearer sk-abcdef123 and sk-abcdef123", k),
+            "Bearer [redacted] and [redacted]"
+        );
+        assert_eq!(redact_key("the cutter", Some("the")), "the cutter");
+        assert_eq!(redact_key("no key", None), "no key");
+    }
 
     #[test]
     fn error_bodies_in_every_shape_become_one_line() {
