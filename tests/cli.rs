@@ -1463,6 +1463,25 @@ fn eval_json_refuses_its_inputs_and_files_it_did_not_write() {
 }
 
 #[test]
+fn convert_refuses_an_id_that_cannot_name_output_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let y = samples().join("yaml/highway_cut_in.yaml");
+    let out = dir.path().join("x.yaml");
+    for (id, why) in [
+        ("../../x", "starts with a dot"),
+        ("a/b", "'/'"),
+        ("a\u{202E}b", "U+202E"),
+    ] {
+        let err = fails(&["convert", s(&y), "--id", id, "-o", s(&out)]);
+        assert!(
+            err.contains("cannot name an output file") && err.contains(why),
+            "{err}"
+        );
+        assert!(!out.exists());
+    }
+}
+
+#[test]
 fn convert_refuses_agent_ids_the_format_cannot_hold() {
     let dir = tempfile::tempdir().unwrap();
     let y = dir.path().join("big.yaml");

@@ -5,7 +5,8 @@ use std::process::ExitCode;
 
 use anyhow::{bail, Result};
 use drivescript::io::{
-    check_output_not_input, load_scene, rollout::Rollout, womd, write_atomic, yaml, LoadOptions,
+    check_output_not_input, load_scene, output_stem, rollout::Rollout, womd, write_atomic, yaml,
+    LoadOptions,
 };
 
 #[derive(clap::Args)]
@@ -31,6 +32,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
     // Writing over the input would replace a many-scene file with one scene, or a compact
     // YAML with its explicit form: refuse before reading anything.
     check_output_not_input(&args.output, &[&args.scene], "-o")?;
+    // An id that cannot name output files would be written here and refused by every command
+    // that reads the file back.
+    if let Some(id) = &args.id {
+        output_stem(id)?;
+    }
     let mut scene = load_scene(&args.scene, args.index, &LoadOptions::default())?;
     if let Some(c) = args.current_step {
         if c + 1 >= scene.num_steps() {

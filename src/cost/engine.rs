@@ -456,6 +456,13 @@ fn add_term(
             name.chars().take(64).collect::<String>()
         ));
     }
+    if let Some(ch) = crate::io::hidden_char(name) {
+        return stdlib::err(format!(
+            "term {:?}: names must not contain invisible characters (U+{:04X})",
+            name.chars().take(64).collect::<String>(),
+            ch as u32
+        ));
+    }
     if name.chars().count() > MAX_TERM_NAME {
         return stdlib::err(format!(
             "term {:?}...: names are at most {MAX_TERM_NAME} characters",
@@ -1171,6 +1178,8 @@ mod tests {
             ("\\x1b[2Jx", "control characters"),
             ("realism_speed", "belong to the sampler"),
             (&"n".repeat(65), "at most 64 characters"),
+            ("speed\u{202E}gnol", "invisible characters (U+202E)"),
+            ("go\u{200B}al", "invisible characters (U+200B)"),
         ] {
             let src = format!("term(\"{name}\", agent(1).x.last());");
             let e = evaluation_error(&src, scene.clone()).to_string();

@@ -473,6 +473,26 @@ fn walk(
     Ok(())
 }
 
+/// The first character of `s` that changes how text around it is shown without being seen:
+/// bidirectional controls (which can make `a` read as `b` on a terminal), zero-width
+/// characters, the byte-order mark, the soft hyphen. Names (scenario ids, term names) that
+/// reach terminals, file names and the LLM's prompt must not hold them.
+pub fn hidden_char(s: &str) -> Option<char> {
+    s.chars().find(|&c| {
+        matches!(
+            c,
+            '\u{00AD}'
+                | '\u{061C}'
+                | '\u{180E}'
+                | '\u{200B}'..='\u{200F}'
+                | '\u{202A}'..='\u{202E}'
+                | '\u{2060}'..='\u{2064}'
+                | '\u{2066}'..='\u{2069}'
+                | '\u{FEFF}'
+        )
+    })
+}
+
 /// `id` when it can start a file name inside an output directory: scene files are untrusted,
 /// and an id such as `../../x` must not write outside the directory the user named.
 pub fn output_stem(id: &str) -> Result<&str, IoError> {
@@ -496,6 +516,12 @@ pub fn output_stem(id: &str) -> Result<&str, IoError> {
         .find(|&c| c == '/' || c == '\\' || c == ':' || c.is_control())
     {
         return bad(&format!("it contains {c:?}"));
+    }
+    if let Some(c) = hidden_char(id) {
+        return bad(&format!(
+            "it contains the invisible character U+{:04X}",
+            c as u32
+        ));
     }
     Ok(id)
 }
@@ -614,10 +640,16 @@ pub fn create_atomic(path: &Path, bytes: &[u8]) -> Result<bool, IoError> {
     }
 }
 
-/// Reads a whole text file (a YAML scene, an AV2 map) within [`MAX_SCENE_BYTES`].
+/// Reads a whole text file (a YAML scene, an AV2 map, a rollout) within [`MAX_SCENE_BYTES`].
+/// A leading byte-order mark (Windows editors write one) is dropped: parsers would report it
+/// as an unexpected character nobody can see.
 pub(crate) fn read_text(path: &Path) -> Result<String, IoError> {
-    String::from_utf8(read_maybe_gz(path)?)
-        .map_err(|e| IoError::invalid(path, "file", format!("not UTF-8 text: {e}")))
+    let text = String::from_utf8(read_maybe_gz(path)?)
+        .map_err(|e| IoError::invalid(path, "file", format!("not UTF-8 text: {e}")))?;
+    Ok(match text.strip_prefix('\u{FEFF}') {
+        Some(rest) => rest.to_string(),
+        None => text,
+    })
 }
 
 /// Opens `path` for reading if it is a regular file of at most `max` bytes (`what` says what
@@ -777,8 +809,9 @@ pub(crate) fn read_maybe_gz(path: &Path) -> Result<Vec<u8>, IoError> {
     if path.extension().is_some_and(|e| e == "gz") {
         let mut out = Vec::new();
         // Inflated as a stream, at most one byte past the cap: a small file can inflate to
-        // gigabytes.
-        flate2::read::GzDecoder::new(&raw[..])
+        // gigabytes. Every member: `cat a.gz b.gz` (and pigz, bgzip) make valid multi-member
+        // files, of which a single-member decoder reads the first alone.
+        flate2::read::MultiGzDecoder::new(&raw[..])
             .take(MAX_SCENE_BYTES + 1)
             .read_to_end(&mut out)
             .map_err(|e| IoError::invalid(path, "gzip stream", e.to_string()))?;
@@ -900,6 +933,31 @@ mod tests {
     }
 
     #[test]
+    fn multi_member_gzip_and_a_byte_order_mark_are_read_whole() {
+        use std::io::Write;
+        let dir = tempfile::tempdir().unwrap();
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/samples");
+        let xml = std::fs::read(root.join("commonroad/USA_US101-3_3_T-1.xml")).unwrap();
+        // Two gzip members, as `cat a.gz b.gz` makes.
+        let mut gz = Vec::new();
+        for half in [&xml[..xml.len() / 2], &xml[xml.len() / 2..]] {
+            let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+            e.write_all(half).unwrap();
+            gz.extend(e.finish().unwrap());
+        }
+        let p = dir.path().join("two.xml.gz");
+        std::fs::write(&p, gz).unwrap();
+        assert_eq!(super::read_maybe_gz(&p).unwrap(), xml);
+        let yaml = std::fs::read(root.join("yaml/highway_cut_in.yaml")).unwrap();
+        let p = dir.path().join("bom.yaml");
+        std::fs::write(&p, [&b"\xEF\xBB\xBF"[..], &yaml].concat()).unwrap();
+        let plain = super::yaml::read(&root.join("yaml/highway_cut_in.yaml")).unwrap();
+        let bom = super::yaml::read(&p).unwrap();
+        assert_eq!(bom.meta.scenario_id, plain.meta.scenario_id);
+        assert_eq!(bom.agents.len(), plain.agents.len());
+    }
+
+    #[test]
     fn serde_positions_are_said_once() {
         let e = serde_yaml::from_str::<serde_yaml::Value>("road: [1, 2").unwrap_err();
         let l = e.location().unwrap();
@@ -937,6 +995,8 @@ mod tests {
             ("a\\b", "'\\\\'"),
             ("C:x", "':'"),
             ("a\u{1b}[2Jb", "'\\u{1b}'"),
+            ("cut\u{202E}ni", "invisible character U+202E"),
+            ("a\u{200B}b", "invisible character U+200B"),
             (long.as_str(), "longer than 200"),
         ] {
             let e = output_stem(bad).unwrap_err().to_string();
