@@ -94,6 +94,16 @@ fn inspect_agents_lists_lanes_gaps_and_neighbours() {
         assert!(a["lane"].is_i64() && a["speed"].is_f64(), "{a}");
     }
     assert!(v[0]["lanes"].as_array().unwrap().len() >= 2);
+    // An id the scene does not hold is a mistake said, not ignored; --keep needs --agents.
+    let err = fails(&["inspect", "--agents", s(&scene), "--keep", "4", "77", "88"]);
+    assert!(
+        err.contains("highway_cut_in.yaml")
+            && err.contains("--keep names agents it does not hold: 77, 88"),
+        "{err}"
+    );
+    let o = drivescript(&["inspect", s(&scene), "--keep", "4"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("--agents"), "{err}");
 }
 
 #[test]
