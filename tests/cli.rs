@@ -1470,6 +1470,14 @@ fn eval_json_refuses_its_inputs_and_files_it_did_not_write() {
     let e = dir.path().join("e.json");
     ok(&["eval", s(&y), "--task", "conditional", "--json", s(&e)]);
     ok(&["eval", s(&y), "--task", "conditional", "--json", s(&e)]);
+    // One whole evaluation merged with itself (or a copy) would count its scenes twice.
+    let copy = dir.path().join("copy.json");
+    std::fs::copy(&e, &copy).unwrap();
+    for pair in [[&e, &e], [&e, &copy]] {
+        let err = fails(&["eval", "--merge", s(pair[0]), s(pair[1])]);
+        assert!(err.contains("would count its scenes twice"), "{err}");
+    }
+    ok(&["eval", "--merge", s(&e)]);
 }
 
 #[test]

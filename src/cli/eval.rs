@@ -767,12 +767,27 @@ fn merge(files: &[PathBuf], json_out: Option<&Path>) -> Result<ExitCode> {
         }
         skipped += m.skipped;
         failures += m.failures;
-        seen.extend(m.shards.iter().map(|&s| (s, f.clone())));
+        // An unsharded run is all of one evaluation: shard 0 of 1, so that merging it twice
+        // (or with a copy) is refused rather than counting its scenes twice.
+        let shards = if m.shards.is_empty() {
+            vec![0]
+        } else {
+            m.shards.clone()
+        };
+        seen.extend(shards.iter().map(|&s| (s, f.clone())));
     }
     let (f0, settings) = first.context("--merge needs at least one file")?;
     let n = settings["shards"].as_u64().unwrap_or(1) as usize;
     seen.sort();
     for w in seen.windows(2) {
+        if w[0].0 == w[1].0 && n <= 1 {
+            bail!(
+                "{} and {} are both the whole of one evaluation (not shards of it): merging \
+                 would count its scenes twice",
+                w[0].1.display(),
+                w[1].1.display()
+            );
+        }
         if w[0].0 == w[1].0 {
             bail!(
                 "shard {}/{n} is in both {} and {}: each shard once",
