@@ -1020,3 +1020,50 @@ fn a_server_echoing_the_key_gets_it_into_no_output_and_no_file() {
     let reply0 = std::fs::read_to_string(dir.path().join("round_0/reply.md")).unwrap();
     assert!(reply0.contains("Bearer [redacted]"), "{reply0}");
 }
+
+#[test]
+fn token_counts_from_a_hostile_server_saturate_instead_of_wrapping() {
+    let huge = |content: &str| {
+        let body = serde_json::json!({
+            "choices": [{"index": 0, "message": {"role": "assistant", "content": content}, "finish_reason": "stop"}],
+            "usage": {"prompt_tokens": u64::MAX, "completion_tokens": 10}
+        });
+        Canned::raw(200, &body.to_string())
+    };
+    let srv = Server::start(vec![
+        huge(&reply(&cut_in_script(401, 399))),
+        huge("The cutter ends ahead in the victim's lane.\nACCEPT"),
+        huge("ACCEPT"),
+        huge("ACCEPT"),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("requests.yaml");
+    std::fs::write(
+        &file,
+        format!(
+            "scenes: {}\nentries:\n  - request: \"vehicle 401 cuts in front of vehicle 399\"\n    behaviour: cut_in\n    params: {{cutter: 401, victim: 399}}\n",
+            samples().join(SCENE).display()
+        ),
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    let o = ask(
+        &[
+            "--batch",
+            s(&file),
+            "-o",
+            s(&out),
+            "--llm",
+            "http",
+            "--rounds",
+            "1",
+        ],
+        Some(&srv.url),
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(0), "{t}");
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    let tokens = json["instances"][0]["tokens"].as_u64().unwrap();
+    assert_eq!(tokens, u64::MAX, "{json}");
+}

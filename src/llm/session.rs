@@ -520,11 +520,14 @@ impl<'a> Session<'a> {
         let tokens = llm
             .iter()
             .filter_map(|r| r.detail.as_ref())
+            // A hostile or broken server's counts must not wrap around into small ones.
             .map(|d| {
-                d["usage"]["prompt_tokens"].as_u64().unwrap_or(0)
-                    + d["usage"]["completion_tokens"].as_u64().unwrap_or(0)
+                d["usage"]["prompt_tokens"]
+                    .as_u64()
+                    .unwrap_or(0)
+                    .saturating_add(d["usage"]["completion_tokens"].as_u64().unwrap_or(0))
             })
-            .sum();
+            .fold(0u64, u64::saturating_add);
         (llm.len(), tokens)
     }
 
