@@ -1067,3 +1067,26 @@ fn token_counts_from_a_hostile_server_saturate_instead_of_wrapping() {
     let tokens = json["instances"][0]["tokens"].as_u64().unwrap();
     assert_eq!(tokens, u64::MAX, "{json}");
 }
+
+#[test]
+fn resume_refuses_a_scene_that_changed_since_the_run_started() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene.xml");
+    std::fs::copy(samples().join(SCENE), &scene).unwrap();
+    let run = dir.path().join("run");
+    let o = ask(
+        &[s(&scene), REQUEST, "-o", s(&run), "--llm", "manual"],
+        None,
+    );
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    let xml = std::fs::read_to_string(&scene).unwrap();
+    std::fs::write(
+        &scene,
+        xml.replacen("<x>-44.8542</x>", "<x>-44.8543</x>", 1),
+    )
+    .unwrap();
+    let o = ask(&["--resume", s(&run)], None);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("scene.xml changed"), "{t}");
+}

@@ -203,6 +203,10 @@ pub struct RoundRecord {
 struct State {
     version: u32,
     scene: PathBuf,
+    /// CRC-32C of the scene file when the run started (absent for a scene directory, and in
+    /// runs written before it was kept): `--resume` refuses a scene that changed since.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    scene_crc32c: Option<u32>,
     requests: Vec<String>,
     backend: String,
     model: Option<String>,
@@ -270,6 +274,14 @@ pub const MAX_RUN_FILE_BYTES: u64 = 64 << 20;
 /// Reads back a text file of a run directory: a planted FIFO or device must not hang `--resume`.
 fn read_run_file(path: &Path) -> Result<String, crate::io::IoError> {
     crate::io::read_regular_text(path, MAX_RUN_FILE_BYTES, "a run directory's file")
+}
+
+/// CRC-32C of a scene file (`None` for a directory, or a file that cannot be read: reading
+/// the scene reports that).
+fn scene_fingerprint(path: &Path) -> Option<u32> {
+    crate::io::read_regular(path, crate::io::MAX_SCENE_BYTES, "a scene file")
+        .ok()
+        .map(|b| crate::io::tfrecord::crc32c(&b))
 }
 
 fn run_err(dir: &Path, message: impl Into<String>) -> LlmError {
@@ -358,6 +370,7 @@ impl<'a> Session<'a> {
             state: State {
                 version: STATE_VERSION,
                 scene: scene_path.to_path_buf(),
+                scene_crc32c: scene_fingerprint(scene_path),
                 requests,
                 backend: backend.name().into(),
                 model,
@@ -432,6 +445,18 @@ impl<'a> Session<'a> {
                     state.version
                 ),
             ));
+        }
+        if let Some(was) = state.scene_crc32c {
+            if scene_fingerprint(&state.scene) != Some(was) {
+                return Err(run_err(
+                    dir,
+                    format!(
+                        "the scene {} changed (or went) since the run started: its rounds were \
+                         asked, sampled and judged on the old one; start a new run on it",
+                        state.scene.display()
+                    ),
+                ));
+            }
         }
         let prompts = Prompts::load(&state.prompts)?;
         let backend = backend(&state.backend, state.model.as_deref(), state.url.as_deref())?;
