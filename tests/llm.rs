@@ -1090,3 +1090,32 @@ fn resume_refuses_a_scene_that_changed_since_the_run_started() {
     assert_eq!(o.status.code(), Some(1), "{t}");
     assert!(t.contains("scene.xml changed"), "{t}");
 }
+
+#[test]
+fn a_reply_cut_off_at_the_token_limit_says_to_raise_max_tokens() {
+    let body = serde_json::json!({
+        "choices": [{"index": 0, "message": {"role": "assistant", "content": "1. Events: one cut-in.\n\n```rhai\nlet a = agent(401);\nterm(\"x\", a.x"}, "finish_reason": "length"}],
+    });
+    let srv = Server::start(vec![Canned::raw(200, &body.to_string())]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask(
+        &[
+            s(&samples().join(SCENE)),
+            REQUEST,
+            "-o",
+            s(dir.path()),
+            "--fixes",
+            "0",
+            "--max-tokens",
+            "20",
+        ],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert!(
+        t.contains("cut off at the token limit (--max-tokens 20)")
+            && t.contains("never closed")
+            && t.contains("raise --max-tokens"),
+        "{t}"
+    );
+}

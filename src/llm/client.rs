@@ -144,6 +144,10 @@ pub struct Exchange {
     pub latency: f64,
     /// Attempts that failed and were retried, each as `status: message (waited N s)`.
     pub retries: Vec<String>,
+    /// The server stopped the reply at the token limit (`finish_reason: "length"`): a script
+    /// in it may be cut off.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub truncated: bool,
 }
 
 /// A blocking chat-completions client.
@@ -214,7 +218,7 @@ impl HttpClient {
                 Err(e) => return Err(self.redact_error(transport_error(&e, &shown, &self.cfg))),
             };
             if (200..300).contains(&status) {
-                let (reply, usage) =
+                let (reply, usage, truncated) =
                     parse_completion(&text, &shown).map_err(|e| self.redact_error(e))?;
                 return Ok(Exchange {
                     url: shown,
@@ -224,6 +228,7 @@ impl HttpClient {
                     usage,
                     latency: t0.elapsed().as_secs_f64(),
                     retries,
+                    truncated,
                 });
             }
             let message = self.redact(&error_message(&text));
@@ -381,8 +386,9 @@ pub fn error_message(body: &str) -> String {
     }
 }
 
-/// The first choice's text and the usage of a successful reply body.
-fn parse_completion(text: &str, url: &str) -> Result<(String, Option<Usage>), LlmError> {
+/// The first choice's text, the usage and whether the token limit cut it off, of a successful
+/// reply body.
+fn parse_completion(text: &str, url: &str) -> Result<(String, Option<Usage>, bool), LlmError> {
     let bad = |why: String| LlmError::BadReply {
         url: url.into(),
         message: why,
@@ -417,7 +423,8 @@ fn parse_completion(text: &str, url: &str) -> Result<(String, Option<Usage>), Ll
     let usage = v
         .get("usage")
         .and_then(|u| serde_json::from_value::<Usage>(u.clone()).ok());
-    Ok((content, usage))
+    let truncated = first["finish_reason"].as_str() == Some("length");
+    Ok((content, usage, truncated))
 }
 
 #[cfg(test)]
@@ -462,7 +469,8 @@ mod tests {
     #[test]
     fn completions_parse_and_bad_replies_say_why() {
         let ok = r#"{"choices":[{"message":{"role":"assistant","content":"hi"}}],"usage":{"prompt_tokens":5,"completion_tokens":2,"total_tokens":7}}"#;
-        let (c, u) = parse_completion(ok, "u").unwrap();
+        let (c, u, cut) = parse_completion(ok, "u").unwrap();
+        assert!(!cut);
         assert_eq!(
             (c.as_str(), u),
             (

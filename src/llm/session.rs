@@ -687,7 +687,17 @@ impl<'a> Session<'a> {
             self.state.exchange = n + 1;
             match parse_reply(&reply) {
                 Err(e) => {
-                    progress(&format!("round {n}: unusable reply: {e}"));
+                    // A reply the token limit cut off is unusable for that reason, which the
+                    // user (not the model) can fix.
+                    let cut = match &self.backend {
+                        Backend::Http(c) if self.last_reply_truncated(n) => format!(
+                            " (the reply was cut off at the token limit, --max-tokens {}: \
+                             raise --max-tokens)",
+                            c.config().max_tokens
+                        ),
+                        _ => String::new(),
+                    };
+                    progress(&format!("round {n}: unusable reply: {e}{cut}"));
                     let msg = self.prompts.unusable(&e.to_string());
                     if let Some(o) = self.miss(msg)? {
                         return self.finish(o, progress);
@@ -769,6 +779,16 @@ impl<'a> Session<'a> {
             }
             self.save()?;
         }
+    }
+
+    /// Whether exchange `n`'s reply was stopped by the token limit, as its record says.
+    fn last_reply_truncated(&self, n: usize) -> bool {
+        self.transcript
+            .iter()
+            .rev()
+            .find(|r| r.round == n && r.phase == "llm")
+            .and_then(|r| r.detail.as_ref())
+            .is_some_and(|d| d["truncated"] == true)
     }
 
     /// An unusable exchange: the message goes back, or the run gives up after too many.
@@ -1126,6 +1146,13 @@ impl Session<'_> {
                     format!(" after {} retries", ex.retries.len())
                 }
             ));
+            if ex.truncated {
+                progress(&format!(
+                    "round {n}: the reply was cut off at the token limit (--max-tokens {}); \
+                     raise --max-tokens if its script is incomplete",
+                    c.config().max_tokens
+                ));
+            }
             let reply = ex.reply.clone();
             let detail = serde_json::to_value(&ex).expect("exchange serialises");
             self.record(n, "llm", t0, Some(detail));
