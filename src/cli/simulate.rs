@@ -196,8 +196,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
     let explicit = Params::parse(&args.params)?;
     let existed = args.output.exists();
-    std::fs::create_dir_all(&args.output)
-        .with_context(|| format!("creating {}", args.output.display()))?;
+    drivescript::io::create_output_dir(&args.output)?;
     let record = RunRecord {
         command: "simulate".into(),
         version: env!("CARGO_PKG_VERSION").into(),

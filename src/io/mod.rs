@@ -727,6 +727,35 @@ fn too_large(path: &Path, verb: &str, len: u64, max: u64, what: &str) -> IoError
     )
 }
 
+/// Creates the output directory `dir` (and its parents), or says plainly why not: the OS's
+/// own words are `File exists` for a device, a file or a dangling link in the way.
+pub fn create_output_dir(dir: &Path) -> Result<(), IoError> {
+    let what = match std::fs::symlink_metadata(dir) {
+        Err(_) => None,
+        Ok(m) if m.file_type().is_symlink() => match std::fs::metadata(dir) {
+            Ok(t) if t.is_dir() => None,
+            Ok(_) => Some("is a symbolic link to something that is not a directory".to_string()),
+            Err(_) => Some(format!(
+                "is a symbolic link to {}, which does not exist: create that directory or \
+                 remove the link",
+                std::fs::read_link(dir)
+                    .map(|t| t.display().to_string())
+                    .unwrap_or_else(|_| "?".into())
+            )),
+        },
+        Ok(m) if m.is_dir() => None,
+        Ok(m) if m.is_file() => Some("is a file, not a directory".to_string()),
+        Ok(_) => Some("is a device, FIFO or socket, not a directory".to_string()),
+    };
+    if let Some(why) = what {
+        return Err(IoError::invalid(dir, "output directory", why));
+    }
+    std::fs::create_dir_all(dir).map_err(|source| IoError::Write {
+        path: dir.display().to_string(),
+        source,
+    })
+}
+
 /// Refuses an output path that is one of the command's `inputs` (the same file by any name:
 /// writing would replace what is being read), or a scene file inside an input directory.
 /// `flag` names the output option in the message (`-o`, `--json`).
@@ -955,6 +984,32 @@ mod tests {
         let bom = super::yaml::read(&p).unwrap();
         assert_eq!(bom.meta.scenario_id, plain.meta.scenario_id);
         assert_eq!(bom.agents.len(), plain.agents.len());
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn an_output_directory_in_the_way_is_named_for_what_it_is() {
+        let dir = tempfile::tempdir().unwrap();
+        let link = dir.path().join("dangling");
+        std::os::unix::fs::symlink(dir.path().join("nowhere"), &link).unwrap();
+        let e = super::create_output_dir(&link).unwrap_err().to_string();
+        assert!(
+            e.contains("is a symbolic link to") && e.contains("which does not exist"),
+            "{e}"
+        );
+        let e = super::create_output_dir(std::path::Path::new("/dev/null"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("is a device, FIFO or socket, not a directory"),
+            "{e}"
+        );
+        let f = dir.path().join("f");
+        std::fs::write(&f, "x").unwrap();
+        let e = super::create_output_dir(&f).unwrap_err().to_string();
+        assert!(e.contains("is a file, not a directory"), "{e}");
+        super::create_output_dir(&dir.path().join("a/b")).unwrap();
+        super::create_output_dir(&dir.path().join("a/b")).unwrap();
     }
 
     #[test]

@@ -622,8 +622,7 @@ impl Batch<'_> {
                 "a batch runs without a person: use the http or rules backend".into(),
             ));
         }
-        std::fs::create_dir_all(&self.out)
-            .map_err(|e| bad(&self.out, format!("cannot create it: {e}")))?;
+        crate::io::create_output_dir(&self.out).map_err(|e| bad(&self.out, e.reason()))?;
         // One process per batch (per shard: the shards of one batch share -o by design); the
         // pairs' own run directories are locked too, should two overlap.
         let _lock = super::rundir::lock_named(

@@ -341,7 +341,7 @@ impl<'a> Session<'a> {
         // Refused before anything is asked: the rollouts are named after the scenario.
         output_stem(&raw.meta.scenario_id).map_err(|e| run_err(scene_path, e.to_string()))?;
         config.validate()?;
-        std::fs::create_dir_all(dir).map_err(|e| run_err(dir, format!("cannot create it: {e}")))?;
+        crate::io::create_output_dir(dir).map_err(|e| run_err(dir, e.reason()))?;
         let lock = super::rundir::lock(dir)?;
         // Checked again under the lock: another `ask` may have started here meanwhile.
         if dir.join("state.json").exists() {
