@@ -1119,3 +1119,30 @@ fn a_reply_cut_off_at_the_token_limit_says_to_raise_max_tokens() {
         "{t}"
     );
 }
+
+#[test]
+fn errors_about_files_that_are_not_run_directories_do_not_call_them_so() {
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("requests.yaml");
+    let out = dir.path().join("out");
+    let o = ask(
+        &["--batch", s(&missing), "-o", s(&out), "--llm", "rules"],
+        None,
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains(&format!(
+            "{}: cannot read the batch file",
+            missing.display()
+        )) && !t.contains("run directory"),
+        "{t}"
+    );
+    let o = ask(
+        &[s(&dir.path().join("nope.xml")), REQUEST, "-o", s(&out)],
+        None,
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(!t.contains("run directory"), "{t}");
+}

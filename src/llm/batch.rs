@@ -64,8 +64,8 @@ pub struct Instance {
 }
 
 fn bad(path: &Path, message: String) -> LlmError {
-    LlmError::Run {
-        dir: path.to_path_buf(),
+    LlmError::Input {
+        path: path.to_path_buf(),
         message,
     }
 }
