@@ -1146,3 +1146,28 @@ fn errors_about_files_that_are_not_run_directories_do_not_call_them_so() {
     assert_eq!(o.status.code(), Some(1), "{t}");
     assert!(!t.contains("run directory"), "{t}");
 }
+
+#[test]
+fn a_batch_pair_naming_an_agent_the_scene_lacks_is_an_error_not_a_failed_pair() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("requests.yaml");
+    std::fs::write(
+        &file,
+        format!(
+            "scenes: {}\nentries:\n  - request: \"vehicle 401 cuts in front of vehicle 99999\"\n    behaviour: cut_in\n    params: {{cutter: 401, victim: 99999}}\n",
+            samples().join(SCENE).display()
+        ),
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    let o = ask(
+        &["--batch", s(&file), "-o", s(&out), "--llm", "rules"],
+        None,
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("entry on line 3") && t.contains("has no agent 99999 (cut_in victim)"),
+        "{t}"
+    );
+}

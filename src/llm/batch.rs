@@ -260,6 +260,26 @@ pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<S
                         .map(|ev| ev.into_iter().map(|e| (e.behaviour, e.params)).collect())
                         .unwrap_or_default(),
                 };
+                // An agent the entry names that the scene lacks: every sample would fail its
+                // checker, and the pair would count as a failure of the loop, not of the file.
+                for (b, p) in &checks {
+                    for role in b.roles() {
+                        let Some(v) = p.get(role) else { continue };
+                        let present = matches!(v, crate::cost::ParamValue::Int(id)
+                            if scene.agents.iter().any(|a| a.id == *id));
+                        if !present {
+                            return Err(bad(
+                                &f,
+                                format!(
+                                    "entry on line {}: scene {id} has no agent {v} ({} {role}): \
+                                     name one of its agents, or give its scenes their own entry",
+                                    e.line,
+                                    b.name()
+                                ),
+                            ));
+                        }
+                    }
+                }
                 let label = match checks.as_slice() {
                     [] => "request".to_string(),
                     [(b, _)] => b.name().to_string(),
