@@ -424,7 +424,8 @@ fn add_term(
     if let Some(t) = tolerance {
         if !(t.is_finite() && t >= 0.0) {
             return stdlib::err(format!(
-                "term {name:?}: tolerance {t} must be finite and non-negative"
+                "term {name:?}: tolerance {} must be finite and non-negative",
+                crate::geom::num(t)
             ));
         }
     }
@@ -442,7 +443,8 @@ fn add_term(
     }
     if !(weight.is_finite() && weight >= 0.0) {
         return stdlib::err(format!(
-            "term {name:?}: weight {weight} must be finite and non-negative"
+            "term {name:?}: weight {} must be finite and non-negative",
+            crate::geom::num(weight)
         ));
     }
     if name.trim().is_empty() {
@@ -1208,6 +1210,22 @@ mod tests {
         )
         .to_string();
         assert!(e.contains("weighted total overflows"), "{e}");
+        // A denormal is said in a few characters, not 300 digits.
+        let e = evaluation_error(
+            "term(\"a\", agent(1).x.last(), -5e-324);",
+            Rc::new(highway()),
+        )
+        .to_string();
+        assert!(e.contains("weight -5e-324 must be") && e.len() < 200, "{e}");
+        let e = evaluation_error(
+            "term(\"a\", agent(1).x.last(), 1.0, -5e-324);",
+            Rc::new(highway()),
+        )
+        .to_string();
+        assert!(
+            e.contains("tolerance -5e-324 must be") && e.len() < 200,
+            "{e}"
+        );
     }
 
     #[test]

@@ -108,15 +108,19 @@ impl Edit {
             finite("sway period", period)?;
             if period <= 0.0 {
                 return Err(format!(
-                    "`sway: [{amp}, {period}]`: the period (seconds, the second number) must be \
-                     above 0"
+                    "`sway: [{}, {}]`: the period (seconds, the second number) must be above 0",
+                    crate::geom::num(amp),
+                    crate::geom::num(period)
                 ));
             }
         }
         finite("from", self.from)?;
         finite("ramp", self.ramp)?;
         if self.ramp < 0.0 {
-            return Err(format!("`ramp` is {}: seconds, at least 0", self.ramp));
+            return Err(format!(
+                "`ramp` is {}: seconds, at least 0",
+                crate::geom::num(self.ramp)
+            ));
         }
         Ok(())
     }
