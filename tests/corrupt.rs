@@ -260,7 +260,7 @@ fn commonroad_times_and_time_steps_out_of_reason_are_refused() {
         "{err}"
     );
     // 1 ns and 31 years per step were accepted.
-    for (dt, shown) in [("1e-9", "0.000000001"), ("1e9", "1e9")] {
+    for (dt, shown) in [("1e-9", "1e-9"), ("1e9", "1e9")] {
         let f = copy_to(dir.path(), &src, "dt.xml");
         edit(&f, |t| {
             t.replacen("timeStepSize=\"0.1\"", &format!("timeStepSize=\"{dt}\""), 1)

@@ -715,13 +715,18 @@ fn too_large(path: &Path, verb: &str, len: u64, max: u64, what: &str) -> IoError
             format!("{b} bytes")
         }
     };
+    // Read or inflated sizes stop one byte past the cap: only a stored size is worth giving.
+    let actual = if verb == "holds" {
+        format!(" ({})", size(len))
+    } else {
+        String::new()
+    };
     IoError::invalid(
         path,
         "file",
         format!(
-            "{verb} {}, more than {} (the most for {what}): far beyond a real one, so it is \
+            "{verb} more than {}{actual}, the most for {what}: far beyond a real one, so it is \
              refused before it fills memory",
-            size(len),
             size(max)
         ),
     )
@@ -914,7 +919,7 @@ mod tests {
             .to_string();
         assert!(
             e.contains(
-                "big.md: file: holds 3000 bytes, more than 2048 bytes (the most for a prompt)"
+                "big.md: file: holds more than 2048 bytes (3000 bytes), the most for a prompt"
             ),
             "{e}"
         );
