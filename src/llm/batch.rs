@@ -302,6 +302,21 @@ pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<S
     Ok((out, skipped))
 }
 
+/// A pair's label as a file name: a request of many events has a label of many behaviours
+/// (`off_road+off_road+...`), which as a name is too long for the file system (the error
+/// then quoted a path of 19 KB). A long label is cut and given the checksum of the whole, so
+/// that two labels never share a directory.
+fn path_label(label: &str) -> String {
+    if label.len() <= 80 {
+        return label.to_string();
+    }
+    let cut: String = label.chars().take(64).collect();
+    format!(
+        "{cut}~{:08x}",
+        crate::io::tfrecord::crc32c(label.as_bytes())
+    )
+}
+
 /// One finished instance, for the summary.
 #[derive(Debug, Clone, Serialize)]
 pub struct InstanceResult {
@@ -477,6 +492,15 @@ mod tests {
     use super::*;
 
     #[test]
+    fn long_labels_make_short_distinct_file_names() {
+        assert_eq!(path_label("cut_in+off_road"), "cut_in+off_road");
+        let a = path_label(&"off_road+".repeat(500));
+        let b = path_label(&format!("{}stop", "off_road+".repeat(500)));
+        assert!(a.len() <= 80 && b.len() <= 80, "{a} {b}");
+        assert_ne!(a, b);
+    }
+
+    #[test]
     fn batch_files_resolve_paths_fill_roles_and_name_bad_entries() {
         let dir = tempfile::tempdir().unwrap();
         let root = Path::new(env!("CARGO_MANIFEST_DIR"));
@@ -627,7 +651,7 @@ impl Batch<'_> {
         Ok(self
             .out
             .join("runs")
-            .join(format!("{k:03}_{}_{stem}", inst.label)))
+            .join(format!("{k:03}_{}_{stem}", path_label(&inst.label))))
     }
 
     /// Runs every pair in order, writing the summary after each. A pair whose run directory
@@ -782,7 +806,7 @@ impl Batch<'_> {
         let stem = output_stem(&inst.scene.meta.scenario_id)
             .map_err(|e| bad(&inst.scene_path, e.to_string()))?;
         let from = session.dir().join(format!("round_{}", last.exchange));
-        let to = self.out.join("rollouts").join(&inst.label);
+        let to = self.out.join("rollouts").join(path_label(&inst.label));
         std::fs::create_dir_all(&to).map_err(|e| bad(&to, format!("cannot create it: {e}")))?;
         for sub in ["", "unguided"] {
             for i in 0.. {
