@@ -1171,3 +1171,28 @@ fn a_batch_pair_naming_an_agent_the_scene_lacks_is_an_error_not_a_failed_pair() 
         "{t}"
     );
 }
+
+#[test]
+fn an_endless_reply_body_is_an_error_not_an_abort() {
+    use std::io::{Read, Write};
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let url = format!(
+        "http://127.0.0.1:{}/v1",
+        listener.local_addr().unwrap().port()
+    );
+    std::thread::spawn(move || {
+        let Ok((mut stream, _)) = listener.accept() else {
+            return;
+        };
+        let mut head = [0u8; 65536];
+        let _ = stream.read(&mut head);
+        let _ = stream.write_all(
+            b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nTransfer-Encoding: chunked\r\n\r\n",
+        );
+        let chunk = format!("{:x}\r\n{}\r\n", 1 << 20, " ".repeat(1 << 20));
+        // Until the client hangs up.
+        while stream.write_all(chunk.as_bytes()).is_ok() {}
+    });
+    let e = ask_one(&client(&url)).unwrap_err().to_string();
+    assert!(e.contains("the reply is larger than 16 MB"), "{e}");
+}

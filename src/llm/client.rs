@@ -213,10 +213,7 @@ impl HttpClient {
                 .and_then(|v| v.to_str().ok())
                 .and_then(|v| v.trim().parse::<f64>().ok())
                 .filter(|s| s.is_finite() && *s >= 0.0);
-            let text = match resp.text() {
-                Ok(t) => self.redact(&t),
-                Err(e) => return Err(self.redact_error(transport_error(&e, &shown, &self.cfg))),
-            };
+            let text = self.redact(&read_body(resp, &shown, &self.cfg)?);
             if (200..300).contains(&status) {
                 let (reply, usage, truncated) =
                     parse_completion(&text, &shown).map_err(|e| self.redact_error(e))?;
@@ -281,6 +278,47 @@ impl HttpClient {
         }
         unreachable!("the last attempt returns")
     }
+}
+
+/// The most a reply body may hold: a completion is a few KB; an endless body (a broken or
+/// hostile server) must end in an error, not fill memory until the process aborts.
+pub const MAX_REPLY_BYTES: u64 = 16 << 20;
+
+/// Reads a reply body within [`MAX_REPLY_BYTES`] (invalid UTF-8 replaced, as `text()` does).
+fn read_body(
+    resp: reqwest::blocking::Response,
+    url: &str,
+    cfg: &HttpConfig,
+) -> Result<String, LlmError> {
+    use std::io::Read;
+    let mut buf = Vec::new();
+    if let Err(e) = resp.take(MAX_REPLY_BYTES + 1).read_to_end(&mut buf) {
+        return Err(
+            if e.kind() == std::io::ErrorKind::TimedOut || e.to_string().contains("timed out") {
+                LlmError::Timeout {
+                    url: url.into(),
+                    seconds: cfg.read_timeout.as_secs_f64(),
+                    connecting: false,
+                }
+            } else {
+                LlmError::Transport {
+                    url: url.into(),
+                    message: format!("reading the reply: {e}"),
+                }
+            },
+        );
+    }
+    if buf.len() as u64 > MAX_REPLY_BYTES {
+        return Err(LlmError::BadReply {
+            url: url.into(),
+            message: format!(
+                "the reply is larger than {} MB: no completion is; the server is broken or \
+                 not an LLM server",
+                MAX_REPLY_BYTES >> 20
+            ),
+        });
+    }
+    Ok(String::from_utf8_lossy(&buf).into_owned())
 }
 
 /// `text` with every occurrence of `key` replaced by `[redacted]`. Keys shorter than 8 bytes
