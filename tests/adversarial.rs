@@ -502,3 +502,22 @@ fn an_oversized_script_is_refused_before_it_is_compiled() {
     fails(&src, &["variables (max 1000)"]);
     assert!(t0.elapsed() < Duration::from_secs(5), "{:?}", t0.elapsed());
 }
+
+#[test]
+fn series_kept_alive_hit_a_memory_limit_not_an_abort() {
+    // Thousands of gradient-carrying series collected in an array: 1.2-3.8 GB within the wall
+    // time before, and an abort under a memory cap.
+    let src = "let a = agent(1);\nlet keep = [];\nfor i in 0..100000 {\n  keep.push(a.x + i * 1.0);\n}\nterm(\"x\", a.x.last());";
+    let small = Limits {
+        max_series_bytes: 16 << 20,
+        ..Limits::default()
+    };
+    let e = fails_with(
+        src,
+        &["limit exceeded: memory (max 16 MB of series"],
+        &small,
+    );
+    assert!(matches!(e, CostError::Limit { .. }), "{e:?}");
+    // What the script held is given back: the next script runs.
+    run("term(\"x\", agent(1).x.last());").unwrap();
+}

@@ -62,6 +62,9 @@ pub struct Limits {
     /// in the number of distinct variables (20,000 `let`s took 8 s to reach the variables
     /// limit, 100,000 did not finish in a minute).
     pub max_source_bytes: usize,
+    /// Bytes of series (values and gradients) alive at once, checked as the script runs: the
+    /// wall clock alone let a nine-line script hold gigabytes and abort the process.
+    pub max_series_bytes: usize,
 }
 
 impl Default for Limits {
@@ -81,6 +84,8 @@ impl Default for Limits {
             // The largest hand-written script is under 2 KB; 64 KB of the worst case
             // compiles in a fraction of a second.
             max_source_bytes: MAX_SOURCE_BYTES,
+            // The hand-written scripts hold a few MB on the largest scenes.
+            max_series_bytes: 512 << 20,
         }
     }
 }
@@ -299,6 +304,8 @@ pub fn check_params(sources: &[&str], params: &Params) -> Result<(), CostError> 
 
 /// Marker returned by the progress callback when the wall time is up.
 pub(crate) const WALL_TIME_MARK: &str = "drivescript:wall-time";
+/// What `on_progress` stops a script with when its series outgrow [`Limits::max_series_bytes`].
+pub(crate) const MEMORY_MARK: &str = "drivescript:memory";
 
 /// A compiled cost script bound to a scene.
 pub struct CostScript {
@@ -342,11 +349,15 @@ fn build_engine(
         .set_max_map_size(limits.max_map_size)
         .set_max_variables(limits.max_variables)
         .set_max_modules(limits.max_modules);
-    let (t0, wall) = (started.clone(), limits.wall_time);
+    let (t0, wall, memory) = (started.clone(), limits.wall_time, limits.max_series_bytes);
     e.on_progress(move |ops| {
         // Checking the clock every operation would cost more than most scripts.
-        if ops % 512 == 0 && t0.get().elapsed() > wall {
+        if ops % 512 != 0 {
+            None
+        } else if t0.get().elapsed() > wall {
             Some(Dynamic::from(WALL_TIME_MARK.to_string()))
+        } else if super::series::live_series_bytes() > memory {
+            Some(Dynamic::from(MEMORY_MARK.to_string()))
         } else {
             None
         }
@@ -998,6 +1009,13 @@ impl CostScript {
             EvalAltResult::ErrorTerminated(tok, _) if tok.to_string() == WALL_TIME_MARK => {
                 limit(format!("wall time (max {:.1} s)", l.wall_time.as_secs_f64()))
             }
+            EvalAltResult::ErrorTerminated(tok, _) if tok.to_string() == MEMORY_MARK => limit(
+                format!(
+                    "memory (max {} MB of series held at once; keep fewer series alive, e.g. \
+                     sum them as you go instead of collecting them)",
+                    l.max_series_bytes >> 20
+                ),
+            ),
             EvalAltResult::ErrorInFunctionCall(f, _, inner, _) | EvalAltResult::ErrorInModule(f, inner, _) => {
                 // Report the innermost cause at the outermost position (in the user's script).
                 let inner_err = self.map_error(inner);
