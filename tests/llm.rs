@@ -1196,3 +1196,31 @@ fn an_endless_reply_body_is_an_error_not_an_abort() {
     let e = ask_one(&client(&url)).unwrap_err().to_string();
     assert!(e.contains("the reply is larger than 16 MB"), "{e}");
 }
+
+#[test]
+fn a_batch_keeps_a_summary_it_did_not_write() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("requests.yaml");
+    std::fs::write(
+        &file,
+        format!(
+            "scenes: {}\nentries:\n  - request: \"vehicle 401 cuts in front of vehicle 399\"\n    behaviour: cut_in\n    params: {{cutter: 401, victim: 399}}\n",
+            samples().join(SCENE).display()
+        ),
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    std::fs::create_dir(&out).unwrap();
+    std::fs::write(out.join("summary.md"), "my notes").unwrap();
+    let o = ask(
+        &["--batch", s(&file), "-o", s(&out), "--llm", "rules"],
+        None,
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("summary.md: it is not a summary"), "{t}");
+    assert_eq!(
+        std::fs::read_to_string(out.join("summary.md")).unwrap(),
+        "my notes"
+    );
+}

@@ -676,6 +676,7 @@ impl Batch<'_> {
                 None => ".drivescript.batch.lock".to_string(),
             },
         )?;
+        self.check_outputs_are_ours()?;
         let mut results = Vec::new();
         for (k, inst) in self.instances.iter().enumerate() {
             if self
@@ -819,6 +820,39 @@ impl Batch<'_> {
                 let dst = to.join(sub).join(format!("{stem}_{i}.json"));
                 write_atomic(&dst, &bytes).map_err(|e| bad(&dst, e.to_string()))?;
             }
+        }
+        Ok(())
+    }
+
+    /// Refuses an -o whose `summary.md` / `summary.json` a batch did not write (they would be
+    /// replaced), or whose `runs` / `rollouts` is a link (the batch would write through it).
+    fn check_outputs_are_ours(&self) -> Result<(), LlmError> {
+        let read = |name: &str| {
+            crate::io::read_regular_text(&self.out.join(name), MAX_BATCH_BYTES * 16, "a summary")
+        };
+        let theirs = |name: &str| {
+            bad(
+                &self.out.join(name),
+                "it is not a summary an `ask --batch` wrote, and a batch would replace it: move \
+                 it, or choose another -o"
+                    .into(),
+            )
+        };
+        if self.out.join("summary.md").exists()
+            && !read("summary.md").is_ok_and(|t| t.starts_with("# drivescript ask --batch"))
+        {
+            return Err(theirs("summary.md"));
+        }
+        if self.out.join("summary.json").exists()
+            && !read("summary.json")
+                .ok()
+                .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+                .is_some_and(|v| v.get("rows").is_some() && v.get("instances").is_some())
+        {
+            return Err(theirs("summary.json"));
+        }
+        for sub in ["runs", "rollouts"] {
+            super::rundir::check_not_link(&self.out.join(sub))?;
         }
         Ok(())
     }
