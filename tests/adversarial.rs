@@ -478,3 +478,46 @@ fn random_script_text_never_panics() {
         "{ok} ran, {err} failed: the generator is not exercising both paths"
     );
 }
+
+#[test]
+fn an_oversized_script_is_refused_before_it_is_compiled() {
+    // 100,000 distinct `let`s (2 MB): Rhai's parser is quadratic in them, and this took over a
+    // minute to compile before reaching the variables limit.
+    let src: String = (0..100_000).map(|i| format!("let v{i} = {i};\n")).collect();
+    let t0 = Instant::now();
+    let e = fails(
+        &src,
+        &["evil.rhai:1:1: limit exceeded: script size", "max 65536"],
+    );
+    assert!(matches!(e, CostError::Limit { .. }), "{e:?}");
+    assert!(t0.elapsed() < Duration::from_secs(2), "{:?}", t0.elapsed());
+    // The worst case that fits compiles (and stops at the variables limit) quickly.
+    let mut src = String::new();
+    let mut i = 0;
+    while src.len() + 24 < Limits::default().max_source_bytes {
+        src.push_str(&format!("let v{i} = {i};\n"));
+        i += 1;
+    }
+    let t0 = Instant::now();
+    fails(&src, &["variables (max 1000)"]);
+    assert!(t0.elapsed() < Duration::from_secs(5), "{:?}", t0.elapsed());
+}
+
+#[test]
+fn series_kept_alive_hit_a_memory_limit_not_an_abort() {
+    // Thousands of gradient-carrying series collected in an array: 1.2-3.8 GB within the wall
+    // time before, and an abort under a memory cap.
+    let src = "let a = agent(1);\nlet keep = [];\nfor i in 0..100000 {\n  keep.push(a.x + i * 1.0);\n}\nterm(\"x\", a.x.last());";
+    let small = Limits {
+        max_series_bytes: 16 << 20,
+        ..Limits::default()
+    };
+    let e = fails_with(
+        src,
+        &["limit exceeded: memory (max 16 MB of series"],
+        &small,
+    );
+    assert!(matches!(e, CostError::Limit { .. }), "{e:?}");
+    // What the script held is given back: the next script runs.
+    run("term(\"x\", agent(1).x.last());").unwrap();
+}

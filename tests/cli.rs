@@ -94,6 +94,16 @@ fn inspect_agents_lists_lanes_gaps_and_neighbours() {
         assert!(a["lane"].is_i64() && a["speed"].is_f64(), "{a}");
     }
     assert!(v[0]["lanes"].as_array().unwrap().len() >= 2);
+    // An id the scene does not hold is a mistake said, not ignored; --keep needs --agents.
+    let err = fails(&["inspect", "--agents", s(&scene), "--keep", "4", "77", "88"]);
+    assert!(
+        err.contains("highway_cut_in.yaml")
+            && err.contains("--keep names agents it does not hold: 77, 88"),
+        "{err}"
+    );
+    let o = drivescript(&["inspect", s(&scene), "--keep", "4"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("--agents"), "{err}");
 }
 
 #[test]
@@ -1407,7 +1417,7 @@ fn convert_refuses_to_write_over_its_input() {
     std::fs::copy(samples().join("yaml/highway_cut_in.yaml"), &y).unwrap();
     let before = std::fs::read(&y).unwrap();
     let err = fails(&["convert", s(&y), "-o", s(&y)]);
-    assert!(err.contains("-o is the input itself"), "{err}");
+    assert!(err.contains("-o: is the input itself"), "{err}");
     assert_eq!(std::fs::read(&y).unwrap(), before);
     // The same file by another name is the same file.
     let err = fails(&[
@@ -1416,7 +1426,77 @@ fn convert_refuses_to_write_over_its_input() {
         "-o",
         &format!("{}/./s.yaml", s(dir.path())),
     ]);
-    assert!(err.contains("-o is the input itself"), "{err}");
+    assert!(err.contains("-o: is the input itself"), "{err}");
+}
+
+#[test]
+fn eval_json_refuses_its_inputs_and_files_it_did_not_write() {
+    let dir = tempfile::tempdir().unwrap();
+    let y = dir.path().join("s.yaml");
+    std::fs::copy(samples().join("yaml/highway_cut_in.yaml"), &y).unwrap();
+    let before = std::fs::read(&y).unwrap();
+    let eval = |json: &std::path::Path, scenes: &std::path::Path| {
+        fails(&[
+            "eval",
+            s(scenes),
+            "--task",
+            "conditional",
+            "--json",
+            s(json),
+        ])
+    };
+    // Its own input scene, by name or inside the directory given.
+    let err = eval(&y, &y);
+    assert!(err.contains("--json: is the input itself"), "{err}");
+    let err = eval(&y, dir.path());
+    assert!(
+        err.contains("--json: is a scene file inside the input directory"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read(&y).unwrap(), before);
+    // A checkpoint's config.json (or any file that is not an earlier `eval --json`).
+    let ckpt = dir.path().join("ckpt");
+    std::fs::create_dir(&ckpt).unwrap();
+    let config = ckpt.join("config.json");
+    std::fs::copy("data/checkpoint/config.json", &config).unwrap();
+    let before = std::fs::read(&config).unwrap();
+    let err = eval(&config, &y);
+    assert!(
+        err.contains("config.json: --json: already exists and is not an `eval --json` file"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read(&config).unwrap(), before);
+    // An earlier evaluation's file is replaced.
+    let e = dir.path().join("e.json");
+    ok(&["eval", s(&y), "--task", "conditional", "--json", s(&e)]);
+    ok(&["eval", s(&y), "--task", "conditional", "--json", s(&e)]);
+    // One whole evaluation merged with itself (or a copy) would count its scenes twice.
+    let copy = dir.path().join("copy.json");
+    std::fs::copy(&e, &copy).unwrap();
+    for pair in [[&e, &e], [&e, &copy]] {
+        let err = fails(&["eval", "--merge", s(pair[0]), s(pair[1])]);
+        assert!(err.contains("would count its scenes twice"), "{err}");
+    }
+    ok(&["eval", "--merge", s(&e)]);
+}
+
+#[test]
+fn convert_refuses_an_id_that_cannot_name_output_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let y = samples().join("yaml/highway_cut_in.yaml");
+    let out = dir.path().join("x.yaml");
+    for (id, why) in [
+        ("../../x", "starts with a dot"),
+        ("a/b", "'/'"),
+        ("a\u{202E}b", "U+202E"),
+    ] {
+        let err = fails(&["convert", s(&y), "--id", id, "-o", s(&out)]);
+        assert!(
+            err.contains("cannot name an output file") && err.contains(why),
+            "{err}"
+        );
+        assert!(!out.exists());
+    }
 }
 
 #[test]

@@ -839,3 +839,388 @@ fn loop_flags_are_checked_before_any_work() {
         assert!(!out.exists(), "{arg}: wrote {}", out.display());
     }
 }
+
+/// `ask` started in the background (its output discarded), for a run that is still going.
+fn ask_spawn(args: &[&str], url: &str) -> std::process::Child {
+    std::process::Command::new(env!("CARGO_BIN_EXE_drivescript"))
+        .arg("ask")
+        .args(args)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .env("DRIVESCRIPT_LLM_KEY", "sk-test-secret")
+        .env("DRIVESCRIPT_LLM_URL", url)
+        .env("DRIVESCRIPT_LLM_MODEL", "test-model")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("the binary runs")
+}
+
+/// Waits (at most a minute) until `p` exists.
+fn wait_for(p: &Path) {
+    let t0 = Instant::now();
+    while !p.exists() {
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "{} never appeared",
+            p.display()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn a_run_still_going_is_locked_against_resume_continue_and_a_second_batch() {
+    // The first request is answered only after a while: the run is still going meanwhile.
+    let srv = Server::start(vec![Canned::chat("ACCEPT").after(Duration::from_secs(20))]);
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let mut first = ask_spawn(
+        &[s(&samples().join(SCENE)), REQUEST, "-o", s(&run)],
+        &srv.url,
+    );
+    wait_for(&run.join("round_0/prompt.md"));
+    for args in [
+        vec!["--resume", s(&run)],
+        vec!["--continue", s(&run), "make it more abrupt"],
+    ] {
+        let out = ask(&args, Some(&srv.url));
+        let t = text(&out);
+        assert_eq!(out.status.code(), Some(1), "{args:?}: {t}");
+        assert!(
+            t.contains("another drivescript process is running in it"),
+            "{args:?}: {t}"
+        );
+    }
+    let _ = first.kill();
+    let _ = first.wait();
+    // Two identical batches into one -o.
+    let file = dir.path().join("requests.yaml");
+    std::fs::write(
+        &file,
+        format!(
+            "scenes: {}\nentries:\n  - request: \"vehicle 401 cuts in front of vehicle 399\"\n    behaviour: cut_in\n    params: {{cutter: 401, victim: 399}}\n",
+            samples().join(SCENE).display()
+        ),
+    )
+    .unwrap();
+    let srv = Server::start(vec![Canned::chat("ACCEPT").after(Duration::from_secs(20))]);
+    let out = dir.path().join("batch");
+    let batch = ["--batch", s(&file), "-o", s(&out), "--llm", "http"];
+    let mut first = ask_spawn(&batch, &srv.url);
+    let t0 = Instant::now();
+    while srv.received().is_empty() {
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "the batch never asked"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let o = ask(&batch, Some(&srv.url));
+    let t = text(&o);
+    let _ = first.kill();
+    let _ = first.wait();
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("another drivescript process is running in it"),
+        "{t}"
+    );
+}
+
+#[test]
+fn ask_keeps_the_user_s_files_and_writes_nothing_through_a_planted_round_link() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    std::fs::create_dir(&run).unwrap();
+    std::fs::write(run.join("report.md"), "my own report").unwrap();
+    let o = ask(
+        &[
+            s(&samples().join(SCENE)),
+            REQUEST,
+            "-o",
+            s(&run),
+            "--llm",
+            "rules",
+        ],
+        None,
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("report.md") && t.contains("will not replace it"),
+        "{t}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(run.join("report.md")).unwrap(),
+        "my own report"
+    );
+    std::fs::remove_file(run.join("report.md")).unwrap();
+    // A round_0 link to a directory outside -o.
+    #[cfg(unix)]
+    {
+        let outside = dir.path().join("outside");
+        std::fs::create_dir(&outside).unwrap();
+        std::os::unix::fs::symlink(&outside, run.join("round_0")).unwrap();
+        let o = ask(
+            &[
+                s(&samples().join(SCENE)),
+                REQUEST,
+                "-o",
+                s(&run),
+                "--llm",
+                "rules",
+            ],
+            None,
+        );
+        let t = text(&o);
+        assert_eq!(o.status.code(), Some(1), "{t}");
+        assert!(t.contains("round_0"), "{t}");
+        assert_eq!(std::fs::read_dir(&outside).unwrap().count(), 0, "{t}");
+    }
+}
+
+#[test]
+fn a_server_echoing_the_key_gets_it_into_no_output_and_no_file() {
+    // In an error body: quoted in the error on stderr.
+    let srv = Server::start(vec![Canned::raw(
+        400,
+        r#"{"error": {"message": "bad request; you sent Authorization: Bearer sk-test-secret"}}"#,
+    )]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask(
+        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(!t.contains("sk-test-secret"), "{t}");
+    assert!(t.contains("Bearer [redacted]"), "{t}");
+    assert_no_key(dir.path());
+    // Quoted in completions, plainly and behind JSON escapes.
+    let escaped = serde_json::json!({
+        "choices": [{"index": 0, "message": {"role": "assistant", "content": "The cutter ends ahead (key: \u{1}KEY).\nACCEPT"}, "finish_reason": "stop"}],
+    })
+    .to_string()
+    .replace("\\u0001KEY", "\\u0073k-test-secret");
+    let srv = Server::start(vec![
+        Canned::chat(&format!(
+            "{}\nI was called with Bearer sk-test-secret.\n",
+            reply(&cut_in_script(401, 399))
+        )),
+        Canned::raw(200, &escaped),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask(
+        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert!(!t.contains("sk-test-secret"), "{t}");
+    assert!(srv.received().len() >= 2, "{t}");
+    assert_no_key(dir.path());
+    let reply0 = std::fs::read_to_string(dir.path().join("round_0/reply.md")).unwrap();
+    assert!(reply0.contains("Bearer [redacted]"), "{reply0}");
+}
+
+#[test]
+fn token_counts_from_a_hostile_server_saturate_instead_of_wrapping() {
+    let huge = |content: &str| {
+        let body = serde_json::json!({
+            "choices": [{"index": 0, "message": {"role": "assistant", "content": content}, "finish_reason": "stop"}],
+            "usage": {"prompt_tokens": u64::MAX, "completion_tokens": 10}
+        });
+        Canned::raw(200, &body.to_string())
+    };
+    let srv = Server::start(vec![
+        huge(&reply(&cut_in_script(401, 399))),
+        huge("The cutter ends ahead in the victim's lane.\nACCEPT"),
+        huge("ACCEPT"),
+        huge("ACCEPT"),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("requests.yaml");
+    std::fs::write(
+        &file,
+        format!(
+            "scenes: {}\nentries:\n  - request: \"vehicle 401 cuts in front of vehicle 399\"\n    behaviour: cut_in\n    params: {{cutter: 401, victim: 399}}\n",
+            samples().join(SCENE).display()
+        ),
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    let o = ask(
+        &[
+            "--batch",
+            s(&file),
+            "-o",
+            s(&out),
+            "--llm",
+            "http",
+            "--rounds",
+            "1",
+        ],
+        Some(&srv.url),
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(0), "{t}");
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    let tokens = json["instances"][0]["tokens"].as_u64().unwrap();
+    assert_eq!(tokens, u64::MAX, "{json}");
+}
+
+#[test]
+fn resume_refuses_a_scene_that_changed_since_the_run_started() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene.xml");
+    std::fs::copy(samples().join(SCENE), &scene).unwrap();
+    let run = dir.path().join("run");
+    let o = ask(
+        &[s(&scene), REQUEST, "-o", s(&run), "--llm", "manual"],
+        None,
+    );
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    let xml = std::fs::read_to_string(&scene).unwrap();
+    std::fs::write(
+        &scene,
+        xml.replacen("<x>-44.8542</x>", "<x>-44.8543</x>", 1),
+    )
+    .unwrap();
+    let o = ask(&["--resume", s(&run)], None);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("scene.xml changed"), "{t}");
+}
+
+#[test]
+fn a_reply_cut_off_at_the_token_limit_says_to_raise_max_tokens() {
+    let body = serde_json::json!({
+        "choices": [{"index": 0, "message": {"role": "assistant", "content": "1. Events: one cut-in.\n\n```rhai\nlet a = agent(401);\nterm(\"x\", a.x"}, "finish_reason": "length"}],
+    });
+    let srv = Server::start(vec![Canned::raw(200, &body.to_string())]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask(
+        &[
+            s(&samples().join(SCENE)),
+            REQUEST,
+            "-o",
+            s(dir.path()),
+            "--fixes",
+            "0",
+            "--max-tokens",
+            "20",
+        ],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert!(
+        t.contains("cut off at the token limit (--max-tokens 20)")
+            && t.contains("never closed")
+            && t.contains("raise --max-tokens"),
+        "{t}"
+    );
+}
+
+#[test]
+fn errors_about_files_that_are_not_run_directories_do_not_call_them_so() {
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("requests.yaml");
+    let out = dir.path().join("out");
+    let o = ask(
+        &["--batch", s(&missing), "-o", s(&out), "--llm", "rules"],
+        None,
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains(&format!(
+            "{}: cannot read the batch file",
+            missing.display()
+        )) && !t.contains("run directory"),
+        "{t}"
+    );
+    let o = ask(
+        &[s(&dir.path().join("nope.xml")), REQUEST, "-o", s(&out)],
+        None,
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(!t.contains("run directory"), "{t}");
+}
+
+#[test]
+fn a_batch_pair_naming_an_agent_the_scene_lacks_is_an_error_not_a_failed_pair() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("requests.yaml");
+    std::fs::write(
+        &file,
+        format!(
+            "scenes: {}\nentries:\n  - request: \"vehicle 401 cuts in front of vehicle 99999\"\n    behaviour: cut_in\n    params: {{cutter: 401, victim: 99999}}\n",
+            samples().join(SCENE).display()
+        ),
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    let o = ask(
+        &["--batch", s(&file), "-o", s(&out), "--llm", "rules"],
+        None,
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("entry on line 3") && t.contains("has no agent 99999 (cut_in victim)"),
+        "{t}"
+    );
+}
+
+#[test]
+fn an_endless_reply_body_is_an_error_not_an_abort() {
+    use std::io::{Read, Write};
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let url = format!(
+        "http://127.0.0.1:{}/v1",
+        listener.local_addr().unwrap().port()
+    );
+    std::thread::spawn(move || {
+        let Ok((mut stream, _)) = listener.accept() else {
+            return;
+        };
+        let mut head = [0u8; 65536];
+        let _ = stream.read(&mut head);
+        let _ = stream.write_all(
+            b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nTransfer-Encoding: chunked\r\n\r\n",
+        );
+        let chunk = format!("{:x}\r\n{}\r\n", 1 << 20, " ".repeat(1 << 20));
+        // Until the client hangs up.
+        while stream.write_all(chunk.as_bytes()).is_ok() {}
+    });
+    let e = ask_one(&client(&url)).unwrap_err().to_string();
+    assert!(e.contains("the reply is larger than 16 MB"), "{e}");
+}
+
+#[test]
+fn a_batch_keeps_a_summary_it_did_not_write() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("requests.yaml");
+    std::fs::write(
+        &file,
+        format!(
+            "scenes: {}\nentries:\n  - request: \"vehicle 401 cuts in front of vehicle 399\"\n    behaviour: cut_in\n    params: {{cutter: 401, victim: 399}}\n",
+            samples().join(SCENE).display()
+        ),
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    std::fs::create_dir(&out).unwrap();
+    std::fs::write(out.join("summary.md"), "my notes").unwrap();
+    let o = ask(
+        &["--batch", s(&file), "-o", s(&out), "--llm", "rules"],
+        None,
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("summary.md: it is not a summary"), "{t}");
+    assert_eq!(
+        std::fs::read_to_string(out.join("summary.md")).unwrap(),
+        "my notes"
+    );
+}

@@ -301,9 +301,9 @@ pub(crate) fn usize_in(
 }
 
 fn load_one(path: &Path) -> Result<drivescript::scene::Scene, LlmError> {
-    load_scene(path, 0, &LoadOptions::default()).map_err(|e| LlmError::Run {
-        dir: path.to_path_buf(),
-        message: format!("cannot load the scene: {e}"),
+    load_scene(path, 0, &LoadOptions::default()).map_err(|e| LlmError::Input {
+        path: path.to_path_buf(),
+        message: format!("cannot load the scene: {}", e.reason()),
     })
 }
 

@@ -4,7 +4,10 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::{bail, Result};
-use drivescript::io::{load_scene, rollout::Rollout, womd, write_atomic, yaml, LoadOptions};
+use drivescript::io::{
+    check_output_not_input, load_scene, output_stem, rollout::Rollout, womd, write_atomic, yaml,
+    LoadOptions,
+};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -28,16 +31,11 @@ pub struct Args {
 pub fn run(args: Args) -> Result<ExitCode> {
     // Writing over the input would replace a many-scene file with one scene, or a compact
     // YAML with its explicit form: refuse before reading anything.
-    if let (Ok(a), Ok(b)) = (
-        std::fs::canonicalize(&args.scene),
-        std::fs::canonicalize(&args.output),
-    ) {
-        if a == b {
-            bail!(
-                "{}: -o is the input itself; write the conversion to another file",
-                args.output.display()
-            );
-        }
+    check_output_not_input(&args.output, &[&args.scene], "-o")?;
+    // An id that cannot name output files would be written here and refused by every command
+    // that reads the file back.
+    if let Some(id) = &args.id {
+        output_stem(id)?;
     }
     let mut scene = load_scene(&args.scene, args.index, &LoadOptions::default())?;
     if let Some(c) = args.current_step {

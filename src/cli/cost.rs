@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::rc::Rc;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use drivescript::cost::{CostScript, Limits, Params, Trajectories};
 use drivescript::io::{load_scene, rollout::Rollout, LoadOptions};
 
@@ -54,8 +54,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         scene = scene.over_horizon(h as usize);
     }
     let scene = Rc::new(scene);
-    let source = std::fs::read_to_string(&args.script)
-        .with_context(|| format!("reading {}", args.script.display()))?;
+    let source = drivescript::cost::read_script(&args.script)?;
     let params = Params::parse(&args.params)?;
     drivescript::cost::check_params(&[&source], &params)?;
     let name = args.script.display().to_string();

@@ -10,7 +10,8 @@ use drivescript::eval::kinematic::{self, KinematicLimits, Violation};
 use drivescript::eval::metrics::{self, JsdBins, Kinematics};
 use drivescript::eval::{check, check_against_unguided, Baseline, Behavior, Verdict};
 use drivescript::io::{
-    discover, read_each, rollout::Rollout, write_atomic, LoadOptions, OutputNames,
+    check_output_not_input, check_replaces_own_json, discover, read_each, rollout::Rollout,
+    write_atomic, LoadOptions, OutputNames,
 };
 use drivescript::scene::{AgentType, Scene};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -304,6 +305,19 @@ fn task_name(t: Task) -> &'static str {
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
+    if let Some(out) = &args.json {
+        // Refused before any work: an evaluation can take hours.
+        let inputs: Vec<&Path> = args
+            .scenes
+            .iter()
+            .chain(&args.merge)
+            .chain(&args.rollouts)
+            .chain(&args.unguided)
+            .map(|p| p.as_path())
+            .collect();
+        check_output_not_input(out, &inputs, "--json")?;
+        check_replaces_own_json(out, "merge", "an `eval --json` file", "--json")?;
+    }
     if !args.merge.is_empty() {
         return merge(&args.merge, args.json.as_deref());
     }
@@ -746,8 +760,11 @@ fn merge(files: &[PathBuf], json_out: Option<&Path>) -> Result<ExitCode> {
     let mut seen: Vec<(usize, PathBuf)> = Vec::new();
     let (mut skipped, mut failures, mut run_skipped) = (0, 0, 0);
     for f in files {
-        let text =
-            std::fs::read_to_string(f).with_context(|| format!("reading {}", f.display()))?;
+        let text = drivescript::io::read_regular_text(
+            f,
+            drivescript::io::MAX_SCENE_BYTES,
+            "an `eval --json` file",
+        )?;
         let mut v: serde_json::Value =
             serde_json::from_str(&text).with_context(|| format!("{}: not JSON", f.display()))?;
         let m: Merge = serde_json::from_value(v["merge"]["run"].take()).with_context(|| {
@@ -784,12 +801,27 @@ fn merge(files: &[PathBuf], json_out: Option<&Path>) -> Result<ExitCode> {
         skipped += m.skipped;
         failures += m.failures;
         run_skipped += m.run_skipped;
-        seen.extend(m.shards.iter().map(|&s| (s, f.clone())));
+        // An unsharded run is all of one evaluation: shard 0 of 1, so that merging it twice
+        // (or with a copy) is refused rather than counting its scenes twice.
+        let shards = if m.shards.is_empty() {
+            vec![0]
+        } else {
+            m.shards.clone()
+        };
+        seen.extend(shards.iter().map(|&s| (s, f.clone())));
     }
     let (f0, settings) = first.context("--merge needs at least one file")?;
     let n = settings["shards"].as_u64().unwrap_or(1) as usize;
     seen.sort();
     for w in seen.windows(2) {
+        if w[0].0 == w[1].0 && n <= 1 {
+            bail!(
+                "{} and {} are both the whole of one evaluation (not shards of it): merging \
+                 would count its scenes twice",
+                w[0].1.display(),
+                w[1].1.display()
+            );
+        }
         if w[0].0 == w[1].0 {
             bail!(
                 "shard {}/{n} is in both {} and {}: each shard once",

@@ -23,8 +23,8 @@ pub struct Args {
     /// With --agents: most agents listed, nearest the ego (or the first --keep) first.
     #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..=100000))]
     max_agents: u64,
-    /// With --agents: agents always listed, whatever the cap.
-    #[arg(long, num_args = 1..)]
+    /// With --agents: agents always listed, whatever the cap (each must be in every scene).
+    #[arg(long, num_args = 1.., requires = "agents")]
     keep: Vec<i64>,
     /// With --agents: future steps the sampler simulates (the shipped model's 40).
     #[arg(long, default_value_t = 40, value_parser = clap::value_parser!(u64).range(1..=10000))]
@@ -68,6 +68,24 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 match item {
                     Ok(s) => {
                         if args.agents {
+                            // Kept ids are the request's agents: one missing is a mistake to
+                            // say, not to list the scene without it.
+                            let absent: Vec<String> = args
+                                .keep
+                                .iter()
+                                .filter(|id| !s.agents.iter().any(|a| a.id == **id))
+                                .map(|id| id.to_string())
+                                .collect();
+                            if !absent.is_empty() {
+                                eprintln!(
+                                    "error: {}: scene {}: --keep names agents it does not hold: {}",
+                                    src.display(),
+                                    s.meta.scenario_id,
+                                    absent.join(", ")
+                                );
+                                failures += 1;
+                                continue;
+                            }
                             let d = describe(
                                 &s,
                                 &DescribeOptions {

@@ -160,8 +160,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let specs = script_paths
         .iter()
         .map(|p| {
-            let source =
-                std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+            let source = drivescript::cost::read_script(p)?;
             Ok(ScriptSpec::new(
                 source,
                 p.display().to_string(),
@@ -209,8 +208,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
     let explicit = Params::parse(&args.params)?;
     let existed = args.output.exists();
-    std::fs::create_dir_all(&args.output)
-        .with_context(|| format!("creating {}", args.output.display()))?;
+    drivescript::io::create_output_dir(&args.output)?;
     let record = RunRecord {
         command: "simulate".into(),
         version: env!("CARGO_PKG_VERSION").into(),

@@ -58,6 +58,13 @@ pub struct Limits {
     pub wall_time: Duration,
     /// Lines kept from `print`.
     pub max_print_lines: usize,
+    /// Bytes of source: checked before compiling, because Rhai's parser takes time quadratic
+    /// in the number of distinct variables (20,000 `let`s took 8 s to reach the variables
+    /// limit, 100,000 did not finish in a minute).
+    pub max_source_bytes: usize,
+    /// Bytes of series (values and gradients) alive at once, checked as the script runs: the
+    /// wall clock alone let a nine-line script hold gigabytes and abort the process.
+    pub max_series_bytes: usize,
 }
 
 impl Default for Limits {
@@ -74,8 +81,24 @@ impl Default for Limits {
             max_modules: 8,
             wall_time: Duration::from_secs(5),
             max_print_lines: 200,
+            // The largest hand-written script is under 2 KB; 64 KB of the worst case
+            // compiles in a fraction of a second.
+            max_source_bytes: MAX_SOURCE_BYTES,
+            // The hand-written scripts hold a few MB on the largest scenes.
+            max_series_bytes: 512 << 20,
         }
     }
+}
+
+/// The default [`Limits::max_source_bytes`], also the most a script file read from disk may
+/// hold.
+pub const MAX_SOURCE_BYTES: usize = 64 << 10;
+
+/// Reads a cost script file: a regular file of at most [`MAX_SOURCE_BYTES`] in UTF-8 (a FIFO
+/// or a device is refused before it is read: it could block or never end).
+pub fn read_script(path: &std::path::Path) -> Result<String, CostError> {
+    crate::io::read_regular_text(path, MAX_SOURCE_BYTES as u64, "a cost script")
+        .map_err(|e| CostError::Read(e.to_string()))
 }
 
 /// Errors from compiling, validating or evaluating a cost script. Each names the script and,
@@ -154,6 +177,9 @@ pub enum CostError {
         /// What is wrong.
         message: String,
     },
+    /// The script file cannot be read (the message names it).
+    #[error("{0}")]
+    Read(String),
     /// Trajectories that do not belong to the scene.
     #[error("{script}: trajectories do not fit the scene: {message}")]
     Shape {
@@ -278,6 +304,8 @@ pub fn check_params(sources: &[&str], params: &Params) -> Result<(), CostError> 
 
 /// Marker returned by the progress callback when the wall time is up.
 pub(crate) const WALL_TIME_MARK: &str = "drivescript:wall-time";
+/// What `on_progress` stops a script with when its series outgrow [`Limits::max_series_bytes`].
+pub(crate) const MEMORY_MARK: &str = "drivescript:memory";
 
 /// A compiled cost script bound to a scene.
 pub struct CostScript {
@@ -321,11 +349,15 @@ fn build_engine(
         .set_max_map_size(limits.max_map_size)
         .set_max_variables(limits.max_variables)
         .set_max_modules(limits.max_modules);
-    let (t0, wall) = (started.clone(), limits.wall_time);
+    let (t0, wall, memory) = (started.clone(), limits.wall_time, limits.max_series_bytes);
     e.on_progress(move |ops| {
         // Checking the clock every operation would cost more than most scripts.
-        if ops % 512 == 0 && t0.get().elapsed() > wall {
+        if ops % 512 != 0 {
+            None
+        } else if t0.get().elapsed() > wall {
             Some(Dynamic::from(WALL_TIME_MARK.to_string()))
+        } else if super::series::live_series_bytes() > memory {
+            Some(Dynamic::from(MEMORY_MARK.to_string()))
         } else {
             None
         }
@@ -403,7 +435,8 @@ fn add_term(
     if let Some(t) = tolerance {
         if !(t.is_finite() && t >= 0.0) {
             return stdlib::err(format!(
-                "term {name:?}: tolerance {t} must be finite and non-negative"
+                "term {name:?}: tolerance {} must be finite and non-negative",
+                crate::geom::num(t)
             ));
         }
     }
@@ -421,7 +454,8 @@ fn add_term(
     }
     if !(weight.is_finite() && weight >= 0.0) {
         return stdlib::err(format!(
-            "term {name:?}: weight {weight} must be finite and non-negative"
+            "term {name:?}: weight {} must be finite and non-negative",
+            crate::geom::num(weight)
         ));
     }
     if name.trim().is_empty() {
@@ -433,6 +467,13 @@ fn add_term(
         return stdlib::err(format!(
             "term {:?}: names must not contain control characters ({ch:?})",
             name.chars().take(64).collect::<String>()
+        ));
+    }
+    if let Some(ch) = crate::io::hidden_char(name) {
+        return stdlib::err(format!(
+            "term {:?}: names must not contain invisible characters (U+{:04X})",
+            name.chars().take(64).collect::<String>(),
+            ch as u32
         ));
     }
     if name.chars().count() > MAX_TERM_NAME {
@@ -689,6 +730,18 @@ impl CostScript {
                 })
                 .collect(),
         }));
+        if source.len() > limits.max_source_bytes {
+            return Err(CostError::Limit {
+                script: name.into(),
+                limit: format!(
+                    "script size ({} bytes, max {}): a cost script is a few dozen lines",
+                    source.len(),
+                    limits.max_source_bytes
+                ),
+                line: 1,
+                column: 1,
+            });
+        }
         no_reserved(params)?;
         let (engine, docs) = build_engine(&shared, limits, &started);
         let mut scope = Scope::new();
@@ -956,6 +1009,13 @@ impl CostScript {
             EvalAltResult::ErrorTerminated(tok, _) if tok.to_string() == WALL_TIME_MARK => {
                 limit(format!("wall time (max {:.1} s)", l.wall_time.as_secs_f64()))
             }
+            EvalAltResult::ErrorTerminated(tok, _) if tok.to_string() == MEMORY_MARK => limit(
+                format!(
+                    "memory (max {} MB of series held at once; keep fewer series alive, e.g. \
+                     sum them as you go instead of collecting them)",
+                    l.max_series_bytes >> 20
+                ),
+            ),
             EvalAltResult::ErrorInFunctionCall(f, _, inner, _) | EvalAltResult::ErrorInModule(f, inner, _) => {
                 // Report the innermost cause at the outermost position (in the user's script).
                 let inner_err = self.map_error(inner);
@@ -1138,6 +1198,8 @@ mod tests {
             ("\\x1b[2Jx", "control characters"),
             ("realism_speed", "belong to the sampler"),
             (&"n".repeat(65), "at most 64 characters"),
+            ("speed\u{202E}gnol", "invisible characters (U+202E)"),
+            ("go\u{200B}al", "invisible characters (U+200B)"),
         ] {
             let src = format!("term(\"{name}\", agent(1).x.last());");
             let e = evaluation_error(&src, scene.clone()).to_string();
@@ -1166,6 +1228,22 @@ mod tests {
         )
         .to_string();
         assert!(e.contains("weighted total overflows"), "{e}");
+        // A denormal is said in a few characters, not 300 digits.
+        let e = evaluation_error(
+            "term(\"a\", agent(1).x.last(), -5e-324);",
+            Rc::new(highway()),
+        )
+        .to_string();
+        assert!(e.contains("weight -5e-324 must be") && e.len() < 200, "{e}");
+        let e = evaluation_error(
+            "term(\"a\", agent(1).x.last(), 1.0, -5e-324);",
+            Rc::new(highway()),
+        )
+        .to_string();
+        assert!(
+            e.contains("tolerance -5e-324 must be") && e.len() < 200,
+            "{e}"
+        );
     }
 
     #[test]

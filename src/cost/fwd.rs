@@ -249,9 +249,18 @@ fn near(x: f64, best: f64) -> bool {
     (x - best).abs() <= 1e-12 * (1.0 + x.abs().max(best.abs()))
 }
 
+/// The mean of `v`; NaN when `v` is empty, which happens only when a coordinate is not finite
+/// (no candidate is then "near" the best), so that the caller's finiteness check reports it
+/// rather than this panicking.
 fn mean<const N: usize>(v: &[Fwd<N>]) -> Fwd<N> {
-    let mut out = v[0];
-    for x in &v[1..] {
+    let Some((first, rest)) = v.split_first() else {
+        return Fwd {
+            v: f64::NAN,
+            g: [f64::NAN; N],
+        };
+    };
+    let mut out = *first;
+    for x in rest {
         out = out + *x;
     }
     out * (1.0 / v.len() as f64)
@@ -378,6 +387,17 @@ pub fn box_clearance(a: [f64; 3], sa: (f64, f64), b: [f64; 3], sb: (f64, f64)) -
 mod tests {
     use super::*;
     use crate::geom::OrientedBox;
+
+    #[test]
+    fn a_box_with_a_non_finite_coordinate_gives_nan_not_a_panic() {
+        let s = (4.5, 1.8);
+        for bad in [f64::NAN, f64::INFINITY] {
+            let c = box_clearance([bad, 0.0, 0.0], s, [10.0, 0.0, 0.0], s);
+            assert!(!c.v.is_finite(), "{c:?}");
+            let c = box_clearance([0.0, 0.0, 0.0], s, [1.0, bad, 0.0], s);
+            assert!(!c.v.is_finite(), "{c:?}");
+        }
+    }
 
     #[test]
     fn overlapping_aligned_boxes_are_pushed_apart() {

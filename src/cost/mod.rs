@@ -17,8 +17,9 @@ mod trajectory;
 
 pub use dual::{Dual, Grad};
 pub use engine::{
-    check_params, module_functions, reference, reference_markdown, reference_markdown_without,
-    script_params, uses_param, CostError, CostScript, Limits, STDLIB_MODULES,
+    check_params, module_functions, read_script, reference, reference_markdown,
+    reference_markdown_without, script_params, uses_param, CostError, CostScript, Limits,
+    MAX_SOURCE_BYTES, STDLIB_MODULES,
 };
 pub use fwd::{box_clearance, Fwd};
 pub use params::{ParamValue, Params};

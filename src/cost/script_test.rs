@@ -85,6 +85,47 @@ pub struct Edit {
     pub ramp: f64,
 }
 
+impl Edit {
+    /// Refuses values that would make the candidate's positions NaN or infinite (a `sway`
+    /// period of 0 divides by zero): the cost engine cannot say which edit made them so.
+    fn check(&self) -> Result<(), String> {
+        let finite = |field: &str, v: f64| {
+            if v.is_finite() {
+                Ok(())
+            } else {
+                Err(format!("`{field}` is {v}, not a finite number"))
+            }
+        };
+        if let Some(d) = self.lateral {
+            finite("lateral", d)?;
+        }
+        if let Some([dx, dy]) = self.shift {
+            finite("shift", dx)?;
+            finite("shift", dy)?;
+        }
+        if let Some([amp, period]) = self.sway {
+            finite("sway amplitude", amp)?;
+            finite("sway period", period)?;
+            if period <= 0.0 {
+                return Err(format!(
+                    "`sway: [{}, {}]`: the period (seconds, the second number) must be above 0",
+                    crate::geom::num(amp),
+                    crate::geom::num(period)
+                ));
+            }
+        }
+        finite("from", self.from)?;
+        finite("ramp", self.ramp)?;
+        if self.ramp < 0.0 {
+            return Err(format!(
+                "`ramp` is {}: seconds, at least 0",
+                crate::geom::num(self.ramp)
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// What a case expects.
 #[derive(Debug, Clone, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -187,7 +228,13 @@ pub enum ScriptTestError {
         /// Why.
         message: String,
     },
+    /// A file it names cannot be read (the message names the file).
+    #[error("{0}")]
+    Io(String),
 }
+
+/// The most a test file may hold: the largest in scripts/ is under 2 KB.
+pub const MAX_TEST_FILE_BYTES: u64 = 1 << 20;
 
 /// Test files (`*.test.yaml`) under the given files or directories, sorted.
 pub fn find_test_files(roots: &[PathBuf]) -> Result<Vec<PathBuf>, ScriptTestError> {
@@ -511,10 +558,9 @@ impl Runner {
 
 /// Runs every case of a test file.
 pub fn run_test_file(path: &Path) -> Result<Vec<CaseResult>, ScriptTestError> {
-    let text = std::fs::read_to_string(path).map_err(|e| ScriptTestError::Read {
-        path: path.display().to_string(),
-        message: e.to_string(),
-    })?;
+    // The I/O error names the file itself.
+    let text = crate::io::read_regular_text(path, MAX_TEST_FILE_BYTES, "a script test file")
+        .map_err(|e| ScriptTestError::Io(e.to_string()))?;
     let file: TestFile = serde_yaml::from_str(&text).map_err(|e| ScriptTestError::Read {
         path: path.display().to_string(),
         message: match e.location() {
@@ -540,12 +586,22 @@ pub fn run_test_file(path: &Path) -> Result<Vec<CaseResult>, ScriptTestError> {
             c.name
         )));
     }
+    for c in &file.cases {
+        for (k, e) in c.edits.iter().enumerate() {
+            e.check().map_err(|m| {
+                invalid(format!(
+                    "case {:?}: edit {} (agent {}): {m}",
+                    c.name,
+                    k + 1,
+                    e.agent
+                ))
+            })?;
+        }
+    }
     let dir = path.parent().unwrap_or(Path::new("."));
     let script_path = dir.join(&file.script);
-    let source = std::fs::read_to_string(&script_path).map_err(|e| ScriptTestError::Read {
-        path: script_path.display().to_string(),
-        message: e.to_string(),
-    })?;
+    let source =
+        super::read_script(&script_path).map_err(|e| ScriptTestError::Io(e.to_string()))?;
     let mut runner = Runner {
         scenes: HashMap::new(),
     };
@@ -587,6 +643,38 @@ mod tests {
         let mut r = run_test_file(&t).unwrap();
         assert_eq!(r.len(), 1);
         r.remove(0)
+    }
+
+    #[test]
+    fn an_edit_of_zero_period_is_refused_naming_the_case_and_field() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts");
+        for (edit, want) in [
+            ("{agent: 2, sway: [1.0, 0.0]}", "sway: [1, 0]"),
+            ("{agent: 2, sway: [1.0, -2.0]}", "must be above 0"),
+            ("{agent: 2, sway: [.nan, 2.0]}", "`sway amplitude` is NaN"),
+            ("{agent: 2, lateral: .inf}", "`lateral` is inf"),
+            ("{agent: 2, shift: [0, .nan]}", "`shift` is NaN"),
+            ("{agent: 2, lateral: 1, ramp: -1}", "`ramp` is -1"),
+        ] {
+            let t = dir.path().join("x.test.yaml");
+            std::fs::write(
+                &t,
+                format!(
+                    "script: {}\ncases:\n  - name: swaying\n    scene: {}\n    params: {{attacker: 4, target: 2}}\n    edits: [{edit}]\n    expect: {{total_below: 1}}\n",
+                    root.join("accident.rhai").display(),
+                    root.join("scenes/highway.yaml").display()
+                ),
+            )
+            .unwrap();
+            let e = run_test_file(&t).unwrap_err().to_string();
+            assert!(
+                e.contains("x.test.yaml")
+                    && e.contains("case \"swaying\": edit 1 (agent 2)")
+                    && e.contains(want),
+                "{edit}: {e}"
+            );
+        }
     }
 
     #[test]

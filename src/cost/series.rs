@@ -17,8 +17,22 @@ use super::dual::{accumulate, merge_into, Dual, Grad};
 /// Result of a series operation; the message becomes a script error at the calling line.
 pub type OpResult<T> = Result<T, String>;
 
+thread_local! {
+    /// Bytes held by the series alive on this thread: scripts run on one thread each, and a
+    /// script that keeps thousands of series alive must stop at a limit, not abort the
+    /// process when memory runs out.
+    static LIVE_BYTES: std::cell::Cell<usize> = const { std::cell::Cell::new(0) };
+}
+
+/// Bytes held by the series alive on this thread (what [`Limits::max_series_bytes`] bounds).
+///
+/// [`Limits::max_series_bytes`]: super::Limits::max_series_bytes
+pub fn live_series_bytes() -> usize {
+    LIVE_BYTES.with(|c| c.get())
+}
+
 /// The data of a series (shared behind [`Series`]).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, PartialEq)]
 pub struct SeriesData {
     pub(crate) val: Vec<f64>,
     pub(crate) valid: Vec<bool>,
@@ -30,6 +44,15 @@ pub struct SeriesData {
     pub(crate) dt: f64,
     /// Time of the first visible element, seconds after the current step.
     pub(crate) time0: f64,
+    /// Bytes counted in [`live_series_bytes`] while it lives.
+    counted: usize,
+}
+
+impl Drop for SeriesData {
+    fn drop(&mut self) {
+        let n = self.counted;
+        LIVE_BYTES.with(|c| c.set(c.get().saturating_sub(n)));
+    }
 }
 
 /// A time series of dual numbers; cheap to clone.
@@ -54,6 +77,7 @@ impl Builder {
                 head,
                 dt,
                 time0,
+                counted: 0,
             },
         }
     }
@@ -80,7 +104,15 @@ impl Builder {
         self.d.offs.push(self.d.ent.len() as u32);
     }
 
-    pub(crate) fn build(self) -> Series {
+    pub(crate) fn build(mut self) -> Series {
+        let d = &mut self.d;
+        d.counted = std::mem::size_of::<SeriesData>()
+            + d.val.capacity() * std::mem::size_of::<f64>()
+            + d.valid.capacity()
+            + d.offs.capacity() * std::mem::size_of::<u32>()
+            + d.ent.capacity() * std::mem::size_of::<(u32, f64)>();
+        let n = d.counted;
+        LIVE_BYTES.with(|c| c.set(c.get().saturating_add(n)));
         Series(Rc::new(self.d))
     }
 }

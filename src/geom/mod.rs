@@ -52,10 +52,10 @@ pub enum GeomError {
     },
 }
 
-/// A number for a message: plain, or in exponent form when huge (a value of 1e300 printed
-/// plainly is 301 digits).
+/// A number for a message: plain, or in exponent form when huge or tiny (a value of 1e300
+/// printed plainly is 301 digits, a denormal such as 5e-324 over 300).
 pub fn num(v: f64) -> String {
-    if v.abs() >= 1e7 {
+    if v.abs() >= 1e7 || (v != 0.0 && v.abs() < 1e-6) {
         format!("{v:e}")
     } else {
         format!("{v}")
@@ -169,6 +169,15 @@ pub fn segments_intersect(a0: &Point, a1: &Point, b0: &Point, b1: &Point) -> boo
 
 #[cfg(test)]
 mod tests {
+
+    #[test]
+    fn numbers_in_messages_are_short_however_large_or_small() {
+        assert_eq!(super::num(5e-324), "5e-324");
+        assert_eq!(super::num(-1e300), "-1e300");
+        assert_eq!(super::num(0.0), "0");
+        assert_eq!(super::num(0.25), "0.25");
+    }
+
     use super::*;
 
     #[test]

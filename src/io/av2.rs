@@ -8,7 +8,6 @@
 //! their outlines, turned counter-clockwise, are the road edges.
 
 use std::collections::{BTreeMap, HashMap};
-use std::fs::File;
 use std::path::{Path, PathBuf};
 
 use parquet::file::reader::{FileReader, SerializedFileReader};
@@ -230,8 +229,7 @@ struct Row {
 }
 
 fn read_tracks(path: &Path) -> Result<(Vec<Agent>, SceneMeta), IoError> {
-    super::check_file_size(path)?;
-    let file = File::open(path).map_err(|e| IoError::read(path, e))?;
+    let file = super::open_regular(path, super::MAX_SCENE_BYTES, "a scene file")?;
     let reader = SerializedFileReader::new(file).map_err(|e| {
         IoError::invalid(path, "footer", format!("not a readable parquet file: {e}"))
     })?;

@@ -114,6 +114,22 @@ pub enum IoError {
 }
 
 impl IoError {
+    /// What is wrong, without the file's name: for errors of other modules that name the file
+    /// themselves.
+    pub fn reason(&self) -> String {
+        match self {
+            IoError::Read { source, .. } => source.to_string(),
+            IoError::Write { source, .. } => format!("cannot write: {source}"),
+            IoError::Invalid {
+                location, message, ..
+            } if location == "file" => message.clone(),
+            IoError::Invalid {
+                location, message, ..
+            } => format!("{location}: {message}"),
+            other => other.to_string(),
+        }
+    }
+
     pub(crate) fn invalid(
         path: &Path,
         location: impl Into<String>,
@@ -233,7 +249,7 @@ impl Content {
 pub fn sniff(path: &Path) -> Option<Content> {
     use std::io::Read;
     let mut head = [0u8; 16];
-    let mut f = std::fs::File::open(path).ok()?;
+    let mut f = open_regular(path, u64::MAX, "a scene file").ok()?;
     let mut n = 0;
     while n < head.len() {
         match f.read(&mut head[n..]) {
@@ -457,6 +473,26 @@ fn walk(
     Ok(())
 }
 
+/// The first character of `s` that changes how text around it is shown without being seen:
+/// bidirectional controls (which can make `a` read as `b` on a terminal), zero-width
+/// characters, the byte-order mark, the soft hyphen. Names (scenario ids, term names) that
+/// reach terminals, file names and the LLM's prompt must not hold them.
+pub fn hidden_char(s: &str) -> Option<char> {
+    s.chars().find(|&c| {
+        matches!(
+            c,
+            '\u{00AD}'
+                | '\u{061C}'
+                | '\u{180E}'
+                | '\u{200B}'..='\u{200F}'
+                | '\u{202A}'..='\u{202E}'
+                | '\u{2060}'..='\u{2064}'
+                | '\u{2066}'..='\u{2069}'
+                | '\u{FEFF}'
+        )
+    })
+}
+
 /// `id` when it can start a file name inside an output directory: scene files are untrusted,
 /// and an id such as `../../x` must not write outside the directory the user named.
 pub fn output_stem(id: &str) -> Result<&str, IoError> {
@@ -480,6 +516,12 @@ pub fn output_stem(id: &str) -> Result<&str, IoError> {
         .find(|&c| c == '/' || c == '\\' || c == ':' || c.is_control())
     {
         return bad(&format!("it contains {c:?}"));
+    }
+    if let Some(c) = hidden_char(id) {
+        return bad(&format!(
+            "it contains the invisible character U+{:04X}",
+            c as u32
+        ));
     }
     Ok(id)
 }
@@ -536,8 +578,32 @@ fn write_beside(path: &Path, bytes: &[u8]) -> Result<PathBuf, IoError> {
     Ok(tmp)
 }
 
-/// Writes `bytes` to `path` atomically: a temporary file beside it, then a rename.
+/// Writes `bytes` to `path` atomically: a temporary file beside it, then a rename. Only a new
+/// path or a regular file (or a link to one) is replaced so; a device or a FIFO (`/dev/null`,
+/// `/dev/stdout`, a pipe) is written in place, as a shell's `>` would: renaming over
+/// `/dev/null` would replace it for the whole machine. A directory is an error.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
+    let err = |source| IoError::Write {
+        path: path.display().to_string(),
+        source,
+    };
+    if let Ok(meta) = std::fs::metadata(path) {
+        if meta.is_dir() {
+            return Err(IoError::invalid(
+                path,
+                "file",
+                "is a directory: name a file to write",
+            ));
+        }
+        if !meta.is_file() {
+            use std::io::Write;
+            let mut f = std::fs::OpenOptions::new()
+                .write(true)
+                .open(path)
+                .map_err(err)?;
+            return f.write_all(bytes).and_then(|()| f.flush()).map_err(err);
+        }
+    }
     let tmp = write_beside(path, bytes)?;
     std::fs::rename(&tmp, path).map_err(|source| {
         let _ = std::fs::remove_file(&tmp);
@@ -574,60 +640,223 @@ pub fn create_atomic(path: &Path, bytes: &[u8]) -> Result<bool, IoError> {
     }
 }
 
-/// Reads a whole text file (a YAML scene, an AV2 map) within [`MAX_SCENE_BYTES`].
+/// Reads a whole text file (a YAML scene, an AV2 map, a rollout) within [`MAX_SCENE_BYTES`].
+/// A leading byte-order mark (Windows editors write one) is dropped: parsers would report it
+/// as an unexpected character nobody can see.
 pub(crate) fn read_text(path: &Path) -> Result<String, IoError> {
-    String::from_utf8(read_maybe_gz(path)?)
-        .map_err(|e| IoError::invalid(path, "file", format!("not UTF-8 text: {e}")))
+    let text = String::from_utf8(read_maybe_gz(path)?)
+        .map_err(|e| IoError::invalid(path, "file", format!("not UTF-8 text: {e}")))?;
+    Ok(match text.strip_prefix('\u{FEFF}') {
+        Some(rest) => rest.to_string(),
+        None => text,
+    })
 }
 
-/// Refuses a file larger than [`MAX_SCENE_BYTES`] before it is read.
-pub(crate) fn check_file_size(path: &Path) -> Result<(), IoError> {
-    let len = std::fs::metadata(path)
-        .map_err(|e| IoError::read(path, e))?
-        .len();
-    if len > MAX_SCENE_BYTES {
+/// Opens `path` for reading if it is a regular file of at most `max` bytes (`what` says what
+/// the file is, for the error: "a cost script"), refusing anything else before reading a byte.
+/// A FIFO would block forever (even opening it, which is why it is opened non-blocking and
+/// checked on the open handle) and a device such as `/dev/zero` never ends; a directory is not
+/// a file. Every file drivescript reads comes through here.
+pub fn open_regular(path: &Path, max: u64, what: &str) -> Result<std::fs::File, IoError> {
+    let mut options = std::fs::OpenOptions::new();
+    options.read(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        // Without it, opening a FIFO waits for a writer; reading a regular file ignores it.
+        options.custom_flags(libc::O_NONBLOCK);
+    }
+    let file = options.open(path).map_err(|e| IoError::read(path, e))?;
+    let meta = file.metadata().map_err(|e| IoError::read(path, e))?;
+    if meta.is_dir() {
         return Err(IoError::invalid(
             path,
             "file",
-            format!(
-                "holds {} MB, more than {} MB: far beyond a real scene file, so it is refused before it fills memory",
-                len >> 20,
-                MAX_SCENE_BYTES >> 20
-            ),
+            format!("is a directory, not {what}"),
         ));
+    }
+    if !meta.is_file() {
+        return Err(not_regular(path));
+    }
+    if meta.len() > max {
+        return Err(too_large(path, "holds", meta.len(), max, what));
+    }
+    Ok(file)
+}
+
+/// Reads the whole of `path` through [`open_regular`], at most `max` bytes even if the file
+/// grows while it is read.
+pub fn read_regular(path: &Path, max: u64, what: &str) -> Result<Vec<u8>, IoError> {
+    use std::io::Read;
+    let file = open_regular(path, max, what)?;
+    let mut out = Vec::new();
+    file.take(max.saturating_add(1))
+        .read_to_end(&mut out)
+        .map_err(|e| IoError::read(path, e))?;
+    if out.len() as u64 > max {
+        return Err(too_large(path, "grew to", out.len() as u64, max, what));
+    }
+    Ok(out)
+}
+
+/// [`read_regular`] for a text file: UTF-8, or an error naming the file and the byte.
+pub fn read_regular_text(path: &Path, max: u64, what: &str) -> Result<String, IoError> {
+    String::from_utf8(read_regular(path, max, what)?)
+        .map_err(|e| IoError::invalid(path, "file", format!("not UTF-8 text: {e}")))
+}
+
+fn too_large(path: &Path, verb: &str, len: u64, max: u64, what: &str) -> IoError {
+    let size = |b: u64| {
+        if b >= 10 << 20 {
+            format!("{} MB", b >> 20)
+        } else if b >= 10 << 10 {
+            format!("{} KB", b >> 10)
+        } else {
+            format!("{b} bytes")
+        }
+    };
+    // Read or inflated sizes stop one byte past the cap: only a stored size is worth giving.
+    let actual = if verb == "holds" {
+        format!(" ({})", size(len))
+    } else {
+        String::new()
+    };
+    IoError::invalid(
+        path,
+        "file",
+        format!(
+            "{verb} more than {}{actual}, the most for {what}: far beyond a real one, so it is \
+             refused before it fills memory",
+            size(max)
+        ),
+    )
+}
+
+/// Creates the output directory `dir` (and its parents), or says plainly why not: the OS's
+/// own words are `File exists` for a device, a file or a dangling link in the way.
+pub fn create_output_dir(dir: &Path) -> Result<(), IoError> {
+    let what = match std::fs::symlink_metadata(dir) {
+        Err(_) => None,
+        Ok(m) if m.file_type().is_symlink() => match std::fs::metadata(dir) {
+            Ok(t) if t.is_dir() => None,
+            Ok(_) => Some("is a symbolic link to something that is not a directory".to_string()),
+            Err(_) => Some(format!(
+                "is a symbolic link to {}, which does not exist: create that directory or \
+                 remove the link",
+                std::fs::read_link(dir)
+                    .map(|t| t.display().to_string())
+                    .unwrap_or_else(|_| "?".into())
+            )),
+        },
+        Ok(m) if m.is_dir() => None,
+        Ok(m) if m.is_file() => Some("is a file, not a directory".to_string()),
+        Ok(_) => Some("is a device, FIFO or socket, not a directory".to_string()),
+    };
+    if let Some(why) = what {
+        return Err(IoError::invalid(dir, "output directory", why));
+    }
+    std::fs::create_dir_all(dir).map_err(|source| IoError::Write {
+        path: dir.display().to_string(),
+        source,
+    })
+}
+
+/// Refuses an output path that is one of the command's `inputs` (the same file by any name:
+/// writing would replace what is being read), or a scene file inside an input directory.
+/// `flag` names the output option in the message (`-o`, `--json`).
+pub fn check_output_not_input(output: &Path, inputs: &[&Path], flag: &str) -> Result<(), IoError> {
+    let Ok(out) = std::fs::canonicalize(output) else {
+        // Nothing there yet: it cannot be an input.
+        return Ok(());
+    };
+    for input in inputs {
+        let Ok(inp) = std::fs::canonicalize(input) else {
+            continue;
+        };
+        // Inside a directory read as one scene (AV2, WOMD shards) every file is an input;
+        // inside a directory of scenes, every scene file is.
+        let inside_scene_dir = inp.is_dir()
+            && out != inp
+            && out.starts_with(&inp)
+            && (detect_format(&inp).is_ok() || detect_format(&out).is_ok());
+        if out == inp || inside_scene_dir {
+            return Err(IoError::invalid(
+                output,
+                flag,
+                if out == inp {
+                    format!(
+                        "is the input itself ({}): writing would replace what is read; write \
+                         to another file",
+                        input.display()
+                    )
+                } else {
+                    format!(
+                        "is a scene file inside the input directory {}: writing would replace \
+                         it; write to another file",
+                        input.display()
+                    )
+                },
+            ));
+        }
     }
     Ok(())
 }
 
-/// Reads a whole file, transparently gunzipping `.gz` files.
+/// Refuses to replace an existing regular file at `output` unless it is a JSON object with the
+/// top-level `key` that the command writes (`what` names that kind of file): a previous run's
+/// output may be replaced, anything else (a checkpoint's `config.json`, a rollout, a scene) is
+/// someone's data. New paths, devices and pipes pass.
+pub fn check_replaces_own_json(
+    output: &Path,
+    key: &str,
+    what: &str,
+    flag: &str,
+) -> Result<(), IoError> {
+    match std::fs::metadata(output) {
+        Ok(m) if m.is_file() => {}
+        _ => return Ok(()),
+    }
+    let ours = read_regular(output, MAX_SCENE_BYTES, what)
+        .ok()
+        .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok())
+        .is_some_and(|v| v.get(key).is_some());
+    if ours {
+        return Ok(());
+    }
+    Err(IoError::invalid(
+        output,
+        flag,
+        format!(
+            "already exists and is not {what}: writing would replace it; remove it first or \
+             write to another file"
+        ),
+    ))
+}
+
+/// Reads a whole scene file, transparently gunzipping `.gz` files, within [`MAX_SCENE_BYTES`]
+/// before and after inflating (NGSIM's largest CommonRoad file is 2.6 MB, an AV2 map a few
+/// MB).
 pub(crate) fn read_maybe_gz(path: &Path) -> Result<Vec<u8>, IoError> {
     use std::io::Read;
-    let too_big = |what: &str| {
-        IoError::invalid(
-            path,
-            "file",
-            format!(
-                "{what} more than {} MB: far beyond a real scene file (NGSIM's largest CommonRoad \
-                 file is 2.6 MB, an AV2 map a few MB), so it is refused before it fills memory",
-                MAX_SCENE_BYTES >> 20
-            ),
-        )
-    };
-    let meta = std::fs::metadata(path).map_err(|e| IoError::read(path, e))?;
-    if meta.len() > MAX_SCENE_BYTES {
-        return Err(too_big("holds"));
-    }
-    let raw = std::fs::read(path).map_err(|e| IoError::read(path, e))?;
+    const WHAT: &str = "a scene file";
+    let raw = read_regular(path, MAX_SCENE_BYTES, WHAT)?;
     if path.extension().is_some_and(|e| e == "gz") {
         let mut out = Vec::new();
         // Inflated as a stream, at most one byte past the cap: a small file can inflate to
-        // gigabytes.
-        flate2::read::GzDecoder::new(&raw[..])
+        // gigabytes. Every member: `cat a.gz b.gz` (and pigz, bgzip) make valid multi-member
+        // files, of which a single-member decoder reads the first alone.
+        flate2::read::MultiGzDecoder::new(&raw[..])
             .take(MAX_SCENE_BYTES + 1)
             .read_to_end(&mut out)
             .map_err(|e| IoError::invalid(path, "gzip stream", e.to_string()))?;
         if out.len() as u64 > MAX_SCENE_BYTES {
-            return Err(too_big("inflates to"));
+            return Err(too_large(
+                path,
+                "inflates to",
+                out.len() as u64,
+                MAX_SCENE_BYTES,
+                WHAT,
+            ));
         }
         Ok(out)
     } else {
@@ -670,6 +899,124 @@ pub(crate) fn push_unique_road_line(
 mod tests {
     use super::{output_stem, without_position};
 
+    #[cfg(unix)]
+    #[test]
+    fn only_regular_files_within_their_cap_are_read() {
+        use super::read_regular;
+        let dir = tempfile::tempdir().unwrap();
+        let e = read_regular(std::path::Path::new("/dev/zero"), 1 << 20, "a prompt")
+            .unwrap_err()
+            .to_string();
+        assert!(e.starts_with("/dev/zero: file: not a regular file"), "{e}");
+        let e = read_regular(dir.path(), 1 << 20, "a prompt")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("is a directory, not a prompt"), "{e}");
+        let big = dir.path().join("big.md");
+        std::fs::write(&big, vec![b'x'; 3000]).unwrap();
+        let e = read_regular(&big, 2048, "a prompt")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains(
+                "big.md: file: holds more than 2048 bytes (3000 bytes), the most for a prompt"
+            ),
+            "{e}"
+        );
+        assert_eq!(read_regular(&big, 3000, "a prompt").unwrap().len(), 3000);
+        let fifo = dir.path().join("f");
+        let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+        if made.is_ok_and(|s| s.success()) {
+            // Opening alone would block without a writer.
+            let e = read_regular(&fifo, 1 << 20, "a prompt")
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("not a regular file"), "{e}");
+        }
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_fifo_output_is_written_in_place_and_a_directory_is_refused() {
+        use std::io::Read;
+        use std::os::unix::fs::FileTypeExt;
+        let dir = tempfile::tempdir().unwrap();
+        let e = super::write_atomic(dir.path(), b"x")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("is a directory"), "{e}");
+        let fifo = dir.path().join("out.json");
+        let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+        if !made.is_ok_and(|s| s.success()) {
+            return;
+        }
+        let f = fifo.clone();
+        // Left running if the FIFO is replaced (then nobody ever writes to it).
+        let reader = std::thread::spawn(move || {
+            let mut t = String::new();
+            std::fs::File::open(&f)
+                .unwrap()
+                .read_to_string(&mut t)
+                .unwrap();
+            t
+        });
+        super::write_atomic(&fifo, b"{\"a\": 1}").unwrap();
+        let kind = std::fs::symlink_metadata(&fifo).unwrap().file_type();
+        assert!(kind.is_fifo(), "the FIFO was replaced by {kind:?}");
+        assert_eq!(reader.join().unwrap(), "{\"a\": 1}");
+    }
+
+    #[test]
+    fn multi_member_gzip_and_a_byte_order_mark_are_read_whole() {
+        use std::io::Write;
+        let dir = tempfile::tempdir().unwrap();
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/samples");
+        let xml = std::fs::read(root.join("commonroad/USA_US101-3_3_T-1.xml")).unwrap();
+        // Two gzip members, as `cat a.gz b.gz` makes.
+        let mut gz = Vec::new();
+        for half in [&xml[..xml.len() / 2], &xml[xml.len() / 2..]] {
+            let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+            e.write_all(half).unwrap();
+            gz.extend(e.finish().unwrap());
+        }
+        let p = dir.path().join("two.xml.gz");
+        std::fs::write(&p, gz).unwrap();
+        assert_eq!(super::read_maybe_gz(&p).unwrap(), xml);
+        let yaml = std::fs::read(root.join("yaml/highway_cut_in.yaml")).unwrap();
+        let p = dir.path().join("bom.yaml");
+        std::fs::write(&p, [&b"\xEF\xBB\xBF"[..], &yaml].concat()).unwrap();
+        let plain = super::yaml::read(&root.join("yaml/highway_cut_in.yaml")).unwrap();
+        let bom = super::yaml::read(&p).unwrap();
+        assert_eq!(bom.meta.scenario_id, plain.meta.scenario_id);
+        assert_eq!(bom.agents.len(), plain.agents.len());
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn an_output_directory_in_the_way_is_named_for_what_it_is() {
+        let dir = tempfile::tempdir().unwrap();
+        let link = dir.path().join("dangling");
+        std::os::unix::fs::symlink(dir.path().join("nowhere"), &link).unwrap();
+        let e = super::create_output_dir(&link).unwrap_err().to_string();
+        assert!(
+            e.contains("is a symbolic link to") && e.contains("which does not exist"),
+            "{e}"
+        );
+        let e = super::create_output_dir(std::path::Path::new("/dev/null"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("is a device, FIFO or socket, not a directory"),
+            "{e}"
+        );
+        let f = dir.path().join("f");
+        std::fs::write(&f, "x").unwrap();
+        let e = super::create_output_dir(&f).unwrap_err().to_string();
+        assert!(e.contains("is a file, not a directory"), "{e}");
+        super::create_output_dir(&dir.path().join("a/b")).unwrap();
+        super::create_output_dir(&dir.path().join("a/b")).unwrap();
+    }
+
     #[test]
     fn serde_positions_are_said_once() {
         let e = serde_yaml::from_str::<serde_yaml::Value>("road: [1, 2").unwrap_err();
@@ -708,6 +1055,8 @@ mod tests {
             ("a\\b", "'\\\\'"),
             ("C:x", "':'"),
             ("a\u{1b}[2Jb", "'\\u{1b}'"),
+            ("cut\u{202E}ni", "invisible character U+202E"),
+            ("a\u{200B}b", "invisible character U+200B"),
             (long.as_str(), "longer than 200"),
         ] {
             let e = output_stem(bad).unwrap_err().to_string();

@@ -7,7 +7,6 @@
 //! scene model; the reader says so in the scene's warnings. WOMD lanes carry boundaries as
 //! references into road lines, not as their own polylines, so WOMD lanes have no boundaries.
 
-use std::fs::File;
 use std::io::BufReader;
 use std::path::{Path, PathBuf};
 
@@ -62,7 +61,8 @@ fn shard_files(dir: &Path) -> Result<Vec<PathBuf>, IoError> {
 
 /// Streams the scenarios of one TFRecord file.
 pub fn read_file(path: &Path) -> Result<impl Iterator<Item = Result<Scene, IoError>>, IoError> {
-    let file = File::open(path).map_err(|e| IoError::read(path, e))?;
+    // Read record by record, each within its own cap: the file as a whole may be large.
+    let file = super::open_regular(path, u64::MAX, "a TFRecord file")?;
     if file.metadata().map_err(|e| IoError::read(path, e))?.len() == 0 {
         return Err(IoError::invalid(
             path,

@@ -64,16 +64,20 @@ pub struct Instance {
 }
 
 fn bad(path: &Path, message: String) -> LlmError {
-    LlmError::Run {
-        dir: path.to_path_buf(),
+    LlmError::Input {
+        path: path.to_path_buf(),
         message,
     }
 }
 
+/// The most a batch file may hold (the paper's tables need a few hundred entries, a few
+/// dozen KB).
+pub const MAX_BATCH_BYTES: u64 = 4 << 20;
+
 /// Reads a batch file.
 pub fn read_batch(path: &Path) -> Result<Vec<Entry>, LlmError> {
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| bad(path, format!("cannot read the batch file: {e}")))?;
+    let text = crate::io::read_regular_text(path, MAX_BATCH_BYTES, "a batch file")
+        .map_err(|e| bad(path, format!("cannot read the batch file: {}", e.reason())))?;
     let v: serde_yaml::Value =
         serde_yaml::from_str(&text).map_err(|e| bad(path, format!("not YAML: {e}")))?;
     let base = path.parent().unwrap_or(Path::new("."));
@@ -256,6 +260,26 @@ pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<S
                         .map(|ev| ev.into_iter().map(|e| (e.behaviour, e.params)).collect())
                         .unwrap_or_default(),
                 };
+                // An agent the entry names that the scene lacks: every sample would fail its
+                // checker, and the pair would count as a failure of the loop, not of the file.
+                for (b, p) in &checks {
+                    for role in b.roles() {
+                        let Some(v) = p.get(role) else { continue };
+                        let present = matches!(v, crate::cost::ParamValue::Int(id)
+                            if scene.agents.iter().any(|a| a.id == *id));
+                        if !present {
+                            return Err(bad(
+                                &f,
+                                format!(
+                                    "entry on line {}: scene {id} has no agent {v} ({} {role}): \
+                                     name one of its agents, or give its scenes their own entry",
+                                    e.line,
+                                    b.name()
+                                ),
+                            ));
+                        }
+                    }
+                }
                 let label = match checks.as_slice() {
                     [] => "request".to_string(),
                     [(b, _)] => b.name().to_string(),
@@ -276,6 +300,21 @@ pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<S
         }
     }
     Ok((out, skipped))
+}
+
+/// A pair's label as a file name: a request of many events has a label of many behaviours
+/// (`off_road+off_road+...`), which as a name is too long for the file system (the error
+/// then quoted a path of 19 KB). A long label is cut and given the checksum of the whole, so
+/// that two labels never share a directory.
+fn path_label(label: &str) -> String {
+    if label.len() <= 80 {
+        return label.to_string();
+    }
+    let cut: String = label.chars().take(64).collect();
+    format!(
+        "{cut}~{:08x}",
+        crate::io::tfrecord::crc32c(label.as_bytes())
+    )
 }
 
 /// One finished instance, for the summary.
@@ -453,6 +492,15 @@ mod tests {
     use super::*;
 
     #[test]
+    fn long_labels_make_short_distinct_file_names() {
+        assert_eq!(path_label("cut_in+off_road"), "cut_in+off_road");
+        let a = path_label(&"off_road+".repeat(500));
+        let b = path_label(&format!("{}stop", "off_road+".repeat(500)));
+        assert!(a.len() <= 80 && b.len() <= 80, "{a} {b}");
+        assert_ne!(a, b);
+    }
+
+    #[test]
     fn batch_files_resolve_paths_fill_roles_and_name_bad_entries() {
         let dir = tempfile::tempdir().unwrap();
         let root = Path::new(env!("CARGO_MANIFEST_DIR"));
@@ -603,7 +651,7 @@ impl Batch<'_> {
         Ok(self
             .out
             .join("runs")
-            .join(format!("{k:03}_{}_{stem}", inst.label)))
+            .join(format!("{k:03}_{}_{stem}", path_label(&inst.label))))
     }
 
     /// Runs every pair in order, writing the summary after each. A pair whose run directory
@@ -618,6 +666,17 @@ impl Batch<'_> {
                 "a batch runs without a person: use the http or rules backend".into(),
             ));
         }
+        crate::io::create_output_dir(&self.out).map_err(|e| bad(&self.out, e.reason()))?;
+        // One process per batch (per shard: the shards of one batch share -o by design); the
+        // pairs' own run directories are locked too, should two overlap.
+        let _lock = super::rundir::lock_named(
+            &self.out,
+            &match self.shard {
+                Some(sh) => format!(".drivescript.batch-{}-of-{}.lock", sh.index, sh.count),
+                None => ".drivescript.batch.lock".to_string(),
+            },
+        )?;
+        self.check_outputs_are_ours()?;
         let mut results = Vec::new();
         for (k, inst) in self.instances.iter().enumerate() {
             if self
@@ -748,17 +807,52 @@ impl Batch<'_> {
         let stem = output_stem(&inst.scene.meta.scenario_id)
             .map_err(|e| bad(&inst.scene_path, e.to_string()))?;
         let from = session.dir().join(format!("round_{}", last.exchange));
-        let to = self.out.join("rollouts").join(&inst.label);
+        let to = self.out.join("rollouts").join(path_label(&inst.label));
         std::fs::create_dir_all(&to).map_err(|e| bad(&to, format!("cannot create it: {e}")))?;
         for sub in ["", "unguided"] {
             for i in 0.. {
                 let src = from.join(sub).join(format!("{stem}_{i}.json"));
-                let Ok(bytes) = std::fs::read(&src) else {
+                let Ok(bytes) =
+                    crate::io::read_regular(&src, crate::io::MAX_SCENE_BYTES, "a rollout file")
+                else {
                     break;
                 };
                 let dst = to.join(sub).join(format!("{stem}_{i}.json"));
                 write_atomic(&dst, &bytes).map_err(|e| bad(&dst, e.to_string()))?;
             }
+        }
+        Ok(())
+    }
+
+    /// Refuses an -o whose `summary.md` / `summary.json` a batch did not write (they would be
+    /// replaced), or whose `runs` / `rollouts` is a link (the batch would write through it).
+    fn check_outputs_are_ours(&self) -> Result<(), LlmError> {
+        let read = |name: &str| {
+            crate::io::read_regular_text(&self.out.join(name), MAX_BATCH_BYTES * 16, "a summary")
+        };
+        let theirs = |name: &str| {
+            bad(
+                &self.out.join(name),
+                "it is not a summary an `ask --batch` wrote, and a batch would replace it: move \
+                 it, or choose another -o"
+                    .into(),
+            )
+        };
+        if self.out.join("summary.md").exists()
+            && !read("summary.md").is_ok_and(|t| t.starts_with("# drivescript ask --batch"))
+        {
+            return Err(theirs("summary.md"));
+        }
+        if self.out.join("summary.json").exists()
+            && !read("summary.json")
+                .ok()
+                .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+                .is_some_and(|v| v.get("rows").is_some() && v.get("instances").is_some())
+        {
+            return Err(theirs("summary.json"));
+        }
+        for sub in ["runs", "rollouts"] {
+            super::rundir::check_not_link(&self.out.join(sub))?;
         }
         Ok(())
     }

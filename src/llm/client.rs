@@ -144,6 +144,10 @@ pub struct Exchange {
     pub latency: f64,
     /// Attempts that failed and were retried, each as `status: message (waited N s)`.
     pub retries: Vec<String>,
+    /// The server stopped the reply at the token limit (`finish_reason: "length"`): a script
+    /// in it may be cut off.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub truncated: bool,
 }
 
 /// A blocking chat-completions client.
@@ -200,7 +204,7 @@ impl HttpClient {
             }
             let resp = match req.send() {
                 Ok(r) => r,
-                Err(e) => return Err(transport_error(&e, &shown, &self.cfg)),
+                Err(e) => return Err(self.redact_error(transport_error(&e, &shown, &self.cfg))),
             };
             let status = resp.status().as_u16();
             let retry_after = resp
@@ -209,22 +213,22 @@ impl HttpClient {
                 .and_then(|v| v.to_str().ok())
                 .and_then(|v| v.trim().parse::<f64>().ok())
                 .filter(|s| s.is_finite() && *s >= 0.0);
-            let text = match resp.text() {
-                Ok(t) => t,
-                Err(e) => return Err(transport_error(&e, &shown, &self.cfg)),
-            };
+            let text = self.redact(&read_body(resp, &shown, &self.cfg)?);
             if (200..300).contains(&status) {
-                let (reply, usage) = parse_completion(&text, &shown)?;
+                let (reply, usage, truncated) =
+                    parse_completion(&text, &shown).map_err(|e| self.redact_error(e))?;
                 return Ok(Exchange {
                     url: shown,
                     request: body,
-                    reply,
+                    // Again after decoding: JSON escapes (`\u0073k-...`) hide it from the first.
+                    reply: self.redact(&reply),
                     usage,
                     latency: t0.elapsed().as_secs_f64(),
                     retries,
+                    truncated,
                 });
             }
-            let message = error_message(&text);
+            let message = self.redact(&error_message(&text));
             let retryable = status == 429 || (500..600).contains(&status);
             if !retryable {
                 return Err(match status {
@@ -273,6 +277,81 @@ impl HttpClient {
             wait = (wait * 2).min(Duration::from_secs(60));
         }
         unreachable!("the last attempt returns")
+    }
+}
+
+/// The most a reply body may hold: a completion is a few KB; an endless body (a broken or
+/// hostile server) must end in an error, not fill memory until the process aborts.
+pub const MAX_REPLY_BYTES: u64 = 16 << 20;
+
+/// Reads a reply body within [`MAX_REPLY_BYTES`] (invalid UTF-8 replaced, as `text()` does).
+fn read_body(
+    resp: reqwest::blocking::Response,
+    url: &str,
+    cfg: &HttpConfig,
+) -> Result<String, LlmError> {
+    use std::io::Read;
+    let mut buf = Vec::new();
+    if let Err(e) = resp.take(MAX_REPLY_BYTES + 1).read_to_end(&mut buf) {
+        return Err(
+            if e.kind() == std::io::ErrorKind::TimedOut || e.to_string().contains("timed out") {
+                LlmError::Timeout {
+                    url: url.into(),
+                    seconds: cfg.read_timeout.as_secs_f64(),
+                    connecting: false,
+                }
+            } else {
+                LlmError::Transport {
+                    url: url.into(),
+                    message: format!("reading the reply: {e}"),
+                }
+            },
+        );
+    }
+    if buf.len() as u64 > MAX_REPLY_BYTES {
+        return Err(LlmError::BadReply {
+            url: url.into(),
+            message: format!(
+                "the reply is larger than {} MB: no completion is; the server is broken or \
+                 not an LLM server",
+                MAX_REPLY_BYTES >> 20
+            ),
+        });
+    }
+    Ok(String::from_utf8_lossy(&buf).into_owned())
+}
+
+/// `text` with every occurrence of `key` replaced by `[redacted]`. Keys shorter than 8 bytes
+/// are left alone: no real key is that short, and replacing a common word everywhere would
+/// garble replies.
+pub fn redact_key(text: &str, key: Option<&str>) -> String {
+    match key.map(str::trim) {
+        Some(k) if k.len() >= 8 && text.contains(k) => text.replace(k, "[redacted]"),
+        _ => text.to_string(),
+    }
+}
+
+impl HttpClient {
+    /// Everything the server sends passes here before anyone else sees it: a server that
+    /// echoes the `Authorization` header (in an error body, or quoted in a completion) must not
+    /// get the key onto the terminal or into the run directory's files.
+    fn redact(&self, text: &str) -> String {
+        redact_key(text, self.cfg.key.as_deref())
+    }
+
+    fn redact_error(&self, e: LlmError) -> LlmError {
+        let r = |m: String| self.redact(&m);
+        match e {
+            LlmError::BadReply { url, message } => LlmError::BadReply {
+                url,
+                message: r(message),
+            },
+            LlmError::Transport { url, message } => LlmError::Transport {
+                url,
+                message: r(message),
+            },
+            other => other,
+        }
     }
 }
 
@@ -345,8 +424,9 @@ pub fn error_message(body: &str) -> String {
     }
 }
 
-/// The first choice's text and the usage of a successful reply body.
-fn parse_completion(text: &str, url: &str) -> Result<(String, Option<Usage>), LlmError> {
+/// The first choice's text, the usage and whether the token limit cut it off, of a successful
+/// reply body.
+fn parse_completion(text: &str, url: &str) -> Result<(String, Option<Usage>, bool), LlmError> {
     let bad = |why: String| LlmError::BadReply {
         url: url.into(),
         message: why,
@@ -381,12 +461,24 @@ fn parse_completion(text: &str, url: &str) -> Result<(String, Option<Usage>), Ll
     let usage = v
         .get("usage")
         .and_then(|u| serde_json::from_value::<Usage>(u.clone()).ok());
-    Ok((content, usage))
+    let truncated = first["finish_reason"].as_str() == Some("length");
+    Ok((content, usage, truncated))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_key_is_redacted_wherever_it_appears_but_short_keys_do_not_garble_text() {
+        let k = Some("sk-abcdef123");
+        assert_eq!(
+            redact_key("Bearer sk-abcdef123 and sk-abcdef123", k),
+            "Bearer [redacted] and [redacted]"
+        );
+        assert_eq!(redact_key("the cutter", Some("the")), "the cutter");
+        assert_eq!(redact_key("no key", None), "no key");
+    }
 
     #[test]
     fn error_bodies_in_every_shape_become_one_line() {
@@ -415,7 +507,8 @@ mod tests {
     #[test]
     fn completions_parse_and_bad_replies_say_why() {
         let ok = r#"{"choices":[{"message":{"role":"assistant","content":"hi"}}],"usage":{"prompt_tokens":5,"completion_tokens":2,"total_tokens":7}}"#;
-        let (c, u) = parse_completion(ok, "u").unwrap();
+        let (c, u, cut) = parse_completion(ok, "u").unwrap();
+        assert!(!cut);
         assert_eq!(
             (c.as_str(), u),
             (

@@ -17,6 +17,7 @@ pub mod feedback;
 pub mod prompt;
 pub mod reply;
 pub mod rules;
+pub mod rundir;
 pub mod session;
 
 use std::path::PathBuf;
@@ -116,6 +117,15 @@ pub enum LlmError {
     /// The rules planner cannot plan the request.
     #[error(transparent)]
     Rules(#[from] rules::RulesError),
+    /// A file or directory the loop reads or writes, other than a run directory (a batch
+    /// file, a scene, a batch's output directory) is unusable.
+    #[error("{}: {message}", path.display())]
+    Input {
+        /// The file or directory.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
     /// The run directory is missing something or cannot be written.
     #[error("run directory {}: {message}", dir.display())]
     Run {

@@ -57,6 +57,32 @@ pub struct Prompts {
 }
 
 /// Each template and the placeholders it may use.
+/// Refuses an example the model would learn a wrong script from: one without exactly one
+/// ```rhai block (a file that is no example at all, `/etc/passwd` linked in, say), or whose
+/// script does not compile (syntax, imports, limits; on no particular scene).
+fn check_example(path: &Path, text: &str) -> Result<(), LlmError> {
+    let bad = |message: String| LlmError::Prompt {
+        path: path.to_path_buf(),
+        message,
+    };
+    match super::reply::parse_reply(text) {
+        Ok(super::reply::Reply::Script { source, .. }) => crate::cost::CostScript::check_syntax(
+            &source,
+            &path.display().to_string(),
+            &crate::cost::Limits::default(),
+        )
+        .map_err(|e| bad(format!("its script does not compile: {e}"))),
+        Ok(super::reply::Reply::Accept { .. }) => Err(bad(
+            "an example must show a script in one ```rhai block; this one has none".into(),
+        )),
+        Err(e) => Err(bad(format!("not a worked example: {e}"))),
+    }
+}
+
+/// The most a prompt template or example may hold: the system prompt is a few KB, and every
+/// template goes to the model with each request.
+pub const MAX_TEMPLATE_BYTES: u64 = 256 << 10;
+
 const FILES: &[(&str, &[&str])] = &[
     ("system.md", &["reasoning", "examples", "reference"]),
     ("chain_of_thought.md", &[]),
@@ -86,10 +112,11 @@ impl Prompts {
     pub fn load(dir: &Path) -> Result<Self, LlmError> {
         let read = |name: &str, allowed: &[&str]| -> Result<String, LlmError> {
             let p = dir.join(name);
-            let text = std::fs::read_to_string(&p).map_err(|e| LlmError::Prompt {
-                path: p.clone(),
-                message: format!("cannot read it: {e}"),
-            })?;
+            let text = crate::io::read_regular_text(&p, MAX_TEMPLATE_BYTES, "a prompt template")
+                .map_err(|e| LlmError::Prompt {
+                    path: p.clone(),
+                    message: format!("cannot read it: {}", e.reason()),
+                })?;
             check_placeholders(&text, allowed).map_err(|message| LlmError::Prompt {
                 path: p.clone(),
                 message,
@@ -118,7 +145,9 @@ impl Prompts {
                     .unwrap_or_default()
                     .to_string_lossy()
                     .into_owned();
-                examples.push((name.clone(), read(&format!("examples/{name}"), &[])?));
+                let text = read(&format!("examples/{name}"), &[])?;
+                check_example(&p, &text)?;
+                examples.push((name.clone(), text));
             }
         }
         let mut it = got.into_iter();
@@ -351,6 +380,30 @@ mod tests {
             if name == "cut_in.md" {
                 c.validate().unwrap_or_else(|e| panic!("{name}: {e}"));
             }
+        }
+    }
+
+    #[test]
+    fn examples_that_do_not_compile_or_are_no_examples_are_refused() {
+        let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("prompts");
+        for (text, want) in [
+            (
+                "## Example\n\n```rhai\nterm(\"x\", agent(1).x.last() - );\n```\n",
+                "its script does not compile",
+            ),
+            (
+                "root:x:0:0:root:/root:/bin/bash\n",
+                "not a worked example: the reply has no ```rhai code block",
+            ),
+        ] {
+            let dir = tempfile::tempdir().unwrap();
+            for (name, _) in FILES {
+                std::fs::copy(src.join(name), dir.path().join(name)).unwrap();
+            }
+            std::fs::create_dir(dir.path().join("examples")).unwrap();
+            std::fs::write(dir.path().join("examples/bad.md"), text).unwrap();
+            let e = Prompts::load(dir.path()).unwrap_err().to_string();
+            assert!(e.contains("examples/bad.md") && e.contains(want), "{e}");
         }
     }
 

@@ -203,6 +203,10 @@ pub struct RoundRecord {
 struct State {
     version: u32,
     scene: PathBuf,
+    /// CRC-32C of the scene file when the run started (absent for a scene directory, and in
+    /// runs written before it was kept): `--resume` refuses a scene that changed since.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    scene_crc32c: Option<u32>,
     requests: Vec<String>,
     backend: String,
     model: Option<String>,
@@ -259,6 +263,25 @@ pub struct Session<'a> {
     trained: &'a Trained,
     raw: Scene,
     transcript: Vec<Record>,
+    /// Held while the session lives: every way into a run directory takes it.
+    _lock: Option<super::rundir::RunLock>,
+}
+
+/// The most a file of a run directory that drivescript reads back may hold (`state.json`
+/// keeps every message of the run: a few hundred KB after many rounds).
+pub const MAX_RUN_FILE_BYTES: u64 = 64 << 20;
+
+/// Reads back a text file of a run directory: a planted FIFO or device must not hang `--resume`.
+fn read_run_file(path: &Path) -> Result<String, crate::io::IoError> {
+    crate::io::read_regular_text(path, MAX_RUN_FILE_BYTES, "a run directory's file")
+}
+
+/// CRC-32C of a scene file (`None` for a directory, or a file that cannot be read: reading
+/// the scene reports that).
+fn scene_fingerprint(path: &Path) -> Option<u32> {
+    crate::io::read_regular(path, crate::io::MAX_SCENE_BYTES, "a scene file")
+        .ok()
+        .map(|b| crate::io::tfrecord::crc32c(&b))
 }
 
 fn run_err(dir: &Path, message: impl Into<String>) -> LlmError {
@@ -269,12 +292,18 @@ fn run_err(dir: &Path, message: impl Into<String>) -> LlmError {
 }
 
 fn write(dir: &Path, name: &str, text: &str) -> Result<(), LlmError> {
+    write_bytes(dir, name, text.as_bytes())
+}
+
+/// Writes a file of the run, never through a link planted in its place.
+fn write_bytes(dir: &Path, name: &str, bytes: &[u8]) -> Result<(), LlmError> {
     let p = dir.join(name);
     if let Some(parent) = p.parent() {
         std::fs::create_dir_all(parent)
             .map_err(|e| run_err(parent, format!("cannot create it: {e}")))?;
     }
-    write_atomic(&p, text.as_bytes()).map_err(|e| run_err(dir, e.to_string()))
+    super::rundir::check_not_link(&p)?;
+    write_atomic(&p, bytes).map_err(|e| run_err(dir, e.to_string()))
 }
 
 /// The checkers of `requests` that the rules planner recognises (none when it does not).
@@ -312,7 +341,17 @@ impl<'a> Session<'a> {
         // Refused before anything is asked: the rollouts are named after the scenario.
         output_stem(&raw.meta.scenario_id).map_err(|e| run_err(scene_path, e.to_string()))?;
         config.validate()?;
-        std::fs::create_dir_all(dir).map_err(|e| run_err(dir, format!("cannot create it: {e}")))?;
+        crate::io::create_output_dir(dir).map_err(|e| run_err(dir, e.reason()))?;
+        let lock = super::rundir::lock(dir)?;
+        // Checked again under the lock: another `ask` may have started here meanwhile.
+        if dir.join("state.json").exists() {
+            return Err(run_err(
+                dir,
+                "it already holds a run (state.json): continue it with --resume, revise it with \
+                 --continue, or choose another -o",
+            ));
+        }
+        super::rundir::check_fresh(dir)?;
         let requests = vec![request.trim().to_string()];
         if let Backend::Rules = backend {
             // Fails early, with the message that says an LLM is needed.
@@ -331,6 +370,7 @@ impl<'a> Session<'a> {
             state: State {
                 version: STATE_VERSION,
                 scene: scene_path.to_path_buf(),
+                scene_crc32c: scene_fingerprint(scene_path),
                 requests,
                 backend: backend.name().into(),
                 model,
@@ -362,6 +402,7 @@ impl<'a> Session<'a> {
             trained,
             raw,
             transcript: Vec::new(),
+            _lock: Some(lock),
         };
         s.state.messages = first_messages(
             &s.prompts,
@@ -381,11 +422,17 @@ impl<'a> Session<'a> {
         backend: impl FnOnce(&str, Option<&str>, Option<&str>) -> Result<Backend, LlmError>,
         load: impl FnOnce(&Path) -> Result<Scene, LlmError>,
     ) -> Result<Self, LlmError> {
+        // Taken before state.json is read: a run still going there would go on writing it.
+        let lock = if dir.is_dir() {
+            Some(super::rundir::lock(dir)?)
+        } else {
+            None
+        };
         let p = dir.join("state.json");
-        let text = std::fs::read_to_string(&p).map_err(|e| {
+        let text = read_run_file(&p).map_err(|e| {
             run_err(
                 dir,
-                format!("no run to resume here: cannot read state.json ({e}); start one with `drivescript ask SCENE \"request\" -o DIR`"),
+                format!("no run to resume here: cannot read state.json ({}); start one with `drivescript ask SCENE \"request\" -o DIR`", e.reason()),
             )
         })?;
         let state: State = serde_json::from_str(&text)
@@ -399,10 +446,22 @@ impl<'a> Session<'a> {
                 ),
             ));
         }
+        if let Some(was) = state.scene_crc32c {
+            if scene_fingerprint(&state.scene) != Some(was) {
+                return Err(run_err(
+                    dir,
+                    format!(
+                        "the scene {} changed (or went) since the run started: its rounds were \
+                         asked, sampled and judged on the old one; start a new run on it",
+                        state.scene.display()
+                    ),
+                ));
+            }
+        }
         let prompts = Prompts::load(&state.prompts)?;
         let backend = backend(&state.backend, state.model.as_deref(), state.url.as_deref())?;
         let raw = load(&state.scene)?;
-        let transcript = std::fs::read_to_string(dir.join("transcript.json"))
+        let transcript = read_run_file(&dir.join("transcript.json"))
             .ok()
             .and_then(|t| serde_json::from_str::<Value>(&t).ok())
             .and_then(|v| serde_json::from_value(v["records"].clone()).ok())
@@ -415,6 +474,7 @@ impl<'a> Session<'a> {
             trained,
             raw,
             transcript,
+            _lock: lock,
         })
     }
 
@@ -485,11 +545,14 @@ impl<'a> Session<'a> {
         let tokens = llm
             .iter()
             .filter_map(|r| r.detail.as_ref())
+            // A hostile or broken server's counts must not wrap around into small ones.
             .map(|d| {
-                d["usage"]["prompt_tokens"].as_u64().unwrap_or(0)
-                    + d["usage"]["completion_tokens"].as_u64().unwrap_or(0)
+                d["usage"]["prompt_tokens"]
+                    .as_u64()
+                    .unwrap_or(0)
+                    .saturating_add(d["usage"]["completion_tokens"].as_u64().unwrap_or(0))
             })
-            .sum();
+            .fold(0u64, u64::saturating_add);
         (llm.len(), tokens)
     }
 
@@ -559,7 +622,9 @@ impl<'a> Session<'a> {
                 return Ok(o.clone());
             }
             let n = self.state.exchange;
-            let rdir = self.dir.join(format!("round_{n}"));
+            // A `round_N` link planted in the run directory must not take its files elsewhere.
+            let rdir = super::rundir::own_subdir(&self.dir, &format!("round_{n}"))?;
+            super::rundir::check_not_link(&rdir.join("unguided"))?;
             let last_user = self
                 .state
                 .messages
@@ -585,7 +650,7 @@ impl<'a> Session<'a> {
             // that reply: the model is not asked, or paid, twice for one round.
             let received = match self.backend {
                 Backend::Manual => None,
-                _ => std::fs::read_to_string(rdir.join("reply.md"))
+                _ => read_run_file(&rdir.join("reply.md"))
                     .ok()
                     .filter(|t| !t.trim().is_empty()),
             };
@@ -622,7 +687,17 @@ impl<'a> Session<'a> {
             self.state.exchange = n + 1;
             match parse_reply(&reply) {
                 Err(e) => {
-                    progress(&format!("round {n}: unusable reply: {e}"));
+                    // A reply the token limit cut off is unusable for that reason, which the
+                    // user (not the model) can fix.
+                    let cut = match &self.backend {
+                        Backend::Http(c) if self.last_reply_truncated(n) => format!(
+                            " (the reply was cut off at the token limit, --max-tokens {}: \
+                             raise --max-tokens)",
+                            c.config().max_tokens
+                        ),
+                        _ => String::new(),
+                    };
+                    progress(&format!("round {n}: unusable reply: {e}{cut}"));
                     let msg = self.prompts.unusable(&e.to_string());
                     if let Some(o) = self.miss(msg)? {
                         return self.finish(o, progress);
@@ -706,6 +781,16 @@ impl<'a> Session<'a> {
         }
     }
 
+    /// Whether exchange `n`'s reply was stopped by the token limit, as its record says.
+    fn last_reply_truncated(&self, n: usize) -> bool {
+        self.transcript
+            .iter()
+            .rev()
+            .find(|r| r.round == n && r.phase == "llm")
+            .and_then(|r| r.detail.as_ref())
+            .is_some_and(|d| d["truncated"] == true)
+    }
+
     /// An unusable exchange: the message goes back, or the run gives up after too many.
     fn miss(&mut self, msg: String) -> Result<Option<Outcome>, LlmError> {
         self.state.misses += 1;
@@ -772,7 +857,7 @@ impl<'a> Session<'a> {
             },
         )
         .map_err(|e| run_err(rdir, format!("rendering sample.gif: {e}")))?;
-        write_atomic(&rdir.join("sample.gif"), &gif).map_err(|e| run_err(rdir, e.to_string()))?;
+        write_bytes(rdir, "sample.gif", &gif)?;
         progress(&format!(
             "round {n}: {} samples in {:.1} s; terms (unweighted) over the samples:\n{}",
             done.report.samples.len(),
@@ -884,9 +969,10 @@ impl<'a> Session<'a> {
         if let Some((round, script)) = &self.state.script {
             write(&self.dir, "final.rhai", script)?;
             let from = self.dir.join(format!("round_{round}"));
-            if let Ok(bytes) = std::fs::read(from.join("sample.gif")) {
-                write_atomic(&self.dir.join("final.gif"), &bytes)
-                    .map_err(|e| run_err(&self.dir, e.to_string()))?;
+            if let Ok(bytes) =
+                crate::io::read_regular(&from.join("sample.gif"), MAX_RUN_FILE_BYTES, "a picture")
+            {
+                write_bytes(&self.dir, "final.gif", &bytes)?;
             }
             report.push_str(&format!(
                 "\nFinal script: final.rhai (round {round}); picture: final.gif; rollouts and costs: {}.\n",
@@ -1060,13 +1146,20 @@ impl Session<'_> {
                     format!(" after {} retries", ex.retries.len())
                 }
             ));
+            if ex.truncated {
+                progress(&format!(
+                    "round {n}: the reply was cut off at the token limit (--max-tokens {}); \
+                     raise --max-tokens if its script is incomplete",
+                    c.config().max_tokens
+                ));
+            }
             let reply = ex.reply.clone();
             let detail = serde_json::to_value(&ex).expect("exchange serialises");
             self.record(n, "llm", t0, Some(detail));
             return Ok(Got::Text(reply));
         }
         if let Backend::Manual = self.backend {
-            return Ok(match std::fs::read_to_string(rdir.join("reply.md")) {
+            return Ok(match read_run_file(&rdir.join("reply.md")) {
                 Ok(t) if !t.trim().is_empty() => {
                     self.record(n, "manual reply read", t0, None);
                     Got::Text(t)
