@@ -1255,6 +1255,24 @@ fn fifos_and_devices_are_refused_wherever_a_file_is_read() {
         ],
         "f.rhai",
     );
+    // A checkpoint whose config or weights are FIFOs.
+    for name in ["config.json", "model.safetensors"] {
+        let ck = dir.path().join(format!("ck-{name}"));
+        std::fs::create_dir(&ck).unwrap();
+        for f in ["config.json", "model.safetensors"] {
+            let p = ck.join(f);
+            if f == name {
+                assert!(mkfifo(&p));
+            } else {
+                std::fs::copy(Path::new("data/checkpoint").join(f), &p).unwrap();
+            }
+        }
+        let out = dir.path().join(format!("sim-{name}"));
+        refused(
+            &["simulate", s(&scene), "--checkpoint", s(&ck), "-o", s(&out)],
+            name,
+        );
+    }
     let zero = dir.path().join("zero.rhai");
     std::os::unix::fs::symlink("/dev/zero", &zero).unwrap();
     refused(&["cost", s(&scene), "--script", s(&zero)], "zero.rhai");

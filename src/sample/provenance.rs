@@ -89,9 +89,12 @@ pub enum ProvenanceError {
 
 /// CRC-32C of a file's bytes, as 8 hex digits.
 pub fn file_crc32c(path: &Path) -> Result<String, ProvenanceError> {
-    let bytes = std::fs::read(path).map_err(|e| ProvenanceError::Io {
-        path: path.display().to_string(),
-        message: e.to_string(),
+    // A checkpoint's weights: regular files only (a FIFO would wait forever).
+    let bytes = crate::io::read_regular(path, 4 << 30, "checkpoint weights").map_err(|e| {
+        ProvenanceError::Io {
+            path: path.display().to_string(),
+            message: e.to_string(),
+        }
     })?;
     Ok(text_crc32c(&bytes))
 }

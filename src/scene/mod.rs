@@ -86,7 +86,7 @@ pub enum SceneError {
         width: f64,
     },
     /// The time step must be positive and finite.
-    #[error("time step dt = {0} must be positive and finite")]
+    #[error("time step dt = {} must be positive and finite", num(*.0))]
     BadDt(f64),
     /// Recorded data's time step is outside [`RECORDED_DT`].
     #[error("time step dt = {} s is implausible for recorded traffic (0.001 to 10 s)", num(*.0))]

@@ -694,6 +694,11 @@ pub fn save(
     Ok(())
 }
 
+/// The largest checkpoint config read: the shipped one is 53 KB (its PCA basis and history).
+const MAX_CONFIG_BYTES: u64 = 16 << 20;
+/// The largest weights file read: 1024-wide, 32-layer models stay below it.
+const MAX_WEIGHTS_BYTES: u64 = 4 << 30;
+
 /// Reads a checkpoint written by [`save`].
 pub fn load(dir: &Path) -> Result<Trained, TrainError> {
     let io = |path: &Path, e: String| TrainError::Io {
@@ -701,7 +706,10 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
         message: e,
     };
     let cfg_path = dir.join("config.json");
-    let text = std::fs::read_to_string(&cfg_path).map_err(|e| io(&cfg_path, e.to_string()))?;
+    // Only regular files, each within a cap: a FIFO named config.json waited for a writer
+    // forever, and a device read without end.
+    let text = crate::io::read_regular_text(&cfg_path, MAX_CONFIG_BYTES, "checkpoint config")
+        .map_err(|e| io(&cfg_path, e.to_string()))?;
     let meta: CheckpointMeta = serde_json::from_str(&text).map_err(|e| {
         io(
             &cfg_path,
@@ -727,9 +735,13 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
     let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
     let model = Denoiser::new(meta.config.model, meta.config.edm, vb)?;
     let w = dir.join("model.safetensors");
+    crate::io::open_regular(&w, MAX_WEIGHTS_BYTES, "checkpoint weights")
+        .map_err(|e| io(&w, e.to_string()))?;
     varmap.load(&w).map_err(|e| io(&w, e.to_string()))?;
     let opt_path = dir.join(OPTIMIZER_FILE);
     let optimizer = if opt_path.exists() {
+        crate::io::open_regular(&opt_path, 2 * MAX_WEIGHTS_BYTES, "optimiser state")
+            .map_err(|e| io(&opt_path, e.to_string()))?;
         let mut opt = AdamW::new(&varmap, meta.config.lr, WEIGHT_DECAY);
         opt.load(&opt_path)
             .map_err(|e| io(&opt_path, e.to_string()))?;
