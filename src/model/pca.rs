@@ -180,17 +180,21 @@ impl Pca {
 mod tests {
     use super::*;
 
-    #[test]
-    fn recovers_a_low_rank_family_exactly() {
-        // Straight lines at different speeds and lateral drifts: rank 2 plus the mean.
-        let samples: Vec<Vec<f64>> = (0..50)
+    /// Straight lines at different speeds and lateral drifts: rank 2 plus the mean.
+    fn lines() -> Vec<Vec<f64>> {
+        (0..50)
             .map(|i| {
                 let (v, drift) = (5.0 + i as f64 * 0.3, (i % 7) as f64 * 0.1 - 0.3);
                 (1..=10)
                     .flat_map(|t| [v * t as f64 * 0.1, drift * t as f64 * 0.1, 0.0])
                     .collect()
             })
-            .collect();
+            .collect()
+    }
+
+    #[test]
+    fn recovers_a_low_rank_family_exactly() {
+        let samples = lines();
         let p = Pca::fit(&samples, 2).unwrap();
         assert_eq!((p.k(), p.dim), (2, 30));
         assert!(p.position_rmse(&samples) < 1e-9);
@@ -204,14 +208,7 @@ mod tests {
 
     #[test]
     fn a_future_seen_in_part_is_completed_from_what_is_seen() {
-        let samples: Vec<Vec<f64>> = (0..50)
-            .map(|i| {
-                let (v, drift) = (5.0 + i as f64 * 0.3, (i % 7) as f64 * 0.1 - 0.3);
-                (1..=10)
-                    .flat_map(|t| [v * t as f64 * 0.1, drift * t as f64 * 0.1, 0.0])
-                    .collect()
-            })
-            .collect();
+        let samples = lines();
         let p = Pca::fit(&samples, 2).unwrap();
         let s = &samples[17];
         let all = vec![true; 10];

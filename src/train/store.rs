@@ -26,15 +26,43 @@ pub trait WindowSource {
     fn train_window(&self, i: usize) -> Result<Window, TrainError>;
     /// Validation window `i`.
     fn val_window(&self, i: usize) -> Result<Window, TrainError>;
+    /// Which scenes were cut, and what the training windows hold.
+    fn summary(&self) -> &Summary;
     /// Complete residual futures of the training windows' moving agents (all of them, or a
     /// uniform sample of at most [`PCA_SAMPLE`]): what the PCA basis is fitted on.
-    fn futures(&self) -> &[Vec<f64>];
+    fn futures(&self) -> &[Vec<f64>] {
+        &self.summary().tally.futures
+    }
     /// Ids of the scenes that gave training windows.
-    fn train_scenes(&self) -> Vec<String>;
+    fn train_scenes(&self) -> Vec<String> {
+        self.summary().train_ids.clone()
+    }
     /// Ids of the scenes that gave validation windows.
-    fn val_scenes(&self) -> Vec<String>;
+    fn val_scenes(&self) -> Vec<String> {
+        self.summary().val_ids.clone()
+    }
     /// Agents with a future to learn from in the training windows, per type.
-    fn type_counts(&self) -> BTreeMap<AgentType, usize>;
+    fn type_counts(&self) -> BTreeMap<AgentType, usize> {
+        self.summary().tally.types.clone()
+    }
+}
+
+/// What every [`WindowSource`] knows besides its windows: the scenes on each side of the
+/// split, and the training windows' futures and agent types.
+pub struct Summary {
+    train_ids: Vec<String>,
+    val_ids: Vec<String>,
+    tally: Tally,
+}
+
+impl Summary {
+    fn new() -> Self {
+        Self {
+            train_ids: Vec::new(),
+            val_ids: Vec::new(),
+            tally: Tally::new(),
+        }
+    }
 }
 
 /// How a corpus is split into training and validation.
@@ -129,9 +157,7 @@ impl Tally {
 pub struct SceneWindows {
     train: Vec<Window>,
     val: Vec<Window>,
-    train_ids: Vec<String>,
-    val_ids: Vec<String>,
-    tally: Tally,
+    summary: Summary,
 }
 
 impl SceneWindows {
@@ -140,9 +166,7 @@ impl SceneWindows {
         let mut out = Self {
             train: Vec::new(),
             val: Vec::new(),
-            train_ids: Vec::new(),
-            val_ids: Vec::new(),
-            tally: Tally::new(),
+            summary: Summary::new(),
         };
         for s in scenes {
             let w = windows(s, cfg);
@@ -151,12 +175,12 @@ impl SceneWindows {
             }
             let id = s.meta.scenario_id.clone();
             if is_validation(&id, fold) {
-                out.val_ids.push(id);
+                out.summary.val_ids.push(id);
                 out.val.extend(w);
             } else {
-                out.train_ids.push(id);
+                out.summary.train_ids.push(id);
                 for x in &w {
-                    out.tally.add(x, cfg);
+                    out.summary.tally.add(x, cfg);
                 }
                 out.train.extend(w);
             }
@@ -178,17 +202,8 @@ impl WindowSource for SceneWindows {
     fn val_window(&self, i: usize) -> Result<Window, TrainError> {
         Ok(self.val[i].clone())
     }
-    fn futures(&self) -> &[Vec<f64>] {
-        &self.tally.futures
-    }
-    fn train_scenes(&self) -> Vec<String> {
-        self.train_ids.clone()
-    }
-    fn val_scenes(&self) -> Vec<String> {
-        self.val_ids.clone()
-    }
-    fn type_counts(&self) -> BTreeMap<AgentType, usize> {
-        self.tally.types.clone()
+    fn summary(&self) -> &Summary {
+        &self.summary
     }
 }
 
@@ -201,9 +216,7 @@ pub struct WindowStore {
     cfg: WindowConfig,
     train: Part,
     val: Part,
-    train_ids: Vec<String>,
-    val_ids: Vec<String>,
-    tally: Tally,
+    summary: Summary,
 }
 
 /// One file of windows and where each starts.
@@ -278,8 +291,7 @@ impl WindowStore {
         let (vp, mut vw) = open("val.windows")?;
         let mut toff = vec![MAGIC.len() as u64];
         let mut voff = vec![MAGIC.len() as u64];
-        let (mut train_ids, mut val_ids) = (Vec::new(), Vec::new());
-        let mut tally = Tally::new();
+        let mut summary = Summary::new();
         let (mut read, mut cut) = (0usize, 0usize);
         let opts = crate::io::LoadOptions::default();
         for c in corpora {
@@ -298,15 +310,15 @@ impl WindowStore {
                     let id = s.meta.scenario_id.clone();
                     let val = holdout.validates(&id, c.split);
                     let (path, out, offs) = if val {
-                        val_ids.push(id);
+                        summary.val_ids.push(id);
                         (&vp, &mut vw, &mut voff)
                     } else {
-                        train_ids.push(id);
+                        summary.train_ids.push(id);
                         (&tp, &mut tw, &mut toff)
                     };
                     for w in &ws {
                         if !val {
-                            tally.add(w, cfg);
+                            summary.tally.add(w, cfg);
                         }
                         let bytes = encode(w, cfg);
                         out.write_all(&bytes)
@@ -338,9 +350,7 @@ impl WindowStore {
             cfg: *cfg,
             train: part(tp, toff)?,
             val: part(vp, voff)?,
-            train_ids,
-            val_ids,
-            tally,
+            summary,
         })
     }
 }
@@ -358,17 +368,8 @@ impl WindowSource for WindowStore {
     fn val_window(&self, i: usize) -> Result<Window, TrainError> {
         self.val.get(i, &self.cfg)
     }
-    fn futures(&self) -> &[Vec<f64>] {
-        &self.tally.futures
-    }
-    fn train_scenes(&self) -> Vec<String> {
-        self.train_ids.clone()
-    }
-    fn val_scenes(&self) -> Vec<String> {
-        self.val_ids.clone()
-    }
-    fn type_counts(&self) -> BTreeMap<AgentType, usize> {
-        self.tally.types.clone()
+    fn summary(&self) -> &Summary {
+        &self.summary
     }
 }
 
