@@ -507,8 +507,24 @@ mod tests {
     use super::*;
     use crate::io::{load_scene, LoadOptions};
 
-    fn scenes_dir() -> PathBuf {
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes")
+    /// The cut-in highway as a corpus split by scene, its scene and its validation fold.
+    fn cut_in() -> ([Corpus; 1], Scene, u64) {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes/highway_cut_in.yaml");
+        let scene = load_scene(&path, 0, &LoadOptions::default()).unwrap();
+        let fold = super::super::trainer::val_fold(&scene.meta.scenario_id);
+        let corpus = [Corpus {
+            path,
+            split: SplitBy::Scene,
+        }];
+        (corpus, scene, fold)
+    }
+
+    fn store(corpus: &[Corpus], cfg: &WindowConfig, fold: u64, dir: &Path) -> WindowStore {
+        let holdout = Holdout {
+            fold,
+            towns: vec![],
+        };
+        WindowStore::build(corpus, cfg, &holdout, dir, |_, _| ()).unwrap()
     }
 
     #[test]
@@ -520,29 +536,10 @@ mod tests {
             ..WindowConfig::ngsim()
         };
         let dir = tempfile::tempdir().unwrap();
-        let corpus = [Corpus {
-            path: scenes_dir().join("highway_cut_in.yaml"),
-            split: SplitBy::Scene,
-        }];
+        let (corpus, scene, fold) = cut_in();
         // Fold of the scene, so that it validates, then another, so that it trains.
-        let id = load_scene(&corpus[0].path, 0, &LoadOptions::default())
-            .unwrap()
-            .meta
-            .scenario_id;
-        let fold = super::super::trainer::val_fold(&id);
         for (f, val) in [(fold, true), ((fold + 1) % 10, false)] {
-            let store = WindowStore::build(
-                &corpus,
-                &cfg,
-                &Holdout {
-                    fold: f,
-                    towns: vec![],
-                },
-                dir.path(),
-                |_, _| (),
-            )
-            .unwrap();
-            let scene = load_scene(&corpus[0].path, 0, &LoadOptions::default()).unwrap();
+            let store = store(&corpus, &cfg, f, dir.path());
             let cut = windows(&scene, &cfg);
             assert!(!cut.is_empty());
             let (n, get): (usize, Box<dyn Fn(usize) -> Window>) = if val {
@@ -566,26 +563,9 @@ mod tests {
     fn a_damaged_window_file_is_an_error_naming_it() {
         let cfg = WindowConfig::cities();
         let dir = tempfile::tempdir().unwrap();
-        let corpus = [Corpus {
-            path: scenes_dir().join("highway_cut_in.yaml"),
-            split: SplitBy::Scene,
-        }];
-        let id = load_scene(&corpus[0].path, 0, &LoadOptions::default())
-            .unwrap()
-            .meta
-            .scenario_id;
-        let fold = (super::super::trainer::val_fold(&id) + 1) % 10;
-        let store = WindowStore::build(
-            &corpus,
-            &cfg,
-            &Holdout {
-                fold,
-                towns: vec![],
-            },
-            dir.path(),
-            |_, _| (),
-        )
-        .unwrap();
+        let (corpus, _, fold) = cut_in();
+        // Another fold, so that the scene trains.
+        let store = store(&corpus, &cfg, (fold + 1) % 10, dir.path());
         let path = dir.path().join("train.windows");
         let len = std::fs::metadata(&path).unwrap().len();
         std::fs::OpenOptions::new()
