@@ -47,8 +47,8 @@ pub struct Batch {
     /// 1 for each observed `(x, y, heading)` coordinate of each agent's future: the loss is
     /// taken over these only.
     pub seen: Tensor,
-    /// The PCA components, `[K, 3·future]`: normalised coefficients times these are the
-    /// future in the normaliser's common scale.
+    /// The loss basis, `[K, 3·future]` ([`Normaliser::loss_basis`]): normalised coefficients
+    /// times these are the future in the normaliser's loss scale.
     pub basis: Tensor,
 }
 
@@ -65,26 +65,61 @@ const SEEN_NOISE: f64 = 0.05;
 pub struct Normaliser {
     /// The basis.
     pub pca: Pca,
-    /// Scale of each coefficient (one common value: see [`Normaliser::new`]).
+    /// Scale of each coefficient ([`Normaliser::new`]; older checkpoints hold one common value).
     pub std: Vec<f64>,
     /// Target standard deviation (EDM's σ_data).
     pub sigma_data: f64,
 }
 
 impl Normaliser {
-    /// From a fitted basis. Every component gets the same scale, the root mean variance over
-    /// components: scaling each to unit variance would blow the smallest components (tracking
-    /// jitter, or round-off on synthetic data) up to the size of the speed component, and the
-    /// loss would then be dominated by what cannot be predicted. One scale keeps the loss in
-    /// proportion to metres of trajectory.
+    /// From a fitted basis. Each component is scaled by the geometric mean of its own spread
+    /// and the root mean spread of all (what every component had before, and what older
+    /// checkpoints store). One common scale let the long-horizon components of 8 s futures set
+    /// the scale of all of them: the cities model's was 24 m against 4.7 m at 4 s, and its
+    /// stopped cars jittered at four times the NGSIM model's speed. Scaling each component to
+    /// unit variance goes too far the other way: a tiny model then no longer learned in 200
+    /// steps (`a_tiny_model_learns_and_round_trips_through_a_checkpoint`), as the loss, kept
+    /// in metres of trajectory ([`Normaliser::loss_basis`]), came to rest on the largest
+    /// component alone. A floor keeps components without variance (round-off on synthetic
+    /// data) finite.
     pub fn new(pca: Pca, sigma_data: f64) -> Self {
-        let mean_var = pca.variances.iter().sum::<f64>() / pca.variances.len().max(1) as f64;
-        let std = vec![mean_var.sqrt().max(1e-6); pca.variances.len()];
+        let top = pca.variances.iter().fold(0f64, |m, &v| m.max(v)).sqrt();
+        let floor = (top * 1e-3).max(1e-6);
+        let r = (pca.variances.iter().sum::<f64>() / pca.variances.len().max(1) as f64).sqrt();
+        let std = pca
+            .variances
+            .iter()
+            .map(|v| (v.max(0.0).sqrt() * r).sqrt().max(floor))
+            .collect();
         Self {
             pca,
             std,
             sigma_data,
         }
+    }
+
+    /// The reference scale of the training loss: the root mean variance of the components,
+    /// the one scale every component had before they were scaled apart, so that losses of
+    /// either kind of checkpoint read the same.
+    pub fn loss_scale(&self) -> f64 {
+        let v = &self.pca.variances;
+        (v.iter().sum::<f64>() / v.len().max(1) as f64)
+            .sqrt()
+            .max(1e-6)
+    }
+
+    /// The basis the training loss maps coefficient errors through, `K × 3·future`: each PCA
+    /// component times its scale over [`Normaliser::loss_scale`], so that an error of one
+    /// normalised unit in component `c` costs what it moves the trajectory, in the loss scale.
+    pub fn loss_basis(&self) -> Vec<f64> {
+        let dim = self.pca.components.len() / self.std.len().max(1);
+        let r = self.loss_scale();
+        self.pca
+            .components
+            .chunks(dim.max(1))
+            .zip(&self.std)
+            .flat_map(|(row, s)| row.iter().map(move |v| v * s / r))
+            .collect()
     }
 
     /// Normalised coefficients of a future residual (`future × 3`, agent frame, anchor removed:
@@ -251,8 +286,69 @@ pub fn build(
         loss_mask: t(loss_mask, &[b, n])?,
         seen: t(seen_mask, &[b, n, dim])?,
         basis: t(
-            norm.pca.components.iter().map(|v| *v as f32).collect(),
+            norm.loss_basis().iter().map(|v| *v as f32).collect(),
             &[k, dim],
         )?,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pca(variances: Vec<f64>) -> Pca {
+        // Two orthonormal components over a future of two steps (six coordinates).
+        let s = 0.5f64.sqrt();
+        Pca {
+            mean: vec![0.0; 6],
+            components: vec![s, 0.0, 0.0, s, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0],
+            variances,
+            dim: 6,
+        }
+    }
+
+    #[test]
+    fn each_component_is_scaled_by_its_own_spread_and_the_common_one_and_the_loss_stays_in_metres()
+    {
+        let n = Normaliser::new(pca(vec![400.0, 4.0]), 0.5);
+        // The old common scale, root mean variance, is the loss scale.
+        let r = (202.0f64).sqrt();
+        assert!((n.loss_scale() - r).abs() < 1e-12);
+        let (s0, s1) = ((20.0 * r).sqrt(), (2.0 * r).sqrt());
+        assert!((n.std[0] - s0).abs() < 1e-12 && (n.std[1] - s1).abs() < 1e-12);
+        let b = n.loss_basis();
+        let s = 0.5f64.sqrt();
+        assert!((b[0] - s * s0 / r).abs() < 1e-12 && (b[7] - s1 / r).abs() < 1e-12);
+        // One normalised unit in a component moves the trajectory by its scale over σ_data;
+        // through the loss basis that is the same movement in the loss scale.
+        let one = n.decode(&[1.0, 0.0]);
+        let moved = one.iter().map(|v| v * v).sum::<f64>().sqrt();
+        assert!((moved - s0 / 0.5).abs() < 1e-9, "{moved}");
+        let through: f64 = b[..6].iter().map(|v| v * v).sum::<f64>().sqrt();
+        assert!((through * r - s0).abs() < 1e-9);
+        // Encoding inverts decoding.
+        let c = n.encode(&n.decode(&[0.3, -1.2]));
+        assert!(
+            (c[0] - 0.3).abs() < 1e-6 && (c[1] + 1.2).abs() < 1e-6,
+            "{c:?}"
+        );
+    }
+
+    #[test]
+    fn a_checkpoint_with_one_common_scale_keeps_its_loss_basis() {
+        let mut n = Normaliser::new(pca(vec![400.0, 4.0]), 0.5);
+        n.std = vec![n.loss_scale(); 2];
+        let b = n.loss_basis();
+        for (a, c) in b.iter().zip(&n.pca.components) {
+            assert!((a - c).abs() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn a_component_without_variance_gets_a_finite_scale() {
+        let n = Normaliser::new(pca(vec![100.0, 0.0]), 0.5);
+        assert_eq!(n.std[1], 10.0 * 1e-3);
+        assert!((n.std[0] - (10.0 * 50f64.sqrt()).sqrt()).abs() < 1e-12);
+        assert!(n.encode(&[0.0, 1.0, 0.0, 0.0, 0.0, 0.0])[1].is_finite());
+    }
 }

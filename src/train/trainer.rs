@@ -369,9 +369,10 @@ pub(crate) fn loss(
     let d = model.denoise(&b.ctx, &enc, &x, sigma)?;
     let (_, n, k) = b.target.dims3()?;
     let dim = b.seen.dim(2)?;
-    // The error is taken over the future's observed coordinates: the basis is orthonormal, so
-    // for a future observed throughout this is the error of the coefficients themselves, and
-    // a future cut short by the recording teaches only what it shows.
+    // The error is taken over the future's observed coordinates, through the loss basis
+    // (orthonormal components times their scales): for a future observed throughout this is
+    // the coefficients' error weighted by how far each moves the trajectory, and a future cut
+    // short by the recording teaches only what it shows.
     let traj = (d - &b.target)?
         .reshape((bsz * n, k))?
         .matmul(&b.basis.to_dtype(dt)?)?
