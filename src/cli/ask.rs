@@ -378,6 +378,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
             for (b, p) in &checks {
                 println!("checker: {} ({p}): {}", b.name(), b.definition());
             }
+            for clause in s.unchecked() {
+                println!("no checker for {clause:?} (not in the rules planner's vocabulary): it is judged on the terms and the named agents' motion only");
+            }
         }
         s
     };

@@ -44,10 +44,14 @@ pub enum Behavior {
     Stop,
     /// accident(attacker, target)
     Accident,
+    /// turn_left(vehicle)
+    TurnLeft,
+    /// turn_right(vehicle)
+    TurnRight,
 }
 
 /// Every behaviour, in table order.
-pub const ALL: [Behavior; 14] = [
+pub const ALL: [Behavior; 16] = [
     Behavior::SpeedLimit,
     Behavior::TargetPoint,
     Behavior::NoCollisions,
@@ -62,6 +66,8 @@ pub const ALL: [Behavior; 14] = [
     Behavior::Weave,
     Behavior::Stop,
     Behavior::Accident,
+    Behavior::TurnLeft,
+    Behavior::TurnRight,
 ];
 
 impl Behavior {
@@ -82,6 +88,17 @@ impl Behavior {
             Behavior::Weave => "weave",
             Behavior::Stop => "stop",
             Behavior::Accident => "accident",
+            Behavior::TurnLeft => "turn_left",
+            Behavior::TurnRight => "turn_right",
+        }
+    }
+
+    /// The way a turning behaviour turns.
+    pub fn turn(self) -> Option<Turn> {
+        match self {
+            Behavior::TurnLeft => Some(Turn::Left),
+            Behavior::TurnRight => Some(Turn::Right),
+            _ => None,
         }
     }
 
@@ -107,6 +124,8 @@ impl Behavior {
             Behavior::Weave => "the lateral offset on the starting lane path crosses the centre line at least twice, reaching 0.3 m on both sides",
             Behavior::Stop => "the speed (from positions) is at most 0.5 m/s at every step from `within` seconds (default 4) on",
             Behavior::Accident => "the two boxes overlap at some future step",
+            Behavior::TurnLeft => "the vehicle takes the first left-turning lane on its route (left at forks, from its current lane), passing the middle of that turn, and stays within 2 m of the route",
+            Behavior::TurnRight => "the vehicle takes the first right-turning lane on its route (right at forks, from its current lane), passing the middle of that turn, and stays within 2 m of the route",
         }
     }
 
@@ -119,9 +138,12 @@ impl Behavior {
             Behavior::LaneChangeLeft | Behavior::LaneChangeRight | Behavior::RightmostLane => {
                 &["vehicle"]
             }
-            Behavior::Reverse | Behavior::OffRoad | Behavior::Weave | Behavior::Stop => {
-                &["vehicle"]
-            }
+            Behavior::Reverse
+            | Behavior::OffRoad
+            | Behavior::Weave
+            | Behavior::Stop
+            | Behavior::TurnLeft
+            | Behavior::TurnRight => &["vehicle"],
             Behavior::CutIn => &["cutter", "victim"],
             Behavior::Yield => &["yielder", "other"],
             Behavior::Follow => &["follower", "leader"],
@@ -495,399 +517,516 @@ pub fn check_against_unguided(
 
 /// Decides whether `behavior` happened in `scene` (a simulated or logged scene).
 pub fn check(behavior: Behavior, scene: &Scene, params: &Params) -> Result<Verdict, CheckError> {
-    let mut x = Ctx {
+    let x = Ctx {
         b: behavior,
         s: scene,
         p: params,
         m: BTreeMap::new(),
         named: Vec::new(),
     };
-    let s = scene;
-    let c = s.meta.current_step;
-    let no_lane = |b: Behavior, id: i64| CheckError::Agent {
+    match behavior {
+        Behavior::SpeedLimit => speed_limit(x),
+        Behavior::TargetPoint => target_point(x),
+        Behavior::NoCollisions => no_collisions(x),
+        Behavior::LaneChangeLeft | Behavior::LaneChangeRight => lane_change(x),
+        Behavior::RightmostLane => rightmost_lane(x),
+        Behavior::CutIn => cut_in(x),
+        Behavior::Yield => yield_to(x),
+        Behavior::Follow => follow(x),
+        Behavior::Reverse => reverse(x),
+        Behavior::OffRoad => off_road(x),
+        Behavior::Weave => weave(x),
+        Behavior::Stop => stop(x),
+        Behavior::Accident => accident(x),
+        Behavior::TurnLeft | Behavior::TurnRight => turn(x),
+    }
+}
+
+/// [`check`] for `turn_left` and `turn_right`.
+fn turn(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
+    let (s, c, behavior) = (x.s, x.s.meta.current_step, x.b);
+    let way = behavior.turn().expect("a turning behaviour");
+    let a = x.agent("vehicle")?;
+    let route = route_of(s, a, way).ok_or_else(|| no_lane(behavior, a.id))?;
+    let Some(span) = route.next_turn(&s.map, way) else {
+        x.measure("turn_ahead", 0.0);
+        return Ok(x.verdict(false, format!("its route has no {} turn ahead", way.word())));
+    };
+    let t = x.last(a)?;
+    let end = route.frenet.project(a.states[t].position());
+    let off = (c + 1..=t)
+        .filter(|&k| a.is_valid(k))
+        .map(|k| route.frenet.project(a.states[k].position()).d.abs())
+        .fold(0.0f64, f64::max);
+    let short = span.middle - end.s;
+    x.measure("turn_ahead", 1.0);
+    x.measure("turn_lane", span.lane as f64);
+    x.measure("short_of_turn_middle_m", short);
+    x.measure("off_route_m", off);
+    let ok = short <= 0.0 && off <= ROUTE_TOLERANCE;
+    Ok(x.verdict(
+        ok,
+        if off > ROUTE_TOLERANCE {
+            format!("leaves its {} route ({off:.1} m off it)", way.word())
+        } else if short > 0.0 {
+            format!(
+                "ends {short:.1} m short of the middle of the {} turn (lane {})",
+                way.word(),
+                span.lane
+            )
+        } else {
+            format!("turns {} into lane {}", way.word(), span.lane)
+        },
+    ))
+}
+
+/// A checker's error for an agent on no lane at the current step.
+fn no_lane(b: Behavior, id: i64) -> CheckError {
+    CheckError::Agent {
         behavior: b.name(),
         message: format!("agent {id} is on no lane at the current step"),
-    };
-    Ok(match behavior {
-        Behavior::SpeedLimit => {
-            let a = x.agent("vehicle")?;
-            let limit = x.get("limit")?;
-            let from = c + (x.or("from", 0.0)? / s.meta.dt).round() as usize;
-            let vmax = speeds(s, a)
-                .iter()
-                .filter(|(t, _)| *t > from)
-                .map(|v| v.1)
-                .fold(0.0, f64::max);
-            x.measure("max_speed", vmax);
-            x.measure("limit", limit);
-            let ok = vmax <= limit + 0.5;
-            x.verdict(
-                ok,
-                if ok {
-                    "stays under the limit"
-                } else {
-                    "exceeds the limit"
-                },
-            )
-        }
-        Behavior::TargetPoint => {
-            let a = x.agent("vehicle")?;
-            let (tx, ty, tol) = (x.get("x")?, x.get("y")?, x.or("tol", 1.0)?);
-            let end = a.states[x.last(a)?].position();
-            let d = (end - Point::new(tx, ty)).norm();
-            x.measure("final_distance", d);
-            x.verdict(
-                d <= tol,
-                format!("ends {d:.2} m from the target (tolerance {tol} m)"),
-            )
-        }
-        Behavior::NoCollisions => {
-            let v: Vec<&Agent> = s
-                .agents
-                .iter()
-                .filter(|a| a.agent_type == AgentType::Vehicle)
-                .collect();
-            let mut pairs = 0;
-            for (i, a) in v.iter().enumerate() {
-                for b in &v[i + 1..] {
-                    if !overlap_steps(s, a, b).is_empty() {
-                        pairs += 1;
-                    }
-                }
-            }
-            x.measure("colliding_pairs", pairs as f64);
-            x.verdict(pairs == 0, format!("{pairs} pairs of vehicles collide"))
-        }
-        Behavior::LaneChangeLeft | Behavior::LaneChangeRight => {
-            let a = x.agent("vehicle")?;
-            let start = lane_of(s, a, c).ok_or_else(|| no_lane(behavior, a.id))?;
-            let path = s
-                .map
-                .lane_path(start, 1000.0, 200.0, Turn::Straight)
-                .map_err(|e| CheckError::Agent {
-                    behavior: behavior.name(),
-                    message: e.to_string(),
-                })?;
-            let t = x.last(a)?;
-            let end = lane_of(s, a, t);
-            let g = s.map.graph();
-            let side = |l: i64| {
-                if behavior == Behavior::LaneChangeLeft {
-                    g.left(l)
-                } else {
-                    g.right(l)
-                }
-            };
-            // The neighbours of the path's lanes and the lanes straight on from them: maps
-            // miss adjacencies (NGSIM Lankershim's lanes just past an intersection list no
-            // neighbour on one side), and a car that moved over into the lane beyond one
-            // has changed lanes all the same.
-            let beside: Vec<i64> = path
-                .lanes
-                .iter()
-                .filter_map(|&l| side(l))
-                .flat_map(|l| {
-                    s.map
-                        .lane_path(l, 1000.0, 0.0, Turn::Straight)
-                        .map_or(vec![l], |p| p.lanes)
-                })
-                .collect();
-            let moved = end.is_some_and(|l| beside.contains(&l) && !path.lanes.contains(&l));
-            let offset = end.map_or(f64::INFINITY, |l| {
-                s.map.lane(l).map_or(f64::INFINITY, |ln| {
-                    ln.centerline.distance_to(&a.states[t].position())
-                })
-            });
-            x.measure("start_lane", start as f64);
-            x.measure("end_lane", end.map_or(-1.0, |l| l as f64));
-            x.measure("end_offset_from_centre", offset);
-            let ok = moved && offset <= 1.0;
-            let side = if behavior == Behavior::LaneChangeLeft {
-                "left"
+    }
+}
+
+/// [`check`] for `SpeedLimit`.
+fn speed_limit(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
+    let (s, c) = (x.s, x.s.meta.current_step);
+    Ok({
+        let a = x.agent("vehicle")?;
+        let limit = x.get("limit")?;
+        let from = c + (x.or("from", 0.0)? / s.meta.dt).round() as usize;
+        let vmax = speeds(s, a)
+            .iter()
+            .filter(|(t, _)| *t > from)
+            .map(|v| v.1)
+            .fold(0.0, f64::max);
+        x.measure("max_speed", vmax);
+        x.measure("limit", limit);
+        let ok = vmax <= limit + 0.5;
+        x.verdict(
+            ok,
+            if ok {
+                "stays under the limit"
             } else {
-                "right"
-            };
-            x.verdict(
-                ok,
-                if ok {
-                    format!("ends in the lane to the {side}")
-                } else if moved {
-                    format!("reaches the {side} lane but ends {offset:.2} m off its centre")
-                } else {
-                    format!(
-                        "does not end in the lane to the {side} (ends {})",
-                        lane_words(end)
-                    )
-                },
-            )
-        }
-        Behavior::RightmostLane => {
-            let a = x.agent("vehicle")?;
-            let t = x.last(a)?;
-            let end = lane_of(s, a, t);
-            let offset = end.map_or(f64::INFINITY, |l| {
-                s.map.lane(l).map_or(f64::INFINITY, |ln| {
-                    ln.centerline.distance_to(&a.states[t].position())
-                })
-            });
-            let rightmost = end.is_some_and(|l| s.map.graph().is_rightmost(l));
-            x.measure("end_lane", end.map_or(-1.0, |l| l as f64));
-            x.measure("end_offset_from_centre", offset);
-            let ok = rightmost && offset <= 1.0;
-            x.verdict(
-                ok,
-                if ok {
-                    "ends in the rightmost lane".into()
-                } else {
-                    match end {
-                        Some(l) => format!(
-                            "ends in lane {l}, {} the rightmost, {offset:.2} m off its centre",
-                            if rightmost { "which is" } else { "not" }
-                        ),
-                        None => "ends on no lane".into(),
-                    }
-                },
-            )
-        }
-        Behavior::CutIn => {
-            let (a, b) = (x.agent("cutter")?, x.agent("victim")?);
-            let (la, lb) = (
-                lane_of(s, a, c).ok_or_else(|| no_lane(behavior, a.id))?,
-                lane_of(s, b, c).ok_or_else(|| no_lane(behavior, b.id))?,
-            );
-            let g = s.map.graph();
-            let adjacent =
-                g.left_neighbors(lb).contains(&la) || g.right_neighbors(lb).contains(&la);
-            let path = path_of(s, b).ok_or_else(|| no_lane(behavior, b.id))?;
-            let t = x.last(a)?.min(x.last(b)?);
-            let (fa, fb) = (
-                path.frenet.project(a.states[t].position()),
-                path.frenet.project(b.states[t].position()),
-            );
-            let gap = fa.s - fb.s - 0.5 * (a.length + b.length);
-            let hits = overlap_steps(s, a, b).len();
-            x.measure("starts_adjacent", adjacent as u8 as f64);
-            x.measure("end_offset_on_victim_path", fa.d.abs());
-            x.measure("end_gap_ahead", gap);
-            x.measure("collision_steps", hits as f64);
-            let ok = adjacent && fa.d.abs() <= 1.0 && gap >= 0.0 && hits == 0;
-            let why = if !adjacent {
-                "does not start in a lane beside the victim's".to_string()
-            } else if fa.d.abs() > 1.0 {
-                format!("ends {:.2} m off the victim's lane centre", fa.d.abs())
-            } else if gap < 0.0 {
-                format!("ends {:.2} m short of being ahead", -gap)
-            } else if hits > 0 {
-                format!("collides at {hits} steps")
-            } else {
-                "cuts in".into()
-            };
-            x.verdict(ok, why)
-        }
-        Behavior::Yield => {
-            let (a, b) = (x.agent("yielder")?, x.agent("other")?);
-            let (turn_a, turn_b) = (x.turn("yielder_turn")?, x.turn("other_turn")?);
-            let (pa, pb) = (
-                route_of(s, a, turn_a).ok_or_else(|| no_lane(behavior, a.id))?,
-                route_of(s, b, turn_b).ok_or_else(|| no_lane(behavior, b.id))?,
-            );
-            let Some((sa, sb, _)) = pa.first_meeting(&pb) else {
-                x.measure("paths_meet", 0.0);
-                return Ok(x.verdict(false, "their lane paths never meet"));
-            };
-            let first = |ag: &Agent, p: &LanePath, at: f64| {
-                (c + 1..ag.states.len())
-                    .find(|&t| ag.is_valid(t) && p.frenet.project(ag.states[t].position()).s >= at)
-            };
-            let (ta, tb) = (first(a, &pa, sa), first(b, &pb, sb));
-            // A car that drives off its route (straight on instead of turning) yields to
-            // nobody: it only avoids the meeting point.
-            let off_route = |ag: &Agent, p: &LanePath| {
-                (c + 1..ag.states.len())
-                    .filter(|&t| ag.is_valid(t))
-                    .map(|t| p.frenet.project(ag.states[t].position()).d.abs())
-                    .fold(0.0f64, f64::max)
-            };
-            let (da, db) = (off_route(a, &pa), off_route(b, &pb));
-            let hits = overlap_steps(s, a, b).len();
-            let dt = s.meta.dt;
-            x.measure(
-                "yielder_reaches_s",
-                ta.map_or(-1.0, |t| (t - c) as f64 * dt),
-            );
-            x.measure("other_passes_s", tb.map_or(-1.0, |t| (t - c) as f64 * dt));
-            x.measure("yielder_off_route_m", da);
-            x.measure("other_off_route_m", db);
-            x.measure("collision_steps", hits as f64);
-            let on_route = da <= ROUTE_TOLERANCE && db <= ROUTE_TOLERANCE;
-            let ok = match (ta, tb) {
-                (_, None) => false,
-                (None, Some(_)) => true,
-                (Some(ta), Some(tb)) => tb < ta,
-            } && hits == 0
-                && on_route;
-            x.verdict(
-                ok,
-                match (ta, tb) {
-                    _ if da > ROUTE_TOLERANCE => format!(
-                        "the yielder leaves its route ({da:.1} m off its lane path, {} at forks)",
-                        turn_a.word()
-                    ),
-                    _ if db > ROUTE_TOLERANCE => format!(
-                        "the other agent leaves its route ({db:.1} m off its lane path, {} at forks)",
-                        turn_b.word()
-                    ),
-                    (_, None) => "the other agent never reaches the meeting point".to_string(),
-                    (Some(ta), Some(tb)) if ta <= tb => {
-                        "the yielder reaches the meeting point first".into()
-                    }
-                    _ if hits > 0 => format!("they collide at {hits} steps"),
-                    _ => "the other agent passes first".into(),
-                },
-            )
-        }
-        Behavior::Follow => {
-            let (a, b) = (x.agent("follower")?, x.agent("leader")?);
-            let want = x.or("gap", 10.0)?;
-            let path = path_of(s, b).ok_or_else(|| no_lane(behavior, b.id))?;
-            let n = s.num_steps();
-            let from = c + 1 + (n - c - 1) / 2;
-            let (mut worst_d, mut gaps) = (0.0f64, Vec::new());
-            for t in from..n {
-                if a.is_valid(t) && b.is_valid(t) {
-                    let (fa, fb) = (
-                        path.frenet.project(a.states[t].position()),
-                        path.frenet.project(b.states[t].position()),
-                    );
-                    worst_d = worst_d.max(fa.d.abs());
-                    gaps.push(fb.s - fa.s - 0.5 * (a.length + b.length));
+                "exceeds the limit"
+            },
+        )
+    })
+}
+
+/// [`check`] for `TargetPoint`.
+fn target_point(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
+    Ok({
+        let a = x.agent("vehicle")?;
+        let (tx, ty, tol) = (x.get("x")?, x.get("y")?, x.or("tol", 1.0)?);
+        let end = a.states[x.last(a)?].position();
+        let d = (end - Point::new(tx, ty)).norm();
+        x.measure("final_distance", d);
+        x.verdict(
+            d <= tol,
+            format!("ends {d:.2} m from the target (tolerance {tol} m)"),
+        )
+    })
+}
+
+/// [`check`] for `NoCollisions`.
+fn no_collisions(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
+    let s = x.s;
+    Ok({
+        let v: Vec<&Agent> = s
+            .agents
+            .iter()
+            .filter(|a| a.agent_type == AgentType::Vehicle)
+            .collect();
+        let mut pairs = 0;
+        for (i, a) in v.iter().enumerate() {
+            for b in &v[i + 1..] {
+                if !overlap_steps(s, a, b).is_empty() {
+                    pairs += 1;
                 }
             }
-            if gaps.is_empty() {
-                return Ok(x.verdict(
-                    false,
-                    "the agents are not both observed in the last half of the horizon",
-                ));
+        }
+        x.measure("colliding_pairs", pairs as f64);
+        x.verdict(pairs == 0, format!("{pairs} pairs of vehicles collide"))
+    })
+}
+
+/// [`check`] for `LaneChangeLeft` and `LaneChangeRight`.
+fn lane_change(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
+    let (s, c, behavior) = (x.s, x.s.meta.current_step, x.b);
+    Ok({
+        let a = x.agent("vehicle")?;
+        let start = lane_of(s, a, c).ok_or_else(|| no_lane(behavior, a.id))?;
+        let path = s
+            .map
+            .lane_path(start, 1000.0, 200.0, Turn::Straight)
+            .map_err(|e| CheckError::Agent {
+                behavior: behavior.name(),
+                message: e.to_string(),
+            })?;
+        let t = x.last(a)?;
+        let end = lane_of(s, a, t);
+        let g = s.map.graph();
+        let side = |l: i64| {
+            if behavior == Behavior::LaneChangeLeft {
+                g.left(l)
+            } else {
+                g.right(l)
             }
-            let (gmin, gmax) = gaps
-                .iter()
-                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), g| {
-                    (lo.min(*g), hi.max(*g))
-                });
-            x.measure("max_offset_from_leader_path", worst_d);
-            x.measure("min_gap", gmin);
-            x.measure("max_gap", gmax);
-            let ok = worst_d <= 1.5 && gmin >= 0.5 * want && gmax <= 2.0 * want;
-            x.verdict(ok, format!("gap {gmin:.1}..{gmax:.1} m (wanted {:.1}..{:.1}), up to {worst_d:.2} m off the leader's lane", 0.5 * want, 2.0 * want))
-        }
-        Behavior::Reverse => {
-            let a = x.agent("vehicle")?;
-            let s0 = a.states[c];
-            let t = x.last(a)?;
-            let dir = Point::new(s0.heading.cos(), s0.heading.sin());
-            let along = (a.states[t].position() - s0.position()).dot(&dir);
-            let turn = (c + 1..=t)
-                .filter(|&k| a.is_valid(k))
-                .map(|k| wrap_angle(a.states[k].heading - s0.heading).abs())
-                .fold(0.0, f64::max);
-            x.measure("displacement_along_heading", along);
-            x.measure("max_heading_change_deg", turn.to_degrees());
-            let ok = along <= -1.0 && turn <= 30f64.to_radians();
-            x.verdict(
-                ok,
+        };
+        // The neighbours of the path's lanes and the lanes straight on from them: maps
+        // miss adjacencies (NGSIM Lankershim's lanes just past an intersection list no
+        // neighbour on one side), and a car that moved over into the lane beyond one
+        // has changed lanes all the same.
+        let beside: Vec<i64> = path
+            .lanes
+            .iter()
+            .filter_map(|&l| side(l))
+            .flat_map(|l| {
+                s.map
+                    .lane_path(l, 1000.0, 0.0, Turn::Straight)
+                    .map_or(vec![l], |p| p.lanes)
+            })
+            .collect();
+        let moved = end.is_some_and(|l| beside.contains(&l) && !path.lanes.contains(&l));
+        let offset = end.map_or(f64::INFINITY, |l| {
+            s.map.lane(l).map_or(f64::INFINITY, |ln| {
+                ln.centerline.distance_to(&a.states[t].position())
+            })
+        });
+        x.measure("start_lane", start as f64);
+        x.measure("end_lane", end.map_or(-1.0, |l| l as f64));
+        x.measure("end_offset_from_centre", offset);
+        let ok = moved && offset <= 1.0;
+        let side = if behavior == Behavior::LaneChangeLeft {
+            "left"
+        } else {
+            "right"
+        };
+        x.verdict(
+            ok,
+            if ok {
+                format!("ends in the lane to the {side}")
+            } else if moved {
+                format!("reaches the {side} lane but ends {offset:.2} m off its centre")
+            } else {
                 format!(
-                    "moves {along:.2} m along its heading, turning up to {:.0} degrees",
-                    turn.to_degrees()
+                    "does not end in the lane to the {side} (ends {})",
+                    lane_words(end)
+                )
+            },
+        )
+    })
+}
+
+/// [`check`] for `RightmostLane`.
+fn rightmost_lane(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
+    let s = x.s;
+    Ok({
+        let a = x.agent("vehicle")?;
+        let t = x.last(a)?;
+        let end = lane_of(s, a, t);
+        let offset = end.map_or(f64::INFINITY, |l| {
+            s.map.lane(l).map_or(f64::INFINITY, |ln| {
+                ln.centerline.distance_to(&a.states[t].position())
+            })
+        });
+        let rightmost = end.is_some_and(|l| s.map.graph().is_rightmost(l));
+        x.measure("end_lane", end.map_or(-1.0, |l| l as f64));
+        x.measure("end_offset_from_centre", offset);
+        let ok = rightmost && offset <= 1.0;
+        x.verdict(
+            ok,
+            if ok {
+                "ends in the rightmost lane".into()
+            } else {
+                match end {
+                    Some(l) => format!(
+                        "ends in lane {l}, {} the rightmost, {offset:.2} m off its centre",
+                        if rightmost { "which is" } else { "not" }
+                    ),
+                    None => "ends on no lane".into(),
+                }
+            },
+        )
+    })
+}
+
+/// [`check`] for `CutIn`.
+fn cut_in(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
+    let (s, c, behavior) = (x.s, x.s.meta.current_step, x.b);
+    Ok({
+        let (a, b) = (x.agent("cutter")?, x.agent("victim")?);
+        let (la, lb) = (
+            lane_of(s, a, c).ok_or_else(|| no_lane(behavior, a.id))?,
+            lane_of(s, b, c).ok_or_else(|| no_lane(behavior, b.id))?,
+        );
+        let g = s.map.graph();
+        let adjacent = g.left_neighbors(lb).contains(&la) || g.right_neighbors(lb).contains(&la);
+        let path = path_of(s, b).ok_or_else(|| no_lane(behavior, b.id))?;
+        let t = x.last(a)?.min(x.last(b)?);
+        let (fa, fb) = (
+            path.frenet.project(a.states[t].position()),
+            path.frenet.project(b.states[t].position()),
+        );
+        let gap = fa.s - fb.s - 0.5 * (a.length + b.length);
+        let hits = overlap_steps(s, a, b).len();
+        x.measure("starts_adjacent", adjacent as u8 as f64);
+        x.measure("end_offset_on_victim_path", fa.d.abs());
+        x.measure("end_gap_ahead", gap);
+        x.measure("collision_steps", hits as f64);
+        let ok = adjacent && fa.d.abs() <= 1.0 && gap >= 0.0 && hits == 0;
+        let why = if !adjacent {
+            "does not start in a lane beside the victim's".to_string()
+        } else if fa.d.abs() > 1.0 {
+            format!("ends {:.2} m off the victim's lane centre", fa.d.abs())
+        } else if gap < 0.0 {
+            format!("ends {:.2} m short of being ahead", -gap)
+        } else if hits > 0 {
+            format!("collides at {hits} steps")
+        } else {
+            "cuts in".into()
+        };
+        x.verdict(ok, why)
+    })
+}
+
+/// [`check`] for `Yield`.
+fn yield_to(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
+    let (s, c, behavior) = (x.s, x.s.meta.current_step, x.b);
+    Ok({
+        let (a, b) = (x.agent("yielder")?, x.agent("other")?);
+        let (turn_a, turn_b) = (x.turn("yielder_turn")?, x.turn("other_turn")?);
+        let (pa, pb) = (
+            route_of(s, a, turn_a).ok_or_else(|| no_lane(behavior, a.id))?,
+            route_of(s, b, turn_b).ok_or_else(|| no_lane(behavior, b.id))?,
+        );
+        let Some((sa, sb, _)) = pa.first_meeting(&pb) else {
+            x.measure("paths_meet", 0.0);
+            return Ok(x.verdict(false, "their lane paths never meet"));
+        };
+        let first = |ag: &Agent, p: &LanePath, at: f64| {
+            (c + 1..ag.states.len())
+                .find(|&t| ag.is_valid(t) && p.frenet.project(ag.states[t].position()).s >= at)
+        };
+        let (ta, tb) = (first(a, &pa, sa), first(b, &pb, sb));
+        // A car that drives off its route (straight on instead of turning) yields to
+        // nobody: it only avoids the meeting point.
+        let off_route = |ag: &Agent, p: &LanePath| {
+            (c + 1..ag.states.len())
+                .filter(|&t| ag.is_valid(t))
+                .map(|t| p.frenet.project(ag.states[t].position()).d.abs())
+                .fold(0.0f64, f64::max)
+        };
+        let (da, db) = (off_route(a, &pa), off_route(b, &pb));
+        let hits = overlap_steps(s, a, b).len();
+        let dt = s.meta.dt;
+        x.measure(
+            "yielder_reaches_s",
+            ta.map_or(-1.0, |t| (t - c) as f64 * dt),
+        );
+        x.measure("other_passes_s", tb.map_or(-1.0, |t| (t - c) as f64 * dt));
+        x.measure("yielder_off_route_m", da);
+        x.measure("other_off_route_m", db);
+        x.measure("collision_steps", hits as f64);
+        let on_route = da <= ROUTE_TOLERANCE && db <= ROUTE_TOLERANCE;
+        let ok = match (ta, tb) {
+            (_, None) => false,
+            (None, Some(_)) => true,
+            (Some(ta), Some(tb)) => tb < ta,
+        } && hits == 0
+            && on_route;
+        x.verdict(
+            ok,
+            match (ta, tb) {
+                _ if da > ROUTE_TOLERANCE => format!(
+                    "the yielder leaves its route ({da:.1} m off its lane path, {} at forks)",
+                    turn_a.word()
                 ),
-            )
-        }
-        Behavior::OffRoad => {
-            let a = x.agent("vehicle")?;
-            let t = x.last(a)?;
-            let d = s
-                .map
-                .signed_distance_to_road_edge(a.states[t].position())
-                .ok_or_else(|| CheckError::Agent {
-                    behavior: behavior.name(),
-                    message: "the map has no road edges".into(),
-                })?;
-            x.measure("final_edge_distance", d);
-            x.verdict(
-                d > 0.0,
-                format!(
-                    "ends {:.2} m {} the road edge",
-                    d.abs(),
-                    if d > 0.0 { "beyond" } else { "inside" }
+                _ if db > ROUTE_TOLERANCE => format!(
+                    "the other agent leaves its route ({db:.1} m off its lane path, {} at forks)",
+                    turn_b.word()
                 ),
-            )
-        }
-        Behavior::Weave => {
-            let a = x.agent("vehicle")?;
-            let path = path_of(s, a).ok_or_else(|| no_lane(behavior, a.id))?;
-            // About the lane's centre line, as the definition says: a car that starts off
-            // centre and drifts back has not weaved.
-            let ds: Vec<f64> = (c + 1..a.states.len())
-                .filter(|&t| a.is_valid(t))
-                .map(|t| path.frenet.project(a.states[t].position()).d)
-                .collect();
-            let crossings = ds
-                .windows(2)
-                .filter(|w| (w[0] < 0.0) != (w[1] < 0.0))
-                .count();
-            let (lo, hi) = ds
-                .iter()
-                .fold((0.0f64, 0.0f64), |(lo, hi), d| (lo.min(*d), hi.max(*d)));
-            x.measure("crossings", crossings as f64);
-            x.measure("max_left", hi);
-            x.measure("max_right", -lo);
-            let ok = crossings >= 2 && hi >= 0.3 && -lo >= 0.3;
-            x.verdict(
-                ok,
-                format!(
-                    "crosses its lane's centre line {crossings} times, {hi:.2} m left and {:.2} m right",
-                    -lo
-                ),
-            )
-        }
-        Behavior::Stop => {
-            let a = x.agent("vehicle")?;
-            let within = x.or("within", 4.0)?;
-            let from = c + (within / s.meta.dt).round() as usize;
-            let after: Vec<f64> = speeds(s, a)
-                .into_iter()
-                .filter(|(t, _)| *t >= from)
-                .map(|v| v.1)
-                .collect();
-            if after.is_empty() {
-                return Ok(x.verdict(false, format!("no observed step after {within} s")));
+                (_, None) => "the other agent never reaches the meeting point".to_string(),
+                (Some(ta), Some(tb)) if ta <= tb => {
+                    "the yielder reaches the meeting point first".into()
+                }
+                _ if hits > 0 => format!("they collide at {hits} steps"),
+                _ => "the other agent passes first".into(),
+            },
+        )
+    })
+}
+
+/// [`check`] for `Follow`.
+fn follow(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
+    let (s, c, behavior) = (x.s, x.s.meta.current_step, x.b);
+    Ok({
+        let (a, b) = (x.agent("follower")?, x.agent("leader")?);
+        let want = x.or("gap", 10.0)?;
+        let path = path_of(s, b).ok_or_else(|| no_lane(behavior, b.id))?;
+        let n = s.num_steps();
+        let from = c + 1 + (n - c - 1) / 2;
+        let (mut worst_d, mut gaps) = (0.0f64, Vec::new());
+        for t in from..n {
+            if a.is_valid(t) && b.is_valid(t) {
+                let (fa, fb) = (
+                    path.frenet.project(a.states[t].position()),
+                    path.frenet.project(b.states[t].position()),
+                );
+                worst_d = worst_d.max(fa.d.abs());
+                gaps.push(fb.s - fa.s - 0.5 * (a.length + b.length));
             }
-            let vmax = after.iter().copied().fold(0.0, f64::max);
-            x.measure("max_speed_after", vmax);
-            x.verdict(
-                vmax <= 0.5,
-                format!("moves at up to {vmax:.2} m/s after {within} s"),
-            )
         }
-        Behavior::Accident => {
-            let (a, b) = (x.agent("attacker")?, x.agent("target")?);
-            let hits = overlap_steps(s, a, b);
-            let min_dist = (c + 1..s.num_steps())
-                .filter_map(|t| Some(a.footprint(t)?.distance(&b.footprint(t)?)))
-                .fold(f64::INFINITY, f64::min);
-            x.measure("collision_steps", hits.len() as f64);
-            x.measure("min_box_distance", min_dist);
-            x.verdict(
-                !hits.is_empty(),
-                if hits.is_empty() {
-                    format!("they come no closer than {min_dist:.2} m")
-                } else {
-                    format!(
-                        "they collide from {:.1} s",
-                        (hits[0] - c) as f64 * s.meta.dt
-                    )
-                },
-            )
+        if gaps.is_empty() {
+            return Ok(x.verdict(
+                false,
+                "the agents are not both observed in the last half of the horizon",
+            ));
         }
+        let (gmin, gmax) = gaps
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), g| {
+                (lo.min(*g), hi.max(*g))
+            });
+        x.measure("max_offset_from_leader_path", worst_d);
+        x.measure("min_gap", gmin);
+        x.measure("max_gap", gmax);
+        let ok = worst_d <= 1.5 && gmin >= 0.5 * want && gmax <= 2.0 * want;
+        x.verdict(ok, format!("gap {gmin:.1}..{gmax:.1} m (wanted {:.1}..{:.1}), up to {worst_d:.2} m off the leader's lane", 0.5 * want, 2.0 * want))
+    })
+}
+
+/// [`check`] for `Reverse`.
+fn reverse(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
+    let c = x.s.meta.current_step;
+    Ok({
+        let a = x.agent("vehicle")?;
+        let s0 = a.states[c];
+        let t = x.last(a)?;
+        let dir = Point::new(s0.heading.cos(), s0.heading.sin());
+        let along = (a.states[t].position() - s0.position()).dot(&dir);
+        let turn = (c + 1..=t)
+            .filter(|&k| a.is_valid(k))
+            .map(|k| wrap_angle(a.states[k].heading - s0.heading).abs())
+            .fold(0.0, f64::max);
+        x.measure("displacement_along_heading", along);
+        x.measure("max_heading_change_deg", turn.to_degrees());
+        let ok = along <= -1.0 && turn <= 30f64.to_radians();
+        x.verdict(
+            ok,
+            format!(
+                "moves {along:.2} m along its heading, turning up to {:.0} degrees",
+                turn.to_degrees()
+            ),
+        )
+    })
+}
+
+/// [`check`] for `OffRoad`.
+fn off_road(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
+    let (s, behavior) = (x.s, x.b);
+    Ok({
+        let a = x.agent("vehicle")?;
+        let t = x.last(a)?;
+        let d = s
+            .map
+            .signed_distance_to_road_edge(a.states[t].position())
+            .ok_or_else(|| CheckError::Agent {
+                behavior: behavior.name(),
+                message: "the map has no road edges".into(),
+            })?;
+        x.measure("final_edge_distance", d);
+        x.verdict(
+            d > 0.0,
+            format!(
+                "ends {:.2} m {} the road edge",
+                d.abs(),
+                if d > 0.0 { "beyond" } else { "inside" }
+            ),
+        )
+    })
+}
+
+/// [`check`] for `Weave`.
+fn weave(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
+    let (s, c, behavior) = (x.s, x.s.meta.current_step, x.b);
+    Ok({
+        let a = x.agent("vehicle")?;
+        let path = path_of(s, a).ok_or_else(|| no_lane(behavior, a.id))?;
+        // About the lane's centre line, as the definition says: a car that starts off
+        // centre and drifts back has not weaved.
+        let ds: Vec<f64> = (c + 1..a.states.len())
+            .filter(|&t| a.is_valid(t))
+            .map(|t| path.frenet.project(a.states[t].position()).d)
+            .collect();
+        let crossings = ds
+            .windows(2)
+            .filter(|w| (w[0] < 0.0) != (w[1] < 0.0))
+            .count();
+        let (lo, hi) = ds
+            .iter()
+            .fold((0.0f64, 0.0f64), |(lo, hi), d| (lo.min(*d), hi.max(*d)));
+        x.measure("crossings", crossings as f64);
+        x.measure("max_left", hi);
+        x.measure("max_right", -lo);
+        let ok = crossings >= 2 && hi >= 0.3 && -lo >= 0.3;
+        x.verdict(
+            ok,
+            format!(
+                "crosses its lane's centre line {crossings} times, {hi:.2} m left and {:.2} m right",
+                -lo
+            ),
+        )
+    })
+}
+
+/// [`check`] for `Stop`.
+fn stop(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
+    let (s, c) = (x.s, x.s.meta.current_step);
+    Ok({
+        let a = x.agent("vehicle")?;
+        let within = x.or("within", 4.0)?;
+        let from = c + (within / s.meta.dt).round() as usize;
+        let after: Vec<f64> = speeds(s, a)
+            .into_iter()
+            .filter(|(t, _)| *t >= from)
+            .map(|v| v.1)
+            .collect();
+        if after.is_empty() {
+            return Ok(x.verdict(false, format!("no observed step after {within} s")));
+        }
+        let vmax = after.iter().copied().fold(0.0, f64::max);
+        x.measure("max_speed_after", vmax);
+        x.verdict(
+            vmax <= 0.5,
+            format!("moves at up to {vmax:.2} m/s after {within} s"),
+        )
+    })
+}
+
+/// [`check`] for `Accident`.
+fn accident(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
+    let (s, c) = (x.s, x.s.meta.current_step);
+    Ok({
+        let (a, b) = (x.agent("attacker")?, x.agent("target")?);
+        let hits = overlap_steps(s, a, b);
+        let min_dist = (c + 1..s.num_steps())
+            .filter_map(|t| Some(a.footprint(t)?.distance(&b.footprint(t)?)))
+            .fold(f64::INFINITY, f64::min);
+        x.measure("collision_steps", hits.len() as f64);
+        x.measure("min_box_distance", min_dist);
+        x.verdict(
+            !hits.is_empty(),
+            if hits.is_empty() {
+                format!("they come no closer than {min_dist:.2} m")
+            } else {
+                format!(
+                    "they collide from {:.1} s",
+                    (hits[0] - c) as f64 * s.meta.dt
+                )
+            },
+        )
     })
 }
 
@@ -987,7 +1126,9 @@ fn can_back_up(scene: &Scene, a: &Agent, horizon: f64) -> bool {
 ///   point until then braking at 3 m/s² at most (yielding to a car that waits at a light, is
 ///   too far away to arrive or passes first anyway asks for nothing; yielding from the
 ///   junction's edge asks for an emergency stop);
-/// - `accident`: the nearest pair; `no_collisions`: no agents.
+/// - `accident`: the nearest pair; `no_collisions`: no agents;
+/// - `turn_left` / `turn_right`: the nearest car whose route (that way at forks) has such a
+///   turn ahead, whose middle it can reach within the horizon less a second.
 pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
     let c = scene.meta.current_step;
     let n = scene.num_steps();
@@ -1231,6 +1372,20 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
                 }
             }
             None
+        }
+        // The nearest car whose route has the turn ahead, with the middle of the corner within
+        // what it covers over the horizon less a second, speeding up at 1.5 m/s² at most, and
+        // not yet reached: a car already round the corner has nothing left to do.
+        Behavior::TurnLeft | Behavior::TurnRight => {
+            let way = b.turn().expect("a turning behaviour");
+            cands.iter().find_map(|(a, _, _)| {
+                let route = route_of(scene, a, way)?;
+                let span = route.next_turn(&scene.map, way)?;
+                let to_go = span.middle - route.frenet.project(a.states[c].position()).s;
+                let t = (horizon - 1.0).max(0.0);
+                let reach = a.states[c].speed() * t + 0.75 * t * t;
+                (to_go > 0.0 && to_go + 1.0 <= reach).then(|| p(&[("vehicle", a.id as f64)]))?
+            })
         }
         Behavior::Accident => {
             let (a, _, _) = cands.first()?;

@@ -656,3 +656,58 @@ fn named_agents_that_collide_fail_every_behaviour_but_accident() {
     .unwrap();
     assert!(v.passed && v.violations.is_empty(), "{v:?}");
 }
+
+#[test]
+fn a_turn_is_taken_past_the_middle_of_its_corner() {
+    let v = |b, s: &str| check(b, &scene(s), &params(&[("vehicle", 1.0)])).unwrap();
+    let left = v(Behavior::TurnLeft, "crossroads_left.yaml");
+    assert!(left.achieved, "{}", left.reason);
+    assert_eq!(left.measured["turn_lane"], 3.0);
+    // 22 m into lane 3, whose corner is half turned 11.1 m in.
+    assert!((left.measured["short_of_turn_middle_m"] + 10.9).abs() < 0.3, "{left:?}");
+    let right = v(Behavior::TurnRight, "crossroads_right.yaml");
+    assert!(right.achieved, "{}", right.reason);
+    assert_eq!(right.measured["turn_lane"], 4.0);
+    // Straight on is neither turn: it leaves both routes.
+    for b in [Behavior::TurnLeft, Behavior::TurnRight] {
+        let straight = v(b, "crossroads.yaml");
+        assert!(!straight.achieved);
+        assert!(straight.reason.contains("leaves its"), "{}", straight.reason);
+    }
+    // Nor is the other turn.
+    assert!(!v(Behavior::TurnLeft, "crossroads_right.yaml").achieved);
+    // A car that stops short of the corner has not turned, though it keeps to the route.
+    let mut short = scene("crossroads_left.yaml");
+    let a = short.agents.iter_mut().find(|a| a.id == 1).unwrap();
+    let at = a.states[15];
+    for st in &mut a.states[16..] {
+        *st = at;
+    }
+    let stopped = check(Behavior::TurnLeft, &short, &params(&[("vehicle", 1.0)])).unwrap();
+    assert!(!stopped.achieved);
+    assert!(stopped.reason.contains("short of the middle of the left turn (lane 3)"), "{}", stopped.reason);
+    // A road without a turn says so.
+    let none = v(Behavior::TurnLeft, "highway.yaml");
+    assert!(!none.achieved && none.reason.contains("no left turn ahead"), "{}", none.reason);
+}
+
+#[test]
+fn turns_are_suggested_for_a_car_that_can_reach_the_corner() {
+    let s = scene("crossroads.yaml");
+    for b in [Behavior::TurnLeft, Behavior::TurnRight] {
+        let p = super::behaviors::suggest(b, &s, s.num_future_steps()).unwrap();
+        assert_eq!(p.number("vehicle"), Some(1.0));
+    }
+    // Standing 10 m before the junction, it covers 6.75 m at 1.5 m/s² in the 3 s a 4 s
+    // horizon leaves, short of the corner's middle 21 m ahead.
+    let mut parked = s.clone();
+    let a = parked.agents.iter_mut().find(|a| a.id == 1).unwrap();
+    let at = a.states[10];
+    for st in &mut a.states[..] {
+        *st = crate::scene::AgentState { vx: 0.0, vy: 0.0, ..at };
+    }
+    assert_eq!(
+        super::behaviors::suggest(Behavior::TurnLeft, &parked, 40),
+        None
+    );
+}

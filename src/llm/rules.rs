@@ -203,6 +203,28 @@ const PHRASES: &[(Behavior, &[&str])] = &[
             "brakes to a standstill",
         ],
     ),
+    (
+        Behavior::TurnLeft,
+        &[
+            "turns left",
+            "turn left",
+            "turning left",
+            "left turn",
+            "takes a left",
+            "goes left at",
+        ],
+    ),
+    (
+        Behavior::TurnRight,
+        &[
+            "turns right",
+            "turn right",
+            "turning right",
+            "right turn",
+            "takes a right",
+            "goes right at",
+        ],
+    ),
 ];
 
 fn vocabulary() -> String {
@@ -216,8 +238,24 @@ fn vocabulary() -> String {
 /// Words that introduce an agent id.
 const AGENT_WORDS: &[&str] = &["vehicle", "vehicles", "car", "cars", "agent", "truck", "id"];
 
-/// Splits a request (with commas inside parentheses protected) into events.
+/// Splits a request (with commas inside parentheses protected) into events: every clause must
+/// be understood.
 fn understand(request: &str) -> Result<Vec<Event>, RulesError> {
+    let mut events = Vec::new();
+    for e in understand_clauses(request) {
+        events.push(e?);
+    }
+    if events.is_empty() {
+        return Err(RulesError::NotUnderstood {
+            clause: request.trim().to_string(),
+            vocabulary: vocabulary(),
+        });
+    }
+    Ok(events)
+}
+
+/// Each clause of a request as an event, or why it is not one.
+fn understand_clauses(request: &str) -> Vec<Result<Event, RulesError>> {
     let text = request.to_lowercase().replace(['\n', '\t'], " ");
     let mut clauses: Vec<String> = Vec::new();
     for part in split_clauses(&text) {
@@ -236,9 +274,17 @@ fn understand(request: &str) -> Result<Vec<Event>, RulesError> {
         }
         clauses.push(part);
     }
-    let mut events = Vec::new();
     let mut subject: Option<i64> = None;
-    for clause in clauses {
+    clauses
+        .into_iter()
+        .map(|clause| clause_event(clause, &mut subject))
+        .collect()
+}
+
+/// The event of one clause; `subject` is the vehicle of the clauses before, for a clause that
+/// names none ("vehicle 3 slows down and then stops").
+fn clause_event(clause: String, subject: &mut Option<i64>) -> Result<Event, RulesError> {
+    {
         let Some(b) = behaviour_of(&clause) else {
             return Err(RulesError::NotUnderstood {
                 clause,
@@ -248,9 +294,9 @@ fn understand(request: &str) -> Result<Vec<Event>, RulesError> {
         let mut found = ids(&clause);
         // "vehicle 3 slows down and then stops": the subject carries over.
         if found.is_empty() {
-            found.extend(subject);
+            found.extend(*subject);
         }
-        subject = found.first().copied().or(subject);
+        *subject = found.first().copied().or(*subject);
         let missing = |what: &str| RulesError::Missing {
             clause: clause.clone(),
             behaviour: b.name(),
@@ -300,19 +346,12 @@ fn understand(request: &str) -> Result<Vec<Event>, RulesError> {
             }
             _ => {}
         }
-        events.push(Event {
+        Ok(Event {
             behaviour: b,
             params: p,
             clause,
-        });
+        })
     }
-    if events.is_empty() {
-        return Err(RulesError::NotUnderstood {
-            clause: request.trim().to_string(),
-            vocabulary: vocabulary(),
-        });
-    }
-    Ok(events)
 }
 
 fn split_clauses(text: &str) -> Vec<String> {
@@ -480,6 +519,8 @@ pub fn script_source(b: Behavior) -> &'static str {
         Behavior::Weave => include_str!("../../scripts/weave.rhai"),
         Behavior::Stop => include_str!("../../scripts/stop.rhai"),
         Behavior::Accident => include_str!("../../scripts/accident.rhai"),
+        Behavior::TurnLeft => include_str!("../../scripts/turn_left.rhai"),
+        Behavior::TurnRight => include_str!("../../scripts/turn_right.rhai"),
     }
 }
 
@@ -499,6 +540,7 @@ fn margin(b: Behavior) -> Option<(&'static str, f64, f64, f64)> {
         Behavior::Weave => ("amplitude", 0.8, 0.2, 1.2),
         Behavior::Stop => ("max_decel", 6.0, 1.0, 8.0),
         Behavior::Accident => ("depth", 0.3, 0.3, 1.5),
+        Behavior::TurnLeft | Behavior::TurnRight => ("past", 1.0, 1.0, 4.0),
         Behavior::TargetPoint => ("tol", 1.0, -0.3, 0.3),
         Behavior::NoCollisions => ("margin", 0.5, 0.5, 2.0),
         Behavior::SpeedLimit => return None,
@@ -762,6 +804,38 @@ pub fn plan_text(events: &[Event]) -> String {
     s
 }
 
+/// The events of the clauses of `request` that the planner understands, and the clauses it
+/// does not (each with why): a composed request keeps the checkers of the events it names
+/// even where another part is outside the vocabulary ("vehicle 114 drives straight").
+pub fn understand_partly(request: &str) -> (Vec<Event>, Vec<RulesError>) {
+    let protected = protect_points(request);
+    let (mut events, mut left) = (Vec::new(), Vec::new());
+    for e in understand_clauses(&protected) {
+        match e {
+            Ok(mut e) => {
+                e.clause = e.clause.replace('\u{1f}', ",");
+                events.push(e);
+            }
+            Err(RulesError::NotUnderstood { clause, vocabulary }) => {
+                left.push(RulesError::NotUnderstood {
+                    clause: clause.replace('\u{1f}', ","),
+                    vocabulary,
+                })
+            }
+            Err(RulesError::Missing {
+                clause,
+                behaviour,
+                what,
+            }) => left.push(RulesError::Missing {
+                clause: clause.replace('\u{1f}', ","),
+                behaviour,
+                what,
+            }),
+        }
+    }
+    (events, left)
+}
+
 /// Splits a request into events, one per clause naming a known behaviour.
 pub fn understand_request(request: &str) -> Result<Vec<Event>, RulesError> {
     let protected = protect_points(request);
@@ -836,6 +910,44 @@ mod tests {
         assert_eq!(
             one("vehicle 15 crashes into vehicle 16"),
             (Behavior::Accident, "attacker=15 target=16".into())
+        );
+        assert_eq!(
+            one("vehicle 2 turns right at the next junction"),
+            (Behavior::TurnRight, "vehicle=2".into())
+        );
+        assert_eq!(
+            one("vehicle 17 makes a left turn"),
+            (Behavior::TurnLeft, "vehicle=17".into())
+        );
+        // A left lane change is not a left turn.
+        assert_eq!(
+            one("vehicle 9 makes a left lane change").0,
+            Behavior::LaneChangeLeft
+        );
+    }
+
+    #[test]
+    fn a_composed_request_keeps_the_events_it_knows() {
+        let req = "vehicle 109 moves to the rightmost lane, while vehicle 114 drives straight \
+                   and vehicle 117 follows vehicle 114";
+        // The planner itself needs every clause.
+        assert!(understand_request(req).is_err());
+        let (events, left) = understand_partly(req);
+        let got: Vec<_> = events
+            .iter()
+            .map(|e| (e.behaviour, e.params.to_string()))
+            .collect();
+        assert_eq!(
+            got,
+            [
+                (Behavior::RightmostLane, "vehicle=109".to_string()),
+                (Behavior::Follow, "follower=117 leader=114".to_string())
+            ]
+        );
+        assert_eq!(left.len(), 1);
+        assert!(
+            matches!(&left[0], RulesError::NotUnderstood { clause, .. } if clause == "vehicle 114 drives straight"),
+            "{left:?}"
         );
     }
 

@@ -306,15 +306,27 @@ fn write_bytes(dir: &Path, name: &str, bytes: &[u8]) -> Result<(), LlmError> {
     write_atomic(&p, bytes).map_err(|e| run_err(dir, e.to_string()))
 }
 
-/// The checkers of `requests` that the rules planner recognises (none when it does not).
+/// The checkers of the events of `requests` that the rules planner recognises, clause by
+/// clause: a part outside its vocabulary costs that part its checker, not the others theirs.
 pub fn checks_for(requests: &[String]) -> Vec<(Behavior, Params)> {
-    let mut out = Vec::new();
-    for r in requests {
-        if let Ok(events) = understand_request(r) {
-            out.extend(events.into_iter().map(|e| (e.behaviour, e.params)));
-        }
-    }
-    out
+    requests
+        .iter()
+        .flat_map(|r| rules::understand_partly(r).0)
+        .map(|e| (e.behaviour, e.params))
+        .collect()
+}
+
+/// The clauses of `requests` that have no checker (outside the rules planner's vocabulary, or
+/// without the ids or numbers their behaviour needs), as the request words them.
+pub fn unchecked_clauses(requests: &[String]) -> Vec<String> {
+    requests
+        .iter()
+        .flat_map(|r| rules::understand_partly(r).1)
+        .map(|e| match e {
+            rules::RulesError::NotUnderstood { clause, .. }
+            | rules::RulesError::Missing { clause, .. } => clause,
+        })
+        .collect()
 }
 
 impl<'a> Session<'a> {
@@ -564,6 +576,11 @@ impl<'a> Session<'a> {
     /// The run directory.
     pub fn dir(&self) -> &Path {
         &self.dir
+    }
+
+    /// The clauses of the run's requests that no checker judges ([`unchecked_clauses`]).
+    pub fn unchecked(&self) -> Vec<String> {
+        unchecked_clauses(&self.state.requests)
     }
 
     /// The checkers of the request.

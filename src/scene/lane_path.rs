@@ -41,6 +41,21 @@ impl Turn {
 /// Heading change (radians) beyond which a lane counts as a turn.
 pub const TURN_THRESHOLD: f64 = 30.0 * std::f64::consts::PI / 180.0;
 
+/// Where a path turns ([`LanePath::next_turn`]), in arc length along it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TurnSpan {
+    /// The turning lane.
+    pub lane: LaneId,
+    /// Where the lane starts.
+    pub start: f64,
+    /// Where the path's heading has turned half the lane's turn.
+    pub middle: f64,
+    /// Where the lane ends.
+    pub end: f64,
+    /// The lane's heading change, radians (positive to the left).
+    pub angle: f64,
+}
+
 /// A reference path made of consecutive lanes.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LanePath {
@@ -105,6 +120,40 @@ impl LanePath {
             }
         }
         None
+    }
+
+    /// The first lane from the requested one on that turns `turn` ([`Map::turn_of`]): where it
+    /// starts and ends on this path, and the middle of the turn, where the path's heading has
+    /// changed by half the lane's turn. `None` for [`Turn::Straight`], or where no lane on the
+    /// path turns that way. The middle is what a car must pass to have turned: a turning lane
+    /// often runs on straight well past the corner, so its end is too far, and its start is
+    /// still on the approach.
+    pub fn next_turn(&self, map: &Map, turn: Turn) -> Option<TurnSpan> {
+        if turn == Turn::Straight {
+            return None;
+        }
+        let from = self.lanes.iter().position(|&l| l == self.origin)?;
+        let k = (from..self.lanes.len()).find(|&k| map.turn_of(self.lanes[k]) == Some(turn))?;
+        let lane = self.lanes[k];
+        let start = self.lane_starts[k];
+        let end = start + map.lane(lane)?.centerline.length();
+        let change = map.heading_change(lane)?;
+        let h0 = self.frenet.heading_at(start + 1e-6);
+        // Sampled every 0.25 m: lanes' vertices are metres apart, so this finds the segment.
+        let steps = ((end - start) / 0.25).ceil().max(1.0) as usize;
+        let middle = (0..=steps)
+            .map(|i| start + (end - start) * i as f64 / steps as f64)
+            .find(|&s| {
+                wrap_angle(self.frenet.heading_at(s) - h0) * change.signum() >= 0.5 * change.abs()
+            })
+            .unwrap_or(end);
+        Some(TurnSpan {
+            lane,
+            start,
+            middle,
+            end,
+            angle: change,
+        })
     }
 
     /// The lane holding arc length `s`.
@@ -316,6 +365,29 @@ agents:
         let p = map.lane_path(50, 5000.0, 5000.0, Turn::Straight).unwrap();
         let expected: Vec<LaneId> = (50..100).chain(0..50).collect();
         assert_eq!(p.lanes, expected);
+    }
+
+    #[test]
+    fn the_next_turn_is_found_with_the_middle_of_its_corner() {
+        let s = fork();
+        let left = s.map.lane_path(1, 200.0, 50.0, Turn::Left).unwrap();
+        let t = left.next_turn(&s.map, Turn::Left).unwrap();
+        assert_eq!(t.lane, 3);
+        // Lane 0 (50 m) and lane 1 (50 m) come first.
+        assert!((t.start - 100.0).abs() < 1e-9, "{t:?}");
+        // The heading goes 11.3 -> 45 -> 78.7 degrees: half of the 67.4 degree turn is
+        // reached where the 45 degree segment starts, 10.2 m into the lane.
+        assert!((t.middle - (100.0 + 104f64.sqrt())).abs() <= 0.25, "{t:?}");
+        assert!((t.angle.to_degrees() - 67.38).abs() < 0.01, "{t:?}");
+        let right = s.map.lane_path(1, 200.0, 50.0, Turn::Right).unwrap();
+        let t = right.next_turn(&s.map, Turn::Right).unwrap();
+        assert_eq!(t.lane, 4);
+        assert!(t.angle < 0.0);
+        // Straight on there is no turn, and a path has no turn the other way.
+        let straight = s.map.lane_path(1, 200.0, 50.0, Turn::Straight).unwrap();
+        assert_eq!(straight.next_turn(&s.map, Turn::Left), None);
+        assert_eq!(left.next_turn(&s.map, Turn::Right), None);
+        assert_eq!(left.next_turn(&s.map, Turn::Straight), None);
     }
 
     #[test]

@@ -14,7 +14,7 @@ use serde::Serialize;
 pub use agents::{velocities_from_positions, Agent, AgentId, AgentState, AgentType};
 pub use description::{describe, DescribeOptions, SceneDescription};
 pub use lane_graph::{EdgeCounts, LaneGraph};
-pub use lane_path::{LanePath, Turn, TURN_THRESHOLD};
+pub use lane_path::{LanePath, Turn, TurnSpan, TURN_THRESHOLD};
 pub use map::{
     Lane, LaneId, LaneType, Map, MapExit, MapParts, RoadEdge, RoadEdgeKind, RoadLine, RoadLineKind,
     StopLine,

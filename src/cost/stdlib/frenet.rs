@@ -293,6 +293,30 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
             None => Dynamic::UNIT,
         }
     });
+    doc(docs, S, "p.next_turn(turn) -> map or ()", "The first lane on the path (from its requested lane on) that turns \"left\" or \"right\": #{lane, start, middle, end, angle}, with the arc lengths where it starts, where the path has turned half its angle (what a car must pass to have turned) and where it ends, and its heading change in radians (left positive); () if no lane on the path turns that way.");
+    let sh = shared.clone();
+    e.register_fn(
+        "next_turn",
+        move |p: &mut PathRef, t: &str| -> RResult<Dynamic> {
+            let way = turn(t)?;
+            if way == Turn::Straight {
+                return err("next_turn: the turn must be \"left\" or \"right\"".to_string());
+            }
+            let ctx = sh.borrow();
+            Ok(match p.path.next_turn(&ctx.scene.map, way) {
+                Some(span) => {
+                    let mut m = rhai::Map::new();
+                    m.insert("lane".into(), Dynamic::from(span.lane));
+                    m.insert("start".into(), Dynamic::from(span.start));
+                    m.insert("middle".into(), Dynamic::from(span.middle));
+                    m.insert("end".into(), Dynamic::from(span.end));
+                    m.insert("angle".into(), Dynamic::from(span.angle));
+                    Dynamic::from(m)
+                }
+                None => Dynamic::UNIT,
+            })
+        },
+    );
     e.register_fn("to_string", |p: &mut PathRef| {
         format!("path over lanes {:?}", p.path.lanes)
     });
