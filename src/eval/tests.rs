@@ -664,7 +664,10 @@ fn a_turn_is_taken_past_the_middle_of_its_corner() {
     assert!(left.achieved, "{}", left.reason);
     assert_eq!(left.measured["turn_lane"], 3.0);
     // 22 m into lane 3, whose corner is half turned 11.1 m in.
-    assert!((left.measured["short_of_turn_middle_m"] + 10.9).abs() < 0.3, "{left:?}");
+    assert!(
+        (left.measured["short_of_turn_middle_m"] + 10.9).abs() < 0.3,
+        "{left:?}"
+    );
     let right = v(Behavior::TurnRight, "crossroads_right.yaml");
     assert!(right.achieved, "{}", right.reason);
     assert_eq!(right.measured["turn_lane"], 4.0);
@@ -672,7 +675,11 @@ fn a_turn_is_taken_past_the_middle_of_its_corner() {
     for b in [Behavior::TurnLeft, Behavior::TurnRight] {
         let straight = v(b, "crossroads.yaml");
         assert!(!straight.achieved);
-        assert!(straight.reason.contains("leaves its"), "{}", straight.reason);
+        assert!(
+            straight.reason.contains("leaves its"),
+            "{}",
+            straight.reason
+        );
     }
     // Nor is the other turn.
     assert!(!v(Behavior::TurnLeft, "crossroads_right.yaml").achieved);
@@ -685,10 +692,20 @@ fn a_turn_is_taken_past_the_middle_of_its_corner() {
     }
     let stopped = check(Behavior::TurnLeft, &short, &params(&[("vehicle", 1.0)])).unwrap();
     assert!(!stopped.achieved);
-    assert!(stopped.reason.contains("short of the middle of the left turn (lane 3)"), "{}", stopped.reason);
+    assert!(
+        stopped
+            .reason
+            .contains("short of the middle of the left turn (lane 3)"),
+        "{}",
+        stopped.reason
+    );
     // A road without a turn says so.
     let none = v(Behavior::TurnLeft, "highway.yaml");
-    assert!(!none.achieved && none.reason.contains("no left turn ahead"), "{}", none.reason);
+    assert!(
+        !none.achieved && none.reason.contains("no left turn ahead"),
+        "{}",
+        none.reason
+    );
 }
 
 #[test]
@@ -704,7 +721,11 @@ fn turns_are_suggested_for_a_car_that_can_reach_the_corner() {
     let a = parked.agents.iter_mut().find(|a| a.id == 1).unwrap();
     let at = a.states[10];
     for st in &mut a.states[..] {
-        *st = crate::scene::AgentState { vx: 0.0, vy: 0.0, ..at };
+        *st = crate::scene::AgentState {
+            vx: 0.0,
+            vy: 0.0,
+            ..at
+        };
     }
     assert_eq!(
         super::behaviors::suggest(Behavior::TurnLeft, &parked, 40),
