@@ -1224,3 +1224,110 @@ fn a_batch_keeps_a_summary_it_did_not_write() {
         "my notes"
     );
 }
+
+#[test]
+fn a_huge_retry_after_is_capped_at_the_backoff_ceiling_and_said() {
+    let srv = Server::start(vec![
+        Canned::raw(429, r#"{"error": {"message": "busy"}}"#).header("Retry-After", "1000000000"),
+        Canned::chat("after the capped wait"),
+    ]);
+    let mut cfg = HttpConfig::new(&srv.url, "m");
+    cfg.backoff = Duration::from_millis(20);
+    cfg.backoff_max = Duration::from_millis(300);
+    let seen = std::sync::Arc::new(std::sync::Mutex::new(Vec::<String>::new()));
+    let sink = seen.clone();
+    let c = HttpClient::new(cfg)
+        .unwrap()
+        .with_observer(std::sync::Arc::new(move |e| {
+            if let drivescript::llm::client::ClientEvent::Notice(l) = e {
+                sink.lock().unwrap().push(l.to_string());
+            }
+        }));
+    let t0 = Instant::now();
+    let ex = ask_one(&c).unwrap();
+    assert_eq!(ex.reply, "after the capped wait");
+    assert!(
+        t0.elapsed() >= Duration::from_millis(280) && t0.elapsed() < Duration::from_secs(10),
+        "{:?}",
+        t0.elapsed()
+    );
+    assert!(
+        ex.retries[0].contains("not the 1e9 s Retry-After asked")
+            && ex.retries[0].contains("--backoff-max 0.3 s"),
+        "{:?}",
+        ex.retries
+    );
+    let seen = seen.lock().unwrap();
+    assert!(
+        seen.len() == 1 && seen[0].contains("127.0.0.1") && seen[0].contains("capped"),
+        "{seen:?}"
+    );
+}
+
+/// A server that answers the first request with a head promising 100 kB, 1 kB of it, and then
+/// a reset (`rst`) or an orderly close in the middle of the body.
+fn cut_off_server(rst: bool) -> String {
+    use std::io::{Read, Write};
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let url = format!(
+        "http://127.0.0.1:{}/v1",
+        listener.local_addr().unwrap().port()
+    );
+    std::thread::spawn(move || {
+        let Ok((mut stream, _)) = listener.accept() else {
+            return;
+        };
+        let mut head = [0u8; 65536];
+        let _ = stream.read(&mut head);
+        let _ = stream.write_all(
+            b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: 100000\r\n\r\n",
+        );
+        let _ = stream.write_all(&[b' '; 1000]);
+        let _ = stream.flush();
+        std::thread::sleep(Duration::from_millis(100));
+        if rst {
+            // SO_LINGER with a zero timeout: closing sends RST, not FIN.
+            use std::os::fd::AsRawFd;
+            let l = libc::linger {
+                l_onoff: 1,
+                l_linger: 0,
+            };
+            unsafe {
+                libc::setsockopt(
+                    stream.as_raw_fd(),
+                    libc::SOL_SOCKET,
+                    libc::SO_LINGER,
+                    &l as *const libc::linger as *const libc::c_void,
+                    std::mem::size_of::<libc::linger>() as libc::socklen_t,
+                );
+            }
+        }
+        drop(stream);
+        // Keeps the listener (and so the port) until the client is done.
+        std::thread::sleep(Duration::from_secs(30));
+    });
+    url
+}
+
+#[test]
+fn a_connection_reset_in_the_middle_of_the_body_is_a_reset_with_the_url_at_once() {
+    for rst in [true, false] {
+        let url = cut_off_server(rst);
+        let t0 = Instant::now();
+        let e = ask_one(&client(&url)).unwrap_err();
+        // The client's silence limit is 20 s: a reset is reported when it happens.
+        assert!(
+            t0.elapsed() < Duration::from_secs(5),
+            "{:?}: {e}",
+            t0.elapsed()
+        );
+        assert!(matches!(e, LlmError::Reset { .. }), "{e:?}");
+        let e = e.to_string();
+        assert!(
+            e.contains(&format!("{url}/chat/completions"))
+                && e.contains("reset or closed the connection in the middle of the reply")
+                && e.contains("after 1000 bytes"),
+            "{e}"
+        );
+    }
+}

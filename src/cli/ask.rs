@@ -8,6 +8,7 @@ use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 use drivescript::io::{load_scene, LoadOptions};
+use drivescript::llm::client::ClientEvent;
 use drivescript::llm::{
     Backend, Cot, HttpClient, HttpConfig, LlmError, Outcome, PromptOptions, Prompts, Session,
     SessionConfig,
@@ -87,6 +88,10 @@ pub struct Args {
     /// Retry-After), 0 to 600.
     #[arg(long, default_value_t = 2.0, allow_negative_numbers = true)]
     backoff: f64,
+    /// The longest wait between attempts, seconds: the doubling stops there, and a server's
+    /// Retry-After asking for more is cut to it (said on the terminal), 0 to 3600.
+    #[arg(long, default_value_t = 600.0, allow_negative_numbers = true)]
+    backoff_max: f64,
     /// Refinement rounds after the first sampling (0: the first script is final), at most 20.
     #[arg(long, default_value_t = 3, value_parser = usize_in(0, 20))]
     rounds: usize,
@@ -184,7 +189,8 @@ pub(crate) fn backend(
             cfg.model,
             drivescript::llm::client::redact_url(&cfg.endpoint())
         );
-        Ok((Backend::Http(HttpClient::new(cfg)?), line))
+        let client = HttpClient::new(cfg)?.with_observer(observer());
+        Ok((Backend::Http(client), line))
     };
     match llm {
         Llm::Rules => Ok((
@@ -219,6 +225,13 @@ pub(crate) fn backend(
     }
 }
 
+/// Prints what the client reports while a reply is under way.
+fn observer() -> drivescript::llm::client::Observer {
+    std::sync::Arc::new(|e: ClientEvent<'_>| match e {
+        ClientEvent::Notice(line) => eprintln!("{line}"),
+    })
+}
+
 impl Args {
     fn http_config(&self, url: String, model: String) -> HttpConfig {
         let mut c = HttpConfig::new(url, model);
@@ -229,6 +242,7 @@ impl Args {
         c.read_timeout = Duration::from_secs_f64(self.llm_timeout.max(0.001));
         c.attempts = self.attempts;
         c.backoff = Duration::from_secs_f64(self.backoff.max(0.0));
+        c.backoff_max = Duration::from_secs_f64(self.backoff_max.max(0.0));
         c
     }
 
@@ -325,6 +339,12 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
     if !(0.0..=600.0).contains(&args.backoff) {
         bail!("--backoff {:?}: must be 0 to 600 seconds", args.backoff);
+    }
+    if !(0.0..=3600.0).contains(&args.backoff_max) {
+        bail!(
+            "--backoff-max {:?}: must be 0 to 3600 seconds",
+            args.backoff_max
+        );
     }
     let trained = checkpoint(args.checkpoint.as_deref())?;
     if let Some(file) = &args.batch {

@@ -36,9 +36,13 @@ pub struct HttpConfig {
     pub read_timeout: Duration,
     /// Attempts in all for 429 and 5xx answers (at least 1).
     pub attempts: u32,
-    /// First wait between attempts; it doubles each time (capped at a minute) unless the
-    /// server says `Retry-After`.
+    /// First wait between attempts; it doubles each time unless the server says
+    /// `Retry-After`.
     pub backoff: Duration,
+    /// The longest wait between attempts: the doubling stops there, and a `Retry-After` asking
+    /// for more is cut to it (with a message), so that a server's absurd value cannot hang
+    /// the run.
+    pub backoff_max: Duration,
 }
 
 impl std::fmt::Debug for HttpConfig {
@@ -68,6 +72,7 @@ impl HttpConfig {
             read_timeout: Duration::from_secs(300),
             attempts: 3,
             backoff: Duration::from_secs(2),
+            backoff_max: Duration::from_secs(600),
         }
     }
 
@@ -150,11 +155,43 @@ pub struct Exchange {
     pub truncated: bool,
 }
 
+/// What the client tells its observer while a completion is under way.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ClientEvent<'a> {
+    /// A line to show now, whatever the terminal (a `Retry-After` cut to the backoff ceiling).
+    Notice(&'a str),
+}
+
+/// Receives [`ClientEvent`]s (the CLI prints them).
+pub type Observer = std::sync::Arc<dyn Fn(ClientEvent<'_>) + Send + Sync>;
+
 /// A blocking chat-completions client.
 #[derive(Clone)]
 pub struct HttpClient {
     cfg: HttpConfig,
     http: reqwest::blocking::Client,
+    observer: Option<Observer>,
+}
+
+/// How long to wait before the next attempt, and the note that says why: the server's
+/// `Retry-After` when it gave one, cut to `ceiling`, else the backoff.
+fn retry_pause(
+    retry_after: Option<f64>,
+    backoff: Duration,
+    ceiling: Duration,
+) -> (Duration, String) {
+    match retry_after {
+        Some(s) if s > ceiling.as_secs_f64() => (
+            ceiling,
+            format!(
+                ", not the {} s Retry-After asked: capped at the backoff ceiling, --backoff-max {} s",
+                crate::geom::num(s),
+                crate::geom::num(ceiling.as_secs_f64())
+            ),
+        ),
+        Some(s) => (Duration::from_secs_f64(s), ", as Retry-After asked".into()),
+        None => (backoff.min(ceiling), String::new()),
+    }
 }
 
 impl HttpClient {
@@ -165,7 +202,23 @@ impl HttpClient {
             .timeout(cfg.read_timeout)
             .build()
             .map_err(|e| LlmError::Setup(format!("HTTP client: {e}")))?;
-        Ok(Self { cfg, http })
+        Ok(Self {
+            cfg,
+            http,
+            observer: None,
+        })
+    }
+
+    /// The client telling `observer` what happens while a completion is under way.
+    pub fn with_observer(mut self, observer: Observer) -> Self {
+        self.observer = Some(observer);
+        self
+    }
+
+    fn notice(&self, line: &str) {
+        if let Some(o) = &self.observer {
+            o(ClientEvent::Notice(line));
+        }
     }
 
     /// The settings.
@@ -258,23 +311,17 @@ impl HttpClient {
                     message,
                 });
             }
-            // Retry-After is honoured up to ten minutes; an absurd value is the server's bug,
-            // not a reason to hang.
-            let pause = match retry_after {
-                Some(s) => Duration::from_secs_f64(s.min(600.0)),
-                None => wait,
-            };
-            retries.push(format!(
-                "{status}: {message} (waited {:.1} s{})",
-                pause.as_secs_f64(),
-                if retry_after.is_some() {
-                    ", as Retry-After asked"
-                } else {
-                    ""
-                }
-            ));
+            let (pause, note) = retry_pause(retry_after, wait, self.cfg.backoff_max);
+            let line = format!(
+                "{status}: {message} (waited {:.1} s{note})",
+                pause.as_secs_f64()
+            );
+            if retry_after.is_some_and(|s| s > self.cfg.backoff_max.as_secs_f64()) {
+                self.notice(&format!("{shown}: {line}"));
+            }
+            retries.push(line);
             std::thread::sleep(pause);
-            wait = (wait * 2).min(Duration::from_secs(60));
+            wait = (wait * 2).min(self.cfg.backoff_max);
         }
         unreachable!("the last attempt returns")
     }
@@ -293,20 +340,7 @@ fn read_body(
     use std::io::Read;
     let mut buf = Vec::new();
     if let Err(e) = resp.take(MAX_REPLY_BYTES + 1).read_to_end(&mut buf) {
-        return Err(
-            if e.kind() == std::io::ErrorKind::TimedOut || e.to_string().contains("timed out") {
-                LlmError::Timeout {
-                    url: url.into(),
-                    seconds: cfg.read_timeout.as_secs_f64(),
-                    connecting: false,
-                }
-            } else {
-                LlmError::Transport {
-                    url: url.into(),
-                    message: format!("reading the reply: {e}"),
-                }
-            },
-        );
+        return Err(read_error(&e, url, cfg, buf.len()));
     }
     if buf.len() as u64 > MAX_REPLY_BYTES {
         return Err(LlmError::BadReply {
@@ -319,6 +353,50 @@ fn read_body(
         });
     }
     Ok(String::from_utf8_lossy(&buf).into_owned())
+}
+
+/// What a failed read of a reply body means: the silence limit passed (a timeout), the server
+/// reset or closed the connection in the middle (a reset: the server died, or a proxy cut it;
+/// not worth waiting out the timeout for), or something else. `got` bytes had arrived.
+fn read_error(e: &std::io::Error, url: &str, cfg: &HttpConfig, got: usize) -> LlmError {
+    use std::io::ErrorKind as K;
+    // The cause is several layers down (io, reqwest, hyper, io): every layer is looked at.
+    let mut chain = vec![e.to_string()];
+    let mut kinds = vec![e.kind()];
+    let mut src: Option<&(dyn std::error::Error + 'static)> = e.get_ref().map(|r| r as _);
+    while let Some(s) = src {
+        chain.push(s.to_string());
+        if let Some(io) = s.downcast_ref::<std::io::Error>() {
+            kinds.push(io.kind());
+        }
+        src = s.source();
+    }
+    let text = chain.join(": ").to_lowercase();
+    if kinds.contains(&K::TimedOut) || text.contains("timed out") {
+        return LlmError::Timeout {
+            url: url.into(),
+            seconds: cfg.read_timeout.as_secs_f64(),
+            connecting: false,
+        };
+    }
+    let reset = kinds
+        .iter()
+        .any(|k| matches!(k, K::ConnectionReset | K::ConnectionAborted | K::BrokenPipe))
+        || text.contains("reset")
+        || text.contains("closed before message completed")
+        || text.contains("unexpected eof")
+        || kinds.contains(&K::UnexpectedEof);
+    if reset {
+        return LlmError::Reset {
+            url: url.into(),
+            bytes: got,
+            message: chain.last().cloned().unwrap_or_default(),
+        };
+    }
+    LlmError::Transport {
+        url: url.into(),
+        message: format!("reading the reply: {}", chain.join(": ")),
+    }
 }
 
 /// `text` with every occurrence of `key` replaced by `[redacted]`. Keys shorter than 8 bytes

@@ -50,6 +50,20 @@ pub enum LlmError {
         /// Whether connecting (not reading) timed out.
         connecting: bool,
     },
+    /// The server reset or closed the connection in the middle of the reply.
+    #[error(
+        "{url}: the server reset or closed the connection in the middle of the reply, after {bytes} \
+         bytes ({message}); it may have crashed or run out of memory: check its log, then \
+         `drivescript ask --resume DIR` asks again"
+    )]
+    Reset {
+        /// The endpoint, without credentials.
+        url: String,
+        /// Bytes of the body that had arrived.
+        bytes: usize,
+        /// The transport's own words.
+        message: String,
+    },
     /// 401 or 403.
     #[error(
         "{url}: the server refused the request ({status}: {message}); check DRIVESCRIPT_LLM_KEY"
