@@ -10,6 +10,7 @@ use std::time::{Duration, Instant};
 
 use common::llm_server::{refused_url, Canned, Server};
 use common::{s, samples};
+use drivescript::llm::client::ClientEvent;
 use drivescript::llm::{HttpClient, HttpConfig, LlmError, Message};
 
 fn client(url: &str) -> HttpClient {
@@ -246,7 +247,8 @@ fn last_user(srv: &Server, k: usize) -> String {
 #[test]
 fn http_happy_path_writes_the_run_and_keeps_the_key_out() {
     let srv = Server::start(vec![
-        Canned::chat(&reply(&cut_in_script(401, 399))),
+        // Streamed, as asked; the next reply is plain JSON, which a streaming request also reads.
+        Canned::stream(&reply(&cut_in_script(401, 399)), Duration::ZERO),
         Canned::chat("The cutter ends ahead in the victim's lane.\nACCEPT"),
     ]);
     let dir = tempfile::tempdir().unwrap();
@@ -311,7 +313,24 @@ fn http_happy_path_writes_the_run_and_keeps_the_key_out() {
         .filter(|r| r["phase"] == "llm")
         .collect();
     assert_eq!(llm.len(), 2);
-    assert_eq!(llm[0]["detail"]["usage"]["prompt_tokens"], 1000);
+    // The transcript records the whole streamed reply.
+    assert_eq!(llm[0]["detail"]["streamed"], true);
+    assert_eq!(llm[0]["detail"]["request"]["stream"], true);
+    assert_eq!(
+        llm[0]["detail"]["reply"].as_str().unwrap(),
+        reply(&cut_in_script(401, 399))
+    );
+    assert!(llm[1]["detail"].get("streamed").is_none());
+    // The server read the whole prompt, and the estimate made before sending is near its count.
+    let read = common::llm_server::prompt_tokens(&srv.received()[0].body);
+    assert_eq!(llm[0]["detail"]["usage"]["prompt_tokens"], read);
+    let estimate = llm[0]["detail"]["estimated_prompt_tokens"]
+        .as_u64()
+        .unwrap();
+    assert!(
+        estimate >= read && estimate < 2 * read,
+        "{estimate} vs {read}"
+    );
     assert_eq!(llm[0]["detail"]["request"]["model"], "test-model");
     assert!(tr["records"]
         .as_array()
@@ -407,6 +426,7 @@ fn rounds_run_out_with_exit_2_and_a_final_script() {
             s(dir.path()),
             "--rounds",
             "1",
+            "--no-stream",
         ],
         Some(&srv.url),
     );
@@ -414,6 +434,7 @@ fn rounds_run_out_with_exit_2_and_a_final_script() {
     assert_eq!(out.status.code(), Some(2), "{t}");
     assert!(t.contains("the rounds ran out"), "{t}");
     assert_eq!(srv.received().len(), 2);
+    assert_eq!(srv.received()[0].json()["stream"], false);
     assert!(dir.path().join("final.rhai").exists());
 }
 
@@ -1239,7 +1260,7 @@ fn a_huge_retry_after_is_capped_at_the_backoff_ceiling_and_said() {
     let c = HttpClient::new(cfg)
         .unwrap()
         .with_observer(std::sync::Arc::new(move |e| {
-            if let drivescript::llm::client::ClientEvent::Notice(l) = e {
+            if let ClientEvent::Notice(l) = e {
                 sink.lock().unwrap().push(l.to_string());
             }
         }));
@@ -1330,4 +1351,112 @@ fn a_connection_reset_in_the_middle_of_the_body_is_a_reset_with_the_url_at_once(
             "{e}"
         );
     }
+}
+
+#[test]
+fn a_server_that_cuts_the_prompt_to_its_window_is_an_error_naming_the_fix() {
+    // Ollama's /v1 reads the last 2,048 tokens of a longer prompt and says so only in usage.
+    let cut = |fingerprint: Option<&str>| {
+        let mut body = serde_json::json!({
+            "choices": [{"index": 0, "message": {"role": "assistant", "content": "ACCEPT"}, "finish_reason": "stop"}],
+            "usage": {"prompt_tokens": 2048, "completion_tokens": 1}
+        });
+        if let Some(f) = fingerprint {
+            body["system_fingerprint"] = f.into();
+        }
+        Canned::raw(200, &body.to_string())
+    };
+    let srv = Server::start(vec![cut(Some("fp_ollama")), cut(None)]);
+    let long = [Message::new("system", "rules ".repeat(4000))];
+    let e = client(&srv.url).complete(&long).unwrap_err();
+    assert!(matches!(e, LlmError::ContextCut { .. }), "{e:?}");
+    let e = e.to_string();
+    assert!(
+        e.contains("read 2048 tokens of a prompt of about 8004")
+            && e.contains("OLLAMA_CONTEXT_LENGTH=16384 ollama serve")
+            && e.contains("num_ctx")
+            && !e.contains("--ctx-size"),
+        "{e}"
+    );
+    // Through ask: the run stops at the first reply, before anything is sampled.
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask(
+        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    for want in [
+        "read 2048 tokens of a prompt of about",
+        "OLLAMA_CONTEXT_LENGTH",
+        "--ctx-size",
+        "--max-model-len",
+    ] {
+        assert!(t.contains(want), "{want}: {t}");
+    }
+    assert!(!dir.path().join("round_0/script.rhai").exists());
+}
+
+#[test]
+fn a_slow_stream_is_read_as_it_comes_with_progress_and_kept_whole() {
+    let text = "Plan: one cut-in. ACCEPT when it holds.";
+    let srv = Server::start(vec![
+        Canned::stream(text, Duration::from_millis(150)),
+        Canned::chat("plain JSON to a streaming request"),
+    ]);
+    let mut cfg = HttpConfig::new(&srv.url, "m");
+    // Less than the whole reply takes (10 events 150 ms apart), more than any gap in it.
+    cfg.read_timeout = Duration::from_millis(700);
+    let seen = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+    let sink = seen.clone();
+    let c = HttpClient::new(cfg)
+        .unwrap()
+        .with_observer(std::sync::Arc::new(move |e| match e {
+            ClientEvent::Streaming { tokens, .. } => sink.lock().unwrap().push(tokens),
+            ClientEvent::StreamEnd => sink.lock().unwrap().push(usize::MAX),
+            ClientEvent::Notice(_) => {}
+        }));
+    let long = [Message::new("user", "x".repeat(3000))];
+    let t0 = Instant::now();
+    let ex = c.complete(&long).unwrap();
+    assert!(
+        t0.elapsed() > Duration::from_millis(700),
+        "{:?}",
+        t0.elapsed()
+    );
+    assert_eq!(ex.reply, text);
+    assert!(ex.streamed);
+    assert_eq!(ex.usage.unwrap().prompt_tokens, 750);
+    let body = srv.received()[0].json();
+    assert_eq!(body["stream"], true);
+    assert_eq!(body["stream_options"]["include_usage"], true);
+    // One event per token, counting up, then the end.
+    let seen = seen.lock().unwrap().clone();
+    assert_eq!(seen, vec![1, 2, 3, 4, 5, 6, 7, usize::MAX]);
+    let ex = c.complete(&long).unwrap();
+    assert_eq!(
+        (ex.reply.as_str(), ex.streamed),
+        ("plain JSON to a streaming request", false)
+    );
+}
+
+#[test]
+fn a_stalled_stream_is_named_as_such() {
+    let tok = |w: &str| serde_json::json!({"choices": [{"delta": {"content": w}}]}).to_string();
+    let srv = Server::start(vec![Canned::events(
+        vec![tok("ACC"), tok("EPT"), "sleep:5000".into()],
+        Duration::ZERO,
+    )]);
+    let mut cfg = HttpConfig::new(&srv.url, "m");
+    cfg.read_timeout = Duration::from_millis(500);
+    let t0 = Instant::now();
+    let e = ask_one(&HttpClient::new(cfg).unwrap()).unwrap_err();
+    assert!(t0.elapsed() < Duration::from_secs(3), "{:?}", t0.elapsed());
+    assert!(matches!(e, LlmError::Stalled { tokens: 2, .. }), "{e:?}");
+    let e = e.to_string();
+    assert!(
+        e.contains("the stream stalled: nothing came for 0.5 s after 2 tokens")
+            && e.contains("127.0.0.1"),
+        "{e}"
+    );
 }

@@ -78,7 +78,12 @@ pub struct Args {
     /// (OpenAI's newer models).
     #[arg(long, default_value = "max_tokens")]
     max_tokens_field: String,
-    /// Seconds to wait for a reply (more than 0, at most 3600).
+    /// Ask for the reply in one piece instead of as a stream of events (streamed replies show
+    /// tokens so far, tokens per second and elapsed time on a terminal).
+    #[arg(long)]
+    no_stream: bool,
+    /// Seconds of silence allowed: before the reply's head, and between the parts of a streamed
+    /// reply (more than 0, at most 3600).
     #[arg(long, default_value_t = 300.0, allow_negative_numbers = true)]
     llm_timeout: f64,
     /// Attempts per request on 429 and 5xx answers, 1 to 20.
@@ -225,10 +230,32 @@ pub(crate) fn backend(
     }
 }
 
-/// Prints what the client reports while a reply is under way.
+/// Prints what the client reports while a reply is under way: notices always, and on a
+/// terminal a progress line of a streamed reply, rewritten in place a few times a second.
 fn observer() -> drivescript::llm::client::Observer {
-    std::sync::Arc::new(|e: ClientEvent<'_>| match e {
+    use std::io::{IsTerminal, Write};
+    let terminal = std::io::stderr().is_terminal();
+    let last = std::sync::Mutex::new(None::<std::time::Instant>);
+    std::sync::Arc::new(move |e: ClientEvent<'_>| match e {
         ClientEvent::Notice(line) => eprintln!("{line}"),
+        ClientEvent::Streaming {
+            tokens,
+            since_first,
+            elapsed,
+        } if terminal => {
+            let mut last = last.lock().unwrap_or_else(|p| p.into_inner());
+            if last.is_some_and(|t| t.elapsed() < Duration::from_millis(250)) {
+                return;
+            }
+            *last = Some(std::time::Instant::now());
+            let line = drivescript::llm::stream::progress_line(tokens, since_first, elapsed);
+            let _ = write!(std::io::stderr(), "\r\x1b[K  {line}");
+        }
+        ClientEvent::StreamEnd if terminal => {
+            *last.lock().unwrap_or_else(|p| p.into_inner()) = None;
+            let _ = write!(std::io::stderr(), "\r\x1b[K");
+        }
+        _ => {}
     })
 }
 
@@ -239,6 +266,7 @@ impl Args {
         c.max_tokens = self.max_tokens;
         c.max_tokens_field = self.max_tokens_field.clone();
         c.seed = Some(self.seed);
+        c.stream = !self.no_stream;
         c.read_timeout = Duration::from_secs_f64(self.llm_timeout.max(0.001));
         c.attempts = self.attempts;
         c.backoff = Duration::from_secs_f64(self.backoff.max(0.0));

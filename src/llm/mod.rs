@@ -12,6 +12,7 @@
 //! request whatever backend writes its script.
 
 pub mod batch;
+pub mod budget;
 pub mod client;
 pub mod feedback;
 pub mod prompt;
@@ -19,6 +20,7 @@ pub mod reply;
 pub mod rules;
 pub mod rundir;
 pub mod session;
+pub mod stream;
 
 use std::path::PathBuf;
 
@@ -62,6 +64,28 @@ pub enum LlmError {
         /// Bytes of the body that had arrived.
         bytes: usize,
         /// The transport's own words.
+        message: String,
+    },
+    /// A streamed reply stopped coming.
+    #[error(
+        "{url}: the stream stalled: nothing came for {seconds} s after {tokens} tokens; the \
+         server may be stuck or overloaded (raise --llm-timeout if the model is merely slow, \
+         or try --no-stream)"
+    )]
+    Stalled {
+        /// The endpoint, without credentials.
+        url: String,
+        /// The silence allowed.
+        seconds: f64,
+        /// Tokens received before it.
+        tokens: usize,
+    },
+    /// The server cut the prompt to its context window.
+    #[error("{url}: {message}")]
+    ContextCut {
+        /// The endpoint, without credentials.
+        url: String,
+        /// What was cut and how to give the server a larger window.
         message: String,
     },
     /// 401 or 403.
