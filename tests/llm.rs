@@ -1195,25 +1195,15 @@ fn a_batch_pair_naming_an_agent_the_scene_lacks_is_an_error_not_a_failed_pair() 
 
 #[test]
 fn an_endless_reply_body_is_an_error_not_an_abort() {
-    use std::io::{Read, Write};
-    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    let url = format!(
-        "http://127.0.0.1:{}/v1",
-        listener.local_addr().unwrap().port()
+    use std::io::Write;
+    let url = common::llm_server::one_shot(
+        b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nTransfer-Encoding: chunked\r\n\r\n",
+        |stream| {
+            let chunk = format!("{:x}\r\n{}\r\n", 1 << 20, " ".repeat(1 << 20));
+            // Until the client hangs up.
+            while stream.write_all(chunk.as_bytes()).is_ok() {}
+        },
     );
-    std::thread::spawn(move || {
-        let Ok((mut stream, _)) = listener.accept() else {
-            return;
-        };
-        let mut head = [0u8; 65536];
-        let _ = stream.read(&mut head);
-        let _ = stream.write_all(
-            b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nTransfer-Encoding: chunked\r\n\r\n",
-        );
-        let chunk = format!("{:x}\r\n{}\r\n", 1 << 20, " ".repeat(1 << 20));
-        // Until the client hangs up.
-        while stream.write_all(chunk.as_bytes()).is_ok() {}
-    });
     let e = ask_one(&client(&url)).unwrap_err().to_string();
     assert!(e.contains("the reply is larger than 16 MB"), "{e}");
 }
@@ -1288,46 +1278,33 @@ fn a_huge_retry_after_is_capped_at_the_backoff_ceiling_and_said() {
 /// A server that answers the first request with a head promising 100 kB, 1 kB of it, and then
 /// a reset (`rst`) or an orderly close in the middle of the body.
 fn cut_off_server(rst: bool) -> String {
-    use std::io::{Read, Write};
-    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    let url = format!(
-        "http://127.0.0.1:{}/v1",
-        listener.local_addr().unwrap().port()
-    );
-    std::thread::spawn(move || {
-        let Ok((mut stream, _)) = listener.accept() else {
-            return;
-        };
-        let mut head = [0u8; 65536];
-        let _ = stream.read(&mut head);
-        let _ = stream.write_all(
-            b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: 100000\r\n\r\n",
-        );
-        let _ = stream.write_all(&[b' '; 1000]);
-        let _ = stream.flush();
-        std::thread::sleep(Duration::from_millis(100));
-        if rst {
-            // SO_LINGER with a zero timeout: closing sends RST, not FIN.
-            use std::os::fd::AsRawFd;
-            let l = libc::linger {
-                l_onoff: 1,
-                l_linger: 0,
-            };
-            unsafe {
-                libc::setsockopt(
-                    stream.as_raw_fd(),
-                    libc::SOL_SOCKET,
-                    libc::SO_LINGER,
-                    &l as *const libc::linger as *const libc::c_void,
-                    std::mem::size_of::<libc::linger>() as libc::socklen_t,
-                );
+    use std::io::Write;
+    common::llm_server::one_shot(
+        b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: 100000\r\n\r\n",
+        move |stream| {
+            let _ = stream.write_all(&[b' '; 1000]);
+            let _ = stream.flush();
+            std::thread::sleep(Duration::from_millis(100));
+            if rst {
+                // SO_LINGER with a zero timeout: closing sends RST, not FIN.
+                use std::os::fd::AsRawFd;
+                let l = libc::linger {
+                    l_onoff: 1,
+                    l_linger: 0,
+                };
+                unsafe {
+                    libc::setsockopt(
+                        stream.as_raw_fd(),
+                        libc::SOL_SOCKET,
+                        libc::SO_LINGER,
+                        &l as *const libc::linger as *const libc::c_void,
+                        std::mem::size_of::<libc::linger>() as libc::socklen_t,
+                    );
+                }
             }
-        }
-        drop(stream);
-        // Keeps the listener (and so the port) until the client is done.
-        std::thread::sleep(Duration::from_secs(30));
-    });
-    url
+            let _ = stream.shutdown(std::net::Shutdown::Both);
+        },
+    )
 }
 
 #[test]
@@ -1458,5 +1435,258 @@ fn a_stalled_stream_is_named_as_such() {
         e.contains("the stream stalled: nothing came for 0.5 s after 2 tokens")
             && e.contains("127.0.0.1"),
         "{e}"
+    );
+}
+
+/// The checkpoint's horizon, which the first prompt states.
+fn horizon() -> usize {
+    let cfg: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("data/checkpoint/config.json"),
+        )
+        .unwrap(),
+    )
+    .unwrap();
+    cfg["config"]["window"]["future"].as_u64().unwrap() as usize
+}
+
+/// The reference entries (signatures) that document any of `names`.
+fn documenting(names: &std::collections::BTreeSet<String>) -> Vec<String> {
+    use drivescript::llm::fit::used_names;
+    let mut sigs: Vec<String> = drivescript::cost::reference()
+        .iter()
+        .filter(|d| used_names(d.signature).iter().any(|n| names.contains(n)))
+        .map(|d| d.signature.to_string())
+        .collect();
+    for (_, src) in drivescript::cost::STDLIB_MODULES {
+        for (sig, _) in drivescript::cost::module_functions(src) {
+            if used_names(&sig).iter().any(|n| names.contains(n)) {
+                sigs.push(sig);
+            }
+        }
+    }
+    sigs
+}
+
+#[test]
+fn with_context_4096_every_shipped_request_fits_and_keeps_its_agents_lanes_and_functions() {
+    use drivescript::llm::budget::estimate_tokens;
+    use drivescript::llm::fit::{code_of, reply_budget, used_names, Window};
+    use drivescript::llm::session::first_messages;
+    use drivescript::llm::{Prompts, SessionConfig};
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let prompts = Prompts::load(&root.join("prompts")).unwrap();
+    let window = Window {
+        tokens: 4096,
+        reply: reply_budget(4096, 4096),
+    };
+    let fitted = SessionConfig {
+        context: Some(window),
+        ..SessionConfig::default()
+    };
+    let whole = SessionConfig::default();
+    let h = horizon();
+    let mut checked = 0;
+    for file in ["data/requests/table1.yaml", "data/requests/table3.yaml"] {
+        let mut entries = drivescript::llm::batch::read_batch(&root.join(file)).unwrap();
+        for e in &mut entries {
+            e.scenes = vec![samples().join("commonroad"), root.join("scripts/scenes")];
+        }
+        let (instances, _) = drivescript::llm::batch::expand(&entries, h).unwrap();
+        for e in &entries {
+            assert!(
+                instances
+                    .iter()
+                    .any(|i| i.label == e.behaviour.unwrap().name()),
+                "{file}: no scene for {:?}",
+                e.request
+            );
+        }
+        for i in &instances {
+            let req = [i.request.clone()];
+            let m = first_messages(&prompts, &fitted, &i.scene, &req, h)
+                .unwrap_or_else(|e| panic!("{}: {}: {e}", i.scene.meta.scenario_id, i.request));
+            let (system, user) = (&m.messages[0].content, &m.messages[1].content);
+            let tokens = estimate_tokens(&m.messages);
+            assert!(
+                tokens + window.reply <= 4096,
+                "{}: {tokens} + {}",
+                i.request,
+                window.reply
+            );
+            assert!(!m.left_out.is_empty() && user.contains(&i.request));
+            // The named agents are listed as in the whole prompt, and so are their lanes.
+            let full = first_messages(&prompts, &whole, &i.scene, &req, h).unwrap();
+            let not_agents = ["limit", "x", "y", "tol", "from", "within", "gap"];
+            let ids = i
+                .checks
+                .iter()
+                .flat_map(|(_, p)| p.0.iter())
+                .filter(|(k, _)| !not_agents.contains(&k.as_str()))
+                .filter_map(|(_, v)| v.as_f64());
+            for id in ids {
+                let id = id as i64;
+                let line = full.messages[1]
+                    .content
+                    .lines()
+                    .find(|l| l.starts_with("- ") && l.contains(&format!(" {id}:")))
+                    .unwrap_or_else(|| panic!("agent {id} not in the whole summary"))
+                    .to_string();
+                assert!(
+                    user.contains(&line),
+                    "{}: {line} missing:\n{user}",
+                    i.request
+                );
+                if let Some(lane) = line.split(", lane ").nth(1) {
+                    let lane = lane.split(' ').next().unwrap();
+                    assert!(
+                        user.contains(&format!("- lane {lane}:")),
+                        "{}: lane {lane} missing:\n{user}",
+                        i.request
+                    );
+                }
+            }
+            // Every function the request's shipped scripts and the examples kept use.
+            let mut names = std::collections::BTreeSet::new();
+            for (b, _) in &i.checks {
+                names.extend(used_names(drivescript::llm::rules::script_source(*b)));
+            }
+            for (name, text) in prompts.examples() {
+                if system.contains(text.trim()) {
+                    names.extend(used_names(&code_of(text)));
+                } else {
+                    assert!(m.left_out.iter().any(|l| l.contains(name.as_str())));
+                }
+            }
+            for sig in documenting(&names) {
+                assert!(
+                    system.contains(&format!("`{sig}`")),
+                    "{}: `{sig}` is not documented:\n{system}",
+                    i.request
+                );
+            }
+            checked += 1;
+        }
+    }
+    assert!(checked >= 13, "{checked}");
+}
+
+#[test]
+fn ask_with_context_sends_every_round_within_the_window_and_says_what_it_left_out() {
+    use drivescript::llm::budget::estimate_tokens;
+    let idle = "let a = agent(401);\nterm(\"idle\", 0.0 * a.x.last());\n";
+    let srv = Server::start(vec![
+        Canned::chat(&reply(idle)),
+        Canned::chat(&reply(idle)),
+        Canned::chat(&reply(&cut_in_script(401, 399))),
+        Canned::chat("ACCEPT"),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask(
+        &[
+            s(&samples().join(SCENE)),
+            REQUEST,
+            "-o",
+            s(dir.path()),
+            "--context",
+            "4096",
+        ],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    assert!(
+        t.contains("context: fitted to --context 4096 (3072 tokens for the prompt, 1024 for the reply); left out: ")
+            && t.contains("entries of the reference"),
+        "{t}"
+    );
+    assert!(
+        t.contains("round 2: fitted to --context 4096: left out 2 earlier messages"),
+        "{t}"
+    );
+    let received = srv.received();
+    assert_eq!(received.len(), 4);
+    for (k, r) in received.iter().enumerate() {
+        let body = r.json();
+        assert_eq!(body["max_tokens"], 1024);
+        let msgs: Vec<Message> = serde_json::from_value(body["messages"].clone()).unwrap();
+        let tokens = estimate_tokens(&msgs);
+        assert!(tokens <= 3072, "request {k}: {tokens} tokens");
+        // The request is always there, and the last exchange whole.
+        assert!(msgs[1].content.contains(REQUEST), "request {k}");
+    }
+    // The state keeps the whole conversation; only what is sent is fitted.
+    let state: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("state.json")).unwrap())
+            .unwrap();
+    assert!(state["messages"].as_array().unwrap().len() >= 8);
+}
+
+#[test]
+fn a_replayed_transcript_reproduces_the_run_without_a_server() {
+    let idle = "let a = agent(401);\nterm(\"idle\", 0.0 * a.x.last());\n";
+    let srv = Server::start(vec![
+        Canned::chat(&reply(idle)),
+        Canned::chat("Looks fine to me.\nACCEPT"),
+        Canned::stream(&reply(&cut_in_script(401, 399)), Duration::ZERO),
+        Canned::chat("ACCEPT"),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let out = ask(
+        &[s(&samples().join(SCENE)), REQUEST, "-o", s(&run)],
+        Some(&srv.url),
+    );
+    assert_eq!(out.status.code(), Some(0), "{}", text(&out));
+    // No server: the replies come from the transcript.
+    let again = dir.path().join("again");
+    let out = ask(
+        &["--replay", s(&run.join("transcript.json")), "-o", s(&again)],
+        None,
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    assert!(
+        t.contains("replaying the 4 recorded replies of test-model")
+            && t.contains("round 3: the recorded reply (4 of 4)")
+            && !t.contains("the prompt differs")
+            && t.contains("replay: the same scripts, verdicts and outcome as the recorded run"),
+        "{t}"
+    );
+    for n in 0..4 {
+        let f = format!("round_{n}/script.rhai");
+        assert_eq!(
+            std::fs::read_to_string(run.join(&f)).ok(),
+            std::fs::read_to_string(again.join(&f)).ok(),
+            "{f}"
+        );
+    }
+    let verdicts = |d: &Path| {
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(d.join("state.json")).unwrap()).unwrap();
+        (v["history"].clone(), v["outcome"].clone())
+    };
+    assert_eq!(verdicts(&run), verdicts(&again));
+    assert!(verdicts(&run).0.as_array().unwrap().len() == 2);
+    // A recorded run the loop now answers differently: the replay says where, and exits 2.
+    let state = run.join("state.json");
+    let edited = std::fs::read_to_string(&state)
+        .unwrap()
+        .replace("\"meets\": true", "\"meets\": false");
+    std::fs::write(&state, edited).unwrap();
+    let out = ask(
+        &[
+            "--replay",
+            s(&run.join("transcript.json")),
+            "-o",
+            s(&dir.path().join("third")),
+        ],
+        None,
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(2), "{t}");
+    assert!(
+        t.contains("replay differs: sampling round 1: the verdict differs"),
+        "{t}"
     );
 }

@@ -15,7 +15,9 @@ pub mod batch;
 pub mod budget;
 pub mod client;
 pub mod feedback;
+pub mod fit;
 pub mod prompt;
+pub mod replay;
 pub mod reply;
 pub mod rules;
 pub mod rundir;
@@ -80,6 +82,9 @@ pub enum LlmError {
         /// Tokens received before it.
         tokens: usize,
     },
+    /// The conversation does not fit the context window `--context` states.
+    #[error("{0}")]
+    Context(String),
     /// The server cut the prompt to its context window.
     #[error("{url}: {message}")]
     ContextCut {

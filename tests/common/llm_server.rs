@@ -235,6 +235,32 @@ impl Server {
     }
 }
 
+/// A server for one request that reads it, answers with `head` (a status line and headers)
+/// and leaves the rest of the answer to `then`: bodies no well-behaved server sends. Returns
+/// the base URL.
+pub fn one_shot(
+    head: &'static [u8],
+    then: impl FnOnce(&mut std::net::TcpStream) + Send + 'static,
+) -> String {
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let url = format!(
+        "http://127.0.0.1:{}/v1",
+        listener.local_addr().unwrap().port()
+    );
+    std::thread::spawn(move || {
+        let Ok((mut stream, _)) = listener.accept() else {
+            return;
+        };
+        let mut request = [0u8; 65536];
+        let _ = stream.read(&mut request);
+        let _ = stream.write_all(head);
+        then(&mut stream);
+        // Keeps the listener (and so the port) until the client is done.
+        std::thread::sleep(Duration::from_secs(30));
+    });
+    url
+}
+
 /// A loopback URL where nothing listens.
 pub fn refused_url() -> String {
     let l = TcpListener::bind("127.0.0.1:0").unwrap();
