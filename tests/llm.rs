@@ -182,6 +182,15 @@ fn cut_in_script(cutter: i64, victim: i64) -> String {
         .replace("param(\"victim\")", &victim.to_string())
 }
 
+/// A script that pulls nobody: the cut-in checker fails on its samples.
+const IDLE: &str = "let a = agent(401);\nterm(\"idle\", 0.0 * a.x.last());\n";
+
+/// `ask SCENE REQUEST -o dir` with `extra` flags.
+fn ask_cut_in(dir: &Path, extra: &[&str], url: Option<&str>) -> Output {
+    let scene = samples().join(SCENE);
+    ask(&[&[s(&scene), REQUEST, "-o", s(dir)], extra].concat(), url)
+}
+
 fn reply(script: &str) -> String {
     format!("1. Events: one cut-in.\n2. Agents: 401 acts.\n\n```rhai\n{script}```\n")
 }
@@ -252,10 +261,7 @@ fn http_happy_path_writes_the_run_and_keeps_the_key_out() {
         Canned::chat("The cutter ends ahead in the victim's lane.\nACCEPT"),
     ]);
     let dir = tempfile::tempdir().unwrap();
-    let out = ask(
-        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
-        Some(&srv.url),
-    );
+    let out = ask_cut_in(dir.path(), &[], Some(&srv.url));
     let t = text(&out);
     assert_eq!(out.status.code(), Some(0), "{t}");
     assert!(t.contains("LLM: test-model at http://127.0.0.1"), "{t}");
@@ -352,10 +358,7 @@ fn syntax_errors_and_unknown_agents_go_back_with_line_numbers_before_any_samplin
         Canned::chat("ACCEPT"),
     ]);
     let dir = tempfile::tempdir().unwrap();
-    let out = ask(
-        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
-        Some(&srv.url),
-    );
+    let out = ask_cut_in(dir.path(), &[], Some(&srv.url));
     let t = text(&out);
     assert_eq!(out.status.code(), Some(0), "{t}");
     let v0 = std::fs::read_to_string(dir.path().join("round_0/validation.txt")).unwrap();
@@ -388,18 +391,14 @@ fn syntax_errors_and_unknown_agents_go_back_with_line_numbers_before_any_samplin
 fn a_failing_behaviour_is_repaired_and_an_accept_against_the_numbers_is_refused() {
     // A script that pulls nobody: the cut-in checker fails, so ACCEPT is answered with the
     // numbers; the repaired script passes.
-    let idle = "let a = agent(401);\nterm(\"idle\", 0.0 * a.x.last());\n";
     let srv = Server::start(vec![
-        Canned::chat(&reply(idle)),
+        Canned::chat(&reply(IDLE)),
         Canned::chat("Looks fine to me.\nACCEPT"),
         Canned::chat(&reply(&cut_in_script(401, 399))),
         Canned::chat("ACCEPT"),
     ]);
     let dir = tempfile::tempdir().unwrap();
-    let out = ask(
-        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
-        Some(&srv.url),
-    );
+    let out = ask_cut_in(dir.path(), &[], Some(&srv.url));
     let t = text(&out);
     assert_eq!(out.status.code(), Some(0), "{t}");
     assert!(t.contains("ACCEPT not accepted"), "{t}");
@@ -415,19 +414,11 @@ fn a_failing_behaviour_is_repaired_and_an_accept_against_the_numbers_is_refused(
 
 #[test]
 fn rounds_run_out_with_exit_2_and_a_final_script() {
-    let idle = "let a = agent(401);\nterm(\"idle\", 0.0 * a.x.last());\n";
-    let srv = Server::start(vec![Canned::chat(&reply(idle)), Canned::chat(&reply(idle))]);
+    let srv = Server::start(vec![Canned::chat(&reply(IDLE)), Canned::chat(&reply(IDLE))]);
     let dir = tempfile::tempdir().unwrap();
-    let out = ask(
-        &[
-            s(&samples().join(SCENE)),
-            REQUEST,
-            "-o",
-            s(dir.path()),
-            "--rounds",
-            "1",
-            "--no-stream",
-        ],
+    let out = ask_cut_in(
+        dir.path(),
+        &["--rounds", "1", "--no-stream"],
         Some(&srv.url),
     );
     let t = text(&out);
@@ -448,10 +439,7 @@ fn a_run_stopped_by_server_errors_resumes_where_it_stopped() {
         e500,
     ]);
     let dir = tempfile::tempdir().unwrap();
-    let out = ask(
-        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
-        Some(&srv.url),
-    );
+    let out = ask_cut_in(dir.path(), &[], Some(&srv.url));
     let t = text(&out);
     assert_eq!(out.status.code(), Some(1), "{t}");
     assert!(
@@ -1007,10 +995,7 @@ fn a_server_echoing_the_key_gets_it_into_no_output_and_no_file() {
         r#"{"error": {"message": "bad request; you sent Authorization: Bearer sk-test-secret"}}"#,
     )]);
     let dir = tempfile::tempdir().unwrap();
-    let out = ask(
-        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
-        Some(&srv.url),
-    );
+    let out = ask_cut_in(dir.path(), &[], Some(&srv.url));
     let t = text(&out);
     assert_eq!(out.status.code(), Some(1), "{t}");
     assert!(!t.contains("sk-test-secret"), "{t}");
@@ -1030,10 +1015,7 @@ fn a_server_echoing_the_key_gets_it_into_no_output_and_no_file() {
         Canned::raw(200, &escaped),
     ]);
     let dir = tempfile::tempdir().unwrap();
-    let out = ask(
-        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
-        Some(&srv.url),
-    );
+    let out = ask_cut_in(dir.path(), &[], Some(&srv.url));
     let t = text(&out);
     assert!(!t.contains("sk-test-secret"), "{t}");
     assert!(srv.received().len() >= 2, "{t}");
@@ -1357,10 +1339,7 @@ fn a_server_that_cuts_the_prompt_to_its_window_is_an_error_naming_the_fix() {
     );
     // Through ask: the run stops at the first reply, before anything is sampled.
     let dir = tempfile::tempdir().unwrap();
-    let out = ask(
-        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
-        Some(&srv.url),
-    );
+    let out = ask_cut_in(dir.path(), &[], Some(&srv.url));
     let t = text(&out);
     assert_eq!(out.status.code(), Some(1), "{t}");
     for want in [
@@ -1574,25 +1553,14 @@ fn with_context_4096_every_shipped_request_fits_and_keeps_its_agents_lanes_and_f
 #[test]
 fn ask_with_context_sends_every_round_within_the_window_and_says_what_it_left_out() {
     use drivescript::llm::budget::estimate_tokens;
-    let idle = "let a = agent(401);\nterm(\"idle\", 0.0 * a.x.last());\n";
     let srv = Server::start(vec![
-        Canned::chat(&reply(idle)),
-        Canned::chat(&reply(idle)),
+        Canned::chat(&reply(IDLE)),
+        Canned::chat(&reply(IDLE)),
         Canned::chat(&reply(&cut_in_script(401, 399))),
         Canned::chat("ACCEPT"),
     ]);
     let dir = tempfile::tempdir().unwrap();
-    let out = ask(
-        &[
-            s(&samples().join(SCENE)),
-            REQUEST,
-            "-o",
-            s(dir.path()),
-            "--context",
-            "4096",
-        ],
-        Some(&srv.url),
-    );
+    let out = ask_cut_in(dir.path(), &["--context", "4096"], Some(&srv.url));
     let t = text(&out);
     assert_eq!(out.status.code(), Some(0), "{t}");
     assert!(
@@ -1624,19 +1592,15 @@ fn ask_with_context_sends_every_round_within_the_window_and_says_what_it_left_ou
 
 #[test]
 fn a_replayed_transcript_reproduces_the_run_without_a_server() {
-    let idle = "let a = agent(401);\nterm(\"idle\", 0.0 * a.x.last());\n";
     let srv = Server::start(vec![
-        Canned::chat(&reply(idle)),
+        Canned::chat(&reply(IDLE)),
         Canned::chat("Looks fine to me.\nACCEPT"),
         Canned::stream(&reply(&cut_in_script(401, 399)), Duration::ZERO),
         Canned::chat("ACCEPT"),
     ]);
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("run");
-    let out = ask(
-        &[s(&samples().join(SCENE)), REQUEST, "-o", s(&run)],
-        Some(&srv.url),
-    );
+    let out = ask_cut_in(&run, &[], Some(&srv.url));
     assert_eq!(out.status.code(), Some(0), "{}", text(&out));
     // No server: the replies come from the transcript.
     let again = dir.path().join("again");
