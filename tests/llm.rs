@@ -1654,3 +1654,35 @@ fn a_replayed_transcript_reproduces_the_run_without_a_server() {
         "{t}"
     );
 }
+
+#[test]
+fn terms_stricter_than_a_passing_checker_are_named_and_relaxing_them_is_accepted() {
+    let strict = |tolerance: &str| {
+        format!(
+            "{}term(\"strict\", 0.1 + 0.0 * agent(401).x.last(), 1.0{tolerance});\n",
+            cut_in_script(401, 399)
+        )
+    };
+    let srv = Server::start(vec![
+        Canned::chat(&reply(&strict(""))),
+        Canned::chat(&reply(&strict(", 0.2"))),
+        Canned::chat("The checker passed and strict is within its tolerance now.\nACCEPT"),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(dir.path(), &[], Some(&srv.url));
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    let feedback = last_user(&srv, 1);
+    assert!(
+        feedback.contains("The checkers say the request is met in sample")
+            && feedback.contains("but your term strict exceeds its tolerance there")
+            && feedback.contains("Relax exactly that term")
+            && feedback.contains("the checkers say it meets the request, but your terms strict"),
+        "{feedback}"
+    );
+    let report = std::fs::read_to_string(dir.path().join("report.md")).unwrap();
+    assert!(
+        report.contains("accepted: sample") && report.contains("of round 1"),
+        "{report}"
+    );
+}
