@@ -678,6 +678,23 @@ fn eval_prints_tables_for_baselines_and_rollouts() {
         "log",
     ]);
     assert!(out.contains("| log replay | cut_in | 1 | 1.00 |"), "{out}");
+    // Words are checker parameters too, as the loop passes them (as recorded, the turning car
+    // crosses first: the yield is not met).
+    let junction = [
+        "eval",
+        "scripts/scenes/junction.yaml",
+        "--task",
+        "behaviour",
+    ];
+    let yield_args = ["--behaviour", "yield", "--param", "yielder=1", "other=2"];
+    let log = ["--baseline", "log"];
+    let out = ok(&[&junction[..], &yield_args, &["yielder_turn=left"], &log].concat());
+    assert!(out.contains("| log replay | yield | 1 | 0.00 |"), "{out}");
+    let err = fails(&[&junction[..], &yield_args, &["yielder_turn=sideways"], &log].concat());
+    assert!(
+        err.contains("\"yielder_turn\" = \"sideways\" must be \"straight\", \"left\" or \"right\""),
+        "{err}"
+    );
     let err = fails(&[
         "eval",
         s(&pair),

@@ -10,6 +10,7 @@ use std::time::{Duration, Instant};
 
 use common::llm_server::{refused_url, Canned, Server};
 use common::{s, samples};
+use drivescript::llm::client::ClientEvent;
 use drivescript::llm::{HttpClient, HttpConfig, LlmError, Message};
 
 fn client(url: &str) -> HttpClient {
@@ -181,6 +182,15 @@ fn cut_in_script(cutter: i64, victim: i64) -> String {
         .replace("param(\"victim\")", &victim.to_string())
 }
 
+/// A script that pulls nobody: the cut-in checker fails on its samples.
+const IDLE: &str = "let a = agent(401);\nterm(\"idle\", 0.0 * a.x.last());\n";
+
+/// `ask SCENE REQUEST -o dir` with `extra` flags.
+fn ask_cut_in(dir: &Path, extra: &[&str], url: Option<&str>) -> Output {
+    let scene = samples().join(SCENE);
+    ask(&[&[s(&scene), REQUEST, "-o", s(dir)], extra].concat(), url)
+}
+
 fn reply(script: &str) -> String {
     format!("1. Events: one cut-in.\n2. Agents: 401 acts.\n\n```rhai\n{script}```\n")
 }
@@ -246,14 +256,12 @@ fn last_user(srv: &Server, k: usize) -> String {
 #[test]
 fn http_happy_path_writes_the_run_and_keeps_the_key_out() {
     let srv = Server::start(vec![
-        Canned::chat(&reply(&cut_in_script(401, 399))),
+        // Streamed, as asked; the next reply is plain JSON, which a streaming request also reads.
+        Canned::stream(&reply(&cut_in_script(401, 399)), Duration::ZERO),
         Canned::chat("The cutter ends ahead in the victim's lane.\nACCEPT"),
     ]);
     let dir = tempfile::tempdir().unwrap();
-    let out = ask(
-        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
-        Some(&srv.url),
-    );
+    let out = ask_cut_in(dir.path(), &[], Some(&srv.url));
     let t = text(&out);
     assert_eq!(out.status.code(), Some(0), "{t}");
     assert!(t.contains("LLM: test-model at http://127.0.0.1"), "{t}");
@@ -311,7 +319,24 @@ fn http_happy_path_writes_the_run_and_keeps_the_key_out() {
         .filter(|r| r["phase"] == "llm")
         .collect();
     assert_eq!(llm.len(), 2);
-    assert_eq!(llm[0]["detail"]["usage"]["prompt_tokens"], 1000);
+    // The transcript records the whole streamed reply.
+    assert_eq!(llm[0]["detail"]["streamed"], true);
+    assert_eq!(llm[0]["detail"]["request"]["stream"], true);
+    assert_eq!(
+        llm[0]["detail"]["reply"].as_str().unwrap(),
+        reply(&cut_in_script(401, 399))
+    );
+    assert!(llm[1]["detail"].get("streamed").is_none());
+    // The server read the whole prompt, and the estimate made before sending is near its count.
+    let read = common::llm_server::prompt_tokens(&srv.received()[0].body);
+    assert_eq!(llm[0]["detail"]["usage"]["prompt_tokens"], read);
+    let estimate = llm[0]["detail"]["estimated_prompt_tokens"]
+        .as_u64()
+        .unwrap();
+    assert!(
+        estimate >= read && estimate < 2 * read,
+        "{estimate} vs {read}"
+    );
     assert_eq!(llm[0]["detail"]["request"]["model"], "test-model");
     assert!(tr["records"]
         .as_array()
@@ -333,10 +358,7 @@ fn syntax_errors_and_unknown_agents_go_back_with_line_numbers_before_any_samplin
         Canned::chat("ACCEPT"),
     ]);
     let dir = tempfile::tempdir().unwrap();
-    let out = ask(
-        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
-        Some(&srv.url),
-    );
+    let out = ask_cut_in(dir.path(), &[], Some(&srv.url));
     let t = text(&out);
     assert_eq!(out.status.code(), Some(0), "{t}");
     let v0 = std::fs::read_to_string(dir.path().join("round_0/validation.txt")).unwrap();
@@ -369,18 +391,14 @@ fn syntax_errors_and_unknown_agents_go_back_with_line_numbers_before_any_samplin
 fn a_failing_behaviour_is_repaired_and_an_accept_against_the_numbers_is_refused() {
     // A script that pulls nobody: the cut-in checker fails, so ACCEPT is answered with the
     // numbers; the repaired script passes.
-    let idle = "let a = agent(401);\nterm(\"idle\", 0.0 * a.x.last());\n";
     let srv = Server::start(vec![
-        Canned::chat(&reply(idle)),
+        Canned::chat(&reply(IDLE)),
         Canned::chat("Looks fine to me.\nACCEPT"),
         Canned::chat(&reply(&cut_in_script(401, 399))),
         Canned::chat("ACCEPT"),
     ]);
     let dir = tempfile::tempdir().unwrap();
-    let out = ask(
-        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
-        Some(&srv.url),
-    );
+    let out = ask_cut_in(dir.path(), &[], Some(&srv.url));
     let t = text(&out);
     assert_eq!(out.status.code(), Some(0), "{t}");
     assert!(t.contains("ACCEPT not accepted"), "{t}");
@@ -396,24 +414,18 @@ fn a_failing_behaviour_is_repaired_and_an_accept_against_the_numbers_is_refused(
 
 #[test]
 fn rounds_run_out_with_exit_2_and_a_final_script() {
-    let idle = "let a = agent(401);\nterm(\"idle\", 0.0 * a.x.last());\n";
-    let srv = Server::start(vec![Canned::chat(&reply(idle)), Canned::chat(&reply(idle))]);
+    let srv = Server::start(vec![Canned::chat(&reply(IDLE)), Canned::chat(&reply(IDLE))]);
     let dir = tempfile::tempdir().unwrap();
-    let out = ask(
-        &[
-            s(&samples().join(SCENE)),
-            REQUEST,
-            "-o",
-            s(dir.path()),
-            "--rounds",
-            "1",
-        ],
+    let out = ask_cut_in(
+        dir.path(),
+        &["--rounds", "1", "--no-stream"],
         Some(&srv.url),
     );
     let t = text(&out);
     assert_eq!(out.status.code(), Some(2), "{t}");
     assert!(t.contains("the rounds ran out"), "{t}");
     assert_eq!(srv.received().len(), 2);
+    assert_eq!(srv.received()[0].json()["stream"], false);
     assert!(dir.path().join("final.rhai").exists());
 }
 
@@ -427,10 +439,7 @@ fn a_run_stopped_by_server_errors_resumes_where_it_stopped() {
         e500,
     ]);
     let dir = tempfile::tempdir().unwrap();
-    let out = ask(
-        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
-        Some(&srv.url),
-    );
+    let out = ask_cut_in(dir.path(), &[], Some(&srv.url));
     let t = text(&out);
     assert_eq!(out.status.code(), Some(1), "{t}");
     assert!(
@@ -986,10 +995,7 @@ fn a_server_echoing_the_key_gets_it_into_no_output_and_no_file() {
         r#"{"error": {"message": "bad request; you sent Authorization: Bearer sk-test-secret"}}"#,
     )]);
     let dir = tempfile::tempdir().unwrap();
-    let out = ask(
-        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
-        Some(&srv.url),
-    );
+    let out = ask_cut_in(dir.path(), &[], Some(&srv.url));
     let t = text(&out);
     assert_eq!(out.status.code(), Some(1), "{t}");
     assert!(!t.contains("sk-test-secret"), "{t}");
@@ -1009,10 +1015,7 @@ fn a_server_echoing_the_key_gets_it_into_no_output_and_no_file() {
         Canned::raw(200, &escaped),
     ]);
     let dir = tempfile::tempdir().unwrap();
-    let out = ask(
-        &[s(&samples().join(SCENE)), REQUEST, "-o", s(dir.path())],
-        Some(&srv.url),
-    );
+    let out = ask_cut_in(dir.path(), &[], Some(&srv.url));
     let t = text(&out);
     assert!(!t.contains("sk-test-secret"), "{t}");
     assert!(srv.received().len() >= 2, "{t}");
@@ -1174,25 +1177,15 @@ fn a_batch_pair_naming_an_agent_the_scene_lacks_is_an_error_not_a_failed_pair() 
 
 #[test]
 fn an_endless_reply_body_is_an_error_not_an_abort() {
-    use std::io::{Read, Write};
-    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    let url = format!(
-        "http://127.0.0.1:{}/v1",
-        listener.local_addr().unwrap().port()
+    use std::io::Write;
+    let url = common::llm_server::one_shot(
+        b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nTransfer-Encoding: chunked\r\n\r\n",
+        |stream| {
+            let chunk = format!("{:x}\r\n{}\r\n", 1 << 20, " ".repeat(1 << 20));
+            // Until the client hangs up.
+            while stream.write_all(chunk.as_bytes()).is_ok() {}
+        },
     );
-    std::thread::spawn(move || {
-        let Ok((mut stream, _)) = listener.accept() else {
-            return;
-        };
-        let mut head = [0u8; 65536];
-        let _ = stream.read(&mut head);
-        let _ = stream.write_all(
-            b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nTransfer-Encoding: chunked\r\n\r\n",
-        );
-        let chunk = format!("{:x}\r\n{}\r\n", 1 << 20, " ".repeat(1 << 20));
-        // Until the client hangs up.
-        while stream.write_all(chunk.as_bytes()).is_ok() {}
-    });
     let e = ask_one(&client(&url)).unwrap_err().to_string();
     assert!(e.contains("the reply is larger than 16 MB"), "{e}");
 }
@@ -1222,5 +1215,474 @@ fn a_batch_keeps_a_summary_it_did_not_write() {
     assert_eq!(
         std::fs::read_to_string(out.join("summary.md")).unwrap(),
         "my notes"
+    );
+}
+
+#[test]
+fn a_huge_retry_after_is_capped_at_the_backoff_ceiling_and_said() {
+    let srv = Server::start(vec![
+        Canned::raw(429, r#"{"error": {"message": "busy"}}"#).header("Retry-After", "1000000000"),
+        Canned::chat("after the capped wait"),
+    ]);
+    let mut cfg = HttpConfig::new(&srv.url, "m");
+    cfg.backoff = Duration::from_millis(20);
+    cfg.backoff_max = Duration::from_millis(300);
+    let seen = std::sync::Arc::new(std::sync::Mutex::new(Vec::<String>::new()));
+    let sink = seen.clone();
+    let c = HttpClient::new(cfg)
+        .unwrap()
+        .with_observer(std::sync::Arc::new(move |e| {
+            if let ClientEvent::Notice(l) = e {
+                sink.lock().unwrap().push(l.to_string());
+            }
+        }));
+    let t0 = Instant::now();
+    let ex = ask_one(&c).unwrap();
+    assert_eq!(ex.reply, "after the capped wait");
+    assert!(
+        t0.elapsed() >= Duration::from_millis(280) && t0.elapsed() < Duration::from_secs(10),
+        "{:?}",
+        t0.elapsed()
+    );
+    assert!(
+        ex.retries[0].contains("not the 1e9 s Retry-After asked")
+            && ex.retries[0].contains("--backoff-max 0.3 s"),
+        "{:?}",
+        ex.retries
+    );
+    let seen = seen.lock().unwrap();
+    assert!(
+        seen.len() == 1 && seen[0].contains("127.0.0.1") && seen[0].contains("capped"),
+        "{seen:?}"
+    );
+}
+
+/// A server that answers the first request with a head promising 100 kB, 1 kB of it, and then
+/// a reset (`rst`) or an orderly close in the middle of the body.
+fn cut_off_server(rst: bool) -> String {
+    use std::io::Write;
+    common::llm_server::one_shot(
+        b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: 100000\r\n\r\n",
+        move |stream| {
+            let _ = stream.write_all(&[b' '; 1000]);
+            let _ = stream.flush();
+            std::thread::sleep(Duration::from_millis(100));
+            if rst {
+                // SO_LINGER with a zero timeout: closing sends RST, not FIN.
+                use std::os::fd::AsRawFd;
+                let l = libc::linger {
+                    l_onoff: 1,
+                    l_linger: 0,
+                };
+                unsafe {
+                    libc::setsockopt(
+                        stream.as_raw_fd(),
+                        libc::SOL_SOCKET,
+                        libc::SO_LINGER,
+                        &l as *const libc::linger as *const libc::c_void,
+                        std::mem::size_of::<libc::linger>() as libc::socklen_t,
+                    );
+                }
+            }
+            let _ = stream.shutdown(std::net::Shutdown::Both);
+        },
+    )
+}
+
+#[test]
+fn a_connection_reset_in_the_middle_of_the_body_is_a_reset_with_the_url_at_once() {
+    for rst in [true, false] {
+        let url = cut_off_server(rst);
+        let t0 = Instant::now();
+        let e = ask_one(&client(&url)).unwrap_err();
+        // The client's silence limit is 20 s: a reset is reported when it happens.
+        assert!(
+            t0.elapsed() < Duration::from_secs(5),
+            "{:?}: {e}",
+            t0.elapsed()
+        );
+        assert!(matches!(e, LlmError::Reset { .. }), "{e:?}");
+        let e = e.to_string();
+        assert!(
+            e.contains(&format!("{url}/chat/completions"))
+                && e.contains("reset or closed the connection in the middle of the reply")
+                && e.contains("after 1000 bytes"),
+            "{e}"
+        );
+    }
+}
+
+#[test]
+fn a_server_that_cuts_the_prompt_to_its_window_is_an_error_naming_the_fix() {
+    // Ollama's /v1 reads the last 2,048 tokens of a longer prompt and says so only in usage.
+    let cut = |fingerprint: Option<&str>| {
+        let mut body = serde_json::json!({
+            "choices": [{"index": 0, "message": {"role": "assistant", "content": "ACCEPT"}, "finish_reason": "stop"}],
+            "usage": {"prompt_tokens": 2048, "completion_tokens": 1}
+        });
+        if let Some(f) = fingerprint {
+            body["system_fingerprint"] = f.into();
+        }
+        Canned::raw(200, &body.to_string())
+    };
+    let srv = Server::start(vec![cut(Some("fp_ollama")), cut(None)]);
+    let long = [Message::new("system", "rules ".repeat(4000))];
+    let e = client(&srv.url).complete(&long).unwrap_err();
+    assert!(matches!(e, LlmError::ContextCut { .. }), "{e:?}");
+    let e = e.to_string();
+    assert!(
+        e.contains("read 2048 tokens of a prompt of about 8004")
+            && e.contains("OLLAMA_CONTEXT_LENGTH=16384 ollama serve")
+            && e.contains("num_ctx")
+            && !e.contains("--ctx-size"),
+        "{e}"
+    );
+    // Through ask: the run stops at the first reply, before anything is sampled.
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(dir.path(), &[], Some(&srv.url));
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    for want in [
+        "read 2048 tokens of a prompt of about",
+        "OLLAMA_CONTEXT_LENGTH",
+        "--ctx-size",
+        "--max-model-len",
+    ] {
+        assert!(t.contains(want), "{want}: {t}");
+    }
+    assert!(!dir.path().join("round_0/script.rhai").exists());
+}
+
+#[test]
+fn a_slow_stream_is_read_as_it_comes_with_progress_and_kept_whole() {
+    let text = "Plan: one cut-in. ACCEPT when it holds.";
+    let srv = Server::start(vec![
+        Canned::stream(text, Duration::from_millis(150)),
+        Canned::chat("plain JSON to a streaming request"),
+    ]);
+    let mut cfg = HttpConfig::new(&srv.url, "m");
+    // Less than the whole reply takes (10 events 150 ms apart), more than any gap in it.
+    cfg.read_timeout = Duration::from_millis(700);
+    let seen = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+    let sink = seen.clone();
+    let c = HttpClient::new(cfg)
+        .unwrap()
+        .with_observer(std::sync::Arc::new(move |e| match e {
+            ClientEvent::Streaming { tokens, .. } => sink.lock().unwrap().push(tokens),
+            ClientEvent::StreamEnd => sink.lock().unwrap().push(usize::MAX),
+            ClientEvent::Notice(_) => {}
+        }));
+    let long = [Message::new("user", "x".repeat(3000))];
+    let t0 = Instant::now();
+    let ex = c.complete(&long).unwrap();
+    assert!(
+        t0.elapsed() > Duration::from_millis(700),
+        "{:?}",
+        t0.elapsed()
+    );
+    assert_eq!(ex.reply, text);
+    assert!(ex.streamed);
+    assert_eq!(ex.usage.unwrap().prompt_tokens, 750);
+    let body = srv.received()[0].json();
+    assert_eq!(body["stream"], true);
+    assert_eq!(body["stream_options"]["include_usage"], true);
+    // One event per token, counting up, then the end.
+    let seen = seen.lock().unwrap().clone();
+    assert_eq!(seen, vec![1, 2, 3, 4, 5, 6, 7, usize::MAX]);
+    let ex = c.complete(&long).unwrap();
+    assert_eq!(
+        (ex.reply.as_str(), ex.streamed),
+        ("plain JSON to a streaming request", false)
+    );
+}
+
+#[test]
+fn a_stalled_stream_is_named_as_such() {
+    let tok = |w: &str| serde_json::json!({"choices": [{"delta": {"content": w}}]}).to_string();
+    let srv = Server::start(vec![Canned::events(
+        vec![tok("ACC"), tok("EPT"), "sleep:5000".into()],
+        Duration::ZERO,
+    )]);
+    let mut cfg = HttpConfig::new(&srv.url, "m");
+    cfg.read_timeout = Duration::from_millis(500);
+    let t0 = Instant::now();
+    let e = ask_one(&HttpClient::new(cfg).unwrap()).unwrap_err();
+    assert!(t0.elapsed() < Duration::from_secs(3), "{:?}", t0.elapsed());
+    assert!(matches!(e, LlmError::Stalled { tokens: 2, .. }), "{e:?}");
+    let e = e.to_string();
+    assert!(
+        e.contains("the stream stalled: nothing came for 0.5 s after 2 tokens")
+            && e.contains("127.0.0.1"),
+        "{e}"
+    );
+}
+
+/// The checkpoint's horizon, which the first prompt states.
+fn horizon() -> usize {
+    let cfg: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("data/checkpoint/config.json"),
+        )
+        .unwrap(),
+    )
+    .unwrap();
+    cfg["config"]["window"]["future"].as_u64().unwrap() as usize
+}
+
+/// The reference entries (signatures) that document any of `names`.
+fn documenting(names: &std::collections::BTreeSet<String>) -> Vec<String> {
+    use drivescript::llm::fit::used_names;
+    let mut sigs: Vec<String> = drivescript::cost::reference()
+        .iter()
+        .filter(|d| used_names(d.signature).iter().any(|n| names.contains(n)))
+        .map(|d| d.signature.to_string())
+        .collect();
+    for (_, src) in drivescript::cost::STDLIB_MODULES {
+        for (sig, _) in drivescript::cost::module_functions(src) {
+            if used_names(&sig).iter().any(|n| names.contains(n)) {
+                sigs.push(sig);
+            }
+        }
+    }
+    sigs
+}
+
+#[test]
+fn with_context_4096_every_shipped_request_fits_and_keeps_its_agents_lanes_and_functions() {
+    use drivescript::llm::budget::estimate_tokens;
+    use drivescript::llm::fit::{code_of, reply_budget, used_names, Window};
+    use drivescript::llm::session::first_messages;
+    use drivescript::llm::{Prompts, SessionConfig};
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let prompts = Prompts::load(&root.join("prompts")).unwrap();
+    let window = Window {
+        tokens: 4096,
+        reply: reply_budget(4096, 4096),
+    };
+    let fitted = SessionConfig {
+        context: Some(window),
+        ..SessionConfig::default()
+    };
+    let whole = SessionConfig::default();
+    let h = horizon();
+    let mut checked = 0;
+    for file in ["data/requests/table1.yaml", "data/requests/table3.yaml"] {
+        let mut entries = drivescript::llm::batch::read_batch(&root.join(file)).unwrap();
+        for e in &mut entries {
+            e.scenes = vec![samples().join("commonroad"), root.join("scripts/scenes")];
+        }
+        let (instances, _) = drivescript::llm::batch::expand(&entries, h).unwrap();
+        for e in &entries {
+            assert!(
+                instances
+                    .iter()
+                    .any(|i| i.label == e.behaviour.unwrap().name()),
+                "{file}: no scene for {:?}",
+                e.request
+            );
+        }
+        for i in &instances {
+            let req = [i.request.clone()];
+            let m = first_messages(&prompts, &fitted, &i.scene, &req, h)
+                .unwrap_or_else(|e| panic!("{}: {}: {e}", i.scene.meta.scenario_id, i.request));
+            let (system, user) = (&m.messages[0].content, &m.messages[1].content);
+            let tokens = estimate_tokens(&m.messages);
+            assert!(
+                tokens + window.reply <= 4096,
+                "{}: {tokens} + {}",
+                i.request,
+                window.reply
+            );
+            assert!(!m.left_out.is_empty() && user.contains(&i.request));
+            // The named agents are listed as in the whole prompt, and so are their lanes.
+            let full = first_messages(&prompts, &whole, &i.scene, &req, h).unwrap();
+            let not_agents = ["limit", "x", "y", "tol", "from", "within", "gap"];
+            let ids = i
+                .checks
+                .iter()
+                .flat_map(|(_, p)| p.0.iter())
+                .filter(|(k, _)| !not_agents.contains(&k.as_str()))
+                .filter_map(|(_, v)| v.as_f64());
+            for id in ids {
+                let id = id as i64;
+                let line = full.messages[1]
+                    .content
+                    .lines()
+                    .find(|l| l.starts_with("- ") && l.contains(&format!(" {id}:")))
+                    .unwrap_or_else(|| panic!("agent {id} not in the whole summary"))
+                    .to_string();
+                assert!(
+                    user.contains(&line),
+                    "{}: {line} missing:\n{user}",
+                    i.request
+                );
+                if let Some(lane) = line.split(", lane ").nth(1) {
+                    let lane = lane.split(' ').next().unwrap();
+                    assert!(
+                        user.contains(&format!("- lane {lane}:")),
+                        "{}: lane {lane} missing:\n{user}",
+                        i.request
+                    );
+                }
+            }
+            // Every function the request's shipped scripts and the examples kept use.
+            let mut names = std::collections::BTreeSet::new();
+            for (b, _) in &i.checks {
+                names.extend(used_names(drivescript::llm::rules::script_source(*b)));
+            }
+            for (name, text) in prompts.examples() {
+                if system.contains(text.trim()) {
+                    names.extend(used_names(&code_of(text)));
+                } else {
+                    assert!(m.left_out.iter().any(|l| l.contains(name.as_str())));
+                }
+            }
+            for sig in documenting(&names) {
+                assert!(
+                    system.contains(&format!("`{sig}`")),
+                    "{}: `{sig}` is not documented:\n{system}",
+                    i.request
+                );
+            }
+            checked += 1;
+        }
+    }
+    assert!(checked >= 13, "{checked}");
+}
+
+#[test]
+fn ask_with_context_sends_every_round_within_the_window_and_says_what_it_left_out() {
+    use drivescript::llm::budget::estimate_tokens;
+    let srv = Server::start(vec![
+        Canned::chat(&reply(IDLE)),
+        Canned::chat(&reply(IDLE)),
+        Canned::chat(&reply(&cut_in_script(401, 399))),
+        Canned::chat("ACCEPT"),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(dir.path(), &["--context", "4096"], Some(&srv.url));
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    assert!(
+        t.contains("context: fitted to --context 4096 (3072 tokens for the prompt, 1024 for the reply); left out: ")
+            && t.contains("entries of the reference"),
+        "{t}"
+    );
+    assert!(
+        t.contains("round 2: fitted to --context 4096: left out 2 earlier messages"),
+        "{t}"
+    );
+    let received = srv.received();
+    assert_eq!(received.len(), 4);
+    for (k, r) in received.iter().enumerate() {
+        let body = r.json();
+        assert_eq!(body["max_tokens"], 1024);
+        let msgs: Vec<Message> = serde_json::from_value(body["messages"].clone()).unwrap();
+        let tokens = estimate_tokens(&msgs);
+        assert!(tokens <= 3072, "request {k}: {tokens} tokens");
+        // The request is always there, and the last exchange whole.
+        assert!(msgs[1].content.contains(REQUEST), "request {k}");
+    }
+    // The state keeps the whole conversation; only what is sent is fitted.
+    let state: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("state.json")).unwrap())
+            .unwrap();
+    assert!(state["messages"].as_array().unwrap().len() >= 8);
+}
+
+#[test]
+fn a_replayed_transcript_reproduces_the_run_without_a_server() {
+    let srv = Server::start(vec![
+        Canned::chat(&reply(IDLE)),
+        Canned::chat("Looks fine to me.\nACCEPT"),
+        Canned::stream(&reply(&cut_in_script(401, 399)), Duration::ZERO),
+        Canned::chat("ACCEPT"),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let out = ask_cut_in(&run, &[], Some(&srv.url));
+    assert_eq!(out.status.code(), Some(0), "{}", text(&out));
+    // No server: the replies come from the transcript.
+    let again = dir.path().join("again");
+    let out = ask(
+        &["--replay", s(&run.join("transcript.json")), "-o", s(&again)],
+        None,
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    assert!(
+        t.contains("replaying the 4 recorded replies of test-model")
+            && t.contains("round 3: the recorded reply (4 of 4)")
+            && !t.contains("the prompt differs")
+            && t.contains("replay: the same scripts, verdicts and outcome as the recorded run"),
+        "{t}"
+    );
+    for n in 0..4 {
+        let f = format!("round_{n}/script.rhai");
+        assert_eq!(
+            std::fs::read_to_string(run.join(&f)).ok(),
+            std::fs::read_to_string(again.join(&f)).ok(),
+            "{f}"
+        );
+    }
+    let verdicts = |d: &Path| {
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(d.join("state.json")).unwrap()).unwrap();
+        (v["history"].clone(), v["outcome"].clone())
+    };
+    assert_eq!(verdicts(&run), verdicts(&again));
+    assert!(verdicts(&run).0.as_array().unwrap().len() == 2);
+    // A recorded run the loop now answers differently: the replay says where, and exits 2.
+    let state = run.join("state.json");
+    let edited = std::fs::read_to_string(&state)
+        .unwrap()
+        .replace("\"meets\": true", "\"meets\": false");
+    std::fs::write(&state, edited).unwrap();
+    let out = ask(
+        &[
+            "--replay",
+            s(&run.join("transcript.json")),
+            "-o",
+            s(&dir.path().join("third")),
+        ],
+        None,
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(2), "{t}");
+    assert!(
+        t.contains("replay differs: sampling round 1: the verdict differs"),
+        "{t}"
+    );
+}
+
+#[test]
+fn terms_stricter_than_a_passing_checker_are_named_and_relaxing_them_is_accepted() {
+    let strict = |tolerance: &str| {
+        format!(
+            "{}term(\"strict\", 0.1 + 0.0 * agent(401).x.last(), 1.0{tolerance});\n",
+            cut_in_script(401, 399)
+        )
+    };
+    let srv = Server::start(vec![
+        Canned::chat(&reply(&strict(""))),
+        Canned::chat(&reply(&strict(", 0.2"))),
+        Canned::chat("The checker passed and strict is within its tolerance now.\nACCEPT"),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(dir.path(), &[], Some(&srv.url));
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    let feedback = last_user(&srv, 1);
+    assert!(
+        feedback.contains("The checkers say the request is met in sample")
+            && feedback.contains("but your term strict exceeds its tolerance there")
+            && feedback.contains("Relax exactly that term")
+            && feedback.contains("the checkers say it meets the request, but your terms strict"),
+        "{feedback}"
+    );
+    let report = std::fs::read_to_string(dir.path().join("report.md")).unwrap();
+    assert!(
+        report.contains("accepted: sample") && report.contains("of round 1"),
+        "{report}"
     );
 }

@@ -8,6 +8,7 @@ use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 use drivescript::io::{load_scene, LoadOptions};
+use drivescript::llm::client::ClientEvent;
 use drivescript::llm::{
     Backend, Cot, HttpClient, HttpConfig, LlmError, Outcome, PromptOptions, Prompts, Session,
     SessionConfig,
@@ -42,6 +43,11 @@ pub struct Args {
     /// Revise the run in this directory with a follow-up request instead of starting over.
     #[arg(long = "continue", value_name = "DIR", conflicts_with = "batch")]
     follow_up: Option<PathBuf>,
+    /// Run again a run recorded in this transcript.json, its replies read from the file (no
+    /// server is asked), into the new run directory -o DIR; then compare its scripts, verdicts
+    /// and outcome with the recorded run's (exit 2 where they differ).
+    #[arg(long, value_name = "TRANSCRIPT", conflicts_with_all = ["resume", "follow_up", "batch"])]
+    replay: Option<PathBuf>,
     /// Run every (scene, request) pair of this YAML file into -o DIR and write a summary table
     /// per behaviour (before refinement and after each round) and rollouts for `eval`.
     #[arg(long, value_name = "FILE", conflicts_with = "resume")]
@@ -77,7 +83,12 @@ pub struct Args {
     /// (OpenAI's newer models).
     #[arg(long, default_value = "max_tokens")]
     max_tokens_field: String,
-    /// Seconds to wait for a reply (more than 0, at most 3600).
+    /// Ask for the reply in one piece instead of as a stream of events (streamed replies show
+    /// tokens so far, tokens per second and elapsed time on a terminal).
+    #[arg(long)]
+    no_stream: bool,
+    /// Seconds of silence allowed: before the reply's head, and between the parts of a streamed
+    /// reply (more than 0, at most 3600).
     #[arg(long, default_value_t = 300.0, allow_negative_numbers = true)]
     llm_timeout: f64,
     /// Attempts per request on 429 and 5xx answers, 1 to 20.
@@ -87,6 +98,10 @@ pub struct Args {
     /// Retry-After), 0 to 600.
     #[arg(long, default_value_t = 2.0, allow_negative_numbers = true)]
     backoff: f64,
+    /// The longest wait between attempts, seconds: the doubling stops there, and a server's
+    /// Retry-After asking for more is cut to it (said on the terminal), 0 to 3600.
+    #[arg(long, default_value_t = 600.0, allow_negative_numbers = true)]
+    backoff_max: f64,
     /// Refinement rounds after the first sampling (0: the first script is final), at most 20.
     #[arg(long, default_value_t = 3, value_parser = usize_in(0, 20))]
     rounds: usize,
@@ -136,6 +151,12 @@ pub(crate) struct PromptFlags {
     /// Ablation: the reference without the Frenet-frame functions.
     #[arg(long)]
     pub no_frenet: bool,
+    /// The model's context window, tokens (512 to 10,000,000): every request is fitted to it,
+    /// a quarter of it (at most --max-tokens) kept for the reply; the first prompt gets a
+    /// compact reference, fewer agents and examples as it must, later rounds a summary of the
+    /// older ones; what was left out is said. Without it the whole conversation is sent.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(512..=10_000_000))]
+    pub context: Option<u64>,
 }
 
 impl PromptFlags {
@@ -151,6 +172,15 @@ impl PromptFlags {
             },
             frenet: !self.no_frenet,
         }
+    }
+
+    /// The window --context states, with the reply's part of it for replies of at most
+    /// `max_tokens`.
+    pub(crate) fn window(&self, max_tokens: u32) -> Option<drivescript::llm::fit::Window> {
+        self.context.map(|tokens| drivescript::llm::fit::Window {
+            tokens,
+            reply: drivescript::llm::fit::reply_budget(tokens, u64::from(max_tokens)),
+        })
     }
 
     /// The templates, from --prompts or prompts/.
@@ -184,7 +214,8 @@ pub(crate) fn backend(
             cfg.model,
             drivescript::llm::client::redact_url(&cfg.endpoint())
         );
-        Ok((Backend::Http(HttpClient::new(cfg)?), line))
+        let client = HttpClient::new(cfg)?.with_observer(observer());
+        Ok((Backend::Http(client), line))
     };
     match llm {
         Llm::Rules => Ok((
@@ -219,6 +250,35 @@ pub(crate) fn backend(
     }
 }
 
+/// Prints what the client reports while a reply is under way: notices always, and on a
+/// terminal a progress line of a streamed reply, rewritten in place a few times a second.
+fn observer() -> drivescript::llm::client::Observer {
+    use std::io::{IsTerminal, Write};
+    let terminal = std::io::stderr().is_terminal();
+    let last = std::sync::Mutex::new(None::<std::time::Instant>);
+    std::sync::Arc::new(move |e: ClientEvent<'_>| match e {
+        ClientEvent::Notice(line) => eprintln!("{line}"),
+        ClientEvent::Streaming {
+            tokens,
+            since_first,
+            elapsed,
+        } if terminal => {
+            let mut last = last.lock().unwrap_or_else(|p| p.into_inner());
+            if last.is_some_and(|t| t.elapsed() < Duration::from_millis(250)) {
+                return;
+            }
+            *last = Some(std::time::Instant::now());
+            let line = drivescript::llm::stream::progress_line(tokens, since_first, elapsed);
+            let _ = write!(std::io::stderr(), "\r\x1b[K  {line}");
+        }
+        ClientEvent::StreamEnd if terminal => {
+            *last.lock().unwrap_or_else(|p| p.into_inner()) = None;
+            let _ = write!(std::io::stderr(), "\r\x1b[K");
+        }
+        _ => {}
+    })
+}
+
 impl Args {
     fn http_config(&self, url: String, model: String) -> HttpConfig {
         let mut c = HttpConfig::new(url, model);
@@ -226,9 +286,15 @@ impl Args {
         c.max_tokens = self.max_tokens;
         c.max_tokens_field = self.max_tokens_field.clone();
         c.seed = Some(self.seed);
+        c.stream = !self.no_stream;
+        if let Some(w) = self.prompt.window(self.max_tokens) {
+            // The reply's share of the window, which the prompt was fitted to leave.
+            c.max_tokens = u32::try_from(w.reply).unwrap_or(u32::MAX);
+        }
         c.read_timeout = Duration::from_secs_f64(self.llm_timeout.max(0.001));
         c.attempts = self.attempts;
         c.backoff = Duration::from_secs_f64(self.backoff.max(0.0));
+        c.backoff_max = Duration::from_secs_f64(self.backoff_max.max(0.0));
         c
     }
 
@@ -243,6 +309,7 @@ impl Args {
             seed: self.seed,
             through_denoiser: self.through_denoiser,
             polish: self.polish,
+            context: self.prompt.window(self.max_tokens),
             ..SessionConfig::default()
         }
     }
@@ -326,6 +393,12 @@ pub fn run(args: Args) -> Result<ExitCode> {
     if !(0.0..=600.0).contains(&args.backoff) {
         bail!("--backoff {:?}: must be 0 to 600 seconds", args.backoff);
     }
+    if !(0.0..=3600.0).contains(&args.backoff_max) {
+        bail!(
+            "--backoff-max {:?}: must be 0 to 3600 seconds",
+            args.backoff_max
+        );
+    }
     let trained = checkpoint(args.checkpoint.as_deref())?;
     if let Some(file) = &args.batch {
         return batch(&args, file, &trained);
@@ -338,6 +411,37 @@ pub fn run(args: Args) -> Result<ExitCode> {
         let s = reopen(&args, dir, &trained)?;
         println!("resuming {}", dir.display());
         s
+    } else if let Some(file) = &args.replay {
+        if !args.words.is_empty() {
+            bail!("--replay TRANSCRIPT takes no scene or request (the transcript has them)");
+        }
+        let Some(dir) = &args.output else {
+            bail!("--replay needs -o DIR, a new run directory");
+        };
+        let rec = drivescript::llm::replay::read_transcript(file)?;
+        println!(
+            "LLM: none; replaying the {} recorded replies of {} ({}) from {}",
+            rec.exchanges.len(),
+            rec.model.as_deref().unwrap_or("a model"),
+            rec.request,
+            file.display()
+        );
+        let raw = load_one(&rec.scene)?;
+        let checks = rec
+            .checks
+            .as_deref()
+            .map(drivescript::llm::session::stored_checks);
+        Session::start(
+            dir,
+            &rec.scene.clone(),
+            raw,
+            &rec.request.clone(),
+            &trained,
+            Backend::Replay(std::sync::Arc::new(rec.clone())),
+            args.prompt.load()?,
+            rec.config.clone(),
+            checks,
+        )?
     } else if let Some(dir) = &args.follow_up {
         let [request] = args.words.as_slice() else {
             bail!("--continue DIR takes one argument, the follow-up request in quotes");
@@ -371,6 +475,19 @@ pub fn run(args: Args) -> Result<ExitCode> {
             args.session_config(),
             None,
         )?;
+        if let Some(w) = args.prompt.window(args.max_tokens) {
+            println!(
+                "context: fitted to --context {} ({} tokens for the prompt, {} for the reply){}",
+                w.tokens,
+                w.prompt(),
+                w.reply,
+                if s.left_out().is_empty() {
+                    String::from("; nothing left out")
+                } else {
+                    format!("; left out: {}", s.left_out().join("; "))
+                }
+            );
+        }
         let checks = s.checks();
         if checks.is_empty() {
             println!("checkers: none (the request is not in the rules planner's vocabulary; acceptance is judged on the terms and the named agents' motion)");
@@ -386,6 +503,23 @@ pub fn run(args: Args) -> Result<ExitCode> {
     };
     let outcome = session.run(&mut progress)?;
     let dir = session.dir().to_path_buf();
+    let mut reproduced = true;
+    if let Some(file) = &args.replay {
+        let original = file.parent().unwrap_or(Path::new("."));
+        if original.join("state.json").is_file() {
+            let diffs = drivescript::llm::replay::compare(original, &dir)?;
+            reproduced = diffs.is_empty();
+            if reproduced {
+                println!(
+                    "replay: the same scripts, verdicts and outcome as the recorded run in {}",
+                    original.display()
+                );
+            }
+            for d in &diffs {
+                println!("replay differs: {d}");
+            }
+        }
+    }
     match outcome {
         Outcome::Waiting { prompt, reply } => {
             println!(
@@ -405,7 +539,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 dir.join("report.md").display(),
                 if accepted { "" } else { " (not accepted)" }
             );
-            Ok(if accepted {
+            Ok(if accepted && reproduced {
                 ExitCode::SUCCESS
             } else {
                 ExitCode::from(2)

@@ -42,6 +42,8 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let cfg = SessionConfig {
         prompt: a.prompt.options(),
         max_agents: a.prompt.max_agents,
+        // The reply's share as ask's default --max-tokens leaves it.
+        context: a.prompt.window(4096),
         ..SessionConfig::default()
     };
     let m = first_messages(
@@ -50,7 +52,14 @@ pub fn run(args: Args) -> Result<ExitCode> {
         &raw,
         &[a.request],
         trained.meta.config.window.future,
-    );
-    print!("{}", render_messages(&m));
+    )?;
+    print!("{}", render_messages(&m.messages));
+    if !m.left_out.is_empty() {
+        eprintln!(
+            "fitted to --context {}: left out {}",
+            a.prompt.context.unwrap_or_default(),
+            m.left_out.join("; ")
+        );
+    }
     Ok(ExitCode::SUCCESS)
 }

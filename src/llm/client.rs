@@ -28,17 +28,26 @@ pub struct HttpConfig {
     /// The JSON field that carries `max_tokens`: `max_tokens` for most servers,
     /// `max_completion_tokens` for OpenAI's newer models.
     pub max_tokens_field: String,
+    /// Whether to ask for the reply as a stream of events (`"stream": true`): signs of life
+    /// from a slow model, and a stalled stream told apart from a slow one. A server that
+    /// answers with plain JSON anyway is read as such.
+    pub stream: bool,
     /// Seed sent with the request (servers treat it as best effort).
     pub seed: Option<u64>,
     /// Time to establish the connection.
     pub connect_timeout: Duration,
-    /// Time for the whole reply once connected.
+    /// The longest silence: for the reply's head, and for each read of its body (a streamed
+    /// reply may take longer in all, as long as it keeps coming).
     pub read_timeout: Duration,
     /// Attempts in all for 429 and 5xx answers (at least 1).
     pub attempts: u32,
-    /// First wait between attempts; it doubles each time (capped at a minute) unless the
-    /// server says `Retry-After`.
+    /// First wait between attempts; it doubles each time unless the server says
+    /// `Retry-After`.
     pub backoff: Duration,
+    /// The longest wait between attempts: the doubling stops there, and a `Retry-After` asking
+    /// for more is cut to it (with a message), so that a server's absurd value cannot hang
+    /// the run.
+    pub backoff_max: Duration,
 }
 
 impl std::fmt::Debug for HttpConfig {
@@ -63,11 +72,13 @@ impl HttpConfig {
             temperature: 0.2,
             max_tokens: 4096,
             max_tokens_field: "max_tokens".into(),
+            stream: true,
             seed: None,
             connect_timeout: Duration::from_secs(10),
             read_timeout: Duration::from_secs(300),
             attempts: 3,
             backoff: Duration::from_secs(2),
+            backoff_max: Duration::from_secs(600),
         }
     }
 
@@ -140,21 +151,70 @@ pub struct Exchange {
     pub reply: String,
     /// Token usage, when the server reported it.
     pub usage: Option<Usage>,
+    /// The prompt's tokens as estimated before sending ([`super::budget::estimate_tokens`]).
+    pub estimated_prompt_tokens: u64,
     /// Seconds from the first attempt to the reply.
     pub latency: f64,
     /// Attempts that failed and were retried, each as `status: message (waited N s)`.
     pub retries: Vec<String>,
+    /// The reply came as a stream of events.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub streamed: bool,
     /// The server stopped the reply at the token limit (`finish_reason: "length"`): a script
     /// in it may be cut off.
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub truncated: bool,
 }
 
+/// What the client tells its observer while a completion is under way.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ClientEvent<'a> {
+    /// A line to show now, whatever the terminal (a `Retry-After` cut to the backoff ceiling).
+    Notice(&'a str),
+    /// A streamed reply is coming: `tokens` so far, the time since the first of them and the
+    /// time since the request was sent (a terminal shows [`super::stream::progress_line`]).
+    Streaming {
+        /// Chunks with content so far.
+        tokens: usize,
+        /// Since the first token.
+        since_first: Option<Duration>,
+        /// Since the request was sent.
+        elapsed: Duration,
+    },
+    /// The streamed reply is complete (or failed): a progress line can go.
+    StreamEnd,
+}
+
+/// Receives [`ClientEvent`]s (the CLI prints them).
+pub type Observer = std::sync::Arc<dyn Fn(ClientEvent<'_>) + Send + Sync>;
+
 /// A blocking chat-completions client.
 #[derive(Clone)]
 pub struct HttpClient {
     cfg: HttpConfig,
     http: reqwest::blocking::Client,
+    observer: Option<Observer>,
+}
+
+/// How long to wait before the next attempt, and the note that says why: the server's
+/// `Retry-After` when it gave one, cut to `ceiling`, else the backoff.
+fn retry_pause(
+    retry_after: Option<f64>,
+    backoff: Duration,
+    ceiling: Duration,
+) -> (Duration, String) {
+    match retry_after {
+        Some(s) if s > ceiling.as_secs_f64() => (
+            ceiling,
+            format!(
+                ", not the {} s Retry-After asked: capped at the backoff ceiling, --backoff-max {} s",
+                crate::geom::num(s),
+                crate::geom::num(ceiling.as_secs_f64())
+            ),
+        ),
+        Some(s) => (Duration::from_secs_f64(s), ", as Retry-After asked".into()),
+        None => (backoff.min(ceiling), String::new()),
+    }
 }
 
 impl HttpClient {
@@ -165,7 +225,100 @@ impl HttpClient {
             .timeout(cfg.read_timeout)
             .build()
             .map_err(|e| LlmError::Setup(format!("HTTP client: {e}")))?;
-        Ok(Self { cfg, http })
+        Ok(Self {
+            cfg,
+            http,
+            observer: None,
+        })
+    }
+
+    /// The client telling `observer` what happens while a completion is under way.
+    pub fn with_observer(mut self, observer: Observer) -> Self {
+        self.observer = Some(observer);
+        self
+    }
+
+    /// A prompt the server reports much shorter than the one sent was cut to its context
+    /// window: an error naming the fix for the server, not a reply to a prompt the model
+    /// never saw whole.
+    fn check_context(
+        &self,
+        url: &str,
+        estimate: u64,
+        usage: Option<Usage>,
+        fingerprint: Option<&str>,
+    ) -> Result<(), LlmError> {
+        let Some(u) = usage else { return Ok(()) };
+        let kind = super::budget::ServerKind::detect(&self.cfg.url, fingerprint);
+        match super::budget::check_prompt_tokens(
+            estimate,
+            u.prompt_tokens,
+            u64::from(self.cfg.max_tokens),
+            kind,
+        ) {
+            None => Ok(()),
+            Some(message) => Err(LlmError::ContextCut {
+                url: url.into(),
+                message,
+            }),
+        }
+    }
+
+    /// The completion in a successful reply: a stream of events, or (from a server that does
+    /// not stream, or was not asked to) one JSON body.
+    fn read_completion(
+        &self,
+        resp: reqwest::blocking::Response,
+        url: &str,
+        t0: Instant,
+    ) -> Result<Completion, LlmError> {
+        use std::io::BufRead;
+        let content_type = resp
+            .headers()
+            .get(reqwest::header::CONTENT_TYPE)
+            .and_then(|v| v.to_str().ok())
+            .map(str::to_string);
+        let mut body = std::io::BufReader::new(resp);
+        let head = body
+            .fill_buf()
+            .map_err(|e| read_error(&e, url, &self.cfg, 0))?;
+        if !(self.cfg.stream && super::stream::is_event_stream(content_type.as_deref(), head)) {
+            let text = self.redact(&read_body(body, url, &self.cfg)?);
+            return parse_completion(&text, url).map_err(|e| self.redact_error(e));
+        }
+        let observe = |e: ClientEvent<'_>| {
+            if let Some(o) = &self.observer {
+                o(e)
+            }
+        };
+        let got = super::stream::read_stream(
+            body,
+            url,
+            self.cfg.read_timeout,
+            &|e, n| read_error(e, url, &self.cfg, n),
+            &mut |tokens, since_first| {
+                observe(ClientEvent::Streaming {
+                    tokens,
+                    since_first,
+                    elapsed: t0.elapsed(),
+                })
+            },
+        );
+        observe(ClientEvent::StreamEnd);
+        let got = got.map_err(|e| self.redact_error(e))?;
+        Ok(Completion {
+            content: got.content,
+            usage: got.usage,
+            truncated: got.truncated,
+            fingerprint: got.fingerprint,
+            streamed: true,
+        })
+    }
+
+    fn notice(&self, line: &str) {
+        if let Some(o) = &self.observer {
+            o(ClientEvent::Notice(line));
+        }
     }
 
     /// The settings.
@@ -179,8 +332,12 @@ impl HttpClient {
             "model": self.cfg.model,
             "messages": messages,
             "temperature": self.cfg.temperature,
-            "stream": false,
+            "stream": self.cfg.stream,
         });
+        if self.cfg.stream {
+            // The usage comes in a last chunk only when asked for (OpenAI, vLLM, Ollama).
+            body["stream_options"] = json!({"include_usage": true});
+        }
         body[self.cfg.max_tokens_field.as_str()] = json!(self.cfg.max_tokens);
         if let Some(s) = self.cfg.seed {
             body["seed"] = json!(s);
@@ -193,6 +350,7 @@ impl HttpClient {
         let url = self.cfg.endpoint();
         let shown = redact_url(&url);
         let body = self.body(messages);
+        let estimate = super::budget::estimate_tokens(messages);
         let t0 = Instant::now();
         let mut retries = Vec::new();
         let attempts = self.cfg.attempts.max(1);
@@ -213,21 +371,23 @@ impl HttpClient {
                 .and_then(|v| v.to_str().ok())
                 .and_then(|v| v.trim().parse::<f64>().ok())
                 .filter(|s| s.is_finite() && *s >= 0.0);
-            let text = self.redact(&read_body(resp, &shown, &self.cfg)?);
             if (200..300).contains(&status) {
-                let (reply, usage, truncated) =
-                    parse_completion(&text, &shown).map_err(|e| self.redact_error(e))?;
+                let got = self.read_completion(resp, &shown, t0)?;
+                self.check_context(&shown, estimate, got.usage, got.fingerprint.as_deref())?;
                 return Ok(Exchange {
                     url: shown,
                     request: body,
                     // Again after decoding: JSON escapes (`\u0073k-...`) hide it from the first.
-                    reply: self.redact(&reply),
-                    usage,
+                    reply: self.redact(&got.content),
+                    usage: got.usage,
+                    estimated_prompt_tokens: estimate,
                     latency: t0.elapsed().as_secs_f64(),
                     retries,
-                    truncated,
+                    streamed: got.streamed,
+                    truncated: got.truncated,
                 });
             }
+            let text = self.redact(&read_body(resp, &shown, &self.cfg)?);
             let message = self.redact(&error_message(&text));
             let retryable = status == 429 || (500..600).contains(&status);
             if !retryable {
@@ -258,23 +418,17 @@ impl HttpClient {
                     message,
                 });
             }
-            // Retry-After is honoured up to ten minutes; an absurd value is the server's bug,
-            // not a reason to hang.
-            let pause = match retry_after {
-                Some(s) => Duration::from_secs_f64(s.min(600.0)),
-                None => wait,
-            };
-            retries.push(format!(
-                "{status}: {message} (waited {:.1} s{})",
-                pause.as_secs_f64(),
-                if retry_after.is_some() {
-                    ", as Retry-After asked"
-                } else {
-                    ""
-                }
-            ));
+            let (pause, note) = retry_pause(retry_after, wait, self.cfg.backoff_max);
+            let line = format!(
+                "{status}: {message} (waited {:.1} s{note})",
+                pause.as_secs_f64()
+            );
+            if retry_after.is_some_and(|s| s > self.cfg.backoff_max.as_secs_f64()) {
+                self.notice(&format!("{shown}: {line}"));
+            }
+            retries.push(line);
             std::thread::sleep(pause);
-            wait = (wait * 2).min(Duration::from_secs(60));
+            wait = (wait * 2).min(self.cfg.backoff_max);
         }
         unreachable!("the last attempt returns")
     }
@@ -285,28 +439,11 @@ impl HttpClient {
 pub const MAX_REPLY_BYTES: u64 = 16 << 20;
 
 /// Reads a reply body within [`MAX_REPLY_BYTES`] (invalid UTF-8 replaced, as `text()` does).
-fn read_body(
-    resp: reqwest::blocking::Response,
-    url: &str,
-    cfg: &HttpConfig,
-) -> Result<String, LlmError> {
+fn read_body(resp: impl std::io::Read, url: &str, cfg: &HttpConfig) -> Result<String, LlmError> {
     use std::io::Read;
     let mut buf = Vec::new();
     if let Err(e) = resp.take(MAX_REPLY_BYTES + 1).read_to_end(&mut buf) {
-        return Err(
-            if e.kind() == std::io::ErrorKind::TimedOut || e.to_string().contains("timed out") {
-                LlmError::Timeout {
-                    url: url.into(),
-                    seconds: cfg.read_timeout.as_secs_f64(),
-                    connecting: false,
-                }
-            } else {
-                LlmError::Transport {
-                    url: url.into(),
-                    message: format!("reading the reply: {e}"),
-                }
-            },
-        );
+        return Err(read_error(&e, url, cfg, buf.len()));
     }
     if buf.len() as u64 > MAX_REPLY_BYTES {
         return Err(LlmError::BadReply {
@@ -319,6 +456,50 @@ fn read_body(
         });
     }
     Ok(String::from_utf8_lossy(&buf).into_owned())
+}
+
+/// What a failed read of a reply body means: the silence limit passed (a timeout), the server
+/// reset or closed the connection in the middle (a reset: the server died, or a proxy cut it;
+/// not worth waiting out the timeout for), or something else. `got` bytes had arrived.
+fn read_error(e: &std::io::Error, url: &str, cfg: &HttpConfig, got: usize) -> LlmError {
+    use std::io::ErrorKind as K;
+    // The cause is several layers down (io, reqwest, hyper, io): every layer is looked at.
+    let mut chain = vec![e.to_string()];
+    let mut kinds = vec![e.kind()];
+    let mut src: Option<&(dyn std::error::Error + 'static)> = e.get_ref().map(|r| r as _);
+    while let Some(s) = src {
+        chain.push(s.to_string());
+        if let Some(io) = s.downcast_ref::<std::io::Error>() {
+            kinds.push(io.kind());
+        }
+        src = s.source();
+    }
+    let text = chain.join(": ").to_lowercase();
+    if kinds.contains(&K::TimedOut) || text.contains("timed out") {
+        return LlmError::Timeout {
+            url: url.into(),
+            seconds: cfg.read_timeout.as_secs_f64(),
+            connecting: false,
+        };
+    }
+    let reset = kinds
+        .iter()
+        .any(|k| matches!(k, K::ConnectionReset | K::ConnectionAborted | K::BrokenPipe))
+        || text.contains("reset")
+        || text.contains("closed before message completed")
+        || text.contains("unexpected eof")
+        || kinds.contains(&K::UnexpectedEof);
+    if reset {
+        return LlmError::Reset {
+            url: url.into(),
+            bytes: got,
+            message: chain.last().cloned().unwrap_or_default(),
+        };
+    }
+    LlmError::Transport {
+        url: url.into(),
+        message: format!("reading the reply: {}", chain.join(": ")),
+    }
 }
 
 /// `text` with every occurrence of `key` replaced by `[redacted]`. Keys shorter than 8 bytes
@@ -424,9 +605,23 @@ pub fn error_message(body: &str) -> String {
     }
 }
 
+/// What a successful reply body says.
+#[derive(Debug, Clone, PartialEq)]
+struct Completion {
+    /// The first choice's text.
+    content: String,
+    usage: Option<Usage>,
+    /// The token limit cut it off.
+    truncated: bool,
+    /// `system_fingerprint`, which tells some servers apart (Ollama's is `fp_ollama`).
+    fingerprint: Option<String>,
+    /// It came as a stream of events.
+    streamed: bool,
+}
+
 /// The first choice's text, the usage and whether the token limit cut it off, of a successful
 /// reply body.
-fn parse_completion(text: &str, url: &str) -> Result<(String, Option<Usage>, bool), LlmError> {
+fn parse_completion(text: &str, url: &str) -> Result<Completion, LlmError> {
     let bad = |why: String| LlmError::BadReply {
         url: url.into(),
         message: why,
@@ -461,8 +656,13 @@ fn parse_completion(text: &str, url: &str) -> Result<(String, Option<Usage>, boo
     let usage = v
         .get("usage")
         .and_then(|u| serde_json::from_value::<Usage>(u.clone()).ok());
-    let truncated = first["finish_reason"].as_str() == Some("length");
-    Ok((content, usage, truncated))
+    Ok(Completion {
+        content,
+        usage,
+        truncated: first["finish_reason"].as_str() == Some("length"),
+        fingerprint: v["system_fingerprint"].as_str().map(str::to_string),
+        streamed: false,
+    })
 }
 
 #[cfg(test)]
@@ -507,10 +707,10 @@ mod tests {
     #[test]
     fn completions_parse_and_bad_replies_say_why() {
         let ok = r#"{"choices":[{"message":{"role":"assistant","content":"hi"}}],"usage":{"prompt_tokens":5,"completion_tokens":2,"total_tokens":7}}"#;
-        let (c, u, cut) = parse_completion(ok, "u").unwrap();
-        assert!(!cut);
+        let got = parse_completion(ok, "u").unwrap();
+        assert!(!got.truncated);
         assert_eq!(
-            (c.as_str(), u),
+            (got.content.as_str(), got.usage),
             (
                 "hi",
                 Some(Usage {

@@ -60,6 +60,28 @@ impl Acceptance {
     }
 }
 
+impl Acceptance {
+    /// The script terms of `o` above their tolerance when the independent checkers all pass
+    /// it and no named agent moves implausibly: the script asks for more than the request, and
+    /// those terms (not the behaviour) are what to repair. Empty otherwise, and without
+    /// checkers (then the terms are all the request there is).
+    pub fn stricter_than_checked(&self, o: &SampleOutcome, report: &AttemptReport) -> Vec<String> {
+        let checked = !o.verdicts.is_empty()
+            && o.verdicts.iter().all(|v| v.passed)
+            && o.implausible(&report.named).next().is_none();
+        if !checked {
+            return Vec::new();
+        }
+        o.terms
+            .iter()
+            .filter(|t| {
+                t.script != "realism" && !(t.value <= t.tolerance.unwrap_or(self.tolerance))
+            })
+            .map(|t| t.term.clone())
+            .collect()
+    }
+}
+
 /// The refinement text for an attempt. `max_agents` caps the agents whose motion is listed
 /// (the named ones first).
 pub fn feedback(a: &Attempt, acc: &Acceptance) -> String {
@@ -100,14 +122,52 @@ pub fn feedback(a: &Attempt, acc: &Acceptance) -> String {
     );
     s.push_str("\n## Terms (unweighted values; the total is the weighted sum)\n\n");
     s.push_str(&term_table(r, acc));
+    let stricter: Vec<(usize, Vec<String>)> = r
+        .samples
+        .iter()
+        .enumerate()
+        .map(|(k, o)| (k, acc.stricter_than_checked(o, r)))
+        .filter(|(_, t)| !t.is_empty())
+        .collect();
+    if !stricter.is_empty() {
+        let mut terms: Vec<&String> = stricter.iter().flat_map(|(_, t)| t).collect();
+        terms.sort();
+        terms.dedup();
+        let _ =
+            writeln!(
+            s,
+            "\nThe checkers say the request is met in sample{} {}, but your term{} {} exceed{} \
+             {} tolerance there: the script asks for more than the request. Relax exactly \
+             th{} (a larger tolerance, the fourth argument of term, or a looser margin) rather \
+             than pulling harder.",
+            if stricter.len() > 1 { "s" } else { "" },
+            stricter
+                .iter()
+                .map(|(k, _)| k.to_string())
+                .collect::<Vec<_>>()
+                .join(", "),
+            if terms.len() > 1 { "s" } else { "" },
+            terms.iter().map(|t| t.as_str()).collect::<Vec<_>>().join(", "),
+            if terms.len() > 1 { "" } else { "s" },
+            if terms.len() > 1 { "their" } else { "its" },
+            if terms.len() > 1 { "ose terms" } else { "at term" },
+        );
+    }
     for (k, o) in r.samples.iter().enumerate() {
         let scene = &a.samples[k].scene;
         let reasons = acc.reasons(o, r);
+        let stricter = acc.stricter_than_checked(o, r);
         let _ = writeln!(
             s,
             "\n## Sample {k}: {} (total cost {:.4})",
             if reasons.is_empty() {
                 "meets the request".to_string()
+            } else if !stricter.is_empty() {
+                format!(
+                    "the checkers say it meets the request, but your terms {} exceed their \
+                     tolerance",
+                    stricter.join(", ")
+                )
             } else {
                 format!("does not meet it ({} reasons)", reasons.len())
             },

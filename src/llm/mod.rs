@@ -12,13 +12,17 @@
 //! request whatever backend writes its script.
 
 pub mod batch;
+pub mod budget;
 pub mod client;
 pub mod feedback;
+pub mod fit;
 pub mod prompt;
+pub mod replay;
 pub mod reply;
 pub mod rules;
 pub mod rundir;
 pub mod session;
+pub mod stream;
 
 use std::path::PathBuf;
 
@@ -49,6 +53,45 @@ pub enum LlmError {
         seconds: f64,
         /// Whether connecting (not reading) timed out.
         connecting: bool,
+    },
+    /// The server reset or closed the connection in the middle of the reply.
+    #[error(
+        "{url}: the server reset or closed the connection in the middle of the reply, after {bytes} \
+         bytes ({message}); it may have crashed or run out of memory: check its log, then \
+         `drivescript ask --resume DIR` asks again"
+    )]
+    Reset {
+        /// The endpoint, without credentials.
+        url: String,
+        /// Bytes of the body that had arrived.
+        bytes: usize,
+        /// The transport's own words.
+        message: String,
+    },
+    /// A streamed reply stopped coming.
+    #[error(
+        "{url}: the stream stalled: nothing came for {seconds} s after {tokens} tokens; the \
+         server may be stuck or overloaded (raise --llm-timeout if the model is merely slow, \
+         or try --no-stream)"
+    )]
+    Stalled {
+        /// The endpoint, without credentials.
+        url: String,
+        /// The silence allowed.
+        seconds: f64,
+        /// Tokens received before it.
+        tokens: usize,
+    },
+    /// The conversation does not fit the context window `--context` states.
+    #[error("{0}")]
+    Context(String),
+    /// The server cut the prompt to its context window.
+    #[error("{url}: {message}")]
+    ContextCut {
+        /// The endpoint, without credentials.
+        url: String,
+        /// What was cut and how to give the server a larger window.
+        message: String,
     },
     /// 401 or 403.
     #[error(

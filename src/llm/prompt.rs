@@ -180,16 +180,31 @@ impl Prompts {
 
     /// The system prompt: rules, the chosen reasoning, the examples and the reference.
     pub fn system(&self, opts: &PromptOptions) -> String {
+        let reference = if opts.frenet {
+            crate::cost::reference_markdown()
+        } else {
+            crate::cost::reference_markdown_without(&["Frenet frame"])
+        };
+        self.system_with(opts, &self.examples, &reference)
+    }
+
+    /// The system prompt with these examples and this reference (a context window too small
+    /// for all of them gets fewer: [`super::fit`]).
+    pub fn system_with(
+        &self,
+        opts: &PromptOptions,
+        examples: &[(String, String)],
+        reference: &str,
+    ) -> String {
         let reasoning = match opts.cot {
             Cot::Designed => &self.chain_of_thought,
             Cot::ZeroShot => &self.zero_shot_cot,
             Cot::None => &self.no_cot,
         };
-        let examples = if self.examples.is_empty() {
+        let examples = if examples.is_empty() {
             String::new()
         } else {
-            let body: Vec<String> = self
-                .examples
+            let body: Vec<String> = examples
                 .iter()
                 .map(|(_, t)| match opts.cot {
                     // Without the chain, the examples are request → script.
@@ -198,11 +213,6 @@ impl Prompts {
                 })
                 .collect();
             format!("# Worked examples\n\n{}", body.join("\n\n"))
-        };
-        let reference = if opts.frenet {
-            crate::cost::reference_markdown()
-        } else {
-            crate::cost::reference_markdown_without(&["Frenet frame"])
         };
         fill(
             &self.system,

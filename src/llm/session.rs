@@ -19,6 +19,7 @@ use serde_json::{json, Value};
 
 use super::client::{redact_url, HttpClient, Message};
 use super::feedback::{feedback, Acceptance};
+use super::fit::{fit_conversation, fit_first, Fitted};
 use super::prompt::{PromptOptions, Prompts};
 use super::reply::{parse_reply, Reply};
 use super::rules::{self, understand_request, Event, Tuning};
@@ -42,6 +43,8 @@ pub enum Backend {
     Manual,
     /// The rules planner over `scripts/`.
     Rules,
+    /// A recorded run's replies, in order (`ask --replay`): no server is asked.
+    Replay(std::sync::Arc<super::replay::Recorded>),
 }
 
 impl Backend {
@@ -51,6 +54,7 @@ impl Backend {
             Backend::Http(_) => "http",
             Backend::Manual => "manual",
             Backend::Rules => "rules",
+            Backend::Replay(_) => "replay",
         }
     }
 }
@@ -85,6 +89,10 @@ pub struct SessionConfig {
     pub polish: usize,
     /// Closed loop: steps executed per re-plan.
     pub replan: Option<usize>,
+    /// The model's context window (`--context`): every request is fitted to it
+    /// ([`super::fit`]); `None` sends the whole conversation.
+    #[serde(default)]
+    pub context: Option<super::fit::Window>,
 }
 
 impl Default for SessionConfig {
@@ -102,6 +110,7 @@ impl Default for SessionConfig {
             through_denoiser: false,
             polish: crate::sample::POLISH_STEPS,
             replan: None,
+            context: None,
         }
     }
 }
@@ -235,6 +244,9 @@ struct State {
     /// One record per sampling round, for batch tables.
     #[serde(default)]
     history: Vec<RoundRecord>,
+    /// What the first prompt left out to fit the context window.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    left_out: Vec<String>,
     /// The last validation error, while the script that caused it is not yet repaired.
     #[serde(default)]
     last_error: Option<String>,
@@ -304,6 +316,19 @@ fn write_bytes(dir: &Path, name: &str, bytes: &[u8]) -> Result<(), LlmError> {
     }
     super::rundir::check_not_link(&p)?;
     write_atomic(&p, bytes).map_err(|e| run_err(dir, e.to_string()))
+}
+
+/// Checkers as stored (by name), as the sampler takes them.
+pub fn stored_checks(checks: &[StoredCheck]) -> Vec<(Behavior, Params)> {
+    checks
+        .iter()
+        .filter_map(|c| {
+            Some((
+                Behavior::from_name(&c.behaviour)?,
+                Params::from_json(&c.params).ok()?,
+            ))
+        })
+        .collect()
 }
 
 /// The checkers of the events of `requests` that the rules planner recognises, clause by
@@ -406,6 +431,7 @@ impl<'a> Session<'a> {
                 event_results: Vec::new(),
                 failing_terms: Vec::new(),
                 history: Vec::new(),
+                left_out: Vec::new(),
                 last_error: None,
                 outcome: None,
             },
@@ -416,13 +442,15 @@ impl<'a> Session<'a> {
             transcript: Vec::new(),
             _lock: Some(lock),
         };
-        s.state.messages = first_messages(
+        let first = first_messages(
             &s.prompts,
             &s.state.config,
             &s.raw,
             &s.state.requests,
             trained.meta.config.window.future,
-        );
+        )?;
+        s.state.messages = first.messages;
+        s.state.left_out = first.left_out;
         s.save()?;
         Ok(s)
     }
@@ -585,16 +613,12 @@ impl<'a> Session<'a> {
 
     /// The checkers of the request.
     pub fn checks(&self) -> Vec<(Behavior, Params)> {
-        self.state
-            .checks
-            .iter()
-            .filter_map(|c| {
-                Some((
-                    Behavior::from_name(&c.behaviour)?,
-                    Params::from_json(&c.params).ok()?,
-                ))
-            })
-            .collect()
+        stored_checks(&self.state.checks)
+    }
+
+    /// What the first prompt left out to fit `--context` (empty when nothing was).
+    pub fn left_out(&self) -> &[String] {
+        &self.state.left_out
     }
 
     /// The first prompt, as `prompt show` prints it.
@@ -1140,6 +1164,53 @@ enum Got {
 }
 
 impl Session<'_> {
+    /// The messages to send for exchange `n`: the conversation, fitted to `--context` where
+    /// it is set (saying what was left out).
+    fn to_send(&self, n: usize, progress: &mut dyn FnMut(&str)) -> Result<Vec<Message>, LlmError> {
+        Ok(match self.state.config.context {
+            None => self.state.messages.clone(),
+            Some(w) => {
+                let refit = |tokens: u64| {
+                    let config = SessionConfig {
+                        context: Some(super::fit::Window {
+                            tokens: tokens + w.reply,
+                            reply: w.reply,
+                        }),
+                        ..self.state.config.clone()
+                    };
+                    let horizon = self.trained.meta.config.window.future;
+                    first_messages(
+                        &self.prompts,
+                        &config,
+                        &self.raw,
+                        &self.state.requests,
+                        horizon,
+                    )
+                    .ok()
+                };
+                let f = fit_conversation(&self.state.messages, w.prompt(), &refit).ok_or_else(
+                    || {
+                        LlmError::Context(format!(
+                            "round {n}: the conversation does not fit --context {} even with \
+                             the earlier rounds summarised, the last feedback cut down and \
+                             the first prompt at its smallest: raise --context (and the \
+                             server's window) or lower --max-tokens",
+                            w.tokens
+                        ))
+                    },
+                )?;
+                if !f.left_out.is_empty() {
+                    progress(&format!(
+                        "round {n}: fitted to --context {}: left out {}",
+                        w.tokens,
+                        f.left_out.join("; ")
+                    ));
+                }
+                f.messages
+            }
+        })
+    }
+
     fn get_reply(
         &mut self,
         n: usize,
@@ -1149,7 +1220,8 @@ impl Session<'_> {
         let t0 = Instant::now();
         if let Backend::Http(c) = &self.backend {
             progress(&format!("round {n}: asking {} ...", c.config().model));
-            let ex = c.complete(&self.state.messages)?;
+            let sent = self.to_send(n, progress)?;
+            let ex = c.complete(&sent)?;
             let usage = ex
                 .usage
                 .map(|u| format!(", {} + {} tokens", u.prompt_tokens, u.completion_tokens))
@@ -1175,6 +1247,37 @@ impl Session<'_> {
             self.record(n, "llm", t0, Some(detail));
             return Ok(Got::Text(reply));
         }
+        if let Backend::Replay(rec) = &self.backend {
+            let rec = rec.clone();
+            let k = self.transcript.iter().filter(|r| r.phase == "llm").count();
+            let Some(ex) = rec.exchanges.get(k) else {
+                return Err(LlmError::Input {
+                    path: rec.path.clone(),
+                    message: format!(
+                        "it records {} exchanges and the replay asks for another: its scripts \
+                         or verdicts differ from the recorded run's",
+                        rec.exchanges.len()
+                    ),
+                });
+            };
+            let sent = self.to_send(n, progress)?;
+            progress(&format!(
+                "round {n}: the recorded reply ({} of {}){}",
+                k + 1,
+                rec.exchanges.len(),
+                match super::replay::first_difference(&sent, &ex.messages) {
+                    Some(d) => format!(
+                        "; the prompt differs from the recorded one at {d} (the prompts or the \
+                         loop changed since)"
+                    ),
+                    None => String::new(),
+                }
+            ));
+            let mut detail = ex.detail.clone();
+            detail["replayed"] = true.into();
+            self.record(n, "llm", t0, Some(detail));
+            return Ok(Got::Text(ex.reply.clone()));
+        }
         if let Backend::Manual = self.backend {
             return Ok(match read_run_file(&rdir.join("reply.md")) {
                 Ok(t) if !t.trim().is_empty() => {
@@ -1197,32 +1300,54 @@ impl Session<'_> {
 }
 
 /// The first two messages of a run: the system prompt and the scene summary with the request
-/// (what `prompt show` prints). `horizon` is the sampler's (the checkpoint's future steps).
+/// (what `prompt show` prints), fitted to the context window when one is set. `horizon` is the
+/// sampler's (the checkpoint's future steps).
 pub fn first_messages(
     prompts: &Prompts,
     config: &SessionConfig,
     raw: &Scene,
     requests: &[String],
     horizon: usize,
-) -> Vec<Message> {
+) -> Result<Fitted, LlmError> {
     let keep: Vec<i64> = requests
         .iter()
         .flat_map(|r| numbers(r))
         .filter(|id| raw.agent(*id).is_some())
         .collect();
-    let summary = describe(
-        &raw.with_horizon(horizon),
-        &DescribeOptions {
-            max_agents: config.max_agents,
-            keep,
-            horizon,
-        },
-    )
-    .to_string();
-    vec![
-        Message::new("system", prompts.system(&config.prompt)),
-        Message::new("user", prompts.request(&summary, &requests.join("\n"))),
-    ]
+    let scene = raw.with_horizon(horizon);
+    let summary = |max_agents: usize| {
+        describe(
+            &scene,
+            &DescribeOptions {
+                max_agents,
+                keep: keep.clone(),
+                horizon,
+            },
+        )
+        .to_string()
+    };
+    match config.context {
+        None => Ok(Fitted {
+            messages: vec![
+                Message::new("system", prompts.system(&config.prompt)),
+                Message::new(
+                    "user",
+                    prompts.request(&summary(config.max_agents), &requests.join("\n")),
+                ),
+            ],
+            left_out: Vec::new(),
+        }),
+        Some(w) => fit_first(
+            prompts,
+            &config.prompt,
+            requests,
+            &summary,
+            config.max_agents,
+            keep.len(),
+            w,
+        )
+        .map_err(LlmError::Context),
+    }
 }
 
 /// Numbers in a request (candidate agent ids the summary keeps).

@@ -6,6 +6,24 @@ use std::net::TcpListener;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+/// In a canned body, replaced by [`prompt_tokens`] of the request answered.
+pub const PROMPT_TOKENS: &str = "__prompt_tokens__";
+
+/// The tokens of a request's messages as a tokenizer of 4 characters per token counts them:
+/// what a server that read the whole prompt reports.
+pub fn prompt_tokens(request_body: &str) -> u64 {
+    let v: serde_json::Value = serde_json::from_str(request_body).unwrap_or_default();
+    let chars: usize = v["messages"]
+        .as_array()
+        .map(|m| {
+            m.iter()
+                .map(|m| m["content"].as_str().unwrap_or("").chars().count())
+                .sum()
+        })
+        .unwrap_or(0);
+    (chars / 4) as u64
+}
+
 /// One scripted reply.
 #[derive(Clone)]
 pub struct Canned {
@@ -14,16 +32,19 @@ pub struct Canned {
     pub body: String,
     /// Wait before answering (read timeouts).
     pub delay: Duration,
+    /// Server-sent events instead of `body`: each `data:` payload, written `gap` apart.
+    pub events: Option<(Vec<String>, Duration)>,
 }
 
 impl Canned {
-    /// A chat completion whose first choice says `content`.
+    /// A chat completion whose first choice says `content`, reporting the prompt's tokens as
+    /// [`prompt_tokens`] counts them (a server that read the whole prompt).
     pub fn chat(content: &str) -> Self {
         let body = serde_json::json!({
             "id": "chatcmpl-test",
             "object": "chat.completion",
             "choices": [{"index": 0, "message": {"role": "assistant", "content": content}, "finish_reason": "stop"}],
-            "usage": {"prompt_tokens": 1000, "completion_tokens": 200, "total_tokens": 1200}
+            "usage": {"prompt_tokens": PROMPT_TOKENS, "completion_tokens": 200}
         });
         Self::raw(200, &body.to_string())
     }
@@ -35,6 +56,37 @@ impl Canned {
             headers: Vec::new(),
             body: body.into(),
             delay: Duration::ZERO,
+            events: None,
+        }
+    }
+
+    /// A streamed chat completion of `content`, a word per event, `gap` apart, with usage and
+    /// `[DONE]` at the end.
+    pub fn stream(content: &str, gap: Duration) -> Self {
+        let mut events: Vec<String> = content
+            .split_inclusive(' ')
+            .map(|w| {
+                serde_json::json!({"choices": [{"index": 0, "delta": {"content": w}}]}).to_string()
+            })
+            .collect();
+        events.push(
+            serde_json::json!({"choices": [{"index": 0, "delta": {}, "finish_reason": "stop"}]})
+                .to_string(),
+        );
+        events.push(
+            serde_json::json!({"choices": [], "usage": {"prompt_tokens": PROMPT_TOKENS, "completion_tokens": 200}})
+                .to_string(),
+        );
+        events.push("[DONE]".into());
+        Self::events(events, gap)
+    }
+
+    /// These `data:` payloads as server-sent events, `gap` apart (`sleep:MS` is a silence);
+    /// the stream ends after the last (a stream without `[DONE]` or a finish_reason is cut off).
+    pub fn events(events: Vec<String>, gap: Duration) -> Self {
+        Self {
+            events: Some((events, gap)),
+            ..Self::raw(200, "")
         }
     }
 
@@ -123,6 +175,7 @@ impl Server {
                 }
                 let mut body = vec![0u8; len];
                 let _ = reader.read_exact(&mut body);
+                let count = prompt_tokens(&String::from_utf8_lossy(&body));
                 rec.lock().unwrap().push(Recorded {
                     method,
                     path,
@@ -136,6 +189,26 @@ impl Server {
                     )
                 });
                 std::thread::sleep(reply.delay);
+                let mut reply = reply;
+                let placeholder = format!("\"{PROMPT_TOKENS}\"");
+                reply.body = reply.body.replace(&placeholder, &count.to_string());
+                if let Some((events, gap)) = &reply.events {
+                    let _ = stream.write_all(
+                        b"HTTP/1.1 200 OK\r\nContent-Type: text/event-stream\r\nCache-Control: no-cache\r\nConnection: close\r\n\r\n",
+                    );
+                    for e in events {
+                        let e = e.replace(&placeholder, &count.to_string());
+                        // `sleep:MS` holds the connection open, silent (a stalled stream).
+                        if let Some(ms) = e.strip_prefix("sleep:") {
+                            std::thread::sleep(Duration::from_millis(ms.parse().unwrap()));
+                            continue;
+                        }
+                        let _ = stream.write_all(format!("data: {e}\n\n").as_bytes());
+                        let _ = stream.flush();
+                        std::thread::sleep(*gap);
+                    }
+                    continue;
+                }
                 let mut head = format!(
                     "HTTP/1.1 {} X\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n",
                     reply.status,
@@ -160,6 +233,32 @@ impl Server {
     pub fn received(&self) -> Vec<Recorded> {
         self.requests.lock().unwrap().clone()
     }
+}
+
+/// A server for one request that reads it, answers with `head` (a status line and headers)
+/// and leaves the rest of the answer to `then`: bodies no well-behaved server sends. Returns
+/// the base URL.
+pub fn one_shot(
+    head: &'static [u8],
+    then: impl FnOnce(&mut std::net::TcpStream) + Send + 'static,
+) -> String {
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let url = format!(
+        "http://127.0.0.1:{}/v1",
+        listener.local_addr().unwrap().port()
+    );
+    std::thread::spawn(move || {
+        let Ok((mut stream, _)) = listener.accept() else {
+            return;
+        };
+        let mut request = [0u8; 65536];
+        let _ = stream.read(&mut request);
+        let _ = stream.write_all(head);
+        then(&mut stream);
+        // Keeps the listener (and so the port) until the client is done.
+        std::thread::sleep(Duration::from_secs(30));
+    });
+    url
 }
 
 /// A loopback URL where nothing listens.

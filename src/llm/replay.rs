@@ -1,0 +1,216 @@
+//! `ask --replay TRANSCRIPT`: a recorded run asked again of its transcript instead of a server.
+//!
+//! A run's `transcript.json` holds every request body and every reply; replayed in a new run
+//! directory, the same replies meet the same prompts, the same scripts are validated and
+//! sampled with the same seed, and the verdicts should come out the same. A run a user had with
+//! their model thus becomes a regression test with no network: [`compare`] lists where the
+//! replay differs from the original (a script, a round's verdict, the outcome), and a prompt
+//! that changed since the recording is said as it is sent.
+
+use std::path::{Path, PathBuf};
+
+use serde_json::Value;
+
+use super::client::Message;
+use super::session::{SessionConfig, StoredCheck, MAX_RUN_FILE_BYTES};
+use super::LlmError;
+
+/// One recorded exchange.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Exchange {
+    /// The messages that were sent.
+    pub messages: Vec<Message>,
+    /// What came back.
+    pub reply: String,
+    /// The transcript's record of it (usage, latency, ...), kept in the replay's transcript.
+    pub detail: Value,
+}
+
+/// A transcript, read for replaying.
+#[derive(Debug, Clone)]
+pub struct Recorded {
+    /// The transcript file.
+    pub path: PathBuf,
+    /// The scene the run was on.
+    pub scene: PathBuf,
+    /// Its request.
+    pub request: String,
+    /// Its settings.
+    pub config: SessionConfig,
+    /// The model that answered.
+    pub model: Option<String>,
+    /// The checkers, from the run's `state.json` where it lies beside the transcript (a batch
+    /// pair's are given, not read from the request).
+    pub checks: Option<Vec<StoredCheck>>,
+    /// The exchanges with the server, in order.
+    pub exchanges: Vec<Exchange>,
+}
+
+fn bad(path: &Path, message: impl Into<String>) -> LlmError {
+    LlmError::Input {
+        path: path.to_path_buf(),
+        message: message.into(),
+    }
+}
+
+fn read_json(path: &Path) -> Result<Value, LlmError> {
+    let text = crate::io::read_regular_text(path, MAX_RUN_FILE_BYTES, "a run's file")
+        .map_err(|e| bad(path, format!("cannot read it: {}", e.reason())))?;
+    serde_json::from_str(&text).map_err(|e| bad(path, format!("not JSON ({e})")))
+}
+
+/// Reads a transcript for [`super::Backend::Replay`]: only a run that asked a server holds the
+/// replies, and only a run of one request (a follow-up changes the conversation mid-way).
+pub fn read_transcript(path: &Path) -> Result<Recorded, LlmError> {
+    let t = read_json(path)?;
+    if t["backend"] != "http" {
+        return Err(bad(
+            path,
+            format!(
+                "the run's backend is {}: only a run that asked a server (--llm http) records \
+                 the replies a replay needs",
+                t["backend"]
+            ),
+        ));
+    }
+    let requests: Vec<String> = serde_json::from_value(t["requests"].clone())
+        .map_err(|e| bad(path, format!("\"requests\": {e}")))?;
+    let [request] = requests.as_slice() else {
+        return Err(bad(
+            path,
+            format!(
+                "the run has {} requests: replaying a run with follow-ups (--continue) is not \
+                 supported; replay the run before them",
+                requests.len()
+            ),
+        ));
+    };
+    let config: SessionConfig = serde_json::from_value(t["config"].clone())
+        .map_err(|e| bad(path, format!("\"config\": {e}")))?;
+    let scene = t["scene"]
+        .as_str()
+        .map(PathBuf::from)
+        .ok_or_else(|| bad(path, "no \"scene\""))?;
+    let mut exchanges = Vec::new();
+    for (k, r) in t["records"]
+        .as_array()
+        .ok_or_else(|| bad(path, "no \"records\" list"))?
+        .iter()
+        .filter(|r| r["phase"] == "llm")
+        .enumerate()
+    {
+        let d = &r["detail"];
+        let reply = d["reply"]
+            .as_str()
+            .ok_or_else(|| bad(path, format!("exchange {k} has no reply")))?;
+        let messages = serde_json::from_value(d["request"]["messages"].clone())
+            .map_err(|e| bad(path, format!("exchange {k}: its request's messages: {e}")))?;
+        exchanges.push(Exchange {
+            messages,
+            reply: reply.to_string(),
+            detail: d.clone(),
+        });
+    }
+    if exchanges.is_empty() {
+        return Err(bad(path, "it records no exchange with a server"));
+    }
+    let state = path.with_file_name("state.json");
+    let checks = if state.is_file() {
+        Some(
+            serde_json::from_value(read_json(&state)?["checks"].clone())
+                .map_err(|e| bad(&state, format!("\"checks\": {e}")))?,
+        )
+    } else {
+        None
+    };
+    Ok(Recorded {
+        path: path.to_path_buf(),
+        scene,
+        request: request.clone(),
+        config,
+        model: t["model"].as_str().map(str::to_string),
+        checks,
+        exchanges,
+    })
+}
+
+/// Where two messages lists first differ, in words (`None` when they are the same).
+pub fn first_difference(sent: &[Message], recorded: &[Message]) -> Option<String> {
+    for (k, (a, b)) in sent.iter().zip(recorded).enumerate() {
+        if a != b {
+            let line = a
+                .content
+                .lines()
+                .zip(b.content.lines())
+                .position(|(x, y)| x != y)
+                .map_or(String::new(), |l| format!(", line {}", l + 1));
+            return Some(format!("message {k} ({}){line}", a.role));
+        }
+    }
+    (sent.len() != recorded.len())
+        .then(|| format!("{} messages sent, {} recorded", sent.len(), recorded.len()))
+}
+
+/// Where the run in `replayed` differs from the run in `original`: each round's script, each
+/// sampling round's verdict (meets, achieved, passed, the reasons), and the outcome. Empty when
+/// the replay reproduces the original.
+pub fn compare(original: &Path, replayed: &Path) -> Result<Vec<String>, LlmError> {
+    let mut out = Vec::new();
+    let (a, b) = (
+        read_json(&original.join("state.json"))?,
+        read_json(&replayed.join("state.json"))?,
+    );
+    let rounds = |s: &Value| s["exchange"].as_u64().unwrap_or(0) as usize;
+    for n in 0..rounds(&a).max(rounds(&b)) {
+        let script =
+            |dir: &Path| std::fs::read_to_string(dir.join(format!("round_{n}/script.rhai"))).ok();
+        if script(original) != script(replayed) {
+            out.push(format!(
+                "round {n}: the script differs (or only one run has one)"
+            ));
+        }
+    }
+    let history = |s: &Value| s["history"].as_array().cloned().unwrap_or_default();
+    let (ha, hb) = (history(&a), history(&b));
+    for (k, (x, y)) in ha.iter().zip(&hb).enumerate() {
+        if x != y {
+            out.push(format!(
+                "sampling round {k}: the verdict differs: {x} recorded, {y} replayed"
+            ));
+        }
+    }
+    if ha.len() != hb.len() {
+        out.push(format!(
+            "{} sampling rounds recorded, {} replayed",
+            ha.len(),
+            hb.len()
+        ));
+    }
+    if a["outcome"] != b["outcome"] {
+        out.push(format!(
+            "the outcome differs: {} recorded, {} replayed",
+            a["outcome"], b["outcome"]
+        ));
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_changed_prompt_is_located() {
+        let a = [Message::new("system", "x"), Message::new("user", "a\nb")];
+        let b = [Message::new("system", "x"), Message::new("user", "a\nc")];
+        assert_eq!(first_difference(&a, &a), None);
+        assert_eq!(
+            first_difference(&a, &b).as_deref(),
+            Some("message 1 (user), line 2")
+        );
+        assert_eq!(
+            first_difference(&a[..1], &b).as_deref(),
+            Some("1 messages sent, 2 recorded")
+        );
+    }
+}
