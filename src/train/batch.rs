@@ -72,25 +72,18 @@ pub struct Normaliser {
 }
 
 impl Normaliser {
-    /// From a fitted basis. Each component is scaled by the geometric mean of its own spread
-    /// and the root mean spread of all (what every component had before, and what older
-    /// checkpoints store). One common scale let the long-horizon components of 8 s futures set
-    /// the scale of all of them: the cities model's was 24 m against 4.7 m at 4 s, and its
-    /// stopped cars jittered at four times the NGSIM model's speed. Scaling each component to
-    /// unit variance goes too far the other way: a tiny model then no longer learned in 200
-    /// steps (`a_tiny_model_learns_and_round_trips_through_a_checkpoint`), as the loss, kept
-    /// in metres of trajectory ([`Normaliser::loss_basis`]), came to rest on the largest
-    /// component alone. A floor keeps components without variance (round-off on synthetic
-    /// data) finite.
+    /// From a fitted basis. Every component gets the same scale, the root mean variance over
+    /// components. Scaling each by its own spread was tried for the 8 s cities model (each by
+    /// the geometric mean of its own spread and the common one, 4,500 steps on the same split):
+    /// the validation loss fell faster, but unguided samples of held-out towns moved cars that
+    /// stand in the log at 2.88 m/s against 0.96 m/s with one scale, since the largest
+    /// components, the distance driven, then carry more metres per unit of denoising error
+    /// (and the sampler's guidance steps and polish weights are tuned in units of one common
+    /// scale). [`Normaliser::loss_basis`] keeps the loss in metres whatever scales a checkpoint
+    /// holds.
     pub fn new(pca: Pca, sigma_data: f64) -> Self {
-        let top = pca.variances.iter().fold(0f64, |m, &v| m.max(v)).sqrt();
-        let floor = (top * 1e-3).max(1e-6);
-        let r = (pca.variances.iter().sum::<f64>() / pca.variances.len().max(1) as f64).sqrt();
-        let std = pca
-            .variances
-            .iter()
-            .map(|v| (v.max(0.0).sqrt() * r).sqrt().max(floor))
-            .collect();
+        let mean_var = pca.variances.iter().sum::<f64>() / pca.variances.len().max(1) as f64;
+        let std = vec![mean_var.sqrt().max(1e-6); pca.variances.len()];
         Self {
             pca,
             std,
@@ -308,25 +301,23 @@ mod tests {
     }
 
     #[test]
-    fn each_component_is_scaled_by_its_own_spread_and_the_common_one_and_the_loss_stays_in_metres()
-    {
-        let n = Normaliser::new(pca(vec![400.0, 4.0]), 0.5);
-        // The old common scale, root mean variance, is the loss scale.
+    fn the_loss_basis_weighs_each_component_by_its_scale() {
+        let mut n = Normaliser::new(pca(vec![400.0, 4.0]), 0.5);
+        // One common scale, the root mean variance, which is also the loss scale.
         let r = (202.0f64).sqrt();
         assert!((n.loss_scale() - r).abs() < 1e-12);
-        let (s0, s1) = ((20.0 * r).sqrt(), (2.0 * r).sqrt());
-        assert!((n.std[0] - s0).abs() < 1e-12 && (n.std[1] - s1).abs() < 1e-12);
+        assert_eq!(n.std, vec![r, r]);
+        // A checkpoint with scales of its own: an error of one normalised unit in a component
+        // costs, through the loss basis, what it moves the trajectory.
+        n.std = vec![20.0, 2.0];
         let b = n.loss_basis();
         let s = 0.5f64.sqrt();
-        assert!((b[0] - s * s0 / r).abs() < 1e-12 && (b[7] - s1 / r).abs() < 1e-12);
-        // One normalised unit in a component moves the trajectory by its scale over σ_data;
-        // through the loss basis that is the same movement in the loss scale.
+        assert!((b[0] - s * 20.0 / r).abs() < 1e-12 && (b[7] - 2.0 / r).abs() < 1e-12);
         let one = n.decode(&[1.0, 0.0]);
         let moved = one.iter().map(|v| v * v).sum::<f64>().sqrt();
-        assert!((moved - s0 / 0.5).abs() < 1e-9, "{moved}");
+        assert!((moved - 20.0 / 0.5).abs() < 1e-9, "{moved}");
         let through: f64 = b[..6].iter().map(|v| v * v).sum::<f64>().sqrt();
-        assert!((through * r - s0).abs() < 1e-9);
-        // Encoding inverts decoding.
+        assert!((through * r - 20.0).abs() < 1e-9);
         let c = n.encode(&n.decode(&[0.3, -1.2]));
         assert!(
             (c[0] - 0.3).abs() < 1e-6 && (c[1] + 1.2).abs() < 1e-6,
@@ -342,13 +333,5 @@ mod tests {
         for (a, c) in b.iter().zip(&n.pca.components) {
             assert!((a - c).abs() < 1e-12);
         }
-    }
-
-    #[test]
-    fn a_component_without_variance_gets_a_finite_scale() {
-        let n = Normaliser::new(pca(vec![100.0, 0.0]), 0.5);
-        assert_eq!(n.std[1], 10.0 * 1e-3);
-        assert!((n.std[0] - (10.0 * 50f64.sqrt()).sqrt()).abs() < 1e-12);
-        assert!(n.encode(&[0.0, 1.0, 0.0, 0.0, 0.0, 0.0])[1].is_finite());
     }
 }
