@@ -160,7 +160,7 @@ def test_a_half_observed_state_is_a_value_error_naming_agent_and_step(scene, cut
     traj = scene.log_future(40)
     a = int(np.argwhere(~np.isnan(traj[:, 3, 0]))[0][0])
     traj[a, 3, 1] = np.nan
-    with pytest.raises(ValueError, match=f"agent index {a}, step 3: y is nan"):
+    with pytest.raises(ValueError, match=f"agent index {a}, step 3: y is NaN"):
         cut_in.evaluate(scene, traj)
 
 

@@ -3,6 +3,8 @@
 import numpy as np
 import pytest
 
+from conftest import ROOT
+
 torch = pytest.importorskip("torch", reason="skipped: torch is not installed (pip install torch)")
 
 
@@ -38,19 +40,31 @@ def test_float32_in_float32_out(ds, scene, cut_in):
 
 
 def test_gradcheck_in_float64(ds, scene, cut_in):
-    # A short horizon with every state observed: gradcheck perturbs each coordinate.
+    # cut_in holds the victim (`hold(b)`: its gap and contact terms stop the victim's
+    # gradient on purpose), so its exact Jacobian is checked w.r.t. the cutter. A short horizon keeps it quick.
     traj = scene.log_future(12)
     keep = ~np.isnan(traj).any(axis=(1, 2))
-    ids = [a for a, k in zip(scene.agent_ids, keep) if k]
-    assert 401 in ids and 405 in ids
     rng = np.random.default_rng(2)
     traj[keep, :, :2] += rng.normal(0, 0.2, size=traj[keep, :, :2].shape)
+    base = torch.tensor(traj)
+    a = scene.agent_ids.index(401)
+    assert keep[a]
+
+    def cutter(x):
+        t = base.clone()
+        t[a] = x
+        return ds.torch.cost(cut_in, scene, t)
+
+    x = base[a].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(cutter, (x,), eps=1e-6, atol=1e-5, rtol=1e-4)
+
+    # rightmost_lane holds nobody: checked w.r.t. every coordinate.
+    rl = ds.CostScript.from_file(ROOT / "scripts/rightmost_lane.rhai", params={"vehicle": 405})
+    assert rl.evaluate(scene, traj).total > 0
     t = torch.tensor(traj, requires_grad=True)
-
-    def f(x):
-        return ds.torch.cost(cut_in, scene, x)
-
-    assert torch.autograd.gradcheck(f, (t,), eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
+    assert torch.autograd.gradcheck(
+        lambda x: ds.torch.cost(rl, scene, x), (t,), eps=1e-6, atol=1e-5, rtol=1e-4
+    )
 
 
 def test_adam_lowers_the_cost(ds, scene, cut_in):
