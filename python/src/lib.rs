@@ -32,10 +32,16 @@ create_exception!(
 const MAX_STEPS: usize = 10_000;
 
 /// Runs `f` with the GIL released, turning a panic into a `RuntimeError` that names it.
-fn detached<T: Send>(py: Python<'_>, what: &str, f: impl FnOnce() -> PyResult<T> + Send) -> PyResult<T> {
+fn detached<T: Send>(
+    py: Python<'_>,
+    what: &str,
+    f: impl FnOnce() -> PyResult<T> + Send,
+) -> PyResult<T> {
     py.detach(|| std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)))
         .unwrap_or_else(|payload| {
-            Err(PyRuntimeError::new_err(drivescript::io::internal_error(&*payload, what)))
+            Err(PyRuntimeError::new_err(drivescript::io::internal_error(
+                &*payload, what,
+            )))
         })
 }
 
@@ -167,7 +173,11 @@ fn trajectories(
         .enumerate()
         .map(|(b, v)| {
             Trajectories::from_array(layout, v).map_err(|m| {
-                let at = if batch { format!("batch item {b}, ") } else { String::new() };
+                let at = if batch {
+                    format!("batch item {b}, ")
+                } else {
+                    String::new()
+                };
                 PyValueError::new_err(format!("trajectories: {at}{m}"))
             })
         })
@@ -205,7 +215,12 @@ impl Scene {
     /// it is not a valid scene (the message names the file and the record).
     #[staticmethod]
     #[pyo3(signature = (path, index = 0, commonroad_current_step = 10))]
-    fn load(py: Python<'_>, path: PathBuf, index: usize, commonroad_current_step: usize) -> PyResult<Self> {
+    fn load(
+        py: Python<'_>,
+        path: PathBuf,
+        index: usize,
+        commonroad_current_step: usize,
+    ) -> PyResult<Self> {
         let opts = LoadOptions {
             commonroad_current_step,
         };
@@ -250,7 +265,11 @@ impl Scene {
     /// (radians) of each agent at each of the `steps` steps after the current one (default:
     /// every recorded one), NaN where the agent is unobserved (including past the recording).
     #[pyo3(signature = (steps = None))]
-    fn log_future<'py>(&self, py: Python<'py>, steps: Option<usize>) -> PyResult<Bound<'py, PyAny>> {
+    fn log_future<'py>(
+        &self,
+        py: Python<'py>,
+        steps: Option<usize>,
+    ) -> PyResult<Bound<'py, PyAny>> {
         let steps = steps.unwrap_or_else(|| self.inner.num_future_steps());
         if !(1..=MAX_STEPS).contains(&steps) {
             return Err(PyValueError::new_err(format!(
@@ -272,7 +291,13 @@ impl Scene {
             .agents
             .iter()
             .flat_map(|a| a.states[..n].iter())
-            .flat_map(|s| if s.valid { [s.x, s.y, s.heading] } else { [f64::NAN; 3] })
+            .flat_map(|s| {
+                if s.valid {
+                    [s.x, s.y, s.heading]
+                } else {
+                    [f64::NAN; 3]
+                }
+            })
             .collect();
         let a = Array3::from_shape_vec((self.inner.agents.len(), n, 3), values)
             .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
@@ -282,7 +307,12 @@ impl Scene {
     /// Writes `traj` (float64 `[agents, steps, 3]`, NaN where unobserved) as this scene's
     /// future to `path`, atomically, in the rollout JSON format that `drivescript cost
     /// --rollout`, `eval --rollouts` and `render` read.
-    fn write_rollout(&self, py: Python<'_>, path: PathBuf, traj: PyArrayLikeDyn<'_, f64, AllowTypeChange>) -> PyResult<()> {
+    fn write_rollout(
+        &self,
+        py: Python<'_>,
+        path: PathBuf,
+        traj: PyArrayLikeDyn<'_, f64, AllowTypeChange>,
+    ) -> PyResult<()> {
         let (_, mut t) = trajectories(self, &traj, false)?;
         let t = t.remove(0);
         let inner = self.inner.clone();
@@ -333,7 +363,11 @@ impl CostResult {
             .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
         Ok(Self {
             total: r.total,
-            terms: r.terms.iter().map(|t| (t.name.clone(), t.value, t.weight)).collect(),
+            terms: r
+                .terms
+                .iter()
+                .map(|t| (t.name.clone(), t.value, t.weight))
+                .collect(),
             grad: grad.into_pyarray(py).into_any().unbind(),
             prints: r.prints,
             eval_ms: r.elapsed.as_secs_f64() * 1000.0,
@@ -364,7 +398,11 @@ impl CostResult {
     }
 
     fn __repr__(&self) -> String {
-        let terms: Vec<String> = self.terms.iter().map(|(n, v, _)| format!("{n}={v:.6}")).collect();
+        let terms: Vec<String> = self
+            .terms
+            .iter()
+            .map(|(n, v, _)| format!("{n}={v:.6}"))
+            .collect();
         format!("CostResult(total={:.6}, {})", self.total, terms.join(", "))
     }
 }
@@ -397,7 +435,9 @@ impl CostScript {
     fn bound(&self, py: Python<'_>, scene: &Scene, steps: usize) -> PyResult<Arc<BoundScript>> {
         let key = (scene.uid, steps);
         let hit = |v: &Vec<(u64, usize, Arc<BoundScript>)>| {
-            v.iter().find(|(u, s, _)| (*u, *s) == key).map(|e| e.2.clone())
+            v.iter()
+                .find(|(u, s, _)| (*u, *s) == key)
+                .map(|e| e.2.clone())
         };
         if let Some(b) = hit(&self.bound.lock().unwrap_or_else(|p| p.into_inner())) {
             return Ok(b);
@@ -423,7 +463,11 @@ impl CostScript {
     /// the script does not use is a ValueError, as `--param` is in the CLI.
     #[staticmethod]
     #[pyo3(signature = (path, params = None))]
-    fn from_file(py: Python<'_>, path: PathBuf, params: Option<&Bound<'_, PyDict>>) -> PyResult<Self> {
+    fn from_file(
+        py: Python<'_>,
+        path: PathBuf,
+        params: Option<&Bound<'_, PyDict>>,
+    ) -> PyResult<Self> {
         let params = params_from(params)?;
         ScriptSpec::from_file(&path, params)
             .map(Self::with_spec)
@@ -467,7 +511,12 @@ impl CostScript {
     /// Evaluates the script on `traj`, float64 `[agents, steps, 3]` (x, y, heading per agent
     /// in `scene.agent_ids` order and future step; NaN where unobserved), with the scene
     /// over `steps` future steps as `drivescript cost --horizon steps` takes it.
-    fn evaluate(&self, py: Python<'_>, scene: &Scene, traj: PyArrayLikeDyn<'_, f64, AllowTypeChange>) -> PyResult<CostResult> {
+    fn evaluate(
+        &self,
+        py: Python<'_>,
+        scene: &Scene,
+        traj: PyArrayLikeDyn<'_, f64, AllowTypeChange>,
+    ) -> PyResult<CostResult> {
         let (steps, mut t) = trajectories(scene, &traj, false)?;
         let bound = self.bound(py, scene, steps)?;
         let t = t.remove(0);
@@ -502,7 +551,10 @@ impl CostScript {
     }
 
     fn __repr__(&self) -> String {
-        format!("CostScript({:?}, params={})", self.spec.name, self.spec.params)
+        format!(
+            "CostScript({:?}, params={})",
+            self.spec.name, self.spec.params
+        )
     }
 }
 
@@ -603,7 +655,10 @@ impl Sampler {
         })?;
         let c = scene.inner.meta.current_step;
         let agents = scene.inner.agents.len();
-        let n = done.samples.first().map_or(0, |s| s.scene.num_steps() - c - 1);
+        let n = done
+            .samples
+            .first()
+            .map_or(0, |s| s.scene.num_steps() - c - 1);
         let mut out = Vec::with_capacity(done.samples.len() * agents * n * 3);
         for s in &done.samples {
             out.extend(Trajectories::recorded(&s.scene).to_array());
