@@ -49,6 +49,10 @@ class Scene:
         """The scenario's id."""
     def log_future(self, steps: Optional[int] = None) -> F64Array:
         """Recorded future, float64 ``[agents, steps, 3]`` (x, y, heading); NaN unobserved."""
+    def filled_future(self, steps: Optional[int] = None) -> F64Array:
+        """``log_future`` with unobserved states filled at constant velocity."""
+    def crop(self, agents: int, future: int) -> "Scene":
+        """At most ``agents`` observed agents near a lane vehicle, ``future`` steps ahead."""
     def log_history(self) -> F64Array:
         """Recorded history up to the current step, ``[agents, current_step + 1, 3]``."""
     def write_rollout(self, path: Union[str, PathLike[str]], traj: ArrayLike) -> None:

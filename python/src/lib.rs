@@ -14,11 +14,16 @@ use drivescript::eval::behaviors::{self, Behavior};
 use drivescript::io::{IoError, LoadOptions};
 use drivescript::sample::{self as sampler, AttemptError, AttemptSpec, SampleConfig};
 use numpy::ndarray::{Array3, Array4};
-use numpy::{AllowTypeChange, IntoPyArray, PyArrayLikeDyn, PyArrayMethods, PyUntypedArrayMethods};
+use numpy::{AllowTypeChange, IntoPyArray, PyArrayLikeDyn, PyUntypedArrayMethods};
 use pyo3::create_exception;
 use pyo3::exceptions::{PyException, PyFileNotFoundError, PyOSError, PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyBool, PyDict, PyFloat, PyInt, PyString};
+
+// The CLI's allocator (src/main.rs): the engine allocates a series per operation, and with
+// the system allocator a call from Python would be slower than `drivescript bench cost`.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 create_exception!(
     drivescript,
@@ -166,8 +171,16 @@ fn trajectories(
     }
     let steps = shape[dims - 2];
     let layout = VarLayout { agents, steps };
-    let view = arr.as_array();
-    let values: Vec<f64> = view.iter().copied().collect();
+    // A C-contiguous float64 array (what numpy and torch hand over) is read in place; any
+    // other (Fortran order, a strided view) in logical order.
+    let copied: Vec<f64>;
+    let values = match arr.as_slice() {
+        Ok(v) if arr.is_c_contiguous() => v,
+        _ => {
+            copied = arr.as_array().iter().copied().collect();
+            &copied
+        }
+    };
     let out = values
         .chunks_exact(layout.len())
         .enumerate()
@@ -203,6 +216,25 @@ impl Scene {
             uid: NEXT_SCENE.fetch_add(1, Ordering::Relaxed),
         }
     }
+
+    /// The scene over `steps` future steps (default: the recorded ones).
+    fn over(&self, steps: Option<usize>) -> PyResult<drivescript::scene::Scene> {
+        let steps = steps.unwrap_or_else(|| self.inner.num_future_steps());
+        if !(1..=MAX_STEPS).contains(&steps) {
+            return Err(PyValueError::new_err(format!(
+                "steps = {steps}: must be 1 to {MAX_STEPS}"
+            )));
+        }
+        Ok(self.inner.over_horizon(steps))
+    }
+}
+
+/// Trajectories as float64 `[agents, steps, 3]`, NaN where unobserved.
+fn array3<'py>(py: Python<'py>, t: &Trajectories) -> PyResult<Bound<'py, PyAny>> {
+    let l = t.layout;
+    let a = Array3::from_shape_vec((l.agents, l.steps, 3), t.to_array())
+        .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+    Ok(a.into_pyarray(py).into_any())
 }
 
 #[pymethods]
@@ -270,16 +302,36 @@ impl Scene {
         py: Python<'py>,
         steps: Option<usize>,
     ) -> PyResult<Bound<'py, PyAny>> {
-        let steps = steps.unwrap_or_else(|| self.inner.num_future_steps());
-        if !(1..=MAX_STEPS).contains(&steps) {
-            return Err(PyValueError::new_err(format!(
-                "steps = {steps}: must be 1 to {MAX_STEPS}"
-            )));
-        }
-        let t = Trajectories::recorded(&self.inner.over_horizon(steps));
-        let a = Array3::from_shape_vec((t.layout.agents, steps, 3), t.to_array())
-            .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
-        Ok(a.into_pyarray(py).into_any())
+        let scene = self.over(steps)?;
+        array3(py, &Trajectories::recorded(&scene))
+    }
+
+    /// The recorded future as `log_future` gives it, with every unobserved state filled in:
+    /// at constant velocity from the agent's latest observed state (its first one, held,
+    /// before it is first seen). A complete starting point for optimisation, and the
+    /// trajectories `drivescript bench cost` times.
+    #[pyo3(signature = (steps = None))]
+    fn filled_future<'py>(
+        &self,
+        py: Python<'py>,
+        steps: Option<usize>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let scene = self.over(steps)?;
+        array3(py, &Trajectories::filled(&scene))
+    }
+
+    /// At most `agents` agents observed at the current step, with exactly `future` steps
+    /// after it: vehicles on a lane first, nearest first to the first such vehicle, then the
+    /// other agents. A recording too short after its current step has its current step moved
+    /// earlier. `Scene.load(p).crop(24, 80)` is the scene `drivescript bench cost` times.
+    ///
+    /// Raises ValueError where the scene is shorter than `future + 1` steps or no observed
+    /// vehicle is on a lane.
+    fn crop(&self, agents: usize, future: usize) -> PyResult<Self> {
+        self.inner
+            .crop(agents, future)
+            .map(Scene::wrap)
+            .map_err(|e| PyValueError::new_err(e.to_string()))
     }
 
     /// The recorded history up to and including the current step, float64
@@ -357,6 +409,19 @@ struct CostResult {
 }
 
 impl CostResult {
+    /// A dict of term name -> `pick(term)`.
+    fn by_name<'py>(
+        &self,
+        py: Python<'py>,
+        pick: impl Fn(&(String, f64, f64)) -> f64,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let d = PyDict::new(py);
+        for t in &self.terms {
+            d.set_item(&t.0, pick(t))?;
+        }
+        Ok(d)
+    }
+
     fn new(py: Python<'_>, r: CostReport) -> PyResult<Self> {
         let l = r.layout;
         let grad = Array3::from_shape_vec((l.agents, l.steps, 3), r.gradient)
@@ -380,21 +445,13 @@ impl CostResult {
     /// Each term's unweighted value, by name, in declaration order.
     #[getter]
     fn terms<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        let d = PyDict::new(py);
-        for (n, v, _) in &self.terms {
-            d.set_item(n, v)?;
-        }
-        Ok(d)
+        self.by_name(py, |(_, value, _)| *value)
     }
 
     /// Each term's weight, by name.
     #[getter]
     fn weights<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        let d = PyDict::new(py);
-        for (n, _, w) in &self.terms {
-            d.set_item(n, w)?;
-        }
-        Ok(d)
+        self.by_name(py, |(_, _, weight)| *weight)
     }
 
     fn __repr__(&self) -> String {

@@ -32,6 +32,28 @@ def test_log_future_is_float64_agents_by_steps_by_3_with_nan_where_unobserved(sc
     assert scene.log_future().shape[1] == scene.future_steps
 
 
+def test_filled_future_fills_the_gaps_of_the_recording_at_constant_velocity(scene):
+    log, filled = scene.log_future(60), scene.filled_future(60)
+    assert filled.shape == log.shape and not np.isnan(filled).any()
+    seen = ~np.isnan(log)
+    assert (filled[seen] == log[seen]).all()
+    # An agent that leaves keeps its last observed heading and moves on in a straight line.
+    a, k = np.argwhere(np.isnan(log[:, :, 0]) & ~np.isnan(log[:, :1, 0]))[0]
+    e = k + np.argmax(np.append(~np.isnan(log[a, k:, 0]), True))  # the gap is k..e
+    assert np.ptp(filled[a, k - 1 : e, 2]) == 0
+    step = np.diff(filled[a, k - 1 : e, :2], axis=0)
+    assert len(step) > 1 and np.allclose(step, step[0])
+
+
+def test_a_crop_is_the_bench_scene(ds, scene):
+    c = scene.crop(8, 30)
+    assert len(c.agent_ids) == 8 and c.future_steps == 30
+    assert set(c.agent_ids) <= set(scene.agent_ids)
+    assert not np.isnan(c.log_history()[:, -1]).any(), "every agent is observed now"
+    with pytest.raises(ValueError, match="steps, .* are needed"):
+        scene.crop(8, 10_000)
+
+
 def test_every_format_the_cli_reads_loads(ds):
     for p in [
         "data/samples/commonroad/USA_Peach-4_8_T-1.xml",
@@ -169,6 +191,13 @@ def test_other_dtypes_are_converted(scene, cut_in):
     a = cut_in.evaluate(scene, traj).total
     assert cut_in.evaluate(scene, traj.astype(np.float32)).total == pytest.approx(a, rel=1e-5)
     assert cut_in.evaluate(scene, traj.tolist()).total == a
+    # Read in logical order whatever the memory order: Fortran order, a strided view.
+    fortran = np.asfortranarray(traj)
+    assert not fortran.flags.c_contiguous
+    assert cut_in.evaluate(scene, fortran).total == a
+    strided = np.concatenate([traj, traj], axis=2)[:, :, :3]
+    assert not strided.flags.c_contiguous
+    assert cut_in.evaluate(scene, strided).total == a
 
 
 def test_script_errors_carry_file_line_and_column(ds, scene):

@@ -67,7 +67,7 @@ impl BoundScript {
 
     /// The layout of the trajectories it takes: the scene's agents by its future steps.
     pub fn layout(&self) -> VarLayout {
-        Trajectories::empty(&self.scene).layout
+        VarLayout::of(&self.scene)
     }
 
     /// How long the validation run took.
@@ -132,15 +132,7 @@ mod tests {
     use crate::cost::Params;
 
     fn scene() -> Scene {
-        crate::io::load_scene(
-            std::path::Path::new(concat!(
-                env!("CARGO_MANIFEST_DIR"),
-                "/data/samples/commonroad/USA_US101-4_1_T-1.xml"
-            )),
-            0,
-            &Default::default(),
-        )
-        .unwrap()
+        crate::cost::gradient_tests::sample(crate::cost::gradient_tests::US101)
     }
 
     fn cut_in() -> ScriptSpec {

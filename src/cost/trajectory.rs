@@ -25,6 +25,14 @@ pub enum Coord {
 }
 
 impl VarLayout {
+    /// The layout of trajectories over `scene`: its agents by its future steps.
+    pub fn of(scene: &Scene) -> Self {
+        Self {
+            agents: scene.agents.len(),
+            steps: scene.num_future_steps(),
+        }
+    }
+
     /// Index of a coordinate.
     #[inline]
     pub fn var(&self, agent: usize, step: usize, c: Coord) -> u32 {
@@ -68,10 +76,7 @@ pub struct Trajectories {
 impl Trajectories {
     /// All-invalid trajectories for a scene.
     pub fn empty(scene: &Scene) -> Self {
-        let layout = VarLayout {
-            agents: scene.agents.len(),
-            steps: scene.num_future_steps(),
-        };
+        let layout = VarLayout::of(scene);
         Self {
             layout,
             xyh: vec![[0.0; 3]; layout.agents * layout.steps],
@@ -173,28 +178,46 @@ impl Trajectories {
                 layout.steps
             ));
         }
+        let n = layout.agents * layout.steps;
+        // Every call from Python passes through here; a complete array (what optimisers
+        // pass) is checked and copied in one pass each.
+        // (A fold, not `all`: without the early exit it runs on vector registers.)
+        if values.iter().fold(true, |ok, x| ok & x.is_finite()) {
+            let mut xyh = vec![[0.0; 3]; n];
+            xyh.as_flattened_mut().copy_from_slice(values);
+            return Ok(Self {
+                layout,
+                xyh,
+                valid: vec![true; n],
+            });
+        }
         let mut t = Self {
             layout,
-            xyh: vec![[0.0; 3]; layout.agents * layout.steps],
-            valid: vec![false; layout.agents * layout.steps],
+            xyh: Vec::with_capacity(n),
+            valid: Vec::with_capacity(n),
         };
         for (i, v) in values.chunks_exact(3).enumerate() {
-            let nan = v.iter().filter(|x| x.is_nan()).count();
-            if nan == 3 {
-                continue;
+            let s = [v[0], v[1], v[2]];
+            match s.iter().position(|x| !x.is_finite()) {
+                None => {
+                    t.xyh.push(s);
+                    t.valid.push(true);
+                }
+                Some(_) if s.iter().all(|x| x.is_nan()) => {
+                    t.xyh.push([0.0; 3]);
+                    t.valid.push(false);
+                }
+                Some(c) => {
+                    return Err(format!(
+                        "agent index {}, step {}: {} is {} ({})",
+                        i / layout.steps,
+                        i % layout.steps,
+                        ["x", "y", "heading"][c],
+                        v[c],
+                        "a state is three finite numbers, or three NaN where unobserved"
+                    ))
+                }
             }
-            if let Some(c) = v.iter().position(|x| !x.is_finite()) {
-                return Err(format!(
-                    "agent index {}, step {}: {} is {} ({})",
-                    i / layout.steps,
-                    i % layout.steps,
-                    ["x", "y", "heading"][c],
-                    v[c],
-                    "a state is three finite numbers, or three NaN where unobserved"
-                ));
-            }
-            t.xyh[i] = [v[0], v[1], v[2]];
-            t.valid[i] = true;
         }
         Ok(t)
     }
@@ -303,16 +326,7 @@ mod tests {
     use super::*;
 
     fn scene() -> Scene {
-        crate::io::load_scene(
-            std::path::Path::new(concat!(
-                env!("CARGO_MANIFEST_DIR"),
-                "/data/samples/commonroad/USA_US101-4_1_T-1.xml"
-            )),
-            0,
-            &Default::default(),
-        )
-        .unwrap()
-        .over_horizon(40)
+        crate::cost::gradient_tests::sample(crate::cost::gradient_tests::US101).over_horizon(40)
     }
 
     #[test]
@@ -331,6 +345,13 @@ mod tests {
                 assert!(a[3 * i..3 * i + 3].iter().all(|x| x.is_nan()));
             }
         }
+        // A complete array (read on the fast path) as well.
+        let full = Trajectories::filled(&s);
+        assert!(full.valid.iter().all(|&v| v));
+        assert_eq!(
+            Trajectories::from_array(full.layout, &full.to_array()),
+            Ok(full)
+        );
     }
 
     #[test]
