@@ -1,5 +1,8 @@
 """ds.torch.cost: an autograd.Function whose backward is the engine's gradient."""
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -78,3 +81,12 @@ def test_adam_lowers_the_cost(ds, scene, cut_in):
         c.backward()
         opt.step()
     assert ds.torch.cost(cut_in, scene, t).item() < first
+
+
+def test_the_optimisation_example_ends_in_a_cut_in_that_the_checker_passes():
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "python/examples/optimise_cut_in.py")],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert out.returncode == 0, out.stderr
+    assert 'checker on the optimised trajectories: Verdict(passed=True, reason="cuts in")' in out.stdout, out.stdout
