@@ -91,7 +91,12 @@ def test_evaluate_batch_equals_evaluate_item_by_item(scene, cut_in):
 
 
 def test_evaluate_batch_releases_the_gil(scene, cut_in):
-    batch = np.stack([scene.log_future(40)] * 256)
+    # A batch long enough to tell, on a fast machine as on a slow one: about 0.25 s.
+    traj = scene.log_future(40)
+    t = time.perf_counter()
+    cut_in.evaluate_batch(scene, np.stack([traj] * 64))
+    per_64 = time.perf_counter() - t
+    batch = np.stack([traj] * min(4096, 64 * int(np.ceil(0.25 / per_64))))
     done = threading.Event()
 
     def run():
