@@ -5,8 +5,8 @@ The scene and trajectories are the bench's: `Scene.load(path).crop(24, 80)` and 
 `filled_future()`, with the bench's parameters (victim = the first agent, cutter = the second).
 Each round runs `drivescript bench cost --scene PATH --seconds S` (the Rust figure: a tight
 loop of `CostScript::evaluate`), then times `script.evaluate(scene, traj)` from Python the same
-way (calls for at least S seconds, mean per call), script by script; the table gives medians
-over the rounds. Then a batch of 64 through `evaluate_batch` against 64 single calls. Run from
+way (a loop of calls for at least S seconds, mean per call), script by script; the table
+gives medians over the rounds. Then a batch of 64 through `evaluate_batch` against 64 single calls. Run from
 the repository root after `cargo build --release`, with the package importable:
 
     python benches/python/overhead.py [--rounds 5] [--seconds 1]
@@ -14,15 +14,19 @@ the repository root after `cargo build --release`, with the package importable:
 
 import argparse
 import os
-import pathlib
-import re
-import statistics
-import subprocess
-import time
 
-import numpy as np
+# numpy's BLAS threads are kept off the cores being timed (set before numpy is imported).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import drivescript as ds
+import pathlib  # noqa: E402
+import re  # noqa: E402
+import statistics  # noqa: E402
+import subprocess  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+import drivescript as ds  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 SHARED = ROOT / "../shared/data/commonroad-ngsim/USA_US101-23_1_T-1.xml.gz"
@@ -48,15 +52,18 @@ def rust_row_us(cli, scene_path, seconds):
 
 
 def python_us(script, scene, traj, seconds):
-    """Mean µs per `script.evaluate(scene, traj)` over at least `seconds`, and the engine's
-    own median time per call (CostResult.eval_ms)."""
+    """Mean µs per `script.evaluate(scene, traj)` in a loop of at least `seconds` (as
+    `bench cost` times a call: nothing else in the loop), and the engine's own median time per
+    call (CostResult.eval_ms) from a second, shorter loop."""
     script.evaluate(scene, traj)
-    engine = []
     reps, start = 0, time.perf_counter()
     while time.perf_counter() - start < seconds or reps < 3:
-        engine.append(script.evaluate(scene, traj).eval_ms * 1e3)
-        reps += 1
-    return (time.perf_counter() - start) / reps * 1e6, statistics.median(engine)
+        for _ in range(10):
+            script.evaluate(scene, traj)
+        reps += 10
+    wall = (time.perf_counter() - start) / reps * 1e6
+    engine = [script.evaluate(scene, traj).eval_ms * 1e3 for _ in range(min(reps, 200))]
+    return wall, statistics.median(engine)
 
 
 def main():
