@@ -1,11 +1,14 @@
 //! Every scene of the development corpus in ../shared/data reads. The corpus is not part of the
-//! repository, so this test has its own harness: without the corpus it reports "skipped", not
-//! "ok" (libtest can only say ok, FAILED or ignored).
+//! repository, so this test has its own harness (tests/common/harness.rs): without the corpus
+//! it reports "skipped", not "ok".
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 use drivescript::io::{discover, load_scenes, LoadOptions};
+
+mod common;
+use common::harness::{single, Outcome};
 
 const NAME: &str = "every_shared_scene_reads";
 
@@ -41,40 +44,16 @@ fn check(root: &PathBuf) -> Result<usize, Vec<String>> {
 }
 
 fn main() -> ExitCode {
-    // `cargo test -- FILTER` passes the filter on: run only when it selects this test.
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    let filters: Vec<&String> = args.iter().filter(|a| !a.starts_with('-')).collect();
-    if args.iter().any(|a| a == "--list") {
-        println!("{NAME}: test");
-        return ExitCode::SUCCESS;
-    }
-    if !filters.is_empty() && !filters.iter().any(|f| NAME.contains(f.as_str())) {
-        println!("\nrunning 0 tests\n\ntest result: ok. 0 passed; 0 failed; 1 filtered out\n");
-        return ExitCode::SUCCESS;
-    }
-    println!("\nrunning 1 test");
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
-    if !root.exists() {
-        println!(
-            "test {NAME} ... skipped: {} not found (development corpus only)\n",
-            root.display()
-        );
-        println!("test result: skipped. 0 passed; 0 failed; 1 skipped\n");
-        return ExitCode::SUCCESS;
-    }
-    match check(&root) {
-        Ok(n) => {
-            println!("test {NAME} ... ok ({n} scenes)\n");
-            println!("test result: ok. 1 passed; 0 failed\n");
-            ExitCode::SUCCESS
+    single(NAME, || {
+        let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
+        if !root.exists() {
+            return Ok(Outcome::Skipped(format!(
+                "{} not found (development corpus only)",
+                root.display()
+            )));
         }
-        Err(failures) => {
-            println!("test {NAME} ... FAILED");
-            for f in &failures {
-                println!("  {f}");
-            }
-            println!("\ntest result: FAILED. 0 passed; 1 failed\n");
-            ExitCode::FAILURE
-        }
-    }
+        check(&root)
+            .map(|n| Outcome::Passed(format!("{n} scenes")))
+            .map_err(|failures| failures.join("\n"))
+    })
 }

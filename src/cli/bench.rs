@@ -117,72 +117,6 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
 }
 
-/// `n` agents observed at the current step (vehicles on a lane first, nearest the first such
-/// one, then other agents), with exactly `future` steps after the current step. Gaps in their futures are filled
-/// at constant velocity by the benchmark, so every coordinate is live.
-fn crop(
-    scene: &drivescript::scene::Scene,
-    n: usize,
-    future: usize,
-) -> Result<drivescript::scene::Scene> {
-    use drivescript::scene::{Agent, AgentType, Scene, SceneMeta};
-    let total = scene.num_steps();
-    anyhow::ensure!(
-        total > future,
-        "the scene has {total} steps, {} needed",
-        future + 1
-    );
-    let current = scene.meta.current_step.min(total - future - 1);
-    let end = current + future + 1;
-    let on_lane = |a: &Agent| {
-        scene
-            .map
-            .lane_at(a.states[current].position(), a.states[current].heading)
-            .is_some()
-    };
-    let mut cands: Vec<&Agent> = scene
-        .agents
-        .iter()
-        .filter(|a| a.states[current].valid)
-        .collect();
-    if cands.len() < n {
-        println!(
-            "note: only {} agents are observed at step {current}; using all of them",
-            cands.len()
-        );
-    }
-    let lane_vehicle = |a: &Agent| a.agent_type == AgentType::Vehicle && on_lane(a);
-    let first = *cands
-        .iter()
-        .find(|a| lane_vehicle(a))
-        .ok_or_else(|| anyhow::anyhow!("no vehicle is on a lane"))?;
-    let centre = first.states[current].position();
-    cands.sort_by(|a, b| {
-        let key = |x: &Agent| {
-            (
-                !lane_vehicle(x),
-                (x.states[current].position() - centre).norm(),
-            )
-        };
-        let (ka, kb) = (key(a), key(b));
-        ka.0.cmp(&kb.0).then(ka.1.total_cmp(&kb.1))
-    });
-    cands.truncate(n);
-    let agents = cands
-        .into_iter()
-        .map(|a| Agent {
-            states: a.states[..end].to_vec(),
-            ..a.clone()
-        })
-        .collect();
-    let meta = SceneMeta {
-        current_step: current,
-        ego: None,
-        ..scene.meta.clone()
-    };
-    Ok(Scene::new(meta, scene.map.clone(), agents)?)
-}
-
 fn time_per_call(min: Duration, mut f: impl FnMut()) -> (f64, usize) {
     f();
     let start = Instant::now();
@@ -208,7 +142,14 @@ fn bench_cost(args: &Args, min: Duration) -> Result<ExitCode> {
         }
     });
     let full = drivescript::io::load_scene(&path, 0, &LoadOptions::default())?;
-    let scene = Rc::new(crop(&full, 24, 80)?);
+    let scene = Rc::new(full.crop(24, 80)?);
+    if scene.agents.len() < 24 {
+        println!(
+            "note: only {} agents are observed at step {}; using all of them",
+            scene.agents.len(),
+            scene.meta.current_step
+        );
+    }
     let traj = Trajectories::filled(&scene);
     let (v, c) = (scene.agents[0].id, scene.agents[1].id);
     println!(

@@ -2,10 +2,9 @@
 
 use std::path::PathBuf;
 use std::process::ExitCode;
-use std::rc::Rc;
 
 use anyhow::Result;
-use drivescript::cost::{CostScript, Limits, Params, Trajectories};
+use drivescript::cost::{BoundScript, Params, ScriptSpec, Trajectories};
 use drivescript::io::{load_scene, rollout::Rollout, LoadOptions};
 
 #[derive(clap::Args)]
@@ -53,19 +52,17 @@ pub fn run(args: Args) -> Result<ExitCode> {
     if let Some(h) = args.horizon {
         scene = scene.over_horizon(h as usize);
     }
-    let scene = Rc::new(scene);
-    let source = drivescript::cost::read_script(&args.script)?;
     let params = Params::parse(&args.params)?;
-    drivescript::cost::check_params(&[&source], &params)?;
-    let name = args.script.display().to_string();
-    let script = CostScript::compile(&source, &name, scene.clone(), &params, &Limits::default())?;
-    let validation = script.validate()?.elapsed;
+    let spec = ScriptSpec::from_file(&args.script, params)?;
+    let name = spec.name.clone();
+    let bound = BoundScript::new(spec, scene)?;
+    let (scene, validation) = (bound.scene(), bound.validated_in());
     let traj = match (&args.rollout, &rollout) {
-        (Some(p), Some(r)) => Trajectories::from_rollout(&scene, r)
+        (Some(p), Some(r)) => Trajectories::from_rollout(scene, r)
             .map_err(|m| anyhow::anyhow!("{}: {m}", p.display()))?,
-        _ => Trajectories::recorded(&scene),
+        _ => Trajectories::recorded(scene),
     };
-    let report = script.evaluate(&traj)?;
+    let report = bound.evaluate(&traj)?;
     let norms = report.agent_grad_norms();
     let mut agents: Vec<(i64, f64)> = scene
         .agents

@@ -25,7 +25,7 @@ use super::params::{ParamValue, Params};
 use super::report::{CostReport, TermReport};
 use super::series::Series;
 use super::stdlib::{self, Ctx, DocEntry, Shared, Term};
-use super::trajectory::Trajectories;
+use super::trajectory::{Trajectories, VarLayout};
 use crate::scene::Scene;
 
 /// The Rhai modules of `stdlib/`, embedded so that the binary needs no files at run time.
@@ -895,7 +895,7 @@ impl CostScript {
                     current: c.scene.meta.current_step,
                 });
             }
-            let expect = Trajectories::empty(&c.scene).layout;
+            let expect = VarLayout::of(&c.scene);
             if traj.layout != expect || traj.xyh.len() != expect.agents * expect.steps {
                 return Err(CostError::Shape {
                     script: self.name.clone(),
@@ -905,7 +905,10 @@ impl CostScript {
                     ),
                 });
             }
-            c.traj = traj.clone();
+            // In place: the buffers of the last call are reused, not allocated again.
+            c.traj.layout = traj.layout;
+            c.traj.xyh.clone_from(&traj.xyh);
+            c.traj.valid.clone_from(&traj.valid);
             c.terms.clear();
             c.prints.clear();
             c.coords.clear();

@@ -8,11 +8,19 @@ use crate::io::{load_scene, LoadOptions};
 use crate::scene::Scene;
 
 fn scene(rel: &str) -> Rc<Scene> {
+    Rc::new(sample(rel))
+}
+
+/// Scene 0 of `rel` under data/samples, for the cost module's tests.
+pub(super) fn sample(rel: &str) -> Scene {
     let p = Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("data/samples")
         .join(rel);
-    Rc::new(load_scene(&p, 0, &LoadOptions::default()).unwrap())
+    load_scene(&p, 0, &LoadOptions::default()).unwrap()
 }
+
+/// The US-101 sample: 22 agents of NGSIM traffic.
+pub(super) const US101: &str = "commonroad/USA_US101-4_1_T-1.xml";
 
 /// Two agents observed over the whole future, the second the nearest to the first.
 fn pair(s: &Scene) -> (i64, i64) {
@@ -169,7 +177,7 @@ const SERIES_EXPRS: &[&str] = &[
 
 #[test]
 fn agent_series_gradients() {
-    let s = scene("commonroad/USA_US101-4_1_T-1.xml");
+    let s = scene(US101);
     for e in AGENT_EXPRS {
         check(&s, e);
     }
@@ -177,10 +185,7 @@ fn agent_series_gradients() {
 
 #[test]
 fn frenet_gradients() {
-    for rel in [
-        "commonroad/USA_US101-4_1_T-1.xml",
-        "commonroad/USA_Lanker-1_1_T-1.xml",
-    ] {
+    for rel in [US101, "commonroad/USA_Lanker-1_1_T-1.xml"] {
         let s = scene(rel);
         for e in FRENET_EXPRS {
             check(&s, e);
@@ -196,10 +201,7 @@ fn frenet_gradients() {
 
 #[test]
 fn interaction_gradients() {
-    for rel in [
-        "commonroad/USA_US101-4_1_T-1.xml",
-        "commonroad/USA_Lanker-1_1_T-1.xml",
-    ] {
+    for rel in [US101, "commonroad/USA_Lanker-1_1_T-1.xml"] {
         let s = scene(rel);
         for e in INTERACT_EXPRS {
             check(&s, e);
@@ -210,7 +212,7 @@ fn interaction_gradients() {
 #[test]
 fn road_edge_gradients() {
     // AV2 decides the side by drivable areas, CommonRoad by lanelet surfaces.
-    for rel in ["av2", "commonroad/USA_US101-4_1_T-1.xml"] {
+    for rel in ["av2", US101] {
         let s = scene(rel);
         for e in EDGE_EXPRS {
             check(&s, e);
@@ -220,7 +222,7 @@ fn road_edge_gradients() {
 
 #[test]
 fn math_and_series_gradients() {
-    let s = scene("commonroad/USA_US101-4_1_T-1.xml");
+    let s = scene(US101);
     for e in MATH_EXPRS.iter().chain(SERIES_EXPRS) {
         check(&s, e);
     }
@@ -230,7 +232,7 @@ fn math_and_series_gradients() {
 /// of term that reads two agents; the same terms without it do move b.
 #[test]
 fn held_agents_get_no_gradient() {
-    let s = scene("commonroad/USA_US101-4_1_T-1.xml");
+    let s = scene(US101);
     let (a, b) = pair(&s);
     let bi = s.agents.iter().position(|x| x.id == b).unwrap();
     let params = Params::parse(&[format!("A={a}"), format!("B={b}")]).unwrap();

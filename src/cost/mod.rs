@@ -5,6 +5,7 @@
 //! [`Series`] of them over the future steps; the gradient of each term w.r.t. every
 //! trajectory coordinate ([`VarLayout`]) comes out of the evaluation with its value.
 
+mod bound;
 mod dual;
 mod engine;
 mod fwd;
@@ -12,9 +13,11 @@ mod params;
 mod realism;
 mod report;
 mod series;
+mod spec;
 pub mod stdlib;
 mod trajectory;
 
+pub use bound::BoundScript;
 pub use dual::{Dual, Grad};
 pub use engine::{
     check_params, module_functions, read_script, reference, reference_markdown,
@@ -26,6 +29,7 @@ pub use params::{ParamValue, Params};
 pub use realism::{Allowed, Realism, TERMS as REALISM_TERMS};
 pub use report::{CostReport, TermReport};
 pub use series::Series;
+pub use spec::ScriptSpec;
 pub use stdlib::DocEntry;
 pub use trajectory::{Coord, Trajectories, VarLayout};
 

@@ -1,7 +1,7 @@
 //! Candidate trajectories: what a cost script is evaluated on and differentiated against.
 
 use crate::io::rollout::Rollout;
-use crate::scene::{AgentType, Scene};
+use crate::scene::{velocities_from_positions, AgentState, AgentType, Scene};
 
 /// Numbering of the trajectory coordinates that gradients refer to: agent (in scene order),
 /// future step, then x | y | heading.
@@ -25,6 +25,14 @@ pub enum Coord {
 }
 
 impl VarLayout {
+    /// The layout of trajectories over `scene`: its agents by its future steps.
+    pub fn of(scene: &Scene) -> Self {
+        Self {
+            agents: scene.agents.len(),
+            steps: scene.num_future_steps(),
+        }
+    }
+
     /// Index of a coordinate.
     #[inline]
     pub fn var(&self, agent: usize, step: usize, c: Coord) -> u32 {
@@ -68,10 +76,7 @@ pub struct Trajectories {
 impl Trajectories {
     /// All-invalid trajectories for a scene.
     pub fn empty(scene: &Scene) -> Self {
-        let layout = VarLayout {
-            agents: scene.agents.len(),
-            steps: scene.num_future_steps(),
-        };
+        let layout = VarLayout::of(scene);
         Self {
             layout,
             xyh: vec![[0.0; 3]; layout.agents * layout.steps],
@@ -160,6 +165,107 @@ impl Trajectories {
         Ok(t)
     }
 
+    /// Trajectories from a flat row-major array `[agent][step][x, y, heading]` in `layout`
+    /// (what [`Trajectories::to_array`] writes, and what the Python package passes): a state
+    /// of three NaN is unobserved; one with only some coordinates NaN, or any infinite, is an
+    /// error naming the agent (index in scene order), step and coordinate.
+    pub fn from_array(layout: VarLayout, values: &[f64]) -> Result<Self, String> {
+        if values.len() != layout.len() {
+            return Err(format!(
+                "{} values given, {} agents x {} steps x 3 wanted",
+                values.len(),
+                layout.agents,
+                layout.steps
+            ));
+        }
+        let n = layout.agents * layout.steps;
+        // Every call from Python passes through here; a complete array (what optimisers
+        // pass) is checked and copied in one pass each.
+        // (A fold, not `all`: without the early exit it runs on vector registers.)
+        if values.iter().fold(true, |ok, x| ok & x.is_finite()) {
+            let mut xyh = vec![[0.0; 3]; n];
+            xyh.as_flattened_mut().copy_from_slice(values);
+            return Ok(Self {
+                layout,
+                xyh,
+                valid: vec![true; n],
+            });
+        }
+        let mut t = Self {
+            layout,
+            xyh: Vec::with_capacity(n),
+            valid: Vec::with_capacity(n),
+        };
+        for (i, v) in values.chunks_exact(3).enumerate() {
+            let s = [v[0], v[1], v[2]];
+            match s.iter().position(|x| !x.is_finite()) {
+                None => {
+                    t.xyh.push(s);
+                    t.valid.push(true);
+                }
+                Some(_) if s.iter().all(|x| x.is_nan()) => {
+                    t.xyh.push([0.0; 3]);
+                    t.valid.push(false);
+                }
+                Some(c) => {
+                    return Err(format!(
+                        "agent index {}, step {}: {} is {} ({})",
+                        i / layout.steps,
+                        i % layout.steps,
+                        ["x", "y", "heading"][c],
+                        v[c],
+                        "a state is three finite numbers, or three NaN where unobserved"
+                    ))
+                }
+            }
+        }
+        Ok(t)
+    }
+
+    /// The states as a flat row-major array `[agent][step][x, y, heading]`, NaN where
+    /// unobserved.
+    pub fn to_array(&self) -> Vec<f64> {
+        self.xyh
+            .iter()
+            .zip(&self.valid)
+            .flat_map(|(s, &v)| if v { *s } else { [f64::NAN; 3] })
+            .collect()
+    }
+
+    /// `scene` over these trajectories' horizon ([`Scene::over_horizon`]) with its future
+    /// replaced by them: unobserved where they are invalid, velocities from the positions as
+    /// the sampler sets them. What a checker judges a trajectory from elsewhere on.
+    pub fn applied_to(&self, scene: &Scene) -> Result<Scene, String> {
+        if scene.agents.len() != self.layout.agents {
+            return Err(format!(
+                "{} agents given, the scene has {}",
+                self.layout.agents,
+                scene.agents.len()
+            ));
+        }
+        let mut out = scene.over_horizon(self.layout.steps);
+        let c = out.meta.current_step;
+        for (a, agent) in out.agents.iter_mut().enumerate() {
+            for k in 0..self.layout.steps {
+                let ([x, y, heading], valid) = self.state(a, k);
+                agent.states[c + 1 + k] = if valid {
+                    AgentState {
+                        x,
+                        y,
+                        heading,
+                        vx: 0.0,
+                        vy: 0.0,
+                        valid,
+                    }
+                } else {
+                    AgentState::INVALID
+                };
+            }
+            velocities_from_positions(&mut agent.states, c + 1, out.meta.dt);
+        }
+        Ok(out)
+    }
+
     /// Marks every vehicle invalid from the first step at which it reaches a map exit, as
     /// [`Scene::retire_exited`] does to a simulated scene: a sampler guides what it will
     /// output, not a car driving on beyond the end of the map.
@@ -212,5 +318,85 @@ impl Trajectories {
         for (i, g) in gradient.iter().enumerate() {
             self.xyh[i / 3][i % 3] += step * g;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scene() -> Scene {
+        crate::cost::gradient_tests::sample(crate::cost::gradient_tests::US101).over_horizon(40)
+    }
+
+    #[test]
+    fn an_array_round_trips_with_nan_where_unobserved() {
+        let s = scene();
+        let t = Trajectories::recorded(&s);
+        assert!(t.valid.iter().any(|v| !v), "the scene has unobserved steps");
+        let a = t.to_array();
+        assert_eq!(a.len(), t.layout.len());
+        let back = Trajectories::from_array(t.layout, &a).unwrap();
+        assert_eq!(back.valid, t.valid);
+        for (i, (p, q)) in back.xyh.iter().zip(&t.xyh).enumerate() {
+            if t.valid[i] {
+                assert_eq!(p, q);
+            } else {
+                assert!(a[3 * i..3 * i + 3].iter().all(|x| x.is_nan()));
+            }
+        }
+        // A complete array (read on the fast path) as well.
+        let full = Trajectories::filled(&s);
+        assert!(full.valid.iter().all(|&v| v));
+        assert_eq!(
+            Trajectories::from_array(full.layout, &full.to_array()),
+            Ok(full)
+        );
+    }
+
+    #[test]
+    fn a_half_observed_or_infinite_state_is_named() {
+        let s = scene();
+        let t = Trajectories::recorded(&s);
+        let mut a = t.to_array();
+        let i = t.valid.iter().position(|&v| v).unwrap();
+        a[3 * i + 1] = f64::NAN;
+        let e = Trajectories::from_array(t.layout, &a).unwrap_err();
+        let (agent, step) = (i / t.layout.steps, i % t.layout.steps);
+        assert!(
+            e.starts_with(&format!("agent index {agent}, step {step}: y is NaN")),
+            "{e}"
+        );
+        a[3 * i + 1] = 0.0;
+        a[3 * i + 2] = f64::INFINITY;
+        let e = Trajectories::from_array(t.layout, &a).unwrap_err();
+        assert!(e.contains("heading is inf"), "{e}");
+        let e = Trajectories::from_array(t.layout, &a[3..]).unwrap_err();
+        assert!(e.contains("x 40 steps x 3 wanted"), "{e}");
+    }
+
+    #[test]
+    fn applied_trajectories_become_the_scene_s_future_with_their_velocities() {
+        let s = scene();
+        let mut t = Trajectories::recorded(&s);
+        let a = t.valid.iter().position(|&v| v).unwrap() / t.layout.steps;
+        let n = t.layout.steps;
+        for k in 0..n {
+            t.xyh[a * n + k] = [2.0 * k as f64, 1.0, 0.0];
+            t.valid[a * n + k] = true;
+        }
+        let out = t.applied_to(&s).unwrap();
+        assert_eq!(out.num_future_steps(), n);
+        let c = out.meta.current_step;
+        let st = out.agents[a].states[c + 5];
+        assert_eq!((st.x, st.y), (8.0, 1.0));
+        assert!((st.vx - 2.0 / s.meta.dt).abs() < 1e-9, "{}", st.vx);
+        let back = Trajectories::recorded(&out);
+        assert_eq!(back.valid, t.valid);
+        assert_eq!(back.xyh[a * n..(a + 1) * n], t.xyh[a * n..(a + 1) * n]);
+        assert!(t.applied_to(&s.over_horizon(40)).is_ok());
+        let mut fewer = s.clone();
+        fewer.agents.pop();
+        assert!(t.applied_to(&fewer).unwrap_err().contains("agents given"));
     }
 }

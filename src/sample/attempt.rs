@@ -12,10 +12,11 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use super::closed_loop::{closed_loop, ScriptSpec};
+use super::closed_loop::closed_loop;
 use super::guided::{
     prepare_for, sample, sampled_horizon, Guidance, Sample, SampleConfig, SampleError, Task,
 };
+use crate::cost::ScriptSpec;
 use crate::cost::{check_params, CostError, CostScript, Params};
 use crate::eval::behaviors::{check, check_against_unguided, Behavior, CheckError, Verdict};
 use crate::eval::kinematic::{judge, KinematicLimits, Violation};

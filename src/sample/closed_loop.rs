@@ -10,41 +10,9 @@ use super::guided::{
     modelled, prepare, prepare_for, sample_after, sampled_horizon, Executed, Sample, SampleConfig,
     SampleError,
 };
-use crate::cost::{CostScript, Limits, Params};
+use crate::cost::{CostScript, ScriptSpec};
 use crate::scene::Scene;
 use crate::train::Trained;
-
-/// A cost script's source, name, parameters and limits: everything needed to compile it, which
-/// closed loop does itself, against the scene cut to the model's horizon ([`prepare`]).
-#[derive(Debug, Clone)]
-pub struct ScriptSpec {
-    /// Source text.
-    pub source: String,
-    /// Name used in messages.
-    pub name: String,
-    /// Parameters.
-    pub params: Params,
-    /// Resource limits, the same at every compilation.
-    pub limits: Limits,
-}
-
-impl ScriptSpec {
-    /// A script with default limits.
-    pub fn new(source: impl Into<String>, name: impl Into<String>, params: Params) -> Self {
-        Self {
-            source: source.into(),
-            name: name.into(),
-            params,
-            limits: Limits::default(),
-        }
-    }
-
-    /// Compiles the script without a scene ([`crate::cost::CostScript::check_syntax`]): a run
-    /// over many scenes checks its scripts once, before the first.
-    pub fn check_syntax(&self) -> Result<(), crate::cost::CostError> {
-        crate::cost::CostScript::check_syntax(&self.source, &self.name, &self.limits)
-    }
-}
 
 /// Simulates `scene` in closed loop, executing `execute` steps per round (5 = 0.5 s at 10 Hz).
 /// Returns one sample per `cfg.samples`, each over the model's horizon from the original

@@ -110,6 +110,20 @@ pub enum SceneError {
         /// What is wrong.
         what: String,
     },
+    /// A crop asks for more steps than the scene has.
+    #[error("the scene has {steps} steps, {needed} are needed")]
+    TooShort {
+        /// The scene's steps.
+        steps: usize,
+        /// The steps asked for: the current one and the future.
+        needed: usize,
+    },
+    /// A crop needs a vehicle on a lane to centre on.
+    #[error("no vehicle observed at step {step} is on a lane")]
+    NoVehicleOnLane {
+        /// The step looked at.
+        step: usize,
+    },
     /// Geometry that could not be built.
     #[error("{what}: {source}")]
     Geometry {
@@ -333,6 +347,52 @@ impl Scene {
         s
     }
 
+    /// At most `n` agents observed at the current step, with exactly `future` steps after it:
+    /// vehicles on a lane first, nearest first to the first such vehicle in the scene's order,
+    /// then the other agents by the same distance. A recording too short after its current
+    /// step has its current step moved earlier. Fewer agents where fewer are observed. The
+    /// fixed-size scene that `drivescript bench cost` and the Python benchmark time.
+    pub fn crop(&self, n: usize, future: usize) -> Result<Scene, SceneError> {
+        let total = self.num_steps();
+        if total <= future {
+            return Err(SceneError::TooShort {
+                steps: total,
+                needed: future + 1,
+            });
+        }
+        let current = self.meta.current_step.min(total - future - 1);
+        let at = |a: &Agent| a.states[current];
+        let lane_vehicle = |a: &Agent| {
+            a.agent_type == AgentType::Vehicle
+                && self.map.lane_at(at(a).position(), at(a).heading).is_some()
+        };
+        let mut picked: Vec<(bool, f64, &Agent)> = Vec::new();
+        let observed = self.agents.iter().filter(|a| at(a).valid);
+        let first = observed
+            .clone()
+            .find(|a| lane_vehicle(a))
+            .ok_or(SceneError::NoVehicleOnLane { step: current })?;
+        let centre = at(first).position();
+        for a in observed {
+            picked.push((!lane_vehicle(a), (at(a).position() - centre).norm(), a));
+        }
+        picked.sort_by(|x, y| x.0.cmp(&y.0).then(x.1.total_cmp(&y.1)));
+        let agents = picked
+            .into_iter()
+            .take(n)
+            .map(|(_, _, a)| Agent {
+                states: a.states[..current + future + 1].to_vec(),
+                ..a.clone()
+            })
+            .collect();
+        let meta = SceneMeta {
+            current_step: current,
+            ego: None,
+            ..self.meta.clone()
+        };
+        Scene::new(meta, self.map.clone(), agents)
+    }
+
     /// The scene with every vehicle removed (its states invalid) from the first future step at
     /// which its front bumper reaches a map exit ([`Map::at_exit`]), as recorded traffic
     /// leaves a recording where its map ends. Simulators and baselines keep driving there, onto
@@ -513,6 +573,40 @@ impl std::fmt::Display for SceneSummary {
 mod tests {
     use crate::io::yaml;
     use std::path::Path;
+
+    #[test]
+    fn a_crop_keeps_the_nearest_observed_agents_over_the_future_asked_for() {
+        // Three cars on a two-lane road and a pedestrian beside it; car 4 is not yet observed
+        // at the current step.
+        let text = r#"
+steps: 31
+current_step: 10
+road: {lanes: 2, lane_width: 3.5, length: 300}
+agents:
+  - {id: 1, lane: 0, s: 100, speed: 10}
+  - {id: 2, lane: 1, s: 160, speed: 10}
+  - {id: 3, lane: 0, s: 120, speed: 10}
+  - {id: 5, type: pedestrian, lane: 1, s: 101, speed: 1}
+  - {id: 4, lane: 1, s: 90, speed: 10, valid_from: 12}
+"#;
+        let s = yaml::parse(Path::new("crop.yaml"), text).unwrap();
+        let c = s.crop(3, 15).unwrap();
+        let ids: Vec<i64> = c.agents.iter().map(|a| a.id).collect();
+        // Vehicles by distance from car 1, then the pedestrian (nearer, but not a vehicle).
+        assert_eq!(ids, [1, 3, 2]);
+        assert_eq!((c.meta.current_step, c.num_future_steps()), (10, 15));
+        assert_eq!(c.agents[1].states[..], s.agents[2].states[..26]);
+        let all = s.crop(10, 15).unwrap();
+        assert_eq!(
+            all.agents.iter().map(|a| a.id).collect::<Vec<_>>(),
+            [1, 3, 2, 5]
+        );
+        // A future longer than the recording after the current step moves the current step.
+        let late = s.crop(2, 25).unwrap();
+        assert_eq!((late.meta.current_step, late.num_steps()), (5, 31));
+        let e = s.crop(2, 31).unwrap_err();
+        assert_eq!(e.to_string(), "the scene has 31 steps, 32 are needed");
+    }
 
     #[test]
     fn cars_leave_the_scene_where_the_map_ends() {

@@ -1,0 +1,63 @@
+"""PyTorch autograd for drivescript cost scripts.
+
+``cost(script, scene, traj)`` is differentiable: its backward pass is the gradient the Rust
+engine computes with the value (dual numbers), so no graph of the script is built in PyTorch.
+PyTorch is imported when ``cost`` is first called, not when ``drivescript`` is imported.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+_Function: Any = None
+
+
+def _function() -> Any:
+    """The autograd.Function class, made on first use so that torch is imported lazily."""
+    global _Function
+    if _Function is not None:
+        return _Function
+    import numpy as np
+    import torch
+
+    class CostFunction(torch.autograd.Function):
+        """Total cost of a script on trajectories; backward multiplies the engine's gradient."""
+
+        @staticmethod
+        def forward(ctx: Any, traj: "torch.Tensor", script: Any, scene: Any) -> "torch.Tensor":
+            arr = traj.detach().to("cpu", torch.float64).contiguous().numpy()
+            if arr.ndim == 4:
+                results = script.evaluate_batch(scene, arr)
+                total = np.array([r.total for r in results], dtype=np.float64)
+                grad = np.stack([r.grad for r in results])
+            else:
+                r = script.evaluate(scene, arr)
+                total = np.array(r.total, dtype=np.float64)
+                grad = r.grad
+            ctx.save_for_backward(torch.from_numpy(grad).to(traj.device, traj.dtype))
+            return torch.from_numpy(total).to(traj.device, traj.dtype)
+
+        @staticmethod
+        def backward(ctx: Any, grad_output: "torch.Tensor") -> Any:
+            (grad,) = ctx.saved_tensors
+            # One cost per batch item: broadcast each item's upstream gradient over its
+            # trajectory.
+            g = grad_output.reshape(grad_output.shape + (1,) * (grad.dim() - grad_output.dim()))
+            return g * grad, None, None
+
+    _Function = CostFunction
+    return _Function
+
+
+def cost(script: Any, scene: Any, traj: Any) -> Any:
+    """The script's weighted total on ``traj`` as a differentiable tensor.
+
+    ``traj`` is a tensor ``[agents, steps, 3]`` (a scalar comes back) or
+    ``[batch, agents, steps, 3]`` (one cost per item, evaluated in parallel), any float dtype
+    and device; it is evaluated in float64 on the CPU and the result and its gradient come
+    back in ``traj``'s dtype and device. Unobserved states are NaN and get zero gradient.
+    """
+    return _function().apply(traj, script, scene)
+
+
+__all__ = ["cost"]

@@ -1,0 +1,862 @@
+//! `drivescript._native`: the Python face of the drivescript library. It parses Python values
+//! into the library's types, calls the library, and converts the results back; every rule
+//! (the sandbox, the limits, validation, the sampler's settings, the checkers) is the
+//! library's, as in the CLI. Errors become Python exceptions with the CLI's text; a panic in
+//! the library becomes a `RuntimeError` naming it, never an abort.
+
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+
+use drivescript::cost::{BoundScript, CostError, CostReport, ParamValue, Params, ScriptSpec};
+use drivescript::cost::{Limits, Trajectories, VarLayout};
+use drivescript::eval::behaviors::{self, Behavior};
+use drivescript::io::{IoError, LoadOptions};
+use drivescript::sample::{self as sampler, AttemptError, AttemptSpec, SampleConfig};
+use numpy::ndarray::{Array3, Array4};
+use numpy::{AllowTypeChange, IntoPyArray, PyArrayLikeDyn, PyUntypedArrayMethods};
+use pyo3::create_exception;
+use pyo3::exceptions::{PyException, PyFileNotFoundError, PyOSError, PyRuntimeError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::{PyBool, PyDict, PyFloat, PyInt, PyString};
+
+// The CLI's allocator (src/main.rs): the engine allocates a series per operation, and with
+// the system allocator a call from Python would be slower than `drivescript bench cost`.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+create_exception!(
+    drivescript,
+    ScriptError,
+    PyException,
+    "A cost script failed to compile, validate or evaluate. The message is the CLI's; `file`, \
+     `line` and `column` say where (None where the error has no such place)."
+);
+
+/// The most future steps a trajectory may have: `drivescript cost --horizon`'s bound.
+const MAX_STEPS: usize = 10_000;
+
+/// Runs `f` with the GIL released, turning a panic into a `RuntimeError` that names it.
+fn detached<T: Send>(
+    py: Python<'_>,
+    what: &str,
+    f: impl FnOnce() -> PyResult<T> + Send,
+) -> PyResult<T> {
+    py.detach(|| std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)))
+        .unwrap_or_else(|payload| {
+            Err(PyRuntimeError::new_err(drivescript::io::internal_error(
+                &*payload, what,
+            )))
+        })
+}
+
+fn script_error(py: Python<'_>, e: &CostError) -> PyErr {
+    let text = e.to_string();
+    let nonzero = |n: usize| (n > 0).then_some(n);
+    let (file, line, column) = match e {
+        CostError::Shape { .. } | CostError::Param { .. } => return PyValueError::new_err(text),
+        CostError::Read(_) => return PyOSError::new_err(text),
+        CostError::Syntax {
+            script,
+            line,
+            column,
+            ..
+        }
+        | CostError::Runtime {
+            script,
+            line,
+            column,
+            ..
+        }
+        | CostError::Limit {
+            script,
+            line,
+            column,
+            ..
+        } => (script, nonzero(*line), nonzero(*column)),
+        CostError::Term { script, line, .. } => (script, nonzero(*line), None),
+        CostError::NoFuture { script, .. } | CostError::NoTerms { script } => (script, None, None),
+    };
+    let err = ScriptError::new_err(text);
+    let v = err.value(py);
+    // Setting attributes on a fresh exception instance cannot fail short of memory.
+    let _ = v.setattr("file", file.as_str());
+    let _ = v.setattr("line", line);
+    let _ = v.setattr("column", column);
+    err
+}
+
+fn io_error(e: IoError) -> PyErr {
+    match &e {
+        IoError::Read { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
+            PyFileNotFoundError::new_err(e.to_string())
+        }
+        IoError::Read { .. } | IoError::Write { .. } => PyOSError::new_err(e.to_string()),
+        _ => PyValueError::new_err(e.to_string()),
+    }
+}
+
+fn params_from(dict: Option<&Bound<'_, PyDict>>) -> PyResult<Params> {
+    let mut out = Params::default();
+    for (k, v) in dict.into_iter().flat_map(|d| d.iter()) {
+        let name: String = k
+            .extract()
+            .map_err(|_| PyValueError::new_err(format!("parameter names are strings, got {k}")))?;
+        // bool before int: Python's True is an int too.
+        let value = if v.is_instance_of::<PyBool>() {
+            ParamValue::Bool(v.extract()?)
+        } else if v.is_instance_of::<PyInt>() {
+            ParamValue::Int(v.extract().map_err(|_| {
+                PyValueError::new_err(format!("parameter {name:?} = {v}: out of the 64-bit range"))
+            })?)
+        } else if v.is_instance_of::<PyFloat>() {
+            ParamValue::Float(v.extract()?)
+        } else if v.is_instance_of::<PyString>() {
+            ParamValue::Str(v.extract()?)
+        } else {
+            return Err(PyValueError::new_err(format!(
+                "parameter {name:?} = {v}: a parameter is an int, float, bool or str"
+            )));
+        };
+        out.set(&name, value);
+    }
+    Ok(out)
+}
+
+fn params_to<'py>(py: Python<'py>, p: &Params) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    for (k, v) in &p.0 {
+        match v {
+            ParamValue::Int(i) => d.set_item(k, i)?,
+            ParamValue::Float(f) => d.set_item(k, f)?,
+            ParamValue::Bool(b) => d.set_item(k, b)?,
+            ParamValue::Str(s) => d.set_item(k, s)?,
+        }
+    }
+    Ok(d)
+}
+
+/// The shape an array must have, in words, for error messages.
+fn wanted(scene: &Scene, batch: bool) -> String {
+    format!(
+        "expected shape ({}{}, steps, 3): x, y, heading of each of the scene's {} agents \
+         (in agent_ids order) at each future step, float64, NaN where unobserved",
+        if batch { "batch, " } else { "" },
+        scene.inner.agents.len(),
+        scene.inner.agents.len()
+    )
+}
+
+/// Reads `[agents, steps, 3]` (or `[batch, agents, steps, 3]`) from any array-like into
+/// trajectories over `steps` future steps of `scene`.
+fn trajectories(
+    scene: &Scene,
+    arr: &PyArrayLikeDyn<'_, f64, AllowTypeChange>,
+    batch: bool,
+) -> PyResult<(usize, Vec<Trajectories>)> {
+    let shape = arr.shape().to_vec();
+    let agents = scene.inner.agents.len();
+    let dims = if batch { 4 } else { 3 };
+    let fits = shape.len() == dims
+        && shape[dims - 3] == agents
+        && shape[dims - 1] == 3
+        && (1..=MAX_STEPS).contains(&shape[dims - 2])
+        && (!batch || shape[0] >= 1);
+    if !fits {
+        return Err(PyValueError::new_err(format!(
+            "trajectories of shape {shape:?}: {} (steps 1 to {MAX_STEPS}{})",
+            wanted(scene, batch),
+            if batch { ", batch at least 1" } else { "" }
+        )));
+    }
+    let steps = shape[dims - 2];
+    let layout = VarLayout { agents, steps };
+    // A C-contiguous float64 array (what numpy and torch hand over) is read in place; any
+    // other (Fortran order, a strided view) in logical order.
+    let copied: Vec<f64>;
+    let values = match arr.as_slice() {
+        Ok(v) if arr.is_c_contiguous() => v,
+        _ => {
+            copied = arr.as_array().iter().copied().collect();
+            &copied
+        }
+    };
+    let out = values
+        .chunks_exact(layout.len())
+        .enumerate()
+        .map(|(b, v)| {
+            Trajectories::from_array(layout, v).map_err(|m| {
+                let at = if batch {
+                    format!("batch item {b}, ")
+                } else {
+                    String::new()
+                };
+                PyValueError::new_err(format!("trajectories: {at}{m}"))
+            })
+        })
+        .collect::<PyResult<Vec<_>>>()?;
+    Ok((steps, out))
+}
+
+static NEXT_SCENE: AtomicU64 = AtomicU64::new(1);
+
+/// A traffic scene: a road map and its agents' states at a fixed time step, read from any
+/// format the CLI reads (CommonRoad XML, Argoverse 2 parquet directories, WOMD TFRecords,
+/// drivescript YAML).
+#[pyclass(frozen, module = "drivescript")]
+struct Scene {
+    inner: Arc<drivescript::scene::Scene>,
+    uid: u64,
+}
+
+impl Scene {
+    fn wrap(inner: drivescript::scene::Scene) -> Self {
+        Self {
+            inner: Arc::new(inner),
+            uid: NEXT_SCENE.fetch_add(1, Ordering::Relaxed),
+        }
+    }
+
+    /// The scene over `steps` future steps (default: the recorded ones).
+    fn over(&self, steps: Option<usize>) -> PyResult<drivescript::scene::Scene> {
+        let steps = steps.unwrap_or_else(|| self.inner.num_future_steps());
+        if !(1..=MAX_STEPS).contains(&steps) {
+            return Err(PyValueError::new_err(format!(
+                "steps = {steps}: must be 1 to {MAX_STEPS}"
+            )));
+        }
+        Ok(self.inner.over_horizon(steps))
+    }
+}
+
+/// Trajectories as float64 `[agents, steps, 3]`, NaN where unobserved.
+fn array3<'py>(py: Python<'py>, t: &Trajectories) -> PyResult<Bound<'py, PyAny>> {
+    let l = t.layout;
+    let a = Array3::from_shape_vec((l.agents, l.steps, 3), t.to_array())
+        .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+    Ok(a.into_pyarray(py).into_any())
+}
+
+#[pymethods]
+impl Scene {
+    /// Reads scene number `index` of `path` (a file or a directory, as `drivescript cost`
+    /// takes it). `commonroad_current_step` is the current step given to CommonRoad scenes,
+    /// which have none of their own (default 10: 1 s of history at 10 Hz).
+    ///
+    /// Raises FileNotFoundError or OSError where the file cannot be read, ValueError where
+    /// it is not a valid scene (the message names the file and the record).
+    #[staticmethod]
+    #[pyo3(signature = (path, index = 0, commonroad_current_step = 10))]
+    fn load(
+        py: Python<'_>,
+        path: PathBuf,
+        index: usize,
+        commonroad_current_step: usize,
+    ) -> PyResult<Self> {
+        let opts = LoadOptions {
+            commonroad_current_step,
+        };
+        detached(py, "scene reader", || {
+            drivescript::io::load_scene(&path, index, &opts)
+                .map(Scene::wrap)
+                .map_err(io_error)
+        })
+    }
+
+    /// The agents' ids, in the order of the agent axis of every trajectory array.
+    #[getter]
+    fn agent_ids(&self) -> Vec<i64> {
+        self.inner.agents.iter().map(|a| a.id).collect()
+    }
+
+    /// Seconds per step.
+    #[getter]
+    fn dt(&self) -> f64 {
+        self.inner.meta.dt
+    }
+
+    /// Index of the current step: history up to it, future after it.
+    #[getter]
+    fn current_step(&self) -> usize {
+        self.inner.meta.current_step
+    }
+
+    /// Steps recorded after the current one (the default of `log_future`).
+    #[getter]
+    fn future_steps(&self) -> usize {
+        self.inner.num_future_steps()
+    }
+
+    /// The scenario's id.
+    #[getter]
+    fn scenario_id(&self) -> &str {
+        &self.inner.meta.scenario_id
+    }
+
+    /// The recorded future, float64 `[agents, steps, 3]`: x, y (metres) and heading
+    /// (radians) of each agent at each of the `steps` steps after the current one (default:
+    /// every recorded one), NaN where the agent is unobserved (including past the recording).
+    #[pyo3(signature = (steps = None))]
+    fn log_future<'py>(
+        &self,
+        py: Python<'py>,
+        steps: Option<usize>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let scene = self.over(steps)?;
+        array3(py, &Trajectories::recorded(&scene))
+    }
+
+    /// The recorded future as `log_future` gives it, with every unobserved state filled in:
+    /// at constant velocity from the agent's latest observed state (its first one, held,
+    /// before it is first seen). A complete starting point for optimisation, and the
+    /// trajectories `drivescript bench cost` times.
+    #[pyo3(signature = (steps = None))]
+    fn filled_future<'py>(
+        &self,
+        py: Python<'py>,
+        steps: Option<usize>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let scene = self.over(steps)?;
+        array3(py, &Trajectories::filled(&scene))
+    }
+
+    /// At most `agents` agents observed at the current step, with exactly `future` steps
+    /// after it: vehicles on a lane first, nearest first to the first such vehicle, then the
+    /// other agents. A recording too short after its current step has its current step moved
+    /// earlier. `Scene.load(p).crop(24, 80)` is the scene `drivescript bench cost` times.
+    ///
+    /// Raises ValueError where the scene is shorter than `future + 1` steps or no observed
+    /// vehicle is on a lane.
+    fn crop(&self, agents: usize, future: usize) -> PyResult<Self> {
+        self.inner
+            .crop(agents, future)
+            .map(Scene::wrap)
+            .map_err(|e| PyValueError::new_err(e.to_string()))
+    }
+
+    /// The recorded history up to and including the current step, float64
+    /// `[agents, current_step + 1, 3]` (x, y, heading), NaN where unobserved.
+    fn log_history<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let n = self.inner.meta.current_step + 1;
+        let values: Vec<f64> = self
+            .inner
+            .agents
+            .iter()
+            .flat_map(|a| a.states[..n].iter())
+            .flat_map(|s| {
+                if s.valid {
+                    [s.x, s.y, s.heading]
+                } else {
+                    [f64::NAN; 3]
+                }
+            })
+            .collect();
+        let a = Array3::from_shape_vec((self.inner.agents.len(), n, 3), values)
+            .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+        Ok(a.into_pyarray(py).into_any())
+    }
+
+    /// Writes `traj` (float64 `[agents, steps, 3]`, NaN where unobserved) as this scene's
+    /// future to `path`, atomically, in the rollout JSON format that `drivescript cost
+    /// --rollout`, `eval --rollouts` and `render` read.
+    fn write_rollout(
+        &self,
+        py: Python<'_>,
+        path: PathBuf,
+        traj: PyArrayLikeDyn<'_, f64, AllowTypeChange>,
+    ) -> PyResult<()> {
+        let (_, mut t) = trajectories(self, &traj, false)?;
+        let t = t.remove(0);
+        let inner = self.inner.clone();
+        detached(py, "rollout writer", move || {
+            let scene = t.applied_to(&inner).map_err(PyValueError::new_err)?;
+            drivescript::io::rollout::Rollout::from_scene(&scene)
+                .write(&path)
+                .map_err(io_error)
+        })
+    }
+
+    fn __repr__(&self) -> String {
+        format!(
+            "Scene({:?}: {} agents, dt {} s, current step {}, {} future steps)",
+            self.inner.meta.scenario_id,
+            self.inner.agents.len(),
+            self.inner.meta.dt,
+            self.inner.meta.current_step,
+            self.inner.num_future_steps()
+        )
+    }
+}
+
+/// What one evaluation of a cost script gives: the weighted total, each term's (unweighted)
+/// value and weight, the total's gradient w.r.t. every trajectory coordinate (shaped like
+/// the trajectories; 0 where unobserved) and what the script printed.
+#[pyclass(frozen, module = "drivescript")]
+struct CostResult {
+    /// The weighted total, sum over terms of weight x value.
+    #[pyo3(get)]
+    total: f64,
+    terms: Vec<(String, f64, f64)>,
+    /// d total / d trajectories: float64 `[agents, steps, 3]`.
+    #[pyo3(get)]
+    grad: Py<PyAny>,
+    /// Lines the script printed.
+    #[pyo3(get)]
+    prints: Vec<String>,
+    /// Milliseconds the evaluation took inside the engine.
+    #[pyo3(get)]
+    eval_ms: f64,
+}
+
+impl CostResult {
+    /// A dict of term name -> `pick(term)`.
+    fn by_name<'py>(
+        &self,
+        py: Python<'py>,
+        pick: impl Fn(&(String, f64, f64)) -> f64,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let d = PyDict::new(py);
+        for t in &self.terms {
+            d.set_item(&t.0, pick(t))?;
+        }
+        Ok(d)
+    }
+
+    fn new(py: Python<'_>, r: CostReport) -> PyResult<Self> {
+        let l = r.layout;
+        let grad = Array3::from_shape_vec((l.agents, l.steps, 3), r.gradient)
+            .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+        Ok(Self {
+            total: r.total,
+            terms: r
+                .terms
+                .iter()
+                .map(|t| (t.name.clone(), t.value, t.weight))
+                .collect(),
+            grad: grad.into_pyarray(py).into_any().unbind(),
+            prints: r.prints,
+            eval_ms: r.elapsed.as_secs_f64() * 1000.0,
+        })
+    }
+}
+
+#[pymethods]
+impl CostResult {
+    /// Each term's unweighted value, by name, in declaration order.
+    #[getter]
+    fn terms<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        self.by_name(py, |(_, value, _)| *value)
+    }
+
+    /// Each term's weight, by name.
+    #[getter]
+    fn weights<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        self.by_name(py, |(_, _, weight)| *weight)
+    }
+
+    fn __repr__(&self) -> String {
+        let terms: Vec<String> = self
+            .terms
+            .iter()
+            .map(|(n, v, _)| format!("{n}={v:.6}"))
+            .collect();
+        format!("CostResult(total={:.6}, {})", self.total, terms.join(", "))
+    }
+}
+
+/// Scripts bound per (scene, steps) that a `CostScript` keeps: a few scenes at a time.
+const BOUND_PER_SCRIPT: usize = 8;
+
+/// A Rhai cost script with its parameters: sandboxed and limited as in the CLI, compiled and
+/// validated against each scene (and horizon) it is first evaluated on.
+///
+/// `evaluate(scene, traj)` gives a `CostResult` (total, terms, gradient);
+/// `evaluate_batch(scene, trajs)` evaluates many in parallel with the GIL released. Errors in
+/// the script raise `ScriptError` with the CLI's message.
+#[pyclass(frozen, module = "drivescript")]
+struct CostScript {
+    spec: ScriptSpec,
+    bound: Mutex<Vec<(u64, usize, Arc<BoundScript>)>>,
+}
+
+impl CostScript {
+    fn with_spec(spec: ScriptSpec) -> Self {
+        Self {
+            spec,
+            bound: Mutex::new(Vec::new()),
+        }
+    }
+
+    /// The script bound to `scene` over `steps` future steps, compiled and validated (with the
+    /// GIL released) the first time.
+    fn bound(&self, py: Python<'_>, scene: &Scene, steps: usize) -> PyResult<Arc<BoundScript>> {
+        let key = (scene.uid, steps);
+        let hit = |v: &Vec<(u64, usize, Arc<BoundScript>)>| {
+            v.iter()
+                .find(|(u, s, _)| (*u, *s) == key)
+                .map(|e| e.2.clone())
+        };
+        if let Some(b) = hit(&self.bound.lock().unwrap_or_else(|p| p.into_inner())) {
+            return Ok(b);
+        }
+        let (spec, inner) = (self.spec.clone(), scene.inner.clone());
+        let made = detached(py, "cost script", move || {
+            Ok(BoundScript::new(spec, inner.over_horizon(steps)))
+        })?;
+        let b = Arc::new(made.map_err(|e| script_error(py, &e))?);
+        let mut v = self.bound.lock().unwrap_or_else(|p| p.into_inner());
+        if v.len() >= BOUND_PER_SCRIPT {
+            v.remove(0);
+        }
+        v.push((key.0, key.1, b.clone()));
+        Ok(b)
+    }
+}
+
+#[pymethods]
+impl CostScript {
+    /// Reads the script in `path` (a regular UTF-8 file of at most 64 KiB) with `params`
+    /// (name -> int | float | bool | str), visible to the script as constants. A parameter
+    /// the script does not use is a ValueError, as `--param` is in the CLI.
+    #[staticmethod]
+    #[pyo3(signature = (path, params = None))]
+    fn from_file(
+        py: Python<'_>,
+        path: PathBuf,
+        params: Option<&Bound<'_, PyDict>>,
+    ) -> PyResult<Self> {
+        let params = params_from(params)?;
+        ScriptSpec::from_file(&path, params)
+            .map(Self::with_spec)
+            .map_err(|e| script_error(py, &e))
+    }
+
+    /// A script from its source text, named `name` in messages.
+    #[staticmethod]
+    #[pyo3(signature = (source, name = "<script>", params = None))]
+    fn from_source(
+        py: Python<'_>,
+        source: String,
+        name: &str,
+        params: Option<&Bound<'_, PyDict>>,
+    ) -> PyResult<Self> {
+        let spec = ScriptSpec::new(source, name, params_from(params)?);
+        drivescript::cost::check_params(&[&spec.source], &spec.params)
+            .and_then(|_| spec.check_syntax())
+            .map(|_| Self::with_spec(spec))
+            .map_err(|e| script_error(py, &e))
+    }
+
+    /// The name used in messages (the path for `from_file`).
+    #[getter]
+    fn name(&self) -> &str {
+        &self.spec.name
+    }
+
+    /// The source text.
+    #[getter]
+    fn source(&self) -> &str {
+        &self.spec.source
+    }
+
+    /// The parameters, name -> value.
+    #[getter]
+    fn params<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        params_to(py, &self.spec.params)
+    }
+
+    /// Evaluates the script on `traj`, float64 `[agents, steps, 3]` (x, y, heading per agent
+    /// in `scene.agent_ids` order and future step; NaN where unobserved), with the scene
+    /// over `steps` future steps as `drivescript cost --horizon steps` takes it.
+    fn evaluate(
+        &self,
+        py: Python<'_>,
+        scene: &Scene,
+        traj: PyArrayLikeDyn<'_, f64, AllowTypeChange>,
+    ) -> PyResult<CostResult> {
+        let (steps, mut t) = trajectories(scene, &traj, false)?;
+        let bound = self.bound(py, scene, steps)?;
+        let t = t.remove(0);
+        let r = detached(py, "cost script", move || Ok(bound.evaluate(&t)))?;
+        CostResult::new(py, r.map_err(|e| script_error(py, &e))?)
+    }
+
+    /// Evaluates `trajs`, float64 `[batch, agents, steps, 3]`, in parallel on every core with
+    /// the GIL released; one `CostResult` per batch item. The first item that fails raises
+    /// its error, with `batch_index` set on it.
+    fn evaluate_batch(
+        &self,
+        py: Python<'_>,
+        scene: &Scene,
+        trajs: PyArrayLikeDyn<'_, f64, AllowTypeChange>,
+    ) -> PyResult<Vec<CostResult>> {
+        let (steps, t) = trajectories(scene, &trajs, true)?;
+        let bound = self.bound(py, scene, steps)?;
+        let reports = detached(py, "cost script", move || Ok(bound.evaluate_batch(&t)))?;
+        reports
+            .into_iter()
+            .enumerate()
+            .map(|(k, r)| {
+                let r = r.map_err(|e| {
+                    let err = script_error(py, &e);
+                    let _ = err.value(py).setattr("batch_index", k);
+                    err
+                })?;
+                CostResult::new(py, r)
+            })
+            .collect()
+    }
+
+    fn __repr__(&self) -> String {
+        format!(
+            "CostScript({:?}, params={})",
+            self.spec.name, self.spec.params
+        )
+    }
+}
+
+/// The guided diffusion sampler with a trained checkpoint (a directory holding
+/// model.safetensors and config.json, such as data/checkpoint).
+#[pyclass(frozen, module = "drivescript")]
+struct Sampler {
+    trained: drivescript::train::Trained,
+}
+
+#[pymethods]
+impl Sampler {
+    /// Loads the checkpoint in `checkpoint_dir`.
+    #[new]
+    fn new(py: Python<'_>, checkpoint_dir: PathBuf) -> PyResult<Self> {
+        detached(py, "checkpoint reader", || {
+            drivescript::train::load(&checkpoint_dir)
+                .map(|trained| Self { trained })
+                .map_err(|e| PyValueError::new_err(e.to_string()))
+        })
+    }
+
+    /// Future steps the model generates.
+    #[getter]
+    fn horizon(&self) -> usize {
+        self.trained.meta.config.window.future
+    }
+
+    /// Samples futures of `scene` guided by `scripts`, as `drivescript simulate` does (same
+    /// settings and defaults; the scripts are compiled and validated on the scene cut to the
+    /// sampled horizon first). Returns float64 `[samples, agents, steps, 3]`, NaN where an
+    /// agent is absent; `steps` is `horizon` or the model's.
+    ///
+    /// `task` is "conditional" (history and recorded end points known) or "unconditional"
+    /// (history only: what behaviour scripts such as cut_in are tuned for).
+    #[pyo3(signature = (scene, scripts = Vec::new(), samples = 4, *, seed = 1, steps = 32,
+        task = "conditional", horizon = None, guidance = sampler::BEHAVIOUR_LAMBDA,
+        realism = sampler::REALISM_WEIGHT, polish = sampler::POLISH_STEPS))]
+    #[allow(clippy::too_many_arguments)]
+    fn sample<'py>(
+        &self,
+        py: Python<'py>,
+        scene: &Scene,
+        scripts: Vec<PyRef<'py, CostScript>>,
+        samples: usize,
+        seed: u64,
+        steps: usize,
+        task: &str,
+        horizon: Option<usize>,
+        guidance: f64,
+        realism: f64,
+        polish: usize,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let task = match task {
+            "conditional" => sampler::Task::Conditional,
+            "unconditional" => sampler::Task::Unconditional,
+            other => {
+                return Err(PyValueError::new_err(format!(
+                    "task = {other:?}: \"conditional\" or \"unconditional\""
+                )))
+            }
+        };
+        // `drivescript simulate`'s settings, its defaults where Python gives none.
+        let cfg = SampleConfig {
+            steps,
+            samples,
+            seed,
+            lambda: guidance,
+            task,
+            guidance: sampler::Guidance::Denoiser,
+            known_weight: 1.0,
+            schedule: sampler::LambdaSchedule::Fading,
+            clamp: sampler::Clamp::Coordinate,
+            realism: drivescript::cost::Realism {
+                weight: realism,
+                ..Default::default()
+            },
+            polish,
+            horizon,
+        };
+        let spec = AttemptSpec {
+            scripts: scripts.iter().map(|s| s.spec.clone()).collect(),
+            checks: Vec::new(),
+            cfg,
+            replan: None,
+        };
+        let raw = scene.inner.clone();
+        let done = detached(py, "sampler", || {
+            Ok(sampler::attempt(&self.trained, &raw, &spec))
+        })?;
+        let done = done.map_err(|e| match e {
+            AttemptError::Script(e) => script_error(py, &e),
+            AttemptError::Sample(sampler::SampleError::Cost(e)) => script_error(py, &e),
+            AttemptError::Sample(sampler::SampleError::Settings(m)) => {
+                PyValueError::new_err(format!("sampler settings: {m}"))
+            }
+            other => PyRuntimeError::new_err(other.to_string()),
+        })?;
+        let c = scene.inner.meta.current_step;
+        let agents = scene.inner.agents.len();
+        let n = done
+            .samples
+            .first()
+            .map_or(0, |s| s.scene.num_steps() - c - 1);
+        let mut out = Vec::with_capacity(done.samples.len() * agents * n * 3);
+        for s in &done.samples {
+            out.extend(Trajectories::recorded(&s.scene).to_array());
+        }
+        let a = Array4::from_shape_vec((done.samples.len(), agents, n, 3), out)
+            .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+        Ok(a.into_pyarray(py).into_any())
+    }
+}
+
+/// A behaviour checker's verdict on a trajectory: the independent judge that `simulate
+/// --auto`, `eval` and `ask` use.
+#[pyclass(frozen, module = "drivescript")]
+struct Verdict {
+    /// Whether the behaviour happened plausibly (the headline).
+    #[pyo3(get)]
+    passed: bool,
+    /// Whether its geometric condition alone holds.
+    #[pyo3(get)]
+    achieved: bool,
+    /// Implausible motion or collisions of the agents it names, in words.
+    #[pyo3(get)]
+    violations: Vec<String>,
+    /// The quantities behind the verdict, by name.
+    #[pyo3(get)]
+    measured: std::collections::BTreeMap<String, f64>,
+    /// Why, in words.
+    #[pyo3(get)]
+    reason: String,
+    /// The ids of the agents the behaviour names.
+    #[pyo3(get)]
+    named: Vec<i64>,
+}
+
+#[pymethods]
+impl Verdict {
+    fn __repr__(&self) -> String {
+        format!(
+            "Verdict(passed={}, reason={:?})",
+            if self.passed { "True" } else { "False" },
+            self.reason
+        )
+    }
+}
+
+fn behaviour(name: &str) -> PyResult<Behavior> {
+    Behavior::from_name(name).ok_or_else(|| {
+        PyValueError::new_err(format!(
+            "unknown behaviour {name:?}; one of {}",
+            behaviors::ALL.map(|b| b.name()).join(", ")
+        ))
+    })
+}
+
+/// Judges whether `behaviour` (e.g. "cut_in") happened in `scene` with its future replaced
+/// by `traj` (float64 `[agents, steps, 3]`, NaN where unobserved), with the agents in their
+/// roles given by `params` (e.g. {"cutter": 401, "victim": 405}; see `suggest`).
+#[pyfunction]
+#[pyo3(signature = (behaviour, scene, traj, params = None))]
+fn check(
+    py: Python<'_>,
+    behaviour: &str,
+    scene: &Scene,
+    traj: PyArrayLikeDyn<'_, f64, AllowTypeChange>,
+    params: Option<&Bound<'_, PyDict>>,
+) -> PyResult<Verdict> {
+    let b = self::behaviour(behaviour)?;
+    let params = params_from(params)?;
+    let (_, mut t) = trajectories(scene, &traj, false)?;
+    let t = t.remove(0);
+    let inner = scene.inner.clone();
+    let v = detached(py, "checker", move || {
+        let judged = t.applied_to(&inner).map_err(PyValueError::new_err)?;
+        behaviors::check(b, &judged, &params).map_err(|e| PyValueError::new_err(e.to_string()))
+    })?;
+    Ok(Verdict {
+        passed: v.passed,
+        achieved: v.achieved,
+        violations: v.violations,
+        measured: v.measured,
+        reason: v.reason,
+        named: v.named,
+    })
+}
+
+/// Agents of `scene` suited to `behaviour` over `steps` future steps (default: the recorded
+/// future), as `simulate --auto` chooses them: the parameters for its script and checker, or
+/// None when no agents suit.
+#[pyfunction]
+#[pyo3(signature = (behaviour, scene, steps = None))]
+fn suggest<'py>(
+    py: Python<'py>,
+    behaviour: &str,
+    scene: &Scene,
+    steps: Option<usize>,
+) -> PyResult<Option<Bound<'py, PyDict>>> {
+    let b = self::behaviour(behaviour)?;
+    let steps = steps.unwrap_or_else(|| scene.inner.num_future_steps());
+    let inner = scene.inner.clone();
+    let p = detached(py, "behaviour suggestion", move || {
+        Ok(behaviors::suggest(b, &inner.with_horizon(steps), steps))
+    })?;
+    p.map(|p| params_to(py, &p)).transpose()
+}
+
+/// The behaviours the checkers know, by name.
+#[pyfunction]
+fn behaviours() -> Vec<&'static str> {
+    behaviors::ALL.map(|b| b.name()).to_vec()
+}
+
+/// The default resource limits of a cost script, name -> value (wall time in seconds).
+#[pyfunction]
+fn limits<'py>(py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+    let l = Limits::default();
+    let d = PyDict::new(py);
+    d.set_item("max_operations", l.max_operations)?;
+    d.set_item("max_call_levels", l.max_call_levels)?;
+    d.set_item("max_expr_depth", l.max_expr_depth)?;
+    d.set_item("max_string_size", l.max_string_size)?;
+    d.set_item("max_array_size", l.max_array_size)?;
+    d.set_item("max_variables", l.max_variables)?;
+    d.set_item("wall_time", l.wall_time.as_secs_f64())?;
+    d.set_item("max_source_bytes", l.max_source_bytes)?;
+    d.set_item("max_series_bytes", l.max_series_bytes)?;
+    Ok(d)
+}
+
+/// The compiled half of the `drivescript` package.
+#[pymodule]
+fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("ScriptError", m.py().get_type::<ScriptError>())?;
+    m.add_class::<Scene>()?;
+    m.add_class::<CostScript>()?;
+    m.add_class::<CostResult>()?;
+    m.add_class::<Sampler>()?;
+    m.add_class::<Verdict>()?;
+    m.add_function(wrap_pyfunction!(check, m)?)?;
+    m.add_function(wrap_pyfunction!(suggest, m)?)?;
+    m.add_function(wrap_pyfunction!(behaviours, m)?)?;
+    m.add_function(wrap_pyfunction!(limits, m)?)?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    Ok(())
+}

@@ -1,0 +1,293 @@
+"""Every line of the package's contract (python/README.md), and the CLI's numbers."""
+
+import json
+import subprocess
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from conftest import CUT_IN, CUT_IN_PARAMS, ROOT, SCENE
+
+
+def test_scene_exposes_ids_dt_and_current_step(scene):
+    assert isinstance(scene.agent_ids, list) and all(isinstance(i, int) for i in scene.agent_ids)
+    assert 401 in scene.agent_ids and 405 in scene.agent_ids
+    assert isinstance(scene.dt, float) and scene.dt == pytest.approx(0.1)
+    assert isinstance(scene.current_step, int) and scene.current_step == 10
+    assert "USA_US101-4_1_T-1" in repr(scene)
+
+
+def test_log_future_is_float64_agents_by_steps_by_3_with_nan_where_unobserved(scene):
+    traj = scene.log_future(40)
+    assert traj.dtype == np.float64
+    assert traj.shape == (len(scene.agent_ids), 40, 3)
+    nan = np.isnan(traj)
+    # A state is observed or not as a whole.
+    assert (nan.all(axis=2) == nan.any(axis=2)).all()
+    assert nan.any() and not nan.all()
+    longer = scene.log_future(scene.future_steps + 5)
+    assert np.isnan(longer[:, -5:, :]).all(), "past the recording is unobserved"
+    assert scene.log_future().shape[1] == scene.future_steps
+
+
+def test_filled_future_fills_the_gaps_of_the_recording_at_constant_velocity(scene):
+    log, filled = scene.log_future(60), scene.filled_future(60)
+    assert filled.shape == log.shape and not np.isnan(filled).any()
+    seen = ~np.isnan(log)
+    assert (filled[seen] == log[seen]).all()
+    # An agent that leaves keeps its last observed heading and moves on in a straight line.
+    a, k = np.argwhere(np.isnan(log[:, :, 0]) & ~np.isnan(log[:, :1, 0]))[0]
+    e = k + np.argmax(np.append(~np.isnan(log[a, k:, 0]), True))  # the gap is k..e
+    assert np.ptp(filled[a, k - 1 : e, 2]) == 0
+    step = np.diff(filled[a, k - 1 : e, :2], axis=0)
+    assert len(step) > 1 and np.allclose(step, step[0])
+
+
+def test_a_crop_is_the_bench_scene(ds, scene):
+    c = scene.crop(8, 30)
+    assert len(c.agent_ids) == 8 and c.future_steps == 30
+    assert set(c.agent_ids) <= set(scene.agent_ids)
+    assert not np.isnan(c.log_history()[:, -1]).any(), "every agent is observed now"
+    with pytest.raises(ValueError, match="steps, .* are needed"):
+        scene.crop(8, 10_000)
+
+
+def test_every_format_the_cli_reads_loads(ds):
+    for p in [
+        "data/samples/commonroad/USA_Peach-4_8_T-1.xml",
+        "data/samples/yaml/highway_cut_in.yaml",
+        "data/samples/av2",
+    ]:
+        s = ds.Scene.load(ROOT / p)
+        assert len(s.agent_ids) > 0 and s.future_steps > 0, p
+
+
+def test_evaluate_gives_total_terms_and_a_gradient_shaped_like_the_trajectories(scene, cut_in):
+    traj = scene.log_future(40)
+    r = cut_in.evaluate(scene, traj)
+    assert isinstance(r.total, float) and np.isfinite(r.total)
+    assert isinstance(r.terms, dict) and r.terms and all(isinstance(v, float) for v in r.terms.values())
+    assert r.total == pytest.approx(sum(r.weights[k] * v for k, v in r.terms.items()), rel=1e-12)
+    assert isinstance(r.grad, np.ndarray) and r.grad.shape == traj.shape and r.grad.dtype == np.float64
+    assert np.abs(r.grad).sum() > 0
+    assert (r.grad[np.isnan(traj)] == 0).all(), "unobserved states have no gradient"
+    assert cut_in.name == str(CUT_IN) and cut_in.params == CUT_IN_PARAMS
+
+
+def test_evaluate_batch_equals_evaluate_item_by_item(scene, cut_in):
+    traj = scene.log_future(40)
+    rng = np.random.default_rng(0)
+    batch = np.stack([traj] * 64)
+    batch[:, :, :, :2] += rng.normal(0, 0.3, size=batch[:, :, :, :2].shape)
+    rs = cut_in.evaluate_batch(scene, batch)
+    assert len(rs) == 64
+    for b in (0, 17, 63):
+        one = cut_in.evaluate(scene, batch[b])
+        assert rs[b].total == one.total
+        assert np.array_equal(rs[b].grad, one.grad)
+    assert len({r.total for r in rs}) > 1
+
+
+def test_evaluate_batch_releases_the_gil(scene, cut_in):
+    # A batch long enough to tell, on a fast machine as on a slow one: about 0.25 s.
+    traj = scene.log_future(40)
+    t = time.perf_counter()
+    cut_in.evaluate_batch(scene, np.stack([traj] * 64))
+    per_64 = time.perf_counter() - t
+    batch = np.stack([traj] * min(4096, 64 * int(np.ceil(0.25 / per_64))))
+    done = threading.Event()
+
+    def run():
+        cut_in.evaluate_batch(scene, batch)
+        done.set()
+
+    t = threading.Thread(target=run)
+    ticks = 0
+    t.start()
+    start = time.perf_counter()
+    while not done.is_set():
+        ticks += 1
+    elapsed = time.perf_counter() - start
+    t.join()
+    # With the GIL held for the whole batch this loop would not run until it ends.
+    assert elapsed > 0.05, "the batch was too quick to tell"
+    assert ticks > 10_000, f"{ticks} iterations in {elapsed:.3f} s while the batch ran"
+
+
+def write_rollout(scene, traj, path):
+    scene.write_rollout(path, traj)
+    return path
+
+
+def cli_cost(cli, rollout=None, horizon=None):
+    cmd = [cli, "cost", str(SCENE), "--script", str(CUT_IN), "--json", "--param"]
+    cmd += [f"{k}={v}" for k, v in CUT_IN_PARAMS.items()]
+    if rollout is not None:
+        cmd += ["--rollout", str(rollout)]
+    if horizon is not None:
+        cmd += ["--horizon", str(horizon)]
+    out = subprocess.run(cmd, capture_output=True, text=True, check=True)
+    return json.loads(out.stdout)
+
+
+def assert_matches_cli(r, scene, want):
+    assert abs(r.total - want["total"]) <= 1e-9
+    terms = {t["name"]: t for t in want["terms"]}
+    assert set(terms) == set(r.terms)
+    for k, v in r.terms.items():
+        assert abs(v - terms[k]["value"]) <= 1e-9, k
+    norms = np.sqrt((r.grad.reshape(r.grad.shape[0], -1) ** 2).sum(axis=1))
+    got = {a: n for a, n in zip(scene.agent_ids, norms) if n > 0}
+    cli_norms = {g["agent"]: g["grad_norm"] for g in want["agent_grad_norms"]}
+    assert set(got) == set(cli_norms)
+    for a, n in got.items():
+        assert abs(n - cli_norms[a]) <= 1e-9, a
+
+
+def test_values_and_gradients_equal_the_cli_on_the_recording(scene, cut_in, cli):
+    r = cut_in.evaluate(scene, scene.log_future(40))
+    assert_matches_cli(r, scene, cli_cost(cli, horizon=40))
+
+
+def test_values_and_gradients_equal_the_cli_on_perturbed_trajectories(scene, cut_in, cli, tmp_path):
+    rng = np.random.default_rng(1)
+    traj = scene.log_future(40)
+    traj[:, :, :2] += rng.normal(0, 0.5, size=traj[:, :, :2].shape)
+    r = cut_in.evaluate(scene, traj)
+    path = write_rollout(scene, traj, tmp_path / "perturbed.json")
+    assert_matches_cli(r, scene, cli_cost(cli, rollout=path))
+
+
+def test_gradients_match_central_finite_differences(scene, cut_in):
+    traj = scene.log_future(40)
+    r = cut_in.evaluate(scene, traj)
+    flat = np.argsort(-np.abs(r.grad).ravel())[:12]
+    h = 1e-6
+    for i in flat:
+        idx = np.unravel_index(i, traj.shape)
+        up, down = traj.copy(), traj.copy()
+        up[idx] += h
+        down[idx] -= h
+        fd = (cut_in.evaluate(scene, up).total - cut_in.evaluate(scene, down).total) / (2 * h)
+        assert fd == pytest.approx(r.grad[idx], rel=1e-5, abs=1e-6), idx
+
+
+def test_a_wrong_shape_is_a_value_error_naming_the_shape(scene, cut_in):
+    n = len(scene.agent_ids)
+    for bad in [np.zeros((n - 1, 40, 3)), np.zeros((n, 40, 2)), np.zeros((n, 40)), np.zeros((n, 0, 3))]:
+        with pytest.raises(ValueError, match=rf"expected shape \({n}, steps, 3\)"):
+            cut_in.evaluate(scene, bad)
+    with pytest.raises(ValueError, match=rf"expected shape \(batch, {n}, steps, 3\)"):
+        cut_in.evaluate_batch(scene, np.zeros((n, 40, 3)))
+
+
+def test_a_half_observed_state_is_a_value_error_naming_agent_and_step(scene, cut_in):
+    traj = scene.log_future(40)
+    a = int(np.argwhere(~np.isnan(traj[:, 3, 0]))[0][0])
+    traj[a, 3, 1] = np.nan
+    with pytest.raises(ValueError, match=f"agent index {a}, step 3: y is NaN"):
+        cut_in.evaluate(scene, traj)
+
+
+def test_other_dtypes_are_converted(scene, cut_in):
+    traj = scene.log_future(40)
+    a = cut_in.evaluate(scene, traj).total
+    assert cut_in.evaluate(scene, traj.astype(np.float32)).total == pytest.approx(a, rel=1e-5)
+    assert cut_in.evaluate(scene, traj.tolist()).total == a
+    # Read in logical order whatever the memory order: Fortran order, a strided view.
+    fortran = np.asfortranarray(traj)
+    assert not fortran.flags.c_contiguous
+    assert cut_in.evaluate(scene, fortran).total == a
+    strided = np.concatenate([traj, traj], axis=2)[:, :, :3]
+    assert not strided.flags.c_contiguous
+    assert cut_in.evaluate(scene, strided).total == a
+
+
+def test_script_errors_carry_file_line_and_column(ds, scene):
+    with pytest.raises(ds.ScriptError) as e:
+        ds.CostScript.from_source("let x = ;\n", name="broken.rhai")
+    assert e.value.file == "broken.rhai" and e.value.line == 1 and e.value.column is not None
+    assert str(e.value).startswith("broken.rhai:1:") and "syntax error" in str(e.value)
+    s = ds.CostScript.from_source('let a = agent(999999);\nterm("x", a.speed_at(0));\n', name="ghost.rhai")
+    with pytest.raises(ds.ScriptError) as e:
+        s.evaluate(scene, scene.log_future(40))
+    assert e.value.file == "ghost.rhai" and e.value.line == 1
+
+
+def test_limits_and_sandbox_are_the_cli_s(ds, scene):
+    loop = ds.CostScript.from_source("let i = 0;\nloop { i += 1; }\n", name="loop.rhai")
+    with pytest.raises(ds.ScriptError, match="limit exceeded: operations"):
+        loop.evaluate(scene, scene.log_future(10))
+    for src in ['eval("1")', 'import "std:fs" as fs;', 'open_file("/etc/passwd")']:
+        with pytest.raises(ds.ScriptError):
+            ds.CostScript.from_source(src + '\nterm("x", 1.0);\n', name="sandbox.rhai").evaluate(
+                scene, scene.log_future(10)
+            )
+    assert ds.limits()["max_operations"] == 2_000_000
+
+
+def test_a_constant_term_fails_validation_as_in_the_cli(ds, scene):
+    flat = ds.CostScript.from_source('term("flat", 1.0);\n', name="flat.rhai")
+    with pytest.raises(ds.ScriptError, match='flat.rhai:1: term "flat"') as e:
+        flat.evaluate(scene, scene.log_future(10))
+    assert e.value.line == 1 and e.value.column is None
+
+
+def test_parameters_the_script_does_not_use_are_value_errors(ds):
+    with pytest.raises(ValueError, match="cuttr"):
+        ds.CostScript.from_file(CUT_IN, params={"cuttr": 401, "victim": 405})
+    with pytest.raises(ValueError):
+        ds.CostScript.from_file(CUT_IN, params={"cutter": [401], "victim": 405})
+
+
+def test_missing_or_malformed_files_are_os_and_value_errors(ds, tmp_path):
+    with pytest.raises(FileNotFoundError):
+        ds.Scene.load(tmp_path / "nope.xml")
+    with pytest.raises(OSError):
+        ds.CostScript.from_file(tmp_path / "nope.rhai")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("agents: [1, 2\n")
+    with pytest.raises(ValueError, match="bad.yaml"):
+        ds.Scene.load(bad)
+
+
+def test_the_sampler_returns_samples_by_agents_by_steps_by_3(ds, scene, cut_in):
+    sampler = ds.Sampler(ROOT / "data/checkpoint")
+    a = sampler.sample(scene, scripts=[cut_in], samples=2, steps=4, polish=0)
+    assert a.dtype == np.float64 and a.shape == (2, len(scene.agent_ids), sampler.horizon, 3)
+    assert np.isfinite(a[~np.isnan(a)]).all() and (~np.isnan(a)).any()
+    assert not np.array_equal(a[0], a[1], equal_nan=True)
+    again = sampler.sample(scene, scripts=[cut_in], samples=2, steps=4, polish=0)
+    assert np.array_equal(a, again, equal_nan=True), "the seed fixes the samples"
+    with pytest.raises(ValueError, match="steps = 1"):
+        sampler.sample(scene, steps=1)
+    with pytest.raises(ValueError, match="task"):
+        sampler.sample(scene, task="sideways")
+
+
+def test_checkers_judge_trajectories_from_python(ds, scene):
+    assert "cut_in" in ds.behaviours()
+    v = ds.check("cut_in", scene, scene.log_future(40), CUT_IN_PARAMS)
+    assert isinstance(v.passed, bool) and v.reason and set(v.named) <= {401, 405}
+    with pytest.raises(ValueError, match="unknown behaviour"):
+        ds.check("moonwalk", scene, scene.log_future(40), {})
+    p = ds.suggest("cut_in", scene, 40)
+    assert p is None or {"cutter", "victim"} <= set(p)
+
+
+def test_rollouts_written_from_python_read_back_in_the_cli_s_format(scene, tmp_path):
+    traj = scene.log_future(40)
+    path = tmp_path / "r.json"
+    scene.write_rollout(path, traj)
+    doc = json.loads(path.read_text())
+    assert doc["format"] == "drivescript-rollout" and len(doc["agents"]) == len(scene.agent_ids)
+    assert len(doc["agents"][0]["states"]) == scene.current_step + 1 + 40
+
+
+def test_help_is_useful(ds):
+    assert "evaluate" in ds.CostScript.__doc__ or "evaluate" in (ds.CostScript.evaluate.__doc__ or "")
+    for obj in [ds.Scene.load, ds.Scene.log_future, ds.CostScript.from_file, ds.CostScript.evaluate,
+                ds.CostScript.evaluate_batch, ds.Sampler.sample, ds.check, ds.suggest, ds.torch.cost]:
+        assert obj.__doc__ and len(obj.__doc__) > 40, obj

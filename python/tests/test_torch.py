@@ -1,0 +1,92 @@
+"""ds.torch.cost: an autograd.Function whose backward is the engine's gradient."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import ROOT
+
+torch = pytest.importorskip("torch", reason="skipped: torch is not installed (pip install torch)")
+
+
+def test_cost_is_the_total_and_backward_is_the_gradient(ds, scene, cut_in):
+    traj = scene.log_future(40)
+    r = cut_in.evaluate(scene, traj)
+    t = torch.tensor(traj, requires_grad=True)
+    cost = ds.torch.cost(cut_in, scene, t)
+    assert cost.dim() == 0 and cost.dtype == torch.float64
+    assert cost.item() == r.total
+    cost.backward()
+    assert np.array_equal(t.grad.numpy(), r.grad)
+
+
+def test_a_batch_gives_one_cost_per_item_and_their_gradients(ds, scene, cut_in):
+    traj = scene.log_future(40)
+    batch = np.stack([traj, traj + np.array([0.5, -0.2, 0.0])])
+    t = torch.tensor(batch, requires_grad=True)
+    costs = ds.torch.cost(cut_in, scene, t)
+    assert costs.shape == (2,)
+    (costs * torch.tensor([1.0, 3.0], dtype=torch.float64)).sum().backward()
+    for b, w in [(0, 1.0), (1, 3.0)]:
+        r = cut_in.evaluate(scene, batch[b])
+        assert costs[b].item() == r.total
+        np.testing.assert_array_equal(t.grad[b].numpy(), w * r.grad)
+
+
+def test_float32_in_float32_out(ds, scene, cut_in):
+    t = torch.tensor(scene.log_future(40), dtype=torch.float32, requires_grad=True)
+    cost = ds.torch.cost(cut_in, scene, t)
+    cost.backward()
+    assert cost.dtype == torch.float32 and t.grad.dtype == torch.float32
+
+
+def test_gradcheck_in_float64(ds, scene, cut_in):
+    # cut_in holds the victim (`hold(b)`: its gap and contact terms stop the victim's
+    # gradient on purpose), so its exact Jacobian is checked w.r.t. the cutter. A short horizon keeps it quick.
+    traj = scene.log_future(12)
+    keep = ~np.isnan(traj).any(axis=(1, 2))
+    rng = np.random.default_rng(2)
+    traj[keep, :, :2] += rng.normal(0, 0.2, size=traj[keep, :, :2].shape)
+    base = torch.tensor(traj)
+    a = scene.agent_ids.index(401)
+    assert keep[a]
+
+    def cutter(x):
+        t = base.clone()
+        t[a] = x
+        return ds.torch.cost(cut_in, scene, t)
+
+    x = base[a].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(cutter, (x,), eps=1e-6, atol=1e-5, rtol=1e-4)
+
+    # rightmost_lane holds nobody: checked w.r.t. every coordinate.
+    rl = ds.CostScript.from_file(ROOT / "scripts/rightmost_lane.rhai", params={"vehicle": 405})
+    assert rl.evaluate(scene, traj).total > 0
+    t = torch.tensor(traj, requires_grad=True)
+    assert torch.autograd.gradcheck(
+        lambda x: ds.torch.cost(rl, scene, x), (t,), eps=1e-6, atol=1e-5, rtol=1e-4
+    )
+
+
+def test_adam_lowers_the_cost(ds, scene, cut_in):
+    t = torch.tensor(scene.log_future(40), requires_grad=True)
+    opt = torch.optim.Adam([t], lr=0.05)
+    first = None
+    for _ in range(20):
+        opt.zero_grad()
+        c = ds.torch.cost(cut_in, scene, t)
+        first = c.item() if first is None else first
+        c.backward()
+        opt.step()
+    assert ds.torch.cost(cut_in, scene, t).item() < first
+
+
+def test_the_optimisation_example_ends_in_a_cut_in_that_the_checker_passes():
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "python/examples/optimise_cut_in.py")],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert out.returncode == 0, out.stderr
+    assert 'checker on the optimised trajectories: Verdict(passed=True, reason="cuts in")' in out.stdout, out.stdout

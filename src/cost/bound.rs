@@ -1,0 +1,212 @@
+//! A cost script bound to one scene that any thread may evaluate: what a host that calls from
+//! several threads (the Python package, a planner's worker pool) holds.
+//!
+//! A [`CostScript`] is single-threaded (its Rhai engine and scene are reference-counted), so
+//! a [`BoundScript`] keeps only what compiles it (a [`ScriptSpec`] and the scene) and each
+//! thread compiles its own copy on first use, kept in a small per-thread cache. A batch runs
+//! on rayon's pool, whose threads live on, so a script is compiled once per core, not once per
+//! call.
+
+use std::cell::RefCell;
+use std::rc::Rc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use rayon::prelude::*;
+
+use super::engine::{CostError, CostScript};
+use super::report::CostReport;
+use super::spec::ScriptSpec;
+use super::trajectory::{Trajectories, VarLayout};
+use crate::scene::Scene;
+
+/// Compiled scripts a thread keeps: enough for a handful of scripts on a handful of scenes
+/// at once; the least recently used one goes first.
+const PER_THREAD: usize = 16;
+
+static NEXT_ID: AtomicU64 = AtomicU64::new(1);
+
+thread_local! {
+    static COMPILED: RefCell<Vec<(u64, Rc<CostScript>)>> = const { RefCell::new(Vec::new()) };
+}
+
+/// A [`ScriptSpec`] compiled and validated against one scene, evaluable from any thread
+/// (`Send + Sync`).
+#[derive(Debug)]
+pub struct BoundScript {
+    id: u64,
+    spec: ScriptSpec,
+    scene: Arc<Scene>,
+    validated: Duration,
+}
+
+impl BoundScript {
+    /// Compiles `spec` against `scene` and validates it ([`CostScript::validate`]: the dry
+    /// run `drivescript cost` makes before it evaluates), on the calling thread.
+    pub fn new(spec: ScriptSpec, scene: Scene) -> Result<Self, CostError> {
+        let mut bound = Self {
+            id: NEXT_ID.fetch_add(1, Ordering::Relaxed),
+            spec,
+            scene: Arc::new(scene),
+            validated: Duration::ZERO,
+        };
+        bound.validated = bound.with_script(|s| s.validate())??.elapsed;
+        Ok(bound)
+    }
+
+    /// The scene the script is bound to.
+    pub fn scene(&self) -> &Scene {
+        &self.scene
+    }
+
+    /// What the script was compiled from.
+    pub fn spec(&self) -> &ScriptSpec {
+        &self.spec
+    }
+
+    /// The layout of the trajectories it takes: the scene's agents by its future steps.
+    pub fn layout(&self) -> VarLayout {
+        VarLayout::of(&self.scene)
+    }
+
+    /// How long the validation run took.
+    pub fn validated_in(&self) -> Duration {
+        self.validated
+    }
+
+    /// Evaluates every term and its gradient on `traj` ([`CostScript::evaluate`]).
+    pub fn evaluate(&self, traj: &Trajectories) -> Result<CostReport, CostError> {
+        self.with_script(|s| s.evaluate(traj))?
+    }
+
+    /// Evaluates each of `trajs` in parallel on rayon's pool; the reports (or errors) come
+    /// back in order.
+    pub fn evaluate_batch(&self, trajs: &[Trajectories]) -> Vec<Result<CostReport, CostError>> {
+        trajs.par_iter().map(|t| self.evaluate(t)).collect()
+    }
+
+    /// Runs `f` on this thread's compiled copy, compiling it first when the thread has none.
+    fn with_script<R>(&self, f: impl FnOnce(&CostScript) -> R) -> Result<R, CostError> {
+        let cached = COMPILED.with(|c| {
+            let mut c = c.borrow_mut();
+            let at = c.iter().position(|(id, _)| *id == self.id)?;
+            let hit = c.remove(at);
+            let script = hit.1.clone();
+            c.push(hit);
+            Some(script)
+        });
+        let script = match cached {
+            Some(s) => s,
+            None => {
+                let s = Rc::new(self.spec.compile(Rc::new((*self.scene).clone()))?);
+                COMPILED.with(|c| {
+                    let mut c = c.borrow_mut();
+                    if c.len() >= PER_THREAD {
+                        c.remove(0);
+                    }
+                    c.push((self.id, s.clone()));
+                });
+                s
+            }
+        };
+        // The cache is not borrowed while the script runs.
+        Ok(f(&script))
+    }
+}
+
+impl Drop for BoundScript {
+    /// Frees this thread's copy at once; other threads' copies age out of their caches.
+    fn drop(&mut self) {
+        let _ = COMPILED.try_with(|c| {
+            if let Ok(mut c) = c.try_borrow_mut() {
+                c.retain(|(id, _)| *id != self.id);
+            }
+        });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cost::Params;
+
+    fn scene() -> Scene {
+        crate::cost::gradient_tests::sample(crate::cost::gradient_tests::US101)
+    }
+
+    fn cut_in() -> ScriptSpec {
+        ScriptSpec::from_file(
+            std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/cut_in.rhai")),
+            Params::numbers(&[("cutter", 401.0), ("victim", 405.0)]),
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn a_batch_on_the_pool_equals_one_by_one_on_this_thread() {
+        let scene = scene();
+        let direct = cut_in().compile(Rc::new(scene.clone())).unwrap();
+        let bound = BoundScript::new(cut_in(), scene.clone()).unwrap();
+        let mut trajs = Vec::new();
+        for k in 0..8 {
+            let mut t = Trajectories::recorded(&scene);
+            for s in &mut t.xyh {
+                s[0] += 0.25 * k as f64;
+            }
+            trajs.push(t);
+        }
+        let batch = bound.evaluate_batch(&trajs);
+        assert_eq!(batch.len(), trajs.len());
+        for (t, r) in trajs.iter().zip(batch) {
+            let (want, got) = (direct.evaluate(t).unwrap(), r.unwrap());
+            assert_eq!(got.total, want.total);
+            assert_eq!(got.gradient, want.gradient);
+        }
+        // The trajectories differ, so must their costs: the pool did not evaluate one of them
+        // for all.
+        let totals: Vec<f64> = trajs
+            .iter()
+            .map(|t| bound.evaluate(t).unwrap().total)
+            .collect();
+        assert!(totals.windows(2).any(|w| w[0] != w[1]), "{totals:?}");
+    }
+
+    #[test]
+    fn a_script_bound_to_two_scenes_keeps_them_apart() {
+        let scene = scene();
+        let short = scene.over_horizon(20);
+        let long = BoundScript::new(cut_in(), scene.clone()).unwrap();
+        let cut = BoundScript::new(cut_in(), short.clone()).unwrap();
+        assert_eq!(cut.layout().steps, 20);
+        assert_eq!(long.layout().steps, scene.num_future_steps());
+        assert!(cut.evaluate(&Trajectories::recorded(&short)).is_ok());
+        let wrong = cut.evaluate(&Trajectories::recorded(&scene)).unwrap_err();
+        assert!(matches!(wrong, CostError::Shape { .. }), "{wrong}");
+    }
+
+    #[test]
+    fn validation_errors_come_from_new_with_the_script_s_line() {
+        let spec = ScriptSpec::new("term(\"flat\", 1.0);", "flat.rhai", Params::default());
+        let e = BoundScript::new(spec, scene()).unwrap_err();
+        assert!(
+            e.to_string().starts_with("flat.rhai:1: term \"flat\""),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn a_bound_script_moves_to_another_thread_and_evaluates_there() {
+        let scene = scene();
+        let bound = Arc::new(BoundScript::new(cut_in(), scene.clone()).unwrap());
+        let here = bound.evaluate(&Trajectories::recorded(&scene)).unwrap();
+        let b = bound.clone();
+        let there = std::thread::spawn(move || {
+            let t = Trajectories::recorded(b.scene());
+            b.evaluate(&t).unwrap().total
+        })
+        .join()
+        .unwrap();
+        assert_eq!(there, here.total);
+    }
+}
