@@ -13,6 +13,9 @@ use std::process::{Child, Command, ExitCode, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+mod common;
+use common::harness::{single, Outcome};
+
 use drivescript::llm::budget::estimate_tokens;
 use drivescript::llm::client::ClientEvent;
 use drivescript::llm::{HttpClient, HttpConfig, LlmError, Message};
@@ -166,40 +169,18 @@ fn check(url: &str) -> Result<Vec<String>, String> {
 }
 
 fn main() -> ExitCode {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    if args.iter().any(|a| a == "--list") {
-        println!("{NAME}: test");
-        return ExitCode::SUCCESS;
-    }
-    let filters: Vec<&String> = args.iter().filter(|a| !a.starts_with('-')).collect();
-    if !filters.is_empty() && !filters.iter().any(|f| NAME.contains(f.as_str())) {
-        println!("\nrunning 0 tests\n\ntest result: ok. 0 passed; 0 failed; 1 filtered out\n");
-        return ExitCode::SUCCESS;
-    }
-    println!("\nrunning 1 test");
-    let py = python();
-    let gguf = match model(&py) {
-        Ok(p) => p,
-        Err(why) => {
-            println!("test {NAME} ... SKIPPED: {why}; this test did not run (set-up in tests/real_server.rs)\n");
-            println!("test result: skipped. 0 passed; 0 failed; 1 skipped\n");
-            return ExitCode::SUCCESS;
-        }
-    };
-    let result = serve(&py, &gguf).and_then(|(_served, url)| check(&url));
-    match result {
-        Ok(notes) => {
-            println!("test {NAME} ... ok");
-            for n in notes {
-                println!("  {n}");
+    single(NAME, || {
+        let py = python();
+        let gguf = match model(&py) {
+            Ok(p) => p,
+            Err(why) => {
+                return Ok(Outcome::Skipped(format!(
+                    "{why}; this test did not run (set-up in tests/real_server.rs)"
+                )))
             }
-            println!("\ntest result: ok. 1 passed; 0 failed\n");
-            ExitCode::SUCCESS
-        }
-        Err(why) => {
-            println!("test {NAME} ... FAILED: {why}");
-            println!("\ntest result: FAILED. 0 passed; 1 failed\n");
-            ExitCode::FAILURE
-        }
-    }
+        };
+        serve(&py, &gguf)
+            .and_then(|(_served, url)| check(&url))
+            .map(|notes| Outcome::Passed(notes.join("; ")))
+    })
 }
