@@ -5,7 +5,7 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result};
 use drivescript::train::{
-    load, train_from, Corpus, Holdout, SplitBy, TrainConfig, WindowSource, WindowStore,
+    load_for_training, train_from, Corpus, Holdout, SplitBy, TrainConfig, WindowSource, WindowStore,
 };
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -66,6 +66,11 @@ pub struct Args {
     /// total to reach). May be the `--out` directory itself.
     #[arg(long)]
     resume: Option<PathBuf>,
+    /// Half-life, in steps, of the moving average of the weights that the checkpoint samples
+    /// with (0: the last step's weights). Default: the setting's (cities 500, ngsim 0), or the
+    /// resumed checkpoint's.
+    #[arg(long)]
+    ema_half_life: Option<f64>,
     /// Train from scratch into an --out directory that already holds a checkpoint (which is
     /// replaced at the first validation). Without it, that is refused.
     #[arg(long)]
@@ -95,6 +100,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         eval_every: args.eval_every,
         val_fold: args.val_fold.unwrap_or(0),
         val_towns: args.val_town.clone(),
+        ema_half_life: args.ema_half_life.unwrap_or(base.ema_half_life),
         ..base
     };
     if args.data.is_empty() && args.urban.is_empty() {
@@ -115,7 +121,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
     let resume = match &args.resume {
         Some(dir) => {
-            let r = load(dir).with_context(|| format!("resuming from {}", dir.display()))?;
+            let r = load_for_training(dir)
+                .with_context(|| format!("resuming from {}", dir.display()))?;
+            if args.ema_half_life.is_none() {
+                cfg.ema_half_life = r.meta.config.ema_half_life;
+            }
             let fold = r.meta.config.val_fold;
             if args.val_fold.is_some_and(|f| f != fold) {
                 anyhow::bail!(
@@ -142,6 +152,17 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     " (no optimiser state saved with it: AdamW's moments restart)"
                 }
             );
+            match (&r.ema, cfg.ema_half_life > 0.0) {
+                (None, true) => println!(
+                    "a moving average of the weights (half-life {} steps) starts here",
+                    cfg.ema_half_life
+                ),
+                (Some(_), false) => println!(
+                    "--ema-half-life 0: the moving average of the weights is dropped; \
+                     training goes on from the last step's weights"
+                ),
+                _ => {}
+            }
             Some(r)
         }
         None => None,

@@ -4,14 +4,16 @@
 pub mod adamw;
 pub mod batch;
 pub mod dataset;
+pub mod ema;
 pub mod rng;
 pub mod store;
 pub mod trainer;
 
 pub use batch::{build, Batch, Normaliser};
 pub use dataset::{window_among, window_at, windows, Window, WindowConfig};
+pub use ema::Ema;
 pub use store::{Corpus, Holdout, SceneWindows, SplitBy, WindowSource, WindowStore};
 pub use trainer::{
-    is_validation, learning_rate, load, save, train, train_from, val_fold, CheckpointMeta,
-    TrainConfig, TrainError, Trained, OPTIMIZER_FILE, VAL_FOLDS,
+    is_validation, learning_rate, load, load_for_training, save, train, train_from, val_fold,
+    CheckpointMeta, TrainConfig, TrainError, Trained, ONLINE_FILE, OPTIMIZER_FILE, VAL_FOLDS,
 };

@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 use super::adamw::AdamW;
 use super::batch::{build, Normaliser};
 use super::dataset::{within, Window, WindowConfig, AGENT_ATTRS};
+use super::ema::Ema;
 use super::rng::Rng;
 use super::store::{SceneWindows, WindowSource};
 use crate::model::{Denoiser, DenoiserConfig, Edm, Pca, Scores};
@@ -43,6 +44,11 @@ pub struct TrainConfig {
     /// the full horizon, say.
     #[serde(default)]
     pub val_towns: Vec<String>,
+    /// Half-life, in steps, of the moving average of the weights that the checkpoint samples
+    /// with ([`Ema`]); 0 samples with the last step's weights, as checkpoints from before the
+    /// option did.
+    #[serde(default)]
+    pub ema_half_life: f64,
 }
 
 impl TrainConfig {
@@ -68,6 +74,7 @@ impl TrainConfig {
             eval_every: 100,
             val_fold: 0,
             val_towns: Vec::new(),
+            ema_half_life: 0.0,
         }
     }
 
@@ -82,6 +89,7 @@ impl TrainConfig {
                 attrs: AGENT_ATTRS,
                 ..base.model
             },
+            ema_half_life: 500.0,
             ..base
         }
     }
@@ -138,6 +146,10 @@ pub struct CheckpointMeta {
     /// trained on NGSIM's vehicles alone.
     #[serde(default = "vehicles_only")]
     pub types: std::collections::BTreeMap<AgentType, usize>,
+    /// Updates the moving average of the weights has had ([`TrainConfig::ema_half_life`]):
+    /// a resumed run continues its warm-up.
+    #[serde(default)]
+    pub ema_updates: u64,
 }
 
 fn vehicles_only() -> std::collections::BTreeMap<AgentType, usize> {
@@ -201,6 +213,12 @@ impl TrainConfig {
             ));
         }
         positive("lr", c.lr)?;
+        if !(c.ema_half_life.is_finite() && c.ema_half_life >= 0.0) {
+            return Err(format!(
+                "ema_half_life = {}: must be 0 (no average) or a positive number of steps",
+                c.ema_half_life
+            ));
+        }
         positive("edm.sigma_data", e.sigma_data)?;
         positive("edm.sigma_min", e.sigma_min)?;
         positive("edm.sigma_max", e.sigma_max)?;
@@ -407,6 +425,9 @@ pub struct Trained {
     /// The optimiser's state when the checkpoint has one (`optimizer.safetensors`), for an
     /// exact `--resume`.
     pub optimizer: Option<AdamW>,
+    /// The moving average of the weights, when training keeps one: then `varmap` holds the
+    /// weights training continues from ([`ONLINE_FILE`]) and the average is what samples.
+    pub ema: Option<Ema>,
 }
 
 impl Trained {
@@ -419,8 +440,12 @@ impl Trained {
         Denoiser::new(self.meta.config.model, self.meta.config.edm, vb)
     }
 
-    /// Every weight by name, detached from its variable (same storage).
+    /// The weights sampling uses, by name: the moving average when training keeps one, else
+    /// every variable detached (same storage).
     pub(crate) fn detached_weights(&self) -> std::collections::HashMap<String, Tensor> {
+        if let Some(e) = &self.ema {
+            return e.weights().clone();
+        }
         let data = self
             .varmap
             .data()
@@ -506,7 +531,7 @@ pub fn train_from(
     }
     let futures = source.futures();
     cfg.model.history = cfg.window.history;
-    let (varmap, model, norm, pca_rmse_m, prior, opt) = match resume {
+    let (varmap, model, norm, pca_rmse_m, prior, opt, resume_ema) = match resume {
         Some(r) => {
             let rmse = r.meta.normaliser.pca.position_rmse(futures);
             (
@@ -516,6 +541,7 @@ pub fn train_from(
                 rmse,
                 Some(r.meta),
                 r.optimizer,
+                r.ema,
             )
         }
         None => {
@@ -526,11 +552,20 @@ pub fn train_from(
             let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
             let model = Denoiser::new(cfg.model, cfg.edm, vb)?;
             seeded_init(&varmap, &mut step_rng(0))?;
-            (varmap, model, norm, rmse, None, None)
+            (varmap, model, norm, rmse, None, None, None)
         }
     };
     let mut opt = opt.unwrap_or_else(|| AdamW::new(&varmap, cfg.lr, WEIGHT_DECAY));
     opt.weight_decay = WEIGHT_DECAY;
+    // A resumed average goes on (at this run's half-life); a run that asks for none drops it.
+    let mut ema = match (resume_ema, cfg.ema_half_life > 0.0) {
+        (_, false) => None,
+        (Some(mut e), true) => {
+            e.half_life = cfg.ema_half_life;
+            Some(e)
+        }
+        (None, true) => Some(Ema::new(&varmap, cfg.ema_half_life)?),
+    };
     // A fixed validation set: the same windows, noise levels and noise at every evaluation.
     let mut vrng = Rng::new(cfg.seed ^ 0xABCD);
     let val_batches: Vec<(Vec<usize>, Vec<f64>, Vec<f32>)> = if source.val_len() == 0 {
@@ -562,6 +597,7 @@ pub fn train_from(
         git_revision,
         pca_rmse_m,
         types: source.type_counts(),
+        ema_updates: 0,
     };
     let (mut run_loss, mut run_n) = (0.0, 0usize);
     for step in start..=cfg.steps {
@@ -592,10 +628,23 @@ pub fn train_from(
             });
         }
         opt.step(&l.backward()?)?;
+        if let Some(e) = &mut ema {
+            e.update(&varmap)?;
+        }
         run_loss += lv;
         run_n += 1;
         let mut val = None;
         if step % cfg.eval_every.max(1) == 0 || step == cfg.steps {
+            // Validated with the weights the checkpoint samples with.
+            let averaged = match &ema {
+                Some(e) => Some(Denoiser::new(
+                    cfg.model,
+                    cfg.edm,
+                    VarBuilder::from_tensors(e.weights().clone(), DType::F32, &dev),
+                )?),
+                None => None,
+            };
+            let judged = averaged.as_ref().unwrap_or(&model);
             let mut total = 0.0;
             for (idx, sig, n) in &val_batches {
                 let ws: Vec<Window> = idx
@@ -609,7 +658,7 @@ pub fn train_from(
                     (cfg.batch, cfg.window.max_agents, cfg.model.k),
                     &dev,
                 )?;
-                total += loss(&model, &cfg.edm, &b, sig, &noise)?.to_scalar::<f32>()? as f64;
+                total += loss(judged, &cfg.edm, &b, sig, &noise)?.to_scalar::<f32>()? as f64;
             }
             let v = (!val_batches.is_empty()).then(|| total / val_batches.len() as f64);
             if let Some(x) = v.filter(|x| !x.is_finite()) {
@@ -621,20 +670,23 @@ pub fn train_from(
             }
             meta.history.push((step, run_loss / run_n.max(1) as f64, v));
             meta.steps_done = step;
+            meta.ema_updates = ema.as_ref().map_or(0, |e| e.updates);
             (run_loss, run_n) = (0.0, 0);
             val = v;
             if let Some(dir) = out {
-                save(dir, &varmap, &meta, Some(&opt))?;
+                save(dir, &varmap, &meta, Some(&opt), ema.as_ref())?;
             }
         }
         progress(step, lv, val);
     }
     meta.steps_done = cfg.steps;
+    meta.ema_updates = ema.as_ref().map_or(0, |e| e.updates);
     Ok(Trained {
         varmap,
         model,
         meta,
         optimizer: Some(opt),
+        ema,
     })
 }
 
@@ -644,13 +696,20 @@ const WEIGHT_DECAY: f64 = 1e-4;
 /// File of the optimiser state beside a checkpoint's weights.
 pub const OPTIMIZER_FILE: &str = "optimizer.safetensors";
 
+/// File of the weights training continues from when `model.safetensors` holds their moving
+/// average ([`Ema`]): needed to resume, not to sample.
+pub const ONLINE_FILE: &str = "online.safetensors";
+
 /// Writes `model.safetensors`, `config.json` and, when given, the optimiser state
-/// ([`OPTIMIZER_FILE`]) into `dir` (each atomically).
+/// ([`OPTIMIZER_FILE`]) into `dir` (each atomically). With a moving average, that average is
+/// `model.safetensors` and `varmap`'s weights go to [`ONLINE_FILE`]; without one, a stale
+/// [`ONLINE_FILE`] is removed so that a later resume does not take it for this run's.
 pub fn save(
     dir: &Path,
     varmap: &VarMap,
     meta: &CheckpointMeta,
     optimizer: Option<&AdamW>,
+    ema: Option<&Ema>,
 ) -> Result<(), TrainError> {
     let io = |path: &Path, e: String| TrainError::Io {
         path: path.display().to_string(),
@@ -665,8 +724,19 @@ pub fn save(
     let mut staged: Vec<(PathBuf, PathBuf)> = Vec::new();
     let weights = dir.join("model.safetensors");
     let tmp = dir.join(format!(".model.safetensors.{pid}.tmp"));
-    varmap.save(&tmp).map_err(|e| io(&tmp, e.to_string()))?;
-    staged.push((tmp, weights));
+    match ema {
+        Some(e) => {
+            e.save(&tmp).map_err(|e| io(&tmp, e.to_string()))?;
+            staged.push((tmp, weights));
+            let tmp = dir.join(format!(".{ONLINE_FILE}.{pid}.tmp"));
+            varmap.save(&tmp).map_err(|e| io(&tmp, e.to_string()))?;
+            staged.push((tmp, dir.join(ONLINE_FILE)));
+        }
+        None => {
+            varmap.save(&tmp).map_err(|e| io(&tmp, e.to_string()))?;
+            staged.push((tmp, weights));
+        }
+    }
     if let Some(opt) = optimizer {
         let path = dir.join(OPTIMIZER_FILE);
         let tmp = dir.join(format!(".optimizer.safetensors.{pid}.tmp"));
@@ -691,6 +761,10 @@ pub fn save(
     }
     for (tmp, dst) in staged {
         std::fs::rename(&tmp, &dst).map_err(|e| io(&dst, e.to_string()))?;
+    }
+    let online = dir.join(ONLINE_FILE);
+    if ema.is_none() && online.symlink_metadata().is_ok() {
+        std::fs::remove_file(&online).map_err(|e| io(&online, e.to_string()))?;
     }
     Ok(())
 }
@@ -765,7 +839,40 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
         model,
         meta,
         optimizer,
+        ema: None,
     })
+}
+
+/// [`load`] for `train --resume`: when the checkpoint keeps a moving average of its weights,
+/// the network gets the weights training continues from ([`ONLINE_FILE`]) and the average
+/// goes on from `model.safetensors`. A checkpoint without that file resumes from
+/// `model.safetensors` (a run that asks for an average starts one there).
+pub fn load_for_training(dir: &Path) -> Result<Trained, TrainError> {
+    let mut t = load(dir)?;
+    let online = dir.join(ONLINE_FILE);
+    if online.symlink_metadata().is_err() {
+        return Ok(t);
+    }
+    let io = |e: String| TrainError::Io {
+        path: online.display().to_string(),
+        message: e,
+    };
+    if t.meta.config.ema_half_life <= 0.0 {
+        return Err(io(
+            "the config keeps no moving average (ema_half_life 0), so these weights belong to              no run of it; remove the file to resume from model.safetensors"
+                .into(),
+        ));
+    }
+    crate::io::open_regular(&online, MAX_WEIGHTS_BYTES, "checkpoint weights")
+        .map_err(|e| io(e.to_string()))?;
+    let averaged = super::ema::copies(&t.varmap)?;
+    t.varmap.load(&online).map_err(|e| io(e.to_string()))?;
+    t.ema = Some(Ema::from_weights(
+        averaged,
+        t.meta.config.ema_half_life,
+        t.meta.ema_updates,
+    ));
+    Ok(t)
 }
 
 /// A tiny configuration that trains in well under a second, for tests.
@@ -797,6 +904,7 @@ pub(crate) fn tiny_config(steps: usize, seed: u64, eval_every: usize) -> TrainCo
         eval_every,
         val_fold: 0,
         val_towns: Vec::new(),
+        ema_half_life: 0.0,
     }
 }
 
@@ -854,56 +962,139 @@ mod tests {
         w
     }
 
-    #[test]
-    fn a_resumed_run_is_identical_to_an_uninterrupted_one() {
-        // The uninterrupted run's checkpoint at step 10 is copied aside, as if the run had
-        // been stopped there, then resumed to the same total.
+    fn tensors(m: &std::collections::HashMap<String, Tensor>) -> Vec<(String, Vec<f32>)> {
+        let mut w: Vec<(String, Vec<f32>)> = m
+            .iter()
+            .map(|(k, v)| (k.clone(), v.flatten_all().unwrap().to_vec1().unwrap()))
+            .collect();
+        w.sort_by(|a, b| a.0.cmp(&b.0));
+        w
+    }
+
+    /// Trains 20 steps straight and 10 + 10 with a stop at step 10, and returns both runs and
+    /// the stopped run's directory.
+    fn stopped_and_resumed(ema: f64) -> (Trained, Trained, tempfile::TempDir) {
+        let cfg = || TrainConfig {
+            ema_half_life: ema,
+            ..tiny_config(20, 5, 10)
+        };
         let (dir, half) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
-        let whole = train(
-            &scenes(),
-            tiny_config(20, 5, 10),
-            Some(dir.path()),
-            None,
-            |step, _, _| {
-                if step == 10 {
-                    for f in ["model.safetensors", "config.json", OPTIMIZER_FILE] {
+        let whole = train(&scenes(), cfg(), Some(dir.path()), None, |step, _, _| {
+            if step == 10 {
+                for f in [
+                    "model.safetensors",
+                    "config.json",
+                    OPTIMIZER_FILE,
+                    ONLINE_FILE,
+                ] {
+                    if dir.path().join(f).exists() {
                         std::fs::copy(dir.path().join(f), half.path().join(f)).unwrap();
                     }
                 }
-            },
-        )
+            }
+        })
         .unwrap();
-        let resume = |path: &Path| {
-            let r = load(path).unwrap();
-            let cfg = tiny_config(20, 5, 10);
-            train_from(
-                &SceneWindows::new(&scenes(), &cfg.window, cfg.val_fold),
-                cfg,
-                Some(r),
-                None,
-                None,
-                |_, _, _| (),
-            )
-            .unwrap()
-        };
         assert_eq!(
             load(half.path()).unwrap().optimizer.map(|o| o.steps()),
             Some(10)
         );
-        let resumed = resume(half.path());
-        let differing = |a: &Trained, b: &Trained| -> Vec<String> {
-            weights(a)
-                .into_iter()
-                .zip(weights(b))
-                .filter(|(x, y)| x != y)
-                .map(|(x, _)| x.0)
-                .collect()
-        };
+        let resumed = resume(half.path(), cfg());
+        (whole, resumed, half)
+    }
+
+    fn resume(path: &Path, cfg: TrainConfig) -> Trained {
+        let r = load_for_training(path).unwrap();
+        train_from(
+            &SceneWindows::new(&scenes(), &cfg.window, cfg.val_fold),
+            cfg,
+            Some(r),
+            None,
+            None,
+            |_, _, _| (),
+        )
+        .unwrap()
+    }
+
+    fn differing(a: &Trained, b: &Trained) -> Vec<String> {
+        weights(a)
+            .into_iter()
+            .zip(weights(b))
+            .filter(|(x, y)| x != y)
+            .map(|(x, _)| x.0)
+            .collect()
+    }
+
+    #[test]
+    fn a_resumed_run_is_identical_to_an_uninterrupted_one() {
+        let (whole, resumed, half) = stopped_and_resumed(0.0);
+        assert!(!half.path().join(ONLINE_FILE).exists());
         assert_eq!(differing(&whole, &resumed), Vec::<String>::new());
         assert_eq!(whole.meta.history, resumed.meta.history);
         // Without the optimiser state the moments restart, and the run differs.
         std::fs::remove_file(half.path().join(OPTIMIZER_FILE)).unwrap();
-        assert!(!differing(&whole, &resume(half.path())).is_empty());
+        assert!(!differing(&whole, &resume(half.path(), tiny_config(20, 5, 10))).is_empty());
+    }
+
+    #[test]
+    fn a_run_with_a_moving_average_resumes_exactly_and_samples_with_the_average() {
+        let (whole, resumed, half) = stopped_and_resumed(4.0);
+        // Both the weights training goes on from and their average continue exactly.
+        assert_eq!(differing(&whole, &resumed), Vec::<String>::new());
+        let (a, b) = (whole.ema.as_ref().unwrap(), resumed.ema.as_ref().unwrap());
+        assert_eq!(tensors(a.weights()), tensors(b.weights()));
+        assert_eq!((a.updates, b.updates), (20, 20));
+        assert_eq!(whole.meta.history, resumed.meta.history);
+        // The file sampling reads is the average, not the last step's weights; what samples
+        // right after training is the same average.
+        let stopped = load(half.path()).unwrap();
+        assert!(stopped.ema.is_none());
+        let online = super::super::ema::read(&half.path().join(ONLINE_FILE)).unwrap();
+        let sampled = tensors(&stopped.detached_weights());
+        assert_ne!(sampled, tensors(&online));
+        let cont = load_for_training(half.path()).unwrap();
+        assert_eq!(weights(&cont), tensors(&online));
+        assert_eq!(tensors(cont.ema.as_ref().unwrap().weights()), sampled);
+        assert_eq!(cont.meta.ema_updates, 10);
+        assert_eq!(tensors(&whole.detached_weights()), tensors(a.weights()));
+        // Resuming without the average trains on from the last step's weights and removes
+        // their file, which would otherwise be taken for this run's.
+        let dropped = train_from(
+            &SceneWindows::new(&scenes(), &tiny_config(12, 5, 2).window, 0),
+            tiny_config(12, 5, 2),
+            Some(cont),
+            Some(half.path()),
+            None,
+            |_, _, _| (),
+        )
+        .unwrap();
+        assert!(dropped.ema.is_none());
+        assert!(!half.path().join(ONLINE_FILE).exists());
+        assert!(load_for_training(half.path()).unwrap().ema.is_none());
+    }
+
+    #[test]
+    fn stray_online_weights_of_a_run_without_an_average_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        train(
+            &scenes(),
+            tiny_config(2, 5, 2),
+            Some(dir.path()),
+            None,
+            |_, _, _| (),
+        )
+        .unwrap();
+        std::fs::copy(
+            dir.path().join("model.safetensors"),
+            dir.path().join(ONLINE_FILE),
+        )
+        .unwrap();
+        let e = load_for_training(dir.path()).err().unwrap().to_string();
+        assert!(
+            e.contains(ONLINE_FILE) && e.contains("ema_half_life 0"),
+            "{e}"
+        );
+        // Sampling does not read it.
+        assert!(load(dir.path()).is_ok());
     }
 
     #[test]
