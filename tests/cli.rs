@@ -622,9 +622,29 @@ fn eval_prints_tables_for_baselines_and_rollouts() {
     ]);
     assert!(out.contains("| log replay | 4 | 0.00 | 0.00 |"), "{out}");
     assert!(out.contains("| constant velocity | 4 |"), "{out}");
+    // The samples hold two highway maps (US 101) and two with junctions (Lankershim,
+    // Peachtree), all vehicles: rows per map kind, none per agent type.
+    assert!(out.contains("| log replay | highway | 2 | 0.00 |"), "{out}");
+    assert!(out.contains("| constant velocity | urban | 2 |"), "{out}");
+    assert!(!out.contains("| vehicles |"), "{out}");
     let v: Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     assert_eq!(v["methods"][0]["summary"]["jsd"]["mean"], 0.0);
     assert!(v["methods"][1]["summary"]["ade"].as_f64().unwrap() > 0.1);
+    let groups = v["groups"].as_array().unwrap();
+    assert_eq!(groups.len(), 2 * 3, "{groups:?}");
+    assert_eq!(groups[0]["group"], "highway");
+    assert_eq!(groups[0]["scenes"], 2);
+    let maps: Vec<&str> = v["methods"][0]["scenes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["map"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        maps.iter().filter(|m| **m == "urban").count(),
+        2,
+        "{maps:?}"
+    );
     // Rollouts written by anyone are scored: here the recorded futures, so ADE is 0.
     let rolls = dir.path().join("rollouts");
     std::fs::create_dir(&rolls).unwrap();

@@ -2,18 +2,18 @@
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use drivescript::cost::Params;
-use drivescript::eval::kinematic::{self, KinematicLimits, Violation};
-use drivescript::eval::metrics::{self, JsdBins, Kinematics};
-use drivescript::eval::{check, check_against_unguided, Baseline, Behavior, Verdict};
+use drivescript::eval::kinematic::Violation;
+use drivescript::eval::metrics::{self, JsdBins};
+use drivescript::eval::tally::{group_order, Group, Task as EvalTask};
+use drivescript::eval::{check, Baseline, Behavior, Tally};
 use drivescript::io::{
     check_output_not_input, check_replaces_own_json, discover, read_each, rollout::Rollout,
     write_atomic, LoadOptions, OutputNames,
 };
-use drivescript::scene::{AgentType, Scene};
+use drivescript::scene::Scene;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
@@ -25,6 +25,16 @@ enum Task {
     Unconditional,
     /// Success rate of a behaviour's checker.
     Behaviour,
+}
+
+impl From<Task> for EvalTask {
+    fn from(t: Task) -> Self {
+        match t {
+            Task::Conditional => EvalTask::Conditional,
+            Task::Unconditional => EvalTask::Unconditional,
+            Task::Behaviour => EvalTask::Behaviour,
+        }
+    }
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -94,35 +104,6 @@ pub struct Args {
     merge: Vec<PathBuf>,
 }
 
-/// One method's results over all scenes (what a shard's --json keeps for --merge).
-#[derive(Default, serde::Serialize, serde::Deserialize)]
-struct Acc {
-    scenes: usize,
-    ade: Vec<f64>,
-    fde: Vec<f64>,
-    min_ade: Vec<f64>,
-    min_fde: Vec<f64>,
-    collision: Vec<f64>,
-    offroad: Vec<f64>,
-    sim_kin: Kinematics,
-    log_kin: Kinematics,
-    scr: Vec<f64>,
-    mmd_near: Vec<f64>,
-    mmd_edge: Vec<f64>,
-    passed: usize,
-    achieved: usize,
-    checked: usize,
-    /// Per judged vehicle of every sample: implausible at all, then per [`Violation::ALL`].
-    implausible: Vec<Option<bool>>,
-    /// Per vehicle of the first sample (unconditional and behaviour tasks): whether its box
-    /// overlaps another's at some future step (the pair an accident names excepted).
-    #[serde(default)]
-    collided: Vec<Option<bool>>,
-    by_kind: [Vec<Option<bool>>; 6],
-    per_scene: Vec<serde_json::Value>,
-    seconds: f64,
-}
-
 fn mean(v: &[f64]) -> Option<f64> {
     (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
 }
@@ -161,147 +142,6 @@ fn rollouts_for(dir: &Path, scene: &Scene, k: usize) -> Result<Vec<Scene>> {
         out.push(Rollout::read(&p)?.apply_to(scene, &p)?);
     }
     Ok(out)
-}
-
-fn score(
-    task: Task,
-    acc: &mut Acc,
-    logged: &Scene,
-    sims: &[Scene],
-    behaviour: Option<(Behavior, &Params)>,
-    unguided: Option<&[Scene]>,
-) {
-    let t0 = Instant::now();
-    acc.scenes += 1;
-    let sim = &sims[0];
-    let mut row = json!({"scene": logged.meta.scenario_id});
-    let lim = KinematicLimits::default();
-    // Every sample is judged, each against its own unguided twin: the rate is per sample, as
-    // `simulate` and `ask` judge them.
-    let verdicts: Vec<Result<Verdict, _>> = match behaviour {
-        Some((b, p)) => sims
-            .iter()
-            .enumerate()
-            .map(|(k, s)| match unguided.and_then(|u| u.get(k)) {
-                Some(u) => check_against_unguided(b, s, u, p),
-                None => check(b, s, p),
-            })
-            .collect(),
-        None => Vec::new(),
-    };
-    // What a behaviour asks of the agents it names (a reverse's backing up) is not counted
-    // against the sample, as its verdict does not count it.
-    let (named, allowed): (&[i64], &[Violation]) = match (behaviour, verdicts.first()) {
-        (Some((b, _)), Some(Ok(v))) => (&v.named, b.allowed_motion()),
-        _ => (&[], &[]),
-    };
-    let mut flagged = 0;
-    for s in sims {
-        let mut judged = kinematic::judge(s, &lim);
-        for (j, a) in judged.iter_mut().zip(&s.agents) {
-            if let Some(j) = j.as_mut().filter(|_| named.contains(&a.id)) {
-                *j = j.without(allowed);
-            }
-        }
-        let any = kinematic::flags(&judged, None);
-        flagged += any.iter().filter(|f| **f == Some(true)).count();
-        acc.implausible.extend(any);
-        for (k, v) in Violation::ALL.iter().enumerate() {
-            acc.by_kind[k].extend(kinematic::flags(&judged, Some(*v)));
-        }
-    }
-    row["implausible_vehicles"] = json!(flagged);
-    match task {
-        Task::Conditional => {
-            let d = metrics::displacement(logged, sim);
-            let (ade, fde) = (
-                mean(&d.iter().map(|x| x.ade).collect::<Vec<_>>()),
-                mean(&d.iter().map(|x| x.fde).collect::<Vec<_>>()),
-            );
-            if let (Some(a), Some(f)) = (ade, fde) {
-                acc.ade.push(a);
-                acc.fde.push(f);
-            }
-            if sims.len() > 1 {
-                let m = metrics::min_displacement(logged, sims);
-                if let Some(a) = mean(&m.iter().map(|x| x.ade).collect::<Vec<_>>()) {
-                    acc.min_ade.push(a);
-                    acc.min_fde.push(
-                        mean(&m.iter().map(|x| x.fde).collect::<Vec<_>>()).unwrap_or(f64::NAN),
-                    );
-                }
-            }
-            let col = metrics::rate(&metrics::collided(sim));
-            let off = metrics::rate(&metrics::offroad(sim));
-            acc.collision.extend(col);
-            acc.offroad.extend(off);
-            for s in sims {
-                acc.sim_kin.extend(&metrics::kinematics(s));
-            }
-            acc.log_kin.extend(&metrics::kinematics(logged));
-            row["ade"] = json!(ade);
-            row["fde"] = json!(fde);
-            row["collision_rate"] = json!(col);
-            row["offroad_rate"] = json!(off);
-        }
-        Task::Unconditional => {
-            acc.collided
-                .extend(vehicles_only(sim, metrics::collided(sim)));
-            let scr = metrics::scene_collision_rate(sim, 0.1);
-            acc.scr.extend(scr);
-            let (gn, ge) = metrics::placement(sim);
-            let (ln, le) = metrics::placement(logged);
-            let mn = metrics::mmd2(&gn, &ln, metrics::median_bandwidth(&gn, &ln));
-            let me = metrics::mmd2(&ge, &le, metrics::median_bandwidth(&ge, &le));
-            acc.mmd_near.extend(mn);
-            acc.mmd_edge.extend(me);
-            row["scene_collision_rate"] = json!(scr);
-            row["mmd2_nearest_object"] = json!(mn);
-            row["mmd2_road_edge"] = json!(me);
-        }
-        Task::Behaviour => {
-            let (b, _) = behaviour.expect("checked by the caller");
-            let mut rows = Vec::with_capacity(verdicts.len());
-            for (s, verdict) in sims.iter().zip(verdicts) {
-                match verdict {
-                    Ok(v) => {
-                        let touch = b.contacts(&v.named);
-                        acc.collided
-                            .extend(vehicles_only(s, metrics::collided_except(s, &touch)));
-                        acc.checked += 1;
-                        acc.passed += v.passed as usize;
-                        acc.achieved += v.achieved as usize;
-                        rows.push(json!(v));
-                    }
-                    Err(e) => {
-                        row["error"] = json!(e.to_string());
-                        break;
-                    }
-                }
-            }
-            row["verdicts"] = json!(rows);
-        }
-    }
-    acc.seconds += t0.elapsed().as_secs_f64();
-    acc.per_scene.push(row);
-}
-
-/// `flags` (one per agent of `s`) with every agent that is not a vehicle left out (`None`).
-fn vehicles_only(s: &Scene, mut flags: Vec<Option<bool>>) -> Vec<Option<bool>> {
-    for (f, a) in flags.iter_mut().zip(&s.agents) {
-        if a.agent_type != AgentType::Vehicle {
-            *f = None;
-        }
-    }
-    flags
-}
-
-fn task_name(t: Task) -> &'static str {
-    match t {
-        Task::Conditional => "conditional",
-        Task::Unconditional => "unconditional",
-        Task::Behaviour => "behaviour",
-    }
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
@@ -370,7 +210,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     for s in &args.scenes {
         sources.extend(discover(s)?);
     }
-    let mut accs: Vec<Acc> = methods.iter().map(|_| Acc::default()).collect();
+    let mut accs: Vec<Tally> = methods.iter().map(|_| Tally::default()).collect();
     let bar = ProgressBar::new(sources.len() as u64);
     bar.set_style(
         ProgressStyle::with_template(
@@ -498,9 +338,8 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     },
                     _ => None,
                 };
-                score(
-                    task,
-                    acc,
+                acc.score(
+                    task.into(),
                     &reference,
                     &sims,
                     scene_params.as_ref().map(|(b, p)| (*b, p)),
@@ -512,7 +351,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
     bar.finish_and_clear();
     let settings = json!({
-        "task": task_name(task),
+        "task": EvalTask::from(task).name(),
         "methods": methods.iter().map(|m| m.0.clone()).collect::<Vec<_>>(),
         "behaviour": behaviour.as_ref().map(|b| b.0.name()),
         "params": args.params,
@@ -554,50 +393,90 @@ struct Merge {
     run_skipped: usize,
 }
 
-/// Prints the table over `accs` (one per method), writes --json, and says how the run went.
-fn report(
-    task: Task,
-    methods: &[String],
-    accs: &[Acc],
-    behaviour: Option<Behavior>,
-    json_out: Option<&Path>,
-    merge: &Merge,
-) -> Result<ExitCode> {
-    let (skipped, failures, run_skipped) = (merge.skipped, merge.failures, merge.run_skipped);
-    let bins = JsdBins::default();
-    let mut table = Vec::new();
-    match task {
-        Task::Conditional => {
-            println!("| method | scenes | ADE (m) | FDE (m) | minADE | minFDE | JSD speed | JSD ang. speed | JSD accel | JSD nearest | JSD mean | collision | off-road | implausible | ms/scene |");
-            println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
-        }
-        Task::Unconditional => {
-            println!("| method | scenes | scene collision rate | MMD² nearest object | MMD² road edge | collided | implausible | ms/scene |");
-            println!("|---|---|---|---|---|---|---|---|");
-        }
-        Task::Behaviour => {
-            println!("| method | behaviour | samples checked | achieved plausibly | achieved | collided | implausible | ms/scene |");
-            println!("|---|---|---|---|---|---|---|---|");
-        }
+/// The table's header lines for `task`, with a group column when `grouped`.
+fn header(task: Task, grouped: bool) -> String {
+    let cols: &[&str] = match task {
+        Task::Conditional => &[
+            "scenes",
+            "ADE (m)",
+            "FDE (m)",
+            "minADE",
+            "minFDE",
+            "JSD speed",
+            "JSD ang. speed",
+            "JSD accel",
+            "JSD nearest",
+            "JSD mean",
+            "collision",
+            "off-road",
+            "implausible",
+            "ms/scene",
+        ],
+        Task::Unconditional => &[
+            "scenes",
+            "scene collision rate",
+            "MMD² nearest object",
+            "MMD² road edge",
+            "collided",
+            "implausible",
+            "ms/scene",
+        ],
+        Task::Behaviour => &[
+            "behaviour",
+            "samples checked",
+            "achieved plausibly",
+            "achieved",
+            "collided",
+            "implausible",
+            "ms/scene",
+        ],
+    };
+    let mut all = vec!["method"];
+    if grouped {
+        all.push("group");
     }
-    for (name, acc) in methods.iter().zip(accs) {
-        let ms = if acc.scenes > 0 {
-            1000.0 * acc.seconds / acc.scenes as f64
-        } else {
-            f64::NAN
-        };
-        let implausible = metrics::rate(&acc.implausible);
-        let collided = metrics::rate(&acc.collided);
-        let by_kind: serde_json::Map<String, serde_json::Value> = Violation::ALL
-            .iter()
-            .zip(&acc.by_kind)
-            .map(|(v, f)| (v.name().to_string(), json!(metrics::rate(f))))
-            .collect();
-        let mut row = match task {
-            Task::Conditional => {
-                let r = metrics::realism(&acc.sim_kin, &acc.log_kin, &bins);
-                println!(
-                    "| {name} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {ms:.1} |",
+    all.extend(cols);
+    format!("| {} |\n{}|", all.join(" | "), "|---".repeat(all.len()))
+}
+
+/// One method's row of the table (`group` names the group of a grouped table) and its JSON.
+fn table_row(
+    task: Task,
+    name: &str,
+    group: Option<&str>,
+    acc: &Tally,
+    behaviour: Option<Behavior>,
+    bins: &JsdBins,
+) -> (String, serde_json::Value) {
+    let ms = if acc.scenes > 0 {
+        1000.0 * acc.seconds / acc.scenes as f64
+    } else {
+        f64::NAN
+    };
+    let implausible = metrics::rate(&acc.implausible);
+    let collided = metrics::rate(&acc.collided);
+    let by_kind: serde_json::Map<String, serde_json::Value> = Violation::ALL
+        .iter()
+        .zip(&acc.by_kind)
+        .map(|(v, f)| (v.name().to_string(), json!(metrics::rate(f))))
+        .collect();
+    // Time is spent on a scene, not on a group of its agents.
+    let ms_text = if group.is_some() {
+        "-".to_string()
+    } else {
+        format!("{ms:.1}")
+    };
+    let lead = match group {
+        Some(g) => format!("| {name} | {g}"),
+        None => format!("| {name}"),
+    };
+    // Figures of whole scenes are not split by agent type: a dash in those rows.
+    let (line, mut row) = match task {
+        Task::Conditional => {
+            let r = metrics::realism(&acc.sim_kin, &acc.log_kin, bins);
+            (
+                format!(
+                    "{lead} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {ms_text} |",
                     acc.scenes,
                     fmt(mean(&acc.ade), 2),
                     fmt(mean(&acc.fde), 2),
@@ -606,52 +485,111 @@ fn report(
                     fmt(r.map(|r| r.speed), 3),
                     fmt(r.map(|r| r.angular_speed), 3),
                     fmt(r.map(|r| r.accel), 3),
-                    fmt(r.map(|r| r.nearest_vehicle), 3),
+                    fmt(r.and_then(|r| r.nearest_vehicle), 3),
                     fmt(r.map(|r| r.mean), 3),
                     fmt(mean(&acc.collision), 3),
                     fmt(mean(&acc.offroad), 3),
                     fmt(implausible, 3),
-                );
+                ),
                 json!({"method": name, "scenes": acc.scenes, "ade": mean(&acc.ade), "fde": mean(&acc.fde),
                     "min_ade": mean(&acc.min_ade), "min_fde": mean(&acc.min_fde), "jsd": r,
-                    "collision_rate": mean(&acc.collision), "offroad_rate": mean(&acc.offroad), "ms_per_scene": ms})
-            }
-            Task::Unconditional => {
-                println!(
-                    "| {name} | {} | {} | {} | {} | {} | {} | {ms:.1} |",
-                    acc.scenes,
-                    fmt(mean(&acc.scr), 3),
-                    fmt(mean(&acc.mmd_near), 3),
-                    fmt(mean(&acc.mmd_edge), 3),
-                    fmt(collided, 3),
-                    fmt(implausible, 3)
-                );
-                json!({"method": name, "scenes": acc.scenes, "scene_collision_rate": mean(&acc.scr),
-                    "mmd2_nearest_object": mean(&acc.mmd_near), "mmd2_road_edge": mean(&acc.mmd_edge), "ms_per_scene": ms})
-            }
-            Task::Behaviour => {
-                let b = behaviour.expect("behaviour task");
-                let of = |n: usize| (acc.checked > 0).then(|| n as f64 / acc.checked as f64);
-                let (rate, achieved) = (of(acc.passed), of(acc.achieved));
-                println!(
-                    "| {name} | {} | {} | {} | {} | {} | {} | {ms:.1} |",
+                    "collision_rate": mean(&acc.collision), "offroad_rate": mean(&acc.offroad), "ms_per_scene": ms}),
+            )
+        }
+        Task::Unconditional => (
+            format!(
+                "{lead} | {} | {} | {} | {} | {} | {} | {ms_text} |",
+                acc.scenes,
+                fmt(mean(&acc.scr), 3),
+                fmt(mean(&acc.mmd_near), 3),
+                fmt(mean(&acc.mmd_edge), 3),
+                fmt(collided, 3),
+                fmt(implausible, 3)
+            ),
+            json!({"method": name, "scenes": acc.scenes, "scene_collision_rate": mean(&acc.scr),
+                "mmd2_nearest_object": mean(&acc.mmd_near), "mmd2_road_edge": mean(&acc.mmd_edge), "ms_per_scene": ms}),
+        ),
+        Task::Behaviour => {
+            let b = behaviour.expect("behaviour task");
+            let of = |n: usize| (acc.checked > 0).then(|| n as f64 / acc.checked as f64);
+            let (rate, achieved) = (of(acc.passed), of(acc.achieved));
+            (
+                format!(
+                    "{lead} | {} | {} | {} | {} | {} | {} | {ms_text} |",
                     b.name(),
                     acc.checked,
                     fmt(rate, 2),
                     fmt(achieved, 2),
                     fmt(collided, 3),
                     fmt(implausible, 3)
-                );
+                ),
                 json!({"method": name, "behaviour": b.name(), "definition": b.definition(), "checked": acc.checked,
-                    "success_rate": rate, "achieved_rate": achieved, "ms_per_scene": ms})
-            }
-        };
-        row["implausible_rate"] = json!(implausible);
-        if task != Task::Conditional {
-            row["collided_rate"] = json!(collided);
+                    "success_rate": rate, "achieved_rate": achieved, "ms_per_scene": ms}),
+            )
         }
-        row["implausible_by_kind"] = json!(by_kind);
+    };
+    row["implausible_rate"] = json!(implausible);
+    if task != Task::Conditional {
+        row["collided_rate"] = json!(collided);
+    }
+    row["implausible_by_kind"] = json!(by_kind);
+    (line, row)
+}
+
+/// Prints the table over `accs` (one per method), writes --json, and says how the run went.
+fn report(
+    task: Task,
+    methods: &[String],
+    accs: &[Tally],
+    behaviour: Option<Behavior>,
+    json_out: Option<&Path>,
+    merge: &Merge,
+) -> Result<ExitCode> {
+    let (skipped, failures, run_skipped) = (merge.skipped, merge.failures, merge.run_skipped);
+    let bins = JsdBins::default();
+    let mut table = Vec::new();
+    println!("{}", header(task, false));
+    for (name, acc) in methods.iter().zip(accs) {
+        let (line, row) = table_row(task, name, None, acc, behaviour, &bins);
+        println!("{line}");
         table.push(json!({"summary": row, "scenes": acc.per_scene}));
+    }
+    // The same rows by map kind and agent type, where more than one kind or type was scored
+    // (a single group repeats the table above).
+    let present: Vec<(Group, String)> = group_order()
+        .into_iter()
+        .map(|g| (g, g.label()))
+        .filter(|(_, l)| {
+            accs.iter()
+                .any(|a| a.groups.get(l).is_some_and(|t| t.scenes > 0))
+        })
+        .collect();
+    let kinds = present.iter().filter(|(g, _)| g.agent.is_none()).count();
+    let types = present.iter().filter(|(g, _)| g.map.is_none()).count();
+    // A group that is all of its parent repeats its row: map kinds only where there are two,
+    // types only where there are two, and types within a kind only where both split.
+    let present: Vec<(Group, String)> = present
+        .into_iter()
+        .filter(|(g, _)| match (g.map, g.agent) {
+            (Some(_), None) => kinds > 1,
+            (None, Some(_)) => types > 1,
+            _ => kinds > 1 && types > 1,
+        })
+        .collect();
+    let mut groups_json = Vec::new();
+    if kinds > 1 || types > 1 {
+        println!("\nby map kind (urban: two or more lanes turn, at junctions) and agent type:\n");
+        println!("{}", header(task, true));
+        for (_, g) in &present {
+            for (name, acc) in methods.iter().zip(accs) {
+                if let Some(t) = acc.groups.get(g).filter(|t| t.scenes > 0) {
+                    let (line, mut row) = table_row(task, name, Some(g), t, behaviour, &bins);
+                    println!("{line}");
+                    row["group"] = json!(g);
+                    groups_json.push(row);
+                }
+            }
+        }
     }
     if task != Task::Conditional {
         println!(
@@ -669,8 +607,9 @@ fn report(
         write_atomic(
             out,
             serde_json::to_string_pretty(&json!({
-                "task": task_name(task),
+                "task": EvalTask::from(task).name(),
                 "methods": table,
+                "groups": groups_json,
                 "merge": {"accumulators": accs, "run": merge},
             }))?
             .as_bytes(),
@@ -693,11 +632,7 @@ fn report(
     }
     // A conditional table needs an agent with a recorded future to compare with: scenes read
     // but holding none printed a row of dashes and passed.
-    let scored = accs.iter().any(|a| match task {
-        Task::Behaviour => a.checked > 0,
-        Task::Conditional => !a.ade.is_empty(),
-        Task::Unconditional => a.scenes > 0,
-    });
+    let scored = accs.iter().any(|a| a.scored(task.into()));
     if !scored {
         eprintln!(
             "error: nothing was scored: no scene with agents and a {}{} was read from the given paths",
@@ -717,42 +652,10 @@ fn report(
     Ok(ExitCode::SUCCESS)
 }
 
-impl Acc {
-    /// Adds another shard's results for the same method.
-    fn absorb(&mut self, o: Acc) {
-        self.scenes += o.scenes;
-        for (a, b) in [
-            (&mut self.ade, o.ade),
-            (&mut self.fde, o.fde),
-            (&mut self.min_ade, o.min_ade),
-            (&mut self.min_fde, o.min_fde),
-            (&mut self.collision, o.collision),
-            (&mut self.offroad, o.offroad),
-            (&mut self.scr, o.scr),
-            (&mut self.mmd_near, o.mmd_near),
-            (&mut self.mmd_edge, o.mmd_edge),
-        ] {
-            a.extend(b);
-        }
-        self.sim_kin.extend(&o.sim_kin);
-        self.log_kin.extend(&o.log_kin);
-        self.passed += o.passed;
-        self.achieved += o.achieved;
-        self.checked += o.checked;
-        self.implausible.extend(o.implausible);
-        self.collided.extend(o.collided);
-        for (a, b) in self.by_kind.iter_mut().zip(o.by_kind) {
-            a.extend(b);
-        }
-        self.per_scene.extend(o.per_scene);
-        self.seconds += o.seconds;
-    }
-}
-
 /// `eval --merge`: the shards' --json files combined into the table of a single run.
 fn merge(files: &[PathBuf], json_out: Option<&Path>) -> Result<ExitCode> {
     let mut first: Option<(PathBuf, serde_json::Value)> = None;
-    let mut accs: Vec<Acc> = Vec::new();
+    let mut accs: Vec<Tally> = Vec::new();
     let mut seen: Vec<(usize, PathBuf)> = Vec::new();
     let (mut skipped, mut failures, mut run_skipped) = (0, 0, 0);
     for f in files {
@@ -769,7 +672,7 @@ fn merge(files: &[PathBuf], json_out: Option<&Path>) -> Result<ExitCode> {
                 f.display()
             )
         })?;
-        let a: Vec<Acc> = serde_json::from_value(v["merge"]["accumulators"].take())
+        let a: Vec<Tally> = serde_json::from_value(v["merge"]["accumulators"].take())
             .with_context(|| format!("{}: damaged accumulators", f.display()))?;
         match &first {
             None => {

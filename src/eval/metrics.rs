@@ -192,6 +192,13 @@ impl Kinematics {
 
 /// Kinematic samples of every agent's future (history steps only provide differences).
 pub fn kinematics(s: &Scene) -> Kinematics {
+    kinematics_of(s, |_| true)
+}
+
+/// [`kinematics`] of the agents `keep` accepts: their speeds, angular speeds and
+/// accelerations, and for those that are vehicles the distance to the nearest other vehicle
+/// (of any group).
+pub fn kinematics_of(s: &Scene, keep: impl Fn(&crate::scene::Agent) -> bool) -> Kinematics {
     let dt = s.meta.dt;
     let c = s.meta.current_step;
     let mut k = Kinematics::default();
@@ -199,7 +206,7 @@ pub fn kinematics(s: &Scene) -> Kinematics {
         let (p, q) = (a.states.get(t)?, a.states.get(t.checked_sub(1)?)?);
         (p.valid && q.valid).then(|| (p.position() - q.position()).norm() / dt)
     };
-    for a in &s.agents {
+    for a in s.agents.iter().filter(|a| keep(a)) {
         for t in c + 1..s.num_steps() {
             if let Some(v) = speed_at(a, t) {
                 k.speed.push(v);
@@ -212,14 +219,19 @@ pub fn kinematics(s: &Scene) -> Kinematics {
         }
     }
     for t in c + 1..s.num_steps() {
-        let pts: Vec<Point> = s
+        let vehicles: Vec<&crate::scene::Agent> = s
             .agents
             .iter()
             .filter(|a| a.agent_type == AgentType::Vehicle && a.is_valid(t))
-            .map(|a| a.states[t].position())
             .collect();
-        k.nearest_vehicle
-            .extend(nearest_distances(&pts).into_iter().flatten());
+        let pts: Vec<Point> = vehicles.iter().map(|a| a.states[t].position()).collect();
+        k.nearest_vehicle.extend(
+            nearest_distances(&pts)
+                .into_iter()
+                .zip(&vehicles)
+                .filter(|(_, a)| keep(a))
+                .filter_map(|(d, _)| d),
+        );
     }
     k
 }
@@ -314,9 +326,10 @@ pub struct Realism {
     pub angular_speed: f64,
     /// Acceleration.
     pub accel: f64,
-    /// Nearest-vehicle distance.
-    pub nearest_vehicle: f64,
-    /// Mean of the four.
+    /// Nearest-vehicle distance; `None` where either side has no pair of vehicles (one car,
+    /// or a group of cyclists), which is unknown rather than perfect.
+    pub nearest_vehicle: Option<f64>,
+    /// Mean of the four, or of the three without a nearest-vehicle distance.
     pub mean: f64,
 }
 
@@ -335,14 +348,17 @@ pub fn realism(sim: &Kinematics, logged: &Kinematics, bins: &JsdBins) -> Option<
         &sim.nearest_vehicle,
         &logged.nearest_vehicle,
         bins.nearest_vehicle,
-    )
-    .unwrap_or(0.0);
+    );
+    let mean = match nearest_vehicle {
+        Some(n) => (speed + angular_speed + accel + n) / 4.0,
+        None => (speed + angular_speed + accel) / 3.0,
+    };
     Some(Realism {
         speed,
         angular_speed,
         accel,
         nearest_vehicle,
-        mean: (speed + angular_speed + accel + nearest_vehicle) / 4.0,
+        mean,
     })
 }
 

@@ -6,11 +6,13 @@ pub mod behaviors;
 pub mod collateral;
 pub mod kinematic;
 pub mod metrics;
+pub mod tally;
 
 pub use baselines::Baseline;
 pub use behaviors::{check, check_against_unguided, Behavior, CheckError, Verdict};
 pub use collateral::{collateral, Collateral, CollateralError};
 pub use kinematic::{judge, Judgement, KinematicLimits, Violation};
+pub use tally::{map_kind, Group, MapKind, Tally, Task};
 
 #[cfg(test)]
 mod tests;

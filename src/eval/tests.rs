@@ -70,7 +70,7 @@ fn identical_distributions_have_zero_distance() {
     let r = realism(&k, &k, &JsdBins::default()).unwrap();
     assert_eq!(
         (r.speed, r.angular_speed, r.accel, r.nearest_vehicle, r.mean),
-        (0.0, 0.0, 0.0, 0.0, 0.0)
+        (0.0, 0.0, 0.0, Some(0.0), 0.0)
     );
     let (near, edge) = placement(&s);
     let h = median_bandwidth(&near, &near);
@@ -365,8 +365,15 @@ fn one_agent_and_late_agents_are_handled() {
     assert_eq!(scene_collision_rate(&one, 0.1), Some(0.0));
     let k = kinematics(&one);
     assert!(k.nearest_vehicle.is_empty() && !k.speed.is_empty());
-    // No nearest-vehicle samples on either side: that histogram contributes 0.
-    assert_eq!(realism(&k, &k, &JsdBins::default()).unwrap().mean, 0.0);
+    // No nearest-vehicle samples on either side: that distance is unknown, and the mean is
+    // of the other three.
+    let r = realism(&k, &k, &JsdBins::default()).unwrap();
+    assert_eq!((r.nearest_vehicle, r.mean), (None, 0.0));
+    let mut fast = k.clone();
+    fast.speed.iter_mut().for_each(|v| *v += 20.0);
+    let r = realism(&fast, &k, &JsdBins::default()).unwrap();
+    assert!(r.speed > 0.5 && r.nearest_vehicle.is_none());
+    assert!((r.mean - (r.speed + r.angular_speed + r.accel) / 3.0).abs() < 1e-12);
     let (near, edge) = placement(&one);
     assert!(near.is_empty() && !edge.is_empty());
     assert_eq!(mmd2(&near, &near, 1.0), None);

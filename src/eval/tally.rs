@@ -1,0 +1,593 @@
+//! One method's results over many scenes: what `eval` prints as a row of its tables, whole and
+//! by group (map kind, agent type), and what a shard's `--json` keeps for `--merge`.
+//!
+//! The groups answer where a model fails: a model can match the log on highways and leave the
+//! road at junctions, or drive cars well and cyclists badly, and one pooled row hides both.
+//! Per-agent figures (displacement, collision, off-road, realism histograms, kinematic flags)
+//! are restricted to the group's agents; figures of a whole scene (scene collision rate,
+//! placement MMD, behaviour verdicts) appear only in the groups of a map kind, which hold whole
+//! scenes.
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+use serde_json::json;
+
+use super::behaviors::{check, check_against_unguided, Behavior, CheckError, Verdict};
+use super::kinematic::{self, KinematicLimits, Violation};
+use super::metrics::{self, Kinematics};
+use crate::cost::Params;
+use crate::scene::{Agent, AgentType, Map, Scene, Turn};
+
+/// What an evaluation measures.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Task {
+    /// Futures given the history, against the log.
+    Conditional,
+    /// Free futures, judged by their distribution.
+    Unconditional,
+    /// Whether a behaviour was achieved.
+    Behaviour,
+}
+
+impl Task {
+    /// The name `eval --task` and the `--json` file use.
+    pub fn name(self) -> &'static str {
+        match self {
+            Task::Conditional => "conditional",
+            Task::Unconditional => "unconditional",
+            Task::Behaviour => "behaviour",
+        }
+    }
+
+    /// Parses [`Task::name`].
+    pub fn from_name(s: &str) -> Option<Self> {
+        Some(match s {
+            "conditional" => Task::Conditional,
+            "unconditional" => Task::Unconditional,
+            "behaviour" => Task::Behaviour,
+            _ => return None,
+        })
+    }
+}
+
+/// Whether a map is a highway or has the junctions of a town.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum MapKind {
+    /// At most one lane turns (a ramp).
+    Highway,
+    /// Lanes turn left or right ([`Map::turn_of`]): junctions.
+    Urban,
+}
+
+impl MapKind {
+    /// Lower-case name.
+    pub fn name(self) -> &'static str {
+        match self {
+            MapKind::Highway => "highway",
+            MapKind::Urban => "urban",
+        }
+    }
+}
+
+/// The kind of `map`, from its geometry rather than its source, since one corpus can hold
+/// both (NGSIM's Lankershim Boulevard has junctions; a town's bypass has none): urban when at
+/// least two lanes turn by more than [`crate::scene::TURN_THRESHOLD`] from start to end. One
+/// curving lane is a ramp: three of NGSIM's US 101 maps have one lane that turns 79°, and no
+/// other; every Lankershim map has more than two turning lanes, as do 1,009 of the 1,036
+/// maps of the CommonRoad scenario factory (the other 27 are stretches between junctions).
+pub fn map_kind(map: &Map) -> MapKind {
+    let turning = map
+        .lanes()
+        .iter()
+        .filter(|l| matches!(map.turn_of(l.id), Some(Turn::Left | Turn::Right)))
+        .count();
+    if turning >= 2 {
+        MapKind::Urban
+    } else {
+        MapKind::Highway
+    }
+}
+
+/// The agents and scenes a group's row covers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub struct Group {
+    /// Scenes of this kind only, or all.
+    pub map: Option<MapKind>,
+    /// Agents of this type only, or all that the whole row counts.
+    pub agent: Option<AgentType>,
+}
+
+impl Group {
+    /// Its label: "urban", "cyclists", "highway vehicles".
+    pub fn label(&self) -> String {
+        match (self.map, self.agent) {
+            (None, None) => "all".into(),
+            (Some(m), None) => m.name().into(),
+            (None, Some(t)) => format!("{}s", t.name()),
+            (Some(m), Some(t)) => format!("{} {}s", m.name(), t.name()),
+        }
+    }
+
+    fn keeps(&self, a: &Agent) -> bool {
+        self.agent.is_none_or(|t| a.agent_type == t)
+    }
+}
+
+/// One method's results over all scenes.
+#[derive(Debug, Default, Serialize, Deserialize)]
+pub struct Tally {
+    /// Scenes scored.
+    pub scenes: usize,
+    /// Per scene, mean ADE over its agents.
+    pub ade: Vec<f64>,
+    /// Per scene, mean FDE.
+    pub fde: Vec<f64>,
+    /// Per scene, mean minimum ADE over samples.
+    pub min_ade: Vec<f64>,
+    /// Per scene, mean minimum FDE.
+    pub min_fde: Vec<f64>,
+    /// Per scene, fraction of agents that collide.
+    pub collision: Vec<f64>,
+    /// Per scene, fraction of vehicles that leave the road.
+    pub offroad: Vec<f64>,
+    /// Kinematics of the samples, pooled.
+    pub sim_kin: Kinematics,
+    /// Kinematics of the log, pooled.
+    pub log_kin: Kinematics,
+    /// Per scene, the scene collision rate.
+    pub scr: Vec<f64>,
+    /// Per scene, MMD² of nearest-object distances.
+    pub mmd_near: Vec<f64>,
+    /// Per scene, MMD² of road-edge distances.
+    pub mmd_edge: Vec<f64>,
+    /// Samples whose behaviour was achieved plausibly.
+    pub passed: usize,
+    /// Samples whose behaviour was achieved.
+    pub achieved: usize,
+    /// Samples checked.
+    pub checked: usize,
+    /// Per judged agent of every sample: implausible at all.
+    pub implausible: Vec<Option<bool>>,
+    /// Per agent of every sample (unconditional and behaviour tasks): whether its box overlaps
+    /// another's at some future step (the pair an accident names excepted). The whole row and
+    /// map-kind rows count vehicles; agent-type rows their type.
+    #[serde(default)]
+    pub collided: Vec<Option<bool>>,
+    /// Per [`Violation::ALL`], as `implausible`.
+    pub by_kind: [Vec<Option<bool>>; 6],
+    /// One JSON row per scene (whole row only).
+    pub per_scene: Vec<serde_json::Value>,
+    /// Seconds spent scoring.
+    pub seconds: f64,
+    /// The rows of each group, by [`Group::label`] (whole row only; empty in files written
+    /// before groups).
+    #[serde(default)]
+    pub groups: BTreeMap<String, Tally>,
+}
+
+fn mean(v: &[f64]) -> Option<f64> {
+    (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+}
+
+/// `flags` (one per agent of `s`) with every agent `keep` rejects left out (`None`).
+fn only(
+    s: &Scene,
+    mut flags: Vec<Option<bool>>,
+    keep: impl Fn(&Agent) -> bool,
+) -> Vec<Option<bool>> {
+    for (f, a) in flags.iter_mut().zip(&s.agents) {
+        if !keep(a) {
+            *f = None;
+        }
+    }
+    flags
+}
+
+/// The groups a scene contributes to: its map kind, and per type of its road users that type
+/// across maps and within its map kind.
+pub fn groups_of(s: &Scene) -> Vec<Group> {
+    let kind = map_kind(&s.map);
+    let mut types: Vec<AgentType> = s
+        .agents
+        .iter()
+        .map(|a| a.agent_type)
+        .filter(|t| *t != AgentType::Other)
+        .collect();
+    types.sort();
+    types.dedup();
+    let mut g = vec![Group {
+        map: Some(kind),
+        agent: None,
+    }];
+    for t in types {
+        g.push(Group {
+            map: None,
+            agent: Some(t),
+        });
+        g.push(Group {
+            map: Some(kind),
+            agent: Some(t),
+        });
+    }
+    g
+}
+
+impl Tally {
+    /// Scores one scene: `logged` (the reference), the method's samples `sims` (at least one),
+    /// the behaviour and its parameters for [`Task::Behaviour`], and the samples' unguided
+    /// twins when a behaviour is judged against them. Adds to this row and to each group
+    /// of the scene ([`groups_of`]).
+    pub fn score(
+        &mut self,
+        task: Task,
+        logged: &Scene,
+        sims: &[Scene],
+        behaviour: Option<(Behavior, &Params)>,
+        unguided: Option<&[Scene]>,
+    ) {
+        let t0 = std::time::Instant::now();
+        // Every sample is judged, each against its own unguided twin: the rate is per sample,
+        // as `simulate` and `ask` judge them.
+        let verdicts: Vec<Result<Verdict, CheckError>> = match behaviour {
+            Some((b, p)) => sims
+                .iter()
+                .enumerate()
+                .map(|(k, s)| match unguided.and_then(|u| u.get(k)) {
+                    Some(u) => check_against_unguided(b, s, u, p),
+                    None => check(b, s, p),
+                })
+                .collect(),
+            None => Vec::new(),
+        };
+        let whole = Group {
+            map: None,
+            agent: None,
+        };
+        let mut row = self.add(task, logged, sims, behaviour.map(|b| b.0), &verdicts, whole);
+        row["map"] = json!(map_kind(&logged.map).name());
+        self.per_scene.push(row);
+        for g in groups_of(logged) {
+            self.groups.entry(g.label()).or_default().add(
+                task,
+                logged,
+                sims,
+                behaviour.map(|b| b.0),
+                &verdicts,
+                g,
+            );
+        }
+        self.seconds += t0.elapsed().as_secs_f64();
+    }
+
+    /// Adds a scene's figures for the agents of `g`; returns the scene's JSON row.
+    fn add(
+        &mut self,
+        task: Task,
+        logged: &Scene,
+        sims: &[Scene],
+        behaviour: Option<Behavior>,
+        verdicts: &[Result<Verdict, CheckError>],
+        g: Group,
+    ) -> serde_json::Value {
+        self.scenes += 1;
+        let sim = &sims[0];
+        let mut row = json!({"scene": logged.meta.scenario_id});
+        let lim = KinematicLimits::default();
+        let keep = |a: &Agent| g.keeps(a);
+        // Collisions count vehicles unless the group is of one type.
+        let collider = |a: &Agent| match g.agent {
+            Some(t) => a.agent_type == t,
+            None => a.agent_type == AgentType::Vehicle,
+        };
+        // What a behaviour asks of the agents it names (a reverse's backing up) is not counted
+        // against the sample, as its verdict does not count it.
+        let (named, allowed): (&[i64], &[Violation]) = match (behaviour, verdicts.first()) {
+            (Some(b), Some(Ok(v))) => (&v.named, b.allowed_motion()),
+            _ => (&[], &[]),
+        };
+        let mut flagged = 0;
+        for s in sims {
+            let mut judged = kinematic::judge(s, &lim);
+            for (j, a) in judged.iter_mut().zip(&s.agents) {
+                if let Some(j) = j.as_mut().filter(|_| named.contains(&a.id)) {
+                    *j = j.without(allowed);
+                }
+            }
+            let any = only(s, kinematic::flags(&judged, None), keep);
+            flagged += any.iter().filter(|f| **f == Some(true)).count();
+            self.implausible.extend(any);
+            for (k, v) in Violation::ALL.iter().enumerate() {
+                self.by_kind[k].extend(only(s, kinematic::flags(&judged, Some(*v)), keep));
+            }
+        }
+        row["implausible_vehicles"] = json!(flagged);
+        let whole_scenes = g.agent.is_none();
+        match task {
+            Task::Conditional => {
+                let of_group = |d: Vec<metrics::Displacement>| -> Vec<metrics::Displacement> {
+                    d.into_iter()
+                        .filter(|x| logged.agent(x.agent).is_some_and(keep))
+                        .collect()
+                };
+                let d = of_group(metrics::displacement(logged, sim));
+                let (ade, fde) = (
+                    mean(&d.iter().map(|x| x.ade).collect::<Vec<_>>()),
+                    mean(&d.iter().map(|x| x.fde).collect::<Vec<_>>()),
+                );
+                if let (Some(a), Some(f)) = (ade, fde) {
+                    self.ade.push(a);
+                    self.fde.push(f);
+                }
+                if sims.len() > 1 {
+                    let m = of_group(metrics::min_displacement(logged, sims));
+                    if let Some(a) = mean(&m.iter().map(|x| x.ade).collect::<Vec<_>>()) {
+                        self.min_ade.push(a);
+                        self.min_fde.push(
+                            mean(&m.iter().map(|x| x.fde).collect::<Vec<_>>()).unwrap_or(f64::NAN),
+                        );
+                    }
+                }
+                let col = metrics::rate(&only(sim, metrics::collided(sim), keep));
+                let off = metrics::rate(&only(sim, metrics::offroad(sim), keep));
+                self.collision.extend(col);
+                self.offroad.extend(off);
+                for s in sims {
+                    self.sim_kin.extend(&metrics::kinematics_of(s, keep));
+                }
+                self.log_kin.extend(&metrics::kinematics_of(logged, keep));
+                row["ade"] = json!(ade);
+                row["fde"] = json!(fde);
+                row["collision_rate"] = json!(col);
+                row["offroad_rate"] = json!(off);
+            }
+            Task::Unconditional => {
+                self.collided
+                    .extend(only(sim, metrics::collided(sim), collider));
+                if whole_scenes {
+                    let scr = metrics::scene_collision_rate(sim, 0.1);
+                    self.scr.extend(scr);
+                    let (gn, ge) = metrics::placement(sim);
+                    let (ln, le) = metrics::placement(logged);
+                    let mn = metrics::mmd2(&gn, &ln, metrics::median_bandwidth(&gn, &ln));
+                    let me = metrics::mmd2(&ge, &le, metrics::median_bandwidth(&ge, &le));
+                    self.mmd_near.extend(mn);
+                    self.mmd_edge.extend(me);
+                    row["scene_collision_rate"] = json!(scr);
+                    row["mmd2_nearest_object"] = json!(mn);
+                    row["mmd2_road_edge"] = json!(me);
+                }
+            }
+            Task::Behaviour => {
+                let b = behaviour.expect("a behaviour task has a behaviour");
+                let mut rows = Vec::with_capacity(verdicts.len());
+                for (s, verdict) in sims.iter().zip(verdicts) {
+                    match verdict {
+                        Ok(v) => {
+                            let touch = b.contacts(&v.named);
+                            self.collided.extend(only(
+                                s,
+                                metrics::collided_except(s, &touch),
+                                collider,
+                            ));
+                            if whole_scenes {
+                                self.checked += 1;
+                                self.passed += v.passed as usize;
+                                self.achieved += v.achieved as usize;
+                            }
+                            rows.push(json!(v));
+                        }
+                        Err(e) => {
+                            row["error"] = json!(e.to_string());
+                            break;
+                        }
+                    }
+                }
+                row["verdicts"] = json!(rows);
+            }
+        }
+        row
+    }
+
+    /// Adds another shard's results for the same method.
+    pub fn absorb(&mut self, o: Tally) {
+        self.scenes += o.scenes;
+        for (a, b) in [
+            (&mut self.ade, o.ade),
+            (&mut self.fde, o.fde),
+            (&mut self.min_ade, o.min_ade),
+            (&mut self.min_fde, o.min_fde),
+            (&mut self.collision, o.collision),
+            (&mut self.offroad, o.offroad),
+            (&mut self.scr, o.scr),
+            (&mut self.mmd_near, o.mmd_near),
+            (&mut self.mmd_edge, o.mmd_edge),
+        ] {
+            a.extend(b);
+        }
+        self.sim_kin.extend(&o.sim_kin);
+        self.log_kin.extend(&o.log_kin);
+        self.passed += o.passed;
+        self.achieved += o.achieved;
+        self.checked += o.checked;
+        self.implausible.extend(o.implausible);
+        self.collided.extend(o.collided);
+        for (a, b) in self.by_kind.iter_mut().zip(o.by_kind) {
+            a.extend(b);
+        }
+        self.per_scene.extend(o.per_scene);
+        self.seconds += o.seconds;
+        for (k, g) in o.groups {
+            self.groups.entry(k).or_default().absorb(g);
+        }
+    }
+
+    /// Whether anything was scored for `task`: a conditional row needs an agent with a
+    /// recorded future to compare with, a behaviour row a checked sample.
+    pub fn scored(&self, task: Task) -> bool {
+        match task {
+            Task::Behaviour => self.checked > 0,
+            Task::Conditional => !self.ade.is_empty(),
+            Task::Unconditional => self.scenes > 0,
+        }
+    }
+}
+
+/// The groups of a tally in print order: map kinds, then agent types across maps, then
+/// types within each map kind.
+pub fn group_order() -> Vec<Group> {
+    let kinds = [MapKind::Highway, MapKind::Urban];
+    let types = [
+        AgentType::Vehicle,
+        AgentType::Cyclist,
+        AgentType::Pedestrian,
+    ];
+    let mut out: Vec<Group> = kinds
+        .iter()
+        .map(|m| Group {
+            map: Some(*m),
+            agent: None,
+        })
+        .collect();
+    out.extend(types.iter().map(|t| Group {
+        map: None,
+        agent: Some(*t),
+    }));
+    for m in kinds {
+        out.extend(types.iter().map(|t| Group {
+            map: Some(m),
+            agent: Some(*t),
+        }));
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::io::{load_scene, yaml, LoadOptions};
+    use std::path::Path;
+
+    fn scene(name: &str) -> Scene {
+        let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("scripts/scenes")
+            .join(name);
+        load_scene(&p, 0, &LoadOptions::default()).unwrap()
+    }
+
+    #[test]
+    fn a_junction_is_urban_and_a_straight_road_a_highway() {
+        assert_eq!(map_kind(&scene("crossroads.yaml").map), MapKind::Urban);
+        assert_eq!(map_kind(&scene("highway.yaml").map), MapKind::Highway);
+        assert_eq!(
+            map_kind(&scene("highway_cut_in.yaml").map),
+            MapKind::Highway
+        );
+    }
+
+    /// A two-lane road with a car and a cyclist beside it; the cyclist's sample `shift` metres
+    /// sideways at every future step.
+    fn car_and_cyclist() -> Scene {
+        let text = "steps: 30\ncurrent_step: 5\nroad: {lanes: 2, length: 300}\nagents:\n  \
+                    - {id: 1, s: 10, speed: 10}\n  - {id: 2, s: 10, lane: 1, speed: 5, type: cyclist}\n";
+        yaml::parse(Path::new("t.yaml"), text).unwrap()
+    }
+
+    #[test]
+    fn each_group_counts_only_its_agents_and_whole_scene_figures_stay_in_map_kinds() {
+        let log = car_and_cyclist();
+        let mut sim = log.clone();
+        // The cyclist drifts 2 m sideways; the car keeps to its log.
+        let c = sim.meta.current_step;
+        let cyc = sim.agents.iter_mut().find(|a| a.id == 2).unwrap();
+        for st in cyc.states.iter_mut().skip(c + 1) {
+            st.y += 2.0;
+        }
+        let mut t = Tally::default();
+        t.score(
+            Task::Conditional,
+            &log,
+            std::slice::from_ref(&sim),
+            None,
+            None,
+        );
+        let labels: Vec<&String> = t.groups.keys().collect();
+        assert_eq!(
+            labels,
+            [
+                "cyclists",
+                "highway",
+                "highway cyclists",
+                "highway vehicles",
+                "vehicles"
+            ]
+        );
+        // Whole row: mean over the two agents (0 and 2 m); cyclists: 2 m; vehicles: 0.
+        assert!((t.ade[0] - 1.0).abs() < 1e-9, "{:?}", t.ade);
+        assert!((t.groups["cyclists"].ade[0] - 2.0).abs() < 1e-9);
+        assert_eq!(t.groups["vehicles"].ade, vec![0.0]);
+        assert_eq!(t.groups["highway"].ade, t.ade);
+        // Off-road counts vehicles: the cyclists' row has none to count.
+        assert!(t.groups["cyclists"].offroad.is_empty());
+        assert_eq!(t.groups["vehicles"].offroad.len(), 1);
+        // A cyclist's kinematics, and no nearest-vehicle distance among cyclists.
+        let k = &t.groups["cyclists"].sim_kin;
+        assert!(!k.speed.is_empty() && k.nearest_vehicle.is_empty());
+        let mut u = Tally::default();
+        u.score(
+            Task::Unconditional,
+            &log,
+            std::slice::from_ref(&sim),
+            None,
+            None,
+        );
+        assert_eq!(u.scr.len(), 1);
+        assert_eq!(u.groups["highway"].scr.len(), 1);
+        assert!(u.groups["cyclists"].scr.is_empty());
+        // Collisions: the whole row counts vehicles, the cyclists' row its cyclist.
+        assert_eq!(u.collided.iter().flatten().count(), 1);
+        assert_eq!(u.groups["cyclists"].collided.iter().flatten().count(), 1);
+    }
+
+    #[test]
+    fn absorbing_a_shard_merges_its_groups() {
+        let log = car_and_cyclist();
+        let mut a = Tally::default();
+        a.score(
+            Task::Conditional,
+            &log,
+            std::slice::from_ref(&log),
+            None,
+            None,
+        );
+        let mut b = Tally::default();
+        b.score(
+            Task::Conditional,
+            &scene("crossroads.yaml"),
+            &[scene("crossroads.yaml")],
+            None,
+            None,
+        );
+        a.absorb(b);
+        assert_eq!(a.scenes, 2);
+        assert_eq!(a.groups["highway"].scenes, 1);
+        assert_eq!(a.groups["urban"].scenes, 1);
+        assert_eq!(a.groups["vehicles"].scenes, 2);
+        assert_eq!(a.groups["cyclists"].scenes, 1);
+        // Round trip through the JSON a shard writes.
+        let back: Tally = serde_json::from_str(&serde_json::to_string(&a).unwrap()).unwrap();
+        assert_eq!(back.groups["urban vehicles"].scenes, 1);
+        assert_eq!(back.groups.len(), a.groups.len());
+    }
+
+    #[test]
+    fn groups_print_map_kinds_then_types_then_both() {
+        let labels: Vec<String> = group_order().iter().map(|g| g.label()).collect();
+        assert_eq!(
+            &labels[..5],
+            ["highway", "urban", "vehicles", "cyclists", "pedestrians"]
+        );
+        assert_eq!(labels.len(), 2 + 3 + 6);
+        assert_eq!(labels[5], "highway vehicles");
+    }
+}
