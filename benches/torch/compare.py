@@ -41,7 +41,7 @@ def main():
                                                  "--export", ref_path], a.threads)
         ref = load_file(ref_path)
     ctx = {k: ref[k] for k in ["lane_points", "lane_mask", "lane_rel", "agent_hist",
-                               "agent_mask", "agent_lane_rel", "agent_rel"]}
+                               "agent_mask", "agent_attr", "agent_lane_rel", "agent_rel"]}
     ctx["lane_conn"] = ref["lane_conn"].long()
     sigmas = ref["sigmas"].double().tolist()
     model = Denoiser(a.checkpoint)

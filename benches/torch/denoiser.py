@@ -121,7 +121,13 @@ class Denoiser:
         freqs = torch.tensor([2.0 ** i for i in range(self.model["noise_freqs"])])
         z = c_noise * freqs
         noise = torch.cat([z.sin(), z.cos()]).expand(b, n, -1)
-        feats = torch.cat([ctx["agent_hist"], x * c_in, noise], dim=2)
+        # What each agent is (type, static, length, width) for models that take it
+        # (`attrs` in the config; checkpoints without the field take none).
+        attrs = self.model.get("attrs", 0)
+        parts = [ctx["agent_hist"]]
+        if attrs > 0:
+            parts.append(ctx["agent_attr"][..., :attrs])
+        feats = torch.cat(parts + [x * c_in, noise], dim=2)
         a = w.linear("agents.l2", torch.relu(w.linear("agents.l1", feats)))
         sc = self.scores
         for i in range(self.model["layers"]):

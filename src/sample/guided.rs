@@ -846,6 +846,7 @@ pub fn reference_run(
         ("lane_conn", c.lane_conn.clone()),
         ("agent_hist", c.agent_hist.clone()),
         ("agent_mask", c.agent_mask.clone()),
+        ("agent_attr", c.agent_attr.clone()),
         ("agent_lane_rel", c.agent_lane_rel.clone()),
         ("agent_rel", c.agent_rel.clone()),
         ("x0", su.x0.clone()),
