@@ -354,6 +354,20 @@ fn files_far_larger_than_any_scene_are_refused_before_reading() {
         s(&dir.path().join("x.svg")),
     ]);
     assert!(err.contains("r.json: file: holds more than 64 MB"), "{err}");
+    // A GPUDrive scenario is told by its first key, and then refused by its size.
+    let big = dir.path().join("big.json");
+    std::fs::write(&big, "{\"objects\": [").unwrap();
+    std::fs::OpenOptions::new()
+        .write(true)
+        .open(&big)
+        .unwrap()
+        .set_len(65 << 20)
+        .unwrap();
+    let err = fails(&["inspect", s(&big)]);
+    assert!(
+        err.contains("big.json: file: holds more than 64 MB"),
+        "{err}"
+    );
 }
 
 #[test]

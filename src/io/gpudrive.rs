@@ -16,7 +16,9 @@
 //!   file's last step with a warning.
 //! - **Headings.** GPUDrive writes radians, Nocturne degrees (its reader converts them). A file
 //!   with `scenario_id` or `metadata` is GPUDrive's; one with neither is Nocturne's, and its
-//!   objects may lack ids (they are then numbered by their place in `objects`, as Nocturne does).
+//!   objects may lack ids (they are then numbered by their place in `objects`, as Nocturne does;
+//!   roads without ids likewise by their place in `roads`). The ego is GPUDrive's
+//!   `metadata.sdc_track_index`, or the object Nocturne marks `is_av`.
 //! - **Invalid states** carry the sentinel -10000 in the file; they are read as invalid states.
 //! - **Lane connectivity is inferred.** The JSON keeps lane centre lines but drops WOMD's entry
 //!   and exit lanes and neighbours. Lane `b` follows lane `a` when `a`'s last point lies within
@@ -135,6 +137,9 @@ struct Object {
     kind: String,
     #[serde(default)]
     id: Option<i64>,
+    /// Nocturne's mark of the self-driving car (GPUDrive gives `metadata.sdc_track_index`).
+    #[serde(default)]
+    is_av: Option<bool>,
 }
 
 #[derive(Deserialize)]
@@ -181,7 +186,8 @@ struct File {
 /// not.
 pub fn is_scenario_file(path: &Path) -> bool {
     use std::io::Read;
-    let Ok(file) = super::open_regular(path, super::MAX_SCENE_BYTES, "a scene file") else {
+    // No size cap here: a scenario too large to read is the reader's to refuse, saying so.
+    let Ok(file) = super::open_regular(path, u64::MAX, "a scene file") else {
         return false;
     };
     let reader = std::io::BufReader::new(file.take(super::MAX_SCENE_BYTES));
@@ -482,7 +488,13 @@ fn to_scene(path: &Path, file: File) -> Result<Scene, IoError> {
     }
     let ids: Vec<AgentId> = agents.iter().map(|a| a.id).collect();
 
-    let ego = match file.metadata.as_ref().and_then(|m| m.sdc_track_index) {
+    let sdc = file.metadata.as_ref().and_then(|m| m.sdc_track_index);
+    let av = file
+        .objects
+        .iter()
+        .position(|o| o.is_av == Some(true))
+        .map(|i| i as i64);
+    let ego = match sdc.or(av) {
         Some(k) => Some(
             usize::try_from(k)
                 .ok()
@@ -505,7 +517,7 @@ fn to_scene(path: &Path, file: File) -> Result<Scene, IoError> {
         ));
     }
 
-    let parts = read_roads(path, &file.roads, gpudrive, &mut warnings)?;
+    let parts = read_roads(path, &file.roads, &mut warnings)?;
     let signals = read_signals(path, file.tl_states.as_ref(), steps)?;
     if signals > 0 {
         warnings.push(format!(
@@ -559,7 +571,6 @@ fn agent_of(e: &SceneError) -> Option<AgentId> {
 fn read_roads(
     path: &Path,
     roads: &[Road],
-    gpudrive: bool,
     warnings: &mut Vec<String>,
 ) -> Result<MapParts, IoError> {
     let bad = |at: String, msg: String| IoError::invalid(path, at, msg);
@@ -598,17 +609,9 @@ fn read_roads(
                 ));
             }
         };
-        let fid =
-            match r.id {
-                Some(id) => id,
-                None if !gpudrive => k as i64,
-                None => return Err(bad(
-                    format!("{at}.id"),
-                    "is missing: a GPUDrive file (one with scenario_id or metadata) gives every \
-                     road its WOMD feature id"
-                        .into(),
-                )),
-            };
+        // Nocturne writes no road ids (and GPUDrive's own reader does not need them): the
+        // place in `roads` stands in, and a clash with a given lane id is refused below.
+        let fid = r.id.unwrap_or(k as i64);
         let points = || r.geometry.iter().map(Xy::point);
         // A line with fewer than two distinct points is skipped with a word, as the WOMD
         // reader does; a point that is no coordinate at all is an error.
@@ -981,7 +984,7 @@ mod tests {
              "valid": [true, true], "goalPosition": {"x": 0, "y": 1}, "type": "vehicle"},
             {"position": [{"x": 5, "y": 5}, {"x": -10000, "y": -10000}], "width": 1,
              "length": 1, "heading": [0, -10000], "velocity": [{"x": 0, "y": 0},
-             {"x": -10000, "y": -10000}], "valid": [true, false], "type": "unset"}],
+             {"x": -10000, "y": -10000}], "valid": [true, false], "type": "unset", "is_av": true}],
           "roads": [{"geometry": [{"x": 0, "y": -5}, {"x": 0, "y": 20}], "type": "lane"},
                     {"geometry": [{"x": 3, "y": -5}, {"x": 3, "y": 20}], "type": "road_edge"}],
           "tl_states": {}}"#;
@@ -993,6 +996,7 @@ mod tests {
         );
         assert!((s.agents[0].states[0].heading - std::f64::consts::FRAC_PI_2).abs() < 1e-12);
         assert_eq!(s.agents[1].agent_type, AgentType::Other);
+        assert_eq!(s.meta.ego, Some(1), "the object marked is_av");
         assert!(!s.agents[1].is_valid(1));
         assert_eq!(s.meta.current_step, 1, "10 clamped to the last step");
         assert!(s.meta.warnings[0].contains("2 steps, not WOMD's 91"));
