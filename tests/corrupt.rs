@@ -354,6 +354,20 @@ fn files_far_larger_than_any_scene_are_refused_before_reading() {
         s(&dir.path().join("x.svg")),
     ]);
     assert!(err.contains("r.json: file: holds more than 64 MB"), "{err}");
+    // A GPUDrive scenario is told by its first key, and then refused by its size.
+    let big = dir.path().join("big.json");
+    std::fs::write(&big, "{\"objects\": [").unwrap();
+    std::fs::OpenOptions::new()
+        .write(true)
+        .open(&big)
+        .unwrap()
+        .set_len(65 << 20)
+        .unwrap();
+    let err = fails(&["inspect", s(&big)]);
+    assert!(
+        err.contains("big.json: file: holds more than 64 MB"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -578,6 +592,7 @@ fn random_mutations_never_panic() {
             "log_map_archive_0a1e6f0a-1817-4a98-b02e-db8c9327d151.json",
             60,
         ),
+        (gpudrive_fixture(), "m.json", 100),
     ];
     let mut rng = Lcg(0x5eed);
     let opts = LoadOptions::default();
@@ -625,6 +640,186 @@ fn random_mutations_never_panic() {
             "{name}: only {errors} of {n} mutations were rejected"
         );
     }
+}
+
+/// The synthetic GPUDrive scenario (no WOMD data in it: tests/data/gpudrive/README.md).
+fn gpudrive_fixture() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data/gpudrive/synthetic_junction.json")
+}
+
+#[test]
+fn gpudrive_errors_name_the_object_road_and_field() {
+    use serde_json::{json, Value};
+    let dir = tempfile::tempdir().unwrap();
+    let base: Value =
+        serde_json::from_str(&std::fs::read_to_string(gpudrive_fixture()).unwrap()).unwrap();
+    // Each case edits the scenario as JSON and expects `inspect` to fail cleanly, naming the
+    // file and every fragment listed.
+    type Edit = fn(&mut Value);
+    let cases: Vec<(&str, Edit, &[&str])> = vec![
+        (
+            "short_valid.json",
+            |v| {
+                v["objects"][1]["valid"].as_array_mut().unwrap().pop();
+            },
+            &["objects[1] (id 202).valid: has 90 entries, but the scene has 91 steps"],
+        ),
+        (
+            "short_position.json",
+            |v| {
+                v["objects"][2]["position"].as_array_mut().unwrap().truncate(50);
+            },
+            &["objects[2] (id 303).position: has 50 entries, but the scene has 91 steps"],
+        ),
+        (
+            "long_first.json",
+            |v| {
+                for k in ["position", "heading", "velocity", "valid"] {
+                    let a = v["objects"][0][k].as_array_mut().unwrap();
+                    let last = a.last().unwrap().clone();
+                    a.push(last);
+                }
+            },
+            &["objects[1] (id 202).position: has 91 entries, but the scene has 92 steps"],
+        ),
+        (
+            "far.json",
+            |v| v["objects"][0]["position"][10]["x"] = json!(1e12),
+            &["objects[0] (id 101)", "step 10: implausible position (1e12, -1.75)"],
+        ),
+        (
+            "far_lane.json",
+            |v| v["roads"][2]["geometry"][3]["y"] = json!(-3e9),
+            &["roads[2] (id 3).geometry: point 3", "more than 1e7 m from the origin"],
+        ),
+        (
+            "far_sign.json",
+            |v| v["roads"][18]["geometry"][0]["x"] = json!(1e300),
+            &["roads[18] (id 41).geometry[0]: (1e300, -4.5) is not a map coordinate"],
+        ),
+        (
+            "truck.json",
+            |v| v["objects"][0]["type"] = json!("truck"),
+            &["objects[0] (id 101).type: \"truck\" is not an object type of the format (vehicle, pedestrian, cyclist, other, unset)"],
+        ),
+        (
+            "parking.json",
+            |v| v["roads"][0]["type"] = json!("parking_lot"),
+            &["roads[0] (id 1).type: \"parking_lot\" is not a road type of the format"],
+        ),
+        (
+            "element.json",
+            |v| v["roads"][0]["map_element_id"] = json!(15),
+            &["roads[0] (id 1).map_element_id: 15 is not a lane's (WOMD's numbering gives it 0 to 3"],
+        ),
+        (
+            "signal.json",
+            |v| v["tl_states"]["1"]["state"][2] = json!("purple"),
+            &["tl_states.1.state[2]: \"purple\" is not a signal state"],
+        ),
+        (
+            "empty.json",
+            |v| v["objects"] = json!([]),
+            &["empty.json: objects: is empty"],
+        ),
+        (
+            "blank_object.json",
+            |v| v["objects"][3] = json!({}),
+            &["objects[3] (line 1, column", "missing field `position`"],
+        ),
+        (
+            "no_id.json",
+            |v| {
+                v["objects"][2].as_object_mut().unwrap().remove("id");
+            },
+            &["objects[2].id: is missing: a GPUDrive file"],
+        ),
+        (
+            "twice.json",
+            |v| v["objects"][3]["id"] = json!(101),
+            &["objects[3] (id 101).id: 101 is also the id of objects[0]"],
+        ),
+        (
+            "degrees.json",
+            |v| v["objects"][1]["heading"][0] = json!(180.0),
+            &["objects[1] (id 202).heading[0]: 180 is not an angle in radians"],
+        ),
+        (
+            "sdc.json",
+            |v| v["metadata"]["sdc_track_index"] = json!(7),
+            &["metadata.sdc_track_index: 7 is not an index into objects (0 to 3)"],
+        ),
+        (
+            "string_x.json",
+            |v| v["objects"][1]["velocity"][40]["x"] = json!("fast"),
+            &["objects[1].velocity[40].x (line 1, column", "invalid type: string \"fast\", expected f64"],
+        ),
+    ];
+    for (name, edit, want) in cases {
+        let mut v = base.clone();
+        edit(&mut v);
+        let f = dir.path().join(name);
+        std::fs::write(&f, serde_json::to_string(&v).unwrap()).unwrap();
+        let err = fails(&["inspect", s(&f)]);
+        assert!(err.contains(name), "{name}: {err}");
+        for w in want {
+            assert!(err.contains(w), "{name}: want {w:?} in:\n{err}");
+        }
+    }
+
+    // Cut short: the error says so, and where it was reading.
+    let text = std::fs::read_to_string(gpudrive_fixture()).unwrap();
+    let f = dir.path().join("cut.json");
+    std::fs::write(&f, &text[..text.len() / 3]).unwrap();
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("cut.json: objects[") && err.contains("the file ends early"),
+        "{err}"
+    );
+    // Python's json.dump writes NaN for a float that is not a number: not JSON.
+    let f = dir.path().join("nan.json");
+    std::fs::write(&f, text.replacen("\"x\": -45.0", "\"x\": NaN", 1)).unwrap();
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("nan.json: objects[0].position[0].x")
+            && err.contains("NaN and Infinity are not JSON"),
+        "{err}"
+    );
+    // JSON that is not a scenario (no objects or roads) is not taken for one.
+    let f = dir.path().join("other.json");
+    std::fs::write(&f, "{\"lanes\": []}").unwrap();
+    let err = fails(&["inspect", s(&f)]);
+    assert!(err.contains("other.json: unknown scene format"), "{err}");
+}
+
+/// GPUDrive names its files after WOMD shards (`tfrecord-00000-of-01000_4.json`): a directory
+/// of them is a directory of scenes, not of shards, and its files are read by content.
+#[test]
+fn gpudrive_files_named_like_shards_are_scenes() {
+    let dir = tempfile::tempdir().unwrap();
+    for k in 0..2 {
+        std::fs::copy(
+            gpudrive_fixture(),
+            dir.path().join(format!("tfrecord-00000-of-01000_{k}.json")),
+        )
+        .unwrap();
+    }
+    let o = ok(&["inspect", s(dir.path())]);
+    assert!(
+        o.contains("synthetic_junction (gpudrive)") && o.contains("2 scenes read, 0 failed"),
+        "{o}"
+    );
+    // Beside a real shard, neither hides the other.
+    std::fs::write(
+        dir.path().join("training.tfrecord-00000-of-00001"),
+        womd_record(|sc| sc.scenario_id = Some("from_womd".into())),
+    )
+    .unwrap();
+    let o = ok(&["inspect", s(dir.path())]);
+    assert!(
+        o.contains("from_womd") && o.contains("3 scenes read, 0 failed"),
+        "{o}"
+    );
 }
 
 #[test]

@@ -202,7 +202,7 @@ static NEXT_SCENE: AtomicU64 = AtomicU64::new(1);
 
 /// A traffic scene: a road map and its agents' states at a fixed time step, read from any
 /// format the CLI reads (CommonRoad XML, Argoverse 2 parquet directories, WOMD TFRecords,
-/// drivescript YAML).
+/// GPUDrive/Nocturne scenario JSON, drivescript YAML).
 #[pyclass(frozen, module = "drivescript")]
 struct Scene {
     inner: Arc<drivescript::scene::Scene>,

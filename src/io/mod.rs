@@ -5,12 +5,14 @@
 //! | Waymo Open Motion Dataset | `*.tfrecord`, `*.tfrecord-00000-of-01000`, a directory of shards | [`womd`] |
 //! | CommonRoad 2018b / 2020a | `*.xml`, `*.xml.gz` | [`commonroad`] |
 //! | Argoverse 2 motion forecasting | `scenario_*.parquet` (map JSON beside it) or its directory | [`av2`] |
+//! | GPUDrive / Nocturne scenario JSON (WOMD converted) | `*.json` with top-level `objects` or `roads` | [`gpudrive`] |
 //! | drivescript YAML | `*.yaml`, `*.yml` | [`yaml`] |
 //!
 //! Rollouts (simulated futures) are read and written as JSON by [`rollout`].
 
 pub mod av2;
 pub mod commonroad;
+pub mod gpudrive;
 pub mod rollout;
 pub mod shard;
 pub mod tfrecord;
@@ -25,7 +27,8 @@ use crate::scene::{Scene, SceneError};
 
 /// The formats a scene can be read from, for error messages.
 pub const SUPPORTED_FORMATS: &str = "Waymo Open Motion Dataset TFRecord (.tfrecord, *.tfrecord-NNNNN-of-NNNNN), \
-CommonRoad XML (.xml, .xml.gz), Argoverse 2 scenario (.parquet or its directory), drivescript YAML (.yaml, .yml)";
+CommonRoad XML (.xml, .xml.gz), Argoverse 2 scenario (.parquet or its directory), \
+GPUDrive/Nocturne scenario JSON (.json with top-level objects and roads), drivescript YAML (.yaml, .yml)";
 
 /// Most time steps a scene may have (over 2.7 hours at 10 Hz): a corrupted step index must
 /// not turn into a huge allocation.
@@ -159,6 +162,8 @@ pub enum SceneFormat {
     CommonRoad,
     /// Argoverse 2 scenario.
     Av2,
+    /// GPUDrive / Nocturne scenario JSON.
+    Gpudrive,
     /// drivescript YAML.
     Yaml,
 }
@@ -181,7 +186,11 @@ pub fn detect_format(path: &Path) -> Result<SceneFormat, IoError> {
         });
     }
     // The extension decides first: `tfrecord-00000-of-01000_4.json` is JSON, not a shard.
-    if name.ends_with(".xml") || name.ends_with(".xml.gz") {
+    // JSON is also what AV2 maps, rollouts and reports are written in, so a `.json` is a
+    // scene only by its content; other JSON goes on to the checks below (and is refused).
+    if name.ends_with(".json") && gpudrive::is_scenario_file(path) {
+        Ok(SceneFormat::Gpudrive)
+    } else if name.ends_with(".xml") || name.ends_with(".xml.gz") {
         Ok(SceneFormat::CommonRoad)
     } else if name.ends_with(".parquet") {
         Ok(SceneFormat::Av2)
@@ -364,6 +373,7 @@ pub fn load_scenes(path: &Path, opts: &LoadOptions) -> Result<Vec<Scene>, IoErro
         SceneFormat::Womd => womd::read_file(path)?.collect(),
         SceneFormat::CommonRoad => Ok(vec![commonroad::read(path, opts)?]),
         SceneFormat::Av2 => Ok(vec![av2::read(path)?]),
+        SceneFormat::Gpudrive => Ok(vec![gpudrive::read(path)?]),
         SceneFormat::Yaml => Ok(vec![yaml::read(path)?]),
     }
 }
@@ -449,7 +459,10 @@ fn walk(
     for p in entries {
         let scene_like = matches!(
             detect_format(&p),
-            Ok(SceneFormat::CommonRoad | SceneFormat::Yaml | SceneFormat::Womd)
+            Ok(SceneFormat::CommonRoad
+                | SceneFormat::Yaml
+                | SceneFormat::Womd
+                | SceneFormat::Gpudrive)
         );
         let meta = match std::fs::metadata(&p) {
             Ok(m) => m,

@@ -38,6 +38,7 @@ pub fn is_shard_name(name: &str) -> bool {
 /// its files is read on its own instead of the shard hiding them.
 fn shard_files(dir: &Path) -> Result<Vec<PathBuf>, IoError> {
     let mut files = Vec::new();
+    let mut jsons = Vec::new();
     for e in std::fs::read_dir(dir).map_err(|e| IoError::read(dir, e))? {
         let Ok(e) = e else { continue };
         let p = e.path();
@@ -51,9 +52,17 @@ fn shard_files(dir: &Path) -> Result<Vec<PathBuf>, IoError> {
         if other_scene {
             return Ok(Vec::new());
         }
-        if is_shard_name(&name) {
+        // GPUDrive names its JSON after the shard it came from
+        // (`tfrecord-00000-of-01000_4.json`): JSON is never a shard, and a GPUDrive scenario
+        // is another scene file. Only looked into when there are shards to hide it.
+        if name.ends_with(".json") {
+            jsons.push(p);
+        } else if is_shard_name(&name) {
             files.push(p);
         }
+    }
+    if !files.is_empty() && jsons.iter().any(|p| super::gpudrive::is_scenario_file(p)) {
+        return Ok(Vec::new());
     }
     files.sort();
     Ok(files)

@@ -147,6 +147,8 @@ pub enum SourceFormat {
     Av2,
     /// drivescript's hand-written YAML scenes.
     Yaml,
+    /// GPUDrive / Nocturne scenario JSON (WOMD scenarios converted by those simulators).
+    Gpudrive,
 }
 
 impl SourceFormat {
@@ -157,6 +159,7 @@ impl SourceFormat {
             SourceFormat::CommonRoad => "commonroad",
             SourceFormat::Av2 => "av2",
             SourceFormat::Yaml => "yaml",
+            SourceFormat::Gpudrive => "gpudrive",
         }
     }
 }
