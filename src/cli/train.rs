@@ -5,7 +5,8 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result};
 use drivescript::train::{
-    load_for_training, train_from, Corpus, Holdout, SplitBy, TrainConfig, WindowSource, WindowStore,
+    load_for_training, train_from, ComponentScale, Corpus, Holdout, SplitBy, TrainConfig,
+    WindowSource, WindowStore,
 };
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -71,10 +72,21 @@ pub struct Args {
     /// resumed checkpoint's.
     #[arg(long)]
     ema_half_life: Option<f64>,
+    /// How a new run scales the PCA components: `common` (one scale for all) or `capped`
+    /// (each its own spread, at most the common one). Default: the setting's (cities capped,
+    /// ngsim common); a resumed run keeps its checkpoint's.
+    #[arg(long, value_enum)]
+    component_scale: Option<ScaleArg>,
     /// Train from scratch into an --out directory that already holds a checkpoint (which is
     /// replaced at the first validation). Without it, that is refused.
     #[arg(long)]
     force: bool,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum ScaleArg {
+    Common,
+    Capped,
 }
 
 fn git_revision() -> Option<String> {
@@ -101,6 +113,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
         val_fold: args.val_fold.unwrap_or(0),
         val_towns: args.val_town.clone(),
         ema_half_life: args.ema_half_life.unwrap_or(base.ema_half_life),
+        component_scale: match args.component_scale {
+            Some(ScaleArg::Common) => ComponentScale::Common,
+            Some(ScaleArg::Capped) => ComponentScale::Capped,
+            None => base.component_scale,
+        },
         ..base
     };
     if args.data.is_empty() && args.urban.is_empty() {
@@ -132,6 +149,16 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     "--val-fold {}: {} held out fold {fold}; a resumed run keeps its fold",
                     args.val_fold.unwrap_or_default(),
                     dir.display()
+                );
+            }
+            if args.component_scale.is_some()
+                && cfg.component_scale != r.meta.config.component_scale
+            {
+                anyhow::bail!(
+                    "--component-scale: {} scales its PCA components {:?}; a resumed run keeps \
+                     its scales",
+                    dir.display(),
+                    r.meta.config.component_scale
                 );
             }
             if !args.val_town.is_empty() && args.val_town != r.meta.config.val_towns {

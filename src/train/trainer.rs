@@ -8,7 +8,7 @@ use candle_nn::{VarBuilder, VarMap};
 use serde::{Deserialize, Serialize};
 
 use super::adamw::AdamW;
-use super::batch::{build, Normaliser};
+use super::batch::{build, ComponentScale, Normaliser};
 use super::dataset::{within, Window, WindowConfig, AGENT_ATTRS};
 use super::ema::Ema;
 use super::rng::Rng;
@@ -49,6 +49,10 @@ pub struct TrainConfig {
     /// option did.
     #[serde(default)]
     pub ema_half_life: f64,
+    /// How a new run scales the PCA components ([`ComponentScale`]); a resumed run keeps its
+    /// checkpoint's scales. Checkpoints from before the option have one common scale.
+    #[serde(default)]
+    pub component_scale: ComponentScale,
 }
 
 impl TrainConfig {
@@ -75,6 +79,7 @@ impl TrainConfig {
             val_fold: 0,
             val_towns: Vec::new(),
             ema_half_life: 0.0,
+            component_scale: ComponentScale::Common,
         }
     }
 
@@ -90,6 +95,7 @@ impl TrainConfig {
                 ..base.model
             },
             ema_half_life: 500.0,
+            component_scale: ComponentScale::Capped,
             ..base
         }
     }
@@ -507,6 +513,7 @@ pub fn train_from(
         cfg.model = c.model;
         cfg.edm = c.edm;
         cfg.seed = c.seed;
+        cfg.component_scale = c.component_scale;
         cfg.val_fold = c.val_fold;
         cfg.val_towns = c.val_towns.clone();
     }
@@ -547,7 +554,7 @@ pub fn train_from(
         None => {
             let pca = Pca::fit(futures, cfg.model.k)?;
             let rmse = pca.position_rmse(futures);
-            let norm = Normaliser::new(pca, cfg.edm.sigma_data);
+            let norm = Normaliser::with_scale(pca, cfg.edm.sigma_data, cfg.component_scale);
             let varmap = VarMap::new();
             let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
             let model = Denoiser::new(cfg.model, cfg.edm, vb)?;
@@ -905,6 +912,7 @@ pub(crate) fn tiny_config(steps: usize, seed: u64, eval_every: usize) -> TrainCo
         val_fold: 0,
         val_towns: Vec::new(),
         ema_half_life: 0.0,
+        component_scale: ComponentScale::Common,
     }
 }
 
