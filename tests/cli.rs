@@ -1940,3 +1940,50 @@ fn a_conditional_eval_with_no_recorded_future_is_an_error_not_a_row_of_dashes() 
         "{err}"
     );
 }
+
+#[test]
+fn a_verdict_measure_that_is_not_finite_is_written_as_such_not_as_null() {
+    // Vehicle 1 turned round for the whole future ends on no lane (no lane runs that way):
+    // its offset from a lane centre is infinite, which JSON has no number for.
+    let dir = tempfile::tempdir().unwrap();
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let scene = root.join("scripts/scenes/highway.yaml");
+    let rollouts = dir.path().join("r");
+    std::fs::create_dir(&rollouts).unwrap();
+    let file = rollouts.join("highway.json");
+    ok(&["convert", s(&scene), "-o", s(&file)]);
+    let mut r: Value = serde_json::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
+    let c = r["current_step"].as_u64().unwrap() as usize;
+    for st in r["agents"][0]["states"]
+        .as_array_mut()
+        .unwrap()
+        .iter_mut()
+        .skip(c + 1)
+    {
+        st[2] = (st[2].as_f64().unwrap() + std::f64::consts::PI).into();
+    }
+    std::fs::write(&file, r.to_string()).unwrap();
+    let json = dir.path().join("e.json");
+    ok(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "behaviour",
+        "--behaviour",
+        "rightmost_lane",
+        "--param",
+        "vehicle=1",
+        "--rollouts",
+        s(&rollouts),
+        "--json",
+        s(&json),
+    ]);
+    let v: Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let verdict = &v["methods"][0]["scenes"][0]["verdicts"][0];
+    assert_eq!(verdict["reason"], "ends on no lane", "{verdict}");
+    assert_eq!(
+        verdict["measured"]["end_offset_from_centre"], "inf",
+        "{verdict}"
+    );
+    assert_eq!(verdict["measured"]["end_lane"], -1.0, "{verdict}");
+}

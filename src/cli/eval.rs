@@ -127,6 +127,12 @@ fn mean(v: &[f64]) -> Option<f64> {
     (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
 }
 
+/// A number for --json: `null` where there is none, else as the library writes numbers
+/// (`"NaN"` / `"inf"` rather than the `null` serde_json would make of them).
+fn num(v: Option<f64>) -> serde_json::Value {
+    v.map_or(serde_json::Value::Null, drivescript::io::json::number)
+}
+
 fn fmt(v: Option<f64>, prec: usize) -> String {
     v.map_or("-".into(), |x| format!("{x:.prec$}"))
 }
@@ -224,11 +230,13 @@ fn score(
             }
             if sims.len() > 1 {
                 let m = metrics::min_displacement(logged, sims);
-                if let Some(a) = mean(&m.iter().map(|x| x.ade).collect::<Vec<_>>()) {
+                // Both or neither: a NaN pushed here was written as null and refused by --merge.
+                if let (Some(a), Some(f)) = (
+                    mean(&m.iter().map(|x| x.ade).collect::<Vec<_>>()),
+                    mean(&m.iter().map(|x| x.fde).collect::<Vec<_>>()),
+                ) {
                     acc.min_ade.push(a);
-                    acc.min_fde.push(
-                        mean(&m.iter().map(|x| x.fde).collect::<Vec<_>>()).unwrap_or(f64::NAN),
-                    );
+                    acc.min_fde.push(f);
                 }
             }
             let col = metrics::rate(&metrics::collided(sim));
@@ -239,10 +247,10 @@ fn score(
                 acc.sim_kin.extend(&metrics::kinematics(s));
             }
             acc.log_kin.extend(&metrics::kinematics(logged));
-            row["ade"] = json!(ade);
-            row["fde"] = json!(fde);
-            row["collision_rate"] = json!(col);
-            row["offroad_rate"] = json!(off);
+            row["ade"] = num(ade);
+            row["fde"] = num(fde);
+            row["collision_rate"] = num(col);
+            row["offroad_rate"] = num(off);
         }
         Task::Unconditional => {
             acc.collided
@@ -255,9 +263,9 @@ fn score(
             let me = metrics::mmd2(&ge, &le, metrics::median_bandwidth(&ge, &le));
             acc.mmd_near.extend(mn);
             acc.mmd_edge.extend(me);
-            row["scene_collision_rate"] = json!(scr);
-            row["mmd2_nearest_object"] = json!(mn);
-            row["mmd2_road_edge"] = json!(me);
+            row["scene_collision_rate"] = num(scr);
+            row["mmd2_nearest_object"] = num(mn);
+            row["mmd2_road_edge"] = num(me);
         }
         Task::Behaviour => {
             let (b, _) = behaviour.expect("checked by the caller");
@@ -581,11 +589,8 @@ fn report(
         }
     }
     for (name, acc) in methods.iter().zip(accs) {
-        let ms = if acc.scenes > 0 {
-            1000.0 * acc.seconds / acc.scenes as f64
-        } else {
-            f64::NAN
-        };
+        // No scene, no time per scene: `-` in the table and null in JSON, not a NaN.
+        let ms = (acc.scenes > 0).then(|| 1000.0 * acc.seconds / acc.scenes as f64);
         let implausible = metrics::rate(&acc.implausible);
         let collided = metrics::rate(&acc.collided);
         let by_kind: serde_json::Map<String, serde_json::Value> = Violation::ALL
@@ -597,7 +602,7 @@ fn report(
             Task::Conditional => {
                 let r = metrics::realism(&acc.sim_kin, &acc.log_kin, &bins);
                 println!(
-                    "| {name} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {ms:.1} |",
+                    "| {name} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
                     acc.scenes,
                     fmt(mean(&acc.ade), 2),
                     fmt(mean(&acc.fde), 2),
@@ -611,39 +616,44 @@ fn report(
                     fmt(mean(&acc.collision), 3),
                     fmt(mean(&acc.offroad), 3),
                     fmt(implausible, 3),
+                    fmt(ms, 1),
                 );
-                json!({"method": name, "scenes": acc.scenes, "ade": mean(&acc.ade), "fde": mean(&acc.fde),
-                    "min_ade": mean(&acc.min_ade), "min_fde": mean(&acc.min_fde), "jsd": r,
-                    "collision_rate": mean(&acc.collision), "offroad_rate": mean(&acc.offroad), "ms_per_scene": ms})
+                json!({"method": name, "scenes": acc.scenes, "ade": num(mean(&acc.ade)), "fde": num(mean(&acc.fde)),
+                    "min_ade": num(mean(&acc.min_ade)), "min_fde": num(mean(&acc.min_fde)),
+                    "jsd": r.map(|r| json!({"speed": num(Some(r.speed)), "angular_speed": num(Some(r.angular_speed)),
+                        "accel": num(Some(r.accel)), "nearest_vehicle": num(Some(r.nearest_vehicle)), "mean": num(Some(r.mean))})),
+                    "collision_rate": num(mean(&acc.collision)), "offroad_rate": num(mean(&acc.offroad)), "ms_per_scene": num(ms)})
             }
             Task::Unconditional => {
                 println!(
-                    "| {name} | {} | {} | {} | {} | {} | {} | {ms:.1} |",
+                    "| {name} | {} | {} | {} | {} | {} | {} | {} |",
                     acc.scenes,
                     fmt(mean(&acc.scr), 3),
                     fmt(mean(&acc.mmd_near), 3),
                     fmt(mean(&acc.mmd_edge), 3),
                     fmt(collided, 3),
-                    fmt(implausible, 3)
+                    fmt(implausible, 3),
+                    fmt(ms, 1)
                 );
-                json!({"method": name, "scenes": acc.scenes, "scene_collision_rate": mean(&acc.scr),
-                    "mmd2_nearest_object": mean(&acc.mmd_near), "mmd2_road_edge": mean(&acc.mmd_edge), "ms_per_scene": ms})
+                json!({"method": name, "scenes": acc.scenes, "scene_collision_rate": num(mean(&acc.scr)),
+                    "mmd2_nearest_object": num(mean(&acc.mmd_near)), "mmd2_road_edge": num(mean(&acc.mmd_edge)), "ms_per_scene": num(ms)})
             }
             Task::Behaviour => {
                 let b = behaviour.expect("behaviour task");
                 let of = |n: usize| (acc.checked > 0).then(|| n as f64 / acc.checked as f64);
                 let (rate, achieved) = (of(acc.passed), of(acc.achieved));
                 println!(
-                    "| {name} | {} | {} | {} | {} | {} | {} | {ms:.1} |",
+                    "| {name} | {} | {} | {} | {} | {} | {} | {} |",
                     b.name(),
                     acc.checked,
                     fmt(rate, 2),
                     fmt(achieved, 2),
                     fmt(collided, 3),
-                    fmt(implausible, 3)
+                    fmt(implausible, 3),
+                    fmt(ms, 1)
                 );
                 json!({"method": name, "behaviour": b.name(), "definition": b.definition(), "checked": acc.checked,
-                    "success_rate": rate, "achieved_rate": achieved, "ms_per_scene": ms})
+                    "success_rate": rate, "achieved_rate": achieved, "ms_per_scene": num(ms)})
             }
         };
         row["implausible_rate"] = json!(implausible);

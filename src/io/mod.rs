@@ -11,6 +11,7 @@
 
 pub mod av2;
 pub mod commonroad;
+pub mod json;
 pub mod rollout;
 pub mod shard;
 pub mod tfrecord;

@@ -68,9 +68,10 @@ pub struct TermOutcome {
     pub weight: f64,
     /// Unweighted value on the first denoised estimate, before any guidance (absent in closed
     /// loop when the term appears only later).
+    #[serde(serialize_with = "crate::io::json::opt_f64_explicit")]
     pub initial: Option<f64>,
     /// Unweighted value on the final trajectories.
-    #[serde(rename = "final")]
+    #[serde(rename = "final", serialize_with = "crate::io::json::f64_explicit")]
     pub value: f64,
     /// The script's tolerance for it, when it gives one.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -89,6 +90,7 @@ pub struct RealismEvent {
     /// Seconds after the current step.
     pub time: f64,
     /// The offending value in SI units.
+    #[serde(serialize_with = "crate::io::json::f64_explicit")]
     pub value: f64,
     /// In words (`reverses at -9.3 m/s at t = 3.9 s`).
     pub text: String,
@@ -103,6 +105,7 @@ pub struct SampleOutcome {
     /// Index in the batch.
     pub sample: usize,
     /// Weighted total of every term (realism's included) on the final trajectories.
+    #[serde(serialize_with = "crate::io::json::f64_explicit")]
     pub total: f64,
     /// Every term of every script, in script then declaration order, then realism's terms
     /// (script `realism`) when realism guided.
