@@ -1941,6 +1941,66 @@ fn a_conditional_eval_with_no_recorded_future_is_an_error_not_a_row_of_dashes() 
     );
 }
 
+/// A script with two terms nothing can move and one guard the log leaves at 0.
+const DEAD_TERMS: &str = "let a = agent(1);\n\
+    term(\"moves\", a.x.last());\n\
+    term(\"never\", relu(a.speed - 50.0).mean());\n\
+    term(\"nil\", 0.0 * a.x.last());\n\
+    term(\"guard\", no_collision_cost(vehicles(), 0.5));\n";
+
+#[test]
+fn cost_and_simulate_name_terms_no_perturbed_future_moves() {
+    let dir = tempfile::tempdir().unwrap();
+    let script = dir.path().join("dead.rhai");
+    std::fs::write(&script, DEAD_TERMS).unwrap();
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let scene = root.join("scripts/scenes/highway.yaml");
+    // `cost` warns (the user may keep a guard the probes miss) and still evaluates.
+    let out = drivescript(&["cost", s(&scene), "--script", s(&script), "--json"]);
+    assert!(out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    let line = |term: &str, n: usize| {
+        format!("dead.rhai:{n}: term \"{term}\": it is 0 with a zero gradient")
+    };
+    for (t, n) in [("never", 3), ("nil", 4)] {
+        assert!(
+            err.contains(&line(t, n)) && err.contains("can never steer"),
+            "{err}"
+        );
+    }
+    assert!(
+        !err.contains("\"guard\"") && !err.contains("\"moves\""),
+        "{err}"
+    );
+    let v: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["warnings"].as_array().unwrap().len(), 2, "{v}");
+    // `simulate` says it once per run, however many scenes share the script, and keeps it in
+    // the costs report.
+    let out_dir = dir.path().join("sim");
+    let o = drivescript(&simulate_args(
+        s(&scene),
+        "data/checkpoint",
+        &["--script", s(&script), "--steps", "2", "--polish", "0"],
+        s(&out_dir),
+    ));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert_eq!(err.matches("term \"never\"").count(), 1, "{err}");
+    assert!(
+        err.contains(&format!("warning: highway: {}", s(&script)))
+            && err.contains("said once per run"),
+        "{err}"
+    );
+    let costs: Value =
+        serde_json::from_str(&std::fs::read_to_string(out_dir.join("highway_costs.json")).unwrap())
+            .unwrap();
+    let w = costs["warnings"].as_array().unwrap();
+    assert!(
+        w.len() == 2 && w[0].as_str().unwrap().contains(&line("never", 3)),
+        "{costs}"
+    );
+}
+
 #[test]
 fn a_verdict_measure_that_is_not_finite_is_written_as_such_not_as_null() {
     // Vehicle 1 turned round for the whole future ends on no lane (no lane runs that way):

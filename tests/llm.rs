@@ -182,8 +182,9 @@ fn cut_in_script(cutter: i64, victim: i64) -> String {
         .replace("param(\"victim\")", &victim.to_string())
 }
 
-/// A script that pulls nobody: the cut-in checker fails on its samples.
-const IDLE: &str = "let a = agent(401);\nterm(\"idle\", 0.0 * a.x.last());\n";
+/// A script that pulls nobody: the cut-in checker fails on its samples. Its term is 0 on every
+/// plausible sample but wakes above 35 m/s, so validation's probes do not refuse it as dead.
+const IDLE: &str = "let a = agent(401);\nterm(\"idle\", relu(a.speed - 35.0).mean());\n";
 
 /// `ask SCENE REQUEST -o dir` with `extra` flags.
 fn ask_cut_in(dir: &Path, extra: &[&str], url: Option<&str>) -> Output {
@@ -1685,4 +1686,38 @@ fn terms_stricter_than_a_passing_checker_are_named_and_relaxing_them_is_accepted
         report.contains("accepted: sample") && report.contains("of round 1"),
         "{report}"
     );
+}
+
+#[test]
+fn a_term_that_can_never_steer_goes_back_to_the_model_before_any_sampling() {
+    // Car 401 drives at 12 m/s: no probe takes it over 60 m/s, so the term is 0 with a zero
+    // gradient on every one of them, and guidance could never act on it.
+    let dead = "let a = agent(401);\nterm(\"never\", relu(a.speed - 60.0).mean());\n";
+    let srv = Server::start(vec![Canned::chat(&reply(dead)), Canned::chat(&reply(dead))]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(dir.path(), &["--fixes", "1"], Some(&srv.url));
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(2), "{t}");
+    let v0 = std::fs::read_to_string(dir.path().join("round_0/validation.txt")).unwrap();
+    assert!(
+        v0.starts_with("script.rhai:2: term \"never\": it is 0 with a zero gradient")
+            && v0.contains("can never steer sampling"),
+        "{v0}"
+    );
+    let back = last_user(&srv, 1);
+    assert!(
+        back.contains("nothing was sampled")
+            && back.contains("term \"never\"")
+            && back.contains("can never steer sampling"),
+        "{back}"
+    );
+    for round in ["round_0", "round_1"] {
+        assert!(!dir
+            .path()
+            .join(round)
+            .join("USA_US101-3_3_T-1_costs.json")
+            .exists());
+    }
+    let report = std::fs::read_to_string(dir.path().join("report.md")).unwrap();
+    assert!(report.contains("Outcome: gave up"), "{report}");
 }

@@ -246,6 +246,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
     // model's horizon, and agents of types the model never saw (agents, scenes).
     let horizons = std::cell::RefCell::new((0usize, 0usize));
     let fixed_total = std::cell::RefCell::new((0usize, 0usize));
+    // Terms that can never steer, said once per run each (their scripts are the same for
+    // every scene, and so is usually the reason).
+    let warned = std::cell::RefCell::new(std::collections::BTreeSet::<String>::new());
     // One scene's failure (a script error on its agents, say) is reported and the others go
     // on; the exit code says that something failed.
     let run_one = |raw: &drivescript::scene::Scene| -> Result<bool> {
@@ -287,9 +290,16 @@ pub fn run(args: Args) -> Result<ExitCode> {
             checks: auto.map(|b| (b, params.clone())).into_iter().collect(),
             cfg,
             replan: args.closed_loop.then_some(5),
+            // The user chose these scripts: a term the probes never wake is said, not refused.
+            refuse_dead_terms: false,
         };
         let done = attempt(&trained, raw, &spec)?;
         let (samples, report) = (&done.samples, &done.report);
+        for w in &report.warnings {
+            if warned.borrow_mut().insert(w.clone()) {
+                eprintln!("warning: {id}: {w} (said once per run)");
+            }
+        }
         if !report.not_sampled.is_empty() {
             let mut total = fixed_total.borrow_mut();
             if total.0 == 0 {

@@ -860,6 +860,8 @@ impl<'a> Session<'a> {
             checks: self.checks(),
             cfg: self.state.config.sample_config(),
             replan: self.state.config.replan,
+            // Back to the model as a validation error, before any sampling.
+            refuse_dead_terms: true,
         };
         attempt(self.trained, &self.raw, &spec)
     }
