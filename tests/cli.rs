@@ -2047,3 +2047,70 @@ fn a_verdict_measure_that_is_not_finite_is_written_as_such_not_as_null() {
     );
     assert_eq!(verdict["measured"]["end_lane"], -1.0, "{verdict}");
 }
+
+#[test]
+fn guidance_is_one_flag_with_one_default_on_every_command_that_samples() {
+    for cmd in ["simulate", "ask", "demo"] {
+        let help = ok(&[cmd, "--help"]);
+        let flag = help
+            .split("--guidance <GUIDANCE>")
+            .nth(1)
+            .unwrap_or_else(|| panic!("{cmd} has no --guidance:\n{help}"));
+        // It has a default, so the first `[default: ` after its name is its own.
+        let (entry, default) = flag.split_once("[default: ").unwrap();
+        assert!(
+            default.starts_with("output]") && entry.contains("denoiser"),
+            "{cmd}: {entry}"
+        );
+        assert!(!help.contains("--through-denoiser"), "{cmd}:\n{help}");
+    }
+    // The old name still reads, as --guidance denoiser; given with --guidance it is refused.
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("commonroad/USA_US101-3_3_T-1.xml");
+    let run = dir.path().join("m");
+    let out = drivescript(&[
+        "ask",
+        s(&scene),
+        "vehicle 401 cuts in front of vehicle 399",
+        "--llm",
+        "manual",
+        "--through-denoiser",
+        "-o",
+        s(&run),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("--through-denoiser is the old name of --guidance denoiser"),
+        "{err}"
+    );
+    let state: Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("state.json")).unwrap()).unwrap();
+    assert_eq!(state["config"]["guidance"], "denoiser");
+    let fresh = dir.path().join("f");
+    ok(&[
+        "ask",
+        s(&scene),
+        "vehicle 401 cuts in front of vehicle 399",
+        "--llm",
+        "manual",
+        "-o",
+        s(&fresh),
+    ]);
+    let state: Value =
+        serde_json::from_str(&std::fs::read_to_string(fresh.join("state.json")).unwrap()).unwrap();
+    assert_eq!(state["config"]["guidance"], "output");
+    let out = drivescript(&[
+        "ask",
+        s(&scene),
+        "vehicle 401 cuts in front of vehicle 399",
+        "--through-denoiser",
+        "--guidance",
+        "output",
+        "-o",
+        s(&dir.path().join("x")),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("--guidance"), "{err}");
+}

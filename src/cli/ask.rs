@@ -123,8 +123,12 @@ pub struct Args {
     checkpoint: Option<PathBuf>,
     #[command(flatten)]
     prompt: PromptFlags,
-    /// Guide through the denoiser (the paper's rule) instead of in output space.
-    #[arg(long)]
+    /// Where the guidance gradient is taken: at the denoised output, or pulled back through
+    /// the denoiser (the paper's rule, slower); the same flag and default as `simulate`'s.
+    #[arg(long, value_enum, default_value = "output")]
+    guidance: super::GuidanceArg,
+    /// The old name of `--guidance denoiser`, still read (hidden): one setting had two names.
+    #[arg(long, hide = true, conflicts_with = "guidance")]
     through_denoiser: bool,
     /// Descent steps on the guidance cost after the last denoising step, 0 to 1000, then as
     /// many with realism's collision term (0: none).
@@ -307,10 +311,19 @@ impl Args {
             max_agents: self.prompt.max_agents,
             samples: self.samples,
             seed: self.seed,
-            through_denoiser: self.through_denoiser,
+            guidance: self.guidance(),
             polish: self.polish,
             context: self.prompt.window(self.max_tokens),
             ..SessionConfig::default()
+        }
+    }
+
+    /// `--guidance`, or denoiser where the old `--through-denoiser` asks for it.
+    fn guidance(&self) -> drivescript::sample::Guidance {
+        if self.through_denoiser {
+            drivescript::sample::Guidance::Denoiser
+        } else {
+            self.guidance.into()
         }
     }
 
@@ -398,6 +411,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
             "--backoff-max {:?}: must be 0 to 3600 seconds",
             args.backoff_max
         );
+    }
+    if args.through_denoiser {
+        eprintln!("note: --through-denoiser is the old name of --guidance denoiser");
     }
     let trained = checkpoint(args.checkpoint.as_deref())?;
     if let Some(file) = &args.batch {

@@ -147,6 +147,24 @@ Examples:
     Bench(bench::Args),
 }
 
+/// `--guidance denoiser|output`: one flag, with one default, on every command that samples.
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub(crate) enum GuidanceArg {
+    /// Cost gradient pulled back through the denoiser (the paper's rule; slower).
+    Denoiser,
+    /// Cost gradient at the denoised output (the default: sample::DEFAULT_GUIDANCE says why).
+    Output,
+}
+
+impl From<GuidanceArg> for drivescript::sample::Guidance {
+    fn from(g: GuidanceArg) -> Self {
+        match g {
+            GuidanceArg::Denoiser => drivescript::sample::Guidance::Denoiser,
+            GuidanceArg::Output => drivescript::sample::Guidance::OutputSpace,
+        }
+    }
+}
+
 /// Parses the command line and runs the subcommand; errors are printed with their causes.
 pub fn run() -> ExitCode {
     let cli = Cli::parse();

@@ -81,8 +81,14 @@ pub struct SessionConfig {
     pub lambda: f64,
     /// Weight of the realism terms.
     pub realism: f64,
-    /// Whether to guide through the denoiser (the paper's rule) instead of in output space.
-    pub through_denoiser: bool,
+    /// Where the guidance gradient is taken (`--guidance`). Runs recorded before it was one
+    /// setting stored `through_denoiser: true|false`, read as denoiser / output.
+    #[serde(
+        alias = "through_denoiser",
+        deserialize_with = "guidance_or_legacy_flag",
+        default = "default_guidance"
+    )]
+    pub guidance: crate::sample::Guidance,
     /// Descent steps on the guidance cost after the last denoising step
     /// ([`SampleConfig::polish`]); runs recorded before it existed had none.
     #[serde(default)]
@@ -107,7 +113,7 @@ impl Default for SessionConfig {
             seed: 1,
             lambda: crate::sample::BEHAVIOUR_LAMBDA,
             realism: crate::sample::REALISM_WEIGHT,
-            through_denoiser: false,
+            guidance: crate::sample::DEFAULT_GUIDANCE,
             polish: crate::sample::POLISH_STEPS,
             replan: None,
             context: None,
@@ -134,11 +140,7 @@ impl SessionConfig {
             seed: self.seed,
             lambda: self.lambda,
             task: crate::sample::Task::Unconditional,
-            guidance: if self.through_denoiser {
-                crate::sample::Guidance::Denoiser
-            } else {
-                crate::sample::Guidance::OutputSpace
-            },
+            guidance: self.guidance,
             schedule: crate::sample::LambdaSchedule::Fading,
             realism: crate::cost::Realism {
                 weight: self.realism,
@@ -148,6 +150,28 @@ impl SessionConfig {
             ..SampleConfig::default()
         }
     }
+}
+
+fn default_guidance() -> crate::sample::Guidance {
+    crate::sample::DEFAULT_GUIDANCE
+}
+
+/// `guidance` as written now (`"denoiser"` / `"output"`), or the `through_denoiser` flag of
+/// runs recorded before (`true` / `false`), so that `--resume` and `--replay` read them.
+fn guidance_or_legacy_flag<'de, D: serde::Deserializer<'de>>(
+    d: D,
+) -> Result<crate::sample::Guidance, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum Written {
+        Flag(bool),
+        Name(crate::sample::Guidance),
+    }
+    Ok(match Written::deserialize(d)? {
+        Written::Flag(true) => crate::sample::Guidance::Denoiser,
+        Written::Flag(false) => crate::sample::Guidance::OutputSpace,
+        Written::Name(g) => g,
+    })
 }
 
 /// A checker of the request, stored by name.
@@ -1373,4 +1397,35 @@ pub fn render_messages(messages: &[Message]) -> String {
         s.push_str(&format!("<!-- {} -->\n\n{}\n\n", m.role, m.content.trim()));
     }
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn guidance_is_one_setting_and_runs_recorded_with_the_old_flag_read_it() {
+        let fresh = serde_json::to_value(SessionConfig::default()).unwrap();
+        assert_eq!(fresh["guidance"], "output");
+        assert!(fresh.get("through_denoiser").is_none(), "{fresh}");
+        // state.json and transcript.json of runs before the flag was one setting.
+        for (old, want) in [
+            (true, crate::sample::Guidance::Denoiser),
+            (false, crate::sample::Guidance::OutputSpace),
+        ] {
+            let mut v = fresh.clone();
+            let o = v.as_object_mut().unwrap();
+            o.remove("guidance");
+            o.insert("through_denoiser".into(), old.into());
+            let read: SessionConfig = serde_json::from_value(v).unwrap();
+            assert_eq!(read.guidance, want);
+            assert_eq!(read.sample_config().guidance, want);
+        }
+        let mut v = fresh;
+        v["guidance"] = "denoiser".into();
+        let read: SessionConfig = serde_json::from_value(v.clone()).unwrap();
+        assert_eq!(read.guidance, crate::sample::Guidance::Denoiser);
+        v["guidance"] = "backwards".into();
+        assert!(serde_json::from_value::<SessionConfig>(v).is_err());
+    }
 }

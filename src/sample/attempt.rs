@@ -14,7 +14,7 @@ use serde::Serialize;
 
 use super::closed_loop::closed_loop;
 use super::guided::{
-    prepare_for, sample, sampled_horizon, Guidance, Sample, SampleConfig, SampleError, Task,
+    prepare_for, sample, sampled_horizon, Sample, SampleConfig, SampleError, Task,
 };
 use crate::cost::ScriptSpec;
 use crate::cost::{check_params, CostError, CostScript, Params};
@@ -490,10 +490,7 @@ pub fn attempt(
                 Task::Conditional => "conditional",
                 Task::Unconditional => "unconditional",
             },
-            guidance: match cfg.guidance {
-                Guidance::Denoiser => "denoiser",
-                Guidance::OutputSpace => "output",
-            },
+            guidance: cfg.guidance.name(),
             lambda: cfg.lambda,
             steps: cfg.steps,
             samples: cfg.samples,
