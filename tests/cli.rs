@@ -392,6 +392,7 @@ fn demo_runs_the_loop_and_writes_the_run() {
         "round 0: sample 2: 2 reason(s) it does not: term ends_ahead",
         "round 1: ACCEPT (sample 1 of round 0 meets the request)",
         "Outcome: accepted",
+        "Verdict: succeeded: round 0 met.",
     ] {
         assert!(out.contains(want), "{want:?} missing:\n{out}");
     }

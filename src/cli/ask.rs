@@ -546,24 +546,42 @@ pub fn run(args: Args) -> Result<ExitCode> {
             );
             Ok(ExitCode::SUCCESS)
         }
-        Outcome::Accepted { .. } | Outcome::RoundsUsed { .. } => {
-            let accepted = matches!(outcome, Outcome::Accepted { .. });
-            println!(
-                "wrote {}, {} and {}{}",
-                dir.join("final.rhai").display(),
-                dir.join("final.gif").display(),
-                dir.join("report.md").display(),
-                if accepted { "" } else { " (not accepted)" }
+        Outcome::Infeasible { .. } => {
+            eprintln!(
+                "error: no plausible motion meets the request within the horizon; nothing was \
+                 asked or sampled (see {})",
+                dir.join("report.md").display()
             );
-            Ok(if accepted && reproduced {
+            Ok(ExitCode::from(2))
+        }
+        Outcome::Accepted { .. } | Outcome::RoundsUsed { .. } | Outcome::GaveUp { .. } => {
+            // The exit status is the run's verdict, the judgement `ask --batch` counts too.
+            let verdict = session.verdict();
+            if let Outcome::GaveUp { reason } = &outcome {
+                eprintln!(
+                    "{}: {reason} (see {})",
+                    if verdict.succeeded { "note" } else { "error" },
+                    dir.join("report.md").display()
+                );
+            }
+            if verdict.round.is_some() {
+                println!(
+                    "wrote {}, {} and {}{}",
+                    dir.join("final.rhai").display(),
+                    dir.join("final.gif").display(),
+                    dir.join("report.md").display(),
+                    if matches!(outcome, Outcome::Accepted { .. }) {
+                        ""
+                    } else {
+                        " (not accepted)"
+                    }
+                );
+            }
+            Ok(if verdict.succeeded && reproduced {
                 ExitCode::SUCCESS
             } else {
                 ExitCode::from(2)
             })
-        }
-        Outcome::GaveUp { reason } => {
-            eprintln!("error: {reason} (see {})", dir.join("report.md").display());
-            Ok(ExitCode::from(2))
         }
     }
 }
@@ -617,26 +635,18 @@ fn batch(args: &Args, file: &Path, trained: &Trained) -> Result<ExitCode> {
         Progress::Line(l) if verbose => println!("  {l}"),
         Progress::Line(_) => {}
         Progress::Done { k, result, resumed } => println!(
-            "[{}/{n}] {}: {}: {}{}; {}",
+            "[{}/{n}] {}: {}: {}{}; {}; {}",
             k + 1,
             result.scenario,
             result.label,
             result.outcome,
             if resumed { " (continued run)" } else { "" },
+            result.verdict.text,
             result
                 .rounds
                 .iter()
                 .enumerate()
-                .map(|(r, h)| format!(
-                    "round {r} {}",
-                    if h.passed {
-                        "pass"
-                    } else if h.achieved {
-                        "achieved implausibly"
-                    } else {
-                        "fail"
-                    }
-                ))
+                .map(|(r, h)| format!("round {r} {}", h.verdict_words()))
                 .collect::<Vec<_>>()
                 .join(", ")
         ),

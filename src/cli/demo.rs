@@ -96,9 +96,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
             );
         }
     }
-    Ok(match outcome {
-        Outcome::Accepted { .. } => ExitCode::SUCCESS,
-        _ => ExitCode::from(2),
+    // As `ask` exits: by the run's verdict.
+    Ok(if session.verdict().succeeded {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(2)
     })
 }
 

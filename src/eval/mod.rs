@@ -4,12 +4,14 @@
 pub mod baselines;
 pub mod behaviors;
 pub mod collateral;
+pub mod feasibility;
 pub mod kinematic;
 pub mod metrics;
 
 pub use baselines::Baseline;
 pub use behaviors::{check, check_against_unguided, Behavior, CheckError, Verdict};
 pub use collateral::{collateral, Collateral, CollateralError};
+pub use feasibility::{infeasible, Infeasible};
 pub use kinematic::{judge, Judgement, KinematicLimits, Violation};
 
 #[cfg(test)]
