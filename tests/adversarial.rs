@@ -521,3 +521,110 @@ fn series_kept_alive_hit_a_memory_limit_not_an_abort() {
     // What the script held is given back: the next script runs.
     run("term(\"x\", agent(1).x.last());").unwrap();
 }
+
+/// `src` compiled and validated on `scene`, then the terms no probe moves, by name and line.
+fn dead(src: &str, scene: Rc<Scene>, params: &Params) -> Vec<(String, usize)> {
+    let s = CostScript::compile(src, "t.rhai", scene, params, &Limits::default()).unwrap();
+    s.validate().unwrap_or_else(|e| panic!("{src}: {e}"));
+    s.dead_terms()
+        .into_iter()
+        .map(|d| (d.term, d.line))
+        .collect()
+}
+
+#[test]
+fn a_term_no_probe_moves_is_named_and_guards_the_log_leaves_at_0_are_not() {
+    // Vehicle 1 drives at 20 m/s: over 50 m/s it never goes (the probes reach 40 m/s), and
+    // a factor 0 keeps a term at 0 whatever moves; over 25 m/s it goes at double speed.
+    let src = "let a = agent(1);\n\
+               term(\"never\", relu(a.speed - 50.0).mean());\n\
+               term(\"zero\", 0.0 * a.x.last());\n\
+               term(\"limit\", relu(a.speed - 25.0).mean());\n\
+               term(\"moves\", a.x.last());\n";
+    assert_eq!(
+        dead(src, scene(), &Params::default()),
+        vec![("never".to_string(), 2), ("zero".to_string(), 3)]
+    );
+    let s = CostScript::compile(
+        src,
+        "t.rhai",
+        scene(),
+        &Params::default(),
+        &Limits::default(),
+    )
+    .unwrap();
+    let msg = s.dead_terms()[0].to_string();
+    assert!(
+        msg.starts_with("t.rhai:2: term \"never\": it is 0 with a zero gradient")
+            && msg.contains("every car crowded onto one path")
+            && msg.contains("can never steer sampling"),
+        "{msg}"
+    );
+    // Guards at 0 on the recorded highway, each woken by a probe: cars meeting, leaving the
+    // road, speeding up, backing up, turning.
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("scripts");
+    for (file, params) in [
+        ("no_collisions.rhai", vec![]),
+        ("on_road.rhai", vec![]),
+        ("speed_limit.rhai", vec![("vehicle", 1.0), ("limit", 25.0)]),
+        ("reverse.rhai", vec![("vehicle", 1.0)]),
+    ] {
+        let src = std::fs::read_to_string(root.join(file)).unwrap();
+        let report = CostScript::compile(
+            &src,
+            file,
+            scene(),
+            &Params::numbers(&params),
+            &Limits::default(),
+        )
+        .unwrap()
+        .validate()
+        .unwrap();
+        assert!(
+            report.terms.iter().any(|t| t.value == 0.0),
+            "{file}: no term at 0 on the log to probe"
+        );
+        assert_eq!(
+            dead(&src, scene(), &Params::numbers(&params)),
+            vec![],
+            "{file}"
+        );
+    }
+}
+
+#[test]
+fn the_rules_planner_s_scripts_have_no_dead_term_for_the_agents_suggest_chooses() {
+    use drivescript::eval::behaviors::{suggest, ALL};
+    use drivescript::llm::rules::{compose, Event, Tuning};
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let mut files: Vec<PathBuf> = ["commonroad", "yaml"]
+        .iter()
+        .flat_map(|d| std::fs::read_dir(root.join("data/samples").join(d)).unwrap())
+        .chain(std::fs::read_dir(root.join("scripts/scenes")).unwrap())
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|x| x == "xml" || x == "yaml"))
+        .collect();
+    files.sort();
+    let mut composed = 0;
+    for f in files {
+        // As `ask --batch` chooses agents and the loop validates: on the model's 40 steps.
+        let raw = load_scene(&f, 0, &LoadOptions::default()).unwrap();
+        let scene = raw.over_horizon(40);
+        for b in ALL {
+            let Some(params) = suggest(b, &raw.with_horizon(40), 40) else {
+                continue;
+            };
+            let event = Event {
+                behaviour: b,
+                params,
+                clause: b.name().into(),
+            };
+            let src = compose(&[event], &[Tuning::default()]);
+            let found = dead(&src, Rc::new(scene.clone()), &Params::default());
+            assert_eq!(found, vec![], "{} {}:\n{src}", f.display(), b.name());
+            composed += 1;
+        }
+    }
+    // 186 (behaviour, scene) pairs when written: every behaviour on most sample scenes.
+    assert!(composed > 150, "{composed} scripts composed");
+}

@@ -392,6 +392,7 @@ fn demo_runs_the_loop_and_writes_the_run() {
         "round 0: sample 2: 2 reason(s) it does not: term ends_ahead",
         "round 1: ACCEPT (sample 1 of round 0 meets the request)",
         "Outcome: accepted",
+        "Verdict: succeeded: round 0 met.",
     ] {
         assert!(out.contains(want), "{want:?} missing:\n{out}");
     }
@@ -1959,4 +1960,178 @@ fn a_conditional_eval_with_no_recorded_future_is_an_error_not_a_row_of_dashes() 
         err.contains("nothing was scored") && err.contains("recorded future"),
         "{err}"
     );
+}
+
+/// A script with two terms nothing can move and one guard the log leaves at 0.
+const DEAD_TERMS: &str = "let a = agent(1);\n\
+    term(\"moves\", a.x.last());\n\
+    term(\"never\", relu(a.speed - 50.0).mean());\n\
+    term(\"nil\", 0.0 * a.x.last());\n\
+    term(\"guard\", no_collision_cost(vehicles(), 0.5));\n";
+
+#[test]
+fn cost_and_simulate_name_terms_no_perturbed_future_moves() {
+    let dir = tempfile::tempdir().unwrap();
+    let script = dir.path().join("dead.rhai");
+    std::fs::write(&script, DEAD_TERMS).unwrap();
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let scene = root.join("scripts/scenes/highway.yaml");
+    // `cost` warns (the user may keep a guard the probes miss) and still evaluates.
+    let out = drivescript(&["cost", s(&scene), "--script", s(&script), "--json"]);
+    assert!(out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    let line = |term: &str, n: usize| {
+        format!("dead.rhai:{n}: term \"{term}\": it is 0 with a zero gradient")
+    };
+    for (t, n) in [("never", 3), ("nil", 4)] {
+        assert!(
+            err.contains(&line(t, n)) && err.contains("can never steer"),
+            "{err}"
+        );
+    }
+    assert!(
+        !err.contains("\"guard\"") && !err.contains("\"moves\""),
+        "{err}"
+    );
+    let v: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["warnings"].as_array().unwrap().len(), 2, "{v}");
+    // `simulate` says it once per run, however many scenes share the script, and keeps it in
+    // the costs report.
+    let out_dir = dir.path().join("sim");
+    let o = drivescript(&simulate_args(
+        s(&scene),
+        "data/checkpoint",
+        &["--script", s(&script), "--steps", "2", "--polish", "0"],
+        s(&out_dir),
+    ));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert_eq!(err.matches("term \"never\"").count(), 1, "{err}");
+    assert!(
+        err.contains(&format!("warning: highway: {}", s(&script)))
+            && err.contains("said once per run"),
+        "{err}"
+    );
+    let costs: Value =
+        serde_json::from_str(&std::fs::read_to_string(out_dir.join("highway_costs.json")).unwrap())
+            .unwrap();
+    let w = costs["warnings"].as_array().unwrap();
+    assert!(
+        w.len() == 2 && w[0].as_str().unwrap().contains(&line("never", 3)),
+        "{costs}"
+    );
+}
+
+#[test]
+fn a_verdict_measure_that_is_not_finite_is_written_as_such_not_as_null() {
+    // Vehicle 1 turned round for the whole future ends on no lane (no lane runs that way):
+    // its offset from a lane centre is infinite, which JSON has no number for.
+    let dir = tempfile::tempdir().unwrap();
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let scene = root.join("scripts/scenes/highway.yaml");
+    let rollouts = dir.path().join("r");
+    std::fs::create_dir(&rollouts).unwrap();
+    let file = rollouts.join("highway.json");
+    ok(&["convert", s(&scene), "-o", s(&file)]);
+    let mut r: Value = serde_json::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
+    let c = r["current_step"].as_u64().unwrap() as usize;
+    for st in r["agents"][0]["states"]
+        .as_array_mut()
+        .unwrap()
+        .iter_mut()
+        .skip(c + 1)
+    {
+        st[2] = (st[2].as_f64().unwrap() + std::f64::consts::PI).into();
+    }
+    std::fs::write(&file, r.to_string()).unwrap();
+    let json = dir.path().join("e.json");
+    ok(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "behaviour",
+        "--behaviour",
+        "rightmost_lane",
+        "--param",
+        "vehicle=1",
+        "--rollouts",
+        s(&rollouts),
+        "--json",
+        s(&json),
+    ]);
+    let v: Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let verdict = &v["methods"][0]["scenes"][0]["verdicts"][0];
+    assert_eq!(verdict["reason"], "ends on no lane", "{verdict}");
+    assert_eq!(
+        verdict["measured"]["end_offset_from_centre"], "inf",
+        "{verdict}"
+    );
+    assert_eq!(verdict["measured"]["end_lane"], -1.0, "{verdict}");
+}
+
+#[test]
+fn guidance_is_one_flag_with_one_default_on_every_command_that_samples() {
+    for cmd in ["simulate", "ask", "demo"] {
+        let help = ok(&[cmd, "--help"]);
+        let flag = help
+            .split("--guidance <GUIDANCE>")
+            .nth(1)
+            .unwrap_or_else(|| panic!("{cmd} has no --guidance:\n{help}"));
+        // It has a default, so the first `[default: ` after its name is its own.
+        let (entry, default) = flag.split_once("[default: ").unwrap();
+        assert!(
+            default.starts_with("output]") && entry.contains("denoiser"),
+            "{cmd}: {entry}"
+        );
+        assert!(!help.contains("--through-denoiser"), "{cmd}:\n{help}");
+    }
+    // The old name still reads, as --guidance denoiser; given with --guidance it is refused.
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("commonroad/USA_US101-3_3_T-1.xml");
+    let run = dir.path().join("m");
+    let out = drivescript(&[
+        "ask",
+        s(&scene),
+        "vehicle 401 cuts in front of vehicle 399",
+        "--llm",
+        "manual",
+        "--through-denoiser",
+        "-o",
+        s(&run),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("--through-denoiser is the old name of --guidance denoiser"),
+        "{err}"
+    );
+    let state: Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("state.json")).unwrap()).unwrap();
+    assert_eq!(state["config"]["guidance"], "denoiser");
+    let fresh = dir.path().join("f");
+    ok(&[
+        "ask",
+        s(&scene),
+        "vehicle 401 cuts in front of vehicle 399",
+        "--llm",
+        "manual",
+        "-o",
+        s(&fresh),
+    ]);
+    let state: Value =
+        serde_json::from_str(&std::fs::read_to_string(fresh.join("state.json")).unwrap()).unwrap();
+    assert_eq!(state["config"]["guidance"], "output");
+    let out = drivescript(&[
+        "ask",
+        s(&scene),
+        "vehicle 401 cuts in front of vehicle 399",
+        "--through-denoiser",
+        "--guidance",
+        "output",
+        "-o",
+        s(&dir.path().join("x")),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("--guidance"), "{err}");
 }

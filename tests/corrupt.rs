@@ -1335,6 +1335,7 @@ fn random_mutations_of_a_checkpoint_config_never_panic() {
                         ..Default::default()
                     },
                     replan: None,
+                    refuse_dead_terms: false,
                 };
                 // An error is fine; a panic or a non-finite rollout is not.
                 if let Ok(a) = drivescript::sample::attempt(&trained, &scene, &spec) {

@@ -182,8 +182,9 @@ fn cut_in_script(cutter: i64, victim: i64) -> String {
         .replace("param(\"victim\")", &victim.to_string())
 }
 
-/// A script that pulls nobody: the cut-in checker fails on its samples.
-const IDLE: &str = "let a = agent(401);\nterm(\"idle\", 0.0 * a.x.last());\n";
+/// A script that pulls nobody: the cut-in checker fails on its samples. Its term is 0 on every
+/// plausible sample but wakes above 35 m/s, so validation's probes do not refuse it as dead.
+const IDLE: &str = "let a = agent(401);\nterm(\"idle\", relu(a.speed - 35.0).mean());\n";
 
 /// `ask SCENE REQUEST -o dir` with `extra` flags.
 fn ask_cut_in(dir: &Path, extra: &[&str], url: Option<&str>) -> Output {
@@ -1685,4 +1686,152 @@ fn terms_stricter_than_a_passing_checker_are_named_and_relaxing_them_is_accepted
         report.contains("accepted: sample") && report.contains("of round 1"),
         "{report}"
     );
+}
+
+#[test]
+fn a_term_that_can_never_steer_goes_back_to_the_model_before_any_sampling() {
+    // Car 401 drives at 12 m/s: no probe takes it over 60 m/s, so the term is 0 with a zero
+    // gradient on every one of them, and guidance could never act on it.
+    let dead = "let a = agent(401);\nterm(\"never\", relu(a.speed - 60.0).mean());\n";
+    let srv = Server::start(vec![Canned::chat(&reply(dead)), Canned::chat(&reply(dead))]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(dir.path(), &["--fixes", "1"], Some(&srv.url));
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(2), "{t}");
+    let v0 = std::fs::read_to_string(dir.path().join("round_0/validation.txt")).unwrap();
+    assert!(
+        v0.starts_with("script.rhai:2: term \"never\": it is 0 with a zero gradient")
+            && v0.contains("can never steer sampling"),
+        "{v0}"
+    );
+    let back = last_user(&srv, 1);
+    assert!(
+        back.contains("nothing was sampled")
+            && back.contains("term \"never\"")
+            && back.contains("can never steer sampling"),
+        "{back}"
+    );
+    for round in ["round_0", "round_1"] {
+        assert!(!dir
+            .path()
+            .join(round)
+            .join("USA_US101-3_3_T-1_costs.json")
+            .exists());
+    }
+    let report = std::fs::read_to_string(dir.path().join("report.md")).unwrap();
+    assert!(report.contains("Outcome: gave up"), "{report}");
+}
+
+#[test]
+fn a_request_no_car_can_meet_in_the_horizon_is_said_before_any_round() {
+    // Car 394 drives at 14.7 m/s: under 20 km/h (+ the checker's 0.5 m/s) over the first
+    // step needs braking at 173 m/s², where a car brakes at 7.
+    let srv = Server::start(vec![]);
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join(SCENE);
+    let out = ask(
+        &[
+            s(&scene),
+            "vehicle 394 drives below 20 km/h",
+            "-o",
+            s(dir.path()),
+        ],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(2), "{t}");
+    let why = "speed_limit (limit=5.556 vehicle=394): vehicle 394 moves at 14.7 m/s (53 km/h) \
+               at the current step; the checker wants at most 6.1 m/s";
+    assert!(
+        t.contains(&format!("cannot be met within the horizon: {why}"))
+            && t.contains("needs braking at 172.8 m/s²")
+            && t.contains("under the limit from about 1.2 s on")
+            && t.contains("nothing was asked or sampled"),
+        "{t}"
+    );
+    assert_eq!(srv.received().len(), 0, "the model was asked");
+    assert!(!dir.path().join("round_0").exists());
+    let report = std::fs::read_to_string(dir.path().join("report.md")).unwrap();
+    assert!(
+        report.contains("Outcome: not attempted") && report.contains(why),
+        "{report}"
+    );
+    // Below 50 km/h it needs 6 m/s², within a car's braking: the first round is asked.
+    let run = tempfile::tempdir().unwrap();
+    let out = ask(
+        &[
+            s(&scene),
+            "vehicle 394 drives below 50 km/h",
+            "--llm",
+            "manual",
+            "-o",
+            s(run.path()),
+        ],
+        None,
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    assert!(
+        !t.contains("cannot be met") && t.contains("waiting for a reply"),
+        "{t}"
+    );
+    assert!(run.path().join("round_0/prompt.md").exists());
+}
+
+#[test]
+fn ask_and_the_batch_table_give_one_verdict_when_the_checker_passes_but_a_term_does_not() {
+    // Under 120 km/h every sample of car 401 (12 m/s) passes the checker, while the script's
+    // own term stays at 0.1, over the 0.05 tolerance: the request is met, the script asks for
+    // more. `ask` once exited 2 (not met) on such a pair while the batch table counted it.
+    let strict = "let a = agent(401);\nterm(\"strict\", 0.1 + 0.0 * a.x.last());\n";
+    let srv = Server::start(vec![
+        Canned::chat(&reply(strict)),
+        Canned::chat(&reply(strict)),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join(SCENE);
+    let request = "vehicle 401 drives below 120 km/h";
+    let single = dir.path().join("single");
+    let out = ask(
+        &[s(&scene), request, "--rounds", "0", "-o", s(&single)],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    let costs: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(single.join("round_0/USA_US101-3_3_T-1_costs.json")).unwrap(),
+    )
+    .unwrap();
+    for o in costs["samples"].as_array().unwrap() {
+        assert_eq!(o["verdicts"][0]["passed"], true, "{o}");
+        assert_eq!(o["terms"][0]["final"], 0.1, "{o}");
+    }
+    assert!(t.contains("none of its samples meets the request"), "{t}");
+    let verdict = "succeeded: round 0 met by the checkers (script terms over tolerance)";
+    assert!(t.contains(&format!("Verdict: {verdict}.")), "{t}");
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    // The same pair in a batch: the table and the pair's line say the same.
+    let file = dir.path().join("pairs.yaml");
+    std::fs::write(
+        &file,
+        format!(
+            "entries:\n  - scene: {}\n    request: \"{request}\"\n",
+            scene.display()
+        ),
+    )
+    .unwrap();
+    let out_dir = dir.path().join("batch");
+    let out = ask(
+        &["--batch", s(&file), "--rounds", "0", "-o", s(&out_dir)],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert!(out.status.success(), "{t}");
+    assert!(t.contains(verdict), "{t}");
+    let summary: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out_dir.join("summary.json")).unwrap())
+            .unwrap();
+    assert_eq!(summary["instances"][0]["verdict"]["text"], verdict);
+    assert_eq!(summary["instances"][0]["verdict"]["succeeded"], true);
+    assert_eq!(summary["rows"][0]["label"], "speed_limit");
+    assert_eq!(summary["rows"][0]["passed"][0], 1);
 }

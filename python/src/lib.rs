@@ -697,6 +697,7 @@ impl Sampler {
             checks: Vec::new(),
             cfg,
             replan: None,
+            refuse_dead_terms: false,
         };
         let raw = scene.inner.clone();
         let done = detached(py, "sampler", || {

@@ -123,8 +123,12 @@ pub struct Args {
     checkpoint: Option<PathBuf>,
     #[command(flatten)]
     prompt: PromptFlags,
-    /// Guide through the denoiser (the paper's rule) instead of in output space.
-    #[arg(long)]
+    /// Where the guidance gradient is taken: at the denoised output, or pulled back through
+    /// the denoiser (the paper's rule, slower); the same flag and default as `simulate`'s.
+    #[arg(long, value_enum, default_value = "output")]
+    guidance: super::GuidanceArg,
+    /// The old name of `--guidance denoiser`, still read (hidden): one setting had two names.
+    #[arg(long, hide = true, conflicts_with = "guidance")]
     through_denoiser: bool,
     /// Descent steps on the guidance cost after the last denoising step, 0 to 1000, then as
     /// many with realism's collision term (0: none).
@@ -307,10 +311,19 @@ impl Args {
             max_agents: self.prompt.max_agents,
             samples: self.samples,
             seed: self.seed,
-            through_denoiser: self.through_denoiser,
+            guidance: self.guidance(),
             polish: self.polish,
             context: self.prompt.window(self.max_tokens),
             ..SessionConfig::default()
+        }
+    }
+
+    /// `--guidance`, or denoiser where the old `--through-denoiser` asks for it.
+    fn guidance(&self) -> drivescript::sample::Guidance {
+        if self.through_denoiser {
+            drivescript::sample::Guidance::Denoiser
+        } else {
+            self.guidance.into()
         }
     }
 
@@ -398,6 +411,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
             "--backoff-max {:?}: must be 0 to 3600 seconds",
             args.backoff_max
         );
+    }
+    if args.through_denoiser {
+        eprintln!("note: --through-denoiser is the old name of --guidance denoiser");
     }
     let trained = checkpoint(args.checkpoint.as_deref())?;
     if let Some(file) = &args.batch {
@@ -530,24 +546,42 @@ pub fn run(args: Args) -> Result<ExitCode> {
             );
             Ok(ExitCode::SUCCESS)
         }
-        Outcome::Accepted { .. } | Outcome::RoundsUsed { .. } => {
-            let accepted = matches!(outcome, Outcome::Accepted { .. });
-            println!(
-                "wrote {}, {} and {}{}",
-                dir.join("final.rhai").display(),
-                dir.join("final.gif").display(),
-                dir.join("report.md").display(),
-                if accepted { "" } else { " (not accepted)" }
+        Outcome::Infeasible { .. } => {
+            eprintln!(
+                "error: no plausible motion meets the request within the horizon; nothing was \
+                 asked or sampled (see {})",
+                dir.join("report.md").display()
             );
-            Ok(if accepted && reproduced {
+            Ok(ExitCode::from(2))
+        }
+        Outcome::Accepted { .. } | Outcome::RoundsUsed { .. } | Outcome::GaveUp { .. } => {
+            // The exit status is the run's verdict, the judgement `ask --batch` counts too.
+            let verdict = session.verdict();
+            if let Outcome::GaveUp { reason } = &outcome {
+                eprintln!(
+                    "{}: {reason} (see {})",
+                    if verdict.succeeded { "note" } else { "error" },
+                    dir.join("report.md").display()
+                );
+            }
+            if verdict.round.is_some() {
+                println!(
+                    "wrote {}, {} and {}{}",
+                    dir.join("final.rhai").display(),
+                    dir.join("final.gif").display(),
+                    dir.join("report.md").display(),
+                    if matches!(outcome, Outcome::Accepted { .. }) {
+                        ""
+                    } else {
+                        " (not accepted)"
+                    }
+                );
+            }
+            Ok(if verdict.succeeded && reproduced {
                 ExitCode::SUCCESS
             } else {
                 ExitCode::from(2)
             })
-        }
-        Outcome::GaveUp { reason } => {
-            eprintln!("error: {reason} (see {})", dir.join("report.md").display());
-            Ok(ExitCode::from(2))
         }
     }
 }
@@ -601,26 +635,18 @@ fn batch(args: &Args, file: &Path, trained: &Trained) -> Result<ExitCode> {
         Progress::Line(l) if verbose => println!("  {l}"),
         Progress::Line(_) => {}
         Progress::Done { k, result, resumed } => println!(
-            "[{}/{n}] {}: {}: {}{}; {}",
+            "[{}/{n}] {}: {}: {}{}; {}; {}",
             k + 1,
             result.scenario,
             result.label,
             result.outcome,
             if resumed { " (continued run)" } else { "" },
+            result.verdict.text,
             result
                 .rounds
                 .iter()
                 .enumerate()
-                .map(|(r, h)| format!(
-                    "round {r} {}",
-                    if h.passed {
-                        "pass"
-                    } else if h.achieved {
-                        "achieved implausibly"
-                    } else {
-                        "fail"
-                    }
-                ))
+                .map(|(r, h)| format!("round {r} {}", h.verdict_words()))
                 .collect::<Vec<_>>()
                 .join(", ")
         ),

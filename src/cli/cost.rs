@@ -57,6 +57,12 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let name = spec.name.clone();
     let bound = BoundScript::new(spec, scene)?;
     let (scene, validation) = (bound.scene(), bound.validated_in());
+    // A term that no perturbed future moves is said, not refused: the user may keep it as a
+    // guard against something the probes do not try.
+    let warnings: Vec<String> = bound.dead_terms()?.iter().map(|d| d.to_string()).collect();
+    for w in &warnings {
+        eprintln!("warning: {w}");
+    }
     let traj = match (&args.rollout, &rollout) {
         (Some(p), Some(r)) => Trajectories::from_rollout(scene, r)
             .map_err(|m| anyhow::anyhow!("{}: {m}", p.display()))?,
@@ -86,6 +92,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             "eval_ms": report.elapsed.as_secs_f64() * 1000.0,
             "validation_ms": validation.as_secs_f64() * 1000.0,
             "prints": report.prints,
+            "warnings": warnings,
         });
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {

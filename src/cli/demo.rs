@@ -34,6 +34,9 @@ pub struct Args {
     /// Seed of the initial noise.
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// Where the guidance gradient is taken (as `simulate` and `ask` take it).
+    #[arg(long, value_enum, default_value = "output")]
+    guidance: super::GuidanceArg,
     /// Run directory; an earlier demo run there is replaced. The picture is DIR/final.gif.
     #[arg(short, long, default_value = "out/demo")]
     output: PathBuf,
@@ -53,6 +56,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let config = SessionConfig {
         samples: args.samples,
         seed: args.seed,
+        guidance: args.guidance.into(),
         ..SessionConfig::default()
     };
     // Before the previous run is cleared away.
@@ -92,9 +96,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
             );
         }
     }
-    Ok(match outcome {
-        Outcome::Accepted { .. } => ExitCode::SUCCESS,
-        _ => ExitCode::from(2),
+    // As `ask` exits: by the run's verdict.
+    Ok(if session.verdict().succeeded {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(2)
     })
 }
 

@@ -108,6 +108,12 @@ fn mean(v: &[f64]) -> Option<f64> {
     (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
 }
 
+/// A number for --json: `null` where there is none, else as the library writes numbers
+/// (`"NaN"` / `"inf"` rather than the `null` serde_json would make of them).
+fn num(v: Option<f64>) -> serde_json::Value {
+    v.map_or(serde_json::Value::Null, drivescript::io::json::number)
+}
+
 fn fmt(v: Option<f64>, prec: usize) -> String {
     v.map_or("-".into(), |x| format!("{x:.prec$}"))
 }
@@ -448,11 +454,8 @@ fn table_row(
     behaviour: Option<Behavior>,
     bins: &JsdBins,
 ) -> (String, serde_json::Value) {
-    let ms = if acc.scenes > 0 {
-        1000.0 * acc.seconds / acc.scenes as f64
-    } else {
-        f64::NAN
-    };
+    // No scene, no time per scene: `-` in the table and null in JSON, not a NaN.
+    let ms = (acc.scenes > 0).then(|| 1000.0 * acc.seconds / acc.scenes as f64);
     let implausible = metrics::rate(&acc.implausible);
     let collided = metrics::rate(&acc.collided);
     let by_kind: serde_json::Map<String, serde_json::Value> = Violation::ALL
@@ -461,11 +464,8 @@ fn table_row(
         .map(|(v, f)| (v.name().to_string(), json!(metrics::rate(f))))
         .collect();
     // Time is spent on a scene, not on a group of its agents.
-    let ms_text = if group.is_some() {
-        "-".to_string()
-    } else {
-        format!("{ms:.1}")
-    };
+    let ms = ms.filter(|_| group.is_none());
+    let ms_text = fmt(ms, 1);
     let lead = match group {
         Some(g) => format!("| {name} | {g}"),
         None => format!("| {name}"),
@@ -491,9 +491,11 @@ fn table_row(
                     fmt(mean(&acc.offroad), 3),
                     fmt(implausible, 3),
                 ),
-                json!({"method": name, "scenes": acc.scenes, "ade": mean(&acc.ade), "fde": mean(&acc.fde),
-                    "min_ade": mean(&acc.min_ade), "min_fde": mean(&acc.min_fde), "jsd": r,
-                    "collision_rate": mean(&acc.collision), "offroad_rate": mean(&acc.offroad), "ms_per_scene": ms}),
+                json!({"method": name, "scenes": acc.scenes, "ade": num(mean(&acc.ade)), "fde": num(mean(&acc.fde)),
+                    "min_ade": num(mean(&acc.min_ade)), "min_fde": num(mean(&acc.min_fde)),
+                    "jsd": r.map(|r| json!({"speed": num(Some(r.speed)), "angular_speed": num(Some(r.angular_speed)),
+                        "accel": num(Some(r.accel)), "nearest_vehicle": num(r.nearest_vehicle), "mean": num(Some(r.mean))})),
+                    "collision_rate": num(mean(&acc.collision)), "offroad_rate": num(mean(&acc.offroad)), "ms_per_scene": num(ms)}),
             )
         }
         Task::Unconditional => (
@@ -506,8 +508,8 @@ fn table_row(
                 fmt(collided, 3),
                 fmt(implausible, 3)
             ),
-            json!({"method": name, "scenes": acc.scenes, "scene_collision_rate": mean(&acc.scr),
-                "mmd2_nearest_object": mean(&acc.mmd_near), "mmd2_road_edge": mean(&acc.mmd_edge), "ms_per_scene": ms}),
+            json!({"method": name, "scenes": acc.scenes, "scene_collision_rate": num(mean(&acc.scr)),
+                "mmd2_nearest_object": num(mean(&acc.mmd_near)), "mmd2_road_edge": num(mean(&acc.mmd_edge)), "ms_per_scene": num(ms)}),
         ),
         Task::Behaviour => {
             let b = behaviour.expect("behaviour task");
@@ -524,7 +526,7 @@ fn table_row(
                     fmt(implausible, 3)
                 ),
                 json!({"method": name, "behaviour": b.name(), "definition": b.definition(), "checked": acc.checked,
-                    "success_rate": rate, "achieved_rate": achieved, "ms_per_scene": ms}),
+                    "success_rate": rate, "achieved_rate": achieved, "ms_per_scene": num(ms)}),
             )
         }
     };

@@ -109,8 +109,10 @@ enum Command {
         after_help = "Backends: an OpenAI-compatible server (DRIVESCRIPT_LLM_URL, DRIVESCRIPT_LLM_MODEL,
 DRIVESCRIPT_LLM_KEY where needed; --llm-url and --model override), --llm manual (prompts
 as files, --resume after saving each reply), or --llm rules (a fixed vocabulary, the default
-when no LLM is configured). Exit status: 0 accepted (or a manual round waiting), 2 not
-accepted or gave up, 1 an error.
+when no LLM is configured). Exit status: 0 when the run succeeded (the final round passes
+every checker, or meets the whole request where a clause has none: the judgement --batch
+counts) or a manual round waits, 2 when it did not or nothing was sampled (a request no car
+can meet in the horizon is not attempted), 1 an error.
 
 Examples:
   drivescript ask data/samples/commonroad/USA_US101-3_3_T-1.xml \\
@@ -145,6 +147,24 @@ Examples:
   drivescript bench cost --seconds 0.2
   drivescript bench sample --only output --repeat 1")]
     Bench(bench::Args),
+}
+
+/// `--guidance denoiser|output`: one flag, with one default, on every command that samples.
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub(crate) enum GuidanceArg {
+    /// Cost gradient pulled back through the denoiser (the paper's rule; slower).
+    Denoiser,
+    /// Cost gradient at the denoised output (the default: sample::DEFAULT_GUIDANCE says why).
+    Output,
+}
+
+impl From<GuidanceArg> for drivescript::sample::Guidance {
+    fn from(g: GuidanceArg) -> Self {
+        match g {
+            GuidanceArg::Denoiser => drivescript::sample::Guidance::Denoiser,
+            GuidanceArg::Output => drivescript::sample::Guidance::OutputSpace,
+        }
+    }
 }
 
 /// Parses the command line and runs the subcommand; errors are printed with their causes.

@@ -10,8 +10,8 @@ use drivescript::io::{discover, output_stem, read_each, LoadOptions, OutputNames
 use drivescript::render::RenderOptions;
 use drivescript::sample::provenance::{file_crc32c, text_crc32c, RunRecord, RUN_FILE};
 use drivescript::sample::{
-    attempt, horizon_note, recorded_future, AttemptSpec, Clamp, Guidance, LambdaSchedule,
-    SampleConfig, ScriptSpec, Task,
+    attempt, horizon_note, recorded_future, AttemptSpec, Clamp, LambdaSchedule, SampleConfig,
+    ScriptSpec, Task,
 };
 use drivescript::train::load;
 
@@ -21,14 +21,6 @@ enum TaskArg {
     Conditional,
     /// History only.
     Unconditional,
-}
-
-#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-enum GuidanceArg {
-    /// Cost gradient pulled back through the denoiser (the paper's rule).
-    Denoiser,
-    /// Cost gradient at the denoised output (cheaper).
-    Output,
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -77,9 +69,10 @@ pub struct Args {
     /// fading schedule: data/checkpoint/README.md).
     #[arg(long, default_value_t = drivescript::sample::BEHAVIOUR_LAMBDA)]
     lambda: f64,
-    /// Where the guidance gradient is taken.
-    #[arg(long, value_enum, default_value = "denoiser")]
-    guidance: GuidanceArg,
+    /// Where the guidance gradient is taken: at the denoised output, or pulled back through
+    /// the denoiser (the paper's rule, slower); the same flag and default as `ask`'s.
+    #[arg(long, value_enum, default_value = "output")]
+    guidance: super::GuidanceArg,
     /// Re-plan at 2 Hz: execute 0.5 s of each plan, then sample again from there. The scripts
     /// keep judging the horizon from the scene's current step (executed steps included), so a
     /// request keeps its deadline.
@@ -182,11 +175,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         } else {
             Task::Unconditional
         },
-        guidance: if args.guidance == GuidanceArg::Denoiser {
-            Guidance::Denoiser
-        } else {
-            Guidance::OutputSpace
-        },
+        guidance: args.guidance.into(),
         known_weight: args.known_weight,
         schedule: match args.schedule {
             ScheduleArg::Constant => LambdaSchedule::Constant,
@@ -246,6 +235,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
     // model's horizon, and agents of types the model never saw (agents, scenes).
     let horizons = std::cell::RefCell::new((0usize, 0usize));
     let fixed_total = std::cell::RefCell::new((0usize, 0usize));
+    // Terms that can never steer, said once per run each (their scripts are the same for
+    // every scene, and so is usually the reason).
+    let warned = std::cell::RefCell::new(std::collections::BTreeSet::<String>::new());
     // One scene's failure (a script error on its agents, say) is reported and the others go
     // on; the exit code says that something failed.
     let run_one = |raw: &drivescript::scene::Scene| -> Result<bool> {
@@ -287,9 +279,16 @@ pub fn run(args: Args) -> Result<ExitCode> {
             checks: auto.map(|b| (b, params.clone())).into_iter().collect(),
             cfg,
             replan: args.closed_loop.then_some(5),
+            // The user chose these scripts: a term the probes never wake is said, not refused.
+            refuse_dead_terms: false,
         };
         let done = attempt(&trained, raw, &spec)?;
         let (samples, report) = (&done.samples, &done.report);
+        for w in &report.warnings {
+            if warned.borrow_mut().insert(w.clone()) {
+                eprintln!("warning: {id}: {w} (said once per run)");
+            }
+        }
         if !report.not_sampled.is_empty() {
             let mut total = fixed_total.borrow_mut();
             if total.0 == 0 {

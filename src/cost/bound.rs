@@ -75,6 +75,12 @@ impl BoundScript {
         self.validated
     }
 
+    /// The terms no probe moves ([`CostScript::dead_terms`]): what `drivescript cost` warns
+    /// about after validating.
+    pub fn dead_terms(&self) -> Result<Vec<super::engine::DeadTerm>, CostError> {
+        self.with_script(|s| s.dead_terms())
+    }
+
     /// Evaluates every term and its gradient on `traj` ([`CostScript::evaluate`]).
     pub fn evaluate(&self, traj: &Trajectories) -> Result<CostReport, CostError> {
         self.with_script(|s| s.evaluate(traj))?

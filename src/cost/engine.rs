@@ -190,6 +190,49 @@ pub enum CostError {
     },
 }
 
+/// A term no probe moves ([`CostScript::dead_terms`]): 0 with a zero gradient on the recorded
+/// future and on every perturbed one, so it can never steer sampling.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DeadTerm {
+    /// The script that declares it.
+    pub script: String,
+    /// Its name.
+    pub term: String,
+    /// Line of its `term(...)` call.
+    pub line: usize,
+}
+
+impl DeadTerm {
+    /// Why it cannot steer, and what to do, in words (without the script, line and term).
+    pub fn message(&self) -> String {
+        format!(
+            "it is 0 with a zero gradient on the recorded future and on {} perturbed ones ({}), \
+             so it can never steer sampling: a term must grow as the motion departs from what is \
+             asked (a relu whose threshold no plausible motion reaches, or anything times 0, is \
+             always 0)",
+            super::probe::PROBES.len(),
+            super::probe::PROBES.join(", ")
+        )
+    }
+
+    /// As a validation error, for callers that refuse such a term (the LLM loop).
+    pub fn to_error(&self) -> CostError {
+        CostError::Term {
+            script: self.script.clone(),
+            term: self.term.clone(),
+            line: self.line,
+            message: self.message(),
+        }
+    }
+}
+
+impl std::fmt::Display for DeadTerm {
+    /// `script:line: term "name": it is 0 ...`, as validation errors read.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}", self.to_error())
+    }
+}
+
 /// Only the embedded stdlib modules, by bare name.
 struct StdlibResolver {
     cache: RefCell<HashMap<String, rhai::Shared<Module>>>,
@@ -882,6 +925,48 @@ impl CostScript {
             }
         }
         Ok(report)
+    }
+
+    /// The terms that can never steer sampling: 0 with a zero gradient on the recorded
+    /// future (gaps filled) and on every perturbed future of [`super::probe::PROBES`]. A guard
+    /// that is 0 on the log but wakes when cars collide, leave the road or speed up is not
+    /// one of them. Where the script fails on a probe (a lane lookup far off the map, say), or
+    /// declares other terms there, nothing is said: only what every probe shows is reported.
+    /// Run after [`CostScript::validate`] (whose errors it does not repeat).
+    pub fn dead_terms(&self) -> Vec<DeadTerm> {
+        let futures = {
+            let c = self.shared.borrow();
+            let mut f = vec![Trajectories::filled(&c.scene)];
+            f.extend(super::probe::probe_futures(&c.scene));
+            f
+        };
+        let mut dead: Option<Vec<(String, usize)>> = None;
+        for traj in &futures {
+            let Ok(report) = self.evaluate(traj) else {
+                return Vec::new();
+            };
+            let here: Vec<(String, usize)> = report
+                .terms
+                .iter()
+                .filter(|t| t.value == 0.0 && t.grad.iter().all(|(_, g)| *g == 0.0))
+                .map(|t| (t.name.clone(), t.line))
+                .collect();
+            dead = Some(match dead {
+                None => here,
+                Some(d) => d.into_iter().filter(|t| here.contains(t)).collect(),
+            });
+            if dead.as_ref().is_some_and(Vec::is_empty) {
+                break;
+            }
+        }
+        dead.unwrap_or_default()
+            .into_iter()
+            .map(|(term, line)| DeadTerm {
+                script: self.name.clone(),
+                term,
+                line,
+            })
+            .collect()
     }
 
     /// Evaluates every term and its gradient on candidate trajectories.

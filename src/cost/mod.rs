@@ -10,6 +10,7 @@ mod dual;
 mod engine;
 mod fwd;
 mod params;
+pub mod probe;
 mod realism;
 mod report;
 mod series;
@@ -21,7 +22,7 @@ pub use bound::BoundScript;
 pub use dual::{Dual, Grad};
 pub use engine::{
     check_params, module_functions, read_script, reference, reference_markdown,
-    reference_markdown_without, script_params, uses_param, CostError, CostScript, Limits,
+    reference_markdown_without, script_params, uses_param, CostError, CostScript, DeadTerm, Limits,
     MAX_SOURCE_BYTES, STDLIB_MODULES,
 };
 pub use fwd::{box_clearance, Fwd};

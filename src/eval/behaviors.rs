@@ -192,7 +192,9 @@ pub struct Verdict {
     /// Each named agent's implausible motion, or a collision between named agents, in words
     /// (`victim 389 reverses at -9.3 m/s at t = 3.9 s`).
     pub violations: Vec<String>,
-    /// The quantities behind the verdict.
+    /// The quantities behind the verdict. One that is not finite (the offset of a car that
+    /// ends on no lane is infinite) is written to JSON as `"inf"` / `"NaN"`, not `null`.
+    #[serde(serialize_with = "crate::io::json::map_f64_explicit")]
     pub measured: BTreeMap<String, f64>,
     /// Why, in words.
     pub reason: String,

@@ -4,6 +4,7 @@
 pub mod baselines;
 pub mod behaviors;
 pub mod collateral;
+pub mod feasibility;
 pub mod kinematic;
 pub mod metrics;
 pub mod tally;
@@ -11,6 +12,7 @@ pub mod tally;
 pub use baselines::Baseline;
 pub use behaviors::{check, check_against_unguided, Behavior, CheckError, Verdict};
 pub use collateral::{collateral, Collateral, CollateralError};
+pub use feasibility::{infeasible, Infeasible};
 pub use kinematic::{judge, Judgement, KinematicLimits, Violation};
 pub use tally::{map_kind, Group, MapKind, Tally, Task};
 

@@ -166,6 +166,12 @@ pub struct Tally {
     pub groups: BTreeMap<String, Tally>,
 }
 
+/// A figure for a scene's JSON row: `null` where there is none, `"NaN"` / `"inf"` where it is
+/// not finite ([`crate::io::json::number`]).
+fn num(v: Option<f64>) -> serde_json::Value {
+    v.map_or(serde_json::Value::Null, crate::io::json::number)
+}
+
 fn mean(v: &[f64]) -> Option<f64> {
     (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
 }
@@ -321,11 +327,14 @@ impl Tally {
                 }
                 if sims.len() > 1 {
                     let m = of_group(metrics::min_displacement(logged, sims));
-                    if let Some(a) = mean(&m.iter().map(|x| x.ade).collect::<Vec<_>>()) {
+                    // Both or neither: a NaN pushed here was written as null and refused by
+                    // --merge.
+                    if let (Some(a), Some(f)) = (
+                        mean(&m.iter().map(|x| x.ade).collect::<Vec<_>>()),
+                        mean(&m.iter().map(|x| x.fde).collect::<Vec<_>>()),
+                    ) {
                         self.min_ade.push(a);
-                        self.min_fde.push(
-                            mean(&m.iter().map(|x| x.fde).collect::<Vec<_>>()).unwrap_or(f64::NAN),
-                        );
+                        self.min_fde.push(f);
                     }
                 }
                 let col = metrics::rate(&only(sim, metrics::collided(sim), keep));
@@ -336,10 +345,10 @@ impl Tally {
                     self.sim_kin.extend(&metrics::kinematics_of(s, keep));
                 }
                 self.log_kin.extend(&metrics::kinematics_of(logged, keep));
-                row["ade"] = json!(ade);
-                row["fde"] = json!(fde);
-                row["collision_rate"] = json!(col);
-                row["offroad_rate"] = json!(off);
+                row["ade"] = num(ade);
+                row["fde"] = num(fde);
+                row["collision_rate"] = num(col);
+                row["offroad_rate"] = num(off);
             }
             Task::Unconditional => {
                 self.collided
@@ -353,9 +362,9 @@ impl Tally {
                     let me = metrics::mmd2(&ge, &le, metrics::median_bandwidth(&ge, &le));
                     self.mmd_near.extend(mn);
                     self.mmd_edge.extend(me);
-                    row["scene_collision_rate"] = json!(scr);
-                    row["mmd2_nearest_object"] = json!(mn);
-                    row["mmd2_road_edge"] = json!(me);
+                    row["scene_collision_rate"] = num(scr);
+                    row["mmd2_nearest_object"] = num(mn);
+                    row["mmd2_road_edge"] = num(me);
                 }
             }
             Task::Behaviour => {

@@ -13,6 +13,7 @@
 pub mod av2;
 pub mod commonroad;
 pub mod gpudrive;
+pub mod json;
 pub mod rollout;
 pub mod shard;
 pub mod tfrecord;

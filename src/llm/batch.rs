@@ -22,7 +22,9 @@ use serde::Serialize;
 
 use super::prompt::Prompts;
 use super::rules::understand_request;
-use super::session::{Backend, Outcome, RoundRecord, Session, SessionConfig};
+use super::session::{
+    run_verdict, Backend, Outcome, RoundRecord, RunVerdict, Session, SessionConfig,
+};
 use super::LlmError;
 use crate::cost::Params;
 use crate::eval::behaviors::{suggest, Behavior};
@@ -280,6 +282,21 @@ pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<S
                         }
                     }
                 }
+                // A pair no car can meet in the horizon says nothing of the loop: it is left out
+                // with the reason, as a scene without suitable agents is, before any round.
+                let cannot: Vec<String> = checks
+                    .iter()
+                    .filter_map(|(b, p)| crate::eval::infeasible(*b, &scene, p, horizon))
+                    .map(|i| i.to_string())
+                    .collect();
+                if !cannot.is_empty() {
+                    skipped.push(format!(
+                        "{id}: cannot be met within the horizon: {} (line {})",
+                        cannot.join("; "),
+                        e.line
+                    ));
+                    continue;
+                }
                 let label = match checks.as_slice() {
                     [] => "request".to_string(),
                     [(b, _)] => b.name().to_string(),
@@ -336,6 +353,9 @@ pub struct InstanceResult {
     pub tokens: u64,
     /// How the run ended, in words.
     pub outcome: String,
+    /// The run's verdict ([`super::session::run_verdict`]): what `ask` would exit with for
+    /// this pair, and what the table's last column counts.
+    pub verdict: RunVerdict,
 }
 
 /// One row of the summary.
@@ -348,7 +368,10 @@ pub struct Row {
     /// Per sampling round r (0 = before refinement): instances whose shown sample achieves
     /// the behaviour by round r, counting a run that stopped earlier with its last round.
     pub achieved: Vec<usize>,
-    /// The same, with plausible motion of the named agents (the checkers' pass).
+    /// Per sampling round r: instances whose round r succeeded ([`RoundRecord::succeeded`],
+    /// the judgement `ask` exits with: every checker passes, with plausible motion, where
+    /// checkers judge the whole request; the whole request met otherwise), counting a run that
+    /// stopped earlier with its last round.
     pub passed: Vec<usize>,
     /// Mean sampling rounds used.
     pub mean_rounds: f64,
@@ -382,10 +405,11 @@ pub fn summarise(results: &[InstanceResult], rounds: usize) -> Vec<Row> {
                         .count()
                 })
                 .collect();
+            // The same judgement as `ask`'s verdict ([`RoundRecord::succeeded`]), round by round.
             let passed = (0..=rounds)
                 .map(|k| {
                     rs.iter()
-                        .filter(|r| at(r, k).is_some_and(|x| x.passed))
+                        .filter(|r| at(r, k).is_some_and(|x| x.succeeded()))
                         .count()
                 })
                 .collect();
@@ -480,9 +504,11 @@ pub fn markdown(rows: &[Row], rounds: usize) -> String {
         ));
     }
     s.push_str(
-        "\nRound k: the share of instances whose shown sample passes every checker with plausible \
-         motion after k refinement rounds (in brackets: the geometry alone). A run that stopped \
-         earlier counts with its last round.\n",
+        "\nRound k: the share of instances that succeed after k refinement rounds, as `ask` judges \
+         a run (its verdict and exit status): the shown sample passes every checker with \
+         plausible motion where checkers judge the whole request, else meets the whole request \
+         (in brackets: the checkers' geometry alone). A run that stopped earlier counts with its \
+         last round.\n",
     );
     s
 }
@@ -574,12 +600,14 @@ mod tests {
             } else {
                 vec!["checker cut_in: short".into()]
             },
+            success: None,
         };
-        let r = |rounds| InstanceResult {
+        let r = |rounds: Vec<RoundRecord>| InstanceResult {
             label: "cut_in".into(),
             scenario: "s".into(),
             request: "r".into(),
             dir: PathBuf::new(),
+            verdict: run_verdict(&rounds),
             rounds,
             llm_calls: 2,
             tokens: 100,
@@ -601,6 +629,46 @@ mod tests {
             md.contains("| cut_in | 2 | 0.50 (0.50) | 0.50 (1.00) | 1.00 (1.00) |"),
             "{md}"
         );
+    }
+
+    #[test]
+    fn the_table_counts_a_pair_as_ask_s_verdict_judges_it() {
+        use crate::llm::session::round_succeeded;
+        // (meets, passed, fully checked): the checker passes and a term is over tolerance;
+        // the same with a clause no checker reads; no checker, the terms met; nothing met.
+        for (meets, passed, full) in [
+            (false, true, true),
+            (false, true, false),
+            (true, false, false),
+            (false, false, true),
+        ] {
+            let rounds = vec![RoundRecord {
+                exchange: 0,
+                meets,
+                achieved: passed,
+                passed,
+                reasons: Vec::new(),
+                success: Some(round_succeeded(meets, passed, full)),
+            }];
+            let result = InstanceResult {
+                label: "speed_limit".into(),
+                scenario: "s".into(),
+                request: "r".into(),
+                dir: PathBuf::new(),
+                verdict: run_verdict(&rounds),
+                rounds,
+                llm_calls: 1,
+                tokens: 10,
+                outcome: "rounds ran out".into(),
+            };
+            let rows = summarise(std::slice::from_ref(&result), 0);
+            assert_eq!(
+                rows[0].passed[0] == 1,
+                result.verdict.succeeded,
+                "{meets} {passed} {full}: {:?}",
+                result.verdict
+            );
+        }
     }
 }
 
@@ -725,6 +793,7 @@ impl Batch<'_> {
                     llm_calls: 0,
                     tokens: 0,
                     outcome: format!("not planned: {e}"),
+                    verdict: run_verdict(&[]),
                 },
                 Err(e) => return Err(stopped(e)),
                 Ok(mut session) => {
@@ -745,8 +814,12 @@ impl Batch<'_> {
                             Outcome::Accepted { round, .. } => format!("accepted in round {round}"),
                             Outcome::RoundsUsed { .. } => "rounds ran out".to_string(),
                             Outcome::GaveUp { reason } => format!("gave up: {reason}"),
+                            Outcome::Infeasible { reasons } => {
+                                format!("infeasible: {}", reasons.join("; "))
+                            }
                             Outcome::Waiting { .. } => "waiting".to_string(),
                         },
+                        verdict: session.verdict(),
                     }
                 }
             };
@@ -871,7 +944,8 @@ impl Batch<'_> {
             None => format!("{} of {} pairs done", results.len(), self.instances.len()),
         };
         let mut md = format!(
-            "# drivescript ask --batch {}\n\n{of}; {} skipped (no suitable agents).\n\n",
+            "# drivescript ask --batch {}\n\n{of}; {} skipped (no suitable agents, or a request \
+             no car can meet in the horizon).\n\n",
             self.file.display(),
             self.skipped.len()
         );

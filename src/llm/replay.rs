@@ -170,7 +170,17 @@ pub fn compare(original: &Path, replayed: &Path) -> Result<Vec<String>, LlmError
             ));
         }
     }
-    let history = |s: &Value| s["history"].as_array().cloned().unwrap_or_default();
+    // The verdict as sampled; `success`, kept only since the one judgement of ask and the
+    // batch table, is derived from it and absent from older recordings.
+    let history = |s: &Value| {
+        let mut h = s["history"].as_array().cloned().unwrap_or_default();
+        for r in &mut h {
+            if let Some(o) = r.as_object_mut() {
+                o.remove("success");
+            }
+        }
+        h
+    };
     let (ha, hb) = (history(&a), history(&b));
     for (k, (x, y)) in ha.iter().zip(&hb).enumerate() {
         if x != y {

@@ -81,8 +81,14 @@ pub struct SessionConfig {
     pub lambda: f64,
     /// Weight of the realism terms.
     pub realism: f64,
-    /// Whether to guide through the denoiser (the paper's rule) instead of in output space.
-    pub through_denoiser: bool,
+    /// Where the guidance gradient is taken (`--guidance`). Runs recorded before it was one
+    /// setting stored `through_denoiser: true|false`, read as denoiser / output.
+    #[serde(
+        alias = "through_denoiser",
+        deserialize_with = "guidance_or_legacy_flag",
+        default = "default_guidance"
+    )]
+    pub guidance: crate::sample::Guidance,
     /// Descent steps on the guidance cost after the last denoising step
     /// ([`SampleConfig::polish`]); runs recorded before it existed had none.
     #[serde(default)]
@@ -107,7 +113,7 @@ impl Default for SessionConfig {
             seed: 1,
             lambda: crate::sample::BEHAVIOUR_LAMBDA,
             realism: crate::sample::REALISM_WEIGHT,
-            through_denoiser: false,
+            guidance: crate::sample::DEFAULT_GUIDANCE,
             polish: crate::sample::POLISH_STEPS,
             replan: None,
             context: None,
@@ -134,11 +140,7 @@ impl SessionConfig {
             seed: self.seed,
             lambda: self.lambda,
             task: crate::sample::Task::Unconditional,
-            guidance: if self.through_denoiser {
-                crate::sample::Guidance::Denoiser
-            } else {
-                crate::sample::Guidance::OutputSpace
-            },
+            guidance: self.guidance,
             schedule: crate::sample::LambdaSchedule::Fading,
             realism: crate::cost::Realism {
                 weight: self.realism,
@@ -148,6 +150,28 @@ impl SessionConfig {
             ..SampleConfig::default()
         }
     }
+}
+
+fn default_guidance() -> crate::sample::Guidance {
+    crate::sample::DEFAULT_GUIDANCE
+}
+
+/// `guidance` as written now (`"denoiser"` / `"output"`), or the `through_denoiser` flag of
+/// runs recorded before (`true` / `false`), so that `--resume` and `--replay` read them.
+fn guidance_or_legacy_flag<'de, D: serde::Deserializer<'de>>(
+    d: D,
+) -> Result<crate::sample::Guidance, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum Written {
+        Flag(bool),
+        Name(crate::sample::Guidance),
+    }
+    Ok(match Written::deserialize(d)? {
+        Written::Flag(true) => crate::sample::Guidance::Denoiser,
+        Written::Flag(false) => crate::sample::Guidance::OutputSpace,
+        Written::Name(g) => g,
+    })
 }
 
 /// A checker of the request, stored by name.
@@ -181,6 +205,13 @@ pub enum Outcome {
         /// Why.
         reason: String,
     },
+    /// The request asks what no plausible motion can do within the sampler's horizon
+    /// ([`crate::eval::infeasible`]): said before any round, so that no reply or sampling is
+    /// spent pretending it can be met.
+    Infeasible {
+        /// Why, one line per event that cannot be met.
+        reasons: Vec<String>,
+    },
     /// A manual round waits for its reply.
     Waiting {
         /// The prompt to paste.
@@ -205,6 +236,88 @@ pub struct RoundRecord {
     pub passed: bool,
     /// Why the shown sample does not meet the request.
     pub reasons: Vec<String>,
+    /// Whether the round succeeded ([`round_succeeded`]), as it was judged when sampled;
+    /// absent in runs recorded before it was kept ([`RoundRecord::succeeded`] then judges).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub success: Option<bool>,
+}
+
+impl RoundRecord {
+    /// Whether the round succeeded: the one judgement `ask` (its verdict and exit status)
+    /// and `ask --batch` (its per-pair line and table) give ([`round_succeeded`]). A record
+    /// from before it was kept is judged as if every clause had a checker (or none did).
+    pub fn succeeded(&self) -> bool {
+        self.success.unwrap_or(self.passed || self.meets)
+    }
+
+    /// The round's result in words, the same in `ask`'s report and `ask --batch`'s lines.
+    pub fn verdict_words(&self) -> &'static str {
+        match (self.succeeded(), self.meets, self.passed, self.achieved) {
+            (true, true, _, _) => "met",
+            (true, false, _, _) => "met by the checkers (script terms over tolerance)",
+            (false, _, true, _) => "checkers pass, unchecked clauses not met",
+            (false, _, false, true) => "achieved implausibly",
+            (false, _, false, false) => "fail",
+        }
+    }
+}
+
+/// Whether a sampling round succeeded, from its shown sample: the one rule behind `ask`'s
+/// verdict and exit status and `ask --batch`'s table.
+///
+/// Where checkers judge every clause of the request (`fully_checked`), success is theirs: the
+/// sample passes every checker, with plausible motion of the agents they name and the rest of
+/// the scene no worse than unguided (the paper's measure). Script terms above their tolerance
+/// then mean that the script asks for more than the request: the loop goes on to relax them,
+/// and an ACCEPT still needs them met, but the request is met. Without checkers, or where a
+/// clause has none, the terms are the only judge of what no checker reads: success is
+/// meeting the whole request (`meets`: terms within tolerance, checkers pass, named agents
+/// plausible). `ask` once failed a run whose checker passed every sample while the batch
+/// table counted it a success.
+pub fn round_succeeded(meets: bool, passed: bool, fully_checked: bool) -> bool {
+    if fully_checked {
+        passed
+    } else {
+        meets
+    }
+}
+
+/// A run's verdict: judged on its last sampling round (the final script's), whatever ended
+/// the run.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct RunVerdict {
+    /// Whether the final round succeeded ([`RoundRecord::succeeded`]).
+    pub succeeded: bool,
+    /// That round's exchange (`round_N`), when something was sampled.
+    pub round: Option<usize>,
+    /// In words: the round's verdict, or why nothing was judged.
+    pub text: String,
+}
+
+/// The verdict of a run with `history` (its sampling rounds, in order): what `ask` prints and
+/// exits with and what `ask --batch` counts for the pair.
+pub fn run_verdict(history: &[RoundRecord]) -> RunVerdict {
+    match history.last() {
+        None => RunVerdict {
+            succeeded: false,
+            round: None,
+            text: "nothing was sampled".into(),
+        },
+        Some(r) => RunVerdict {
+            succeeded: r.succeeded(),
+            round: Some(r.exchange),
+            text: format!(
+                "{}: round {} {}",
+                if r.succeeded() {
+                    "succeeded"
+                } else {
+                    "not met"
+                },
+                r.exchange,
+                r.verdict_words()
+            ),
+        },
+    }
 }
 
 /// What persists between steps (`state.json`).
@@ -574,6 +687,27 @@ impl<'a> Session<'a> {
         &self.state.history
     }
 
+    /// The run's verdict ([`run_verdict`] of its rounds): what `ask` exits with and what
+    /// `ask --batch` counts.
+    pub fn verdict(&self) -> RunVerdict {
+        run_verdict(&self.state.history)
+    }
+
+    /// The events of the request no plausible motion can meet within the sampler's horizon,
+    /// judged from the scene's current state ([`crate::eval::infeasible`]).
+    pub fn infeasible(&self) -> Vec<crate::eval::Infeasible> {
+        let horizon = self
+            .state
+            .config
+            .sample_config()
+            .horizon
+            .unwrap_or(self.trained.meta.config.window.future);
+        self.checks()
+            .iter()
+            .filter_map(|(b, p)| crate::eval::infeasible(*b, &self.raw, p, horizon))
+            .collect()
+    }
+
     /// Calls to the LLM server and the tokens they used (prompt + completion), from the
     /// transcript.
     pub fn usage(&self) -> (usize, u64) {
@@ -658,6 +792,18 @@ impl<'a> Session<'a> {
     /// Runs until the loop ends or a manual round waits. `progress` receives one line per
     /// phase (the CLI prints them).
     pub fn run(&mut self, progress: &mut dyn FnMut(&str)) -> Result<Outcome, LlmError> {
+        // A request no car can meet in the horizon is said before any round: asking the model
+        // and sampling would only show, round after round, what the current state already
+        // proves (a follow-up's new events are judged here too).
+        if self.state.outcome.is_none() {
+            let reasons: Vec<String> = self.infeasible().iter().map(|i| i.to_string()).collect();
+            if !reasons.is_empty() {
+                for r in &reasons {
+                    progress(&format!("cannot be met within the horizon: {r}"));
+                }
+                return self.finish(Outcome::Infeasible { reasons }, progress);
+            }
+        }
         loop {
             if let Some(o) = &self.state.outcome {
                 return Ok(o.clone());
@@ -860,6 +1006,8 @@ impl<'a> Session<'a> {
             checks: self.checks(),
             cfg: self.state.config.sample_config(),
             replan: self.state.config.replan,
+            // Back to the model as a validation error, before any sampling.
+            refuse_dead_terms: true,
         };
         attempt(self.trained, &self.raw, &spec)
     }
@@ -933,12 +1081,15 @@ impl<'a> Session<'a> {
         self.state.script = Some((n, source.to_string()));
         self.state.meets = meets;
         let shown = &done.report.samples[best];
+        let passed = shown.passed() == Some(true);
+        let fully_checked = !done.report.checks.is_empty() && self.unchecked().is_empty();
         self.state.history.push(RoundRecord {
             exchange: n,
             meets: meets.is_some(),
             achieved: !shown.verdicts.is_empty() && shown.verdicts.iter().all(|v| v.achieved),
-            passed: shown.passed() == Some(true),
+            passed,
             reasons: reasons[best].clone(),
+            success: Some(round_succeeded(meets.is_some(), passed, fully_checked)),
         });
         self.state.failing_terms = shown
             .terms
@@ -1005,8 +1156,19 @@ impl<'a> Session<'a> {
                 }
             )),
             Outcome::GaveUp { reason } => report.push_str(&format!("Outcome: gave up: {reason}\n")),
+            Outcome::Infeasible { reasons } => {
+                report.push_str(
+                    "Outcome: not attempted: no plausible motion meets the request within the \
+                     sampler's horizon, so no round was asked or sampled:\n",
+                );
+                for r in reasons {
+                    report.push_str(&format!("- {r}\n"));
+                }
+            }
             Outcome::Waiting { .. } => {}
         }
+        // The one judgement `ask` exits with and `ask --batch` counts.
+        report.push_str(&format!("Verdict: {}.\n", self.verdict().text));
         if let Some((round, script)) = &self.state.script {
             write(&self.dir, "final.rhai", script)?;
             let from = self.dir.join(format!("round_{round}"));
@@ -1035,12 +1197,12 @@ impl<'a> Session<'a> {
         write(&self.dir, "report.md", &report)?;
         self.state.outcome = Some(o.clone());
         self.save()?;
-        progress(
-            report
-                .lines()
-                .find(|l| l.starts_with("Outcome"))
-                .unwrap_or(""),
-        );
+        for line in report
+            .lines()
+            .filter(|l| l.starts_with("Outcome") || l.starts_with("Verdict"))
+        {
+            progress(line);
+        }
         Ok(o)
     }
 
@@ -1371,4 +1533,77 @@ pub fn render_messages(messages: &[Message]) -> String {
         s.push_str(&format!("<!-- {} -->\n\n{}\n\n", m.role, m.content.trim()));
     }
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn guidance_is_one_setting_and_runs_recorded_with_the_old_flag_read_it() {
+        let fresh = serde_json::to_value(SessionConfig::default()).unwrap();
+        assert_eq!(fresh["guidance"], "output");
+        assert!(fresh.get("through_denoiser").is_none(), "{fresh}");
+        // state.json and transcript.json of runs before the flag was one setting.
+        for (old, want) in [
+            (true, crate::sample::Guidance::Denoiser),
+            (false, crate::sample::Guidance::OutputSpace),
+        ] {
+            let mut v = fresh.clone();
+            let o = v.as_object_mut().unwrap();
+            o.remove("guidance");
+            o.insert("through_denoiser".into(), old.into());
+            let read: SessionConfig = serde_json::from_value(v).unwrap();
+            assert_eq!(read.guidance, want);
+            assert_eq!(read.sample_config().guidance, want);
+        }
+        let mut v = fresh;
+        v["guidance"] = "denoiser".into();
+        let read: SessionConfig = serde_json::from_value(v.clone()).unwrap();
+        assert_eq!(read.guidance, crate::sample::Guidance::Denoiser);
+        v["guidance"] = "backwards".into();
+        assert!(serde_json::from_value::<SessionConfig>(v).is_err());
+    }
+
+    fn record(meets: bool, passed: bool, fully_checked: bool) -> RoundRecord {
+        RoundRecord {
+            exchange: 0,
+            meets,
+            achieved: passed,
+            passed,
+            reasons: Vec::new(),
+            success: Some(round_succeeded(meets, passed, fully_checked)),
+        }
+    }
+
+    #[test]
+    fn a_round_succeeds_by_its_checkers_where_they_judge_the_whole_request() {
+        // Every checker passes, a script term is over its tolerance: met, by the checkers.
+        let r = record(false, true, true);
+        assert!(r.succeeded());
+        assert_eq!(
+            r.verdict_words(),
+            "met by the checkers (script terms over tolerance)"
+        );
+        // A clause without a checker: its terms judge it, and they fail.
+        let r = record(false, true, false);
+        assert!(!r.succeeded());
+        assert_eq!(
+            r.verdict_words(),
+            "checkers pass, unchecked clauses not met"
+        );
+        // No checker at all: the terms and the named agents' motion.
+        assert!(record(true, false, false).succeeded());
+        assert!(!record(false, false, false).succeeded());
+        // The run's verdict is its last round's.
+        let v = run_verdict(&[record(false, false, true), record(false, true, true)]);
+        assert!(v.succeeded && v.round == Some(0), "{v:?}");
+        assert!(!run_verdict(&[]).succeeded);
+        // Records from before the judgement was kept.
+        let old = RoundRecord {
+            success: None,
+            ..record(false, true, true)
+        };
+        assert!(old.succeeded());
+    }
 }

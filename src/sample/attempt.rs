@@ -14,7 +14,7 @@ use serde::Serialize;
 
 use super::closed_loop::closed_loop;
 use super::guided::{
-    prepare_for, sample, sampled_horizon, Guidance, Sample, SampleConfig, SampleError, Task,
+    prepare_for, sample, sampled_horizon, Sample, SampleConfig, SampleError, Task,
 };
 use crate::cost::ScriptSpec;
 use crate::cost::{check_params, CostError, CostScript, Params};
@@ -38,6 +38,12 @@ pub struct AttemptSpec {
     /// Closed loop: steps executed before re-planning (5 = 2 Hz at 10 Hz); `None` samples the
     /// whole horizon at once.
     pub replan: Option<usize>,
+    /// What a term that no probe moves ([`crate::cost::CostScript::dead_terms`]) does: refuse
+    /// the attempt before sampling, as a validation error (the LLM loop: the model wrote it for
+    /// this request and repairs it for the price of a reply, not of a sampling round), or go
+    /// into [`AttemptReport::warnings`] (`simulate`: the user chose the script, perhaps as a
+    /// guard against something the probes do not try, so it is said, not refused).
+    pub refuse_dead_terms: bool,
 }
 
 /// Why an attempt did not produce samples.
@@ -68,9 +74,10 @@ pub struct TermOutcome {
     pub weight: f64,
     /// Unweighted value on the first denoised estimate, before any guidance (absent in closed
     /// loop when the term appears only later).
+    #[serde(serialize_with = "crate::io::json::opt_f64_explicit")]
     pub initial: Option<f64>,
     /// Unweighted value on the final trajectories.
-    #[serde(rename = "final")]
+    #[serde(rename = "final", serialize_with = "crate::io::json::f64_explicit")]
     pub value: f64,
     /// The script's tolerance for it, when it gives one.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -89,6 +96,7 @@ pub struct RealismEvent {
     /// Seconds after the current step.
     pub time: f64,
     /// The offending value in SI units.
+    #[serde(serialize_with = "crate::io::json::f64_explicit")]
     pub value: f64,
     /// In words (`reverses at -9.3 m/s at t = 3.9 s`).
     pub text: String,
@@ -103,6 +111,7 @@ pub struct SampleOutcome {
     /// Index in the batch.
     pub sample: usize,
     /// Weighted total of every term (realism's included) on the final trajectories.
+    #[serde(serialize_with = "crate::io::json::f64_explicit")]
     pub total: f64,
     /// Every term of every script, in script then declaration order, then realism's terms
     /// (script `realism`) when realism guided.
@@ -148,6 +157,10 @@ pub struct AttemptReport {
     pub samples: Vec<SampleOutcome>,
     /// Agents the model does not move (types it never saw), as `type id`.
     pub not_sampled: Vec<String>,
+    /// What validation found worth saying without refusing: terms that can never steer
+    /// ([`AttemptSpec::refuse_dead_terms`]), each naming its script, line and term.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
 }
 
 impl AttemptReport {
@@ -323,12 +336,40 @@ pub fn attempt(
     for s in &spec.scripts {
         check_params(&sources, &s.params).map_err(AttemptError::Script)?;
     }
+    let mut warnings = Vec::new();
     let scripts = spec
         .scripts
         .iter()
         .map(|s| {
             let c = CostScript::compile(&s.source, &s.name, shared.clone(), &s.params, &s.limits)?;
             c.validate()?;
+            let dead = c.dead_terms();
+            if spec.refuse_dead_terms {
+                if let Some(first) = dead.first() {
+                    return Err(match first.to_error() {
+                        CostError::Term {
+                            script,
+                            term,
+                            line,
+                            message,
+                        } if dead.len() > 1 => CostError::Term {
+                            script,
+                            term,
+                            line,
+                            message: format!(
+                                "{message}; so are {}",
+                                dead[1..]
+                                    .iter()
+                                    .map(|d| format!("{:?} (line {})", d.term, d.line))
+                                    .collect::<Vec<_>>()
+                                    .join(", ")
+                            ),
+                        },
+                        e => e,
+                    });
+                }
+            }
+            warnings.extend(dead.iter().map(|d| d.to_string()));
             Ok(c)
         })
         .collect::<Result<Vec<_>, CostError>>()
@@ -449,10 +490,7 @@ pub fn attempt(
                 Task::Conditional => "conditional",
                 Task::Unconditional => "unconditional",
             },
-            guidance: match cfg.guidance {
-                Guidance::Denoiser => "denoiser",
-                Guidance::OutputSpace => "output",
-            },
+            guidance: cfg.guidance.name(),
             lambda: cfg.lambda,
             steps: cfg.steps,
             samples: cfg.samples,
@@ -471,6 +509,7 @@ pub fn attempt(
             })
             .unwrap_or_default(),
         samples: outcomes,
+        warnings,
     };
     Ok(Attempt {
         samples,
@@ -524,6 +563,7 @@ mod tests {
             checks: vec![(Behavior::CutIn, p.clone())],
             cfg: cfg(),
             replan: None,
+            refuse_dead_terms: true,
         };
         let a = attempt(&t, &scene, &spec).unwrap();
         let r = &a.report;
@@ -704,10 +744,48 @@ mod tests {
             checks: Vec::new(),
             cfg: cfg(),
             replan: Some(5),
+            refuse_dead_terms: true,
         };
         let e = attempt(&t, &scene, &spec).unwrap_err();
         assert!(matches!(e, AttemptError::Script(_)), "{e}");
         assert!(e.to_string().contains("scripts/cut_in.rhai"), "{e}");
+        // A term no probe moves: refused before sampling where the caller refuses it (the LLM
+        // loop), else sampled and reported, naming script, line and term. A guard that is 0 on
+        // the log (no collision there) but wakes when cars meet is neither.
+        let dead = ScriptSpec::new(
+            "term(\"guard\", no_collision_cost(vehicles(), 0.5));\n\
+             term(\"never\", relu(agent(1).speed - 60.0).mean());\n\
+             term(\"nil\", 0.0 * agent(2).x.last());\n"
+                .to_string(),
+            "dead.rhai",
+            Params::default(),
+        );
+        let mut spec = AttemptSpec {
+            scripts: vec![dead],
+            checks: Vec::new(),
+            cfg: cfg(),
+            replan: None,
+            refuse_dead_terms: true,
+        };
+        let e = attempt(&t, &scene, &spec).unwrap_err().to_string();
+        assert!(
+            e.starts_with("dead.rhai:2: term \"never\": it is 0 with a zero gradient")
+                && e.contains("can never steer sampling")
+                && e.contains("so are \"nil\" (line 3)")
+                && !e.contains("guard"),
+            "{e}"
+        );
+        spec.refuse_dead_terms = false;
+        let a = attempt(&t, &scene, &spec).unwrap();
+        let w = &a.report.warnings;
+        assert_eq!(w.len(), 2, "{w:?}");
+        assert!(
+            w[0].starts_with("dead.rhai:2: term \"never\"")
+                && w[1].starts_with("dead.rhai:3: term \"nil\""),
+            "{w:?}"
+        );
+        let json = serde_json::to_value(&a.report).unwrap();
+        assert_eq!(json["warnings"][1], w[1].as_str());
         // Closed loop compiles with the script's own limits, not the defaults.
         let mut s = cut_in(&Params::numbers(&[("cutter", 2.0), ("victim", 1.0)]));
         s.limits = Limits {

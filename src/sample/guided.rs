@@ -25,14 +25,37 @@ pub enum Task {
     Unconditional,
 }
 
-/// Where the guidance gradient is taken.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// Where the guidance gradient is taken: `--guidance denoiser|output` on every command that
+/// samples, `denoiser` / `output` in run records.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub enum Guidance {
-    /// Through the denoiser to the noisy input (candle backward).
+    /// Through the denoiser to the noisy input (candle backward; the paper's rule).
+    #[serde(rename = "denoiser")]
     Denoiser,
     /// At the denoised output (no backward pass).
+    #[serde(rename = "output")]
     OutputSpace,
 }
+
+impl Guidance {
+    /// `denoiser` or `output`, as `--guidance` and the reports name it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Guidance::Denoiser => "denoiser",
+            Guidance::OutputSpace => "output",
+        }
+    }
+}
+
+/// The guidance every command that samples uses unless told otherwise (`simulate`, `ask`,
+/// `ask --batch`, `demo`): output space. It is what the loop and the demo were built and
+/// measured with (the README's batch figures, the demo's run), what most behaviour tables of
+/// data/checkpoint/README.md use, and it is faster (0.12 s against 0.20 s a guided sample;
+/// 221 s against 268 s for the held-out windows' table) at rates within a few windows of the
+/// denoiser's either way (cut-in 0.80 against 0.87, rightmost lane 0.81 against 0.75).
+/// `simulate` once defaulted to the denoiser while `ask` took output space: one setting named
+/// two ways with two defaults.
+pub const DEFAULT_GUIDANCE: Guidance = Guidance::OutputSpace;
 
 /// Guidance strength λ for behaviour scripts (unconditional task, [`LambdaSchedule::Fading`]),
 /// chosen on the held-out NGSIM instances with the shipped checkpoint (data/checkpoint/README.md:
@@ -159,7 +182,7 @@ impl Default for SampleConfig {
             seed: 1,
             lambda: 0.1,
             task: Task::Conditional,
-            guidance: Guidance::OutputSpace,
+            guidance: DEFAULT_GUIDANCE,
             known_weight: 1.0,
             schedule: LambdaSchedule::Constant,
             clamp: Clamp::Coordinate,
