@@ -1,7 +1,8 @@
 """Cars that stand (under 0.2 m/s) throughout their recorded future, and what a rollout made of
 them over the first 4 s: the sampled path length, the net displacement, how many start to
 drive (net over 2 m), how often the motion along the heading changes sign (wobble), and the
-path of those that stay.
+path of those that stay; then their sampled speeds per step (count, mean, median, 90th
+percentile, m/s).
 
     python3 standing_wobble.py SCENES_DIR ROLLOUTS_DIR      (needs PyYAML)
 
@@ -19,7 +20,7 @@ import yaml
 
 def main():
     log_dir, roll_dir = sys.argv[1], sys.argv[2]
-    rows = []
+    rows, speeds = [], []
     for f in sorted(glob.glob(os.path.join(log_dir, "*.yaml"))):
         stem = os.path.basename(f)[:-5]
         r = os.path.join(roll_dir, stem + "_0.json")
@@ -38,7 +39,10 @@ def main():
                  for i in range(len(fut) - 1)]
             if max(v) >= 0.2 or a["id"] not in rollout:
                 continue
-            rs = [s for s in rollout[a["id"]]["states"][c:c + 41] if s[3]]
+            window = rollout[a["id"]]["states"][c:c + 41]
+            speeds += [math.hypot(q[0] - p[0], q[1] - p[1]) / 0.1
+                       for p, q in zip(window, window[1:]) if p[3] and q[3]]
+            rs = [s for s in window if s[3]]
             path = sum(math.hypot(rs[i + 1][0] - rs[i][0], rs[i + 1][1] - rs[i][1])
                        for i in range(len(rs) - 1))
             net = math.hypot(rs[-1][0] - rs[0][0], rs[-1][1] - rs[0][1])
@@ -59,6 +63,10 @@ def main():
           f"mean net {sum(r[1] for r in rows) / n:.2f} m, start to drive (net > 2 m) {drive}, "
           f"mean sign changes {sum(r[2] for r in rows) / n:.1f}, "
           f"path of those that stay (net <= 2 m) {sum(stay) / max(1, len(stay)):.2f} m")
+    speeds.sort()
+    m = len(speeds)
+    print(f"sampled speeds: n {m} mean {sum(speeds) / m:.2f} median {speeds[m // 2]:.2f} "
+          f"p90 {speeds[int(0.9 * m)]:.2f}")
 
 
 if __name__ == "__main__":
