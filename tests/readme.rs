@@ -229,7 +229,10 @@ fn links_between_the_readme_and_docs_resolve() {
 fn readme_is_a_front_page_that_links_every_chapter() {
     let text = readme();
     let lines = text.lines().count();
-    assert!(lines <= 300, "README.md has {lines} lines: move reference into docs/");
+    assert!(
+        lines <= 300,
+        "README.md has {lines} lines: move reference into docs/"
+    );
     for doc in documents().iter().skip(1) {
         let name = doc.file_name().unwrap().to_str().unwrap();
         assert!(
