@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Writes a YAML scene of N cars on an 8-lane straight road (2 km), 91 steps: the crowd the
-README's scaling figures were measured on.
+scaling figures of docs/model.md were measured on.
 
     python3 benches/crowd/make.py 2000 > /tmp/crowd.yaml
 """

@@ -4,7 +4,7 @@ For each attention block of one denoiser evaluation: the mean norm of its query 
 inputs, the spread of its scores (standard deviation of the query-key and query-pair terms
 over present keys), the attention's entropy relative to uniform (1 = uniform, 0 = one key
 only) and the mean largest weight. It is how the collapse of trained raw scores was found
-(README, Diffusion model): every agent-agent row had entropy near 0.
+(docs/model.md): every agent-agent row had entropy near 0.
 
     python benches/torch/attention.py CHECKPOINT [CHECKPOINT ...] [--sigma 1.0]
 

@@ -6,7 +6,7 @@
 # all vehicles that collide and that a car could not drive in the guided samples, and the same
 # fractions in the log and in unguided samples of the same instances (same seed). Each guided
 # sample is judged against its unguided twin (`eval --unguided`): it passes only when the
-# vehicles the behaviour does not name fare no worse, within the tolerance in README.
+# vehicles the behaviour does not name fare no worse, within the tolerance in docs/evaluation.md.
 #   INSTANCES  a directory cut by heldout.sh (OUT/behaviour or OUT/windows)
 #   OUT        where rollouts and eval JSON go (one directory per behaviour, plus unguided/)
 #   extra arguments go to every `simulate` (e.g. --guidance denoiser, --lambda 2)

@@ -78,7 +78,7 @@ pub struct Args {
     /// For --task behaviour with --rollouts: the same scenes sampled unguided (same seed and
     /// samples, e.g. `simulate` without a script). A sample then passes only when the vehicles
     /// the behaviour does not name collide and drive implausibly no more than in its unguided
-    /// twin, within the tolerance in README (Evaluation).
+    /// twin, within the tolerance in docs/evaluation.md.
     #[arg(long, value_name = "DIR", requires = "rollouts")]
     unguided: Option<PathBuf>,
     /// Score exactly this many future steps (a model's horizon): scenes are cut, or extended
@@ -600,7 +600,7 @@ fn report(
         );
     }
     println!(
-        "\nimplausible: fraction of vehicles (pooled over scenes and samples) whose future a car cannot drive: reversing, sprinting, braking or accelerating beyond 7 m/s², swerving, crabbing or turning tighter than Waymax's curvature bound (README, Evaluation); not counted: what a behaviour asks of the agents it names (the car reverse asks to back up)"
+        "\nimplausible: fraction of vehicles (pooled over scenes and samples) whose future a car cannot drive: reversing, sprinting, braking or accelerating beyond 7 m/s², swerving, crabbing or turning tighter than Waymax's curvature bound (docs/evaluation.md); not counted: what a behaviour asks of the agents it names (the car reverse asks to back up)"
     );
     if task == Task::Conditional {
         println!("\nJSD: Jensen-Shannon distance (natural log) of histograms pooled over agents, steps and scenes; bins {}", serde_json::to_string(&bins)?);

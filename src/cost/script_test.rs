@@ -1,6 +1,6 @@
 //! Script unit tests: YAML files next to a script (`name.test.yaml`) naming scenes, parameters,
-//! candidate trajectories and expectations. The format is documented in README.md
-//! ("Testing cost scripts"); `drivescript test-scripts` and `cargo test` run them.
+//! candidate trajectories and expectations. The format is documented in
+//! docs/cost-scripts.md ("Testing cost scripts"); `drivescript test-scripts` and `cargo test` run them.
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};

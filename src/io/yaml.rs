@@ -1,6 +1,6 @@
 //! drivescript's YAML scenes: a straight or curved multi-lane road and a few agents, written by
 //! hand in a few lines, or a full map (`map:`) as `drivescript convert` writes it. The format is
-//! documented in README.md ("YAML scenes").
+//! documented in docs/scene-formats.md ("YAML scenes").
 //!
 //! The road is built along a reference line, its right edge: it starts at `origin`, heads
 //! `heading` degrees and is straight (`radius: 0`) or an arc (`radius > 0` bends left, `< 0`

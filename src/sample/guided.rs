@@ -49,7 +49,7 @@ impl Guidance {
 
 /// The guidance every command that samples uses unless told otherwise (`simulate`, `ask`,
 /// `ask --batch`, `demo`): output space. It is what the loop and the demo were built and
-/// measured with (the README's batch figures, the demo's run), what most behaviour tables of
+/// measured with (the batch figures of docs/asking.md, the demo's run), what most behaviour tables of
 /// data/checkpoint/README.md use, and it is faster (0.12 s against 0.20 s a guided sample;
 /// 221 s against 268 s for the held-out windows' table) at rates within a few windows of the
 /// denoiser's either way (cut-in 0.80 against 0.87, rightmost lane 0.81 against 0.75).
