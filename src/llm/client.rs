@@ -502,14 +502,49 @@ fn read_error(e: &std::io::Error, url: &str, cfg: &HttpConfig, got: usize) -> Ll
     }
 }
 
-/// `text` with every occurrence of `key` replaced by `[redacted]`. Keys shorter than 8 bytes
-/// are left alone: no real key is that short, and replacing a common word everywhere would
-/// garble replies.
+/// `text` with every occurrence of `key` replaced by `[redacted]`, also where whitespace was
+/// put inside it: a server that wrapped the echoed key across lines (`sk-TES\nT123xyz`) showed
+/// it once the error's lines were joined. Keys shorter than 8 bytes are left alone: no real key
+/// is that short, and replacing a common word everywhere would garble replies.
 pub fn redact_key(text: &str, key: Option<&str>) -> String {
-    match key.map(str::trim) {
-        Some(k) if k.len() >= 8 && text.contains(k) => text.replace(k, "[redacted]"),
-        _ => text.to_string(),
+    let Some(k) = key.map(str::trim).filter(|k| k.len() >= 8) else {
+        return text.to_string();
+    };
+    let text = if text.contains(k) {
+        text.replace(k, "[redacted]")
+    } else {
+        text.to_string()
+    };
+    let want: Vec<char> = k.chars().filter(|c| !c.is_whitespace()).collect();
+    let chars: Vec<(usize, char)> = text.char_indices().collect();
+    let mut out = String::with_capacity(text.len());
+    let (mut i, mut copied) = (0, 0);
+    while i < chars.len() {
+        if chars[i].1 != want[0] {
+            i += 1;
+            continue;
+        }
+        // Match the key's characters in order, skipping whitespace between them.
+        let (mut j, mut m) = (i, 0);
+        while j < chars.len() && m < want.len() {
+            if chars[j].1 == want[m] {
+                m += 1;
+            } else if !(m > 0 && chars[j].1.is_whitespace()) {
+                break;
+            }
+            j += 1;
+        }
+        if m == want.len() {
+            out.push_str(&text[copied..chars[i].0]);
+            out.push_str("[redacted]");
+            copied = chars.get(j).map_or(text.len(), |c| c.0);
+            i = j;
+        } else {
+            i += 1;
+        }
     }
+    out.push_str(&text[copied..]);
+    out
 }
 
 impl HttpClient {
@@ -677,6 +712,17 @@ mod tests {
             "Bearer [redacted] and [redacted]"
         );
         assert_eq!(redact_key("the cutter", Some("the")), "the cutter");
+        // Wrapped or spaced by the server: still the key.
+        let k = Some("sk-TEST123xyz");
+        assert_eq!(
+            redact_key("your key sk-TES\nT123xyz was wrong", k),
+            "your key [redacted] was wrong"
+        );
+        assert_eq!(
+            redact_key("a sk-TEST\r\n 123 xyz b sk-TEST12", k),
+            "a [redacted] b sk-TEST12"
+        );
+        assert_eq!(redact_key("sk-TEST123xyz", k), "[redacted]");
         assert_eq!(redact_key("no key", None), "no key");
     }
 
