@@ -180,15 +180,12 @@ pub struct RoadDeparture {
 
 impl std::fmt::Display for RoadDeparture {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        // Short: it goes into every round's feedback, which must fit small context windows.
         write!(
             f,
             "{} corner {:.2} m off the road at {:.1} s",
             self.corner, self.distance, self.time
-        )?;
-        if self.first < self.time {
-            write!(f, " (off from {:.1} s)", self.first)?;
-        }
-        Ok(())
+        )
     }
 }
 

@@ -145,9 +145,8 @@ pub fn feedback(a: &Attempt, acc: &Acceptance) -> String {
         s,
         "A sample meets the request when every term is at most its tolerance (unweighted; {} \
          unless the script gives one with term(name, value, weight, tolerance)), every checker \
-         passes, no named agent moves implausibly (beyond what a checked behaviour asks \
-         of it or your script allows, such as backing up with allow(a, \"reverse\")) and \
-         none leaves the road unless the request sends it there.",
+         passes and no named agent moves implausibly (beyond what a checker asks or your \
+         script allows) or leaves the road unasked.",
         acc.tolerance
     );
     s.push_str("\n## Terms (unweighted values; the total is the weighted sum)\n\n");
@@ -325,8 +324,7 @@ fn motion(s: &mut String, scene: &Scene, named: &[i64]) {
             s,
             "\nAgent {id}{}{}: t (s), x, y (m), speed (m/s), accel (m/s²), lane, s, d (m) on the path of lane {}{}",
             left_map(scene, a).map_or(String::new(), |t| format!(
-                " (leaves the map after {t:.1} s, its last step: .last() and the horizon's \
-                 end mean {t:.1} s for it)"
+                " (leaves the map after {t:.1} s: its .last() is then)"
             )),
             match (hits[idx], road_departure(scene, a)) {
                 (Some(true), Some(d)) => format!(" (collides; leaves the road: {d})"),
@@ -466,7 +464,7 @@ mod tests {
         let mut text = String::new();
         motion(&mut text, &s, &[3]);
         assert!(
-            text.contains("Agent 3 (leaves the map after 1.7 s, its last step"),
+            text.contains("Agent 3 (leaves the map after 1.7 s: its .last() is then)"),
             "{text}"
         );
     }
