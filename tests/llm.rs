@@ -1835,3 +1835,33 @@ fn ask_and_the_batch_table_give_one_verdict_when_the_checker_passes_but_a_term_d
     assert_eq!(summary["rows"][0]["label"], "speed_limit");
     assert_eq!(summary["rows"][0]["passed"][0], 1);
 }
+
+#[test]
+fn an_accept_refused_in_the_last_round_gets_a_turn_to_accept_the_answer() {
+    // One refinement round: the idle script fails, its ACCEPT is refused, and the cut-in that
+    // answers the refusal is the last sampling. It meets the request, so the model gets one
+    // more turn to accept it; the run once ended "(not accepted)" here.
+    let srv = Server::start(vec![
+        Canned::chat(&reply(IDLE)),
+        Canned::chat("ACCEPT"),
+        Canned::chat(&reply(&cut_in_script(401, 399))),
+        Canned::chat("The cut-in passes now.\nACCEPT"),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(dir.path(), &["--rounds", "1"], Some(&srv.url));
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    assert_eq!(srv.received().len(), 4, "{t}");
+    assert!(t.contains("one more turn to accept it"), "{t}");
+    let last = last_user(&srv, 3);
+    assert!(
+        last.contains("The rounds are used up (--rounds 1)") && last.contains("Reply ACCEPT"),
+        "{last}"
+    );
+    let report = std::fs::read_to_string(dir.path().join("report.md")).unwrap();
+    assert!(
+        report.contains("accepted: sample") && report.contains("of round 2"),
+        "{report}"
+    );
+    assert!(!t.contains("(not accepted)"), "{t}");
+}

@@ -160,6 +160,91 @@ pub fn offroad(s: &Scene) -> Vec<Option<bool>> {
         .collect()
 }
 
+/// How far a vehicle's box goes beyond the road edge in the future: the corner furthest out,
+/// by how much and when. Feedback says this rather than "leaves the road", because a corner
+/// 0.1 m over the paint and a car in the ditch call for different repairs.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct RoadDeparture {
+    /// Agent id.
+    pub agent: i64,
+    /// The corner furthest beyond the edge: `front-left`, `front-right`, `rear-left` or
+    /// `rear-right`.
+    pub corner: &'static str,
+    /// How far beyond the edge it is, metres (positive).
+    pub distance: f64,
+    /// Seconds after the current step when it is furthest out.
+    pub time: f64,
+    /// Seconds after the current step when a corner first leaves the road.
+    pub first: f64,
+}
+
+impl std::fmt::Display for RoadDeparture {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        // Short: it goes into every round's feedback, which must fit small context windows.
+        write!(
+            f,
+            "{} corner {:.2} m off the road at {:.1} s",
+            self.corner, self.distance, self.time
+        )
+    }
+}
+
+/// Agent `a`'s departure from the road ([`RoadDeparture`]), counted as [`offroad`] counts
+/// it: `None` for an agent that is not a vehicle, on a map without road edges, already off
+/// the road at the current step, or on the road at every valid future step.
+pub fn road_departure(s: &Scene, a: &crate::scene::Agent) -> Option<RoadDeparture> {
+    const CORNERS: [&str; 4] = ["rear-right", "front-right", "front-left", "rear-left"];
+    if a.agent_type != AgentType::Vehicle || s.map.road_edges().is_empty() {
+        return None;
+    }
+    let c = s.meta.current_step;
+    // The furthest corner beyond the edge and by how much (negative: all on the road).
+    let worst = |b: &OrientedBox| {
+        b.corners()
+            .iter()
+            .enumerate()
+            .filter_map(|(k, p)| Some((k, s.map.signed_distance_to_road_edge(*p)?)))
+            .fold(None, |m: Option<(usize, f64)>, (k, d)| match m {
+                Some((_, e)) if e >= d => m,
+                _ => Some((k, d)),
+            })
+    };
+    if a.footprint(c)
+        .and_then(|b| worst(&b))
+        .is_some_and(|(_, d)| d > 0.0)
+    {
+        return None;
+    }
+    let mut out: Option<RoadDeparture> = None;
+    for t in c + 1..s.num_steps() {
+        let Some((k, d)) = a.footprint(t).and_then(|b| worst(&b)) else {
+            continue;
+        };
+        if d <= 0.0 {
+            continue;
+        }
+        let time = (t - c) as f64 * s.meta.dt;
+        match &mut out {
+            None => {
+                out = Some(RoadDeparture {
+                    agent: a.id,
+                    corner: CORNERS[k],
+                    distance: d,
+                    time,
+                    first: time,
+                })
+            }
+            Some(o) if d > o.distance => {
+                o.corner = CORNERS[k];
+                o.distance = d;
+                o.time = time;
+            }
+            Some(_) => {}
+        }
+    }
+    out
+}
+
 /// Fraction of `Some(true)` among the counted entries (`None` if none is counted).
 pub fn rate(flags: &[Option<bool>]) -> Option<f64> {
     let counted: Vec<bool> = flags.iter().flatten().copied().collect();

@@ -6,7 +6,8 @@
 
 use std::fmt::Write as _;
 
-use crate::eval::metrics::{collided, offroad};
+use crate::eval::behaviors::Behavior;
+use crate::eval::metrics::{collided, road_departure, RoadDeparture};
 use crate::sample::{Attempt, AttemptReport, SampleOutcome};
 use crate::scene::{Scene, Turn};
 
@@ -26,7 +27,8 @@ impl Default for Acceptance {
 
 impl Acceptance {
     /// Why `o`, a sample of `report`, does not meet the request (empty when it does): script
-    /// terms above tolerance, failed checkers, implausible motion of the named agents.
+    /// terms above tolerance, failed checkers, implausible motion of the named agents, and
+    /// their departures from the road that the request does not ask for (with size and time).
     pub fn reasons(&self, o: &SampleOutcome, report: &AttemptReport) -> Vec<String> {
         let named = &report.named;
         let mut out = Vec::new();
@@ -56,8 +58,34 @@ impl Acceptance {
                 e.text
             ));
         }
+        for d in unasked_departures(o, report) {
+            out.push(format!(
+                "named agent {} leaves the road: {d} (the request does not send it there)",
+                d.agent
+            ));
+        }
         out
     }
+}
+
+/// The departures from the road of `report`'s named agents in `o` that the request does not
+/// ask for: a named agent that escapes its task by swerving off the road (a car told to keep
+/// 10 m from everyone, say) has not met the request, however its terms read. The request
+/// sends an agent off the road when an `off_road` checker names it.
+fn unasked_departures<'a>(
+    o: &'a SampleOutcome,
+    report: &'a AttemptReport,
+) -> impl Iterator<Item = &'a RoadDeparture> {
+    o.off_road.iter().filter(move |d| {
+        report.named.contains(&d.agent)
+            && !report.checks.iter().any(|c| {
+                c.behaviour == Behavior::OffRoad.name()
+                    && Behavior::OffRoad
+                        .roles()
+                        .iter()
+                        .any(|r| c.params.number(r) == Some(d.agent as f64))
+            })
+    })
 }
 
 impl Acceptance {
@@ -68,7 +96,8 @@ impl Acceptance {
     pub fn stricter_than_checked(&self, o: &SampleOutcome, report: &AttemptReport) -> Vec<String> {
         let checked = !o.verdicts.is_empty()
             && o.verdicts.iter().all(|v| v.passed)
-            && o.implausible(&report.named).next().is_none();
+            && o.implausible(&report.named).next().is_none()
+            && unasked_departures(o, report).next().is_none();
         if !checked {
             return Vec::new();
         }
@@ -116,8 +145,8 @@ pub fn feedback(a: &Attempt, acc: &Acceptance) -> String {
         s,
         "A sample meets the request when every term is at most its tolerance (unweighted; {} \
          unless the script gives one with term(name, value, weight, tolerance)), every checker \
-         passes and no named agent moves implausibly (beyond what a checked behaviour asks \
-         of it, such as backing up for reverse).",
+         passes and no named agent moves implausibly (beyond what a checker asks or your \
+         script allows) or leaves the road unasked.",
         acc.tolerance
     );
     s.push_str("\n## Terms (unweighted values; the total is the weighted sum)\n\n");
@@ -274,7 +303,6 @@ fn motion(s: &mut String, scene: &Scene, named: &[i64]) {
     let dt = scene.meta.dt;
     let every = ((1.0 / dt).round() as usize).max(1);
     let hits = collided(scene);
-    let off = offroad(scene);
     for id in named {
         let Some(idx) = scene.agents.iter().position(|a| a.id == *id) else {
             continue;
@@ -294,12 +322,15 @@ fn motion(s: &mut String, scene: &Scene, named: &[i64]) {
         });
         let _ = writeln!(
             s,
-            "\nAgent {id}{}: t (s), x, y (m), speed (m/s), accel (m/s²), lane, s, d (m) on the path of lane {}{}",
-            match (hits[idx], off[idx]) {
-                (Some(true), Some(true)) => " (collides; leaves the road)",
-                (Some(true), _) => " (collides)",
-                (_, Some(true)) => " (leaves the road)",
-                _ => "",
+            "\nAgent {id}{}{}: t (s), x, y (m), speed (m/s), accel (m/s²), lane, s, d (m) on the path of lane {}{}",
+            left_map(scene, a).map_or(String::new(), |t| format!(
+                " (leaves the map after {t:.1} s: its .last() is then)"
+            )),
+            match (hits[idx], road_departure(scene, a)) {
+                (Some(true), Some(d)) => format!(" (collides; leaves the road: {d})"),
+                (Some(true), None) => " (collides)".into(),
+                (_, Some(d)) => format!(" (leaves the road: {d})"),
+                _ => String::new(),
             },
             lane0.map_or("-".into(), |l| l.to_string()),
             if named.len() > 1 { ", gaps (centre distance, m)" } else { "" }
@@ -348,6 +379,19 @@ fn motion(s: &mut String, scene: &Scene, named: &[i64]) {
     }
 }
 
+/// When agent `a`, in the scene at the current step, leaves it before the horizon ends: the
+/// seconds after the current step of its last valid step. A script's `.last()` then means
+/// that step, not the horizon's end, which the model cannot see from the numbers alone.
+fn left_map(scene: &Scene, a: &crate::scene::Agent) -> Option<f64> {
+    let c = scene.meta.current_step;
+    let end = scene.num_steps().checked_sub(1)?;
+    if !a.is_valid(c) || a.is_valid(end) {
+        return None;
+    }
+    let last = (c..end).rev().find(|&t| a.is_valid(t))?;
+    Some((last - c) as f64 * scene.meta.dt)
+}
+
 /// Velocity at step `t` from positions (sampled scenes carry positions; their velocity
 /// fields are not the model's): central where both neighbours are valid, else one-sided.
 fn velocity(a: &crate::scene::Agent, t: usize, dt: f64) -> Option<(f64, f64)> {
@@ -375,4 +419,131 @@ fn accel_at(a: &crate::scene::Agent, t: usize, dt: f64) -> Option<f64> {
         (h.cos(), h.sin())
     };
     Some(((q.0 - p.0) * ux + (q.1 - p.1) * uy) / (2.0 * dt))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cost::Params;
+    use crate::io::{load_scene, LoadOptions};
+    use crate::sample::attempt::CheckSpec;
+    use crate::sample::Settings;
+
+    /// highway.yaml with vehicle 3 (leftmost lane) drifting `by` metres to its left over the
+    /// future, from 1 s on.
+    fn drifting(by: f64) -> Scene {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+        let mut s = load_scene(
+            &root.join("scripts/scenes/highway.yaml"),
+            0,
+            &LoadOptions::default(),
+        )
+        .unwrap();
+        let (c, dt) = (s.meta.current_step, s.meta.dt);
+        let a = s.agents.iter_mut().find(|a| a.id == 3).unwrap();
+        for t in c + 1..a.states.len() {
+            let st = &mut a.states[t];
+            let k = (((t - c) as f64 * dt - 1.0) / 3.0).clamp(0.0, 1.0);
+            st.x -= st.heading.sin() * by * k;
+            st.y += st.heading.cos() * by * k;
+        }
+        s
+    }
+
+    #[test]
+    fn a_named_car_that_leaves_the_map_mid_horizon_is_said_with_its_last_step() {
+        let mut s = drifting(0.0);
+        let c = s.meta.current_step;
+        assert_eq!(left_map(&s, s.agent(3).unwrap()), None);
+        let a = s.agents.iter_mut().find(|a| a.id == 3).unwrap();
+        for st in &mut a.states[c + 18..] {
+            st.valid = false;
+        }
+        let t = left_map(&s, s.agent(3).unwrap()).unwrap();
+        assert!((t - 1.7).abs() < 1e-9, "{t}");
+        let mut text = String::new();
+        motion(&mut text, &s, &[3]);
+        assert!(
+            text.contains("Agent 3 (leaves the map after 1.7 s: its .last() is then)"),
+            "{text}"
+        );
+    }
+
+    fn report(named: Vec<i64>, checks: Vec<CheckSpec>) -> AttemptReport {
+        AttemptReport {
+            scenario: "highway".into(),
+            checks,
+            scripts: vec!["script.rhai".into()],
+            named,
+            settings: Settings {
+                task: "conditional",
+                guidance: "output",
+                lambda: 1.0,
+                steps: 1,
+                samples: 1,
+                seed: 1,
+                realism: 1.0,
+                replan: None,
+            },
+            seconds: 0.0,
+            samples: Vec::new(),
+            not_sampled: Vec::new(),
+            warnings: Vec::new(),
+        }
+    }
+
+    fn outcome(off_road: Vec<RoadDeparture>) -> SampleOutcome {
+        SampleOutcome {
+            sample: 0,
+            total: 0.0,
+            terms: Vec::new(),
+            verdicts: Vec::new(),
+            realism: Vec::new(),
+            off_road,
+        }
+    }
+
+    #[test]
+    fn a_named_agent_off_the_road_is_a_reason_with_size_and_time_unless_requested() {
+        let s = drifting(6.0);
+        let a = s.agent(3).unwrap();
+        let d = road_departure(&s, a).expect("6 m to the left leaves the road");
+        assert!(d.corner.ends_with("left"), "{d}");
+        assert!(d.distance > 1.0 && d.time > d.first && d.first > 1.0, "{d}");
+        let said = d.to_string();
+        assert!(
+            said.contains(&format!(
+                "corner {:.2} m off the road at {:.1} s",
+                d.distance, d.time
+            )),
+            "{said}"
+        );
+        // On the road throughout: no departure.
+        let straight = drifting(0.0);
+        assert_eq!(road_departure(&straight, straight.agent(3).unwrap()), None);
+        let acc = Acceptance::default();
+        let o = outcome(vec![d.clone()]);
+        // Named, and nothing asks it off the road: a reason, with the corner, size and time.
+        let why = acc.reasons(&o, &report(vec![3], Vec::new()));
+        assert_eq!(
+            why,
+            vec![format!(
+                "named agent 3 leaves the road: {said} (the request does not send it there)"
+            )]
+        );
+        // An agent no script names is not the request's concern here.
+        assert!(acc.reasons(&o, &report(vec![1], Vec::new())).is_empty());
+        // The request sends it there: an off_road checker names it.
+        let sent = CheckSpec {
+            behaviour: "off_road",
+            params: Params::numbers(&[("vehicle", 3.0)]),
+        };
+        assert!(acc.reasons(&o, &report(vec![3], vec![sent])).is_empty());
+        // An off_road checker for another car does not excuse this one.
+        let other = CheckSpec {
+            behaviour: "off_road",
+            params: Params::numbers(&[("vehicle", 1.0)]),
+        };
+        assert_eq!(acc.reasons(&o, &report(vec![3], vec![other])).len(), 1);
+    }
 }

@@ -363,6 +363,15 @@ struct State {
     /// The last validation error, while the script that caused it is not yet repaired.
     #[serde(default)]
     last_error: Option<String>,
+    /// The model's ACCEPT was refused since the last sampling: the script it sends next
+    /// answers the refusal.
+    #[serde(default)]
+    accept_refused: bool,
+    /// The rounds ran out on the script that answered a refused ACCEPT while one of its
+    /// samples meets the request: the model has this one more turn, to ACCEPT it
+    /// ([`Session::final_turn`]); nothing more is sampled.
+    #[serde(default)]
+    final_turn: bool,
     /// Set when the run is over.
     outcome: Option<Outcome>,
 }
@@ -546,6 +555,8 @@ impl<'a> Session<'a> {
                 history: Vec::new(),
                 left_out: Vec::new(),
                 last_error: None,
+                accept_refused: false,
+                final_turn: false,
                 outcome: None,
             },
             prompts,
@@ -658,6 +669,8 @@ impl<'a> Session<'a> {
         self.state.outcome = None;
         self.state.sampled = 0;
         self.state.misses = 0;
+        self.state.accept_refused = false;
+        self.state.final_turn = false;
         self.save()
     }
 
@@ -872,6 +885,10 @@ impl<'a> Session<'a> {
                 .messages
                 .push(Message::new("assistant", reply.clone()));
             self.state.exchange = n + 1;
+            if self.state.final_turn {
+                let o = self.final_turn(n, &reply, progress);
+                return self.finish(o, progress);
+            }
             match parse_reply(&reply) {
                 Err(e) => {
                     // A reply the token limit cut off is unusable for that reason, which the
@@ -910,6 +927,8 @@ impl<'a> Session<'a> {
                     progress(&format!(
                         "round {n}: ACCEPT not accepted: no sample meets the request"
                     ));
+                    // Only a refusal of sampled numbers is answered by a script.
+                    self.state.accept_refused = self.state.script.is_some();
                     let msg = self.prompts.accept_rejected(&reasons);
                     if let Some(o) = self.miss(msg)? {
                         return self.finish(o, progress);
@@ -953,7 +972,9 @@ impl<'a> Session<'a> {
                                 Some(json!({"seconds_sampling": done.report.seconds})),
                             );
                             self.after_sampling(n, &rdir, &source, &done, progress)?;
-                            if self.state.sampled > self.state.config.rounds {
+                            if self.state.sampled > self.state.config.rounds
+                                && !self.state.final_turn
+                            {
                                 let o = Outcome::RoundsUsed {
                                     round: n,
                                     sample: self.state.meets,
@@ -1102,11 +1123,65 @@ impl<'a> Session<'a> {
             .iter()
             .map(|v| (v.passed, v.achieved))
             .collect();
+        let answered_refusal = std::mem::take(&mut self.state.accept_refused);
         if self.state.sampled <= self.state.config.rounds {
             let msg = self.prompts.refine(done.report.samples.len(), &text);
             self.state.messages.push(Message::new("user", msg));
+        } else if let (true, Some(k)) = (answered_refusal, meets) {
+            // The rounds ran out on the script that answered a refused ACCEPT, and it meets
+            // the request: ending here would leave the model's answer unjudged by the model
+            // and the run "not accepted" though a sample meets the request. One more turn,
+            // to ACCEPT; nothing more is sampled.
+            self.state.final_turn = true;
+            progress(&format!(
+                "round {n}: the rounds are used up, but this script answered a refused ACCEPT \
+                 and its sample {k} meets the request: one more turn to accept it"
+            ));
+            let msg = format!(
+                "{}\n\nThe rounds are used up (--rounds {}): this was the last sampling. Your \
+                 script answered the refused ACCEPT, and sample {k} now meets the request. \
+                 Reply ACCEPT to accept it; a new script would not be sampled, and the run \
+                 ends with this script either way.",
+                self.prompts.refine(done.report.samples.len(), &text),
+                self.state.config.rounds
+            );
+            self.state.messages.push(Message::new("user", msg));
+        } else if answered_refusal {
+            progress(&format!(
+                "round {n}: the rounds are used up; this script answered a refused ACCEPT, but \
+                 none of its samples meets the request, so there is nothing left to accept"
+            ));
         }
         Ok(())
+    }
+
+    /// The reply to the one more turn after the rounds ran out ([`State::final_turn`]): an
+    /// ACCEPT of the sample that meets the request ends the run accepted; anything else ends
+    /// it with the rounds used up, saying why (nothing more is sampled).
+    fn final_turn(&mut self, n: usize, reply: &str, progress: &mut dyn FnMut(&str)) -> Outcome {
+        self.state.final_turn = false;
+        let round = self.state.script.as_ref().map_or(n, |(r, _)| *r);
+        match (parse_reply(reply), self.state.meets) {
+            (Ok(Reply::Accept { .. }), Some(k)) => {
+                progress(&format!(
+                    "round {n}: ACCEPT (sample {k} of round {round} meets the request)"
+                ));
+                Outcome::Accepted { round, sample: k }
+            }
+            (r, sample) => {
+                progress(&format!(
+                    "round {n}: {}; the rounds are used up, so nothing more is sampled and \
+                     round {round}'s script is final",
+                    match r {
+                        Ok(Reply::Script { .. }) => "a new script, not ACCEPT".to_string(),
+                        Ok(Reply::Accept { .. }) =>
+                            "ACCEPT, but no sample meets the request".into(),
+                        Err(e) => format!("unusable reply: {e}"),
+                    }
+                ));
+                Outcome::RoundsUsed { round, sample }
+            }
+        }
     }
 
     fn roles(&self, done: &Attempt) -> Vec<(i64, String)> {

@@ -17,9 +17,10 @@ use super::guided::{
     prepare_for, sample, sampled_horizon, Sample, SampleConfig, SampleError, Task,
 };
 use crate::cost::ScriptSpec;
-use crate::cost::{check_params, CostError, CostScript, Params};
+use crate::cost::{check_params, CostError, CostReport, CostScript, Params};
 use crate::eval::behaviors::{check, check_against_unguided, Behavior, CheckError, Verdict};
 use crate::eval::kinematic::{judge, KinematicLimits, Violation};
+use crate::eval::metrics::{road_departure, RoadDeparture};
 use crate::io::{output_stem, rollout::Rollout, write_atomic, IoError};
 use crate::scene::Scene;
 use crate::train::Trained;
@@ -100,8 +101,9 @@ pub struct RealismEvent {
     pub value: f64,
     /// In words (`reverses at -9.3 m/s at t = 3.9 s`).
     pub text: String,
-    /// Whether a checked behaviour asks this of the agent it names (`reverse`'s backing up,
-    /// [`Behavior::allowed_motion`]): reported, but no fault, as in the verdicts.
+    /// Whether the request asks this of the agent: a checked behaviour asks it of an agent it
+    /// names (`reverse`'s backing up, [`Behavior::allowed_motion`]), or a script allows it
+    /// (`allow(a, "reverse")`). Reported, but no fault.
     pub requested: bool,
 }
 
@@ -120,6 +122,10 @@ pub struct SampleOutcome {
     pub verdicts: Vec<Verdict>,
     /// Implausible motion of any sampled vehicle (named or not), worst event per kind.
     pub realism: Vec<RealismEvent>,
+    /// How far the agents that a script or checker names leave the road, those that do
+    /// ([`road_departure`]).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub off_road: Vec<RoadDeparture>,
 }
 
 impl SampleOutcome {
@@ -128,8 +134,9 @@ impl SampleOutcome {
         (!self.verdicts.is_empty()).then(|| self.verdicts.iter().all(|v| v.passed))
     }
 
-    /// Implausible motion of the given agents (the ones a script names, say), less what a
-    /// checked behaviour asks of them ([`RealismEvent::requested`]).
+    /// Implausible motion of the given agents (the ones a script names, say), less what the
+    /// request asks of them: a checked behaviour or the script's `allow`
+    /// ([`RealismEvent::requested`]).
     pub fn implausible<'a>(&'a self, agents: &'a [i64]) -> impl Iterator<Item = &'a RealismEvent> {
         self.realism
             .iter()
@@ -185,13 +192,69 @@ pub struct CheckSpec {
     pub params: Params,
 }
 
-/// Whether one of `checks` names agent `id` in a role and asks of it motion of this kind
-/// ([`Behavior::allowed_motion`]).
-fn requested(checks: &[(Behavior, Params)], id: i64, kind: Violation) -> bool {
-    checks.iter().any(|(b, p)| {
-        b.allowed_motion().contains(&kind)
-            && b.roles().iter().any(|r| p.number(r) == Some(id as f64))
-    })
+/// Whether the request asks motion of this kind of agent `id`: one of `checks` names it in a
+/// role and asks it ([`Behavior::allowed_motion`]), or a script allows it (`allowed`, from
+/// [`script_allowances`]). What a script allows is what the model read the request to ask
+/// (the prompt tells it so, and the sampler honours it), so the verdict must not hold it
+/// against the agent: `ask` once refused an ACCEPT for "2976 reverses" that the script had
+/// allowed with `allow(a, "reverse")`.
+fn requested(
+    checks: &[(Behavior, Params)],
+    allowed: &[(i64, Violation)],
+    id: i64,
+    kind: Violation,
+) -> bool {
+    allowed.contains(&(id, kind))
+        || checks.iter().any(|(b, p)| {
+            b.allowed_motion().contains(&kind)
+                && b.roles().iter().any(|r| p.number(r) == Some(id as f64))
+        })
+}
+
+/// The motion `reports`' scripts allow, as (agent id, kind): `allow(a, "reverse")` exempts
+/// backing up. `compiled_on` is the scene the scripts were compiled on (their agent indices
+/// are its).
+fn script_allowances(compiled_on: &Scene, reports: &[CostReport]) -> Vec<(i64, Violation)> {
+    let mut out = Vec::new();
+    for r in reports {
+        for &i in &r.may_reverse {
+            if let Some(a) = compiled_on.agents.get(i) {
+                if !out.contains(&(a.id, Violation::Reverse)) {
+                    out.push((a.id, Violation::Reverse));
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Every vehicle's implausible motion in `scene` (worst event per kind), with its role among
+/// `roles` and whether the request asks it ([`requested`]).
+fn realism_events(
+    scene: &Scene,
+    checks: &[(Behavior, Params)],
+    roles: &[(i64, String)],
+    allowed: &[(i64, Violation)],
+) -> Vec<RealismEvent> {
+    let judged = judge(scene, &KinematicLimits::default());
+    let mut realism = Vec::new();
+    for (a, j) in scene.agents.iter().zip(&judged) {
+        for e in j.iter().flat_map(|j| &j.events) {
+            realism.push(RealismEvent {
+                agent: a.id,
+                role: roles
+                    .iter()
+                    .find(|(id, _)| *id == a.id)
+                    .map(|(_, r)| r.clone()),
+                kind: e.kind.name(),
+                time: e.time,
+                value: e.value,
+                text: e.to_string(),
+                requested: requested(checks, allowed, a.id, e.kind),
+            });
+        }
+    }
+    realism
 }
 
 fn roles<'a>(checks: impl Iterator<Item = (Behavior, &'a Params)>) -> Vec<(i64, String)> {
@@ -437,30 +500,25 @@ pub fn attempt(
                 None => check(*b, &s.scene, p),
             })
             .collect::<Result<Vec<_>, _>>()?;
-        let judged = judge(&s.scene, &KinematicLimits::default());
-        let mut realism = Vec::new();
-        for (a, j) in s.scene.agents.iter().zip(&judged) {
-            for e in j.iter().flat_map(|j| &j.events) {
-                realism.push(RealismEvent {
-                    agent: a.id,
-                    role: roles
-                        .iter()
-                        .find(|(id, _)| *id == a.id)
-                        .map(|(_, r)| r.clone()),
-                    kind: e.kind.name(),
-                    time: e.time,
-                    value: e.value,
-                    text: e.to_string(),
-                    requested: requested(&spec.checks, a.id, e.kind),
-                });
-            }
-        }
+        let allowed = script_allowances(&scene, &s.reports);
+        let realism = realism_events(&s.scene, &spec.checks, &roles, &allowed);
+        let off_road = s
+            .scene
+            .agents
+            .iter()
+            .filter(|a| {
+                roles.iter().any(|(id, _)| *id == a.id)
+                    || s.reports.iter().any(|r| r.named.contains(&a.id))
+            })
+            .filter_map(|a| road_departure(&s.scene, a))
+            .collect();
         outcomes.push(SampleOutcome {
             sample: k,
             total,
             terms,
             verdicts,
             realism,
+            off_road,
         });
     }
     let report = AttemptReport {
@@ -679,14 +737,14 @@ mod tests {
                 Params::numbers(&[("cutter", 2.0), ("victim", 1.0)]),
             ),
         ];
-        assert!(requested(&checks, 3, Violation::Reverse));
-        assert!(!requested(&checks, 3, Violation::Sprint));
+        assert!(requested(&checks, &[], 3, Violation::Reverse));
+        assert!(!requested(&checks, &[], 3, Violation::Sprint));
         assert!(
-            !requested(&checks, 1, Violation::Reverse),
+            !requested(&checks, &[], 1, Violation::Reverse),
             "a victim reversing"
         );
         assert!(
-            !requested(&checks, 4, Violation::Reverse),
+            !requested(&checks, &[], 4, Violation::Reverse),
             "a car not named"
         );
         let event = |agent, requested| RealismEvent {
@@ -704,9 +762,65 @@ mod tests {
             terms: Vec::new(),
             verdicts: Vec::new(),
             realism: vec![event(3, true), event(1, false)],
+            off_road: Vec::new(),
         };
         let flagged: Vec<i64> = o.implausible(&[1, 3]).map(|e| e.agent).collect();
         assert_eq!(flagged, vec![1]);
+    }
+
+    #[test]
+    fn what_a_script_allows_counts_as_requested_and_not_implausible() {
+        // Vehicle 4 of highway_stop backs up at 3 m/s in its recorded future; reverse.rhai
+        // allows it with allow(a, "reverse"), and no checker asks for reversing.
+        let scene = load_scene(
+            &root().join("scripts/scenes/highway_stop.yaml"),
+            0,
+            &LoadOptions::default(),
+        )
+        .unwrap();
+        let src = std::fs::read_to_string(root().join("scripts/reverse.rhai")).unwrap();
+        let script = CostScript::compile(
+            &src,
+            "reverse.rhai",
+            Rc::new(scene.clone()),
+            &Params::numbers(&[("vehicle", 4.0)]),
+            &Limits::default(),
+        )
+        .unwrap();
+        let report = script
+            .evaluate(&crate::cost::Trajectories::recorded(&scene))
+            .unwrap();
+        let allowed = script_allowances(&scene, &[report]);
+        assert_eq!(allowed, vec![(4, Violation::Reverse)]);
+        let checks = vec![(Behavior::SpeedLimit, Params::numbers(&[("vehicle", 1.0)]))];
+        let outcome = |realism| SampleOutcome {
+            sample: 0,
+            total: 0.0,
+            terms: Vec::new(),
+            verdicts: Vec::new(),
+            realism,
+            off_road: Vec::new(),
+        };
+        // Without the allowance the backing up is implausible motion of a named agent ...
+        let bare = outcome(realism_events(&scene, &checks, &[], &[]));
+        assert!(
+            bare.implausible(&[4]).any(|e| e.kind == "reverse"),
+            "{:?}",
+            bare.realism
+        );
+        // ... with it, reported but requested, so no fault.
+        let allowed = outcome(realism_events(&scene, &checks, &[], &allowed));
+        let backing: Vec<&RealismEvent> = allowed
+            .realism
+            .iter()
+            .filter(|e| e.agent == 4 && e.kind == "reverse")
+            .collect();
+        assert!(!backing.is_empty() && backing.iter().all(|e| e.requested));
+        assert!(
+            allowed.implausible(&[4]).all(|e| e.kind != "reverse"),
+            "{:?}",
+            allowed.realism
+        );
     }
 
     #[test]
