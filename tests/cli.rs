@@ -335,32 +335,15 @@ fn examples(cmd: &str, help: &str) -> Vec<String> {
 
 #[test]
 fn every_help_example_runs_as_written_from_a_fresh_clone() {
-    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
-    let bin = std::path::Path::new(env!("CARGO_BIN_EXE_drivescript"));
-    let path = format!(
-        "{}:{}",
-        bin.parent().unwrap().display(),
-        std::env::var("PATH").unwrap_or_default()
-    );
     let commands = subcommands();
     assert!(commands.len() >= 14, "{commands:?}");
     for cmd in &commands {
         let help = ok(&[cmd, "--help"]);
         // A clone's tracked directories, and nothing it would not have (out/, runs/).
-        let clone = tempfile::tempdir().unwrap();
-        for d in ["data", "scripts", "prompts", "stdlib"] {
-            std::os::unix::fs::symlink(root.join(d), clone.path().join(d)).unwrap();
-        }
+        let clone = common::fresh_clone();
         for e in examples(cmd, &help) {
             assert!(!e.contains("shared/"), "{cmd} --help needs ../shared: {e}");
-            let run = std::process::Command::new("bash")
-                .args(["-c", &e])
-                .current_dir(clone.path())
-                .env("PATH", &path)
-                .env_remove("DRIVESCRIPT_LLM_URL")
-                .env_remove("DRIVESCRIPT_LLM_MODEL")
-                .output()
-                .unwrap();
+            let run = common::bash_in(clone.path(), &[], &e);
             assert!(
                 run.status.success(),
                 "{cmd} --help example failed ({:?}): {e}\n{}{}",

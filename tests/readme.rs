@@ -2,6 +2,8 @@
 //! script listings are the files, the tour runs as written, links resolve, and CI runs exactly
 //! the README's test command.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 
 fn root() -> &'static Path {
@@ -118,25 +120,9 @@ fn readme_tour_runs_as_written_from_a_fresh_clone() {
     ] {
         assert!(all.contains(cmd), "the tour lost `{cmd}`");
     }
-    let bin = Path::new(env!("CARGO_BIN_EXE_drivescript"));
-    let path = format!(
-        "{}:{}",
-        bin.parent().unwrap().display(),
-        std::env::var("PATH").unwrap_or_default()
-    );
-    let clone = tempfile::tempdir().unwrap();
-    for d in ["data", "scripts", "prompts", "stdlib"] {
-        std::os::unix::fs::symlink(root().join(d), clone.path().join(d)).unwrap();
-    }
+    let clone = common::fresh_clone();
     for block in &blocks {
-        let run = std::process::Command::new("bash")
-            .args(["-e", "-c", block])
-            .current_dir(clone.path())
-            .env("PATH", &path)
-            .env_remove("DRIVESCRIPT_LLM_URL")
-            .env_remove("DRIVESCRIPT_LLM_MODEL")
-            .output()
-            .unwrap();
+        let run = common::bash_in(clone.path(), &["-e"], block);
         assert!(
             run.status.success(),
             "README tour block failed ({:?}):\n{block}\n{}{}",

@@ -49,6 +49,38 @@ pub fn fails(args: &[&str]) -> String {
     err
 }
 
+/// A fresh clone's view of this checkout: a temporary directory with its tracked data
+/// (`data`, `scripts`, `prompts`, `stdlib`) linked in, and nothing a clone would not have
+/// (`out/`, `runs/`).
+pub fn fresh_clone() -> tempfile::TempDir {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let clone = tempfile::tempdir().expect("a temporary directory");
+    for d in ["data", "scripts", "prompts", "stdlib"] {
+        std::os::unix::fs::symlink(root.join(d), clone.path().join(d)).expect("a link");
+    }
+    clone
+}
+
+/// Runs `script` with `bash` (and `flags`, e.g. `-e`) in `dir`, as a user would: the built
+/// `drivescript` first on the PATH and no language model configured.
+pub fn bash_in(dir: &Path, flags: &[&str], script: &str) -> Output {
+    let bin = Path::new(env!("CARGO_BIN_EXE_drivescript"));
+    let path = format!(
+        "{}:{}",
+        bin.parent().expect("the binary's directory").display(),
+        std::env::var("PATH").unwrap_or_default()
+    );
+    std::process::Command::new("bash")
+        .args(flags)
+        .args(["-c", script])
+        .current_dir(dir)
+        .env("PATH", &path)
+        .env_remove("DRIVESCRIPT_LLM_URL")
+        .env_remove("DRIVESCRIPT_LLM_MODEL")
+        .output()
+        .expect("bash runs")
+}
+
 /// A path as &str.
 pub fn s(p: &Path) -> &str {
     p.to_str().expect("UTF-8 path")
