@@ -2118,3 +2118,44 @@ fn guidance_is_one_flag_with_one_default_on_every_command_that_samples() {
     assert_eq!(out.status.code(), Some(2), "{err}");
     assert!(err.contains("--guidance"), "{err}");
 }
+
+#[test]
+fn a_byte_order_mark_is_dropped_from_every_text_file_read() {
+    // Scripts and test files saved by Windows editors start with one; it was reported as an
+    // unexpected character (scripts) or a missing field (test files).
+    let dir = tempfile::tempdir().unwrap();
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let bom = |name: &str, text: &str| {
+        let p = dir.path().join(name);
+        std::fs::write(&p, format!("\u{FEFF}{text}")).unwrap();
+        p
+    };
+    let script = bom(
+        "cut_in.rhai",
+        &std::fs::read_to_string(root.join("scripts/cut_in.rhai")).unwrap(),
+    );
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let out = ok(&[
+        "cost",
+        s(&scene),
+        "--script",
+        s(&script),
+        "--param",
+        "cutter=2",
+        "victim=1",
+    ]);
+    assert!(out.contains("total"), "{out}");
+    let tests = std::fs::read_to_string(root.join("scripts/cut_in.test.yaml"))
+        .unwrap()
+        .replace(
+            "script: cut_in.rhai",
+            &format!("script: {}", root.join("scripts/cut_in.rhai").display()),
+        )
+        .replace(
+            "scenes/",
+            &format!("{}/", root.join("scripts/scenes").display()),
+        );
+    let t = bom("cut_in.test.yaml", &tests);
+    let out = ok(&["test-scripts", s(&t)]);
+    assert!(out.contains("passed, 0 failed"), "{out}");
+}

@@ -713,10 +713,17 @@ pub fn read_regular(path: &Path, max: u64, what: &str) -> Result<Vec<u8>, IoErro
     Ok(out)
 }
 
-/// [`read_regular`] for a text file: UTF-8, or an error naming the file and the byte.
+/// [`read_regular`] for a text file: UTF-8, or an error naming the file and the byte. A leading
+/// byte-order mark is dropped, as [`read_text`] drops it: a script, a batch file, a checkpoint
+/// config or a merge shard saved by a Windows editor was refused for a character nobody sees
+/// ("Unexpected '\u{FEFF}'", "expected value at line 1 column 1").
 pub fn read_regular_text(path: &Path, max: u64, what: &str) -> Result<String, IoError> {
-    String::from_utf8(read_regular(path, max, what)?)
-        .map_err(|e| IoError::invalid(path, "file", format!("not UTF-8 text: {e}")))
+    let text = String::from_utf8(read_regular(path, max, what)?)
+        .map_err(|e| IoError::invalid(path, "file", format!("not UTF-8 text: {e}")))?;
+    Ok(match text.strip_prefix('\u{FEFF}') {
+        Some(rest) => rest.to_string(),
+        None => text,
+    })
 }
 
 fn too_large(path: &Path, verb: &str, len: u64, max: u64, what: &str) -> IoError {
@@ -1003,6 +1010,13 @@ mod tests {
         let bom = super::yaml::read(&p).unwrap();
         assert_eq!(bom.meta.scenario_id, plain.meta.scenario_id);
         assert_eq!(bom.agents.len(), plain.agents.len());
+        // Every other text file drivescript reads (scripts, batch files, configs) too.
+        let p = dir.path().join("bom.json");
+        std::fs::write(&p, b"\xEF\xBB\xBF{\"a\": 1}").unwrap();
+        assert_eq!(
+            super::read_regular_text(&p, 100, "a test file").unwrap(),
+            "{\"a\": 1}"
+        );
     }
 
     #[cfg(unix)]
