@@ -2159,3 +2159,46 @@ fn a_byte_order_mark_is_dropped_from_every_text_file_read() {
     let out = ok(&["test-scripts", s(&t)]);
     assert!(out.contains("passed, 0 failed"), "{out}");
 }
+
+#[test]
+fn cost_checks_a_rollout_as_eval_and_render_do() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let rec = dir.path().join("rec.json");
+    ok(&["convert", s(&scene), "-o", s(&rec)]);
+    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/cut_in.rhai");
+    let args = |r: &std::path::Path| -> Vec<String> {
+        [
+            "cost",
+            s(&scene),
+            "--script",
+            s(&script),
+            "--rollout",
+            s(r),
+            "--param",
+            "cutter=2",
+            "victim=1",
+        ]
+        .iter()
+        .map(|a| a.to_string())
+        .collect()
+    };
+    let a = args(&rec);
+    ok(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    let mut v: Value = serde_json::from_str(&std::fs::read_to_string(&rec).unwrap()).unwrap();
+    v["agents"][0]["states"][20][0] = serde_json::json!(1e300);
+    let bad = dir.path().join("bad.json");
+    std::fs::write(&bad, serde_json::to_string(&v).unwrap()).unwrap();
+    let a = args(&bad);
+    let err = fails(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(err.contains("bad.json"), "{err}");
+    let render = fails(&[
+        "render",
+        s(&scene),
+        "--rollout",
+        s(&bad),
+        "-o",
+        s(&dir.path().join("x.svg")),
+    ]);
+    assert!(render.contains("bad.json"), "{render}");
+}

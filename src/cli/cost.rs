@@ -64,8 +64,13 @@ pub fn run(args: Args) -> Result<ExitCode> {
         eprintln!("warning: {w}");
     }
     let traj = match (&args.rollout, &rollout) {
-        (Some(p), Some(r)) => Trajectories::from_rollout(scene, r)
-            .map_err(|m| anyhow::anyhow!("{}: {m}", p.display()))?,
+        (Some(p), Some(r)) => {
+            // The checks `eval` and `render` make of a rollout (positions a car can drive
+            // between, ids and steps of this scene): a 1e300 coordinate scored zeros here.
+            r.apply_to(scene, p)?;
+            Trajectories::from_rollout(scene, r)
+                .map_err(|m| anyhow::anyhow!("{}: {m}", p.display()))?
+        }
         _ => Trajectories::recorded(scene),
     };
     let report = bound.evaluate(&traj)?;
