@@ -2167,8 +2167,8 @@ fn cost_checks_a_rollout_as_eval_and_render_do() {
     let rec = dir.path().join("rec.json");
     ok(&["convert", s(&scene), "-o", s(&rec)]);
     let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/cut_in.rhai");
-    let args = |r: &std::path::Path| -> Vec<String> {
-        [
+    let cost = |r: &std::path::Path| {
+        common::drivescript(&[
             "cost",
             s(&scene),
             "--script",
@@ -2178,19 +2178,16 @@ fn cost_checks_a_rollout_as_eval_and_render_do() {
             "--param",
             "cutter=2",
             "victim=1",
-        ]
-        .iter()
-        .map(|a| a.to_string())
-        .collect()
+        ])
     };
-    let a = args(&rec);
-    ok(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(cost(&rec).status.success());
     let mut v: Value = serde_json::from_str(&std::fs::read_to_string(&rec).unwrap()).unwrap();
     v["agents"][0]["states"][20][0] = serde_json::json!(1e300);
     let bad = dir.path().join("bad.json");
     std::fs::write(&bad, serde_json::to_string(&v).unwrap()).unwrap();
-    let a = args(&bad);
-    let err = fails(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    let out = cost(&bad);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
     assert!(err.contains("bad.json"), "{err}");
     let render = fails(&[
         "render",

@@ -219,6 +219,85 @@ pub fn groups_of(s: &Scene) -> Vec<Group> {
     g
 }
 
+/// What a scene's scoring measures once, per agent, for the whole row and every group to
+/// filter (each group keeps its own agents).
+struct Measured<'a> {
+    verdicts: &'a [Result<Verdict, CheckError>],
+    /// Per sample, every agent's kinematic judgement, less what a behaviour asks of the agents
+    /// it names (a reverse's backing up), as its verdict does not count it.
+    judged: Vec<Vec<Option<kinematic::Judgement>>>,
+    /// Of the first sample (conditional and unconditional tasks).
+    collided: Vec<Option<bool>>,
+    offroad: Vec<Option<bool>>,
+    displacement: Vec<metrics::Displacement>,
+    /// Over the samples, where there are several.
+    min_displacement: Option<Vec<metrics::Displacement>>,
+    /// Per sample of a behaviour task, collisions but those the behaviour asks for.
+    contacts: Vec<Vec<Option<bool>>>,
+}
+
+impl<'a> Measured<'a> {
+    fn new(
+        task: Task,
+        logged: &Scene,
+        sims: &[Scene],
+        behaviour: Option<Behavior>,
+        verdicts: &'a [Result<Verdict, CheckError>],
+    ) -> Self {
+        let lim = KinematicLimits::default();
+        let (named, allowed): (&[i64], &[Violation]) = match (behaviour, verdicts.first()) {
+            (Some(b), Some(Ok(v))) => (&v.named, b.allowed_motion()),
+            _ => (&[], &[]),
+        };
+        let judged = sims
+            .iter()
+            .map(|s| {
+                let mut judged = kinematic::judge(s, &lim);
+                for (j, a) in judged.iter_mut().zip(&s.agents) {
+                    if let Some(j) = j.as_mut().filter(|_| named.contains(&a.id)) {
+                        *j = j.without(allowed);
+                    }
+                }
+                judged
+            })
+            .collect();
+        let sim = &sims[0];
+        let conditional = task == Task::Conditional;
+        Self {
+            verdicts,
+            judged,
+            collided: if task == Task::Behaviour {
+                Vec::new()
+            } else {
+                metrics::collided(sim)
+            },
+            offroad: if conditional {
+                metrics::offroad(sim)
+            } else {
+                Vec::new()
+            },
+            displacement: if conditional {
+                metrics::displacement(logged, sim)
+            } else {
+                Vec::new()
+            },
+            min_displacement: (conditional && sims.len() > 1)
+                .then(|| metrics::min_displacement(logged, sims)),
+            contacts: match behaviour {
+                Some(b) => sims
+                    .iter()
+                    .zip(verdicts)
+                    .map(|(s, v)| match v {
+                        Ok(v) => metrics::collided_except(s, &b.contacts(&v.named)),
+                        Err(_) => Vec::new(),
+                    })
+                    .collect(),
+                None => Vec::new(),
+            },
+        }
+    }
+}
+
 impl Tally {
     /// Scores one scene: `logged` (the reference), the method's samples `sims` (at least one),
     /// the behaviour and its parameters for [`Task::Behaviour`], and the samples' unguided
@@ -246,22 +325,20 @@ impl Tally {
                 .collect(),
             None => Vec::new(),
         };
+        let m = Measured::new(task, logged, sims, behaviour.map(|b| b.0), &verdicts);
         let whole = Group {
             map: None,
             agent: None,
         };
-        let mut row = self.add(task, logged, sims, behaviour.map(|b| b.0), &verdicts, whole);
-        row["map"] = json!(map_kind(&logged.map).name());
+        let mut row = self.add(task, logged, sims, &m, whole);
+        let groups = groups_of(logged);
+        row["map"] = json!(groups[0].map.map_or("", MapKind::name));
         self.per_scene.push(row);
-        for g in groups_of(logged) {
-            self.groups.entry(g.label()).or_default().add(
-                task,
-                logged,
-                sims,
-                behaviour.map(|b| b.0),
-                &verdicts,
-                g,
-            );
+        for g in groups {
+            self.groups
+                .entry(g.label())
+                .or_default()
+                .add(task, logged, sims, &m, g);
         }
         self.seconds += t0.elapsed().as_secs_f64();
     }
@@ -272,51 +349,38 @@ impl Tally {
         task: Task,
         logged: &Scene,
         sims: &[Scene],
-        behaviour: Option<Behavior>,
-        verdicts: &[Result<Verdict, CheckError>],
+        m: &Measured,
         g: Group,
     ) -> serde_json::Value {
         self.scenes += 1;
         let sim = &sims[0];
         let mut row = json!({"scene": logged.meta.scenario_id});
-        let lim = KinematicLimits::default();
         let keep = |a: &Agent| g.keeps(a);
         // Collisions count vehicles unless the group is of one type.
         let collider = |a: &Agent| match g.agent {
             Some(t) => a.agent_type == t,
             None => a.agent_type == AgentType::Vehicle,
         };
-        // What a behaviour asks of the agents it names (a reverse's backing up) is not counted
-        // against the sample, as its verdict does not count it.
-        let (named, allowed): (&[i64], &[Violation]) = match (behaviour, verdicts.first()) {
-            (Some(b), Some(Ok(v))) => (&v.named, b.allowed_motion()),
-            _ => (&[], &[]),
-        };
         let mut flagged = 0;
-        for s in sims {
-            let mut judged = kinematic::judge(s, &lim);
-            for (j, a) in judged.iter_mut().zip(&s.agents) {
-                if let Some(j) = j.as_mut().filter(|_| named.contains(&a.id)) {
-                    *j = j.without(allowed);
-                }
-            }
-            let any = only(s, kinematic::flags(&judged, None), keep);
+        for (s, judged) in sims.iter().zip(&m.judged) {
+            let any = only(s, kinematic::flags(judged, None), keep);
             flagged += any.iter().filter(|f| **f == Some(true)).count();
             self.implausible.extend(any);
             for (k, v) in Violation::ALL.iter().enumerate() {
-                self.by_kind[k].extend(only(s, kinematic::flags(&judged, Some(*v)), keep));
+                self.by_kind[k].extend(only(s, kinematic::flags(judged, Some(*v)), keep));
             }
         }
         row["implausible_vehicles"] = json!(flagged);
         let whole_scenes = g.agent.is_none();
         match task {
             Task::Conditional => {
-                let of_group = |d: Vec<metrics::Displacement>| -> Vec<metrics::Displacement> {
-                    d.into_iter()
+                let of_group = |d: &[metrics::Displacement]| -> Vec<metrics::Displacement> {
+                    d.iter()
                         .filter(|x| logged.agent(x.agent).is_some_and(keep))
+                        .copied()
                         .collect()
                 };
-                let d = of_group(metrics::displacement(logged, sim));
+                let d = of_group(&m.displacement);
                 let (ade, fde) = (
                     mean(&d.iter().map(|x| x.ade).collect::<Vec<_>>()),
                     mean(&d.iter().map(|x| x.fde).collect::<Vec<_>>()),
@@ -325,8 +389,8 @@ impl Tally {
                     self.ade.push(a);
                     self.fde.push(f);
                 }
-                if sims.len() > 1 {
-                    let m = of_group(metrics::min_displacement(logged, sims));
+                if let Some(min) = &m.min_displacement {
+                    let m = of_group(min);
                     // Both or neither: a NaN pushed here was written as null and refused by
                     // --merge.
                     if let (Some(a), Some(f)) = (
@@ -337,8 +401,8 @@ impl Tally {
                         self.min_fde.push(f);
                     }
                 }
-                let col = metrics::rate(&only(sim, metrics::collided(sim), keep));
-                let off = metrics::rate(&only(sim, metrics::offroad(sim), keep));
+                let col = metrics::rate(&only(sim, m.collided.clone(), keep));
+                let off = metrics::rate(&only(sim, m.offroad.clone(), keep));
                 self.collision.extend(col);
                 self.offroad.extend(off);
                 for s in sims {
@@ -352,7 +416,7 @@ impl Tally {
             }
             Task::Unconditional => {
                 self.collided
-                    .extend(only(sim, metrics::collided(sim), collider));
+                    .extend(only(sim, m.collided.clone(), collider));
                 if whole_scenes {
                     let scr = metrics::scene_collision_rate(sim, 0.1);
                     self.scr.extend(scr);
@@ -368,17 +432,11 @@ impl Tally {
                 }
             }
             Task::Behaviour => {
-                let b = behaviour.expect("a behaviour task has a behaviour");
-                let mut rows = Vec::with_capacity(verdicts.len());
-                for (s, verdict) in sims.iter().zip(verdicts) {
+                let mut rows = Vec::with_capacity(m.verdicts.len());
+                for ((s, verdict), hit) in sims.iter().zip(m.verdicts).zip(&m.contacts) {
                     match verdict {
                         Ok(v) => {
-                            let touch = b.contacts(&v.named);
-                            self.collided.extend(only(
-                                s,
-                                metrics::collided_except(s, &touch),
-                                collider,
-                            ));
+                            self.collided.extend(only(s, hit.clone(), collider));
                             if whole_scenes {
                                 self.checked += 1;
                                 self.passed += v.passed as usize;
