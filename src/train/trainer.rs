@@ -53,6 +53,14 @@ pub struct TrainConfig {
     /// checkpoint's scales. Checkpoints from before the option have one common scale.
     #[serde(default)]
     pub component_scale: ComponentScale,
+    /// The cap of [`ComponentScale::Capped`] as a fraction of the common scale, in (0, 1]
+    /// ([`Normaliser::capped_at`]); checkpoints from before the option capped at 1.
+    #[serde(default = "one")]
+    pub scale_cap: f64,
+}
+
+fn one() -> f64 {
+    1.0
 }
 
 impl TrainConfig {
@@ -80,6 +88,7 @@ impl TrainConfig {
             val_towns: Vec::new(),
             ema_half_life: 0.0,
             component_scale: ComponentScale::Common,
+            scale_cap: 1.0,
         }
     }
 
@@ -223,6 +232,12 @@ impl TrainConfig {
             return Err(format!(
                 "ema_half_life = {}: must be 0 (no average) or a positive number of steps",
                 c.ema_half_life
+            ));
+        }
+        if !(c.scale_cap > 0.0 && c.scale_cap <= 1.0) {
+            return Err(format!(
+                "scale_cap = {}: must be in (0, 1], a fraction of the common scale",
+                c.scale_cap
             ));
         }
         positive("edm.sigma_data", e.sigma_data)?;
@@ -514,6 +529,7 @@ pub fn train_from(
         cfg.edm = c.edm;
         cfg.seed = c.seed;
         cfg.component_scale = c.component_scale;
+        cfg.scale_cap = c.scale_cap;
         cfg.val_fold = c.val_fold;
         cfg.val_towns = c.val_towns.clone();
     }
@@ -554,7 +570,8 @@ pub fn train_from(
         None => {
             let pca = Pca::fit(futures, cfg.model.k)?;
             let rmse = pca.position_rmse(futures);
-            let norm = Normaliser::with_scale(pca, cfg.edm.sigma_data, cfg.component_scale);
+            let norm =
+                Normaliser::with_scale(pca, cfg.edm.sigma_data, cfg.component_scale, cfg.scale_cap);
             let varmap = VarMap::new();
             let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
             let model = Denoiser::new(cfg.model, cfg.edm, vb)?;
@@ -913,6 +930,7 @@ pub(crate) fn tiny_config(steps: usize, seed: u64, eval_every: usize) -> TrainCo
         val_towns: Vec::new(),
         ema_half_life: 0.0,
         component_scale: ComponentScale::Common,
+        scale_cap: 1.0,
     }
 }
 
