@@ -1522,6 +1522,69 @@ fn convert_refuses_an_id_that_cannot_name_output_files() {
 }
 
 #[test]
+fn names_read_from_files_with_control_or_invisible_characters_are_refused() {
+    // A newline in an id faked an `error:` line in `inspect` (and in the LLM's prompt), an
+    // escape sequence reached the terminal, a bidi control reordered what was shown.
+    let dir = tempfile::tempdir().unwrap();
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let xml = std::fs::read_to_string(samples().join("commonroad/USA_US101-3_3_T-1.xml"))
+        .unwrap()
+        .replacen(
+            "benchmarkID=\"USA_US101-3_3_T-1\"",
+            "benchmarkID=\"US101&#10;error: fake\"",
+            1,
+        );
+    let cr = dir.path().join("hostile.xml");
+    std::fs::write(&cr, xml.replace("US101&#10;error: fake", "US101&#x202E;x")).unwrap();
+    let cr_nl = dir.path().join("hostile_nl.xml");
+    std::fs::write(&cr_nl, xml).unwrap();
+    let highway = std::fs::read_to_string(root.join("scripts/scenes/highway.yaml")).unwrap();
+    let yaml = dir.path().join("hostile.yaml");
+    std::fs::write(
+        &yaml,
+        highway.replace(
+            "scenario_id: highway",
+            "scenario_id: \"x\\e[2J\\e]0;pwned\\a\"",
+        ),
+    )
+    .unwrap();
+    for (file, want) in [
+        (&cr, "contains the invisible character U+202E"),
+        (&cr_nl, "contains the control character U+000A"),
+        (&yaml, "scenario_id: scenario id \"x\\u{001B}[2J"),
+    ] {
+        let err = fails(&["inspect", s(file)]);
+        assert!(
+            err.contains(s(file)) && err.contains(want) && !err.contains('\u{1b}'),
+            "{err}"
+        );
+        assert!(!err.contains("\nerror: fake"), "{err}");
+        assert!(!err.contains('\u{202E}'), "{err}");
+    }
+    let t = dir.path().join("x.test.yaml");
+    std::fs::write(
+        &t,
+        format!(
+            "script: {}\ncases:\n  - name: \"ok\\nerror: fake \\e[2J\"\n    scene: {}\n    params: {{vehicle: 1, limit: 30}}\n    expect: {{total_below: 1.0}}\n",
+            s(&root.join("scripts/speed_limit.rhai")),
+            s(&root.join("scripts/scenes/highway.yaml"))
+        ),
+    )
+    .unwrap();
+    let out = common::drivescript(&["test-scripts", s(&t)]);
+    assert_eq!(out.status.code(), Some(1));
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("x.test.yaml: cases[0]: name \"ok\\u{000A}error: fake \\u{001B}[2J\" contains the control character U+000A"),
+        "{text}"
+    );
+    assert!(
+        !text.contains("\nerror: fake") && !text.contains('\u{1b}'),
+        "{text}"
+    );
+}
+
+#[test]
 fn convert_refuses_agent_ids_the_format_cannot_hold() {
     let dir = tempfile::tempdir().unwrap();
     let y = dir.path().join("big.yaml");

@@ -506,17 +506,10 @@ fn add_term(
     }
     // Names reach terminals, reports and the LLM's prompt: no escape sequences, no essays, and
     // none of the sampler's own terms.
-    if let Some(ch) = name.chars().find(|c| c.is_control()) {
+    if let Err(bad) = crate::io::name::check_name(name) {
         return stdlib::err(format!(
-            "term {:?}: names must not contain control characters ({ch:?})",
-            name.chars().take(64).collect::<String>()
-        ));
-    }
-    if let Some(ch) = crate::io::hidden_char(name) {
-        return stdlib::err(format!(
-            "term {:?}: names must not contain invisible characters (U+{:04X})",
-            name.chars().take(64).collect::<String>(),
-            ch as u32
+            "term \"{}\": a name must not contain {bad}",
+            crate::io::name::shown(name)
         ));
     }
     if name.chars().count() > MAX_TERM_NAME {
@@ -1283,11 +1276,12 @@ mod tests {
     fn term_names_and_prints_cannot_carry_escape_sequences() {
         let scene = Rc::new(highway());
         for (name, want) in [
-            ("\\x1b[2Jx", "control characters"),
+            ("\\x1b[2Jx", "the control character U+001B"),
+            ("a\\nerror: b", "the control character U+000A"),
             ("realism_speed", "belong to the sampler"),
             (&"n".repeat(65), "at most 64 characters"),
-            ("speed\u{202E}gnol", "invisible characters (U+202E)"),
-            ("go\u{200B}al", "invisible characters (U+200B)"),
+            ("speed\u{202E}gnol", "the invisible character U+202E"),
+            ("go\u{200B}al", "the invisible character U+200B"),
         ] {
             let src = format!("term(\"{name}\", agent(1).x.last());");
             let e = evaluation_error(&src, scene.clone()).to_string();
