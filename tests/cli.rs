@@ -1328,6 +1328,67 @@ fn unknown_and_reserved_params_are_refused_with_the_scripts_parameters() {
 }
 
 #[test]
+fn parameter_errors_name_the_parameter_its_value_and_what_is_expected() {
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let cost = |params: &[&str]| {
+        let mut a = vec![
+            "cost",
+            s(&scene),
+            "--script",
+            "scripts/cut_in.rhai",
+            "--param",
+        ];
+        a.extend_from_slice(params);
+        fails(&a)
+    };
+    // Each used to name no parameter: "no function agent (f64)", "no function - (&str |
+    // ImmutableString | String, Dual)", and a 100 KB value quoted back whole.
+    let err = cost(&["cutter=1.5", "victim=1"]);
+    assert!(
+        err.contains(
+            "an agent id is a whole number, not a decimal number, from --param cutter=1.5"
+        ),
+        "{err}"
+    );
+    let err = cost(&["cutter=2", "victim=1", "gap="]);
+    assert!(
+        err.contains("parameter \"gap\": no value after `=`"),
+        "{err}"
+    );
+    let err = cost(&["cutter=2", "victim=1", "gap=wide"]);
+    assert!(
+        err.contains(
+            "parameter \"gap\" = \"wide\": the script takes a number here (its default is 5.0)"
+        ),
+        "{err}"
+    );
+    let huge = format!("gap={}", "9".repeat(100_000));
+    let err = cost(&["cutter=2", "victim=1", &huge]);
+    assert!(
+        err.contains("parameter \"gap\": a value of 100000 characters") && err.len() < 400,
+        "{err}"
+    );
+    // The checkers' ids too: `cutter=2.5` was judged as agent 2.
+    let err = fails(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "behaviour",
+        "--behaviour",
+        "cut_in",
+        "--param",
+        "cutter=2.5",
+        "victim=1",
+        "--baseline",
+        "log",
+    ]);
+    assert!(
+        err.contains("parameter \"cutter\" = \"2.5\" must be an agent id (a whole number)"),
+        "{err}"
+    );
+}
+
+#[test]
 fn nothing_read_simulated_or_scored_is_an_error() {
     let dir = tempfile::tempdir().unwrap();
     let empty = dir.path().join("empty");
