@@ -207,9 +207,9 @@ impl Default for SampleConfig {
 /// Errors of sampling.
 #[derive(Debug, thiserror::Error)]
 pub enum SampleError {
-    /// The tensor library failed.
+    /// The tensor library failed (its message without candle's backtrace).
     #[error("model: {0}")]
-    Candle(#[from] candle_core::Error),
+    Candle(candle_core::Error),
     /// A cost script failed (its message names the script, line and term).
     #[error(transparent)]
     Cost(#[from] CostError),
@@ -227,6 +227,12 @@ pub enum SampleError {
     /// Settings sampling cannot run with ([`SampleConfig::validate`]).
     #[error("sampler settings: {0}")]
     Settings(String),
+}
+
+impl From<candle_core::Error> for SampleError {
+    fn from(e: candle_core::Error) -> Self {
+        SampleError::Candle(crate::model::error::without_backtrace(e))
+    }
 }
 
 /// The scene cut to the model's horizon: `current + 1 + future` steps, unobserved beyond the
