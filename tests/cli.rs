@@ -790,6 +790,84 @@ fn eval_scores_every_method_over_the_same_steps() {
     );
 }
 
+#[test]
+fn eval_scores_rollouts_over_their_own_horizon_by_default() {
+    // Car 4 rear-ends car 2 at 3.9 s. The recording holds 3 s, the rollout (a model's 40
+    // steps) 4 s: the accident used to read as a miss unless --horizon was given.
+    let dir = tempfile::tempdir().unwrap();
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let text = std::fs::read_to_string(root.join("scripts/scenes/highway.yaml"))
+        .unwrap()
+        .replace(
+            "{id: 4, lane: 0, s: 20, speed: 18}",
+            "{id: 4, lane: 0, s: 40, speed: 30.5}",
+        );
+    let scene = dir.path().join("highway.yaml");
+    std::fs::write(&scene, text.replace("steps: 81", "steps: 41")).unwrap();
+    let long = dir.path().join("long.yaml");
+    std::fs::write(&long, text.replace("steps: 81", "steps: 51")).unwrap();
+    let rollouts = dir.path().join("r");
+    std::fs::create_dir(&rollouts).unwrap();
+    ok(&["convert", s(&long), "-o", s(&rollouts.join("highway.json"))]);
+    let eval = |extra: &[&str]| {
+        let mut a = vec![
+            "eval",
+            s(&scene),
+            "--task",
+            "behaviour",
+            "--behaviour",
+            "accident",
+            "--param",
+            "attacker=4",
+            "target=2",
+            "--rollouts",
+            s(&rollouts),
+            "--baseline",
+            "log",
+        ];
+        a.extend_from_slice(extra);
+        ok(&a)
+    };
+    let out = eval(&[]);
+    assert!(
+        out.contains("| rollouts in ") && out.contains("| accident | 1 | 1.00 | 1.00 |"),
+        "{out}"
+    );
+    // The log is scored over the same 40 steps (unobserved after its 30).
+    assert!(
+        out.contains("| log replay | accident | 1 | 0.00 | 0.00 |"),
+        "{out}"
+    );
+    assert!(
+        out.contains("horizon (future steps scored after the current step): 40 steps, the rollouts' own (1 scene)"),
+        "{out}"
+    );
+    // An explicit horizon still rules, and is said.
+    let out = eval(&["--horizon", "30"]);
+    assert!(
+        !out.contains("| accident | 1 | 1.00 |") && out.contains("30 steps, --horizon (1 scene)"),
+        "{out}"
+    );
+    // Without rollouts, the recorded future.
+    let out = ok(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "behaviour",
+        "--behaviour",
+        "accident",
+        "--param",
+        "attacker=4",
+        "target=2",
+        "--baseline",
+        "log",
+    ]);
+    assert!(
+        out.contains("30 steps, the recorded future (1 scene)"),
+        "{out}"
+    );
+}
+
 /// `simulate SCENE --checkpoint CKPT EXTRA... -o OUT`.
 fn simulate_args<'a>(
     scene: &'a str,
