@@ -882,6 +882,91 @@ fn simulate_args<'a>(
 }
 
 #[test]
+fn the_yield_example_holds_at_a_merge() {
+    // The worked example the LLM is shown: with a 2 m margin from the centres (inside both
+    // boxes) and no route term, the sampler moved the ramp car 2-12 m off its lane beside the
+    // main-lane car where the lanes merge, instead of holding it back.
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dir = tempfile::tempdir().unwrap();
+    let example = std::fs::read_to_string(root.join("prompts/examples/yield.md")).unwrap();
+    let script = example
+        .split("```rhai\n")
+        .nth(1)
+        .and_then(|rest| rest.split("```").next())
+        .expect("a rhai block")
+        .replace("agent(5)", "agent(11)")
+        .replace("agent(6)", "agent(10)");
+    let rhai = dir.path().join("yield.rhai");
+    std::fs::write(&rhai, script).unwrap();
+    // The merge of scripts/scenes with the ramp car (11) first at the meeting point, 0.3 s
+    // before the main-lane car (10), at their recorded speeds.
+    let scene = dir.path().join("merge.yaml");
+    let text = std::fs::read_to_string(root.join("scripts/scenes/merge_ramp_first.yaml"))
+        .unwrap()
+        .replace(
+            "{id: 10, route: [1, 3], s: 50, speed: 15}",
+            "{id: 10, route: [1, 3], s: 112.5, speed: 15}",
+        )
+        .replace(
+            "{id: 11, route: [2, 3], s: 30, speed: 21}",
+            "{id: 11, route: [2, 3], s: 117.84, speed: 16}",
+        );
+    assert!(text.contains("s: 117.84"));
+    std::fs::write(&scene, text).unwrap();
+    let out = dir.path().join("out");
+    ok(&simulate_args(
+        s(&scene),
+        "data/checkpoint",
+        &[
+            "--task",
+            "unconditional",
+            "--script",
+            s(&rhai),
+            "--samples",
+            "2",
+        ],
+        s(&out),
+    ));
+    let json = dir.path().join("eval.json");
+    ok(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "behaviour",
+        "--behaviour",
+        "yield",
+        "--param",
+        "yielder=11",
+        "other=10",
+        "--rollouts",
+        s(&out),
+        "--samples",
+        "2",
+        "--json",
+        s(&json),
+    ]);
+    let v: Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let verdicts = v["methods"][0]["scenes"][0]["verdicts"].as_array().unwrap();
+    assert_eq!(verdicts.len(), 2);
+    for verdict in verdicts {
+        let m = &verdict["measured"];
+        assert!(
+            verdict["passed"] == true && m["yielder_off_route_m"].as_f64().unwrap() <= 2.0,
+            "{verdict}"
+        );
+        // The main-lane car passes the meeting point within the horizon, before the yielder.
+        let (other, yielder) = (
+            m["other_passes_s"].as_f64().unwrap(),
+            m["yielder_reaches_s"].as_f64().unwrap(),
+        );
+        assert!(
+            other > 0.0 && (yielder < 0.0 || yielder > other),
+            "{verdict}"
+        );
+    }
+}
+
+#[test]
 fn train_then_simulate_end_to_end() {
     let dir = tempfile::tempdir().unwrap();
     let ckpt = dir.path().join("ckpt");
