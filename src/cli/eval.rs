@@ -83,7 +83,9 @@ pub struct Args {
     unguided: Option<PathBuf>,
     /// Score exactly this many future steps (a model's horizon): scenes are cut, or extended
     /// with unobserved steps, to current step + 1 + HORIZON before anything is simulated or
-    /// scored, so that baselines simulate as far as a model does.
+    /// scored, so that baselines simulate as far as a model does. Default: with --rollouts,
+    /// each scene's rollouts' own length (the longest of its samples), else each scene's
+    /// recorded future; the table says which was used.
     #[arg(long)]
     horizon: Option<usize>,
     /// Conditional task: score every simulated step, not only the steps where the agent is
@@ -229,6 +231,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     // Scenes the rollouts' run left out (per method that reads rollouts).
     let mut run_skipped = 0;
     let mut names = OutputNames::default();
+    let mut horizons = Horizons::default();
     for src in &sources {
         bar.set_message(
             src.file_name()
@@ -257,17 +260,38 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 }
             }
         }
-        let scenes: Vec<Scene> = match args.horizon {
-            Some(h) => scenes.iter().map(|s| s.with_horizon(h)).collect(),
-            None => scenes,
-        };
         for scene in &scenes {
+            // The rollouts are read first: without --horizon, their own length is the horizon
+            // every method is scored over (a rear-end at 3.9 s of a 40-step sample counted as
+            // a miss where the recording held 3 s). Read against the recording, whose history
+            // is all a rollout is checked against.
+            let mut rolled = args
+                .rollouts
+                .as_ref()
+                .map(|dir| rollouts_for(dir, scene, args.samples));
+            let own = match &rolled {
+                Some(Ok(samples)) => samples.iter().map(Scene::num_future_steps).max(),
+                _ => None,
+            };
+            let (horizon, from) = match (args.horizon, own) {
+                (Some(h), _) => (Some(h), HorizonFrom::Flag),
+                (None, Some(h)) => (Some(h), HorizonFrom::Rollouts),
+                (None, None) => (None, HorizonFrom::Recording),
+            };
+            let cut;
+            let scene = match horizon {
+                Some(h) => {
+                    cut = scene.with_horizon(h);
+                    &cut
+                }
+                None => scene,
+            };
             let scene_params = match (&behaviour, args.auto) {
                 (Some((b, given)), true) => {
                     match drivescript::eval::behaviors::suggest(
                         *b,
                         scene,
-                        args.horizon.unwrap_or(scene.num_future_steps()),
+                        horizon.unwrap_or(scene.num_future_steps()),
                     ) {
                         Some(p) => Some((*b, p.overridden_by(given))),
                         None => {
@@ -282,7 +306,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             // Agents are chosen on the recording (as `simulate --auto` chooses them); every
             // method then runs the whole horizon, past the end of a shorter recording.
             let extended;
-            let scene = match args.horizon {
+            let scene = match horizon {
                 Some(h) => {
                     extended = scene.over_horizon(h);
                     &extended
@@ -298,17 +322,14 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     continue;
                 }
             }
+            horizons.count(scene.num_future_steps(), from);
             // Every method, and the log it is compared with, loses its cars where they leave
             // the map.
             let reference = scene.retire_exited();
             for ((_, m), acc) in methods.iter().zip(accs.iter_mut()) {
                 let sims = match m {
                     Some(b) => vec![b.simulate(scene)],
-                    None => match rollouts_for(
-                        args.rollouts.as_ref().expect("a rollouts method"),
-                        scene,
-                        args.samples,
-                    ) {
+                    None => match rolled.take().expect("a rollouts method reads them once") {
                         Ok(s) => s,
                         Err(e) if e.is::<LeftOut>() => {
                             run_skipped += 1;
@@ -381,8 +402,85 @@ pub fn run(args: Args) -> Result<ExitCode> {
             skipped,
             failures,
             run_skipped,
+            horizons,
         },
     )
+}
+
+/// Where a scene's horizon (the future steps every method is scored over) came from.
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "snake_case")]
+enum HorizonFrom {
+    /// `--horizon`.
+    Flag,
+    /// The longest of the scene's rollouts.
+    Rollouts,
+    /// The recorded future (no flag, no rollouts read).
+    Recording,
+}
+
+/// How many scenes were scored over each horizon, for the line that says which was used.
+#[derive(Debug, Default, serde::Serialize, serde::Deserialize)]
+struct Horizons(Vec<HorizonCount>);
+
+#[derive(Debug, serde::Serialize, serde::Deserialize)]
+struct HorizonCount {
+    steps: usize,
+    from: HorizonFrom,
+    scenes: usize,
+}
+
+impl Horizons {
+    fn count(&mut self, steps: usize, from: HorizonFrom) {
+        self.add(steps, from, 1);
+    }
+
+    fn add(&mut self, steps: usize, from: HorizonFrom, scenes: usize) {
+        match self
+            .0
+            .iter_mut()
+            .find(|c| c.steps == steps && c.from == from)
+        {
+            Some(c) => c.scenes += scenes,
+            None => self.0.push(HorizonCount {
+                steps,
+                from,
+                scenes,
+            }),
+        }
+        self.0.sort_by_key(|c| (c.from, c.steps));
+    }
+
+    /// `horizon: 40 steps after the current step, the rollouts' own (3 scenes)`; None when
+    /// nothing was scored.
+    fn line(&self) -> Option<String> {
+        let parts: Vec<String> = self
+            .0
+            .iter()
+            .map(|c| {
+                let from = match c.from {
+                    HorizonFrom::Flag => "--horizon",
+                    HorizonFrom::Rollouts => "the rollouts' own",
+                    HorizonFrom::Recording => "the recorded future",
+                };
+                let s = if c.scenes == 1 { "" } else { "s" };
+                format!("{} steps, {from} ({} scene{s})", c.steps, c.scenes)
+            })
+            .collect();
+        (!parts.is_empty()).then(|| {
+            let hint = if self.0.iter().any(|c| c.from != HorizonFrom::Flag) {
+                "; --horizon H scores every scene over H steps"
+            } else {
+                ""
+            };
+            format!(
+                "horizon (future steps scored after the current step): {}{hint}",
+                parts.join("; ")
+            )
+        })
+    }
 }
 
 /// What a shard's --json carries for --merge besides the accumulators.
@@ -397,6 +495,9 @@ struct Merge {
     /// Scenes the rollouts' run left out.
     #[serde(default)]
     run_skipped: usize,
+    /// The horizons the scenes were scored over.
+    #[serde(default)]
+    horizons: Horizons,
 }
 
 /// The table's header lines for `task`, with a group column when `grouped`.
@@ -602,6 +703,9 @@ fn report(
     println!(
         "\nimplausible: fraction of vehicles (pooled over scenes and samples) whose future a car cannot drive: reversing, sprinting, braking or accelerating beyond 7 m/s², swerving, crabbing or turning tighter than Waymax's curvature bound (docs/evaluation.md); not counted: what a behaviour asks of the agents it names (the car reverse asks to back up)"
     );
+    if let Some(line) = merge.horizons.line() {
+        println!("\n{line}");
+    }
     if task == Task::Conditional {
         println!("\nJSD: Jensen-Shannon distance (natural log) of histograms pooled over agents, steps and scenes; bins {}", serde_json::to_string(&bins)?);
     }
@@ -660,6 +764,7 @@ fn merge(files: &[PathBuf], json_out: Option<&Path>) -> Result<ExitCode> {
     let mut accs: Vec<Tally> = Vec::new();
     let mut seen: Vec<(usize, PathBuf)> = Vec::new();
     let (mut skipped, mut failures, mut run_skipped) = (0, 0, 0);
+    let mut horizons = Horizons::default();
     for f in files {
         let text = drivescript::io::read_regular_text(
             f,
@@ -702,6 +807,9 @@ fn merge(files: &[PathBuf], json_out: Option<&Path>) -> Result<ExitCode> {
         skipped += m.skipped;
         failures += m.failures;
         run_skipped += m.run_skipped;
+        for c in &m.horizons.0 {
+            horizons.add(c.steps, c.from, c.scenes);
+        }
         // An unsharded run is all of one evaluation: shard 0 of 1, so that merging it twice
         // (or with a copy) is refused rather than counting its scenes twice.
         let shards = if m.shards.is_empty() {
@@ -774,6 +882,7 @@ fn merge(files: &[PathBuf], json_out: Option<&Path>) -> Result<ExitCode> {
             skipped,
             failures,
             run_skipped,
+            horizons,
         },
     )
 }

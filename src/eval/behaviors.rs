@@ -259,6 +259,16 @@ pub enum CheckError {
         /// Its value as given.
         value: String,
     },
+    /// An agent's parameter is not an agent id.
+    #[error("{behavior}: parameter {name:?} = {value:?} must be an agent id (a whole number)")]
+    NotAnId {
+        /// The behaviour.
+        behavior: &'static str,
+        /// The parameter.
+        name: &'static str,
+        /// Its value as given.
+        value: String,
+    },
     /// A parameter is not one of the words it may be.
     #[error("{behavior}: parameter {name:?} = {value:?} must be {expected}")]
     NotAWord {
@@ -344,7 +354,24 @@ impl<'a> Ctx<'a> {
     }
 
     fn agent(&mut self, name: &'static str) -> Result<&'a Agent, CheckError> {
-        let id = self.get(name)? as i64;
+        // `vehicle=1.5` named agent 1: an id is whole or it is no id.
+        let id = match self.p.get(name) {
+            None => {
+                return Err(CheckError::MissingParam {
+                    behavior: self.b.name(),
+                    name,
+                })
+            }
+            Some(ParamValue::Int(i)) => *i,
+            Some(ParamValue::Float(f)) if f.fract() == 0.0 && f.abs() < 9.0e15 => *f as i64,
+            Some(v) => {
+                return Err(CheckError::NotAnId {
+                    behavior: self.b.name(),
+                    name,
+                    value: v.to_string(),
+                })
+            }
+        };
         let a = self.s.agent(id).ok_or_else(|| CheckError::Agent {
             behavior: self.b.name(),
             message: format!("no agent {id} ({name})"),

@@ -64,6 +64,11 @@ pub const DEFAULT_GUIDANCE: Guidance = Guidance::OutputSpace;
 /// needs 3).
 pub const BEHAVIOUR_LAMBDA: f64 = 3.0;
 
+/// The largest guidance strength and term weight the sampler takes (λ, the known-state and the
+/// realism weights): the defaults are 1 to 3, and 1e308 turned the denoiser's output into
+/// infinities, or printed 300-digit weights, instead of being refused.
+pub const MAX_WEIGHT: f64 = 1000.0;
+
 /// Weight of the realism terms in `simulate`, `demo` and `ask` unless told otherwise
 /// ([`Realism`]; data/checkpoint/README.md has the measurements behind it).
 pub const REALISM_WEIGHT: f64 = 1.0;
@@ -157,8 +162,11 @@ impl SampleConfig {
             ("known weight", self.known_weight),
             ("realism weight", self.realism.weight),
         ] {
-            if !(v.is_finite() && v >= 0.0) {
-                return Err(format!("{name} = {v}: must be finite and not negative"));
+            if !(v.is_finite() && (0.0..=MAX_WEIGHT).contains(&v)) {
+                return Err(format!(
+                    "{name} = {}: must be 0 to {MAX_WEIGHT}",
+                    crate::geom::num(v)
+                ));
             }
         }
         if self.horizon == Some(0) {
@@ -200,9 +208,9 @@ impl Default for SampleConfig {
 /// Errors of sampling.
 #[derive(Debug, thiserror::Error)]
 pub enum SampleError {
-    /// The tensor library failed.
+    /// The tensor library failed (its message without candle's backtrace).
     #[error("model: {0}")]
-    Candle(#[from] candle_core::Error),
+    Candle(candle_core::Error),
     /// A cost script failed (its message names the script, line and term).
     #[error(transparent)]
     Cost(#[from] CostError),
@@ -220,6 +228,12 @@ pub enum SampleError {
     /// Settings sampling cannot run with ([`SampleConfig::validate`]).
     #[error("sampler settings: {0}")]
     Settings(String),
+}
+
+impl From<candle_core::Error> for SampleError {
+    fn from(e: candle_core::Error) -> Self {
+        SampleError::Candle(crate::model::error::without_backtrace(e))
+    }
 }
 
 /// The scene cut to the model's horizon: `current + 1 + future` steps, unobserved beyond the

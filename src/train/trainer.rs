@@ -13,6 +13,7 @@ use super::dataset::{within, Window, WindowConfig, AGENT_ATTRS};
 use super::ema::Ema;
 use super::rng::Rng;
 use super::store::{SceneWindows, WindowSource};
+use crate::model::error::message as candle_message;
 use crate::model::{Denoiser, DenoiserConfig, Edm, Pca, Scores};
 use crate::scene::{AgentType, Scene};
 
@@ -328,9 +329,9 @@ pub enum TrainError {
     /// Settings training cannot run with ([`TrainConfig::validate`]).
     #[error("training settings: {0}")]
     Config(String),
-    /// The tensor library failed.
+    /// The tensor library failed (its message without candle's backtrace).
     #[error("model: {0}")]
-    Candle(#[from] candle_core::Error),
+    Candle(candle_core::Error),
     /// Fitting PCA failed.
     #[error("PCA: {0}")]
     Pca(#[from] crate::model::PcaError),
@@ -353,6 +354,12 @@ pub enum TrainError {
         /// What went wrong.
         message: String,
     },
+}
+
+impl From<candle_core::Error> for TrainError {
+    fn from(e: candle_core::Error) -> Self {
+        TrainError::Candle(crate::model::error::without_backtrace(e))
+    }
 }
 
 /// Overwrites every variable with seeded values: candle's own initialisers are not seedable.
@@ -750,21 +757,21 @@ pub fn save(
     let tmp = dir.join(format!(".model.safetensors.{pid}.tmp"));
     match ema {
         Some(e) => {
-            e.save(&tmp).map_err(|e| io(&tmp, e.to_string()))?;
+            e.save(&tmp).map_err(|e| io(&tmp, candle_message(e)))?;
             staged.push((tmp, weights));
             let tmp = dir.join(format!(".{ONLINE_FILE}.{pid}.tmp"));
-            varmap.save(&tmp).map_err(|e| io(&tmp, e.to_string()))?;
+            varmap.save(&tmp).map_err(|e| io(&tmp, candle_message(e)))?;
             staged.push((tmp, dir.join(ONLINE_FILE)));
         }
         None => {
-            varmap.save(&tmp).map_err(|e| io(&tmp, e.to_string()))?;
+            varmap.save(&tmp).map_err(|e| io(&tmp, candle_message(e)))?;
             staged.push((tmp, weights));
         }
     }
     if let Some(opt) = optimizer {
         let path = dir.join(OPTIMIZER_FILE);
         let tmp = dir.join(format!(".optimizer.safetensors.{pid}.tmp"));
-        opt.save(&tmp).map_err(|e| io(&tmp, e.to_string()))?;
+        opt.save(&tmp).map_err(|e| io(&tmp, candle_message(e)))?;
         staged.push((tmp, path));
     }
     let json = serde_json::to_string_pretty(meta).expect("metadata serialises");
@@ -836,14 +843,14 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
     let w = dir.join("model.safetensors");
     crate::io::open_regular(&w, MAX_WEIGHTS_BYTES, "checkpoint weights")
         .map_err(|e| io(&w, e.to_string()))?;
-    varmap.load(&w).map_err(|e| io(&w, e.to_string()))?;
+    varmap.load(&w).map_err(|e| io(&w, candle_message(e)))?;
     let opt_path = dir.join(OPTIMIZER_FILE);
     let optimizer = if opt_path.exists() {
         crate::io::open_regular(&opt_path, 2 * MAX_WEIGHTS_BYTES, "optimiser state")
             .map_err(|e| io(&opt_path, e.to_string()))?;
         let mut opt = AdamW::new(&varmap, meta.config.lr, WEIGHT_DECAY);
         opt.load(&opt_path)
-            .map_err(|e| io(&opt_path, e.to_string()))?;
+            .map_err(|e| io(&opt_path, candle_message(e)))?;
         if opt.steps() != meta.steps_done as u64 {
             return Err(io(
                 &opt_path,
@@ -890,7 +897,7 @@ pub fn load_for_training(dir: &Path) -> Result<Trained, TrainError> {
     crate::io::open_regular(&online, MAX_WEIGHTS_BYTES, "checkpoint weights")
         .map_err(|e| io(e.to_string()))?;
     let averaged = super::ema::copies(&t.varmap)?;
-    t.varmap.load(&online).map_err(|e| io(e.to_string()))?;
+    t.varmap.load(&online).map_err(|e| io(candle_message(e)))?;
     t.ema = Some(Ema::from_weights(
         averaged,
         t.meta.config.ema_half_life,
