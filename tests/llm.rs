@@ -415,7 +415,14 @@ fn a_failing_behaviour_is_repaired_and_an_accept_against_the_numbers_is_refused(
 
 #[test]
 fn rounds_run_out_with_exit_2_and_a_final_script() {
-    let srv = Server::start(vec![Canned::chat(&reply(IDLE)), Canned::chat(&reply(IDLE))]);
+    // The second reply reports no usage: the truncation check cannot run, and ask says so.
+    let bare = serde_json::json!({
+        "choices": [{"index": 0, "message": {"role": "assistant", "content": reply(IDLE)}, "finish_reason": "stop"}]
+    });
+    let srv = Server::start(vec![
+        Canned::chat(&reply(IDLE)),
+        Canned::raw(200, &bare.to_string()),
+    ]);
     let dir = tempfile::tempdir().unwrap();
     let out = ask_cut_in(
         dir.path(),
@@ -425,6 +432,14 @@ fn rounds_run_out_with_exit_2_and_a_final_script() {
     let t = text(&out);
     assert_eq!(out.status.code(), Some(2), "{t}");
     assert!(t.contains("the rounds ran out"), "{t}");
+    let said: Vec<&str> = t
+        .lines()
+        .filter(|l| l.contains("reported no token usage, so a prompt cut to its context window"))
+        .collect();
+    assert!(
+        said.len() == 1 && said[0].starts_with("round 1: reply in"),
+        "{t}"
+    );
     assert_eq!(srv.received().len(), 2);
     assert_eq!(srv.received()[0].json()["stream"], false);
     assert!(dir.path().join("final.rhai").exists());
