@@ -18,7 +18,9 @@ use super::guided::{
 };
 use crate::cost::ScriptSpec;
 use crate::cost::{check_params, CostError, CostReport, CostScript, Params};
-use crate::eval::behaviors::{check, check_against_unguided, Behavior, CheckError, Verdict};
+use crate::eval::behaviors::{
+    check_against_unguided, check_allowing, Behavior, CheckError, Verdict,
+};
 use crate::eval::kinematic::{judge, KinematicLimits, Violation};
 use crate::eval::metrics::{road_departure, RoadDeparture};
 use crate::io::{output_stem, rollout::Rollout, write_atomic, IoError};
@@ -209,6 +211,24 @@ fn requested(
             b.allowed_motion().contains(&kind)
                 && b.roles().iter().any(|r| p.number(r) == Some(id as f64))
         })
+}
+
+/// Each checker's verdict on `scene`, against its unguided `twin` where there is one, with
+/// the motion the scripts allow (`allowed`, from [`script_allowances`]) counted as asked:
+/// an `off_road` checker for a car its script lets reverse does not fail it for reversing.
+fn verdicts(
+    checks: &[(Behavior, Params)],
+    scene: &Scene,
+    twin: Option<&Scene>,
+    allowed: &[(i64, Violation)],
+) -> Result<Vec<Verdict>, CheckError> {
+    checks
+        .iter()
+        .map(|(b, p)| match twin {
+            Some(u) => check_against_unguided(*b, scene, u, p, allowed),
+            None => check_allowing(*b, scene, p, allowed),
+        })
+        .collect()
 }
 
 /// The motion `reports`' scripts allow, as (agent id, kind): `allow(a, "reverse")` exempts
@@ -492,15 +512,8 @@ pub fn attempt(
             }
         }
         let twin = twins.as_ref().and_then(|t| t.get(k));
-        let verdicts = spec
-            .checks
-            .iter()
-            .map(|(b, p)| match twin {
-                Some(u) => check_against_unguided(*b, &s.scene, &u.scene, p),
-                None => check(*b, &s.scene, p),
-            })
-            .collect::<Result<Vec<_>, _>>()?;
         let allowed = script_allowances(&scene, &s.reports);
+        let verdicts = verdicts(&spec.checks, &s.scene, twin.map(|u| &u.scene), &allowed)?;
         let realism = realism_events(&s.scene, &spec.checks, &roles, &allowed);
         let off_road = s
             .scene
@@ -645,9 +658,14 @@ mod tests {
                 assert!(x.initial.is_some(), "{} has no first estimate", x.term);
             }
             // Judged with the rest of the scene against the same sample drawn unguided.
-            let v =
-                check_against_unguided(Behavior::CutIn, &a.samples[k].scene, &twins[k].scene, &p)
-                    .unwrap();
+            let v = check_against_unguided(
+                Behavior::CutIn,
+                &a.samples[k].scene,
+                &twins[k].scene,
+                &p,
+                &[],
+            )
+            .unwrap();
             assert!(v.collateral.is_some());
             assert_eq!(o.verdicts, vec![v.clone()]);
             assert_eq!(o.passed(), Some(v.passed));
@@ -821,6 +839,59 @@ mod tests {
             "{:?}",
             allowed.realism
         );
+    }
+
+    #[test]
+    fn a_checker_does_not_fail_a_car_for_the_reversing_its_script_allows() {
+        // "Vehicle 4 reverses and leaves the road" (issue 31: 2976 came back three times as
+        // "reverses at -1.4 m/s"). Vehicle 4 of highway_stop backs up at 3 m/s; here it also
+        // drifts 4 m right, past the road's edge. reverse.rhai allows it to reverse.
+        let mut scene = load_scene(
+            &root().join("scripts/scenes/highway_stop.yaml"),
+            0,
+            &LoadOptions::default(),
+        )
+        .unwrap();
+        let c = scene.meta.current_step;
+        let n = scene.num_steps();
+        let a = scene.agents.iter_mut().find(|a| a.id == 4).unwrap();
+        for t in c + 1..n {
+            a.states[t].y -= 4.0 * (t - c) as f64 / (n - 1 - c) as f64;
+        }
+        let allowed = vec![(4, Violation::Reverse)];
+        let off_road = vec![(Behavior::OffRoad, Params::numbers(&[("vehicle", 4.0)]))];
+        // Without the allowance the off_road checker sees it leave the road, and fails it for
+        // reversing.
+        let bare = verdicts(&off_road, &scene, None, &[]).unwrap();
+        assert!(bare[0].achieved && !bare[0].passed, "{:?}", bare[0]);
+        assert!(
+            bare[0].reason.contains("vehicle 4 reverses"),
+            "{}",
+            bare[0].reason
+        );
+        // With it, the reversing was asked for: the verdict passes.
+        let v = verdicts(&off_road, &scene, None, &allowed).unwrap();
+        assert!(v[0].passed && v[0].violations.is_empty(), "{:?}", v[0]);
+        // Judged against an unguided twin, as an agent the checker does not name, its
+        // allowed reversing is no collateral implausibility either (in the twin it backs up
+        // on the road).
+        let twin = load_scene(
+            &root().join("scripts/scenes/highway_stop.yaml"),
+            0,
+            &LoadOptions::default(),
+        )
+        .unwrap();
+        let speed = vec![(
+            Behavior::SpeedLimit,
+            Params::numbers(&[("vehicle", 2.0), ("limit", 40.0)]),
+        )];
+        let implausible = |allowed: &[(i64, Violation)]| {
+            let v = verdicts(&speed, &scene, Some(&twin), allowed).unwrap();
+            let c = v[0].collateral.unwrap();
+            (c.implausible, c.implausible_unguided)
+        };
+        assert_eq!(implausible(&[]), (1, 1));
+        assert_eq!(implausible(&allowed), (0, 0));
     }
 
     #[test]
