@@ -85,6 +85,74 @@ pub struct TermOutcome {
     /// The script's tolerance for it, when it gives one.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub tolerance: Option<f64>,
+    /// For a script term over many agents (it reads three or more, or one the script does
+    /// not name) that pulls on some: the agents that carry it ([`Carried`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub carried_by: Option<Carried>,
+}
+
+/// The most agents [`Carried::top`] names: enough to point a repair at the agents that
+/// matter, few enough to keep a line of feedback a line.
+pub const CARRIERS_SHOWN: usize = 3;
+
+/// The agents that carry a term over many agents, by their share of its gradient
+/// ([`crate::cost::attribution`]: how much of the term's fall moving that agent alone down
+/// its gradient would bring).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Carried {
+    /// Agents the term reads.
+    pub reads: usize,
+    /// The agents with the largest shares, largest first, at most [`CARRIERS_SHOWN`].
+    pub top: Vec<AgentShare>,
+    /// Agents with a share beyond those.
+    pub others: usize,
+}
+
+/// One agent's share of a term ([`Carried`]).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct AgentShare {
+    /// The agent's id.
+    pub agent: i64,
+    /// Its share, 0 to 1.
+    #[serde(serialize_with = "crate::io::json::f64_explicit")]
+    pub share: f64,
+}
+
+/// Who carries `term`, evaluated on `scene`'s agents laid out as `layout`, when it is a term
+/// over many agents (it reads three or more, or one not in `named`, the ids the script
+/// names) and it pulls on any; `None` otherwise.
+fn carried(
+    term: &crate::cost::TermReport,
+    layout: &crate::cost::VarLayout,
+    scene: &Scene,
+    named: &[i64],
+) -> Option<Carried> {
+    let at = crate::cost::attribution::attribute(term, layout);
+    let id = |i: usize| scene.agents.get(i).map(|a| a.id);
+    let many = at.reads.len() >= 3
+        || at
+            .reads
+            .iter()
+            .any(|&i| id(i).is_some_and(|a| !named.contains(&a)));
+    if !many || at.shares.is_empty() {
+        return None;
+    }
+    let top: Vec<AgentShare> = at
+        .shares
+        .iter()
+        .filter_map(|&(i, share)| {
+            Some(AgentShare {
+                agent: id(i)?,
+                share,
+            })
+        })
+        .take(CARRIERS_SHOWN)
+        .collect();
+    Some(Carried {
+        reads: at.reads.len(),
+        others: at.shares.len() - top.len(),
+        top,
+    })
 }
 
 /// One vehicle's implausible motion in a sample.
@@ -494,6 +562,7 @@ pub fn attempt(
                         .map(|x| x.value),
                     value: t.value,
                     tolerance: t.tolerance,
+                    carried_by: carried(t, &rep.layout, &scene, &rep.named),
                 });
             }
         }
@@ -508,6 +577,7 @@ pub fn attempt(
                     initial: first.term(&t.name).map(|x| x.value),
                     value: t.value,
                     tolerance: None,
+                    carried_by: None,
                 });
             }
         }
@@ -838,6 +908,48 @@ mod tests {
             allowed.implausible(&[4]).all(|e| e.kind != "reverse"),
             "{:?}",
             allowed.realism
+        );
+    }
+
+    #[test]
+    fn a_term_over_many_agents_is_carried_by_the_ones_it_pulls_and_a_pair_term_is_not_attributed() {
+        // Highway: vehicle 2 driven 5 m behind vehicle 1, in its lane: the one overlapping pair.
+        let mut scene = load_scene(
+            &root().join("scripts/scenes/highway.yaml"),
+            0,
+            &LoadOptions::default(),
+        )
+        .unwrap();
+        let c = scene.meta.current_step;
+        let one = scene.agents.iter().find(|a| a.id == 1).unwrap().clone();
+        let two = scene.agents.iter_mut().find(|a| a.id == 2).unwrap();
+        for t in c + 1..two.states.len() {
+            two.states[t] = one.states[t];
+            two.states[t].x -= 5.0;
+        }
+        let src = "let a = agent(1);\nlet b = agent(2);\n\
+                   term(\"apart\", no_collision_cost(vehicles(), 1.0));\n\
+                   term(\"pair\", relu(20.0 - distance(a, b)).mean());\n";
+        let script = CostScript::compile(
+            src,
+            "t.rhai",
+            Rc::new(scene.clone()),
+            &Params::default(),
+            &Limits::default(),
+        )
+        .unwrap();
+        let r = script
+            .evaluate(&crate::cost::Trajectories::recorded(&scene))
+            .unwrap();
+        let apart = carried(r.term("apart").unwrap(), &r.layout, &scene, &r.named).unwrap();
+        assert_eq!((apart.reads, apart.others), (4, 0));
+        let mut ids: Vec<i64> = apart.top.iter().map(|a| a.agent).collect();
+        ids.sort();
+        assert_eq!(ids, vec![1, 2]);
+        // Two agents, both named: the motion tables already show them.
+        assert_eq!(
+            carried(r.term("pair").unwrap(), &r.layout, &scene, &r.named),
+            None
         );
     }
 
