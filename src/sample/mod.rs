@@ -7,8 +7,8 @@ pub mod provenance;
 
 pub use crate::cost::ScriptSpec;
 pub use attempt::{
-    attempt, Attempt, AttemptError, AttemptReport, AttemptSpec, RealismEvent, SampleOutcome,
-    Settings, TermOutcome,
+    attempt, AgentShare, Attempt, AttemptError, AttemptReport, AttemptSpec, Carried, RealismEvent,
+    SampleOutcome, Settings, TermOutcome, CARRIERS_SHOWN,
 };
 pub use closed_loop::closed_loop;
 pub use guided::{
