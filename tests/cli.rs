@@ -1666,6 +1666,47 @@ fn three_shards_and_a_merge_equal_the_single_run() {
     assert!(err.contains("shards 2/3 are missing"), "{err}");
     let err = fails(&["eval", "--merge", fs[0], fs[1], fs[2], fs[1]]);
     assert!(err.contains("is in both"), "{err}");
+    // Figures no evaluation writes are refused, naming the file and the field: a negative
+    // ADE, a scene count that would wrap when summed.
+    let (k, shard) = files
+        .iter()
+        .enumerate()
+        .map(|(k, f)| {
+            let v: Value = serde_json::from_str(&std::fs::read_to_string(f).unwrap()).unwrap();
+            (k, v)
+        })
+        .find(|(_, v)| v["merge"]["accumulators"][0]["ade"][0].is_number())
+        .expect("a shard with scenes");
+    let edited = dir.path().join("edited.json");
+    for (field, value, says) in [
+        (
+            "ade",
+            serde_json::json!([-1.0]),
+            "ade[0] is -1: must be a distance",
+        ),
+        (
+            "scenes",
+            serde_json::json!(u64::MAX),
+            "scenes is 18446744073709551615, but per_scene holds",
+        ),
+    ] {
+        let mut v = shard.clone();
+        v["merge"]["accumulators"][0][field] = value;
+        std::fs::write(&edited, v.to_string()).unwrap();
+        let mut args = vec!["eval", "--merge", s(&edited)];
+        args.extend(
+            fs.iter()
+                .enumerate()
+                .filter(|(i, _)| *i != k)
+                .map(|(_, f)| *f),
+        );
+        let err = fails(&args);
+        assert!(
+            err.contains(&format!("{}: merge.accumulators[0]", edited.display()))
+                && err.contains(says),
+            "{err}"
+        );
+    }
 }
 
 #[test]
