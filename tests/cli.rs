@@ -1503,6 +1503,61 @@ fn eval_json_refuses_its_inputs_and_files_it_did_not_write() {
 }
 
 #[test]
+fn convert_and_render_replace_only_an_earlier_output_of_their_own_format() {
+    let dir = tempfile::tempdir().unwrap();
+    let y = samples().join("yaml/highway_cut_in.yaml");
+    let p = |name: &str| dir.path().join(name);
+    // Earlier outputs of the same format are replaced.
+    for out in ["a.yaml", "a.json", "a.tfrecord"] {
+        ok(&["convert", s(&y), "-o", s(&p(out))]);
+        ok(&["convert", s(&y), "-o", s(&p(out))]);
+    }
+    for out in ["a.svg", "a.png", "a.gif"] {
+        ok(&["render", s(&y), "--width", "64", "-o", s(&p(out))]);
+        ok(&["render", s(&y), "--width", "64", "-o", s(&p(out))]);
+    }
+    // A user's file under the name, a picture of another format, a TFRecord of two scenarios:
+    // refused, named, kept.
+    let scene = drivescript::io::load_scene(&y, 0, &Default::default()).unwrap();
+    drivescript::io::womd::write_file(&p("two.tfrecord"), &[scene.clone(), scene]).unwrap();
+    std::fs::write(p("notes.yaml"), "my notes: [unclosed\n").unwrap();
+    std::fs::write(p("notes.png"), "not a picture").unwrap();
+    std::fs::copy(p("a.png"), p("png.svg")).unwrap();
+    std::fs::copy(p("a.yaml"), p("scene.gif")).unwrap();
+    for (command, out, what) in [
+        ("convert", "notes.yaml", "a drivescript YAML scene"),
+        ("convert", "two.tfrecord", "a WOMD TFRecord of one scenario"),
+        ("convert", "a.svg", ""),
+        ("render", "notes.png", "a PNG picture"),
+        ("render", "png.svg", "an SVG picture"),
+        ("render", "scene.gif", "a GIF picture"),
+    ] {
+        let before = std::fs::read(p(out)).unwrap();
+        let err = fails(&[command, s(&y), "-o", s(&p(out))]);
+        if what.is_empty() {
+            assert!(err.contains("unknown output format"), "{err}");
+        } else {
+            assert!(
+                err.contains(&format!(
+                    "{}: -o: already exists and is not {what}: writing would replace it; \
+                     remove it first or write to another file",
+                    p(out).display()
+                )),
+                "{command} -o {out}: {err}"
+            );
+        }
+        assert_eq!(std::fs::read(p(out)).unwrap(), before, "{out}");
+    }
+    // Never an input of the same command (a rollout named like a picture).
+    let rollout = p("rollout.svg");
+    std::fs::copy(p("a.json"), &rollout).unwrap();
+    let before = std::fs::read(&rollout).unwrap();
+    let err = fails(&["render", s(&y), "--rollout", s(&rollout), "-o", s(&rollout)]);
+    assert!(err.contains("-o: is the input itself"), "{err}");
+    assert_eq!(std::fs::read(&rollout).unwrap(), before);
+}
+
+#[test]
 fn convert_refuses_an_id_that_cannot_name_output_files() {
     let dir = tempfile::tempdir().unwrap();
     let y = samples().join("yaml/highway_cut_in.yaml");
