@@ -804,6 +804,60 @@ fn simulate_args<'a>(
 }
 
 #[test]
+fn a_slow_script_stops_at_the_run_s_script_budget_instead_of_running_for_minutes() {
+    let dir = tempfile::tempdir().unwrap();
+    // Tens of milliseconds per evaluation, within the per-call limit: the run's hundreds of
+    // evaluations (32 Heun steps, 2 x 300 polish iterations, 4 samples) would take minutes.
+    let script = dir.path().join("slow.rhai");
+    std::fs::write(
+        &script,
+        "let n = 0; for i in 0..200000 { n += 1; }\nlet a = agent(1);\n\
+         term(\"far\", square(a.x.last() - 1000.0));\n",
+    )
+    .unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let out = dir.path().join("out");
+    let t0 = std::time::Instant::now();
+    let o = drivescript(&simulate_args(
+        s(&scene),
+        "data/checkpoint",
+        &[
+            "--script",
+            s(&script),
+            "--samples",
+            "4",
+            "--script-budget",
+            "0.5",
+        ],
+        s(&out),
+    ));
+    let t = format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("the cost scripts took")
+            && t.contains(" evaluations (")
+            && t.contains("s each), past this run's budget of 0.5 s")
+            && t.contains("--script-budget"),
+        "{t}"
+    );
+    assert!(t0.elapsed().as_secs() < 60, "{:?}: {t}", t0.elapsed());
+    let err = fails(&simulate_args(
+        s(&scene),
+        "data/checkpoint",
+        &["--script", s(&script), "--script-budget", "0"],
+        s(&out),
+    ));
+    assert!(
+        err.contains("--script-budget 0.0: must be more than 0"),
+        "{err}"
+    );
+}
+
+#[test]
 fn train_then_simulate_end_to_end() {
     let dir = tempfile::tempdir().unwrap();
     let ckpt = dir.path().join("ckpt");

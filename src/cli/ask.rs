@@ -134,6 +134,10 @@ pub struct Args {
     /// many with realism's collision term (0: none).
     #[arg(long, default_value_t = drivescript::sample::POLISH_STEPS, value_parser = usize_in(0, 1000))]
     polish: usize,
+    /// Seconds the cost script may take over one round's sampling, every evaluation together
+    /// (more than 0, at most 86400); the same flag and default as `simulate`'s.
+    #[arg(long, value_name = "SECONDS", default_value_t = drivescript::sample::DEFAULT_SCRIPT_BUDGET.as_secs_f64(), allow_negative_numbers = true)]
+    script_budget: f64,
 }
 
 /// What the first prompt holds: shared by `ask` and `prompt show`, so that the prompt shown is
@@ -313,6 +317,7 @@ impl Args {
             seed: self.seed,
             guidance: self.guidance(),
             polish: self.polish,
+            script_budget: self.script_budget,
             context: self.prompt.window(self.max_tokens),
             ..SessionConfig::default()
         }
@@ -412,6 +417,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             args.backoff_max
         );
     }
+    super::script_budget(args.script_budget)?;
     if args.through_denoiser {
         eprintln!("note: --through-denoiser is the old name of --guidance denoiser");
     }

@@ -93,6 +93,11 @@ pub struct SessionConfig {
     /// ([`SampleConfig::polish`]); runs recorded before it existed had none.
     #[serde(default)]
     pub polish: usize,
+    /// Seconds the cost script may take over one round's sampling, all its evaluations
+    /// together ([`SampleConfig::script_budget`]); runs recorded before it existed get the
+    /// default.
+    #[serde(default = "default_script_budget")]
+    pub script_budget: f64,
     /// Closed loop: steps executed per re-plan.
     pub replan: Option<usize>,
     /// The model's context window (`--context`): every request is fitted to it
@@ -122,6 +127,7 @@ impl Default for SessionConfig {
             realism: crate::sample::REALISM_WEIGHT,
             guidance: crate::sample::DEFAULT_GUIDANCE,
             polish: crate::sample::POLISH_STEPS,
+            script_budget: default_script_budget(),
             replan: None,
             context: None,
         }
@@ -168,6 +174,15 @@ impl SessionConfig {
                 })
             })
             .or_else(|| {
+                let max = crate::sample::MAX_SCRIPT_BUDGET.as_secs_f64();
+                (!(self.script_budget > 0.0 && self.script_budget <= max)).then(|| {
+                    format!(
+                        "script_budget = {} s: must be more than 0 and at most {max} s",
+                        self.script_budget
+                    )
+                })
+            })
+            .or_else(|| {
                 self.replan
                     .and_then(|r| range("replan", r, 1, crate::io::MAX_STEPS))
             })
@@ -203,9 +218,16 @@ impl SessionConfig {
                 ..crate::cost::Realism::default()
             },
             polish: self.polish,
+            // Out of range, zero: refused by validate, after loop_problem has named it.
+            script_budget: std::time::Duration::try_from_secs_f64(self.script_budget)
+                .unwrap_or_default(),
             ..SampleConfig::default()
         }
     }
+}
+
+fn default_script_budget() -> f64 {
+    crate::sample::DEFAULT_SCRIPT_BUDGET.as_secs_f64()
 }
 
 fn default_guidance() -> crate::sample::Guidance {
