@@ -135,7 +135,8 @@ pub struct RunLock {
 fn held_by(dir: &Path) -> String {
     let kinds = kinds(dir);
     format!(
-        "another drivescript process is running in it ({}): wait for it to end, or choose          another -o",
+        "another drivescript process is running in it ({}): wait for it to end, or choose \
+         another -o",
         if kinds.contains(&Kind::Batch) {
             "an `ask --batch`"
         } else if kinds.contains(&Kind::Run) {
