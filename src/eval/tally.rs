@@ -545,7 +545,9 @@ impl Tally {
         let not_negative = |v: f64| v.is_finite() && v >= 0.0;
         let fraction = |v: f64| (0.0..=1.0).contains(&v);
         let finite = |v: f64| v.is_finite();
-        let series: [(&str, &[f64], &dyn Fn(f64) -> bool, &str); 17] = [
+        // (field, figures, whether one is acceptable, what it must be)
+        type Series<'a> = (&'a str, &'a [f64], &'a dyn Fn(f64) -> bool, &'a str);
+        let series: [Series; 17] = [
             (
                 "ade",
                 &self.ade,
