@@ -790,6 +790,84 @@ fn eval_scores_every_method_over_the_same_steps() {
     );
 }
 
+#[test]
+fn eval_scores_rollouts_over_their_own_horizon_by_default() {
+    // Car 4 rear-ends car 2 at 3.9 s. The recording holds 3 s, the rollout (a model's 40
+    // steps) 4 s: the accident used to read as a miss unless --horizon was given.
+    let dir = tempfile::tempdir().unwrap();
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let text = std::fs::read_to_string(root.join("scripts/scenes/highway.yaml"))
+        .unwrap()
+        .replace(
+            "{id: 4, lane: 0, s: 20, speed: 18}",
+            "{id: 4, lane: 0, s: 40, speed: 30.5}",
+        );
+    let scene = dir.path().join("highway.yaml");
+    std::fs::write(&scene, text.replace("steps: 81", "steps: 41")).unwrap();
+    let long = dir.path().join("long.yaml");
+    std::fs::write(&long, text.replace("steps: 81", "steps: 51")).unwrap();
+    let rollouts = dir.path().join("r");
+    std::fs::create_dir(&rollouts).unwrap();
+    ok(&["convert", s(&long), "-o", s(&rollouts.join("highway.json"))]);
+    let eval = |extra: &[&str]| {
+        let mut a = vec![
+            "eval",
+            s(&scene),
+            "--task",
+            "behaviour",
+            "--behaviour",
+            "accident",
+            "--param",
+            "attacker=4",
+            "target=2",
+            "--rollouts",
+            s(&rollouts),
+            "--baseline",
+            "log",
+        ];
+        a.extend_from_slice(extra);
+        ok(&a)
+    };
+    let out = eval(&[]);
+    assert!(
+        out.contains("| rollouts in ") && out.contains("| accident | 1 | 1.00 | 1.00 |"),
+        "{out}"
+    );
+    // The log is scored over the same 40 steps (unobserved after its 30).
+    assert!(
+        out.contains("| log replay | accident | 1 | 0.00 | 0.00 |"),
+        "{out}"
+    );
+    assert!(
+        out.contains("horizon (future steps scored after the current step): 40 steps, the rollouts' own (1 scene)"),
+        "{out}"
+    );
+    // An explicit horizon still rules, and is said.
+    let out = eval(&["--horizon", "30"]);
+    assert!(
+        !out.contains("| accident | 1 | 1.00 |") && out.contains("30 steps, --horizon (1 scene)"),
+        "{out}"
+    );
+    // Without rollouts, the recorded future.
+    let out = ok(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "behaviour",
+        "--behaviour",
+        "accident",
+        "--param",
+        "attacker=4",
+        "target=2",
+        "--baseline",
+        "log",
+    ]);
+    assert!(
+        out.contains("30 steps, the recorded future (1 scene)"),
+        "{out}"
+    );
+}
+
 /// `simulate SCENE --checkpoint CKPT EXTRA... -o OUT`.
 fn simulate_args<'a>(
     scene: &'a str,
@@ -855,6 +933,91 @@ fn a_slow_script_stops_at_the_run_s_script_budget_instead_of_running_for_minutes
         err.contains("--script-budget 0.0: must be more than 0"),
         "{err}"
     );
+}
+
+#[test]
+fn the_yield_example_holds_at_a_merge() {
+    // The worked example the LLM is shown: with a 2 m margin from the centres (inside both
+    // boxes) and no route term, the sampler moved the ramp car 2-12 m off its lane beside the
+    // main-lane car where the lanes merge, instead of holding it back.
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dir = tempfile::tempdir().unwrap();
+    let example = std::fs::read_to_string(root.join("prompts/examples/yield.md")).unwrap();
+    let script = example
+        .split("```rhai\n")
+        .nth(1)
+        .and_then(|rest| rest.split("```").next())
+        .expect("a rhai block")
+        .replace("agent(5)", "agent(11)")
+        .replace("agent(6)", "agent(10)");
+    let rhai = dir.path().join("yield.rhai");
+    std::fs::write(&rhai, script).unwrap();
+    // The merge of scripts/scenes with the ramp car (11) first at the meeting point, 0.3 s
+    // before the main-lane car (10), at their recorded speeds.
+    let scene = dir.path().join("merge.yaml");
+    let text = std::fs::read_to_string(root.join("scripts/scenes/merge_ramp_first.yaml"))
+        .unwrap()
+        .replace(
+            "{id: 10, route: [1, 3], s: 50, speed: 15}",
+            "{id: 10, route: [1, 3], s: 112.5, speed: 15}",
+        )
+        .replace(
+            "{id: 11, route: [2, 3], s: 30, speed: 21}",
+            "{id: 11, route: [2, 3], s: 117.84, speed: 16}",
+        );
+    assert!(text.contains("s: 117.84"));
+    std::fs::write(&scene, text).unwrap();
+    let out = dir.path().join("out");
+    ok(&simulate_args(
+        s(&scene),
+        "data/checkpoint",
+        &[
+            "--task",
+            "unconditional",
+            "--script",
+            s(&rhai),
+            "--samples",
+            "2",
+        ],
+        s(&out),
+    ));
+    let json = dir.path().join("eval.json");
+    ok(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "behaviour",
+        "--behaviour",
+        "yield",
+        "--param",
+        "yielder=11",
+        "other=10",
+        "--rollouts",
+        s(&out),
+        "--samples",
+        "2",
+        "--json",
+        s(&json),
+    ]);
+    let v: Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let verdicts = v["methods"][0]["scenes"][0]["verdicts"].as_array().unwrap();
+    assert_eq!(verdicts.len(), 2);
+    for verdict in verdicts {
+        let m = &verdict["measured"];
+        assert!(
+            verdict["passed"] == true && m["yielder_off_route_m"].as_f64().unwrap() <= 2.0,
+            "{verdict}"
+        );
+        // The main-lane car passes the meeting point within the horizon, before the yielder.
+        let (other, yielder) = (
+            m["other_passes_s"].as_f64().unwrap(),
+            m["yielder_reaches_s"].as_f64().unwrap(),
+        );
+        assert!(
+            other > 0.0 && (yielder < 0.0 || yielder > other),
+            "{verdict}"
+        );
+    }
 }
 
 #[test]
@@ -1243,17 +1406,16 @@ fn sampler_flags_are_checked_before_any_work() {
             "--samples=100000000",
             "samples = 100000000: must be 1 to 1024",
         ),
-        (
-            "--lambda=-1",
-            "lambda = -1: must be finite and not negative",
-        ),
-        (
-            "--known-weight=-2",
-            "known weight = -2: must be finite and not negative",
-        ),
+        ("--lambda=-1", "--lambda -1: must be 0 to 1000"),
+        // 1e308 ran into "non-finite denoiser output", and --realism 1e308 printed weights
+        // of 309 digits, neither naming the flag.
+        ("--lambda=1e308", "--lambda 1e308: must be 0 to 1000"),
+        ("--realism=1e308", "--realism 1e308: must be 0 to 1000"),
+        ("--realism=-0.5", "--realism -0.5: must be 0 to 1000"),
+        ("--known-weight=-2", "--known-weight -2: must be 0 to 1000"),
         (
             "--known-weight=nan",
-            "known weight = NaN: must be finite and not negative",
+            "--known-weight NaN: must be 0 to 1000",
         ),
     ] {
         let err = fails(&simulate_args(
@@ -1262,10 +1424,7 @@ fn sampler_flags_are_checked_before_any_work() {
             &["--task", "unconditional", arg],
             s(&out),
         ));
-        assert!(
-            err.contains("sampler settings") && err.contains(want),
-            "{arg}: {err}"
-        );
+        assert!(err.contains(want), "{arg}: {err}");
         assert!(!out.exists(), "{arg} created {}", out.display());
     }
     // The demo checks its settings before it clears the previous run away.
@@ -1379,6 +1538,67 @@ fn unknown_and_reserved_params_are_refused_with_the_scripts_parameters() {
         "--param",
         "margin=30",
     ]);
+}
+
+#[test]
+fn parameter_errors_name_the_parameter_its_value_and_what_is_expected() {
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let cost = |params: &[&str]| {
+        let mut a = vec![
+            "cost",
+            s(&scene),
+            "--script",
+            "scripts/cut_in.rhai",
+            "--param",
+        ];
+        a.extend_from_slice(params);
+        fails(&a)
+    };
+    // Each used to name no parameter: "no function agent (f64)", "no function - (&str |
+    // ImmutableString | String, Dual)", and a 100 KB value quoted back whole.
+    let err = cost(&["cutter=1.5", "victim=1"]);
+    assert!(
+        err.contains(
+            "an agent id is a whole number, not a decimal number, from --param cutter=1.5"
+        ),
+        "{err}"
+    );
+    let err = cost(&["cutter=2", "victim=1", "gap="]);
+    assert!(
+        err.contains("parameter \"gap\": no value after `=`"),
+        "{err}"
+    );
+    let err = cost(&["cutter=2", "victim=1", "gap=wide"]);
+    assert!(
+        err.contains(
+            "parameter \"gap\" = \"wide\": the script takes a number here (its default is 5.0)"
+        ),
+        "{err}"
+    );
+    let huge = format!("gap={}", "9".repeat(100_000));
+    let err = cost(&["cutter=2", "victim=1", &huge]);
+    assert!(
+        err.contains("parameter \"gap\": a value of 100000 characters") && err.len() < 400,
+        "{err}"
+    );
+    // The checkers' ids too: `cutter=2.5` was judged as agent 2.
+    let err = fails(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "behaviour",
+        "--behaviour",
+        "cut_in",
+        "--param",
+        "cutter=2.5",
+        "victim=1",
+        "--baseline",
+        "log",
+    ]);
+    assert!(
+        err.contains("parameter \"cutter\" = \"2.5\" must be an agent id (a whole number)"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -1628,6 +1848,69 @@ fn convert_refuses_an_id_that_cannot_name_output_files() {
         );
         assert!(!out.exists());
     }
+}
+
+#[test]
+fn names_read_from_files_with_control_or_invisible_characters_are_refused() {
+    // A newline in an id faked an `error:` line in `inspect` (and in the LLM's prompt), an
+    // escape sequence reached the terminal, a bidi control reordered what was shown.
+    let dir = tempfile::tempdir().unwrap();
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let xml = std::fs::read_to_string(samples().join("commonroad/USA_US101-3_3_T-1.xml"))
+        .unwrap()
+        .replacen(
+            "benchmarkID=\"USA_US101-3_3_T-1\"",
+            "benchmarkID=\"US101&#10;error: fake\"",
+            1,
+        );
+    let cr = dir.path().join("hostile.xml");
+    std::fs::write(&cr, xml.replace("US101&#10;error: fake", "US101&#x202E;x")).unwrap();
+    let cr_nl = dir.path().join("hostile_nl.xml");
+    std::fs::write(&cr_nl, xml).unwrap();
+    let highway = std::fs::read_to_string(root.join("scripts/scenes/highway.yaml")).unwrap();
+    let yaml = dir.path().join("hostile.yaml");
+    std::fs::write(
+        &yaml,
+        highway.replace(
+            "scenario_id: highway",
+            "scenario_id: \"x\\e[2J\\e]0;pwned\\a\"",
+        ),
+    )
+    .unwrap();
+    for (file, want) in [
+        (&cr, "contains the invisible character U+202E"),
+        (&cr_nl, "contains the control character U+000A"),
+        (&yaml, "scenario_id: scenario id \"x\\u{001B}[2J"),
+    ] {
+        let err = fails(&["inspect", s(file)]);
+        assert!(
+            err.contains(s(file)) && err.contains(want) && !err.contains('\u{1b}'),
+            "{err}"
+        );
+        assert!(!err.contains("\nerror: fake"), "{err}");
+        assert!(!err.contains('\u{202E}'), "{err}");
+    }
+    let t = dir.path().join("x.test.yaml");
+    std::fs::write(
+        &t,
+        format!(
+            "script: {}\ncases:\n  - name: \"ok\\nerror: fake \\e[2J\"\n    scene: {}\n    params: {{vehicle: 1, limit: 30}}\n    expect: {{total_below: 1.0}}\n",
+            s(&root.join("scripts/speed_limit.rhai")),
+            s(&root.join("scripts/scenes/highway.yaml"))
+        ),
+    )
+    .unwrap();
+    let out = common::drivescript(&["test-scripts", s(&t)]);
+    assert_eq!(out.status.code(), Some(1));
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("x.test.yaml: cases[0]: name \"ok\\u{000A}error: fake \\u{001B}[2J\" contains the control character U+000A"),
+        "{text}"
+    );
+    assert!(
+        !text.contains("\nerror: fake") && !text.contains('\u{1b}'),
+        "{text}"
+    );
 }
 
 #[test]

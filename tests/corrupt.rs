@@ -1523,3 +1523,45 @@ fn fifos_and_devices_are_refused_wherever_a_file_is_read() {
     assert!(mkfifo(&shard));
     refused(&["eval", "--merge", s(&shard)], "shard.json");
 }
+
+#[test]
+fn a_model_error_is_its_message_without_candle_s_backtrace() {
+    // With RUST_BACKTRACE=1, a checkpoint whose tensor shapes do not match printed candle's
+    // backtrace under the message: 88 lines of frames for one error.
+    let dir = tempfile::tempdir().unwrap();
+    let ck = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("data/checkpoint");
+    std::fs::copy(ck.join("config.json"), dir.path().join("config.json")).unwrap();
+    let cpu = candle_core::Device::Cpu;
+    let mut tensors = candle_core::safetensors::load(ck.join("model.safetensors"), &cpu).unwrap();
+    let (name, w) = tensors
+        .iter()
+        .filter(|(_, w)| w.dims().len() == 2 && w.dims()[0] != w.dims()[1])
+        .map(|(k, w)| (k.clone(), w.clone()))
+        .min_by(|a, b| a.0.cmp(&b.0))
+        .expect("a non-square matrix");
+    tensors.insert(name, w.t().unwrap().contiguous().unwrap());
+    candle_core::safetensors::save(&tensors, dir.path().join("model.safetensors")).unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_drivescript"))
+        .args([
+            "simulate",
+            s(&samples().join("yaml/highway_cut_in.yaml")),
+            "--checkpoint",
+            s(dir.path()),
+            "-o",
+            s(&dir.path().join("out")),
+        ])
+        .env("RUST_BACKTRACE", "1")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("model.safetensors") && err.contains("shape mismatch"),
+        "{err}"
+    );
+    assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+    assert!(
+        !err.contains("candle-core") && !err.contains(" at /"),
+        "{err}"
+    );
+}

@@ -415,7 +415,14 @@ fn a_failing_behaviour_is_repaired_and_an_accept_against_the_numbers_is_refused(
 
 #[test]
 fn rounds_run_out_with_exit_2_and_a_final_script() {
-    let srv = Server::start(vec![Canned::chat(&reply(IDLE)), Canned::chat(&reply(IDLE))]);
+    // The second reply reports no usage: the truncation check cannot run, and ask says so.
+    let bare = serde_json::json!({
+        "choices": [{"index": 0, "message": {"role": "assistant", "content": reply(IDLE)}, "finish_reason": "stop"}]
+    });
+    let srv = Server::start(vec![
+        Canned::chat(&reply(IDLE)),
+        Canned::raw(200, &bare.to_string()),
+    ]);
     let dir = tempfile::tempdir().unwrap();
     let out = ask_cut_in(
         dir.path(),
@@ -425,6 +432,14 @@ fn rounds_run_out_with_exit_2_and_a_final_script() {
     let t = text(&out);
     assert_eq!(out.status.code(), Some(2), "{t}");
     assert!(t.contains("the rounds ran out"), "{t}");
+    let said: Vec<&str> = t
+        .lines()
+        .filter(|l| l.contains("reported no token usage, so a prompt cut to its context window"))
+        .collect();
+    assert!(
+        said.len() == 1 && said[0].starts_with("round 1: reply in"),
+        "{t}"
+    );
     assert_eq!(srv.received().len(), 2);
     assert_eq!(srv.received()[0].json()["stream"], false);
     assert!(dir.path().join("final.rhai").exists());
@@ -827,6 +842,11 @@ fn loop_flags_are_checked_before_any_work() {
             "--llm-timeout",
             "-1",
             "--llm-timeout -1.0: must be more than 0",
+        ),
+        (
+            "--reply-deadline",
+            "0",
+            "--reply-deadline 0.0: must be more than 0 and at most 86400 seconds",
         ),
         (
             "--tolerance",
@@ -1594,6 +1614,163 @@ fn a_stalled_stream_is_named_as_such() {
     assert!(
         e.contains("the stream stalled: nothing came for 0.5 s after 2 tokens")
             && e.contains("127.0.0.1"),
+        "{e}"
+    );
+}
+
+/// A client with `silence` (--llm-timeout) and `deadline` (--reply-deadline), in ms.
+fn client_limits(url: &str, silence: u64, deadline: u64) -> HttpClient {
+    let mut cfg = HttpConfig::new(url, "m");
+    cfg.backoff = Duration::from_millis(20);
+    cfg.read_timeout = Duration::from_millis(silence);
+    cfg.reply_deadline = Duration::from_millis(deadline);
+    HttpClient::new(cfg).unwrap()
+}
+
+#[test]
+fn a_stream_of_keep_alives_or_empty_chunks_without_tokens_is_a_stall() {
+    // Issue 32: each arrives well within the silence limit, so the stream held ask for ever.
+    let tok = serde_json::json!({"choices": [{"delta": {"content": "ACC"}}]}).to_string();
+    let empty = serde_json::json!({"choices": [{"delta": {}}]}).to_string();
+    for filler in [": ping".to_string(), empty] {
+        let mut events = vec![tok.clone()];
+        events.extend(std::iter::repeat_n(filler.clone(), 3000));
+        let srv = Server::start(vec![Canned::events(events, Duration::from_millis(50))]);
+        let t0 = Instant::now();
+        let e = ask_one(&client_limits(&srv.url, 500, 60_000)).unwrap_err();
+        assert!(
+            t0.elapsed() < Duration::from_secs(3),
+            "{filler}: {:?}",
+            t0.elapsed()
+        );
+        assert!(
+            matches!(
+                e,
+                LlmError::Stalled {
+                    tokens: 1,
+                    keepalive: true,
+                    ..
+                }
+            ),
+            "{filler}: {e:?}"
+        );
+        let e = e.to_string();
+        assert!(
+            e.contains(
+                "no token came (only keep-alive comments or empty chunks) for 0.5 s after 1 tokens"
+            ) && e.contains(&srv.url),
+            "{e}"
+        );
+    }
+}
+
+#[test]
+fn a_reply_that_never_finishes_is_abandoned_at_the_deadline() {
+    use std::io::Write;
+    // One token every 100 ms for ever: never silent, never without progress, never done.
+    let tok = serde_json::json!({"choices": [{"delta": {"content": "x"}}]}).to_string();
+    let srv = Server::start(vec![Canned::events(
+        vec![tok; 3000],
+        Duration::from_millis(100),
+    )]);
+    let t0 = Instant::now();
+    let e = ask_one(&client_limits(&srv.url, 500, 1500)).unwrap_err();
+    let took = t0.elapsed();
+    assert!(
+        took >= Duration::from_millis(1500) && took < Duration::from_secs(4),
+        "{took:?}"
+    );
+    assert!(matches!(e, LlmError::Deadline { .. }), "{e:?}");
+    let e = e.to_string();
+    assert!(
+        e.contains(&format!("{}/chat/completions", srv.url))
+            && e.contains("abandoned the reply after 1.")
+            && e.contains("past the reply deadline of 1.5 s")
+            && e.contains(" tokens received")
+            && e.contains("--reply-deadline"),
+        "{e}"
+    );
+    // With --no-stream: a JSON body one byte every 50 ms.
+    let url = common::llm_server::one_shot(
+        b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: 100000\r\n\r\n",
+        |stream| {
+            while stream.write_all(b" ").and_then(|_| stream.flush()).is_ok() {
+                std::thread::sleep(Duration::from_millis(50));
+            }
+        },
+    );
+    let t0 = Instant::now();
+    let e = ask_one(&client_limits(&url, 500, 1000)).unwrap_err();
+    assert!(t0.elapsed() < Duration::from_secs(3), "{:?}", t0.elapsed());
+    let e = e.to_string();
+    assert!(
+        e.contains("past the reply deadline of 1 s") && e.contains(" bytes of the body received"),
+        "{e}"
+    );
+    // A head that never comes is given up on at the deadline, not at the silence limit.
+    let srv = Server::start(vec![Canned::chat("late").after(Duration::from_secs(20))]);
+    let t0 = Instant::now();
+    let e = ask_one(&client_limits(&srv.url, 20_000, 800)).unwrap_err();
+    assert!(t0.elapsed() < Duration::from_secs(3), "{:?}", t0.elapsed());
+    assert!(e.to_string().contains("with no reply head received"), "{e}");
+}
+
+#[test]
+fn ask_abandons_a_reply_past_reply_deadline_and_says_which_flag_to_raise() {
+    let tok = serde_json::json!({"choices": [{"delta": {"content": "x"}}]}).to_string();
+    let srv = Server::start(vec![Canned::events(
+        vec![tok; 3000],
+        Duration::from_millis(100),
+    )]);
+    let dir = tempfile::tempdir().unwrap();
+    let t0 = Instant::now();
+    let out = ask_cut_in(
+        dir.path(),
+        &["--llm-timeout", "0.5", "--reply-deadline", "1.5"],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(t0.elapsed() < Duration::from_secs(60), "{:?}", t0.elapsed());
+    assert!(
+        t.contains("past the reply deadline of 1.5 s") && t.contains("--reply-deadline"),
+        "{t}"
+    );
+    assert!(!dir.path().join("round_0/script.rhai").exists());
+}
+
+#[test]
+fn retries_stop_where_the_next_wait_would_pass_the_deadline() {
+    let busy =
+        || Canned::raw(503, r#"{"error": {"message": "overloaded"}}"#).header("Retry-After", "1");
+    let srv = Server::start(vec![busy(), busy(), busy(), busy()]);
+    let mut cfg = HttpConfig::new(&srv.url, "m");
+    cfg.attempts = 10;
+    cfg.reply_deadline = Duration::from_millis(1500);
+    let t0 = Instant::now();
+    let e = ask_one(&HttpClient::new(cfg).unwrap()).unwrap_err();
+    // One wait of 1 s fits; a second would end past 1.5 s.
+    assert!(
+        t0.elapsed() < Duration::from_millis(1500),
+        "{:?}",
+        t0.elapsed()
+    );
+    assert_eq!(srv.received().len(), 2);
+    assert!(
+        matches!(
+            e,
+            LlmError::Status {
+                status: 503,
+                attempts: 2,
+                ..
+            }
+        ),
+        "{e:?}"
+    );
+    let e = e.to_string();
+    assert!(
+        e.contains("overloaded; no further attempt: the wait of 1.0 s")
+            && e.contains("would pass the reply deadline of 1.5 s (--reply-deadline)"),
         "{e}"
     );
 }

@@ -87,10 +87,15 @@ pub struct Args {
     /// tokens so far, tokens per second and elapsed time on a terminal).
     #[arg(long)]
     no_stream: bool,
-    /// Seconds of silence allowed: before the reply's head, and between the parts of a streamed
-    /// reply (more than 0, at most 3600).
+    /// Seconds of silence allowed: before the reply's head, and between the parts of a reply;
+    /// also the longest a streamed reply may go without a token, whatever else it sends
+    /// (more than 0, at most 3600).
     #[arg(long, default_value_t = 300.0, allow_negative_numbers = true)]
     llm_timeout: f64,
+    /// Seconds a reply may take in all, from the first request (retries and the waits between
+    /// them included): past it a reply still coming is abandoned (more than 0, at most 86400).
+    #[arg(long, default_value_t = 1800.0, allow_negative_numbers = true)]
+    reply_deadline: f64,
     /// Attempts per request on 429 and 5xx answers, 1 to 20.
     #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=20))]
     attempts: u32,
@@ -300,6 +305,7 @@ impl Args {
             c.max_tokens = u32::try_from(w.reply).unwrap_or(u32::MAX);
         }
         c.read_timeout = Duration::from_secs_f64(self.llm_timeout.max(0.001));
+        c.reply_deadline = Duration::from_secs_f64(self.reply_deadline.max(0.001));
         c.attempts = self.attempts;
         c.backoff = Duration::from_secs_f64(self.backoff.max(0.0));
         c.backoff_max = Duration::from_secs_f64(self.backoff_max.max(0.0));
@@ -406,6 +412,12 @@ pub fn run(args: Args) -> Result<ExitCode> {
         bail!(
             "--llm-timeout {:?}: must be more than 0 and at most 3600 seconds",
             args.llm_timeout
+        );
+    }
+    if !(args.reply_deadline > 0.0 && args.reply_deadline <= 86400.0) {
+        bail!(
+            "--reply-deadline {:?}: must be more than 0 and at most 86400 seconds",
+            args.reply_deadline
         );
     }
     if !(0.0..=600.0).contains(&args.backoff) {

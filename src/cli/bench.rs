@@ -389,8 +389,13 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
         let tensors: std::collections::HashMap<String, candle_core::Tensor> =
             reference_run(&trained, &sim, &cfg)?.into_iter().collect();
         let tmp = out.with_extension("safetensors.tmp");
-        candle_core::safetensors::save(&tensors, &tmp)
-            .with_context(|| format!("writing {}", tmp.display()))?;
+        candle_core::safetensors::save(&tensors, &tmp).map_err(|e| {
+            anyhow::anyhow!(
+                "writing {}: {}",
+                tmp.display(),
+                drivescript::model::error::message(e)
+            )
+        })?;
         std::fs::rename(&tmp, out).with_context(|| format!("writing {}", out.display()))?;
         println!(
             "wrote {} (the unguided run's inputs and outputs)",

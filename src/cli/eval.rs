@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use anyhow::{bail, Context, Result};
 use drivescript::cost::Params;
 use drivescript::eval::kinematic::Violation;
-use drivescript::eval::merge::{record_json, RunRecord};
+use drivescript::eval::merge::{record_json, HorizonFrom, Horizons, RunRecord};
 use drivescript::eval::metrics::{self, JsdBins};
 use drivescript::eval::tally::{group_order, Group, Task as EvalTask};
 use drivescript::eval::{check, Baseline, Behavior, Tally};
@@ -94,7 +94,9 @@ pub struct Args {
     unguided: Option<PathBuf>,
     /// Score exactly this many future steps (a model's horizon): scenes are cut, or extended
     /// with unobserved steps, to current step + 1 + HORIZON before anything is simulated or
-    /// scored, so that baselines simulate as far as a model does.
+    /// scored, so that baselines simulate as far as a model does. Default: with --rollouts,
+    /// each scene's rollouts' own length (the longest of its samples), else each scene's
+    /// recorded future; the table says which was used.
     #[arg(long)]
     horizon: Option<usize>,
     /// Conditional task: score every simulated step, not only the steps where the agent is
@@ -240,6 +242,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     // Scenes the rollouts' run left out (per method that reads rollouts).
     let mut run_skipped = 0;
     let mut names = OutputNames::default();
+    let mut horizons = Horizons::default();
     for src in &sources {
         bar.set_message(
             src.file_name()
@@ -268,17 +271,38 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 }
             }
         }
-        let scenes: Vec<Scene> = match args.horizon {
-            Some(h) => scenes.iter().map(|s| s.with_horizon(h)).collect(),
-            None => scenes,
-        };
         for scene in &scenes {
+            // The rollouts are read first: without --horizon, their own length is the horizon
+            // every method is scored over (a rear-end at 3.9 s of a 40-step sample counted as
+            // a miss where the recording held 3 s). Read against the recording, whose history
+            // is all a rollout is checked against.
+            let mut rolled = args
+                .rollouts
+                .as_ref()
+                .map(|dir| rollouts_for(dir, scene, args.samples));
+            let own = match &rolled {
+                Some(Ok(samples)) => samples.iter().map(Scene::num_future_steps).max(),
+                _ => None,
+            };
+            let (horizon, from) = match (args.horizon, own) {
+                (Some(h), _) => (Some(h), HorizonFrom::Flag),
+                (None, Some(h)) => (Some(h), HorizonFrom::Rollouts),
+                (None, None) => (None, HorizonFrom::Recording),
+            };
+            let cut;
+            let scene = match horizon {
+                Some(h) => {
+                    cut = scene.with_horizon(h);
+                    &cut
+                }
+                None => scene,
+            };
             let scene_params = match (&behaviour, args.auto) {
                 (Some((b, given)), true) => {
                     match drivescript::eval::behaviors::suggest(
                         *b,
                         scene,
-                        args.horizon.unwrap_or(scene.num_future_steps()),
+                        horizon.unwrap_or(scene.num_future_steps()),
                     ) {
                         Some(p) => Some((*b, p.overridden_by(given))),
                         None => {
@@ -293,7 +317,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             // Agents are chosen on the recording (as `simulate --auto` chooses them); every
             // method then runs the whole horizon, past the end of a shorter recording.
             let extended;
-            let scene = match args.horizon {
+            let scene = match horizon {
                 Some(h) => {
                     extended = scene.over_horizon(h);
                     &extended
@@ -309,17 +333,14 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     continue;
                 }
             }
+            horizons.count(scene.num_future_steps(), from);
             // Every method, and the log it is compared with, loses its cars where they leave
             // the map.
             let reference = scene.retire_exited();
             for ((_, m), acc) in methods.iter().zip(accs.iter_mut()) {
                 let sims = match m {
                     Some(b) => vec![b.simulate(scene)],
-                    None => match rollouts_for(
-                        args.rollouts.as_ref().expect("a rollouts method"),
-                        scene,
-                        args.samples,
-                    ) {
+                    None => match rolled.take().expect("a rollouts method reads them once") {
                         Ok(s) => s,
                         Err(e) if e.is::<LeftOut>() => {
                             run_skipped += 1;
@@ -392,6 +413,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             skipped,
             failures,
             run_skipped,
+            horizons,
         },
     )
 }
@@ -599,6 +621,9 @@ fn report(
     println!(
         "\nimplausible: fraction of vehicles (pooled over scenes and samples) whose future a car cannot drive: reversing, sprinting, braking or accelerating beyond 7 m/s², swerving, crabbing or turning tighter than Waymax's curvature bound (docs/evaluation.md); not counted: what a behaviour asks of the agents it names (the car reverse asks to back up)"
     );
+    if let Some(line) = merge.horizons.line() {
+        println!("\n{line}");
+    }
     if task == Task::Conditional {
         println!("\nJSD: Jensen-Shannon distance (natural log) of histograms pooled over agents, steps and scenes; bins {}", serde_json::to_string(&bins)?);
     }

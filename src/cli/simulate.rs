@@ -170,6 +170,17 @@ pub fn run(args: Args) -> Result<ExitCode> {
     for spec in &specs {
         spec.check_syntax()?;
     }
+    // Said with the flag: the library's check names its settings, not the command line's.
+    let max = drivescript::sample::MAX_WEIGHT;
+    for (flag, v) in [
+        ("--lambda", args.lambda),
+        ("--realism", args.realism),
+        ("--known-weight", args.known_weight),
+    ] {
+        if !(v.is_finite() && (0.0..=max).contains(&v)) {
+            anyhow::bail!("{flag} {}: must be 0 to {max}", drivescript::geom::num(v));
+        }
+    }
     let cfg = SampleConfig {
         steps: args.steps,
         samples: args.samples,

@@ -77,6 +77,10 @@ pub struct Args {
     /// ngsim common); a resumed run keeps its checkpoint's.
     #[arg(long, value_enum)]
     component_scale: Option<ScaleArg>,
+    /// With `capped` scales: the cap as a fraction of the common scale, in (0, 1] (default 1).
+    /// A resumed run keeps its checkpoint's.
+    #[arg(long)]
+    scale_cap: Option<f64>,
     /// Train from scratch into an --out directory that already holds a checkpoint (which is
     /// replaced at the first validation). Without it, that is refused.
     #[arg(long)]
@@ -118,6 +122,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             Some(ScaleArg::Capped) => ComponentScale::Capped,
             None => base.component_scale,
         },
+        scale_cap: args.scale_cap.unwrap_or(base.scale_cap),
         ..base
     };
     if args.data.is_empty() && args.urban.is_empty() {
@@ -159,6 +164,14 @@ pub fn run(args: Args) -> Result<ExitCode> {
                      its scales",
                     dir.display(),
                     r.meta.config.component_scale
+                );
+            }
+            if args.scale_cap.is_some_and(|c| c != r.meta.config.scale_cap) {
+                anyhow::bail!(
+                    "--scale-cap: {} caps its PCA scales at {} of the common scale; a resumed \
+                     run keeps its scales",
+                    dir.display(),
+                    r.meta.config.scale_cap
                 );
             }
             if !args.val_town.is_empty() && args.val_town != r.meta.config.val_towns {

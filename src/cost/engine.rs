@@ -170,9 +170,9 @@ pub enum CostError {
         script: String,
     },
     /// A `--param` that cannot be used.
-    #[error("parameter {name:?}: {message}")]
+    #[error("parameter \"{name}\": {message}")]
     Param {
-        /// Parameter name (or the whole argument).
+        /// Parameter name (or the whole argument), as [`crate::io::name::shown`] quotes it.
         name: String,
         /// What is wrong.
         message: String,
@@ -538,17 +538,10 @@ fn add_term(
     }
     // Names reach terminals, reports and the LLM's prompt: no escape sequences, no essays, and
     // none of the sampler's own terms.
-    if let Some(ch) = name.chars().find(|c| c.is_control()) {
+    if let Err(bad) = crate::io::name::check_name(name) {
         return stdlib::err(format!(
-            "term {:?}: names must not contain control characters ({ch:?})",
-            name.chars().take(64).collect::<String>()
-        ));
-    }
-    if let Some(ch) = crate::io::hidden_char(name) {
-        return stdlib::err(format!(
-            "term {:?}: names must not contain invisible characters (U+{:04X})",
-            name.chars().take(64).collect::<String>(),
-            ch as u32
+            "term \"{}\": a name must not contain {bad}",
+            crate::io::name::shown(name)
         ));
     }
     if name.chars().count() > MAX_TERM_NAME {
@@ -579,6 +572,55 @@ fn add_term(
     Ok(())
 }
 
+/// A given parameter as the script's default says it is used: a number where the default is
+/// a number (`gap=` used to fail later as "no function - (&str, Dual)", naming nothing), a
+/// whole number where it is one, true or false, or a word. An integer given for a decimal
+/// default becomes a float, so that `param("margin", 2.0) / 4` does not divide integers.
+fn param_like(name: &str, v: &Dynamic, default: &Dynamic) -> Result<Dynamic, Box<EvalAltResult>> {
+    let show = |d: &Dynamic| {
+        let s = crate::io::name::shown(&d.to_string());
+        if d.is_string() {
+            format!("\"{s}\"")
+        } else {
+            s
+        }
+    };
+    let wrong = |expected: &str| {
+        stdlib::err(format!(
+            "parameter \"{name}\" = {}: the script takes {expected} here (its default is {})",
+            show(v),
+            show(default)
+        ))
+    };
+    if default.is_float() {
+        match (v.as_float(), v.as_int()) {
+            (Ok(_), _) => Ok(v.clone()),
+            (_, Ok(i)) => Ok(Dynamic::from(i as f64)),
+            _ => wrong("a number"),
+        }
+    } else if default.is_int() {
+        match v.as_float() {
+            _ if v.is_int() => Ok(v.clone()),
+            Ok(f) if f.fract() == 0.0 && f.abs() < 9.0e15 => Ok(Dynamic::from(f as i64)),
+            _ => wrong("a whole number"),
+        }
+    } else if default.is_bool() {
+        if v.is_bool() {
+            Ok(v.clone())
+        } else {
+            wrong("true or false")
+        }
+    } else if default.is_string() {
+        if v.is_string() {
+            Ok(v.clone())
+        } else {
+            wrong("a word")
+        }
+    } else {
+        Ok(v.clone())
+    }
+}
+
 fn register_terms(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>) {
     const S: &str = "Terms";
     stdlib::doc(docs, S, "param(name)", "The value of `--param name=value`; an error naming the missing parameter when it was not given.");
@@ -601,9 +643,15 @@ fn register_terms(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>) {
         "The value of `--param name=value`, or `default` when it was not given.",
     );
     let sh = shared.clone();
-    e.register_fn("param", move |name: &str, default: Dynamic| {
-        sh.borrow().params.get(name).cloned().unwrap_or(default)
-    });
+    e.register_fn(
+        "param",
+        move |name: &str, default: Dynamic| -> Result<Dynamic, Box<EvalAltResult>> {
+            match sh.borrow().params.get(name) {
+                None => Ok(default),
+                Some(v) => param_like(name, v, &default),
+            }
+        },
+    );
     stdlib::doc(docs, S, "term(name, value)", "Declares a named cost term (a Dual or number, weight 1); the total cost is the weighted sum of all terms.");
     let sh = shared.clone();
     e.register_fn(
@@ -1107,6 +1155,45 @@ impl CostScript {
         trajs.iter().map(|t| self.evaluate(t)).collect()
     }
 
+    /// For a call no function takes: the given parameters whose type is among its argument
+    /// types (`gap=abc` where a number belongs), which most often are why.
+    fn given_in(&self, sig: &str) -> String {
+        let args = match (sig.find('('), sig.rfind(')')) {
+            (Some(a), Some(b)) if a < b => &sig[a + 1..b],
+            _ => return String::new(),
+        };
+        let ctx = self.shared.borrow();
+        let found: Vec<String> = ctx
+            .params
+            .iter()
+            .filter_map(|(k, v)| {
+                let (what, in_sig) = if v.is_string() {
+                    ("a string", "String")
+                } else if v.is_float() {
+                    ("an f64", "f64")
+                } else if v.is_bool() {
+                    ("a bool", "bool")
+                } else {
+                    return None;
+                };
+                args.contains(in_sig).then(|| {
+                    format!(
+                        "{what} is --param {k}={}",
+                        crate::io::name::shown(&v.to_string())
+                    )
+                })
+            })
+            .collect();
+        if found.is_empty() {
+            String::new()
+        } else {
+            format!(
+                ": {}, which the script uses where it takes another type",
+                found.join("; ")
+            )
+        }
+    }
+
     fn map_error(&self, e: &EvalAltResult) -> CostError {
         let script = self.name.clone();
         let pos = e.position();
@@ -1163,7 +1250,7 @@ impl CostScript {
                 script,
                 line,
                 column,
-                message: format!("no function {sig} (see `drivescript stdlib-doc` for what exists and its argument types)"),
+                message: format!("no function {sig}{} (see `drivescript stdlib-doc` for what exists and its argument types)", self.given_in(sig)),
             },
             other => CostError::Runtime { script, line, column, message: strip_position(&other.to_string()) },
         }
@@ -1278,6 +1365,80 @@ mod tests {
         .unwrap()
     }
 
+    /// The error of compiling and evaluating `src` on the highway with `--param` `args`.
+    fn error_with(src: &str, args: &[&str]) -> String {
+        let scene = Rc::new(highway());
+        let traj = crate::cost::Trajectories::recorded(&scene);
+        let params = Params::parse(args).unwrap();
+        CostScript::compile(src, "t", scene, &params, &Limits::default())
+            .and_then(|s| s.evaluate(&traj))
+            .unwrap_err()
+            .to_string()
+    }
+
+    #[test]
+    fn a_parameter_the_script_cannot_use_is_named_with_its_value_and_what_is_expected() {
+        let cut_in = "let a = agent(param(\"cutter\")); let g = param(\"gap\", 5.0); \
+                      term(\"x\", relu(g - a.x.last()));";
+        for (args, want) in [
+            // Was "no function agent (f64)".
+            (
+                &["cutter=1.5"][..],
+                "agent(1.5): an agent id is a whole number, not a decimal number, from --param cutter=1.5",
+            ),
+            (
+                &["cutter=left"][..],
+                "agent(left): an agent id is a whole number, not a word, from --param cutter=left",
+            ),
+            (
+                &["cutter=99"][..],
+                "unknown agent id 99 (--param cutter=99); the scene has agents",
+            ),
+            // Was "no function - (&str | ImmutableString | String, Dual)".
+            (
+                &["cutter=1", "gap=abc"][..],
+                "parameter \"gap\" = \"abc\": the script takes a number here (its default is 5.0)",
+            ),
+        ] {
+            let e = error_with(cut_in, args);
+            assert!(e.contains(want), "{args:?}: {e}");
+        }
+        // Without a default to go by, the call no function takes names the parameter.
+        let e = error_with(
+            "term(\"x\", relu(param(\"limit\") - agent(1).speed.max()));",
+            &["limit=fast"],
+        );
+        assert!(
+            e.contains("no function - (") && e.contains("a string is --param limit=fast"),
+            "{e}"
+        );
+        // An integer for a decimal default is a float: 3 / 2 is 1.5, not 1.
+        let r = {
+            let scene = Rc::new(highway());
+            CostScript::compile(
+                "term(\"x\", param(\"m\", 2.0) / 2 + 0.0 * agent(1).x.last());",
+                "t",
+                scene.clone(),
+                &Params::parse(&["m=3"]).unwrap(),
+                &Limits::default(),
+            )
+            .unwrap()
+            .evaluate(&crate::cost::Trajectories::recorded(&scene))
+            .unwrap()
+        };
+        assert_eq!(r.total, 1.5);
+        let e = error_with(
+            "let n = param(\"n\", 3); term(\"x\", n * agent(1).x.last());",
+            &["n=2.5"],
+        );
+        assert!(
+            e.contains(
+                "parameter \"n\" = 2.5: the script takes a whole number here (its default is 3)"
+            ),
+            "{e}"
+        );
+    }
+
     #[test]
     fn a_closed_loop_round_is_judged_on_the_original_horizon_and_moves_only_what_is_left() {
         use crate::cost::{Coord, Trajectories};
@@ -1324,11 +1485,12 @@ mod tests {
     fn term_names_and_prints_cannot_carry_escape_sequences() {
         let scene = Rc::new(highway());
         for (name, want) in [
-            ("\\x1b[2Jx", "control characters"),
+            ("\\x1b[2Jx", "the control character U+001B"),
+            ("a\\nerror: b", "the control character U+000A"),
             ("realism_speed", "belong to the sampler"),
             (&"n".repeat(65), "at most 64 characters"),
-            ("speed\u{202E}gnol", "invisible characters (U+202E)"),
-            ("go\u{200B}al", "invisible characters (U+200B)"),
+            ("speed\u{202E}gnol", "the invisible character U+202E"),
+            ("go\u{200B}al", "the invisible character U+200B"),
         ] {
             let src = format!("term(\"{name}\", agent(1).x.last());");
             let e = evaluation_error(&src, scene.clone()).to_string();

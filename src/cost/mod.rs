@@ -5,6 +5,7 @@
 //! [`Series`] of them over the future steps; the gradient of each term w.r.t. every
 //! trajectory coordinate ([`VarLayout`]) comes out of the evaluation with its value.
 
+pub mod attribution;
 mod bound;
 mod dual;
 mod engine;

@@ -98,15 +98,68 @@ impl Params {
                 serde_json::Value::Bool(b) => ParamValue::Bool(*b),
                 serde_json::Value::String(s) => ParamValue::Str(s.clone()),
                 other => {
+                    let other = crate::io::name::shown(&other.to_string());
                     return Err(format!(
-                        "parameter {k:?}: {other} is not a number, boolean or string"
-                    ))
+                        "parameter \"{}\": {other} is not a number, boolean or string",
+                        crate::io::name::shown(k)
+                    ));
                 }
             };
+            check_name(k)
+                .map_err(|m| format!("parameter \"{}\": {m}", crate::io::name::shown(k)))?;
+            if let ParamValue::Str(s) = &value {
+                check_value(s).map_err(|m| format!("parameter \"{k}\": {m}"))?;
+            }
             p.set(k, value);
         }
         Ok(p)
     }
+}
+
+/// The longest parameter name, characters.
+pub const MAX_NAME_CHARS: usize = 64;
+/// The longest parameter value, characters: ids, numbers and words (`left`) are short, and a
+/// value is quoted back in errors.
+pub const MAX_VALUE_CHARS: usize = 256;
+
+/// A parameter's name is an identifier (a script sees it as a constant).
+fn check_name(k: &str) -> Result<(), String> {
+    if k.chars().count() > MAX_NAME_CHARS {
+        return Err(format!("a name is at most {MAX_NAME_CHARS} characters"));
+    }
+    let ident = k
+        .chars()
+        .next()
+        .is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
+        && k.chars().all(|c| c.is_ascii_alphanumeric() || c == '_');
+    if !ident {
+        return Err("not a valid identifier".into());
+    }
+    Ok(())
+}
+
+/// A value is something to read back: not empty, not an essay, nothing that rewrites the
+/// terminal it is quoted on.
+fn check_value(v: &str) -> Result<(), String> {
+    if v.is_empty() {
+        return Err(
+            "no value after `=`: give name=VALUE (a number, true or false, or a word)".into(),
+        );
+    }
+    let n = v.chars().count();
+    if n > MAX_VALUE_CHARS {
+        return Err(format!(
+            "a value of {n} characters (\"{}\"): at most {MAX_VALUE_CHARS}",
+            crate::io::name::shown(v)
+        ));
+    }
+    if let Err(bad) = crate::io::name::check_name(v) {
+        return Err(format!(
+            "the value \"{}\" contains {bad}",
+            crate::io::name::shown(v)
+        ));
+    }
+    Ok(())
 }
 
 /// `cutter=401 victim=399`, the form `--param` reads.
@@ -131,37 +184,26 @@ impl Params {
             let a = a.as_ref();
             let Some((k, v)) = a.split_once('=') else {
                 return Err(CostError::Param {
-                    name: a.into(),
+                    name: crate::io::name::shown(a),
                     message: "expected name=value".into(),
                 });
             };
             let k = k.trim();
-            let ident = k
-                .chars()
-                .next()
-                .is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
-                && k.chars().all(|c| c.is_ascii_alphanumeric() || c == '_');
-            if !ident {
-                return Err(CostError::Param {
-                    name: k.into(),
-                    message: "not a valid identifier".into(),
-                });
-            }
+            let bad = |message: String| CostError::Param {
+                name: crate::io::name::shown(k),
+                message,
+            };
+            check_name(k).map_err(bad)?;
             if out.get(k).is_some() {
-                return Err(CostError::Param {
-                    name: k.into(),
-                    message: "given twice".into(),
-                });
+                return Err(bad("given twice".into()));
             }
             let v = v.trim();
+            check_value(v).map_err(bad)?;
             let val = if let Ok(i) = v.parse::<i64>() {
                 ParamValue::Int(i)
             } else if let Ok(f) = v.parse::<f64>() {
                 if !f.is_finite() {
-                    return Err(CostError::Param {
-                        name: k.into(),
-                        message: format!("{v} is not finite"),
-                    });
+                    return Err(bad(format!("{v} is not finite")));
                 }
                 ParamValue::Float(f)
             } else if v == "true" || v == "false" {
@@ -248,10 +290,40 @@ mod tests {
             (vec!["a=1", "a=2"], "given twice"),
             (vec!["a=inf"], "not finite"),
             (vec!["a=NaN"], "not finite"),
+            (vec!["gap="], "parameter \"gap\": no value after `=`"),
+            (vec!["gap= "], "parameter \"gap\": no value after `=`"),
+            (vec!["turn=le\u{1b}[2Jft"], "the control character U+001B"),
+            (vec!["turn=le\u{202E}ft"], "the invisible character U+202E"),
         ] {
             let e = Params::parse(&args).unwrap_err().to_string();
             assert!(e.contains(want), "{args:?}: {e}");
         }
+        // A 100 KB value or name is refused in a message of a line, naming the parameter.
+        let huge = format!("gap={}", "9".repeat(100_000));
+        let e = Params::parse(&[huge]).unwrap_err().to_string();
+        assert!(
+            e.starts_with("parameter \"gap\": a value of 100000 characters (\"999")
+                && e.ends_with("…\"): at most 256")
+                && e.len() < 200,
+            "{e}"
+        );
+        let e = Params::parse(&[format!("{}=1", "n".repeat(100_000))])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("at most 64 characters") && e.len() < 200, "{e}");
+    }
+
+    #[test]
+    fn json_parameters_are_checked_as_command_line_ones() {
+        let e = Params::from_json(&serde_json::json!({"turn": "a\nerror: b"})).unwrap_err();
+        assert!(e.contains("the control character U+000A"), "{e}");
+        let e = Params::from_json(&serde_json::json!({"a b": 1})).unwrap_err();
+        assert!(e.contains("not a valid identifier"), "{e}");
+        let e = Params::from_json(&serde_json::json!({"v": "x".repeat(300)})).unwrap_err();
+        assert!(
+            e.contains("a value of 300 characters") && e.len() < 200,
+            "{e}"
+        );
     }
 
     #[test]

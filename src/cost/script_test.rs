@@ -580,6 +580,16 @@ pub fn run_test_file(path: &Path) -> Result<Vec<CaseResult>, ScriptTestError> {
     if file.cases.is_empty() {
         return Err(invalid("no cases: a test file needs at least one".into()));
     }
+    // Case names are printed in the results table and reports: a newline in one faked a line
+    // of the table, an escape sequence reached the terminal.
+    for (k, c) in file.cases.iter().enumerate() {
+        if let Err(bad) = crate::io::name::check_name(&c.name) {
+            return Err(invalid(format!(
+                "cases[{k}]: name \"{}\" contains {bad}",
+                crate::io::name::shown(&c.name)
+            )));
+        }
+    }
     if let Some(c) = file.cases.iter().find(|c| c.expect.checks_nothing()) {
         return Err(invalid(format!(
             "case {:?}: `expect` checks nothing (give at least one of total_below, total_above, terms_below, terms_above, largest_term, descends, towards, still, error)",

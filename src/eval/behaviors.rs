@@ -184,7 +184,8 @@ impl Behavior {
 pub struct Verdict {
     /// Whether the behaviour happened plausibly: its geometric condition holds
     /// (`achieved`), every agent the behaviour names drives as a car can
-    /// ([`super::kinematic`]; reversing allowed where the behaviour asks for it), and named
+    /// ([`super::kinematic`]; reversing allowed where the behaviour asks for it, or the
+    /// request's script allows it: [`check_allowing`]), and named
     /// agents do not collide with each other (except in `accident`). The headline.
     pub passed: bool,
     /// Whether the geometric condition alone holds.
@@ -259,6 +260,16 @@ pub enum CheckError {
         /// Its value as given.
         value: String,
     },
+    /// An agent's parameter is not an agent id.
+    #[error("{behavior}: parameter {name:?} = {value:?} must be an agent id (a whole number)")]
+    NotAnId {
+        /// The behaviour.
+        behavior: &'static str,
+        /// The parameter.
+        name: &'static str,
+        /// Its value as given.
+        value: String,
+    },
     /// A parameter is not one of the words it may be.
     #[error("{behavior}: parameter {name:?} = {value:?} must be {expected}")]
     NotAWord {
@@ -296,6 +307,8 @@ struct Ctx<'a> {
     m: BTreeMap<String, f64>,
     /// The agents the behaviour names, with their roles.
     named: Vec<(&'static str, &'a Agent)>,
+    /// Motion the request asks of particular agents beyond what the behaviour asks.
+    allowed: &'a [(i64, Violation)],
 }
 
 impl<'a> Ctx<'a> {
@@ -344,7 +357,24 @@ impl<'a> Ctx<'a> {
     }
 
     fn agent(&mut self, name: &'static str) -> Result<&'a Agent, CheckError> {
-        let id = self.get(name)? as i64;
+        // `vehicle=1.5` named agent 1: an id is whole or it is no id.
+        let id = match self.p.get(name) {
+            None => {
+                return Err(CheckError::MissingParam {
+                    behavior: self.b.name(),
+                    name,
+                })
+            }
+            Some(ParamValue::Int(i)) => *i,
+            Some(ParamValue::Float(f)) if f.fract() == 0.0 && f.abs() < 9.0e15 => *f as i64,
+            Some(v) => {
+                return Err(CheckError::NotAnId {
+                    behavior: self.b.name(),
+                    name,
+                    value: v.to_string(),
+                })
+            }
+        };
         let a = self.s.agent(id).ok_or_else(|| CheckError::Agent {
             behavior: self.b.name(),
             message: format!("no agent {id} ({name})"),
@@ -390,10 +420,10 @@ impl<'a> Ctx<'a> {
     fn verdict(self, achieved: bool, reason: impl Into<String>) -> Verdict {
         let mut violations = Vec::new();
         let lim = KinematicLimits::default();
-        let allowed = self.b.allowed_motion();
         for (role, a) in &self.named {
+            let allowed = motion_allowed(self.b.allowed_motion(), self.allowed, a.id);
             if let Some(j) = kinematic::judge_agent(self.s, a, &lim) {
-                for e in j.without(allowed).events {
+                for e in j.without(&allowed).events {
                     violations.push(format!("{role} {} {e}", a.id));
                 }
             }
@@ -425,6 +455,15 @@ impl<'a> Ctx<'a> {
             collateral: None,
         }
     }
+}
+
+/// The kinds of motion agent `id` may show: what the behaviour asks of the agents it names
+/// (`own`), and what `allowed` allows this agent.
+fn motion_allowed(own: &[Violation], allowed: &[(i64, Violation)], id: i64) -> Vec<Violation> {
+    own.iter()
+        .copied()
+        .chain(allowed.iter().filter(|(a, _)| *a == id).map(|(_, k)| *k))
+        .collect()
 }
 
 fn lane_of(s: &Scene, a: &Agent, t: usize) -> Option<i64> {
@@ -493,21 +532,24 @@ fn overlap_steps(s: &Scene, a: &Agent, b: &Agent) -> Vec<usize> {
         .collect()
 }
 
-/// [`check`] on a guided sample, with the rest of the scene judged against `unguided`, the
-/// same scene sampled without guidance (same seed): see [`super::collateral`]. The pair an
-/// `accident` names may collide.
+/// [`check_allowing`] on a guided sample, with the rest of the scene judged against
+/// `unguided`, the same scene sampled without guidance (same seed): see
+/// [`super::collateral`]. The pair an `accident` names may collide, and the motion `allowed`
+/// allows an agent is no fault in either sample.
 pub fn check_against_unguided(
     behavior: Behavior,
     guided: &Scene,
     unguided: &Scene,
     params: &Params,
+    allowed: &[(i64, Violation)],
 ) -> Result<Verdict, CheckError> {
-    let v = check(behavior, guided, params)?;
+    let v = check_allowing(behavior, guided, params, allowed)?;
     let c = collateral(
         guided,
         unguided,
         &v.named,
         &behavior.contacts(&v.named),
+        allowed,
         &KinematicLimits::default(),
     )
     .map_err(|e| CheckError::Unguided {
@@ -519,12 +561,26 @@ pub fn check_against_unguided(
 
 /// Decides whether `behavior` happened in `scene` (a simulated or logged scene).
 pub fn check(behavior: Behavior, scene: &Scene, params: &Params) -> Result<Verdict, CheckError> {
+    check_allowing(behavior, scene, params, &[])
+}
+
+/// [`check`], with the motion `allowed` (agent id, kind) asked of particular agents besides
+/// what the behaviour asks of those it names: what the request's cost scripts allow
+/// (`allow(a, "reverse")`). A car that "reverses and leaves the road" backs up because it
+/// was asked to, and its `off_road` verdict must not fail it for reversing.
+pub fn check_allowing(
+    behavior: Behavior,
+    scene: &Scene,
+    params: &Params,
+    allowed: &[(i64, Violation)],
+) -> Result<Verdict, CheckError> {
     let x = Ctx {
         b: behavior,
         s: scene,
         p: params,
         m: BTreeMap::new(),
         named: Vec::new(),
+        allowed,
     };
     match behavior {
         Behavior::SpeedLimit => speed_limit(x),

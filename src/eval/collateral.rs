@@ -13,7 +13,7 @@
 
 use serde::Serialize;
 
-use super::kinematic::{self, KinematicLimits};
+use super::kinematic::{self, KinematicLimits, Violation};
 use super::metrics::collided_except;
 use crate::scene::{AgentType, Scene};
 
@@ -79,12 +79,15 @@ impl Collateral {
 
 /// Compares the vehicles of `guided` that are not in `named` (agent ids) with the same
 /// vehicles of `unguided`, the pairs in `may_touch` (ids, either order) excepted from
-/// collisions. Agents are matched by id; a vehicle counts when it has a future in both.
+/// collisions and the motion in `allowed` (id, kind: what the request's scripts allow)
+/// from implausibility. Agents are matched by id; a vehicle counts when it has a future in
+/// both.
 pub fn collateral(
     guided: &Scene,
     unguided: &Scene,
     named: &[i64],
     may_touch: &[(i64, i64)],
+    allowed: &[(i64, Violation)],
     lim: &KinematicLimits,
 ) -> Result<Collateral, CollateralError> {
     if guided.meta.scenario_id != unguided.meta.scenario_id {
@@ -96,12 +99,22 @@ pub fn collateral(
     // Per agent id: (collided, implausible), for the vehicles not named.
     let counts = |s: &Scene| {
         let hit = collided_except(s, may_touch);
-        let bad = kinematic::flags(&kinematic::judge(s, lim), None);
+        let judged = kinematic::judge(s, lim);
         s.agents
             .iter()
             .enumerate()
             .filter(|(_, a)| a.agent_type == AgentType::Vehicle && !named.contains(&a.id))
-            .filter_map(|(i, a)| Some((a.id, (hit[i]?, bad[i].unwrap_or(false)))))
+            .filter_map(|(i, a)| {
+                let kinds: Vec<Violation> = allowed
+                    .iter()
+                    .filter(|(id, _)| *id == a.id)
+                    .map(|(_, k)| *k)
+                    .collect();
+                let bad = judged[i]
+                    .as_ref()
+                    .is_some_and(|j| !j.without(&kinds).plausible());
+                Some((a.id, (hit[i]?, bad)))
+            })
             .collect::<std::collections::BTreeMap<i64, (bool, bool)>>()
     };
     let (g, u) = (counts(guided), counts(unguided));
@@ -152,7 +165,7 @@ mod tests {
         let lim = KinematicLimits::default();
         let clean = highway();
         // The same scene, unguided and guided alike: nothing to blame.
-        let same = collateral(&clean, &clean, &[1], &[], &lim).unwrap();
+        let same = collateral(&clean, &clean, &[1], &[], &[], &lim).unwrap();
         assert_eq!(
             same,
             Collateral {
@@ -172,7 +185,7 @@ mod tests {
             let u = (t / 3.0).min(1.0);
             [72.0 * u * u - 48.0 * (t - 3.0).max(0.0), 0.0]
         });
-        let c = collateral(&wreck, &clean, &[1], &[], &lim).unwrap();
+        let c = collateral(&wreck, &clean, &[1], &[], &[], &lim).unwrap();
         assert_eq!((c.others, c.collided, c.collided_unguided), (3, 2, 0));
         assert_eq!((c.implausible, c.implausible_unguided), (1, 0));
         // Two vehicles are within the allowance of two...
@@ -183,7 +196,7 @@ mod tests {
             let u = (t / 2.0).min(1.0);
             [18.0 * u, -3.6 * u]
         });
-        let c = collateral(&wreck, &clean, &[], &[], &lim).unwrap();
+        let c = collateral(&wreck, &clean, &[], &[], &[], &lim).unwrap();
         assert_eq!((c.others, c.collided), (4, 4), "{c:?}");
         let v = c.violations();
         assert!(
@@ -192,19 +205,19 @@ mod tests {
             "{v:?}"
         );
         // Naming the wreckers, or allowing their collisions, takes them out of the count.
-        let named = collateral(&wreck, &clean, &[3, 4], &[], &lim).unwrap();
+        let named = collateral(&wreck, &clean, &[3, 4], &[], &[], &lim).unwrap();
         assert_eq!(named.others, 2);
-        let touch = collateral(&wreck, &clean, &[], &[(4, 2), (1, 3)], &lim).unwrap();
+        let touch = collateral(&wreck, &clean, &[], &[(4, 2), (1, 3)], &[], &lim).unwrap();
         assert_eq!(touch.collided, 0, "{touch:?}");
         // The other way round (unguided worse than guided) is never blamed on guidance.
-        assert!(collateral(&clean, &wreck, &[], &[], &lim)
+        assert!(collateral(&clean, &wreck, &[], &[], &[], &lim)
             .unwrap()
             .violations()
             .is_empty());
         let mut other = clean.clone();
         other.meta.scenario_id = "elsewhere".into();
         assert!(matches!(
-            collateral(&clean, &other, &[], &[], &lim),
+            collateral(&clean, &other, &[], &[], &[], &lim),
             Err(CollateralError::OtherScene { .. })
         ));
     }

@@ -40,6 +40,89 @@ fn bad(path: &Path, message: impl Into<String>) -> MergeError {
     }
 }
 
+/// Where a scene's horizon (the future steps every method is scored over) came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum HorizonFrom {
+    /// `--horizon`.
+    Flag,
+    /// The longest of the scene's rollouts.
+    Rollouts,
+    /// The recorded future (no flag, no rollouts read).
+    Recording,
+}
+
+/// How many scenes were scored over each horizon, for the line that says which was used.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Horizons(pub Vec<HorizonCount>);
+
+/// Scenes scored over one horizon.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct HorizonCount {
+    /// Future steps scored after the current step.
+    pub steps: usize,
+    /// Where that number came from.
+    pub from: HorizonFrom,
+    /// How many scenes.
+    pub scenes: usize,
+}
+
+impl Horizons {
+    /// Counts one scene scored over `steps` from `from`.
+    pub fn count(&mut self, steps: usize, from: HorizonFrom) {
+        // A count of one per scene read cannot reach usize::MAX.
+        let _ = self.add(steps, from, 1);
+    }
+
+    /// Adds `scenes` scored over `steps` from `from`; `None` (nothing added) where the count
+    /// would overflow.
+    pub fn add(&mut self, steps: usize, from: HorizonFrom, scenes: usize) -> Option<()> {
+        match self
+            .0
+            .iter_mut()
+            .find(|c| c.steps == steps && c.from == from)
+        {
+            Some(c) => c.scenes = c.scenes.checked_add(scenes)?,
+            None => self.0.push(HorizonCount {
+                steps,
+                from,
+                scenes,
+            }),
+        }
+        self.0.sort_by_key(|c| (c.from, c.steps));
+        Some(())
+    }
+
+    /// `horizon: 40 steps after the current step, the rollouts' own (3 scenes)`; None when
+    /// nothing was scored.
+    pub fn line(&self) -> Option<String> {
+        let parts: Vec<String> = self
+            .0
+            .iter()
+            .map(|c| {
+                let from = match c.from {
+                    HorizonFrom::Flag => "--horizon",
+                    HorizonFrom::Rollouts => "the rollouts' own",
+                    HorizonFrom::Recording => "the recorded future",
+                };
+                let s = if c.scenes == 1 { "" } else { "s" };
+                format!("{} steps, {from} ({} scene{s})", c.steps, c.scenes)
+            })
+            .collect();
+        (!parts.is_empty()).then(|| {
+            let hint = if self.0.iter().any(|c| c.from != HorizonFrom::Flag) {
+                "; --horizon H scores every scene over H steps"
+            } else {
+                ""
+            };
+            format!(
+                "horizon (future steps scored after the current step): {}{hint}",
+                parts.join("; ")
+            )
+        })
+    }
+}
+
 /// What a shard's `--json` carries for `--merge` besides the accumulators (`merge.run`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RunRecord {
@@ -55,6 +138,9 @@ pub struct RunRecord {
     /// Scenes the rollouts' run left out.
     #[serde(default)]
     pub run_skipped: usize,
+    /// The horizons the scenes were scored over (absent in files written before).
+    #[serde(default)]
+    pub horizons: Horizons,
 }
 
 /// The `merge` object of an `eval --json` file: what [`merge`] reads back.
@@ -176,6 +262,13 @@ fn read_shard(path: &Path) -> Result<(RunRecord, Settings, Vec<Tally>), MergeErr
     for key in RUN_COUNTS {
         whole(&run, key, "merge.run").map_err(|m| bad(path, m))?;
     }
+    if let Some(h) = run.get("horizons").and_then(Value::as_array) {
+        for (i, c) in h.iter().enumerate() {
+            for key in ["steps", "scenes"] {
+                whole(c, key, &format!("merge.run.horizons[{i}]")).map_err(|m| bad(path, m))?;
+            }
+        }
+    }
     if let Some(shards) = run.get("shards").and_then(Value::as_array) {
         if let Some((i, s)) = shards
             .iter()
@@ -252,6 +345,7 @@ pub fn merge(files: &[PathBuf]) -> Result<Merged, MergeError> {
     let mut accs: Vec<Tally> = Vec::new();
     let mut seen: Vec<(usize, PathBuf)> = Vec::new();
     let (mut skipped, mut failures, mut run_skipped) = (0usize, 0usize, 0usize);
+    let mut horizons = Horizons::default();
     for f in files {
         let (run, s, a) = read_shard(f)?;
         match &first {
@@ -281,6 +375,18 @@ pub fn merge(files: &[PathBuf]) -> Result<Merged, MergeError> {
         skipped = sum(skipped, run.skipped, "skipped", f)?;
         failures = sum(failures, run.failures, "failures", f)?;
         run_skipped = sum(run_skipped, run.run_skipped, "run_skipped", f)?;
+        for (i, c) in run.horizons.0.iter().enumerate() {
+            horizons.add(c.steps, c.from, c.scenes).ok_or_else(|| {
+                bad(
+                    f,
+                    format!(
+                        "merge.run.horizons[{i}].scenes is {}: summed with the shards before, it \
+                         overflows",
+                        c.scenes
+                    ),
+                )
+            })?;
+        }
         // An unsharded run is all of one evaluation: shard 0 of 1, so that merging it twice
         // (or with a copy) is refused rather than counting its scenes twice.
         let shards = if run.shards.is_empty() {
@@ -344,6 +450,7 @@ pub fn merge(files: &[PathBuf]) -> Result<Merged, MergeError> {
             skipped,
             failures,
             run_skipped,
+            horizons,
         },
         shards: n,
     })
@@ -379,6 +486,7 @@ mod tests {
             skipped: 0,
             failures: 0,
             run_skipped: 0,
+            horizons: Horizons::default(),
         };
         json!({"task": "conditional", "merge": record_json(&[tally(scenes)], &run)})
     }

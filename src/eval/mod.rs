@@ -11,7 +11,7 @@ pub mod metrics;
 pub mod tally;
 
 pub use baselines::Baseline;
-pub use behaviors::{check, check_against_unguided, Behavior, CheckError, Verdict};
+pub use behaviors::{check, check_against_unguided, check_allowing, Behavior, CheckError, Verdict};
 pub use collateral::{collateral, Collateral, CollateralError};
 pub use feasibility::{infeasible, Infeasible};
 pub use kinematic::{judge, Judgement, KinematicLimits, Violation};

@@ -319,7 +319,8 @@ impl Tally {
                 .iter()
                 .enumerate()
                 .map(|(k, s)| match unguided.and_then(|u| u.get(k)) {
-                    Some(u) => check_against_unguided(b, s, u, p),
+                    // Rollouts do not carry their scripts' allowances.
+                    Some(u) => check_against_unguided(b, s, u, p, &[]),
                     None => check(b, s, p),
                 })
                 .collect(),

@@ -347,6 +347,17 @@ fn checkers_explain_missing_parameters_and_agents() {
         e.to_string(),
         "cut_in: cutter and victim are both agent 2: the roles need different agents"
     );
+    // `cutter=2.5` was judged as agent 2.
+    let e = check(
+        Behavior::CutIn,
+        &base,
+        &params(&[("cutter", 2.5), ("victim", 1.0)]),
+    )
+    .unwrap_err();
+    assert_eq!(
+        e.to_string(),
+        "cut_in: parameter \"cutter\" = \"2.5\" must be an agent id (a whole number)"
+    );
     assert_eq!(Behavior::from_name("yield"), Some(Behavior::Yield));
     for b in super::behaviors::ALL {
         assert!(!b.definition().is_empty());

@@ -166,8 +166,9 @@ pub fn read(path: &Path) -> Result<Scene, IoError> {
                 file,
                 "file name",
                 format!(
-                    "named for scenario {named}, but the scenario is {}",
-                    meta.scenario_id
+                    "named for scenario {}, but the scenario is {}",
+                    super::name::shown(named),
+                    super::name::shown(&meta.scenario_id)
                 ),
             ));
         }

@@ -550,7 +550,10 @@ fn to_scene(path: &Path, file: File) -> Result<Scene, IoError> {
                     .position(|x| *x == a)
                     .map(|i| object_at(i, Some(a)))
             })
-            .unwrap_or_else(|| "objects".into()),
+            .unwrap_or_else(|| match e {
+                SceneError::ScenarioId { .. } => "scenario_id".into(),
+                _ => "objects".into(),
+            }),
         error: e,
     })
 }

@@ -14,6 +14,7 @@ pub mod av2;
 pub mod commonroad;
 pub mod gpudrive;
 pub mod json;
+pub mod name;
 pub mod rollout;
 pub mod scene_output;
 pub mod shard;
@@ -26,6 +27,8 @@ pub mod yaml;
 use std::path::{Path, PathBuf};
 
 use crate::scene::{Scene, SceneError};
+
+pub use name::hidden_char;
 
 /// The formats a scene can be read from, for error messages.
 pub const SUPPORTED_FORMATS: &str = "Waymo Open Motion Dataset TFRecord (.tfrecord, *.tfrecord-NNNNN-of-NNNNN), \
@@ -98,9 +101,9 @@ pub enum IoError {
         message: String,
     },
     /// A scenario id that cannot name output files (a path, a dot name, control characters).
-    #[error("scenario id {id:?} cannot name an output file: {message}")]
+    #[error("scenario id \"{id}\" cannot name an output file: {message}")]
     Name {
-        /// The id, as read.
+        /// The id, as read ([`name::shown`]).
         id: String,
         /// What is wrong.
         message: String,
@@ -488,32 +491,12 @@ fn walk(
     Ok(())
 }
 
-/// The first character of `s` that changes how text around it is shown without being seen:
-/// bidirectional controls (which can make `a` read as `b` on a terminal), zero-width
-/// characters, the byte-order mark, the soft hyphen. Names (scenario ids, term names) that
-/// reach terminals, file names and the LLM's prompt must not hold them.
-pub fn hidden_char(s: &str) -> Option<char> {
-    s.chars().find(|&c| {
-        matches!(
-            c,
-            '\u{00AD}'
-                | '\u{061C}'
-                | '\u{180E}'
-                | '\u{200B}'..='\u{200F}'
-                | '\u{202A}'..='\u{202E}'
-                | '\u{2060}'..='\u{2064}'
-                | '\u{2066}'..='\u{2069}'
-                | '\u{FEFF}'
-        )
-    })
-}
-
 /// `id` when it can start a file name inside an output directory: scene files are untrusted,
 /// and an id such as `../../x` must not write outside the directory the user named.
 pub fn output_stem(id: &str) -> Result<&str, IoError> {
     let bad = |message: &str| {
         Err(IoError::Name {
-            id: id.chars().take(120).collect(),
+            id: name::shown(id),
             message: message.into(),
         })
     };
@@ -526,17 +509,11 @@ pub fn output_stem(id: &str) -> Result<&str, IoError> {
     if id.starts_with('.') {
         return bad("it starts with a dot");
     }
-    if let Some(c) = id
-        .chars()
-        .find(|&c| c == '/' || c == '\\' || c == ':' || c.is_control())
-    {
+    if let Some(c) = id.chars().find(|&c| c == '/' || c == '\\' || c == ':') {
         return bad(&format!("it contains {c:?}"));
     }
-    if let Some(c) = hidden_char(id) {
-        return bad(&format!(
-            "it contains the invisible character U+{:04X}",
-            c as u32
-        ));
+    if let Err(c) = name::check_name(id) {
+        return bad(&format!("it contains {c}"));
     }
     Ok(id)
 }
@@ -1098,7 +1075,7 @@ mod tests {
             ("a/../../b", "'/'"),
             ("a\\b", "'\\\\'"),
             ("C:x", "':'"),
-            ("a\u{1b}[2Jb", "'\\u{1b}'"),
+            ("a\u{1b}[2Jb", "control character U+001B"),
             ("cut\u{202E}ni", "invisible character U+202E"),
             ("a\u{200B}b", "invisible character U+200B"),
             (long.as_str(), "longer than 200"),

@@ -165,8 +165,9 @@ impl Rollout {
             return Err(bad(
                 "scene_id".into(),
                 format!(
-                    "the rollout is of scene {:?}, not of {:?}",
-                    self.scene_id, m.scenario_id
+                    "the rollout is of scene \"{}\", not of \"{}\"",
+                    super::name::shown(&self.scene_id),
+                    super::name::shown(&m.scenario_id)
                 ),
             ));
         }

@@ -81,9 +81,9 @@ impl ServerKind {
     pub fn fix(self, tokens: u64) -> String {
         let ollama = format!(
             "Ollama: start it with `OLLAMA_CONTEXT_LENGTH={tokens} ollama serve`, or create a \
-             model whose Modelfile says `PARAMETER num_ctx {tokens}` (`ollama create`), or use \
-             its native /api/chat with `options.num_ctx` (its /v1 endpoint ignores num_ctx in \
-             the request)"
+             model whose Modelfile says `PARAMETER num_ctx {tokens}` (`ollama create`) and ask \
+             for that model (its /v1 endpoint, the one ask speaks, ignores num_ctx in the \
+             request)"
         );
         let llama = format!(
             "llama.cpp: start `llama-server` with `--ctx-size {tokens}` (llama-cpp-python: \
@@ -165,7 +165,7 @@ mod tests {
             m.contains("read 2048 tokens of a prompt of about 7000")
                 && m.contains("OLLAMA_CONTEXT_LENGTH=16384")
                 && m.contains("num_ctx 16384")
-                && m.contains("/api/chat"),
+                && !m.contains("/api/chat"),
             "{m}"
         );
         let m = check_prompt_tokens(7000, 2048, 1024, ServerKind::Unknown).unwrap();

@@ -9,6 +9,7 @@ use std::time::{Duration, Instant};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
+use super::clock::{abandoned, Abandoned, ReplyClock};
 use super::LlmError;
 
 /// How to reach the server.
@@ -36,9 +37,13 @@ pub struct HttpConfig {
     pub seed: Option<u64>,
     /// Time to establish the connection.
     pub connect_timeout: Duration,
-    /// The longest silence: for the reply's head, and for each read of its body (a streamed
-    /// reply may take longer in all, as long as it keeps coming).
+    /// The longest silence: for the reply's head, and for each read of its body; and the
+    /// longest a streamed reply may go without a token, whatever else it sends (it may take
+    /// longer in all, as long as tokens keep coming).
     pub read_timeout: Duration,
+    /// The longest a reply may take in all, from the first request: retries, the waits
+    /// between them and a reply that keeps coming without finishing included.
+    pub reply_deadline: Duration,
     /// Attempts in all for 429 and 5xx answers (at least 1).
     pub attempts: u32,
     /// First wait between attempts; it doubles each time unless the server says
@@ -76,6 +81,7 @@ impl HttpConfig {
             seed: None,
             connect_timeout: Duration::from_secs(10),
             read_timeout: Duration::from_secs(300),
+            reply_deadline: Duration::from_secs(1800),
             attempts: 3,
             backoff: Duration::from_secs(2),
             backoff_max: Duration::from_secs(600),
@@ -270,7 +276,7 @@ impl HttpClient {
         &self,
         resp: reqwest::blocking::Response,
         url: &str,
-        t0: Instant,
+        clock: &ReplyClock,
     ) -> Result<Completion, LlmError> {
         use std::io::BufRead;
         let content_type = resp
@@ -278,12 +284,12 @@ impl HttpClient {
             .get(reqwest::header::CONTENT_TYPE)
             .and_then(|v| v.to_str().ok())
             .map(str::to_string);
-        let mut body = std::io::BufReader::new(resp);
+        let mut body = std::io::BufReader::new(clock.reader(resp, false));
         let head = body
             .fill_buf()
-            .map_err(|e| read_error(&e, url, &self.cfg, 0))?;
+            .map_err(|e| read_error(&e, url, &self.cfg, clock, 0))?;
         if !(self.cfg.stream && super::stream::is_event_stream(content_type.as_deref(), head)) {
-            let text = self.redact(&read_body(body, url, &self.cfg)?);
+            let text = self.redact(&read_body(body, url, &self.cfg, clock)?);
             return parse_completion(&text, url).map_err(|e| self.redact_error(e));
         }
         let observe = |e: ClientEvent<'_>| {
@@ -294,13 +300,13 @@ impl HttpClient {
         let got = super::stream::read_stream(
             body,
             url,
-            self.cfg.read_timeout,
-            &|e, n| read_error(e, url, &self.cfg, n),
+            clock,
+            &|e, n| read_error(e, url, &self.cfg, clock, n),
             &mut |tokens, since_first| {
                 observe(ClientEvent::Streaming {
                     tokens,
                     since_first,
-                    elapsed: t0.elapsed(),
+                    elapsed: clock.elapsed(),
                 })
             },
         );
@@ -352,6 +358,7 @@ impl HttpClient {
         let body = self.body(messages);
         let estimate = super::budget::estimate_tokens(messages);
         let t0 = Instant::now();
+        let clock = ReplyClock::new(t0, self.cfg.reply_deadline, self.cfg.read_timeout);
         let mut retries = Vec::new();
         let attempts = self.cfg.attempts.max(1);
         let mut wait = self.cfg.backoff;
@@ -360,9 +367,23 @@ impl HttpClient {
             if let Some(k) = &self.cfg.key {
                 req = req.bearer_auth(k);
             }
+            // The silence limit, cut to the time left: a server silent at the deadline is
+            // given up on at it. (A request's own timeout also bounds its whole body, so it
+            // can only be set where it is shorter than the silence limit.)
+            let left = clock.remaining();
+            if left < self.cfg.read_timeout {
+                req = req.timeout(left.max(Duration::from_millis(1)));
+            }
             let resp = match req.send() {
                 Ok(r) => r,
-                Err(e) => return Err(self.redact_error(transport_error(&e, &shown, &self.cfg))),
+                Err(e) => {
+                    return Err(match transport_error(&e, &shown, &self.cfg) {
+                        LlmError::Timeout { .. } if clock.expired() => {
+                            clock.past_deadline(&shown, "no reply head")
+                        }
+                        other => self.redact_error(other),
+                    })
+                }
             };
             let status = resp.status().as_u16();
             let retry_after = resp
@@ -372,7 +393,7 @@ impl HttpClient {
                 .and_then(|v| v.trim().parse::<f64>().ok())
                 .filter(|s| s.is_finite() && *s >= 0.0);
             if (200..300).contains(&status) {
-                let got = self.read_completion(resp, &shown, t0)?;
+                let got = self.read_completion(resp, &shown, &clock)?;
                 self.check_context(&shown, estimate, got.usage, got.fingerprint.as_deref())?;
                 return Ok(Exchange {
                     url: shown,
@@ -387,7 +408,12 @@ impl HttpClient {
                     truncated: got.truncated,
                 });
             }
-            let text = self.redact(&read_body(resp, &shown, &self.cfg)?);
+            let text = self.redact(&read_body(
+                clock.reader(resp, false),
+                &shown,
+                &self.cfg,
+                &clock,
+            )?);
             let message = self.redact(&error_message(&text));
             let retryable = status == 429 || (500..600).contains(&status);
             if !retryable {
@@ -419,6 +445,19 @@ impl HttpClient {
                 });
             }
             let (pause, note) = retry_pause(retry_after, wait, self.cfg.backoff_max);
+            if pause >= clock.remaining() {
+                return Err(LlmError::Status {
+                    url: shown,
+                    status,
+                    attempts: attempt,
+                    message: format!(
+                        "{message}; no further attempt: the wait of {:.1} s{note} would pass the \
+                         reply deadline of {} s (--reply-deadline)",
+                        pause.as_secs_f64(),
+                        crate::geom::num(clock.deadline().as_secs_f64())
+                    ),
+                });
+            }
             let line = format!(
                 "{status}: {message} (waited {:.1} s{note})",
                 pause.as_secs_f64()
@@ -438,12 +477,18 @@ impl HttpClient {
 /// hostile server) must end in an error, not fill memory until the process aborts.
 pub const MAX_REPLY_BYTES: u64 = 16 << 20;
 
-/// Reads a reply body within [`MAX_REPLY_BYTES`] (invalid UTF-8 replaced, as `text()` does).
-fn read_body(resp: impl std::io::Read, url: &str, cfg: &HttpConfig) -> Result<String, LlmError> {
+/// Reads a reply body within [`MAX_REPLY_BYTES`] (invalid UTF-8 replaced, as `text()` does);
+/// `resp` is read under `clock` ([`ReplyClock::reader`]).
+fn read_body(
+    resp: impl std::io::Read,
+    url: &str,
+    cfg: &HttpConfig,
+    clock: &ReplyClock,
+) -> Result<String, LlmError> {
     use std::io::Read;
     let mut buf = Vec::new();
     if let Err(e) = resp.take(MAX_REPLY_BYTES + 1).read_to_end(&mut buf) {
-        return Err(read_error(&e, url, cfg, buf.len()));
+        return Err(read_error(&e, url, cfg, clock, buf.len()));
     }
     if buf.len() as u64 > MAX_REPLY_BYTES {
         return Err(LlmError::BadReply {
@@ -458,11 +503,24 @@ fn read_body(resp: impl std::io::Read, url: &str, cfg: &HttpConfig) -> Result<St
     Ok(String::from_utf8_lossy(&buf).into_owned())
 }
 
-/// What a failed read of a reply body means: the silence limit passed (a timeout), the server
-/// reset or closed the connection in the middle (a reset: the server died, or a proxy cut it;
-/// not worth waiting out the timeout for), or something else. `got` bytes had arrived.
-fn read_error(e: &std::io::Error, url: &str, cfg: &HttpConfig, got: usize) -> LlmError {
+/// What a failed read of a reply body means: the reply's deadline passed ([`ReplyClock`]),
+/// the silence limit passed (a timeout), the server reset or closed the connection in the
+/// middle (a reset: the server died, or a proxy cut it; not worth waiting out the timeout
+/// for), or something else. `got` bytes had arrived.
+fn read_error(
+    e: &std::io::Error,
+    url: &str,
+    cfg: &HttpConfig,
+    clock: &ReplyClock,
+    got: usize,
+) -> LlmError {
     use std::io::ErrorKind as K;
+    let past_deadline = || clock.past_deadline(url, &format!("{got} bytes of the body"));
+    match abandoned(e) {
+        Some(Abandoned::Deadline) => return past_deadline(),
+        // Only a stream watches for tokens, and it says so itself.
+        Some(Abandoned::NoProgress) | None => {}
+    }
     // The cause is several layers down (io, reqwest, hyper, io): every layer is looked at.
     let mut chain = vec![e.to_string()];
     let mut kinds = vec![e.kind()];
@@ -476,6 +534,9 @@ fn read_error(e: &std::io::Error, url: &str, cfg: &HttpConfig, got: usize) -> Ll
     }
     let text = chain.join(": ").to_lowercase();
     if kinds.contains(&K::TimedOut) || text.contains("timed out") {
+        if clock.expired() {
+            return past_deadline();
+        }
         return LlmError::Timeout {
             url: url.into(),
             seconds: cfg.read_timeout.as_secs_f64(),

@@ -8,7 +8,7 @@ use std::fmt::Write as _;
 
 use crate::eval::behaviors::Behavior;
 use crate::eval::metrics::{collided, road_departure, RoadDeparture};
-use crate::sample::{Attempt, AttemptReport, SampleOutcome};
+use crate::sample::{Attempt, AttemptReport, Carried, SampleOutcome};
 use crate::scene::{Scene, Turn};
 
 /// When a sample counts as meeting the request.
@@ -36,12 +36,15 @@ impl Acceptance {
             let tol = t.tolerance.unwrap_or(self.tolerance);
             if !(t.value <= tol) {
                 out.push(format!(
-                    "term {} = {:.4} is above {} tolerance {} (line {})",
+                    "term {} = {:.4} is above {} tolerance {} (line {}){}",
                     t.term,
                     t.value,
                     if t.tolerance.is_some() { "its" } else { "the" },
                     tol,
-                    t.line
+                    t.line,
+                    t.carried_by
+                        .as_ref()
+                        .map_or(String::new(), |c| format!("; {}", carriers(c)))
                 ));
             }
         }
@@ -66,6 +69,36 @@ impl Acceptance {
         }
         out
     }
+}
+
+/// Who carries a term over many agents, in words, with what the numbers mean: "carried by
+/// 2974 (62 %), 139 (31 %) and 2981 (5 %) of the 14 agents it reads (...)".
+pub fn carriers(c: &Carried) -> String {
+    let pct = |x: f64| {
+        if x < 0.005 {
+            "<1 %".to_string()
+        } else {
+            format!("{:.0} %", 100.0 * x)
+        }
+    };
+    let mut names: Vec<String> = c
+        .top
+        .iter()
+        .map(|a| format!("{} ({})", a.agent, pct(a.share)))
+        .collect();
+    if c.others > 0 {
+        names.push(format!("{} more", c.others));
+    }
+    let list = match names.len() {
+        0 => String::new(),
+        1 => names[0].clone(),
+        n => format!("{} and {}", names[..n - 1].join(", "), names[n - 1]),
+    };
+    format!(
+        "carried by {list} of the {} agents it reads (each one's share of how fast the term \
+         falls when that agent alone moves to lower it)",
+        c.reads
+    )
 }
 
 /// The departures from the road of `report`'s named agents in `o` that the request does not
@@ -501,6 +534,45 @@ mod tests {
             realism: Vec::new(),
             off_road,
         }
+    }
+
+    #[test]
+    fn a_term_over_many_agents_names_the_ones_that_carry_it() {
+        use crate::sample::{AgentShare, TermOutcome};
+        let term = |carried_by| TermOutcome {
+            script: "s.rhai".into(),
+            term: "no_collisions".into(),
+            line: 7,
+            weight: 1.0,
+            initial: None,
+            value: 4.2,
+            tolerance: None,
+            carried_by,
+        };
+        let share = |agent, share| AgentShare { agent, share };
+        let carried = Carried {
+            reads: 14,
+            top: vec![share(2974, 0.62), share(139, 0.31), share(2981, 0.05)],
+            others: 2,
+        };
+        let mut o = outcome(Vec::new());
+        o.terms = vec![term(Some(carried))];
+        let why = Acceptance::default().reasons(&o, &report(vec![139], Vec::new()));
+        assert_eq!(
+            why,
+            vec![
+                "term no_collisions = 4.2000 is above the tolerance 0.05 (line 7); carried by \
+                 2974 (62 %), 139 (31 %), 2981 (5 %) and 2 more of the 14 agents it reads (each \
+                 one's share of how fast the term falls when that agent alone moves to lower it)"
+                    .to_string()
+            ]
+        );
+        o.terms = vec![term(None)];
+        let why = Acceptance::default().reasons(&o, &report(vec![139], Vec::new()));
+        assert_eq!(
+            why,
+            vec!["term no_collisions = 4.2000 is above the tolerance 0.05 (line 7)".to_string()]
+        );
     }
 
     #[test]

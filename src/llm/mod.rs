@@ -14,6 +14,7 @@
 pub mod batch;
 pub mod budget;
 pub mod client;
+pub mod clock;
 pub mod feedback;
 pub mod fit;
 pub mod prompt;
@@ -68,19 +69,37 @@ pub enum LlmError {
         /// The transport's own words.
         message: String,
     },
-    /// A streamed reply stopped coming.
+    /// A streamed reply stopped coming, or kept coming without tokens.
     #[error(
-        "{url}: the stream stalled: nothing came for {seconds} s after {tokens} tokens; the \
-         server may be stuck or overloaded (raise --llm-timeout if the model is merely slow, \
-         or try --no-stream)"
+        "{url}: the stream stalled: {} for {seconds} s after {tokens} tokens; the server may be \
+         stuck or overloaded (raise --llm-timeout if the model is merely slow, or try \
+         --no-stream)",
+        if *keepalive { "no token came (only keep-alive comments or empty chunks)" } else { "nothing came" }
     )]
     Stalled {
         /// The endpoint, without credentials.
         url: String,
-        /// The silence allowed.
+        /// The silence (or the time without a token) allowed.
         seconds: f64,
         /// Tokens received before it.
         tokens: usize,
+        /// Bytes kept coming, but no token among them.
+        keepalive: bool,
+    },
+    /// A reply, retries and the waits between them included, took longer than the deadline.
+    #[error(
+        "{url}: abandoned the reply after {elapsed:.1} s, past the reply deadline of {deadline} s, \
+         with {received} received (raise --reply-deadline if the model is merely this slow)"
+    )]
+    Deadline {
+        /// The endpoint, without credentials.
+        url: String,
+        /// Seconds since the first request.
+        elapsed: f64,
+        /// The deadline, seconds.
+        deadline: f64,
+        /// What had arrived, in words (`12 tokens`, `300 bytes of a JSON body`).
+        received: String,
     },
     /// The conversation does not fit the context window `--context` states.
     #[error("{0}")]

@@ -1809,10 +1809,22 @@ impl Session<'_> {
             progress(&format!("round {n}: asking {} ...", c.config().model));
             let sent = self.to_send(n, progress)?;
             let ex = c.complete(&sent)?;
-            let usage = ex
-                .usage
-                .map(|u| format!(", {} + {} tokens", u.prompt_tokens, u.completion_tokens))
-                .unwrap_or_default();
+            // Without usage the check that the server read the whole prompt cannot run:
+            // said, not skipped in silence.
+            let usage = ex.usage.map_or_else(
+                || {
+                    format!(
+                        " (the server reported no token usage, so a prompt cut to its context \
+                         window cannot be detected{})",
+                        if ex.streamed {
+                            "; with --no-stream most servers report it"
+                        } else {
+                            ""
+                        }
+                    )
+                },
+                |u| format!(", {} + {} tokens", u.prompt_tokens, u.completion_tokens),
+            );
             progress(&format!(
                 "round {n}: reply in {:.1} s{usage}{}",
                 ex.latency,

@@ -4,7 +4,10 @@
 //!
 //! The silence limit is the client's read timeout, applied to each read: a local model may
 //! think for minutes before its first token and then write for minutes more, and neither is
-//! an error; nothing arriving for that long is.
+//! an error; nothing arriving for that long is, and so is a stream that brings no token for
+//! that long however many keep-alive comments or empty chunks it sends ([`ReplyClock`]).
+//! Reasoning tokens (`reasoning_content`, `reasoning`) are progress too, though not part of
+//! the reply.
 
 use std::io::{BufRead, BufReader, Read};
 use std::time::{Duration, Instant};
@@ -12,6 +15,7 @@ use std::time::{Duration, Instant};
 use serde_json::Value;
 
 use super::client::{error_message, Usage, MAX_REPLY_BYTES};
+use super::clock::{abandoned, Abandoned, ReplyClock};
 use super::LlmError;
 
 /// A stream read to its end.
@@ -25,6 +29,9 @@ pub struct Streamed {
     pub truncated: bool,
     /// Chunks with content (one token each on every server seen).
     pub tokens: usize,
+    /// Chunks with reasoning only (`reasoning_content`, `reasoning`: a thinking model's
+    /// thoughts, which are not part of the reply).
+    pub reasoning: usize,
     /// The chunks' `system_fingerprint` (Ollama's is `fp_ollama`).
     pub fingerprint: Option<String>,
 }
@@ -44,6 +51,14 @@ pub fn progress_line(tokens: usize, since_first: Option<Duration>, elapsed: Dura
     )
 }
 
+/// What a stream brought, in words: its tokens, and its reasoning tokens where it had any.
+fn received(s: &Streamed) -> String {
+    match s.reasoning {
+        0 => format!("{} tokens", s.tokens),
+        r => format!("{} tokens and {r} reasoning tokens", s.tokens),
+    }
+}
+
 /// Whether a reply body is a stream of events: by its type, or by its first bytes where a
 /// server labels it wrongly.
 pub fn is_event_stream(content_type: Option<&str>, head: &[u8]) -> bool {
@@ -57,12 +72,14 @@ pub fn is_event_stream(content_type: Option<&str>, head: &[u8]) -> bool {
 
 /// Reads the events of `body` until `data: [DONE]`, a chunk with a `finish_reason` followed
 /// by the end of the body, or an error. `tick(tokens, since_first_token)` is called after
-/// each chunk with content. `read_error` turns a failed read into the client's error, given
-/// the bytes read; a read that times out is a stalled stream.
+/// each chunk with content or reasoning. `read_error` turns a failed read into the client's
+/// error, given the bytes read; a read that times out, or a stream that brings no token for
+/// the clock's progress limit, is a stalled stream, and one still coming at the clock's
+/// deadline is abandoned ([`LlmError::Deadline`]).
 pub fn read_stream<R: Read>(
     body: R,
     url: &str,
-    silence: Duration,
+    clock: &ReplyClock,
     read_error: &dyn Fn(&std::io::Error, usize) -> LlmError,
     tick: &mut dyn FnMut(usize, Option<Duration>),
 ) -> Result<Streamed, LlmError> {
@@ -70,7 +87,8 @@ pub fn read_stream<R: Read>(
         url: url.into(),
         message,
     };
-    let mut reader = BufReader::new(body.take(MAX_REPLY_BYTES + 1));
+    clock.restart_progress();
+    let mut reader = BufReader::new(clock.reader(body, true).take(MAX_REPLY_BYTES + 1));
     let mut out = Streamed::default();
     let mut first: Option<Instant> = None;
     let mut finished = false;
@@ -81,14 +99,21 @@ pub fn read_stream<R: Read>(
         let n = match reader.read_until(b'\n', &mut line) {
             Ok(n) => n,
             Err(e) => {
-                return Err(match read_error(&e, got) {
-                    LlmError::Timeout { .. } => LlmError::Stalled {
-                        url: url.into(),
-                        seconds: silence.as_secs_f64(),
-                        tokens: out.tokens,
+                let stalled = |keepalive| LlmError::Stalled {
+                    url: url.into(),
+                    seconds: clock.progress().as_secs_f64(),
+                    tokens: out.tokens,
+                    keepalive,
+                };
+                return Err(match abandoned(&e) {
+                    Some(Abandoned::Deadline) => clock.past_deadline(url, &received(&out)),
+                    Some(Abandoned::NoProgress) => stalled(true),
+                    None => match read_error(&e, got) {
+                        LlmError::Deadline { .. } => clock.past_deadline(url, &received(&out)),
+                        LlmError::Timeout { .. } => stalled(false),
+                        other => other,
                     },
-                    other => other,
-                })
+                });
             }
         };
         got += n;
@@ -151,11 +176,19 @@ pub fn read_stream<R: Read>(
             .as_str()
             .or_else(|| choice["text"].as_str())
             .unwrap_or("");
+        let thought = ["reasoning_content", "reasoning"]
+            .iter()
+            .any(|k| choice["delta"][k].as_str().is_some_and(|t| !t.is_empty()));
         if !piece.is_empty() {
             out.content.push_str(piece);
             out.tokens += 1;
+        } else if thought {
+            out.reasoning += 1;
+        }
+        if !piece.is_empty() || thought {
+            clock.token();
             let t = *first.get_or_insert_with(Instant::now);
-            tick(out.tokens, Some(t.elapsed()));
+            tick(out.tokens + out.reasoning, Some(t.elapsed()));
         }
         if let Some(reason) = choice["finish_reason"].as_str() {
             finished = true;
@@ -173,14 +206,91 @@ mod tests {
         LlmError::Setup("unexpected".into())
     }
 
+    fn clock(deadline_ms: u64, progress_ms: u64) -> ReplyClock {
+        ReplyClock::new(
+            Instant::now(),
+            Duration::from_millis(deadline_ms),
+            Duration::from_millis(progress_ms),
+        )
+    }
+
     fn read(body: &str) -> Result<Streamed, LlmError> {
         read_stream(
             body.as_bytes(),
             "u",
-            Duration::from_secs(1),
+            &clock(60_000, 1000),
             &no_read_error,
             &mut |_, _| {},
         )
+    }
+
+    /// A server that sends `first`, then `then` for ever, one line per read, `gap` apart.
+    struct Endless {
+        first: Vec<String>,
+        then: String,
+        gap: Duration,
+    }
+
+    impl Read for Endless {
+        fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+            std::thread::sleep(self.gap);
+            let line = if self.first.is_empty() {
+                self.then.clone()
+            } else {
+                self.first.remove(0)
+            };
+            let b = format!("{line}\n\n").into_bytes();
+            buf[..b.len()].copy_from_slice(&b);
+            Ok(b.len())
+        }
+    }
+
+    fn endless(then: &str, clock: &ReplyClock) -> (LlmError, Duration) {
+        let body = Endless {
+            first: vec!["data: {\"choices\":[{\"delta\":{\"content\":\"x\"}}]}".into()],
+            then: then.into(),
+            gap: Duration::from_millis(10),
+        };
+        let t0 = Instant::now();
+        let e = read_stream(body, "u", clock, &no_read_error, &mut |_, _| {}).unwrap_err();
+        (e, t0.elapsed())
+    }
+
+    #[test]
+    fn keep_alives_and_empty_chunks_for_ever_are_a_stall_and_tokens_for_ever_hit_the_deadline() {
+        for then in [": ping", "data: {\"choices\":[{\"delta\":{}}]}"] {
+            let (e, took) = endless(then, &clock(60_000, 200));
+            assert!(
+                matches!(
+                    e,
+                    LlmError::Stalled {
+                        tokens: 1,
+                        keepalive: true,
+                        ..
+                    }
+                ),
+                "{then}: {e:?}"
+            );
+            assert!(e.to_string().contains("no token came"), "{e}");
+            assert!(took < Duration::from_secs(3), "{then}: {took:?}");
+        }
+        // Thinking is progress: a model that reasons for ever is held by the deadline only.
+        let thinking = "data: {\"choices\":[{\"delta\":{\"reasoning_content\":\"hm\"}}]}";
+        let (e, took) = endless(thinking, &clock(600, 200));
+        assert!(matches!(e, LlmError::Deadline { .. }), "{e:?}");
+        assert!(took >= Duration::from_millis(600), "{took:?}");
+        let e = e.to_string();
+        assert!(
+            e.contains("past the reply deadline of 0.6 s")
+                && e.contains("with 1 tokens and ")
+                && e.contains(" reasoning tokens received")
+                && e.contains("--reply-deadline"),
+            "{e}"
+        );
+        let token = "data: {\"choices\":[{\"delta\":{\"content\":\"y\"}}]}";
+        let (e, took) = endless(token, &clock(300, 200));
+        assert!(matches!(e, LlmError::Deadline { .. }), "{e:?}");
+        assert!(took < Duration::from_secs(3), "{took:?}");
     }
 
     #[test]

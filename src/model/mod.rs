@@ -5,6 +5,7 @@ pub mod attention;
 pub mod denoiser;
 pub mod edm;
 pub mod encoder;
+pub mod error;
 #[cfg(test)]
 mod gradients;
 pub mod ops;

@@ -20,10 +20,25 @@ fn coords(pts: &[Point]) -> String {
     s
 }
 
+/// Text as SVG character data: markup characters as entities, and control and invisible
+/// characters (which XML 1.0 cannot hold at all, even as references, or which would reorder
+/// the label) as visible escapes ([`crate::io::name::shown`]'s form).
 fn escape(t: &str) -> String {
-    t.replace('&', "&amp;")
-        .replace('<', "&lt;")
-        .replace('>', "&gt;")
+    let mut out = String::with_capacity(t.len());
+    for c in t.chars() {
+        match c {
+            '&' => out.push_str("&amp;"),
+            '<' => out.push_str("&lt;"),
+            '>' => out.push_str("&gt;"),
+            '"' => out.push_str("&quot;"),
+            '\'' => out.push_str("&apos;"),
+            c if crate::io::name::unshowable(c) || matches!(c, '\u{FFFE}' | '\u{FFFF}') => {
+                let _ = write!(out, "\\u{{{:04X}}}", c as u32);
+            }
+            c => out.push(c),
+        }
+    }
+    out
 }
 
 impl Canvas for SvgCanvas {
@@ -92,4 +107,30 @@ pub fn render_svg(scene: &Scene, opts: &RenderOptions) -> Result<String, RenderE
         w = view.width,
         h = view.height
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_svg_is_well_formed_whatever_the_text_it_writes() {
+        let p =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes/highway.yaml");
+        let mut scene = crate::io::load_scene(&p, 0, &Default::default()).unwrap();
+        // Readers refuse such ids; the SVG must not depend on that.
+        scene.meta.scenario_id = "a\u{1b}]0;x\u{7}\n</title><script>&\"'\u{202E}\u{FFFF}".into();
+        let svg = render_svg(&scene, &RenderOptions::default()).unwrap();
+        let doc = roxmltree::Document::parse(&svg).expect("well-formed XML");
+        let title = doc
+            .descendants()
+            .find(|n| n.has_tag_name("title"))
+            .and_then(|n| n.text())
+            .unwrap();
+        assert_eq!(
+            title,
+            "a\\u{001B}]0;x\\u{0007}\\u{000A}</title><script>&\"'\\u{202E}\\u{FFFF}"
+        );
+        assert!(!svg.contains("<script>"));
+    }
 }

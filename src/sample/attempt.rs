@@ -18,7 +18,9 @@ use super::guided::{
 };
 use crate::cost::ScriptSpec;
 use crate::cost::{check_params, CostError, CostReport, CostScript, Params};
-use crate::eval::behaviors::{check, check_against_unguided, Behavior, CheckError, Verdict};
+use crate::eval::behaviors::{
+    check_against_unguided, check_allowing, Behavior, CheckError, Verdict,
+};
 use crate::eval::kinematic::{judge, KinematicLimits, Violation};
 use crate::eval::metrics::{road_departure, RoadDeparture};
 use crate::io::{output_stem, rollout::Rollout, write_atomic, IoError};
@@ -83,6 +85,74 @@ pub struct TermOutcome {
     /// The script's tolerance for it, when it gives one.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub tolerance: Option<f64>,
+    /// For a script term over many agents (it reads three or more, or one the script does
+    /// not name) that pulls on some: the agents that carry it ([`Carried`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub carried_by: Option<Carried>,
+}
+
+/// The most agents [`Carried::top`] names: enough to point a repair at the agents that
+/// matter, few enough to keep a line of feedback a line.
+pub const CARRIERS_SHOWN: usize = 3;
+
+/// The agents that carry a term over many agents, by their share of its gradient
+/// ([`crate::cost::attribution`]: how much of the term's fall moving that agent alone down
+/// its gradient would bring).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Carried {
+    /// Agents the term reads.
+    pub reads: usize,
+    /// The agents with the largest shares, largest first, at most [`CARRIERS_SHOWN`].
+    pub top: Vec<AgentShare>,
+    /// Agents with a share beyond those.
+    pub others: usize,
+}
+
+/// One agent's share of a term ([`Carried`]).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct AgentShare {
+    /// The agent's id.
+    pub agent: i64,
+    /// Its share, 0 to 1.
+    #[serde(serialize_with = "crate::io::json::f64_explicit")]
+    pub share: f64,
+}
+
+/// Who carries `term`, evaluated on `scene`'s agents laid out as `layout`, when it is a term
+/// over many agents (it reads three or more, or one not in `named`, the ids the script
+/// names) and it pulls on any; `None` otherwise.
+fn carried(
+    term: &crate::cost::TermReport,
+    layout: &crate::cost::VarLayout,
+    scene: &Scene,
+    named: &[i64],
+) -> Option<Carried> {
+    let at = crate::cost::attribution::attribute(term, layout);
+    let id = |i: usize| scene.agents.get(i).map(|a| a.id);
+    let many = at.reads.len() >= 3
+        || at
+            .reads
+            .iter()
+            .any(|&i| id(i).is_some_and(|a| !named.contains(&a)));
+    if !many || at.shares.is_empty() {
+        return None;
+    }
+    let top: Vec<AgentShare> = at
+        .shares
+        .iter()
+        .filter_map(|&(i, share)| {
+            Some(AgentShare {
+                agent: id(i)?,
+                share,
+            })
+        })
+        .take(CARRIERS_SHOWN)
+        .collect();
+    Some(Carried {
+        reads: at.reads.len(),
+        others: at.shares.len() - top.len(),
+        top,
+    })
 }
 
 /// One vehicle's implausible motion in a sample.
@@ -209,6 +279,24 @@ fn requested(
             b.allowed_motion().contains(&kind)
                 && b.roles().iter().any(|r| p.number(r) == Some(id as f64))
         })
+}
+
+/// Each checker's verdict on `scene`, against its unguided `twin` where there is one, with
+/// the motion the scripts allow (`allowed`, from [`script_allowances`]) counted as asked:
+/// an `off_road` checker for a car its script lets reverse does not fail it for reversing.
+fn verdicts(
+    checks: &[(Behavior, Params)],
+    scene: &Scene,
+    twin: Option<&Scene>,
+    allowed: &[(i64, Violation)],
+) -> Result<Vec<Verdict>, CheckError> {
+    checks
+        .iter()
+        .map(|(b, p)| match twin {
+            Some(u) => check_against_unguided(*b, scene, u, p, allowed),
+            None => check_allowing(*b, scene, p, allowed),
+        })
+        .collect()
 }
 
 /// The motion `reports`' scripts allow, as (agent id, kind): `allow(a, "reverse")` exempts
@@ -474,6 +562,7 @@ pub fn attempt(
                         .map(|x| x.value),
                     value: t.value,
                     tolerance: t.tolerance,
+                    carried_by: carried(t, &rep.layout, &scene, &rep.named),
                 });
             }
         }
@@ -488,19 +577,13 @@ pub fn attempt(
                     initial: first.term(&t.name).map(|x| x.value),
                     value: t.value,
                     tolerance: None,
+                    carried_by: None,
                 });
             }
         }
         let twin = twins.as_ref().and_then(|t| t.get(k));
-        let verdicts = spec
-            .checks
-            .iter()
-            .map(|(b, p)| match twin {
-                Some(u) => check_against_unguided(*b, &s.scene, &u.scene, p),
-                None => check(*b, &s.scene, p),
-            })
-            .collect::<Result<Vec<_>, _>>()?;
         let allowed = script_allowances(&scene, &s.reports);
+        let verdicts = verdicts(&spec.checks, &s.scene, twin.map(|u| &u.scene), &allowed)?;
         let realism = realism_events(&s.scene, &spec.checks, &roles, &allowed);
         let off_road = s
             .scene
@@ -645,9 +728,14 @@ mod tests {
                 assert!(x.initial.is_some(), "{} has no first estimate", x.term);
             }
             // Judged with the rest of the scene against the same sample drawn unguided.
-            let v =
-                check_against_unguided(Behavior::CutIn, &a.samples[k].scene, &twins[k].scene, &p)
-                    .unwrap();
+            let v = check_against_unguided(
+                Behavior::CutIn,
+                &a.samples[k].scene,
+                &twins[k].scene,
+                &p,
+                &[],
+            )
+            .unwrap();
             assert!(v.collateral.is_some());
             assert_eq!(o.verdicts, vec![v.clone()]);
             assert_eq!(o.passed(), Some(v.passed));
@@ -821,6 +909,101 @@ mod tests {
             "{:?}",
             allowed.realism
         );
+    }
+
+    #[test]
+    fn a_term_over_many_agents_is_carried_by_the_ones_it_pulls_and_a_pair_term_is_not_attributed() {
+        // Highway: vehicle 2 driven 5 m behind vehicle 1, in its lane: the one overlapping pair.
+        let mut scene = load_scene(
+            &root().join("scripts/scenes/highway.yaml"),
+            0,
+            &LoadOptions::default(),
+        )
+        .unwrap();
+        let c = scene.meta.current_step;
+        let one = scene.agents.iter().find(|a| a.id == 1).unwrap().clone();
+        let two = scene.agents.iter_mut().find(|a| a.id == 2).unwrap();
+        for t in c + 1..two.states.len() {
+            two.states[t] = one.states[t];
+            two.states[t].x -= 5.0;
+        }
+        let src = "let a = agent(1);\nlet b = agent(2);\n\
+                   term(\"apart\", no_collision_cost(vehicles(), 1.0));\n\
+                   term(\"pair\", relu(20.0 - distance(a, b)).mean());\n";
+        let script = CostScript::compile(
+            src,
+            "t.rhai",
+            Rc::new(scene.clone()),
+            &Params::default(),
+            &Limits::default(),
+        )
+        .unwrap();
+        let r = script
+            .evaluate(&crate::cost::Trajectories::recorded(&scene))
+            .unwrap();
+        let apart = carried(r.term("apart").unwrap(), &r.layout, &scene, &r.named).unwrap();
+        assert_eq!((apart.reads, apart.others), (4, 0));
+        let mut ids: Vec<i64> = apart.top.iter().map(|a| a.agent).collect();
+        ids.sort();
+        assert_eq!(ids, vec![1, 2]);
+        // Two agents, both named: the motion tables already show them.
+        assert_eq!(
+            carried(r.term("pair").unwrap(), &r.layout, &scene, &r.named),
+            None
+        );
+    }
+
+    #[test]
+    fn a_checker_does_not_fail_a_car_for_the_reversing_its_script_allows() {
+        // "Vehicle 4 reverses and leaves the road" (issue 31: 2976 came back three times as
+        // "reverses at -1.4 m/s"). Vehicle 4 of highway_stop backs up at 3 m/s; here it also
+        // drifts 4 m right, past the road's edge. reverse.rhai allows it to reverse.
+        let mut scene = load_scene(
+            &root().join("scripts/scenes/highway_stop.yaml"),
+            0,
+            &LoadOptions::default(),
+        )
+        .unwrap();
+        let c = scene.meta.current_step;
+        let n = scene.num_steps();
+        let a = scene.agents.iter_mut().find(|a| a.id == 4).unwrap();
+        for t in c + 1..n {
+            a.states[t].y -= 4.0 * (t - c) as f64 / (n - 1 - c) as f64;
+        }
+        let allowed = vec![(4, Violation::Reverse)];
+        let off_road = vec![(Behavior::OffRoad, Params::numbers(&[("vehicle", 4.0)]))];
+        // Without the allowance the off_road checker sees it leave the road, and fails it for
+        // reversing.
+        let bare = verdicts(&off_road, &scene, None, &[]).unwrap();
+        assert!(bare[0].achieved && !bare[0].passed, "{:?}", bare[0]);
+        assert!(
+            bare[0].reason.contains("vehicle 4 reverses"),
+            "{}",
+            bare[0].reason
+        );
+        // With it, the reversing was asked for: the verdict passes.
+        let v = verdicts(&off_road, &scene, None, &allowed).unwrap();
+        assert!(v[0].passed && v[0].violations.is_empty(), "{:?}", v[0]);
+        // Judged against an unguided twin, as an agent the checker does not name, its
+        // allowed reversing is no collateral implausibility either (in the twin it backs up
+        // on the road).
+        let twin = load_scene(
+            &root().join("scripts/scenes/highway_stop.yaml"),
+            0,
+            &LoadOptions::default(),
+        )
+        .unwrap();
+        let speed = vec![(
+            Behavior::SpeedLimit,
+            Params::numbers(&[("vehicle", 2.0), ("limit", 40.0)]),
+        )];
+        let implausible = |allowed: &[(i64, Violation)]| {
+            let v = verdicts(&speed, &scene, Some(&twin), allowed).unwrap();
+            let c = v[0].collateral.unwrap();
+            (c.implausible, c.implausible_unguided)
+        };
+        assert_eq!(implausible(&[]), (1, 1));
+        assert_eq!(implausible(&allowed), (0, 0));
     }
 
     #[test]

@@ -10,6 +10,7 @@
 use candle_core::{Device, Tensor, Var};
 
 use crate::cost::{CostError, CostReport, CostScript, Realism, Trajectories};
+use crate::eval::kinematic::KinematicLimits;
 use crate::scene::{velocities_from_positions, AgentId, AgentState, AgentType, Scene};
 use crate::train::dataset::add_anchor;
 use crate::train::{build, window_among, Trained, Window};
@@ -62,6 +63,11 @@ pub const DEFAULT_GUIDANCE: Guidance = Guidance::OutputSpace;
 /// 2 suited the 10,000-step model, the 18,000-step one follows the data more closely and
 /// needs 3).
 pub const BEHAVIOUR_LAMBDA: f64 = 3.0;
+
+/// The largest guidance strength and term weight the sampler takes (λ, the known-state and the
+/// realism weights): the defaults are 1 to 3, and 1e308 turned the denoiser's output into
+/// infinities, or printed 300-digit weights, instead of being refused.
+pub const MAX_WEIGHT: f64 = 1000.0;
 
 /// Weight of the realism terms in `simulate`, `demo` and `ask` unless told otherwise
 /// ([`Realism`]; data/checkpoint/README.md has the measurements behind it).
@@ -169,8 +175,11 @@ impl SampleConfig {
             ("known weight", self.known_weight),
             ("realism weight", self.realism.weight),
         ] {
-            if !(v.is_finite() && v >= 0.0) {
-                return Err(format!("{name} = {v}: must be finite and not negative"));
+            if !(v.is_finite() && (0.0..=MAX_WEIGHT).contains(&v)) {
+                return Err(format!(
+                    "{name} = {}: must be 0 to {MAX_WEIGHT}",
+                    crate::geom::num(v)
+                ));
             }
         }
         if self.horizon == Some(0) {
@@ -220,9 +229,9 @@ impl Default for SampleConfig {
 /// Errors of sampling.
 #[derive(Debug, thiserror::Error)]
 pub enum SampleError {
-    /// The tensor library failed.
+    /// The tensor library failed (its message without candle's backtrace).
     #[error("model: {0}")]
-    Candle(#[from] candle_core::Error),
+    Candle(candle_core::Error),
     /// A cost script failed (its message names the script, line and term).
     #[error(transparent)]
     Cost(#[from] CostError),
@@ -272,6 +281,12 @@ fn check_script_budget(scripts: &[CostScript], cfg: &SampleConfig) -> Result<(),
         });
     }
     Ok(())
+}
+
+impl From<candle_core::Error> for SampleError {
+    fn from(e: candle_core::Error) -> Self {
+        SampleError::Candle(crate::model::error::without_backtrace(e))
+    }
 }
 
 /// The scene cut to the model's horizon: `current + 1 + future` steps, unobserved beyond the
@@ -425,6 +440,9 @@ struct Slot {
     pose: [f64; 3],
     /// Constant-velocity anchor ([`Window::advance`]), fixed for the whole run.
     advance: f64,
+    /// Tightest path curvature its type steers, 1/m ([`KinematicLimits::max_curvature`];
+    /// infinite for a pedestrian, who turns on the spot).
+    curvature: f64,
 }
 
 /// Cuts windows until every agent observed at step `c` sits in one: the first centred on
@@ -491,6 +509,9 @@ fn tile(
             agent: ai,
             pose: pose(ai),
             advance: windows[wi].advance(wcfg, slot),
+            curvature: KinematicLimits::default()
+                .for_type(scene.agents[ai].agent_type)
+                .map_or(f64::INFINITY, |l| l.max_curvature),
         });
         copies.push(list.iter().map(|&(w, s, _)| (w, s)).collect());
     }
@@ -542,20 +563,28 @@ impl Plan<'_> {
     /// slower, and where the motion is more than 45° across it), backwards where it reverses.
     /// Positions and headings are separate PCA channels, and guidance that pushes positions
     /// sideways drags the heading channel along arbitrarily; a car drives where it points, so
-    /// the output keeps its headings consistent with its path. Returns the headings it set,
-    /// for [`Aligned::chain`].
+    /// the output keeps its headings consistent with its path. Then, from the current pose on,
+    /// each heading turns from the one before by at most the type's curvature bound times the
+    /// distance moved: a car turns only as it rolls. Without that, a car that stands or creeps
+    /// turned with the model's heading channel (a wobble of 0.05-0.1 rad/s where the log holds
+    /// its heading exactly), and one near 2 m/s jumped by up to 1.4 rad/s wherever its steps
+    /// crossed the 0.2 m threshold between the model's heading and the path's. Returns the
+    /// headings it set from the path (not those the bound then held back), for
+    /// [`Aligned::chain`].
     fn align_headings(&self, t: &mut Trajectories) -> Vec<Aligned> {
         let n = t.layout.steps;
         let mut set = Vec::new();
         for &Slot {
             agent: ai,
             pose: p0,
+            curvature,
             ..
         } in &self.slots
         {
             let idx = |j: isize| (j >= 0).then(|| ai * n + (j as usize).min(n - 1));
             let at = |t: &Trajectories, j: isize| idx(j).map_or(p0, |i| t.xyh[i]);
-            let mut fixed = Vec::new();
+            let mut heading: Vec<f64> = (0..n).map(|j| t.xyh[ai * n + j][2]).collect();
+            let mut from_path: Vec<Option<Aligned>> = (0..n).map(|_| None).collect();
             for j in 0..n as isize {
                 let (a, b) = (at(t, j - 1), at(t, j + 1));
                 let span = if j as usize + 1 >= n { 1.0 } else { 2.0 };
@@ -571,8 +600,8 @@ impl Plan<'_> {
                     diff = crate::geom::wrap_angle(diff + std::f64::consts::PI);
                 }
                 if diff.abs() <= std::f64::consts::FRAC_PI_4 && t.valid[ai * n + j as usize] {
-                    fixed.push((j, h + diff));
-                    set.push(Aligned {
+                    heading[j as usize] = h + diff;
+                    from_path[j as usize] = Some(Aligned {
                         at: ai * n + j as usize,
                         behind: idx(j - 1),
                         ahead: idx(j + 1).expect("j + 1 >= 0"),
@@ -581,9 +610,23 @@ impl Plan<'_> {
                     });
                 }
             }
-            for (j, h) in fixed {
-                t.xyh[ai * n + j as usize][2] = h;
+            let (mut last, mut last_h) = ([p0[0], p0[1]], p0[2]);
+            for j in 0..n {
+                let i = ai * n + j;
+                if !t.valid[i] {
+                    continue;
+                }
+                let p = t.xyh[i];
+                let most = curvature * (p[0] - last[0]).hypot(p[1] - last[1]);
+                let turn = crate::geom::wrap_angle(heading[j] - last_h);
+                if turn.abs() > most {
+                    heading[j] = last_h + turn.clamp(-most, most);
+                    from_path[j] = None;
+                }
+                t.xyh[i][2] = heading[j];
+                (last, last_h) = ([p[0], p[1]], heading[j]);
             }
+            set.extend(from_path.into_iter().flatten());
         }
         set
     }
@@ -1618,6 +1661,60 @@ pub(crate) mod tests {
             "reversing"
         );
         assert_eq!(drive(std::f64::consts::FRAC_PI_2), 0.0, "sideways: kept");
+    }
+
+    #[test]
+    fn a_car_turns_only_as_it_rolls() {
+        let (t, s) = setup();
+        let c = s.meta.current_step;
+        let (windows, slots, copies) = tile(&s, &t.meta.config.window, c, 0, &t.meta);
+        let sl = slots[0];
+        assert_eq!(sl.curvature, 0.3, "a car's steering bound");
+        let plan = Plan {
+            trained: &t,
+            windows,
+            slots: vec![sl],
+            copies: vec![copies[0].clone()],
+            base: Trajectories::filled(&s),
+            fixed: Vec::new(),
+        };
+        let [x0, y0, h0] = sl.pose;
+        // Steps of `step(j)` metres straight ahead, the model's heading wobbling by ±0.2 rad.
+        let drive = |step: &dyn Fn(usize) -> f64| {
+            let mut tr = plan.base.clone();
+            let n = tr.layout.steps;
+            let mut r = 0.0;
+            for j in 0..n {
+                r += step(j);
+                let wobble = if j % 2 == 0 { 0.2 } else { -0.2 };
+                tr.xyh[sl.agent * n + j] = [x0 + r * h0.cos(), y0 + r * h0.sin(), h0 + wobble];
+            }
+            plan.align_headings(&mut tr);
+            let mut worst: f64 = 0.0;
+            let (mut last, mut last_h) = ([x0, y0], h0);
+            for j in 0..n {
+                let p = tr.xyh[sl.agent * n + j];
+                let ds = (p[0] - last[0]).hypot(p[1] - last[1]);
+                let turn = crate::geom::wrap_angle(p[2] - last_h).abs();
+                worst = worst.max(turn - 0.3 * ds);
+                (last, last_h) = ([p[0], p[1]], p[2]);
+            }
+            worst
+        };
+        // Creeping at 0.3 m/s, and near 2 m/s where steps cross the path-heading threshold.
+        assert!(drive(&|_| 0.03) <= 1e-12, "creeping");
+        assert!(
+            drive(&|j| if j % 3 == 0 { 0.17 } else { 0.23 }) <= 1e-12,
+            "near 2 m/s"
+        );
+        // Standing still, the heading stays exactly the current one.
+        let mut tr = plan.base.clone();
+        let n = tr.layout.steps;
+        for j in 0..n {
+            tr.xyh[sl.agent * n + j] = [x0, y0, h0 + 0.1 * (j as f64).sin()];
+        }
+        plan.align_headings(&mut tr);
+        assert!((0..n).all(|j| tr.xyh[sl.agent * n + j][2] == h0));
     }
 
     #[test]

@@ -7,13 +7,13 @@ pub mod provenance;
 
 pub use crate::cost::ScriptSpec;
 pub use attempt::{
-    attempt, Attempt, AttemptError, AttemptReport, AttemptSpec, RealismEvent, SampleOutcome,
-    Settings, TermOutcome,
+    attempt, AgentShare, Attempt, AttemptError, AttemptReport, AttemptSpec, Carried, RealismEvent,
+    SampleOutcome, Settings, TermOutcome, CARRIERS_SHOWN,
 };
 pub use closed_loop::closed_loop;
 pub use guided::{
     horizon_note, modelled, prepare, prepare_for, recorded_future, reference_run, sample,
     sampled_horizon, Clamp, Guidance, LambdaSchedule, Sample, SampleConfig, SampleError, Task,
-    BEHAVIOUR_LAMBDA, DEFAULT_GUIDANCE, DEFAULT_SCRIPT_BUDGET, MAX_SCRIPT_BUDGET, POLISH_STEPS,
-    REALISM_WEIGHT,
+    BEHAVIOUR_LAMBDA, DEFAULT_GUIDANCE, DEFAULT_SCRIPT_BUDGET, MAX_SCRIPT_BUDGET, MAX_WEIGHT,
+    POLISH_STEPS, REALISM_WEIGHT,
 };

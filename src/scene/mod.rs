@@ -45,6 +45,14 @@ pub const MAX_HEADING: f64 = 1.0e4;
 /// Errors that make a scene inconsistent.
 #[derive(Debug, thiserror::Error)]
 pub enum SceneError {
+    /// A scenario id with a control or invisible character ([`crate::io::name`]).
+    #[error("scenario id \"{id}\" contains {bad}: an id is shown on terminals, in file names and in the LLM's prompt")]
+    ScenarioId {
+        /// The id, its bad characters written as escapes.
+        id: String,
+        /// The first bad character.
+        bad: crate::io::name::BadChar,
+    },
     /// Two lanes share an id.
     #[error("lane id {0} appears twice")]
     DuplicateLane(LaneId),
@@ -198,6 +206,13 @@ pub struct Scene {
 impl Scene {
     /// Assembles a scene and checks that it is consistent.
     pub fn new(meta: SceneMeta, map: Map, agents: Vec<Agent>) -> Result<Self, SceneError> {
+        // Every reader builds its scene here, so every format's id is checked once.
+        if let Err(bad) = crate::io::name::check_name(&meta.scenario_id) {
+            return Err(SceneError::ScenarioId {
+                id: crate::io::name::shown(&meta.scenario_id),
+                bad,
+            });
+        }
         if !(meta.dt.is_finite() && meta.dt > 0.0) {
             return Err(SceneError::BadDt(meta.dt));
         }

@@ -113,8 +113,16 @@ impl Normaliser {
     /// carry the distance driven, keep the common scale (the geometric mean of own and common
     /// scales, tried before, raised those to 46 m and made stopped cars drift 3x as much).
     pub fn capped(pca: Pca, sigma_data: f64) -> Self {
+        Self::capped_at(pca, sigma_data, 1.0)
+    }
+
+    /// [`Normaliser::capped`] with the cap at `fraction` (in (0, 1]) of the common scale. A
+    /// lower cap gives the largest components, which carry the distance driven, fewer metres
+    /// per unit of denoising error, which is what cars that stand or drive straight in the
+    /// log need; it also puts their spread at several σ_data.
+    pub fn capped_at(pca: Pca, sigma_data: f64, fraction: f64) -> Self {
         let common = Self::new(pca, sigma_data);
-        let r = common.std.first().copied().unwrap_or(1e-6);
+        let r = common.std.first().copied().unwrap_or(1e-6) * fraction.clamp(1e-3, 1.0);
         let floor = (r * 1e-3).max(1e-6);
         let std = common
             .pca
@@ -126,10 +134,11 @@ impl Normaliser {
     }
 
     /// From a fitted basis with the scales `rule` gives.
-    pub fn with_scale(pca: Pca, sigma_data: f64, rule: ComponentScale) -> Self {
+    /// `cap` is the fraction of the common scale that [`ComponentScale::Capped`] caps at.
+    pub fn with_scale(pca: Pca, sigma_data: f64, rule: ComponentScale, cap: f64) -> Self {
         match rule {
             ComponentScale::Common => Self::new(pca, sigma_data),
-            ComponentScale::Capped => Self::capped(pca, sigma_data),
+            ComponentScale::Capped => Self::capped_at(pca, sigma_data, cap),
         }
     }
 
@@ -406,8 +415,18 @@ mod tests {
             "{c:?}"
         );
         assert_eq!(
-            Normaliser::with_scale(pca(vec![400.0, 4.0]), 0.5, ComponentScale::Capped),
+            Normaliser::with_scale(pca(vec![400.0, 4.0]), 0.5, ComponentScale::Capped, 1.0),
             n
         );
+        // A quarter cap gives the large component a quarter of the common scale's metres per
+        // unit, and leaves the small one, below that cap, alone.
+        let q = Normaliser::capped_at(pca(vec![400.0, 4.0]), 0.5, 0.25);
+        assert!(
+            (q.std[0] - r / 4.0).abs() < 1e-12 && (q.std[1] - 2.0).abs() < 1e-12,
+            "{:?}",
+            q.std
+        );
+        assert!((moved(&q, [0.1, 0.0]) * 4.0 - moved(&n, [0.1, 0.0])).abs() < 1e-5);
+        assert!((q.loss_scale() - r).abs() < 1e-12);
     }
 }

@@ -280,8 +280,11 @@ impl WindowStore {
         mut progress: impl FnMut(usize, usize),
     ) -> Result<Self, TrainError> {
         std::fs::create_dir_all(dir).map_err(|e| io_err(dir, e.to_string()))?;
+        // Written under a temporary name and renamed into place at the end: another run
+        // training from the same cache keeps reading its open files (the old inodes) instead
+        // of finding them truncated under it.
         let open = |name: &str| -> Result<(PathBuf, BufWriter<File>), TrainError> {
-            let p = dir.join(name);
+            let p = dir.join(format!("{name}.tmp-{}", std::process::id()));
             let f = File::create(&p).map_err(|e| io_err(&p, e.to_string()))?;
             let mut w = BufWriter::new(f);
             w.write_all(MAGIC).map_err(|e| io_err(&p, e.to_string()))?;
@@ -332,12 +335,18 @@ impl WindowStore {
                 }
             }
         }
-        for (p, w) in [(&tp, tw), (&vp, vw)] {
+        let mut done = Vec::new();
+        for (p, w, name) in [(tp, tw, "train.windows"), (vp, vw, "val.windows")] {
             w.into_inner()
-                .map_err(|e| io_err(p, e.to_string()))?
+                .map_err(|e| io_err(&p, e.to_string()))?
                 .sync_all()
-                .map_err(|e| io_err(p, e.to_string()))?;
+                .map_err(|e| io_err(&p, e.to_string()))?;
+            let dest = dir.join(name);
+            std::fs::rename(&p, &dest).map_err(|e| io_err(&dest, e.to_string()))?;
+            done.push(dest);
         }
+        let vp = done.pop().expect("two files");
+        let tp = done.pop().expect("two files");
         let part = |path: PathBuf, offsets: Vec<u64>| -> Result<Part, TrainError> {
             let file = File::open(&path).map_err(|e| io_err(&path, e.to_string()))?;
             Ok(Part {
@@ -557,6 +566,27 @@ mod tests {
             assert_eq!(store.train_len() + store.val_len(), cut.len());
             assert_eq!(store.futures().is_empty(), val);
         }
+    }
+
+    #[test]
+    fn a_run_reading_a_cache_survives_another_run_rebuilding_it() {
+        let cfg = WindowConfig::cities();
+        let dir = tempfile::tempdir().unwrap();
+        let (corpus, scene, fold) = cut_in();
+        let first = store(&corpus, &cfg, (fold + 1) % 10, dir.path());
+        // The second run holds the scene out: its train.windows is the bare header.
+        let second = store(&corpus, &cfg, fold, dir.path());
+        assert_eq!(second.train_len(), 0);
+        let cut = windows(&scene, &cfg);
+        assert_eq!(first.train_len(), cut.len());
+        for (i, w) in cut.iter().enumerate() {
+            assert_eq!(&first.train_window(i).unwrap(), w, "window {i}");
+        }
+        let names: Vec<String> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        assert!(names.iter().all(|n| !n.contains(".tmp-")), "{names:?}");
     }
 
     #[test]

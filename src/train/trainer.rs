@@ -13,6 +13,7 @@ use super::dataset::{within, Window, WindowConfig, AGENT_ATTRS};
 use super::ema::Ema;
 use super::rng::Rng;
 use super::store::{SceneWindows, WindowSource};
+use crate::model::error::message as candle_message;
 use crate::model::{Denoiser, DenoiserConfig, Edm, Pca, Scores};
 use crate::scene::{AgentType, Scene};
 
@@ -53,6 +54,14 @@ pub struct TrainConfig {
     /// checkpoint's scales. Checkpoints from before the option have one common scale.
     #[serde(default)]
     pub component_scale: ComponentScale,
+    /// The cap of [`ComponentScale::Capped`] as a fraction of the common scale, in (0, 1]
+    /// ([`Normaliser::capped_at`]); checkpoints from before the option capped at 1.
+    #[serde(default = "one")]
+    pub scale_cap: f64,
+}
+
+fn one() -> f64 {
+    1.0
 }
 
 impl TrainConfig {
@@ -80,6 +89,7 @@ impl TrainConfig {
             val_towns: Vec::new(),
             ema_half_life: 0.0,
             component_scale: ComponentScale::Common,
+            scale_cap: 1.0,
         }
     }
 
@@ -225,6 +235,12 @@ impl TrainConfig {
                 c.ema_half_life
             ));
         }
+        if !(c.scale_cap > 0.0 && c.scale_cap <= 1.0) {
+            return Err(format!(
+                "scale_cap = {}: must be in (0, 1], a fraction of the common scale",
+                c.scale_cap
+            ));
+        }
         positive("edm.sigma_data", e.sigma_data)?;
         positive("edm.sigma_min", e.sigma_min)?;
         positive("edm.sigma_max", e.sigma_max)?;
@@ -313,9 +329,9 @@ pub enum TrainError {
     /// Settings training cannot run with ([`TrainConfig::validate`]).
     #[error("training settings: {0}")]
     Config(String),
-    /// The tensor library failed.
+    /// The tensor library failed (its message without candle's backtrace).
     #[error("model: {0}")]
-    Candle(#[from] candle_core::Error),
+    Candle(candle_core::Error),
     /// Fitting PCA failed.
     #[error("PCA: {0}")]
     Pca(#[from] crate::model::PcaError),
@@ -338,6 +354,12 @@ pub enum TrainError {
         /// What went wrong.
         message: String,
     },
+}
+
+impl From<candle_core::Error> for TrainError {
+    fn from(e: candle_core::Error) -> Self {
+        TrainError::Candle(crate::model::error::without_backtrace(e))
+    }
 }
 
 /// Overwrites every variable with seeded values: candle's own initialisers are not seedable.
@@ -514,6 +536,7 @@ pub fn train_from(
         cfg.edm = c.edm;
         cfg.seed = c.seed;
         cfg.component_scale = c.component_scale;
+        cfg.scale_cap = c.scale_cap;
         cfg.val_fold = c.val_fold;
         cfg.val_towns = c.val_towns.clone();
     }
@@ -554,7 +577,8 @@ pub fn train_from(
         None => {
             let pca = Pca::fit(futures, cfg.model.k)?;
             let rmse = pca.position_rmse(futures);
-            let norm = Normaliser::with_scale(pca, cfg.edm.sigma_data, cfg.component_scale);
+            let norm =
+                Normaliser::with_scale(pca, cfg.edm.sigma_data, cfg.component_scale, cfg.scale_cap);
             let varmap = VarMap::new();
             let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
             let model = Denoiser::new(cfg.model, cfg.edm, vb)?;
@@ -733,21 +757,21 @@ pub fn save(
     let tmp = dir.join(format!(".model.safetensors.{pid}.tmp"));
     match ema {
         Some(e) => {
-            e.save(&tmp).map_err(|e| io(&tmp, e.to_string()))?;
+            e.save(&tmp).map_err(|e| io(&tmp, candle_message(e)))?;
             staged.push((tmp, weights));
             let tmp = dir.join(format!(".{ONLINE_FILE}.{pid}.tmp"));
-            varmap.save(&tmp).map_err(|e| io(&tmp, e.to_string()))?;
+            varmap.save(&tmp).map_err(|e| io(&tmp, candle_message(e)))?;
             staged.push((tmp, dir.join(ONLINE_FILE)));
         }
         None => {
-            varmap.save(&tmp).map_err(|e| io(&tmp, e.to_string()))?;
+            varmap.save(&tmp).map_err(|e| io(&tmp, candle_message(e)))?;
             staged.push((tmp, weights));
         }
     }
     if let Some(opt) = optimizer {
         let path = dir.join(OPTIMIZER_FILE);
         let tmp = dir.join(format!(".optimizer.safetensors.{pid}.tmp"));
-        opt.save(&tmp).map_err(|e| io(&tmp, e.to_string()))?;
+        opt.save(&tmp).map_err(|e| io(&tmp, candle_message(e)))?;
         staged.push((tmp, path));
     }
     let json = serde_json::to_string_pretty(meta).expect("metadata serialises");
@@ -819,14 +843,14 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
     let w = dir.join("model.safetensors");
     crate::io::open_regular(&w, MAX_WEIGHTS_BYTES, "checkpoint weights")
         .map_err(|e| io(&w, e.to_string()))?;
-    varmap.load(&w).map_err(|e| io(&w, e.to_string()))?;
+    varmap.load(&w).map_err(|e| io(&w, candle_message(e)))?;
     let opt_path = dir.join(OPTIMIZER_FILE);
     let optimizer = if opt_path.exists() {
         crate::io::open_regular(&opt_path, 2 * MAX_WEIGHTS_BYTES, "optimiser state")
             .map_err(|e| io(&opt_path, e.to_string()))?;
         let mut opt = AdamW::new(&varmap, meta.config.lr, WEIGHT_DECAY);
         opt.load(&opt_path)
-            .map_err(|e| io(&opt_path, e.to_string()))?;
+            .map_err(|e| io(&opt_path, candle_message(e)))?;
         if opt.steps() != meta.steps_done as u64 {
             return Err(io(
                 &opt_path,
@@ -873,7 +897,7 @@ pub fn load_for_training(dir: &Path) -> Result<Trained, TrainError> {
     crate::io::open_regular(&online, MAX_WEIGHTS_BYTES, "checkpoint weights")
         .map_err(|e| io(e.to_string()))?;
     let averaged = super::ema::copies(&t.varmap)?;
-    t.varmap.load(&online).map_err(|e| io(e.to_string()))?;
+    t.varmap.load(&online).map_err(|e| io(candle_message(e)))?;
     t.ema = Some(Ema::from_weights(
         averaged,
         t.meta.config.ema_half_life,
@@ -913,6 +937,7 @@ pub(crate) fn tiny_config(steps: usize, seed: u64, eval_every: usize) -> TrainCo
         val_towns: Vec::new(),
         ema_half_life: 0.0,
         component_scale: ComponentScale::Common,
+        scale_cap: 1.0,
     }
 }
 

@@ -81,8 +81,10 @@ impl Canned {
         Self::events(events, gap)
     }
 
-    /// These `data:` payloads as server-sent events, `gap` apart (`sleep:MS` is a silence);
-    /// the stream ends after the last (a stream without `[DONE]` or a finish_reason is cut off).
+    /// These `data:` payloads as server-sent events, `gap` apart (`sleep:MS` is a silence, and
+    /// a payload starting with `:` is sent as it is, a keep-alive comment); the stream ends
+    /// after the last (a stream without `[DONE]` or a finish_reason is cut off), or when the
+    /// client hangs up.
     pub fn events(events: Vec<String>, gap: Duration) -> Self {
         Self {
             events: Some((events, gap)),
@@ -203,8 +205,18 @@ impl Server {
                             std::thread::sleep(Duration::from_millis(ms.parse().unwrap()));
                             continue;
                         }
-                        let _ = stream.write_all(format!("data: {e}\n\n").as_bytes());
-                        let _ = stream.flush();
+                        let line = if e.starts_with(':') {
+                            format!("{e}\n\n")
+                        } else {
+                            format!("data: {e}\n\n")
+                        };
+                        if stream
+                            .write_all(line.as_bytes())
+                            .and_then(|_| stream.flush())
+                            .is_err()
+                        {
+                            break;
+                        }
                         std::thread::sleep(*gap);
                     }
                     continue;

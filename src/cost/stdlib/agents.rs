@@ -149,8 +149,15 @@ pub(crate) fn lookup(shared: &Shared, id: i64) -> RResult<AgentRef> {
             } else {
                 ""
             };
+            drop(ctx);
+            let given = super::given_as(shared, &Dynamic::from(id));
+            let from = if given.is_empty() {
+                String::new()
+            } else {
+                format!(" ({})", given.join(" or "))
+            };
             err(format!(
-                "unknown agent id {id}; the scene has agents {}{more}",
+                "unknown agent id {id}{from}; the scene has agents {}{more}",
                 ids.join(", ")
             ))
         }
@@ -179,6 +186,29 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     );
     let sh = shared.clone();
     e.register_fn("agent", move |id: i64| lookup(&sh, id));
+    // Anything else handed to agent(): `--param id=1.5` failed as "no function agent (f64)".
+    let sh = shared.clone();
+    e.register_fn("agent", move |v: Dynamic| -> RResult<AgentRef> {
+        let given = super::given_as(&sh, &v);
+        let from = if given.is_empty() {
+            String::new()
+        } else {
+            format!(", from {}", given.join(" or "))
+        };
+        let shown = crate::io::name::shown(&v.to_string());
+        let what = if v.is_float() {
+            "a decimal number".to_string()
+        } else if v.is_string() {
+            "a word".to_string()
+        } else if v.is_bool() {
+            "true or false".to_string()
+        } else {
+            format!("a {}", v.type_name())
+        };
+        err(format!(
+            "agent({shown}): an agent id is a whole number, not {what}{from}"
+        ))
+    });
     doc(
         docs,
         S,

@@ -95,6 +95,17 @@ pub(crate) fn err<T>(msg: impl Into<String>) -> RResult<T> {
     )))
 }
 
+/// `--param NAME=VALUE` for each given parameter whose value is `v`: a function handed a value
+/// it cannot take names where it came from.
+pub(crate) fn given_as(shared: &Shared, v: &Dynamic) -> Vec<String> {
+    let ctx = shared.borrow();
+    ctx.params
+        .iter()
+        .filter(|(_, p)| p.type_name() == v.type_name() && p.to_string() == v.to_string())
+        .map(|(k, p)| format!("--param {k}={}", crate::io::name::shown(&p.to_string())))
+        .collect()
+}
+
 /// A numeric script value: a series, a scalar dual or a plain number.
 pub(crate) enum Val {
     S(Series),
