@@ -530,6 +530,7 @@ mod tests {
             (format!("{acc}/passed"), json!(2), "passed 2, achieved 0, checked 0: a sample passes only if"),
             (format!("{acc}/groups/urban/scenes"), json!(5), "groups[\"urban\"].scenes is 5: more than the whole row's 2"),
             (format!("{acc}/groups/urban/offroad"), json!([-0.5]), "groups[\"urban\"].offroad[0] is -0.5: must be a rate"),
+            ("/merge/run/horizons".into(), json!([{"steps": 40, "from": "flag", "scenes": -1}]), "merge.run.horizons[0].scenes is -1: must be a whole number"),
             ("/merge/run/skipped".into(), json!(-1), "merge.run.skipped is -1: must be a whole number"),
             ("/merge/run/shards/0".into(), json!(7), "merge.run.shards holds 7: not a shard of 2"),
             ("/merge/run/settings/shards".into(), json!(1e18), "must be 1 to 1000000"),
@@ -552,6 +553,23 @@ mod tests {
         assert!(
             e.contains(
                 "more.json: merge.run.skipped is 2: summed with the shards before, it overflows"
+            ),
+            "{e}"
+        );
+        let counted = |shard: usize, scenes: u64| {
+            let mut v = b.clone();
+            v["merge"]["run"]["shards"] = json!([shard]);
+            v["merge"]["run"]["horizons"] =
+                json!([{"steps": 40, "from": "flag", "scenes": scenes}]);
+            v
+        };
+        let h0 = write(dir.path(), "h0.json", &counted(0, u64::MAX));
+        let h1 = write(dir.path(), "h1.json", &counted(1, 1));
+        let e = merge(&[h0, h1]).unwrap_err().to_string();
+        assert!(
+            e.contains(
+                "h1.json: merge.run.horizons[0].scenes is 1: summed with the shards before, it \
+                 overflows"
             ),
             "{e}"
         );
