@@ -882,6 +882,60 @@ fn simulate_args<'a>(
 }
 
 #[test]
+fn a_slow_script_stops_at_the_run_s_script_budget_instead_of_running_for_minutes() {
+    let dir = tempfile::tempdir().unwrap();
+    // Tens of milliseconds per evaluation, within the per-call limit: the run's hundreds of
+    // evaluations (32 Heun steps, 2 x 300 polish iterations, 4 samples) would take minutes.
+    let script = dir.path().join("slow.rhai");
+    std::fs::write(
+        &script,
+        "let n = 0; for i in 0..200000 { n += 1; }\nlet a = agent(1);\n\
+         term(\"far\", square(a.x.last() - 1000.0));\n",
+    )
+    .unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let out = dir.path().join("out");
+    let t0 = std::time::Instant::now();
+    let o = drivescript(&simulate_args(
+        s(&scene),
+        "data/checkpoint",
+        &[
+            "--script",
+            s(&script),
+            "--samples",
+            "4",
+            "--script-budget",
+            "0.5",
+        ],
+        s(&out),
+    ));
+    let t = format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("the cost scripts took")
+            && t.contains(" evaluations (")
+            && t.contains("s each), past this run's budget of 0.5 s")
+            && t.contains("--script-budget"),
+        "{t}"
+    );
+    assert!(t0.elapsed().as_secs() < 60, "{:?}: {t}", t0.elapsed());
+    let err = fails(&simulate_args(
+        s(&scene),
+        "data/checkpoint",
+        &["--script", s(&script), "--script-budget", "0"],
+        s(&out),
+    ));
+    assert!(
+        err.contains("--script-budget 0.0: must be more than 0"),
+        "{err}"
+    );
+}
+
+#[test]
 fn the_yield_example_holds_at_a_merge() {
     // The worked example the LLM is shown: with a 2 m margin from the centres (inside both
     // boxes) and no route term, the sampler moved the ramp car 2-12 m off its lane beside the
@@ -1723,6 +1777,61 @@ fn eval_json_refuses_its_inputs_and_files_it_did_not_write() {
 }
 
 #[test]
+fn convert_and_render_replace_only_an_earlier_output_of_their_own_format() {
+    let dir = tempfile::tempdir().unwrap();
+    let y = samples().join("yaml/highway_cut_in.yaml");
+    let p = |name: &str| dir.path().join(name);
+    // Earlier outputs of the same format are replaced.
+    for out in ["a.yaml", "a.json", "a.tfrecord"] {
+        ok(&["convert", s(&y), "-o", s(&p(out))]);
+        ok(&["convert", s(&y), "-o", s(&p(out))]);
+    }
+    for out in ["a.svg", "a.png", "a.gif"] {
+        ok(&["render", s(&y), "--width", "64", "-o", s(&p(out))]);
+        ok(&["render", s(&y), "--width", "64", "-o", s(&p(out))]);
+    }
+    // A user's file under the name, a picture of another format, a TFRecord of two scenarios:
+    // refused, named, kept.
+    let scene = drivescript::io::load_scene(&y, 0, &Default::default()).unwrap();
+    drivescript::io::womd::write_file(&p("two.tfrecord"), &[scene.clone(), scene]).unwrap();
+    std::fs::write(p("notes.yaml"), "my notes: [unclosed\n").unwrap();
+    std::fs::write(p("notes.png"), "not a picture").unwrap();
+    std::fs::copy(p("a.png"), p("png.svg")).unwrap();
+    std::fs::copy(p("a.yaml"), p("scene.gif")).unwrap();
+    for (command, out, what) in [
+        ("convert", "notes.yaml", "a drivescript YAML scene"),
+        ("convert", "two.tfrecord", "a WOMD TFRecord of one scenario"),
+        ("convert", "a.svg", ""),
+        ("render", "notes.png", "a PNG picture"),
+        ("render", "png.svg", "an SVG picture"),
+        ("render", "scene.gif", "a GIF picture"),
+    ] {
+        let before = std::fs::read(p(out)).unwrap();
+        let err = fails(&[command, s(&y), "-o", s(&p(out))]);
+        if what.is_empty() {
+            assert!(err.contains("unknown output format"), "{err}");
+        } else {
+            assert!(
+                err.contains(&format!(
+                    "{}: -o: already exists and is not {what}: writing would replace it; \
+                     remove it first or write to another file",
+                    p(out).display()
+                )),
+                "{command} -o {out}: {err}"
+            );
+        }
+        assert_eq!(std::fs::read(p(out)).unwrap(), before, "{out}");
+    }
+    // Never an input of the same command (a rollout named like a picture).
+    let rollout = p("rollout.svg");
+    std::fs::copy(p("a.json"), &rollout).unwrap();
+    let before = std::fs::read(&rollout).unwrap();
+    let err = fails(&["render", s(&y), "--rollout", s(&rollout), "-o", s(&rollout)]);
+    assert!(err.contains("-o: is the input itself"), "{err}");
+    assert_eq!(std::fs::read(&rollout).unwrap(), before);
+}
+
+#[test]
 fn convert_refuses_an_id_that_cannot_name_output_files() {
     let dir = tempfile::tempdir().unwrap();
     let y = samples().join("yaml/highway_cut_in.yaml");
@@ -1949,6 +2058,47 @@ fn three_shards_and_a_merge_equal_the_single_run() {
     assert!(err.contains("shards 2/3 are missing"), "{err}");
     let err = fails(&["eval", "--merge", fs[0], fs[1], fs[2], fs[1]]);
     assert!(err.contains("is in both"), "{err}");
+    // Figures no evaluation writes are refused, naming the file and the field: a negative
+    // ADE, a scene count that would wrap when summed.
+    let (k, shard) = files
+        .iter()
+        .enumerate()
+        .map(|(k, f)| {
+            let v: Value = serde_json::from_str(&std::fs::read_to_string(f).unwrap()).unwrap();
+            (k, v)
+        })
+        .find(|(_, v)| v["merge"]["accumulators"][0]["ade"][0].is_number())
+        .expect("a shard with scenes");
+    let edited = dir.path().join("edited.json");
+    for (field, value, says) in [
+        (
+            "ade",
+            serde_json::json!([-1.0]),
+            "ade[0] is -1: must be a distance",
+        ),
+        (
+            "scenes",
+            serde_json::json!(u64::MAX),
+            "scenes is 18446744073709551615, but per_scene holds",
+        ),
+    ] {
+        let mut v = shard.clone();
+        v["merge"]["accumulators"][0][field] = value;
+        std::fs::write(&edited, v.to_string()).unwrap();
+        let mut args = vec!["eval", "--merge", s(&edited)];
+        args.extend(
+            fs.iter()
+                .enumerate()
+                .filter(|(i, _)| *i != k)
+                .map(|(_, f)| *f),
+        );
+        let err = fails(&args);
+        assert!(
+            err.contains(&format!("{}: merge.accumulators[0]", edited.display()))
+                && err.contains(says),
+            "{err}"
+        );
+    }
 }
 
 #[test]

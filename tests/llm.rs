@@ -956,6 +956,137 @@ fn a_run_still_going_is_locked_against_resume_continue_and_a_second_batch() {
     );
 }
 
+/// A batch file of one pair, the cut-in of [`REQUEST`] on [`SCENE`], written in `dir`.
+fn one_pair_batch(dir: &Path) -> std::path::PathBuf {
+    let file = dir.join("requests.yaml");
+    std::fs::write(
+        &file,
+        format!(
+            "scenes: {}\nentries:\n  - request: \"{REQUEST}\"\n    behaviour: cut_in\n    params: {{cutter: 401, victim: 399}}\n",
+            samples().join(SCENE).display()
+        ),
+    )
+    .unwrap();
+    file
+}
+
+#[test]
+fn a_directory_holds_one_kind_of_run_and_a_live_one_locks_out_the_other_kind() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = one_pair_batch(dir.path());
+    let scene = samples().join(SCENE);
+    // Finished runs of each kind: the other kind is refused, saying what is there.
+    let b = dir.path().join("batch");
+    let o = ask(
+        &[
+            "--batch",
+            s(&file),
+            "-o",
+            s(&b),
+            "--llm",
+            "rules",
+            "--rounds",
+            "0",
+        ],
+        None,
+    );
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    let o = ask(&[s(&scene), REQUEST, "-o", s(&b), "--llm", "manual"], None);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("it holds an `ask --batch` run"), "{t}");
+    assert!(!b.join("state.json").exists(), "{t}");
+    let o = ask(&["--resume", s(&b)], None);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("it holds an `ask --batch` run") && t.contains("--resume DIR/runs/"),
+        "{t}"
+    );
+    let r = dir.path().join("run");
+    let o = ask(&[s(&scene), REQUEST, "-o", s(&r), "--llm", "manual"], None);
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    let o = ask(&["--batch", s(&file), "-o", s(&r), "--llm", "rules"], None);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("it holds a single `ask` run (state.json)"),
+        "{t}"
+    );
+    assert!(
+        !r.join("summary.md").exists() && !r.join("runs").exists(),
+        "{t}"
+    );
+    // A counter of state.json at its largest once wrapped to 0 on the next reply.
+    let state = r.join("state.json");
+    let mut v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&state).unwrap()).unwrap();
+    v["exchange"] = serde_json::json!(u64::MAX);
+    std::fs::write(&state, v.to_string()).unwrap();
+    let o = ask(&["--resume", s(&r)], None);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("state.json: `exchange` is 18446744073709551615"),
+        "{t}"
+    );
+
+    // A single run still going: a batch and a demo there are refused, its files kept.
+    let srv = Server::start(vec![Canned::chat("ACCEPT").after(Duration::from_secs(20))]);
+    let live = dir.path().join("live");
+    let mut first = ask_spawn(&[s(&scene), REQUEST, "-o", s(&live)], &srv.url);
+    wait_for(&live.join("round_0/prompt.md"));
+    let o = ask(
+        &["--batch", s(&file), "-o", s(&live), "--llm", "rules"],
+        None,
+    );
+    let batch_text = text(&o);
+    let demo = common::drivescript(&["demo", "-o", s(&live)]);
+    let demo_text = text(&demo);
+    let kept = live.join("state.json").exists() && live.join("round_0/prompt.md").exists();
+    let _ = first.kill();
+    let _ = first.wait();
+    assert_eq!(o.status.code(), Some(1), "{batch_text}");
+    assert!(
+        batch_text.contains("it holds a single `ask` run")
+            || batch_text.contains("another drivescript process is running in it"),
+        "{batch_text}"
+    );
+    assert!(!live.join("summary.md").exists(), "{batch_text}");
+    assert_eq!(demo.status.code(), Some(1), "{demo_text}");
+    assert!(
+        demo_text.contains("another drivescript process is running in it"),
+        "{demo_text}"
+    );
+    assert!(kept, "{demo_text}");
+
+    // A batch still going: a single run there is refused.
+    let srv = Server::start(vec![Canned::chat("ACCEPT").after(Duration::from_secs(20))]);
+    let lb = dir.path().join("live-batch");
+    let mut first = ask_spawn(
+        &["--batch", s(&file), "-o", s(&lb), "--llm", "http"],
+        &srv.url,
+    );
+    let t0 = Instant::now();
+    while srv.received().is_empty() {
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "the batch never asked"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let o = ask(&[s(&scene), REQUEST, "-o", s(&lb), "--llm", "rules"], None);
+    let t = text(&o);
+    let _ = first.kill();
+    let _ = first.wait();
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("another drivescript process is running in it (an `ask --batch`)"),
+        "{t}"
+    );
+    assert!(!lb.join("state.json").exists(), "{t}");
+}
+
 #[test]
 fn ask_keeps_the_user_s_files_and_writes_nothing_through_a_planted_round_link() {
     let dir = tempfile::tempdir().unwrap();
@@ -1169,6 +1300,55 @@ fn errors_about_files_that_are_not_run_directories_do_not_call_them_so() {
     let t = text(&o);
     assert_eq!(o.status.code(), Some(1), "{t}");
     assert!(!t.contains("run directory"), "{t}");
+    // A scene file where a run directory is expected: said to be a file, not called a run
+    // directory.
+    let scene = dir.path().join("scene.xml");
+    std::fs::copy(samples().join(SCENE), &scene).unwrap();
+    let called_a_run_directory = format!("run directory {}", scene.display());
+    let o = ask(
+        &[s(&scene), REQUEST, "-o", s(&scene), "--llm", "rules"],
+        None,
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains(&format!(
+            "{}: is a file, not a directory: -o names the run directory",
+            scene.display()
+        )) && !t.contains(&called_a_run_directory),
+        "{t}"
+    );
+    for flag in ["--resume", "--continue"] {
+        let mut args = vec![flag, s(&scene)];
+        if flag == "--continue" {
+            args.push("make it more abrupt");
+        }
+        let o = ask(&args, None);
+        let t = text(&o);
+        assert_eq!(o.status.code(), Some(1), "{flag}: {t}");
+        assert!(
+            t.contains(&format!(
+                "{}: is a file, not a run directory",
+                scene.display()
+            )) && !t.contains(&called_a_run_directory),
+            "{flag}: {t}"
+        );
+    }
+    // A directory without a run, and none at all.
+    let empty = dir.path().join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    for (d, says) in [
+        (&empty, "holds no run to resume (there is no state.json)"),
+        (&dir.path().join("missing"), "does not exist"),
+    ] {
+        let o = ask(&["--resume", s(d)], None);
+        let t = text(&o);
+        assert_eq!(o.status.code(), Some(1), "{t}");
+        assert!(
+            t.contains(&format!("{}: {says}", d.display())) && !t.contains("run directory /"),
+            "{t}"
+        );
+    }
 }
 
 #[test]

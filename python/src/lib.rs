@@ -691,6 +691,7 @@ impl Sampler {
             },
             polish,
             horizon,
+            script_budget: drivescript::sample::DEFAULT_SCRIPT_BUDGET,
         };
         let spec = AttemptSpec {
             scripts: scripts.iter().map(|s| s.spec.clone()).collect(),

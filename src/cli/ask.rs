@@ -108,10 +108,10 @@ pub struct Args {
     #[arg(long, default_value_t = 600.0, allow_negative_numbers = true)]
     backoff_max: f64,
     /// Refinement rounds after the first sampling (0: the first script is final), at most 20.
-    #[arg(long, default_value_t = 3, value_parser = usize_in(0, 20))]
+    #[arg(long, default_value_t = 3, value_parser = usize_in(0, drivescript::llm::session::MAX_ROUNDS))]
     rounds: usize,
     /// Unusable replies, failed validations and rejected ACCEPTs allowed in a row, at most 20.
-    #[arg(long, default_value_t = 3, value_parser = usize_in(0, 20))]
+    #[arg(long, default_value_t = 3, value_parser = usize_in(0, drivescript::llm::session::MAX_FIXES))]
     fixes: usize,
     /// Samples per round, 1 to 1024.
     #[arg(long, default_value_t = 4, value_parser = usize_in(1, 1024))]
@@ -139,6 +139,10 @@ pub struct Args {
     /// many with realism's collision term (0: none).
     #[arg(long, default_value_t = drivescript::sample::POLISH_STEPS, value_parser = usize_in(0, 1000))]
     polish: usize,
+    /// Seconds the cost script may take over one round's sampling, every evaluation together
+    /// (more than 0, at most 86400); the same flag and default as `simulate`'s.
+    #[arg(long, value_name = "SECONDS", default_value_t = drivescript::sample::DEFAULT_SCRIPT_BUDGET.as_secs_f64(), allow_negative_numbers = true)]
+    script_budget: f64,
 }
 
 /// What the first prompt holds: shared by `ask` and `prompt show`, so that the prompt shown is
@@ -146,7 +150,7 @@ pub struct Args {
 #[derive(clap::Args)]
 pub(crate) struct PromptFlags {
     /// Most agents in the scene summary (the request's are always listed), 1 to 1000.
-    #[arg(long, default_value_t = 30, value_parser = usize_in(1, 1000))]
+    #[arg(long, default_value_t = 30, value_parser = usize_in(1, drivescript::llm::session::MAX_AGENTS))]
     pub max_agents: usize,
     /// Prompt templates (default: prompts/).
     #[arg(long)]
@@ -164,7 +168,7 @@ pub(crate) struct PromptFlags {
     /// a quarter of it (at most --max-tokens) kept for the reply; the first prompt gets a
     /// compact reference, fewer agents and examples as it must, later rounds a summary of the
     /// older ones; what was left out is said. Without it the whole conversation is sent.
-    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(512..=10_000_000))]
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(drivescript::llm::fit::MIN_CONTEXT..=drivescript::llm::fit::MAX_CONTEXT))]
     pub context: Option<u64>,
 }
 
@@ -319,6 +323,7 @@ impl Args {
             seed: self.seed,
             guidance: self.guidance(),
             polish: self.polish,
+            script_budget: self.script_budget,
             context: self.prompt.window(self.max_tokens),
             ..SessionConfig::default()
         }
@@ -424,6 +429,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             args.backoff_max
         );
     }
+    super::script_budget(args.script_budget)?;
     if args.through_denoiser {
         eprintln!("note: --through-denoiser is the old name of --guidance denoiser");
     }

@@ -3,11 +3,9 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::{bail, Result};
-use drivescript::io::{
-    check_output_not_input, load_scene, output_stem, rollout::Rollout, womd, write_atomic, yaml,
-    LoadOptions,
-};
+use anyhow::{bail, Context, Result};
+use drivescript::io::scene_output::SceneOutput;
+use drivescript::io::{check_output_not_input, load_scene, output_stem, LoadOptions};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -32,6 +30,14 @@ pub fn run(args: Args) -> Result<ExitCode> {
     // Writing over the input would replace a many-scene file with one scene, or a compact
     // YAML with its explicit form: refuse before reading anything.
     check_output_not_input(&args.output, &[&args.scene], "-o")?;
+    let format = SceneOutput::from_path(&args.output).with_context(|| {
+        format!(
+            "{}: unknown output format; use .yaml, .json or .tfrecord",
+            args.output.display()
+        )
+    })?;
+    // Nor any existing file but an earlier output of the same format, one scenario.
+    format.check_replaces_own(&args.output, "-o")?;
     // An id that cannot name output files would be written here and refused by every command
     // that reads the file back.
     if let Some(id) = &args.id {
@@ -54,19 +60,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     if let Some(id) = &args.id {
         scene.meta.scenario_id = id.clone();
     }
-    let name = args.output.to_string_lossy().to_lowercase();
-    if name.ends_with(".yaml") || name.ends_with(".yml") {
-        write_atomic(&args.output, yaml::to_yaml(&scene).as_bytes())?;
-    } else if name.ends_with(".json") {
-        Rollout::from_scene(&scene).write(&args.output)?;
-    } else if name.ends_with(".tfrecord") || name.contains(".tfrecord-") {
-        womd::write_file(&args.output, std::slice::from_ref(&scene))?;
-    } else {
-        bail!(
-            "{}: unknown output format; use .yaml, .json or .tfrecord",
-            args.output.display()
-        );
-    }
+    format.write(&args.output, &scene)?;
     println!("wrote {}", args.output.display());
     Ok(ExitCode::SUCCESS)
 }

@@ -62,8 +62,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
     // Before the previous run is cleared away.
     config.validate()?;
     let prompts = Prompts::load(&Prompts::default_dir())?;
-    clear_run(&args.output)?;
-    let mut session = Session::start(
+    // The previous demo run there goes, under the run's lock (an `ask` going on there keeps
+    // its files).
+    let mut session = Session::replace(
         &args.output,
         &scene_path,
         raw,
@@ -102,33 +103,4 @@ pub fn run(args: Args) -> Result<ExitCode> {
     } else {
         ExitCode::from(2)
     })
-}
-
-/// Removes an earlier demo run from `dir` (only the files a run writes), so that the demo
-/// can be run again; anything else there is left alone.
-fn clear_run(dir: &std::path::Path) -> Result<()> {
-    if !dir.join("state.json").exists() {
-        return Ok(());
-    }
-    for e in std::fs::read_dir(dir).with_context(|| format!("listing {}", dir.display()))? {
-        let p = e?.path();
-        let name = p
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default();
-        let ours = matches!(
-            name.as_str(),
-            "state.json" | "transcript.json" | "report.md" | "final.rhai" | "final.gif"
-        );
-        if ours {
-            std::fs::remove_file(&p).with_context(|| format!("removing {}", p.display()))?;
-        } else if p.is_dir()
-            && name
-                .strip_prefix("round_")
-                .is_some_and(|n| n.parse::<usize>().is_ok())
-        {
-            std::fs::remove_dir_all(&p).with_context(|| format!("removing {}", p.display()))?;
-        }
-    }
-    Ok(())
 }

@@ -6,6 +6,7 @@ use std::process::ExitCode;
 use anyhow::{bail, Context, Result};
 use drivescript::cost::Params;
 use drivescript::eval::kinematic::Violation;
+use drivescript::eval::merge::{record_json, HorizonFrom, Horizons, RunRecord};
 use drivescript::eval::metrics::{self, JsdBins};
 use drivescript::eval::tally::{group_order, Group, Task as EvalTask};
 use drivescript::eval::{check, Baseline, Behavior, Tally};
@@ -33,6 +34,16 @@ impl From<Task> for EvalTask {
             Task::Conditional => EvalTask::Conditional,
             Task::Unconditional => EvalTask::Unconditional,
             Task::Behaviour => EvalTask::Behaviour,
+        }
+    }
+}
+
+impl From<EvalTask> for Task {
+    fn from(t: EvalTask) -> Self {
+        match t {
+            EvalTask::Conditional => Task::Conditional,
+            EvalTask::Unconditional => Task::Unconditional,
+            EvalTask::Behaviour => Task::Behaviour,
         }
     }
 }
@@ -396,7 +407,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         &accs,
         behaviour.as_ref().map(|b| b.0),
         args.json.as_deref(),
-        &Merge {
+        &RunRecord {
             settings,
             shards: shard.into_iter().collect(),
             skipped,
@@ -405,99 +416,6 @@ pub fn run(args: Args) -> Result<ExitCode> {
             horizons,
         },
     )
-}
-
-/// Where a scene's horizon (the future steps every method is scored over) came from.
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, serde::Serialize, serde::Deserialize,
-)]
-#[serde(rename_all = "snake_case")]
-enum HorizonFrom {
-    /// `--horizon`.
-    Flag,
-    /// The longest of the scene's rollouts.
-    Rollouts,
-    /// The recorded future (no flag, no rollouts read).
-    Recording,
-}
-
-/// How many scenes were scored over each horizon, for the line that says which was used.
-#[derive(Debug, Default, serde::Serialize, serde::Deserialize)]
-struct Horizons(Vec<HorizonCount>);
-
-#[derive(Debug, serde::Serialize, serde::Deserialize)]
-struct HorizonCount {
-    steps: usize,
-    from: HorizonFrom,
-    scenes: usize,
-}
-
-impl Horizons {
-    fn count(&mut self, steps: usize, from: HorizonFrom) {
-        self.add(steps, from, 1);
-    }
-
-    fn add(&mut self, steps: usize, from: HorizonFrom, scenes: usize) {
-        match self
-            .0
-            .iter_mut()
-            .find(|c| c.steps == steps && c.from == from)
-        {
-            Some(c) => c.scenes += scenes,
-            None => self.0.push(HorizonCount {
-                steps,
-                from,
-                scenes,
-            }),
-        }
-        self.0.sort_by_key(|c| (c.from, c.steps));
-    }
-
-    /// `horizon: 40 steps after the current step, the rollouts' own (3 scenes)`; None when
-    /// nothing was scored.
-    fn line(&self) -> Option<String> {
-        let parts: Vec<String> = self
-            .0
-            .iter()
-            .map(|c| {
-                let from = match c.from {
-                    HorizonFrom::Flag => "--horizon",
-                    HorizonFrom::Rollouts => "the rollouts' own",
-                    HorizonFrom::Recording => "the recorded future",
-                };
-                let s = if c.scenes == 1 { "" } else { "s" };
-                format!("{} steps, {from} ({} scene{s})", c.steps, c.scenes)
-            })
-            .collect();
-        (!parts.is_empty()).then(|| {
-            let hint = if self.0.iter().any(|c| c.from != HorizonFrom::Flag) {
-                "; --horizon H scores every scene over H steps"
-            } else {
-                ""
-            };
-            format!(
-                "horizon (future steps scored after the current step): {}{hint}",
-                parts.join("; ")
-            )
-        })
-    }
-}
-
-/// What a shard's --json carries for --merge besides the accumulators.
-#[derive(serde::Serialize, serde::Deserialize)]
-struct Merge {
-    /// Everything the shards must agree on.
-    settings: serde_json::Value,
-    /// The shard indices combined (empty: an unsharded run).
-    shards: Vec<usize>,
-    skipped: usize,
-    failures: usize,
-    /// Scenes the rollouts' run left out.
-    #[serde(default)]
-    run_skipped: usize,
-    /// The horizons the scenes were scored over.
-    #[serde(default)]
-    horizons: Horizons,
 }
 
 /// The table's header lines for `task`, with a group column when `grouped`.
@@ -646,7 +564,7 @@ fn report(
     accs: &[Tally],
     behaviour: Option<Behavior>,
     json_out: Option<&Path>,
-    merge: &Merge,
+    merge: &RunRecord,
 ) -> Result<ExitCode> {
     let (skipped, failures, run_skipped) = (merge.skipped, merge.failures, merge.run_skipped);
     let bins = JsdBins::default();
@@ -716,7 +634,7 @@ fn report(
                 "task": EvalTask::from(task).name(),
                 "methods": table,
                 "groups": groups_json,
-                "merge": {"accumulators": accs, "run": merge},
+                "merge": record_json(accs, merge),
             }))?
             .as_bytes(),
         )?;
@@ -760,129 +678,20 @@ fn report(
 
 /// `eval --merge`: the shards' --json files combined into the table of a single run.
 fn merge(files: &[PathBuf], json_out: Option<&Path>) -> Result<ExitCode> {
-    let mut first: Option<(PathBuf, serde_json::Value)> = None;
-    let mut accs: Vec<Tally> = Vec::new();
-    let mut seen: Vec<(usize, PathBuf)> = Vec::new();
-    let (mut skipped, mut failures, mut run_skipped) = (0, 0, 0);
-    let mut horizons = Horizons::default();
-    for f in files {
-        let text = drivescript::io::read_regular_text(
-            f,
-            drivescript::io::MAX_SCENE_BYTES,
-            "an `eval --json` file",
-        )?;
-        let mut v: serde_json::Value =
-            serde_json::from_str(&text).with_context(|| format!("{}: not JSON", f.display()))?;
-        let m: Merge = serde_json::from_value(v["merge"]["run"].take()).with_context(|| {
-            format!(
-                "{}: no shard record (write one with `eval ... --shard I/N --json FILE`)",
-                f.display()
-            )
-        })?;
-        let a: Vec<Tally> = serde_json::from_value(v["merge"]["accumulators"].take())
-            .with_context(|| format!("{}: damaged accumulators", f.display()))?;
-        match &first {
-            None => {
-                first = Some((f.clone(), m.settings.clone()));
-                accs = a;
-            }
-            Some((f0, s0)) => {
-                if m.settings != *s0 {
-                    bail!(
-                        "{} and {}: not shards of one evaluation (settings {} against {})",
-                        f0.display(),
-                        f.display(),
-                        s0,
-                        m.settings
-                    );
-                }
-                if a.len() != accs.len() {
-                    bail!("{}: damaged accumulators (one per method)", f.display());
-                }
-                for (acc, o) in accs.iter_mut().zip(a) {
-                    acc.absorb(o);
-                }
-            }
-        }
-        skipped += m.skipped;
-        failures += m.failures;
-        run_skipped += m.run_skipped;
-        for c in &m.horizons.0 {
-            horizons.add(c.steps, c.from, c.scenes);
-        }
-        // An unsharded run is all of one evaluation: shard 0 of 1, so that merging it twice
-        // (or with a copy) is refused rather than counting its scenes twice.
-        let shards = if m.shards.is_empty() {
-            vec![0]
-        } else {
-            m.shards.clone()
-        };
-        seen.extend(shards.iter().map(|&s| (s, f.clone())));
-    }
-    let (f0, settings) = first.context("--merge needs at least one file")?;
-    let n = settings["shards"].as_u64().unwrap_or(1) as usize;
-    seen.sort();
-    for w in seen.windows(2) {
-        if w[0].0 == w[1].0 && n <= 1 {
-            bail!(
-                "{} and {} are both the whole of one evaluation (not shards of it): merging \
-                 would count its scenes twice",
-                w[0].1.display(),
-                w[1].1.display()
-            );
-        }
-        if w[0].0 == w[1].0 {
-            bail!(
-                "shard {}/{n} is in both {} and {}: each shard once",
-                w[0].0,
-                w[0].1.display(),
-                w[1].1.display()
-            );
-        }
-    }
-    let missing: Vec<String> = (0..n)
-        .filter(|i| !seen.iter().any(|s| s.0 == *i))
-        .map(|i| format!("{i}/{n}"))
-        .collect();
-    if n > 1 && !missing.is_empty() {
-        bail!(
-            "{}: shards {} are missing: the merged table would leave their scenes out",
-            f0.display(),
-            missing.join(", ")
-        );
-    }
-    let task = match settings["task"].as_str() {
-        Some("conditional") => Task::Conditional,
-        Some("unconditional") => Task::Unconditional,
-        Some("behaviour") => Task::Behaviour,
-        other => bail!("{}: unknown task {other:?}", f0.display()),
-    };
-    let behaviour = match settings["behaviour"].as_str() {
-        Some(b) => {
-            Some(Behavior::from_name(b).with_context(|| format!("unknown behaviour {b:?}"))?)
-        }
-        None => None,
-    };
-    let methods: Vec<String> = serde_json::from_value(settings["methods"].clone())?;
+    let m = drivescript::eval::merge::merge(files)?;
     println!(
-        "merged {} of {n} shard{} from {} files",
-        seen.len().max(1),
-        if n == 1 { "" } else { "s" },
+        "merged {} of {} shard{} from {} files",
+        m.run.shards.len().max(1),
+        m.shards,
+        if m.shards == 1 { "" } else { "s" },
         files.len()
     );
     report(
-        task,
-        &methods,
-        &accs,
-        behaviour,
+        m.task.into(),
+        &m.methods,
+        &m.accumulators,
+        m.behaviour,
         json_out,
-        &Merge {
-            settings,
-            shards: seen.iter().map(|s| s.0).collect(),
-            skipped,
-            failures,
-            run_skipped,
-            horizons,
-        },
+        &m.run,
     )
 }

@@ -263,3 +263,15 @@ pub(crate) fn samples_dir() -> PathBuf {
     }
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("data/samples")
 }
+
+/// `--script-budget SECONDS` as the sampler takes it, or an error naming the flag and its range.
+pub(crate) fn script_budget(seconds: f64) -> anyhow::Result<std::time::Duration> {
+    let max = drivescript::sample::MAX_SCRIPT_BUDGET;
+    if !(seconds > 0.0 && seconds <= max.as_secs_f64()) {
+        anyhow::bail!(
+            "--script-budget {seconds:?}: must be more than 0 and at most {} seconds",
+            max.as_secs()
+        );
+    }
+    Ok(std::time::Duration::from_secs_f64(seconds))
+}

@@ -3,9 +3,12 @@
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-use anyhow::{bail, Result};
-use drivescript::io::{load_scene, rollout::Rollout, write_atomic, LoadOptions};
-use drivescript::render::{render_gif, render_png, render_svg, RenderOptions, MAX_GIF_FRAMES};
+use anyhow::{bail, Context, Result};
+use drivescript::io::{
+    check_output_not_input, check_replaces_own, load_scene, rollout::Rollout, write_atomic,
+    LoadOptions,
+};
+use drivescript::render::{PictureFormat, RenderOptions, MAX_GIF_FRAMES};
 use drivescript::scene::Scene;
 
 #[derive(clap::Args)]
@@ -49,26 +52,32 @@ fn parse_role(s: &str) -> Result<(i64, String), String> {
     Ok((id, role.to_string()))
 }
 
-/// Writes `scene` as SVG, PNG or GIF by the output's extension.
-pub fn write_picture(scene: &Scene, output: &Path, opts: &RenderOptions) -> Result<()> {
-    let ext = output
-        .extension()
-        .map(|e| e.to_string_lossy().to_lowercase())
-        .unwrap_or_default();
-    let bytes = match ext.as_str() {
-        "svg" => render_svg(scene, opts)?.into_bytes(),
-        "png" => render_png(scene, opts)?,
-        "gif" => render_gif(scene, opts)?,
-        _ => bail!(
+/// The picture format `output`'s extension names, or an error saying which there are.
+fn format_of(output: &Path) -> Result<PictureFormat> {
+    PictureFormat::from_path(output).with_context(|| {
+        format!(
             "{}: unknown picture format; use .svg, .png or .gif",
             output.display()
-        ),
-    };
+        )
+    })
+}
+
+/// Writes `scene` as SVG, PNG or GIF by the output's extension.
+pub fn write_picture(scene: &Scene, output: &Path, opts: &RenderOptions) -> Result<()> {
+    let bytes = format_of(output)?.render(scene, opts)?;
     write_atomic(output, &bytes)?;
     Ok(())
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
+    // Refused before anything is read: -o replaces only an earlier picture of its format,
+    // never an input or a file of the user's.
+    let format = format_of(&args.output)?;
+    let inputs: Vec<&Path> = std::iter::once(args.scene.as_path())
+        .chain(args.rollout.as_deref())
+        .collect();
+    check_output_not_input(&args.output, &inputs, "-o")?;
+    check_replaces_own(&args.output, "-o", format.what(), |p| format.holds_own(p))?;
     let mut scene = load_scene(&args.scene, args.index, &LoadOptions::default())?;
     if let Some(r) = &args.rollout {
         let rollout = Rollout::read(r)?;
@@ -82,11 +91,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
     // Asked for in so many words, a GIF is all the steps or nothing (`simulate`'s own
     // pictures show the last frames of a longer scene).
-    let gif = args
-        .output
-        .extension()
-        .is_some_and(|e| e.eq_ignore_ascii_case("gif"));
-    if gif && scene.num_steps() > MAX_GIF_FRAMES {
+    if format == PictureFormat::Gif && scene.num_steps() > MAX_GIF_FRAMES {
         bail!(
             "a GIF of {} steps is more than {MAX_GIF_FRAMES} frames; draw one step (--step N, as \
              SVG or PNG) or cut the scene first (convert --current-step)",

@@ -105,6 +105,11 @@ pub struct Args {
     /// collision term (0: none, and that term acts while denoising).
     #[arg(long, default_value_t = drivescript::sample::POLISH_STEPS, value_parser = super::ask::usize_in(0, 1000))]
     polish: usize,
+    /// Seconds the cost scripts may take over one scene's sampling, every evaluation together
+    /// (more than 0, at most 86400): past it the scene fails with an error that says how many
+    /// evaluations ran and their mean time, instead of running for hours.
+    #[arg(long, value_name = "SECONDS", default_value_t = drivescript::sample::DEFAULT_SCRIPT_BUDGET.as_secs_f64(), allow_negative_numbers = true)]
+    script_budget: f64,
     /// Checkpoint directory (model.safetensors + config.json).
     #[arg(long)]
     checkpoint: PathBuf,
@@ -202,6 +207,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         },
         polish: args.polish,
         horizon: args.horizon,
+        script_budget: super::script_budget(args.script_budget)?,
     };
     if let Err(e) = cfg.validate() {
         anyhow::bail!("sampler settings: {e}");

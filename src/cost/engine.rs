@@ -360,6 +360,38 @@ pub struct CostScript {
     started: Rc<Cell<Instant>>,
     limits: Limits,
     docs: Vec<DocEntry>,
+    /// Evaluations so far and the time they took ([`CostScript::usage`]).
+    used: Cell<Usage>,
+}
+
+/// What a compiled script's evaluations have cost so far: a sampling run checks the total
+/// against its budget (`SampleConfig::script_budget`), since a script within the per-call
+/// wall time can still take hours over the hundreds of evaluations of a run.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Usage {
+    /// Evaluations, finished or stopped.
+    pub evaluations: u64,
+    /// Wall time they took together.
+    pub time: Duration,
+}
+
+impl Usage {
+    /// The sum of two.
+    pub fn plus(self, o: Usage) -> Usage {
+        Usage {
+            evaluations: self.evaluations.saturating_add(o.evaluations),
+            time: self.time.saturating_add(o.time),
+        }
+    }
+
+    /// Mean time per evaluation (zero before the first).
+    pub fn mean(&self) -> Duration {
+        match u32::try_from(self.evaluations) {
+            Ok(0) => Duration::ZERO,
+            Ok(n) => self.time / n,
+            Err(_) => Duration::from_secs_f64(self.time.as_secs_f64() / self.evaluations as f64),
+        }
+    }
 }
 
 /// A fresh sandboxed engine with the stdlib registered; returns it with its documentation.
@@ -914,7 +946,13 @@ impl CostScript {
             started,
             limits: limits.clone(),
             docs,
+            used: Cell::new(Usage::default()),
         })
+    }
+
+    /// Evaluations of this script so far, and the time they took.
+    pub fn usage(&self) -> Usage {
+        self.used.get()
     }
 
     /// Compiles `source` without a scene: what fails here (syntax, imports, size limits) fails
@@ -1052,9 +1090,12 @@ impl CostScript {
         let t0 = Instant::now();
         self.started.set(t0);
         let mut scope = self.scope.clone();
-        self.engine
-            .run_ast_with_scope(&mut scope, &self.ast)
-            .map_err(|e| self.map_error(&e))?;
+        let run = self.engine.run_ast_with_scope(&mut scope, &self.ast);
+        self.used.set(self.used.get().plus(Usage {
+            evaluations: 1,
+            time: t0.elapsed(),
+        }));
+        run.map_err(|e| self.map_error(&e))?;
         let c = self.shared.borrow();
         let terms: Vec<TermReport> = c
             .terms

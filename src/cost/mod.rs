@@ -24,7 +24,7 @@ pub use dual::{Dual, Grad};
 pub use engine::{
     check_params, module_functions, read_script, reference, reference_markdown,
     reference_markdown_without, script_params, uses_param, CostError, CostScript, DeadTerm, Limits,
-    MAX_SOURCE_BYTES, STDLIB_MODULES,
+    Usage, MAX_SOURCE_BYTES, STDLIB_MODULES,
 };
 pub use fwd::{box_clearance, Fwd};
 pub use params::{ParamValue, Params};

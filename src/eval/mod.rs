@@ -6,6 +6,7 @@ pub mod behaviors;
 pub mod collateral;
 pub mod feasibility;
 pub mod kinematic;
+pub mod merge;
 pub mod metrics;
 pub mod tally;
 

@@ -457,9 +457,19 @@ impl Tally {
         row
     }
 
-    /// Adds another shard's results for the same method.
-    pub fn absorb(&mut self, o: Tally) {
-        self.scenes += o.scenes;
+    /// Adds another shard's results for the same method. The counts are summed checked: an
+    /// overflow is an error naming the count, not a wrapped table.
+    pub fn absorb(&mut self, o: Tally) -> Result<(), String> {
+        for (name, a, b) in [
+            ("scenes", &mut self.scenes, o.scenes),
+            ("passed", &mut self.passed, o.passed),
+            ("achieved", &mut self.achieved, o.achieved),
+            ("checked", &mut self.checked, o.checked),
+        ] {
+            *a = a
+                .checked_add(b)
+                .ok_or_else(|| format!("{name} is {b}, and the sum overflows"))?;
+        }
         for (a, b) in [
             (&mut self.ade, o.ade),
             (&mut self.fde, o.fde),
@@ -475,9 +485,6 @@ impl Tally {
         }
         self.sim_kin.extend(&o.sim_kin);
         self.log_kin.extend(&o.log_kin);
-        self.passed += o.passed;
-        self.achieved += o.achieved;
-        self.checked += o.checked;
         self.implausible.extend(o.implausible);
         self.collided.extend(o.collided);
         for (a, b) in self.by_kind.iter_mut().zip(o.by_kind) {
@@ -486,8 +493,196 @@ impl Tally {
         self.per_scene.extend(o.per_scene);
         self.seconds += o.seconds;
         for (k, g) in o.groups {
-            self.groups.entry(k).or_default().absorb(g);
+            self.groups
+                .entry(k.clone())
+                .or_default()
+                .absorb(g)
+                .map_err(|m| format!("groups[{k:?}].{m}"))?;
         }
+        Ok(())
+    }
+
+    /// Checks an accumulator read back from a shard file (`eval --merge`): what [`Tally::score`]
+    /// can write, and nothing else. Distances and MMD² finite and not negative, rates in
+    /// [0, 1], kinematics finite (speeds and gaps not negative), passed ≤ achieved ≤ checked,
+    /// one scene row per scene, no more figures than scenes, one flag per kind per judged
+    /// agent; each group the same, within the whole row's scenes. The message names the field.
+    pub fn check(&self) -> Result<(), String> {
+        if self.per_scene.len() != self.scenes {
+            return Err(format!(
+                "scenes is {}, but per_scene holds {} scene rows (one per scene)",
+                self.scenes,
+                self.per_scene.len()
+            ));
+        }
+        self.check_figures()?;
+        let labels: Vec<String> = group_order().iter().map(Group::label).collect();
+        for (label, g) in &self.groups {
+            let at = |m: String| format!("groups[{label:?}].{m}");
+            if !labels.contains(label) {
+                return Err(format!(
+                    "groups[{label:?}]: not a group eval writes ({})",
+                    labels.join(", ")
+                ));
+            }
+            if g.scenes > self.scenes {
+                return Err(at(format!(
+                    "scenes is {}: more than the whole row's {}",
+                    g.scenes, self.scenes
+                )));
+            }
+            if !g.per_scene.is_empty() || !g.groups.is_empty() {
+                return Err(at(
+                    "per_scene and groups: a group holds none (the whole row does)".into(),
+                ));
+            }
+            g.check_figures().map_err(at)?;
+        }
+        Ok(())
+    }
+
+    /// [`Tally::check`]'s figures, of the whole row or a group.
+    fn check_figures(&self) -> Result<(), String> {
+        let not_negative = |v: f64| v.is_finite() && v >= 0.0;
+        let fraction = |v: f64| (0.0..=1.0).contains(&v);
+        let finite = |v: f64| v.is_finite();
+        // (field, figures, whether one is acceptable, what it must be)
+        type Series<'a> = (&'a str, &'a [f64], &'a dyn Fn(f64) -> bool, &'a str);
+        let series: [Series; 17] = [
+            (
+                "ade",
+                &self.ade,
+                &not_negative,
+                "a distance: finite, not negative",
+            ),
+            (
+                "fde",
+                &self.fde,
+                &not_negative,
+                "a distance: finite, not negative",
+            ),
+            (
+                "min_ade",
+                &self.min_ade,
+                &not_negative,
+                "a distance: finite, not negative",
+            ),
+            (
+                "min_fde",
+                &self.min_fde,
+                &not_negative,
+                "a distance: finite, not negative",
+            ),
+            ("collision", &self.collision, &fraction, "a rate: 0 to 1"),
+            ("offroad", &self.offroad, &fraction, "a rate: 0 to 1"),
+            ("scr", &self.scr, &fraction, "a rate: 0 to 1"),
+            (
+                "mmd_near",
+                &self.mmd_near,
+                &not_negative,
+                "an MMD²: finite, not negative",
+            ),
+            (
+                "mmd_edge",
+                &self.mmd_edge,
+                &not_negative,
+                "an MMD²: finite, not negative",
+            ),
+            (
+                "sim_kin.speed",
+                &self.sim_kin.speed,
+                &not_negative,
+                "a speed: finite, not negative",
+            ),
+            (
+                "sim_kin.angular_speed",
+                &self.sim_kin.angular_speed,
+                &finite,
+                "finite",
+            ),
+            ("sim_kin.accel", &self.sim_kin.accel, &finite, "finite"),
+            (
+                "sim_kin.nearest_vehicle",
+                &self.sim_kin.nearest_vehicle,
+                &not_negative,
+                "a distance: finite, not negative",
+            ),
+            (
+                "log_kin.speed",
+                &self.log_kin.speed,
+                &not_negative,
+                "a speed: finite, not negative",
+            ),
+            (
+                "log_kin.angular_speed",
+                &self.log_kin.angular_speed,
+                &finite,
+                "finite",
+            ),
+            ("log_kin.accel", &self.log_kin.accel, &finite, "finite"),
+            (
+                "log_kin.nearest_vehicle",
+                &self.log_kin.nearest_vehicle,
+                &not_negative,
+                "a distance: finite, not negative",
+            ),
+        ];
+        for (name, values, ok, must) in series {
+            if let Some((i, v)) = values.iter().enumerate().find(|(_, v)| !ok(**v)) {
+                return Err(format!("{name}[{i}] is {v}: must be {must}"));
+            }
+        }
+        // One figure per scene at most (none where a scene had no agent to score).
+        for (name, n) in [
+            ("ade", self.ade.len()),
+            ("min_ade", self.min_ade.len()),
+            ("collision", self.collision.len()),
+            ("offroad", self.offroad.len()),
+            ("scr", self.scr.len()),
+            ("mmd_near", self.mmd_near.len()),
+            ("mmd_edge", self.mmd_edge.len()),
+        ] {
+            if n > self.scenes {
+                return Err(format!(
+                    "{name} holds {n} figures: more than its {} scenes",
+                    self.scenes
+                ));
+            }
+        }
+        for (a, b, x, y) in [
+            ("ade", "fde", self.ade.len(), self.fde.len()),
+            ("min_ade", "min_fde", self.min_ade.len(), self.min_fde.len()),
+        ] {
+            if x != y {
+                return Err(format!(
+                    "{a} holds {x} figures and {b} {y}: one of each per scene"
+                ));
+            }
+        }
+        if self.passed > self.achieved || self.achieved > self.checked {
+            return Err(format!(
+                "passed {}, achieved {}, checked {}: a sample passes only if it achieves the \
+                 behaviour, and achieves it only if it was checked (passed <= achieved <= \
+                 checked)",
+                self.passed, self.achieved, self.checked
+            ));
+        }
+        for (k, flags) in self.by_kind.iter().enumerate() {
+            if flags.len() != self.implausible.len() {
+                return Err(format!(
+                    "by_kind[{k}] holds {} flags and implausible {}: one per judged agent",
+                    flags.len(),
+                    self.implausible.len()
+                ));
+            }
+        }
+        if !(self.seconds.is_finite() && self.seconds >= 0.0) {
+            return Err(format!(
+                "seconds is {}: must be finite, not negative",
+                self.seconds
+            ));
+        }
+        Ok(())
     }
 
     /// Whether anything was scored for `task`: a conditional row needs an agent with a
@@ -636,7 +831,7 @@ mod tests {
             None,
             None,
         );
-        a.absorb(b);
+        a.absorb(b).unwrap();
         assert_eq!(a.scenes, 2);
         assert_eq!(a.groups["highway"].scenes, 1);
         assert_eq!(a.groups["urban"].scenes, 1);

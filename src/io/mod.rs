@@ -16,6 +16,7 @@ pub mod gpudrive;
 pub mod json;
 pub mod name;
 pub mod rollout;
+pub mod scene_output;
 pub mod shard;
 pub mod tfrecord;
 pub mod womd;
@@ -810,15 +811,30 @@ pub fn check_replaces_own_json(
     what: &str,
     flag: &str,
 ) -> Result<(), IoError> {
+    check_replaces_own(output, flag, what, |p| {
+        read_regular(p, MAX_SCENE_BYTES, what)
+            .ok()
+            .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok())
+            .is_some_and(|v| v.get(key).is_some())
+    })
+}
+
+/// Refuses to replace an existing regular file at `output` (named by `flag` in the message)
+/// unless `ours` says it holds what the command writes (`what` names that kind of file): an
+/// earlier output of the same kind may be replaced, anything else (a user's YAML, a picture
+/// of another format, a many-scenario TFRecord) is someone's data. New paths, devices and
+/// pipes pass: [`write_atomic`] writes those in place, as a shell's `>` would.
+pub fn check_replaces_own(
+    output: &Path,
+    flag: &str,
+    what: &str,
+    ours: impl FnOnce(&Path) -> bool,
+) -> Result<(), IoError> {
     match std::fs::metadata(output) {
         Ok(m) if m.is_file() => {}
         _ => return Ok(()),
     }
-    let ours = read_regular(output, MAX_SCENE_BYTES, what)
-        .ok()
-        .and_then(|b| serde_json::from_slice::<serde_json::Value>(&b).ok())
-        .is_some_and(|v| v.get(key).is_some());
-    if ours {
+    if ours(output) {
         return Ok(());
     }
     Err(IoError::invalid(

@@ -735,15 +735,10 @@ impl Batch<'_> {
             ));
         }
         crate::io::create_output_dir(&self.out).map_err(|e| bad(&self.out, e.reason()))?;
-        // One process per batch (per shard: the shards of one batch share -o by design); the
-        // pairs' own run directories are locked too, should two overlap.
-        let _lock = super::rundir::lock_named(
-            &self.out,
-            &match self.shard {
-                Some(sh) => format!(".drivescript.batch-{}-of-{}.lock", sh.index, sh.count),
-                None => ".drivescript.batch.lock".to_string(),
-            },
-        )?;
+        // One process per batch (per shard: the shards of one batch share -o by design), no
+        // single run beside it; the pairs' own run directories are locked too, should two
+        // overlap.
+        let _locks = super::rundir::lock_batch(&self.out, self.shard)?;
         self.check_outputs_are_ours()?;
         let mut results = Vec::new();
         for (k, inst) in self.instances.iter().enumerate() {

@@ -18,6 +18,11 @@ use super::rules::{script_source, understand_request};
 use crate::cost::{module_functions, reference, STDLIB_MODULES};
 use crate::eval::behaviors::Behavior;
 
+/// The smallest context window a run may state (`--context`).
+pub const MIN_CONTEXT: u64 = 512;
+/// The largest context window a run may state (`--context`).
+pub const MAX_CONTEXT: u64 = 10_000_000;
+
 /// Tokens kept for the reply out of a window of `window`: `max_tokens`, but at most a quarter
 /// of the window (a reply with its reasoning and script is 500 to 1,000 tokens).
 pub fn reply_budget(window: u64, max_tokens: u64) -> u64 {

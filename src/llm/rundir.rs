@@ -5,10 +5,18 @@ use std::fs::File;
 use std::path::{Path, PathBuf};
 
 use super::LlmError;
+use crate::io::shard::Shard;
 
-/// The lock file every way into a run directory takes (`ask`, `--resume`, `--continue`,
-/// `--batch`).
+/// The lock file every way into a run directory takes: `ask`, `--resume`, `--continue`,
+/// `--replay` and `demo` exclusively ([`lock`]); `--batch` shared ([`lock_batch`]), so that
+/// the shards of one batch run side by side into one `-o` while no single run can start there,
+/// and no batch can start where a single run is going on.
 pub const LOCK_FILE: &str = ".drivescript.lock";
+
+/// The lock file of a whole (unsharded) batch, beside [`LOCK_FILE`] in its `-o`. Left there
+/// after the batch ends: it and the shards' ones ([`batch_lock_name`]) mark the directory as
+/// a batch's.
+pub const BATCH_LOCK_FILE: &str = ".drivescript.batch.lock";
 
 /// The names a run writes at the top of its directory: one of them there before a run starts
 /// is the user's (without `state.json` drivescript never ran there), and must not be replaced.
@@ -27,6 +35,95 @@ fn err(dir: &Path, message: impl Into<String>) -> LlmError {
     }
 }
 
+/// A batch's output directory is not a run directory: its errors name it plainly.
+fn batch_err(dir: &Path, message: impl Into<String>) -> LlmError {
+    LlmError::Input {
+        path: dir.to_path_buf(),
+        message: message.into(),
+    }
+}
+
+/// What a directory holds, by the marks drivescript leaves there: a directory holds one kind
+/// of run, since a batch's summary and a single run's files would be told apart by nobody.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Kind {
+    /// One `ask` run (its `state.json`).
+    Run,
+    /// An `ask --batch` (its lock files, or a summary a batch wrote).
+    Batch,
+}
+
+impl Kind {
+    fn words(self) -> &'static str {
+        match self {
+            Kind::Run => "a single `ask` run (state.json)",
+            Kind::Batch => "an `ask --batch` run (its summary and runs/)",
+        }
+    }
+}
+
+/// The lock file name of a batch, or of one of its shards.
+pub fn batch_lock_name(shard: Option<Shard>) -> String {
+    match shard {
+        Some(sh) => format!(".drivescript.batch-{}-of-{}.lock", sh.index, sh.count),
+        None => BATCH_LOCK_FILE.to_string(),
+    }
+}
+
+fn is_batch_mark(name: &str) -> bool {
+    name == BATCH_LOCK_FILE
+        || name
+            .strip_prefix(".drivescript.batch-")
+            .and_then(|r| r.strip_suffix(".lock"))
+            .and_then(|r| r.split_once("-of-"))
+            .is_some_and(|(i, n)| i.parse::<usize>().is_ok() && n.parse::<usize>().is_ok())
+}
+
+/// The kinds of run `dir` holds (none for a new or foreign directory; both for one that an
+/// earlier drivescript let a batch and a single run share).
+pub fn kinds(dir: &Path) -> Vec<Kind> {
+    let mut found = Vec::new();
+    if std::fs::symlink_metadata(dir.join("state.json")).is_ok() {
+        found.push(Kind::Run);
+    }
+    let batch_lock = std::fs::read_dir(dir).is_ok_and(|entries| {
+        entries
+            .filter_map(|e| e.ok())
+            .any(|e| is_batch_mark(&e.file_name().to_string_lossy()))
+    });
+    // Batches written before their lock files were kept have only their summary to show.
+    let batch_summary = || {
+        crate::io::read_regular_text(&dir.join("summary.md"), 1 << 20, "a summary")
+            .is_ok_and(|t| t.starts_with("# drivescript ask --batch"))
+    };
+    if batch_lock || batch_summary() {
+        found.push(Kind::Batch);
+    }
+    found
+}
+
+/// Refuses `dir` for a run of kind `wanted` when it holds a run of another kind: a batch's
+/// `-o` holding a single run's files, or the reverse, would be read back as neither.
+/// `advice` says what to do instead.
+pub fn check_kind(dir: &Path, wanted: Kind, advice: &str) -> Result<(), LlmError> {
+    let others: Vec<Kind> = kinds(dir).into_iter().filter(|k| *k != wanted).collect();
+    let Some(other) = others.first() else {
+        return Ok(());
+    };
+    let message = format!(
+        "it holds {}, and a directory holds one kind of run, so {} does not go there: {advice}",
+        other.words(),
+        match wanted {
+            Kind::Run => "a single `ask` run",
+            Kind::Batch => "an `ask --batch` run",
+        }
+    );
+    Err(match wanted {
+        Kind::Run => err(dir, message),
+        Kind::Batch => batch_err(dir, message),
+    })
+}
+
 /// An exclusive hold on a run directory, released when dropped or when the process ends
 /// however it ends (an advisory `flock`, so a killed run never leaves a stale lock).
 #[derive(Debug)]
@@ -34,10 +131,24 @@ pub struct RunLock {
     _file: File,
 }
 
-/// Takes the lock of the existing directory `dir`, or says that another process holds it: two
-/// processes running the same rounds into the same files would interleave them. `name` is the
-/// lock file ([`LOCK_FILE`] for a run; a batch's shards each take their own).
-pub fn lock_named(dir: &Path, name: &str) -> Result<RunLock, LlmError> {
+/// Why a lock is not to be had: who holds it, as far as the directory's marks tell.
+fn held_by(dir: &Path) -> String {
+    let kinds = kinds(dir);
+    format!(
+        "another drivescript process is running in it ({}): wait for it to end, or choose \
+         another -o",
+        if kinds.contains(&Kind::Batch) {
+            "an `ask --batch`"
+        } else if kinds.contains(&Kind::Run) {
+            "an `ask` run, its `--resume` or its `--continue`"
+        } else {
+            "an `ask`, `--resume`, `--continue` or `--batch`"
+        }
+    )
+}
+
+/// Takes the lock file `name` of the existing directory `dir`, exclusively or shared.
+fn flock(dir: &Path, name: &str, exclusive: bool) -> Result<RunLock, String> {
     let path = dir.join(name);
     let mut options = std::fs::OpenOptions::new();
     options.read(true).write(true).create(true).truncate(false);
@@ -49,32 +160,51 @@ pub fn lock_named(dir: &Path, name: &str) -> Result<RunLock, LlmError> {
     }
     let file = options
         .open(&path)
-        .map_err(|e| err(dir, format!("cannot open its lock file {name}: {e}")))?;
+        .map_err(|e| format!("cannot open its lock file {name}: {e}"))?;
     #[cfg(unix)]
     {
         use std::os::unix::io::AsRawFd;
+        let how = if exclusive {
+            libc::LOCK_EX
+        } else {
+            libc::LOCK_SH
+        };
         // SAFETY: flock on a descriptor this function owns; no memory is involved.
-        let rc = unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
+        let rc = unsafe { libc::flock(file.as_raw_fd(), how | libc::LOCK_NB) };
         if rc != 0 {
             let e = std::io::Error::last_os_error();
-            return Err(err(
-                dir,
-                if e.kind() == std::io::ErrorKind::WouldBlock {
-                    "another drivescript process is running in it (an `ask`, `--resume`, \
-                     `--continue` or `--batch`): wait for it to end, or choose another -o"
-                        .to_string()
-                } else {
-                    format!("cannot lock it: {e}")
-                },
-            ));
+            return Err(if e.kind() == std::io::ErrorKind::WouldBlock {
+                held_by(dir)
+            } else {
+                format!("cannot lock it: {e}")
+            });
         }
     }
+    #[cfg(not(unix))]
+    let _ = exclusive;
     Ok(RunLock { _file: file })
 }
 
-/// [`lock_named`] with the run's [`LOCK_FILE`].
+/// Takes the exclusive lock of the existing run directory `dir`, or says that another process
+/// holds it: two processes running the same rounds into the same files would interleave
+/// them, and a batch running there would mix its files with the run's.
 pub fn lock(dir: &Path) -> Result<RunLock, LlmError> {
-    lock_named(dir, LOCK_FILE)
+    flock(dir, LOCK_FILE, true).map_err(|m| err(dir, m))
+}
+
+/// Takes a batch's locks on its existing output directory `out`: [`LOCK_FILE`] shared (the
+/// shards of one batch share `out` by design; a single run there takes it exclusively) and
+/// the batch's or shard's own ([`batch_lock_name`]) exclusively (one process per shard). Then
+/// refuses an `out` that holds a single run ([`check_kind`]): checked under the lock, where no
+/// single run can be starting.
+pub fn lock_batch(out: &Path, shard: Option<Shard>) -> Result<(RunLock, RunLock), LlmError> {
+    let advice = "choose another -o for the batch";
+    // Before the batch's own lock file marks `out` as a batch's.
+    check_kind(out, Kind::Batch, advice)?;
+    let shared = flock(out, LOCK_FILE, false).map_err(|m| batch_err(out, m))?;
+    check_kind(out, Kind::Batch, advice)?;
+    let own = flock(out, &batch_lock_name(shard), true).map_err(|m| batch_err(out, m))?;
+    Ok((shared, own))
 }
 
 /// Refuses to start a run in `dir` when it already holds a file a run writes ([`RUN_FILES`])
@@ -104,6 +234,33 @@ pub fn check_fresh(dir: &Path) -> Result<(), LlmError> {
             if found.len() == 1 { "it" } else { "them" },
         ),
     ))
+}
+
+/// Removes the run in `dir` (only the files a run writes, [`RUN_FILES`] and `round_N/`) so
+/// that a new one can start there; anything else is left alone, and nothing is removed where
+/// there is no `state.json` (drivescript did not run there). Called under the run's [`lock`].
+pub fn clear_run(dir: &Path) -> Result<(), LlmError> {
+    if std::fs::symlink_metadata(dir.join("state.json")).is_err() {
+        return Ok(());
+    }
+    let entries = std::fs::read_dir(dir).map_err(|e| err(dir, format!("cannot list it: {e}")))?;
+    for e in entries {
+        let e = e.map_err(|e| err(dir, format!("cannot list it: {e}")))?;
+        let name = e.file_name().to_string_lossy().into_owned();
+        let p = e.path();
+        let removed = match e.file_type() {
+            // A link (to a directory or not) goes, never what it points to.
+            Ok(t) if t.is_dir() && is_round_name(&name) => std::fs::remove_dir_all(&p),
+            Ok(t)
+                if !t.is_dir() && (RUN_FILES.contains(&name.as_str()) || is_round_name(&name)) =>
+            {
+                std::fs::remove_file(&p)
+            }
+            _ => Ok(()),
+        };
+        removed.map_err(|e| err(dir, format!("cannot remove {name} of the earlier run: {e}")))?;
+    }
+    Ok(())
 }
 
 fn is_round_name(name: &str) -> bool {

@@ -93,6 +93,11 @@ pub struct SessionConfig {
     /// ([`SampleConfig::polish`]); runs recorded before it existed had none.
     #[serde(default)]
     pub polish: usize,
+    /// Seconds the cost script may take over one round's sampling, all its evaluations
+    /// together ([`SampleConfig::script_budget`]); runs recorded before it existed get the
+    /// default.
+    #[serde(default = "default_script_budget")]
+    pub script_budget: f64,
     /// Closed loop: steps executed per re-plan.
     pub replan: Option<usize>,
     /// The model's context window (`--context`): every request is fitted to it
@@ -100,6 +105,13 @@ pub struct SessionConfig {
     #[serde(default)]
     pub context: Option<super::fit::Window>,
 }
+
+/// The most refinement rounds a run may have (`--rounds`).
+pub const MAX_ROUNDS: usize = 20;
+/// The most unusable replies in a row a run may allow (`--fixes`).
+pub const MAX_FIXES: usize = 20;
+/// The most agents a scene summary may list (`--max-agents`).
+pub const MAX_AGENTS: usize = 1000;
 
 impl Default for SessionConfig {
     fn default() -> Self {
@@ -115,6 +127,7 @@ impl Default for SessionConfig {
             realism: crate::sample::REALISM_WEIGHT,
             guidance: crate::sample::DEFAULT_GUIDANCE,
             polish: crate::sample::POLISH_STEPS,
+            script_budget: default_script_budget(),
             replan: None,
             context: None,
         }
@@ -122,15 +135,73 @@ impl Default for SessionConfig {
 }
 
 impl SessionConfig {
-    /// Checks the sampler settings ([`SampleConfig::validate`]): done before a run writes
+    /// Checks the loop's settings ([`SessionConfig::problem`]): done before a run writes
     /// anything, so that a bad setting does not fail after the first reply, with the run
     /// directory (or the demo's previous run) already replaced.
     pub fn validate(&self) -> Result<(), LlmError> {
+        if let Some(m) = self.loop_problem() {
+            return Err(LlmError::Setup(format!("session settings: {m}")));
+        }
         self.sample_config().validate().map_err(|e| {
             LlmError::Attempt(crate::sample::AttemptError::Sample(
                 crate::sample::SampleError::Settings(e),
             ))
         })
+    }
+
+    /// The first setting out of its range, named with its range: the loop's own (the ranges
+    /// `ask`'s flags take) and the sampler's ([`SampleConfig::validate`]). `--resume` reads
+    /// them back from `state.json`, where nothing but this check stands between an edited
+    /// number and a huge allocation or a loop that never ends.
+    pub fn problem(&self) -> Option<String> {
+        self.loop_problem()
+            .or_else(|| self.sample_config().validate().err())
+    }
+
+    fn loop_problem(&self) -> Option<String> {
+        let range = |name: &str, v: usize, lo: usize, hi: usize| {
+            (!(lo..=hi).contains(&v)).then(|| format!("{name} = {v}: must be {lo} to {hi}"))
+        };
+        range("rounds", self.rounds, 0, MAX_ROUNDS)
+            .or_else(|| range("fixes", self.fixes, 0, MAX_FIXES))
+            .or_else(|| range("max_agents", self.max_agents, 1, MAX_AGENTS))
+            .or_else(|| {
+                (!(self.tolerance.is_finite() && self.tolerance >= 0.0)).then(|| {
+                    format!(
+                        "tolerance = {}: must be finite and not negative",
+                        self.tolerance
+                    )
+                })
+            })
+            .or_else(|| {
+                let max = crate::sample::MAX_SCRIPT_BUDGET.as_secs_f64();
+                (!(self.script_budget > 0.0 && self.script_budget <= max)).then(|| {
+                    format!(
+                        "script_budget = {} s: must be more than 0 and at most {max} s",
+                        self.script_budget
+                    )
+                })
+            })
+            .or_else(|| {
+                self.replan
+                    .and_then(|r| range("replan", r, 1, crate::io::MAX_STEPS))
+            })
+            .or_else(|| {
+                self.context.and_then(|w| {
+                    (!(super::fit::MIN_CONTEXT..=super::fit::MAX_CONTEXT).contains(&w.tokens)
+                        || w.reply >= w.tokens)
+                        .then(|| {
+                            format!(
+                                "context = {} tokens with {} for the reply: must be {} to {} \
+                                 tokens, the reply's share less than the whole",
+                                w.tokens,
+                                w.reply,
+                                super::fit::MIN_CONTEXT,
+                                super::fit::MAX_CONTEXT
+                            )
+                        })
+                })
+            })
     }
 
     /// The sampler settings: `simulate`'s defaults for behaviours.
@@ -147,9 +218,16 @@ impl SessionConfig {
                 ..crate::cost::Realism::default()
             },
             polish: self.polish,
+            // Out of range, zero: refused by validate, after loop_problem has named it.
+            script_budget: std::time::Duration::try_from_secs_f64(self.script_budget)
+                .unwrap_or_default(),
             ..SampleConfig::default()
         }
     }
+}
+
+fn default_script_budget() -> f64 {
+    crate::sample::DEFAULT_SCRIPT_BUDGET.as_secs_f64()
 }
 
 fn default_guidance() -> crate::sample::Guidance {
@@ -398,7 +476,7 @@ pub struct Session<'a> {
     raw: Scene,
     transcript: Vec<Record>,
     /// Held while the session lives: every way into a run directory takes it.
-    _lock: Option<super::rundir::RunLock>,
+    _lock: super::rundir::RunLock,
 }
 
 /// The most a file of a run directory that drivescript reads back may hold (`state.json`
@@ -476,6 +554,250 @@ pub fn unchecked_clauses(requests: &[String]) -> Vec<String> {
         .collect()
 }
 
+/// The whole numbers of `state.json` (JSON pointers) that the loop reads back as counts and
+/// indices, with the largest each may be before its own range is checked.
+const STATE_COUNTS: &[(&str, u64)] = &[
+    ("/version", u32::MAX as u64),
+    ("/scene_crc32c", u32::MAX as u64),
+    ("/exchange", u64::MAX),
+    ("/sampled", u64::MAX),
+    ("/misses", u64::MAX),
+    ("/meets", u64::MAX),
+    ("/script/0", u64::MAX),
+    ("/config/rounds", u64::MAX),
+    ("/config/fixes", u64::MAX),
+    ("/config/samples", u64::MAX),
+    ("/config/max_agents", u64::MAX),
+    ("/config/seed", u64::MAX),
+    ("/config/polish", u64::MAX),
+    ("/config/replan", u64::MAX),
+    ("/config/context/tokens", u64::MAX),
+    ("/config/context/reply", u64::MAX),
+    ("/outcome/Accepted/round", u64::MAX),
+    ("/outcome/Accepted/sample", u64::MAX),
+    ("/outcome/RoundsUsed/round", u64::MAX),
+    ("/outcome/RoundsUsed/sample", u64::MAX),
+];
+
+/// A JSON pointer as a field path: `/config/rounds` → `config.rounds`, `/script/0` →
+/// `script[0]`.
+fn field_name(pointer: &str) -> String {
+    let mut out = String::new();
+    for part in pointer.split('/').skip(1) {
+        if part.bytes().all(|b| b.is_ascii_digit()) {
+            out.push_str(&format!("[{part}]"));
+        } else {
+            if !out.is_empty() {
+                out.push('.');
+            }
+            out.push_str(part);
+        }
+    }
+    out
+}
+
+/// Reads a run's `state.json`: every count and index the loop reads back must be a whole
+/// number in its range and agree with the rest of the file, or the message names the field.
+/// An edited or damaged file must not wrap a counter (`exchange` at its largest once wrapped
+/// to 0 and overwrote `round_0`), carry on past the rounds, or allocate what it says.
+fn read_state(text: &str) -> Result<State, String> {
+    let value: Value =
+        serde_json::from_str(text).map_err(|e| format!("the file is damaged ({e})"))?;
+    let edited = "the file was edited or damaged; start a new run";
+    let mut pointers: Vec<(String, u64)> = STATE_COUNTS
+        .iter()
+        .map(|(p, max)| (p.to_string(), *max))
+        .collect();
+    let rounds = value
+        .pointer("/history")
+        .and_then(Value::as_array)
+        .map_or(0, Vec::len);
+    pointers.extend((0..rounds).map(|i| (format!("/history/{i}/exchange"), u64::MAX)));
+    for (p, max) in &pointers {
+        match value.pointer(p) {
+            None | Some(Value::Null) => {}
+            Some(v) if v.as_u64().is_some_and(|n| n <= *max) => {}
+            Some(v) => {
+                return Err(format!(
+                    "`{}` is {v}: must be a whole number, {}; {edited}",
+                    field_name(p),
+                    if *max == u64::MAX {
+                        "0 or more".to_string()
+                    } else {
+                        format!("0 to {max}")
+                    }
+                ))
+            }
+        }
+    }
+    let state: State =
+        serde_json::from_value(value).map_err(|e| format!("the file is damaged ({e})"))?;
+    if state.version != STATE_VERSION {
+        return Err(format!(
+            "version {}: this drivescript reads {STATE_VERSION}",
+            state.version
+        ));
+    }
+    state.check().map_err(|m| format!("{m}; {edited}"))?;
+    Ok(state)
+}
+
+impl State {
+    /// The counts and indices against each other and the settings ([`read_state`]).
+    fn check(&self) -> Result<(), String> {
+        let c = &self.config;
+        if let Some(m) = c.problem() {
+            return Err(format!("`config`: {m}"));
+        }
+        // Every exchange adds the model's reply to the messages: the two counts are one.
+        let replies = self
+            .messages
+            .iter()
+            .filter(|m| m.role == "assistant")
+            .count();
+        if self.exchange != replies {
+            return Err(format!(
+                "`exchange` is {}, but `messages` holds {replies} replies of the model (one \
+                 per exchange)",
+                self.exchange
+            ));
+        }
+        if self.sampled > c.rounds + 1 {
+            return Err(format!(
+                "`sampled` is {}: a run samples at most `config.rounds` + 1 = {} times",
+                self.sampled,
+                c.rounds + 1
+            ));
+        }
+        if self.sampled > self.history.len() {
+            return Err(format!(
+                "`sampled` is {}, but `history` records {} sampling rounds",
+                self.sampled,
+                self.history.len()
+            ));
+        }
+        if self.misses > c.fixes + 1 {
+            return Err(format!(
+                "`misses` is {}: a run gives up after `config.fixes` + 1 = {} in a row",
+                self.misses,
+                c.fixes + 1
+            ));
+        }
+        let mut before = None;
+        for (i, r) in self.history.iter().enumerate() {
+            if r.exchange >= self.exchange || before.is_some_and(|b| r.exchange <= b) {
+                return Err(format!(
+                    "`history[{i}].exchange` is {}: the sampled exchanges must rise, each below \
+                     `exchange` ({})",
+                    r.exchange, self.exchange
+                ));
+            }
+            before = Some(r.exchange);
+        }
+        let round = |name: &str, r: usize| {
+            if r >= self.exchange {
+                Err(format!(
+                    "`{name}` is {r}: must be an exchange of the run, below `exchange` ({})",
+                    self.exchange
+                ))
+            } else {
+                Ok(())
+            }
+        };
+        let sample = |name: &str, k: usize| {
+            if k >= c.samples {
+                Err(format!(
+                    "`{name}` is {k}: must be a sample of the round, below `config.samples` ({})",
+                    c.samples
+                ))
+            } else {
+                Ok(())
+            }
+        };
+        if let Some((r, _)) = &self.script {
+            round("script[0]", *r)?;
+        }
+        if let Some(k) = self.meets {
+            sample("meets", k)?;
+        }
+        match &self.outcome {
+            Some(Outcome::Accepted {
+                round: r,
+                sample: k,
+            }) => {
+                round("outcome.Accepted.round", *r)?;
+                sample("outcome.Accepted.sample", *k)?;
+            }
+            Some(Outcome::RoundsUsed {
+                round: r,
+                sample: k,
+            }) => {
+                round("outcome.RoundsUsed.round", *r)?;
+                if let Some(k) = k {
+                    sample("outcome.RoundsUsed.sample", *k)?;
+                }
+            }
+            _ => {}
+        }
+        Ok(())
+    }
+}
+
+/// Opens `dir` for a new run: refused before anything is written where `config` or the
+/// scene's id cannot run, and where `dir` is not a directory; then locked, and refused where
+/// it holds a batch or (unless `replace`, which removes it) another run, or files of the
+/// user's that a run would replace.
+fn open_new(
+    dir: &Path,
+    scene_path: &Path,
+    raw: &Scene,
+    config: &SessionConfig,
+    replace: bool,
+) -> Result<super::rundir::RunLock, LlmError> {
+    let held = || {
+        run_err(
+            dir,
+            "it already holds a run (state.json): continue it with --resume, revise it with \
+             --continue, or choose another -o",
+        )
+    };
+    if !replace && dir.join("state.json").exists() {
+        return Err(held());
+    }
+    // Refused before anything is asked: the rollouts are named after the scenario.
+    output_stem(&raw.meta.scenario_id).map_err(|e| LlmError::Input {
+        path: scene_path.to_path_buf(),
+        message: e.to_string(),
+    })?;
+    config.validate()?;
+    crate::io::create_output_dir(dir).map_err(|e| LlmError::Input {
+        path: dir.to_path_buf(),
+        message: format!(
+            "{}: -o names the run directory, where the run writes its rounds; give a new or \
+             empty directory",
+            match e {
+                crate::io::IoError::Invalid { message, .. } => message,
+                other => other.reason(),
+            }
+        ),
+    })?;
+    let lock = super::rundir::lock(dir)?;
+    super::rundir::check_kind(
+        dir,
+        super::rundir::Kind::Run,
+        "give this run a new or empty -o",
+    )?;
+    if replace {
+        super::rundir::clear_run(dir)?;
+    }
+    // Checked again under the lock: another `ask` may have started here meanwhile.
+    if dir.join("state.json").exists() {
+        return Err(held());
+    }
+    super::rundir::check_fresh(dir)?;
+    Ok(lock)
+}
+
 impl<'a> Session<'a> {
     /// Starts a run in `dir` (created; it must not hold another run).
     #[allow(clippy::too_many_arguments)]
@@ -490,27 +812,46 @@ impl<'a> Session<'a> {
         config: SessionConfig,
         checks: Option<Vec<(Behavior, Params)>>,
     ) -> Result<Self, LlmError> {
-        if dir.join("state.json").exists() {
-            return Err(run_err(
-                dir,
-                "it already holds a run (state.json): continue it with --resume, revise it with \
-                 --continue, or choose another -o",
-            ));
-        }
-        // Refused before anything is asked: the rollouts are named after the scenario.
-        output_stem(&raw.meta.scenario_id).map_err(|e| run_err(scene_path, e.to_string()))?;
-        config.validate()?;
-        crate::io::create_output_dir(dir).map_err(|e| run_err(dir, e.reason()))?;
-        let lock = super::rundir::lock(dir)?;
-        // Checked again under the lock: another `ask` may have started here meanwhile.
-        if dir.join("state.json").exists() {
-            return Err(run_err(
-                dir,
-                "it already holds a run (state.json): continue it with --resume, revise it with \
-                 --continue, or choose another -o",
-            ));
-        }
-        super::rundir::check_fresh(dir)?;
+        let lock = open_new(dir, scene_path, &raw, &config, false)?;
+        Self::begin(
+            lock, dir, scene_path, raw, request, trained, backend, prompts, config, checks,
+        )
+    }
+
+    /// [`Session::start`] in a directory whose earlier run (only the files a run writes) is
+    /// removed first, under the run's lock: `demo`, which is run again and again into one
+    /// directory. Anything else there is left alone.
+    #[allow(clippy::too_many_arguments)]
+    pub fn replace(
+        dir: &Path,
+        scene_path: &Path,
+        raw: Scene,
+        request: &str,
+        trained: &'a Trained,
+        backend: Backend,
+        prompts: Prompts,
+        config: SessionConfig,
+        checks: Option<Vec<(Behavior, Params)>>,
+    ) -> Result<Self, LlmError> {
+        let lock = open_new(dir, scene_path, &raw, &config, true)?;
+        Self::begin(
+            lock, dir, scene_path, raw, request, trained, backend, prompts, config, checks,
+        )
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn begin(
+        lock: super::rundir::RunLock,
+        dir: &Path,
+        scene_path: &Path,
+        raw: Scene,
+        request: &str,
+        trained: &'a Trained,
+        backend: Backend,
+        prompts: Prompts,
+        config: SessionConfig,
+        checks: Option<Vec<(Behavior, Params)>>,
+    ) -> Result<Self, LlmError> {
         let requests = vec![request.trim().to_string()];
         if let Backend::Rules = backend {
             // Fails early, with the message that says an LLM is needed.
@@ -564,7 +905,7 @@ impl<'a> Session<'a> {
             trained,
             raw,
             transcript: Vec::new(),
-            _lock: Some(lock),
+            _lock: lock,
         };
         let first = first_messages(
             &s.prompts,
@@ -586,30 +927,39 @@ impl<'a> Session<'a> {
         backend: impl FnOnce(&str, Option<&str>, Option<&str>) -> Result<Backend, LlmError>,
         load: impl FnOnce(&Path) -> Result<Scene, LlmError>,
     ) -> Result<Self, LlmError> {
-        // Taken before state.json is read: a run still going there would go on writing it.
-        let lock = if dir.is_dir() {
-            Some(super::rundir::lock(dir)?)
-        } else {
-            None
+        let not_a_run = |what: &str| LlmError::Input {
+            path: dir.to_path_buf(),
+            message: format!(
+                "{what}: --resume and --continue take the directory of a run, the -o DIR of \
+                 `drivescript ask SCENE \"request\" -o DIR`"
+            ),
         };
+        match std::fs::metadata(dir) {
+            Ok(m) if m.is_dir() => {}
+            Ok(_) => return Err(not_a_run("is a file, not a run directory")),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                return Err(not_a_run("does not exist"))
+            }
+            Err(e) => return Err(not_a_run(&format!("cannot be read ({e})"))),
+        }
+        // Taken before state.json is read: a run still going there would go on writing it.
+        let lock = super::rundir::lock(dir)?;
+        super::rundir::check_kind(
+            dir,
+            super::rundir::Kind::Run,
+            "run the batch's command again to continue it, or resume one of its pairs with \
+             --resume DIR/runs/NNN_...",
+        )?;
         let p = dir.join("state.json");
-        let text = read_run_file(&p).map_err(|e| {
-            run_err(
-                dir,
-                format!("no run to resume here: cannot read state.json ({}); start one with `drivescript ask SCENE \"request\" -o DIR`", e.reason()),
-            )
-        })?;
-        let state: State = serde_json::from_str(&text)
-            .map_err(|e| run_err(dir, format!("state.json is damaged ({e})")))?;
-        if state.version != STATE_VERSION {
-            return Err(run_err(
-                dir,
-                format!(
-                    "state.json has version {}, this drivescript reads {STATE_VERSION}",
-                    state.version
-                ),
+        if std::fs::symlink_metadata(&p).is_err() {
+            return Err(not_a_run(
+                "holds no run to resume (there is no state.json); start one with `drivescript \
+                 ask SCENE \"request\" -o DIR`",
             ));
         }
+        let text = read_run_file(&p)
+            .map_err(|e| run_err(dir, format!("cannot read state.json ({})", e.reason())))?;
+        let state = read_state(&text).map_err(|m| run_err(dir, format!("state.json: {m}")))?;
         if let Some(was) = state.scene_crc32c {
             if scene_fingerprint(&state.scene) != Some(was) {
                 return Err(run_err(
@@ -1625,6 +1975,153 @@ pub fn render_messages(messages: &[Message]) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The state of a run that sampled once (exchange 0) and was refined once (exchange 1),
+    /// as `state.json` holds it.
+    fn sampled_once() -> Value {
+        let state = State {
+            version: STATE_VERSION,
+            scene: "scene.xml".into(),
+            scene_crc32c: Some(7),
+            requests: vec!["vehicle 401 cuts in front of vehicle 399".into()],
+            backend: "rules".into(),
+            model: None,
+            url: None,
+            config: SessionConfig::default(),
+            prompts: "prompts".into(),
+            checks: Vec::new(),
+            messages: vec![
+                Message::new("system", "s"),
+                Message::new("user", "u"),
+                Message::new("assistant", "a script"),
+                Message::new("user", "feedback"),
+                Message::new("assistant", "another script"),
+                Message::new("user", "feedback"),
+            ],
+            exchange: 2,
+            sampled: 2,
+            misses: 0,
+            script: Some((1, "term(\"x\", 0.0);".into())),
+            meets: Some(3),
+            tunings: Vec::new(),
+            event_results: Vec::new(),
+            failing_terms: Vec::new(),
+            history: [0, 1]
+                .map(|exchange| RoundRecord {
+                    exchange,
+                    meets: true,
+                    achieved: true,
+                    passed: true,
+                    reasons: Vec::new(),
+                    success: Some(true),
+                })
+                .to_vec(),
+            left_out: Vec::new(),
+            last_error: None,
+            accept_refused: false,
+            final_turn: false,
+            outcome: Some(Outcome::Accepted {
+                round: 1,
+                sample: 3,
+            }),
+        };
+        serde_json::to_value(state).unwrap()
+    }
+
+    #[test]
+    fn state_json_counts_out_of_range_are_errors_naming_the_field() {
+        read_state(&sampled_once().to_string()).unwrap();
+        let edit = |pointer: &str, v: Value| {
+            let mut state = sampled_once();
+            *state.pointer_mut(pointer).unwrap() = v;
+            read_state(&state.to_string()).unwrap_err()
+        };
+        for (pointer, v, says) in [
+            // Once wrapped to 0 on the next reply, overwriting round_0.
+            (
+                "/exchange",
+                json!(u64::MAX),
+                "`exchange` is 18446744073709551615, but",
+            ),
+            (
+                "/exchange",
+                json!(-1),
+                "`exchange` is -1: must be a whole number",
+            ),
+            (
+                "/exchange",
+                json!(1e30),
+                "`exchange` is 1e+30: must be a whole number",
+            ),
+            (
+                "/sampled",
+                json!(-3),
+                "`sampled` is -3: must be a whole number",
+            ),
+            // Once a silent carry-on: the next sampling ended the run at once.
+            (
+                "/sampled",
+                json!(u64::MAX),
+                "`sampled` is 18446744073709551615: a run samples at most `config.rounds` + 1 = 4",
+            ),
+            (
+                "/misses",
+                json!(50),
+                "`misses` is 50: a run gives up after `config.fixes` + 1 = 4",
+            ),
+            (
+                "/meets",
+                json!(4),
+                "`meets` is 4: must be a sample of the round, below `config.samples` (4)",
+            ),
+            (
+                "/script/0",
+                json!(2),
+                "`script[0]` is 2: must be an exchange of the run",
+            ),
+            (
+                "/history/1/exchange",
+                json!(0),
+                "`history[1].exchange` is 0",
+            ),
+            (
+                "/history/0/exchange",
+                json!(-2),
+                "`history[0].exchange` is -2: must be a whole number",
+            ),
+            (
+                "/outcome/Accepted/sample",
+                json!(9),
+                "`outcome.Accepted.sample` is 9",
+            ),
+            (
+                "/config/samples",
+                json!(1_000_000_000u64),
+                "`config`: samples = 1000000000: must be 1 to 1024",
+            ),
+            (
+                "/config/rounds",
+                json!(1u64 << 40),
+                "`config`: rounds = 1099511627776: must be 0 to 20",
+            ),
+            (
+                "/config/max_agents",
+                json!(0),
+                "`config`: max_agents = 0: must be 1 to 1000",
+            ),
+        ] {
+            let e = edit(pointer, v);
+            assert!(e.contains(says), "{pointer}: {e}");
+            assert!(
+                e.contains("edited or damaged") || e.contains("damaged"),
+                "{pointer}: {e}"
+            );
+        }
+        let mut state = sampled_once();
+        state["history"].as_array_mut().unwrap().pop();
+        let e = read_state(&state.to_string()).unwrap_err();
+        assert!(e.contains("`sampled` is 2, but `history` records 1"), "{e}");
+    }
 
     #[test]
     fn guidance_is_one_setting_and_runs_recorded_with_the_old_flag_read_it() {

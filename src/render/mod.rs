@@ -5,12 +5,14 @@
 
 mod draw;
 mod font;
+mod format;
 mod gif;
 mod raster;
 mod svg;
 
 pub use self::gif::{render_gif, MAX_GIF_FRAMES};
 pub use draw::View;
+pub use format::PictureFormat;
 pub use raster::render_png;
 pub use svg::render_svg;
 

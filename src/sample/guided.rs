@@ -77,6 +77,15 @@ pub const REALISM_WEIGHT: f64 = 1.0;
 /// `demo` and `ask` unless told otherwise.
 pub const POLISH_STEPS: usize = 300;
 
+/// The default [`SampleConfig::script_budget`]: five minutes of script evaluation per sampling
+/// run. The hand-written scripts take a few milliseconds per evaluation, a run of four
+/// samples a few hundred evaluations (Heun steps, then two stages of polish): seconds in all.
+/// A script at 1.8 s per evaluation, within the per-call wall time, would take over an hour.
+pub const DEFAULT_SCRIPT_BUDGET: std::time::Duration = std::time::Duration::from_secs(300);
+
+/// The largest [`SampleConfig::script_budget`]: a day.
+pub const MAX_SCRIPT_BUDGET: std::time::Duration = std::time::Duration::from_secs(86_400);
+
 /// How the guidance step depends on the noise level σ.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum LambdaSchedule {
@@ -143,6 +152,10 @@ pub struct SampleConfig {
     /// model of 8 s samples 4 s by generating its whole future and keeping the first 40
     /// steps: guidance and the conditional end point act on those alone.
     pub horizon: Option<usize>,
+    /// Wall time the cost scripts may take, all their evaluations together, over a sampling
+    /// run (one scene's samples, validation, every round of a closed loop): past it the run
+    /// stops with [`SampleError::ScriptBudget`] rather than go on for hours.
+    pub script_budget: std::time::Duration,
 }
 
 impl SampleConfig {
@@ -175,6 +188,13 @@ impl SampleConfig {
         if self.polish > 1000 {
             return Err(format!("polish = {}: must be 0 to 1000", self.polish));
         }
+        if self.script_budget.is_zero() || self.script_budget > MAX_SCRIPT_BUDGET {
+            return Err(format!(
+                "script budget = {} s: must be more than 0 and at most {} s",
+                self.script_budget.as_secs_f64(),
+                MAX_SCRIPT_BUDGET.as_secs()
+            ));
+        }
         let m = self.realism.margin;
         if !(m > 0.0 && m <= 1.0) {
             return Err(format!("realism margin = {m}: must be in (0, 1]"));
@@ -201,6 +221,7 @@ impl Default for SampleConfig {
             },
             polish: 0,
             horizon: None,
+            script_budget: DEFAULT_SCRIPT_BUDGET,
         }
     }
 }
@@ -228,6 +249,38 @@ pub enum SampleError {
     /// Settings sampling cannot run with ([`SampleConfig::validate`]).
     #[error("sampler settings: {0}")]
     Settings(String),
+    /// The cost scripts took longer than the run's budget ([`SampleConfig::script_budget`]).
+    #[error(
+        "the cost scripts took {:.1} s over {} evaluations ({:.3} s each), past this run's budget \
+         of {} s for script evaluation (--script-budget): a sampling run evaluates its scripts \
+         hundreds of times (every denoising step and polish iteration, for every sample), so a \
+         script this slow would run for a long time; make it faster (fewer operations per \
+         evaluation: no long loops over steps) or raise --script-budget",
+        used.time.as_secs_f64(),
+        used.evaluations,
+        used.mean().as_secs_f64(),
+        budget.as_secs_f64()
+    )]
+    ScriptBudget {
+        /// The budget.
+        budget: std::time::Duration,
+        /// The scripts' evaluations and their time when it ran out.
+        used: crate::cost::Usage,
+    },
+}
+
+/// Stops a run whose scripts have taken more than `cfg.script_budget` together.
+fn check_script_budget(scripts: &[CostScript], cfg: &SampleConfig) -> Result<(), SampleError> {
+    let used = scripts
+        .iter()
+        .fold(crate::cost::Usage::default(), |u, s| u.plus(s.usage()));
+    if used.time > cfg.script_budget {
+        return Err(SampleError::ScriptBudget {
+            budget: cfg.script_budget,
+            used,
+        });
+    }
+    Ok(())
 }
 
 impl From<candle_core::Error> for SampleError {
@@ -956,13 +1009,17 @@ pub(crate) fn sample_after(
     executed: Option<Executed>,
     cfg: &SampleConfig,
 ) -> Result<Vec<Sample>, SampleError> {
-    let evaluate = |script: &CostScript, t: &Trajectories| -> Result<CostReport, CostError> {
-        match executed {
-            None => script.evaluate(t),
-            Some(e) => Ok(script
+    // Every evaluation of the run is counted against its budget, the closed loop's rounds
+    // (which share the compiled scripts) included.
+    let evaluate = |script: &CostScript, t: &Trajectories| -> Result<CostReport, SampleError> {
+        let report = match executed {
+            None => script.evaluate(t)?,
+            Some(e) => script
                 .evaluate(&e.trajectories.spliced(e.steps, t))?
-                .shifted(e.steps, t.layout)),
-        }
+                .shifted(e.steps, t.layout),
+        };
+        check_script_budget(scripts, cfg)?;
+        Ok(report)
     };
     let dev = Device::Cpu;
     let c = scene.meta.current_step;
@@ -1460,6 +1517,67 @@ pub(crate) mod tests {
                 "{guidance:?}: {msg}"
             );
         }
+    }
+
+    #[test]
+    fn a_slow_script_stops_the_run_at_its_budget_saying_how_many_evaluations_ran() {
+        let (t, s) = setup();
+        // Within the per-call wall time, slow over a run: a long loop at every evaluation.
+        let slow = || {
+            CostScript::compile(
+                "let n = 0; for i in 0..40000 { n += 1; }\n\
+                 let a = agent(3); term(\"ahead\", relu(100.0 - a.x.last()));",
+                "slow.rhai",
+                Rc::new(s.clone()),
+                &Params::default(),
+                &Limits::default(),
+            )
+            .unwrap()
+        };
+        let cfg = SampleConfig {
+            lambda: 1.0,
+            ..quick()
+        };
+        let whole = slow();
+        sample(&t, &s, std::slice::from_ref(&whole), &cfg).unwrap();
+        let full = whole.usage();
+        let budget = full.time / 4;
+        let script = slow();
+        let err = sample(
+            &t,
+            &s,
+            std::slice::from_ref(&script),
+            &SampleConfig {
+                script_budget: budget,
+                ..cfg
+            },
+        )
+        .err()
+        .expect("a run past its budget must not yield samples");
+        let SampleError::ScriptBudget { used, .. } = &err else {
+            panic!("{err}");
+        };
+        // Stopped at the evaluation that crossed the budget, not at the end of the run.
+        assert_eq!(*used, script.usage());
+        assert!(used.time > budget, "{err}");
+        assert!(
+            used.evaluations >= 1 && used.evaluations < full.evaluations,
+            "{} of {}: {err}",
+            used.evaluations,
+            full.evaluations
+        );
+        let msg = err.to_string();
+        assert!(
+            msg.contains(&format!("over {} evaluations (", used.evaluations))
+                && msg.contains("s each)")
+                && msg.contains("--script-budget"),
+            "{msg}"
+        );
+        let zero = SampleConfig {
+            script_budget: std::time::Duration::ZERO,
+            ..cfg
+        };
+        assert!(zero.validate().unwrap_err().contains("script budget = 0 s"));
     }
 
     #[test]
