@@ -14,7 +14,9 @@ on 2 shared cores: median 178 unguided, 23 guided), but a 30-second MLP over 461
 gives no sample the checker passes, guided or not (docs/python.md): they end beside the
 victim's lane or short of getting ahead of the victim.
 
-Run from the repository root: python python/examples/flow_prior.py [--seconds 30]
+Run from the repository root: python python/examples/flow_prior.py [--seconds 30] [--device cuda]
+(the model trains and samples on --device; drivescript scores its samples on the CPU and hands
+the gradient back on the model's device).
 """
 
 import argparse
@@ -40,7 +42,7 @@ def to_frame(points, origin, heading):
     return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
 
 
-def windows():
+def windows(device):
     """(history, future) pairs in each agent's frame from every CommonRoad sample."""
     hist, fut = [], []
     for path in sorted((ROOT / "data/samples/commonroad").glob("*.xml")):
@@ -57,8 +59,8 @@ def windows():
                 hist.append(xy[:HIST].ravel())
                 fut.append(xy[HIST + 1 :].ravel())
     return (
-        torch.tensor(np.array(hist), dtype=torch.float32) / SCALE,
-        torch.tensor(np.array(fut), dtype=torch.float32) / SCALE,
+        torch.tensor(np.array(hist), dtype=torch.float32, device=device) / SCALE,
+        torch.tensor(np.array(fut), dtype=torch.float32, device=device) / SCALE,
     )
 
 
@@ -85,10 +87,10 @@ def train(model, hist, fut, seconds):
     opt = torch.optim.AdamW(model.parameters(), lr=2e-3)
     start, step = time.perf_counter(), 0
     while time.perf_counter() - start < seconds:
-        i = torch.randint(0, len(fut), (256,))
+        i = torch.randint(0, len(fut), (256,), device=fut.device)
         x1, cond = fut[i], hist[i]
         x0 = torch.randn_like(x1)
-        t = torch.rand(len(i), 1)
+        t = torch.rand(len(i), 1, device=fut.device)
         loss = (model(x0 + t * (x1 - x0), t, cond) - (x1 - x0)).pow(2).mean()
         opt.zero_grad()
         loss.backward()
@@ -102,12 +104,14 @@ def train(model, hist, fut, seconds):
 def sample(model, scene, script, cond, origin, heading, k, guidance, steps=20, seed=0):
     """k futures of the cutter, world frame [k, FUT, 3], guided when `guidance` > 0."""
     a = scene.agent_ids.index(PARAMS["cutter"])
-    log = torch.tensor(scene.log_future(FUT))
+    dev = cond.device
+    log = torch.tensor(scene.log_future(FUT), device=dev)
     c, s = math.cos(heading), math.sin(heading)
-    rot = torch.tensor([[c, -s], [s, c]], dtype=torch.float64)
-    org = torch.tensor(origin, dtype=torch.float64)
+    rot = torch.tensor([[c, -s], [s, c]], dtype=torch.float64, device=dev)
+    org = torch.tensor(origin, dtype=torch.float64, device=dev)
+    # Noise drawn on the CPU: the same seed gives the same starting points on every device.
     g = torch.Generator().manual_seed(seed)
-    x = torch.randn(k, 2 * FUT, generator=g)
+    x = torch.randn(k, 2 * FUT, generator=g).to(dev)
     cond = cond.expand(k, -1)
 
     def world(x1):
@@ -118,7 +122,7 @@ def sample(model, scene, script, cond, origin, heading, k, guidance, steps=20, s
         return torch.cat([xy, h.unsqueeze(-1)], dim=2)
 
     for n in range(steps):
-        t = torch.full((k, 1), n / steps)
+        t = torch.full((k, 1), n / steps, device=dev)
         with torch.no_grad():
             v = model(x, t, cond)
         if guidance > 0:
@@ -129,7 +133,7 @@ def sample(model, scene, script, cond, origin, heading, k, guidance, steps=20, s
             v = v - guidance * x1.grad.clamp(-1, 1)
         x = x + v / steps
     with torch.no_grad():
-        return world(x).numpy()
+        return world(x).cpu().numpy()
 
 
 def main():
@@ -138,24 +142,26 @@ def main():
     parser.add_argument("--samples", type=int, default=8)
     parser.add_argument("--guidance", type=float, default=2.0)
     parser.add_argument("--threads", type=int, default=1, help="PyTorch threads")
+    parser.add_argument("--device", default="cpu", help="PyTorch device for the model (cpu, cuda, ...)")
     args = parser.parse_args()
+    device = torch.device(args.device)
     # The model is small: one thread trains it fastest, and on a busy machine several spin
     # against each other (2 threads: 2.4 steps/s, 1 thread: 238, on 2 shared cores).
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     t0 = time.perf_counter()
-    hist, fut = windows()
+    hist, fut = windows(device)
     print(f"{len(fut)} windows of {HIST} history and {FUT} future steps from data/samples")
-    model = Flow()
+    model = Flow().to(device)
     steps = train(model, hist, fut, args.seconds)
-    print(f"trained {steps} steps in {args.seconds:.0f} s")
+    print(f"trained {steps} steps in {args.seconds:.0f} s on {device}")
 
     scene = ds.Scene.load(ROOT / "data/samples/commonroad/USA_US101-4_1_T-1.xml")
     script = ds.CostScript.from_file(ROOT / "scripts/cut_in.rhai", params=PARAMS)
     a = scene.agent_ids.index(PARAMS["cutter"])
     past = scene.log_history()[a]
     origin, heading = past[-1, :2], past[-1, 2]
-    cond = torch.tensor(to_frame(past[-HIST:, :2], origin, heading).ravel(), dtype=torch.float32) / SCALE
+    cond = torch.tensor(to_frame(past[-HIST:, :2], origin, heading).ravel(), dtype=torch.float32, device=device) / SCALE
     log = scene.log_future(FUT)
     for name, g in [("unguided", 0.0), ("guided", args.guidance)]:
         cutter = sample(model, scene, script, cond.unsqueeze(0), origin, heading, args.samples, g)

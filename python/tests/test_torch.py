@@ -90,3 +90,49 @@ def test_the_optimisation_example_ends_in_a_cut_in_that_the_checker_passes():
     )
     assert out.returncode == 0, out.stderr
     assert 'checker on the optimised trajectories: Verdict(passed=True, reason="cuts in")' in out.stdout, out.stdout
+
+
+needs_cuda = pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="skipped: no CUDA device (torch.cuda.is_available() is False)"
+)
+
+
+@needs_cuda
+def test_a_cuda_tensor_gets_its_cost_and_gradient_on_its_device(ds, scene, cut_in):
+    # Planners keep their trajectories on the GPU: the cost and its gradient come back there,
+    # equal to the CPU's in float64 and within float32 rounding in float32.
+    traj = scene.log_future(40)
+    r = cut_in.evaluate(scene, traj)
+    for dtype in (torch.float64, torch.float32):
+        t = torch.tensor(traj, dtype=dtype, device="cuda", requires_grad=True)
+        cost = ds.torch.cost(cut_in, scene, t)
+        assert cost.device.type == "cuda" and cost.dtype == dtype
+        cost.backward()
+        assert t.grad.device.type == "cuda" and t.grad.dtype == dtype
+        g = t.grad.cpu().double().numpy()
+        if dtype == torch.float64:
+            assert cost.item() == r.total
+            assert np.array_equal(g, r.grad)
+        else:
+            r32 = cut_in.evaluate(scene, traj.astype(np.float32).astype(np.float64))
+            assert cost.item() == pytest.approx(r32.total, rel=1e-6)
+            np.testing.assert_allclose(g, r32.grad, rtol=1e-5, atol=1e-6)
+
+
+@needs_cuda
+def test_a_cuda_batch_and_gradcheck_on_the_device(ds, scene):
+    rl = ds.CostScript.from_file(ROOT / "scripts/rightmost_lane.rhai", params={"vehicle": 405})
+    traj = scene.log_future(12)
+    keep = ~np.isnan(traj).any(axis=(1, 2))
+    rng = np.random.default_rng(3)
+    traj[keep, :, :2] += rng.normal(0, 0.2, size=traj[keep, :, :2].shape)
+    batch = torch.tensor(np.stack([traj, traj + np.array([0.0, -1.0, 0.0])]), device="cuda", requires_grad=True)
+    costs = ds.torch.cost(rl, scene, batch)
+    assert costs.shape == (2,) and costs.device.type == "cuda"
+    costs.sum().backward()
+    for b in range(2):
+        r = rl.evaluate(scene, batch[b].detach().cpu().numpy())
+        assert costs[b].item() == r.total
+        assert np.array_equal(batch.grad[b].cpu().numpy(), r.grad)
+    t = torch.tensor(traj, device="cuda", requires_grad=True)
+    assert torch.autograd.gradcheck(lambda x: ds.torch.cost(rl, scene, x), (t,), eps=1e-6, atol=1e-5, rtol=1e-4)
