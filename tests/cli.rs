@@ -800,7 +800,7 @@ fn eval_scores_rollouts_over_their_own_horizon_by_default() {
         .unwrap()
         .replace(
             "{id: 4, lane: 0, s: 20, speed: 18}",
-            "{id: 4, lane: 0, s: 40, speed: 30.5}",
+            "{id: 4, lane: 0, s: 40, speed: 30.5}\n  - {id: 5, type: cyclist, lane: 2, s: 200, speed: 6}",
         );
     let scene = dir.path().join("highway.yaml");
     std::fs::write(&scene, text.replace("steps: 81", "steps: 41")).unwrap();
@@ -840,6 +840,12 @@ fn eval_scores_rollouts_over_their_own_horizon_by_default() {
     );
     assert!(
         out.contains("horizon (future steps scored after the current step): 40 steps, the rollouts' own (1 scene)"),
+        "{out}"
+    );
+    // A verdict is the scene's: the rows of one agent type have none (they read 0 before).
+    assert!(
+        out.contains("| log replay | vehicles | accident | - | - | - |")
+            && out.contains("| log replay | cyclists | accident | - | - | - |"),
         "{out}"
     );
     // An explicit horizon still rules, and is said.

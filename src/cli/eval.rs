@@ -464,11 +464,12 @@ fn header(task: Task, grouped: bool) -> String {
     format!("| {} |\n{}|", all.join(" | "), "|---".repeat(all.len()))
 }
 
-/// One method's row of the table (`group` names the group of a grouped table) and its JSON.
+/// One method's row of the table (`group` names the group of a grouped table, and says
+/// whether it holds whole scenes, as map kinds do, or one type's agents) and its JSON.
 fn table_row(
     task: Task,
     name: &str,
-    group: Option<&str>,
+    group: Option<(&str, bool)>,
     acc: &Tally,
     behaviour: Option<Behavior>,
     bins: &JsdBins,
@@ -486,9 +487,10 @@ fn table_row(
     let ms = ms.filter(|_| group.is_none());
     let ms_text = fmt(ms, 1);
     let lead = match group {
-        Some(g) => format!("| {name} | {g}"),
+        Some((g, _)) => format!("| {name} | {g}"),
         None => format!("| {name}"),
     };
+    let whole_scenes = group.is_none_or(|(_, whole)| whole);
     // Figures of whole scenes are not split by agent type: a dash in those rows.
     let (line, mut row) = match task {
         Task::Conditional => {
@@ -534,17 +536,19 @@ fn table_row(
             let b = behaviour.expect("behaviour task");
             let of = |n: usize| (acc.checked > 0).then(|| n as f64 / acc.checked as f64);
             let (rate, achieved) = (of(acc.passed), of(acc.achieved));
+            // A verdict is a scene's: a row of one agent type has none, not zero.
+            let checked = whole_scenes.then_some(acc.checked);
             (
                 format!(
                     "{lead} | {} | {} | {} | {} | {} | {} | {ms_text} |",
                     b.name(),
-                    acc.checked,
+                    checked.map_or("-".to_string(), |n| n.to_string()),
                     fmt(rate, 2),
                     fmt(achieved, 2),
                     fmt(collided, 3),
                     fmt(implausible, 3)
                 ),
-                json!({"method": name, "behaviour": b.name(), "definition": b.definition(), "checked": acc.checked,
+                json!({"method": name, "behaviour": b.name(), "definition": b.definition(), "checked": checked,
                     "success_rate": rate, "achieved_rate": achieved, "ms_per_scene": num(ms)}),
             )
         }
@@ -601,10 +605,12 @@ fn report(
     if kinds > 1 || types > 1 {
         println!("\nby map kind (urban: two or more lanes turn, at junctions) and agent type:\n");
         println!("{}", header(task, true));
-        for (_, g) in &present {
+        for (group, g) in &present {
             for (name, acc) in methods.iter().zip(accs) {
                 if let Some(t) = acc.groups.get(g).filter(|t| t.scenes > 0) {
-                    let (line, mut row) = table_row(task, name, Some(g), t, behaviour, &bins);
+                    let whole = group.agent.is_none();
+                    let (line, mut row) =
+                        table_row(task, name, Some((g, whole)), t, behaviour, &bins);
                     println!("{line}");
                     row["group"] = json!(g);
                     groups_json.push(row);

@@ -332,14 +332,20 @@ pub struct Bins {
     pub n: usize,
 }
 
-/// Bin ranges of the four realism histograms.
+/// Bin ranges of the four realism histograms. The signed ones (angular speed, acceleration)
+/// have an odd number of bins, one centred on zero, as WOSAC's configuration has: with an
+/// edge at zero, the sign of a rounding error decides the bin of the distribution's mode. A
+/// SUMO log holds its heading exactly at 52 % of vehicle steps (angular speed 0.0, the bin
+/// above zero) and changes it by -1e-9 at 1 % (the bin below); samples that hold their
+/// headings read as far from that log as lane following's (JSD 0.179 against 0.083 on the
+/// held-out preview) with 40 bins, and 0.079 against 0.066 with 41.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
 pub struct JsdBins {
     /// Linear speed (default 0..40 m/s, 40 bins).
     pub speed: Bins,
-    /// Angular speed (default -1..1 rad/s, 40 bins).
+    /// Angular speed (default -1..1 rad/s, 41 bins).
     pub angular_speed: Bins,
-    /// Acceleration (default -8..8 m/s², 40 bins).
+    /// Acceleration (default -8..8 m/s², 41 bins).
     pub accel: Bins,
     /// Nearest-vehicle distance (default 0..60 m, 40 bins).
     pub nearest_vehicle: Bins,
@@ -356,12 +362,12 @@ impl Default for JsdBins {
             angular_speed: Bins {
                 lo: -1.0,
                 hi: 1.0,
-                n: 40,
+                n: 41,
             },
             accel: Bins {
                 lo: -8.0,
                 hi: 8.0,
-                n: 40,
+                n: 41,
             },
             nearest_vehicle: Bins {
                 lo: 0.0,

@@ -85,6 +85,36 @@ fn identical_distributions_have_zero_distance() {
 }
 
 #[test]
+fn the_sign_of_a_rounding_error_does_not_move_a_signed_feature_to_another_bin() {
+    // A log that holds its headings and speeds exactly, but for rounding of either sign, and
+    // samples that hold them exactly: the same distribution.
+    let log = Kinematics {
+        speed: vec![5.0; 6],
+        angular_speed: vec![0.0, -1e-9, 1e-9, -1e-12, 0.0, 0.0],
+        accel: vec![0.0, -1e-9, -1e-9, 1e-12, 0.0, -1e-15],
+        nearest_vehicle: Vec::new(),
+    };
+    let held = Kinematics {
+        angular_speed: vec![0.0; 6],
+        accel: vec![0.0; 6],
+        ..log.clone()
+    };
+    let r = realism(&held, &log, &JsdBins::default()).unwrap();
+    assert_eq!((r.angular_speed, r.accel), (0.0, 0.0));
+    // A real turn still lands elsewhere.
+    let turning = Kinematics {
+        angular_speed: vec![0.3; 6],
+        ..held.clone()
+    };
+    assert!(
+        realism(&turning, &log, &JsdBins::default())
+            .unwrap()
+            .angular_speed
+            > 0.8
+    );
+}
+
+#[test]
 fn displacement_of_log_replay_is_zero_and_of_cv_is_not() {
     let s = scene("highway_cut_in.yaml");
     let log = Baseline::Log.simulate(&s);
