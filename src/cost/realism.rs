@@ -46,6 +46,11 @@ pub const TERMS: [&str; 6] = [
     "realism_collision",
 ];
 
+/// Sideways speed (m/s, relative to the heading) that the crab term allows beyond its angle
+/// bound: over the checker's 0.6 s window, 0.3 m, more than a car's heading lags its path in a
+/// slow turn, less than a slide across a lane.
+const SLIDE: f64 = 0.5;
+
 /// Realism settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Realism {
@@ -224,10 +229,14 @@ impl Realism {
                     let k = 2.0 * x;
                     push(1, &taps, [-k * cs, -k * sn], Some((t, -k * lat)));
                 }
-                // A pedestrian steps any way it faces: no crab bound.
-                if speed > lim.moving && lim.max_crab < std::f64::consts::FRAC_PI_2 {
+                // A pedestrian steps any way it faces: no crab bound. Below the checker's
+                // `moving` speed, where it judges no crabbing (a tracked car's heading is noise
+                // there), a guided car still may not slide sideways more than SLIDE: samples
+                // of standing cars slid 3 m sideways and back across the road into oncoming
+                // traffic, heading held.
+                if lim.max_crab < std::f64::consts::FRAC_PI_2 {
                     let tan = (m * lim.max_crab).tan();
-                    let x = lat.abs() - tan * along.abs();
+                    let x = lat.abs() - tan * along.abs() - SLIDE;
                     if x > 0.0 {
                         vals[4] += x * x;
                         let (sl, sa) = (lat.signum(), along.signum());
@@ -524,6 +533,25 @@ mod tests {
             values(&on().evaluate(&s, &t, &all, &Allowed::default())),
             vec![0.0; 6]
         );
+        // Stopped, then sliding sideways at 1.5 m/s: below the speed where the checker judges
+        // crabbing, and still no motion a car makes (the stop costs acceleration, and the cars
+        // behind, collisions).
+        let mut t = rec.clone();
+        edit(&s, &mut t, 0, |t| [-20.0 * t, 1.5 * t, 0.0]);
+        let crab = |moved: &[bool]| {
+            let r = on().evaluate(&s, &t, moved, &Allowed::default());
+            r.term("realism_crab").unwrap().value
+        };
+        assert!(crab(&all) > 1.0);
+        let mut none = all.clone();
+        none[0] = false;
+        assert_eq!(crab(&none), 0.0);
+        // Creeping on at 1 m/s, drifting 0.3 m/s to the side as a slow turn's lagging heading
+        // would: no crab cost.
+        let mut t = rec.clone();
+        edit(&s, &mut t, 0, |t| [-19.0 * t, 0.3 * t, 0.0]);
+        let r = on().evaluate(&s, &t, &all, &Allowed::default());
+        assert_eq!(r.term("realism_crab").unwrap().value, 0.0, "{:?}", r.terms);
     }
 
     #[test]
