@@ -7,9 +7,11 @@ use std::collections::HashMap;
 use super::Point;
 
 /// Up to this many points every pair is looked at directly: hashing each point into the grid
-/// and looking up nine cells around it costs more than the pairs themselves (24 cars: about
-/// 6 µs a step in the grid against 0.5 µs for the 276 pairs), and collision costs call this
-/// for every step of every evaluation.
+/// and looking up nine cells around it costs more than the pairs themselves (`drivescript
+/// bench cost`'s no_collisions, 24 cars over 80 steps, took twice as long through the grid),
+/// and collision costs call this at every step of every evaluation. The grid pays only once
+/// the pairs outnumber the cell lookups by far: 96 points are 4,560 pairs, each one
+/// subtraction and a square root, against 864 hashed lookups.
 const SCAN_UP_TO: usize = 96;
 
 /// Every pair `(a, b)`, `a < b`, of points whose centres are at most `reach[a] + reach[b] +
