@@ -51,6 +51,18 @@ class Scene:
         """Recorded future, float64 ``[agents, steps, 3]`` (x, y, heading); NaN unobserved."""
     def filled_future(self, steps: Optional[int] = None) -> F64Array:
         """``log_future`` with unobserved states filled at constant velocity."""
+    @property
+    def agent_sizes(self) -> F64Array:
+        """Each agent's length and width in metres, ``[agents, 2]``."""
+    @property
+    def agent_types(self) -> List[str]:
+        """Each agent's type: "vehicle", "pedestrian", "cyclist" or "other"."""
+    def lane_path(self, lane: int, length: float, turn: str = "straight") -> F64Array:
+        """Centre line ``[points, 2]`` of a script's ``lane_path(lane, length, turn)``."""
+    def agent_lane_path(
+        self, agent_id: int, length: float = 300.0, turn: str = "straight"
+    ) -> F64Array:
+        """Centre line ``[points, 2]`` of a script's ``a.lane_path(length, turn)``."""
     def crop(self, agents: int, future: int) -> "Scene":
         """At most ``agents`` observed agents near a lane vehicle, ``future`` steps ahead."""
     def log_history(self) -> F64Array:

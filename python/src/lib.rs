@@ -13,7 +13,7 @@ use drivescript::cost::{Limits, Trajectories, VarLayout};
 use drivescript::eval::behaviors::{self, Behavior};
 use drivescript::io::{IoError, LoadOptions};
 use drivescript::sample::{self as sampler, AttemptError, AttemptSpec, SampleConfig};
-use numpy::ndarray::{Array3, Array4};
+use numpy::ndarray::{Array2, Array3, Array4};
 use numpy::{AllowTypeChange, IntoPyArray, PyArrayLikeDyn, PyUntypedArrayMethods};
 use pyo3::create_exception;
 use pyo3::exceptions::{PyException, PyFileNotFoundError, PyOSError, PyRuntimeError, PyValueError};
@@ -237,6 +237,23 @@ fn array3<'py>(py: Python<'py>, t: &Trajectories) -> PyResult<Bound<'py, PyAny>>
     Ok(a.into_pyarray(py).into_any())
 }
 
+/// Points as float64 `[points, 2]`.
+fn points2<'py>(py: Python<'py>, pts: &[drivescript::geom::Point]) -> PyResult<Bound<'py, PyAny>> {
+    let values: Vec<f64> = pts.iter().flat_map(|p| [p.x, p.y]).collect();
+    let a = Array2::from_shape_vec((pts.len(), 2), values)
+        .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+    Ok(a.into_pyarray(py).into_any())
+}
+
+/// A turn at forks from its word, as scripts spell it.
+fn turn_word(w: &str) -> PyResult<drivescript::scene::Turn> {
+    drivescript::scene::Turn::from_word(w).ok_or_else(|| {
+        PyValueError::new_err(format!(
+            "turn {w:?}: give \"straight\", \"left\" or \"right\""
+        ))
+    })
+}
+
 #[pymethods]
 impl Scene {
     /// Reads scene number `index` of `path` (a file or a directory, as `drivescript cost`
@@ -318,6 +335,100 @@ impl Scene {
     ) -> PyResult<Bound<'py, PyAny>> {
         let scene = self.over(steps)?;
         array3(py, &Trajectories::filled(&scene))
+    }
+
+    /// Each agent's footprint, float64 `[agents, 2]`: length and width in metres (what a
+    /// script reads as `a.length` and `a.width`; box clearances use them).
+    #[getter]
+    fn agent_sizes<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let values: Vec<f64> = self
+            .inner
+            .agents
+            .iter()
+            .flat_map(|a| [a.length, a.width])
+            .collect();
+        let a = Array2::from_shape_vec((self.inner.agents.len(), 2), values)
+            .map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
+        Ok(a.into_pyarray(py).into_any())
+    }
+
+    /// Each agent's type: "vehicle", "pedestrian", "cyclist" or "other" (`a.type`;
+    /// `vehicles()` in a script is the agents of type "vehicle").
+    #[getter]
+    fn agent_types(&self) -> Vec<&'static str> {
+        self.inner
+            .agents
+            .iter()
+            .map(|a| a.agent_type.name())
+            .collect()
+    }
+
+    /// The centre line, float64 `[points, 2]`, of the path a script's
+    /// `lane_path(lane, length, turn)` gives: `lane` extended through its successors to
+    /// `length` metres from its start (taking `turn`, "straight", "left" or "right", at
+    /// forks) and 50 m back through its predecessors. Frenet coordinates (`a.frenet(path)`)
+    /// are measured along this polyline, s from its first point.
+    ///
+    /// Raises ValueError for an unknown lane, a length outside (0, 100000] or another turn.
+    #[pyo3(signature = (lane, length, turn = "straight"))]
+    fn lane_path<'py>(
+        &self,
+        py: Python<'py>,
+        lane: i64,
+        length: f64,
+        turn: &str,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let turn = turn_word(turn)?;
+        if !(length.is_finite() && length > 0.0 && length <= 100_000.0) {
+            return Err(PyValueError::new_err(format!(
+                "length {length}: must be in (0, 100000] metres"
+            )));
+        }
+        let path = self
+            .inner
+            .map
+            .lane_path(lane, length, 50.0, turn)
+            .map_err(|e| PyValueError::new_err(format!("lane {lane}: {e}")))?;
+        points2(py, path.frenet.polyline().points())
+    }
+
+    /// The centre line, float64 `[points, 2]`, of the path a script's
+    /// `a.lane_path(length, turn)` gives for agent `agent_id`: its lane at the current step,
+    /// from 50 m behind that lane's start to `length` metres ahead of the agent (default
+    /// 300, as `a.lane_path()`).
+    ///
+    /// Raises ValueError for an unknown agent, one not observed at the current step or near
+    /// no lane going its way, a length outside (0, 100000] or a turn other than "straight",
+    /// "left" and "right".
+    #[pyo3(signature = (agent_id, length = 300.0, turn = "straight"))]
+    fn agent_lane_path<'py>(
+        &self,
+        py: Python<'py>,
+        agent_id: i64,
+        length: f64,
+        turn: &str,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let turn = turn_word(turn)?;
+        if !(length.is_finite() && length > 0.0 && length <= 100_000.0) {
+            return Err(PyValueError::new_err(format!(
+                "length {length}: must be in (0, 100000] metres"
+            )));
+        }
+        let idx = self
+            .inner
+            .agents
+            .iter()
+            .position(|a| a.id == agent_id)
+            .ok_or_else(|| PyValueError::new_err(format!("no agent {agent_id} in the scene")))?;
+        let path = self
+            .inner
+            .agent_lane_path(idx, length, 50.0, turn)
+            .ok_or_else(|| {
+                PyValueError::new_err(format!(
+                    "agent {agent_id} is not observed at the current step or is near no lane going its way"
+                ))
+            })?;
+        points2(py, path.frenet.polyline().points())
     }
 
     /// At most `agents` agents observed at the current step, with exactly `future` steps

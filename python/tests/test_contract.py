@@ -54,6 +54,41 @@ def test_a_crop_is_the_bench_scene(ds, scene):
         scene.crop(8, 10_000)
 
 
+def test_sizes_types_and_lane_paths_are_the_ones_scripts_see(ds, scene):
+    # What a port of a script to another framework needs besides the trajectories: each
+    # agent's footprint and type, and the centre lines Frenet coordinates are measured on.
+    sizes, types = scene.agent_sizes, scene.agent_types
+    assert sizes.dtype == np.float64 and sizes.shape == (len(scene.agent_ids), 2)
+    assert len(types) == len(scene.agent_ids) and set(types) <= {"vehicle", "pedestrian", "cyclist", "other"}
+    k = scene.agent_ids.index(405)
+    probe = ds.CostScript.from_source(
+        "let b = agent(405);\n"
+        "let p = b.lane_path();\n"
+        "let q = lane_path(b.lane, 120.0);\n"
+        "let r = b.lane_path(20.0, \"left\");\n"
+        "print(`${b.length} ${b.width} ${b.type} ${b.lane} ${p.length} ${q.length} ${r.length}`);\n"
+        "term(\"d\", b.frenet(p).d.last() * b.frenet(q).d.last());\n"
+    )
+    length, width, kind, lane, p_len, q_len, r_len = probe.evaluate(scene, scene.log_future(40)).prints[0].split()
+    assert (sizes[k, 0], sizes[k, 1], types[k]) == (float(length), float(width), kind)
+    paths = [
+        (scene.agent_lane_path(405), p_len),
+        (scene.lane_path(int(lane), 120.0), q_len),
+        (scene.agent_lane_path(405, 20.0, "left"), r_len),
+    ]
+    for line, want in paths:
+        assert line.dtype == np.float64 and line.ndim == 2 and line.shape[1] == 2
+        assert np.linalg.norm(np.diff(line, axis=0), axis=1).sum() == pytest.approx(float(want), rel=1e-12)
+    for call, says in [
+        (lambda: scene.agent_lane_path(999999), "no agent 999999"),
+        (lambda: scene.agent_lane_path(405, turn="sideways"), "turn"),
+        (lambda: scene.lane_path(int(lane), -1.0), "length"),
+        (lambda: scene.lane_path(-12345, 100.0), "lane -12345"),
+    ]:
+        with pytest.raises(ValueError, match=says):
+            call()
+
+
 def test_every_format_the_cli_reads_loads(ds):
     for p in [
         "data/samples/commonroad/USA_Peach-4_8_T-1.xml",

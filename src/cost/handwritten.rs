@@ -15,15 +15,9 @@ pub type CostAndGrad = (f64, Vec<f64>);
 
 /// The path an agent's `lane_path()` gives: its current lane, 50 m behind to 300 m ahead of it.
 fn agent_path(scene: &Scene, a: usize) -> Option<FrenetPath> {
-    let s = scene.agents[a].states[scene.meta.current_step];
-    let p = Point::new(s.x, s.y);
-    let lane = scene.map.lane_at(p, s.heading)?;
-    let along = scene.map.lane(lane)?.centerline.nearest(&p).s;
     Some(
         scene
-            .map
-            .lane_path(lane, along + 300.0, 50.0, Turn::Straight)
-            .ok()?
+            .agent_lane_path(a, 300.0, 50.0, Turn::Straight)?
             .frenet,
     )
 }

@@ -365,6 +365,27 @@ impl Scene {
         s
     }
 
+    /// The path a script's `a.lane_path(ahead, turn)` gives for agent index `agent`: its
+    /// lane at the current step (the nearest going its way), from `behind` metres before that
+    /// lane's start to `ahead` metres ahead of the agent. `None` where the agent is not
+    /// observed at the current step or near no lane going its way.
+    pub fn agent_lane_path(
+        &self,
+        agent: usize,
+        ahead: f64,
+        behind: f64,
+        turn: Turn,
+    ) -> Option<LanePath> {
+        let s = self.agents.get(agent)?.states[self.meta.current_step];
+        if !s.valid {
+            return None;
+        }
+        let p = crate::geom::Point::new(s.x, s.y);
+        let lane = self.map.lane_at(p, s.heading)?;
+        let along = self.map.lane(lane)?.centerline.nearest(&p).s;
+        self.map.lane_path(lane, along + ahead, behind, turn).ok()
+    }
+
     /// At most `n` agents observed at the current step, with exactly `future` steps after it:
     /// vehicles on a lane first, nearest first to the first such vehicle in the scene's order,
     /// then the other agents by the same distance. A recording too short after its current
