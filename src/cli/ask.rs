@@ -7,6 +7,7 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
+use drivescript::io::name::terminal_safe;
 use drivescript::io::{load_scene, LoadOptions};
 use drivescript::llm::client::ClientEvent;
 use drivescript::llm::{
@@ -221,7 +222,8 @@ pub(crate) fn backend(
         .or_else(|| env("DRIVESCRIPT_LLM_MODEL"));
     let http = |url: String, model: String| -> Result<(Backend, String), LlmError> {
         let mut cfg = args_http(url, model);
-        cfg.key = env("DRIVESCRIPT_LLM_KEY");
+        // A key pasted or read from a file may end in a line break, which no header can carry.
+        cfg.key = env("DRIVESCRIPT_LLM_KEY").map(|k| k.trim().to_string());
         let line = format!(
             "LLM: {} at {}",
             cfg.model,
@@ -270,7 +272,7 @@ fn observer() -> drivescript::llm::client::Observer {
     let terminal = std::io::stderr().is_terminal();
     let last = std::sync::Mutex::new(None::<std::time::Instant>);
     std::sync::Arc::new(move |e: ClientEvent<'_>| match e {
-        ClientEvent::Notice(line) => eprintln!("{line}"),
+        ClientEvent::Notice(line) => eprintln!("{}", terminal_safe(line)),
         ClientEvent::Streaming {
             tokens,
             since_first,
@@ -437,7 +439,8 @@ pub fn run(args: Args) -> Result<ExitCode> {
     if let Some(file) = &args.batch {
         return batch(&args, file, &trained);
     }
-    let mut progress = |line: &str| println!("{line}");
+    // Plans, scripts and verdicts quote the model's reply, escape sequences included.
+    let mut progress = |line: &str| println!("{}", terminal_safe(line));
     let mut session = if let Some(dir) = &args.resume {
         if !args.words.is_empty() {
             bail!("--resume DIR takes no scene or request (the run recorded them)");
@@ -650,23 +653,26 @@ fn batch(args: &Args, file: &Path, trained: &Trained) -> Result<ExitCode> {
     };
     let verbose = args.verbose;
     let results = batch.run(&mut |p| match p {
-        Progress::Line(l) if verbose => println!("  {l}"),
+        Progress::Line(l) if verbose => println!("  {}", terminal_safe(l)),
         Progress::Line(_) => {}
         Progress::Done { k, result, resumed } => println!(
-            "[{}/{n}] {}: {}: {}{}; {}; {}",
-            k + 1,
-            result.scenario,
-            result.label,
-            result.outcome,
-            if resumed { " (continued run)" } else { "" },
-            result.verdict.text,
-            result
-                .rounds
-                .iter()
-                .enumerate()
-                .map(|(r, h)| format!("round {r} {}", h.verdict_words()))
-                .collect::<Vec<_>>()
-                .join(", ")
+            "{}",
+            terminal_safe(&format!(
+                "[{}/{n}] {}: {}: {}{}; {}; {}",
+                k + 1,
+                result.scenario,
+                result.label,
+                result.outcome,
+                if resumed { " (continued run)" } else { "" },
+                result.verdict.text,
+                result
+                    .rounds
+                    .iter()
+                    .enumerate()
+                    .map(|(r, h)| format!("round {r} {}", h.verdict_words()))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ))
         ),
     })?;
     println!();

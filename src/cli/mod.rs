@@ -189,7 +189,11 @@ pub fn run() -> ExitCode {
     match result {
         Ok(code) => code,
         Err(e) => {
-            eprintln!("error: {}", describe(&e));
+            // Errors quote what files and servers hold, escape sequences included.
+            eprintln!(
+                "error: {}",
+                drivescript::io::name::terminal_safe(&describe(&e))
+            );
             ExitCode::FAILURE
         }
     }
