@@ -507,6 +507,19 @@ fn the_manual_backend_round_trips_through_files() {
     // Resuming without a reply says the same again.
     let t = text(&ask(&["--resume", d], None));
     assert!(t.contains("waiting for a reply"), "{t}");
+    // A reply saved as UTF-16 is said to be unreadable, not waited for again.
+    let utf16: Vec<u8> = [0xFF, 0xFE]
+        .into_iter()
+        .chain("ACCEPT\n".encode_utf16().flat_map(u16::to_le_bytes))
+        .collect();
+    std::fs::write(dir.path().join("round_0/reply.md"), utf16).unwrap();
+    let out = ask(&["--resume", d], None);
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("round_0/reply.md: cannot read the reply (not UTF-8"),
+        "{t}"
+    );
     std::fs::write(
         dir.path().join("round_0/reply.md"),
         reply(&cut_in_script(401, 399)),
