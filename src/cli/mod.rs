@@ -271,7 +271,9 @@ pub(crate) fn samples_dir() -> PathBuf {
 /// `--script-budget SECONDS` as the sampler takes it, or an error naming the flag and its range.
 pub(crate) fn script_budget(seconds: f64) -> anyhow::Result<std::time::Duration> {
     let max = drivescript::sample::MAX_SCRIPT_BUDGET;
-    if !(seconds > 0.0 && seconds <= max.as_secs_f64()) {
+    // A positive budget below a nanosecond is 0 as a Duration: refused here, naming the flag,
+    // not as the sampler's "script budget = 0 s".
+    if !(seconds >= 1e-9 && seconds <= max.as_secs_f64()) {
         anyhow::bail!(
             "--script-budget {seconds:?}: must be more than 0 and at most {} seconds",
             max.as_secs()

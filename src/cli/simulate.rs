@@ -213,6 +213,12 @@ pub fn run(args: Args) -> Result<ExitCode> {
         anyhow::bail!("sampler settings: {e}");
     }
     let explicit = Params::parse(&args.params)?;
+    // With no script to read them, the values would be dropped without a word.
+    if let Some(name) = explicit.names().next().filter(|_| specs.is_empty()) {
+        anyhow::bail!(
+            "parameter {name:?}: no script reads it; give the script it is for (--script or --auto)"
+        );
+    }
     let existed = args.output.exists();
     drivescript::io::create_output_dir(&args.output)?;
     let record = RunRecord {
