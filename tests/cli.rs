@@ -2756,3 +2756,18 @@ fn bench_refuses_flags_of_another_benchmark_and_outputs_over_what_it_did_not_wri
     assert!(err.contains("inside the input directory"), "{err}");
     assert_eq!(std::fs::read(&input).unwrap(), before);
 }
+
+#[test]
+fn a_file_name_with_escape_sequences_reaches_no_terminal() {
+    // A per-file error quoted the name as it is: the rest of the terminal turned red.
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("a\u{1b}[31mred.yaml"), "garbage: [").unwrap();
+    for cmd in [
+        &["inspect", s(dir.path())][..],
+        &["eval", s(dir.path()), "--task", "conditional"],
+    ] {
+        let err = String::from_utf8_lossy(&drivescript(cmd).stderr).into_owned();
+        assert!(err.contains("a\\u{001B}[31mred.yaml"), "{cmd:?}: {err}");
+        assert!(!err.contains('\u{1b}'), "{cmd:?}: {err:?}");
+    }
+}

@@ -300,7 +300,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 Ok(Some(s)) => scenes.push(s),
                 Ok(None) => {}
                 Err(e) => {
-                    bar.suspend(|| eprintln!("error: {e}"));
+                    bar.suspend(|| super::print_error(&e.to_string()));
                     failures += 1;
                 }
             }
@@ -362,7 +362,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             // said once here, not hidden in the JSON of every method's row.
             if let Some((b, p)) = &scene_params {
                 if let Err(e) = check(*b, scene, p) {
-                    bar.suspend(|| eprintln!("error: {}: {e}", scene.meta.scenario_id));
+                    bar.suspend(|| super::print_error(&format!("{}: {e}", scene.meta.scenario_id)));
                     failures += 1;
                     continue;
                 }
@@ -381,7 +381,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                             continue;
                         }
                         Err(e) => {
-                            bar.suspend(|| eprintln!("error: {}", super::describe(&e)));
+                            bar.suspend(|| super::print_error(&super::describe(&e)));
                             failures += 1;
                             continue;
                         }
@@ -403,7 +403,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     (None, Some(dir)) => match rollouts_for(dir, scene, args.samples) {
                         Ok(u) => Some(u.iter().map(fit).collect::<Vec<_>>()),
                         Err(e) => {
-                            bar.suspend(|| eprintln!("error: {}", super::describe(&e)));
+                            bar.suspend(|| super::print_error(&super::describe(&e)));
                             failures += 1;
                             continue;
                         }

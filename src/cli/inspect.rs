@@ -57,7 +57,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         let sources = match discover(root) {
             Ok(s) => s,
             Err(e) => {
-                eprintln!("error: {e}");
+                super::print_error(&e.to_string());
                 failures += 1;
                 continue;
             }
@@ -121,7 +121,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                         }));
                     }
                     Err(e) => {
-                        eprintln!("error: {e}");
+                        super::print_error(&e.to_string());
                         failures += 1;
                     }
                 }

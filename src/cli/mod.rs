@@ -189,14 +189,16 @@ pub fn run() -> ExitCode {
     match result {
         Ok(code) => code,
         Err(e) => {
-            // Errors quote what files and servers hold, escape sequences included.
-            eprintln!(
-                "error: {}",
-                drivescript::io::name::terminal_safe(&describe(&e))
-            );
+            print_error(&describe(&e));
             ExitCode::FAILURE
         }
     }
+}
+
+/// Prints `error: TEXT` on stderr as a terminal can show it: errors quote file names and what
+/// files and servers hold, escape sequences included (`io::name::terminal_safe`).
+pub(crate) fn print_error(text: &str) {
+    eprintln!("error: {}", drivescript::io::name::terminal_safe(text));
 }
 
 /// An error and its causes on one line, each cause once: many errors already quote their
