@@ -2299,3 +2299,35 @@ fn escape_sequences_a_server_sends_reach_no_terminal() {
     assert!(t.contains("Events\\u{001B}]52;c;"), "{t}");
     assert!(!t.contains(['\u{1b}', '\u{7}']), "{t:?}");
 }
+
+#[test]
+fn a_model_or_url_no_backend_asks_is_an_error_not_dropped() {
+    // `--model` alone ran the rules planner, announced as "none configured"; with --llm rules
+    // or manual, --llm-url and --model were dropped without a word.
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join(SCENE);
+    for (extra, want) in [
+        (
+            &["--model", "m"][..],
+            "an LLM model is set but no server URL",
+        ),
+        (
+            &["--llm", "rules", "--llm-url", "http://127.0.0.1:1/v1"],
+            "--llm-url: --llm rules asks no server",
+        ),
+        (
+            &["--llm", "manual", "--model", "m"],
+            "--model: --llm manual asks no server",
+        ),
+    ] {
+        let run = dir.path().join("run");
+        let out = ask(
+            &[&[s(&scene), REQUEST, "-o", s(&run)][..], extra].concat(),
+            None,
+        );
+        let t = text(&out);
+        assert_eq!(out.status.code(), Some(1), "{extra:?}: {t}");
+        assert!(t.contains(want), "{extra:?}: {t}");
+        assert!(!run.join("round_0").exists(), "{extra:?}: {t}");
+    }
+}

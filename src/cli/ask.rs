@@ -257,6 +257,12 @@ pub(crate) fn backend(
             (Some(_), None) => Err(LlmError::Setup(
                 "an LLM URL is set but no model: set DRIVESCRIPT_LLM_MODEL or pass --model".into(),
             )),
+            // The rules planner, announced as "none configured", was not what a model asked.
+            (None, Some(_)) => Err(LlmError::Setup(
+                "an LLM model is set but no server URL: set DRIVESCRIPT_LLM_URL or pass \
+                 --llm-url (or --llm rules for the rules planner)"
+                    .into(),
+            )),
             _ => Ok((
                 Backend::Rules,
                 "LLM: none configured (DRIVESCRIPT_LLM_URL and DRIVESCRIPT_LLM_MODEL are unset), so the rules planner writes the scripts: a fixed vocabulary of behaviours, not a language model".into(),
@@ -332,6 +338,29 @@ impl Args {
     }
 
     /// `--guidance`, or denoiser where the old `--through-denoiser` asks for it.
+    /// `--llm-url` and `--model` given to a backend that asks no server would be dropped
+    /// without a word.
+    fn no_server_flags(&self, chosen: Llm) -> Result<(), LlmError> {
+        if matches!(chosen, Llm::Rules | Llm::Manual) {
+            for (given, flag) in [
+                (self.llm_url.is_some(), "--llm-url"),
+                (self.model.is_some(), "--model"),
+            ] {
+                if given {
+                    return Err(LlmError::Setup(format!(
+                        "{flag}: --llm {} asks no server",
+                        if chosen == Llm::Rules {
+                            "rules"
+                        } else {
+                            "manual"
+                        }
+                    )));
+                }
+            }
+        }
+        Ok(())
+    }
+
     fn guidance(&self) -> drivescript::sample::Guidance {
         if self.through_denoiser {
             drivescript::sample::Guidance::Denoiser
@@ -342,6 +371,7 @@ impl Args {
 
     /// The backend the flags and environment choose, with the line that says which.
     fn backend(&self) -> Result<(Backend, String), LlmError> {
+        self.no_server_flags(self.llm)?;
         backend(
             self.llm,
             self.llm_url.as_deref(),
@@ -370,6 +400,7 @@ fn reopen<'a>(args: &Args, dir: &Path, trained: &'a Trained) -> Result<Session<'
                 (Llm::Auto, _) => Llm::Rules,
                 (l, _) => l,
             };
+            args.no_server_flags(chosen)?;
             let model = args.model.clone().or_else(|| rec_model.map(str::to_string));
             let (b, line) = backend(chosen, args.llm_url.as_deref(), model.as_deref(), |u, m| {
                 args.http_config(u, m)
