@@ -1423,6 +1423,15 @@ fn sampler_flags_are_checked_before_any_work() {
             "--known-weight=nan",
             "--known-weight NaN: must be 0 to 1000",
         ),
+        (
+            "--script-budget=1e-300",
+            "--script-budget 1e-300: must be more than 0",
+        ),
+        // Without a script, once dropped without a word.
+        (
+            "--param=cutter=2",
+            "parameter \"cutter\": no script reads it",
+        ),
     ] {
         let err = fails(&simulate_args(
             s(&scene),
@@ -2637,4 +2646,134 @@ fn cost_checks_a_rollout_as_eval_and_render_do() {
         s(&dir.path().join("x.svg")),
     ]);
     assert!(render.contains("bad.json"), "{render}");
+}
+
+#[test]
+fn eval_refuses_flags_its_task_would_ignore() {
+    // Each was dropped without a word: a conditional table printed for a request with
+    // behaviour parameters, four samples asked of baselines that have one.
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    for (flags, want) in [
+        (
+            &["--task", "conditional", "--param", "cutter=2"][..],
+            "--param: only --task behaviour",
+        ),
+        (
+            &["--task", "conditional", "--behaviour", "cut_in"],
+            "--behaviour: only --task behaviour",
+        ),
+        (
+            &["--task", "unconditional", "--auto"],
+            "--auto: only --task behaviour",
+        ),
+        (
+            &["--task", "unconditional", "--all-steps"],
+            "--all-steps: only --task conditional",
+        ),
+        (
+            &["--task", "conditional", "--samples", "4"],
+            "--samples 4: the number of samples per scene in --rollouts",
+        ),
+    ] {
+        let err = fails(&[&["eval", s(&scene)][..], flags].concat());
+        assert!(err.contains(want), "{flags:?}: {err}");
+    }
+    // The first of two samples was scored as if it were the run.
+    let dir = tempfile::tempdir().unwrap();
+    let rollouts = dir.path().join("sim");
+    let fast = ["--steps", "2", "--polish", "0", "--samples", "2"];
+    ok(&simulate_args(
+        s(&scene),
+        "data/checkpoint",
+        &fast,
+        s(&rollouts),
+    ));
+    let err = fails(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "conditional",
+        "--rollouts",
+        s(&rollouts),
+    ]);
+    assert!(
+        err.contains("sampled 2 per scene (its run.json): pass --samples 2"),
+        "{err}"
+    );
+    for flag in [
+        ["--horizon", "40"],
+        ["--behaviour", "cut_in"],
+        ["--param", "cutter=2"],
+    ] {
+        let out = drivescript(&[&["eval", "--merge", "shard.json"][..], &flag].concat());
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{flag:?}: {err}");
+        assert!(err.contains("cannot be used with"), "{flag:?}: {err}");
+    }
+}
+
+#[test]
+fn inspect_refuses_agent_flags_without_agents() {
+    // --keep was refused without --agents, --max-agents and --horizon silently dropped.
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    for flag in [["--max-agents", "3"], ["--horizon", "5"]] {
+        let out = drivescript(&[&["inspect", s(&scene)][..], &flag].concat());
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{flag:?}: {err}");
+        assert!(err.contains("--agents"), "{flag:?}: {err}");
+    }
+    ok(&["inspect", s(&scene), "--agents", "--max-agents", "3"]);
+}
+
+#[test]
+fn bench_refuses_flags_of_another_benchmark_and_outputs_over_what_it_did_not_write() {
+    // Each flag was dropped without a word by the benchmarks that do not read it.
+    for (args, want) in [
+        (
+            &["bench", "cost", "--export", "x.safetensors"][..],
+            "--export: `bench cost` does not read it (only `bench sample` does)",
+        ),
+        (&["bench", "io", "--repeat", "2"], "--repeat: `bench io`"),
+        (
+            &["bench", "sample", "--seconds", "2"],
+            "--seconds: `bench sample`",
+        ),
+    ] {
+        let err = fails(args);
+        assert!(err.contains(want), "{args:?}: {err}");
+    }
+    // --womd-out replaced a user's file, and re-encoded an input over itself.
+    let dir = tempfile::tempdir().unwrap();
+    let mine = dir.path().join("mine.tfrecord");
+    std::fs::write(&mine, "mine").unwrap();
+    let err = fails(&["bench", "io", "--womd-out", s(&mine)]);
+    assert!(
+        err.contains("already exists and is not a WOMD TFRecord"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read_to_string(&mine).unwrap(), "mine");
+    let data = dir.path().join("data");
+    std::fs::create_dir(&data).unwrap();
+    let input = data.join("us101.tfrecord");
+    let scene = samples().join("commonroad/USA_US101-3_3_T-1.xml");
+    ok(&["convert", s(&scene), "-o", s(&input)]);
+    let before = std::fs::read(&input).unwrap();
+    let err = fails(&["bench", "io", "--data", s(&data), "--womd-out", s(&input)]);
+    assert!(err.contains("inside the input directory"), "{err}");
+    assert_eq!(std::fs::read(&input).unwrap(), before);
+}
+
+#[test]
+fn a_file_name_with_escape_sequences_reaches_no_terminal() {
+    // A per-file error quoted the name as it is: the rest of the terminal turned red.
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("a\u{1b}[31mred.yaml"), "garbage: [").unwrap();
+    for cmd in [
+        &["inspect", s(dir.path())][..],
+        &["eval", s(dir.path()), "--task", "conditional"],
+    ] {
+        let err = String::from_utf8_lossy(&drivescript(cmd).stderr).into_owned();
+        assert!(err.contains("a\\u{001B}[31mred.yaml"), "{cmd:?}: {err}");
+        assert!(!err.contains('\u{1b}'), "{cmd:?}: {err:?}");
+    }
 }

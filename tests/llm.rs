@@ -507,6 +507,19 @@ fn the_manual_backend_round_trips_through_files() {
     // Resuming without a reply says the same again.
     let t = text(&ask(&["--resume", d], None));
     assert!(t.contains("waiting for a reply"), "{t}");
+    // A reply saved as UTF-16 is said to be unreadable, not waited for again.
+    let utf16: Vec<u8> = [0xFF, 0xFE]
+        .into_iter()
+        .chain("ACCEPT\n".encode_utf16().flat_map(u16::to_le_bytes))
+        .collect();
+    std::fs::write(dir.path().join("round_0/reply.md"), utf16).unwrap();
+    let out = ask(&["--resume", d], None);
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("round_0/reply.md: cannot read the reply (not UTF-8"),
+        "{t}"
+    );
     std::fs::write(
         dir.path().join("round_0/reply.md"),
         reply(&cut_in_script(401, 399)),
@@ -2221,4 +2234,100 @@ fn an_accept_refused_in_the_last_round_gets_a_turn_to_accept_the_answer() {
         "{report}"
     );
     assert!(!t.contains("(not accepted)"), "{t}");
+}
+
+#[test]
+fn a_password_or_key_in_the_url_gets_into_no_output_and_no_file() {
+    // The key as a query with no path before it (once kept whole in messages and files, and
+    // the endpoint appended to the query), and as the URL's password, echoed as the server got
+    // it: in the query, and as the `Basic` token of "u:pw-url-secret-1".
+    let srv = Server::start(vec![Canned::raw(
+        400,
+        r#"{"error": {"message": "you sent key=sk-query-secret, Basic dTpwdy11cmwtc2VjcmV0LTE= (pw-url-secret-1)"}}"#,
+    )]);
+    let port = srv
+        .url
+        .trim_start_matches("http://127.0.0.1:")
+        .trim_end_matches("/v1");
+    let url = format!("http://u:pw-url-secret-1@127.0.0.1:{port}?key=sk-query-secret");
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(dir.path(), &[], Some(&url));
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(t.contains("you sent key=[redacted]"), "{t}");
+    assert_eq!(
+        srv.received()[0].path,
+        "/chat/completions?key=sk-query-secret"
+    );
+    for e in walk(dir.path())
+        .iter()
+        .map(|p| std::fs::read(p).unwrap())
+        .chain([t.into_bytes()])
+    {
+        let e = String::from_utf8_lossy(&e);
+        for secret in [
+            "sk-query-secret",
+            "pw-url-secret-1",
+            "dTpwdy11cmwtc2VjcmV0LTE=",
+        ] {
+            assert!(!e.contains(secret), "{secret} in {e}");
+        }
+    }
+}
+
+#[test]
+fn escape_sequences_a_server_sends_reach_no_terminal() {
+    // In an error: the screen cleared, the window retitled, a carriage return over the line.
+    let srv = Server::start(vec![Canned::raw(
+        400,
+        r#"{"error": {"message": "bad\u001b[2J\u001b]0;pwned\u0007\rall good"}}"#,
+    )]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(dir.path(), &[], Some(&srv.url));
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(!t.contains(['\u{1b}', '\u{7}', '\r']), "{t:?}");
+    assert!(t.contains("bad\\u{001B}[2J"), "{t}");
+    // In a reply's plan, printed as the round's progress.
+    let srv = Server::start(vec![Canned::chat(&format!(
+        "1. Events\u{1b}]52;c;cHduZWQ=\u{7}: one cut-in.\n\n```rhai\n{}```\n",
+        cut_in_script(401, 399)
+    ))]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(dir.path(), &["--rounds", "0"], Some(&srv.url));
+    let t = text(&out);
+    assert!(t.contains("Events\\u{001B}]52;c;"), "{t}");
+    assert!(!t.contains(['\u{1b}', '\u{7}']), "{t:?}");
+}
+
+#[test]
+fn a_model_or_url_no_backend_asks_is_an_error_not_dropped() {
+    // `--model` alone ran the rules planner, announced as "none configured"; with --llm rules
+    // or manual, --llm-url and --model were dropped without a word.
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join(SCENE);
+    for (extra, want) in [
+        (
+            &["--model", "m"][..],
+            "an LLM model is set but no server URL",
+        ),
+        (
+            &["--llm", "rules", "--llm-url", "http://127.0.0.1:1/v1"],
+            "--llm-url: --llm rules asks no server",
+        ),
+        (
+            &["--llm", "manual", "--model", "m"],
+            "--model: --llm manual asks no server",
+        ),
+    ] {
+        let run = dir.path().join("run");
+        let out = ask(
+            &[&[s(&scene), REQUEST, "-o", s(&run)][..], extra].concat(),
+            None,
+        );
+        let t = text(&out);
+        assert_eq!(out.status.code(), Some(1), "{extra:?}: {t}");
+        assert!(t.contains(want), "{extra:?}: {t}");
+        assert!(!run.join("round_0").exists(), "{extra:?}: {t}");
+    }
 }

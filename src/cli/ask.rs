@@ -7,6 +7,7 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
+use drivescript::io::name::terminal_safe;
 use drivescript::io::{load_scene, LoadOptions};
 use drivescript::llm::client::ClientEvent;
 use drivescript::llm::{
@@ -221,7 +222,8 @@ pub(crate) fn backend(
         .or_else(|| env("DRIVESCRIPT_LLM_MODEL"));
     let http = |url: String, model: String| -> Result<(Backend, String), LlmError> {
         let mut cfg = args_http(url, model);
-        cfg.key = env("DRIVESCRIPT_LLM_KEY");
+        // A key pasted or read from a file may end in a line break, which no header can carry.
+        cfg.key = env("DRIVESCRIPT_LLM_KEY").map(|k| k.trim().to_string());
         let line = format!(
             "LLM: {} at {}",
             cfg.model,
@@ -255,6 +257,12 @@ pub(crate) fn backend(
             (Some(_), None) => Err(LlmError::Setup(
                 "an LLM URL is set but no model: set DRIVESCRIPT_LLM_MODEL or pass --model".into(),
             )),
+            // The rules planner, announced as "none configured", was not what a model asked.
+            (None, Some(_)) => Err(LlmError::Setup(
+                "an LLM model is set but no server URL: set DRIVESCRIPT_LLM_URL or pass \
+                 --llm-url (or --llm rules for the rules planner)"
+                    .into(),
+            )),
             _ => Ok((
                 Backend::Rules,
                 "LLM: none configured (DRIVESCRIPT_LLM_URL and DRIVESCRIPT_LLM_MODEL are unset), so the rules planner writes the scripts: a fixed vocabulary of behaviours, not a language model".into(),
@@ -270,7 +278,7 @@ fn observer() -> drivescript::llm::client::Observer {
     let terminal = std::io::stderr().is_terminal();
     let last = std::sync::Mutex::new(None::<std::time::Instant>);
     std::sync::Arc::new(move |e: ClientEvent<'_>| match e {
-        ClientEvent::Notice(line) => eprintln!("{line}"),
+        ClientEvent::Notice(line) => eprintln!("{}", terminal_safe(line)),
         ClientEvent::Streaming {
             tokens,
             since_first,
@@ -330,6 +338,29 @@ impl Args {
     }
 
     /// `--guidance`, or denoiser where the old `--through-denoiser` asks for it.
+    /// `--llm-url` and `--model` given to a backend that asks no server would be dropped
+    /// without a word.
+    fn no_server_flags(&self, chosen: Llm) -> Result<(), LlmError> {
+        if matches!(chosen, Llm::Rules | Llm::Manual) {
+            for (given, flag) in [
+                (self.llm_url.is_some(), "--llm-url"),
+                (self.model.is_some(), "--model"),
+            ] {
+                if given {
+                    return Err(LlmError::Setup(format!(
+                        "{flag}: --llm {} asks no server",
+                        if chosen == Llm::Rules {
+                            "rules"
+                        } else {
+                            "manual"
+                        }
+                    )));
+                }
+            }
+        }
+        Ok(())
+    }
+
     fn guidance(&self) -> drivescript::sample::Guidance {
         if self.through_denoiser {
             drivescript::sample::Guidance::Denoiser
@@ -340,6 +371,7 @@ impl Args {
 
     /// The backend the flags and environment choose, with the line that says which.
     fn backend(&self) -> Result<(Backend, String), LlmError> {
+        self.no_server_flags(self.llm)?;
         backend(
             self.llm,
             self.llm_url.as_deref(),
@@ -368,6 +400,7 @@ fn reopen<'a>(args: &Args, dir: &Path, trained: &'a Trained) -> Result<Session<'
                 (Llm::Auto, _) => Llm::Rules,
                 (l, _) => l,
             };
+            args.no_server_flags(chosen)?;
             let model = args.model.clone().or_else(|| rec_model.map(str::to_string));
             let (b, line) = backend(chosen, args.llm_url.as_deref(), model.as_deref(), |u, m| {
                 args.http_config(u, m)
@@ -437,7 +470,8 @@ pub fn run(args: Args) -> Result<ExitCode> {
     if let Some(file) = &args.batch {
         return batch(&args, file, &trained);
     }
-    let mut progress = |line: &str| println!("{line}");
+    // Plans, scripts and verdicts quote the model's reply, escape sequences included.
+    let mut progress = |line: &str| println!("{}", terminal_safe(line));
     let mut session = if let Some(dir) = &args.resume {
         if !args.words.is_empty() {
             bail!("--resume DIR takes no scene or request (the run recorded them)");
@@ -650,23 +684,26 @@ fn batch(args: &Args, file: &Path, trained: &Trained) -> Result<ExitCode> {
     };
     let verbose = args.verbose;
     let results = batch.run(&mut |p| match p {
-        Progress::Line(l) if verbose => println!("  {l}"),
+        Progress::Line(l) if verbose => println!("  {}", terminal_safe(l)),
         Progress::Line(_) => {}
         Progress::Done { k, result, resumed } => println!(
-            "[{}/{n}] {}: {}: {}{}; {}; {}",
-            k + 1,
-            result.scenario,
-            result.label,
-            result.outcome,
-            if resumed { " (continued run)" } else { "" },
-            result.verdict.text,
-            result
-                .rounds
-                .iter()
-                .enumerate()
-                .map(|(r, h)| format!("round {r} {}", h.verdict_words()))
-                .collect::<Vec<_>>()
-                .join(", ")
+            "{}",
+            terminal_safe(&format!(
+                "[{}/{n}] {}: {}: {}{}; {}; {}",
+                k + 1,
+                result.scenario,
+                result.label,
+                result.outcome,
+                if resumed { " (continued run)" } else { "" },
+                result.verdict.text,
+                result
+                    .rounds
+                    .iter()
+                    .enumerate()
+                    .map(|(r, h)| format!("round {r} {}", h.verdict_words()))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ))
         ),
     })?;
     println!();

@@ -7,7 +7,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use drivescript::geom::{FrenetPath, Point, Polyline};
-use drivescript::io::{discover, load_scenes, womd, LoadOptions};
+use drivescript::io::{
+    check_output_not_input, check_replaces_own, discover, load_scenes, womd, LoadOptions,
+};
 use drivescript::scene::Turn;
 
 #[derive(clap::Args)]
@@ -18,9 +20,10 @@ pub struct Args {
     /// Extra directory of scenes to time (e.g. ../shared/data/commonroad-ngsim).
     #[arg(long)]
     data: Option<PathBuf>,
-    /// Minimum time spent on each row, 0.05 to 3600 seconds (`bench io` and `bench cost`).
-    #[arg(long, default_value_t = 1.0, allow_negative_numbers = true)]
-    seconds: f64,
+    /// Minimum time spent on each row, 0.05 to 3600 seconds (`bench io` and `bench cost`;
+    /// default 1).
+    #[arg(long, allow_negative_numbers = true)]
+    seconds: Option<f64>,
     /// Scene for `bench cost`, cropped to 24 agents x 80 future steps (default: NGSIM US-101
     /// scene 23_1 from ../shared/data when present, else the US-101 sample with its 22 agents).
     #[arg(long)]
@@ -28,9 +31,9 @@ pub struct Args {
     /// `bench sample`: the checkpoint to sample with (default: data/checkpoint).
     #[arg(long)]
     checkpoint: Option<PathBuf>,
-    /// `bench sample`: runs per row (the median is printed), 1-1000.
-    #[arg(long, default_value_t = 3)]
-    repeat: usize,
+    /// `bench sample`: runs per row (the median is printed), 1-1000 (default 3).
+    #[arg(long)]
+    repeat: Option<usize>,
     /// `bench sample`: only this row (train, unguided, output or denoiser).
     #[arg(long, value_parser = ["train", "unguided", "output", "denoiser"])]
     only: Option<String>,
@@ -47,7 +50,7 @@ pub struct Args {
     womd: Option<PathBuf>,
 }
 
-#[derive(Clone, Copy, clap::ValueEnum)]
+#[derive(Clone, Copy, PartialEq, clap::ValueEnum)]
 enum What {
     /// Scene readers (scenes/s per format) and Frenet projections/s.
     Io,
@@ -102,14 +105,75 @@ fn row(name: &str, sources: &[PathBuf], min: Duration) -> Result<()> {
     Ok(())
 }
 
-pub fn run(args: Args) -> Result<ExitCode> {
-    if !(0.05..=3600.0).contains(&args.seconds) {
-        anyhow::bail!(
-            "--seconds {:?}: give 0.05 to 3600 seconds per row",
-            args.seconds
-        );
+/// Refuses a flag the chosen benchmark does not read (it would be dropped without a word, and
+/// the table taken for what was asked), and outputs that would replace an input or a file the
+/// benchmark did not write.
+fn check_flags(args: &Args) -> Result<()> {
+    use clap::ValueEnum;
+    let given: [(&str, bool, &[What]); 9] = [
+        ("--data", args.data.is_some(), &[What::Io]),
+        ("--seconds", args.seconds.is_some(), &[What::Io, What::Cost]),
+        ("--scene", args.scene.is_some(), &[What::Cost]),
+        ("--checkpoint", args.checkpoint.is_some(), &[What::Sample]),
+        ("--repeat", args.repeat.is_some(), &[What::Sample]),
+        ("--only", args.only.is_some(), &[What::Sample]),
+        ("--export", args.export.is_some(), &[What::Sample]),
+        ("--womd-out", args.womd_out.is_some(), &[What::Io]),
+        ("--womd", args.womd.is_some(), &[What::Io]),
+    ];
+    let name = |w: &What| w.to_possible_value().map(|v| v.get_name().to_string());
+    for (flag, is_given, kinds) in given {
+        if is_given && !kinds.contains(&args.what) {
+            let takes: Vec<String> = kinds
+                .iter()
+                .filter_map(|k| name(k).map(|n| format!("`bench {n}`")))
+                .collect();
+            anyhow::bail!(
+                "{flag}: `bench {}` does not read it (only {} does)",
+                name(&args.what).unwrap_or_default(),
+                takes.join(" and ")
+            );
+        }
     }
-    let min = Duration::from_secs_f64(args.seconds);
+    if let Some(out) = &args.womd_out {
+        let samples = super::samples_dir();
+        let inputs: Vec<&Path> = args
+            .data
+            .iter()
+            .map(|d| d.as_path())
+            .chain([samples.as_path()])
+            .collect();
+        check_output_not_input(out, &inputs, "--womd-out")?;
+        check_replaces_own(out, "--womd-out", "a WOMD TFRecord", |p| {
+            womd::read_file(p).is_ok_and(|mut records| records.all(|r| r.is_ok()))
+        })?;
+    }
+    if let Some(out) = &args.export {
+        let ckpt = args
+            .checkpoint
+            .clone()
+            .unwrap_or_else(|| super::samples_dir().join("../checkpoint"));
+        let files: Vec<PathBuf> = ["model.safetensors", "optimizer.safetensors", "config.json"]
+            .iter()
+            .map(|f| ckpt.join(f))
+            .collect();
+        let inputs: Vec<&Path> = files.iter().map(|f| f.as_path()).collect();
+        check_output_not_input(out, &inputs, "--export")?;
+        check_replaces_own(out, "--export", "a `bench sample --export` file", |p| {
+            candle_core::safetensors::load(p, &candle_core::Device::Cpu)
+                .is_ok_and(|t| t.contains_key("x_final") && t.contains_key("sigmas"))
+        })?;
+    }
+    Ok(())
+}
+
+pub fn run(args: Args) -> Result<ExitCode> {
+    check_flags(&args)?;
+    let seconds = args.seconds.unwrap_or(1.0);
+    if !(0.05..=3600.0).contains(&seconds) {
+        anyhow::bail!("--seconds {seconds:?}: give 0.05 to 3600 seconds per row");
+    }
+    let min = Duration::from_secs_f64(seconds);
     match args.what {
         What::Io => bench_io(&args, min),
         What::Cost => bench_cost(&args, min),
@@ -251,10 +315,10 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
     use drivescript::train::{load, train, TrainConfig, WindowConfig};
     use std::rc::Rc;
     let samples = super::samples_dir();
+    let repeat = args.repeat.unwrap_or(3);
     anyhow::ensure!(
-        (1..=1000).contains(&args.repeat),
-        "--repeat {}: give 1 to 1000 runs per row",
-        args.repeat
+        (1..=1000).contains(&repeat),
+        "--repeat {repeat}: give 1 to 1000 runs per row"
     );
     // The paper's sizes: 24 agents and 200 lanes (padded) per window.
     let window = WindowConfig {
@@ -297,12 +361,12 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
         trained.meta.config.model.d,
         trained.meta.config.model.layers,
         trained.meta.config.model.k,
-        args.repeat
+        repeat
     );
     println!("| what | seconds |\n|---|---|");
     if want("train") {
         // A fresh model of the same sizes; the first step (allocator warm-up) is not counted.
-        let steps = args.repeat + 1;
+        let steps = repeat + 1;
         let cfg = TrainConfig {
             steps,
             batch: 4,
@@ -367,7 +431,7 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
             ..SampleConfig::default()
         };
         let mut times = Vec::new();
-        for _ in 0..args.repeat {
+        for _ in 0..repeat {
             let t = Instant::now();
             sample(&trained, &sim, std::slice::from_ref(&script), &cfg)?;
             times.push(t.elapsed().as_secs_f64());
@@ -435,20 +499,28 @@ fn bench_io(args: &Args, min: Duration) -> Result<ExitCode> {
         sets.push((d.display().to_string(), discover(d)?));
     }
     let last = sets.len() - 1;
+    // A directory of our own in the shared temporary directory, made new (an existing one is
+    // an error, never used): a file of a name anyone can predict there could be a link
+    // another user planted, which the write would follow.
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.subsec_nanos());
+    let scratch =
+        std::env::temp_dir().join(format!("drivescript-bench-{}-{nanos}", std::process::id()));
+    std::fs::create_dir(&scratch).with_context(|| format!("creating {}", scratch.display()))?;
+    let mut res = Ok(());
     for (k, (name, sources)) in sets.iter().enumerate() {
         let keep = args.womd_out.as_ref().filter(|_| k == last);
-        let tmp = keep.cloned().unwrap_or_else(|| {
-            std::env::temp_dir().join(format!(
-                "drivescript-bench-{}-{k}.tfrecord",
-                std::process::id()
-            ))
-        });
-        let res = womd_rows(name, sources, &tmp, min);
-        if keep.is_none() {
-            let _ = std::fs::remove_file(&tmp);
+        let tmp = keep
+            .cloned()
+            .unwrap_or_else(|| scratch.join(format!("{k}.tfrecord")));
+        res = womd_rows(name, sources, &tmp, min);
+        if res.is_err() {
+            break;
         }
-        res?;
     }
+    let _ = std::fs::remove_dir_all(&scratch);
+    res?;
     if let Some(p) = &args.womd_out {
         println!(
             "\nkept the last re-encoded WOMD file at {} (for benches/womd/read.py)",

@@ -61,7 +61,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
     // guard against something the probes do not try.
     let warnings: Vec<String> = bound.dead_terms()?.iter().map(|d| d.to_string()).collect();
     for w in &warnings {
-        eprintln!("warning: {w}");
+        eprintln!(
+            "warning: {}",
+            drivescript::io::name::terminal_safe(&w.to_string())
+        );
     }
     let traj = match (&args.rollout, &rollout) {
         (Some(p), Some(r)) => {

@@ -78,7 +78,8 @@ pub fn run(args: Args) -> Result<ExitCode> {
     for (b, p) in session.checks() {
         println!("checker: {} ({p}): {}", b.name(), b.definition());
     }
-    let outcome = session.run(&mut |line| println!("{line}"))?;
+    let outcome =
+        session.run(&mut |line| println!("{}", drivescript::io::name::terminal_safe(line)))?;
     let dir = args.output.display();
     println!(
         "\nwrote {dir}/final.gif (named agents highlighted), {dir}/final.rhai, {dir}/report.md, every round in {dir}/round_N/ and {dir}/transcript.json"

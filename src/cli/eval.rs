@@ -113,7 +113,7 @@ pub struct Args {
     shard: Option<drivescript::io::shard::Shard>,
     /// Combine the --json files of the shards of one evaluation (same task, methods,
     /// behaviour, parameters and horizon; every shard once) into the table a single run prints.
-    #[arg(long, value_name = "JSON", num_args = 1.., conflicts_with_all = ["scenes", "task", "shard", "rollouts", "baselines"])]
+    #[arg(long, value_name = "JSON", num_args = 1.., conflicts_with_all = ["scenes", "task", "shard", "rollouts", "baselines", "behaviour", "params", "auto", "unguided", "horizon", "all_steps"])]
     merge: Vec<PathBuf>,
 }
 
@@ -189,6 +189,28 @@ pub fn run(args: Args) -> Result<ExitCode> {
     if let Some(h) = args.horizon.filter(|h| !(1..=10_000).contains(h)) {
         anyhow::bail!("--horizon {h}: must be 1 to 10000 steps");
     }
+    // A flag of another task would be dropped without a word, and the table taken for what
+    // the user asked.
+    if task != Task::Behaviour {
+        for (given, flag) in [
+            (args.behaviour.is_some(), "--behaviour"),
+            (!args.params.is_empty(), "--param"),
+            (args.auto, "--auto"),
+        ] {
+            if given {
+                bail!("{flag}: only --task behaviour takes it (a behaviour's checker and agents)");
+            }
+        }
+    }
+    if args.all_steps && task != Task::Conditional {
+        bail!("--all-steps: only --task conditional scores steps against the recording");
+    }
+    if args.samples != 1 && args.rollouts.is_none() {
+        bail!(
+            "--samples {}: the number of samples per scene in --rollouts; baselines have one",
+            args.samples
+        );
+    }
     let mut methods: Vec<(String, Option<Baseline>)> = Vec::new();
     let baselines = if args.baselines.is_empty() && args.rollouts.is_none() {
         vec![BaselineArg::Log, BaselineArg::Cv, BaselineArg::Lane]
@@ -208,6 +230,18 @@ pub fn run(args: Args) -> Result<ExitCode> {
             bail!("{}: --rollouts must be a directory", d.display());
         }
         methods.push((format!("rollouts in {}", d.display()), None));
+        // Scoring the first of four samples, say, was a table of one sample per scene whose
+        // only sign was the empty minADE column.
+        if let Some(k) = drivescript::sample::provenance::recorded_samples(d) {
+            if k != args.samples as u64 {
+                bail!(
+                    "--samples {}: the run in {} sampled {k} per scene (its run.json): pass \
+                     --samples {k}",
+                    args.samples,
+                    d.display()
+                );
+            }
+        }
     }
     if args.unguided.is_some() && task != Task::Behaviour {
         bail!("--unguided: only --task behaviour judges a sample against its unguided twin");
@@ -266,7 +300,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 Ok(Some(s)) => scenes.push(s),
                 Ok(None) => {}
                 Err(e) => {
-                    bar.suspend(|| eprintln!("error: {e}"));
+                    bar.suspend(|| super::print_error(&e.to_string()));
                     failures += 1;
                 }
             }
@@ -328,7 +362,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             // said once here, not hidden in the JSON of every method's row.
             if let Some((b, p)) = &scene_params {
                 if let Err(e) = check(*b, scene, p) {
-                    bar.suspend(|| eprintln!("error: {}: {e}", scene.meta.scenario_id));
+                    bar.suspend(|| super::print_error(&format!("{}: {e}", scene.meta.scenario_id)));
                     failures += 1;
                     continue;
                 }
@@ -347,7 +381,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                             continue;
                         }
                         Err(e) => {
-                            bar.suspend(|| eprintln!("error: {}", super::describe(&e)));
+                            bar.suspend(|| super::print_error(&super::describe(&e)));
                             failures += 1;
                             continue;
                         }
@@ -369,7 +403,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     (None, Some(dir)) => match rollouts_for(dir, scene, args.samples) {
                         Ok(u) => Some(u.iter().map(fit).collect::<Vec<_>>()),
                         Err(e) => {
-                            bar.suspend(|| eprintln!("error: {}", super::describe(&e)));
+                            bar.suspend(|| super::print_error(&super::describe(&e)));
                             failures += 1;
                             continue;
                         }

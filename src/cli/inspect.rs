@@ -21,13 +21,13 @@ pub struct Args {
     #[arg(long)]
     agents: bool,
     /// With --agents: most agents listed, nearest the ego (or the first --keep) first.
-    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..=100000))]
+    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..=100000), requires = "agents")]
     max_agents: u64,
     /// With --agents: agents always listed, whatever the cap (each must be in every scene).
     #[arg(long, num_args = 1.., requires = "agents")]
     keep: Vec<i64>,
     /// With --agents: future steps the sampler simulates (the shipped model's 40).
-    #[arg(long, default_value_t = 40, value_parser = clap::value_parser!(u64).range(1..=10000))]
+    #[arg(long, default_value_t = 40, value_parser = clap::value_parser!(u64).range(1..=10000), requires = "agents")]
     horizon: u64,
 }
 
@@ -57,7 +57,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         let sources = match discover(root) {
             Ok(s) => s,
             Err(e) => {
-                eprintln!("error: {e}");
+                super::print_error(&e.to_string());
                 failures += 1;
                 continue;
             }
@@ -121,7 +121,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                         }));
                     }
                     Err(e) => {
-                        eprintln!("error: {e}");
+                        super::print_error(&e.to_string());
                         failures += 1;
                     }
                 }

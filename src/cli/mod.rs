@@ -189,10 +189,16 @@ pub fn run() -> ExitCode {
     match result {
         Ok(code) => code,
         Err(e) => {
-            eprintln!("error: {}", describe(&e));
+            print_error(&describe(&e));
             ExitCode::FAILURE
         }
     }
+}
+
+/// Prints `error: TEXT` on stderr as a terminal can show it: errors quote file names and what
+/// files and servers hold, escape sequences included (`io::name::terminal_safe`).
+pub(crate) fn print_error(text: &str) {
+    eprintln!("error: {}", drivescript::io::name::terminal_safe(text));
 }
 
 /// An error and its causes on one line, each cause once: many errors already quote their
@@ -267,7 +273,9 @@ pub(crate) fn samples_dir() -> PathBuf {
 /// `--script-budget SECONDS` as the sampler takes it, or an error naming the flag and its range.
 pub(crate) fn script_budget(seconds: f64) -> anyhow::Result<std::time::Duration> {
     let max = drivescript::sample::MAX_SCRIPT_BUDGET;
-    if !(seconds > 0.0 && seconds <= max.as_secs_f64()) {
+    // A positive budget below a nanosecond is 0 as a Duration: refused here, naming the flag,
+    // not as the sampler's "script budget = 0 s".
+    if !(seconds >= 1e-9 && seconds <= max.as_secs_f64()) {
         anyhow::bail!(
             "--script-budget {seconds:?}: must be more than 0 and at most {} seconds",
             max.as_secs()

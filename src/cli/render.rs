@@ -104,6 +104,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         roles: args.roles.clone(),
         ..RenderOptions::default()
     };
+    opts.check_roles(&scene)?;
     write_picture(&scene, &args.output, &opts)?;
     println!("wrote {}", args.output.display());
     Ok(ExitCode::SUCCESS)

@@ -6,6 +6,7 @@ use std::process::ExitCode;
 use anyhow::{Context, Result};
 use drivescript::cost::{Params, Realism};
 use drivescript::eval::behaviors::{suggest, Behavior, ALL};
+use drivescript::io::name::terminal_safe;
 use drivescript::io::{discover, output_stem, read_each, LoadOptions, OutputNames};
 use drivescript::render::RenderOptions;
 use drivescript::sample::provenance::{file_crc32c, text_crc32c, RunRecord, RUN_FILE};
@@ -213,6 +214,12 @@ pub fn run(args: Args) -> Result<ExitCode> {
         anyhow::bail!("sampler settings: {e}");
     }
     let explicit = Params::parse(&args.params)?;
+    // With no script to read them, the values would be dropped without a word.
+    if let Some(name) = explicit.names().next().filter(|_| specs.is_empty()) {
+        anyhow::bail!(
+            "parameter {name:?}: no script reads it; give the script it is for (--script or --auto)"
+        );
+    }
     let existed = args.output.exists();
     drivescript::io::create_output_dir(&args.output)?;
     let record = RunRecord {
@@ -303,7 +310,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
         let (samples, report) = (&done.samples, &done.report);
         for w in &report.warnings {
             if warned.borrow_mut().insert(w.clone()) {
-                eprintln!("warning: {id}: {w} (said once per run)");
+                eprintln!(
+                    "warning: {}",
+                    terminal_safe(&format!("{id}: {w} (said once per run)"))
+                );
             }
         }
         if !report.not_sampled.is_empty() {
@@ -349,7 +359,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             let raw = match item {
                 Ok(raw) => raw,
                 Err(e) => {
-                    eprintln!("error: {e}");
+                    super::print_error(&e.to_string());
                     failed += 1;
                     continue;
                 }
@@ -367,7 +377,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             let stem = match names.claim(&raw.meta.scenario_id, &src) {
                 Ok(stem) => stem,
                 Err(e) => {
-                    eprintln!("error: {e}");
+                    super::print_error(&e.to_string());
                     failed += 1;
                     continue;
                 }
@@ -396,7 +406,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 Ok(true) => done += 1,
                 Ok(false) => skipped += 1,
                 Err(e) => {
-                    eprintln!("error: {}: {}", raw.meta.scenario_id, super::describe(&e));
+                    super::print_error(&format!(
+                        "{}: {}",
+                        raw.meta.scenario_id,
+                        super::describe(&e)
+                    ));
                     failed += 1;
                 }
             }

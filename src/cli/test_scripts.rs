@@ -5,6 +5,7 @@ use std::process::ExitCode;
 
 use anyhow::Result;
 use drivescript::cost::script_test::{find_test_files, run_test_file};
+use drivescript::io::name::terminal_safe;
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -39,12 +40,12 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 for r in results {
                     println!(
                         "| {:<28} | {:<56} | {:<6} |",
-                        name,
+                        terminal_safe(&name),
                         r.case,
                         if r.passed { "pass" } else { "FAIL" }
                     );
                     if !r.passed || args.verbose {
-                        println!("|   {}", r.detail);
+                        println!("|   {}", terminal_safe(&r.detail));
                     }
                     if r.passed {
                         passed += 1;
@@ -55,8 +56,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
             }
             Err(e) => {
                 println!(
-                    "| {:<28} | {:<56} | FAIL   |\n|   {e}",
-                    name, "(file could not run)"
+                    "| {:<28} | {:<56} | FAIL   |\n|   {}",
+                    terminal_safe(&name),
+                    "(file could not run)",
+                    terminal_safe(&e.to_string())
                 );
                 failed += 1;
             }

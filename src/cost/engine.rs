@@ -291,15 +291,125 @@ pub fn script_params(source: &str) -> Vec<String> {
     out
 }
 
-/// Whether `source` uses `name` at all: in a `param("name")` call or as the constant `name`.
+/// Words of the language: a parameter with one of these names can be read only by
+/// `param("name")`, never as a constant.
+const KEYWORDS: &[&str] = &[
+    "let",
+    "const",
+    "fn",
+    "if",
+    "else",
+    "switch",
+    "do",
+    "while",
+    "until",
+    "loop",
+    "for",
+    "in",
+    "continue",
+    "break",
+    "return",
+    "throw",
+    "try",
+    "catch",
+    "import",
+    "export",
+    "as",
+    "global",
+    "private",
+    "true",
+    "false",
+    "this",
+    "is",
+    "Fn",
+    "call",
+    "curry",
+    "type_of",
+    "print",
+    "debug",
+    "eval",
+    "is_def_fn",
+    "is_def_var",
+    "is_shared",
+];
+
+/// Whether `source` uses `name` at all: as a string literal (what `param("name")` takes) or
+/// as the constant `name` in code. Not in a comment (`// keep the margin` reads no `margin`),
+/// nor as a keyword, a function's name (`term(`) or a property (`.speed`): each of those made
+/// a mistyped `--param` look read, and the script ran with its default.
 pub fn uses_param(source: &str, name: &str) -> bool {
+    let b: Vec<char> = source.chars().collect();
     let ident = |c: char| c.is_alphanumeric() || c == '_';
-    source.match_indices(name).any(|(i, _)| {
-        let before = source[..i].chars().next_back();
-        let after = source[i + name.len()..].chars().next();
-        let quoted = before == Some('"') && after == Some('"');
-        quoted || (!before.is_some_and(ident) && !after.is_some_and(ident))
-    })
+    let (mut i, mut prev) = (0, None::<char>);
+    while i < b.len() {
+        let c = b[i];
+        match (c, b.get(i + 1).copied()) {
+            ('/', Some('/')) => {
+                while i < b.len() && b[i] != '\n' {
+                    i += 1;
+                }
+            }
+            ('/', Some('*')) => {
+                // Block comments nest.
+                let mut depth = 0;
+                while i < b.len() {
+                    match (b[i], b.get(i + 1).copied()) {
+                        ('/', Some('*')) => (depth, i) = (depth + 1, i + 2),
+                        ('*', Some('/')) => (depth, i) = (depth - 1, i + 2),
+                        _ => i += 1,
+                    }
+                    if depth == 0 {
+                        break;
+                    }
+                }
+            }
+            ('"' | '`', _) => {
+                let mut lit = String::new();
+                i += 1;
+                while i < b.len() && b[i] != c {
+                    if b[i] == '\\' && c == '"' {
+                        i += 1;
+                    }
+                    lit.extend(b.get(i));
+                    i += 1;
+                }
+                i += 1;
+                // A backtick string's `${...}` is code: read through, leniently.
+                if lit == name || (c == '`' && uses_param(&lit, name)) {
+                    return true;
+                }
+                prev = Some(c);
+            }
+            ('\'', _) => {
+                i += if b.get(i + 1) == Some(&'\\') { 4 } else { 3 };
+                prev = Some(c);
+            }
+            (c, _) if ident(c) => {
+                let start = i;
+                while i < b.len() && ident(b[i]) {
+                    i += 1;
+                }
+                let word: String = b[start..i].iter().collect();
+                let called = b[i..].iter().find(|c| !c.is_whitespace()) == Some(&'(');
+                if word == name
+                    && !c.is_ascii_digit()
+                    && prev != Some('.')
+                    && !called
+                    && !KEYWORDS.contains(&name)
+                {
+                    return true;
+                }
+                prev = Some(b[i - 1]);
+            }
+            (c, _) => {
+                if !c.is_whitespace() {
+                    prev = Some(c);
+                }
+                i += 1;
+            }
+        }
+    }
+    false
 }
 
 /// `DT` and `STEPS` are the engine's constants, not parameters.
@@ -1282,6 +1392,22 @@ mod tests {
         assert_eq!(super::script_params(src), vec!["margin".to_string()]);
         assert!(super::uses_param(src, "margin") && super::uses_param(src, "weight"));
         assert!(!super::uses_param(src, "m2") && !super::uses_param(src, "eight"));
+    }
+
+    #[test]
+    fn a_parameter_named_only_in_a_comment_or_as_a_keyword_function_or_property_is_not_read() {
+        let src =
+            "// keep the margin wide\n/* the gap /* nested */ gap */\nlet a = agent(cutter);\n\
+                   term(\"x\", a.speed * w2 + f(`${tol} m`) + 1e5 + '\\'' );\n";
+        for unread in [
+            "margin", "gap", "nested", "let", "term", "agent", "speed", "e5", "x0",
+        ] {
+            assert!(!super::uses_param(src, unread), "{unread}");
+        }
+        for read in ["cutter", "w2", "tol", "x"] {
+            assert!(super::uses_param(src, read), "{read}");
+        }
+        assert!(super::uses_param("let m = param(\"let\", 1.0);", "let"));
     }
 
     use super::*;

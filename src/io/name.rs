@@ -78,9 +78,38 @@ pub fn shown(s: &str) -> String {
     out
 }
 
+/// `s` as a terminal can show it whatever it holds: text a server, a reply or a file wrote,
+/// printed in a message or as progress. Every control character but the line break and the
+/// tab (an escape sequence clears the screen, retitles the window or writes the clipboard; a
+/// carriage return overwrites the line with a fake verdict) and every invisible one is written
+/// as an escape (`\u{001B}`); nothing is cut.
+pub fn terminal_safe(s: &str) -> String {
+    if !s.chars().any(|c| unshowable(c) && c != '\n' && c != '\t') {
+        return s.to_string();
+    }
+    let mut out = String::with_capacity(s.len() + 16);
+    for c in s.chars() {
+        if unshowable(c) && c != '\n' && c != '\t' {
+            out.push_str(&format!("\\u{{{:04X}}}", c as u32));
+        } else {
+            out.push(c);
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn terminal_safe_text_keeps_lines_and_tabs_and_escapes_the_rest() {
+        assert_eq!(terminal_safe("a\tb\nc"), "a\tb\nc");
+        assert_eq!(
+            terminal_safe("bad\u{1b}]52;c;eA==\u{7}\rok\u{202E}"),
+            "bad\\u{001B}]52;c;eA==\\u{0007}\\u{000D}ok\\u{202E}"
+        );
+    }
 
     #[test]
     fn control_and_invisible_characters_are_named_as_escapes() {

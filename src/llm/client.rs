@@ -88,33 +88,142 @@ impl HttpConfig {
         }
     }
 
-    /// The endpoint the requests go to.
+    /// The endpoint the requests go to: `/chat/completions` joined to the URL's path, its
+    /// query (a gateway's `?api-version=`) kept after it rather than swallowing the path.
     pub fn endpoint(&self) -> String {
-        let u = self.url.trim_end_matches('/');
-        if u.ends_with("/chat/completions") {
-            u.to_string()
-        } else {
-            format!("{u}/chat/completions")
+        let join = |path: &str| {
+            let p = path.trim_end_matches('/');
+            if p.ends_with("/chat/completions") {
+                p.to_string()
+            } else {
+                format!("{p}/chat/completions")
+            }
+        };
+        match reqwest::Url::parse(&self.url) {
+            Ok(mut u) if !u.cannot_be_a_base() => {
+                let path = join(u.path());
+                u.set_path(&path);
+                u.set_fragment(None);
+                u.to_string()
+            }
+            // Refused by `check`, which says why.
+            _ => join(&self.url),
         }
+    }
+
+    /// Why this configuration cannot be sent, if it cannot: a URL that is not http(s) with a
+    /// host, or a key an HTTP header cannot carry. Said before anything is read, naming the
+    /// setting, rather than as the HTTP library's "builder error" (whose text can quote the
+    /// URL's credentials).
+    pub fn check(&self) -> Result<(), LlmError> {
+        let shown = redact_url(&self.url);
+        let bad = |why: &str| {
+            LlmError::Setup(format!(
+                "the LLM server URL {shown:?} (--llm-url or DRIVESCRIPT_LLM_URL) {why}"
+            ))
+        };
+        let u = reqwest::Url::parse(&self.url).map_err(|e| bad(&format!("is not a URL: {e}")))?;
+        if !matches!(u.scheme(), "http" | "https") {
+            return Err(bad("must start with http:// or https://"));
+        }
+        if u.host_str().is_none_or(str::is_empty) {
+            return Err(bad("names no host"));
+        }
+        if self
+            .key
+            .as_deref()
+            .is_some_and(|k| k.chars().any(char::is_control))
+        {
+            return Err(LlmError::Setup(
+                "DRIVESCRIPT_LLM_KEY holds a control character (a line break or tab pasted with \
+                 the key?): an HTTP header cannot carry it"
+                    .into(),
+            ));
+        }
+        Ok(())
+    }
+
+    /// What this configuration sends that is secret, for redaction: the key, and the URL's
+    /// password and query values (some gateways take the key there), as written and
+    /// percent-decoded.
+    fn secrets(&self) -> Vec<String> {
+        let mut out: Vec<String> = self.key.iter().map(|k| k.trim().to_string()).collect();
+        if let Ok(u) = reqwest::Url::parse(&self.url) {
+            let password = u.password().map(str::to_string);
+            let query = u.query().into_iter().flat_map(|q| {
+                q.split('&')
+                    .filter_map(|kv| kv.split_once('=').map(|(_, v)| v.to_string()))
+                    .collect::<Vec<_>>()
+            });
+            if let Some(p) = &password {
+                // As the HTTP library sends it, in an `Authorization: Basic` header.
+                let pair = format!("{}:{}", percent_decode(u.username()), percent_decode(p));
+                out.push(base64(pair.as_bytes()));
+            }
+            for s in password.into_iter().chain(query) {
+                out.push(percent_decode(&s));
+                out.push(s);
+            }
+        }
+        out
     }
 }
 
-/// The URL with any `user:password@` removed and query parameters dropped (some gateways
-/// take the key there), for transcripts and messages.
-pub fn redact_url(url: &str) -> String {
-    let (scheme, rest) = url.split_once("://").unwrap_or(("", url));
-    let rest = match rest.find('/') {
-        Some(i) => {
-            let (host, path) = rest.split_at(i);
-            let host = host.rsplit_once('@').map_or(host, |(_, h)| h);
-            format!("{host}{}", path.split('?').next().unwrap_or(""))
+/// Standard base64 with padding, as an `Authorization: Basic` header carries `user:password`.
+fn base64(bytes: &[u8]) -> String {
+    const A: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    let mut out = String::with_capacity(bytes.len().div_ceil(3) * 4);
+    for chunk in bytes.chunks(3) {
+        let n = chunk
+            .iter()
+            .enumerate()
+            .fold(0u32, |n, (i, &b)| n | (b as u32) << (16 - 8 * i));
+        for i in 0..4 {
+            if i <= chunk.len() {
+                out.push(A[(n >> (18 - 6 * i) & 63) as usize] as char);
+            } else {
+                out.push('=');
+            }
         }
-        None => rest.rsplit_once('@').map_or(rest, |(_, h)| h).to_string(),
+    }
+    out
+}
+
+/// `s` with its `%XX` escapes decoded (bytes that do not make UTF-8 replaced).
+fn percent_decode(s: &str) -> String {
+    let b = s.as_bytes();
+    let hex = |i: usize| b.get(i).and_then(|&c| (c as char).to_digit(16));
+    let mut out = Vec::with_capacity(b.len());
+    let mut i = 0;
+    while i < b.len() {
+        match (b[i], hex(i + 1), hex(i + 2)) {
+            (b'%', Some(h), Some(l)) => {
+                out.push((h * 16 + l) as u8);
+                i += 3;
+            }
+            (c, _, _) => {
+                out.push(c);
+                i += 1;
+            }
+        }
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
+
+/// The URL with any `user:password@` removed and its query and fragment dropped (some
+/// gateways take the key there), for transcripts and messages. Whatever precedes the URL's
+/// last `@` goes, not only what precedes the first `/`: a password typed with a `/` in it
+/// (`http://u:p/ss@host`) makes no URL userinfo, but it is still a secret.
+pub fn redact_url(url: &str) -> String {
+    let (scheme, rest) = match url.split_once("://") {
+        Some((s, r)) => (Some(s), r),
+        None => (None, url),
     };
-    if scheme.is_empty() {
-        rest
-    } else {
-        format!("{scheme}://{rest}")
+    let rest = rest.split(['?', '#']).next().unwrap_or("");
+    let rest = rest.rsplit_once('@').map_or(rest, |(_, r)| r);
+    match scheme {
+        Some(s) => format!("{s}://{rest}"),
+        None => rest.to_string(),
     }
 }
 
@@ -200,6 +309,8 @@ pub struct HttpClient {
     cfg: HttpConfig,
     http: reqwest::blocking::Client,
     observer: Option<Observer>,
+    /// [`HttpConfig::secrets`], kept out of everything the server sends back.
+    secrets: Vec<String>,
 }
 
 /// How long to wait before the next attempt, and the note that says why: the server's
@@ -226,12 +337,14 @@ fn retry_pause(
 impl HttpClient {
     /// A client for `cfg`.
     pub fn new(cfg: HttpConfig) -> Result<Self, LlmError> {
+        cfg.check()?;
         let http = reqwest::blocking::Client::builder()
             .connect_timeout(cfg.connect_timeout)
             .timeout(cfg.read_timeout)
             .build()
             .map_err(|e| LlmError::Setup(format!("HTTP client: {e}")))?;
         Ok(Self {
+            secrets: cfg.secrets(),
             cfg,
             http,
             observer: None,
@@ -611,9 +724,12 @@ pub fn redact_key(text: &str, key: Option<&str>) -> String {
 impl HttpClient {
     /// Everything the server sends passes here before anyone else sees it: a server that
     /// echoes the `Authorization` header (in an error body, or quoted in a completion) must not
-    /// get the key onto the terminal or into the run directory's files.
+    /// get the key onto the terminal or into the run directory's files, nor the password or
+    /// query values of the URL (nor the `Basic` token the password travels as).
     fn redact(&self, text: &str) -> String {
-        redact_key(text, self.cfg.key.as_deref())
+        self.secrets
+            .iter()
+            .fold(text.to_string(), |t, s| redact_key(&t, Some(s)))
     }
 
     fn redact_error(&self, e: LlmError) -> LlmError {
@@ -851,6 +967,72 @@ mod tests {
         let mut c = HttpConfig::new("http://h/v1", "m");
         c.key = Some("sk-secret".into());
         assert!(!format!("{c:?}").contains("sk-secret"));
+    }
+
+    #[test]
+    fn urls_lose_credentials_however_they_are_spelled() {
+        // A query after the host alone, a password holding a `/`, no scheme, a fragment.
+        assert_eq!(redact_url("http://h:1?key=sk-q"), "http://h:1");
+        assert_eq!(redact_url("http://u:p/sk-pw@h:1/v1"), "http://h:1/v1");
+        assert_eq!(redact_url("u:sk-pw@h:1/v1"), "h:1/v1");
+        assert_eq!(redact_url("https://h/v1#sk-frag"), "https://h/v1");
+    }
+
+    #[test]
+    fn the_endpoint_keeps_a_query_after_the_path() {
+        let c = HttpConfig::new("http://h:1?key=k", "m");
+        assert_eq!(c.endpoint(), "http://h:1/chat/completions?key=k");
+        let c = HttpConfig::new("https://h/openai/v1/?api-version=2024-06-01", "m");
+        assert_eq!(
+            c.endpoint(),
+            "https://h/openai/v1/chat/completions?api-version=2024-06-01"
+        );
+    }
+
+    #[test]
+    fn urls_and_keys_no_request_can_carry_are_refused_without_their_secrets() {
+        for url in [
+            "ftp://u:sk-pw-123@h/v1",
+            "u:sk-pw-123@h:1/v1",
+            "http://u:p/sk-pw-123@h:1/v1",
+            "h:1",
+        ] {
+            let e = HttpClient::new(HttpConfig::new(url, "m"))
+                .err()
+                .expect(url)
+                .to_string();
+            assert!(e.contains("--llm-url"), "{url}: {e}");
+            assert!(!e.contains("sk-pw-123"), "{url}: {e}");
+        }
+        let mut c = HttpConfig::new("http://h/v1", "m");
+        c.key = Some("sk-abc\ndef".into());
+        let e = HttpClient::new(c)
+            .err()
+            .expect("a key with a line break")
+            .to_string();
+        assert!(
+            e.contains("DRIVESCRIPT_LLM_KEY") && e.contains("control"),
+            "{e}"
+        );
+        assert!(!e.contains("sk-abc"), "{e}");
+    }
+
+    #[test]
+    fn what_the_url_sends_is_redacted_from_what_comes_back() {
+        let c = HttpClient::new(HttpConfig::new(
+            "http://u:pw-url-secret-1@h/v1?key=sk-query%2Dsecret",
+            "m",
+        ))
+        .unwrap();
+        let echoed = "Authorization: Basic dTpwdy11cmwtc2VjcmV0LTE=; password pw-url-secret-1; \
+                      query sk-query%2Dsecret, decoded sk-query-secret";
+        let r = c.redact(echoed);
+        for secret in ["dTpwdy11cmwtc2VjcmV0LTE=", "pw-url-secret-1", "sk-query"] {
+            assert!(!r.contains(secret), "{r}");
+        }
+        assert_eq!(base64(b"u:pw-url-secret-1"), "dTpwdy11cmwtc2VjcmV0LTE=");
+        assert_eq!(base64(b"ab"), "YWI=");
+        assert_eq!(base64(b"a"), "YQ==");
     }
 
     #[test]

@@ -160,10 +160,24 @@ pub fn compare(original: &Path, replayed: &Path) -> Result<Vec<String>, LlmError
         read_json(&original.join("state.json"))?,
         read_json(&replayed.join("state.json"))?,
     );
-    let rounds = |s: &Value| s["exchange"].as_u64().unwrap_or(0) as usize;
-    for n in 0..rounds(&a).max(rounds(&b)) {
-        let script =
-            |dir: &Path| std::fs::read_to_string(dir.join(format!("round_{n}/script.rhai"))).ok();
+    let rounds = |s: &Value| s["exchange"].as_u64().unwrap_or(0);
+    // Up to the first round neither run holds: `exchange` is what the recording says, and
+    // 10^15 of it looped for ever.
+    let held = |n: &u64| {
+        [original, replayed]
+            .iter()
+            .any(|d| d.join(format!("round_{n}")).is_dir())
+    };
+    for n in (0..rounds(&a).max(rounds(&b))).take_while(held) {
+        // A regular file within the cap: a FIFO in a shared recording waited for ever.
+        let script = |dir: &Path| {
+            crate::io::read_regular_text(
+                &dir.join(format!("round_{n}/script.rhai")),
+                MAX_RUN_FILE_BYTES,
+                "a round's script",
+            )
+            .ok()
+        };
         if script(original) != script(replayed) {
             out.push(format!(
                 "round {n}: the script differs (or only one run has one)"
@@ -208,6 +222,26 @@ pub fn compare(original: &Path, replayed: &Path) -> Result<Vec<String>, LlmError
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_recording_claiming_endless_rounds_or_holding_a_fifo_is_compared_at_once() {
+        // 10^15 exchanges looped for ever; a FIFO as a round's script waited for a writer.
+        let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+        for (d, exchange) in [(&a, 1_000_000_000_000_000u64), (&b, 1)] {
+            let state = serde_json::json!({"exchange": exchange, "outcome": "x"});
+            std::fs::write(d.path().join("state.json"), state.to_string()).unwrap();
+            std::fs::create_dir(d.path().join("round_0")).unwrap();
+        }
+        std::fs::write(b.path().join("round_0/script.rhai"), "term(\"x\", 0.0);").unwrap();
+        let made = std::process::Command::new("mkfifo")
+            .arg(a.path().join("round_0/script.rhai"))
+            .status();
+        assert!(made.is_ok_and(|s| s.success()), "mkfifo");
+        let t0 = std::time::Instant::now();
+        let d = compare(a.path(), b.path()).unwrap();
+        assert!(t0.elapsed().as_secs() < 5, "{:?}", t0.elapsed());
+        assert_eq!(d, ["round 0: the script differs (or only one run has one)"]);
+    }
 
     #[test]
     fn a_changed_prompt_is_located() {

@@ -1878,14 +1878,28 @@ impl Session<'_> {
             return Ok(Got::Text(ex.reply.clone()));
         }
         if let Backend::Manual = self.backend {
-            return Ok(match read_run_file(&rdir.join("reply.md")) {
+            let reply = rdir.join("reply.md");
+            return Ok(match read_run_file(&reply) {
                 Ok(t) if !t.trim().is_empty() => {
                     self.record(n, "manual reply read", t0, None);
                     Got::Text(t)
                 }
+                // A reply saved but unreadable (UTF-16 from an editor, a link to a device, too
+                // large) is said: "waiting for a reply" would send the user to save it again.
+                Err(e) if reply.symlink_metadata().is_ok() => {
+                    return Err(run_err(
+                        &self.dir,
+                        format!(
+                            "{}: cannot read the reply ({}): save the model's answer there as \
+                             UTF-8 text, then --resume",
+                            reply.display(),
+                            e.reason()
+                        ),
+                    ))
+                }
                 _ => Got::Wait(Outcome::Waiting {
                     prompt: rdir.join("prompt.md"),
-                    reply: rdir.join("reply.md"),
+                    reply,
                 }),
             });
         }

@@ -57,6 +57,15 @@ pub fn message(e: candle_core::Error) -> String {
         .join(": ")
 }
 
+/// [`message`] for a caller that names the file itself: without the `path: "..."` candle puts
+/// before an error it met reading one (the file named twice, once as Rust's debug string).
+pub fn message_in_file(e: candle_core::Error) -> String {
+    match unwrapped(e) {
+        candle_core::Error::WithPath { inner, .. } => message(*inner),
+        other => message(other),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

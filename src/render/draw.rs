@@ -617,6 +617,32 @@ mod tests {
     }
 
     #[test]
+    fn a_role_for_an_absent_agent_or_given_twice_is_refused() {
+        let scene = sample("USA_US101-3_3_T-1.xml");
+        let with = |roles: &[(i64, &str)]| RenderOptions {
+            roles: roles.iter().map(|(i, r)| (*i, r.to_string())).collect(),
+            ..RenderOptions::default()
+        };
+        with(&[(401, "cutter"), (399, "victim")])
+            .check_roles(&scene)
+            .unwrap();
+        let e = with(&[(401, "cutter"), (4010, "victim")])
+            .check_roles(&scene)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("--role 4010=victim: the scene has no agent 4010"),
+            "{e}"
+        );
+        assert!(e.contains("401"), "{e}");
+        let e = with(&[(401, "cutter"), (401, "victim")])
+            .check_roles(&scene)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("twice"), "{e}");
+    }
+
+    #[test]
     fn labels_keep_clear_of_boxes_and_of_each_other_and_the_legend_says_what_is_drawn() {
         let scene = sample("USA_US101-3_3_T-1.xml");
         for width in [1000, 400, 160] {

@@ -24,6 +24,16 @@ pub enum RenderError {
     /// The picture would be empty or absurdly large.
     #[error("cannot render: {0}")]
     Size(String),
+    /// A role names an agent the scene lacks, or an agent twice.
+    #[error("--role {id}={role}: {message}")]
+    Role {
+        /// The agent id.
+        id: crate::scene::AgentId,
+        /// The role it was given.
+        role: String,
+        /// What is wrong.
+        message: String,
+    },
     /// The encoder failed.
     #[error("{format} encoding failed: {message}")]
     Encode {
@@ -69,6 +79,33 @@ impl Default for RenderOptions {
 }
 
 impl RenderOptions {
+    /// Every role names an agent of `scene`, once: a mistyped id would otherwise leave the
+    /// picture without the highlight asked for, and say nothing.
+    pub fn check_roles(&self, scene: &crate::scene::Scene) -> Result<(), RenderError> {
+        for (i, (id, role)) in self.roles.iter().enumerate() {
+            let err = |message: String| RenderError::Role {
+                id: *id,
+                role: role.clone(),
+                message,
+            };
+            if self.roles[..i].iter().any(|(a, _)| a == id) {
+                return Err(err(format!("agent {id} is given a role twice")));
+            }
+            if !scene.agents.iter().any(|a| a.id == *id) {
+                let ids: Vec<String> = scene.agents.iter().map(|a| a.id.to_string()).collect();
+                let shown = if ids.len() > 20 {
+                    format!("{}, … ({} in all)", ids[..20].join(", "), ids.len())
+                } else {
+                    ids.join(", ")
+                };
+                return Err(err(format!(
+                    "the scene has no agent {id}; its agents: {shown}"
+                )));
+            }
+        }
+        Ok(())
+    }
+
     /// The role `id` is labelled with, when the request names it.
     pub(crate) fn role(&self, id: crate::scene::AgentId) -> Option<&str> {
         self.roles

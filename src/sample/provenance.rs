@@ -18,6 +18,18 @@ use crate::io::{create_atomic, tfrecord::crc32c};
 /// The run record's file name in a run directory.
 pub const RUN_FILE: &str = "run.json";
 
+/// The largest run record read: a few hundred bytes in practice.
+const MAX_RECORD_BYTES: u64 = 1 << 20;
+
+/// The samples per scene the run in `dir` recorded in its [`RUN_FILE`], where it has a
+/// readable one: what `eval --samples` must say to score every sample and only those.
+pub fn recorded_samples(dir: &Path) -> Option<u64> {
+    let text =
+        crate::io::read_regular_text(&dir.join(RUN_FILE), MAX_RECORD_BYTES, "a run record").ok()?;
+    let v: Value = serde_json::from_str(&text).ok()?;
+    v["settings"]["samples"].as_u64()
+}
+
 /// What made a run.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -118,7 +130,9 @@ impl RunRecord {
         // Twice at most: a run that loses the race to create the record compares with the
         // winner's.
         for _ in 0..2 {
-            match std::fs::read_to_string(&file) {
+            // A regular file within a cap: a FIFO planted as run.json waited for a writer
+            // forever.
+            match crate::io::read_regular_text(&file, MAX_RECORD_BYTES, "a run record") {
                 Ok(text) => {
                     let theirs: Value = serde_json::from_str(&text)
                         .map_err(|e| io(&file, format!("not a run record: {e}")))?;
@@ -137,7 +151,9 @@ impl RunRecord {
                         Err(ProvenanceError::SameRun { dir: shown })
                     };
                 }
-                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                Err(crate::io::IoError::Read { source, .. })
+                    if source.kind() == std::io::ErrorKind::NotFound =>
+                {
                     if dir.exists() {
                         let rollouts = std::fs::read_dir(dir)
                             .map_err(|e| io(dir, e.to_string()))?
@@ -158,7 +174,7 @@ impl RunRecord {
                         return Ok(true);
                     }
                 }
-                Err(e) => return Err(io(&file, e.to_string())),
+                Err(e) => return Err(io(&file, e.reason())),
             }
         }
         Err(io(
@@ -207,6 +223,30 @@ mod tests {
             scripts: vec![("cut_in.rhai".into(), "deadbeef".into())],
             params: String::new(),
         }
+    }
+
+    #[test]
+    fn a_run_record_that_is_not_a_regular_file_is_refused_not_waited_on() {
+        let dir = tempfile::tempdir().unwrap();
+        let made = std::process::Command::new("mkfifo")
+            .arg(dir.path().join(RUN_FILE))
+            .status();
+        assert!(made.is_ok_and(|s| s.success()), "mkfifo");
+        let e = record(1).claim(dir.path(), true).unwrap_err().to_string();
+        assert!(
+            e.contains("run.json") && e.contains("not a regular file"),
+            "{e}"
+        );
+        assert_eq!(recorded_samples(dir.path()), None);
+    }
+
+    #[test]
+    fn the_samples_a_run_recorded_are_read_back() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut r = record(1);
+        r.settings["samples"] = 4.into();
+        r.claim(dir.path(), false).unwrap();
+        assert_eq!(recorded_samples(dir.path()), Some(4));
     }
 
     #[test]

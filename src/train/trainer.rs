@@ -13,7 +13,7 @@ use super::dataset::{within, Window, WindowConfig, AGENT_ATTRS};
 use super::ema::Ema;
 use super::rng::Rng;
 use super::store::{SceneWindows, WindowSource};
-use crate::model::error::message as candle_message;
+use crate::model::error::{message as candle_message, message_in_file};
 use crate::model::{Denoiser, DenoiserConfig, Edm, Pca, Scores};
 use crate::scene::{AgentType, Scene};
 
@@ -815,7 +815,7 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
     // Only regular files, each within a cap: a FIFO named config.json waited for a writer
     // forever, and a device read without end.
     let text = crate::io::read_regular_text(&cfg_path, MAX_CONFIG_BYTES, "checkpoint config")
-        .map_err(|e| io(&cfg_path, e.to_string()))?;
+        .map_err(|e| io(&cfg_path, e.reason()))?;
     let meta: CheckpointMeta = serde_json::from_str(&text).map_err(|e| {
         io(
             &cfg_path,
@@ -842,15 +842,15 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
     let model = Denoiser::new(meta.config.model, meta.config.edm, vb)?;
     let w = dir.join("model.safetensors");
     crate::io::open_regular(&w, MAX_WEIGHTS_BYTES, "checkpoint weights")
-        .map_err(|e| io(&w, e.to_string()))?;
-    varmap.load(&w).map_err(|e| io(&w, candle_message(e)))?;
+        .map_err(|e| io(&w, e.reason()))?;
+    varmap.load(&w).map_err(|e| io(&w, message_in_file(e)))?;
     let opt_path = dir.join(OPTIMIZER_FILE);
     let optimizer = if opt_path.exists() {
         crate::io::open_regular(&opt_path, 2 * MAX_WEIGHTS_BYTES, "optimiser state")
-            .map_err(|e| io(&opt_path, e.to_string()))?;
+            .map_err(|e| io(&opt_path, e.reason()))?;
         let mut opt = AdamW::new(&varmap, meta.config.lr, WEIGHT_DECAY);
         opt.load(&opt_path)
-            .map_err(|e| io(&opt_path, candle_message(e)))?;
+            .map_err(|e| io(&opt_path, message_in_file(e)))?;
         if opt.steps() != meta.steps_done as u64 {
             return Err(io(
                 &opt_path,
@@ -1128,6 +1128,33 @@ mod tests {
         );
         // Sampling does not read it.
         assert!(load(dir.path()).is_ok());
+    }
+
+    #[test]
+    fn a_missing_or_truncated_checkpoint_file_is_named_once() {
+        // Each was named twice, the weights once as Rust's debug string (`path: "…"`).
+        let dir = tempfile::tempdir().unwrap();
+        let e = load(dir.path()).err().expect("no config.json").to_string();
+        let cfg = dir.path().join("config.json").display().to_string();
+        assert_eq!(e.matches(&cfg).count(), 1, "{e}");
+        train(
+            &scenes(),
+            tiny_config(1, 1, 1),
+            Some(dir.path()),
+            None,
+            |_, _, _| (),
+        )
+        .unwrap();
+        let w = dir.path().join("model.safetensors");
+        let bytes = std::fs::read(&w).unwrap();
+        std::fs::write(&w, &bytes[..100]).unwrap();
+        let e = load(dir.path())
+            .err()
+            .expect("truncated weights")
+            .to_string();
+        let shown = w.display().to_string();
+        assert_eq!(e.matches(&shown).count(), 1, "{e}");
+        assert!(!e.contains("path:"), "{e}");
     }
 
     #[test]
