@@ -533,6 +533,7 @@ mod tests {
             verdicts: Vec::new(),
             realism: Vec::new(),
             off_road,
+            allowed: Vec::new(),
         }
     }
 
