@@ -348,6 +348,47 @@ fn http_happy_path_writes_the_run_and_keeps_the_key_out() {
 }
 
 #[test]
+fn a_script_past_the_script_budget_goes_back_to_the_model_and_the_run_goes_on() {
+    // Tens of milliseconds per evaluation: the hundreds of a sampling run take far more than
+    // the 2 s budget. The model wrote it, so it is the model's to fix: it used to end the run
+    // with an error (exit 1) instead of being that round's feedback.
+    let slow = "let n = 0; for i in 0..200000 { n += 1; }\nlet a = agent(401);\n\
+                term(\"far\", square(a.x.last() - 1000.0));\n";
+    let srv = Server::start(vec![Canned::chat(&reply(slow)), Canned::chat(&reply(IDLE))]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(
+        dir.path(),
+        &["--script-budget", "2", "--rounds", "0"],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    // The second script was sampled, and the rounds ran out on it: not met, no error.
+    assert_eq!(out.status.code(), Some(2), "{t}");
+    assert!(t.contains("round 0: script over budget"), "{t}");
+    let said = std::fs::read_to_string(dir.path().join("round_0/budget.txt")).unwrap();
+    assert!(
+        said.starts_with("your script took ")
+            && said.contains(" evaluations (mean ")
+            && said.contains(" ms each); the budget for script evaluation is 2 s")
+            && said.contains("simplify it"),
+        "{said}"
+    );
+    assert_eq!(srv.received().len(), 2, "{t}");
+    let back = last_user(&srv, 1);
+    assert!(back.contains(said.trim()), "{back}");
+    assert!(!dir
+        .path()
+        .join("round_0/USA_US101-3_3_T-1_costs.json")
+        .exists());
+    assert!(dir
+        .path()
+        .join("round_1/USA_US101-3_3_T-1_costs.json")
+        .exists());
+    let tr = std::fs::read_to_string(dir.path().join("transcript.json")).unwrap();
+    assert!(tr.contains("\"script over budget\""), "{tr}");
+}
+
+#[test]
 fn syntax_errors_and_unknown_agents_go_back_with_line_numbers_before_any_sampling() {
     let broken = "let a = agent(401);\nterm(\"x\", relu(a.x.last() - );\n";
     let unknown = cut_in_script(401, 9999);

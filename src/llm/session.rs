@@ -2,7 +2,7 @@
 //!
 //! Every exchange with the model is a numbered `round_N/` holding `prompt.md` (the messages
 //! sent, readable), `messages.json`, `reply.md`, and, as they happen, `script.rhai`,
-//! `validation.txt`, the rollouts and cost report of the samples (`SCENARIO_K.json`,
+//! `validation.txt` (or `budget.txt`, for a script that ran past `--script-budget`), the rollouts and cost report of the samples (`SCENARIO_K.json`,
 //! `SCENARIO_costs.json`, named as `simulate` names them so that `eval --rollouts round_N`
 //! scores them, and the unguided twins in `unguided/`), `feedback.md` and `sample.gif`. `state.json` is rewritten atomically
 //! after every step, so a run stopped anywhere (a manual round waiting for its reply, a killed
@@ -28,7 +28,9 @@ use crate::cost::{Limits, ParamValue, Params};
 use crate::eval::behaviors::Behavior;
 use crate::io::{output_stem, write_atomic};
 use crate::render::{render_gif, RenderOptions};
-use crate::sample::{attempt, Attempt, AttemptError, AttemptSpec, SampleConfig, ScriptSpec};
+use crate::sample::{
+    attempt, Attempt, AttemptError, AttemptSpec, SampleConfig, SampleError, ScriptSpec,
+};
 use crate::scene::description::{describe, DescribeOptions};
 use crate::scene::Scene;
 use crate::train::Trained;
@@ -1309,6 +1311,28 @@ impl<'a> Session<'a> {
                             progress(&format!("round {n}: validation failed: {err}"));
                             let horizon = self.trained.meta.config.window.future;
                             let msg = self.prompts.validation(horizon, self.raw.meta.dt, &err);
+                            if let Some(o) = self.miss(msg)? {
+                                return self.finish(o, progress);
+                            }
+                        }
+                        // A slow script is the model's mistake, as one that fails to
+                        // validate: it goes back with the numbers, and the run goes on.
+                        Err(AttemptError::Sample(SampleError::ScriptBudget { budget, used })) => {
+                            self.record(
+                                n,
+                                "script over budget",
+                                t1,
+                                Some(json!({
+                                    "evaluations": used.evaluations,
+                                    "seconds": used.time.as_secs_f64(),
+                                    "budget_seconds": budget.as_secs_f64(),
+                                })),
+                            );
+                            let err = super::feedback::over_budget(budget, &used);
+                            write(&rdir, "budget.txt", &err)?;
+                            self.state.last_error = Some(err.clone());
+                            progress(&format!("round {n}: script over budget: {err}"));
+                            let msg = self.prompts.unusable(&err);
                             if let Some(o) = self.miss(msg)? {
                                 return self.finish(o, progress);
                             }
