@@ -1181,6 +1181,81 @@ fn ask_keeps_the_user_s_files_and_writes_nothing_through_a_planted_round_link() 
 }
 
 #[test]
+fn errors_about_an_entry_inside_a_run_directory_name_that_entry() {
+    // They said "run directory DIR: round_0 is not a directory", naming the directory that
+    // holds what is wrong, and called round_0 itself a run directory for a link inside it.
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let o = ask(
+        &[
+            s(&samples().join(SCENE)),
+            REQUEST,
+            "-o",
+            s(&run),
+            "--llm",
+            "manual",
+        ],
+        None,
+    );
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    let resume = || {
+        let o = ask(&["--resume", s(&run)], None);
+        let t = text(&o);
+        assert_eq!(o.status.code(), Some(1), "{t}");
+        assert!(!t.contains("run directory"), "{t}");
+        t
+    };
+    // A file where the round's directory was.
+    let r0 = run.join("round_0");
+    std::fs::remove_dir_all(&r0).unwrap();
+    std::fs::write(&r0, "not a round").unwrap();
+    let t = resume();
+    assert!(
+        t.contains(&format!(
+            "{}: not a directory: the run writes its files",
+            r0.display()
+        )),
+        "{t}"
+    );
+    // The round's unguided/ a link out of the run.
+    #[cfg(unix)]
+    {
+        std::fs::remove_file(&r0).unwrap();
+        std::fs::create_dir(&r0).unwrap();
+        let outside = dir.path().join("outside");
+        std::fs::create_dir(&outside).unwrap();
+        let link = r0.join("unguided");
+        std::os::unix::fs::symlink(&outside, &link).unwrap();
+        let t = resume();
+        assert!(
+            t.contains(&format!(
+                "{}: a symbolic link (to {})",
+                link.display(),
+                outside.display()
+            )),
+            "{t}"
+        );
+        std::fs::remove_file(&link).unwrap();
+    }
+    // A damaged state.json, and one that cannot be read as a file.
+    let state = run.join("state.json");
+    std::fs::write(&state, "{").unwrap();
+    let t = resume();
+    assert!(
+        t.contains(&format!("{}: the file is damaged", state.display())),
+        "{t}"
+    );
+    std::fs::remove_file(&state).unwrap();
+    std::fs::create_dir(&state).unwrap();
+    let t = resume();
+    assert!(
+        t.contains(&format!("{}: cannot read it", state.display()))
+            && t.contains("a run keeps its state there"),
+        "{t}"
+    );
+}
+
+#[test]
 fn a_server_echoing_the_key_gets_it_into_no_output_and_no_file() {
     // In an error body: quoted in the error on stderr.
     let srv = Server::start(vec![Canned::raw(

@@ -35,6 +35,14 @@ fn err(dir: &Path, message: impl Into<String>) -> LlmError {
     }
 }
 
+/// A file or directory inside a run directory, named itself.
+fn file_err(path: &Path, message: impl Into<String>) -> LlmError {
+    LlmError::RunFile {
+        path: path.to_path_buf(),
+        message: message.into(),
+    }
+}
+
 /// A batch's output directory is not a run directory: its errors name it plainly.
 fn batch_err(dir: &Path, message: impl Into<String>) -> LlmError {
     LlmError::Input {
@@ -147,8 +155,35 @@ fn held_by(dir: &Path) -> String {
     )
 }
 
+/// Why [`flock`] could not lock.
+enum LockError {
+    /// Another process holds the directory (in words, [`held_by`]).
+    Held(String),
+    /// The lock file itself (its path) cannot be opened or locked.
+    File(PathBuf, String),
+}
+
+impl LockError {
+    /// As an error of the run directory `dir`: a held lock is the directory's, a lock file
+    /// that cannot be used is named itself.
+    fn of_run(self, dir: &Path) -> LlmError {
+        match self {
+            LockError::Held(m) => err(dir, m),
+            LockError::File(p, m) => file_err(&p, m),
+        }
+    }
+
+    /// As an error of the batch output directory `out`.
+    fn of_batch(self, out: &Path) -> LlmError {
+        match self {
+            LockError::Held(m) => batch_err(out, m),
+            LockError::File(p, m) => batch_err(&p, m),
+        }
+    }
+}
+
 /// Takes the lock file `name` of the existing directory `dir`, exclusively or shared.
-fn flock(dir: &Path, name: &str, exclusive: bool) -> Result<RunLock, String> {
+fn flock(dir: &Path, name: &str, exclusive: bool) -> Result<RunLock, LockError> {
     let path = dir.join(name);
     let mut options = std::fs::OpenOptions::new();
     options.read(true).write(true).create(true).truncate(false);
@@ -158,9 +193,12 @@ fn flock(dir: &Path, name: &str, exclusive: bool) -> Result<RunLock, String> {
         // A link planted in its place must not make the lock open (or create) a file elsewhere.
         options.custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK);
     }
-    let file = options
-        .open(&path)
-        .map_err(|e| format!("cannot open its lock file {name}: {e}"))?;
+    let file = options.open(&path).map_err(|e| {
+        LockError::File(
+            path.clone(),
+            format!("cannot open it (drivescript's lock file for the directory): {e}"),
+        )
+    })?;
     #[cfg(unix)]
     {
         use std::os::unix::io::AsRawFd;
@@ -174,9 +212,9 @@ fn flock(dir: &Path, name: &str, exclusive: bool) -> Result<RunLock, String> {
         if rc != 0 {
             let e = std::io::Error::last_os_error();
             return Err(if e.kind() == std::io::ErrorKind::WouldBlock {
-                held_by(dir)
+                LockError::Held(held_by(dir))
             } else {
-                format!("cannot lock it: {e}")
+                LockError::File(path, format!("cannot lock it: {e}"))
             });
         }
     }
@@ -189,7 +227,7 @@ fn flock(dir: &Path, name: &str, exclusive: bool) -> Result<RunLock, String> {
 /// holds it: two processes running the same rounds into the same files would interleave
 /// them, and a batch running there would mix its files with the run's.
 pub fn lock(dir: &Path) -> Result<RunLock, LlmError> {
-    flock(dir, LOCK_FILE, true).map_err(|m| err(dir, m))
+    flock(dir, LOCK_FILE, true).map_err(|e| e.of_run(dir))
 }
 
 /// Takes a batch's locks on its existing output directory `out`: [`LOCK_FILE`] shared (the
@@ -201,9 +239,9 @@ pub fn lock_batch(out: &Path, shard: Option<Shard>) -> Result<(RunLock, RunLock)
     let advice = "choose another -o for the batch";
     // Before the batch's own lock file marks `out` as a batch's.
     check_kind(out, Kind::Batch, advice)?;
-    let shared = flock(out, LOCK_FILE, false).map_err(|m| batch_err(out, m))?;
+    let shared = flock(out, LOCK_FILE, false).map_err(|e| e.of_batch(out))?;
     check_kind(out, Kind::Batch, advice)?;
-    let own = flock(out, &batch_lock_name(shard), true).map_err(|m| batch_err(out, m))?;
+    let own = flock(out, &batch_lock_name(shard), true).map_err(|e| e.of_batch(out))?;
     Ok((shared, own))
 }
 
@@ -258,7 +296,14 @@ pub fn clear_run(dir: &Path) -> Result<(), LlmError> {
             }
             _ => Ok(()),
         };
-        removed.map_err(|e| err(dir, format!("cannot remove {name} of the earlier run: {e}")))?;
+        removed.map_err(|e| {
+            file_err(
+                &p,
+                format!(
+                    "cannot remove it (the earlier run wrote it, and a new one replaces it): {e}"
+                ),
+            )
+        })?;
     }
     Ok(())
 }
@@ -270,41 +315,54 @@ fn is_round_name(name: &str) -> bool {
 
 /// `dir/name` as a directory of the run's own: created when missing; refused when it is a
 /// symbolic link or not a directory, so that nothing the run writes lands outside `dir`.
+/// Errors name `dir/name`, the entry that is wrong.
 pub fn own_subdir(dir: &Path, name: &str) -> Result<PathBuf, LlmError> {
     let p = dir.join(name);
     match std::fs::symlink_metadata(&p) {
-        Ok(m) if m.file_type().is_symlink() => Err(err(
-            dir,
+        Ok(m) if m.file_type().is_symlink() => Err(file_err(
+            &p,
             format!(
-                "{name} is a symbolic link{}: a run writes only into directories of its own; \
-                 remove it",
+                "a symbolic link{}, where the run keeps a directory of its own (it writes only \
+                 into directories of its own): remove it",
                 std::fs::read_link(&p)
                     .map(|t| format!(" (to {})", t.display()))
                     .unwrap_or_default()
             ),
         )),
         Ok(m) if m.is_dir() => Ok(p),
-        Ok(_) => Err(err(
-            dir,
-            format!("{name} is not a directory: a run writes its files there; remove it"),
+        Ok(_) => Err(file_err(
+            &p,
+            "not a directory: the run writes its files into a directory of its own there; \
+             remove it",
         )),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            std::fs::create_dir(&p).map_err(|e| err(dir, format!("cannot create {name}: {e}")))?;
+            std::fs::create_dir(&p).map_err(|e| {
+                file_err(
+                    &p,
+                    format!("cannot create it (the run writes its files there): {e}"),
+                )
+            })?;
             Ok(p)
         }
-        Err(e) => Err(err(dir, format!("{name}: {e}"))),
+        Err(e) => Err(file_err(
+            &p,
+            format!("cannot read it (the run keeps a directory there): {e}"),
+        )),
     }
 }
 
 /// Refuses to write the run's file `path` when a symbolic link is in its place: the run would
-/// otherwise write wherever the link points.
+/// otherwise write wherever the link points. The error names `path`.
 pub fn check_not_link(path: &Path) -> Result<(), LlmError> {
     match std::fs::symlink_metadata(path) {
-        Ok(m) if m.file_type().is_symlink() => Err(err(
-            path.parent().unwrap_or(Path::new(".")),
+        Ok(m) if m.file_type().is_symlink() => Err(file_err(
+            path,
             format!(
-                "{} is a symbolic link: a run writes only files of its own; remove it",
-                path.file_name().unwrap_or_default().to_string_lossy()
+                "a symbolic link{}, where drivescript writes a file or directory of its own \
+                 (never through a link): remove it",
+                std::fs::read_link(path)
+                    .map(|t| format!(" (to {})", t.display()))
+                    .unwrap_or_default()
             ),
         )),
         _ => Ok(()),
