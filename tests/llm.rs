@@ -1468,6 +1468,86 @@ fn errors_about_files_that_are_not_run_directories_do_not_call_them_so() {
 }
 
 #[test]
+fn a_batch_that_fails_before_any_result_leaves_its_directory_as_it_found_it() {
+    // A failed batch left its lock files (and its first pair's empty run), which mark a
+    // directory as a batch's: a single `ask` there was then refused.
+    let dir = tempfile::tempdir().unwrap();
+    let file = one_pair_batch(dir.path());
+    let entries = |d: &Path| -> Vec<String> {
+        let mut v: Vec<String> = std::fs::read_dir(d)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        v.sort();
+        v
+    };
+    // No server at the first request: a new -o is not left behind ...
+    let new = dir.path().join("new");
+    let o = ask(&["--batch", s(&file), "-o", s(&new)], Some(&refused_url()));
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("pair 1 of 1"), "{t}");
+    assert!(!new.exists(), "{:?}", entries(&new));
+    // ... and an existing one keeps only what it held.
+    let mine = dir.path().join("mine");
+    std::fs::create_dir(&mine).unwrap();
+    std::fs::write(mine.join("notes.txt"), "mine").unwrap();
+    let o = ask(&["--batch", s(&file), "-o", s(&mine)], Some(&refused_url()));
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert_eq!(entries(&mine), ["notes.txt"]);
+    // A summary of the user's in the way, found after the batch took its locks.
+    std::fs::write(mine.join("summary.md"), "my notes").unwrap();
+    let o = ask(
+        &["--batch", s(&file), "-o", s(&mine), "--llm", "rules"],
+        None,
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("summary.md: it is not a summary"), "{t}");
+    assert_eq!(entries(&mine), ["notes.txt", "summary.md"]);
+    // A single run there is not taken for a batch's.
+    let o = ask(
+        &[
+            s(&samples().join(SCENE)),
+            REQUEST,
+            "-o",
+            s(&mine),
+            "--llm",
+            "rules",
+        ],
+        None,
+    );
+    let t = text(&o);
+    assert_ne!(o.status.code(), Some(1), "{t}");
+    assert!(mine.join("state.json").exists(), "{t}");
+    // A batch whose pair got a reply (paid for) before the server went: its run and marks
+    // stay, to be continued by running it again.
+    let e503 = Canned::raw(503, "Service Unavailable");
+    let srv = Server::start(vec![
+        Canned::chat(&reply(&cut_in_script(401, 399))),
+        e503.clone(),
+        e503.clone(),
+        e503,
+    ]);
+    let kept = dir.path().join("kept");
+    let o = ask(
+        &["--batch", s(&file), "-o", s(&kept), "--rounds", "1"],
+        Some(&srv.url),
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("HTTP 503"), "{t}");
+    assert!(kept.join(".drivescript.batch.lock").exists(), "{t}");
+    let runs = entries(&kept.join("runs"));
+    assert_eq!(runs.len(), 1, "{runs:?}");
+    assert!(kept
+        .join("runs")
+        .join(&runs[0])
+        .join("round_0/reply.md")
+        .exists());
+}
+
+#[test]
 fn a_batch_pair_naming_an_agent_the_scene_lacks_is_an_error_not_a_failed_pair() {
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("requests.yaml");

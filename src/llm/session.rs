@@ -1071,6 +1071,11 @@ impl<'a> Session<'a> {
         format!("{rollouts} and round_{round}/{id}_costs.json")
     }
 
+    /// Replies received from the model so far (exchanges done), the run's paid-for work.
+    pub fn replies(&self) -> usize {
+        self.state.exchange
+    }
+
     /// One record per sampling round so far.
     pub fn history(&self) -> &[RoundRecord] {
         &self.state.history
