@@ -2308,6 +2308,158 @@ fn eval_does_not_count_what_a_behaviour_asks_of_the_agents_it_names() {
 }
 
 #[test]
+fn eval_judges_a_rollout_with_what_its_script_allowed_as_simulate_and_ask_did() {
+    // Vehicle 4 of highway_stop is asked to back up at 2 m/s, and its script allows it:
+    // judged as a speed limit, the sampler's verdict (sample::attempt, `ask`'s judge too)
+    // passes it. `eval` over the rollout used to judge it without the allowance and fail it
+    // for reversing: `ask` and `eval` disagreed on the same trajectories.
+    let dir = tempfile::tempdir().unwrap();
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let scene = root.join("scripts/scenes/highway_stop.yaml");
+    let script = dir.path().join("back.rhai");
+    std::fs::write(
+        &script,
+        "let a = agent(param(\"vehicle\"));\nallow(a, \"reverse\");\n\
+         term(\"backs_up\", relu(a.long_speed + 2.0).mean());\n\
+         term(\"under\", relu(a.long_speed - param(\"limit\") + 0.0 * param(\"from\")).mean());\n",
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    ok(&simulate_args(
+        s(&scene),
+        "data/checkpoint",
+        &[
+            "--auto",
+            "speed_limit",
+            "--script",
+            s(&script),
+            "--param",
+            "vehicle=4",
+        ],
+        s(&out),
+    ));
+    let read = |p: &std::path::Path| -> Value {
+        serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap()
+    };
+    let costs = read(&out.join("highway-stop_costs.json"));
+    let sample = &costs["samples"][0];
+    // The known answer: vehicle 4 reverses, asked for, and the sampler's verdict passes.
+    assert!(
+        sample["realism"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|e| e["agent"] == 4 && e["kind"] == "reverse" && e["requested"] == true),
+        "{sample}"
+    );
+    let judged = &sample["verdicts"][0];
+    assert_eq!(judged["passed"], true, "{judged}");
+    let allowed = serde_json::json!([{"agent": 4, "motion": "reverse"}]);
+    assert_eq!(sample["allowed"], allowed);
+    let rollout = read(&out.join("highway-stop_0.json"));
+    assert_eq!(rollout["allowed"], allowed, "the rollout carries it");
+    let params = ["--param", "vehicle=4", "limit=16", "from=1.6"];
+    let eval = |rollouts: &std::path::Path, json: &std::path::Path| {
+        let mut a = vec![
+            "eval",
+            s(&scene),
+            "--task",
+            "behaviour",
+            "--behaviour",
+            "speed_limit",
+            "--rollouts",
+            s(rollouts),
+            "--unguided",
+        ];
+        let twins = rollouts.join("unguided");
+        a.push(s(&twins));
+        a.extend_from_slice(&params);
+        a.extend(["--json", s(json)]);
+        let table = ok(&a);
+        let row = table
+            .lines()
+            .find(|l| l.starts_with("| rollouts in"))
+            .unwrap_or_else(|| panic!("{table}"))
+            .to_string();
+        (
+            row,
+            read(json)["methods"][0]["scenes"][0]["verdicts"][0].clone(),
+        )
+    };
+    // `eval` gives the sampler's verdict, and counts the allowed reversing as no fault.
+    let (row, verdict) = eval(&out, &dir.path().join("allowed.json"));
+    assert_eq!(verdict["passed"], judged["passed"], "{verdict}");
+    assert_eq!(verdict["violations"], judged["violations"], "{verdict}");
+    assert_eq!(verdict["reason"], judged["reason"], "{verdict}");
+    assert!(row.contains("| speed_limit | 1 | 1.00 | 1.00 |"), "{row}");
+    // The same trajectories without the allowance (a rollout written before rollouts carried
+    // it, read as allowing nothing): the reversing fails the verdict and counts as
+    // implausible.
+    let bare = dir.path().join("bare");
+    std::fs::create_dir_all(bare.join("unguided")).unwrap();
+    let mut r = rollout.clone();
+    r.as_object_mut().unwrap().remove("allowed");
+    std::fs::write(bare.join("highway-stop_0.json"), r.to_string()).unwrap();
+    std::fs::copy(
+        out.join("unguided/highway-stop_0.json"),
+        bare.join("unguided/highway-stop_0.json"),
+    )
+    .unwrap();
+    let (bare_row, verdict) = eval(&bare, &dir.path().join("bare.json"));
+    assert_eq!(verdict["passed"], false, "{verdict}");
+    assert!(
+        verdict["reason"]
+            .as_str()
+            .unwrap()
+            .contains("but vehicle 4 reverses"),
+        "{verdict}"
+    );
+    assert!(
+        bare_row.contains("| speed_limit | 1 | 0.00 | 1.00 |"),
+        "{bare_row}"
+    );
+    let implausible = |row: &str| -> f64 { row.split('|').nth(7).unwrap().trim().parse().unwrap() };
+    assert!(
+        implausible(&bare_row) > implausible(&row),
+        "{row}\n{bare_row}"
+    );
+    // An allowance a script cannot make, or for an agent the scene lacks, is an error
+    // naming the file and the entry.
+    let file = bare.join("highway-stop_0.json");
+    for (entry, says) in [
+        (
+            serde_json::json!({"agent": 4, "motion": "sprint"}),
+            "unknown variant `sprint`, expected `reverse`",
+        ),
+        (
+            serde_json::json!({"agent": 99, "motion": "reverse"}),
+            "allowed[0]: the scene has no agent 99",
+        ),
+    ] {
+        r["allowed"] = serde_json::json!([entry]);
+        std::fs::write(&file, r.to_string()).unwrap();
+        let o = drivescript(&[
+            "eval",
+            s(&scene),
+            "--task",
+            "behaviour",
+            "--behaviour",
+            "speed_limit",
+            "--rollouts",
+            s(&bare),
+            "--param",
+            "vehicle=4",
+            "limit=16",
+        ]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            err.contains(&file.display().to_string()) && err.contains(says),
+            "{err}"
+        );
+    }
+}
+
+#[test]
 fn scenes_an_auto_run_skipped_are_skipped_by_eval_over_the_same_list() {
     // `simulate --auto cut_in` finds a cutter on the cut-in highway but not at the junction;
     // `eval` over both scenes and the run's unguided twins used to stop at the junction's

@@ -348,6 +348,47 @@ fn http_happy_path_writes_the_run_and_keeps_the_key_out() {
 }
 
 #[test]
+fn a_script_past_the_script_budget_goes_back_to_the_model_and_the_run_goes_on() {
+    // Tens of milliseconds per evaluation: the hundreds of a sampling run take far more than
+    // the 2 s budget. The model wrote it, so it is the model's to fix: it used to end the run
+    // with an error (exit 1) instead of being that round's feedback.
+    let slow = "let n = 0; for i in 0..200000 { n += 1; }\nlet a = agent(401);\n\
+                term(\"far\", square(a.x.last() - 1000.0));\n";
+    let srv = Server::start(vec![Canned::chat(&reply(slow)), Canned::chat(&reply(IDLE))]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(
+        dir.path(),
+        &["--script-budget", "2", "--rounds", "0"],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    // The second script was sampled, and the rounds ran out on it: not met, no error.
+    assert_eq!(out.status.code(), Some(2), "{t}");
+    assert!(t.contains("round 0: script over budget"), "{t}");
+    let said = std::fs::read_to_string(dir.path().join("round_0/budget.txt")).unwrap();
+    assert!(
+        said.starts_with("your script took ")
+            && said.contains(" evaluations (mean ")
+            && said.contains(" ms each); the budget for script evaluation is 2 s")
+            && said.contains("simplify it"),
+        "{said}"
+    );
+    assert_eq!(srv.received().len(), 2, "{t}");
+    let back = last_user(&srv, 1);
+    assert!(back.contains(said.trim()), "{back}");
+    assert!(!dir
+        .path()
+        .join("round_0/USA_US101-3_3_T-1_costs.json")
+        .exists());
+    assert!(dir
+        .path()
+        .join("round_1/USA_US101-3_3_T-1_costs.json")
+        .exists());
+    let tr = std::fs::read_to_string(dir.path().join("transcript.json")).unwrap();
+    assert!(tr.contains("\"script over budget\""), "{tr}");
+}
+
+#[test]
 fn syntax_errors_and_unknown_agents_go_back_with_line_numbers_before_any_sampling() {
     let broken = "let a = agent(401);\nterm(\"x\", relu(a.x.last() - );\n";
     let unknown = cut_in_script(401, 9999);
@@ -1153,6 +1194,81 @@ fn ask_keeps_the_user_s_files_and_writes_nothing_through_a_planted_round_link() 
 }
 
 #[test]
+fn errors_about_an_entry_inside_a_run_directory_name_that_entry() {
+    // They said "run directory DIR: round_0 is not a directory", naming the directory that
+    // holds what is wrong, and called round_0 itself a run directory for a link inside it.
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let o = ask(
+        &[
+            s(&samples().join(SCENE)),
+            REQUEST,
+            "-o",
+            s(&run),
+            "--llm",
+            "manual",
+        ],
+        None,
+    );
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    let resume = || {
+        let o = ask(&["--resume", s(&run)], None);
+        let t = text(&o);
+        assert_eq!(o.status.code(), Some(1), "{t}");
+        assert!(!t.contains("run directory"), "{t}");
+        t
+    };
+    // A file where the round's directory was.
+    let r0 = run.join("round_0");
+    std::fs::remove_dir_all(&r0).unwrap();
+    std::fs::write(&r0, "not a round").unwrap();
+    let t = resume();
+    assert!(
+        t.contains(&format!(
+            "{}: not a directory: the run writes its files",
+            r0.display()
+        )),
+        "{t}"
+    );
+    // The round's unguided/ a link out of the run.
+    #[cfg(unix)]
+    {
+        std::fs::remove_file(&r0).unwrap();
+        std::fs::create_dir(&r0).unwrap();
+        let outside = dir.path().join("outside");
+        std::fs::create_dir(&outside).unwrap();
+        let link = r0.join("unguided");
+        std::os::unix::fs::symlink(&outside, &link).unwrap();
+        let t = resume();
+        assert!(
+            t.contains(&format!(
+                "{}: a symbolic link (to {})",
+                link.display(),
+                outside.display()
+            )),
+            "{t}"
+        );
+        std::fs::remove_file(&link).unwrap();
+    }
+    // A damaged state.json, and one that cannot be read as a file.
+    let state = run.join("state.json");
+    std::fs::write(&state, "{").unwrap();
+    let t = resume();
+    assert!(
+        t.contains(&format!("{}: the file is damaged", state.display())),
+        "{t}"
+    );
+    std::fs::remove_file(&state).unwrap();
+    std::fs::create_dir(&state).unwrap();
+    let t = resume();
+    assert!(
+        t.contains(&format!("{}: cannot read it", state.display()))
+            && t.contains("a run keeps its state there"),
+        "{t}"
+    );
+}
+
+#[test]
 fn a_server_echoing_the_key_gets_it_into_no_output_and_no_file() {
     // In an error body: quoted in the error on stderr.
     let srv = Server::start(vec![Canned::raw(
@@ -1362,6 +1478,86 @@ fn errors_about_files_that_are_not_run_directories_do_not_call_them_so() {
             "{t}"
         );
     }
+}
+
+#[test]
+fn a_batch_that_fails_before_any_result_leaves_its_directory_as_it_found_it() {
+    // A failed batch left its lock files (and its first pair's empty run), which mark a
+    // directory as a batch's: a single `ask` there was then refused.
+    let dir = tempfile::tempdir().unwrap();
+    let file = one_pair_batch(dir.path());
+    let entries = |d: &Path| -> Vec<String> {
+        let mut v: Vec<String> = std::fs::read_dir(d)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        v.sort();
+        v
+    };
+    // No server at the first request: a new -o is not left behind ...
+    let new = dir.path().join("new");
+    let o = ask(&["--batch", s(&file), "-o", s(&new)], Some(&refused_url()));
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("pair 1 of 1"), "{t}");
+    assert!(!new.exists(), "{:?}", entries(&new));
+    // ... and an existing one keeps only what it held.
+    let mine = dir.path().join("mine");
+    std::fs::create_dir(&mine).unwrap();
+    std::fs::write(mine.join("notes.txt"), "mine").unwrap();
+    let o = ask(&["--batch", s(&file), "-o", s(&mine)], Some(&refused_url()));
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert_eq!(entries(&mine), ["notes.txt"]);
+    // A summary of the user's in the way, found after the batch took its locks.
+    std::fs::write(mine.join("summary.md"), "my notes").unwrap();
+    let o = ask(
+        &["--batch", s(&file), "-o", s(&mine), "--llm", "rules"],
+        None,
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("summary.md: it is not a summary"), "{t}");
+    assert_eq!(entries(&mine), ["notes.txt", "summary.md"]);
+    // A single run there is not taken for a batch's.
+    let o = ask(
+        &[
+            s(&samples().join(SCENE)),
+            REQUEST,
+            "-o",
+            s(&mine),
+            "--llm",
+            "rules",
+        ],
+        None,
+    );
+    let t = text(&o);
+    assert_ne!(o.status.code(), Some(1), "{t}");
+    assert!(mine.join("state.json").exists(), "{t}");
+    // A batch whose pair got a reply (paid for) before the server went: its run and marks
+    // stay, to be continued by running it again.
+    let e503 = Canned::raw(503, "Service Unavailable");
+    let srv = Server::start(vec![
+        Canned::chat(&reply(&cut_in_script(401, 399))),
+        e503.clone(),
+        e503.clone(),
+        e503,
+    ]);
+    let kept = dir.path().join("kept");
+    let o = ask(
+        &["--batch", s(&file), "-o", s(&kept), "--rounds", "1"],
+        Some(&srv.url),
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("HTTP 503"), "{t}");
+    assert!(kept.join(".drivescript.batch.lock").exists(), "{t}");
+    let runs = entries(&kept.join("runs"));
+    assert_eq!(runs.len(), 1, "{runs:?}");
+    assert!(kept
+        .join("runs")
+        .join(&runs[0])
+        .join("round_0/reply.md")
+        .exists());
 }
 
 #[test]

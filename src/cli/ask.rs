@@ -141,7 +141,8 @@ pub struct Args {
     #[arg(long, default_value_t = drivescript::sample::POLISH_STEPS, value_parser = usize_in(0, 1000))]
     polish: usize,
     /// Seconds the cost script may take over one round's sampling, every evaluation together
-    /// (more than 0, at most 86400); the same flag and default as `simulate`'s.
+    /// (more than 0, at most 86400); the same flag and default as `simulate`'s. A script past
+    /// it goes back to the model as that round's feedback, and the run goes on.
     #[arg(long, value_name = "SECONDS", default_value_t = drivescript::sample::DEFAULT_SCRIPT_BUDGET.as_secs_f64(), allow_negative_numbers = true)]
     script_budget: f64,
 }

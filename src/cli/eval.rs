@@ -9,7 +9,7 @@ use drivescript::eval::kinematic::Violation;
 use drivescript::eval::merge::{record_json, HorizonFrom, Horizons, RunRecord};
 use drivescript::eval::metrics::{self, JsdBins};
 use drivescript::eval::tally::{group_order, Group, Task as EvalTask};
-use drivescript::eval::{check, Baseline, Behavior, Tally};
+use drivescript::eval::{asked, check, Baseline, Behavior, Tally};
 use drivescript::io::{
     check_output_not_input, check_replaces_own_json, discover, read_each, rollout::Rollout,
     write_atomic, LoadOptions, OutputNames,
@@ -137,19 +137,26 @@ fn fmt(v: Option<f64>, prec: usize) -> String {
 #[error("{0}")]
 struct LeftOut(String);
 
-fn rollouts_for(dir: &Path, scene: &Scene, k: usize) -> Result<Vec<Scene>> {
+/// What a sample's scripts allowed, as the checkers take it ([`asked::kinds`]).
+type Allowed = Vec<(i64, Violation)>;
+
+/// The rollouts of `scene` in `dir` (`ID.json` for one sample, `ID_K.json` for `k`), each
+/// with the motion its scripts allowed ([`Rollout::allowed`]).
+fn rollouts_for(dir: &Path, scene: &Scene, k: usize) -> Result<Vec<(Scene, Allowed)>> {
     let id = &scene.meta.scenario_id;
     let marker = drivescript::sample::attempt::skipped_file(dir, id);
     if marker.is_file() {
         return Err(LeftOut(format!("{}: the run skipped this scene", marker.display())).into());
     }
-    let mut out = Vec::new();
+    let read = |p: &Path| -> Result<(Scene, Allowed)> {
+        let r = Rollout::read(p)?;
+        Ok((r.apply_to(scene, p)?, asked::kinds(&r.allowed)))
+    };
     let single = dir.join(format!("{id}.json"));
     if k == 1 && single.exists() {
-        let r = Rollout::read(&single)?;
-        out.push(r.apply_to(scene, &single)?);
-        return Ok(out);
+        return Ok(vec![read(&single)?]);
     }
+    let mut out = Vec::new();
     for i in 0..k {
         let p = dir.join(format!("{id}_{i}.json"));
         if !p.exists() {
@@ -158,7 +165,7 @@ fn rollouts_for(dir: &Path, scene: &Scene, k: usize) -> Result<Vec<Scene>> {
                 p.display()
             );
         }
-        out.push(Rollout::read(&p)?.apply_to(scene, &p)?);
+        out.push(read(&p)?);
     }
     Ok(out)
 }
@@ -315,7 +322,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 .as_ref()
                 .map(|dir| rollouts_for(dir, scene, args.samples));
             let own = match &rolled {
-                Some(Ok(samples)) => samples.iter().map(Scene::num_future_steps).max(),
+                Some(Ok(samples)) => samples.iter().map(|s| s.0.num_future_steps()).max(),
                 _ => None,
             };
             let (horizon, from) = match (args.horizon, own) {
@@ -372,10 +379,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
             // the map.
             let reference = scene.retire_exited();
             for ((_, m), acc) in methods.iter().zip(accs.iter_mut()) {
-                let sims = match m {
-                    Some(b) => vec![b.simulate(scene)],
+                // Baselines follow no script: they were allowed nothing.
+                let (sims, allowed): (Vec<Scene>, Vec<Allowed>) = match m {
+                    Some(b) => (vec![b.simulate(scene)], Vec::new()),
                     None => match rolled.take().expect("a rollouts method reads them once") {
-                        Ok(s) => s,
+                        Ok(s) => s.into_iter().unzip(),
                         Err(e) if e.is::<LeftOut>() => {
                             run_skipped += 1;
                             continue;
@@ -400,8 +408,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 let sims: Vec<Scene> = sims.iter().map(fit).collect();
                 // The rollouts' unguided twins (baselines have none: nothing guided them).
                 let twins = match (m, &args.unguided) {
+                    // A twin is judged with its guided sample's allowances (the collateral
+                    // exempts them in both), not with any of its own.
                     (None, Some(dir)) => match rollouts_for(dir, scene, args.samples) {
-                        Ok(u) => Some(u.iter().map(fit).collect::<Vec<_>>()),
+                        Ok(u) => Some(u.iter().map(|(s, _)| fit(s)).collect::<Vec<_>>()),
                         Err(e) => {
                             bar.suspend(|| super::print_error(&super::describe(&e)));
                             failures += 1;
@@ -416,6 +426,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     &sims,
                     scene_params.as_ref().map(|(b, p)| (*b, p)),
                     twins.as_deref(),
+                    &allowed,
                 );
             }
         }

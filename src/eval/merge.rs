@@ -473,7 +473,14 @@ mod tests {
         let mut t = Tally::default();
         for name in scenes {
             let s = scene(name);
-            t.score(Task::Conditional, &s, std::slice::from_ref(&s), None, None);
+            t.score(
+                Task::Conditional,
+                &s,
+                std::slice::from_ref(&s),
+                None,
+                None,
+                &[],
+            );
         }
         t
     }

@@ -1,6 +1,7 @@
 //! Evaluation: the paper's metrics, independent behaviour checkers and baselines. Everything
 //! here is a pure function of scenes, so any rollout (any simulator's) can be scored.
 
+pub mod asked;
 pub mod baselines;
 pub mod behaviors;
 pub mod collateral;

@@ -13,7 +13,8 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 use serde_json::json;
 
-use super::behaviors::{check, check_against_unguided, Behavior, CheckError, Verdict};
+use super::asked;
+use super::behaviors::{Behavior, CheckError, Verdict};
 use super::kinematic::{self, KinematicLimits, Violation};
 use super::metrics::{self, Kinematics};
 use crate::cost::Params;
@@ -219,12 +220,18 @@ pub fn groups_of(s: &Scene) -> Vec<Group> {
     g
 }
 
+/// What sample `k` allowed, of `allowed` (one list per sample).
+fn allowed_in(allowed: &[Vec<(i64, Violation)>], k: usize) -> &[(i64, Violation)] {
+    allowed.get(k).map_or(&[], Vec::as_slice)
+}
+
 /// What a scene's scoring measures once, per agent, for the whole row and every group to
 /// filter (each group keeps its own agents).
 struct Measured<'a> {
     verdicts: &'a [Result<Verdict, CheckError>],
-    /// Per sample, every agent's kinematic judgement, less what a behaviour asks of the agents
-    /// it names (a reverse's backing up), as its verdict does not count it.
+    /// Per sample, every agent's kinematic judgement, less what the request asks of it (a
+    /// reverse's backing up, what the sample's scripts allow: [`asked::judged`]), as its
+    /// verdict does not count it.
     judged: Vec<Vec<Option<kinematic::Judgement>>>,
     /// Of the first sample (conditional and unconditional tasks).
     collided: Vec<Option<bool>>,
@@ -241,26 +248,19 @@ impl<'a> Measured<'a> {
         task: Task,
         logged: &Scene,
         sims: &[Scene],
-        behaviour: Option<Behavior>,
+        behaviour: Option<(Behavior, &Params)>,
+        allowed: &[Vec<(i64, Violation)>],
         verdicts: &'a [Result<Verdict, CheckError>],
     ) -> Self {
         let lim = KinematicLimits::default();
-        let (named, allowed): (&[i64], &[Violation]) = match (behaviour, verdicts.first()) {
-            (Some(b), Some(Ok(v))) => (&v.named, b.allowed_motion()),
-            _ => (&[], &[]),
-        };
+        let checks: Vec<(Behavior, Params)> =
+            behaviour.map(|(b, p)| (b, p.clone())).into_iter().collect();
         let judged = sims
             .iter()
-            .map(|s| {
-                let mut judged = kinematic::judge(s, &lim);
-                for (j, a) in judged.iter_mut().zip(&s.agents) {
-                    if let Some(j) = j.as_mut().filter(|_| named.contains(&a.id)) {
-                        *j = j.without(allowed);
-                    }
-                }
-                judged
-            })
+            .enumerate()
+            .map(|(k, s)| asked::judged(s, &checks, allowed_in(allowed, k), &lim))
             .collect();
+        let behaviour = behaviour.map(|b| b.0);
         let sim = &sims[0];
         let conditional = task == Task::Conditional;
         Self {
@@ -300,9 +300,11 @@ impl<'a> Measured<'a> {
 
 impl Tally {
     /// Scores one scene: `logged` (the reference), the method's samples `sims` (at least one),
-    /// the behaviour and its parameters for [`Task::Behaviour`], and the samples' unguided
-    /// twins when a behaviour is judged against them. Adds to this row and to each group
-    /// of the scene ([`groups_of`]).
+    /// the behaviour and its parameters for [`Task::Behaviour`], the samples' unguided twins
+    /// when a behaviour is judged against them, and per sample the motion its scripts allowed
+    /// (`allowed`, from [`asked::kinds`]; a sample past its end allowed nothing), which counts
+    /// as asked as `ask` and `simulate` counted it ([`asked`]). Adds to this row and to each
+    /// group of the scene ([`groups_of`]).
     pub fn score(
         &mut self,
         task: Task,
@@ -310,23 +312,26 @@ impl Tally {
         sims: &[Scene],
         behaviour: Option<(Behavior, &Params)>,
         unguided: Option<&[Scene]>,
+        allowed: &[Vec<(i64, Violation)>],
     ) {
         let t0 = std::time::Instant::now();
         // Every sample is judged, each against its own unguided twin: the rate is per sample,
         // as `simulate` and `ask` judge them.
         let verdicts: Vec<Result<Verdict, CheckError>> = match behaviour {
-            Some((b, p)) => sims
-                .iter()
-                .enumerate()
-                .map(|(k, s)| match unguided.and_then(|u| u.get(k)) {
-                    // Rollouts do not carry their scripts' allowances.
-                    Some(u) => check_against_unguided(b, s, u, p, &[]),
-                    None => check(b, s, p),
-                })
-                .collect(),
+            Some((b, p)) => {
+                let checks = [(b, p.clone())];
+                sims.iter()
+                    .enumerate()
+                    .map(|(k, s)| {
+                        let twin = unguided.and_then(|u| u.get(k));
+                        asked::verdicts(&checks, s, twin, allowed_in(allowed, k))
+                            .map(|mut v| v.remove(0))
+                    })
+                    .collect()
+            }
             None => Vec::new(),
         };
-        let m = Measured::new(task, logged, sims, behaviour.map(|b| b.0), &verdicts);
+        let m = Measured::new(task, logged, sims, behaviour, allowed, &verdicts);
         let whole = Group {
             map: None,
             agent: None,
@@ -773,6 +778,7 @@ mod tests {
             std::slice::from_ref(&sim),
             None,
             None,
+            &[],
         );
         let labels: Vec<&String> = t.groups.keys().collect();
         assert_eq!(
@@ -803,6 +809,7 @@ mod tests {
             std::slice::from_ref(&sim),
             None,
             None,
+            &[],
         );
         assert_eq!(u.scr.len(), 1);
         assert_eq!(u.groups["highway"].scr.len(), 1);
@@ -822,6 +829,7 @@ mod tests {
             std::slice::from_ref(&log),
             None,
             None,
+            &[],
         );
         let mut b = Tally::default();
         b.score(
@@ -830,6 +838,7 @@ mod tests {
             &[scene("crossroads.yaml")],
             None,
             None,
+            &[],
         );
         a.absorb(b).unwrap();
         assert_eq!(a.scenes, 2);

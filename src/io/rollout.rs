@@ -5,10 +5,15 @@
 //!   "dt": 0.1, "current_step": 10,
 //!   "agents": [ { "id": 7, "type": "vehicle", "length": 4.6, "width": 1.9,
 //!                 "states": [[x, y, heading, valid], ...] } ],
-//!   "costs": { "ends_in_lane": 0.0 } }
+//!   "costs": { "ends_in_lane": 0.0 },
+//!   "allowed": [ { "agent": 7, "motion": "reverse" } ] }
 //! ```
 //! Every agent has one state per step; invalid states are written as zeros with `false`.
-//! `costs` (optional) holds per-term cost values.
+//! `costs` (optional) holds per-term cost values. `allowed` (optional) is the motion the cost
+//! scripts that guided the rollout allowed (`allow(a, "reverse")`): what the request asked of
+//! those agents, which judging the rollout (`eval`) does not hold against them, as `ask` and
+//! `simulate` did not. A file without it (one written before it existed, or by another
+//! simulator) allowed nothing.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -29,6 +34,25 @@ pub struct RolloutState(pub f64, pub f64, pub f64, pub bool);
 
 /// The most steps a rollout may hold after the current step (`eval --horizon`'s bound).
 pub const MAX_ROLLOUT_FUTURE: usize = 10_000;
+
+/// Motion a script can allow an agent that realism and the plausibility checks would
+/// otherwise hold against it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AllowedMotion {
+    /// Backing up (`allow(a, "reverse")`).
+    Reverse,
+}
+
+/// Motion the scripts that guided a rollout allowed one agent.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Allowance {
+    /// The agent's id.
+    pub agent: i64,
+    /// What it may do.
+    pub motion: AllowedMotion,
+}
 
 /// One agent's trajectory.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -70,6 +94,10 @@ pub struct Rollout {
     /// scripts, params), when a run wrote it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub run: Option<serde_json::Value>,
+    /// The motion the scripts that guided it allowed ([`Allowance`]); empty when nothing was
+    /// allowed, or the file predates the field.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub allowed: Vec<Allowance>,
 }
 
 impl Rollout {
@@ -104,6 +132,7 @@ impl Rollout {
                 .collect(),
             costs: BTreeMap::new(),
             run: None,
+            allowed: Vec::new(),
         }
     }
 
@@ -245,6 +274,18 @@ impl Rollout {
             return Err(bad(
                 "agents".into(),
                 format!("the rollout has no agent {} (the scene's)", a.id),
+            ));
+        }
+        // An allowance for an agent the scene lacks would exempt nobody, silently.
+        if let Some((i, x)) = self
+            .allowed
+            .iter()
+            .enumerate()
+            .find(|(_, x)| scene.agent(x.agent).is_none())
+        {
+            return Err(bad(
+                format!("allowed[{i}]"),
+                format!("the scene has no agent {}", x.agent),
             ));
         }
         Ok(())

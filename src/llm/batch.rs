@@ -672,6 +672,26 @@ mod tests {
     }
 }
 
+/// What the pair that stopped a batch had made: what [`Batch::run`] removes, or keeps.
+#[derive(Default)]
+struct Started {
+    /// Its run directory, where this batch created it.
+    fresh: Option<PathBuf>,
+    /// Whether any pair received a reply from the model (work paid for, kept).
+    replied: bool,
+}
+
+/// `e`, saying what of a failed batch's own files could not be removed (`left`).
+fn undone(e: LlmError, left: Vec<String>) -> LlmError {
+    if left.is_empty() {
+        return e;
+    }
+    LlmError::Setup(format!(
+        "{e} (the batch failed before any result, and could not remove what it had added: {})",
+        left.join("; ")
+    ))
+}
+
 /// A batch to run: its pairs and where the runs, rollouts and summary go.
 pub struct Batch<'a> {
     /// The batch file (named in the summary).
@@ -726,7 +746,9 @@ impl Batch<'_> {
     /// already holds a run of the same scene, request and backend continues it (a finished
     /// one is only read back), so a batch stopped by an error, a full disk or Ctrl-C is
     /// finished by running the same command again. An error in a pair stops the batch with
-    /// the pair named; the pairs before it are in the summary.
+    /// the pair named; the pairs before it are in the summary. A batch that fails before any
+    /// result (no pair done, no reply received) leaves `out` as it found it
+    /// ([`super::rundir::Before`]): no lock file or run of its own marks it as a batch's.
     pub fn run(&self, progress: &mut dyn FnMut(Progress)) -> Result<Vec<InstanceResult>, LlmError> {
         if matches!(self.backend, Backend::Manual) {
             return Err(bad(
@@ -734,13 +756,36 @@ impl Batch<'_> {
                 "a batch runs without a person: use the http or rules backend".into(),
             ));
         }
+        let before = super::rundir::Before::of(&self.out, self.shard);
         crate::io::create_output_dir(&self.out).map_err(|e| bad(&self.out, e.reason()))?;
         // One process per batch (per shard: the shards of one batch share -o by design), no
         // single run beside it; the pairs' own run directories are locked too, should two
         // overlap.
-        let _locks = super::rundir::lock_batch(&self.out, self.shard)?;
-        self.check_outputs_are_ours()?;
+        let locks = match super::rundir::lock_batch(&self.out, self.shard) {
+            Ok(l) => l,
+            Err(e) => return Err(undone(e, before.restore(None, None))),
+        };
         let mut results = Vec::new();
+        let mut started = Started::default();
+        match self.run_pairs(&mut results, &mut started, progress) {
+            Ok(()) => Ok(results),
+            Err(e) if results.is_empty() && !started.replied => Err(undone(
+                e,
+                before.restore(started.fresh.as_deref(), Some(locks)),
+            )),
+            Err(e) => Err(e),
+        }
+    }
+
+    /// The pairs of [`Batch::run`], each result pushed to `results` as it is done; `started`
+    /// says what the pair that stopped the batch made.
+    fn run_pairs(
+        &self,
+        results: &mut Vec<InstanceResult>,
+        started: &mut Started,
+        progress: &mut dyn FnMut(Progress),
+    ) -> Result<(), LlmError> {
+        self.check_outputs_are_ours()?;
         for (k, inst) in self.instances.iter().enumerate() {
             if self
                 .shard
@@ -763,6 +808,8 @@ impl Batch<'_> {
                 )
             };
             let resumed = dir.join("state.json").exists();
+            // A run directory this batch creates is its own to remove, should it fail first.
+            started.fresh = (std::fs::symlink_metadata(&dir).is_err()).then(|| dir.clone());
             let session = if resumed {
                 self.reopen(inst, &dir)
             } else {
@@ -792,9 +839,9 @@ impl Batch<'_> {
                 },
                 Err(e) => return Err(stopped(e)),
                 Ok(mut session) => {
-                    let outcome = session
-                        .run(&mut |l| progress(Progress::Line(l)))
-                        .map_err(stopped)?;
+                    let outcome = session.run(&mut |l| progress(Progress::Line(l)));
+                    started.replied |= session.replies() > 0;
+                    let outcome = outcome.map_err(stopped)?;
                     self.copy_rollouts(k, &session).map_err(stopped)?;
                     let (llm_calls, tokens) = session.usage();
                     InstanceResult {
@@ -819,14 +866,14 @@ impl Batch<'_> {
                 }
             };
             results.push(result);
-            self.write_summary(&results)?;
+            self.write_summary(results)?;
             progress(Progress::Done {
                 k,
                 result: results.last().expect("just pushed"),
                 resumed,
             });
         }
-        Ok(results)
+        Ok(())
     }
 
     /// Reopens the run in `dir`, refusing one of another scene, request or backend.

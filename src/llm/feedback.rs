@@ -258,6 +258,25 @@ pub fn feedback(a: &Attempt, acc: &Acceptance) -> String {
     s
 }
 
+/// What the model is told when its script ran past the run's budget for script evaluation
+/// (`--script-budget`, [`crate::sample::SampleError::ScriptBudget`]): a slow script is the
+/// model's to fix, like one that fails validation, so it goes back for the next round
+/// instead of ending the run. `used` is what the scripts had taken when sampling stopped.
+pub fn over_budget(budget: std::time::Duration, used: &crate::cost::Usage) -> String {
+    format!(
+        "your script took {:.1} s over {} evaluations (mean {:.1} ms each); the budget for \
+         script evaluation is {} s per sampling run, so sampling stopped and nothing was \
+         sampled. A sampling run evaluates the script hundreds of times (every denoising step \
+         and polish iteration, for every sample): simplify it (fewer operations per \
+         evaluation, no long loops over steps or agents) and send it again in one ```rhai \
+         block.",
+        used.time.as_secs_f64(),
+        used.evaluations,
+        used.mean().as_secs_f64() * 1e3,
+        budget.as_secs_f64()
+    )
+}
+
 /// Every term's weight, first estimate (mean over the samples) and final value (min, mean,
 /// max over the samples), with a note where a term never moves, dominates, or is met
 /// everywhere: a markdown table.
@@ -533,6 +552,7 @@ mod tests {
             verdicts: Vec::new(),
             realism: Vec::new(),
             off_road,
+            allowed: Vec::new(),
         }
     }
 

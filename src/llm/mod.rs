@@ -188,7 +188,8 @@ pub enum LlmError {
         /// What is wrong.
         message: String,
     },
-    /// The run directory is missing something or cannot be written.
+    /// The run directory as a whole cannot be used (it holds another run, another process
+    /// holds it, it cannot be listed).
     #[error("run directory {}: {message}", dir.display())]
     Run {
         /// The directory.
@@ -196,6 +197,19 @@ pub enum LlmError {
         /// What is wrong.
         message: String,
     },
+    /// A file or directory inside a run directory (`state.json`, `round_3/`, a round's file)
+    /// is not what the run expects there, or cannot be read or written. Named itself, not by
+    /// the run directory that holds it, which is not what is wrong.
+    #[error("{}: {message}", path.display())]
+    RunFile {
+        /// The file or directory.
+        path: PathBuf,
+        /// What is wrong, and what the run expects there.
+        message: String,
+    },
+    /// A file of a run cannot be written or read (the error names the file).
+    #[error(transparent)]
+    Io(crate::io::IoError),
     /// Sampling failed (not a script error: those go back to the model).
     #[error(transparent)]
     Attempt(#[from] crate::sample::AttemptError),

@@ -15,7 +15,8 @@ pub const LOCK_FILE: &str = ".drivescript.lock";
 
 /// The lock file of a whole (unsharded) batch, beside [`LOCK_FILE`] in its `-o`. Left there
 /// after the batch ends: it and the shards' ones ([`batch_lock_name`]) mark the directory as
-/// a batch's.
+/// a batch's. A batch that fails before any result removes the ones it created
+/// ([`Before::restore`]).
 pub const BATCH_LOCK_FILE: &str = ".drivescript.batch.lock";
 
 /// The names a run writes at the top of its directory: one of them there before a run starts
@@ -31,6 +32,14 @@ pub const RUN_FILES: &[&str] = &[
 fn err(dir: &Path, message: impl Into<String>) -> LlmError {
     LlmError::Run {
         dir: dir.to_path_buf(),
+        message: message.into(),
+    }
+}
+
+/// A file or directory inside a run directory, named itself.
+fn file_err(path: &Path, message: impl Into<String>) -> LlmError {
+    LlmError::RunFile {
+        path: path.to_path_buf(),
         message: message.into(),
     }
 }
@@ -131,6 +140,139 @@ pub struct RunLock {
     _file: File,
 }
 
+impl RunLock {
+    /// Whether the locked file is the one `path` names now (not one removed meanwhile).
+    fn is_at(&self, path: &Path) -> bool {
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::MetadataExt;
+            match (self._file.metadata(), std::fs::symlink_metadata(path)) {
+                (Ok(held), Ok(named)) => held.dev() == named.dev() && held.ino() == named.ino(),
+                _ => false,
+            }
+        }
+        #[cfg(not(unix))]
+        {
+            path.exists()
+        }
+    }
+
+    /// Removes the lock file `path` this lock holds, when no other process holds it too
+    /// (taken exclusively first, without waiting); says whether it was removed. Removed while
+    /// still locked, so that no process can lock it in between ([`flock`] retries a lock
+    /// taken on a file removed since).
+    fn remove_file(self, path: &Path) -> std::io::Result<bool> {
+        if !self.is_at(path) {
+            return Ok(false);
+        }
+        #[cfg(unix)]
+        {
+            use std::os::unix::io::AsRawFd;
+            // SAFETY: flock on a descriptor this lock owns; no memory is involved.
+            let rc = unsafe { libc::flock(self._file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
+            if rc != 0 {
+                let e = std::io::Error::last_os_error();
+                return if e.kind() == std::io::ErrorKind::WouldBlock {
+                    Ok(false)
+                } else {
+                    Err(e)
+                };
+            }
+        }
+        std::fs::remove_file(path)?;
+        Ok(true)
+    }
+}
+
+/// What a batch's output directory held before the batch started: a batch that fails before
+/// any result (an unreachable server at the first request, a pair that cannot start, a
+/// summary of the user's in the way) leaves the directory as it found it ([`Before::restore`]),
+/// so that it is not marked as a batch's, and a later single run or batch there is not
+/// refused or confused by it. A batch with a result (a summary, or a reply the model was paid
+/// for) keeps its marks: it is continued by running it again.
+#[derive(Debug, Clone)]
+pub struct Before {
+    out: PathBuf,
+    batch_lock: String,
+    had_out: bool,
+    had_lock: bool,
+    had_batch_lock: bool,
+    had_runs: bool,
+    had_rollouts: bool,
+}
+
+impl Before {
+    /// What `out` holds now, for a batch (or shard `shard` of one) about to run there.
+    pub fn of(out: &Path, shard: Option<Shard>) -> Self {
+        let has = |name: &str| std::fs::symlink_metadata(out.join(name)).is_ok();
+        let batch_lock = batch_lock_name(shard);
+        Self {
+            out: out.to_path_buf(),
+            had_out: std::fs::symlink_metadata(out).is_ok(),
+            had_lock: has(LOCK_FILE),
+            had_batch_lock: has(&batch_lock),
+            had_runs: has("runs"),
+            had_rollouts: has("rollouts"),
+            batch_lock,
+        }
+    }
+
+    /// Removes what the batch added: `pair`, the run directory of a pair it created (the
+    /// pair's session already dropped), `runs/` and `rollouts/` where it created them and they
+    /// are empty, its lock files where it created them and no other process holds them (a
+    /// shard beside it keeps the shared one), and `out` where it created it and it is empty.
+    /// `locks` are the batch's ([`lock_batch`]), released here. Returns what could not be
+    /// removed, in words (empty when all went).
+    pub fn restore(&self, pair: Option<&Path>, locks: Option<(RunLock, RunLock)>) -> Vec<String> {
+        let mut left = Vec::new();
+        let mut note = |p: &Path, e: std::io::Error| {
+            left.push(format!("{}: cannot remove it: {e}", p.display()));
+        };
+        let gone_or_kept = |r: std::io::Result<()>| match r {
+            Err(e)
+                if e.kind() == std::io::ErrorKind::NotFound
+                    || e.kind() == std::io::ErrorKind::DirectoryNotEmpty =>
+            {
+                Ok(())
+            }
+            other => other,
+        };
+        if let Some(p) = pair {
+            if let Err(e) = gone_or_kept(std::fs::remove_dir_all(p)) {
+                note(p, e);
+            }
+        }
+        for (had, name) in [(self.had_runs, "runs"), (self.had_rollouts, "rollouts")] {
+            let p = self.out.join(name);
+            // Left where another shard has put its pairs there meanwhile.
+            if !had {
+                if let Err(e) = gone_or_kept(std::fs::remove_dir(&p)) {
+                    note(&p, e);
+                }
+            }
+        }
+        if let Some((shared, own)) = locks {
+            for (had, name, lock) in [
+                (self.had_batch_lock, self.batch_lock.as_str(), own),
+                (self.had_lock, LOCK_FILE, shared),
+            ] {
+                let p = self.out.join(name);
+                if had {
+                    drop(lock);
+                } else if let Err(e) = lock.remove_file(&p) {
+                    note(&p, e);
+                }
+            }
+        }
+        if !self.had_out {
+            if let Err(e) = gone_or_kept(std::fs::remove_dir(&self.out)) {
+                note(&self.out, e);
+            }
+        }
+        left
+    }
+}
+
 /// Why a lock is not to be had: who holds it, as far as the directory's marks tell.
 fn held_by(dir: &Path) -> String {
     let kinds = kinds(dir);
@@ -147,8 +289,35 @@ fn held_by(dir: &Path) -> String {
     )
 }
 
+/// Why [`flock`] could not lock.
+enum LockError {
+    /// Another process holds the directory (in words, [`held_by`]).
+    Held(String),
+    /// The lock file itself (its path) cannot be opened or locked.
+    File(PathBuf, String),
+}
+
+impl LockError {
+    /// As an error of the run directory `dir`: a held lock is the directory's, a lock file
+    /// that cannot be used is named itself.
+    fn of_run(self, dir: &Path) -> LlmError {
+        match self {
+            LockError::Held(m) => err(dir, m),
+            LockError::File(p, m) => file_err(&p, m),
+        }
+    }
+
+    /// As an error of the batch output directory `out`.
+    fn of_batch(self, out: &Path) -> LlmError {
+        match self {
+            LockError::Held(m) => batch_err(out, m),
+            LockError::File(p, m) => batch_err(&p, m),
+        }
+    }
+}
+
 /// Takes the lock file `name` of the existing directory `dir`, exclusively or shared.
-fn flock(dir: &Path, name: &str, exclusive: bool) -> Result<RunLock, String> {
+fn flock_once(dir: &Path, name: &str, exclusive: bool) -> Result<RunLock, LockError> {
     let path = dir.join(name);
     let mut options = std::fs::OpenOptions::new();
     options.read(true).write(true).create(true).truncate(false);
@@ -158,9 +327,12 @@ fn flock(dir: &Path, name: &str, exclusive: bool) -> Result<RunLock, String> {
         // A link planted in its place must not make the lock open (or create) a file elsewhere.
         options.custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK);
     }
-    let file = options
-        .open(&path)
-        .map_err(|e| format!("cannot open its lock file {name}: {e}"))?;
+    let file = options.open(&path).map_err(|e| {
+        LockError::File(
+            path.clone(),
+            format!("cannot open it (drivescript's lock file for the directory): {e}"),
+        )
+    })?;
     #[cfg(unix)]
     {
         use std::os::unix::io::AsRawFd;
@@ -174,9 +346,9 @@ fn flock(dir: &Path, name: &str, exclusive: bool) -> Result<RunLock, String> {
         if rc != 0 {
             let e = std::io::Error::last_os_error();
             return Err(if e.kind() == std::io::ErrorKind::WouldBlock {
-                held_by(dir)
+                LockError::Held(held_by(dir))
             } else {
-                format!("cannot lock it: {e}")
+                LockError::File(path, format!("cannot lock it: {e}"))
             });
         }
     }
@@ -185,11 +357,30 @@ fn flock(dir: &Path, name: &str, exclusive: bool) -> Result<RunLock, String> {
     Ok(RunLock { _file: file })
 }
 
+/// [`flock_once`] until the lock is on the file that `dir/name` names: a batch that failed
+/// before any result removes its lock files ([`Before::restore`]), and a process that opened
+/// one just before may then hold a lock on a removed file, which locks nothing.
+fn flock(dir: &Path, name: &str, exclusive: bool) -> Result<RunLock, LockError> {
+    let path = dir.join(name);
+    for _ in 0..16 {
+        let lock = flock_once(dir, name, exclusive)?;
+        if lock.is_at(&path) {
+            return Ok(lock);
+        }
+    }
+    Err(LockError::File(
+        path,
+        "it was removed and created again while this process took it, 16 times: another \
+         drivescript process is starting and failing in the directory; try again"
+            .into(),
+    ))
+}
+
 /// Takes the exclusive lock of the existing run directory `dir`, or says that another process
 /// holds it: two processes running the same rounds into the same files would interleave
 /// them, and a batch running there would mix its files with the run's.
 pub fn lock(dir: &Path) -> Result<RunLock, LlmError> {
-    flock(dir, LOCK_FILE, true).map_err(|m| err(dir, m))
+    flock(dir, LOCK_FILE, true).map_err(|e| e.of_run(dir))
 }
 
 /// Takes a batch's locks on its existing output directory `out`: [`LOCK_FILE`] shared (the
@@ -201,9 +392,9 @@ pub fn lock_batch(out: &Path, shard: Option<Shard>) -> Result<(RunLock, RunLock)
     let advice = "choose another -o for the batch";
     // Before the batch's own lock file marks `out` as a batch's.
     check_kind(out, Kind::Batch, advice)?;
-    let shared = flock(out, LOCK_FILE, false).map_err(|m| batch_err(out, m))?;
+    let shared = flock(out, LOCK_FILE, false).map_err(|e| e.of_batch(out))?;
     check_kind(out, Kind::Batch, advice)?;
-    let own = flock(out, &batch_lock_name(shard), true).map_err(|m| batch_err(out, m))?;
+    let own = flock(out, &batch_lock_name(shard), true).map_err(|e| e.of_batch(out))?;
     Ok((shared, own))
 }
 
@@ -258,7 +449,14 @@ pub fn clear_run(dir: &Path) -> Result<(), LlmError> {
             }
             _ => Ok(()),
         };
-        removed.map_err(|e| err(dir, format!("cannot remove {name} of the earlier run: {e}")))?;
+        removed.map_err(|e| {
+            file_err(
+                &p,
+                format!(
+                    "cannot remove it (the earlier run wrote it, and a new one replaces it): {e}"
+                ),
+            )
+        })?;
     }
     Ok(())
 }
@@ -270,41 +468,54 @@ fn is_round_name(name: &str) -> bool {
 
 /// `dir/name` as a directory of the run's own: created when missing; refused when it is a
 /// symbolic link or not a directory, so that nothing the run writes lands outside `dir`.
+/// Errors name `dir/name`, the entry that is wrong.
 pub fn own_subdir(dir: &Path, name: &str) -> Result<PathBuf, LlmError> {
     let p = dir.join(name);
     match std::fs::symlink_metadata(&p) {
-        Ok(m) if m.file_type().is_symlink() => Err(err(
-            dir,
+        Ok(m) if m.file_type().is_symlink() => Err(file_err(
+            &p,
             format!(
-                "{name} is a symbolic link{}: a run writes only into directories of its own; \
-                 remove it",
+                "a symbolic link{}, where the run keeps a directory of its own (it writes only \
+                 into directories of its own): remove it",
                 std::fs::read_link(&p)
                     .map(|t| format!(" (to {})", t.display()))
                     .unwrap_or_default()
             ),
         )),
         Ok(m) if m.is_dir() => Ok(p),
-        Ok(_) => Err(err(
-            dir,
-            format!("{name} is not a directory: a run writes its files there; remove it"),
+        Ok(_) => Err(file_err(
+            &p,
+            "not a directory: the run writes its files into a directory of its own there; \
+             remove it",
         )),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            std::fs::create_dir(&p).map_err(|e| err(dir, format!("cannot create {name}: {e}")))?;
+            std::fs::create_dir(&p).map_err(|e| {
+                file_err(
+                    &p,
+                    format!("cannot create it (the run writes its files there): {e}"),
+                )
+            })?;
             Ok(p)
         }
-        Err(e) => Err(err(dir, format!("{name}: {e}"))),
+        Err(e) => Err(file_err(
+            &p,
+            format!("cannot read it (the run keeps a directory there): {e}"),
+        )),
     }
 }
 
 /// Refuses to write the run's file `path` when a symbolic link is in its place: the run would
-/// otherwise write wherever the link points.
+/// otherwise write wherever the link points. The error names `path`.
 pub fn check_not_link(path: &Path) -> Result<(), LlmError> {
     match std::fs::symlink_metadata(path) {
-        Ok(m) if m.file_type().is_symlink() => Err(err(
-            path.parent().unwrap_or(Path::new(".")),
+        Ok(m) if m.file_type().is_symlink() => Err(file_err(
+            path,
             format!(
-                "{} is a symbolic link: a run writes only files of its own; remove it",
-                path.file_name().unwrap_or_default().to_string_lossy()
+                "a symbolic link{}, where drivescript writes a file or directory of its own \
+                 (never through a link): remove it",
+                std::fs::read_link(path)
+                    .map(|t| format!(" (to {})", t.display()))
+                    .unwrap_or_default()
             ),
         )),
         _ => Ok(()),
@@ -323,6 +534,37 @@ mod tests {
         assert!(e.contains("another drivescript process is running"), "{e}");
         drop(first);
         lock(dir.path()).unwrap();
+    }
+
+    #[test]
+    fn a_failed_batch_removes_its_own_lock_files_but_not_one_another_shard_holds() {
+        let names = |d: &Path| -> Vec<String> {
+            let mut v: Vec<String> = std::fs::read_dir(d)
+                .unwrap()
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect();
+            v.sort();
+            v
+        };
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path();
+        let before = Before::of(out, None);
+        let locks = lock_batch(out, None).unwrap();
+        assert_eq!(kinds(out), vec![Kind::Batch]);
+        assert!(before.restore(None, Some(locks)).is_empty());
+        assert!(names(out).is_empty(), "{:?}", names(out));
+        assert!(kinds(out).is_empty());
+        // Shard 0 fails while shard 1 runs: shard 1's marks and the shared lock file stay.
+        let shard = |i: usize| Some(format!("{i}/2").parse::<Shard>().unwrap());
+        let one = lock_batch(out, shard(1)).unwrap();
+        let before = Before::of(out, shard(0));
+        let zero = lock_batch(out, shard(0)).unwrap();
+        assert!(before.restore(None, Some(zero)).is_empty());
+        assert_eq!(names(out), [batch_lock_name(shard(1)).as_str(), LOCK_FILE]);
+        drop(one);
+        // A lock taken afterwards is on the file its name gives.
+        let again = lock(out).unwrap();
+        assert!(again.is_at(&out.join(LOCK_FILE)));
     }
 
     #[test]

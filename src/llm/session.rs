@@ -2,7 +2,7 @@
 //!
 //! Every exchange with the model is a numbered `round_N/` holding `prompt.md` (the messages
 //! sent, readable), `messages.json`, `reply.md`, and, as they happen, `script.rhai`,
-//! `validation.txt`, the rollouts and cost report of the samples (`SCENARIO_K.json`,
+//! `validation.txt` (or `budget.txt`, for a script that ran past `--script-budget`), the rollouts and cost report of the samples (`SCENARIO_K.json`,
 //! `SCENARIO_costs.json`, named as `simulate` names them so that `eval --rollouts round_N`
 //! scores them, and the unguided twins in `unguided/`), `feedback.md` and `sample.gif`. `state.json` is rewritten atomically
 //! after every step, so a run stopped anywhere (a manual round waiting for its reply, a killed
@@ -28,7 +28,9 @@ use crate::cost::{Limits, ParamValue, Params};
 use crate::eval::behaviors::Behavior;
 use crate::io::{output_stem, write_atomic};
 use crate::render::{render_gif, RenderOptions};
-use crate::sample::{attempt, Attempt, AttemptError, AttemptSpec, SampleConfig, ScriptSpec};
+use crate::sample::{
+    attempt, Attempt, AttemptError, AttemptSpec, SampleConfig, SampleError, ScriptSpec,
+};
 use crate::scene::description::{describe, DescribeOptions};
 use crate::scene::Scene;
 use crate::train::Trained;
@@ -485,7 +487,7 @@ pub const MAX_RUN_FILE_BYTES: u64 = 64 << 20;
 
 /// Reads back a text file of a run directory: a planted FIFO or device must not hang `--resume`.
 fn read_run_file(path: &Path) -> Result<String, crate::io::IoError> {
-    crate::io::read_regular_text(path, MAX_RUN_FILE_BYTES, "a run directory's file")
+    crate::io::read_regular_text(path, MAX_RUN_FILE_BYTES, "a file of a run")
 }
 
 /// CRC-32C of a scene file (`None` for a directory, or a file that cannot be read: reading
@@ -503,6 +505,19 @@ fn run_err(dir: &Path, message: impl Into<String>) -> LlmError {
     }
 }
 
+/// A file or directory inside the run directory, named itself.
+fn file_err(path: &Path, message: impl Into<String>) -> LlmError {
+    LlmError::RunFile {
+        path: path.to_path_buf(),
+        message: message.into(),
+    }
+}
+
+/// A file of the run that cannot be written, as the error that names it.
+fn write_err(e: crate::io::IoError) -> LlmError {
+    LlmError::Io(e)
+}
+
 fn write(dir: &Path, name: &str, text: &str) -> Result<(), LlmError> {
     write_bytes(dir, name, text.as_bytes())
 }
@@ -511,11 +526,15 @@ fn write(dir: &Path, name: &str, text: &str) -> Result<(), LlmError> {
 fn write_bytes(dir: &Path, name: &str, bytes: &[u8]) -> Result<(), LlmError> {
     let p = dir.join(name);
     if let Some(parent) = p.parent() {
-        std::fs::create_dir_all(parent)
-            .map_err(|e| run_err(parent, format!("cannot create it: {e}")))?;
+        std::fs::create_dir_all(parent).map_err(|e| {
+            file_err(
+                parent,
+                format!("cannot create it (the run writes its files there): {e}"),
+            )
+        })?;
     }
     super::rundir::check_not_link(&p)?;
-    write_atomic(&p, bytes).map_err(|e| run_err(dir, e.to_string()))
+    write_atomic(&p, bytes).map_err(write_err)
 }
 
 /// Checkers as stored (by name), as the sampler takes them.
@@ -957,9 +976,16 @@ impl<'a> Session<'a> {
                  ask SCENE \"request\" -o DIR`",
             ));
         }
-        let text = read_run_file(&p)
-            .map_err(|e| run_err(dir, format!("cannot read state.json ({})", e.reason())))?;
-        let state = read_state(&text).map_err(|m| run_err(dir, format!("state.json: {m}")))?;
+        let text = read_run_file(&p).map_err(|e| {
+            file_err(
+                &p,
+                format!(
+                    "cannot read it ({}): a run keeps its state there, as a JSON file",
+                    e.reason()
+                ),
+            )
+        })?;
+        let state = read_state(&text).map_err(|m| file_err(&p, m))?;
         if let Some(was) = state.scene_crc32c {
             if scene_fingerprint(&state.scene) != Some(was) {
                 return Err(run_err(
@@ -1043,6 +1069,11 @@ impl<'a> Session<'a> {
             format!("round_{round}/{id}_0.json … round_{round}/{id}_{last}.json")
         };
         format!("{rollouts} and round_{round}/{id}_costs.json")
+    }
+
+    /// Replies received from the model so far (exchanges done), the run's paid-for work.
+    pub fn replies(&self) -> usize {
+        self.state.exchange
     }
 
     /// One record per sampling round so far.
@@ -1313,6 +1344,28 @@ impl<'a> Session<'a> {
                                 return self.finish(o, progress);
                             }
                         }
+                        // A slow script is the model's mistake, as one that fails to
+                        // validate: it goes back with the numbers, and the run goes on.
+                        Err(AttemptError::Sample(SampleError::ScriptBudget { budget, used })) => {
+                            self.record(
+                                n,
+                                "script over budget",
+                                t1,
+                                Some(json!({
+                                    "evaluations": used.evaluations,
+                                    "seconds": used.time.as_secs_f64(),
+                                    "budget_seconds": budget.as_secs_f64(),
+                                })),
+                            );
+                            let err = super::feedback::over_budget(budget, &used);
+                            write(&rdir, "budget.txt", &err)?;
+                            self.state.last_error = Some(err.clone());
+                            progress(&format!("round {n}: script over budget: {err}"));
+                            let msg = self.prompts.unusable(&err);
+                            if let Some(o) = self.miss(msg)? {
+                                return self.finish(o, progress);
+                            }
+                        }
                         Err(e) => return Err(e.into()),
                         Ok(done) => {
                             self.record(
@@ -1395,7 +1448,7 @@ impl<'a> Session<'a> {
             tolerance: self.state.config.tolerance,
         };
         done.write(rdir, &self.raw.meta.scenario_id, None)
-            .map_err(|e| run_err(rdir, e.to_string()))?;
+            .map_err(write_err)?;
         let text = feedback(done, &acc);
         write(rdir, "feedback.md", &text)?;
         // Why each sample misses the request, computed once for the choice, the progress lines
@@ -1416,7 +1469,7 @@ impl<'a> Session<'a> {
                 ..RenderOptions::default()
             },
         )
-        .map_err(|e| run_err(rdir, format!("rendering sample.gif: {e}")))?;
+        .map_err(|e| file_err(&rdir.join("sample.gif"), format!("cannot render it: {e}")))?;
         write_bytes(rdir, "sample.gif", &gif)?;
         progress(&format!(
             "round {n}: {} samples in {:.1} s; terms (unweighted) over the samples:\n{}",

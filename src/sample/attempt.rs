@@ -18,12 +18,12 @@ use super::guided::{
 };
 use crate::cost::ScriptSpec;
 use crate::cost::{check_params, CostError, CostReport, CostScript, Params};
-use crate::eval::behaviors::{
-    check_against_unguided, check_allowing, Behavior, CheckError, Verdict,
-};
+use crate::eval::asked::{self, requested, verdicts};
+use crate::eval::behaviors::{Behavior, CheckError, Verdict};
 use crate::eval::kinematic::{judge, KinematicLimits, Violation};
 use crate::eval::metrics::{road_departure, RoadDeparture};
-use crate::io::{output_stem, rollout::Rollout, write_atomic, IoError};
+use crate::io::rollout::{Allowance, AllowedMotion, Rollout};
+use crate::io::{output_stem, write_atomic, IoError};
 use crate::scene::Scene;
 use crate::train::Trained;
 
@@ -196,6 +196,10 @@ pub struct SampleOutcome {
     /// ([`road_departure`]).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub off_road: Vec<RoadDeparture>,
+    /// The motion its scripts allowed (`allow(a, "reverse")`), which its verdicts count as
+    /// asked; its rollout carries it for `eval` ([`Rollout::allowed`]).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub allowed: Vec<Allowance>,
 }
 
 impl SampleOutcome {
@@ -262,53 +266,19 @@ pub struct CheckSpec {
     pub params: Params,
 }
 
-/// Whether the request asks motion of this kind of agent `id`: one of `checks` names it in a
-/// role and asks it ([`Behavior::allowed_motion`]), or a script allows it (`allowed`, from
-/// [`script_allowances`]). What a script allows is what the model read the request to ask
-/// (the prompt tells it so, and the sampler honours it), so the verdict must not hold it
-/// against the agent: `ask` once refused an ACCEPT for "2976 reverses" that the script had
-/// allowed with `allow(a, "reverse")`.
-fn requested(
-    checks: &[(Behavior, Params)],
-    allowed: &[(i64, Violation)],
-    id: i64,
-    kind: Violation,
-) -> bool {
-    allowed.contains(&(id, kind))
-        || checks.iter().any(|(b, p)| {
-            b.allowed_motion().contains(&kind)
-                && b.roles().iter().any(|r| p.number(r) == Some(id as f64))
-        })
-}
-
-/// Each checker's verdict on `scene`, against its unguided `twin` where there is one, with
-/// the motion the scripts allow (`allowed`, from [`script_allowances`]) counted as asked:
-/// an `off_road` checker for a car its script lets reverse does not fail it for reversing.
-fn verdicts(
-    checks: &[(Behavior, Params)],
-    scene: &Scene,
-    twin: Option<&Scene>,
-    allowed: &[(i64, Violation)],
-) -> Result<Vec<Verdict>, CheckError> {
-    checks
-        .iter()
-        .map(|(b, p)| match twin {
-            Some(u) => check_against_unguided(*b, scene, u, p, allowed),
-            None => check_allowing(*b, scene, p, allowed),
-        })
-        .collect()
-}
-
-/// The motion `reports`' scripts allow, as (agent id, kind): `allow(a, "reverse")` exempts
-/// backing up. `compiled_on` is the scene the scripts were compiled on (their agent indices
-/// are its).
-fn script_allowances(compiled_on: &Scene, reports: &[CostReport]) -> Vec<(i64, Violation)> {
+/// The motion `reports`' scripts allow (`allow(a, "reverse")`), by agent id. `compiled_on` is
+/// the scene the scripts were compiled on (their agent indices are its).
+fn script_allowances(compiled_on: &Scene, reports: &[CostReport]) -> Vec<Allowance> {
     let mut out = Vec::new();
     for r in reports {
         for &i in &r.may_reverse {
             if let Some(a) = compiled_on.agents.get(i) {
-                if !out.contains(&(a.id, Violation::Reverse)) {
-                    out.push((a.id, Violation::Reverse));
+                let x = Allowance {
+                    agent: a.id,
+                    motion: AllowedMotion::Reverse,
+                };
+                if !out.contains(&x) {
+                    out.push(x);
                 }
             }
         }
@@ -428,6 +398,7 @@ impl Attempt {
         for (k, s) in self.samples.iter().enumerate() {
             let mut r = Rollout::from_scene(&s.scene);
             r.run = run.cloned();
+            r.allowed = self.report.samples[k].allowed.clone();
             for t in &self.report.samples[k].terms {
                 r.costs.insert(t.term.clone(), t.value);
             }
@@ -583,8 +554,9 @@ pub fn attempt(
         }
         let twin = twins.as_ref().and_then(|t| t.get(k));
         let allowed = script_allowances(&scene, &s.reports);
-        let verdicts = verdicts(&spec.checks, &s.scene, twin.map(|u| &u.scene), &allowed)?;
-        let realism = realism_events(&s.scene, &spec.checks, &roles, &allowed);
+        let kinds = asked::kinds(&allowed);
+        let verdicts = verdicts(&spec.checks, &s.scene, twin.map(|u| &u.scene), &kinds)?;
+        let realism = realism_events(&s.scene, &spec.checks, &roles, &kinds);
         let off_road = s
             .scene
             .agents
@@ -602,6 +574,7 @@ pub fn attempt(
             verdicts,
             realism,
             off_road,
+            allowed,
         });
     }
     let report = AttemptReport {
@@ -663,6 +636,7 @@ pub fn attempt(
 mod tests {
     use super::*;
     use crate::cost::Limits;
+    use crate::eval::check_against_unguided;
     use crate::io::{load_scene, LoadOptions};
     use crate::train::train;
     use std::path::Path;
@@ -851,6 +825,7 @@ mod tests {
             verdicts: Vec::new(),
             realism: vec![event(3, true), event(1, false)],
             off_road: Vec::new(),
+            allowed: Vec::new(),
         };
         let flagged: Vec<i64> = o.implausible(&[1, 3]).map(|e| e.agent).collect();
         assert_eq!(flagged, vec![1]);
@@ -879,6 +854,14 @@ mod tests {
             .evaluate(&crate::cost::Trajectories::recorded(&scene))
             .unwrap();
         let allowed = script_allowances(&scene, &[report]);
+        assert_eq!(
+            allowed,
+            vec![Allowance {
+                agent: 4,
+                motion: AllowedMotion::Reverse
+            }]
+        );
+        let allowed = asked::kinds(&allowed);
         assert_eq!(allowed, vec![(4, Violation::Reverse)]);
         let checks = vec![(Behavior::SpeedLimit, Params::numbers(&[("vehicle", 1.0)]))];
         let outcome = |realism| SampleOutcome {
@@ -888,6 +871,7 @@ mod tests {
             verdicts: Vec::new(),
             realism,
             off_road: Vec::new(),
+            allowed: Vec::new(),
         };
         // Without the allowance the backing up is implausible motion of a named agent ...
         let bare = outcome(realism_events(&scene, &checks, &[], &[]));
