@@ -245,6 +245,17 @@ fn points2<'py>(py: Python<'py>, pts: &[drivescript::geom::Point]) -> PyResult<B
     Ok(a.into_pyarray(py).into_any())
 }
 
+/// A lane path's length in metres: (0, 100000], as the scripts' `lane_path` takes.
+fn path_length(length: f64) -> PyResult<()> {
+    if length.is_finite() && length > 0.0 && length <= 100_000.0 {
+        Ok(())
+    } else {
+        Err(PyValueError::new_err(format!(
+            "length {length}: must be in (0, 100000] metres"
+        )))
+    }
+}
+
 /// A turn at forks from its word, as scripts spell it.
 fn turn_word(w: &str) -> PyResult<drivescript::scene::Turn> {
     drivescript::scene::Turn::from_word(w).ok_or_else(|| {
@@ -379,11 +390,7 @@ impl Scene {
         turn: &str,
     ) -> PyResult<Bound<'py, PyAny>> {
         let turn = turn_word(turn)?;
-        if !(length.is_finite() && length > 0.0 && length <= 100_000.0) {
-            return Err(PyValueError::new_err(format!(
-                "length {length}: must be in (0, 100000] metres"
-            )));
-        }
+        path_length(length)?;
         let path = self
             .inner
             .map
@@ -409,11 +416,7 @@ impl Scene {
         turn: &str,
     ) -> PyResult<Bound<'py, PyAny>> {
         let turn = turn_word(turn)?;
-        if !(length.is_finite() && length > 0.0 && length <= 100_000.0) {
-            return Err(PyValueError::new_err(format!(
-                "length {length}: must be in (0, 100000] metres"
-            )));
-        }
+        path_length(length)?;
         let idx = self
             .inner
             .agents
