@@ -362,18 +362,20 @@ fn demo_runs_the_loop_and_writes_the_run() {
     let out = ok(&["demo", "-o", s(&run)]);
     assert!(out.contains("USA_US101-4_1_T-1"), "{out}");
     // Every phase: plan, script, validation, sampling, per-term costs, verdicts and why a
-    // sample does not meet the request, the planner's answer. With polish and realism's look at
-    // the joint of history and future, two of the first script's four samples meet the
-    // request (three before that look), and the planner accepts one.
+    // sample does not meet the request, the planner's answer. With polish, realism's look at
+    // the joint of history and future, held slow headings and the crab term at every speed,
+    // three of the first script's four samples meet the request (two before the last two),
+    // and the planner accepts the first.
     for want in [
         "round 0: plan:",
         "cut_in (cutter=401 victim=405)",
         "round 0: script (",
         "round 0: validating on the sampler's horizon",
         "| ends_ahead |",
+        "round 0: sample 0: meets the request [cut_in PASS, off_road PASS]",
         "round 0: sample 1: meets the request [cut_in PASS, off_road PASS]",
         "round 0: sample 2: 2 reason(s) it does not: term ends_ahead",
-        "round 1: ACCEPT (sample 1 of round 0 meets the request)",
+        "round 1: ACCEPT (sample 0 of round 0 meets the request)",
         "Outcome: accepted",
         "Verdict: succeeded: round 0 met.",
     ] {

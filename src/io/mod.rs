@@ -566,7 +566,27 @@ fn write_beside(path: &Path, bytes: &[u8]) -> Result<PathBuf, IoError> {
         std::process::id(),
         std::thread::current().id()
     ));
-    std::fs::write(&tmp, bytes).map_err(err)?;
+    // Created, never opened through whatever is there: a link planted at this predictable
+    // name (in a directory others can write to) would otherwise send the bytes to its
+    // target. A leftover of ours, or such a link, is removed first (removing a link leaves its
+    // target alone); one planted again in between makes the create fail, not follow it.
+    match std::fs::symlink_metadata(&tmp) {
+        Ok(m) if m.is_dir() => {
+            return Err(IoError::invalid(
+                &tmp,
+                "temporary file",
+                "is a directory: remove it",
+            ))
+        }
+        Ok(_) => std::fs::remove_file(&tmp).map_err(err)?,
+        Err(_) => {}
+    }
+    let mut f = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(&tmp)
+        .map_err(err)?;
+    std::io::Write::write_all(&mut f, bytes).map_err(err)?;
     Ok(tmp)
 }
 
@@ -947,6 +967,25 @@ mod tests {
                 .to_string();
             assert!(e.contains("not a regular file"), "{e}");
         }
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_link_planted_at_the_temporary_name_is_not_written_through() {
+        let dir = tempfile::tempdir().unwrap();
+        let victim = dir.path().join("victim");
+        std::fs::write(&victim, b"keep").unwrap();
+        let out = dir.path().join("out.json");
+        let tmp = dir.path().join(format!(
+            ".out.json.tmp{}-{:?}",
+            std::process::id(),
+            std::thread::current().id()
+        ));
+        std::os::unix::fs::symlink(&victim, &tmp).unwrap();
+        super::write_atomic(&out, b"new").unwrap();
+        assert_eq!(std::fs::read(&victim).unwrap(), b"keep");
+        assert_eq!(std::fs::read(&out).unwrap(), b"new");
+        assert!(!tmp.exists() && std::fs::symlink_metadata(&tmp).is_err());
     }
 
     #[cfg(unix)]
