@@ -1276,7 +1276,7 @@ fn train_then_simulate_end_to_end() {
         &[],
         s(&sim),
     ));
-    assert!(err.contains("config.json"), "{err}");
+    assert!(err.contains("nope: no such checkpoint directory"), "{err}");
 }
 
 #[test]
@@ -1444,6 +1444,40 @@ fn sampler_flags_are_checked_before_any_work() {
         assert!(err.contains(want), "{arg}: {err}");
         assert!(!out.exists(), "{arg} created {}", out.display());
     }
+    // The same script twice (once through ./) counted its terms twice, without a word; a
+    // checkpoint named as a file read as "config.json/config.json: Not a directory".
+    let twice = fails(&simulate_args(
+        s(&scene),
+        "data/checkpoint",
+        &[
+            "--script",
+            "scripts/cut_in.rhai",
+            "--script",
+            "./scripts/cut_in.rhai",
+            "--param",
+            "cutter=2",
+            "victim=1",
+        ],
+        s(&out),
+    ));
+    assert!(
+        twice.contains(
+            "--script ./scripts/cut_in.rhai: the same file as --script scripts/cut_in.rhai"
+        ),
+        "{twice}"
+    );
+    let file = fails(&simulate_args(
+        s(&scene),
+        "data/checkpoint/config.json",
+        &[],
+        s(&out),
+    ));
+    assert!(
+        file.contains("data/checkpoint/config.json: is a file, not a checkpoint directory")
+            && !file.contains("config.json/config.json"),
+        "{file}"
+    );
+    assert!(!out.exists());
     // The demo checks its settings before it clears the previous run away.
     let demo = dir.path().join("demo");
     std::fs::create_dir(&demo).unwrap();

@@ -147,6 +147,20 @@ pub fn run(args: Args) -> Result<ExitCode> {
         }
         _ => args.scripts.clone(),
     };
+    // The same file twice would count its terms twice, silently doubling its weight.
+    for (i, p) in script_paths.iter().enumerate() {
+        let same = |q: &PathBuf| match (p.canonicalize(), q.canonicalize()) {
+            (Ok(a), Ok(b)) => a == b,
+            _ => p == q,
+        };
+        if let Some(q) = script_paths[..i].iter().find(|q| same(q)) {
+            anyhow::bail!(
+                "--script {}: the same file as --script {}; each script counts once (to weigh it more, raise --lambda)",
+                terminal_safe(&p.display().to_string()),
+                terminal_safe(&q.display().to_string())
+            );
+        }
+    }
     // The horizon is checked against the model before anything is read or written.
     let future = match args.horizon {
         Some(h) if h > trained.meta.config.window.future => anyhow::bail!(

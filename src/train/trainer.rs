@@ -811,6 +811,19 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
         path: path.display().to_string(),
         message: e,
     };
+    // A checkpoint is a directory: named as a file, it read as "config.json/config.json: Not
+    // a directory".
+    match std::fs::metadata(dir) {
+        Ok(m) if !m.is_dir() => return Err(io(
+            dir,
+            "is a file, not a checkpoint directory (one holding config.json and model.safetensors)"
+                .into(),
+        )),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return Err(io(dir, "no such checkpoint directory".into()))
+        }
+        _ => {}
+    }
     let cfg_path = dir.join("config.json");
     // Only regular files, each within a cap: a FIFO named config.json waited for a writer
     // forever, and a device read without end.
@@ -1155,6 +1168,24 @@ mod tests {
         let shown = w.display().to_string();
         assert_eq!(e.matches(&shown).count(), 1, "{e}");
         assert!(!e.contains("path:"), "{e}");
+    }
+
+    #[test]
+    fn a_checkpoint_named_as_a_file_or_absent_says_so() {
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("config.json");
+        std::fs::write(&f, "{}").unwrap();
+        let e = load(&f).err().expect("a file").to_string();
+        assert!(
+            e.contains("is a file, not a checkpoint directory")
+                && !e.contains("config.json/config.json"),
+            "{e}"
+        );
+        let e = load(&dir.path().join("nowhere"))
+            .err()
+            .expect("absent")
+            .to_string();
+        assert!(e.contains("nowhere: no such checkpoint directory"), "{e}");
     }
 
     #[test]
