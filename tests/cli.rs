@@ -1444,6 +1444,23 @@ fn sampler_flags_are_checked_before_any_work() {
         assert!(err.contains(want), "{arg}: {err}");
         assert!(!out.exists(), "{arg} created {}", out.display());
     }
+    // Weights with nothing to weigh were dropped without a word.
+    for (arg, want) in [
+        ("--lambda=10", "--lambda 10: no script to weigh"),
+        (
+            "--known-weight=5",
+            "--known-weight 5: only --task conditional knows end points",
+        ),
+    ] {
+        let err = fails(&simulate_args(
+            s(&scene),
+            "data/checkpoint",
+            &["--task", "unconditional", arg],
+            s(&out),
+        ));
+        assert!(err.contains(want), "{arg}: {err}");
+        assert!(!out.exists());
+    }
     // The same script twice (once through ./) counted its terms twice, without a word; a
     // checkpoint named as a file read as "config.json/config.json: Not a directory".
     let twice = fails(&simulate_args(

@@ -66,10 +66,10 @@ pub struct Args {
     /// Future steps to sample, up to the model's horizon (default: the model's horizon).
     #[arg(long)]
     horizon: Option<usize>,
-    /// Guidance strength (the default was chosen on held-out NGSIM behaviours with the
-    /// fading schedule: data/checkpoint/README.md).
-    #[arg(long, default_value_t = drivescript::sample::BEHAVIOUR_LAMBDA)]
-    lambda: f64,
+    /// Guidance strength of the scripts, default 3 (chosen on held-out NGSIM behaviours with
+    /// the fading schedule: data/checkpoint/README.md); above 0 only with --script or --auto.
+    #[arg(long)]
+    lambda: Option<f64>,
     /// Where the guidance gradient is taken: at the denoised output, or pulled back through
     /// the denoiser (the paper's rule, slower); the same flag and default as `ask`'s.
     #[arg(long, value_enum, default_value = "output")]
@@ -91,9 +91,10 @@ pub struct Args {
     /// `allow(a, "reverse")`, and two it asks to collide with `allow(a, "collide", b)`.
     #[arg(long, default_value_t = drivescript::sample::REALISM_WEIGHT)]
     realism: f64,
-    /// Weight of the known-state cost (conditional end points).
-    #[arg(long, default_value_t = 1.0)]
-    known_weight: f64,
+    /// Weight of the known-state cost (conditional end points), default 1; above 0 only with
+    /// --task conditional.
+    #[arg(long)]
+    known_weight: Option<f64>,
     /// How λ varies with the noise level σ: constant or fading (λ·σ/(σ+σ_data)).
     #[arg(long, value_enum, default_value = "fading")]
     schedule: ScheduleArg,
@@ -187,27 +188,43 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
     // Said with the flag: the library's check names its settings, not the command line's.
     let max = drivescript::sample::MAX_WEIGHT;
+    let lambda = args.lambda.unwrap_or(drivescript::sample::BEHAVIOUR_LAMBDA);
+    let known_weight = args.known_weight.unwrap_or(1.0);
     for (flag, v) in [
-        ("--lambda", args.lambda),
+        ("--lambda", lambda),
         ("--realism", args.realism),
-        ("--known-weight", args.known_weight),
+        ("--known-weight", known_weight),
     ] {
         if !(v.is_finite() && (0.0..=max).contains(&v)) {
             anyhow::bail!("{flag} {}: must be 0 to {max}", drivescript::geom::num(v));
         }
     }
+    // A weight with nothing to weigh was dropped without a word (0, "unguided", says
+    // nothing wrong).
+    if args.lambda.is_some_and(|l| l != 0.0) && specs.is_empty() {
+        anyhow::bail!(
+            "--lambda {}: no script to weigh (give --script or --auto)",
+            drivescript::geom::num(lambda)
+        );
+    }
+    if args.known_weight.is_some_and(|w| w != 0.0) && args.task != TaskArg::Conditional {
+        anyhow::bail!(
+            "--known-weight {}: only --task conditional knows end points to weigh",
+            drivescript::geom::num(known_weight)
+        );
+    }
     let cfg = SampleConfig {
         steps: args.steps,
         samples: args.samples,
         seed: args.seed,
-        lambda: args.lambda,
+        lambda,
         task: if args.task == TaskArg::Conditional {
             Task::Conditional
         } else {
             Task::Unconditional
         },
         guidance: args.guidance.into(),
-        known_weight: args.known_weight,
+        known_weight,
         schedule: match args.schedule {
             ScheduleArg::Constant => LambdaSchedule::Constant,
             ScheduleArg::Fading => LambdaSchedule::Fading,
