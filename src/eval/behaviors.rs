@@ -488,6 +488,15 @@ fn route_of(s: &Scene, a: &Agent, turn: Turn) -> Option<LanePath> {
     s.map.lane_path(lane, along + 400.0, 50.0, turn).ok()
 }
 
+/// Whether the yielder's path ends in a lane of the other's: the paths merge rather than cross
+/// (the yield script then stops the yielder further back, as they run side by side first).
+fn merges(yielder: &LanePath, other: &LanePath) -> bool {
+    yielder
+        .lanes
+        .last()
+        .is_some_and(|l| other.lanes.contains(l))
+}
+
 /// The route `a` drives in `s`: of the paths straight on, left and right at forks, the one its
 /// last observed state lies nearest (the first of equals), with the turn that makes it.
 fn driven_route(s: &Scene, a: &Agent) -> Option<(Turn, LanePath)> {
@@ -1387,11 +1396,15 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
             };
             // And the yielder, holding its speed, would get there first (otherwise the other
             // passes first by itself and "yield" asks for nothing either), yet can hold back,
-            // braking at most 3 m/s², until the other is 2 m past: a car already at the
-            // junction cannot yield without an emergency stop.
-            let first = |a: &Agent, a_to_go: f64, o: &Agent, o_to_go: f64| {
+            // braking at most 3 m/s², where the yield script stops it (front bumper 2 m short
+            // of the meeting point, 10 m more where the lanes merge) until the other's rear
+            // bumper is 2 m past: a car already at the junction cannot yield without an
+            // emergency stop, and a request the script can only meet that way is not offered.
+            let first = |a: &Agent, a_to_go: f64, o: &Agent, o_to_go: f64, merge: bool| {
                 let (va, vo) = (a.states[c].speed(), o.states[c].speed());
-                let (room, other_past) = (a_to_go - 2.0, (o_to_go + 2.0) / vo);
+                let stop_short = a.length / 2.0 + 2.0 + if merge { 10.0 } else { 0.0 };
+                let (room, other_past) =
+                    (a_to_go - stop_short, (o_to_go + o.length / 2.0 + 2.0) / vo);
                 let brake = 3.0;
                 let holds = room > 0.0
                     && (va * va / (2.0 * brake) <= room
@@ -1416,7 +1429,7 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
                             && so > so0
                             && sa - sa0 <= reach(a)
                             && coming(o, so - so0)
-                            && first(a, sa - sa0, o, so - so0)
+                            && first(a, sa - sa0, o, so - so0, merges(pa, po))
                         {
                             let mut p = Params::numbers(&[
                                 ("yielder", a.id as f64),
