@@ -2854,6 +2854,56 @@ fn cost_checks_a_rollout_as_eval_and_render_do() {
 }
 
 #[test]
+fn eval_refuses_a_parameter_the_behaviour_checker_does_not_read() {
+    // `gapp=30` was dropped without a word: the table was cut_in's with its default gap,
+    // exit 0.
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let run = |behaviour: &str, params: &[&str]| {
+        let args = [
+            &[
+                "eval",
+                s(&scene),
+                "--task",
+                "behaviour",
+                "--behaviour",
+                behaviour,
+                "--param",
+            ][..],
+            params,
+        ]
+        .concat();
+        fails(&args)
+    };
+    let err = run("cut_in", &["cutter=2", "victim=1", "gapp=30"]);
+    assert!(
+        err.contains("--param")
+            && err.contains("cut_in: parameter \"gapp\"")
+            && err.contains("its parameters are cutter, victim"),
+        "{err}"
+    );
+    let err = run("follow", &["follower=2", "leader=1", "gapp=30"]);
+    assert!(
+        err.contains("its parameters are follower, leader, gap"),
+        "{err}"
+    );
+    let err = run("no_collisions", &["vehicle=1"]);
+    assert!(err.contains("it takes no parameters"), "{err}");
+    // The names the checker reads still pass, optional ones too.
+    ok(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "behaviour",
+        "--behaviour",
+        "follow",
+        "--param",
+        "follower=1",
+        "leader=2",
+        "gap=12",
+    ]);
+}
+
+#[test]
 fn eval_refuses_flags_its_task_would_ignore() {
     // Each was dropped without a word: a conditional table printed for a request with
     // behaviour parameters, four samples asked of baselines that have one.
