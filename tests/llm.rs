@@ -2527,3 +2527,112 @@ fn a_model_or_url_no_backend_asks_is_an_error_not_dropped() {
         assert!(!run.join("round_0").exists(), "{extra:?}: {t}");
     }
 }
+
+#[test]
+fn a_flag_the_chosen_backend_does_not_read_is_an_error_not_dropped() {
+    // `--llm rules --temperature 1.5 --max-tokens-field "x y" -v` ran the rules planner, exit
+    // 0: none of the three did anything. A flag given with its default value is still given.
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join(SCENE);
+    let run = dir.path().join("run");
+    let fresh = |extra: &[&str]| {
+        ask(
+            &[&[s(&scene), REQUEST, "-o", s(&run)][..], extra].concat(),
+            None,
+        )
+    };
+    for (extra, want) in [
+        (
+            &[
+                "--llm",
+                "rules",
+                "--temperature",
+                "1.5",
+                "--max-tokens-field",
+                "x y",
+                "-v",
+            ][..],
+            "--max-tokens-field \"x y\": a request field name is ASCII letters, digits and `_`",
+        ),
+        (
+            &["--llm", "rules", "--temperature", "0.2"],
+            "--temperature: --llm rules asks no server",
+        ),
+        (
+            &["--llm", "rules", "--max-tokens-field", "max_tokens"],
+            "--max-tokens-field: --llm rules asks no server",
+        ),
+        (
+            &["--llm", "rules", "--context", "8192"],
+            "--context: --llm rules sends no prompt to a model",
+        ),
+        (
+            &["--llm", "rules", "--no-frenet"],
+            "--no-frenet: --llm rules sends no prompt to a model",
+        ),
+        (&["--llm", "rules", "-v"], "-v/--verbose: only --batch"),
+        (
+            &["--attempts", "3"],
+            "--attempts: the rules planner (--llm auto's choice: no server is configured",
+        ),
+        (
+            &["--llm", "manual", "--no-stream"],
+            "--no-stream: --llm manual asks no server",
+        ),
+        (
+            &["--llm", "manual", "--max-tokens", "100"],
+            "--max-tokens: --llm manual asks no server; --max-tokens sets only the reply's \
+             share of the --context window",
+        ),
+        (
+            &["--llm", "manual", "--max-tokens-field", "model"],
+            "--max-tokens-field \"model\": the request already sends that field",
+        ),
+    ] {
+        let out = fresh(extra);
+        let t = text(&out);
+        assert_eq!(out.status.code(), Some(1), "{extra:?}: {t}");
+        assert!(t.contains(want), "{extra:?}: {t}");
+        assert!(!run.exists(), "{extra:?}: {t}");
+    }
+    // What a manual run does read: the prompt's flags, and --max-tokens with --context.
+    let out = fresh(&[
+        "--llm",
+        "manual",
+        "--context",
+        "8192",
+        "--max-tokens",
+        "1000",
+        "--no-cot",
+    ]);
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    assert!(t.contains("1000 for the reply"), "{t}");
+    // A run taken up again keeps its settings and backend.
+    let d = s(&run);
+    for (args, want) in [
+        (
+            &["--resume", d, "--rounds", "5"][..],
+            "--rounds: --resume goes on with the settings the run started with",
+        ),
+        (
+            &["--continue", d, "make it abrupt", "--no-cot"],
+            "--no-cot: --continue goes on with the settings the run started with",
+        ),
+        (
+            &["--resume", d, "--temperature", "1"],
+            "--temperature: the run's backend, manual, asks no server",
+        ),
+        (&["--resume", d, "-o", d], "-o: --resume DIR goes on in DIR"),
+        (
+            &["--replay", "t.json", "-o", d, "--seed", "2"],
+            "--seed: --replay asks no backend",
+        ),
+    ] {
+        let out = ask(args, None);
+        let t = text(&out);
+        assert_eq!(out.status.code(), Some(1), "{args:?}: {t}");
+        assert!(t.contains(want), "{args:?}: {t}");
+    }
+    assert!(!run.join("round_1").exists());
+}
