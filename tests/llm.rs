@@ -389,6 +389,46 @@ fn a_script_past_the_script_budget_goes_back_to_the_model_and_the_run_goes_on() 
 }
 
 #[test]
+fn a_script_that_fails_while_sampled_goes_back_to_the_model_and_the_run_goes_on() {
+    // Validation runs the script on the recorded future, where 401 ends 29.8669 m from its
+    // start; every sample ends elsewhere, and there the script indexes past an array's end.
+    // The model wrote it: the runtime error used to end the run (exit 1) instead of being
+    // that round's feedback.
+    let fails = "let a = agent(401);\nlet d = a.x.last().value() - a.x.first().value();\n\
+                 if abs(d - 29.8669) > 0.01 { let v = [0.0]; d += v[3]; }\n\
+                 term(\"far\", square(a.x.last() - 1000.0));\n";
+    let srv = Server::start(vec![
+        Canned::chat(&reply(fails)),
+        Canned::chat(&reply(IDLE)),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(dir.path(), &["--rounds", "0"], Some(&srv.url));
+    let t = text(&out);
+    // The second script was sampled, and the rounds ran out on it: not met, no error.
+    assert_eq!(out.status.code(), Some(2), "{t}");
+    assert!(
+        t.contains("round 0: script failed in sampling: script.rhai:3:"),
+        "{t}"
+    );
+    let said = std::fs::read_to_string(dir.path().join("round_0/sampling.txt")).unwrap();
+    assert!(
+        said.starts_with("your script passed validation but failed while it was being sampled")
+            && said.contains("script.rhai:3:")
+            && said.contains("out of bounds"),
+        "{said}"
+    );
+    assert_eq!(srv.received().len(), 2, "{t}");
+    let back = last_user(&srv, 1);
+    assert!(back.contains(said.trim()), "{back}");
+    assert!(dir
+        .path()
+        .join("round_1/USA_US101-3_3_T-1_costs.json")
+        .exists());
+    let tr = std::fs::read_to_string(dir.path().join("transcript.json")).unwrap();
+    assert!(tr.contains("\"script failed in sampling\""), "{tr}");
+}
+
+#[test]
 fn syntax_errors_and_unknown_agents_go_back_with_line_numbers_before_any_sampling() {
     let broken = "let a = agent(401);\nterm(\"x\", relu(a.x.last() - );\n";
     let unknown = cut_in_script(401, 9999);
