@@ -1374,6 +1374,44 @@ fn output_onto_a_full_disk_is_an_error_not_a_crash() {
 }
 
 #[test]
+fn train_keeps_its_window_cache_out_of_the_inputs_and_out_of_other_directories() {
+    // `--cache DATA` wrote train.windows and val.windows among the scenes, exit 0.
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    std::fs::create_dir(&data).unwrap();
+    std::fs::copy("scripts/scenes/highway_cut_in.yaml", data.join("a.yaml")).unwrap();
+    let mine = dir.path().join("mine");
+    std::fs::create_dir(&mine).unwrap();
+    std::fs::write(mine.join("thesis.tex"), "mine").unwrap();
+    let out = dir.path().join("ckpt");
+    let train = |cache: &std::path::Path| {
+        fails(&[
+            "train",
+            "--data",
+            s(&data),
+            "--out",
+            s(&out),
+            "--cache",
+            s(cache),
+            "--steps",
+            "1",
+        ])
+    };
+    let err = train(&data);
+    assert!(err.contains("is the input directory"), "{err}");
+    let err = train(&data.join("windows"));
+    assert!(err.contains("is inside the input directory"), "{err}");
+    let err = train(&mine);
+    assert!(
+        err.contains("thesis.tex, which is not one of its files (train.windows, val.windows)"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read_dir(&data).unwrap().count(), 1);
+    assert_eq!(std::fs::read_dir(&mine).unwrap().count(), 1);
+    assert!(!out.exists());
+}
+
+#[test]
 fn train_refuses_settings_it_cannot_train_with_before_reading_data() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("ckpt");
