@@ -1134,7 +1134,7 @@ fn train_then_simulate_end_to_end() {
     let out = ok(&simulate_args(
         cut_in,
         s(&ckpt),
-        &["--auto", "cut_in", "--steps", "4"],
+        &["--auto", "cut_in", "--steps", "8"],
         s(&auto),
     ));
     assert!(
@@ -1164,7 +1164,7 @@ fn train_then_simulate_end_to_end() {
             "--samples",
             "2",
             "--steps",
-            "4",
+            "8",
         ],
         s(&sim),
     ));
@@ -1234,7 +1234,7 @@ fn train_then_simulate_end_to_end() {
         "cutter=4",
         "victim=1",
         "--steps",
-        "2",
+        "8",
     ];
     let err = fails(&simulate_args(
         s(&two),
@@ -1266,7 +1266,7 @@ fn train_then_simulate_end_to_end() {
     let out = ok(&simulate_args(
         cut_in,
         s(&ckpt),
-        &["--closed-loop", "--steps", "2"],
+        &["--closed-loop", "--steps", "8"],
         s(&cl),
     ));
     assert!(out.contains("highway-cut-in: 1 samples"), "{out}");
@@ -1294,7 +1294,7 @@ fn simulate_says_what_it_does_not_sample() {
         let out = ok(&simulate_args(
             s(&scene),
             "data/checkpoint",
-            &["--task", task, "--steps", "4"],
+            &["--task", task, "--steps", "8"],
             s(&out_dir),
         ));
         assert!(
@@ -1447,6 +1447,14 @@ fn sampler_flags_are_checked_before_any_work() {
     for (arg, want) in [
         ("--steps=0", "steps = 0: must be 2 to 1000"),
         ("--steps=1", "steps = 1: must be 2 to 1000"),
+        // The schedule's last Heun step from σ = 0.47 left every vehicle at tens of metres a
+        // second (at 2 steps, kilometres); a closed loop then failed on an "implausible
+        // heading 10262.9 rad".
+        (
+            "--steps=4",
+            "--steps 4: fewer than 8 Heun steps leave noise in the samples",
+        ),
+        ("--steps=7", "use 8 or more (default 32)"),
         ("--samples=0", "samples = 0: must be 1 to 1024"),
         (
             "--samples=100000000",
@@ -1482,6 +1490,16 @@ fn sampler_flags_are_checked_before_any_work() {
         assert!(err.contains(want), "{arg}: {err}");
         assert!(!out.exists(), "{arg} created {}", out.display());
     }
+    let err = fails(&simulate_args(
+        s(&scene),
+        "data/checkpoint",
+        &["--closed-loop", "--steps", "2"],
+        s(&out),
+    ));
+    assert!(
+        err.contains("--steps 2: fewer than 8 Heun steps") && !err.contains("heading"),
+        "{err}"
+    );
     // Weights with nothing to weigh were dropped without a word.
     for (arg, want) in [
         ("--lambda=10", "--lambda 10: no script to weigh"),
@@ -2573,7 +2591,7 @@ fn scenes_an_auto_run_skipped_are_skipped_by_eval_over_the_same_list() {
             "--auto",
             "cut_in",
             "--steps",
-            "2",
+            "8",
             "--task",
             "unconditional",
         ],
@@ -2603,7 +2621,7 @@ fn scenes_an_auto_run_skipped_are_skipped_by_eval_over_the_same_list() {
             "--auto",
             "cut_in",
             "--steps",
-            "2",
+            "8",
             "--task",
             "unconditional",
             "--resume",
@@ -2675,7 +2693,7 @@ fn cost_and_simulate_name_terms_no_perturbed_future_moves() {
     let o = drivescript(&simulate_args(
         s(&scene),
         "data/checkpoint",
-        &["--script", s(&script), "--steps", "2", "--polish", "0"],
+        &["--script", s(&script), "--steps", "8", "--polish", "0"],
         s(&out_dir),
     ));
     let err = String::from_utf8_lossy(&o.stderr);
@@ -2974,7 +2992,7 @@ fn eval_refuses_flags_its_task_would_ignore() {
     // The first of two samples was scored as if it were the run.
     let dir = tempfile::tempdir().unwrap();
     let rollouts = dir.path().join("sim");
-    let fast = ["--steps", "2", "--polish", "0", "--samples", "2"];
+    let fast = ["--steps", "8", "--polish", "0", "--samples", "2"];
     ok(&simulate_args(
         s(&scene),
         "data/checkpoint",
