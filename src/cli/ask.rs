@@ -525,8 +525,8 @@ fn unread_by_mode(args: &Args, given: &[String]) -> Result<()> {
         None
     };
     if let Some(mode) = again {
-        let recorded = RUN_SETTINGS.iter().chain(&PROMPT_FLAGS);
-        if let Some((_, flag)) = recorded.clone().find(|(id, _)| is_given(id)) {
+        let mut recorded = RUN_SETTINGS.iter().chain(&PROMPT_FLAGS);
+        if let Some((_, flag)) = recorded.find(|(id, _)| is_given(id)) {
             bail!(
                 "{flag}: {mode} goes on with the settings the run started with (its state.json); \
                  start a new run (-o NEWDIR) to change them"
@@ -537,12 +537,12 @@ fn unread_by_mode(args: &Args, given: &[String]) -> Result<()> {
         }
     }
     if args.replay.is_some() {
-        let recorded = RUN_SETTINGS
+        let mut recorded = RUN_SETTINGS
             .iter()
             .chain(PROMPT_FLAGS.iter().filter(|(id, _)| *id != "prompts"))
             .chain(&SERVER_FLAGS)
             .chain(&[("llm", "--llm")]);
-        if let Some((_, flag)) = recorded.clone().find(|(id, _)| is_given(id)) {
+        if let Some((_, flag)) = recorded.find(|(id, _)| is_given(id)) {
             bail!(
                 "{flag}: --replay asks no backend (the transcript's replies answer) and runs with \
                  the recorded run's settings"
