@@ -178,12 +178,12 @@ impl Realism {
             }
             let c = scene.meta.current_step;
             let v0 = agent.states[c].vx.hypot(agent.states[c].vy);
-            let sprint = lim
-                .max_speed
-                .min(lim.sprint_factor * v0 + lim.sprint_margin);
             // The margin applies to the speed-up the checker allows, not to the speed: a car
-            // cruising at 30 m/s is not held back.
-            let cap = v0 + m * (sprint - v0).max(0.0);
+            // cruising at 30 m/s is not held back. Like the checker's bound, it grows with time.
+            let cap = |t: usize| {
+                let tau = (t + 1 - tr.first_future) as f64 * dt;
+                v0 + m * (lim.sprint_bound(v0, tau) - v0).max(0.0)
+            };
             let reverse_ok = allowed.reverse.get(a).copied().unwrap_or(false);
             // Adds `coef · d(quantity)/d(coordinates)` for a velocity-like vector built from
             // positions `taps` (index, factor) and a heading at `th`.
@@ -216,7 +216,7 @@ impl Realism {
                 let lat = -v[0] * sn + v[1] * cs;
                 let speed = v[0].hypot(v[1]);
                 let taps = [(w + h, 1.0 / span), (w - h, -1.0 / span)];
-                let x = speed - cap;
+                let x = speed - cap(t);
                 if x > 0.0 && speed > 0.0 {
                     vals[0] += x * x;
                     let k = 2.0 * x / speed;
@@ -466,6 +466,31 @@ mod tests {
         let all = vec![true; s.agents.len()];
         let r = on().evaluate(&s, &t, &all, &Allowed::default());
         assert_eq!(values(&r), vec![0.0; 6], "{:?}", r.terms);
+    }
+
+    #[test]
+    fn the_speed_term_grows_with_the_horizon_as_the_checker_does() {
+        // 8 s of future: from 1 m/s, speeding up at 1.5 m/s² stays within realism's share (3/4) of
+        // the speed-up the checker lets a car make, whose bound grows after 4 s; at 4 m/s² it is
+        // a sprint by 4 s.
+        let scene = |accel: f64| {
+            let text = format!(
+                "steps: 91\ncurrent_step: 10\nroad: {{lanes: 3, lane_width: 3.6, length: 800}}\nagents:\n  - {{id: 1, lane: 0, s: 50, speed: 1, accel: {accel}}}\n"
+            );
+            crate::io::yaml::parse(std::path::Path::new("eight.yaml"), &text).unwrap()
+        };
+        let speed = |accel: f64| {
+            let s = scene(accel);
+            let r = on().evaluate(
+                &s,
+                &Trajectories::recorded(&s),
+                &[true],
+                &Allowed::default(),
+            );
+            r.term("realism_speed").unwrap().value
+        };
+        assert_eq!(speed(1.5), 0.0);
+        assert!(speed(4.0) > 1.0, "{}", speed(4.0));
     }
 
     #[test]
