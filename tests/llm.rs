@@ -561,6 +561,76 @@ fn a_run_stopped_by_server_errors_resumes_where_it_stopped() {
     assert!(t.contains("--resume") && t.contains("--continue"), "{t}");
 }
 
+/// The seed and reply share a run sends are those it recorded, not the flags' defaults, when
+/// it is taken up again: a resumed or continued run asks the server as the run started did.
+#[test]
+fn a_resumed_or_continued_run_sends_the_seed_and_reply_share_it_recorded() {
+    let srv = Server::start(vec![
+        Canned::chat(&reply(&cut_in_script(401, 399))),
+        Canned::raw(503, "Service Unavailable"),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(
+        dir.path(),
+        &[
+            "--seed",
+            "7",
+            "--context",
+            "16384",
+            "--max-tokens",
+            "1500",
+            "--attempts",
+            "1",
+        ],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    let sent = |srv: &Server, k: usize| {
+        let b = srv.received()[k].json();
+        (b["seed"].clone(), b["max_tokens"].clone())
+    };
+    let recorded = (serde_json::json!(7), serde_json::json!(1500));
+    assert_eq!(sent(&srv, 0), recorded);
+    assert_eq!(sent(&srv, 1), recorded);
+    // Neither --seed nor --max-tokens is given again: the run's own settings are sent.
+    let srv2 = Server::start(vec![Canned::raw(503, "Service Unavailable")]);
+    let out = ask(
+        &["--resume", s(dir.path()), "--attempts", "1"],
+        Some(&srv2.url),
+    );
+    let t = text(&out);
+    assert!(t.contains("HTTP 503"), "{t}");
+    assert_eq!(sent(&srv2, 0), recorded, "{t}");
+    let srv3 = Server::start(vec![Canned::raw(503, "Service Unavailable")]);
+    let out = ask(
+        &[
+            "--continue",
+            s(dir.path()),
+            "and then vehicle 399 brakes",
+            "--attempts",
+            "1",
+        ],
+        Some(&srv3.url),
+    );
+    let t = text(&out);
+    assert!(t.contains("HTTP 503"), "{t}");
+    assert_eq!(sent(&srv3, 0), recorded, "{t}");
+    // The reply's share of the window is the run's: another --max-tokens is refused, not
+    // dropped.
+    let out = ask(
+        &["--resume", s(dir.path()), "--max-tokens", "2000"],
+        Some(&srv3.url),
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("--max-tokens: the run fits its prompts to --context 16384 with 1500 tokens"),
+        "{t}"
+    );
+    assert_eq!(srv3.received().len(), 1, "{t}");
+}
+
 #[test]
 fn the_manual_backend_round_trips_through_files() {
     let dir = tempfile::tempdir().unwrap();

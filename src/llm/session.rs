@@ -60,6 +60,24 @@ impl Backend {
             Backend::Replay(_) => "replay",
         }
     }
+
+    /// The backend sending what the run with `config` recorded: its seed, and where it states
+    /// a context window, the reply's share of it as the most tokens a reply may take. One
+    /// path for a run started and a run taken up again (`--resume`, `--continue`, a batch's
+    /// pair run again), whose flags (`--seed` at its default, `--max-tokens`) do not say
+    /// what the run was started with; the sampler reads the same recorded seed.
+    fn for_run(self, config: &SessionConfig) -> Self {
+        match self {
+            Backend::Http(c) => {
+                let c = c.with_seed(Some(config.seed));
+                Backend::Http(match config.context {
+                    Some(w) => c.with_max_tokens(u32::try_from(w.reply).unwrap_or(u32::MAX)),
+                    None => c,
+                })
+            }
+            other => other,
+        }
+    }
 }
 
 /// Settings of a session.
@@ -878,6 +896,7 @@ impl<'a> Session<'a> {
             understand_request(request)?;
         }
         let checks = checks.unwrap_or_else(|| checks_for(&requests));
+        let backend = backend.for_run(&config);
         let (model, url) = match &backend {
             Backend::Http(c) => (
                 Some(c.config().model.clone()),
@@ -1000,7 +1019,8 @@ impl<'a> Session<'a> {
             }
         }
         let prompts = Prompts::load(&state.prompts)?;
-        let backend = backend(&state.backend, state.model.as_deref(), state.url.as_deref())?;
+        let backend = backend(&state.backend, state.model.as_deref(), state.url.as_deref())?
+            .for_run(&state.config);
         let raw = load(&state.scene)?;
         let transcript = read_run_file(&dir.join("transcript.json"))
             .ok()
@@ -1070,6 +1090,12 @@ impl<'a> Session<'a> {
             format!("round_{round}/{id}_0.json … round_{round}/{id}_{last}.json")
         };
         format!("{rollouts} and round_{round}/{id}_costs.json")
+    }
+
+    /// The settings the run was started with (read back from its `state.json` when it was
+    /// taken up again).
+    pub fn config(&self) -> &SessionConfig {
+        &self.state.config
     }
 
     /// Replies received from the model so far (exchanges done), the run's paid-for work.
