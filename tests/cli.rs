@@ -1412,6 +1412,55 @@ fn train_keeps_its_window_cache_out_of_the_inputs_and_out_of_other_directories()
 }
 
 #[test]
+fn train_writes_its_checkpoint_outside_the_inputs() {
+    // `--out DATA/ckpt --cache ELSEWHERE` trained and wrote model.safetensors and config.json
+    // among the scenes, exit 0; a later `train --data DATA` read them as scenes.
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    std::fs::create_dir(&data).unwrap();
+    std::fs::copy("scripts/scenes/highway_cut_in.yaml", data.join("a.yaml")).unwrap();
+    let cache = dir.path().join("cache");
+    for (corpus, out, cache, want) in [
+        (
+            "--data",
+            data.join("ckpt"),
+            Some(&cache),
+            "is inside the input directory",
+        ),
+        (
+            "--urban",
+            data.clone(),
+            Some(&cache),
+            "is the input directory",
+        ),
+        // Without --cache, the cache's default (OUT/windows) is not what the error names.
+        (
+            "--data",
+            data.join("a/../ckpt"),
+            None,
+            "is inside the input directory",
+        ),
+    ] {
+        let mut args = vec!["train", corpus, s(&data), "--out", s(&out), "--steps", "1"];
+        if let Some(c) = cache {
+            args.extend(["--cache", s(c)]);
+        }
+        let err = fails(&args);
+        assert!(
+            err.contains(&format!(
+                "{}: the checkpoint directory (--out) {want} {}",
+                out.display(),
+                data.display()
+            )) && err.contains("choose a directory outside it"),
+            "{err}"
+        );
+        assert!(!err.contains("window cache"), "{err}");
+    }
+    assert_eq!(std::fs::read_dir(&data).unwrap().count(), 1);
+    assert!(!cache.exists());
+}
+
+#[test]
 fn train_refuses_settings_it_cannot_train_with_before_reading_data() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("ckpt");

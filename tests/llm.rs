@@ -388,17 +388,20 @@ fn a_script_past_the_script_budget_goes_back_to_the_model_and_the_run_goes_on() 
     assert!(tr.contains("\"script over budget\""), "{tr}");
 }
 
+/// A script that validates but fails while sampled: validation runs it on the recorded
+/// future, where 401 ends 29.8669 m from its start; every sample ends elsewhere, and there
+/// the script indexes past an array's end (line 3).
+const FAILS_IN_SAMPLING: &str =
+    "let a = agent(401);\nlet d = a.x.last().value() - a.x.first().value();\n\
+     if abs(d - 29.8669) > 0.01 { let v = [0.0]; d += v[3]; }\n\
+     term(\"far\", square(a.x.last() - 1000.0));\n";
+
 #[test]
 fn a_script_that_fails_while_sampled_goes_back_to_the_model_and_the_run_goes_on() {
-    // Validation runs the script on the recorded future, where 401 ends 29.8669 m from its
-    // start; every sample ends elsewhere, and there the script indexes past an array's end.
     // The model wrote it: the runtime error used to end the run (exit 1) instead of being
     // that round's feedback.
-    let fails = "let a = agent(401);\nlet d = a.x.last().value() - a.x.first().value();\n\
-                 if abs(d - 29.8669) > 0.01 { let v = [0.0]; d += v[3]; }\n\
-                 term(\"far\", square(a.x.last() - 1000.0));\n";
     let srv = Server::start(vec![
-        Canned::chat(&reply(fails)),
+        Canned::chat(&reply(FAILS_IN_SAMPLING)),
         Canned::chat(&reply(IDLE)),
     ]);
     let dir = tempfile::tempdir().unwrap();
@@ -426,6 +429,34 @@ fn a_script_that_fails_while_sampled_goes_back_to_the_model_and_the_run_goes_on(
         .exists());
     let tr = std::fs::read_to_string(dir.path().join("transcript.json")).unwrap();
     assert!(tr.contains("\"script failed in sampling\""), "{tr}");
+}
+
+#[test]
+fn the_rules_planner_taking_over_says_the_last_script_failed_while_sampled() {
+    // Round 0's script is sampled, round 1's fails while sampled (round_1/sampling.txt), and
+    // the server stops answering; the rules planner, resumed in its place, cannot repair that
+    // script. It said "cannot repair a script that fails validation", which it had passed.
+    let srv = Server::start(vec![
+        Canned::chat(&reply(&cut_in_script(401, 399))),
+        Canned::chat(&reply(FAILS_IN_SAMPLING)),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(dir.path(), &["--attempts", "1"], Some(&srv.url));
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(t.contains("round 1: script failed in sampling"), "{t}");
+    assert!(dir.path().join("round_1/sampling.txt").is_file(), "{t}");
+    let out = ask(&["--resume", s(dir.path()), "--llm", "rules"], None);
+    let t = text(&out);
+    assert!(
+        t.contains(
+            "the rules planner cannot repair the last script: it passed validation but failed \
+             while being sampled: script.rhai:3:"
+        ) && t.contains("out of bounds"),
+        "{t}"
+    );
+    assert!(!t.contains("fails validation"), "{t}");
+    assert!(!t.contains("your script"), "{t}");
 }
 
 #[test]
@@ -559,6 +590,76 @@ fn a_run_stopped_by_server_errors_resumes_where_it_stopped() {
     let t = text(&out);
     assert_eq!(out.status.code(), Some(1), "{t}");
     assert!(t.contains("--resume") && t.contains("--continue"), "{t}");
+}
+
+/// The seed and reply share a run sends are those it recorded, not the flags' defaults, when
+/// it is taken up again: a resumed or continued run asks the server as the run started did.
+#[test]
+fn a_resumed_or_continued_run_sends_the_seed_and_reply_share_it_recorded() {
+    let srv = Server::start(vec![
+        Canned::chat(&reply(&cut_in_script(401, 399))),
+        Canned::raw(503, "Service Unavailable"),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(
+        dir.path(),
+        &[
+            "--seed",
+            "7",
+            "--context",
+            "16384",
+            "--max-tokens",
+            "1500",
+            "--attempts",
+            "1",
+        ],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    let sent = |srv: &Server, k: usize| {
+        let b = srv.received()[k].json();
+        (b["seed"].clone(), b["max_tokens"].clone())
+    };
+    let recorded = (serde_json::json!(7), serde_json::json!(1500));
+    assert_eq!(sent(&srv, 0), recorded);
+    assert_eq!(sent(&srv, 1), recorded);
+    // Neither --seed nor --max-tokens is given again: the run's own settings are sent.
+    let srv2 = Server::start(vec![Canned::raw(503, "Service Unavailable")]);
+    let out = ask(
+        &["--resume", s(dir.path()), "--attempts", "1"],
+        Some(&srv2.url),
+    );
+    let t = text(&out);
+    assert!(t.contains("HTTP 503"), "{t}");
+    assert_eq!(sent(&srv2, 0), recorded, "{t}");
+    let srv3 = Server::start(vec![Canned::raw(503, "Service Unavailable")]);
+    let out = ask(
+        &[
+            "--continue",
+            s(dir.path()),
+            "and then vehicle 399 brakes",
+            "--attempts",
+            "1",
+        ],
+        Some(&srv3.url),
+    );
+    let t = text(&out);
+    assert!(t.contains("HTTP 503"), "{t}");
+    assert_eq!(sent(&srv3, 0), recorded, "{t}");
+    // The reply's share of the window is the run's: another --max-tokens is refused, not
+    // dropped.
+    let out = ask(
+        &["--resume", s(dir.path()), "--max-tokens", "2000"],
+        Some(&srv3.url),
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("--max-tokens: the run fits its prompts to --context 16384 with 1500 tokens"),
+        "{t}"
+    );
+    assert_eq!(srv3.received().len(), 1, "{t}");
 }
 
 #[test]

@@ -227,3 +227,192 @@ fn readme_is_a_front_page_that_links_every_chapter() {
         );
     }
 }
+
+/// The subcommands, as `drivescript SUB --help` takes them (`bench io|cost|sample` is one).
+const SUBCOMMANDS: [&str; 14] = [
+    "inspect",
+    "render",
+    "convert",
+    "cost",
+    "test-scripts",
+    "stdlib-doc",
+    "eval",
+    "dataset",
+    "train",
+    "simulate",
+    "demo",
+    "ask",
+    "prompt show",
+    "bench",
+];
+
+/// The flags `drivescript SUB --help` lists under "Options:", short and long.
+fn help_flags(sub: &str) -> std::collections::BTreeSet<String> {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_drivescript"))
+        .args(sub.split(' '))
+        .arg("--help")
+        .output()
+        .expect("the binary runs");
+    assert!(out.status.success(), "drivescript {sub} --help failed");
+    let text = String::from_utf8(out.stdout).unwrap();
+    let mut flags = std::collections::BTreeSet::new();
+    let mut options = false;
+    for line in text.lines() {
+        if line == "Options:" {
+            options = true;
+        } else if options && !line.is_empty() && !line.starts_with(' ') {
+            // The next section (Examples:).
+            break;
+        } else if options {
+            // An option's line is indented 2 (`-o, --output`) or 6 (`--long`) columns; its
+            // description, 10.
+            let t = line.trim_start();
+            if line.len() - t.len() <= 6 && t.starts_with('-') {
+                flags.extend(flags_in(t.split(" <").next().unwrap_or(t)));
+            }
+        }
+    }
+    assert!(flags.contains("--help"), "{sub}: {text}");
+    flags
+}
+
+/// The flags a piece of a command line names: `--long` and `-x`, without their values.
+fn flags_in(text: &str) -> Vec<String> {
+    text.split(|c: char| c.is_whitespace() || "[]|(),".contains(c))
+        .filter_map(|t| {
+            let name: String = if let Some(long) = t.strip_prefix("--") {
+                let n: String = long
+                    .chars()
+                    .take_while(|c| c.is_ascii_alphanumeric() || *c == '-')
+                    .collect();
+                (n.starts_with(|c: char| c.is_ascii_alphabetic())).then(|| format!("--{n}"))?
+            } else {
+                let short = t.strip_prefix('-')?;
+                (short.len() == 1 && short.chars().all(|c| c.is_ascii_alphabetic()))
+                    .then(|| t.to_string())?
+            };
+            Some(name)
+        })
+        .collect()
+}
+
+/// The subcommand a code span or command line starts with (`drivescript` dropped), and the
+/// rest of it.
+fn subcommand_of(text: &str) -> Option<(&'static str, &str)> {
+    let t = text.trim();
+    let t = t.strip_prefix("drivescript ").unwrap_or(t).trim_start();
+    SUBCOMMANDS.iter().find_map(|sub| {
+        let rest = t.strip_prefix(sub)?;
+        (rest.is_empty() || rest.starts_with(char::is_whitespace)).then_some((*sub, rest))
+    })
+}
+
+/// Every flag docs/cli.md gives a subcommand is one its `--help` lists: in the synopsis (each
+/// `drivescript SUB` line and the lines continuing it), and in the prose, where a flag belongs
+/// to the subcommand named in its code span (`simulate --steps`) or to the subcommands named
+/// last before it in its paragraph or list item (`train` `--steps`, `simulate` and `ask`
+/// `--script-budget`); one named in parentheses applies only there. `demo --steps` was
+/// documented, and `demo` has no such flag.
+#[test]
+fn every_flag_docs_cli_gives_a_subcommand_is_one_it_has() {
+    let text = read("docs/cli.md");
+    let mut helps = std::collections::BTreeMap::new();
+    let mut has = |sub: &str, flag: &str| {
+        helps
+            .entry(sub.to_string())
+            .or_insert_with(|| help_flags(sub))
+            .contains(flag)
+    };
+    let mut wrong = Vec::new();
+    let mut checked = 0;
+    // The synopsis: the first code block.
+    let start = text.find("```\n").expect("the synopsis") + 4;
+    let len = text[start..].find("```").expect("its end");
+    let (synopsis, prose) = (&text[start..start + len], &text[start + len + 3..]);
+    let mut sub = None;
+    let mut subs = std::collections::BTreeSet::new();
+    for line in synopsis.lines() {
+        let line = line.split(" # ").next().unwrap_or(line);
+        let rest = if line.starts_with(char::is_whitespace) {
+            line
+        } else {
+            let (s, rest) = subcommand_of(line)
+                .unwrap_or_else(|| panic!("docs/cli.md: a synopsis line of no subcommand: {line}"));
+            sub = Some(s);
+            subs.insert(s);
+            rest
+        };
+        let sub = sub.expect("a synopsis line before its continuation");
+        for flag in flags_in(rest) {
+            checked += 1;
+            if !has(sub, &flag) {
+                wrong.push(format!("synopsis: {sub} {flag}"));
+            }
+        }
+    }
+    assert_eq!(subs.len(), SUBCOMMANDS.len(), "{subs:?}");
+    // The prose: code spans in order, each paragraph and list item on its own.
+    let mut subject: Vec<&str> = Vec::new();
+    let mut outer: Vec<Vec<&str>> = Vec::new();
+    let mut last_was_sub = false;
+    let mut rest = prose;
+    while let Some(open) = rest.find('`') {
+        let between = &rest[..open];
+        let after = &rest[open + 1..];
+        let close = after.find('`').expect("a code span's end");
+        let span = after[..close].replace('\n', " ");
+        rest = &after[close + 1..];
+        let joined = matches!(between.trim(), "" | "and" | ",");
+        for (i, piece) in between.split_inclusive('\n').enumerate() {
+            // A blank line or a list item's `- ` starts a new subject.
+            if i > 0 && (piece.trim().is_empty() || piece.starts_with("- ")) {
+                subject.clear();
+                outer.clear();
+                last_was_sub = false;
+            }
+            for c in piece.chars() {
+                match c {
+                    '(' => outer.push(subject.clone()),
+                    ')' => subject = outer.pop().unwrap_or_default(),
+                    _ => {}
+                }
+            }
+        }
+        if let Some((sub, flags)) = subcommand_of(&span) {
+            let flags = flags_in(flags);
+            for flag in &flags {
+                checked += 1;
+                if !has(sub, flag) {
+                    wrong.push(format!("`{span}`: {sub} has no {flag}"));
+                }
+            }
+            if flags.is_empty() && last_was_sub && joined {
+                subject.push(sub);
+            } else {
+                subject = vec![sub];
+            }
+            last_was_sub = flags.is_empty();
+        } else {
+            last_was_sub = false;
+            if span.starts_with('-') {
+                for flag in flags_in(&span).into_iter().take(1) {
+                    for sub in &subject {
+                        checked += 1;
+                        if !has(sub, &flag) {
+                            wrong.push(format!(
+                                "`{span}` (of {}): {sub} has no {flag}",
+                                subject.join(", ")
+                            ));
+                        }
+                    }
+                }
+            }
+        }
+    }
+    assert!(checked >= 150, "only {checked} flags checked");
+    assert!(
+        wrong.is_empty(),
+        "docs/cli.md names flags the subcommands do not have:\n{}",
+        wrong.join("\n")
+    );
+}

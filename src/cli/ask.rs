@@ -566,7 +566,7 @@ fn reopen<'a>(
     dir: &Path,
     trained: &'a Trained,
 ) -> Result<Session<'a>, LlmError> {
-    Session::resume(
+    let s = Session::resume(
         dir,
         trained,
         |recorded, rec_model, _| {
@@ -590,7 +590,23 @@ fn reopen<'a>(
             Ok(b)
         },
         load_one,
-    )
+    )?;
+    // With a window, --max-tokens chose the reply's share of it when the run started, and
+    // every prompt since was fitted to leave that share; the run's requests ask for it.
+    if let Some(w) = s.config().context {
+        if given.iter().any(|g| g == "max_tokens") {
+            let mode = if args.resume.is_some() {
+                "--resume"
+            } else {
+                "--continue"
+            };
+            return Err(LlmError::Setup(format!(
+                "--max-tokens: the run fits its prompts to --context {} with {} tokens for the                  reply (its state.json), and {mode} goes on with them; start a new run                  (-o NEWDIR) to change them",
+                w.tokens, w.reply
+            )));
+        }
+    }
+    Ok(s)
 }
 
 /// A clap parser for a `usize` in `lo..=hi` (clap's ranged parsers are for the fixed-width

@@ -5,8 +5,8 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result};
 use drivescript::train::{
-    load_for_training, train_from, ComponentScale, Corpus, Holdout, SplitBy, TrainConfig,
-    WindowSource, WindowStore,
+    check_out_dir, load_for_training, train_from, ComponentScale, Corpus, Holdout, SplitBy,
+    TrainConfig, WindowSource, WindowStore,
 };
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -128,6 +128,18 @@ pub fn run(args: Args) -> Result<ExitCode> {
     if args.data.is_empty() && args.urban.is_empty() {
         anyhow::bail!("nothing to train on: give --data or --urban (or both)");
     }
+    let corpora: Vec<Corpus> = args
+        .data
+        .iter()
+        .map(|p| (p, SplitBy::Scene))
+        .chain(args.urban.iter().map(|p| (p, SplitBy::Town)))
+        .map(|(p, split)| Corpus {
+            path: p.clone(),
+            split,
+        })
+        .collect();
+    // Before anything is read or written: a checkpoint among the scenes it learns from.
+    check_out_dir(&args.out, &corpora)?;
     // A good checkpoint is never overwritten by accident.
     if args.out.join("model.safetensors").exists() && args.resume.is_none() && !args.force {
         anyhow::bail!(
@@ -213,16 +225,6 @@ pub fn run(args: Args) -> Result<ExitCode> {
         cfg.val_fold = r.meta.config.val_fold;
         cfg.val_towns = r.meta.config.val_towns.clone();
     }
-    let corpora: Vec<Corpus> = args
-        .data
-        .iter()
-        .map(|p| (p, SplitBy::Scene))
-        .chain(args.urban.iter().map(|p| (p, SplitBy::Town)))
-        .map(|(p, split)| Corpus {
-            path: p.clone(),
-            split,
-        })
-        .collect();
     let cache = args
         .cache
         .clone()

@@ -477,6 +477,18 @@ impl HttpClient {
         }
     }
 
+    /// The client sending `seed` with every request ([`HttpConfig::seed`]).
+    pub fn with_seed(mut self, seed: Option<u64>) -> Self {
+        self.cfg.seed = seed;
+        self
+    }
+
+    /// The client asking for replies of at most `max_tokens` ([`HttpConfig::max_tokens`]).
+    pub fn with_max_tokens(mut self, max_tokens: u32) -> Self {
+        self.cfg.max_tokens = max_tokens;
+        self
+    }
+
     /// The settings.
     pub fn config(&self) -> &HttpConfig {
         &self.cfg

@@ -60,6 +60,24 @@ impl Backend {
             Backend::Replay(_) => "replay",
         }
     }
+
+    /// The backend sending what the run with `config` recorded: its seed, and where it states
+    /// a context window, the reply's share of it as the most tokens a reply may take. One
+    /// path for a run started and a run taken up again (`--resume`, `--continue`, a batch's
+    /// pair run again), whose flags (`--seed` at its default, `--max-tokens`) do not say
+    /// what the run was started with; the sampler reads the same recorded seed.
+    fn for_run(self, config: &SessionConfig) -> Self {
+        match self {
+            Backend::Http(c) => {
+                let c = c.with_seed(Some(config.seed));
+                Backend::Http(match config.context {
+                    Some(w) => c.with_max_tokens(u32::try_from(w.reply).unwrap_or(u32::MAX)),
+                    None => c,
+                })
+            }
+            other => other,
+        }
+    }
 }
 
 /// Settings of a session.
@@ -444,6 +462,12 @@ struct State {
     /// The last validation error, while the script that caused it is not yet repaired.
     #[serde(default)]
     last_error: Option<String>,
+    /// What happened to that script, in words for the user (`last_error` is what the model
+    /// was told): it failed validation, ran past the script budget, or failed while being
+    /// sampled. What the rules planner says when it cannot go on; runs recorded before it was
+    /// kept have only `last_error`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    last_failure: Option<String>,
     /// The model's ACCEPT was refused since the last sampling: the script it sends next
     /// answers the refusal.
     #[serde(default)]
@@ -878,6 +902,7 @@ impl<'a> Session<'a> {
             understand_request(request)?;
         }
         let checks = checks.unwrap_or_else(|| checks_for(&requests));
+        let backend = backend.for_run(&config);
         let (model, url) = match &backend {
             Backend::Http(c) => (
                 Some(c.config().model.clone()),
@@ -916,6 +941,7 @@ impl<'a> Session<'a> {
                 history: Vec::new(),
                 left_out: Vec::new(),
                 last_error: None,
+                last_failure: None,
                 accept_refused: false,
                 final_turn: false,
                 outcome: None,
@@ -1000,7 +1026,8 @@ impl<'a> Session<'a> {
             }
         }
         let prompts = Prompts::load(&state.prompts)?;
-        let backend = backend(&state.backend, state.model.as_deref(), state.url.as_deref())?;
+        let backend = backend(&state.backend, state.model.as_deref(), state.url.as_deref())?
+            .for_run(&state.config);
         let raw = load(&state.scene)?;
         let transcript = read_run_file(&dir.join("transcript.json"))
             .ok()
@@ -1070,6 +1097,12 @@ impl<'a> Session<'a> {
             format!("round_{round}/{id}_0.json … round_{round}/{id}_{last}.json")
         };
         format!("{rollouts} and round_{round}/{id}_costs.json")
+    }
+
+    /// The settings the run was started with (read back from its `state.json` when it was
+    /// taken up again).
+    pub fn config(&self) -> &SessionConfig {
+        &self.state.config
     }
 
     /// Replies received from the model so far (exchanges done), the run's paid-for work.
@@ -1338,6 +1371,7 @@ impl<'a> Session<'a> {
                             let err = e.to_string();
                             write(&rdir, "validation.txt", &err)?;
                             self.state.last_error = Some(err.clone());
+                            self.state.last_failure = Some(format!("it failed validation: {err}"));
                             progress(&format!("round {n}: validation failed: {err}"));
                             let horizon = self.trained.meta.config.window.future;
                             let msg = self.prompts.validation(horizon, self.raw.meta.dt, &err);
@@ -1361,6 +1395,13 @@ impl<'a> Session<'a> {
                             let err = super::feedback::over_budget(budget, &used);
                             write(&rdir, "budget.txt", &err)?;
                             self.state.last_error = Some(err.clone());
+                            self.state.last_failure = Some(format!(
+                                "it ran past the script budget (--script-budget {} s) while \
+                                 being sampled: {:.1} s over {} evaluations",
+                                crate::geom::num(budget.as_secs_f64()),
+                                used.time.as_secs_f64(),
+                                used.evaluations
+                            ));
                             progress(&format!("round {n}: script over budget: {err}"));
                             let msg = self.prompts.unusable(&err);
                             if let Some(o) = self.miss(msg)? {
@@ -1380,6 +1421,9 @@ impl<'a> Session<'a> {
                             let err = super::feedback::failed_in_sampling(&e);
                             write(&rdir, "sampling.txt", &err)?;
                             self.state.last_error = Some(err.clone());
+                            self.state.last_failure = Some(format!(
+                                "it passed validation but failed while being sampled: {e}"
+                            ));
                             progress(&format!("round {n}: script failed in sampling: {e}"));
                             let msg = self.prompts.unusable(&err);
                             if let Some(o) = self.miss(msg)? {
@@ -1522,6 +1566,7 @@ impl<'a> Session<'a> {
         self.state.sampled += 1;
         self.state.misses = 0;
         self.state.last_error = None;
+        self.state.last_failure = None;
         self.state.script = Some((n, source.to_string()));
         self.state.meets = meets;
         let shown = &done.report.samples[best];
@@ -1704,6 +1749,13 @@ impl<'a> Session<'a> {
         Ok(o)
     }
 
+    /// What happened to the last script, while it is not yet repaired: in the words kept for
+    /// the user, or for a run recorded before they were kept, the error the model was told.
+    fn last_failure(&self) -> Option<String> {
+        let e = self.state.last_error.as_ref()?;
+        Some(self.state.last_failure.clone().unwrap_or_else(|| e.clone()))
+    }
+
     /// The rules planner's reply to the current state: a composed script first, ACCEPT when
     /// a sample meets the request, else the script with the failing events strengthened.
     fn rules_reply(&mut self) -> Result<String, String> {
@@ -1738,9 +1790,9 @@ impl<'a> Session<'a> {
                     "ACCEPT\nA sample meets the request: every term is within tolerance, every checker passes and no named agent moves implausibly.\n"
                 ));
             }
-            if let Some(e) = &self.state.last_error {
+            if let Some(why) = self.last_failure() {
                 return Err(format!(
-                    "the rules planner cannot repair a script that fails validation: {e}"
+                    "the rules planner cannot repair the last script: {why}"
                 ));
             }
             // An event fails when its checker fails or one of its terms is above tolerance on
@@ -1790,9 +1842,9 @@ impl<'a> Session<'a> {
                 "Repair (rules planner): the best sample fails; {}.\n",
                 changed.join("; ")
             ));
-        } else if let Some(e) = &self.state.last_error {
+        } else if let Some(why) = self.last_failure() {
             return Err(format!(
-                "the rules planner's script does not fit this scene: {e}"
+                "the rules planner's script does not fit this scene: {why}"
             ));
         } else {
             reasoning.push_str(&rules::plan_text(&events));
@@ -2105,6 +2157,7 @@ mod tests {
                 .to_vec(),
             left_out: Vec::new(),
             last_error: None,
+            last_failure: None,
             accept_refused: false,
             final_turn: false,
             outcome: Some(Outcome::Accepted {

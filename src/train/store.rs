@@ -313,6 +313,37 @@ fn resolved(path: &Path) -> Option<PathBuf> {
     }
 }
 
+/// Why `dir`, an output directory, may not be written: it is, or is inside, an input
+/// directory of `corpora` (its files would go among the scenes they are made from, and a later
+/// run over that directory would read them as scenes). `None` where it lies apart from them.
+fn among_inputs(dir: &Path, corpora: &[Corpus]) -> Option<String> {
+    let d = resolved(dir)?;
+    corpora.iter().find_map(|c| {
+        let input = std::fs::canonicalize(&c.path).ok()?;
+        (input.is_dir() && d.starts_with(&input)).then(|| {
+            format!(
+                "{} the input directory {}: training writes its outputs apart from its inputs; \
+                 choose a directory outside it",
+                if d == input { "is" } else { "is inside" },
+                c.path.display()
+            )
+        })
+    })
+}
+
+/// Refuses a checkpoint directory (`train --out`) that is, or is inside, a directory of
+/// `corpora`: the checkpoint's files would go among the scenes it is trained on, the same
+/// mistake [`check_cache_dir`] refuses for the window cache. Checked before any data is read.
+pub fn check_out_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError> {
+    match among_inputs(dir, corpora) {
+        Some(why) => Err(TrainError::Data(format!(
+            "{}: the checkpoint directory (--out) {why}",
+            dir.display()
+        ))),
+        None => Ok(()),
+    }
+}
+
 /// Refuses a cache directory that is, or is inside, a directory of `corpora` (the windows
 /// would go among the scenes they are cut from), and one holding anything besides the
 /// cache's own files: building replaces its files at every start, so a directory of the
@@ -324,20 +355,8 @@ pub fn check_cache_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError>
             dir.display()
         )))
     };
-    if let Some(d) = resolved(dir) {
-        for c in corpora {
-            let Ok(input) = std::fs::canonicalize(&c.path) else {
-                continue;
-            };
-            if input.is_dir() && d.starts_with(&input) {
-                return cache_err(format!(
-                    "{} the input directory {}: training writes its outputs apart from its \
-                     inputs; choose a directory outside it",
-                    if d == input { "is" } else { "is inside" },
-                    c.path.display()
-                ));
-            }
-        }
+    if let Some(why) = among_inputs(dir, corpora) {
+        return cache_err(why);
     }
     match std::fs::metadata(dir) {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
@@ -742,6 +761,18 @@ mod tests {
         };
         assert_eq!(names(&data), ["cut_in.yaml"]);
         assert_eq!(names(&notes), ["todo.txt"]);
+        // The checkpoint directory is held to the same rule, by the same check.
+        for (dir, want) in [
+            (data.clone(), "is the input directory"),
+            (data.join("ckpt"), "is inside the input directory"),
+        ] {
+            let e = check_out_dir(&dir, &corpus).unwrap_err().to_string();
+            assert!(
+                e.contains("the checkpoint directory (--out)") && e.contains(want),
+                "{e}"
+            );
+        }
+        assert!(check_out_dir(&notes, &corpus).is_ok());
         // An earlier run's cache, with what a run stopped while building left, is reused.
         let cache = root.path().join("cache");
         assert_eq!(build(&cache), None);
