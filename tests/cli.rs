@@ -471,6 +471,14 @@ fn convert_moves_the_current_step() {
     assert_eq!(v[0]["scenario_id"], "us101_c30");
     let err = fails(&["convert", s(&src), "-o", s(&y), "--current-step", "100"]);
     assert!(err.contains("leaves no future"), "{err}");
+    // The largest step a flag holds: `step + 1` wrapped to 0 (a panic in a debug build), and
+    // the error blamed an unobserved step.
+    let max = u64::MAX.to_string();
+    let err = fails(&["convert", s(&src), "-o", s(&y), "--current-step", &max]);
+    assert!(
+        err.contains(&format!("current step {max} leaves no future")),
+        "{err}"
+    );
 }
 
 #[test]
