@@ -1142,7 +1142,7 @@ fn train_then_simulate_end_to_end() {
     let out = ok(&simulate_args(
         cut_in,
         s(&ckpt),
-        &["--auto", "cut_in", "--steps", "4"],
+        &["--auto", "cut_in", "--steps", "8"],
         s(&auto),
     ));
     assert!(
@@ -1172,7 +1172,7 @@ fn train_then_simulate_end_to_end() {
             "--samples",
             "2",
             "--steps",
-            "4",
+            "8",
         ],
         s(&sim),
     ));
@@ -1242,7 +1242,7 @@ fn train_then_simulate_end_to_end() {
         "cutter=4",
         "victim=1",
         "--steps",
-        "2",
+        "8",
     ];
     let err = fails(&simulate_args(
         s(&two),
@@ -1274,7 +1274,7 @@ fn train_then_simulate_end_to_end() {
     let out = ok(&simulate_args(
         cut_in,
         s(&ckpt),
-        &["--closed-loop", "--steps", "2"],
+        &["--closed-loop", "--steps", "8"],
         s(&cl),
     ));
     assert!(out.contains("highway-cut-in: 1 samples"), "{out}");
@@ -1302,7 +1302,7 @@ fn simulate_says_what_it_does_not_sample() {
         let out = ok(&simulate_args(
             s(&scene),
             "data/checkpoint",
-            &["--task", task, "--steps", "4"],
+            &["--task", task, "--steps", "8"],
             s(&out_dir),
         ));
         assert!(
@@ -1382,6 +1382,44 @@ fn output_onto_a_full_disk_is_an_error_not_a_crash() {
 }
 
 #[test]
+fn train_keeps_its_window_cache_out_of_the_inputs_and_out_of_other_directories() {
+    // `--cache DATA` wrote train.windows and val.windows among the scenes, exit 0.
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    std::fs::create_dir(&data).unwrap();
+    std::fs::copy("scripts/scenes/highway_cut_in.yaml", data.join("a.yaml")).unwrap();
+    let mine = dir.path().join("mine");
+    std::fs::create_dir(&mine).unwrap();
+    std::fs::write(mine.join("thesis.tex"), "mine").unwrap();
+    let out = dir.path().join("ckpt");
+    let train = |cache: &std::path::Path| {
+        fails(&[
+            "train",
+            "--data",
+            s(&data),
+            "--out",
+            s(&out),
+            "--cache",
+            s(cache),
+            "--steps",
+            "1",
+        ])
+    };
+    let err = train(&data);
+    assert!(err.contains("is the input directory"), "{err}");
+    let err = train(&data.join("windows"));
+    assert!(err.contains("is inside the input directory"), "{err}");
+    let err = train(&mine);
+    assert!(
+        err.contains("thesis.tex, which is not one of its files (train.windows, val.windows)"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read_dir(&data).unwrap().count(), 1);
+    assert_eq!(std::fs::read_dir(&mine).unwrap().count(), 1);
+    assert!(!out.exists());
+}
+
+#[test]
 fn train_refuses_settings_it_cannot_train_with_before_reading_data() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("ckpt");
@@ -1417,6 +1455,14 @@ fn sampler_flags_are_checked_before_any_work() {
     for (arg, want) in [
         ("--steps=0", "steps = 0: must be 2 to 1000"),
         ("--steps=1", "steps = 1: must be 2 to 1000"),
+        // The schedule's last Heun step from σ = 0.47 left every vehicle at tens of metres a
+        // second (at 2 steps, kilometres); a closed loop then failed on an "implausible
+        // heading 10262.9 rad".
+        (
+            "--steps=4",
+            "--steps 4: fewer than 8 Heun steps leave noise in the samples",
+        ),
+        ("--steps=7", "use 8 or more (default 32)"),
         ("--samples=0", "samples = 0: must be 1 to 1024"),
         (
             "--samples=100000000",
@@ -1452,6 +1498,16 @@ fn sampler_flags_are_checked_before_any_work() {
         assert!(err.contains(want), "{arg}: {err}");
         assert!(!out.exists(), "{arg} created {}", out.display());
     }
+    let err = fails(&simulate_args(
+        s(&scene),
+        "data/checkpoint",
+        &["--closed-loop", "--steps", "2"],
+        s(&out),
+    ));
+    assert!(
+        err.contains("--steps 2: fewer than 8 Heun steps") && !err.contains("heading"),
+        "{err}"
+    );
     // Weights with nothing to weigh were dropped without a word.
     for (arg, want) in [
         ("--lambda=10", "--lambda 10: no script to weigh"),
@@ -2560,7 +2616,7 @@ fn scenes_an_auto_run_skipped_are_skipped_by_eval_over_the_same_list() {
             "--auto",
             "cut_in",
             "--steps",
-            "2",
+            "8",
             "--task",
             "unconditional",
         ],
@@ -2590,7 +2646,7 @@ fn scenes_an_auto_run_skipped_are_skipped_by_eval_over_the_same_list() {
             "--auto",
             "cut_in",
             "--steps",
-            "2",
+            "8",
             "--task",
             "unconditional",
             "--resume",
@@ -2662,7 +2718,7 @@ fn cost_and_simulate_name_terms_no_perturbed_future_moves() {
     let o = drivescript(&simulate_args(
         s(&scene),
         "data/checkpoint",
-        &["--script", s(&script), "--steps", "2", "--polish", "0"],
+        &["--script", s(&script), "--steps", "8", "--polish", "0"],
         s(&out_dir),
     ));
     let err = String::from_utf8_lossy(&o.stderr);
@@ -2879,6 +2935,56 @@ fn cost_checks_a_rollout_as_eval_and_render_do() {
 }
 
 #[test]
+fn eval_refuses_a_parameter_the_behaviour_checker_does_not_read() {
+    // `gapp=30` was dropped without a word: the table was cut_in's with its default gap,
+    // exit 0.
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let run = |behaviour: &str, params: &[&str]| {
+        let args = [
+            &[
+                "eval",
+                s(&scene),
+                "--task",
+                "behaviour",
+                "--behaviour",
+                behaviour,
+                "--param",
+            ][..],
+            params,
+        ]
+        .concat();
+        fails(&args)
+    };
+    let err = run("cut_in", &["cutter=2", "victim=1", "gapp=30"]);
+    assert!(
+        err.contains("--param")
+            && err.contains("cut_in: parameter \"gapp\"")
+            && err.contains("its parameters are cutter, victim"),
+        "{err}"
+    );
+    let err = run("follow", &["follower=2", "leader=1", "gapp=30"]);
+    assert!(
+        err.contains("its parameters are follower, leader, gap"),
+        "{err}"
+    );
+    let err = run("no_collisions", &["vehicle=1"]);
+    assert!(err.contains("it takes no parameters"), "{err}");
+    // The names the checker reads still pass, optional ones too.
+    ok(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "behaviour",
+        "--behaviour",
+        "follow",
+        "--param",
+        "follower=1",
+        "leader=2",
+        "gap=12",
+    ]);
+}
+
+#[test]
 fn eval_refuses_flags_its_task_would_ignore() {
     // Each was dropped without a word: a conditional table printed for a request with
     // behaviour parameters, four samples asked of baselines that have one.
@@ -2911,7 +3017,7 @@ fn eval_refuses_flags_its_task_would_ignore() {
     // The first of two samples was scored as if it were the run.
     let dir = tempfile::tempdir().unwrap();
     let rollouts = dir.path().join("sim");
-    let fast = ["--steps", "2", "--polish", "0", "--samples", "2"];
+    let fast = ["--steps", "8", "--polish", "0", "--samples", "2"];
     ok(&simulate_args(
         s(&scene),
         "data/checkpoint",

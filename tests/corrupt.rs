@@ -1331,7 +1331,7 @@ fn random_mutations_of_a_checkpoint_config_never_panic() {
                     scripts: vec![],
                     checks: vec![],
                     cfg: drivescript::sample::SampleConfig {
-                        steps: 3,
+                        steps: 8,
                         ..Default::default()
                     },
                     replan: None,

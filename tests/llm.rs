@@ -389,6 +389,46 @@ fn a_script_past_the_script_budget_goes_back_to_the_model_and_the_run_goes_on() 
 }
 
 #[test]
+fn a_script_that_fails_while_sampled_goes_back_to_the_model_and_the_run_goes_on() {
+    // Validation runs the script on the recorded future, where 401 ends 29.8669 m from its
+    // start; every sample ends elsewhere, and there the script indexes past an array's end.
+    // The model wrote it: the runtime error used to end the run (exit 1) instead of being
+    // that round's feedback.
+    let fails = "let a = agent(401);\nlet d = a.x.last().value() - a.x.first().value();\n\
+                 if abs(d - 29.8669) > 0.01 { let v = [0.0]; d += v[3]; }\n\
+                 term(\"far\", square(a.x.last() - 1000.0));\n";
+    let srv = Server::start(vec![
+        Canned::chat(&reply(fails)),
+        Canned::chat(&reply(IDLE)),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(dir.path(), &["--rounds", "0"], Some(&srv.url));
+    let t = text(&out);
+    // The second script was sampled, and the rounds ran out on it: not met, no error.
+    assert_eq!(out.status.code(), Some(2), "{t}");
+    assert!(
+        t.contains("round 0: script failed in sampling: script.rhai:3:"),
+        "{t}"
+    );
+    let said = std::fs::read_to_string(dir.path().join("round_0/sampling.txt")).unwrap();
+    assert!(
+        said.starts_with("your script passed validation but failed while it was being sampled")
+            && said.contains("script.rhai:3:")
+            && said.contains("out of bounds"),
+        "{said}"
+    );
+    assert_eq!(srv.received().len(), 2, "{t}");
+    let back = last_user(&srv, 1);
+    assert!(back.contains(said.trim()), "{back}");
+    assert!(dir
+        .path()
+        .join("round_1/USA_US101-3_3_T-1_costs.json")
+        .exists());
+    let tr = std::fs::read_to_string(dir.path().join("transcript.json")).unwrap();
+    assert!(tr.contains("\"script failed in sampling\""), "{tr}");
+}
+
+#[test]
 fn syntax_errors_and_unknown_agents_go_back_with_line_numbers_before_any_sampling() {
     let broken = "let a = agent(401);\nterm(\"x\", relu(a.x.last() - );\n";
     let unknown = cut_in_script(401, 9999);
@@ -2526,4 +2566,113 @@ fn a_model_or_url_no_backend_asks_is_an_error_not_dropped() {
         assert!(t.contains(want), "{extra:?}: {t}");
         assert!(!run.join("round_0").exists(), "{extra:?}: {t}");
     }
+}
+
+#[test]
+fn a_flag_the_chosen_backend_does_not_read_is_an_error_not_dropped() {
+    // `--llm rules --temperature 1.5 --max-tokens-field "x y" -v` ran the rules planner, exit
+    // 0: none of the three did anything. A flag given with its default value is still given.
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join(SCENE);
+    let run = dir.path().join("run");
+    let fresh = |extra: &[&str]| {
+        ask(
+            &[&[s(&scene), REQUEST, "-o", s(&run)][..], extra].concat(),
+            None,
+        )
+    };
+    for (extra, want) in [
+        (
+            &[
+                "--llm",
+                "rules",
+                "--temperature",
+                "1.5",
+                "--max-tokens-field",
+                "x y",
+                "-v",
+            ][..],
+            "--max-tokens-field \"x y\": a request field name is ASCII letters, digits and `_`",
+        ),
+        (
+            &["--llm", "rules", "--temperature", "0.2"],
+            "--temperature: --llm rules asks no server",
+        ),
+        (
+            &["--llm", "rules", "--max-tokens-field", "max_tokens"],
+            "--max-tokens-field: --llm rules asks no server",
+        ),
+        (
+            &["--llm", "rules", "--context", "8192"],
+            "--context: --llm rules sends no prompt to a model",
+        ),
+        (
+            &["--llm", "rules", "--no-frenet"],
+            "--no-frenet: --llm rules sends no prompt to a model",
+        ),
+        (&["--llm", "rules", "-v"], "-v/--verbose: only --batch"),
+        (
+            &["--attempts", "3"],
+            "--attempts: the rules planner (--llm auto's choice: no server is configured",
+        ),
+        (
+            &["--llm", "manual", "--no-stream"],
+            "--no-stream: --llm manual asks no server",
+        ),
+        (
+            &["--llm", "manual", "--max-tokens", "100"],
+            "--max-tokens: --llm manual asks no server; --max-tokens sets only the reply's \
+             share of the --context window",
+        ),
+        (
+            &["--llm", "manual", "--max-tokens-field", "model"],
+            "--max-tokens-field \"model\": the request already sends that field",
+        ),
+    ] {
+        let out = fresh(extra);
+        let t = text(&out);
+        assert_eq!(out.status.code(), Some(1), "{extra:?}: {t}");
+        assert!(t.contains(want), "{extra:?}: {t}");
+        assert!(!run.exists(), "{extra:?}: {t}");
+    }
+    // What a manual run does read: the prompt's flags, and --max-tokens with --context.
+    let out = fresh(&[
+        "--llm",
+        "manual",
+        "--context",
+        "8192",
+        "--max-tokens",
+        "1000",
+        "--no-cot",
+    ]);
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    assert!(t.contains("1000 for the reply"), "{t}");
+    // A run taken up again keeps its settings and backend.
+    let d = s(&run);
+    for (args, want) in [
+        (
+            &["--resume", d, "--rounds", "5"][..],
+            "--rounds: --resume goes on with the settings the run started with",
+        ),
+        (
+            &["--continue", d, "make it abrupt", "--no-cot"],
+            "--no-cot: --continue goes on with the settings the run started with",
+        ),
+        (
+            &["--resume", d, "--temperature", "1"],
+            "--temperature: the run's backend, manual, asks no server",
+        ),
+        (&["--resume", d, "-o", d], "-o: --resume DIR goes on in DIR"),
+        (
+            &["--replay", "t.json", "-o", d, "--seed", "2"],
+            "--seed: --replay asks no backend",
+        ),
+    ] {
+        let out = ask(args, None);
+        let t = text(&out);
+        assert_eq!(out.status.code(), Some(1), "{args:?}: {t}");
+        assert!(t.contains(want), "{args:?}: {t}");
+    }
+    assert!(!run.join("round_1").exists());
 }

@@ -331,11 +331,11 @@ def test_missing_or_malformed_files_are_os_and_value_errors(ds, tmp_path):
 
 def test_the_sampler_returns_samples_by_agents_by_steps_by_3(ds, scene, cut_in):
     sampler = ds.Sampler(ROOT / "data/checkpoint")
-    a = sampler.sample(scene, scripts=[cut_in], samples=2, steps=4, polish=0)
+    a = sampler.sample(scene, scripts=[cut_in], samples=2, steps=8, polish=0)
     assert a.dtype == np.float64 and a.shape == (2, len(scene.agent_ids), sampler.horizon, 3)
     assert np.isfinite(a[~np.isnan(a)]).all() and (~np.isnan(a)).any()
     assert not np.array_equal(a[0], a[1], equal_nan=True)
-    again = sampler.sample(scene, scripts=[cut_in], samples=2, steps=4, polish=0)
+    again = sampler.sample(scene, scripts=[cut_in], samples=2, steps=8, polish=0)
     assert np.array_equal(a, again, equal_nan=True), "the seed fixes the samples"
     with pytest.raises(ValueError, match="steps = 1"):
         sampler.sample(scene, steps=1)

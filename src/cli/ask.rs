@@ -61,7 +61,8 @@ pub struct Args {
     /// without --shard: it reads every finished pair back and writes the whole summary.
     #[arg(long, value_name = "I/N", requires = "batch")]
     shard: Option<drivescript::io::shard::Shard>,
-    /// Print every round's progress in --batch runs (default: one line per pair).
+    /// Print every round's progress in --batch runs (default: one line per pair; a single run
+    /// prints every round).
     #[arg(short, long)]
     verbose: bool,
     /// Who answers.
@@ -81,7 +82,8 @@ pub struct Args {
     #[arg(long, default_value_t = 4096, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
     max_tokens: u32,
     /// The request field for --max-tokens: max_tokens (most servers) or max_completion_tokens
-    /// (OpenAI's newer models).
+    /// (OpenAI's newer models); ASCII letters, digits and `_`, at most 64, and none of the
+    /// fields the request already sends.
     #[arg(long, default_value = "max_tokens")]
     max_tokens_field: String,
     /// Ask for the reply in one piece instead of as a stream of events (streamed replies show
@@ -339,29 +341,6 @@ impl Args {
     }
 
     /// `--guidance`, or denoiser where the old `--through-denoiser` asks for it.
-    /// `--llm-url` and `--model` given to a backend that asks no server would be dropped
-    /// without a word.
-    fn no_server_flags(&self, chosen: Llm) -> Result<(), LlmError> {
-        if matches!(chosen, Llm::Rules | Llm::Manual) {
-            for (given, flag) in [
-                (self.llm_url.is_some(), "--llm-url"),
-                (self.model.is_some(), "--model"),
-            ] {
-                if given {
-                    return Err(LlmError::Setup(format!(
-                        "{flag}: --llm {} asks no server",
-                        if chosen == Llm::Rules {
-                            "rules"
-                        } else {
-                            "manual"
-                        }
-                    )));
-                }
-            }
-        }
-        Ok(())
-    }
-
     fn guidance(&self) -> drivescript::sample::Guidance {
         if self.through_denoiser {
             drivescript::sample::Guidance::Denoiser
@@ -370,16 +349,207 @@ impl Args {
         }
     }
 
-    /// The backend the flags and environment choose, with the line that says which.
-    fn backend(&self) -> Result<(Backend, String), LlmError> {
-        self.no_server_flags(self.llm)?;
-        backend(
+    /// The backend the flags and environment choose, with the line that says which; a flag
+    /// that backend does not read is refused ([`unread`]).
+    fn backend(&self, given: &[String]) -> Result<(Backend, String), LlmError> {
+        let (b, line) = backend(
             self.llm,
             self.llm_url.as_deref(),
             self.model.as_deref(),
             |u, m| self.http_config(u, m),
-        )
+        )?;
+        let by = if self.llm == Llm::Auto {
+            ChosenBy::Auto
+        } else {
+            ChosenBy::Flag
+        };
+        unread(given, &Reading::of(&b, by))?;
+        Ok((b, line))
     }
+}
+
+/// Flags (clap id, as typed) that only a server reads: sent with each request or governing
+/// how it is sent and retried.
+const SERVER_FLAGS: [(&str, &str); 11] = [
+    ("llm_url", "--llm-url"),
+    ("model", "--model"),
+    ("temperature", "--temperature"),
+    ("max_tokens", "--max-tokens"),
+    ("max_tokens_field", "--max-tokens-field"),
+    ("no_stream", "--no-stream"),
+    ("llm_timeout", "--llm-timeout"),
+    ("reply_deadline", "--reply-deadline"),
+    ("attempts", "--attempts"),
+    ("backoff", "--backoff"),
+    ("backoff_max", "--backoff-max"),
+];
+
+/// Flags that shape only the prompt a model reads.
+const PROMPT_FLAGS: [(&str, &str); 6] = [
+    ("context", "--context"),
+    ("max_agents", "--max-agents"),
+    ("prompts", "--prompts"),
+    ("no_cot", "--no-cot"),
+    ("zero_shot_cot", "--zero-shot-cot"),
+    ("no_frenet", "--no-frenet"),
+];
+
+/// The settings a run records when it starts (`state.json`), which `--resume`, `--continue`
+/// and `--replay` take from there.
+const RUN_SETTINGS: [(&str, &str); 9] = [
+    ("rounds", "--rounds"),
+    ("fixes", "--fixes"),
+    ("samples", "--samples"),
+    ("seed", "--seed"),
+    ("tolerance", "--tolerance"),
+    ("guidance", "--guidance"),
+    ("through_denoiser", "--through-denoiser"),
+    ("polish", "--polish"),
+    ("script_budget", "--script-budget"),
+];
+
+/// How the backend came to be chosen, for the message that refuses a flag it does not read.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum ChosenBy {
+    /// `--llm manual` or `--llm rules`.
+    Flag,
+    /// `--llm auto`, where no server is configured.
+    Auto,
+    /// The backend the run recorded (`--resume`, `--continue`).
+    Recorded,
+}
+
+/// Who answers, as far as which flags it reads.
+enum Reading {
+    /// A server: every flag.
+    Server,
+    /// A person pasting prompts.
+    Manual(ChosenBy),
+    /// The rules planner.
+    Rules(ChosenBy),
+}
+
+impl Reading {
+    fn of(b: &Backend, by: ChosenBy) -> Self {
+        match b {
+            Backend::Manual => Reading::Manual(by),
+            Backend::Rules => Reading::Rules(by),
+            _ => Reading::Server,
+        }
+    }
+}
+
+/// Refuses a flag in `given` (clap ids given on the command line) that the backend does not
+/// read: dropped without a word, it would leave the user believing the run used it
+/// (`--llm rules --temperature 1.5`).
+fn unread(given: &[String], reading: &Reading) -> Result<(), LlmError> {
+    let is_given = |id: &str| given.iter().any(|g| g == id);
+    let first = |flags: &[(&'static str, &'static str)]| {
+        flags.iter().find(|(id, _)| is_given(id)).map(|(_, f)| *f)
+    };
+    let refuse = |flag: &str, why: &str| Err(LlmError::Setup(format!("{flag}: {why}")));
+    match reading {
+        Reading::Server => Ok(()),
+        Reading::Manual(by) => {
+            let who = if *by == ChosenBy::Recorded {
+                "the run's backend, manual,"
+            } else {
+                "--llm manual"
+            };
+            // With --context, --max-tokens sets the reply's share of the window the first
+            // prompt is fitted to.
+            let server: Vec<(&str, &str)> = SERVER_FLAGS
+                .into_iter()
+                .filter(|(id, _)| !(*id == "max_tokens" && is_given("context")))
+                .collect();
+            match first(&server) {
+                Some("--max-tokens") => refuse(
+                    "--max-tokens",
+                    &format!(
+                        "{who} asks no server; --max-tokens sets only the reply's share of the \
+                         --context window, and --context is not given"
+                    ),
+                ),
+                Some(flag) => refuse(
+                    flag,
+                    &format!(
+                        "{who} asks no server (you paste each prompt into a chat of your choice, \
+                         with its own settings)"
+                    ),
+                ),
+                None => Ok(()),
+            }
+        }
+        Reading::Rules(by) => {
+            let who = match by {
+                ChosenBy::Flag => "--llm rules",
+                ChosenBy::Auto => {
+                    "the rules planner (--llm auto's choice: no server is configured with \
+                     DRIVESCRIPT_LLM_URL and DRIVESCRIPT_LLM_MODEL, or --llm-url and --model)"
+                }
+                ChosenBy::Recorded => "the run's backend, the rules planner,",
+            };
+            if let Some(flag) = first(&SERVER_FLAGS) {
+                return refuse(flag, &format!("{who} asks no server"));
+            }
+            if let Some(flag) = first(&PROMPT_FLAGS) {
+                return refuse(
+                    flag,
+                    &format!(
+                        "{who} sends no prompt to a model (the rules planner reads only the \
+                         request; round_N/prompt.md is written for the record)"
+                    ),
+                );
+            }
+            Ok(())
+        }
+    }
+}
+
+/// Refuses a flag in `given` that a run taken up again would not read: the settings it
+/// recorded when it started, and for `--replay` the backend and its settings too (the
+/// transcript's replies answer), or that a single run does not read (`-v`).
+fn unread_by_mode(args: &Args, given: &[String]) -> Result<()> {
+    let is_given = |id: &str| given.iter().any(|g| g == id);
+    if is_given("verbose") && args.batch.is_none() {
+        bail!(
+            "-v/--verbose: only --batch prints less than every round; a single run prints every \
+             round already"
+        );
+    }
+    let again = if args.resume.is_some() {
+        Some("--resume")
+    } else if args.follow_up.is_some() {
+        Some("--continue")
+    } else {
+        None
+    };
+    if let Some(mode) = again {
+        let mut recorded = RUN_SETTINGS.iter().chain(&PROMPT_FLAGS);
+        if let Some((_, flag)) = recorded.find(|(id, _)| is_given(id)) {
+            bail!(
+                "{flag}: {mode} goes on with the settings the run started with (its state.json); \
+                 start a new run (-o NEWDIR) to change them"
+            );
+        }
+        if is_given("output") {
+            bail!("-o: {mode} DIR goes on in DIR, the run's own directory");
+        }
+    }
+    if args.replay.is_some() {
+        let mut recorded = RUN_SETTINGS
+            .iter()
+            .chain(PROMPT_FLAGS.iter().filter(|(id, _)| *id != "prompts"))
+            .chain(&SERVER_FLAGS)
+            .chain(&[("llm", "--llm")]);
+        if let Some((_, flag)) = recorded.find(|(id, _)| is_given(id)) {
+            bail!(
+                "{flag}: --replay asks no backend (the transcript's replies answer) and runs with \
+                 the recorded run's settings"
+            );
+        }
+    }
+    Ok(())
 }
 
 pub(crate) fn checkpoint(path: Option<&Path>) -> Result<Trained> {
@@ -390,7 +560,12 @@ pub(crate) fn checkpoint(path: Option<&Path>) -> Result<Trained> {
 }
 
 /// Reopens the run in `dir` with its own backend, unless the flags choose another.
-fn reopen<'a>(args: &Args, dir: &Path, trained: &'a Trained) -> Result<Session<'a>, LlmError> {
+fn reopen<'a>(
+    args: &Args,
+    given: &[String],
+    dir: &Path,
+    trained: &'a Trained,
+) -> Result<Session<'a>, LlmError> {
     Session::resume(
         dir,
         trained,
@@ -401,11 +576,16 @@ fn reopen<'a>(args: &Args, dir: &Path, trained: &'a Trained) -> Result<Session<'
                 (Llm::Auto, _) => Llm::Rules,
                 (l, _) => l,
             };
-            args.no_server_flags(chosen)?;
             let model = args.model.clone().or_else(|| rec_model.map(str::to_string));
             let (b, line) = backend(chosen, args.llm_url.as_deref(), model.as_deref(), |u, m| {
                 args.http_config(u, m)
             })?;
+            let by = if args.llm == Llm::Auto {
+                ChosenBy::Recorded
+            } else {
+                ChosenBy::Flag
+            };
+            unread(given, &Reading::of(&b, by))?;
             println!("{line}");
             Ok(b)
         },
@@ -432,7 +612,8 @@ fn load_one(path: &Path) -> Result<drivescript::scene::Scene, LlmError> {
     })
 }
 
-pub fn run(args: Args) -> Result<ExitCode> {
+/// Runs `ask`; `given` are the flags given on the command line (clap ids).
+pub fn run(args: Args, given: &[String]) -> Result<ExitCode> {
     if !(args.tolerance.is_finite() && args.tolerance >= 0.0) {
         bail!(
             "--tolerance {:?}: must be finite and not negative",
@@ -464,12 +645,14 @@ pub fn run(args: Args) -> Result<ExitCode> {
         );
     }
     super::script_budget(args.script_budget)?;
+    drivescript::llm::client::check_max_tokens_field(&args.max_tokens_field)?;
+    unread_by_mode(&args, given)?;
     if args.through_denoiser {
         eprintln!("note: --through-denoiser is the old name of --guidance denoiser");
     }
     let trained = checkpoint(args.checkpoint.as_deref())?;
     if let Some(file) = &args.batch {
-        return batch(&args, file, &trained);
+        return batch(&args, given, file, &trained);
     }
     // Plans, scripts and verdicts quote the model's reply, escape sequences included.
     let mut progress = |line: &str| println!("{}", terminal_safe(line));
@@ -477,7 +660,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         if !args.words.is_empty() {
             bail!("--resume DIR takes no scene or request (the run recorded them)");
         }
-        let s = reopen(&args, dir, &trained)?;
+        let s = reopen(&args, given, dir, &trained)?;
         println!("resuming {}", dir.display());
         s
     } else if let Some(file) = &args.replay {
@@ -515,7 +698,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         let [request] = args.words.as_slice() else {
             bail!("--continue DIR takes one argument, the follow-up request in quotes");
         };
-        let mut s = reopen(&args, dir, &trained)?;
+        let mut s = reopen(&args, given, dir, &trained)?;
         s.follow_up(request)?;
         println!("follow-up on {}: {request}", dir.display());
         s
@@ -528,7 +711,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         let Some(dir) = &args.output else {
             bail!("ask needs -o DIR, the run directory");
         };
-        let (b, line) = args.backend()?;
+        let (b, line) = args.backend(given)?;
         println!("{line}");
         let path = PathBuf::from(scene);
         let raw = load_one(&path)?;
@@ -639,7 +822,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
 }
 
-fn batch(args: &Args, file: &Path, trained: &Trained) -> Result<ExitCode> {
+fn batch(args: &Args, given: &[String], file: &Path, trained: &Trained) -> Result<ExitCode> {
     use drivescript::llm::batch::{expand, markdown, read_batch, summarise, Batch, Progress};
     if !args.words.is_empty() {
         bail!("--batch FILE takes no scene or request (the file lists them)");
@@ -664,7 +847,7 @@ fn batch(args: &Args, file: &Path, trained: &Trained) -> Result<ExitCode> {
     if instances.is_empty() {
         bail!("{}: no (scene, request) pair to run", file.display());
     }
-    let (backend, line) = args.backend()?;
+    let (backend, line) = args.backend(given)?;
     println!("{line}");
     println!(
         "{} pairs; runs in {}",

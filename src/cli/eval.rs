@@ -261,8 +261,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
         (Task::Behaviour, Some(n)) => {
             let b = Behavior::from_name(n).with_context(|| format!("unknown behaviour {n:?}"))?;
             // Every parameter the loop's checkers take, words (`yielder_turn=left`) too: the
-            // behaviour's own check says what is wrong with one, on the first scene.
-            Some((b, Params::parse(&args.params).context("--param")?))
+            // behaviour's own check says what is wrong with a value, on the first scene. A
+            // name it does not read is refused here, before any scene is read.
+            let params = Params::parse(&args.params).context("--param")?;
+            b.check_param_names(&params).context("--param")?;
+            Some((b, params))
         }
         _ => None,
     };

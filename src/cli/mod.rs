@@ -169,7 +169,15 @@ impl From<GuidanceArg> for drivescript::sample::Guidance {
 
 /// Parses the command line and runs the subcommand; errors are printed with their causes.
 pub fn run() -> ExitCode {
-    let cli = Cli::parse();
+    use clap::{CommandFactory, FromArgMatches};
+    let matches = Cli::command().get_matches();
+    let cli = Cli::from_arg_matches(&matches)
+        .map_err(|e| e.format(&mut Cli::command()))
+        .unwrap_or_else(|e| e.exit());
+    let given = matches
+        .subcommand()
+        .map(|(_, m)| given(m))
+        .unwrap_or_default();
     let result = match cli.command {
         Command::Inspect(a) => inspect::run(a),
         Command::Render(a) => render::run(a),
@@ -180,7 +188,7 @@ pub fn run() -> ExitCode {
         Command::Simulate(a) => simulate::run(a),
         Command::Dataset(a) => dataset::run(a),
         Command::Demo(a) => demo::run(a),
-        Command::Ask(a) => ask::run(a),
+        Command::Ask(a) => ask::run(a, &given),
         Command::Prompt(a) => prompt::run(a),
         Command::StdlibDoc(a) => stdlib_doc::run(a),
         Command::TestScripts(a) => test_scripts::run(a),
@@ -193,6 +201,16 @@ pub fn run() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// The flags given on the command line (clap's ids: the field names), not those left at their
+/// defaults: a flag typed with its default value is still one the user gave, and a command
+/// that refuses a flag it would not read refuses that one too.
+fn given(m: &clap::ArgMatches) -> Vec<String> {
+    m.ids()
+        .filter(|id| m.value_source(id.as_str()) == Some(clap::parser::ValueSource::CommandLine))
+        .map(|id| id.as_str().to_string())
+        .collect()
 }
 
 /// Prints `error: TEXT` on stderr as a terminal can show it: errors quote file names and what

@@ -60,7 +60,8 @@ pub struct Args {
     /// Seed of the initial noise.
     #[arg(long, default_value_t = 1)]
     seed: u64,
-    /// Heun steps.
+    /// Heun steps, 2 to 1000 and at least the fewest the checkpoint's noise schedule
+    /// denoises with (8 for the shipped one): fewer leave noise in the trajectories.
     #[arg(long, default_value_t = 32)]
     steps: usize,
     /// Future steps to sample, up to the model's horizon (default: the model's horizon).
@@ -244,6 +245,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
     };
     if let Err(e) = cfg.validate() {
         anyhow::bail!("sampler settings: {e}");
+    }
+    // Fewer steps wrote trajectories of kilometres a second without a word (and a closed
+    // loop, which starts each round from them, failed on an "implausible heading").
+    if let Some(why) = drivescript::sample::too_few_steps(&trained, args.steps) {
+        anyhow::bail!("--steps {}: {why}", args.steps);
     }
     let explicit = Params::parse(&args.params)?;
     // With no script to read them, the values would be dropped without a word.

@@ -151,6 +151,38 @@ impl Behavior {
         }
     }
 
+    /// Parameters the checker reads when given and otherwise defaults (the defaults are in
+    /// [`Behavior::definition`]).
+    pub fn optional(self) -> &'static [&'static str] {
+        match self {
+            Behavior::SpeedLimit => &["from"],
+            Behavior::TargetPoint => &["tol"],
+            Behavior::Yield => &["yielder_turn", "other_turn"],
+            Behavior::Follow => &["gap"],
+            Behavior::Stop => &["within"],
+            _ => &[],
+        }
+    }
+
+    /// Every parameter the checker reads: [`Behavior::required`], then
+    /// [`Behavior::optional`].
+    pub fn params(self) -> impl Iterator<Item = &'static str> {
+        self.required().iter().chain(self.optional()).copied()
+    }
+
+    /// Every name in `params` is one the checker reads: one it does not (`gapp=30`) would be
+    /// dropped without a word and the verdict taken for one with that value.
+    pub fn check_param_names(self, params: &Params) -> Result<(), CheckError> {
+        match params.names().find(|n| !self.params().any(|p| p == *n)) {
+            None => Ok(()),
+            Some(name) => Err(CheckError::UnknownParam {
+                behavior: self.name(),
+                name: name.to_string(),
+                known: self.params().collect::<Vec<_>>().join(", "),
+            }),
+        }
+    }
+
     /// The pairs of `named` agents (ids, in a verdict's order) the behaviour asks to touch:
     /// an accident's attacker and target; no pair for any other behaviour.
     pub fn contacts(self, named: &[i64]) -> Vec<(i64, i64)> {
@@ -250,6 +282,23 @@ pub enum CheckError {
         /// The parameter.
         name: &'static str,
     },
+    /// A parameter the checker does not read.
+    #[error(
+        "{behavior}: parameter {name:?}: the checker does not read it; {}",
+        if known.is_empty() {
+            "it takes no parameters".to_string()
+        } else {
+            format!("its parameters are {known}")
+        }
+    )]
+    UnknownParam {
+        /// The behaviour.
+        behavior: &'static str,
+        /// The parameter.
+        name: String,
+        /// The parameters it reads, comma-separated.
+        known: String,
+    },
     /// A parameter is not a finite number.
     #[error("{behavior}: parameter {name:?} = {value:?} must be a number")]
     NotANumber {
@@ -312,7 +361,20 @@ struct Ctx<'a> {
 }
 
 impl<'a> Ctx<'a> {
+    /// In tests, every parameter a checker reads is one [`Behavior::params`] lists, so that
+    /// `eval` never refuses a name the checker reads ([`Behavior::check_param_names`]).
+    fn declared(&self, name: &'static str) {
+        if cfg!(any(test, debug_assertions)) {
+            assert!(
+                self.b.params().any(|p| p == name),
+                "{}: reads parameter {name:?}, not in Behavior::required or optional",
+                self.b.name()
+            );
+        }
+    }
+
     fn get(&self, name: &'static str) -> Result<f64, CheckError> {
+        self.declared(name);
         match self.p.get(name) {
             None => Err(CheckError::MissingParam {
                 behavior: self.b.name(),
@@ -323,6 +385,7 @@ impl<'a> Ctx<'a> {
     }
 
     fn or(&self, name: &'static str, default: f64) -> Result<f64, CheckError> {
+        self.declared(name);
         match self.p.get(name) {
             None => Ok(default),
             Some(v) => self.numeric(name, v),
@@ -331,6 +394,7 @@ impl<'a> Ctx<'a> {
 
     /// Which way a route goes at forks: `"straight"` (the default), `"left"` or `"right"`.
     fn turn(&self, name: &'static str) -> Result<Turn, CheckError> {
+        self.declared(name);
         let Some(v) = self.p.get(name) else {
             return Ok(Turn::Straight);
         };
@@ -357,6 +421,7 @@ impl<'a> Ctx<'a> {
     }
 
     fn agent(&mut self, name: &'static str) -> Result<&'a Agent, CheckError> {
+        self.declared(name);
         // `vehicle=1.5` named agent 1: an id is whole or it is no id.
         let id = match self.p.get(name) {
             None => {
@@ -486,6 +551,15 @@ fn route_of(s: &Scene, a: &Agent, turn: Turn) -> Option<LanePath> {
         .nearest(&a.states[c].position())
         .s;
     s.map.lane_path(lane, along + 400.0, 50.0, turn).ok()
+}
+
+/// Whether the yielder's path ends in a lane of the other's: the paths merge rather than cross
+/// (the yield script then stops the yielder further back, as they run side by side first).
+fn merges(yielder: &LanePath, other: &LanePath) -> bool {
+    yielder
+        .lanes
+        .last()
+        .is_some_and(|l| other.lanes.contains(l))
 }
 
 /// The route `a` drives in `s`: of the paths straight on, left and right at forks, the one its
@@ -1387,11 +1461,15 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
             };
             // And the yielder, holding its speed, would get there first (otherwise the other
             // passes first by itself and "yield" asks for nothing either), yet can hold back,
-            // braking at most 3 m/s², until the other is 2 m past: a car already at the
-            // junction cannot yield without an emergency stop.
-            let first = |a: &Agent, a_to_go: f64, o: &Agent, o_to_go: f64| {
+            // braking at most 3 m/s², where the yield script stops it (front bumper 2 m short
+            // of the meeting point, 10 m more where the lanes merge) until the other's rear
+            // bumper is 2 m past: a car already at the junction cannot yield without an
+            // emergency stop, and a request the script can only meet that way is not offered.
+            let first = |a: &Agent, a_to_go: f64, o: &Agent, o_to_go: f64, merge: bool| {
                 let (va, vo) = (a.states[c].speed(), o.states[c].speed());
-                let (room, other_past) = (a_to_go - 2.0, (o_to_go + 2.0) / vo);
+                let stop_short = a.length / 2.0 + 2.0 + if merge { 10.0 } else { 0.0 };
+                let (room, other_past) =
+                    (a_to_go - stop_short, (o_to_go + o.length / 2.0 + 2.0) / vo);
                 let brake = 3.0;
                 let holds = room > 0.0
                     && (va * va / (2.0 * brake) <= room
@@ -1416,7 +1494,7 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
                             && so > so0
                             && sa - sa0 <= reach(a)
                             && coming(o, so - so0)
-                            && first(a, sa - sa0, o, so - so0)
+                            && first(a, sa - sa0, o, so - so0, merges(pa, po))
                         {
                             let mut p = Params::numbers(&[
                                 ("yielder", a.id as f64),

@@ -498,6 +498,13 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
     // 11 m before the merge at 14 m/s, 11 cannot hold back at 3 m/s² (33 m to stop).
     let late = variant("s: 30, speed: 14", "s: 140, speed: 14");
     assert!(super::behaviors::suggest(Behavior::Yield, &late, 70).is_none());
+    // 40 m before the merge, 11 could stop by its centre 2 m short (33 m at 3 m/s²), but not
+    // where the yield script holds it at a merge: its front bumper 12 m further back. A request
+    // met only by an emergency stop is not offered.
+    let short = variant("s: 30, speed: 14", "s: 113, speed: 14");
+    assert!(super::behaviors::suggest(Behavior::Yield, &short, 70).is_none());
+    let room = variant("s: 30, speed: 14", "s: 100, speed: 14");
+    assert!(super::behaviors::suggest(Behavior::Yield, &room, 70).is_some());
     let waiting = yaml::parse(
         Path::new("waiting.yaml"),
         &text

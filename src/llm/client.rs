@@ -129,6 +129,7 @@ impl HttpConfig {
         if u.host_str().is_none_or(str::is_empty) {
             return Err(bad("names no host"));
         }
+        check_max_tokens_field(&self.max_tokens_field)?;
         if self
             .key
             .as_deref()
@@ -178,6 +179,42 @@ impl HttpConfig {
         }
         out
     }
+}
+
+/// The fields every request body sets itself ([`HttpClient::body`]): a token limit sent under
+/// one of these names would replace it.
+const BODY_FIELDS: [&str; 6] = [
+    "model",
+    "messages",
+    "temperature",
+    "stream",
+    "stream_options",
+    "seed",
+];
+
+/// Whether `field` can carry the token limit (`--max-tokens-field`): a JSON field name a
+/// server reads, 1 to 64 ASCII letters, digits and `_` (`max_tokens`,
+/// `max_completion_tokens`), and not a field the request already sends.
+pub fn check_max_tokens_field(field: &str) -> Result<(), LlmError> {
+    let bad = |why: &str| {
+        Err(LlmError::Setup(format!(
+            "--max-tokens-field {field:?}: {why} (max_tokens for most servers, \
+             max_completion_tokens for OpenAI's newer models)"
+        )))
+    };
+    if field.is_empty() || field.len() > 64 {
+        return bad("must be 1 to 64 characters");
+    }
+    if !field
+        .bytes()
+        .all(|b| b.is_ascii_alphanumeric() || b == b'_')
+    {
+        return bad("a request field name is ASCII letters, digits and `_` only");
+    }
+    if BODY_FIELDS.contains(&field) {
+        return bad("the request already sends that field");
+    }
+    Ok(())
 }
 
 /// Standard base64 with padding, as an `Authorization: Basic` header carries `user:password`.
@@ -891,6 +928,36 @@ fn parse_completion(text: &str, url: &str) -> Result<Completion, LlmError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_token_limit_field_is_a_json_name_no_other_setting_uses() {
+        for ok in [
+            "max_tokens",
+            "max_completion_tokens",
+            "n_predict",
+            "maxTokens2",
+        ] {
+            assert!(check_max_tokens_field(ok).is_ok(), "{ok}");
+        }
+        // "x y" went into the body as a field no server reads; "model" replaced the model.
+        for (bad, why) in [
+            ("x y", "ASCII letters, digits and `_`"),
+            ("", "1 to 64 characters"),
+            ("max-tokens", "ASCII letters"),
+            ("tökens", "ASCII letters"),
+            ("model", "already sends"),
+            ("stream", "already sends"),
+        ] {
+            let e = check_max_tokens_field(bad).unwrap_err().to_string();
+            assert!(
+                e.contains("--max-tokens-field") && e.contains(why),
+                "{bad:?}: {e}"
+            );
+        }
+        let mut cfg = HttpConfig::new("http://127.0.0.1:1/v1", "m");
+        cfg.max_tokens_field = "x y".into();
+        assert!(HttpClient::new(cfg).is_err());
+    }
 
     #[test]
     fn the_key_is_redacted_wherever_it_appears_but_short_keys_do_not_garble_text() {

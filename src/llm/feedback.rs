@@ -277,6 +277,22 @@ pub fn over_budget(budget: std::time::Duration, used: &crate::cost::Usage) -> St
     )
 }
 
+/// What the model is told when its script passed validation but failed while being sampled
+/// ([`crate::sample::SampleError::Cost`]): sampling evaluates it on trajectories validation
+/// never tried (every denoising step's estimate of every sample, then polish), so an index
+/// or a value only some of them reach can still fail. The script is the model's, so the
+/// error goes back for the next round instead of ending the run.
+pub fn failed_in_sampling(error: &crate::cost::CostError) -> String {
+    format!(
+        "your script passed validation but failed while it was being sampled, so nothing was \
+         sampled: {error}. Validation runs it on the recorded future (and probes it on a few \
+         perturbed ones); sampling runs it on every denoising step's estimate of every sample, \
+         which can be far from the log early on. Make it run on any trajectories of the scene's \
+         agents (no index that only some of them reach, no error raised on values the log \
+         does not have) and send it again in one ```rhai block."
+    )
+}
+
 /// Every term's weight, first estimate (mean over the samples) and final value (min, mean,
 /// max over the samples), with a note where a term never moves, dominates, or is met
 /// everywhere: a markdown table.

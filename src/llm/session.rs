@@ -2,7 +2,8 @@
 //!
 //! Every exchange with the model is a numbered `round_N/` holding `prompt.md` (the messages
 //! sent, readable), `messages.json`, `reply.md`, and, as they happen, `script.rhai`,
-//! `validation.txt` (or `budget.txt`, for a script that ran past `--script-budget`), the rollouts and cost report of the samples (`SCENARIO_K.json`,
+//! `validation.txt` (or `budget.txt`, for a script that ran past `--script-budget`, or
+//! `sampling.txt`, for one that failed while being sampled), the rollouts and cost report of the samples (`SCENARIO_K.json`,
 //! `SCENARIO_costs.json`, named as `simulate` names them so that `eval --rollouts round_N`
 //! scores them, and the unguided twins in `unguided/`), `feedback.md` and `sample.gif`. `state.json` is rewritten atomically
 //! after every step, so a run stopped anywhere (a manual round waiting for its reply, a killed
@@ -1361,6 +1362,25 @@ impl<'a> Session<'a> {
                             write(&rdir, "budget.txt", &err)?;
                             self.state.last_error = Some(err.clone());
                             progress(&format!("round {n}: script over budget: {err}"));
+                            let msg = self.prompts.unusable(&err);
+                            if let Some(o) = self.miss(msg)? {
+                                return self.finish(o, progress);
+                            }
+                        }
+                        // So is a script that validated but fails on what sampling gives
+                        // it (an index only some trajectories reach, an error raised under
+                        // guidance): the user did not write it, and another round can fix it.
+                        Err(AttemptError::Sample(SampleError::Cost(e))) => {
+                            self.record(
+                                n,
+                                "script failed in sampling",
+                                t1,
+                                Some(json!({"error": e.to_string()})),
+                            );
+                            let err = super::feedback::failed_in_sampling(&e);
+                            write(&rdir, "sampling.txt", &err)?;
+                            self.state.last_error = Some(err.clone());
+                            progress(&format!("round {n}: script failed in sampling: {e}"));
                             let msg = self.prompts.unusable(&err);
                             if let Some(o) = self.miss(msg)? {
                                 return self.finish(o, progress);

@@ -683,7 +683,7 @@ mod tests {
 
     fn cfg() -> SampleConfig {
         SampleConfig {
-            steps: 3,
+            steps: 8,
             samples: 2,
             ..SampleConfig::default()
         }

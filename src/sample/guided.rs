@@ -295,6 +295,23 @@ pub fn prepare(scene: &Scene, trained: &Trained) -> Result<Scene, SampleError> {
     prepare_for(scene, trained.meta.config.window.future)
 }
 
+/// Why `steps` Heun steps cannot sample with `trained`, if they cannot: fewer than its noise
+/// schedule denoises with ([`crate::model::Edm::min_steps`]) leave error of metres per step in
+/// the trajectories (at 2 steps a median speed of kilometres a second), which a closed loop
+/// then starts its next round from.
+pub fn too_few_steps(trained: &Trained, steps: usize) -> Option<String> {
+    let min = trained.meta.config.edm.min_steps();
+    (steps < min).then(|| {
+        format!(
+            "fewer than {min} Heun steps leave noise in the samples with this checkpoint's \
+             noise schedule (its last step would start at σ = {:.3}, far above σ_min = {}), so \
+             they are not the model's trajectories; use {min} or more (default 32)",
+            trained.meta.config.edm.schedule(steps.max(2))[steps.max(2) - 2],
+            trained.meta.config.edm.sigma_min
+        )
+    })
+}
+
 /// The future steps `cfg` samples with `trained`: its `horizon`, or the model's whole one;
 /// an error names both when more is asked than the model generates.
 pub fn sampled_horizon(trained: &Trained, cfg: &SampleConfig) -> Result<usize, SampleError> {
@@ -735,6 +752,12 @@ fn setup<'a>(
     cfg: &SampleConfig,
 ) -> Result<Setup<'a>, SampleError> {
     cfg.validate().map_err(SampleError::Settings)?;
+    if let Some(why) = too_few_steps(trained, cfg.steps) {
+        return Err(SampleError::Settings(format!(
+            "steps = {}: {why}",
+            cfg.steps
+        )));
+    }
     let dev = Device::Cpu;
     let wcfg = trained.meta.config.window;
     let c = scene.meta.current_step;
@@ -1514,7 +1537,7 @@ pub(crate) mod tests {
                 &s,
                 std::slice::from_ref(&script),
                 &SampleConfig {
-                    steps: 4,
+                    steps: 8,
                     task: Task::Unconditional,
                     guidance,
                     ..SampleConfig::default()
@@ -1810,7 +1833,7 @@ pub(crate) mod tests {
             &s,
             &[],
             &SampleConfig {
-                steps: 6,
+                steps: 8,
                 samples: 3,
                 lambda: 0.0,
                 task: Task::Unconditional,
@@ -2022,7 +2045,7 @@ pub(crate) mod tests {
             &s,
             &[],
             &SampleConfig {
-                steps: 4,
+                steps: 8,
                 task: Task::Unconditional,
                 ..SampleConfig::default()
             },

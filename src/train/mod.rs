@@ -12,7 +12,9 @@ pub mod trainer;
 pub use batch::{build, Batch, ComponentScale, Normaliser};
 pub use dataset::{window_among, window_at, windows, Window, WindowConfig};
 pub use ema::Ema;
-pub use store::{Corpus, Holdout, SceneWindows, SplitBy, WindowSource, WindowStore};
+pub use store::{
+    check_cache_dir, Corpus, Holdout, SceneWindows, SplitBy, WindowSource, WindowStore,
+};
 pub use trainer::{
     is_validation, learning_rate, load, load_for_training, save, train, train_from, val_fold,
     CheckpointMeta, TrainConfig, TrainError, Trained, ONLINE_FILE, OPTIMIZER_FILE, VAL_FOLDS,

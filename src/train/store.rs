@@ -266,9 +266,106 @@ pub struct Corpus {
     pub split: SplitBy,
 }
 
+/// The window files of a cache directory.
+const CACHE_FILES: [&str; 2] = ["train.windows", "val.windows"];
+
+/// Whether `name` is one of the files [`WindowStore::build`] writes into its directory: a
+/// window file, or the temporary copy of one that a run stopped while building left behind
+/// (`train.windows.tmp-PID`).
+fn is_cache_file(name: &str) -> bool {
+    CACHE_FILES.iter().any(|f| {
+        name == *f
+            || name
+                .strip_prefix(f)
+                .and_then(|rest| rest.strip_prefix(".tmp-"))
+                .is_some_and(|pid| !pid.is_empty() && pid.bytes().all(|b| b.is_ascii_digit()))
+    })
+}
+
+/// `path` made absolute with its links resolved, as far as it exists: a directory not yet
+/// created is its nearest existing ancestor's canonical path joined with the rest, whose
+/// `..` are taken lexically (nothing there yet can be a link).
+fn resolved(path: &Path) -> Option<PathBuf> {
+    let mut rest = Vec::new();
+    let mut p = path;
+    loop {
+        if let Ok(mut out) = std::fs::canonicalize(p) {
+            for c in rest.iter().rev() {
+                match c {
+                    std::path::Component::ParentDir => {
+                        out.pop();
+                    }
+                    std::path::Component::Normal(n) => out.push(n),
+                    _ => {}
+                }
+            }
+            return Some(out);
+        }
+        if p == Path::new(".") {
+            // The working directory itself is gone.
+            return None;
+        }
+        rest.push(p.components().next_back()?);
+        p = p
+            .parent()
+            .filter(|q| !q.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+    }
+}
+
+/// Refuses a cache directory that is, or is inside, a directory of `corpora` (the windows
+/// would go among the scenes they are cut from), and one holding anything besides the
+/// cache's own files: building replaces its files at every start, so a directory of the
+/// user's (or a checkpoint's) is no cache to write into. An earlier run's cache is reused.
+pub fn check_cache_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError> {
+    let cache_err = |message: String| {
+        Err(TrainError::Data(format!(
+            "{}: the window cache (--cache, default OUT/windows) {message}",
+            dir.display()
+        )))
+    };
+    if let Some(d) = resolved(dir) {
+        for c in corpora {
+            let Ok(input) = std::fs::canonicalize(&c.path) else {
+                continue;
+            };
+            if input.is_dir() && d.starts_with(&input) {
+                return cache_err(format!(
+                    "{} the input directory {}: training writes its outputs apart from its \
+                     inputs; choose a directory outside it",
+                    if d == input { "is" } else { "is inside" },
+                    c.path.display()
+                ));
+            }
+        }
+    }
+    match std::fs::metadata(dir) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        Ok(m) if !m.is_dir() => return cache_err("is not a directory".into()),
+        _ => {}
+    }
+    let entries = std::fs::read_dir(dir).map_err(|e| io_err(dir, e.to_string()))?;
+    for e in entries {
+        let e = e.map_err(|e| io_err(dir, e.to_string()))?;
+        let name = e.file_name();
+        let ours =
+            name.to_str().is_some_and(is_cache_file) && e.file_type().is_ok_and(|t| t.is_file());
+        if !ours {
+            return cache_err(format!(
+                "holds {}, which is not one of its files ({}): the cache's files are replaced \
+                 at every start, so it must be a new or empty directory, or an earlier run's \
+                 cache",
+                e.path().display(),
+                CACHE_FILES.join(", ")
+            ));
+        }
+    }
+    Ok(())
+}
+
 impl WindowStore {
     /// Cuts the windows of every scene of `corpora`, one scene at a time, into `dir`
-    /// (`train.windows`, `val.windows`; replaced if present). The scenes `holdout` names
+    /// (`train.windows`, `val.windows`; replaced if present), after [`check_cache_dir`]. The scenes `holdout` names
     /// validate, by scene or by town as each corpus says. `progress(scenes read, windows)` is
     /// called after each scene. Files are read in the order `io::discover` gives, so the same
     /// corpus gives the same windows in the same order (a resumed run draws the same batches).
@@ -279,6 +376,7 @@ impl WindowStore {
         dir: &Path,
         mut progress: impl FnMut(usize, usize),
     ) -> Result<Self, TrainError> {
+        check_cache_dir(dir, corpora)?;
         std::fs::create_dir_all(dir).map_err(|e| io_err(dir, e.to_string()))?;
         // Written under a temporary name and renamed into place at the end: another run
         // training from the same cache keeps reading its open files (the old inodes) instead
@@ -587,6 +685,70 @@ mod tests {
             .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
             .collect();
         assert!(names.iter().all(|n| !n.contains(".tmp-")), "{names:?}");
+    }
+
+    #[test]
+    fn a_cache_is_never_among_the_inputs_nor_in_a_directory_of_other_files() {
+        // `--cache DATA` wrote train.windows and val.windows among the scenes they were cut
+        // from, and `--cache ~/notes` beside the user's files.
+        let cfg = WindowConfig::ngsim();
+        let root = tempfile::tempdir().unwrap();
+        let data = root.path().join("data");
+        std::fs::create_dir(&data).unwrap();
+        let (corpus, _, fold) = cut_in();
+        std::fs::copy(&corpus[0].path, data.join("cut_in.yaml")).unwrap();
+        let corpus = [Corpus {
+            path: data.clone(),
+            split: SplitBy::Scene,
+        }];
+        let holdout = Holdout {
+            fold,
+            towns: vec![],
+        };
+        let build = |dir: &Path| {
+            WindowStore::build(&corpus, &cfg, &holdout, dir, |_, _| ())
+                .err()
+                .map(|e| e.to_string())
+        };
+        let notes = root.path().join("notes");
+        std::fs::create_dir(&notes).unwrap();
+        std::fs::write(notes.join("todo.txt"), "mine").unwrap();
+        let nested = root.path().join("nested");
+        std::fs::create_dir_all(nested.join("train.windows")).unwrap();
+        for (dir, want) in [
+            (data.clone(), "is the input directory"),
+            (data.join("windows"), "is inside the input directory"),
+            (data.join("a/../b/c"), "is inside the input directory"),
+            (root.path().to_path_buf(), "holds "),
+            (notes.clone(), "todo.txt, which is not one of its files"),
+            (
+                nested.clone(),
+                "train.windows, which is not one of its files",
+            ),
+        ] {
+            let e = build(&dir).unwrap_or_else(|| panic!("{} was taken", dir.display()));
+            assert!(
+                e.contains("the window cache (--cache") && e.contains(want),
+                "{e}"
+            );
+        }
+        let names = |d: &Path| -> Vec<String> {
+            let mut v: Vec<String> = std::fs::read_dir(d)
+                .unwrap()
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect();
+            v.sort();
+            v
+        };
+        assert_eq!(names(&data), ["cut_in.yaml"]);
+        assert_eq!(names(&notes), ["todo.txt"]);
+        // An earlier run's cache, with what a run stopped while building left, is reused.
+        let cache = root.path().join("cache");
+        assert_eq!(build(&cache), None);
+        std::fs::write(cache.join("val.windows.tmp-4242"), "partial").unwrap();
+        assert_eq!(build(&cache), None);
+        std::fs::write(cache.join("val.windows.tmp-"), "x").unwrap();
+        assert!(build(&cache).is_some_and(|e| e.contains("val.windows.tmp-,")));
     }
 
     #[test]
