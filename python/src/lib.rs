@@ -926,6 +926,10 @@ fn check(
 ) -> PyResult<Verdict> {
     let b = self::behaviour(behaviour)?;
     let params = params_from(params)?;
+    // As `eval --param`: a name the checker does not read (`gapp`) was dropped without a word
+    // and the verdict taken for its default.
+    b.check_param_names(&params)
+        .map_err(|e| PyValueError::new_err(e.to_string()))?;
     let (_, mut t) = trajectories(scene, &traj, false)?;
     let t = t.remove(0);
     let inner = scene.inner.clone();

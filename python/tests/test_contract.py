@@ -287,6 +287,9 @@ def test_parameters_are_checked_as_the_cli_checks_param(ds, scene):
         ds.CostScript.from_source('term("x", agent(401).x.sum());', params={"a b": 1})
     with pytest.raises(ValueError, match="control character"):
         ds.CostScript.from_file(CUT_IN, params={"cutter": 401, "victim": 405, "turn": "l\x1b[2J"})
+    # A name the checker does not read was dropped, the verdict taken for the default.
+    with pytest.raises(ValueError, match='parameter "gapp": the checker does not read it'):
+        ds.check("follow", scene, scene.log_future(40), {"leader": 401, "follower": 405, "gapp": 30})
 
 
 def test_nothing_to_evaluate_is_a_value_error_not_a_panic(ds, scene, cut_in, tmp_path):

@@ -285,6 +285,13 @@ pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<S
                 // A parameter the checker cannot read (a limit given as a word, a required one
                 // absent): every sample's verdict would be that error, and the pair counted a
                 // failure of the loop, exit 0. Judged on the log, which has every agent.
+                if let (Some(b), Some(given)) = (e.behaviour, &e.params) {
+                    // As `eval --param`: a name the checker does not read is dropped and the
+                    // pair judged on its default.
+                    b.check_param_names(given).map_err(|err| {
+                        bad(&f, format!("entry on line {}: params: {err}", e.line))
+                    })?;
+                }
                 for (b, p) in &checks {
                     use crate::eval::behaviors::CheckError as C;
                     match crate::eval::behaviors::check(*b, &scene, p) {
@@ -593,6 +600,10 @@ mod tests {
                 "parameter \"limit\" = \"fast\" must be a number",
             ),
             ("{vehicle: 1}", "parameter \"limit\" is required"),
+            (
+                "{vehicle: 1, limit: 15, limt: 12}",
+                "parameter \"limt\": the checker does not read it",
+            ),
         ] {
             std::fs::write(
                 &f,
@@ -607,7 +618,7 @@ mod tests {
                 .expect(params)
                 .to_string();
             assert!(
-                err.contains("entry on line 3: scene") && err.contains(says),
+                err.contains("entry on line 3: ") && err.contains(says),
                 "{params}: {err}"
             );
         }
