@@ -243,6 +243,35 @@ fn nan_and_infinity_producers_are_reported() {
     );
 }
 
+/// A huge or tiny number a script passes (or computes) is said in a few characters in the
+/// error, not as the 300 digits `{}` prints for 1e300 or a denormal.
+#[test]
+fn extreme_numbers_in_errors_are_said_in_a_few_characters() {
+    for (call, needle) in [
+        ("sqrt(a.x - 1.0e300)", "sqrt: invalid argument -1e300"),
+        ("log(a.x - 1.0e300)", "log: invalid argument -1e300"),
+        ("exp(a.x * 1.0e300)", "exp: invalid argument"),
+        ("sqrt(a.x.sum() - 1.0e300)", "sqrt: invalid argument -1e300"),
+        ("a.lane_path(1.0e300)", "length 1e300 must be"),
+        ("lane_path(100, -1.0e300)", "length -1e300 must be"),
+        (
+            "clamp(a.x, 1.0e300, -1.0e300)",
+            "lo 1e300 is above hi -1e300",
+        ),
+        ("smooth_abs(a.x, -1.0e300)", "got -1e300"),
+        ("smooth_max(a.x, a.y, -1.0e300)", "got -1e300"),
+        ("a.x.smooth_max(-1.0e300)", "got -1e300"),
+        ("ttc(a, agent(2), -1.0e300)", "got -1e300"),
+        ("a.x.at_time(1.0e300)", "time 1e300 s is outside"),
+        ("a.x.at_time(1.0e-320)", "time 1e-320 s is outside"),
+        ("a.x.window(-1.0e300, 1.0)", "time -1e300 s is outside"),
+    ] {
+        let src = format!("let a = agent(1);\nlet v = {call};\nterm(\"t\", a.x.sum());");
+        let msg = fails(&src, &[needle]).to_string();
+        assert!(msg.len() < 200, "{call}: {msg}");
+    }
+}
+
 #[test]
 fn type_errors_name_what_was_given() {
     fails(

@@ -471,6 +471,14 @@ fn convert_moves_the_current_step() {
     assert_eq!(v[0]["scenario_id"], "us101_c30");
     let err = fails(&["convert", s(&src), "-o", s(&y), "--current-step", "100"]);
     assert!(err.contains("leaves no future"), "{err}");
+    // The largest step a flag holds: `step + 1` wrapped to 0 (a panic in a debug build), and
+    // the error blamed an unobserved step.
+    let max = u64::MAX.to_string();
+    let err = fails(&["convert", s(&src), "-o", s(&y), "--current-step", &max]);
+    assert!(
+        err.contains(&format!("current step {max} leaves no future")),
+        "{err}"
+    );
 }
 
 #[test]
@@ -2297,6 +2305,23 @@ fn a_run_directory_takes_one_run() {
     let t = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success(), "{t}");
     assert!(t.contains("1 scene already complete"), "{t}");
+    // A rollout damaged since is no finished scene: simulated again, not reported complete
+    // (and left for `eval` to fail on).
+    let rollout = out.join("highway-cut-in_0.json");
+    let good = std::fs::read(&rollout).unwrap();
+    std::fs::write(&rollout, &good[..good.len() / 2]).unwrap();
+    let o = sim(&["--resume"]);
+    let t = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{t}");
+    assert!(
+        !t.contains("already complete") && t.contains("wrote 1 scene"),
+        "{t}"
+    );
+    assert_eq!(
+        std::fs::read(&rollout).unwrap(),
+        good,
+        "the same seed, the same rollout"
+    );
     // Another seed into the same directory: never.
     let o = sim(&["--resume", "--seed", "2"]);
     let e = String::from_utf8_lossy(&o.stderr);

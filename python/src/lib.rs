@@ -11,6 +11,7 @@ use std::sync::{Arc, Mutex};
 use drivescript::cost::{BoundScript, CostError, CostReport, ParamValue, Params, ScriptSpec};
 use drivescript::cost::{Limits, Trajectories, VarLayout};
 use drivescript::eval::behaviors::{self, Behavior};
+use drivescript::io::scene_output::SceneOutput;
 use drivescript::io::{IoError, LoadOptions};
 use drivescript::sample::{self as sampler, AttemptError, AttemptSpec, SampleConfig};
 use numpy::ndarray::{Array2, Array3, Array4};
@@ -118,7 +119,14 @@ fn params_from(dict: Option<&Bound<'_, PyDict>>) -> PyResult<Params> {
                 "parameter {name:?} = {v}: a parameter is an int, float, bool or str"
             )));
         };
-        out.set(&name, value);
+        // The library's checks, as `--param` gets them: a NaN limit, a name no script can
+        // read or a value with control characters is refused here too.
+        out.push_checked(&name, value).map_err(|m| {
+            PyValueError::new_err(format!(
+                "parameter \"{}\": {m}",
+                drivescript::io::name::shown(&name)
+            ))
+        })?;
     }
     Ok(out)
 }
@@ -158,6 +166,7 @@ fn trajectories(
     let agents = scene.inner.agents.len();
     let dims = if batch { 4 } else { 3 };
     let fits = shape.len() == dims
+        && agents >= 1
         && shape[dims - 3] == agents
         && shape[dims - 1] == 3
         && (1..=MAX_STEPS).contains(&shape[dims - 2])
@@ -219,13 +228,28 @@ impl Scene {
 
     /// The scene over `steps` future steps (default: the recorded ones).
     fn over(&self, steps: Option<usize>) -> PyResult<drivescript::scene::Scene> {
-        let steps = steps.unwrap_or_else(|| self.inner.num_future_steps());
+        Ok(self.inner.over_horizon(self.horizon(steps)?))
+    }
+
+    /// `steps` future steps, checked (default: the recorded ones).
+    fn horizon(&self, steps: Option<usize>) -> PyResult<usize> {
+        let steps = match steps {
+            Some(n) => n,
+            // "steps = 0" would blame an argument the caller did not give.
+            None if self.inner.num_future_steps() == 0 => {
+                return Err(PyValueError::new_err(format!(
+                    "scene {:?} records no step after its current step {}: give steps",
+                    self.inner.meta.scenario_id, self.inner.meta.current_step
+                )))
+            }
+            None => self.inner.num_future_steps(),
+        };
         if !(1..=MAX_STEPS).contains(&steps) {
             return Err(PyValueError::new_err(format!(
                 "steps = {steps}: must be 1 to {MAX_STEPS}"
             )));
         }
-        Ok(self.inner.over_horizon(steps))
+        Ok(steps)
     }
 }
 
@@ -483,6 +507,11 @@ impl Scene {
         let t = t.remove(0);
         let inner = self.inner.clone();
         detached(py, "rollout writer", move || {
+            // As `convert -o x.json`: an earlier rollout may be replaced, any other file (the
+            // scene this came from, a user's notes) is theirs.
+            SceneOutput::Rollout
+                .check_replaces_own(&path, "write_rollout")
+                .map_err(io_error)?;
             let scene = t.applied_to(&inner).map_err(PyValueError::new_err)?;
             drivescript::io::rollout::Rollout::from_scene(&scene)
                 .write(&path)
@@ -707,17 +736,14 @@ impl CostScript {
         let (steps, t) = trajectories(scene, &trajs, true)?;
         let bound = self.bound(py, scene, steps)?;
         let reports = detached(py, "cost script", move || Ok(bound.evaluate_batch(&t)))?;
+        let reports = reports.map_err(|(k, e)| {
+            let err = script_error(py, &e);
+            let _ = err.value(py).setattr("batch_index", k);
+            err
+        })?;
         reports
             .into_iter()
-            .enumerate()
-            .map(|(k, r)| {
-                let r = r.map_err(|e| {
-                    let err = script_error(py, &e);
-                    let _ = err.value(py).setattr("batch_index", k);
-                    err
-                })?;
-                CostResult::new(py, r)
-            })
+            .map(|r| CostResult::new(py, r))
             .collect()
     }
 
@@ -900,6 +926,10 @@ fn check(
 ) -> PyResult<Verdict> {
     let b = self::behaviour(behaviour)?;
     let params = params_from(params)?;
+    // As `eval --param`: a name the checker does not read (`gapp`) was dropped without a word
+    // and the verdict taken for its default.
+    b.check_param_names(&params)
+        .map_err(|e| PyValueError::new_err(e.to_string()))?;
     let (_, mut t) = trajectories(scene, &traj, false)?;
     let t = t.remove(0);
     let inner = scene.inner.clone();
@@ -929,7 +959,9 @@ fn suggest<'py>(
     steps: Option<usize>,
 ) -> PyResult<Option<Bound<'py, PyDict>>> {
     let b = self::behaviour(behaviour)?;
-    let steps = steps.unwrap_or_else(|| scene.inner.num_future_steps());
+    // The horizon checked as `log_future` checks it: 0 steps suggested agents for a
+    // behaviour that has no time to happen.
+    let steps = scene.horizon(steps)?;
     let inner = scene.inner.clone();
     let p = detached(py, "behaviour suggestion", move || {
         Ok(behaviors::suggest(b, &inner.with_horizon(steps), steps))

@@ -277,6 +277,50 @@ def test_parameters_the_script_does_not_use_are_value_errors(ds):
         ds.CostScript.from_file(CUT_IN, params={"cutter": [401], "victim": 405})
 
 
+def test_parameters_are_checked_as_the_cli_checks_param(ds, scene):
+    # A NaN limit compared false with every speed: speed_limit scored 0 whatever the car did.
+    limit = ROOT / "scripts/speed_limit.rhai"
+    for bad, says in [(float("nan"), "NaN is not finite"), (float("inf"), "inf is not finite")]:
+        with pytest.raises(ValueError, match=f'parameter "limit": {says}'):
+            ds.CostScript.from_file(limit, params={"vehicle": 401, "limit": bad})
+    with pytest.raises(ValueError, match="not a valid identifier"):
+        ds.CostScript.from_source('term("x", agent(401).x.sum());', params={"a b": 1})
+    with pytest.raises(ValueError, match="control character"):
+        ds.CostScript.from_file(CUT_IN, params={"cutter": 401, "victim": 405, "turn": "l\x1b[2J"})
+    # A name the checker does not read was dropped, the verdict taken for the default.
+    with pytest.raises(ValueError, match='parameter "gapp": the checker does not read it'):
+        ds.check("follow", scene, scene.log_future(40), {"leader": 401, "follower": 405, "gapp": 30})
+
+
+def test_nothing_to_evaluate_is_a_value_error_not_a_panic(ds, scene, cut_in, tmp_path):
+    # crop(0, n) made a scene of no agents; evaluating on it panicked in the binding.
+    for agents, future in [(0, 30), (8, 0)]:
+        with pytest.raises(ValueError, match="at least one agent and one future step"):
+            scene.crop(agents, future)
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("steps: 91\ncurrent_step: 10\nroad: {lanes: 2, length: 300}\nagents: []\n")
+    with pytest.raises(ValueError, match="no agents"):
+        ds.Scene.load(empty)
+    with pytest.raises(ValueError, match="steps = 0"):
+        ds.suggest("cut_in", scene, 0)
+    ended = ds.Scene.load(SCENE, commonroad_current_step=10**6)
+    with pytest.raises(ValueError, match="records no step after its current step"):
+        ended.log_future()
+
+
+def test_a_rollout_replaces_only_an_earlier_rollout(ds, scene, tmp_path):
+    # write_rollout onto the scene it came from (or any file of the user's) replaced it.
+    mine = tmp_path / "scene.yaml"
+    mine.write_text((ROOT / "data/samples/yaml/highway_cut_in.yaml").read_text())
+    with pytest.raises(ValueError, match="already exists and is not a rollout JSON"):
+        scene.write_rollout(mine, scene.log_future(40))
+    assert mine.read_text().startswith("# Three-lane highway")
+    again = tmp_path / "r.json"
+    scene.write_rollout(again, scene.log_future(40))
+    scene.write_rollout(again, scene.log_future(30))
+    assert len(json.loads(again.read_text())["agents"][0]["states"]) == scene.current_step + 31
+
+
 def test_missing_or_malformed_files_are_os_and_value_errors(ds, tmp_path):
     with pytest.raises(FileNotFoundError):
         ds.Scene.load(tmp_path / "nope.xml")

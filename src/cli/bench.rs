@@ -129,9 +129,10 @@ fn check_flags(args: &Args) -> Result<()> {
                 .filter_map(|k| name(k).map(|n| format!("`bench {n}`")))
                 .collect();
             anyhow::bail!(
-                "{flag}: `bench {}` does not read it (only {} does)",
+                "{flag}: `bench {}` does not read it (only {} {})",
                 name(&args.what).unwrap_or_default(),
-                takes.join(" and ")
+                takes.join(" and "),
+                if takes.len() > 1 { "do" } else { "does" }
             );
         }
     }
@@ -206,7 +207,10 @@ fn bench_cost(args: &Args, min: Duration) -> Result<ExitCode> {
         }
     });
     let full = drivescript::io::load_scene(&path, 0, &LoadOptions::default())?;
-    let scene = Rc::new(full.crop(24, 80)?);
+    let scene = Rc::new(
+        full.crop(24, 80)
+            .with_context(|| format!("{}: the bench scene", path.display()))?,
+    );
     if scene.agents.len() < 24 {
         println!(
             "note: only {} agents are observed at step {}; using all of them",

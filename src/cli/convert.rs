@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use drivescript::io::scene_output::SceneOutput;
 use drivescript::io::{check_output_not_input, load_scene, output_stem, LoadOptions};
 
@@ -45,17 +45,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
     let mut scene = load_scene(&args.scene, args.index, &LoadOptions::default())?;
     if let Some(c) = args.current_step {
-        if c + 1 >= scene.num_steps() {
-            bail!(
-                "{}: --current-step {c} leaves no future (the scene has {} steps)",
-                args.scene.display(),
-                scene.num_steps()
-            );
-        }
-        if !scene.agents.iter().any(|a| a.is_valid(c)) {
-            bail!("{}: no agent is observed at step {c}", args.scene.display());
-        }
-        scene.meta.current_step = c;
+        scene = scene
+            .at_step(c)
+            .with_context(|| format!("{}: --current-step", args.scene.display()))?;
     }
     if let Some(id) = &args.id {
         scene.meta.scenario_id = id.clone();

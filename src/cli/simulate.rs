@@ -127,7 +127,8 @@ pub struct Args {
     #[arg(long, value_name = "I/N")]
     shard: Option<drivescript::io::shard::Shard>,
     /// Continue the run in -o (same settings, checked against its run.json): scenes whose
-    /// outputs are complete are skipped.
+    /// outputs are complete (every rollout reads back) are skipped; the rest are simulated
+    /// again.
     #[arg(long)]
     resume: bool,
 }
@@ -419,15 +420,13 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     continue;
                 }
             };
-            // Complete: every sample's rollout, the cost report and the picture (written last).
-            let left_out =
-                drivescript::sample::attempt::skipped_file(&args.output, &stem).is_file();
             if args.resume
-                && (left_out
-                    || (0..cfg.samples)
-                        .map(|k| format!("{stem}_{k}.json"))
-                        .chain([format!("{stem}_costs.json"), format!("{stem}_0.gif")])
-                        .all(|f| args.output.join(f).is_file()))
+                && drivescript::sample::attempt::outputs_complete(
+                    &args.output,
+                    &stem,
+                    &raw.meta.scenario_id,
+                    cfg.samples,
+                )
             {
                 resumed += 1;
                 continue;

@@ -105,14 +105,31 @@ impl Params {
                     ));
                 }
             };
-            check_name(k)
+            p.push_checked(k, value)
                 .map_err(|m| format!("parameter \"{}\": {m}", crate::io::name::shown(k)))?;
-            if let ParamValue::Str(s) = &value {
-                check_value(s).map_err(|m| format!("parameter \"{k}\": {m}"))?;
-            }
-            p.set(k, value);
         }
         Ok(p)
+    }
+
+    /// Adds `name` = `value`, checked as every source of parameters is (the command line, a
+    /// batch file, the Python binding): the name an identifier, not given before; a string
+    /// short and printable; a number finite (a NaN limit compares false with everything, so a
+    /// script or checker reading it would pass whatever the trajectories do). The error is
+    /// the reason alone, for the caller to name the parameter.
+    pub fn push_checked(&mut self, name: &str, value: ParamValue) -> Result<(), String> {
+        check_name(name)?;
+        if self.get(name).is_some() {
+            return Err("given twice".into());
+        }
+        match &value {
+            ParamValue::Str(s) => check_value(s)?,
+            ParamValue::Float(f) if !f.is_finite() => {
+                return Err(format!("{} is not finite", crate::geom::num(*f)));
+            }
+            _ => {}
+        }
+        self.0.push((name.to_string(), value));
+        Ok(())
     }
 }
 
@@ -194,24 +211,18 @@ impl Params {
                 message,
             };
             check_name(k).map_err(bad)?;
-            if out.get(k).is_some() {
-                return Err(bad("given twice".into()));
-            }
             let v = v.trim();
             check_value(v).map_err(bad)?;
             let val = if let Ok(i) = v.parse::<i64>() {
                 ParamValue::Int(i)
             } else if let Ok(f) = v.parse::<f64>() {
-                if !f.is_finite() {
-                    return Err(bad(format!("{v} is not finite")));
-                }
                 ParamValue::Float(f)
             } else if v == "true" || v == "false" {
                 ParamValue::Bool(v == "true")
             } else {
                 ParamValue::Str(v.to_string())
             };
-            out.0.push((k.to_string(), val));
+            out.push_checked(k, val).map_err(bad)?;
         }
         Ok(out)
     }

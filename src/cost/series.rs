@@ -354,7 +354,10 @@ impl Series {
     /// to `ln(N)/β` (a clearance of +0.018 m read as a collision over 40 steps at β = 4).
     pub fn smooth_max(&self, beta: f64) -> OpResult<Dual> {
         if !(beta.is_finite() && beta > 0.0) {
-            return Err(format!("smooth_max: beta must be positive, got {beta}"));
+            return Err(format!(
+                "smooth_max: beta must be positive, got {}",
+                crate::geom::num(beta)
+            ));
         }
         let m = self.max()?.val;
         let w: Vec<(f64, f64, &[(u32, f64)])> = self
@@ -436,13 +439,17 @@ impl Series {
 
     fn index_of_time(&self, t: f64, what: &str) -> OpResult<i64> {
         if !t.is_finite() {
-            return Err(format!("{what}: time {t} is not finite"));
+            return Err(format!(
+                "{what}: time {} is not finite",
+                crate::geom::num(t)
+            ));
         }
         let i = ((t - self.0.time0) / self.0.dt).round();
         let last_t = self.0.time0 + (self.len() as f64 - 1.0) * self.0.dt;
         if i < 0.0 || i >= self.len() as f64 {
             return Err(format!(
-                "{what}: time {t} s is outside the series ({:.2} s to {last_t:.2} s)",
+                "{what}: time {} s is outside the series ({:.2} s to {last_t:.2} s)",
+                crate::geom::num(t),
                 self.0.time0
             ));
         }
@@ -480,11 +487,19 @@ impl Series {
 }
 
 fn domain(name: &str, v: f64, i: isize) -> String {
-    format!("{name}: invalid argument {v} at element {i}")
+    format!(
+        "{name}: invalid argument {} at element {i}",
+        crate::geom::num(v)
+    )
 }
 
 fn domain2(name: &str, a: f64, b: f64, i: isize) -> String {
-    format!("{name}: invalid arguments ({a}, {b}) at element {i}")
+    let num = crate::geom::num;
+    format!(
+        "{name}: invalid arguments ({}, {}) at element {i}",
+        num(a),
+        num(b)
+    )
 }
 
 #[cfg(test)]

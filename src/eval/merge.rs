@@ -327,6 +327,23 @@ fn read_shard(path: &Path) -> Result<(RunRecord, Settings, Vec<Tally>), MergeErr
     Ok((run, s, accs))
 }
 
+/// The scenes a shard scored, by name, sorted: its first method's per-scene rows (every
+/// method scores the same scenes).
+fn accs_scenes(accs: &[Tally]) -> Vec<String> {
+    let mut names: Vec<String> = accs
+        .first()
+        .map(|t| {
+            t.per_scene
+                .iter()
+                .filter_map(|r| r.get("scene").and_then(Value::as_str))
+                .map(str::to_string)
+                .collect()
+        })
+        .unwrap_or_default();
+    names.sort_unstable();
+    names
+}
+
 fn sum(a: usize, b: usize, what: &str, path: &Path) -> Result<usize, MergeError> {
     a.checked_add(b).ok_or_else(|| {
         bad(
@@ -344,10 +361,14 @@ pub fn merge(files: &[PathBuf]) -> Result<Merged, MergeError> {
     let mut first: Option<(PathBuf, RunRecord, Settings)> = None;
     let mut accs: Vec<Tally> = Vec::new();
     let mut seen: Vec<(usize, PathBuf)> = Vec::new();
+    let mut scenes: Vec<(String, PathBuf)> = Vec::new();
     let (mut skipped, mut failures, mut run_skipped) = (0usize, 0usize, 0usize);
     let mut horizons = Horizons::default();
     for f in files {
         let (run, s, a) = read_shard(f)?;
+        let mut own = accs_scenes(&a);
+        own.dedup();
+        scenes.extend(own.into_iter().map(|n| (n, f.clone())));
         match &first {
             None => {
                 accs = a;
@@ -395,6 +416,7 @@ pub fn merge(files: &[PathBuf]) -> Result<Merged, MergeError> {
             run.shards.clone()
         };
         seen.extend(shards.iter().map(|&i| (i, f.clone())));
+
         if first.is_none() {
             first = Some((f.clone(), run, s));
         }
@@ -416,6 +438,21 @@ pub fn merge(files: &[PathBuf]) -> Result<Merged, MergeError> {
             return Err(MergeError::Shards(format!(
                 "shard {}/{n} is in both {} and {}: each shard once",
                 w[0].0,
+                w[0].1.display(),
+                w[1].1.display()
+            )));
+        }
+    }
+    // Shards partition scenes by scenario id, so no scene is in two files; one that is (a
+    // shard file relabelled, or one of no shard index beside a shard of the same run) would be
+    // counted twice whatever the shard indices say.
+    scenes.sort();
+    for w in scenes.windows(2) {
+        if w[0].0 == w[1].0 {
+            return Err(MergeError::Shards(format!(
+                "scene {} is in both {} and {}: each scene once (the shards of one evaluation \
+                 hold different scenes)",
+                crate::io::name::shown(&w[0].0),
                 w[0].1.display(),
                 w[1].1.display()
             )));
@@ -583,6 +620,20 @@ mod tests {
         // One file twice, and one shard in two files.
         let e = merge(&[fa.clone(), fa.clone()]).unwrap_err().to_string();
         assert!(e.contains("shard 0/2 is in both"), "{e}");
+        // A shard relabelled as the other, or stripped of its index (read as the whole of a
+        // run): its scenes were counted twice.
+        for shards in [json!([0]), json!([])] {
+            let mut again = b.clone();
+            again["merge"]["run"]["shards"] = shards.clone();
+            let f = write(dir.path(), "again.json", &again);
+            let e = merge(&[fb.clone(), f]).unwrap_err().to_string();
+            assert!(
+                e.contains("scene crossroads-straight is in both")
+                    && e.contains("b.json")
+                    && e.contains("again.json"),
+                "{shards}: {e}"
+            );
+        }
         // A different evaluation.
         let mut other = b.clone();
         other["merge"]["run"]["settings"]["methods"] = json!(["cv"]);

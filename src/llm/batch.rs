@@ -282,6 +282,33 @@ pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<S
                         }
                     }
                 }
+                // A parameter the checker cannot read (a limit given as a word, a required one
+                // absent): every sample's verdict would be that error, and the pair counted a
+                // failure of the loop, exit 0. Judged on the log, which has every agent.
+                if let (Some(b), Some(given)) = (e.behaviour, &e.params) {
+                    // As `eval --param`: a name the checker does not read is dropped and the
+                    // pair judged on its default.
+                    b.check_param_names(given).map_err(|err| {
+                        bad(&f, format!("entry on line {}: params: {err}", e.line))
+                    })?;
+                }
+                for (b, p) in &checks {
+                    use crate::eval::behaviors::CheckError as C;
+                    match crate::eval::behaviors::check(*b, &scene, p) {
+                        Err(
+                            err @ (C::MissingParam { .. }
+                            | C::NotANumber { .. }
+                            | C::NotAnId { .. }
+                            | C::NotAWord { .. }),
+                        ) => {
+                            return Err(bad(
+                                &f,
+                                format!("entry on line {}: scene {id}: {err}", e.line),
+                            ))
+                        }
+                        _ => {}
+                    }
+                }
                 // A pair no car can meet in the horizon says nothing of the loop: it is left out
                 // with the reason, as a scene without suitable agents is, before any round.
                 let cannot: Vec<String> = checks
@@ -560,6 +587,41 @@ mod tests {
             err.contains("entry 2 (line 4)") && err.contains("unknown behaviour \"flying\""),
             "{err}"
         );
+    }
+
+    #[test]
+    fn parameters_the_checker_cannot_read_refuse_the_entry_before_any_round() {
+        let dir = tempfile::tempdir().unwrap();
+        let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes/highway.yaml");
+        let f = dir.path().join("b.yaml");
+        for (params, says) in [
+            (
+                "{vehicle: 1, limit: fast}",
+                "parameter \"limit\" = \"fast\" must be a number",
+            ),
+            ("{vehicle: 1}", "parameter \"limit\" is required"),
+            (
+                "{vehicle: 1, limit: 15, limt: 12}",
+                "parameter \"limt\": the checker does not read it",
+            ),
+        ] {
+            std::fs::write(
+                &f,
+                format!(
+                    "scenes: {}\nentries:\n  - request: \"vehicle 1 keeps below 15 m/s\"\n    behaviour: speed_limit\n    params: {params}\n",
+                    scene.display()
+                ),
+            )
+            .unwrap();
+            let err = expand(&read_batch(&f).unwrap(), 40)
+                .err()
+                .expect(params)
+                .to_string();
+            assert!(
+                err.contains("entry on line 3: ") && err.contains(says),
+                "{params}: {err}"
+            );
+        }
     }
 
     #[test]

@@ -141,6 +141,17 @@ impl HttpConfig {
                     .into(),
             ));
         }
+        // Sent as raw UTF-8 bytes, such a key came back from a server that read the header as
+        // Latin-1 (as HTTP's old rule has it) spelled otherwise (`sk-Ã¼…` for `sk-ü…`), which
+        // no redaction of the key as written can find. Keys are ASCII.
+        if self.key.as_deref().is_some_and(|k| !k.is_ascii()) {
+            return Err(LlmError::Setup(
+                "DRIVESCRIPT_LLM_KEY holds a character outside ASCII (a quote or dash an editor \
+                 made typographic?): API keys are ASCII, and an HTTP header carries anything else \
+                 as bytes a server may read differently"
+                    .into(),
+            ));
+        }
         Ok(())
     }
 
@@ -1094,6 +1105,17 @@ mod tests {
             "{e}"
         );
         assert!(!e.contains("sk-abc"), "{e}");
+        let mut c = HttpConfig::new("http://h/v1", "m");
+        c.key = Some("sk-\u{fc}\u{fc}12345678".into());
+        let e = HttpClient::new(c)
+            .err()
+            .expect("a key outside ASCII")
+            .to_string();
+        assert!(
+            e.contains("DRIVESCRIPT_LLM_KEY") && e.contains("outside ASCII"),
+            "{e}"
+        );
+        assert!(!e.contains("12345678"), "{e}");
     }
 
     #[test]

@@ -422,6 +422,26 @@ pub fn skipped_file(dir: &Path, stem: &str) -> std::path::PathBuf {
     dir.join(format!("{stem}_skipped.json"))
 }
 
+/// Whether `dir` holds scene `stem` (scenario `scenario_id`) finished by a run of `samples`
+/// samples, for `simulate --resume`: every sample's rollout reads back as one of that
+/// scenario, and the cost report and the picture (written last) are there; or the scene was
+/// left out on purpose ([`skipped_file`]). Outputs are written atomically, so a killed run
+/// leaves none half-written; one damaged since (truncated by a full disk elsewhere, edited)
+/// made the scene "already complete" for good, and `eval` failed on it later.
+pub fn outputs_complete(dir: &Path, stem: &str, scenario_id: &str, samples: usize) -> bool {
+    if skipped_file(dir, stem).is_file() {
+        return true;
+    }
+    let rollouts_read = (0..samples).all(|k| {
+        crate::io::rollout::Rollout::read(&dir.join(format!("{stem}_{k}.json")))
+            .is_ok_and(|r| r.scene_id == scenario_id)
+    });
+    rollouts_read
+        && [format!("{stem}_costs.json"), format!("{stem}_0.gif")]
+            .iter()
+            .all(|f| dir.join(f).is_file())
+}
+
 /// Writes [`skipped_file`] into `dir` and, where `twins` is true, into `dir/unguided`, with the
 /// reason; atomically, as every output.
 pub fn write_skipped(dir: &Path, stem: &str, reason: &str, twins: bool) -> Result<(), IoError> {

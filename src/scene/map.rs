@@ -465,7 +465,7 @@ mod tests {
 
     #[test]
     fn signed_distance_to_road_edge_is_negative_on_the_road() {
-        let text = "road: {lanes: 2, lane_width: 3.5, length: 100}\nagents: []\n";
+        let text = "road: {lanes: 2, lane_width: 3.5, length: 100}\nagents: [{id: 1, lane: 0, s: 5, speed: 1}]\n";
         let s = yaml::parse(Path::new("road.yaml"), text).unwrap();
         let sd = |x, y| edge_distance(&s, x, y);
         assert!(
@@ -499,6 +499,8 @@ map:
     - {id: 2, centerline: [[0, 3.5], [200, 3.5]]}
     - {id: 3, centerline: [[0, 7], [150, 7]], successors: [4]}
     - {id: 4, centerline: [[150, 7], [200, 7]]}
+agents:
+  - {id: 1, states: [[1, 1, 0]]}
 "#;
         let s = yaml::parse(Path::new("exits.yaml"), text).unwrap();
         let ends: Vec<(f64, f64)> = s
@@ -535,6 +537,8 @@ map:
     - [[0, 0], [100, 0], [100, 3.5], [0, 3.5]]
     - [[0, 3.52], [100, 3.52], [100, 7.02], [0, 7.02]]
     - [[0, 8.02], [100, 8.02], [100, 11.52], [0, 11.52]]
+agents:
+  - {id: 1, states: [[1, 1, 0]]}
 "#;
         let s = yaml::parse(Path::new("crack.yaml"), text).unwrap();
         let sd = |x, y| edge_distance(&s, x, y);
@@ -556,6 +560,8 @@ map:
   drivable_areas:
     - [[0, 0], [50, 0], [50, 3.5], [0, 3.5]]
     - [[50, 0], [100, 0], [100, 3.5], [50, 3.5]]
+agents:
+  - {id: 1, states: [[1, 1, 0]]}
 "#;
         let j = yaml::parse(Path::new("joint.yaml"), joint).unwrap();
         let d = edge_distance(&j, 50.0, -0.1);
@@ -572,13 +578,18 @@ map:
   road_edges:
     - points: [[0, 0], [100, 0]]
     - points: [[100, 7], [0, 7]]
+agents:
+  - {id: 1, states: [[1, 1, 0]]}
 "#;
         let s = yaml::parse(Path::new("edges.yaml"), text).unwrap();
         let sd = |x, y| edge_distance(&s, x, y);
         assert!(sd(50.0, 2.0) < 0.0 && sd(50.0, 5.0) < 0.0);
         assert!(sd(50.0, -0.5) > 0.0 && sd(50.0, 7.5) > 0.0);
-        let empty =
-            yaml::parse(Path::new("e.yaml"), "steps: 1\ncurrent_step: 0\nmap: {}\n").unwrap();
+        let empty = yaml::parse(
+            Path::new("e.yaml"),
+            "steps: 1\ncurrent_step: 0\nmap: {}\nagents:\n  - {id: 1, states: [[1, 1, 0]]}\n",
+        )
+        .unwrap();
         assert_eq!(
             empty.map.signed_distance_to_road_edge(Point::new(0.0, 0.0)),
             None

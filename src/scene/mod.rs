@@ -118,6 +118,29 @@ pub enum SceneError {
         /// What is wrong.
         what: String,
     },
+    /// A crop that would keep nothing to evaluate: no agent or no future step.
+    #[error("a crop keeps at least one agent and one future step (asked for {agents} agents and {future} future steps)")]
+    EmptyCrop {
+        /// The agents asked for.
+        agents: usize,
+        /// The future steps asked for.
+        future: usize,
+    },
+    /// A current step with no step after it.
+    #[error("current step {step} leaves no future (the scene has {steps} steps)")]
+    NoFutureAfter {
+        /// The current step asked for.
+        step: usize,
+        /// The scene's steps.
+        steps: usize,
+    },
+    /// A current step at which no agent is observed: nothing to start from.
+    #[error("no agent is observed at step {0}")]
+    NoneObserved(usize),
+    /// A recording without agents: they set its time grid (its steps and current step), so
+    /// one without them has none, and nothing to simulate or score.
+    #[error("no agents: a scene needs at least one (its agents' states set its steps)")]
+    NoAgents,
     /// A crop asks for more steps than the scene has.
     #[error("the scene has {steps} steps, {needed} are needed")]
     TooShort {
@@ -305,6 +328,12 @@ impl Scene {
         if !RECORDED_DT.contains(&meta.dt) {
             return Err(SceneError::RecordedDt(meta.dt));
         }
+        // Checked here, not in `new`: an empty scene serves to compile scripts against, but a
+        // file without agents had its steps and current step dropped (`steps: 91` with
+        // `agents: []` read as 0 steps), and `convert` wrote files its own readers refuse.
+        if agents.is_empty() {
+            return Err(SceneError::NoAgents);
+        }
         let scene = Self::new(meta, map, agents)?;
         let dt = scene.meta.dt;
         for a in &scene.agents {
@@ -386,12 +415,34 @@ impl Scene {
         self.map.lane_path(lane, along + ahead, behind, turn).ok()
     }
 
+    /// The scene with its current step moved to `step` (history before it, future after):
+    /// one of several evaluation instances cut from a long recording. `step` must leave a
+    /// step after it and have an agent observed.
+    pub fn at_step(&self, step: usize) -> Result<Scene, SceneError> {
+        let steps = self.num_steps();
+        // `step + 1` overflows for the largest step a flag can hold.
+        if step >= steps.saturating_sub(1) {
+            return Err(SceneError::NoFutureAfter { step, steps });
+        }
+        if !self.agents.iter().any(|a| a.is_valid(step)) {
+            return Err(SceneError::NoneObserved(step));
+        }
+        let mut s = self.clone();
+        s.meta.current_step = step;
+        Ok(s)
+    }
+
     /// At most `n` agents observed at the current step, with exactly `future` steps after it:
     /// vehicles on a lane first, nearest first to the first such vehicle in the scene's order,
     /// then the other agents by the same distance. A recording too short after its current
     /// step has its current step moved earlier. Fewer agents where fewer are observed. The
     /// fixed-size scene that `drivescript bench cost` and the Python benchmark time.
     pub fn crop(&self, n: usize, future: usize) -> Result<Scene, SceneError> {
+        // A crop of no agent (or no future) is a scene nothing can be evaluated on, whose
+        // empty trajectory arrays the Python binding could not even shape.
+        if n == 0 || future == 0 {
+            return Err(SceneError::EmptyCrop { agents: n, future });
+        }
         let total = self.num_steps();
         if total <= future {
             return Err(SceneError::TooShort {
@@ -645,6 +696,36 @@ agents:
         assert_eq!((late.meta.current_step, late.num_steps()), (5, 31));
         let e = s.crop(2, 31).unwrap_err();
         assert_eq!(e.to_string(), "the scene has 31 steps, 32 are needed");
+        // Nothing to keep is an error, not an empty scene.
+        for (n, future) in [(0, 15), (3, 0)] {
+            let e = s.crop(n, future).unwrap_err().to_string();
+            assert!(e.contains("at least one agent and one future step"), "{e}");
+        }
+    }
+
+    #[test]
+    fn the_current_step_moves_only_where_a_future_and_an_agent_are() {
+        let text = "steps: 31\ncurrent_step: 10\nroad: {lanes: 2, lane_width: 3.5, length: 300}\nagents:\n  - {id: 1, lane: 0, s: 100, speed: 10, valid_from: 5}\n";
+        let s = yaml::parse(Path::new("m.yaml"), text).unwrap();
+        assert_eq!(s.at_step(29).unwrap().meta.current_step, 29);
+        for step in [30, 31, usize::MAX] {
+            let e = s.at_step(step).unwrap_err().to_string();
+            assert_eq!(
+                e,
+                format!("current step {step} leaves no future (the scene has 31 steps)")
+            );
+        }
+        let e = s.at_step(2).unwrap_err().to_string();
+        assert_eq!(e, "no agent is observed at step 2");
+    }
+
+    #[test]
+    fn a_recording_without_agents_is_refused_not_read_as_zero_steps() {
+        let text = "steps: 91\ncurrent_step: 10\nroad: {lanes: 2, lane_width: 3.5, length: 300}\nagents: []\n";
+        let e = yaml::parse(Path::new("empty.yaml"), text)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("empty.yaml") && e.contains("no agents"), "{e}");
     }
 
     #[test]

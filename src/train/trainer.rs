@@ -295,6 +295,22 @@ impl CheckpointMeta {
         if let Some(i) = pca.mean.iter().position(|v| !v.is_finite()) {
             return Err(format!("normaliser.pca.mean[{i}] is not finite"));
         }
+        // Finite is not enough: the basis is in metres, and a mean of 1e308 (or a scale that
+        // large) overflowed in the first denoising step, reported only as a non-finite cost
+        // gradient with no word of the checkpoint.
+        let max = crate::geom::MAX_COORD;
+        if let Some(i) = pca.mean.iter().position(|v| v.abs() > max) {
+            return Err(format!(
+                "normaliser.pca.mean[{i}] = {}: beyond {max:e} m, which no future offset is",
+                crate::geom::num(pca.mean[i])
+            ));
+        }
+        if let Some(i) = n.std.iter().position(|v| *v > max) {
+            return Err(format!(
+                "normaliser.std[{i}] = {}: beyond {max:e} m, which no coefficient's spread is",
+                crate::geom::num(n.std[i])
+            ));
+        }
         for (i, row) in pca.components.chunks(dim).enumerate() {
             let norm = row.iter().map(|v| v * v).sum::<f64>().sqrt();
             if !(norm - 1.0).abs().lt(&1e-3) {
@@ -309,11 +325,13 @@ impl CheckpointMeta {
         if let Some(i) = pca
             .variances
             .iter()
-            .position(|v| !v.is_finite() || *v < 0.0)
+            .position(|v| !v.is_finite() || *v < 0.0 || *v > max * max)
         {
             return Err(format!(
-                "normaliser.pca.variances[{i}] = {}: must be finite and not negative",
-                pca.variances[i]
+                "normaliser.pca.variances[{i}] = {}: must be finite, not negative and at most \
+                 {:e} m²",
+                crate::geom::num(pca.variances[i]),
+                max * max
             ));
         }
         Ok(())
@@ -805,6 +823,72 @@ const MAX_CONFIG_BYTES: u64 = 16 << 20;
 /// The largest weights file read: 1024-wide, 32-layer models stay below it.
 const MAX_WEIGHTS_BYTES: u64 = 4 << 30;
 
+/// The names of the tensors a safetensors file holds, from its header (which the loader has
+/// already read and checked).
+fn tensor_names(path: &Path) -> Result<Vec<String>, String> {
+    use std::io::Read;
+    let mut f = std::fs::File::open(path).map_err(|e| e.to_string())?;
+    let mut len = [0u8; 8];
+    f.read_exact(&mut len).map_err(|e| e.to_string())?;
+    // The safetensors format's own cap on its header.
+    let len = u64::from_le_bytes(len).min(100 << 20);
+    let mut header = Vec::new();
+    f.take(len)
+        .read_to_end(&mut header)
+        .map_err(|e| e.to_string())?;
+    let header: serde_json::Map<String, serde_json::Value> =
+        serde_json::from_slice(&header).map_err(|e| format!("header: {e}"))?;
+    Ok(header
+        .into_iter()
+        .map(|(k, _)| k)
+        .filter(|k| k != "__metadata__")
+        .collect())
+}
+
+/// Checks that the weights loaded into `varmap` from `path` are the whole of what the file
+/// holds and are numbers. Loading fills the model's tensors by name and ignores the rest, so
+/// a config.json describing a smaller model (2 layers where 3 were trained) loaded without a
+/// word and sampled with a third of the network missing; and a NaN weight made every
+/// denoised output NaN, which the sampler's clamps turned into confident nonsense.
+fn check_weights(varmap: &VarMap, path: &Path, model: &DenoiserConfig) -> Result<(), String> {
+    let vars = varmap.data().lock().unwrap_or_else(|p| p.into_inner());
+    let mut extra: Vec<String> = tensor_names(path)?
+        .into_iter()
+        .filter(|n| !vars.contains_key(n))
+        .collect();
+    if !extra.is_empty() {
+        extra.sort();
+        let n = extra.len();
+        extra.truncate(3);
+        return Err(format!(
+            "holds {n} tensors the model config.json describes (d {}, {} layers) has no place \
+             for ({}{}): the config and the weights are of different models",
+            model.d,
+            model.layers,
+            extra.join(", "),
+            if n > 3 { ", …" } else { "" }
+        ));
+    }
+    let mut names: Vec<&String> = vars.keys().collect();
+    names.sort();
+    for name in names {
+        let values: Vec<f32> = vars[name]
+            .as_tensor()
+            .flatten_all()
+            .and_then(|t| t.to_dtype(DType::F32))
+            .and_then(|t| t.to_vec1())
+            .map_err(|e| format!("tensor `{name}`: {}", candle_message(e)))?;
+        if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+            return Err(format!(
+                "tensor `{name}` holds {} at element {i}: the weights are damaged (or training \
+                 diverged); use another checkpoint",
+                values[i]
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// Reads a checkpoint written by [`save`].
 pub fn load(dir: &Path) -> Result<Trained, TrainError> {
     let io = |path: &Path, e: String| TrainError::Io {
@@ -857,6 +941,7 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
     crate::io::open_regular(&w, MAX_WEIGHTS_BYTES, "checkpoint weights")
         .map_err(|e| io(&w, e.reason()))?;
     varmap.load(&w).map_err(|e| io(&w, message_in_file(e)))?;
+    check_weights(&varmap, &w, &meta.config.model).map_err(|m| io(&w, m))?;
     let opt_path = dir.join(OPTIMIZER_FILE);
     let optimizer = if opt_path.exists() {
         crate::io::open_regular(&opt_path, 2 * MAX_WEIGHTS_BYTES, "optimiser state")
@@ -911,6 +996,7 @@ pub fn load_for_training(dir: &Path) -> Result<Trained, TrainError> {
         .map_err(|e| io(e.to_string()))?;
     let averaged = super::ema::copies(&t.varmap)?;
     t.varmap.load(&online).map_err(|e| io(candle_message(e)))?;
+    check_weights(&t.varmap, &online, &t.meta.config.model).map_err(io)?;
     t.ema = Some(Ema::from_weights(
         averaged,
         t.meta.config.ema_half_life,
@@ -1239,6 +1325,22 @@ mod tests {
                 0.0.into(),
                 "normaliser.sigma_data = 0",
             ),
+            // Finite but overflowing in the first denoising step.
+            (
+                "/normaliser/pca/mean/0",
+                1e308.into(),
+                "normaliser.pca.mean[0] = 1e308: beyond",
+            ),
+            (
+                "/normaliser/std/0",
+                1e300.into(),
+                "normaliser.std[0] = 1e300: beyond",
+            ),
+            (
+                "/normaliser/pca/variances/0",
+                1e300.into(),
+                "normaliser.pca.variances[0] = 1e300",
+            ),
         ];
         let write = |v: &serde_json::Value| {
             std::fs::write(&path, serde_json::to_string(v).unwrap()).unwrap();
@@ -1273,6 +1375,47 @@ mod tests {
         refused(&v, "normaliser.std has");
         write(&good);
         load(dir.path()).unwrap();
+    }
+
+    #[test]
+    fn weights_the_config_has_no_place_for_or_that_are_not_numbers_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut cfg = tiny_config(1, 1, 1);
+        cfg.model.layers = 2;
+        train(&scenes(), cfg, Some(dir.path()), None, |_, _, _| ()).unwrap();
+        let path = dir.path().join("config.json");
+        let good = std::fs::read_to_string(&path).unwrap();
+        // The config of a one-layer model over the weights of two: the second layer was
+        // dropped without a word.
+        let mut v: serde_json::Value = serde_json::from_str(&good).unwrap();
+        v["config"]["model"]["layers"] = 1.into();
+        std::fs::write(&path, serde_json::to_string(&v).unwrap()).unwrap();
+        let e = load(dir.path()).err().expect("fewer layers").to_string();
+        assert!(
+            e.contains("model.safetensors")
+                && e.contains("has no place for")
+                && e.contains("1 layers")
+                && e.contains("different models"),
+            "{e}"
+        );
+        std::fs::write(&path, &good).unwrap();
+        load(dir.path()).unwrap();
+        // One weight NaN: every denoised output was NaN, and samples came out anyway.
+        let w = dir.path().join("model.safetensors");
+        let mut map = candle_core::safetensors::load(&w, &Device::Cpu).unwrap();
+        let name = map.keys().min().unwrap().clone();
+        let t = &map[&name];
+        let mut values: Vec<f32> = t.flatten_all().unwrap().to_vec1().unwrap();
+        values[1] = f32::NAN;
+        let damaged = Tensor::from_vec(values, t.shape(), &Device::Cpu).unwrap();
+        map.insert(name.clone(), damaged);
+        candle_core::safetensors::save(&map, &w).unwrap();
+        let e = load(dir.path()).err().expect("a NaN weight").to_string();
+        assert!(
+            e.contains("model.safetensors")
+                && e.contains(&format!("tensor `{name}` holds NaN at element 1")),
+            "{e}"
+        );
     }
 
     #[test]

@@ -58,7 +58,8 @@ pub struct FrenetRef {
 fn make_path(shared: &Shared, lane: i64, ahead: f64, behind: f64, t: Turn) -> RResult<PathRef> {
     if !(ahead.is_finite() && ahead > 0.0 && ahead <= 100_000.0) {
         return err(format!(
-            "lane_path: length {ahead} must be in (0, 100000] metres"
+            "lane_path: length {} must be in (0, 100000] metres",
+            crate::geom::num(ahead)
         ));
     }
     let key = (lane, ahead.to_bits(), behind.to_bits(), t);

@@ -94,7 +94,10 @@ pub(crate) fn clearance(shared: &Shared, a: AgentRef, b: AgentRef) -> Series {
 fn ttc(shared: &Shared, a: &AgentRef, b: &AgentRef, cap: f64) -> RResult<Series> {
     distinct(a, b, "ttc")?;
     if !(cap.is_finite() && cap > 0.0) {
-        return err(format!("ttc: cap must be positive, got {cap}"));
+        return err(format!(
+            "ttc: cap must be positive, got {}",
+            crate::geom::num(cap)
+        ));
     }
     let c = clearance(shared, *a, *b);
     let rate = c.deriv();

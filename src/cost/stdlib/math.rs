@@ -20,7 +20,8 @@ pub(crate) fn binary(
     name: &str,
     f: impl Fn(f64, f64) -> Option<(f64, f64, f64)>,
 ) -> RResult<Val> {
-    let bad = |x: f64, y: f64| format!("{name}: invalid arguments ({x}, {y})");
+    let num = crate::geom::num;
+    let bad = |x: f64, y: f64| format!("{name}: invalid arguments ({}, {})", num(x), num(y));
     Ok(match (a, b) {
         (Val::S(s), Val::S(o)) => Val::S(lift(s.zip(&o, name, f))?),
         (Val::S(s), Val::D(d)) => Val::S(lift(s.zip_dual(&d, name, f))?),
@@ -55,12 +56,12 @@ pub(crate) fn unary(x: Val, name: &str, f: impl Fn(f64) -> Option<(f64, f64)>) -
         Val::S(s) => Val::S(lift(s.map(name, f))?),
         Val::D(d) => {
             let (v, dv) = f(d.val)
-                .ok_or_else(|| format!("{name}: invalid argument {}", d.val))
+                .ok_or_else(|| format!("{name}: invalid argument {}", crate::geom::num(d.val)))
                 .or_else(err)?;
             Val::D(d.map(v, dv))
         }
         Val::F(v) => Val::F(
-            f(v).ok_or_else(|| format!("{name}: invalid argument {v}"))
+            f(v).ok_or_else(|| format!("{name}: invalid argument {}", crate::geom::num(v)))
                 .or_else(err)?
                 .0,
         ),
@@ -183,7 +184,10 @@ fn positive(x: f64, what: &str) -> RResult<f64> {
     if x.is_finite() && x > 0.0 {
         Ok(x)
     } else {
-        err(format!("{what} must be positive, got {x}"))
+        err(format!(
+            "{what} must be positive, got {}",
+            crate::geom::num(x)
+        ))
     }
 }
 
@@ -380,7 +384,8 @@ pub(super) fn register(e: &mut Engine, docs: &mut Vec<DocEntry>) {
     e.register_fn("clamp", |x: Dynamic, lo: Dynamic, hi: Dynamic| {
         let (lo, hi) = (number(&lo, "clamp lo")?, number(&hi, "clamp hi")?);
         if lo > hi {
-            return err(format!("clamp: lo {lo} is above hi {hi}"));
+            let num = crate::geom::num;
+            return err(format!("clamp: lo {} is above hi {}", num(lo), num(hi)));
         }
         unary(Val::from_dynamic(&x, "clamp")?, "clamp", move |v| {
             Some(if v < lo {
