@@ -477,6 +477,39 @@ fn yaml_errors_name_line_or_agent() {
 }
 
 #[test]
+fn implausible_lane_widths_are_refused_naming_file_field_and_range() {
+    let dir = tempfile::tempdir().unwrap();
+    for (name, w) in [
+        ("tiny.yaml", "1e-9"),
+        ("narrow.yaml", "0.3"),
+        ("wide.yaml", "25"),
+        ("nan.yaml", ".nan"),
+    ] {
+        let f = dir.path().join(name);
+        std::fs::write(
+            &f,
+            format!("road: {{lanes: 2, lane_width: {w}, length: 100}}\nagents: [{{id: 1, lane: 0, s: 5, speed: 1}}]\n"),
+        )
+        .unwrap();
+        let err = fails(&["inspect", s(&f)]);
+        assert!(
+            err.contains(&format!("{name}: road.lane_width")) && err.contains("0.5..=20 m"),
+            "{err}"
+        );
+    }
+    // The edges of the range are roads.
+    for w in ["0.5", "20"] {
+        let f = dir.path().join("edge.yaml");
+        std::fs::write(
+            &f,
+            format!("road: {{lanes: 2, lane_width: {w}, length: 100}}\nagents: [{{id: 1, lane: 0, s: 5, speed: 1}}]\n"),
+        )
+        .unwrap();
+        ok(&["inspect", s(&f)]);
+    }
+}
+
+#[test]
 fn womd_truncated_and_flipped_files_name_the_record() {
     let dir = tempfile::tempdir().unwrap();
     let f = dir.path().join("x.tfrecord");
