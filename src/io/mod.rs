@@ -186,9 +186,14 @@ pub fn detect_format(path: &Path) -> Result<SceneFormat, IoError> {
         if womd::is_shard_dir(path) {
             return Ok(SceneFormat::Womd);
         }
-        return Err(IoError::UnknownFormat {
-            path: path.display().to_string(),
-        });
+        // Not "unknown scene format": `d.yaml/` has a scene's name, and what is wrong is that
+        // it is a directory.
+        return Err(IoError::invalid(
+            path,
+            "file",
+            "is a directory, but neither an AV2 scenario directory (a scenario_*.parquet and \
+             its log_map_archive_*.json) nor a directory of WOMD shards",
+        ));
     }
     // The extension decides first: `tfrecord-00000-of-01000_4.json` is JSON, not a shard.
     // JSON is also what AV2 maps, rollouts and reports are written in, so a `.json` is a
@@ -218,9 +223,41 @@ pub fn detect_format(path: &Path) -> Result<SceneFormat, IoError> {
             )),
         }
     } else {
-        Err(IoError::UnknownFormat {
-            path: path.display().to_string(),
-        })
+        // A `.json` that cannot be read comes here (its content decides): a link loop is
+        // named as one, not as an unknown format.
+        match std::fs::metadata(path) {
+            Err(e) if is_link_loop(&e) => Err(read_error(path, e)),
+            _ => Err(IoError::UnknownFormat {
+                path: path.display().to_string(),
+            }),
+        }
+    }
+}
+
+/// Whether opening a path failed because its symbolic links lead back to themselves.
+fn is_link_loop(e: &std::io::Error) -> bool {
+    #[cfg(unix)]
+    {
+        e.raw_os_error() == Some(libc::ELOOP)
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = e;
+        false
+    }
+}
+
+/// The error for a path that cannot be opened or examined: a link loop in words ("Too many
+/// levels of symbolic links" does not say that the file is a link to itself), else the system's.
+pub(crate) fn read_error(path: &Path, e: std::io::Error) -> IoError {
+    if is_link_loop(&e) {
+        IoError::invalid(
+            path,
+            "file",
+            "is a symbolic link loop (its links lead back to themselves, never to a file)",
+        )
+    } else {
+        IoError::read(path, e)
     }
 }
 
@@ -423,7 +460,7 @@ pub fn load_scene(path: &Path, index: usize, opts: &LoadOptions) -> Result<Scene
 /// end), and a directory reached twice (a symlink loop, or two links to one directory) is
 /// walked once.
 pub fn discover(path: &Path) -> Result<Vec<PathBuf>, IoError> {
-    let meta = std::fs::metadata(path).map_err(|e| IoError::read(path, e))?;
+    let meta = std::fs::metadata(path).map_err(|e| read_error(path, e))?;
     if !meta.is_dir() {
         if !meta.is_file() {
             return Err(not_regular(path));
@@ -472,7 +509,7 @@ fn walk(
         let meta = match std::fs::metadata(&p) {
             Ok(m) => m,
             // A dangling link named like a scene is an error; anything else is not ours.
-            Err(e) if scene_like => return Err(IoError::read(&p, e)),
+            Err(e) if scene_like => return Err(read_error(&p, e)),
             Err(_) => continue,
         };
         if meta.is_dir() {
@@ -678,7 +715,7 @@ pub fn open_regular(path: &Path, max: u64, what: &str) -> Result<std::fs::File, 
         // Without it, opening a FIFO waits for a writer; reading a regular file ignores it.
         options.custom_flags(libc::O_NONBLOCK);
     }
-    let file = options.open(path).map_err(|e| IoError::read(path, e))?;
+    let file = options.open(path).map_err(|e| read_error(path, e))?;
     let meta = file.metadata().map_err(|e| IoError::read(path, e))?;
     if meta.is_dir() {
         return Err(IoError::invalid(
