@@ -477,6 +477,39 @@ fn yaml_errors_name_line_or_agent() {
 }
 
 #[test]
+fn implausible_lane_widths_are_refused_naming_file_field_and_range() {
+    let dir = tempfile::tempdir().unwrap();
+    for (name, w) in [
+        ("tiny.yaml", "1e-9"),
+        ("narrow.yaml", "0.3"),
+        ("wide.yaml", "25"),
+        ("nan.yaml", ".nan"),
+    ] {
+        let f = dir.path().join(name);
+        std::fs::write(
+            &f,
+            format!("road: {{lanes: 2, lane_width: {w}, length: 100}}\nagents: [{{id: 1, lane: 0, s: 5, speed: 1}}]\n"),
+        )
+        .unwrap();
+        let err = fails(&["inspect", s(&f)]);
+        assert!(
+            err.contains(&format!("{name}: road.lane_width")) && err.contains("0.5..=20 m"),
+            "{err}"
+        );
+    }
+    // The edges of the range are roads.
+    for w in ["0.5", "20"] {
+        let f = dir.path().join("edge.yaml");
+        std::fs::write(
+            &f,
+            format!("road: {{lanes: 2, lane_width: {w}, length: 100}}\nagents: [{{id: 1, lane: 0, s: 5, speed: 1}}]\n"),
+        )
+        .unwrap();
+        ok(&["inspect", s(&f)]);
+    }
+}
+
+#[test]
 fn womd_truncated_and_flipped_files_name_the_record() {
     let dir = tempfile::tempdir().unwrap();
     let f = dir.path().join("x.tfrecord");
@@ -1562,6 +1595,56 @@ fn a_model_error_is_its_message_without_candle_s_backtrace() {
     assert_eq!(err.trim_end().lines().count(), 1, "{err}");
     assert!(
         !err.contains("candle-core") && !err.contains(" at /"),
+        "{err}"
+    );
+}
+
+/// A directory or a symbolic link loop with a scene's name is named for what it is, by every
+/// way in (`render` loads one scene, `inspect` discovers sources first), not "unknown scene
+/// format" or "Too many levels of symbolic links".
+#[cfg(unix)]
+#[test]
+fn a_directory_or_a_link_loop_named_like_a_scene_is_named_for_what_it_is() {
+    let dir = tempfile::tempdir().unwrap();
+    let svg = dir.path().join("out.svg");
+    for name in ["d.yaml", "d.xml", "d.json", "d.parquet"] {
+        let d = dir.path().join(name);
+        std::fs::create_dir(&d).unwrap();
+        let err = fails(&["render", s(&d), "-o", s(&svg)]);
+        assert!(
+            err.contains(&format!("{name}: file: is a directory"))
+                && !err.contains("unknown scene format"),
+            "{err}"
+        );
+    }
+    for ext in ["yaml", "xml", "json", "xml.gz"] {
+        let (a, b) = (
+            dir.path().join(format!("a.{ext}")),
+            dir.path().join(format!("b.{ext}")),
+        );
+        std::os::unix::fs::symlink(&b, &a).unwrap();
+        std::os::unix::fs::symlink(&a, &b).unwrap();
+        for cmd in ["render", "inspect"] {
+            let mut args = vec![cmd, s(&a)];
+            if cmd == "render" {
+                args.extend(["-o", s(&svg)]);
+            }
+            let err = fails(&args);
+            assert!(
+                err.contains(&format!("a.{ext}: file: is a symbolic link loop"))
+                    && !err.contains("unknown scene format"),
+                "{cmd}: {err}"
+            );
+        }
+    }
+    // Inside a directory of scenes too.
+    let scenes = dir.path().join("scenes");
+    std::fs::create_dir(&scenes).unwrap();
+    std::os::unix::fs::symlink(scenes.join("y.yaml"), scenes.join("x.yaml")).unwrap();
+    std::os::unix::fs::symlink(scenes.join("x.yaml"), scenes.join("y.yaml")).unwrap();
+    let err = fails(&["inspect", s(&scenes)]);
+    assert!(
+        err.contains("x.yaml: file: is a symbolic link loop"),
         "{err}"
     );
 }

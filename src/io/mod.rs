@@ -186,9 +186,14 @@ pub fn detect_format(path: &Path) -> Result<SceneFormat, IoError> {
         if womd::is_shard_dir(path) {
             return Ok(SceneFormat::Womd);
         }
-        return Err(IoError::UnknownFormat {
-            path: path.display().to_string(),
-        });
+        // Not "unknown scene format": `d.yaml/` has a scene's name, and what is wrong is that
+        // it is a directory.
+        return Err(IoError::invalid(
+            path,
+            "file",
+            "is a directory, but neither an AV2 scenario directory (a scenario_*.parquet and \
+             its log_map_archive_*.json) nor a directory of WOMD shards",
+        ));
     }
     // The extension decides first: `tfrecord-00000-of-01000_4.json` is JSON, not a shard.
     // JSON is also what AV2 maps, rollouts and reports are written in, so a `.json` is a
@@ -218,9 +223,41 @@ pub fn detect_format(path: &Path) -> Result<SceneFormat, IoError> {
             )),
         }
     } else {
-        Err(IoError::UnknownFormat {
-            path: path.display().to_string(),
-        })
+        // A `.json` that cannot be read comes here (its content decides): a link loop is
+        // named as one, not as an unknown format.
+        match std::fs::metadata(path) {
+            Err(e) if is_link_loop(&e) => Err(read_error(path, e)),
+            _ => Err(IoError::UnknownFormat {
+                path: path.display().to_string(),
+            }),
+        }
+    }
+}
+
+/// Whether opening a path failed because its symbolic links lead back to themselves.
+fn is_link_loop(e: &std::io::Error) -> bool {
+    #[cfg(unix)]
+    {
+        e.raw_os_error() == Some(libc::ELOOP)
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = e;
+        false
+    }
+}
+
+/// The error for a path that cannot be opened or examined: a link loop in words ("Too many
+/// levels of symbolic links" does not say that the file is a link to itself), else the system's.
+pub(crate) fn read_error(path: &Path, e: std::io::Error) -> IoError {
+    if is_link_loop(&e) {
+        IoError::invalid(
+            path,
+            "file",
+            "is a symbolic link loop (its links lead back to themselves, never to a file)",
+        )
+    } else {
+        IoError::read(path, e)
     }
 }
 
@@ -423,7 +460,7 @@ pub fn load_scene(path: &Path, index: usize, opts: &LoadOptions) -> Result<Scene
 /// end), and a directory reached twice (a symlink loop, or two links to one directory) is
 /// walked once.
 pub fn discover(path: &Path) -> Result<Vec<PathBuf>, IoError> {
-    let meta = std::fs::metadata(path).map_err(|e| IoError::read(path, e))?;
+    let meta = std::fs::metadata(path).map_err(|e| read_error(path, e))?;
     if !meta.is_dir() {
         if !meta.is_file() {
             return Err(not_regular(path));
@@ -472,7 +509,7 @@ fn walk(
         let meta = match std::fs::metadata(&p) {
             Ok(m) => m,
             // A dangling link named like a scene is an error; anything else is not ours.
-            Err(e) if scene_like => return Err(IoError::read(&p, e)),
+            Err(e) if scene_like => return Err(read_error(&p, e)),
             Err(_) => continue,
         };
         if meta.is_dir() {
@@ -678,7 +715,7 @@ pub fn open_regular(path: &Path, max: u64, what: &str) -> Result<std::fs::File, 
         // Without it, opening a FIFO waits for a writer; reading a regular file ignores it.
         options.custom_flags(libc::O_NONBLOCK);
     }
-    let file = options.open(path).map_err(|e| IoError::read(path, e))?;
+    let file = options.open(path).map_err(|e| read_error(path, e))?;
     let meta = file.metadata().map_err(|e| IoError::read(path, e))?;
     if meta.is_dir() {
         return Err(IoError::invalid(
@@ -875,14 +912,46 @@ pub(crate) fn read_maybe_gz(path: &Path) -> Result<Vec<u8>, IoError> {
     const WHAT: &str = "a scene file";
     let raw = read_regular(path, MAX_SCENE_BYTES, WHAT)?;
     if path.extension().is_some_and(|e| e == "gz") {
+        if !raw.starts_with(&[0x1f, 0x8b]) {
+            return Err(not_gzip(path, &raw));
+        }
         let mut out = Vec::new();
         // Inflated as a stream, at most one byte past the cap: a small file can inflate to
         // gigabytes. Every member: `cat a.gz b.gz` (and pigz, bgzip) make valid multi-member
-        // files, of which a single-member decoder reads the first alone.
-        flate2::read::MultiGzDecoder::new(&raw[..])
-            .take(MAX_SCENE_BYTES + 1)
-            .read_to_end(&mut out)
-            .map_err(|e| IoError::invalid(path, "gzip stream", e.to_string()))?;
+        // files, of which a single-member decoder reads the first alone. Member by member
+        // rather than with a multi-member decoder, which takes junk after the last member for
+        // a damaged next one ("invalid gzip header", "unexpected end of file").
+        let mut rest = &raw[..];
+        while !rest.is_empty() {
+            let at = raw.len() - rest.len();
+            if !rest.starts_with(&[0x1f, 0x8b]) {
+                return Err(IoError::invalid(
+                    path,
+                    "file",
+                    format!(
+                        "{} bytes of trailing data after the gzip stream (which ends at byte \
+                         {at}): the file is damaged or was appended to",
+                        rest.len()
+                    ),
+                ));
+            }
+            let mut member = flate2::bufread::GzDecoder::new(rest);
+            (&mut member)
+                .take(MAX_SCENE_BYTES + 1 - out.len() as u64)
+                .read_to_end(&mut out)
+                .map_err(|e| {
+                    let place = if at == 0 {
+                        "gzip stream".to_string()
+                    } else {
+                        format!("gzip member at byte {at}")
+                    };
+                    IoError::invalid(path, place, e.to_string())
+                })?;
+            if out.len() as u64 > MAX_SCENE_BYTES {
+                break;
+            }
+            rest = member.into_inner();
+        }
         if out.len() as u64 > MAX_SCENE_BYTES {
             return Err(too_large(
                 path,
@@ -896,6 +965,41 @@ pub(crate) fn read_maybe_gz(path: &Path) -> Result<Vec<u8>, IoError> {
     } else {
         Ok(raw)
     }
+}
+
+/// The error for a `.gz` file that is not gzip-compressed: what it is instead, how it starts,
+/// and the name to give it (a plain XML file named `.xml.gz` is a common slip, and "invalid
+/// gzip header" does not say so).
+fn not_gzip(path: &Path, raw: &[u8]) -> IoError {
+    if raw.is_empty() {
+        return IoError::invalid(path, "file", "is empty: not gzip-compressed");
+    }
+    let head = &raw[..raw.len().min(16)];
+    let kind = classify(head);
+    let start = match kind {
+        Content::Json | Content::Xml | Content::Text => {
+            // Its first line, at most 16 bytes of it: enough to recognise.
+            let text = String::from_utf8_lossy(&raw[..raw.len().min(16)]);
+            let line = text.trim_start().lines().next().unwrap_or("").trim_end();
+            format!(" (starts with `{}`)", name::shown(line))
+        }
+        _ => String::new(),
+    };
+    let rename = path
+        .file_name()
+        .and_then(|n| n.to_str())
+        .and_then(|n| n.strip_suffix(".gz"))
+        .filter(|n| matches!(kind, Content::Xml | Content::Json | Content::Text) && !n.is_empty())
+        .map(|n| format!(": rename it to {}", name::shown(n)))
+        .unwrap_or_default();
+    IoError::invalid(
+        path,
+        "file",
+        format!(
+            "not gzip-compressed, it is {}{start}{rename}",
+            kind.describe()
+        ),
+    )
 }
 
 /// The largest scene or rollout file (plain or inflated) a reader takes, in bytes: CommonRoad,
@@ -1048,6 +1152,55 @@ mod tests {
         assert_eq!(
             super::read_regular_text(&p, 100, "a test file").unwrap(),
             "{\"a\": 1}"
+        );
+    }
+
+    #[test]
+    fn a_plain_file_named_gz_and_junk_after_the_stream_are_named_as_such() {
+        use std::io::Write;
+        let dir = tempfile::tempdir().unwrap();
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/samples");
+        let xml = std::fs::read(root.join("commonroad/USA_US101-3_3_T-1.xml")).unwrap();
+        let p = dir.path().join("plain.xml.gz");
+        std::fs::write(&p, &xml).unwrap();
+        let e = super::read_maybe_gz(&p).unwrap_err().to_string();
+        assert!(
+            e.contains("plain.xml.gz: file: not gzip-compressed, it is XML text")
+                && e.contains("(starts with `<commonRoad")
+                && e.contains("rename it to plain.xml"),
+            "{e}"
+        );
+        let p = dir.path().join("empty.xml.gz");
+        std::fs::write(&p, b"").unwrap();
+        let e = super::read_maybe_gz(&p).unwrap_err().to_string();
+        assert!(e.contains("empty.xml.gz: file: is empty"), "{e}");
+
+        let mut enc = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+        enc.write_all(&xml).unwrap();
+        let gz = enc.finish().unwrap();
+        // Short junk (which a multi-member decoder calls "unexpected end of file") and long
+        // junk ("invalid gzip header").
+        for junk in [&b"junk\n"[..], &[0u8; 100][..]] {
+            let p = dir.path().join("junk.xml.gz");
+            std::fs::write(&p, [&gz[..], junk].concat()).unwrap();
+            let e = super::read_maybe_gz(&p).unwrap_err().to_string();
+            assert!(
+                e.contains(&format!(
+                    "junk.xml.gz: file: {} bytes of trailing data after the gzip stream (which \
+                     ends at byte {})",
+                    junk.len(),
+                    gz.len()
+                )),
+                "{e}"
+            );
+        }
+        // A damaged second member is named by its place.
+        let p = dir.path().join("second.xml.gz");
+        std::fs::write(&p, [&gz[..], &gz[..20]].concat()).unwrap();
+        let e = super::read_maybe_gz(&p).unwrap_err().to_string();
+        assert!(
+            e.contains(&format!("second.xml.gz: gzip member at byte {}", gz.len())),
+            "{e}"
         );
     }
 

@@ -200,6 +200,12 @@ pub struct YamlRoad {
     pub lane_type: LaneType,
 }
 
+/// The narrowest and widest lane a generated road may have, metres (real lanes are about 2.5-5 m;
+/// the margins leave room for bicycle lanes and wide shoulders).
+pub const MIN_LANE_WIDTH: f64 = 0.5;
+/// See [`MIN_LANE_WIDTH`].
+pub const MAX_LANE_WIDTH: f64 = 20.0;
+
 fn default_lane_width() -> f64 {
     3.6
 }
@@ -548,13 +554,24 @@ fn road_parts(path: &Path, r: &YamlRoad) -> Result<(MapParts, FrenetPath), IoErr
     if r.lanes == 0 || r.segments == 0 {
         return Err(bad("road", "lanes and segments must be at least 1".into()));
     }
-    if !(r.length.is_finite() && r.length > 0.0 && r.lane_width.is_finite() && r.lane_width > 0.0) {
-        return Err(bad("road", "length and lane_width must be positive".into()));
+    if !(r.length.is_finite() && r.length > 0.0) {
+        return Err(bad("road", "length must be positive".into()));
     }
-    if r.length > 100_000.0 || r.lanes > 64 || r.lane_width > 50.0 || r.segments as f64 > r.length {
+    // A width no road has (1e-9 m, 40 m) is a typo or a unit mix-up, not a scene: accepted, it
+    // gives lanes that every car overlaps or that no car is ever "in".
+    if !(MIN_LANE_WIDTH..=MAX_LANE_WIDTH).contains(&r.lane_width) {
+        return Err(bad(
+            "road.lane_width",
+            format!(
+                "{} m is not a lane width: it must lie in {MIN_LANE_WIDTH}..={MAX_LANE_WIDTH} m",
+                crate::geom::num(r.lane_width)
+            ),
+        ));
+    }
+    if r.length > 100_000.0 || r.lanes > 64 || r.segments as f64 > r.length {
         return Err(bad(
             "road",
-            "at most 100 km long, 64 lanes, 50 m lane width and one segment per metre".into(),
+            "at most 100 km long, 64 lanes and one segment per metre".into(),
         ));
     }
     let max_offset = r.lanes as f64 * r.lane_width;
