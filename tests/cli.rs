@@ -3162,3 +3162,34 @@ fn a_file_name_with_escape_sequences_reaches_no_terminal() {
         assert!(!err.contains('\u{1b}'), "{cmd:?}: {err:?}");
     }
 }
+
+/// A long `--role` value is quoted cut, with its length, not echoed whole (clap's own "invalid
+/// value" line quoted all 5000 characters, and the parser's message again).
+#[test]
+fn a_long_role_value_is_quoted_cut_with_its_length() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let out = dir.path().join("x.svg");
+    for value in ["x".repeat(5000), format!("1={}", "x".repeat(5000))] {
+        // A usage error: clap's exit status 2, as for every other bad flag value.
+        let run = drivescript(&["render", s(&scene), "--role", &value, "-o", s(&out)]);
+        assert_eq!(run.status.code(), Some(2));
+        let err = String::from_utf8_lossy(&run.stderr).into_owned();
+        assert!(err.len() < 600, "{} bytes: {err}", err.len());
+        assert!(
+            err.contains("invalid value for '--role")
+                && err.contains(&format!("… ({} characters)", value.chars().count())),
+            "{err}"
+        );
+    }
+    let run = drivescript(&[
+        "render",
+        s(&scene),
+        "--role",
+        "1=cut\u{202E}ter",
+        "-o",
+        s(&out),
+    ]);
+    let err = String::from_utf8_lossy(&run.stderr).into_owned();
+    assert!(err.contains("1 to 32 printable characters"), "{err}");
+}

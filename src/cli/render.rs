@@ -4,6 +4,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::{bail, Context, Result};
+use drivescript::io::name::shown_counted;
 use drivescript::io::{
     check_output_not_input, check_replaces_own, load_scene, rollout::Rollout, write_atomic,
     LoadOptions,
@@ -28,25 +29,58 @@ pub struct Args {
     #[arg(long, default_value_t = 1000)]
     width: u32,
     /// Highlight an agent and label it with a role, ID=ROLE (e.g. 389=cutter); repeatable.
-    #[arg(long = "role", value_parser = parse_role)]
+    #[arg(long = "role", value_parser = RoleParser)]
     roles: Vec<(i64, String)>,
     /// Output: .svg, .png or .gif.
     #[arg(short, long)]
     output: PathBuf,
 }
 
+/// Parses `--role` values. Not a plain function parser: clap quotes the whole value in its
+/// "invalid value '…'" line, and a 5000-character value made a 10 KB message; this one says
+/// what is wrong quoting at most [`drivescript::io::name::QUOTED_CHARS`] characters of it.
+#[derive(Clone)]
+struct RoleParser;
+
+impl clap::builder::TypedValueParser for RoleParser {
+    type Value = (i64, String);
+
+    fn parse_ref(
+        &self,
+        cmd: &clap::Command,
+        arg: Option<&clap::Arg>,
+        value: &std::ffi::OsStr,
+    ) -> Result<Self::Value, clap::Error> {
+        parse_role(&value.to_string_lossy()).map_err(|e| {
+            let flag = arg
+                .map(|a| a.to_string())
+                .unwrap_or_else(|| "--role".into());
+            clap::Error::raw(
+                clap::error::ErrorKind::ValueValidation,
+                format!("invalid value for '{flag}': {e}\n"),
+            )
+            .with_cmd(cmd)
+        })
+    }
+}
+
 fn parse_role(s: &str) -> Result<(i64, String), String> {
+    let q = |v: &str| format!("'{}'", shown_counted(v));
     let (id, role) = s
         .split_once('=')
-        .ok_or_else(|| format!("{s:?}: expected ID=ROLE"))?;
+        .ok_or_else(|| format!("{}: expected ID=ROLE", q(s)))?;
     let id = id
         .trim()
         .parse()
-        .map_err(|_| format!("{s:?}: {id:?} is not an agent id"))?;
+        .map_err(|_| format!("{}: {} is not an agent id", q(s), q(id)))?;
     let role = role.trim();
-    if role.is_empty() || role.len() > 32 || role.chars().any(char::is_control) {
+    if role.is_empty()
+        || role.chars().count() > 32
+        || role.chars().any(drivescript::io::name::unshowable)
+    {
         return Err(format!(
-            "{s:?}: the role must be 1 to 32 printable characters"
+            "{}: the role must be 1 to 32 printable characters",
+            q(s)
         ));
     }
     Ok((id, role.to_string()))

@@ -78,6 +78,18 @@ pub fn shown(s: &str) -> String {
     out
 }
 
+/// [`shown`] with the length said where it cuts (`xxx… (5000 characters)`): for quoting a
+/// value the user typed in the message that refuses it, so that a 5000-character flag value is
+/// not echoed whole, yet the message says how long it was.
+pub fn shown_counted(s: &str) -> String {
+    let n = s.chars().count();
+    if n > QUOTED_CHARS {
+        format!("{} ({n} characters)", shown(s))
+    } else {
+        shown(s)
+    }
+}
+
 /// `s` as a terminal can show it whatever it holds: text a server, a reply or a file wrote,
 /// printed in a message or as progress. Every control character but the line break and the
 /// tab (an escape sequence clears the screen, retitles the window or writes the clipboard; a
@@ -129,5 +141,11 @@ mod tests {
         let long = shown(&"x".repeat(100_000));
         assert_eq!(long.chars().count(), QUOTED_CHARS + 1);
         assert!(long.ends_with('…'));
+        assert_eq!(shown_counted("a\nb"), "a\\u{000A}b");
+        let long = shown_counted(&"x".repeat(5000));
+        assert_eq!(
+            long,
+            format!("{}… (5000 characters)", "x".repeat(QUOTED_CHARS))
+        );
     }
 }
