@@ -1841,6 +1841,123 @@ fn cut_off_server(rst: bool) -> String {
 }
 
 #[test]
+fn a_redirect_to_another_server_is_not_followed_and_says_where_it_points() {
+    // Followed, a 307 sent the prompt to whatever host the server named (off the loopback
+    // interface too), a 302 turned the POST into a GET without its body, and the errors named
+    // only the URL the user gave ("cannot connect to ... at <the first server>").
+    let elsewhere = Server::start(vec![Canned::chat("from the other server")]);
+    let key = "sk-test-secret-redirect";
+    let with_key = |url: &str| {
+        let mut c = HttpConfig::new(url, "test-model");
+        c.key = Some(key.into());
+        HttpClient::new(c).unwrap()
+    };
+    let target = format!("{}/chat/completions", elsewhere.url);
+    let srv = Server::start(vec![
+        Canned::raw(307, "").header("Location", &target),
+        Canned::raw(302, "").header("Location", "/v2/chat/completions"),
+        Canned::raw(307, "").header("Location", &format!("http://127.0.0.1:1/x?key={key}")),
+    ]);
+    let c = with_key(&srv.url);
+    let e = ask_one(&c).map(|x| x.reply).unwrap_err().to_string();
+    assert!(
+        e.contains(&format!("(HTTP 307) to {target};")) && e.contains("--llm-url"),
+        "{e}"
+    );
+    assert!(elsewhere.received().is_empty(), "the redirect was followed");
+    let e = ask_one(&c).unwrap_err().to_string();
+    let port = srv.url.trim_end_matches("/v1");
+    assert!(
+        e.contains(&format!("(HTTP 302) to {port}/v2/chat/completions;")),
+        "{e}"
+    );
+    let e = ask_one(&c).unwrap_err().to_string();
+    assert!(
+        e.contains("to http://127.0.0.1:1/x;") && !e.contains(key),
+        "{e}"
+    );
+    assert_eq!(srv.received().len(), 3);
+    // A 307 or 308 on the same server keeps the request whole and is followed.
+    let moved = Server::start(vec![
+        Canned::raw(308, "").header("Location", "/v1/chat/completions?moved=1"),
+        Canned::chat("after the move"),
+    ]);
+    assert_eq!(
+        ask_one(&with_key(&moved.url)).unwrap().reply,
+        "after the move"
+    );
+    let got = moved.received();
+    assert_eq!(got[1].path, "/v1/chat/completions?moved=1");
+    assert_eq!(
+        (got[1].method.as_str(), got[1].json()["model"].as_str()),
+        ("POST", Some("test-model"))
+    );
+}
+
+#[test]
+fn compressed_empty_and_filtered_replies_say_what_they_are() {
+    // Quoted as "not JSON; it begins \u{1f}\u{8b}..." and "EOF while parsing; it begins \"\"";
+    // a filtered reply went back to the model as one without a ```rhai block.
+    let filtered = serde_json::json!({
+        "choices": [{"message": {"role": "assistant", "content": ""}, "finish_reason": "content_filter"}]
+    });
+    let srv = Server::start(vec![
+        Canned::raw(200, "\u{1f}binary").header("Content-Encoding", "gzip"),
+        Canned::raw(400, "\u{1f}binary").header("Content-Encoding", "br"),
+        Canned::raw(204, ""),
+        Canned::raw(200, &filtered.to_string()),
+        Canned::events(
+            vec![
+                r#"{"choices":[{"delta":{"content":"1. Ev"}}]}"#.into(),
+                r#"{"choices":[{"delta":{},"finish_reason":"content_filter"}]}"#.into(),
+                "[DONE]".into(),
+            ],
+            Duration::ZERO,
+        ),
+    ]);
+    let c = client(&srv.url);
+    let e = ask_one(&c).unwrap_err().to_string();
+    assert!(
+        e.contains("compressed (Content-Encoding: gzip)") && !e.contains('\u{1f}'),
+        "{e}"
+    );
+    let e = ask_one(&c).unwrap_err().to_string();
+    assert!(
+        e.contains("HTTP 400") && e.contains("(a body compressed as br, not read)"),
+        "{e}"
+    );
+    let e = ask_one(&c).unwrap_err().to_string();
+    assert!(e.contains("answered HTTP 204 with an empty body"), "{e}");
+    for kept in ["nothing of it came", "5 characters of it came"] {
+        let e = ask_one(&c).unwrap_err().to_string();
+        assert!(
+            e.contains("content filter stopped the reply") && e.contains(kept),
+            "{e}"
+        );
+    }
+}
+
+#[test]
+fn a_key_given_as_the_url_s_user_name_gets_into_no_message() {
+    // `http://KEY@host/v1` sends the key as the Basic token of "KEY:"; a server echoing it
+    // (as a token or decoded) put it on the terminal.
+    let srv = Server::start(vec![Canned::raw(
+        400,
+        r#"{"error": {"message": "bad credentials Basic c2stdXNlci1rZXktMTIzOg== (sk-user-key-123)"}}"#,
+    )]);
+    let url = srv.url.replace("http://", "http://sk-user-key-123@");
+    let e = ask_one(&client(&url)).unwrap_err().to_string();
+    assert_eq!(
+        srv.received()[0].header("authorization"),
+        Some("Basic c2stdXNlci1rZXktMTIzOg==")
+    );
+    assert!(
+        e.contains("bad credentials Basic [redacted] ([redacted])"),
+        "{e}"
+    );
+}
+
+#[test]
 fn a_connection_reset_in_the_middle_of_the_body_is_a_reset_with_the_url_at_once() {
     for rst in [true, false] {
         let url = cut_off_server(rst);

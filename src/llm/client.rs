@@ -171,6 +171,13 @@ impl HttpConfig {
                 // As the HTTP library sends it, in an `Authorization: Basic` header.
                 let pair = format!("{}:{}", percent_decode(u.username()), percent_decode(p));
                 out.push(base64(pair.as_bytes()));
+            } else if !u.username().is_empty() {
+                // `http://KEY@host/v1`: with no password the user name is the credential, and
+                // travels as the `Basic` token of "KEY:".
+                let user = percent_decode(u.username());
+                out.push(base64(format!("{user}:").as_bytes()));
+                out.push(user);
+                out.push(u.username().to_string());
             }
             for s in password.into_iter().chain(query) {
                 out.push(percent_decode(&s));
@@ -389,6 +396,7 @@ impl HttpClient {
         let http = reqwest::blocking::Client::builder()
             .connect_timeout(cfg.connect_timeout)
             .timeout(cfg.read_timeout)
+            .redirect(reqwest::redirect::Policy::custom(follow_redirect))
             .build()
             .map_err(|e| LlmError::Setup(format!("HTTP client: {e}")))?;
         Ok(Self {
@@ -440,6 +448,17 @@ impl HttpClient {
         clock: &ReplyClock,
     ) -> Result<Completion, LlmError> {
         use std::io::BufRead;
+        if let Some(encoding) = compressed(&resp) {
+            return Err(LlmError::BadReply {
+                url: url.into(),
+                message: format!(
+                    "the server sent the reply compressed (Content-Encoding: {encoding}), though \
+                     the request asks for no compression (it sends no Accept-Encoding): a proxy \
+                     between may be compressing it; turn that off, or point --llm-url past it"
+                ),
+            });
+        }
+        let status = resp.status().as_u16();
         let content_type = resp
             .headers()
             .get(reqwest::header::CONTENT_TYPE)
@@ -451,6 +470,15 @@ impl HttpClient {
             .map_err(|e| read_error(&e, url, &self.cfg, clock, 0))?;
         if !(self.cfg.stream && super::stream::is_event_stream(content_type.as_deref(), head)) {
             let text = self.redact(&read_body(body, url, &self.cfg, clock)?);
+            if text.trim().is_empty() {
+                return Err(LlmError::BadReply {
+                    url: url.into(),
+                    message: format!(
+                        "the server answered HTTP {status} with an empty body, no completion: is \
+                         the URL an OpenAI-compatible chat-completions API (it usually ends in /v1)?"
+                    ),
+                });
+            }
             return parse_completion(&text, url).map_err(|e| self.redact_error(e));
         }
         let observe = |e: ClientEvent<'_>| {
@@ -565,6 +593,13 @@ impl HttpClient {
                 .and_then(|v| v.to_str().ok())
                 .and_then(|v| v.trim().parse::<f64>().ok())
                 .filter(|s| s.is_finite() && *s >= 0.0);
+            if let Some(location) = resp
+                .headers()
+                .get(reqwest::header::LOCATION)
+                .filter(|_| (300..400).contains(&status))
+            {
+                return Err(self.redirect_error(&shown, status, resp.url(), location));
+            }
             if (200..300).contains(&status) {
                 let got = self.read_completion(resp, &shown, &clock)?;
                 self.check_context(&shown, estimate, got.usage, got.fingerprint.as_deref())?;
@@ -581,13 +616,19 @@ impl HttpClient {
                     truncated: got.truncated,
                 });
             }
-            let text = self.redact(&read_body(
-                clock.reader(resp, false),
-                &shown,
-                &self.cfg,
-                &clock,
-            )?);
-            let message = self.redact(&error_message(&text));
+            let message = match compressed(&resp) {
+                // Its bytes quoted as text say nothing.
+                Some(encoding) => format!("(a body compressed as {encoding}, not read)"),
+                None => {
+                    let text = self.redact(&read_body(
+                        clock.reader(resp, false),
+                        &shown,
+                        &self.cfg,
+                        &clock,
+                    )?);
+                    self.redact(&error_message(&text))
+                }
+            };
             let retryable = status == 429 || (500..600).contains(&status);
             if !retryable {
                 return Err(match status {
@@ -644,6 +685,39 @@ impl HttpClient {
         }
         unreachable!("the last attempt returns")
     }
+}
+
+/// Which redirects the client follows: a 307 or 308 (which keep the method and the body) to
+/// the same scheme, host and port, at most 4 in a row. Any other answers as it is, and
+/// [`HttpClient::complete`] says where it points: followed, a redirect sent the prompt (and,
+/// to the same host, the key) wherever a server named, off the loopback interface too, and a
+/// 301, 302 or 303 turned the request into a GET without its body, answered by an error that
+/// named only the URL the user gave.
+fn follow_redirect(attempt: reqwest::redirect::Attempt<'_>) -> reqwest::redirect::Action {
+    let origin = |u: &reqwest::Url| {
+        (
+            u.scheme().to_string(),
+            u.host_str().map(str::to_string),
+            u.port_or_known_default(),
+        )
+    };
+    let same = attempt
+        .previous()
+        .last()
+        .is_some_and(|p| origin(p) == origin(attempt.url()));
+    if same && matches!(attempt.status().as_u16(), 307 | 308) && attempt.previous().len() <= 4 {
+        attempt.follow()
+    } else {
+        attempt.stop()
+    }
+}
+
+/// The body's `Content-Encoding` where it is not plain bytes (the request asks for none, so
+/// only a misbehaving server or proxy compresses), shown safely and cut.
+fn compressed(resp: &reqwest::blocking::Response) -> Option<String> {
+    let v = resp.headers().get(reqwest::header::CONTENT_ENCODING)?;
+    let v = String::from_utf8_lossy(v.as_bytes()).trim().to_string();
+    (!v.is_empty() && !v.eq_ignore_ascii_case("identity")).then(|| crate::io::name::shown(&v))
 }
 
 /// The most a reply body may hold: a completion is a few KB; an endless body (a broken or
@@ -792,6 +866,40 @@ impl HttpClient {
             .fold(text.to_string(), |t, s| redact_key(&t, Some(s)))
     }
 
+    /// A redirect the client did not follow ([`follow_redirect`]), with where it points
+    /// (resolved against the URL that answered, its credentials and query left out).
+    fn redirect_error(
+        &self,
+        url: &str,
+        status: u16,
+        answered: &reqwest::Url,
+        location: &reqwest::header::HeaderValue,
+    ) -> LlmError {
+        let raw = String::from_utf8_lossy(location.as_bytes()).into_owned();
+        let target = match answered.join(raw.trim()) {
+            Ok(t) => {
+                let loop_note = if t == *answered {
+                    " (itself: a redirect loop)"
+                } else {
+                    ""
+                };
+                format!("{}{loop_note}", redact_url(t.as_str()))
+            }
+            Err(_) => format!("{:?}, not a URL", redact_url(&raw)),
+        };
+        // A URL holds no control character (the parser escapes them); a huge header is cut.
+        let whole = self.redact(&target);
+        let mut location: String = whole.chars().take(300).collect();
+        if location.len() < whole.len() {
+            location.push('…');
+        }
+        LlmError::Redirect {
+            url: url.into(),
+            status,
+            location,
+        }
+    }
+
     fn redact_error(&self, e: LlmError) -> LlmError {
         let r = |m: String| self.redact(&m);
         match e {
@@ -877,6 +985,21 @@ pub fn error_message(body: &str) -> String {
     }
 }
 
+/// What a reply the server's content filter stopped (`finish_reason: "content_filter"`) is
+/// called: the model's words were withheld, so sending them back to it as an unusable reply
+/// ("no ```rhai block") would blame it and ask again for what the filter stops.
+pub fn content_filtered(chars: usize) -> String {
+    let kept = match chars {
+        0 => "nothing of it came".to_string(),
+        n => format!("{n} characters of it came"),
+    };
+    format!(
+        "the server's content filter stopped the reply (finish_reason \"content_filter\"); \
+         {kept}: `drivescript ask --resume DIR` asks again (where the filter stops every answer, \
+         reword the request or use a model or deployment without that filter)"
+    )
+}
+
 /// What a successful reply body says.
 #[derive(Debug, Clone, PartialEq)]
 struct Completion {
@@ -925,6 +1048,9 @@ fn parse_completion(text: &str, url: &str) -> Result<Completion, LlmError> {
             }
         },
     };
+    if first["finish_reason"].as_str() == Some("content_filter") {
+        return Err(bad(content_filtered(content.chars().count())));
+    }
     let usage = v
         .get("usage")
         .and_then(|u| serde_json::from_value::<Usage>(u.clone()).ok());

@@ -149,6 +149,22 @@ pub enum LlmError {
         /// The server's message.
         message: String,
     },
+    /// A redirect the client does not follow (another server, or one that turns the request
+    /// into a GET).
+    #[error(
+        "{url}: the server redirects the request (HTTP {status}) to {location}; drivescript \
+         follows only a 307 or 308 on the same server (a redirect elsewhere would take the \
+         prompt, and the key, where the server says): if that is the LLM server, point \
+         --llm-url (or DRIVESCRIPT_LLM_URL) at it"
+    )]
+    Redirect {
+        /// The endpoint, without credentials.
+        url: String,
+        /// HTTP status of the redirect.
+        status: u16,
+        /// Where it points, without credentials or query.
+        location: String,
+    },
     /// A successful status with a body that is not a completion.
     #[error("{url}: unusable reply: {message}")]
     BadReply {

@@ -191,6 +191,11 @@ pub fn read_stream<R: Read>(
             tick(out.tokens + out.reasoning, Some(t.elapsed()));
         }
         if let Some(reason) = choice["finish_reason"].as_str() {
+            if reason == "content_filter" {
+                return Err(bad(super::client::content_filtered(
+                    out.content.chars().count(),
+                )));
+            }
             finished = true;
             out.truncated |= reason == "length";
         }
