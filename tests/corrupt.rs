@@ -1443,6 +1443,69 @@ fn run_within(args: &[&str], secs: u64) -> (Option<i32>, String) {
 }
 
 #[cfg(unix)]
+#[test]
+fn a_dangling_link_is_named_as_such_wherever_a_file_is_read() {
+    // "x.xml: No such file or directory (os error 2)" of a name `ls` lists.
+    let dir = tempfile::tempdir().unwrap();
+    let gone = dir.path().join("gone");
+    let link = |name: &str| {
+        let p = dir.path().join(name);
+        std::os::unix::fs::symlink(&gone, &p).unwrap();
+        p
+    };
+    let scene = link("x.xml");
+    let script = link("x.rhai");
+    let prompts = dir.path().join("prompts");
+    copy_dir(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("prompts"),
+        &prompts,
+    );
+    let example = prompts.join("examples/zz.md");
+    std::os::unix::fs::symlink(&gone, &example).unwrap();
+    let yaml = samples().join("yaml/highway_cut_in.yaml");
+    for (args, name) in [
+        (vec!["inspect", s(&scene)], &scene),
+        (vec!["cost", s(&yaml), "--script", s(&script)], &script),
+        (
+            vec![
+                "prompt",
+                "show",
+                s(&yaml),
+                "vehicle 2 cuts in front of vehicle 1",
+                "--prompts",
+                s(&prompts),
+            ],
+            &example,
+        ),
+    ] {
+        let (code, err) = run_within(&args, 60);
+        assert_eq!(code, Some(1), "{args:?}: {err}");
+        assert!(
+            err.contains(&name.display().to_string())
+                && err.contains(&format!(
+                    "is a symbolic link to {}, which does not exist",
+                    gone.display()
+                ))
+                && !err.contains("No such file"),
+            "{args:?}: {err}"
+        );
+    }
+}
+
+#[cfg(unix)]
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &to.join(e.file_name()));
+        } else {
+            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+        }
+    }
+}
+
+#[cfg(unix)]
 fn mkfifo(path: &Path) -> bool {
     std::process::Command::new("mkfifo")
         .arg(path)

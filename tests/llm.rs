@@ -721,6 +721,63 @@ fn the_manual_backend_round_trips_through_files() {
 }
 
 #[test]
+fn a_run_started_with_relative_paths_resumes_from_another_directory() {
+    // state.json kept the scene and the prompts as typed; `--resume` from any other directory
+    // said "the scene ... changed (or went) since the run started ...; start a new run on it".
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let out = ask(
+        &[
+            &format!("data/samples/{SCENE}"),
+            REQUEST,
+            "-o",
+            s(&run),
+            "--llm",
+            "manual",
+            "--rounds",
+            "0",
+            "--samples",
+            "1",
+        ],
+        None,
+    );
+    assert_eq!(out.status.code(), Some(0), "{}", text(&out));
+    std::fs::write(
+        run.join("round_0/reply.md"),
+        reply(&cut_in_script(401, 399)),
+    )
+    .unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_drivescript"))
+        .args(["ask", "--resume", s(&run)])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    assert!(t.contains("round 0: sample 0"), "{t}");
+    // A run recorded before paths were absolute says where to run it from.
+    let state = run.join("state.json");
+    let mut v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&state).unwrap()).unwrap();
+    v["scene"] = format!("data/samples/{SCENE}").into();
+    std::fs::write(&state, v.to_string()).unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_drivescript"))
+        .args(["ask", "--resume", s(&run)])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains(&format!(
+            "the scene data/samples/{SCENE} is not found from {}: the run recorded it relative",
+            dir.path().display()
+        )),
+        "{t}"
+    );
+}
+
+#[test]
 fn the_rules_planner_is_the_default_without_an_llm_and_follow_ups_revise_its_run() {
     let dir = tempfile::tempdir().unwrap();
     let d = s(dir.path());
@@ -1390,6 +1447,23 @@ fn errors_about_an_entry_inside_a_run_directory_name_that_entry() {
             "{t}"
         );
         std::fs::remove_file(&link).unwrap();
+    }
+    // A reply saved as a link that leads nowhere ("run directory DIR: ...: No such file or
+    // directory" of a name `ls` lists).
+    #[cfg(unix)]
+    {
+        let reply = r0.join("reply.md");
+        std::os::unix::fs::symlink(dir.path().join("gone.md"), &reply).unwrap();
+        let t = resume();
+        assert!(
+            t.contains(&format!(
+                "{}: cannot read the reply (is a symbolic link to {}, which does not exist)",
+                reply.display(),
+                dir.path().join("gone.md").display()
+            )),
+            "{t}"
+        );
+        std::fs::remove_file(&reply).unwrap();
     }
     // A damaged state.json, and one that cannot be read as a file.
     let state = run.join("state.json");

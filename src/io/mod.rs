@@ -150,7 +150,18 @@ impl IoError {
         }
     }
 
+    /// A file that could not be opened or read; a dangling symbolic link is said to be one
+    /// (the OS says "No such file or directory" of a name `ls` lists).
     pub(crate) fn read(path: &Path, source: std::io::Error) -> Self {
+        if source.kind() == std::io::ErrorKind::NotFound {
+            if let Some(to) = dangling_link(path) {
+                return IoError::invalid(
+                    path,
+                    "file",
+                    format!("is a symbolic link to {to}, which does not exist"),
+                );
+            }
+        }
         IoError::Read {
             path: path.display().to_string(),
             source,
@@ -249,6 +260,16 @@ fn is_link_loop(e: &std::io::Error) -> bool {
 
 /// The error for a path that cannot be opened or examined: a link loop in words ("Too many
 /// levels of symbolic links" does not say that the file is a link to itself), else the system's.
+/// Where `path` is a symbolic link that leads to nothing, what it points at (shown safely).
+pub fn dangling_link(path: &Path) -> Option<String> {
+    let link = std::fs::symlink_metadata(path).ok()?;
+    if !link.file_type().is_symlink() || std::fs::metadata(path).is_ok() {
+        return None;
+    }
+    let to = std::fs::read_link(path).ok()?;
+    Some(name::terminal_safe(&to.display().to_string()))
+}
+
 pub(crate) fn read_error(path: &Path, e: std::io::Error) -> IoError {
     if is_link_loop(&e) {
         IoError::invalid(

@@ -957,7 +957,8 @@ impl Batch<'_> {
                 }
             },
             |path| {
-                if path == inst.scene_path {
+                // Recorded absolute (runs before that as given): compared as such.
+                if super::session::absolute(path) == super::session::absolute(&inst.scene_path) {
                     Ok(inst.scene.clone())
                 } else {
                     Err(other(format!("the scene {}", path.display())))

@@ -523,6 +523,30 @@ fn scene_fingerprint(path: &Path) -> Option<u32> {
         .map(|b| crate::io::tfrecord::crc32c(&b))
 }
 
+/// `path` made absolute against the working directory, as `state.json` records the scene and
+/// the prompts: recorded as typed (`data/samples/x.xml`), they were looked for again under
+/// the directory `--resume` ran in, and a run resumed from any other was refused as if its
+/// scene had changed ("start a new run on it").
+pub fn absolute(path: &Path) -> PathBuf {
+    std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf())
+}
+
+/// Where a path the run recorded relative to the directory it started in (runs written before
+/// paths were recorded absolute) is not found from this one: the words that say so.
+fn relative_and_absent(path: &Path) -> Option<String> {
+    if path.is_absolute() || std::fs::symlink_metadata(path).is_ok() {
+        return None;
+    }
+    let here = std::env::current_dir()
+        .map(|d| d.display().to_string())
+        .unwrap_or_else(|_| "the current directory".into());
+    Some(format!(
+        "{} is not found from {here}: the run recorded it relative to the directory it was \
+         started in; run the command from there",
+        path.display()
+    ))
+}
+
 fn run_err(dir: &Path, message: impl Into<String>) -> LlmError {
     LlmError::Run {
         dir: dir.to_path_buf(),
@@ -914,14 +938,14 @@ impl<'a> Session<'a> {
             dir: dir.to_path_buf(),
             state: State {
                 version: STATE_VERSION,
-                scene: scene_path.to_path_buf(),
+                scene: absolute(scene_path),
                 scene_crc32c: scene_fingerprint(scene_path),
                 requests,
                 backend: backend.name().into(),
                 model,
                 url,
                 config,
-                prompts: prompts.dir().to_path_buf(),
+                prompts: absolute(prompts.dir()),
                 checks: checks
                     .iter()
                     .map(|(b, p)| StoredCheck {
@@ -1013,6 +1037,12 @@ impl<'a> Session<'a> {
             )
         })?;
         let state = read_state(&text).map_err(|m| file_err(&p, m))?;
+        if let Some(why) = relative_and_absent(&state.scene)
+            .map(|w| format!("the scene {w}"))
+            .or_else(|| relative_and_absent(&state.prompts).map(|w| format!("the prompts {w}")))
+        {
+            return Err(run_err(dir, why));
+        }
         if let Some(was) = state.scene_crc32c {
             if scene_fingerprint(&state.scene) != Some(was) {
                 return Err(run_err(
@@ -2012,12 +2042,11 @@ impl Session<'_> {
                 // A reply saved but unreadable (UTF-16 from an editor, a link to a device, too
                 // large) is said: "waiting for a reply" would send the user to save it again.
                 Err(e) if reply.symlink_metadata().is_ok() => {
-                    return Err(run_err(
-                        &self.dir,
+                    return Err(file_err(
+                        &reply,
                         format!(
-                            "{}: cannot read the reply ({}): save the model's answer there as \
-                             UTF-8 text, then --resume",
-                            reply.display(),
+                            "cannot read the reply ({}): save the model's answer there as UTF-8 \
+                             text, then --resume",
                             e.reason()
                         ),
                     ))
