@@ -114,6 +114,32 @@ impl Edit {
                 ));
             }
         }
+        // Finite but far beyond any map (`lateral: 1e300`) made the candidate's positions
+        // infinite, reported as the script's "term ... is inf".
+        let near = |field: &str, v: f64| {
+            if v.abs() > crate::geom::MAX_COORD {
+                Err(format!(
+                    "`{field}` is {}: farther than {:e} m, beyond any map",
+                    crate::geom::num(v),
+                    crate::geom::MAX_COORD
+                ))
+            } else {
+                Ok(())
+            }
+        };
+        if let Some(d) = self.lateral {
+            near("lateral", d)?;
+        }
+        if let Some([dx, dy]) = self.shift {
+            near("shift", dx)?;
+            near("shift", dy)?;
+        }
+        if let Some([amp, _]) = self.sway {
+            near("sway amplitude", amp)?;
+        }
+        if self.lateral.is_none() && self.shift.is_none() && self.sway.is_none() && !self.freeze {
+            return Err("it changes nothing: give lateral, shift, sway or freeze".into());
+        }
         finite("from", self.from)?;
         finite("ramp", self.ramp)?;
         if self.ramp < 0.0 {
@@ -176,6 +202,49 @@ pub struct Allows {
 }
 
 impl Expect {
+    /// Refuses an expectation that cannot fail or cannot pass whatever the script does: a
+    /// threshold that is not a finite number (`total_below: .inf` passes always, `.nan`
+    /// never), a `towards` direction of zero length (its descent is NaN), an empty `error`
+    /// (every message contains it).
+    fn check(&self) -> Result<(), String> {
+        let finite = |field: String, v: f64| {
+            if v.is_finite() {
+                Ok(())
+            } else {
+                Err(format!("`{field}` is {v}: a threshold is a finite number"))
+            }
+        };
+        if let Some(v) = self.total_below {
+            finite("total_below".into(), v)?;
+        }
+        if let Some(v) = self.total_above {
+            finite("total_above".into(), v)?;
+        }
+        for (k, v) in &self.terms_below {
+            finite(format!("terms_below.{}", crate::io::name::shown(k)), *v)?;
+        }
+        for (k, v) in &self.terms_above {
+            finite(format!("terms_above.{}", crate::io::name::shown(k)), *v)?;
+        }
+        if let Some(t) = &self.towards {
+            let [dx, dy] = t.direction;
+            if !(dx.is_finite() && dy.is_finite()) || dx == 0.0 && dy == 0.0 {
+                return Err(format!(
+                    "`towards.direction` is [{}, {}]: a direction is two finite numbers, not both 0",
+                    crate::geom::num(dx),
+                    crate::geom::num(dy)
+                ));
+            }
+        }
+        if self.error.as_deref().is_some_and(|e| e.trim().is_empty()) {
+            return Err(
+                "`error` is empty: every message contains it; give a part of the message expected"
+                    .into(),
+            );
+        }
+        Ok(())
+    }
+
     /// Whether the case would pass whatever the script does (`expect: {}`).
     pub fn checks_nothing(&self) -> bool {
         self.total_below.is_none()
@@ -238,9 +307,29 @@ pub const MAX_TEST_FILE_BYTES: u64 = 1 << 20;
 
 /// Test files (`*.test.yaml`) under the given files or directories, sorted.
 pub fn find_test_files(roots: &[PathBuf]) -> Result<Vec<PathBuf>, ScriptTestError> {
+    let mut seen = std::collections::HashSet::new();
     let mut out = Vec::new();
+    find_in(roots, &mut seen, &mut out)?;
+    Ok(out)
+}
+
+/// [`find_test_files`] walking each directory once: a link back to a directory above (`ln -s
+/// . loop`) ran and counted every test of it 41 times, once per link the OS follows before it
+/// gives up.
+fn find_in(
+    roots: &[PathBuf],
+    seen: &mut std::collections::HashSet<PathBuf>,
+    out: &mut Vec<PathBuf>,
+) -> Result<(), ScriptTestError> {
     for r in roots {
         if r.is_dir() {
+            let canonical = std::fs::canonicalize(r).map_err(|e| ScriptTestError::Read {
+                path: r.display().to_string(),
+                message: e.to_string(),
+            })?;
+            if !seen.insert(canonical) {
+                continue;
+            }
             let mut entries: Vec<PathBuf> = std::fs::read_dir(r)
                 .map_err(|e| ScriptTestError::Read {
                     path: r.display().to_string(),
@@ -251,7 +340,7 @@ pub fn find_test_files(roots: &[PathBuf]) -> Result<Vec<PathBuf>, ScriptTestErro
             entries.sort();
             for p in entries {
                 if p.is_dir() {
-                    out.extend(find_test_files(&[p])?);
+                    find_in(&[p], seen, out)?;
                 } else if p.to_string_lossy().ends_with(".test.yaml") {
                     out.push(p);
                 }
@@ -265,7 +354,7 @@ pub fn find_test_files(roots: &[PathBuf]) -> Result<Vec<PathBuf>, ScriptTestErro
             });
         }
     }
-    Ok(out)
+    Ok(())
 }
 
 fn param_args(params: &BTreeMap<String, serde_yaml::Value>) -> Vec<String> {
@@ -282,6 +371,25 @@ fn param_args(params: &BTreeMap<String, serde_yaml::Value>) -> Vec<String> {
             format!("{k}={v}")
         })
         .collect()
+}
+
+/// Refuses an edit of `scene`'s candidate that names no agent of it, or that starts after its
+/// last future step: it changed nothing, and the case ran on the unedited future.
+fn check_edit(scene: &Scene, e: &Edit) -> Result<(), String> {
+    if !scene.agents.iter().any(|x| x.id == e.agent) {
+        return Err(format!("edit: no agent {}", e.agent));
+    }
+    let last = super::VarLayout::of(scene).steps as f64 * scene.meta.dt;
+    if !e.freeze && e.sway.is_none() && e.from > last {
+        return Err(format!(
+            "edit of agent {} starts {} s after the current step, after the last future step \
+             ({} s): it changes nothing",
+            e.agent,
+            crate::geom::num(e.from),
+            crate::geom::num(last)
+        ));
+    }
+    Ok(())
 }
 
 fn apply_edit(scene: &Scene, traj: &mut Trajectories, e: &Edit) -> Result<(), String> {
@@ -349,6 +457,9 @@ impl Runner {
         c: &TestCase,
     ) -> Result<(bool, String), String> {
         let scene = self.scene(&dir.join(&c.scene))?;
+        for e in &c.edits {
+            check_edit(&scene, e)?;
+        }
         let params = Params::parse(&param_args(&c.params)).map_err(|e| e.to_string())?;
         let name = script_path.display().to_string();
         let outcome: Result<(CostScript, CostReport, Trajectories), CostError> = (|| {
@@ -523,6 +634,13 @@ impl Runner {
             fail(moved == 0.0, format!("agent {id} gets no gradient"));
         }
         if let Some(want) = &x.allows {
+            let named = want.reverse.iter().chain(want.collide.iter().flatten());
+            if let Some(absent) = named
+                .clone()
+                .find(|&&i| !scene.agents.iter().any(|z| z.id == i))
+            {
+                return Err(format!("allows: no agent {absent}"));
+            }
             let id = |i: usize| scene.agents[i].id;
             let mut got_rev: Vec<i64> = report.may_reverse.iter().map(|&i| id(i)).collect();
             let mut got_col: Vec<[i64; 2]> = report
@@ -597,6 +715,9 @@ pub fn run_test_file(path: &Path) -> Result<Vec<CaseResult>, ScriptTestError> {
         )));
     }
     for c in &file.cases {
+        c.expect
+            .check()
+            .map_err(|m| invalid(format!("case {:?}: expect: {m}", c.name)))?;
         for (k, e) in c.edits.iter().enumerate() {
             e.check().map_err(|m| {
                 invalid(format!(
@@ -666,6 +787,16 @@ mod tests {
             ("{agent: 2, lateral: .inf}", "`lateral` is inf"),
             ("{agent: 2, shift: [0, .nan]}", "`shift` is NaN"),
             ("{agent: 2, lateral: 1, ramp: -1}", "`ramp` is -1"),
+            // Made the positions infinite, blamed on the script ("term ... is inf").
+            (
+                "{agent: 2, lateral: 1e300}",
+                "`lateral` is 1e300: farther than 1e7 m",
+            ),
+            ("{agent: 2, shift: [0, -2e7]}", "`shift` is -2e7: farther"),
+            (
+                "{agent: 2, from: 1}",
+                "changes nothing: give lateral, shift, sway or freeze",
+            ),
         ] {
             let t = dir.path().join("x.test.yaml");
             std::fs::write(
@@ -685,6 +816,102 @@ mod tests {
                 "{edit}: {e}"
             );
         }
+    }
+
+    /// `run_test_file` on one case of accident.rhai on the highway with `rest` (edits and
+    /// expect lines).
+    fn accident_case(dir: &Path, rest: &str) -> Result<Vec<CaseResult>, ScriptTestError> {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts");
+        let t = dir.join("x.test.yaml");
+        std::fs::write(
+            &t,
+            format!(
+                "script: {}\ncases:\n  - name: c\n    scene: {}\n    params: {{attacker: 4, target: 2}}\n{rest}",
+                root.join("accident.rhai").display(),
+                root.join("scenes/highway.yaml").display()
+            ),
+        )
+        .unwrap();
+        run_test_file(&t)
+    }
+
+    #[test]
+    fn expectations_that_cannot_fail_or_pass_are_refused_before_the_case_runs() {
+        // `total_below: .inf` passed whatever the script did, `.nan` failed whatever it did,
+        // a zero direction gave a NaN descent, an empty `error` matched every message.
+        let dir = tempfile::tempdir().unwrap();
+        for (expect, want) in [
+            (
+                "{total_below: .inf}",
+                "`total_below` is inf: a threshold is a finite number",
+            ),
+            ("{total_above: .nan}", "`total_above` is NaN"),
+            (
+                "{terms_below: {contact: -.inf}}",
+                "`terms_below.contact` is -inf",
+            ),
+            (
+                "{terms_above: {contact: .nan}}",
+                "`terms_above.contact` is NaN",
+            ),
+            (
+                "{towards: {agent: 4, direction: [0, 0]}}",
+                "`towards.direction` is [0, 0]: a direction is two finite numbers, not both 0",
+            ),
+            ("{error: \"\"}", "`error` is empty"),
+        ] {
+            let e = accident_case(dir.path(), &format!("    expect: {expect}\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("x.test.yaml: case \"c\": expect: ") && e.contains(want),
+                "{expect}: {e}"
+            );
+        }
+    }
+
+    #[test]
+    fn an_edit_after_the_horizon_or_an_allowance_for_an_absent_agent_is_an_error() {
+        // The edit changed nothing and the case passed on the unedited future; an absent agent
+        // in `allows` failed as "FAILED allows exactly reverse [424242]".
+        let dir = tempfile::tempdir().unwrap();
+        let r = accident_case(
+            dir.path(),
+            "    edits: [{agent: 4, shift: [5, 0], from: 1e9}]\n    expect: {total_above: 10}\n",
+        )
+        .unwrap();
+        assert!(
+            !r[0].passed
+                && r[0].detail.contains(
+                    "case could not run: edit of agent 4 starts 1e9 s after the current step, \
+                     after the last future step (7 s)"
+                )
+                && r[0].detail.contains("it changes nothing"),
+            "{}",
+            r[0].detail
+        );
+        let r = accident_case(
+            dir.path(),
+            "    expect: {allows: {collide: [[4, 2]], reverse: [424242]}}\n",
+        )
+        .unwrap();
+        assert!(
+            !r[0].passed && r[0].detail.contains("allows: no agent 424242"),
+            "{}",
+            r[0].detail
+        );
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_link_loop_in_a_test_directory_is_walked_once() {
+        // `ln -s . loop` found (and ran, and counted) every test 41 times.
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("a.test.yaml"), "").unwrap();
+        std::os::unix::fs::symlink(".", dir.path().join("loop")).unwrap();
+        std::os::unix::fs::symlink(dir.path(), dir.path().join("again")).unwrap();
+        let found = find_test_files(&[dir.path().to_path_buf()]).unwrap();
+        assert_eq!(found, vec![dir.path().join("a.test.yaml")]);
     }
 
     #[test]
