@@ -82,6 +82,15 @@ pub fn read_batch(path: &Path) -> Result<Vec<Entry>, LlmError> {
         .map_err(|e| bad(path, format!("cannot read the batch file: {}", e.reason())))?;
     let v: serde_yaml::Value =
         serde_yaml::from_str(&text).map_err(|e| bad(path, format!("not YAML: {e}")))?;
+    if !v.is_mapping() {
+        return Err(bad(
+            path,
+            "not a batch file: it holds `scenes:` and an `entries:` list, each entry with its \
+             `request:`"
+                .into(),
+        ));
+    }
+    unknown_key(&v, &["scenes", "entries"]).map_err(|m| bad(path, m))?;
     let base = path.parent().unwrap_or(Path::new("."));
     let paths = |v: &serde_yaml::Value, what: &str| -> Result<Vec<PathBuf>, LlmError> {
         match v {
@@ -134,6 +143,7 @@ pub fn read_batch(path: &Path) -> Result<Vec<Entry>, LlmError> {
     for (k, e) in entries.iter().enumerate() {
         let line = item_lines.get(k).copied().unwrap_or(0);
         let at = |m: String| bad(path, format!("entry {} (line {line}): {m}", k + 1));
+        unknown_key(e, &["request", "scene", "behaviour", "params"]).map_err(at)?;
         let request = e["request"]
             .as_str()
             .ok_or_else(|| at("`request:` (text) is missing".into()))?
@@ -180,6 +190,51 @@ pub fn read_batch(path: &Path) -> Result<Vec<Entry>, LlmError> {
         });
     }
     Ok(out)
+}
+
+/// A key of the mapping `v` that is not one of `known`, as an error naming it (and the key
+/// meant, for the likely slips): a misspelt key was dropped without a word (`behavior:` ran the
+/// entry without its checker, `parms:` with default parameters).
+fn unknown_key(v: &serde_yaml::Value, known: &[&str]) -> Result<(), String> {
+    let Some(map) = v.as_mapping() else {
+        return Ok(());
+    };
+    for k in map.keys() {
+        let name = match k {
+            serde_yaml::Value::String(s) => s.clone(),
+            other => serde_yaml::to_string(other)
+                .unwrap_or_default()
+                .trim()
+                .to_string(),
+        };
+        if known.contains(&name.as_str()) {
+            continue;
+        }
+        let meant = [
+            ("behavior", "behaviour"),
+            ("scene", "scenes"),
+            ("scenes", "scene"),
+            ("param", "params"),
+            ("parameters", "params"),
+            ("entry", "entries"),
+            ("requests", "request"),
+        ]
+        .iter()
+        .find(|(typo, fix)| *typo == name && known.contains(fix))
+        .map_or(String::new(), |(_, fix)| {
+            format!(" (did you mean `{fix}`?)")
+        });
+        return Err(format!(
+            "unknown key `{}`{meant}; the keys are {}",
+            crate::io::name::shown(&name),
+            known
+                .iter()
+                .map(|k| format!("`{k}`"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        ));
+    }
+    Ok(())
 }
 
 /// Placeholders `{name}` in a request.
@@ -587,6 +642,34 @@ mod tests {
             err.contains("entry 2 (line 4)") && err.contains("unknown behaviour \"flying\""),
             "{err}"
         );
+    }
+
+    #[test]
+    fn unknown_keys_in_a_batch_file_are_named_not_dropped() {
+        // `behavior:` ran the entry without its checker, `parms:` with default parameters,
+        // a top-level `scene:` gave no scenes at all.
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("b.yaml");
+        for (text, want) in [
+            (
+                "entries:\n  - request: x\n    scene: a.yaml\n    behavior: cut_in\n",
+                "entry 1 (line 2): unknown key `behavior` (did you mean `behaviour`?); the keys \
+                 are `request`, `scene`, `behaviour`, `params`",
+            ),
+            (
+                "entries:\n  - request: x\n    scene: a.yaml\n  - request: y\n    scene: a.yaml\n    behaviour: cut_in\n    parms: {cutter: 1}\n",
+                "entry 2 (line 4): unknown key `parms`",
+            ),
+            (
+                "scene: a.yaml\nentries:\n  - request: x\n",
+                "unknown key `scene` (did you mean `scenes`?)",
+            ),
+            ("- request: x\n", "not a batch file"),
+        ] {
+            std::fs::write(&f, text).unwrap();
+            let err = read_batch(&f).unwrap_err().to_string();
+            assert!(err.contains(want), "{text}: {err}");
+        }
     }
 
     #[test]
