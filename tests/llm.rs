@@ -2032,6 +2032,46 @@ fn a_key_given_as_the_url_s_user_name_gets_into_no_message() {
 }
 
 #[test]
+fn tls_mismatches_and_a_connection_that_never_comes_say_what_they_are() {
+    // An https:// URL for a plain-HTTP server (Ollama's own port) was "cannot connect ...
+    // (connection refused or no such host): start one (`ollama serve` ...)" of a server that
+    // was running; http:// for a TLS server was hyper's "invalid HTTP version parsed"; a
+    // connection that never came said to raise --llm-timeout, which does not bound it.
+    let plain = common::llm_server::one_shot(
+        b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n",
+        |_| {},
+    );
+    let e = ask_one(&client(&plain.replace("http://", "https://")))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("the TLS (https) handshake failed (")
+            && e.contains("give their URL as http://")
+            && !e.contains("ollama serve"),
+        "{e}"
+    );
+    let tls = common::llm_server::one_shot(&[0x16, 3, 1, 0, 5, 1, 2, 3, 4, 5], |_| {});
+    let e = ask_one(&client(&tls)).unwrap_err().to_string();
+    assert!(
+        e.contains("the answer is not HTTP: a server that speaks TLS, asked over http://?"),
+        "{e}"
+    );
+    // Accepted by the kernel, never answered: the TLS handshake waits.
+    let silent = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let url = format!("https://{}/v1", silent.local_addr().unwrap());
+    let mut cfg = HttpConfig::new(&url, "m");
+    cfg.connect_timeout = Duration::from_millis(300);
+    let e = ask_one(&HttpClient::new(cfg).unwrap())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("no connection within 0.3 s: nothing answers at that host and port")
+            && !e.contains("--llm-timeout"),
+        "{e}"
+    );
+}
+
+#[test]
 fn a_connection_reset_in_the_middle_of_the_body_is_a_reset_with_the_url_at_once() {
     for rst in [true, false] {
         let url = cut_off_server(rst);

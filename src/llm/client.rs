@@ -928,20 +928,70 @@ fn transport_error(e: &reqwest::Error, url: &str, cfg: &HttpConfig) -> LlmError 
             connecting: e.is_connect(),
         }
     } else if e.is_connect() {
-        LlmError::Connect { url: url.into() }
+        let causes = causes(e);
+        let text = causes.join(": ").to_lowercase();
+        if [
+            "tls",
+            "certificate",
+            "corrupt message",
+            "handshake",
+            "alert",
+        ]
+        .iter()
+        .any(|w| text.contains(w))
+        {
+            LlmError::Tls {
+                url: url.into(),
+                message: causes.last().cloned().unwrap_or_default(),
+            }
+        } else {
+            LlmError::Connect { url: url.into() }
+        }
     } else {
         // reqwest's Display omits the cause chain, where the useful part is.
-        let mut msg = e.to_string();
-        let mut src = std::error::Error::source(e);
-        while let Some(s) = src {
-            msg.push_str(&format!(": {s}"));
-            src = s.source();
+        let mut msg = std::iter::once(e.to_string())
+            .chain(causes(e))
+            .collect::<Vec<_>>()
+            .join(": ");
+        // hyper's words for a reply that is not HTTP/1.x, said for what they mean.
+        let lower = msg.to_lowercase();
+        for (words, hint) in [
+            (
+                "invalid http version",
+                "the answer is not HTTP: a server that speaks TLS, asked over http://? (give \
+                 its URL as https://)",
+            ),
+            (
+                "invalid http header",
+                "the answer's headers are not valid HTTP: not an HTTP server?",
+            ),
+            (
+                "message head is too large",
+                "the answer's status line and headers are larger than an HTTP client reads: \
+                 not an LLM server?",
+            ),
+        ] {
+            if lower.contains(words) {
+                msg = format!("{hint} ({msg})");
+                break;
+            }
         }
         LlmError::Transport {
             url: url.into(),
             message: msg,
         }
     }
+}
+
+/// The causes under a request's error, outermost first (its own Display omits them).
+fn causes(e: &reqwest::Error) -> Vec<String> {
+    let mut out = Vec::new();
+    let mut src = std::error::Error::source(e);
+    while let Some(s) = src {
+        out.push(s.to_string());
+        src = s.source();
+    }
+    out
 }
 
 /// The error message of a failed request's body: `{"error": {"message": ..., "code": ...}}`

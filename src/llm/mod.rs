@@ -31,6 +31,20 @@ pub use client::{HttpClient, HttpConfig, Message};
 pub use prompt::{Cot, PromptOptions, Prompts};
 pub use session::{Backend, Outcome, Session, SessionConfig};
 
+/// [`LlmError::Timeout`] in words: `--llm-timeout` bounds the silence of a reply, not the
+/// connection (10 s), which it once told the user to raise.
+fn timeout_words(seconds: f64, connecting: bool) -> String {
+    if connecting {
+        format!(
+            "no connection within {seconds} s: nothing answers at that host and port (a \
+             firewall, a wrong address), or the TLS handshake stalled (an https:// URL for a \
+             server that speaks plain HTTP)"
+        )
+    } else {
+        format!("no reply within {seconds} s (raise --llm-timeout for slow models)")
+    }
+}
+
 /// What can go wrong in the loop.
 #[derive(Debug, thiserror::Error)]
 pub enum LlmError {
@@ -46,7 +60,7 @@ pub enum LlmError {
         url: String,
     },
     /// The connection or the reply took too long.
-    #[error("{url}: no {} within {seconds} s (raise --llm-timeout for slow models)", if *connecting { "connection" } else { "reply" })]
+    #[error("{url}: {}", timeout_words(*seconds, *connecting))]
     Timeout {
         /// The endpoint.
         url: String,
@@ -54,6 +68,19 @@ pub enum LlmError {
         seconds: f64,
         /// Whether connecting (not reading) timed out.
         connecting: bool,
+    },
+    /// The TLS handshake of an `https://` URL failed: most often a server that speaks plain
+    /// HTTP, or a certificate that is not trusted.
+    #[error(
+        "{url}: the TLS (https) handshake failed ({message}): Ollama, llama.cpp's server and \
+         vLLM speak plain HTTP unless set up otherwise (give their URL as http://), and a \
+         server's certificate must be trusted by this machine"
+    )]
+    Tls {
+        /// The endpoint, without credentials.
+        url: String,
+        /// The TLS library's own words.
+        message: String,
     },
     /// The server reset or closed the connection in the middle of the reply.
     #[error(
