@@ -2071,6 +2071,39 @@ fn tls_mismatches_and_a_connection_that_never_comes_say_what_they_are() {
     );
 }
 
+#[cfg(unix)]
+#[test]
+fn a_setting_in_the_environment_that_is_not_utf8_is_an_error_not_unset() {
+    // Taken for unset: a key in another encoding sent no key at all, a URL made "an LLM model
+    // is set but no server URL: set DRIVESCRIPT_LLM_URL".
+    use std::os::unix::ffi::OsStringExt;
+    let srv = Server::start(vec![Canned::chat(&reply(&cut_in_script(401, 399)))]);
+    let dir = tempfile::tempdir().unwrap();
+    let garbled = std::ffi::OsString::from_vec(b"sk-\xff\xfe-secret".to_vec());
+    for (name, value) in [
+        ("DRIVESCRIPT_LLM_KEY", garbled.clone()),
+        ("DRIVESCRIPT_LLM_URL", garbled),
+    ] {
+        let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_drivescript"));
+        cmd.args(["ask", s(&samples().join(SCENE)), REQUEST, "-o"])
+            .arg(dir.path().join("run"))
+            .args(["--rounds", "0", "--samples", "1"])
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .env("DRIVESCRIPT_LLM_URL", &srv.url)
+            .env("DRIVESCRIPT_LLM_MODEL", "m")
+            .env("DRIVESCRIPT_LLM_KEY", "sk-test-secret")
+            .env(name, value);
+        let out = cmd.output().unwrap();
+        let t = text(&out);
+        assert_eq!(out.status.code(), Some(1), "{name}: {t}");
+        assert!(
+            t.contains(&format!("{name} is set but is not UTF-8 text")) && !t.contains("secret"),
+            "{t}"
+        );
+    }
+    assert!(srv.received().is_empty());
+}
+
 #[test]
 fn a_connection_reset_in_the_middle_of_the_body_is_a_reset_with_the_url_at_once() {
     for rst in [true, false] {

@@ -206,8 +206,17 @@ impl PromptFlags {
     }
 }
 
-fn env(name: &str) -> Option<String> {
-    std::env::var(name).ok().filter(|v| !v.trim().is_empty())
+fn env(name: &str) -> Result<Option<String>, LlmError> {
+    match std::env::var(name) {
+        Ok(v) => Ok(Some(v).filter(|v| !v.trim().is_empty())),
+        Err(std::env::VarError::NotPresent) => Ok(None),
+        // Taken for unset, it made a set URL "no server URL" and a set key no key at all. The
+        // value is not quoted: it may be the key.
+        Err(std::env::VarError::NotUnicode(_)) => Err(LlmError::Setup(format!(
+            "{name} is set but is not UTF-8 text (a value read from a file in another encoding?): \
+             set it again as plain text"
+        ))),
+    }
 }
 
 /// The backend the flags and environment choose, with a line saying which.
@@ -217,16 +226,22 @@ pub(crate) fn backend(
     model: Option<&str>,
     args_http: impl FnOnce(String, String) -> HttpConfig,
 ) -> Result<(Backend, String), LlmError> {
-    let url = url
-        .map(str::to_string)
-        .or_else(|| env("DRIVESCRIPT_LLM_URL"));
-    let model = model
-        .map(str::to_string)
-        .or_else(|| env("DRIVESCRIPT_LLM_MODEL"));
+    // Read only where a server may be asked: --llm rules or manual reads none of them.
+    let server = matches!(llm, Llm::Http | Llm::Auto);
+    let url = match url {
+        Some(u) => Some(u.to_string()),
+        None if server => env("DRIVESCRIPT_LLM_URL")?,
+        None => None,
+    };
+    let model = match model {
+        Some(m) => Some(m.to_string()),
+        None if server => env("DRIVESCRIPT_LLM_MODEL")?,
+        None => None,
+    };
     let http = |url: String, model: String| -> Result<(Backend, String), LlmError> {
         let mut cfg = args_http(url, model);
         // A key pasted or read from a file may end in a line break, which no header can carry.
-        cfg.key = env("DRIVESCRIPT_LLM_KEY").map(|k| k.trim().to_string());
+        cfg.key = env("DRIVESCRIPT_LLM_KEY")?.map(|k| k.trim().to_string());
         let line = format!(
             "LLM: {} at {}",
             cfg.model,
