@@ -241,6 +241,15 @@ fn nan_and_infinity_producers_are_reported() {
         "term(\"t\", pow(agent(1).x - 1000.0, 0.5).sum());",
         &["pow"],
     );
+    // Every part of the gradient finite, its norm not: `cost` printed "gradient norm: inf"
+    // and exited 0, and sampling failed later on the NaN it made.
+    fails(
+        "term(\"t\", agent(1).speed.smooth_max(1e308));",
+        &[
+            "term \"t\" has a gradient too large to use (its norm overflows to infinity; ",
+            "e293 w.r.t. coordinate ",
+        ],
+    );
 }
 
 /// A huge or tiny number a script passes (or computes) is said in a few characters in the

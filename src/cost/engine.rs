@@ -637,6 +637,27 @@ fn add_term(
             "term {name:?} has a non-finite gradient ({g}) w.r.t. coordinate {k}"
         ));
     }
+    // Finite parts whose norm overflows (`smooth_max(1e308)`: 2e300 each) passed, `cost`
+    // printed a gradient norm of inf and exited 0, and sampling failed on the NaN it made.
+    if !value
+        .grad
+        .iter()
+        .map(|(_, g)| g * g)
+        .sum::<f64>()
+        .is_finite()
+    {
+        let (k, g) = value
+            .grad
+            .iter()
+            .copied()
+            .max_by(|a, b| a.1.abs().total_cmp(&b.1.abs()))
+            .unwrap_or_default();
+        return stdlib::err(format!(
+            "term {name:?} has a gradient too large to use (its norm overflows to infinity; \
+             {g:.1e} w.r.t. coordinate {k}): a scale or smoothing factor this large makes the \
+             term a cliff"
+        ));
+    }
     if !(weight.is_finite() && weight >= 0.0) {
         return stdlib::err(format!(
             "term {name:?}: weight {} must be finite and non-negative",
