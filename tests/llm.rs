@@ -778,6 +778,36 @@ fn a_run_started_with_relative_paths_resumes_from_another_directory() {
 }
 
 #[test]
+fn an_empty_request_or_follow_up_is_refused_before_the_run_starts() {
+    // "  " started a manual run whose prompt asked about nothing; a blank follow-up went to
+    // the rules planner, which said it did not understand "".
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let scene = samples().join(SCENE);
+    let out = ask(&[s(&scene), "  ", "-o", s(&run), "--llm", "manual"], None);
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(t.contains("the request is empty"), "{t}");
+    assert!(!run.exists(), "{t}");
+    let out = ask(
+        &[s(&scene), REQUEST, "-o", s(&run), "--llm", "manual"],
+        None,
+    );
+    assert_eq!(out.status.code(), Some(0), "{}", text(&out));
+    std::fs::write(
+        run.join("round_0/reply.md"),
+        reply(&cut_in_script(401, 399)),
+    )
+    .unwrap();
+    let out = ask(&["--resume", s(&run)], None);
+    assert!(text(&out).contains("round 0: sample 0"), "{}", text(&out));
+    let out = ask(&["--continue", s(&run), "\t"], None);
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(t.contains("the request is empty"), "{t}");
+}
+
+#[test]
 fn the_rules_planner_is_the_default_without_an_llm_and_follow_ups_revise_its_run() {
     let dir = tempfile::tempdir().unwrap();
     let d = s(dir.path());

@@ -149,6 +149,11 @@ pub fn read_batch(path: &Path) -> Result<Vec<Entry>, LlmError> {
             .ok_or_else(|| at("`request:` (text) is missing".into()))?
             .trim()
             .to_string();
+        if request.is_empty() {
+            return Err(at(
+                "`request:` is empty: say in words what should happen".into()
+            ));
+        }
         let (scenes, default) = match &e["scene"] {
             serde_yaml::Value::Null => (default_scenes.clone(), true),
             v => (paths(v, "scene")?, false),
@@ -665,6 +670,10 @@ mod tests {
                 "unknown key `scene` (did you mean `scenes`?)",
             ),
             ("- request: x\n", "not a batch file"),
+            (
+                "entries:\n  - request: \" \"\n    scene: a.yaml\n",
+                "entry 1 (line 2): `request:` is empty",
+            ),
         ] {
             std::fs::write(&f, text).unwrap();
             let err = read_batch(&f).unwrap_err().to_string();

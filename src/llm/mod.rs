@@ -219,6 +219,9 @@ pub enum LlmError {
         /// What is wrong.
         message: String,
     },
+    /// The request (or a follow-up) cannot be asked: it has no words.
+    #[error("{0}")]
+    Request(String),
     /// The rules planner cannot plan the request.
     #[error(transparent)]
     Rules(#[from] rules::RulesError),

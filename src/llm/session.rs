@@ -811,6 +811,19 @@ impl State {
     }
 }
 
+/// Refuses a request (or follow-up) with no words: it started a run that asked the model
+/// about nothing, and the rules planner answered that it did not understand `""`.
+pub fn check_request(request: &str) -> Result<(), LlmError> {
+    if request.trim().is_empty() {
+        return Err(LlmError::Request(
+            "the request is empty: say in words what should happen (\"vehicle 3 cuts in front \
+             of vehicle 5\")"
+                .into(),
+        ));
+    }
+    Ok(())
+}
+
 /// Opens `dir` for a new run: refused before anything is written where `config` or the
 /// scene's id cannot run, and where `dir` is not a directory; then locked, and refused where
 /// it holds a batch or (unless `replace`, which removes it) another run, or files of the
@@ -880,6 +893,7 @@ impl<'a> Session<'a> {
         config: SessionConfig,
         checks: Option<Vec<(Behavior, Params)>>,
     ) -> Result<Self, LlmError> {
+        check_request(request)?;
         let lock = open_new(dir, scene_path, &raw, &config, false)?;
         Self::begin(
             lock, dir, scene_path, raw, request, trained, backend, prompts, config, checks,
@@ -901,6 +915,7 @@ impl<'a> Session<'a> {
         config: SessionConfig,
         checks: Option<Vec<(Behavior, Params)>>,
     ) -> Result<Self, LlmError> {
+        check_request(request)?;
         let lock = open_new(dir, scene_path, &raw, &config, true)?;
         Self::begin(
             lock, dir, scene_path, raw, request, trained, backend, prompts, config, checks,
@@ -1079,6 +1094,7 @@ impl<'a> Session<'a> {
     /// Adds a follow-up request to a finished (or stopped) run: the model revises the last
     /// script instead of starting over. The rounds start counting again.
     pub fn follow_up(&mut self, request: &str) -> Result<(), LlmError> {
+        check_request(request)?;
         let script = self
             .state
             .script
