@@ -2083,7 +2083,7 @@ fn tls_mismatches_and_a_connection_that_never_comes_say_what_they_are() {
     let tls = common::llm_server::one_shot(&[0x16, 3, 1, 0, 5, 1, 2, 3, 4, 5], |_| {});
     let e = ask_one(&client(&tls)).unwrap_err().to_string();
     assert!(
-        e.contains("the answer is not HTTP: a server that speaks TLS, asked over http://?"),
+        e.contains("the answer is not HTTP/1.x") && e.contains("give its URL as https://"),
         "{e}"
     );
     // Accepted by the kernel, never answered: the TLS handshake waits.

@@ -958,8 +958,9 @@ fn transport_error(e: &reqwest::Error, url: &str, cfg: &HttpConfig) -> LlmError 
         for (words, hint) in [
             (
                 "invalid http version",
-                "the answer is not HTTP: a server that speaks TLS, asked over http://? (give \
-                 its URL as https://)",
+                "the answer is not HTTP/1.x (it does not start with a status line such as \
+                 `HTTP/1.1 200 OK`): a server that speaks TLS asked over http:// (give its URL \
+                 as https://), or not an HTTP server",
             ),
             (
                 "invalid http header",
