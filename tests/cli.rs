@@ -3193,3 +3193,168 @@ fn a_long_role_value_is_quoted_cut_with_its_length() {
     let err = String::from_utf8_lossy(&run.stderr).into_owned();
     assert!(err.contains("1 to 32 printable characters"), "{err}");
 }
+
+/// Every flag whose value is checked quotes a long bad value cut to 64 characters with its
+/// length, once or twice, never whole: clap's "invalid value '…'" line and tip, and the
+/// library's own messages (behaviour names, the LLM server's URL and model, token field, town
+/// names, requests the rules planner reads), each echoed all 5000 characters.
+#[test]
+fn every_checked_flag_quotes_a_long_bad_value_cut_with_its_length() {
+    let dir = tempfile::tempdir().unwrap();
+    let yaml = samples().join("yaml/highway_cut_in.yaml");
+    let scene = s(&yaml);
+    let ckpt = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("data/checkpoint");
+    let ckpt = s(&ckpt);
+    let out = dir.path().join("out");
+    let out = s(&out);
+    let long = "x".repeat(5000);
+    let v = long.as_str();
+    let sim = |flag: &'static str, more: &[&'static str]| -> Vec<String> {
+        let mut a = vec!["simulate", scene, "--checkpoint", ckpt, "-o", out];
+        a.extend(more);
+        a.extend([flag, v]);
+        a.into_iter().map(String::from).collect()
+    };
+    let ask = |flag: &'static str| -> Vec<String> {
+        let mut a = vec!["ask", scene, "vehicle 1 drives off the road", "-o", out];
+        for (f, value) in [
+            ("--llm", "http"),
+            ("--model", "m"),
+            ("--llm-url", "http://127.0.0.1:9/v1"),
+            (flag, v),
+        ] {
+            if f != flag || value == v {
+                a.extend([f, value]);
+            }
+        }
+        a.into_iter().map(String::from).collect()
+    };
+    let args = |a: &[&str]| -> Vec<String> { a.iter().map(|x| x.to_string()).collect() };
+    // (arguments, what the message names)
+    let cases: Vec<(Vec<String>, &str)> = vec![
+        (sim("--task", &[]), "--task"),
+        (sim("--samples", &[]), "--samples"),
+        (sim("--steps", &[]), "--steps"),
+        (sim("--shard", &[]), "--shard"),
+        (sim("--guidance", &[]), "--guidance"),
+        (sim("--clamp", &[]), "--clamp"),
+        (sim("--schedule", &[]), "--schedule"),
+        (sim("--lambda", &[]), "--lambda"),
+        (sim("--auto", &["--task", "unconditional"]), "--auto"),
+        (args(&["eval", scene, "--task", v]), "--task"),
+        (
+            args(&["eval", scene, "--task", "behaviour", "--behaviour", v]),
+            "--behaviour",
+        ),
+        (
+            args(&["eval", scene, "--task", "conditional", "--baseline", v]),
+            "--baseline",
+        ),
+        (args(&["inspect", scene, "--agents", "--keep", v]), "--keep"),
+        (
+            args(&["train", "--data", scene, "--out", out, "--setting", v]),
+            "--setting",
+        ),
+        (
+            args(&["train", "--data", scene, "--out", out, "--val-town", v]),
+            "val_towns",
+        ),
+        (args(&["demo", "-o", out, "--samples", v]), "--samples"),
+        (
+            args(&["demo", "-o", out, "--request", v]),
+            "does not understand",
+        ),
+        (args(&["bench", v]), "<WHAT>"),
+        (
+            args(&["inspect", scene, &format!("--{v}")]),
+            "unexpected argument",
+        ),
+        (args(&[v]), "unrecognized subcommand"),
+        (ask("--llm"), "--llm"),
+        (ask("--model"), "--model"),
+        (ask("--llm-url"), "--llm-url"),
+        (ask("--max-tokens-field"), "--max-tokens-field"),
+        (ask("--context"), "--context"),
+        (ask("--temperature"), "--temperature"),
+    ];
+    for (a, names) in &cases {
+        let a: Vec<&str> = a.iter().map(String::as_str).collect();
+        let run = std::process::Command::new(env!("CARGO_BIN_EXE_drivescript"))
+            .args(&a)
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .env_remove("DRIVESCRIPT_LLM_URL")
+            .env_remove("DRIVESCRIPT_LLM_MODEL")
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&run.stderr).into_owned();
+        let shown: Vec<&str> = a.iter().map(|x| &x[..x.len().min(40)]).collect();
+        assert!(
+            matches!(run.status.code(), Some(1 | 2)),
+            "{shown:?}: {:?}\n{err}",
+            run.status.code()
+        );
+        assert!(err.len() < 900, "{shown:?}: {} bytes: {err}", err.len());
+        assert!(
+            err.contains(names)
+                && (err.contains("… (5000 characters)") || err.contains("… (5002 characters)")),
+            "{shown:?}: {err}"
+        );
+        assert!(!err.contains(&"x".repeat(65)), "{shown:?}: {err}");
+    }
+}
+
+/// `demo --samples 0` (and `simulate`'s sampler flags out of range) name the flag and its
+/// range, as `ask --samples 0` does: they said "sampler settings: samples = 0", after the
+/// demo had loaded its scene and printed its header.
+#[test]
+fn sample_counts_out_of_range_name_the_flag_and_its_range() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let yaml = samples().join("yaml/highway_cut_in.yaml");
+    let ckpt = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("data/checkpoint");
+    let sim = |flag: &str, v: &str| {
+        drivescript(&[
+            "simulate",
+            s(&yaml),
+            "--checkpoint",
+            s(&ckpt),
+            "-o",
+            s(&out),
+            flag,
+            v,
+        ])
+    };
+    for (run, want) in [
+        (
+            drivescript(&["demo", "-o", s(&out), "--samples", "0"]),
+            "'--samples <SAMPLES>': 0 is not in 1..=1024",
+        ),
+        (
+            drivescript(&["demo", "-o", s(&out), "--samples", "5000"]),
+            "'--samples <SAMPLES>': 5000 is not in 1..=1024",
+        ),
+        (
+            sim("--samples", "0"),
+            "'--samples <SAMPLES>': 0 is not in 1..=1024",
+        ),
+        (
+            sim("--steps", "1"),
+            "'--steps <STEPS>': 1 is not in 2..=1000",
+        ),
+        (
+            sim("--horizon", "0"),
+            "'--horizon <HORIZON>': 0 is not in 1..=100000",
+        ),
+    ] {
+        let err = String::from_utf8_lossy(&run.stderr).into_owned();
+        assert_eq!(run.status.code(), Some(2), "{err}");
+        assert!(err.contains(want), "{want}: {err}");
+        // Refused before anything is read or written.
+        assert!(
+            run.stdout.is_empty(),
+            "{}",
+            String::from_utf8_lossy(&run.stdout)
+        );
+        assert!(!out.exists());
+    }
+}

@@ -117,7 +117,7 @@ pub struct Args {
     #[arg(long, default_value_t = 3, value_parser = usize_in(0, drivescript::llm::session::MAX_FIXES))]
     fixes: usize,
     /// Samples per round, 1 to 1024.
-    #[arg(long, default_value_t = 4, value_parser = usize_in(1, 1024))]
+    #[arg(long, default_value_t = 4, value_parser = usize_in(1, drivescript::sample::MAX_SAMPLES))]
     samples: usize,
     /// Seed of the initial noise (also sent to the server, which treats it as best effort).
     #[arg(long, default_value_t = 1)]
