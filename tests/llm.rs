@@ -450,8 +450,8 @@ fn the_rules_planner_taking_over_says_the_last_script_failed_while_sampled() {
     let t = text(&out);
     assert!(
         t.contains(
-            "the rules planner cannot repair the last script: it passed validation but failed \
-             while being sampled: script.rhai:3:"
+            "the rules planner cannot repair the model's (test-model) last script: it passed \
+             validation but failed while being sampled: script.rhai:3:"
         ) && t.contains("out of bounds"),
         "{t}"
     );
@@ -2776,4 +2776,36 @@ fn a_flag_the_chosen_backend_does_not_read_is_an_error_not_dropped() {
         assert!(t.contains(want), "{args:?}: {t}");
     }
     assert!(!run.join("round_1").exists());
+}
+
+/// A run whose model's script failed validation, taken up with `--llm rules`: the rules
+/// planner has written no script yet, so it writes its own; it does not give up blaming "the
+/// rules planner's script" for the model's. Where it has written one that fails, the message
+/// says so.
+#[test]
+fn the_rules_planner_taking_over_a_run_is_not_blamed_for_the_models_script() {
+    let srv = Server::start(vec![
+        Canned::chat(&reply(&cut_in_script(401, 9999))),
+        Canned::raw(503, "Service Unavailable"),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(
+        dir.path(),
+        &["--attempts", "1", "--rounds", "0"],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("round 0: validation failed") && t.contains("HTTP 503"),
+        "{t}"
+    );
+    let out = ask(&["--resume", s(dir.path()), "--llm", "rules"], None);
+    let t = text(&out);
+    assert!(!t.contains("rules planner's script"), "{t}");
+    assert!(
+        t.contains("Plan (rules planner)") && t.contains("round 1: validating"),
+        "{t}"
+    );
+    assert!(matches!(out.status.code(), Some(0 | 2)), "{t}");
 }

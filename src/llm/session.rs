@@ -468,6 +468,11 @@ struct State {
     /// kept have only `last_error`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     last_failure: Option<String>,
+    /// Who wrote that script ([`Backend::name`]): a run taken up with another backend
+    /// (`--resume --llm rules` after the model's script failed) must not blame the one that
+    /// did not write it. Runs recorded before it was kept: the run's backend.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    last_failure_by: Option<String>,
     /// The model's ACCEPT was refused since the last sampling: the script it sends next
     /// answers the refusal.
     #[serde(default)]
@@ -942,6 +947,7 @@ impl<'a> Session<'a> {
                 left_out: Vec::new(),
                 last_error: None,
                 last_failure: None,
+                last_failure_by: None,
                 accept_refused: false,
                 final_turn: false,
                 outcome: None,
@@ -1372,6 +1378,7 @@ impl<'a> Session<'a> {
                             write(&rdir, "validation.txt", &err)?;
                             self.state.last_error = Some(err.clone());
                             self.state.last_failure = Some(format!("it failed validation: {err}"));
+                            self.state.last_failure_by = Some(self.backend.name().into());
                             progress(&format!("round {n}: validation failed: {err}"));
                             let horizon = self.trained.meta.config.window.future;
                             let msg = self.prompts.validation(horizon, self.raw.meta.dt, &err);
@@ -1395,6 +1402,7 @@ impl<'a> Session<'a> {
                             let err = super::feedback::over_budget(budget, &used);
                             write(&rdir, "budget.txt", &err)?;
                             self.state.last_error = Some(err.clone());
+                            self.state.last_failure_by = Some(self.backend.name().into());
                             self.state.last_failure = Some(format!(
                                 "it ran past the script budget (--script-budget {} s) while \
                                  being sampled: {:.1} s over {} evaluations",
@@ -1421,6 +1429,7 @@ impl<'a> Session<'a> {
                             let err = super::feedback::failed_in_sampling(&e);
                             write(&rdir, "sampling.txt", &err)?;
                             self.state.last_error = Some(err.clone());
+                            self.state.last_failure_by = Some(self.backend.name().into());
                             self.state.last_failure = Some(format!(
                                 "it passed validation but failed while being sampled: {e}"
                             ));
@@ -1567,6 +1576,7 @@ impl<'a> Session<'a> {
         self.state.misses = 0;
         self.state.last_error = None;
         self.state.last_failure = None;
+        self.state.last_failure_by = None;
         self.state.script = Some((n, source.to_string()));
         self.state.meets = meets;
         let shown = &done.report.samples[best];
@@ -1756,6 +1766,27 @@ impl<'a> Session<'a> {
         Some(self.state.last_failure.clone().unwrap_or_else(|| e.clone()))
     }
 
+    /// Who wrote the script that last failed, as a possessive for messages ("the rules
+    /// planner's", "the model's (qwen2.5-coder:32b)"), and whether it was the rules planner.
+    fn failed_script_author(&self) -> (String, bool) {
+        let by = self
+            .state
+            .last_failure_by
+            .as_deref()
+            .unwrap_or(&self.state.backend);
+        let words = match by {
+            "rules" => "the rules planner's".to_string(),
+            "http" => match &self.state.model {
+                Some(m) => format!("the model's ({})", crate::io::name::shown_counted(m)),
+                None => "the model's".to_string(),
+            },
+            "manual" => "the pasted reply's".to_string(),
+            "replay" => "the recorded model's".to_string(),
+            other => format!("the {other} backend's"),
+        };
+        (words, by == Backend::Rules.name())
+    }
+
     /// The rules planner's reply to the current state: a composed script first, ACCEPT when
     /// a sample meets the request, else the script with the failing events strengthened.
     fn rules_reply(&mut self) -> Result<String, String> {
@@ -1791,8 +1822,10 @@ impl<'a> Session<'a> {
                 ));
             }
             if let Some(why) = self.last_failure() {
+                let (author, own) = self.failed_script_author();
+                let whose = if own { "its".to_string() } else { author };
                 return Err(format!(
-                    "the rules planner cannot repair the last script: {why}"
+                    "the rules planner cannot repair {whose} last script: {why}"
                 ));
             }
             // An event fails when its checker fails or one of its terms is above tolerance on
@@ -1842,7 +1875,13 @@ impl<'a> Session<'a> {
                 "Repair (rules planner): the best sample fails; {}.\n",
                 changed.join("; ")
             ));
-        } else if let Some(why) = self.last_failure() {
+        } else if let Some(why) = self
+            .last_failure()
+            .filter(|_| self.failed_script_author().1)
+        {
+            // Its own first script failed: composed again, it would fail the same way. One
+            // another backend wrote (a run taken up with `--llm rules`) is no reason to stop:
+            // the rules planner's own has not been tried, and is written below.
             return Err(format!(
                 "the rules planner's script does not fit this scene: {why}"
             ));
@@ -2158,6 +2197,7 @@ mod tests {
             left_out: Vec::new(),
             last_error: None,
             last_failure: None,
+            last_failure_by: None,
             accept_refused: false,
             final_turn: false,
             outcome: Some(Outcome::Accepted {
