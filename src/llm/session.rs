@@ -20,7 +20,7 @@ use serde_json::{json, Value};
 
 use super::client::{redact_url, HttpClient, Message};
 use super::feedback::{feedback, Acceptance};
-use super::fit::{fit_conversation, fit_first, Fitted};
+use super::fit::{fit_conversation, fit_first, FirstTooLarge, Fitted};
 use super::prompt::{PromptOptions, Prompts};
 use super::reply::{parse_reply, Reply};
 use super::rules::{self, understand_request, Event, Tuning};
@@ -507,6 +507,10 @@ pub struct Session<'a> {
     trained: &'a Trained,
     raw: Scene,
     transcript: Vec<Record>,
+    /// Reopened from `state.json` (`--resume`, `--continue`, a batch's pair run again): its
+    /// settings, the window among them, are the run's, which the flags cannot change, and
+    /// advice says so rather than name a flag that would be refused.
+    taken_up: bool,
     /// Held while the session lives: every way into a run directory takes it.
     _lock: super::rundir::RunLock,
 }
@@ -957,6 +961,7 @@ impl<'a> Session<'a> {
             trained,
             raw,
             transcript: Vec::new(),
+            taken_up: false,
             _lock: lock,
         };
         let first = first_messages(
@@ -1048,6 +1053,7 @@ impl<'a> Session<'a> {
             trained,
             raw,
             transcript,
+            taken_up: true,
             _lock: lock,
         })
     }
@@ -1064,6 +1070,7 @@ impl<'a> Session<'a> {
         if let Backend::Rules = self.backend {
             understand_request(request)?;
         }
+        let before = self.state.clone();
         self.state.requests.push(request.trim().to_string());
         let added = checks_for(&self.state.requests[self.state.requests.len() - 1..]);
         for (b, p) in added {
@@ -1081,6 +1088,12 @@ impl<'a> Session<'a> {
         self.state.misses = 0;
         self.state.accept_refused = false;
         self.state.final_turn = false;
+        // Before anything is sent or saved: a conversation the run's window cannot hold is
+        // refused now, the run left as it was, not after the first round was paid for.
+        if let Err(e) = self.to_send(self.state.exchange, &mut |_| {}) {
+            self.state = before;
+            return Err(e);
+        }
         self.save()
     }
 
@@ -1316,9 +1329,9 @@ impl<'a> Session<'a> {
                     // user (not the model) can fix.
                     let cut = match &self.backend {
                         Backend::Http(c) if self.last_reply_truncated(n) => format!(
-                            " (the reply was cut off at the token limit, --max-tokens {}: \
-                             raise --max-tokens)",
-                            c.config().max_tokens
+                            " (the reply was cut off at the token limit, --max-tokens {}: {})",
+                            c.config().max_tokens,
+                            self.longer_reply_advice(c.config().max_tokens)
                         ),
                         _ => String::new(),
                     };
@@ -1930,26 +1943,36 @@ impl Session<'_> {
                         ..self.state.config.clone()
                     };
                     let horizon = self.trained.meta.config.window.future;
-                    first_messages(
+                    first_prompt(
                         &self.prompts,
                         &config,
                         &self.raw,
                         &self.state.requests,
                         horizon,
                     )
-                    .ok()
+                    .map_err(|e| e.smallest)
                 };
-                let f = fit_conversation(&self.state.messages, w.prompt(), &refit).ok_or_else(
-                    || {
+                // Requests added by `--continue`: the first prompt of the run does not hold
+                // them, and their messages must outlive the rounds summarised around them.
+                let follow_ups = self.state.requests.get(1..).unwrap_or_default();
+                let f = fit_conversation(&self.state.messages, w.prompt(), follow_ups, &refit)
+                    .map_err(|fewest| {
+                        let size = if fewest == u64::MAX {
+                            String::new()
+                        } else {
+                            format!(": it takes about {fewest} tokens")
+                        };
                         LlmError::Context(format!(
-                            "round {n}: the conversation does not fit --context {} even with \
-                             the earlier rounds summarised, the last feedback cut down and \
-                             the first prompt at its smallest: raise --context (and the \
-                             server's window) or lower --max-tokens",
-                            w.tokens
+                            "round {n}: the conversation does not fit --context {} ({} tokens \
+                             for the prompt after {} for the reply) even with the earlier \
+                             rounds summarised or left out, the last feedback cut down and the \
+                             first prompt at its smallest{size}; {}",
+                            w.tokens,
+                            w.prompt(),
+                            w.reply,
+                            self.larger_window_advice()
                         ))
-                    },
-                )?;
+                    })?;
                 if !f.left_out.is_empty() {
                     progress(&format!(
                         "round {n}: fitted to --context {}: left out {}",
@@ -1960,6 +1983,41 @@ impl Session<'_> {
                 f.messages
             }
         })
+    }
+
+    /// What to do when the run's window is too small for what it must send: a run taken up
+    /// again keeps its window (`--resume` and `--continue` refuse `--context` and
+    /// `--max-tokens`), so only a new run can have a larger one.
+    fn larger_window_advice(&self) -> &'static str {
+        if self.taken_up {
+            "the run keeps the window it started with: start a new run (-o NEWDIR) with a larger \
+             --context (and the server's window)"
+        } else {
+            "raise --context (and the server's window) or lower --max-tokens"
+        }
+    }
+
+    /// What to do about a reply cut off at `max_tokens`: raise `--max-tokens` where that gives
+    /// the reply more; with a window, the reply's share is at most a quarter of it, and a run
+    /// taken up again keeps its share.
+    fn longer_reply_advice(&self, max_tokens: u32) -> String {
+        match self.state.config.context {
+            None => "raise --max-tokens".into(),
+            Some(_) if self.taken_up => "the run keeps the reply's share of its --context \
+                 window: start a new run (-o NEWDIR) with a larger --context (or --max-tokens)"
+                .into(),
+            Some(w) if u64::from(max_tokens) < w.tokens / 4 => format!(
+                "raise --max-tokens (the reply may take up to a quarter of --context {}, {})",
+                w.tokens,
+                w.tokens / 4
+            ),
+            Some(w) => format!(
+                "raise --context (and the server's window): the reply takes at most a quarter \
+                 of it, {} of {}",
+                w.tokens / 4,
+                w.tokens
+            ),
+        }
     }
 
     fn get_reply(
@@ -2001,8 +2059,9 @@ impl Session<'_> {
             if ex.truncated {
                 progress(&format!(
                     "round {n}: the reply was cut off at the token limit (--max-tokens {}); \
-                     raise --max-tokens if its script is incomplete",
-                    c.config().max_tokens
+                     if its script is incomplete, {}",
+                    c.config().max_tokens,
+                    self.longer_reply_advice(c.config().max_tokens)
                 ));
             }
             let reply = ex.reply.clone();
@@ -2086,6 +2145,18 @@ pub fn first_messages(
     requests: &[String],
     horizon: usize,
 ) -> Result<Fitted, LlmError> {
+    first_prompt(prompts, config, raw, requests, horizon)
+        .map_err(|e| LlmError::Context(e.to_string()))
+}
+
+/// [`first_messages`], its error the smallest size: what a later round fits it from.
+fn first_prompt(
+    prompts: &Prompts,
+    config: &SessionConfig,
+    raw: &Scene,
+    requests: &[String],
+    horizon: usize,
+) -> Result<Fitted, FirstTooLarge> {
     let keep: Vec<i64> = requests
         .iter()
         .flat_map(|r| numbers(r))
@@ -2122,8 +2193,7 @@ pub fn first_messages(
             config.max_agents,
             keep.len(),
             w,
-        )
-        .map_err(LlmError::Context),
+        ),
     }
 }
 
