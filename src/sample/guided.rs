@@ -64,6 +64,16 @@ pub const DEFAULT_GUIDANCE: Guidance = Guidance::OutputSpace;
 /// needs 3).
 pub const BEHAVIOUR_LAMBDA: f64 = 3.0;
 
+/// The most samples one sampling run draws (`--samples`).
+pub const MAX_SAMPLES: usize = 1024;
+
+/// The fewest Heun steps a sample takes (`--steps`): one step from σ_max straight to 0 is not
+/// a sample.
+pub const MIN_HEUN_STEPS: usize = 2;
+
+/// The most Heun steps a sample takes (`--steps`).
+pub const MAX_HEUN_STEPS: usize = 1000;
+
 /// The largest guidance strength and term weight the sampler takes (λ, the known-state and the
 /// realism weights): the defaults are 1 to 3, and 1e308 turned the denoiser's output into
 /// infinities, or printed 300-digit weights, instead of being refused.
@@ -164,11 +174,17 @@ impl SampleConfig {
     /// known-state weight that are finite and not negative (a negative one pushes towards the
     /// costs). The message names the setting and its range.
     pub fn validate(&self) -> Result<(), String> {
-        if !(2..=1000).contains(&self.steps) {
-            return Err(format!("steps = {}: must be 2 to 1000", self.steps));
+        if !(MIN_HEUN_STEPS..=MAX_HEUN_STEPS).contains(&self.steps) {
+            return Err(format!(
+                "steps = {}: must be {MIN_HEUN_STEPS} to {MAX_HEUN_STEPS}",
+                self.steps
+            ));
         }
-        if !(1..=1024).contains(&self.samples) {
-            return Err(format!("samples = {}: must be 1 to 1024", self.samples));
+        if !(1..=MAX_SAMPLES).contains(&self.samples) {
+            return Err(format!(
+                "samples = {}: must be 1 to {MAX_SAMPLES}",
+                self.samples
+            ));
         }
         for (name, v) in [
             ("lambda", self.lambda),
