@@ -1501,9 +1501,28 @@ fn sampler_flags_are_checked_before_any_work() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("sim");
     let scene = samples().join("yaml/highway_cut_in.yaml");
+    // Ranges fixed in advance are clap's: a usage error naming the flag and its range.
     for (arg, want) in [
-        ("--steps=0", "steps = 0: must be 2 to 1000"),
-        ("--steps=1", "steps = 1: must be 2 to 1000"),
+        ("--steps=0", "'--steps <STEPS>': 0 is not in 2..=1000"),
+        ("--steps=1", "'--steps <STEPS>': 1 is not in 2..=1000"),
+        ("--samples=0", "'--samples <SAMPLES>': 0 is not in 1..=1024"),
+        (
+            "--samples=100000000",
+            "'--samples <SAMPLES>': 100000000 is not in 1..=1024",
+        ),
+    ] {
+        let run = drivescript(&simulate_args(
+            s(&scene),
+            "data/checkpoint",
+            &["--task", "unconditional", arg],
+            s(&out),
+        ));
+        let err = String::from_utf8_lossy(&run.stderr);
+        assert_eq!(run.status.code(), Some(2), "{arg}: {err}");
+        assert!(err.contains(want), "{arg}: {err}");
+        assert!(!out.exists(), "{arg} created {}", out.display());
+    }
+    for (arg, want) in [
         // The schedule's last Heun step from σ = 0.47 left every vehicle at tens of metres a
         // second (at 2 steps, kilometres); a closed loop then failed on an "implausible
         // heading 10262.9 rad".
@@ -1512,11 +1531,6 @@ fn sampler_flags_are_checked_before_any_work() {
             "--steps 4: fewer than 8 Heun steps leave noise in the samples",
         ),
         ("--steps=7", "use 8 or more (default 32)"),
-        ("--samples=0", "samples = 0: must be 1 to 1024"),
-        (
-            "--samples=100000000",
-            "samples = 100000000: must be 1 to 1024",
-        ),
         ("--lambda=-1", "--lambda -1: must be 0 to 1000"),
         // 1e308 ran into "non-finite denoiser output", and --realism 1e308 printed weights
         // of 309 digits, neither naming the flag.
@@ -1612,8 +1626,13 @@ fn sampler_flags_are_checked_before_any_work() {
     let demo = dir.path().join("demo");
     std::fs::create_dir(&demo).unwrap();
     std::fs::write(demo.join("state.json"), "{}").unwrap();
-    let err = fails(&["demo", "--samples", "0", "-o", s(&demo)]);
-    assert!(err.contains("samples = 0: must be 1 to 1024"), "{err}");
+    let run = drivescript(&["demo", "--samples", "0", "-o", s(&demo)]);
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("'--samples <SAMPLES>': 0 is not in 1..=1024"),
+        "{err}"
+    );
     assert_eq!(
         std::fs::read_to_string(demo.join("state.json")).unwrap(),
         "{}",
@@ -3192,4 +3211,169 @@ fn a_long_role_value_is_quoted_cut_with_its_length() {
     ]);
     let err = String::from_utf8_lossy(&run.stderr).into_owned();
     assert!(err.contains("1 to 32 printable characters"), "{err}");
+}
+
+/// Every flag whose value is checked quotes a long bad value cut to 64 characters with its
+/// length, once or twice, never whole: clap's "invalid value '…'" line and tip, and the
+/// library's own messages (behaviour names, the LLM server's URL and model, token field, town
+/// names, requests the rules planner reads), each echoed all 5000 characters.
+#[test]
+fn every_checked_flag_quotes_a_long_bad_value_cut_with_its_length() {
+    let dir = tempfile::tempdir().unwrap();
+    let yaml = samples().join("yaml/highway_cut_in.yaml");
+    let scene = s(&yaml);
+    let ckpt = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("data/checkpoint");
+    let ckpt = s(&ckpt);
+    let out = dir.path().join("out");
+    let out = s(&out);
+    let long = "x".repeat(5000);
+    let v = long.as_str();
+    let sim = |flag: &'static str, more: &[&'static str]| -> Vec<String> {
+        let mut a = vec!["simulate", scene, "--checkpoint", ckpt, "-o", out];
+        a.extend(more);
+        a.extend([flag, v]);
+        a.into_iter().map(String::from).collect()
+    };
+    let ask = |flag: &'static str| -> Vec<String> {
+        let mut a = vec!["ask", scene, "vehicle 1 drives off the road", "-o", out];
+        for (f, value) in [
+            ("--llm", "http"),
+            ("--model", "m"),
+            ("--llm-url", "http://127.0.0.1:9/v1"),
+            (flag, v),
+        ] {
+            if f != flag || value == v {
+                a.extend([f, value]);
+            }
+        }
+        a.into_iter().map(String::from).collect()
+    };
+    let args = |a: &[&str]| -> Vec<String> { a.iter().map(|x| x.to_string()).collect() };
+    // (arguments, what the message names)
+    let cases: Vec<(Vec<String>, &str)> = vec![
+        (sim("--task", &[]), "--task"),
+        (sim("--samples", &[]), "--samples"),
+        (sim("--steps", &[]), "--steps"),
+        (sim("--shard", &[]), "--shard"),
+        (sim("--guidance", &[]), "--guidance"),
+        (sim("--clamp", &[]), "--clamp"),
+        (sim("--schedule", &[]), "--schedule"),
+        (sim("--lambda", &[]), "--lambda"),
+        (sim("--auto", &["--task", "unconditional"]), "--auto"),
+        (args(&["eval", scene, "--task", v]), "--task"),
+        (
+            args(&["eval", scene, "--task", "behaviour", "--behaviour", v]),
+            "--behaviour",
+        ),
+        (
+            args(&["eval", scene, "--task", "conditional", "--baseline", v]),
+            "--baseline",
+        ),
+        (args(&["inspect", scene, "--agents", "--keep", v]), "--keep"),
+        (
+            args(&["train", "--data", scene, "--out", out, "--setting", v]),
+            "--setting",
+        ),
+        (
+            args(&["train", "--data", scene, "--out", out, "--val-town", v]),
+            "val_towns",
+        ),
+        (args(&["demo", "-o", out, "--samples", v]), "--samples"),
+        (
+            args(&["demo", "-o", out, "--request", v]),
+            "does not understand",
+        ),
+        (args(&["bench", v]), "<WHAT>"),
+        (
+            args(&["inspect", scene, &format!("--{v}")]),
+            "unexpected argument",
+        ),
+        (args(&[v]), "unrecognized subcommand"),
+        (ask("--llm"), "--llm"),
+        (ask("--model"), "--model"),
+        (ask("--llm-url"), "--llm-url"),
+        (ask("--max-tokens-field"), "--max-tokens-field"),
+        (ask("--context"), "--context"),
+        (ask("--temperature"), "--temperature"),
+    ];
+    for (a, names) in &cases {
+        let a: Vec<&str> = a.iter().map(String::as_str).collect();
+        let run = std::process::Command::new(env!("CARGO_BIN_EXE_drivescript"))
+            .args(&a)
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .env_remove("DRIVESCRIPT_LLM_URL")
+            .env_remove("DRIVESCRIPT_LLM_MODEL")
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&run.stderr).into_owned();
+        let shown: Vec<&str> = a.iter().map(|x| &x[..x.len().min(40)]).collect();
+        assert!(
+            matches!(run.status.code(), Some(1 | 2)),
+            "{shown:?}: {:?}\n{err}",
+            run.status.code()
+        );
+        assert!(err.len() < 900, "{shown:?}: {} bytes: {err}", err.len());
+        assert!(
+            err.contains(names)
+                && (err.contains("… (5000 characters)") || err.contains("… (5002 characters)")),
+            "{shown:?}: {err}"
+        );
+        assert!(!err.contains(&"x".repeat(65)), "{shown:?}: {err}");
+    }
+}
+
+/// `demo --samples 0` (and `simulate`'s sampler flags out of range) name the flag and its
+/// range, as `ask --samples 0` does: they said "sampler settings: samples = 0", after the
+/// demo had loaded its scene and printed its header.
+#[test]
+fn sample_counts_out_of_range_name_the_flag_and_its_range() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let yaml = samples().join("yaml/highway_cut_in.yaml");
+    let ckpt = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("data/checkpoint");
+    let sim = |flag: &str, v: &str| {
+        drivescript(&[
+            "simulate",
+            s(&yaml),
+            "--checkpoint",
+            s(&ckpt),
+            "-o",
+            s(&out),
+            flag,
+            v,
+        ])
+    };
+    for (run, want) in [
+        (
+            drivescript(&["demo", "-o", s(&out), "--samples", "0"]),
+            "'--samples <SAMPLES>': 0 is not in 1..=1024",
+        ),
+        (
+            drivescript(&["demo", "-o", s(&out), "--samples", "5000"]),
+            "'--samples <SAMPLES>': 5000 is not in 1..=1024",
+        ),
+        (
+            sim("--samples", "0"),
+            "'--samples <SAMPLES>': 0 is not in 1..=1024",
+        ),
+        (
+            sim("--steps", "1"),
+            "'--steps <STEPS>': 1 is not in 2..=1000",
+        ),
+        (
+            sim("--horizon", "0"),
+            "'--horizon <HORIZON>': 0 is not in 1..=100000",
+        ),
+    ] {
+        let err = String::from_utf8_lossy(&run.stderr).into_owned();
+        assert_eq!(run.status.code(), Some(2), "{err}");
+        assert!(err.contains(want), "{want}: {err}");
+        // Refused before anything is read or written.
+        assert!(
+            run.stdout.is_empty(),
+            "{}",
+            String::from_utf8_lossy(&run.stdout)
+        );
+        assert!(!out.exists());
+    }
 }

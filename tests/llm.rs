@@ -450,8 +450,8 @@ fn the_rules_planner_taking_over_says_the_last_script_failed_while_sampled() {
     let t = text(&out);
     assert!(
         t.contains(
-            "the rules planner cannot repair the last script: it passed validation but failed \
-             while being sampled: script.rhai:3:"
+            "the rules planner cannot repair the model's (test-model) last script: it passed \
+             validation but failed while being sampled: script.rhai:3:"
         ) && t.contains("out of bounds"),
         "{t}"
     );
@@ -3070,4 +3070,199 @@ fn a_flag_the_chosen_backend_does_not_read_is_an_error_not_dropped() {
         assert!(t.contains(want), "{args:?}: {t}");
     }
     assert!(!run.join("round_1").exists());
+}
+
+/// A run whose model's script failed validation, taken up with `--llm rules`: the rules
+/// planner has written no script yet, so it writes its own; it does not give up blaming "the
+/// rules planner's script" for the model's. Where it has written one that fails, the message
+/// says so.
+#[test]
+fn the_rules_planner_taking_over_a_run_is_not_blamed_for_the_models_script() {
+    let srv = Server::start(vec![
+        Canned::chat(&reply(&cut_in_script(401, 9999))),
+        Canned::raw(503, "Service Unavailable"),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(
+        dir.path(),
+        &["--attempts", "1", "--rounds", "0"],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("round 0: validation failed") && t.contains("HTTP 503"),
+        "{t}"
+    );
+    let out = ask(&["--resume", s(dir.path()), "--llm", "rules"], None);
+    let t = text(&out);
+    assert!(!t.contains("rules planner's script"), "{t}");
+    assert!(
+        t.contains("Plan (rules planner)") && t.contains("round 1: validating"),
+        "{t}"
+    );
+    assert!(matches!(out.status.code(), Some(0 | 2)), "{t}");
+}
+
+/// `--continue` on a run with `--context 4096` after two rounds: every request it sends is
+/// fitted to the window, as a fresh run's are, and each still carries the follow-up request.
+/// Its second round stopped with "the conversation does not fit --context 4096 ... raise
+/// --context", after sampling the first, advising a flag --continue refuses; and the rounds it
+/// did send had summarised the follow-up to "drivescript answered: # Follow-up request".
+#[test]
+fn a_continued_run_fits_its_context_and_keeps_the_follow_up_in_every_request() {
+    use drivescript::llm::budget::estimate_tokens;
+    const FOLLOW_UP: &str = "vehicle 405 drives off the road";
+    let srv = Server::start(vec![
+        Canned::chat(&reply(IDLE)),
+        Canned::chat(&reply(&cut_in_script(401, 399))),
+        Canned::chat("ACCEPT"),
+        Canned::chat(&reply(&cut_in_script(401, 399))),
+        Canned::chat(&reply(&cut_in_script(401, 399))),
+        Canned::chat(&reply(&cut_in_script(401, 399))),
+        Canned::chat("ACCEPT"),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(
+        dir.path(),
+        &["--context", "4096", "--rounds", "2"],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    let before = srv.received().len();
+    let out = ask(&["--continue", s(dir.path()), FOLLOW_UP], Some(&srv.url));
+    let t = text(&out);
+    assert!(matches!(out.status.code(), Some(0 | 2)), "{t}");
+    assert!(!t.contains("does not fit"), "{t}");
+    let received = srv.received();
+    assert!(received.len() >= before + 2, "{t}");
+    for (k, r) in received.iter().enumerate().skip(before) {
+        let body = r.json();
+        assert_eq!(body["max_tokens"], 1024);
+        let msgs: Vec<Message> = serde_json::from_value(body["messages"].clone()).unwrap();
+        let tokens = estimate_tokens(&msgs);
+        assert!(tokens <= 3072, "request {k}: {tokens} tokens\n{t}");
+        assert!(
+            msgs.iter().any(|m| m.content.contains(FOLLOW_UP)),
+            "request {k} lost the follow-up:\n{:#?}",
+            msgs.iter()
+                .map(|m| &m.content[..m.content.len().min(300)])
+                .collect::<Vec<_>>()
+        );
+        assert!(msgs[1].content.contains(REQUEST), "request {k}");
+    }
+}
+
+/// A continued run whose window cannot hold what it must send is refused before anything is
+/// sent or saved, naming --context and the sizes, and advising what --continue allows (a new
+/// run): it advised "raise --context", which --continue refuses.
+#[test]
+fn a_continuation_its_window_cannot_hold_is_refused_before_sending_with_advice_that_fits() {
+    use drivescript::llm::fit::Window;
+    use drivescript::llm::session::first_messages;
+    use drivescript::llm::{Prompts, SessionConfig};
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let prompts = Prompts::load(&root.join("prompts")).unwrap();
+    let scene = drivescript::io::load_scene(
+        &samples().join(SCENE),
+        0,
+        &drivescript::io::LoadOptions::default(),
+    )
+    .unwrap();
+    // The smallest first prompt, from the message that refuses a window too small for it.
+    let tiny = SessionConfig {
+        context: Some(Window {
+            tokens: 600,
+            reply: 150,
+        }),
+        ..SessionConfig::default()
+    };
+    let e = first_messages(&prompts, &tiny, &scene, &[REQUEST.to_string()], horizon())
+        .unwrap_err()
+        .to_string();
+    let smallest: u64 = e
+        .split("takes about ")
+        .nth(1)
+        .and_then(|r| r.split(' ').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("{e}"));
+    // Room for that prompt and little more: the run's one round fits, a follow-up does not.
+    let context = (smallest + 200 + 40).to_string();
+    let srv = Server::start(vec![
+        Canned::chat(&reply(&cut_in_script(401, 399))),
+        Canned::chat("ACCEPT"),
+    ]);
+    let dir = tempfile::tempdir().unwrap();
+    let out = ask_cut_in(
+        dir.path(),
+        &[
+            "--context",
+            &context,
+            "--max-tokens",
+            "200",
+            "--rounds",
+            "0",
+        ],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert!(matches!(out.status.code(), Some(0 | 2)), "{t}");
+    let sent = srv.received().len();
+    let state = std::fs::read(dir.path().join("state.json")).unwrap();
+    let out = ask(
+        &[
+            "--continue",
+            s(dir.path()),
+            "vehicle 405 drives off the road",
+        ],
+        Some(&srv.url),
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains(&format!("does not fit --context {context} ("))
+            && t.contains("tokens for the prompt after 200 for the reply")
+            && t.contains("it takes about ")
+            && t.contains("start a new run (-o NEWDIR) with a larger --context"),
+        "{t}"
+    );
+    assert!(
+        !t.contains("raise --context") && !t.contains("lower --max-tokens"),
+        "{t}"
+    );
+    assert_eq!(srv.received().len(), sent, "{t}");
+    assert_eq!(std::fs::read(dir.path().join("state.json")).unwrap(), state);
+}
+
+/// `--resume` of a manual run with `--max-tokens`: refused without advising --context, which
+/// --resume refuses too ("--context is not given").
+#[test]
+fn a_resumed_manual_run_refuses_max_tokens_without_advising_context() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = s(dir.path());
+    let out = ask(
+        &[
+            s(&samples().join(SCENE)),
+            REQUEST,
+            "-o",
+            d,
+            "--llm",
+            "manual",
+        ],
+        None,
+    );
+    assert_eq!(out.status.code(), Some(0), "{}", text(&out));
+    for mode in [vec!["--resume", d], vec!["--resume", d, "--llm", "manual"]] {
+        let out = ask(&[&mode[..], &["--max-tokens", "100"]].concat(), None);
+        let t = text(&out);
+        assert_eq!(out.status.code(), Some(1), "{t}");
+        assert!(
+            t.contains("--max-tokens: ")
+                && t.contains("asks no server")
+                && t.contains("--resume goes on with the run's (its state.json)"),
+            "{t}"
+        );
+        assert!(!t.contains("--context is not given"), "{t}");
+    }
 }

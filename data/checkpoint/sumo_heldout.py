@@ -161,19 +161,29 @@ def write_scene(cr_file, out_file, found, dims):
             root.remove(ob)
     root.set("source", root.get("source", "") + "; re-simulated with SUMO by sumo_heldout.py")
     n = 0
+    cut = []
     for vid, track in sorted(found.items(), key=lambda kv: kv[0]):
         steps = sorted(track["states"])
-        # A vehicle that leaves and comes back would need two tracks; keep its first run.
+        # A vehicle that leaves and comes back would need two tracks; keep its first run. So
+        # for one that SUMO moves further in a step than its speed carries it (a teleport, or
+        # a re-insertion under the same id): `convert` would refuse the jump, or it would read
+        # as motion no car makes. The centre may move up to a length more than the speed says
+        # where SUMO's heading turns at once in a junction (the centre is set back from the
+        # front along it): that stays, as in the held-out scenes.
+        length, width = shapes.get(vid) or tuple(f"{v}" for v in dims.get(track["type"], (5.0, 1.8)))
         run = [steps[0]]
         for s in steps[1:]:
             if s != run[-1] + 1:
+                break
+            a, b = track["states"][run[-1]], track["states"][s]
+            if math.hypot(b[0] - a[0], b[1] - a[1]) > 0.1 * max(a[3], b[3]) + float(length) + 1.0:
+                cut.append(f"{vid} cut at step {s} ({math.hypot(b[0] - a[0], b[1] - a[1]):.1f} m in 0.1 s)")
                 break
             run.append(s)
         if len(run) < 2:
             continue
         ob = ET.SubElement(root, "dynamicObstacle", id=str(vid))
         ET.SubElement(ob, "type").text = CR_TYPE.get(track["type"], "car")
-        length, width = shapes.get(vid) or tuple(f"{v}" for v in dims.get(track["type"], (5.0, 1.8)))
         rect = ET.SubElement(ET.SubElement(ob, "shape"), "rectangle")
         ET.SubElement(rect, "length").text = str(length)
         ET.SubElement(rect, "width").text = str(width)
@@ -182,11 +192,13 @@ def write_scene(cr_file, out_file, found, dims):
         for s in run[1:]:
             state_xml(traj, "state", s, track["states"][s])
         n += 1
+    if n == 0:
+        return n, cut
     tmp = out_file + ".part"
     with gzip.open(tmp, "wb") as f:
         tree.write(f, encoding="UTF-8", xml_declaration=True)
     os.replace(tmp, out_file)
-    return n
+    return n, cut
 
 
 def main():
@@ -219,9 +231,13 @@ def main():
                 skipped.append(f"{name}: {e}")
                 continue
             found = tracks(fcd, dims)
-            n = write_scene(cr, os.path.join(a.out, name + ".xml.gz"), found, dims)
+            n, cut = write_scene(cr, os.path.join(a.out, name + ".xml.gz"), found, dims)
+            if n == 0:
+                # `convert` refuses a scene without agents: nothing to learn or measure.
+                skipped.append(f"{name}: no vehicle drove in the simulated {a.seconds:g} s")
+                continue
             total += 1
-            print(f"{name}: {n} agents")
+            print(f"{name}: {n} agents" + "".join(f"; {c}" for c in cut))
     print(f"{total} scenes written to {a.out}; {len(skipped)} left out:")
     for line in skipped:
         print("  " + line.replace("\n", " "))

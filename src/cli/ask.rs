@@ -117,7 +117,7 @@ pub struct Args {
     #[arg(long, default_value_t = 3, value_parser = usize_in(0, drivescript::llm::session::MAX_FIXES))]
     fixes: usize,
     /// Samples per round, 1 to 1024.
-    #[arg(long, default_value_t = 4, value_parser = usize_in(1, 1024))]
+    #[arg(long, default_value_t = 4, value_parser = usize_in(1, drivescript::sample::MAX_SAMPLES))]
     samples: usize,
     /// Seed of the initial noise (also sent to the server, which treats it as best effort).
     #[arg(long, default_value_t = 1)]
@@ -378,7 +378,7 @@ impl Args {
         } else {
             ChosenBy::Flag
         };
-        unread(given, &Reading::of(&b, by))?;
+        unread(given, &Reading::of(&b, by), None)?;
         Ok((b, line))
     }
 }
@@ -456,8 +456,9 @@ impl Reading {
 
 /// Refuses a flag in `given` (clap ids given on the command line) that the backend does not
 /// read: dropped without a word, it would leave the user believing the run used it
-/// (`--llm rules --temperature 1.5`).
-fn unread(given: &[String], reading: &Reading) -> Result<(), LlmError> {
+/// (`--llm rules --temperature 1.5`). `again` is `--resume` or `--continue` where the run is
+/// taken up again: the advice then names no flag that mode refuses.
+fn unread(given: &[String], reading: &Reading, again: Option<&str>) -> Result<(), LlmError> {
     let is_given = |id: &str| given.iter().any(|g| g == id);
     let first = |flags: &[(&'static str, &'static str)]| {
         flags.iter().find(|(id, _)| is_given(id)).map(|(_, f)| *f)
@@ -480,10 +481,18 @@ fn unread(given: &[String], reading: &Reading) -> Result<(), LlmError> {
             match first(&server) {
                 Some("--max-tokens") => refuse(
                     "--max-tokens",
-                    &format!(
-                        "{who} asks no server; --max-tokens sets only the reply's share of the \
-                         --context window, and --context is not given"
-                    ),
+                    &match again {
+                        None => format!(
+                            "{who} asks no server; --max-tokens sets only the reply's share of \
+                             the --context window, and --context is not given"
+                        ),
+                        // --context is refused there: the window is the run's.
+                        Some(mode) => format!(
+                            "{who} asks no server; --max-tokens would set only the reply's share \
+                             of a --context window, which a run states when it starts, and \
+                             {mode} goes on with the run's (its state.json)"
+                        ),
+                    },
                 ),
                 Some(flag) => refuse(
                     flag,
@@ -600,7 +609,12 @@ fn reopen<'a>(
             } else {
                 ChosenBy::Flag
             };
-            unread(given, &Reading::of(&b, by))?;
+            let mode = if args.resume.is_some() {
+                "--resume"
+            } else {
+                "--continue"
+            };
+            unread(given, &Reading::of(&b, by), Some(mode))?;
             println!("{line}");
             Ok(b)
         },
@@ -616,7 +630,9 @@ fn reopen<'a>(
                 "--continue"
             };
             return Err(LlmError::Setup(format!(
-                "--max-tokens: the run fits its prompts to --context {} with {} tokens for the                  reply (its state.json), and {mode} goes on with them; start a new run                  (-o NEWDIR) to change them",
+                "--max-tokens: the run fits its prompts to --context {} with {} tokens for the \
+                 reply (its state.json), and {mode} goes on with them; start a new run \
+                 (-o NEWDIR) to change them",
                 w.tokens, w.reply
             )));
         }

@@ -28,8 +28,8 @@ pub struct Args {
     /// Checkpoint directory (default: the one shipped in data/checkpoint).
     #[arg(long)]
     checkpoint: Option<PathBuf>,
-    /// Samples per round.
-    #[arg(long, default_value_t = 4)]
+    /// Samples per round, 1 to 1024.
+    #[arg(long, default_value_t = 4, value_parser = super::ask::usize_in(1, drivescript::sample::MAX_SAMPLES))]
     samples: usize,
     /// Seed of the initial noise.
     #[arg(long, default_value_t = 1)]

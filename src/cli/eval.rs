@@ -188,8 +188,12 @@ pub fn run(args: Args) -> Result<ExitCode> {
         return merge(&args.merge, args.json.as_deref());
     }
     let task = args.task.expect("clap requires --task without --merge");
-    if !(1..=1024).contains(&args.samples) {
-        anyhow::bail!("--samples {}: must be 1 to 1024", args.samples);
+    if !(1..=drivescript::sample::MAX_SAMPLES).contains(&args.samples) {
+        anyhow::bail!(
+            "--samples {}: must be 1 to {}",
+            args.samples,
+            drivescript::sample::MAX_SAMPLES
+        );
     }
     // Every method is simulated over the horizon, so 10^8 steps aborted on allocation; a
     // horizon of 0 scores nothing.
@@ -259,7 +263,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let behaviour = match (task, &args.behaviour) {
         (Task::Behaviour, None) => bail!("--task behaviour needs --behaviour NAME"),
         (Task::Behaviour, Some(n)) => {
-            let b = Behavior::from_name(n).with_context(|| format!("unknown behaviour {n:?}"))?;
+            let b = Behavior::parse(n).context("--behaviour")?;
             // Every parameter the loop's checkers take, words (`yielder_turn=left`) too: the
             // behaviour's own check says what is wrong with a value, on the first scene. A
             // name it does not read is refused here, before any scene is read.

@@ -170,7 +170,9 @@ impl From<GuidanceArg> for drivescript::sample::Guidance {
 /// Parses the command line and runs the subcommand; errors are printed with their causes.
 pub fn run() -> ExitCode {
     use clap::{CommandFactory, FromArgMatches};
-    let matches = Cli::command().get_matches();
+    let matches = Cli::command()
+        .try_get_matches()
+        .unwrap_or_else(|e| quoted_cut(e).exit());
     let cli = Cli::from_arg_matches(&matches)
         .map_err(|e| e.format(&mut Cli::command()))
         .unwrap_or_else(|e| e.exit());
@@ -201,6 +203,45 @@ pub fn run() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// clap's error with every value and argument the user typed quoted as
+/// [`drivescript::io::name::shown_counted`] shows it: clap echoes a bad value whole ("invalid
+/// value '…'", "unexpected argument '…'", and again in its tip), and a 5000-character value made
+/// a 5 to 10 KB message; escape sequences in one reached the terminal as they were.
+fn quoted_cut(mut e: clap::Error) -> clap::Error {
+    use clap::error::{ContextKind, ContextValue};
+    use drivescript::io::name::shown_counted;
+    let mut cut = Vec::new();
+    for kind in [
+        ContextKind::InvalidValue,
+        ContextKind::InvalidArg,
+        ContextKind::InvalidSubcommand,
+    ] {
+        if let Some(ContextValue::String(typed)) = e.get(kind) {
+            let shown = shown_counted(typed);
+            if shown != *typed {
+                cut.push((typed.clone(), shown.clone()));
+                e.insert(kind, ContextValue::String(shown));
+            }
+        }
+    }
+    if let Some(ContextValue::StyledStrs(tips)) = e.get(ContextKind::Suggested) {
+        if !cut.is_empty() {
+            let tips = tips
+                .iter()
+                .map(|t| {
+                    let mut text = t.ansi().to_string();
+                    for (typed, shown) in &cut {
+                        text = text.replace(typed.as_str(), shown);
+                    }
+                    clap::builder::StyledStr::from(text)
+                })
+                .collect();
+            e.insert(ContextKind::Suggested, ContextValue::StyledStrs(tips));
+        }
+    }
+    e
 }
 
 /// The flags given on the command line (clap's ids: the field names), not those left at their

@@ -5,7 +5,7 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result};
 use drivescript::cost::{Params, Realism};
-use drivescript::eval::behaviors::{suggest, Behavior, ALL};
+use drivescript::eval::behaviors::{suggest, Behavior};
 use drivescript::io::name::terminal_safe;
 use drivescript::io::{discover, output_stem, read_each, LoadOptions, OutputNames};
 use drivescript::render::RenderOptions;
@@ -54,18 +54,18 @@ pub struct Args {
     /// Script parameters, name=value.
     #[arg(long = "param", num_args = 1..)]
     params: Vec<String>,
-    /// Samples (one batch).
-    #[arg(long, default_value_t = 1)]
+    /// Samples (one batch), 1 to 1024.
+    #[arg(long, default_value_t = 1, value_parser = super::ask::usize_in(1, drivescript::sample::MAX_SAMPLES))]
     samples: usize,
     /// Seed of the initial noise.
     #[arg(long, default_value_t = 1)]
     seed: u64,
     /// Heun steps, 2 to 1000 and at least the fewest the checkpoint's noise schedule
     /// denoises with (8 for the shipped one): fewer leave noise in the trajectories.
-    #[arg(long, default_value_t = 32)]
+    #[arg(long, default_value_t = 32, value_parser = super::ask::usize_in(drivescript::sample::MIN_HEUN_STEPS, drivescript::sample::MAX_HEUN_STEPS))]
     steps: usize,
-    /// Future steps to sample, up to the model's horizon (default: the model's horizon).
-    #[arg(long)]
+    /// Future steps to sample, 1 up to the model's horizon (default: the model's horizon).
+    #[arg(long, value_parser = super::ask::usize_in(1, drivescript::io::MAX_STEPS))]
     horizon: Option<usize>,
     /// Guidance strength of the scripts, default 3 (chosen on held-out NGSIM behaviours with
     /// the fading schedule: data/checkpoint/README.md); above 0 only with --script or --auto.
@@ -136,12 +136,7 @@ pub struct Args {
 pub fn run(args: Args) -> Result<ExitCode> {
     let trained = load(&args.checkpoint)?;
     let auto = match &args.auto {
-        Some(name) => Some(Behavior::from_name(name).with_context(|| {
-            format!(
-                "--auto {name}: unknown behaviour; one of {}",
-                ALL.map(|b| b.name()).join(", ")
-            )
-        })?),
+        Some(name) => Some(Behavior::parse(name).context("--auto")?),
         None => None,
     };
     let script_paths = match (auto, args.scripts.is_empty()) {

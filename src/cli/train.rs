@@ -187,11 +187,22 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 );
             }
             if !args.val_town.is_empty() && args.val_town != r.meta.config.val_towns {
+                let towns = |t: &[String]| {
+                    let shown: Vec<String> = t
+                        .iter()
+                        .map(|t| format!("\"{}\"", drivescript::io::name::shown_counted(t)))
+                        .collect();
+                    if shown.is_empty() {
+                        "none".to_string()
+                    } else {
+                        shown.join(" ")
+                    }
+                };
                 anyhow::bail!(
-                    "--val-town {}: {} held out {:?}; a resumed run keeps its towns",
-                    args.val_town.join(" "),
+                    "--val-town {}: {} held out {}; a resumed run keeps its towns",
+                    towns(&args.val_town),
                     dir.display(),
-                    r.meta.config.val_towns
+                    towns(&r.meta.config.val_towns)
                 );
             }
             println!(

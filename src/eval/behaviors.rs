@@ -107,6 +107,15 @@ impl Behavior {
         ALL.iter().copied().find(|b| b.name() == s)
     }
 
+    /// The behaviour with this name, or the error that quotes the name (cut where it is long)
+    /// and lists the known ones: for a name a user typed (`--behaviour`, `--auto`, a batch
+    /// file's `behaviour:`).
+    pub fn parse(s: &str) -> Result<Self, UnknownBehaviour> {
+        Self::from_name(s).ok_or_else(|| UnknownBehaviour {
+            name: crate::io::name::shown_counted(s),
+        })
+    }
+
     /// The checker's definition of success, in one line.
     pub fn definition(self) -> &'static str {
         match self {
@@ -269,6 +278,17 @@ impl Verdict {
         self.collateral = Some(c);
         self
     }
+}
+
+/// A behaviour name that names none ([`Behavior::parse`]).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error(
+    "unknown behaviour \"{name}\"; known: {}",
+    ALL.iter().map(|b| b.name()).collect::<Vec<_>>().join(", ")
+)]
+pub struct UnknownBehaviour {
+    /// The name as it can be quoted ([`crate::io::name::shown_counted`]).
+    pub name: String,
 }
 
 /// Why a checker cannot run.

@@ -966,7 +966,7 @@ pub(crate) fn read_maybe_gz(path: &Path) -> Result<Vec<u8>, IoError> {
                     } else {
                         format!("gzip member at byte {at}")
                     };
-                    IoError::invalid(path, place, e.to_string())
+                    IoError::invalid(path, place, gzip_damage(&e, rest.len()))
                 })?;
             if out.len() as u64 > MAX_SCENE_BYTES {
                 break;
@@ -985,6 +985,25 @@ pub(crate) fn read_maybe_gz(path: &Path) -> Result<Vec<u8>, IoError> {
         Ok(out)
     } else {
         Ok(raw)
+    }
+}
+
+/// What is wrong with a gzip stream of `len` bytes that the decoder refused with `e`, in words
+/// that say the file is damaged: the decoder's own "unexpected end of file" or "incomplete
+/// deflate stream" do not say that the file was cut short (an interrupted download or copy),
+/// nor "corrupt deflate stream" that it cannot be read.
+fn gzip_damage(e: &std::io::Error, len: usize) -> String {
+    let text = e.to_string();
+    if e.kind() == std::io::ErrorKind::UnexpectedEof || text.contains("incomplete") {
+        format!(
+            "truncated: its {len} bytes end before the gzip stream does ({text}): the file was \
+             cut short, e.g. by an interrupted download or copy; fetch or compress it again"
+        )
+    } else {
+        format!(
+            "damaged gzip stream ({text}): the compressed data cannot be read back; fetch or \
+             compress the file again"
+        )
     }
 }
 
@@ -1223,6 +1242,55 @@ mod tests {
             e.contains(&format!("second.xml.gz: gzip member at byte {}", gz.len())),
             "{e}"
         );
+    }
+
+    #[test]
+    fn a_truncated_or_corrupt_gzip_file_is_named_as_such() {
+        use std::io::Write;
+        let dir = tempfile::tempdir().unwrap();
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/samples");
+        let xml = std::fs::read(root.join("commonroad/USA_US101-3_3_T-1.xml")).unwrap();
+        let mut enc = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+        enc.write_all(&xml).unwrap();
+        let gz = enc.finish().unwrap();
+        // Cut in the header, in the deflate data and in the trailer (the decoder says
+        // "unexpected end of file" for some, "incomplete deflate stream" for others).
+        for keep in [
+            6,
+            15,
+            gz.len() / 2,
+            gz.len() - 100,
+            gz.len() - 4,
+            gz.len() - 1,
+        ] {
+            let p = dir.path().join("cut.xml.gz");
+            std::fs::write(&p, &gz[..keep]).unwrap();
+            let e = super::read_maybe_gz(&p).unwrap_err().to_string();
+            assert!(
+                e.contains("cut.xml.gz: gzip stream: truncated: ")
+                    && e.contains(&format!("its {keep} bytes end before the gzip stream does"))
+                    && e.contains("interrupted download or copy"),
+                "{keep}: {e}"
+            );
+        }
+        // A changed byte in the data, and in the checksum.
+        for at in [gz.len() / 2, gz.len() - 6] {
+            let mut bad = gz.clone();
+            bad[at] ^= 0xff;
+            let p = dir.path().join("bad.json.gz");
+            std::fs::write(&p, &bad).unwrap();
+            let e = super::read_maybe_gz(&p).unwrap_err().to_string();
+            assert!(
+                e.contains("bad.json.gz: gzip stream: damaged gzip stream (")
+                    && e.contains("cannot be read back"),
+                "{at}: {e}"
+            );
+        }
+        // A rollout or YAML scene compressed the same way says the same.
+        let p = dir.path().join("cut.yaml.gz");
+        std::fs::write(&p, &gz[..gz.len() / 2]).unwrap();
+        let e = super::read_text(&p).unwrap_err().to_string();
+        assert!(e.contains("cut.yaml.gz: gzip stream: truncated"), "{e}");
     }
 
     #[cfg(unix)]

@@ -36,7 +36,8 @@ impl FromStr for Shard {
     type Err = String;
 
     fn from_str(s: &str) -> Result<Self, String> {
-        let bad = || format!("{s:?}: a shard is I/N with 0 <= I < N <= {MAX_SHARDS}, e.g. 0/8");
+        // Without the value: clap quotes it, cut where it is long, before this message.
+        let bad = || format!("a shard is I/N with 0 <= I < N <= {MAX_SHARDS}, e.g. 0/8");
         let (i, n) = s.split_once('/').ok_or_else(bad)?;
         let (index, count): (usize, usize) = (
             i.trim().parse().map_err(|_| bad())?,

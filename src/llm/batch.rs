@@ -163,16 +163,9 @@ pub fn read_batch(path: &Path) -> Result<Vec<Entry>, LlmError> {
         }
         let behaviour = match &e["behaviour"] {
             serde_yaml::Value::Null => None,
-            serde_yaml::Value::String(s) => Some(Behavior::from_name(s).ok_or_else(|| {
-                at(format!(
-                    "unknown behaviour {s:?}; known: {}",
-                    crate::eval::behaviors::ALL
-                        .iter()
-                        .map(|b| b.name())
-                        .collect::<Vec<_>>()
-                        .join(", ")
-                ))
-            })?),
+            serde_yaml::Value::String(s) => {
+                Some(Behavior::parse(s).map_err(|e| at(e.to_string()))?)
+            }
             _ => return Err(at("`behaviour:` must be a name".into())),
         };
         let params = match &e["params"] {

@@ -122,7 +122,8 @@ pub fn check_prompt_tokens(
         "the server read {reported} tokens of a prompt of about {estimate}: it cut the prompt to \
          its context window without an error, so the model never saw the rest (the rules, the \
          reference or the request). Give it a window of at least {} tokens: {}; or, where the model's \
-         window is smaller, tell ask with --context N, and it fits the conversation into it",
+         window is smaller, start the run with --context N, and it fits the conversation into it \
+         (a run taken up with --resume or --continue keeps the window it started with)",
         window_for(estimate, reply_tokens),
         kind.fix(window_for(estimate, reply_tokens))
     ))

@@ -116,12 +116,21 @@ impl HttpConfig {
     /// setting, rather than as the HTTP library's "builder error" (whose text can quote the
     /// URL's credentials).
     pub fn check(&self) -> Result<(), LlmError> {
-        let shown = redact_url(&self.url);
+        let shown = crate::io::name::shown_counted(&redact_url(&self.url));
         let bad = |why: &str| {
             LlmError::Setup(format!(
-                "the LLM server URL {shown:?} (--llm-url or DRIVESCRIPT_LLM_URL) {why}"
+                "the LLM server URL \"{shown}\" (--llm-url or DRIVESCRIPT_LLM_URL) {why}"
             ))
         };
+        // Every progress line and error names the URL: one of thousands of characters would
+        // fill the terminal with each.
+        let chars = self.url.chars().count();
+        if chars > MAX_URL_CHARS {
+            return Err(bad(&format!(
+                "is {chars} characters long: at most {MAX_URL_CHARS}"
+            )));
+        }
+        check_model(&self.model)?;
         let u = reqwest::Url::parse(&self.url).map_err(|e| bad(&format!("is not a URL: {e}")))?;
         if !matches!(u.scheme(), "http" | "https") {
             return Err(bad("must start with http:// or https://"));
@@ -199,14 +208,47 @@ const BODY_FIELDS: [&str; 6] = [
     "seed",
 ];
 
+/// The longest LLM server URL taken (`--llm-url`), characters.
+pub const MAX_URL_CHARS: usize = 2048;
+
+/// The longest model name taken (`--model`), characters: model ids with a repository and a
+/// quantisation (`hf.co/org/Model-GGUF:Q4_K_M`) are under a hundred.
+pub const MAX_MODEL_CHARS: usize = 256;
+
+/// Whether `model` can be a model name (`--model`, `DRIVESCRIPT_LLM_MODEL`): 1 to
+/// [`MAX_MODEL_CHARS`] characters, none a control or invisible one. It is printed with every
+/// round and recorded in the run; a long one was echoed whole in each line.
+pub fn check_model(model: &str) -> Result<(), LlmError> {
+    let bad = |why: String| {
+        Err(LlmError::Setup(format!(
+            "the model name \"{}\" (--model or DRIVESCRIPT_LLM_MODEL) {why}",
+            crate::io::name::shown_counted(model)
+        )))
+    };
+    let chars = model.chars().count();
+    if model.trim().is_empty() {
+        return bad("is empty".into());
+    }
+    if chars > MAX_MODEL_CHARS {
+        return bad(format!(
+            "is {chars} characters long: at most {MAX_MODEL_CHARS}"
+        ));
+    }
+    if let Err(c) = crate::io::name::check_name(model) {
+        return bad(format!("holds {c}"));
+    }
+    Ok(())
+}
+
 /// Whether `field` can carry the token limit (`--max-tokens-field`): a JSON field name a
 /// server reads, 1 to 64 ASCII letters, digits and `_` (`max_tokens`,
 /// `max_completion_tokens`), and not a field the request already sends.
 pub fn check_max_tokens_field(field: &str) -> Result<(), LlmError> {
     let bad = |why: &str| {
         Err(LlmError::Setup(format!(
-            "--max-tokens-field {field:?}: {why} (max_tokens for most servers, \
-             max_completion_tokens for OpenAI's newer models)"
+            "--max-tokens-field \"{}\": {why} (max_tokens for most servers, \
+             max_completion_tokens for OpenAI's newer models)",
+            crate::io::name::shown_counted(field)
         )))
     };
     if field.is_empty() || field.len() > 64 {

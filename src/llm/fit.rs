@@ -212,10 +212,27 @@ impl Window {
     }
 }
 
+/// A first prompt that does not fit its window even at its smallest.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error(
+    "the first prompt takes about {smallest} tokens even with the compact reference, the named \
+     agents only and no worked examples: more than the {} a window of {} leaves after {} for \
+     the reply; raise --context (and the server's window) or lower --max-tokens",
+    window.prompt(),
+    window.tokens,
+    window.reply
+)]
+pub struct FirstTooLarge {
+    /// Tokens of the smallest first prompt.
+    pub smallest: u64,
+    /// The window it was fitted to.
+    pub window: Window,
+}
+
 /// The first prompt's two messages within `window`: the whole prompt where it fits, else the
 /// compact reference, then fewer agents, then one example, then the reference without its
 /// explanations, then no example. `scene(n)` is the scene summary listing at most `n` agents; `keep` agents are
-/// always listed. An error says how far the smallest prompt is over.
+/// always listed. The error says how far the smallest prompt is over.
 pub fn fit_first(
     prompts: &Prompts,
     opts: &PromptOptions,
@@ -224,7 +241,7 @@ pub fn fit_first(
     max_agents: usize,
     keep: usize,
     window: Window,
-) -> Result<Fitted, String> {
+) -> Result<Fitted, FirstTooLarge> {
     let request = requests.join("\n");
     let build = |examples: &[(String, String)], reference: &str, agents: usize| {
         vec![
@@ -320,18 +337,30 @@ pub fn fit_first(
         }
         return Ok(Fitted { messages, left_out });
     }
-    Err(format!(
-        "the first prompt takes about {smallest} tokens even with the compact reference, the \
-         named agents only and no worked examples: more than the {} a window of {} leaves after \
-         {} for the reply; raise --context (and the server's window) or lower --max-tokens",
-        window.prompt(),
-        window.tokens,
-        window.reply
-    ))
+    Err(FirstTooLarge { smallest, window })
 }
 
-/// The summary of an older exchange, in a line or two.
-fn summarise(m: &Message) -> String {
+/// The summary of an older exchange, in a line or two, and whether it must stay: a message
+/// adding one of `follow_ups` (the requests of `ask --continue`) is summarised as that request,
+/// which the model must not lose with the rounds before it.
+fn summarise(m: &Message, follow_ups: &[String]) -> (String, bool) {
+    if m.role == "user" {
+        let added: Vec<&str> = follow_ups
+            .iter()
+            .map(|r| r.trim())
+            .filter(|r| !r.is_empty() && m.content.contains(r))
+            .collect();
+        if !added.is_empty() {
+            return (
+                format!("- you were asked besides: {}", added.join("; ")),
+                true,
+            );
+        }
+    }
+    (summarise_exchange(m), false)
+}
+
+fn summarise_exchange(m: &Message) -> String {
     if m.role == "assistant" {
         let code = code_of(&m.content);
         let terms: Vec<&str> = m
@@ -403,26 +432,46 @@ pub fn compact_feedback(text: &str, keep_motion: usize) -> Option<String> {
 /// messages (the system prompt and the request), with a summary of the rounds between appended
 /// to the request (so that roles still alternate), and the last exchange (the model's last
 /// reply and the message after it); else that with the last message's realism rows and all
-/// but one sample's motion left out; else the first two messages as `refit(tokens)` makes them
-/// within the tokens left (the first prompt's fitting, one step further). `None` when nothing
-/// fits.
+/// but one sample's motion left out, the oldest summaries left out where even they are too
+/// long; else the first two messages as `refit(tokens)` makes them within the tokens left (the
+/// first prompt's fitting, one step further; its error is the fewest tokens that prompt takes).
+/// A summary line of a message that added one of `follow_ups` (`ask --continue`) is never left
+/// out. The error is the fewest tokens the conversation takes, for the message that refuses it.
 pub fn fit_conversation(
     messages: &[Message],
     budget: u64,
-    refit: &dyn Fn(u64) -> Option<Fitted>,
-) -> Option<Fitted> {
-    if estimate_tokens(messages) <= budget {
-        return Some(Fitted {
+    follow_ups: &[String],
+    refit: &dyn Fn(u64) -> Result<Fitted, u64>,
+) -> Result<Fitted, u64> {
+    let whole = estimate_tokens(messages);
+    if whole <= budget {
+        return Ok(Fitted {
             messages: messages.to_vec(),
             left_out: Vec::new(),
         });
     }
     if messages.len() < 4 {
-        return None;
+        return Err(whole);
     }
     let (head, rest) = messages.split_at(2);
     let (middle, last) = rest.split_at(rest.len() - 2);
-    let lines: Vec<String> = middle.iter().map(summarise).collect();
+    let lines: Vec<(String, bool)> = middle.iter().map(|m| summarise(m, follow_ups)).collect();
+    let droppable = lines.iter().filter(|(_, pinned)| !pinned).count();
+    // The summary lines kept when the `skip` oldest that may go are left out.
+    let kept = |skip: usize| -> Vec<String> {
+        let mut rank = 0;
+        lines
+            .iter()
+            .filter(|(_, pinned)| {
+                if *pinned {
+                    return true;
+                }
+                rank += 1;
+                rank > skip
+            })
+            .map(|(l, _)| l.clone())
+            .collect()
+    };
     let with_summary = |request: &Message, kept: &[String]| {
         let mut request = request.clone();
         if !kept.is_empty() {
@@ -451,12 +500,13 @@ pub fn fit_conversation(
             lasts.push((compacted, Some(what)));
         }
     }
-    let said = |kept: usize, skip: usize, cut: Option<&str>| {
+    let said = |skip: usize, cut: Option<&str>| {
         let mut left_out = Vec::new();
         if !middle.is_empty() {
             left_out.push(format!(
-                "{} earlier messages ({kept} of them summarised)",
-                middle.len()
+                "{} earlier messages ({} of them summarised)",
+                middle.len(),
+                lines.len() - skip
             ));
         }
         if skip > 0 {
@@ -467,45 +517,59 @@ pub fn fit_conversation(
     };
     for (last, cut) in &lasts {
         // The oldest summaries go first when even the summary is too long.
-        for skip in 0..=lines.len() {
-            let mut out = vec![head[0].clone(), with_summary(&head[1], &lines[skip..])];
+        for skip in 0..=droppable {
+            let mut out = vec![head[0].clone(), with_summary(&head[1], &kept(skip))];
             out.extend_from_slice(last);
             if estimate_tokens(&out) <= budget {
-                return Some(Fitted {
+                return Ok(Fitted {
                     messages: out,
-                    left_out: said(lines.len() - skip, skip, *cut),
+                    left_out: said(skip, *cut),
                 });
             }
         }
     }
-    // The first prompt itself, fitted into what the rest leaves.
+    // The first prompt itself, fitted into what the rest leaves, with as many summaries as
+    // leave it room.
     let (last, cut) = lasts.last().expect("the exchange as it is");
-    let tail = estimate_tokens(last)
-        + lines
-            .iter()
-            .map(|l| super::budget::estimate_text(l) + 1)
-            .sum::<u64>()
-        + 20;
-    let first = refit(budget.checked_sub(tail)?)?;
-    let mut out = vec![
-        first.messages[0].clone(),
-        with_summary(&first.messages[1], &lines),
-    ];
-    out.extend_from_slice(last);
-    if estimate_tokens(&out) > budget {
-        return None;
+    let mut fewest = u64::MAX;
+    for skip in 0..=droppable {
+        let lines = kept(skip);
+        let tail = estimate_tokens(last)
+            + lines
+                .iter()
+                .map(|l| super::budget::estimate_text(l) + 1)
+                .sum::<u64>()
+            + 20;
+        let first = match refit(budget.saturating_sub(tail)) {
+            Ok(f) => f,
+            Err(smallest) => {
+                fewest = fewest.min(smallest.saturating_add(tail));
+                continue;
+            }
+        };
+        let mut out = vec![
+            first.messages[0].clone(),
+            with_summary(&first.messages[1], &lines),
+        ];
+        out.extend_from_slice(last);
+        let tokens = estimate_tokens(&out);
+        if tokens > budget {
+            fewest = fewest.min(tokens);
+            continue;
+        }
+        let mut left_out = said(skip, *cut);
+        left_out.extend(
+            first
+                .left_out
+                .into_iter()
+                .map(|l| format!("(first prompt) {l}")),
+        );
+        return Ok(Fitted {
+            messages: out,
+            left_out,
+        });
     }
-    let mut left_out = said(lines.len(), 0, *cut);
-    left_out.extend(
-        first
-            .left_out
-            .into_iter()
-            .map(|l| format!("(first prompt) {l}")),
-    );
-    Some(Fitted {
-        messages: out,
-        left_out,
-    })
+    Err(fewest)
 }
 
 #[cfg(test)]
@@ -556,8 +620,8 @@ mod tests {
                 format!("Agents your script names: 1.\n## Sample 0: does not meet it (1 reasons)\n{big}"),
             ));
         }
-        let none = |_: u64| None;
-        let f = fit_conversation(&m, 2500, &none).unwrap();
+        let none = |_: u64| Err(u64::MAX);
+        let f = fit_conversation(&m, 2500, &[], &none).unwrap();
         assert_eq!(f.messages.len(), 4);
         assert_eq!(f.messages[0], m[0]);
         assert_eq!(&f.messages[2..], &m[6..]);
@@ -575,8 +639,13 @@ mod tests {
         assert!(estimate_tokens(&f.messages) <= 2500);
         // Small conversations are sent as they are; one whose last exchange alone is too big
         // cannot be fitted.
-        assert_eq!(fit_conversation(&m, 1_000_000, &none).unwrap().messages, m);
-        assert!(fit_conversation(&m, 1000, &none).is_none());
+        assert_eq!(
+            fit_conversation(&m, 1_000_000, &[], &none)
+                .unwrap()
+                .messages,
+            m
+        );
+        assert!(fit_conversation(&m, 1000, &[], &none).is_err());
         // The last feedback loses the realism rows and the later samples' motion first.
         let fb = "| t | 1 |\n| realism_speed | 2 |\n## Sample 0: ok\nAgent 1: t\n  0 s: a\n## Sample 1: not\n- term x\nAgent 1: t\n  0 s: b\n";
         assert_eq!(
@@ -590,19 +659,79 @@ mod tests {
         assert_eq!(compact_feedback("## Sample 0: ok\n- fine\n", 0), None);
         // Where even that is too long, the first prompt is fitted into what is left.
         let refit = |tokens: u64| {
-            (tokens >= 10).then(|| Fitted {
-                messages: vec![Message::new("system", "r"), Message::new("user", "q")],
-                left_out: vec!["the worked examples".into()],
-            })
+            if tokens >= 10 {
+                Ok(Fitted {
+                    messages: vec![Message::new("system", "r"), Message::new("user", "q")],
+                    left_out: vec!["the worked examples".into()],
+                })
+            } else {
+                Err(10)
+            }
         };
         let mut long_rules = m.clone();
         long_rules[0].content = "rules ".repeat(200);
-        assert!(fit_conversation(&long_rules, 2300, &none).is_none());
-        let f = fit_conversation(&long_rules, 2300, &refit).unwrap();
+        assert!(fit_conversation(&long_rules, 2300, &[], &none).is_err());
+        let f = fit_conversation(&long_rules, 2300, &[], &refit).unwrap();
         assert!(f.messages[1].content.starts_with("q\n\n# Earlier rounds"));
         assert!(f
             .left_out
             .iter()
             .any(|l| l == "(first prompt) the worked examples"));
+    }
+
+    #[test]
+    fn a_follow_up_request_is_never_summarised_away_and_a_misfit_says_its_size() {
+        let big = "x".repeat(3000);
+        let m = vec![
+            Message::new("system", "rules"),
+            Message::new("user", "# Request\n\nvehicle 1 cuts in"),
+            Message::new("assistant", "```rhai\nterm(\"a\", 1.0);\n```\n"),
+            Message::new("user", format!("Sampled: {big}")),
+            Message::new("assistant", "ACCEPT"),
+            Message::new(
+                "user",
+                "# Follow-up request\n\nvehicle 2 stops\n\nRevise the current script.",
+            ),
+            Message::new(
+                "assistant",
+                format!("```rhai\nterm(\"b\", 1.0);\n// {big}\n```\n"),
+            ),
+            Message::new("user", format!("## Sample 0: does not meet it\n{big}")),
+        ];
+        let none = |_: u64| Err(u64::MAX);
+        // Room for the request, the last exchange and a line or two of summary: the
+        // 1000-token summary of the first feedback goes, the follow-up stays.
+        let base = estimate_tokens(&[m[0].clone(), m[1].clone(), m[6].clone(), m[7].clone()]);
+        let budget = base + 45;
+        let f = fit_conversation(&m, budget, &["vehicle 2 stops".into()], &none).unwrap();
+        assert!(estimate_tokens(&f.messages) <= budget);
+        assert!(
+            f.messages[1]
+                .content
+                .contains("- you were asked besides: vehicle 2 stops"),
+            "{}",
+            f.messages[1].content
+        );
+        assert!(f
+            .left_out
+            .iter()
+            .any(|l| l.contains("oldest messages wholly")));
+        // Not known as a follow-up, the message is summarised by its first line.
+        let f = fit_conversation(&m, budget, &[], &none).unwrap();
+        assert!(!f.messages[1].content.contains("vehicle 2 stops"));
+        // Nothing fits: the error is the fewest tokens it takes, the smallest first prompt
+        // and the most compact rest.
+        let refit = |tokens: u64| {
+            if tokens >= 500 {
+                Ok(Fitted {
+                    messages: vec![],
+                    left_out: vec![],
+                })
+            } else {
+                Err(500)
+            }
+        };
+        let fewest = fit_conversation(&m, 1500, &["vehicle 2 stops".into()], &refit).unwrap_err();
+        assert!(fewest > 1500 + 500, "{fewest}");
     }
 }

@@ -26,11 +26,12 @@ pub struct Event {
 pub enum RulesError {
     /// Nothing in the request is a behaviour it knows.
     #[error(
-        "the rules planner (a fixed vocabulary, not a language model) does not understand {clause:?}. \
+        "the rules planner (a fixed vocabulary, not a language model) does not understand \"{}\". \
          It knows: {vocabulary}, each with vehicle ids (\"vehicle 3 cuts in front of vehicle 5, \
-         vehicle 7 drives off the road\"). For free text, configure an LLM: set \
-         DRIVESCRIPT_LLM_URL and DRIVESCRIPT_LLM_MODEL (or pass --llm-url and --model), or use \
-         --llm manual to paste prompts into any chat"
+         vehicle 7 drives off the road\"). For free text, run `drivescript ask` with an LLM: \
+         set DRIVESCRIPT_LLM_URL and DRIVESCRIPT_LLM_MODEL (or pass --llm-url and --model), or \
+         use --llm manual to paste prompts into any chat",
+        crate::io::name::shown_counted(.clause)
     )]
     NotUnderstood {
         /// The clause.
@@ -40,9 +41,10 @@ pub enum RulesError {
     },
     /// A behaviour without the vehicles or numbers it needs.
     #[error(
-        "{clause:?}: the rules planner reads this as {behaviour}, which needs {what}; for \
-         requests outside its fixed vocabulary, configure an LLM (DRIVESCRIPT_LLM_URL and \
-         DRIVESCRIPT_LLM_MODEL, or --llm manual)"
+        "\"{}\": the rules planner reads this as {behaviour}, which needs {what}; for \
+         requests outside its fixed vocabulary, run `drivescript ask` with an LLM \
+         (DRIVESCRIPT_LLM_URL and DRIVESCRIPT_LLM_MODEL, or --llm manual)",
+        crate::io::name::shown_counted(.clause)
     )]
     Missing {
         /// The clause.

@@ -20,7 +20,7 @@ use serde_json::{json, Value};
 
 use super::client::{redact_url, HttpClient, Message};
 use super::feedback::{feedback, Acceptance};
-use super::fit::{fit_conversation, fit_first, Fitted};
+use super::fit::{fit_conversation, fit_first, FirstTooLarge, Fitted};
 use super::prompt::{PromptOptions, Prompts};
 use super::reply::{parse_reply, Reply};
 use super::rules::{self, understand_request, Event, Tuning};
@@ -468,6 +468,11 @@ struct State {
     /// kept have only `last_error`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     last_failure: Option<String>,
+    /// Who wrote that script ([`Backend::name`]): a run taken up with another backend
+    /// (`--resume --llm rules` after the model's script failed) must not blame the one that
+    /// did not write it. Runs recorded before it was kept: the run's backend.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    last_failure_by: Option<String>,
     /// The model's ACCEPT was refused since the last sampling: the script it sends next
     /// answers the refusal.
     #[serde(default)]
@@ -502,6 +507,10 @@ pub struct Session<'a> {
     trained: &'a Trained,
     raw: Scene,
     transcript: Vec<Record>,
+    /// Reopened from `state.json` (`--resume`, `--continue`, a batch's pair run again): its
+    /// settings, the window among them, are the run's, which the flags cannot change, and
+    /// advice says so rather than name a flag that would be refused.
+    taken_up: bool,
     /// Held while the session lives: every way into a run directory takes it.
     _lock: super::rundir::RunLock,
 }
@@ -981,6 +990,7 @@ impl<'a> Session<'a> {
                 left_out: Vec::new(),
                 last_error: None,
                 last_failure: None,
+                last_failure_by: None,
                 accept_refused: false,
                 final_turn: false,
                 outcome: None,
@@ -990,6 +1000,7 @@ impl<'a> Session<'a> {
             trained,
             raw,
             transcript: Vec::new(),
+            taken_up: false,
             _lock: lock,
         };
         let first = first_messages(
@@ -1087,6 +1098,7 @@ impl<'a> Session<'a> {
             trained,
             raw,
             transcript,
+            taken_up: true,
             _lock: lock,
         })
     }
@@ -1104,6 +1116,7 @@ impl<'a> Session<'a> {
         if let Backend::Rules = self.backend {
             understand_request(request)?;
         }
+        let before = self.state.clone();
         self.state.requests.push(request.trim().to_string());
         let added = checks_for(&self.state.requests[self.state.requests.len() - 1..]);
         for (b, p) in added {
@@ -1121,6 +1134,12 @@ impl<'a> Session<'a> {
         self.state.misses = 0;
         self.state.accept_refused = false;
         self.state.final_turn = false;
+        // Before anything is sent or saved: a conversation the run's window cannot hold is
+        // refused now, the run left as it was, not after the first round was paid for.
+        if let Err(e) = self.to_send(self.state.exchange, &mut |_| {}) {
+            self.state = before;
+            return Err(e);
+        }
         self.save()
     }
 
@@ -1356,9 +1375,9 @@ impl<'a> Session<'a> {
                     // user (not the model) can fix.
                     let cut = match &self.backend {
                         Backend::Http(c) if self.last_reply_truncated(n) => format!(
-                            " (the reply was cut off at the token limit, --max-tokens {}: \
-                             raise --max-tokens)",
-                            c.config().max_tokens
+                            " (the reply was cut off at the token limit, --max-tokens {}: {})",
+                            c.config().max_tokens,
+                            self.longer_reply_advice(c.config().max_tokens)
                         ),
                         _ => String::new(),
                     };
@@ -1418,6 +1437,7 @@ impl<'a> Session<'a> {
                             write(&rdir, "validation.txt", &err)?;
                             self.state.last_error = Some(err.clone());
                             self.state.last_failure = Some(format!("it failed validation: {err}"));
+                            self.state.last_failure_by = Some(self.backend.name().into());
                             progress(&format!("round {n}: validation failed: {err}"));
                             let horizon = self.trained.meta.config.window.future;
                             let msg = self.prompts.validation(horizon, self.raw.meta.dt, &err);
@@ -1441,6 +1461,7 @@ impl<'a> Session<'a> {
                             let err = super::feedback::over_budget(budget, &used);
                             write(&rdir, "budget.txt", &err)?;
                             self.state.last_error = Some(err.clone());
+                            self.state.last_failure_by = Some(self.backend.name().into());
                             self.state.last_failure = Some(format!(
                                 "it ran past the script budget (--script-budget {} s) while \
                                  being sampled: {:.1} s over {} evaluations",
@@ -1467,6 +1488,7 @@ impl<'a> Session<'a> {
                             let err = super::feedback::failed_in_sampling(&e);
                             write(&rdir, "sampling.txt", &err)?;
                             self.state.last_error = Some(err.clone());
+                            self.state.last_failure_by = Some(self.backend.name().into());
                             self.state.last_failure = Some(format!(
                                 "it passed validation but failed while being sampled: {e}"
                             ));
@@ -1613,6 +1635,7 @@ impl<'a> Session<'a> {
         self.state.misses = 0;
         self.state.last_error = None;
         self.state.last_failure = None;
+        self.state.last_failure_by = None;
         self.state.script = Some((n, source.to_string()));
         self.state.meets = meets;
         let shown = &done.report.samples[best];
@@ -1802,6 +1825,27 @@ impl<'a> Session<'a> {
         Some(self.state.last_failure.clone().unwrap_or_else(|| e.clone()))
     }
 
+    /// Who wrote the script that last failed, as a possessive for messages ("the rules
+    /// planner's", "the model's (qwen2.5-coder:32b)"), and whether it was the rules planner.
+    fn failed_script_author(&self) -> (String, bool) {
+        let by = self
+            .state
+            .last_failure_by
+            .as_deref()
+            .unwrap_or(&self.state.backend);
+        let words = match by {
+            "rules" => "the rules planner's".to_string(),
+            "http" => match &self.state.model {
+                Some(m) => format!("the model's ({})", crate::io::name::shown_counted(m)),
+                None => "the model's".to_string(),
+            },
+            "manual" => "the pasted reply's".to_string(),
+            "replay" => "the recorded model's".to_string(),
+            other => format!("the {other} backend's"),
+        };
+        (words, by == Backend::Rules.name())
+    }
+
     /// The rules planner's reply to the current state: a composed script first, ACCEPT when
     /// a sample meets the request, else the script with the failing events strengthened.
     fn rules_reply(&mut self) -> Result<String, String> {
@@ -1837,8 +1881,10 @@ impl<'a> Session<'a> {
                 ));
             }
             if let Some(why) = self.last_failure() {
+                let (author, own) = self.failed_script_author();
+                let whose = if own { "its".to_string() } else { author };
                 return Err(format!(
-                    "the rules planner cannot repair the last script: {why}"
+                    "the rules planner cannot repair {whose} last script: {why}"
                 ));
             }
             // An event fails when its checker fails or one of its terms is above tolerance on
@@ -1888,7 +1934,13 @@ impl<'a> Session<'a> {
                 "Repair (rules planner): the best sample fails; {}.\n",
                 changed.join("; ")
             ));
-        } else if let Some(why) = self.last_failure() {
+        } else if let Some(why) = self
+            .last_failure()
+            .filter(|_| self.failed_script_author().1)
+        {
+            // Its own first script failed: composed again, it would fail the same way. One
+            // another backend wrote (a run taken up with `--llm rules`) is no reason to stop:
+            // the rules planner's own has not been tried, and is written below.
             return Err(format!(
                 "the rules planner's script does not fit this scene: {why}"
             ));
@@ -1937,26 +1989,36 @@ impl Session<'_> {
                         ..self.state.config.clone()
                     };
                     let horizon = self.trained.meta.config.window.future;
-                    first_messages(
+                    first_prompt(
                         &self.prompts,
                         &config,
                         &self.raw,
                         &self.state.requests,
                         horizon,
                     )
-                    .ok()
+                    .map_err(|e| e.smallest)
                 };
-                let f = fit_conversation(&self.state.messages, w.prompt(), &refit).ok_or_else(
-                    || {
+                // Requests added by `--continue`: the first prompt of the run does not hold
+                // them, and their messages must outlive the rounds summarised around them.
+                let follow_ups = self.state.requests.get(1..).unwrap_or_default();
+                let f = fit_conversation(&self.state.messages, w.prompt(), follow_ups, &refit)
+                    .map_err(|fewest| {
+                        let size = if fewest == u64::MAX {
+                            String::new()
+                        } else {
+                            format!(": it takes about {fewest} tokens")
+                        };
                         LlmError::Context(format!(
-                            "round {n}: the conversation does not fit --context {} even with \
-                             the earlier rounds summarised, the last feedback cut down and \
-                             the first prompt at its smallest: raise --context (and the \
-                             server's window) or lower --max-tokens",
-                            w.tokens
+                            "round {n}: the conversation does not fit --context {} ({} tokens \
+                             for the prompt after {} for the reply) even with the earlier \
+                             rounds summarised or left out, the last feedback cut down and the \
+                             first prompt at its smallest{size}; {}",
+                            w.tokens,
+                            w.prompt(),
+                            w.reply,
+                            self.larger_window_advice()
                         ))
-                    },
-                )?;
+                    })?;
                 if !f.left_out.is_empty() {
                     progress(&format!(
                         "round {n}: fitted to --context {}: left out {}",
@@ -1967,6 +2029,41 @@ impl Session<'_> {
                 f.messages
             }
         })
+    }
+
+    /// What to do when the run's window is too small for what it must send: a run taken up
+    /// again keeps its window (`--resume` and `--continue` refuse `--context` and
+    /// `--max-tokens`), so only a new run can have a larger one.
+    fn larger_window_advice(&self) -> &'static str {
+        if self.taken_up {
+            "the run keeps the window it started with: start a new run (-o NEWDIR) with a larger \
+             --context (and the server's window)"
+        } else {
+            "raise --context (and the server's window) or lower --max-tokens"
+        }
+    }
+
+    /// What to do about a reply cut off at `max_tokens`: raise `--max-tokens` where that gives
+    /// the reply more; with a window, the reply's share is at most a quarter of it, and a run
+    /// taken up again keeps its share.
+    fn longer_reply_advice(&self, max_tokens: u32) -> String {
+        match self.state.config.context {
+            None => "raise --max-tokens".into(),
+            Some(_) if self.taken_up => "the run keeps the reply's share of its --context \
+                 window: start a new run (-o NEWDIR) with a larger --context (or --max-tokens)"
+                .into(),
+            Some(w) if u64::from(max_tokens) < w.tokens / 4 => format!(
+                "raise --max-tokens (the reply may take up to a quarter of --context {}, {})",
+                w.tokens,
+                w.tokens / 4
+            ),
+            Some(w) => format!(
+                "raise --context (and the server's window): the reply takes at most a quarter \
+                 of it, {} of {}",
+                w.tokens / 4,
+                w.tokens
+            ),
+        }
     }
 
     fn get_reply(
@@ -2008,8 +2105,9 @@ impl Session<'_> {
             if ex.truncated {
                 progress(&format!(
                     "round {n}: the reply was cut off at the token limit (--max-tokens {}); \
-                     raise --max-tokens if its script is incomplete",
-                    c.config().max_tokens
+                     if its script is incomplete, {}",
+                    c.config().max_tokens,
+                    self.longer_reply_advice(c.config().max_tokens)
                 ));
             }
             let reply = ex.reply.clone();
@@ -2092,6 +2190,18 @@ pub fn first_messages(
     requests: &[String],
     horizon: usize,
 ) -> Result<Fitted, LlmError> {
+    first_prompt(prompts, config, raw, requests, horizon)
+        .map_err(|e| LlmError::Context(e.to_string()))
+}
+
+/// [`first_messages`], its error the smallest size: what a later round fits it from.
+fn first_prompt(
+    prompts: &Prompts,
+    config: &SessionConfig,
+    raw: &Scene,
+    requests: &[String],
+    horizon: usize,
+) -> Result<Fitted, FirstTooLarge> {
     let keep: Vec<i64> = requests
         .iter()
         .flat_map(|r| numbers(r))
@@ -2128,8 +2238,7 @@ pub fn first_messages(
             config.max_agents,
             keep.len(),
             w,
-        )
-        .map_err(LlmError::Context),
+        ),
     }
 }
 
@@ -2203,6 +2312,7 @@ mod tests {
             left_out: Vec::new(),
             last_error: None,
             last_failure: None,
+            last_failure_by: None,
             accept_refused: false,
             final_turn: false,
             outcome: Some(Outcome::Accepted {

@@ -12,7 +12,7 @@ use candle_core::{Device, Tensor, Var};
 use crate::cost::{CostError, CostReport, CostScript, Realism, Trajectories};
 use crate::eval::kinematic::KinematicLimits;
 use crate::scene::{velocities_from_positions, AgentId, AgentState, AgentType, Scene};
-use crate::train::dataset::add_anchor;
+use crate::train::dataset::{add_anchor, remove_anchor};
 use crate::train::{build, window_among, Trained, Window};
 
 /// What the sampler is conditioned on.
@@ -63,6 +63,16 @@ pub const DEFAULT_GUIDANCE: Guidance = Guidance::OutputSpace;
 /// 2 suited the 10,000-step model, the 18,000-step one follows the data more closely and
 /// needs 3).
 pub const BEHAVIOUR_LAMBDA: f64 = 3.0;
+
+/// The most samples one sampling run draws (`--samples`).
+pub const MAX_SAMPLES: usize = 1024;
+
+/// The fewest Heun steps a sample takes (`--steps`): one step from σ_max straight to 0 is not
+/// a sample.
+pub const MIN_HEUN_STEPS: usize = 2;
+
+/// The most Heun steps a sample takes (`--steps`).
+pub const MAX_HEUN_STEPS: usize = 1000;
 
 /// The largest guidance strength and term weight the sampler takes (λ, the known-state and the
 /// realism weights): the defaults are 1 to 3, and 1e308 turned the denoiser's output into
@@ -164,11 +174,17 @@ impl SampleConfig {
     /// known-state weight that are finite and not negative (a negative one pushes towards the
     /// costs). The message names the setting and its range.
     pub fn validate(&self) -> Result<(), String> {
-        if !(2..=1000).contains(&self.steps) {
-            return Err(format!("steps = {}: must be 2 to 1000", self.steps));
+        if !(MIN_HEUN_STEPS..=MAX_HEUN_STEPS).contains(&self.steps) {
+            return Err(format!(
+                "steps = {}: must be {MIN_HEUN_STEPS} to {MAX_HEUN_STEPS}",
+                self.steps
+            ));
         }
-        if !(1..=1024).contains(&self.samples) {
-            return Err(format!("samples = {}: must be 1 to 1024", self.samples));
+        if !(1..=MAX_SAMPLES).contains(&self.samples) {
+            return Err(format!(
+                "samples = {}: must be 1 to {MAX_SAMPLES}",
+                self.samples
+            ));
         }
         for (name, v) in [
             ("lambda", self.lambda),
@@ -407,7 +423,29 @@ struct Plan<'a> {
     base: Trajectories,
     /// Agents of types the model does not move ([`Sample::fixed`]).
     fixed: Vec<(AgentId, AgentType)>,
+    /// Per slot, the agent that the conditional task shows standing ([`Plan::standing`]).
+    held: Vec<Option<Held>>,
 }
+
+/// A modelled agent held standing: it rolls at an even pace from where it stands to its
+/// recorded end, which lies within [`STANDING_END`] of it, and keeps its heading.
+#[derive(Debug, Clone)]
+struct Held {
+    /// Its normalised coefficients, written to every copy so that the denoiser sees it where
+    /// it is.
+    coeffs: Vec<f32>,
+    /// Future step of its recorded end.
+    end_step: usize,
+    /// World position of its recorded end.
+    end: [f64; 2],
+}
+
+/// Below this speed (m/s) at the current step, with its recorded end at most
+/// [`STANDING_END`] away, an agent is held standing in conditional simulation.
+pub const STANDING_SPEED: f64 = 0.3;
+
+/// See [`STANDING_SPEED`] (metres).
+pub const STANDING_END: f64 = 0.5;
 
 /// A heading that [`Plan::align_headings`] set from the motion between two states: a
 /// function of their positions, `atan2(dy, dx)` (or that plus π for a reversing car).
@@ -557,11 +595,25 @@ impl Plan<'_> {
         (0..samples)
             .map(|s| {
                 let mut t = base.clone();
-                for sl in &self.slots {
+                for (si, sl) in self.slots.iter().enumerate() {
                     let (ai, p0) = (sl.agent, sl.pose);
+                    let held = self.held.get(si).and_then(Option::as_ref);
                     let row = (s * nw + sl.window) * n + sl.slot;
                     let mut local = norm.decode(&coeffs[row * k..(row + 1) * k]);
                     add_anchor(&mut local, sl.advance);
+                    if let Some(h) = held {
+                        for j in 0..f.min(t.layout.steps) {
+                            let u = ((j + 1) as f64 / (h.end_step + 1) as f64).min(1.0);
+                            let i = ai * t.layout.steps + j;
+                            t.xyh[i] = [
+                                p0[0] + u * (h.end[0] - p0[0]),
+                                p0[1] + u * (h.end[1] - p0[1]),
+                                p0[2],
+                            ];
+                            t.valid[i] = true;
+                        }
+                        continue;
+                    }
                     let (sn, cs) = p0[2].sin_cos();
                     for j in 0..f.min(t.layout.steps) {
                         let (x, y, h) = (local[j * 3], local[j * 3 + 1], local[j * 3 + 2]);
@@ -699,6 +751,68 @@ impl Plan<'_> {
         }
     }
 
+    /// Per slot, the agent that the conditional task shows standing: a vehicle or cyclist
+    /// under [`STANDING_SPEED`] at the current step whose recorded end, at the last sampled
+    /// step (`steps`), lies within [`STANDING_END`] of where it stands. The task says where
+    /// each agent is at the end; one that stands now and then is taken to stand between.
+    /// The model has no traffic-light state, and left free it started queued cars and slid
+    /// them sideways into oncoming traffic and back (the cities checkpoint at 8 s, training
+    /// town DEU_Flensburg: standing cars' largest move median 1.25 m, p90 2.38 m).
+    fn standing(
+        &self,
+        scene: &Scene,
+        ends: &[Option<(usize, f64, f64)>],
+        steps: usize,
+    ) -> Vec<Option<Held>> {
+        let (_, _, f, _) = self.dims();
+        let norm = &self.trained.meta.normaliser;
+        let c = scene.meta.current_step;
+        self.slots
+            .iter()
+            .map(|sl| {
+                let (j, ex, ey) = ends[sl.agent]?;
+                let a = &scene.agents[sl.agent];
+                let (dx, dy) = (ex - sl.pose[0], ey - sl.pose[1]);
+                let stands = a.agent_type != AgentType::Pedestrian
+                    && j + 1 >= steps.min(f)
+                    && a.states[c].speed() < STANDING_SPEED
+                    && dx.hypot(dy) <= STANDING_END;
+                if !stands {
+                    return None;
+                }
+                let (sn, cs) = sl.pose[2].sin_cos();
+                let (tx, ty) = (cs * dx + sn * dy, -sn * dx + cs * dy);
+                let mut local = vec![0.0; 3 * f];
+                for i in 0..f {
+                    let u = ((i + 1) as f64 / (j + 1) as f64).min(1.0);
+                    local[i * 3] = u * tx;
+                    local[i * 3 + 1] = u * ty;
+                }
+                remove_anchor(&mut local, sl.advance);
+                Some(Held {
+                    coeffs: norm.encode(&local),
+                    end_step: j,
+                    end: [ex, ey],
+                })
+            })
+            .collect()
+    }
+
+    /// Writes each held agent's coefficients ([`Plan::standing`]) to every copy of it.
+    fn hold(&self, d: &mut [f32]) {
+        let (n, k, _, nw) = self.dims();
+        let samples = d.len() / (nw * n * k);
+        for s in 0..samples {
+            for (h, copies) in self.held.iter().zip(&self.copies) {
+                let Some(h) = h else { continue };
+                for &(wi, slot) in copies {
+                    let o = ((s * nw + wi) * n + slot) * k;
+                    d[o..o + k].copy_from_slice(&h.coeffs);
+                }
+            }
+        }
+    }
+
     /// Gradient of a dense world-coordinate gradient w.r.t. the normalised coefficients.
     fn to_coeffs(&self, world: &[f64], steps: usize, out: &mut [f32], sample: usize) {
         let (n, k, f, nw) = self.dims();
@@ -825,6 +939,7 @@ fn setup<'a>(
         copies,
         base,
         fixed,
+        held: Vec::new(),
     };
     let (n, k, _, nw) = plan.dims();
     let kk = cfg.samples.max(1);
@@ -1058,7 +1173,7 @@ pub(crate) fn sample_after(
     let dev = Device::Cpu;
     let c = scene.meta.current_step;
     let Setup {
-        plan,
+        mut plan,
         batch,
         model,
         map,
@@ -1083,6 +1198,10 @@ pub(crate) fn sample_after(
                 .map(|t| (t - c - 1, a.states[t].x, a.states[t].y))
         })
         .collect();
+    if cfg.task == Task::Conditional {
+        plan.held = plan.standing(scene, &recorded_end, plan.base.layout.steps);
+    }
+    let plan = plan;
     // Cars leave the scene where they reach the end of the map, as recorded ones do; in
     // conditional simulation, also where their recording stops: when an agent leaves is as
     // much a known state as where it ends up.
@@ -1203,6 +1322,7 @@ pub(crate) fn sample_after(
         }
         let mut dv = raw.clone();
         plan.consensus(&mut dv, None, 0.0, cfg.clamp);
+        plan.hold(&mut dv);
         if !guiding {
             return Ok(Tensor::from_vec(dv, (rows, n, k), &dev)?);
         }
@@ -1221,6 +1341,7 @@ pub(crate) fn sample_after(
         let gv: Vec<f32> = grad.flatten_all()?.to_vec1()?;
         let mut out = raw;
         plan.consensus(&mut out, Some(&gv), lambda, cfg.clamp);
+        plan.hold(&mut out);
         Ok(Tensor::from_vec(out, (rows, n, k), &dev)?)
     };
     let x = heun(x0, &sigmas, guided)?;
@@ -1248,6 +1369,7 @@ pub(crate) fn sample_after(
             })?;
         }
     }
+    plan.hold(&mut xv);
     let mut trajs = plan.trajectories(&xv);
     for t in &mut trajs {
         plan.align_headings(t);
@@ -1470,6 +1592,63 @@ pub(crate) mod tests {
     }
 
     #[test]
+    fn a_car_the_conditional_task_shows_standing_stays_put() {
+        // Standing now, and recorded 0.3 m ahead at the end: it rolls there at an even pace
+        // with its heading, instead of the model's creep and sideways slide. One 0.6 m ahead
+        // at the end is the model's to move.
+        let (t, mut s) = setup();
+        let c = s.meta.current_step;
+        let i = (0..s.agents.len())
+            .find(|&i| s.agents[i].is_valid(c))
+            .expect("an agent");
+        let now = AgentState {
+            vx: 0.0,
+            vy: 0.0,
+            ..s.agents[i].states[c]
+        };
+        let (hs, hc) = now.heading.sin_cos();
+        let n = s.num_steps();
+        let set_end = |s: &mut Scene, ahead: f64| {
+            for k in c..n {
+                let u = if k + 1 == n { ahead } else { 0.0 };
+                s.agents[i].states[k] = AgentState {
+                    x: now.x + u * hc,
+                    y: now.y + u * hs,
+                    ..now
+                };
+            }
+        };
+        let cfg = SampleConfig {
+            steps: 8,
+            lambda: 0.0,
+            task: Task::Conditional,
+            ..SampleConfig::default()
+        };
+        set_end(&mut s, 0.3);
+        let out = sample(&t, &s, &[], &cfg).unwrap().remove(0);
+        for k in c + 1..n {
+            let got = out.scene.agents[i].states[k];
+            let u = 0.3 * (k - c) as f64 / (n - 1 - c) as f64;
+            assert!(got.valid, "step {k}");
+            assert!(
+                (got.x - (now.x + u * hc)).abs() < 1e-9 && (got.y - (now.y + u * hs)).abs() < 1e-9,
+                "step {k}: ({}, {}) off the even roll to the end",
+                got.x,
+                got.y
+            );
+            assert_eq!(got.heading, now.heading, "step {k}");
+        }
+        set_end(&mut s, 0.6);
+        let free = sample(&t, &s, &[], &cfg).unwrap().remove(0);
+        let moved = (c + 1..n - 1).any(|k| {
+            let got = free.scene.agents[i].states[k];
+            let u = 0.6 * (k - c) as f64 / (n - 1 - c) as f64;
+            (got.x - (now.x + u * hc)).hypot(got.y - (now.y + u * hs)) > 1e-3
+        });
+        assert!(moved, "an end 0.6 m away leaves the agent to the model");
+    }
+
+    #[test]
     fn agents_of_types_the_model_never_saw_follow_their_log_or_keep_velocity() {
         let (t, mut s) = setup();
         let c = s.meta.current_step;
@@ -1673,6 +1852,7 @@ pub(crate) mod tests {
             copies: vec![copies[0].clone()],
             base: Trajectories::filled(&s),
             fixed: Vec::new(),
+            held: Vec::new(),
         };
         let [x0, y0, h0] = sl.pose;
         let drive = |angle: f64| {
@@ -1711,6 +1891,7 @@ pub(crate) mod tests {
             copies: vec![copies[0].clone()],
             base: Trajectories::filled(&s),
             fixed: Vec::new(),
+            held: Vec::new(),
         };
         let [x0, y0, h0] = sl.pose;
         // Steps of `step(j)` metres straight ahead, the model's heading wobbling by ±0.2 rad.
@@ -1796,6 +1977,7 @@ pub(crate) mod tests {
             copies: copies.clone(),
             base: Trajectories::filled(&s),
             fixed: Vec::new(),
+            held: Vec::new(),
         };
         let (n, k, _, nw) = (3, t.meta.config.model.k, 0, plan.windows.len());
         let len = nw * n * k;

@@ -14,6 +14,6 @@ pub use closed_loop::closed_loop;
 pub use guided::{
     horizon_note, modelled, prepare, prepare_for, recorded_future, reference_run, sample,
     sampled_horizon, too_few_steps, Clamp, Guidance, LambdaSchedule, Sample, SampleConfig,
-    SampleError, Task, BEHAVIOUR_LAMBDA, DEFAULT_GUIDANCE, DEFAULT_SCRIPT_BUDGET,
-    MAX_SCRIPT_BUDGET, MAX_WEIGHT, POLISH_STEPS, REALISM_WEIGHT,
+    SampleError, Task, BEHAVIOUR_LAMBDA, DEFAULT_GUIDANCE, DEFAULT_SCRIPT_BUDGET, MAX_HEUN_STEPS,
+    MAX_SAMPLES, MAX_SCRIPT_BUDGET, MAX_WEIGHT, MIN_HEUN_STEPS, POLISH_STEPS, REALISM_WEIGHT,
 };

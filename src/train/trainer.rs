@@ -255,6 +255,26 @@ impl TrainConfig {
                 e.sigma_min, e.sigma_max
             ));
         }
+        // A town is the start of a scenario id (`store::town`), which names output files: no
+        // longer than one, and quoted cut where it is not.
+        for t in &c.val_towns {
+            let bad = |why: String| {
+                Err(format!(
+                    "val_towns: \"{}\" {why}",
+                    crate::io::name::shown_counted(t)
+                ))
+            };
+            if t.is_empty() || t.len() > 200 {
+                return bad(format!(
+                    "is {} bytes long: a town (a scenario id's part before its first `-`) is 1 \
+                     to 200",
+                    t.len()
+                ));
+            }
+            if let Err(ch) = crate::io::name::check_name(t) {
+                return bad(format!("holds {ch}"));
+            }
+        }
         Ok(())
     }
 }
