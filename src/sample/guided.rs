@@ -1369,7 +1369,6 @@ pub(crate) fn sample_after(
             })?;
         }
     }
-    plan.hold(&mut xv);
     let mut trajs = plan.trajectories(&xv);
     for t in &mut trajs {
         plan.align_headings(t);
