@@ -25,6 +25,10 @@ struct Slot {
 pub struct AdamW {
     slots: Vec<Slot>,
     step: u64,
+    /// The training step at which these moments started (0 unless they restarted on a
+    /// resumed checkpoint that had none): with [`AdamW::steps`], which training step they
+    /// belong to.
+    origin: u64,
     /// Learning rate of the next step.
     pub lr: f64,
     /// Decoupled weight decay.
@@ -54,14 +58,30 @@ impl AdamW {
         Self {
             slots,
             step: 0,
+            origin: 0,
             lr,
             weight_decay,
         }
     }
 
-    /// Steps taken.
+    /// Steps taken (what the bias correction counts).
     pub fn steps(&self) -> u64 {
         self.step
+    }
+
+    /// Fresh moments, as [`AdamW::new`], for training that is already at step `origin`: a
+    /// checkpoint resumed without optimiser state.
+    pub fn starting_at(varmap: &VarMap, lr: f64, weight_decay: f64, origin: u64) -> Self {
+        Self {
+            origin,
+            ..Self::new(varmap, lr, weight_decay)
+        }
+    }
+
+    /// The training step these moments are at: [`AdamW::steps`] after the step they started
+    /// at.
+    pub fn training_step(&self) -> u64 {
+        self.origin + self.step
     }
 
     /// One update from `grads`; variables without a gradient are left as they are.
@@ -106,6 +126,7 @@ impl AdamW {
             );
         }
         map.insert("step".into(), Tensor::new(&[self.step as f64], &dev)?);
+        map.insert("origin".into(), Tensor::new(&[self.origin as f64], &dev)?);
         candle_core::safetensors::save(&map, path)
     }
 
@@ -133,21 +154,31 @@ impl AdamW {
                 get(&format!("v/{}", s.name), shape)?,
             ));
         }
-        let step = map
-            .get("step")
-            .ok_or_else(|| candle_core::Error::Msg("no tensor step".into()))?
-            .to_dtype(DType::F64)?
-            .flatten_all()?
-            .to_vec1::<f64>()?;
-        let step = match step.as_slice() {
-            [s] if s.is_finite() && *s >= 0.0 && s.fract() == 0.0 => *s as u64,
-            _ => candle_core::bail!("step is not one non-negative integer"),
+        let count = |key: &str| -> Result<u64> {
+            let v = map
+                .get(key)
+                .ok_or_else(|| candle_core::Error::Msg(format!("no tensor {key}")))?
+                .to_dtype(DType::F64)?
+                .flatten_all()?
+                .to_vec1::<f64>()?;
+            match v.as_slice() {
+                [s] if s.is_finite() && *s >= 0.0 && s.fract() == 0.0 && *s < 1e15 => Ok(*s as u64),
+                _ => candle_core::bail!("{key} is not one non-negative integer"),
+            }
+        };
+        let step = count("step")?;
+        // Files written before moments could restart mid-run have no origin: they started at 0.
+        let origin = if map.contains_key("origin") {
+            count("origin")?
+        } else {
+            0
         };
         for (s, (m, v)) in self.slots.iter_mut().zip(restored) {
             s.m = m;
             s.v = v;
         }
         self.step = step;
+        self.origin = origin;
         Ok(())
     }
 }

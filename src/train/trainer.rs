@@ -624,7 +624,11 @@ pub fn train_from(
             (varmap, model, norm, rmse, None, None, None)
         }
     };
-    let mut opt = opt.unwrap_or_else(|| AdamW::new(&varmap, cfg.lr, WEIGHT_DECAY));
+    // Moments that restart on a resumed checkpoint start at its step, so that the state saved
+    // with the next checkpoint names the step its weights are of (counted from 0, it named
+    // fewer, and that run could never be resumed again).
+    let mut opt = opt
+        .unwrap_or_else(|| AdamW::starting_at(&varmap, cfg.lr, WEIGHT_DECAY, (start - 1) as u64));
     opt.weight_decay = WEIGHT_DECAY;
     // A resumed average goes on (at this run's half-life); a run that asks for none drops it.
     let mut ema = match (resume_ema, cfg.ema_half_life > 0.0) {
@@ -969,12 +973,12 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
         let mut opt = AdamW::new(&varmap, meta.config.lr, WEIGHT_DECAY);
         opt.load(&opt_path)
             .map_err(|e| io(&opt_path, message_in_file(e)))?;
-        if opt.steps() != meta.steps_done as u64 {
+        if opt.training_step() != meta.steps_done as u64 {
             return Err(io(
                 &opt_path,
                 format!(
                     "optimiser state of step {}, but the weights are of step {}",
-                    opt.steps(),
+                    opt.training_step(),
                     meta.steps_done
                 ),
             ));
@@ -1185,6 +1189,32 @@ mod tests {
         // Without the optimiser state the moments restart, and the run differs.
         std::fs::remove_file(half.path().join(OPTIMIZER_FILE)).unwrap();
         assert!(!differing(&whole, &resume(half.path(), tiny_config(20, 5, 10))).is_empty());
+    }
+
+    /// A checkpoint resumed without optimiser state (a fine-tune from a shipped checkpoint)
+    /// writes checkpoints that resume again: its restarted moments used to be saved as of
+    /// step 5 beside weights of step 15, and every later resume was refused.
+    #[test]
+    fn a_run_whose_moments_restarted_resumes_again() {
+        let (_, _, half) = stopped_and_resumed(0.0);
+        std::fs::remove_file(half.path().join(OPTIMIZER_FILE)).unwrap();
+        let on = tempfile::tempdir().unwrap();
+        let cfg = tiny_config(15, 5, 5);
+        train_from(
+            &SceneWindows::new(&scenes(), &cfg.window, cfg.val_fold),
+            cfg,
+            Some(load_for_training(half.path()).unwrap()),
+            Some(on.path()),
+            None,
+            |_, _, _| (),
+        )
+        .unwrap();
+        let again = load_for_training(on.path()).unwrap();
+        assert_eq!(again.meta.steps_done, 15);
+        let opt = again.optimizer.as_ref().unwrap();
+        // Bias correction counts the 5 steps the moments have seen, not the run's 15.
+        assert_eq!((opt.steps(), opt.training_step()), (5, 15));
+        resume(on.path(), tiny_config(20, 5, 10));
     }
 
     #[test]
