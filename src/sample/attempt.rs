@@ -13,9 +13,8 @@ use std::time::Instant;
 use serde::Serialize;
 
 use super::closed_loop::closed_loop;
-use super::guided::{
-    prepare_for, sample, sampled_horizon, Sample, SampleConfig, SampleError, Task,
-};
+use super::config::{SampleConfig, SampleError, Task};
+use super::guided::{prepare_for, sample, sampled_horizon, Sample};
 use crate::cost::ScriptSpec;
 use crate::cost::{check_params, CostError, CostReport, CostScript, Params};
 use crate::eval::asked::{self, requested, verdicts};

@@ -6,9 +6,9 @@
 
 use std::rc::Rc;
 
+use super::config::{SampleConfig, SampleError};
 use super::guided::{
-    modelled, prepare, prepare_for, sample_after, sampled_horizon, Executed, Sample, SampleConfig,
-    SampleError,
+    modelled, prepare, prepare_for, sample_after, sampled_horizon, Executed, Sample,
 };
 use crate::cost::{CostScript, ScriptSpec};
 use crate::scene::Scene;

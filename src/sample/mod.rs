@@ -2,7 +2,10 @@
 
 pub mod attempt;
 pub mod closed_loop;
+pub mod config;
 pub mod guided;
+mod heun;
+mod plan;
 pub mod provenance;
 
 pub use crate::cost::ScriptSpec;
@@ -11,9 +14,12 @@ pub use attempt::{
     SampleOutcome, Settings, TermOutcome, CARRIERS_SHOWN,
 };
 pub use closed_loop::closed_loop;
+pub use config::{
+    Clamp, Guidance, LambdaSchedule, SampleConfig, SampleError, Task, BEHAVIOUR_LAMBDA,
+    DEFAULT_GUIDANCE, DEFAULT_SCRIPT_BUDGET, MAX_HEUN_STEPS, MAX_SAMPLES, MAX_SCRIPT_BUDGET,
+    MAX_WEIGHT, MIN_HEUN_STEPS, POLISH_STEPS, REALISM_WEIGHT,
+};
 pub use guided::{
     horizon_note, modelled, prepare, prepare_for, recorded_future, reference_run, sample,
-    sampled_horizon, too_few_steps, Clamp, Guidance, LambdaSchedule, Sample, SampleConfig,
-    SampleError, Task, BEHAVIOUR_LAMBDA, DEFAULT_GUIDANCE, DEFAULT_SCRIPT_BUDGET, MAX_HEUN_STEPS,
-    MAX_SAMPLES, MAX_SCRIPT_BUDGET, MAX_WEIGHT, MIN_HEUN_STEPS, POLISH_STEPS, REALISM_WEIGHT,
+    sampled_horizon, too_few_steps, Sample,
 };

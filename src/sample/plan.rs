@@ -1,0 +1,451 @@
+//! The sampling plan: which windows cover a scene (tiling), which slot of which window owns
+//! each agent and which slots hold its copies (kept equal to the owner's: consensus), the
+//! agents the conditional task holds standing, and the decoding of coefficients into world
+//! trajectories with headings aligned to the path.
+
+use crate::cost::Trajectories;
+use crate::eval::kinematic::KinematicLimits;
+use crate::scene::{AgentId, AgentType, Scene};
+use crate::train::dataset::{add_anchor, remove_anchor};
+use crate::train::{window_among, Trained, Window};
+
+use super::config::Clamp;
+
+pub(super) struct Plan<'a> {
+    pub(super) trained: &'a Trained,
+    /// Windows covering every agent observed at the current step (see [`tile`]).
+    pub(super) windows: Vec<Window>,
+    /// Modelled agents, each once, in the first window that holds it.
+    pub(super) slots: Vec<Slot>,
+    /// Per modelled agent (as in `slots`), every `(window, slot)` that holds it: its own slot
+    /// first, then the windows where it is context (see [`Plan::consensus`]).
+    pub(super) copies: Vec<Vec<(usize, usize)>>,
+    /// Trajectories before the model fills them in: agents not observed at the current step
+    /// (they appear later in the recording) have no future, rather than their recorded one,
+    /// which the simulator must not know.
+    pub(super) base: Trajectories,
+    /// Agents of types the model does not move ([`super::Sample::fixed`]).
+    pub(super) fixed: Vec<(AgentId, AgentType)>,
+    /// Per slot, the agent that the conditional task shows standing ([`Plan::standing`]).
+    pub(super) held: Vec<Option<Held>>,
+}
+
+/// A modelled agent held standing: it rolls at an even pace from where it stands to its
+/// recorded end, which lies within [`STANDING_END`] of it, and keeps its heading.
+#[derive(Debug, Clone)]
+pub(super) struct Held {
+    /// Its normalised coefficients, written to every copy so that the denoiser sees it where
+    /// it is.
+    pub(super) coeffs: Vec<f32>,
+    /// Future step of its recorded end.
+    pub(super) end_step: usize,
+    /// World position of its recorded end.
+    pub(super) end: [f64; 2],
+}
+
+/// Below this speed (m/s) at the current step, with its recorded end at most
+/// [`STANDING_END`] away, an agent is held standing in conditional simulation.
+pub const STANDING_SPEED: f64 = 0.3;
+
+/// See [`STANDING_SPEED`] (metres).
+pub const STANDING_END: f64 = 0.5;
+
+/// A heading that [`Plan::align_headings`] set from the motion between two states: a
+/// function of their positions, `atan2(dy, dx)` (or that plus π for a reversing car).
+pub(super) struct Aligned {
+    /// The state whose heading was set (index into [`Trajectories::xyh`]).
+    pub(super) at: usize,
+    /// The state behind it (`None`: the current state, which is fixed).
+    pub(super) behind: Option<usize>,
+    /// The state ahead of it (itself at the last step).
+    pub(super) ahead: usize,
+    pub(super) dx: f64,
+    pub(super) dy: f64,
+}
+
+impl Aligned {
+    /// Moves the cost gradient w.r.t. aligned headings onto the positions that decide them,
+    /// so that guidance acts on the trajectories that are output: the heading channel there is
+    /// overwritten, and a gradient on it would steer nothing.
+    pub(super) fn chain(set: &[Aligned], world: &mut [f64]) {
+        for a in set {
+            let gh = std::mem::take(&mut world[a.at * 3 + 2]);
+            if gh == 0.0 {
+                continue;
+            }
+            let r2 = a.dx * a.dx + a.dy * a.dy;
+            let (gx, gy) = (-gh * a.dy / r2, gh * a.dx / r2);
+            world[a.ahead * 3] += gx;
+            world[a.ahead * 3 + 1] += gy;
+            if let Some(b) = a.behind {
+                world[b * 3] -= gx;
+                world[b * 3 + 1] -= gy;
+            }
+        }
+    }
+}
+
+/// Where a modelled agent sits in the batch, and what decoding its coefficients needs.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Slot {
+    /// Window (batch row within a sample).
+    pub(super) window: usize,
+    /// Agent slot within the window.
+    pub(super) slot: usize,
+    /// Scene agent index.
+    pub(super) agent: usize,
+    /// Current world pose `(x, y, heading)`.
+    pub(super) pose: [f64; 3],
+    /// Constant-velocity anchor ([`Window::advance`]), fixed for the whole run.
+    pub(super) advance: f64,
+    /// Tightest path curvature its type steers, 1/m ([`KinematicLimits::max_curvature`];
+    /// infinite for a pedestrian, who turns on the spot).
+    pub(super) curvature: f64,
+}
+
+/// Cuts windows until every agent observed at step `c` sits in one: the first centred on
+/// `centre`, each next one on the uncovered agent nearest to it. A window holds at most
+/// `max_agents` agents, and NGSIM scenes have up to a hundred; agents left outside would
+/// drift at constant velocity, ignored by the model and by guidance. Windows overlap, and
+/// each agent is modelled by (owned by) the window whose centre is nearest to it, where its
+/// lanes and neighbours are most completely in view; its other copies are context, kept equal
+/// to the owner's ([`Plan::consensus`]). (Counting an agent as covered only in the nearest
+/// two thirds of a window, for more overlap, cost 2-3x the windows and measured the same.)
+pub(super) fn tile(
+    scene: &Scene,
+    wcfg: &crate::train::WindowConfig,
+    c: usize,
+    centre: usize,
+    meta: &crate::train::CheckpointMeta,
+) -> (Vec<Window>, Vec<Slot>, Vec<Vec<(usize, usize)>>) {
+    let moves = |i: usize| meta.models(&scene.agents[i]);
+    let observed = |i: usize| scene.agents[i].is_valid(c) && moves(i);
+    // A model that reads what each agent is was trained with every road user and obstacle in
+    // its windows; one that does not (NGSIM's) saw only the vehicles it moves.
+    let context = |i: usize| meta.config.model.attrs > 0 || moves(i);
+    let pose = |i: usize| {
+        let s = scene.agents[i].states[c];
+        [s.x, s.y, s.heading]
+    };
+    let dist = |i: usize, j: usize| {
+        let (p, q) = (pose(i), pose(j));
+        (p[0] - q[0]).hypot(p[1] - q[1])
+    };
+    let mut covered = vec![false; scene.agents.len()];
+    let mut windows = Vec::new();
+    // Per agent, in order of first appearance: (window, slot, distance to the window centre).
+    let mut seen: Vec<Vec<(usize, usize, f64)>> = vec![Vec::new(); scene.agents.len()];
+    let mut order = Vec::new();
+    let mut next = Some(centre);
+    while let Some(ci) = next {
+        let w = window_among(scene, wcfg, c, ci, &context);
+        let wi = windows.len();
+        for (slot, &ai) in w.agents.iter().enumerate() {
+            if !observed(ai) {
+                continue;
+            }
+            if seen[ai].is_empty() {
+                order.push(ai);
+            }
+            seen[ai].push((wi, slot, dist(ai, ci)));
+            covered[ai] = true;
+        }
+        windows.push(w);
+        next = (0..scene.agents.len())
+            .filter(|&i| observed(i) && !covered[i])
+            .min_by(|&a, &b| dist(a, centre).total_cmp(&dist(b, centre)));
+    }
+    let (mut slots, mut copies) = (Vec::new(), Vec::new());
+    for ai in order {
+        let mut list = std::mem::take(&mut seen[ai]);
+        // Stable: of equally near centres the earlier window owns the agent.
+        list.sort_by(|a, b| a.2.total_cmp(&b.2));
+        let (wi, slot, _) = list[0];
+        slots.push(Slot {
+            window: wi,
+            slot,
+            agent: ai,
+            pose: pose(ai),
+            advance: windows[wi].advance(wcfg, slot),
+            curvature: KinematicLimits::default()
+                .for_type(scene.agents[ai].agent_type)
+                .map_or(f64::INFINITY, |l| l.max_curvature),
+        });
+        copies.push(list.iter().map(|&(w, s, _)| (w, s)).collect());
+    }
+    (windows, slots, copies)
+}
+
+impl Plan<'_> {
+    /// `(agents per window, components, future steps, windows)`.
+    pub(super) fn dims(&self) -> (usize, usize, usize, usize) {
+        let c = &self.trained.meta.config;
+        (
+            c.window.max_agents,
+            c.model.k,
+            c.window.future,
+            self.windows.len(),
+        )
+    }
+
+    /// World trajectories of every scene agent for each sample of `coeffs` `[K, N, k]`:
+    /// modelled agents from the coefficients, the others at constant velocity.
+    pub(super) fn trajectories(&self, coeffs: &[f32]) -> Vec<Trajectories> {
+        let (n, k, f, nw) = self.dims();
+        let samples = coeffs.len() / (nw * n * k);
+        let base = &self.base;
+        let norm = &self.trained.meta.normaliser;
+        (0..samples)
+            .map(|s| {
+                let mut t = base.clone();
+                for (si, sl) in self.slots.iter().enumerate() {
+                    let (ai, p0) = (sl.agent, sl.pose);
+                    let held = self.held.get(si).and_then(Option::as_ref);
+                    let row = (s * nw + sl.window) * n + sl.slot;
+                    let mut local = norm.decode(&coeffs[row * k..(row + 1) * k]);
+                    add_anchor(&mut local, sl.advance);
+                    if let Some(h) = held {
+                        for j in 0..f.min(t.layout.steps) {
+                            let u = ((j + 1) as f64 / (h.end_step + 1) as f64).min(1.0);
+                            let i = ai * t.layout.steps + j;
+                            t.xyh[i] = [
+                                p0[0] + u * (h.end[0] - p0[0]),
+                                p0[1] + u * (h.end[1] - p0[1]),
+                                p0[2],
+                            ];
+                            t.valid[i] = true;
+                        }
+                        continue;
+                    }
+                    let (sn, cs) = p0[2].sin_cos();
+                    for j in 0..f.min(t.layout.steps) {
+                        let (x, y, h) = (local[j * 3], local[j * 3 + 1], local[j * 3 + 2]);
+                        let i = ai * t.layout.steps + j;
+                        t.xyh[i] = [p0[0] + cs * x - sn * y, p0[1] + sn * x + cs * y, p0[2] + h];
+                        t.valid[i] = true;
+                    }
+                }
+                t
+            })
+            .collect()
+    }
+
+    /// Points each modelled agent's heading along its direction of motion wherever it moves
+    /// (central differences over more than 0.2 m per step), backwards where it reverses.
+    /// Where it is slower, or the motion runs more than 45° across it, a vehicle or cyclist
+    /// keeps the heading it had: over a few centimetres the direction of motion is noise, and
+    /// the model's heading channel there wobbled by 0.01-0.1 rad/s where the SUMO log holds its
+    /// heading exactly (held-out preview: 25 % of steps under 0.025 rad/s against the log's
+    /// 82 %; holding instead brought the angular-speed JSD from 0.37 to 0.19 on the same
+    /// positions). A pedestrian, who walks below that threshold and turns on the spot, keeps
+    /// the model's heading there.
+    /// Positions and headings are separate PCA channels, and guidance that pushes positions
+    /// sideways drags the heading channel along arbitrarily; a car drives where it points, so
+    /// the output keeps its headings consistent with its path. Then, from the current pose on,
+    /// each heading turns from the one before by at most the type's curvature bound times the
+    /// distance moved: a car turns only as it rolls. Without that, a car that stands or creeps
+    /// turned with the model's heading channel (a wobble of 0.05-0.1 rad/s where the log holds
+    /// its heading exactly), and one near 2 m/s jumped by up to 1.4 rad/s wherever its steps
+    /// crossed the 0.2 m threshold between the model's heading and the path's. Returns the
+    /// headings it set from the path (not those the bound then held back), for
+    /// [`Aligned::chain`].
+    pub(super) fn align_headings(&self, t: &mut Trajectories) -> Vec<Aligned> {
+        let n = t.layout.steps;
+        let mut set = Vec::new();
+        for &Slot {
+            agent: ai,
+            pose: p0,
+            curvature,
+            ..
+        } in &self.slots
+        {
+            let idx = |j: isize| (j >= 0).then(|| ai * n + (j as usize).min(n - 1));
+            let at = |t: &Trajectories, j: isize| idx(j).map_or(p0, |i| t.xyh[i]);
+            let mut heading: Vec<f64> = (0..n).map(|j| t.xyh[ai * n + j][2]).collect();
+            let mut from_path: Vec<Option<Aligned>> = (0..n).map(|_| None).collect();
+            let mut held = vec![curvature.is_finite(); n];
+            for j in 0..n as isize {
+                let (a, b) = (at(t, j - 1), at(t, j + 1));
+                let span = if j as usize + 1 >= n { 1.0 } else { 2.0 };
+                let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
+                let h = at(t, j)[2];
+                if dx.hypot(dy) <= 0.2 * span {
+                    continue;
+                }
+                // A car moving against its heading reverses; one moving across it is
+                // jitter of a near-standstill, not a reason to turn it sideways.
+                let mut diff = crate::geom::wrap_angle(dy.atan2(dx) - h);
+                if diff.abs() > std::f64::consts::FRAC_PI_2 {
+                    diff = crate::geom::wrap_angle(diff + std::f64::consts::PI);
+                }
+                if diff.abs() <= std::f64::consts::FRAC_PI_4 && t.valid[ai * n + j as usize] {
+                    heading[j as usize] = h + diff;
+                    held[j as usize] = false;
+                    from_path[j as usize] = Some(Aligned {
+                        at: ai * n + j as usize,
+                        behind: idx(j - 1),
+                        ahead: idx(j + 1).expect("j + 1 >= 0"),
+                        dx,
+                        dy,
+                    });
+                }
+            }
+            let (mut last, mut last_h) = ([p0[0], p0[1]], p0[2]);
+            for j in 0..n {
+                let i = ai * n + j;
+                if !t.valid[i] {
+                    continue;
+                }
+                let p = t.xyh[i];
+                if held[j] {
+                    heading[j] = last_h;
+                }
+                let most = curvature * (p[0] - last[0]).hypot(p[1] - last[1]);
+                let turn = crate::geom::wrap_angle(heading[j] - last_h);
+                if turn.abs() > most {
+                    heading[j] = last_h + turn.clamp(-most, most);
+                    from_path[j] = None;
+                }
+                t.xyh[i][2] = heading[j];
+                (last, last_h) = ([p[0], p[1]], heading[j]);
+            }
+            set.extend(from_path.into_iter().flatten());
+        }
+        set
+    }
+
+    /// Makes every window agree on each agent: the denoised estimate `d` becomes the owner's,
+    /// minus `lambda`·clamp(Σ copies of `grad`), written to every copy. Coefficients live in
+    /// each agent's own frame, so copies are comparable as they are. The copies share one
+    /// noisy input, so the gradient w.r.t. it is the sum over copies (through the denoiser,
+    /// context copies feed the owners in their windows). Without this an agent is context
+    /// in other windows with an independently sampled future, and its neighbours there plan
+    /// around a car that is not where its owner puts it.
+    pub(super) fn consensus(&self, d: &mut [f32], grad: Option<&[f32]>, lambda: f64, clamp: Clamp) {
+        let (n, k, _, nw) = self.dims();
+        let samples = d.len() / (nw * n * k);
+        let mut owned = vec![0f32; k];
+        let mut gsum = vec![0f32; k];
+        for s in 0..samples {
+            let at = |(w, slot): (usize, usize)| ((s * nw + w) * n + slot) * k;
+            for copies in &self.copies {
+                gsum.fill(0.0);
+                if let Some(g) = grad {
+                    for &c in copies {
+                        let o = at(c);
+                        for j in 0..k {
+                            gsum[j] += g[o + j];
+                        }
+                    }
+                }
+                let scale = match clamp {
+                    Clamp::Coordinate => 1.0,
+                    Clamp::Agent => 1.0 / gsum.iter().fold(1f32, |m, v| m.max(v.abs())),
+                };
+                let o = at(copies[0]);
+                for j in 0..k {
+                    owned[j] = d[o + j] - (lambda as f32) * (gsum[j] * scale).clamp(-1.0, 1.0);
+                }
+                for &c in copies {
+                    let o = at(c);
+                    d[o..o + k].copy_from_slice(&owned);
+                }
+            }
+        }
+    }
+
+    /// Per slot, the agent that the conditional task shows standing: a vehicle or cyclist
+    /// under [`STANDING_SPEED`] at the current step whose recorded end, at the last sampled
+    /// step (`steps`), lies within [`STANDING_END`] of where it stands. The task says where
+    /// each agent is at the end; one that stands now and then is taken to stand between.
+    /// The model has no traffic-light state, and left free it started queued cars and slid
+    /// them sideways into oncoming traffic and back (the cities checkpoint at 8 s, training
+    /// town DEU_Flensburg: standing cars' largest move median 1.25 m, p90 2.38 m).
+    pub(super) fn standing(
+        &self,
+        scene: &Scene,
+        ends: &[Option<(usize, f64, f64)>],
+        steps: usize,
+    ) -> Vec<Option<Held>> {
+        let (_, _, f, _) = self.dims();
+        let norm = &self.trained.meta.normaliser;
+        let c = scene.meta.current_step;
+        self.slots
+            .iter()
+            .map(|sl| {
+                let (j, ex, ey) = ends[sl.agent]?;
+                let a = &scene.agents[sl.agent];
+                let (dx, dy) = (ex - sl.pose[0], ey - sl.pose[1]);
+                let stands = a.agent_type != AgentType::Pedestrian
+                    && j + 1 >= steps.min(f)
+                    && a.states[c].speed() < STANDING_SPEED
+                    && dx.hypot(dy) <= STANDING_END;
+                if !stands {
+                    return None;
+                }
+                let (sn, cs) = sl.pose[2].sin_cos();
+                let (tx, ty) = (cs * dx + sn * dy, -sn * dx + cs * dy);
+                let mut local = vec![0.0; 3 * f];
+                for i in 0..f {
+                    let u = ((i + 1) as f64 / (j + 1) as f64).min(1.0);
+                    local[i * 3] = u * tx;
+                    local[i * 3 + 1] = u * ty;
+                }
+                remove_anchor(&mut local, sl.advance);
+                Some(Held {
+                    coeffs: norm.encode(&local),
+                    end_step: j,
+                    end: [ex, ey],
+                })
+            })
+            .collect()
+    }
+
+    /// Writes each held agent's coefficients ([`Plan::standing`]) to every copy of it.
+    pub(super) fn hold(&self, d: &mut [f32]) {
+        let (n, k, _, nw) = self.dims();
+        let samples = d.len() / (nw * n * k);
+        for s in 0..samples {
+            for (h, copies) in self.held.iter().zip(&self.copies) {
+                let Some(h) = h else { continue };
+                for &(wi, slot) in copies {
+                    let o = ((s * nw + wi) * n + slot) * k;
+                    d[o..o + k].copy_from_slice(&h.coeffs);
+                }
+            }
+        }
+    }
+
+    /// Gradient of a dense world-coordinate gradient w.r.t. the normalised coefficients.
+    pub(super) fn to_coeffs(&self, world: &[f64], steps: usize, out: &mut [f32], sample: usize) {
+        let (n, k, f, nw) = self.dims();
+        let norm = &self.trained.meta.normaliser;
+        let dim = norm.pca.dim;
+        for (
+            &Slot {
+                agent: ai,
+                pose: p0,
+                ..
+            },
+            copies,
+        ) in self.slots.iter().zip(&self.copies)
+        {
+            let (sn, cs) = p0[2].sin_cos();
+            let mut local = vec![0.0; dim];
+            for j in 0..f.min(steps) {
+                let g = &world[(ai * steps + j) * 3..(ai * steps + j) * 3 + 3];
+                local[j * 3] = cs * g[0] + sn * g[1];
+                local[j * 3 + 1] = -sn * g[0] + cs * g[1];
+                local[j * 3 + 2] = g[2];
+            }
+            for c in 0..k {
+                let comp = &norm.pca.components[c * dim..(c + 1) * dim];
+                let g: f64 = comp.iter().zip(&local).map(|(a, b)| a * b).sum::<f64>() * norm.std[c]
+                    / norm.sigma_data;
+                // The trajectory decodes the owner's copy ([`Plan::consensus`]).
+                let (wi, slot) = copies[0];
+                out[((sample * nw + wi) * n + slot) * k + c] += g as f32;
+            }
+        }
+    }
+}
