@@ -32,8 +32,8 @@ use std::time::Instant;
 use super::fwd::box_clearance;
 use super::report::{CostReport, TermReport};
 use super::trajectory::{Coord, Trajectories};
-use crate::eval::kinematic::KinematicLimits;
 use crate::geom::{pairs_within, Point};
+use crate::scene::KinematicLimits;
 use crate::scene::Scene;
 
 /// Term names, in report order.

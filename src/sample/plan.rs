@@ -4,8 +4,7 @@
 //! trajectories with headings aligned to the path.
 
 use crate::cost::Trajectories;
-use crate::eval::kinematic::KinematicLimits;
-use crate::scene::{AgentId, AgentType, Scene};
+use crate::scene::{AgentId, AgentType, KinematicLimits, Scene};
 use crate::train::dataset::{add_anchor, remove_anchor};
 use crate::train::{window_among, Trained, Window};
 

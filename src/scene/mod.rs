@@ -3,6 +3,7 @@
 
 mod agents;
 pub mod description;
+mod kinematic_limits;
 mod lane_graph;
 mod lane_path;
 mod map;
@@ -13,6 +14,7 @@ use serde::Serialize;
 
 pub use agents::{velocities_from_positions, Agent, AgentId, AgentState, AgentType};
 pub use description::{describe, DescribeOptions, SceneDescription};
+pub use kinematic_limits::KinematicLimits;
 pub use lane_graph::{EdgeCounts, LaneGraph};
 pub use lane_path::{LanePath, Turn, TurnSpan, TURN_THRESHOLD};
 pub use map::{
