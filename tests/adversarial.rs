@@ -662,7 +662,8 @@ fn the_probes_for_dead_terms_share_one_wall_clock() {
 
 #[test]
 fn the_rules_planner_s_scripts_have_no_dead_term_for_the_agents_suggest_chooses() {
-    use drivescript::eval::behaviors::{suggest, ALL};
+    use drivescript::eval::behaviors::ALL;
+    use drivescript::eval::suggest::suggest;
     use drivescript::llm::rules::{compose, Event, Tuning};
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
     let mut files: Vec<PathBuf> = ["commonroad", "yaml"]

@@ -964,7 +964,11 @@ fn suggest<'py>(
     let steps = scene.horizon(steps)?;
     let inner = scene.inner.clone();
     let p = detached(py, "behaviour suggestion", move || {
-        Ok(behaviors::suggest(b, &inner.with_horizon(steps), steps))
+        Ok(drivescript::eval::suggest::suggest(
+            b,
+            &inner.with_horizon(steps),
+            steps,
+        ))
     })?;
     p.map(|p| params_to(py, &p)).transpose()
 }

@@ -83,7 +83,7 @@ pub struct Args {
     #[arg(long = "param", num_args = 1..)]
     params: Vec<String>,
     /// For --task behaviour: choose the agents of every scene automatically
-    /// (`eval::behaviors::suggest`); --param values override the suggestion.
+    /// (`eval::suggest::suggest`); --param values override the suggestion.
     #[arg(long)]
     auto: bool,
     /// For --task behaviour with --rollouts: the same scenes sampled unguided (same seed and
@@ -347,7 +347,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             };
             let scene_params = match (&behaviour, args.auto) {
                 (Some((b, given)), true) => {
-                    match drivescript::eval::behaviors::suggest(
+                    match drivescript::eval::suggest::suggest(
                         *b,
                         scene,
                         horizon.unwrap_or(scene.num_future_steps()),

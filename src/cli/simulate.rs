@@ -5,7 +5,8 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result};
 use drivescript::cost::{Params, Realism};
-use drivescript::eval::behaviors::{suggest, Behavior};
+use drivescript::eval::behaviors::Behavior;
+use drivescript::eval::suggest::suggest;
 use drivescript::io::name::terminal_safe;
 use drivescript::io::{discover, output_stem, read_each, LoadOptions, OutputNames};
 use drivescript::render::RenderOptions;

@@ -9,6 +9,7 @@ pub mod feasibility;
 pub mod kinematic;
 pub mod merge;
 pub mod metrics;
+pub mod suggest;
 pub mod tally;
 
 pub use baselines::Baseline;

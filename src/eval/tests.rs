@@ -434,7 +434,7 @@ fn one_agent_and_late_agents_are_handled() {
 #[test]
 fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
     // Over the recorded future.
-    let suggest = |b, s: &Scene| super::behaviors::suggest(b, s, s.num_future_steps());
+    let suggest = |b, s: &Scene| super::suggest::suggest(b, s, s.num_future_steps());
     let base = scene("highway.yaml");
     let left = suggest(Behavior::LaneChangeLeft, &base).unwrap();
     // Vehicle 1 (ego, middle lane) has a lane to its left.
@@ -487,24 +487,24 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
     let variant =
         |from: &str, to: &str| yaml::parse(Path::new("v.yaml"), &text.replace(from, to)).unwrap();
     let merge = scene("merge.yaml");
-    assert!(super::behaviors::suggest(Behavior::Yield, &merge, 70).is_none());
+    assert!(super::suggest::suggest(Behavior::Yield, &merge, 70).is_none());
     let ahead = variant("s: 30, speed: 14", "s: 90, speed: 14");
-    let y = super::behaviors::suggest(Behavior::Yield, &ahead, 70).unwrap();
+    let y = super::suggest::suggest(Behavior::Yield, &ahead, 70).unwrap();
     assert_eq!(
         (y.number("yielder").unwrap(), y.number("other").unwrap()),
         (11.0, 10.0)
     );
-    assert!(super::behaviors::suggest(Behavior::Yield, &ahead, 55).is_none());
+    assert!(super::suggest::suggest(Behavior::Yield, &ahead, 55).is_none());
     // 11 m before the merge at 14 m/s, 11 cannot hold back at 3 m/s² (33 m to stop).
     let late = variant("s: 30, speed: 14", "s: 140, speed: 14");
-    assert!(super::behaviors::suggest(Behavior::Yield, &late, 70).is_none());
+    assert!(super::suggest::suggest(Behavior::Yield, &late, 70).is_none());
     // 40 m before the merge, 11 could stop by its centre 2 m short (33 m at 3 m/s²), but not
     // where the yield script holds it at a merge: its front bumper 12 m further back. A request
     // met only by an emergency stop is not offered.
     let short = variant("s: 30, speed: 14", "s: 113, speed: 14");
-    assert!(super::behaviors::suggest(Behavior::Yield, &short, 70).is_none());
+    assert!(super::suggest::suggest(Behavior::Yield, &short, 70).is_none());
     let room = variant("s: 30, speed: 14", "s: 100, speed: 14");
-    assert!(super::behaviors::suggest(Behavior::Yield, &room, 70).is_some());
+    assert!(super::suggest::suggest(Behavior::Yield, &room, 70).is_some());
     let waiting = yaml::parse(
         Path::new("waiting.yaml"),
         &text
@@ -512,7 +512,7 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
             .replace("s: 50, speed: 15", "s: 130, speed: 0"),
     )
     .unwrap();
-    assert!(super::behaviors::suggest(Behavior::Yield, &waiting, 70).is_none());
+    assert!(super::suggest::suggest(Behavior::Yield, &waiting, 70).is_none());
     // A left turn across oncoming traffic: straight on, vehicle 1's path never meets vehicle
     // 2's; on the route it drives (left at the fork) it would cross just before 2 arrives.
     let junction = scene("junction.yaml");
@@ -535,8 +535,7 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
     )
     .unwrap();
     assert_eq!(
-        super::behaviors::suggest(Behavior::OffRoad, &off, 40)
-            .map(|p| p.number("vehicle").unwrap()),
+        super::suggest::suggest(Behavior::OffRoad, &off, 40).map(|p| p.number("vehicle").unwrap()),
         Some(4.0)
     );
     // Reverse: the nearest car that can stop and back up 1.5 m within the horizon, with room
@@ -554,7 +553,7 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
     )
     .unwrap();
     let reverser = |steps| {
-        super::behaviors::suggest(Behavior::Reverse, &rev, steps)
+        super::suggest::suggest(Behavior::Reverse, &rev, steps)
             .map(|p| p.number("vehicle").unwrap())
     };
     assert_eq!(reverser(40), Some(4.0));
@@ -571,7 +570,7 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
     };
     // The horizon simulated, not the recording's, sets the reach.
     let rightmost = |horizon| {
-        super::behaviors::suggest(Behavior::RightmostLane, &road(31), horizon)
+        super::suggest::suggest(Behavior::RightmostLane, &road(31), horizon)
             .map(|p| p.number("vehicle").unwrap())
     };
     assert_eq!(rightmost(20), Some(5.0), "2 s: one lane change at most");
@@ -586,7 +585,7 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
         ),
     )
     .unwrap();
-    let p = super::behaviors::suggest(Behavior::Stop, &stop, 40).unwrap();
+    let p = super::suggest::suggest(Behavior::Stop, &stop, 40).unwrap();
     assert_eq!(
         (p.number("vehicle").unwrap(), p.number("within").unwrap()),
         (2.0, 2.5),
@@ -767,7 +766,7 @@ fn a_turn_is_taken_past_the_middle_of_its_corner() {
 fn turns_are_suggested_for_a_car_that_can_reach_the_corner() {
     let s = scene("crossroads.yaml");
     for b in [Behavior::TurnLeft, Behavior::TurnRight] {
-        let p = super::behaviors::suggest(b, &s, s.num_future_steps()).unwrap();
+        let p = super::suggest::suggest(b, &s, s.num_future_steps()).unwrap();
         assert_eq!(p.number("vehicle"), Some(1.0));
     }
     // Standing 10 m before the junction, it covers 6.75 m at 1.5 m/s² in the 3 s a 4 s
@@ -783,7 +782,7 @@ fn turns_are_suggested_for_a_car_that_can_reach_the_corner() {
         };
     }
     assert_eq!(
-        super::behaviors::suggest(Behavior::TurnLeft, &parked, 40),
+        super::suggest::suggest(Behavior::TurnLeft, &parked, 40),
         None
     );
 }

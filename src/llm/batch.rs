@@ -7,7 +7,7 @@
 //! scenes: ../runs/heldout/windows          # default for entries without their own
 //! entries:
 //!   - request: "vehicle {cutter} cuts in front of vehicle {victim}"
-//!     behaviour: cut_in       # {role}s are chosen per scene by eval::behaviors::suggest
+//!     behaviour: cut_in       # {role}s are chosen per scene by eval::suggest::suggest
 //!   - scene: ../data/samples/commonroad/USA_US101-3_3_T-1.xml
 //!     request: "vehicle 401 cuts in front of vehicle 399"
 //!     behaviour: cut_in
@@ -27,7 +27,8 @@ use super::session::{
 };
 use super::LlmError;
 use crate::cost::Params;
-use crate::eval::behaviors::{suggest, Behavior};
+use crate::eval::behaviors::Behavior;
+use crate::eval::suggest::suggest;
 use crate::io::shard::Shard;
 use crate::io::{discover, load_scenes, output_stem, write_atomic, LoadOptions};
 use crate::scene::Scene;
