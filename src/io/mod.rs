@@ -701,6 +701,25 @@ fn write_beside(path: &Path, bytes: &[u8]) -> Result<PathBuf, IoError> {
     Ok(tmp)
 }
 
+/// Whether process `pid` exists (it may belong to another user: then it exists too): whether
+/// a temporary file named for it may still be written, or was left by a process that died.
+pub(crate) fn process_alive(pid: u32) -> bool {
+    #[cfg(unix)]
+    {
+        let Ok(pid) = libc::pid_t::try_from(pid) else {
+            return false;
+        };
+        // SAFETY: signal 0 checks for the process without sending anything.
+        let r = unsafe { libc::kill(pid, 0) };
+        r == 0 || std::io::Error::last_os_error().raw_os_error() == Some(libc::EPERM)
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = pid;
+        true
+    }
+}
+
 /// Writes `bytes` to `path` atomically: a temporary file beside it, then a rename. Only a new
 /// path or a regular file (or a link to one) is replaced so; a device or a FIFO (`/dev/null`,
 /// `/dev/stdout`, a pipe) is written in place, as a shell's `>` would: renaming over
@@ -1151,6 +1170,32 @@ pub(crate) fn push_unique_road_line(
 mod tests {
     use super::{output_stem, without_position};
 
+    #[test]
+    fn an_output_path_with_a_trailing_slash_is_named_not_a_bare_os_error() {
+        let dir = tempfile::tempdir().unwrap();
+        for existing in [false, true] {
+            let file = dir.path().join("x.svg");
+            if existing {
+                std::fs::write(&file, "<svg/>").unwrap();
+            }
+            let slashed = format!("{}/", file.display());
+            let e = super::write_atomic(std::path::Path::new(&slashed), b"<svg/>")
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.starts_with(&slashed) && e.contains("trailing slash"),
+                "{e}"
+            );
+        }
+        // Nothing was written beside it, and the file of before is as it was.
+        let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+        assert_eq!(names.len(), 1);
+        assert_eq!(
+            std::fs::read_to_string(dir.path().join("x.svg")).unwrap(),
+            "<svg/>"
+        );
+    }
+
     #[cfg(unix)]
     #[test]
     fn only_regular_files_within_their_cap_are_read() {
@@ -1185,32 +1230,6 @@ mod tests {
                 .to_string();
             assert!(e.contains("not a regular file"), "{e}");
         }
-    }
-
-    #[test]
-    fn an_output_path_with_a_trailing_slash_is_named_not_a_bare_os_error() {
-        let dir = tempfile::tempdir().unwrap();
-        for existing in [false, true] {
-            let file = dir.path().join("x.svg");
-            if existing {
-                std::fs::write(&file, "<svg/>").unwrap();
-            }
-            let slashed = format!("{}/", file.display());
-            let e = super::write_atomic(std::path::Path::new(&slashed), b"<svg/>")
-                .unwrap_err()
-                .to_string();
-            assert!(
-                e.starts_with(&slashed) && e.contains("trailing slash"),
-                "{e}"
-            );
-        }
-        // Nothing was written beside it, and the file of before is as it was.
-        let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
-        assert_eq!(names.len(), 1);
-        assert_eq!(
-            std::fs::read_to_string(dir.path().join("x.svg")).unwrap(),
-            "<svg/>"
-        );
     }
 
     #[cfg(unix)]
