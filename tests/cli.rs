@@ -3456,3 +3456,38 @@ fn an_output_path_ending_in_a_slash_is_named_with_the_slip() {
     );
     assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
 }
+
+/// Shards 0/2 and then 1/3 into one `-o` ran without a word, leaving some scenes in no shard
+/// and others in two (each split partitions the scenes only of itself).
+#[test]
+fn shards_of_another_count_into_one_run_directory_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let scenes = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes");
+    let out = dir.path().join("sharded");
+    let o = unguided(
+        &scenes,
+        &out,
+        &["--shard", "0/2", "--resume", "--samples", "1"],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let before = std::fs::read_dir(&out).unwrap().count();
+    let o = unguided(
+        &scenes,
+        &out,
+        &["--shard", "1/3", "--resume", "--samples", "1"],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("holds the shards of this run split 2 ways")
+            && err.contains("give --shard I/2"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read_dir(&out).unwrap().count(), before);
+    let o = unguided(
+        &scenes,
+        &out,
+        &["--shard", "1/2", "--resume", "--samples", "1"],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
