@@ -137,7 +137,10 @@ fn womd_files_written_by_convert_inspect_and_render() {
     ok(&["render", s(&shard), "--index", "0", "-o", s(&png)]);
     assert_eq!(&std::fs::read(&png).unwrap()[..4], b"\x89PNG");
     let err = fails(&["render", s(&shard), "--index", "3", "-o", s(&png)]);
-    assert!(err.contains("only 1 scenes"), "{err}");
+    assert!(
+        err.contains("--index 3: ") && err.contains("holds 1 scene (give --index 0"),
+        "{err}"
+    );
 }
 
 #[test]

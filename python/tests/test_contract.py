@@ -303,7 +303,12 @@ def test_nothing_to_evaluate_is_a_value_error_not_a_panic(ds, scene, cut_in, tmp
         ds.Scene.load(empty)
     with pytest.raises(ValueError, match="steps = 0"):
         ds.suggest("cut_in", scene, 0)
-    ended = ds.Scene.load(SCENE, commonroad_current_step=10**6)
+    # A scene that ends at its current step (commonroad_current_step past the end is refused).
+    ended_path = tmp_path / "ended.yaml"
+    ended_path.write_text(
+        (ROOT / "data/samples/yaml/highway_cut_in.yaml").read_text().replace("steps: 91", "steps: 11")
+    )
+    ended = ds.Scene.load(ended_path)
     with pytest.raises(ValueError, match="records no step after its current step"):
         ended.log_future()
 
