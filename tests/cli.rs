@@ -101,6 +101,15 @@ fn inspect_agents_lists_lanes_gaps_and_neighbours() {
             && err.contains("--keep names agents it does not hold: 77, 88"),
         "{err}"
     );
+    // Thousands of absent ids are counted past the first few, not all echoed.
+    let ids: Vec<String> = (1000..6000).map(|i| i.to_string()).collect();
+    let mut args = vec!["inspect", "--agents", s(&scene), "--keep"];
+    args.extend(ids.iter().map(|i| i.as_str()));
+    let err = fails(&args);
+    assert!(
+        err.contains("1009 and 4990 more (5000 in all)") && err.len() < 1000,
+        "{err}"
+    );
     let o = drivescript(&["inspect", s(&scene), "--keep", "4"]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("--agents"), "{err}");
@@ -128,7 +137,10 @@ fn womd_files_written_by_convert_inspect_and_render() {
     ok(&["render", s(&shard), "--index", "0", "-o", s(&png)]);
     assert_eq!(&std::fs::read(&png).unwrap()[..4], b"\x89PNG");
     let err = fails(&["render", s(&shard), "--index", "3", "-o", s(&png)]);
-    assert!(err.contains("only 1 scenes"), "{err}");
+    assert!(
+        err.contains("--index 3: ") && err.contains("holds 1 scene (give --index 0"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -1489,7 +1501,7 @@ fn train_refuses_settings_it_cannot_train_with_before_reading_data() {
         let arg = format!("{flag}={value}");
         let err = fails(&["train", "--data", "no/such/dir", "--out", s(&out), &arg]);
         assert!(
-            err.contains("training settings") && err.contains(want),
+            err.contains(&format!("training settings: {flag}: ")) && err.contains(want),
             "{flag} {value}: {err}"
         );
         assert!(!out.exists(), "{flag} {value} wrote {}", out.display());
@@ -3276,7 +3288,7 @@ fn every_checked_flag_quotes_a_long_bad_value_cut_with_its_length() {
         ),
         (
             args(&["train", "--data", scene, "--out", out, "--val-town", v]),
-            "val_towns",
+            "--val-town",
         ),
         (args(&["demo", "-o", out, "--samples", v]), "--samples"),
         (
@@ -3376,4 +3388,109 @@ fn sample_counts_out_of_range_name_the_flag_and_its_range() {
         );
         assert!(!out.exists());
     }
+}
+
+/// `convert`, `render` and `cost --index N` past the source's last scene said "scene 3: the
+/// source holds only 1 scenes", naming neither the flag nor the indices there are.
+#[test]
+fn an_index_past_the_source_names_the_flag_and_the_indices_there_are() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let out = dir.path().join("x.yaml");
+    let pic = dir.path().join("x.svg");
+    for args in [
+        vec!["convert", s(&scene), "--index", "3", "-o", s(&out)],
+        vec!["render", s(&scene), "--index", "3", "-o", s(&pic)],
+        vec![
+            "cost",
+            s(&scene),
+            "--index",
+            "3",
+            "--script",
+            "scripts/cut_in.rhai",
+            "--param",
+            "cutter=2",
+            "victim=1",
+        ],
+    ] {
+        let err = fails(&args);
+        assert!(
+            err.contains("--index 3: ")
+                && err.contains(
+                    "highway_cut_in.yaml holds 1 scene (give --index 0, or leave it out)"
+                ),
+            "{args:?}: {err}"
+        );
+    }
+    assert!(!out.exists() && !pic.exists());
+}
+
+/// `demo --request` printed the scene and the whole request (12,000 characters of it) before
+/// refusing a request the rules planner cannot run.
+#[test]
+fn demo_refuses_a_request_it_cannot_run_before_printing_anything() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("demo");
+    for request in ["", "   ", &"blah".repeat(3000)] {
+        let o = drivescript(&["demo", "--request", request, "-o", s(&run)]);
+        let out = String::from_utf8_lossy(&o.stdout);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{err}");
+        assert!(out.is_empty(), "{out}");
+        assert!(
+            err.contains("the request is empty") || err.contains("does not understand"),
+            "{err}"
+        );
+        assert!(err.len() < 2000, "{} bytes: {err}", err.len());
+    }
+    assert!(!run.exists());
+}
+
+/// `render -o x.svg/` said only "Not a directory (os error 20)".
+#[test]
+fn an_output_path_ending_in_a_slash_is_named_with_the_slip() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let slashed = format!("{}/", dir.path().join("x.svg").display());
+    let err = fails(&["render", s(&scene), "-o", &slashed]);
+    assert!(
+        err.contains(&slashed) && err.contains("trailing slash"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+}
+
+/// Shards 0/2 and then 1/3 into one `-o` ran without a word, leaving some scenes in no shard
+/// and others in two (each split partitions the scenes only of itself).
+#[test]
+fn shards_of_another_count_into_one_run_directory_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let scenes = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes");
+    let out = dir.path().join("sharded");
+    let o = unguided(
+        &scenes,
+        &out,
+        &["--shard", "0/2", "--resume", "--samples", "1"],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let before = std::fs::read_dir(&out).unwrap().count();
+    let o = unguided(
+        &scenes,
+        &out,
+        &["--shard", "1/3", "--resume", "--samples", "1"],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("holds the shards of this run split 2 ways")
+            && err.contains("give --shard I/2"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read_dir(&out).unwrap().count(), before);
+    let o = unguided(
+        &scenes,
+        &out,
+        &["--shard", "1/2", "--resume", "--samples", "1"],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
 }

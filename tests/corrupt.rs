@@ -181,6 +181,40 @@ fn av2_copy(dir: &Path) -> PathBuf {
     dir.join(format!("scenario_{AV2_ID}.parquet"))
 }
 
+#[cfg(unix)]
+#[test]
+fn bench_io_counts_an_av2_directory_with_link_loops_once_and_finishes() {
+    let dir = tempfile::tempdir().unwrap();
+    let av2 = dir.path().join("av2");
+    std::fs::create_dir(&av2).unwrap();
+    av2_copy(&av2);
+    // Two links back to the directory: walking through them branched 2^40 ways.
+    std::os::unix::fs::symlink(".", av2.join("a")).unwrap();
+    std::os::unix::fs::symlink(".", av2.join("b")).unwrap();
+    std::os::unix::fs::symlink("nowhere", av2.join("dangling")).unwrap();
+    let (code, t) = run_within(&["bench", "io", "--data", s(&av2), "--seconds", "0.05"], 60);
+    assert_eq!(code, Some(0), "{t}");
+    let bytes: u64 = std::fs::read_dir(samples().join("av2"))
+        .unwrap()
+        .map(|e| e.unwrap().metadata().unwrap().len())
+        .sum();
+    // The row's MB/s over its scenes/s is the bytes per scene: each file once.
+    let row = t
+        .lines()
+        .find(|l| l.contains(s(&av2)))
+        .unwrap_or_else(|| panic!("{t}"));
+    let cols: Vec<f64> = row
+        .split('|')
+        .filter_map(|c| c.trim().parse().ok())
+        .collect();
+    let (per_s, mb_s) = (cols[2], cols[4]);
+    let per_scene = mb_s * 1e6 / per_s;
+    assert!(
+        (per_scene / bytes as f64 - 1.0).abs() < 0.05,
+        "{per_scene} bytes per scene, {bytes} in the files: {row}"
+    );
+}
+
 #[test]
 fn flipped_bytes_in_an_av2_parquet_never_pass_as_far_moved_agents() {
     // Parquet pages without checksums (AV2's) read with flipped bytes as wrong data and exit

@@ -1874,6 +1874,55 @@ fn a_batch_keeps_a_summary_it_did_not_write() {
 }
 
 #[test]
+fn a_second_batch_file_into_the_same_directory_is_refused_not_mixed_in() {
+    let dir = tempfile::tempdir().unwrap();
+    let first = one_pair_batch(dir.path());
+    let second = dir.path().join("other.yaml");
+    std::fs::write(
+        &second,
+        format!(
+            "scenes: {}\nentries:\n  - request: \"vehicle 401 drives off the road\"\n    behaviour: off_road\n    params: {{vehicle: 401}}\n",
+            samples().join(SCENE).display()
+        ),
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    let run = |file: &Path| {
+        ask(
+            &[
+                "--batch",
+                s(file),
+                "-o",
+                s(&out),
+                "--llm",
+                "rules",
+                "--rounds",
+                "0",
+            ],
+            None,
+        )
+    };
+    let o = run(&first);
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
+    let o = run(&second);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains(s(&out)) && t.contains("another batch file") && t.contains("Choose another -o"),
+        "{t}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(out.join("summary.md")).unwrap(),
+        summary
+    );
+    assert_eq!(std::fs::read_dir(out.join("runs")).unwrap().count(), 1);
+    // The same file again continues as before.
+    let o = run(&first);
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+}
+
+#[test]
 fn a_huge_retry_after_is_capped_at_the_backoff_ceiling_and_said() {
     let srv = Server::start(vec![
         Canned::raw(429, r#"{"error": {"message": "busy"}}"#).header("Retry-After", "1000000000"),

@@ -29,9 +29,13 @@ class Scene:
 
     @staticmethod
     def load(
-        path: Union[str, PathLike[str]], index: int = 0, commonroad_current_step: int = 10
+        path: Union[str, PathLike[str]],
+        index: int = 0,
+        commonroad_current_step: Optional[int] = None,
     ) -> "Scene":
-        """Reads scene ``index`` of ``path`` (every format the CLI reads)."""
+        """Reads scene ``index`` of ``path`` (every format the CLI reads). CommonRoad scenes
+        start their future at ``commonroad_current_step`` (left out: 10, or a shorter scene's
+        last step); given, it must leave at least one future step."""
     @property
     def agent_ids(self) -> List[int]:
         """Agent ids, in the order of every trajectory array's agent axis."""

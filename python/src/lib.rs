@@ -293,26 +293,43 @@ fn turn_word(w: &str) -> PyResult<drivescript::scene::Turn> {
 impl Scene {
     /// Reads scene number `index` of `path` (a file or a directory, as `drivescript cost`
     /// takes it). `commonroad_current_step` is the current step given to CommonRoad scenes,
-    /// which have none of their own (default 10: 1 s of history at 10 Hz).
+    /// which have none of their own (left out: 10, 1 s of history at 10 Hz, or the last step
+    /// of a shorter scene). Given, it must leave at least one future step.
     ///
     /// Raises FileNotFoundError or OSError where the file cannot be read, ValueError where
     /// it is not a valid scene (the message names the file and the record).
     #[staticmethod]
-    #[pyo3(signature = (path, index = 0, commonroad_current_step = 10))]
+    #[pyo3(signature = (path, index = 0, commonroad_current_step = None))]
     fn load(
         py: Python<'_>,
         path: PathBuf,
         index: usize,
-        commonroad_current_step: usize,
+        commonroad_current_step: Option<usize>,
     ) -> PyResult<Self> {
         let opts = LoadOptions {
-            commonroad_current_step,
+            commonroad_current_step: commonroad_current_step
+                .unwrap_or(LoadOptions::default().commonroad_current_step),
         };
-        detached(py, "scene reader", || {
+        let scene = detached(py, "scene reader", || {
             drivescript::io::load_scene(&path, index, &opts)
                 .map(Scene::wrap)
                 .map_err(io_error)
-        })
+        })?;
+        // The reader clamps to the scene's last step: asked for in so many words, step 1000
+        // of a 32-step scene came back as step 31 with no future, without a word.
+        let meta = &scene.inner.meta;
+        if let Some(k) = commonroad_current_step {
+            let n = scene.inner.num_steps();
+            if meta.source_format == drivescript::scene::SourceFormat::CommonRoad && k + 1 >= n {
+                return Err(PyValueError::new_err(format!(
+                    "{}: commonroad_current_step {k} leaves no future (the scene has {n} steps: \
+                     give 0 to {})",
+                    path.display(),
+                    n.saturating_sub(2)
+                )));
+            }
+        }
+        Ok(scene)
     }
 
     /// The agents' ids, in the order of the agent axis of every trajectory array.
@@ -847,6 +864,11 @@ impl Sampler {
         let done = done.map_err(|e| match e {
             AttemptError::Script(e) => script_error(py, &e),
             AttemptError::Sample(sampler::SampleError::Cost(e)) => script_error(py, &e),
+            // The sampler names its setting `lambda`, which Python calls `guidance`: the
+            // message named a keyword the caller never passed.
+            AttemptError::Sample(sampler::SampleError::Settings(m)) if m.starts_with("lambda ") => {
+                PyValueError::new_err(format!("sampler settings: guidance: {m}"))
+            }
             AttemptError::Sample(sampler::SampleError::Settings(m)) => {
                 PyValueError::new_err(format!("sampler settings: {m}"))
             }

@@ -303,7 +303,12 @@ def test_nothing_to_evaluate_is_a_value_error_not_a_panic(ds, scene, cut_in, tmp
         ds.Scene.load(empty)
     with pytest.raises(ValueError, match="steps = 0"):
         ds.suggest("cut_in", scene, 0)
-    ended = ds.Scene.load(SCENE, commonroad_current_step=10**6)
+    # A scene that ends at its current step (commonroad_current_step past the end is refused).
+    ended_path = tmp_path / "ended.yaml"
+    ended_path.write_text(
+        (ROOT / "data/samples/yaml/highway_cut_in.yaml").read_text().replace("steps: 91", "steps: 11")
+    )
+    ended = ds.Scene.load(ended_path)
     with pytest.raises(ValueError, match="records no step after its current step"):
         ended.log_future()
 
@@ -330,6 +335,23 @@ def test_missing_or_malformed_files_are_os_and_value_errors(ds, tmp_path):
     bad.write_text("agents: [1, 2\n")
     with pytest.raises(ValueError, match="bad.yaml"):
         ds.Scene.load(bad)
+
+
+def test_a_commonroad_current_step_past_the_scene_is_a_value_error_not_clamped(ds):
+    path = ROOT / "data/samples/commonroad/USA_US101-3_3_T-1.xml"
+    assert ds.Scene.load(path).current_step == 10
+    assert ds.Scene.load(path, commonroad_current_step=20).current_step == 20
+    n = ds.Scene.load(path).current_step + 1 + ds.Scene.load(path).future_steps
+    for k in [n - 1, n, 2**40]:
+        with pytest.raises(ValueError, match=f"commonroad_current_step {k} leaves no future"):
+            ds.Scene.load(path, commonroad_current_step=k)
+
+
+def test_a_bad_guidance_weight_names_the_keyword(ds, scene):
+    sampler = ds.Sampler(ROOT / "data/checkpoint")
+    for bad in [float("nan"), float("inf"), -1.0]:
+        with pytest.raises(ValueError, match="sampler settings: guidance: lambda = "):
+            sampler.sample(scene, samples=1, guidance=bad)
 
 
 def test_the_sampler_returns_samples_by_agents_by_steps_by_3(ds, scene, cut_in):

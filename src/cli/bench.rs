@@ -82,20 +82,12 @@ fn load_all(sources: &[PathBuf]) -> Result<usize> {
     Ok(n)
 }
 
-/// Bytes of the files under `p` (the file itself, or everything below a directory).
-fn bytes_of(p: &Path) -> u64 {
-    match std::fs::metadata(p) {
-        Ok(m) if m.is_file() => m.len(),
-        Ok(m) if m.is_dir() => std::fs::read_dir(p)
-            .map(|d| d.flatten().map(|e| bytes_of(&e.path())).sum())
-            .unwrap_or(0),
-        _ => 0,
-    }
-}
-
 fn row(name: &str, sources: &[PathBuf], min: Duration) -> Result<()> {
     let n = load_all(sources).with_context(|| format!("loading the {name} scenes"))?;
-    let bytes: u64 = sources.iter().map(|p| bytes_of(p)).sum();
+    let mut bytes = 0u64;
+    for p in sources {
+        bytes = bytes.saturating_add(drivescript::io::bytes_under(p)?);
+    }
     let (r, reps) = rate(min, n, || load_all(sources).map(|_| ()))?;
     println!(
         "| {name:<40} | {n:>6} | {reps:>5} | {r:>10.1} | {:>9.2} | {:>10.1} |",

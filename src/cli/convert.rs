@@ -5,7 +5,7 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result};
 use drivescript::io::scene_output::SceneOutput;
-use drivescript::io::{check_output_not_input, load_scene, output_stem, LoadOptions};
+use drivescript::io::{check_output_not_input, output_stem};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -43,7 +43,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     if let Some(id) = &args.id {
         output_stem(id)?;
     }
-    let mut scene = load_scene(&args.scene, args.index, &LoadOptions::default())?;
+    let mut scene = super::load_indexed(&args.scene, args.index)?;
     if let Some(c) = args.current_step {
         scene = scene
             .at_step(c)

@@ -5,7 +5,7 @@ use std::process::ExitCode;
 
 use anyhow::Result;
 use drivescript::cost::{BoundScript, Params, ScriptSpec, Trajectories};
-use drivescript::io::{load_scene, rollout::Rollout, LoadOptions};
+use drivescript::io::rollout::Rollout;
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -35,7 +35,7 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
-    let mut scene = load_scene(&args.scene, args.index, &LoadOptions::default())?;
+    let mut scene = super::load_indexed(&args.scene, args.index)?;
     let rollout = match &args.rollout {
         Some(p) => Some(Rollout::read(p)?),
         None => None,

@@ -43,6 +43,10 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
+    let request = args.request.unwrap_or_else(|| REQUEST.to_string());
+    // Refused before the scene and the request are printed: a request the planner cannot run
+    // was echoed whole first.
+    drivescript::llm::session::check_rules_request(&request)?;
     let trained = super::ask::checkpoint(args.checkpoint.as_deref())?;
     let scene_path = args
         .scene
@@ -50,8 +54,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let raw = load_scene(&scene_path, 0, &LoadOptions::default())
         .with_context(|| format!("loading the demo scene {}", scene_path.display()))?;
     println!("{}\n", raw.summary());
-    let request = args.request.unwrap_or_else(|| REQUEST.to_string());
-    println!("request: {request}");
+    println!(
+        "request: {}",
+        drivescript::io::name::terminal_safe(&request)
+    );
     println!("LLM: the rules planner (a fixed vocabulary, not a language model); `drivescript ask` takes any OpenAI-compatible server\n");
     let config = SessionConfig {
         samples: args.samples,

@@ -68,20 +68,13 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 match item {
                     Ok(s) => {
                         if args.agents {
-                            // Kept ids are the request's agents: one missing is a mistake to
-                            // say, not to list the scene without it.
-                            let absent: Vec<String> = args
-                                .keep
-                                .iter()
-                                .filter(|id| !s.agents.iter().any(|a| a.id == **id))
-                                .map(|id| id.to_string())
-                                .collect();
-                            if !absent.is_empty() {
+                            if let Some(absent) =
+                                drivescript::scene::description::absent_kept(&s, &args.keep)
+                            {
                                 eprintln!(
-                                    "error: {}: scene {}: --keep names agents it does not hold: {}",
+                                    "error: {}: scene {}: --keep names agents it does not hold: {absent}",
                                     src.display(),
                                     s.meta.scenario_id,
-                                    absent.join(", ")
                                 );
                                 failures += 1;
                                 continue;

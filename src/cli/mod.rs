@@ -342,3 +342,25 @@ pub(crate) fn script_budget(seconds: f64) -> anyhow::Result<std::time::Duration>
     }
     Ok(std::time::Duration::from_secs_f64(seconds))
 }
+
+/// Scene `index` of `path`, as a command's `--index` asks for it: an index past the source's
+/// last scene names the flag and the indices there are, not only "scene 7".
+pub(crate) fn load_indexed(
+    path: &std::path::Path,
+    index: usize,
+) -> anyhow::Result<drivescript::scene::Scene> {
+    use drivescript::io::{load_scene, IoError, LoadOptions};
+    match load_scene(path, index, &LoadOptions::default()) {
+        Err(IoError::NoSuchScene { count, .. }) => anyhow::bail!(
+            "--index {index}: {} holds {count} scene{}{}",
+            path.display(),
+            if count == 1 { "" } else { "s" },
+            match count {
+                0 => String::new(),
+                1 => " (give --index 0, or leave it out)".into(),
+                n => format!(" (give --index 0 to {})", n - 1),
+            }
+        ),
+        r => Ok(r?),
+    }
+}

@@ -5,10 +5,7 @@ use std::process::ExitCode;
 
 use anyhow::{bail, Context, Result};
 use drivescript::io::name::shown_counted;
-use drivescript::io::{
-    check_output_not_input, check_replaces_own, load_scene, rollout::Rollout, write_atomic,
-    LoadOptions,
-};
+use drivescript::io::{check_output_not_input, check_replaces_own, rollout::Rollout, write_atomic};
 use drivescript::render::{PictureFormat, RenderOptions, MAX_GIF_FRAMES};
 use drivescript::scene::Scene;
 
@@ -112,7 +109,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         .collect();
     check_output_not_input(&args.output, &inputs, "-o")?;
     check_replaces_own(&args.output, "-o", format.what(), |p| format.holds_own(p))?;
-    let mut scene = load_scene(&args.scene, args.index, &LoadOptions::default())?;
+    let mut scene = super::load_indexed(&args.scene, args.index)?;
     if let Some(r) = &args.rollout {
         let rollout = Rollout::read(r)?;
         // The error names the rollout and what in it does not fit the scene.

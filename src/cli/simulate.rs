@@ -283,6 +283,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
         params: explicit.to_string(),
     };
     let fresh = record.claim(&args.output, args.resume)?;
+    if let Some(sh) = args.shard {
+        drivescript::sample::provenance::claim_shards(&args.output, sh.count)?;
+    }
     let run_value = serde_json::to_value(&record)?;
     let mut skipped = 0;
     let mut sources = Vec::new();

@@ -151,7 +151,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
     // Before any data is read: --steps, --batch, --lr and --eval-every.
     if let Err(e) = cfg.validate() {
-        anyhow::bail!("training settings: {e}");
+        match drivescript::train::trainer::flag_of(&e) {
+            Some(flag) => anyhow::bail!("training settings: {flag}: {e}"),
+            None => anyhow::bail!("training settings: {e}"),
+        }
     }
     let resume = match &args.resume {
         Some(dir) => {

@@ -550,7 +550,17 @@ fn read_state(cx: &Ctx, node: Node) -> Result<(i64, AgentState), IoError> {
         }
     };
     let heading = cx.value(cx.need(node, "orientation")?)?;
-    let time = cx.value(cx.need(node, "time")?)?;
+    let time_node = cx.need(node, "time")?;
+    // The middle of an interval is a step nobody wrote: [0, 4] put the state at step 2
+    // without a word, and [0, 5] was refused as "time 2.5".
+    if cx.child(time_node, "exact").is_none() {
+        return Err(cx.err(
+            time_node,
+            "is not <exact>: an obstacle's state is at one time step, and an interval names \
+             many",
+        ));
+    }
+    let time = cx.value(time_node)?;
     if time < 0.0 || time.fract() != 0.0 {
         return Err(cx.err(
             node,
@@ -641,6 +651,25 @@ fn read_agents(cx: &Ctx, root: Node) -> Result<(Vec<Agent>, usize), IoError> {
                 states.push((t, state));
             }
         }
+        // A static obstacle stays where its initial state puts it: one whose trajectory moves
+        // (a role or tag mislabelled) had that motion dropped without a word.
+        if is_static {
+            let (_, first) = states[0];
+            if let Some((t, s)) = states
+                .iter()
+                .find(|(_, s)| (s.x - first.x).hypot(s.y - first.y) > 0.01)
+            {
+                return Err(cx.err(
+                    node,
+                    format!(
+                        "a static obstacle, but its trajectory moves it {:.2} m by time {t}: a \
+                         static obstacle stays at its initial state; make it dynamic (a \
+                         <dynamicObstacle>, or <role>dynamic</role>) to keep its motion",
+                        (s.x - first.x).hypot(s.y - first.y)
+                    ),
+                ));
+            }
+        }
         raws.push(Raw {
             id,
             kind,
@@ -683,6 +712,47 @@ fn read_agents(cx: &Ctx, root: Node) -> Result<(Vec<Agent>, usize), IoError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_static_obstacle_whose_trajectory_moves_is_refused_not_pinned() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("data/samples/commonroad/USA_US101-3_3_T-1.xml");
+        let text = std::fs::read_to_string(&path).unwrap();
+        let moving = text.replacen("<role>dynamic</role>", "<role>static</role>", 1);
+        let e = parse(Path::new("s.xml"), &moving, &LoadOptions::default())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("<obstacle id=363>: a static obstacle, but its trajectory moves it"),
+            "{e}"
+        );
+        // One that stays put is read, at its initial state throughout.
+        let start = text.find("<obstacle id=\"363\">").unwrap();
+        let end = start + text[start..].find("</obstacle>").unwrap();
+        let obstacle = &text[start..end];
+        let t0 = obstacle.find("<trajectory>").unwrap();
+        let t1 = obstacle.find("</trajectory>").unwrap() + "</trajectory>".len();
+        let still = text.replacen(
+            obstacle,
+            &obstacle
+                .replacen("<role>dynamic</role>", "<role>static</role>", 1)
+                .replacen(&obstacle[t0..t1], "", 1),
+            1,
+        );
+        let scene = parse(Path::new("s.xml"), &still, &LoadOptions::default()).unwrap();
+        let a = scene.agents.iter().find(|a| a.id == 363).unwrap();
+        assert!(a.is_static && a.states.iter().all(|s| s.valid && s.x == a.states[0].x));
+        // A state's time as an interval is refused, not read as its middle.
+        let interval = text.replacen(
+            "<exact>0</exact>\n      </time>",
+            "<intervalStart>0</intervalStart><intervalEnd>4</intervalEnd>\n      </time>",
+            1,
+        );
+        let e = parse(Path::new("s.xml"), &interval, &LoadOptions::default())
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("<time>: is not <exact>"), "{e}");
+    }
 
     #[test]
     fn nesting_depth_is_checked_before_parsing() {

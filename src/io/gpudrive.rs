@@ -238,8 +238,9 @@ pub fn parse(path: &Path, text: &str) -> Result<Scene, IoError> {
 
 /// A serde error as the path to the value it is about (`objects[3].position[40].x`), the line
 /// and column, and the reason; with a word on the two ways real files go wrong that serde's
-/// message does not name (a file cut short, Python's non-JSON `NaN`).
-fn json_error(path: &Path, text: &str, e: &serde_json::Error) -> IoError {
+/// message does not name (a file cut short, Python's non-JSON `NaN`). Rollout files are read
+/// through it too.
+pub(crate) fn json_error(path: &Path, text: &str, e: &serde_json::Error) -> IoError {
     let offset = byte_offset(text, e.line(), e.column());
     let at = json_path(text, offset);
     let mut message = super::without_position(&e.to_string(), e.line(), e.column());

@@ -108,6 +108,16 @@ pub enum IoError {
         /// What is wrong.
         message: String,
     },
+    /// A scene number past the last scene of a multi-scene source ([`load_scene`]).
+    #[error("{path}: scene {index}: the source holds only {count} scenes")]
+    NoSuchScene {
+        /// The source.
+        path: String,
+        /// The number asked for, from 0.
+        index: usize,
+        /// The scenes it holds.
+        count: usize,
+    },
     /// The content parsed but makes an inconsistent scene.
     #[error("{path}: {location}: {error}")]
     Scene {
@@ -458,19 +468,19 @@ pub fn load_scene(path: &Path, index: usize, opts: &LoadOptions) -> Result<Scene
             scene?;
             count += 1;
         }
-        return Err(IoError::invalid(
-            path,
-            format!("scene {index}"),
-            format!("the source holds only {count} scenes"),
-        ));
+        return Err(IoError::NoSuchScene {
+            path: path.display().to_string(),
+            index,
+            count,
+        });
     }
     let mut scenes = load_scenes(path, opts)?;
     if index >= scenes.len() {
-        return Err(IoError::invalid(
-            path,
-            format!("scene {index}"),
-            format!("the source holds only {} scenes", scenes.len()),
-        ));
+        return Err(IoError::NoSuchScene {
+            path: path.display().to_string(),
+            index,
+            count: scenes.len(),
+        });
     }
     Ok(scenes.swap_remove(index))
 }
@@ -547,6 +557,49 @@ fn walk(
         }
     }
     Ok(())
+}
+
+/// The bytes of the files under `path` (the file itself, or every file below a directory), for
+/// a throughput figure. Each directory is walked once and each file counted once, by their
+/// canonical paths: a symlink loop inside an AV2 directory (`a -> .`, `b -> .`) made the walk
+/// branch until the OS's link limit, 2^40 paths for two such links, and one link counted every
+/// file 40 times. A directory that cannot be read is an error naming it, not 0 bytes.
+pub fn bytes_under(path: &Path) -> Result<u64, IoError> {
+    fn add(
+        p: &Path,
+        seen: &mut std::collections::HashSet<PathBuf>,
+        total: &mut u64,
+    ) -> Result<(), IoError> {
+        let meta = match std::fs::metadata(p) {
+            Ok(m) => m,
+            // A dangling link, or one that leads back to itself, holds no bytes; a reader
+            // that needs the file it names says so itself.
+            Err(_) if std::fs::symlink_metadata(p).is_ok_and(|m| m.file_type().is_symlink()) => {
+                return Ok(())
+            }
+            Err(e) => return Err(read_error(p, e)),
+        };
+        if !meta.is_file() && !meta.is_dir() {
+            // A FIFO or device is no scene's bytes, and sizing it reads nothing.
+            return Ok(());
+        }
+        let canonical = std::fs::canonicalize(p).map_err(|e| IoError::read(p, e))?;
+        if !seen.insert(canonical) {
+            return Ok(());
+        }
+        if meta.is_file() {
+            *total = total.saturating_add(meta.len());
+            return Ok(());
+        }
+        for entry in std::fs::read_dir(p).map_err(|e| IoError::read(p, e))? {
+            let entry = entry.map_err(|e| IoError::read(p, e))?;
+            add(&entry.path(), seen, total)?;
+        }
+        Ok(())
+    }
+    let mut total = 0;
+    add(path, &mut std::collections::HashSet::new(), &mut total)?;
+    Ok(total)
 }
 
 /// `id` when it can start a file name inside an output directory: scene files are untrusted,
@@ -648,6 +701,25 @@ fn write_beside(path: &Path, bytes: &[u8]) -> Result<PathBuf, IoError> {
     Ok(tmp)
 }
 
+/// Whether process `pid` exists (it may belong to another user: then it exists too): whether
+/// a temporary file named for it may still be written, or was left by a process that died.
+pub(crate) fn process_alive(pid: u32) -> bool {
+    #[cfg(unix)]
+    {
+        let Ok(pid) = libc::pid_t::try_from(pid) else {
+            return false;
+        };
+        // SAFETY: signal 0 checks for the process without sending anything.
+        let r = unsafe { libc::kill(pid, 0) };
+        r == 0 || std::io::Error::last_os_error().raw_os_error() == Some(libc::EPERM)
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = pid;
+        true
+    }
+}
+
 /// Writes `bytes` to `path` atomically: a temporary file beside it, then a rename. Only a new
 /// path or a regular file (or a link to one) is replaced so; a device or a FIFO (`/dev/null`,
 /// `/dev/stdout`, a pipe) is written in place, as a shell's `>` would: renaming over
@@ -657,6 +729,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
         path: path.display().to_string(),
         source,
     };
+    check_names_a_file(path)?;
     if let Ok(meta) = std::fs::metadata(path) {
         if meta.is_dir() {
             return Err(IoError::invalid(
@@ -684,6 +757,25 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     })
 }
 
+/// Refuses an output path that ends in a separator (`x.svg/`): it names a directory, and the
+/// OS's own answer, "Not a directory", names neither the path nor the slip.
+fn check_names_a_file(path: &Path) -> Result<(), IoError> {
+    let raw = path.as_os_str().as_encoded_bytes();
+    if raw.len() > 1
+        && raw
+            .last()
+            .is_some_and(|&b| std::path::is_separator(b as char))
+    {
+        return Err(IoError::invalid(
+            path,
+            "file",
+            "ends in a path separator, which names a directory: name the file to write \
+             without the trailing slash",
+        ));
+    }
+    Ok(())
+}
+
 /// A serde error's message without the position serde writes into it (` at line 4 column
 /// 31`), for messages that give that position themselves; other positions (where an
 /// unclosed bracket opened, say) stay.
@@ -699,6 +791,7 @@ pub fn create_atomic(path: &Path, bytes: &[u8]) -> Result<bool, IoError> {
         path: path.display().to_string(),
         source,
     };
+    check_names_a_file(path)?;
     let tmp = write_beside(path, bytes)?;
     // A hard link, unlike a rename, never replaces what is there.
     let linked = std::fs::hard_link(&tmp, path);
@@ -1076,6 +1169,32 @@ pub(crate) fn push_unique_road_line(
 #[cfg(test)]
 mod tests {
     use super::{output_stem, without_position};
+
+    #[test]
+    fn an_output_path_with_a_trailing_slash_is_named_not_a_bare_os_error() {
+        let dir = tempfile::tempdir().unwrap();
+        for existing in [false, true] {
+            let file = dir.path().join("x.svg");
+            if existing {
+                std::fs::write(&file, "<svg/>").unwrap();
+            }
+            let slashed = format!("{}/", file.display());
+            let e = super::write_atomic(std::path::Path::new(&slashed), b"<svg/>")
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.starts_with(&slashed) && e.contains("trailing slash"),
+                "{e}"
+            );
+        }
+        // Nothing was written beside it, and the file of before is as it was.
+        let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+        assert_eq!(names.len(), 1);
+        assert_eq!(
+            std::fs::read_to_string(dir.path().join("x.svg")).unwrap(),
+            "<svg/>"
+        );
+    }
 
     #[cfg(unix)]
     #[test]

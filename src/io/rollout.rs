@@ -294,14 +294,10 @@ impl Rollout {
     /// Reads and checks a rollout file.
     pub fn read(path: &Path) -> Result<Self, IoError> {
         let text = super::read_text(path)?;
-        let r: Rollout = serde_json::from_str(&text).map_err(|e| {
-            // serde's message ends with the position, which the location already gives.
-            IoError::invalid(
-                path,
-                format!("line {}, column {}", e.line(), e.column()),
-                super::without_position(&e.to_string(), e.line(), e.column()),
-            )
-        })?;
+        // Named by the path to the value (`agents[0].states[20][0]`), and a NaN that Python's
+        // json.dump wrote said to be one: "expected value" at a column alone said neither.
+        let r: Rollout = serde_json::from_str(&text)
+            .map_err(|e| super::gpudrive::json_error(path, &text, &e))?;
         r.validate(path)?;
         Ok(r)
     }
@@ -392,5 +388,29 @@ mod tests {
         let (p, q) = (&scene.agents[0].states[13], &scene.agents[0].states[14]);
         assert!((got[14].vx - (q.x - p.x) / scene.meta.dt).abs() < 1e-9);
         assert!(got[14].vx.abs() > 1.0, "a car driving at 20 m/s");
+    }
+
+    #[test]
+    fn a_nan_in_a_rollout_file_is_named_by_where_it_is_and_what_it_is() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes/highway.yaml");
+        let scene = crate::io::load_scene(&path, 0, &crate::io::LoadOptions::default()).unwrap();
+        let r = Rollout::from_scene(&scene);
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("r.json");
+        r.write(&f).unwrap();
+        let text = std::fs::read_to_string(&f).unwrap();
+        // Python's json.dump writes NaN for a value that is not a number: the second agent's
+        // third state's x becomes one.
+        let mut v: serde_json::Value = serde_json::from_str(&text).unwrap();
+        v["agents"][1]["states"][2][0] = serde_json::json!(123456.75);
+        let bad = serde_json::to_string(&v)
+            .unwrap()
+            .replace("123456.75", "NaN");
+        std::fs::write(&f, bad).unwrap();
+        let e = Rollout::read(&f).unwrap_err().to_string();
+        assert!(
+            e.contains("agents[1].states[2][0]") && e.contains("NaN and Infinity are not JSON"),
+            "{e}"
+        );
     }
 }

@@ -1118,7 +1118,49 @@ impl Batch<'_> {
         for sub in ["runs", "rollouts"] {
             super::rundir::check_not_link(&self.out.join(sub))?;
         }
-        Ok(())
+        self.check_same_batch()
+    }
+
+    /// Refuses an -o whose summary another batch file wrote: its runs would sit beside this
+    /// batch's under `runs/`, and its summary would be replaced by one that lists only this
+    /// batch's pairs. The file is the one recorded in `summary.json` (absolute), or for
+    /// summaries written before that was recorded, the one in `summary.md`'s heading.
+    fn check_same_batch(&self) -> Result<(), LlmError> {
+        let read = |name: &str| {
+            crate::io::read_regular_text(&self.out.join(name), MAX_BATCH_BYTES * 16, "a summary")
+                .ok()
+        };
+        let recorded = read("summary.json")
+            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+            .and_then(|v| v.get("batch").and_then(|b| b.as_str()).map(PathBuf::from));
+        let recorded = match recorded {
+            Some(p) => p,
+            None => match read("summary.md").and_then(|t| {
+                t.lines()
+                    .next()
+                    .and_then(|l| l.strip_prefix("# drivescript ask --batch "))
+                    .map(PathBuf::from)
+            }) {
+                Some(p) => p,
+                None => return Ok(()),
+            },
+        };
+        let ours = super::session::absolute(&self.file);
+        if recorded == ours || recorded == self.file || super::session::absolute(&recorded) == ours
+        {
+            return Ok(());
+        }
+        Err(bad(
+            &self.out,
+            format!(
+                "holds the runs and summary of another batch file ({}); this batch would mix its \
+                 runs with those and replace their summary. Choose another -o for {}, or run {} \
+                 again to continue that batch",
+                recorded.display(),
+                self.file.display(),
+                recorded.display()
+            ),
+        ))
     }
 
     /// Writes `summary.md` and `summary.json` for the pairs done so far.
@@ -1141,7 +1183,12 @@ impl Batch<'_> {
             self.skipped.len()
         );
         md.push_str(&markdown(&rows, rounds));
-        let json = serde_json::json!({"rows": rows, "instances": results, "skipped": self.skipped});
+        let json = serde_json::json!({
+            "batch": super::session::absolute(&self.file),
+            "rows": rows,
+            "instances": results,
+            "skipped": self.skipped
+        });
         for (name, text) in [
             ("summary.md", md),
             (

@@ -833,6 +833,15 @@ pub fn check_request(request: &str) -> Result<(), LlmError> {
     Ok(())
 }
 
+/// Refuses a request the rules planner would refuse, before a run starts or anything is
+/// printed: no words ([`check_request`]), or no clause in its vocabulary. `demo` printed the
+/// scene and the whole request (12,000 characters of it) and only then said it could not run.
+pub fn check_rules_request(request: &str) -> Result<(), LlmError> {
+    check_request(request)?;
+    super::rules::understand_request(request)?;
+    Ok(())
+}
+
 /// Opens `dir` for a new run: refused before anything is written where `config` or the
 /// scene's id cannot run, and where `dir` is not a directory; then locked, and refused where
 /// it holds a batch or (unless `replace`, which removes it) another run, or files of the

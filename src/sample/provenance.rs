@@ -78,6 +78,20 @@ pub enum ProvenanceError {
         /// The directory.
         dir: String,
     },
+    /// The directory holds shards of this run split another number of ways.
+    #[error(
+        "{dir}: holds the shards of this run split {theirs} ways ({SHARDS_FILE}); shards of {ours} \
+         would leave some scenes in no shard and others in two: give --shard I/{theirs}, or \
+         choose another -o"
+    )]
+    OtherShards {
+        /// The directory.
+        dir: String,
+        /// The count recorded there, as read.
+        theirs: String,
+        /// This shard's count.
+        ours: usize,
+    },
     /// The directory holds rollouts no record accounts for.
     #[error(
         "{dir}: holds rollouts ({example}) but no {RUN_FILE} saying what made them: choose an \
@@ -182,6 +196,50 @@ impl RunRecord {
             "it appeared and vanished while this run claimed the directory".into(),
         ))
     }
+}
+
+/// The file of a sharded run directory that records into how many shards its scenes are
+/// split. Not in the [`RunRecord`]: rollouts carry the record, and a sharded run's are the
+/// same as an unsharded one's.
+pub const SHARDS_FILE: &str = "run.shards";
+
+/// Claims `dir` for the shards of a run split `count` ways: the first shard records the count,
+/// the others must give the same. Shards 0/2 and then 1/3 into one directory left some scenes
+/// in no shard (and others in two) without a word: each split is a partition only of itself.
+pub fn claim_shards(dir: &Path, count: usize) -> Result<(), ProvenanceError> {
+    let file = dir.join(SHARDS_FILE);
+    let io = |e: String| ProvenanceError::Io {
+        path: file.display().to_string(),
+        message: e,
+    };
+    for _ in 0..2 {
+        match crate::io::read_regular_text(&file, 64, "a shard count") {
+            Ok(text) => {
+                let theirs = text.trim();
+                if theirs == count.to_string() {
+                    return Ok(());
+                }
+                return Err(ProvenanceError::OtherShards {
+                    dir: dir.display().to_string(),
+                    theirs: crate::io::name::shown(theirs),
+                    ours: count,
+                });
+            }
+            Err(crate::io::IoError::Read { source, .. })
+                if source.kind() == std::io::ErrorKind::NotFound =>
+            {
+                if create_atomic(&file, format!("{count}\n").as_bytes())
+                    .map_err(|e| io(e.to_string()))?
+                {
+                    return Ok(());
+                }
+            }
+            Err(e) => return Err(io(e.reason())),
+        }
+    }
+    Err(io(
+        "it appeared and vanished while this shard claimed the directory".into(),
+    ))
 }
 
 /// The first field (a dotted path) where two JSON values differ, with both values.

@@ -124,6 +124,42 @@ pub struct SceneDescription {
     pub lanes: Vec<LaneDescription>,
 }
 
+/// Most absent ids [`absent_kept`] names; the rest are counted. A script passing ten thousand
+/// ids got all of them back in one line.
+pub const MAX_ABSENT_SHOWN: usize = 10;
+
+/// The ids of `keep` that `scene` does not hold, as a list to show (at most
+/// [`MAX_ABSENT_SHOWN`] of them, each once, then "and N more"), or `None` when it holds them
+/// all. Kept ids are the request's agents: one missing is a mistake to say, not a scene to
+/// describe without it.
+pub fn absent_kept(scene: &Scene, keep: &[AgentId]) -> Option<String> {
+    let mut absent: Vec<AgentId> = keep
+        .iter()
+        .copied()
+        .filter(|id| !scene.agents.iter().any(|a| a.id == *id))
+        .collect();
+    absent.sort_unstable();
+    absent.dedup();
+    if absent.is_empty() {
+        return None;
+    }
+    let shown: Vec<String> = absent
+        .iter()
+        .take(MAX_ABSENT_SHOWN)
+        .map(|id| id.to_string())
+        .collect();
+    let more = absent.len() - shown.len();
+    Some(if more > 0 {
+        format!(
+            "{} and {more} more ({} in all)",
+            shown.join(", "),
+            absent.len()
+        )
+    } else {
+        shown.join(", ")
+    })
+}
+
 /// Describes `scene` at its current step.
 pub fn describe(scene: &Scene, opts: &DescribeOptions) -> SceneDescription {
     let c = scene.meta.current_step;
@@ -397,6 +433,26 @@ impl fmt::Display for SceneDescription {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn absent_kept_ids_are_listed_once_and_capped() {
+        let scene = crate::io::yaml::read(
+            &std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("data/samples/yaml/highway_cut_in.yaml"),
+        )
+        .unwrap();
+        assert_eq!(super::absent_kept(&scene, &[4]), None);
+        assert_eq!(
+            super::absent_kept(&scene, &[88, 77, 4, 88]).as_deref(),
+            Some("77, 88")
+        );
+        let many: Vec<i64> = (1000..6000).collect();
+        let shown = super::absent_kept(&scene, &many).unwrap();
+        assert_eq!(
+            shown,
+            "1000, 1001, 1002, 1003, 1004, 1005, 1006, 1007, 1008, 1009 and 4990 more (5000 in all)"
+        );
+    }
+
     use super::*;
     use crate::io::yaml;
     use std::path::Path;

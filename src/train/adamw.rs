@@ -144,6 +144,16 @@ impl AdamW {
             if v.iter().any(|x| !x.is_finite()) {
                 candle_core::bail!("{key} holds non-finite values");
             }
+            // Second moments are running means of squares: a negative one (a damaged or
+            // hand-edited file) made its weights NaN at the first update, and training wrote
+            // them into the checkpoint with exit 0.
+            if key.starts_with("v/") {
+                if let Some(x) = v.iter().find(|x| **x < 0.0) {
+                    candle_core::bail!(
+                        "{key} holds {x}: second moments are means of squares, never negative"
+                    );
+                }
+            }
             Ok(v)
         };
         let mut restored = Vec::with_capacity(self.slots.len());
@@ -187,6 +197,27 @@ impl AdamW {
 mod tests {
     use super::*;
     use candle_nn::{Init, VarBuilder};
+
+    #[test]
+    fn negative_second_moments_are_refused_on_load() {
+        let dev = Device::Cpu;
+        let vm = VarMap::new();
+        let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
+        vb.get_with_hints((3, 2), "w", Init::Const(0.5)).unwrap();
+        let mut opt = AdamW::new(&vm, 0.01, 0.1);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("optimizer.safetensors");
+        opt.save(&path).unwrap();
+        opt.load(&path).unwrap();
+        let mut map = candle_core::safetensors::load(&path, &dev).unwrap();
+        map.insert(
+            "v/w".into(),
+            Tensor::new(&[[0f32, -1.0], [0.0, 0.0], [0.0, 0.0]], &dev).unwrap(),
+        );
+        candle_core::safetensors::save(&map, &path).unwrap();
+        let e = opt.load(&path).unwrap_err().to_string();
+        assert!(e.contains("v/w holds -1: second moments"), "{e}");
+    }
 
     /// Matches candle-nn's AdamW (the optimiser the earlier checkpoints were trained with) on
     /// a quadratic, step by step.

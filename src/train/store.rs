@@ -333,15 +333,44 @@ fn among_inputs(dir: &Path, corpora: &[Corpus]) -> Option<String> {
 
 /// Refuses a checkpoint directory (`train --out`) that is, or is inside, a directory of
 /// `corpora`: the checkpoint's files would go among the scenes it is trained on, the same
-/// mistake [`check_cache_dir`] refuses for the window cache. Checked before any data is read.
+/// mistake [`check_cache_dir`] refuses for the window cache. Also refused: a path that is not
+/// a directory (a file, `/dev/null`: it said "OUT/windows: Not a directory"), and a directory
+/// whose `config.json` is not a checkpoint's (training replaced the user's file with its own).
+/// Checked before any data is read.
 pub fn check_out_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError> {
-    match among_inputs(dir, corpora) {
-        Some(why) => Err(TrainError::Data(format!(
+    let refuse = |why: String| {
+        Err(TrainError::Data(format!(
             "{}: the checkpoint directory (--out) {why}",
             dir.display()
-        ))),
-        None => Ok(()),
+        )))
+    };
+    if let Some(why) = among_inputs(dir, corpora) {
+        return refuse(why);
     }
+    match std::fs::metadata(dir) {
+        Ok(m) if !m.is_dir() => {
+            return refuse(
+                "is not a directory: name a new directory, or an earlier run's checkpoint".into(),
+            )
+        }
+        Ok(_) => {}
+        Err(_) => return Ok(()),
+    }
+    let config = dir.join("config.json");
+    if std::fs::symlink_metadata(&config).is_ok() {
+        let ours = crate::io::read_regular_text(&config, 16 << 20, "checkpoint config")
+            .ok()
+            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+            .is_some_and(|v| v.get("version").is_some() && v.get("config").is_some());
+        if !ours {
+            return refuse(format!(
+                "holds {}, which is not a checkpoint's config: training would replace it; move \
+                 it, or choose another --out",
+                config.display()
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// Refuses a cache directory that is, or is inside, a directory of `corpora` (the windows
@@ -382,6 +411,82 @@ pub fn check_cache_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError>
     Ok(())
 }
 
+/// Removes the windows a build stopped by Ctrl-C or a kill left in the cache `dir`
+/// (`train.windows.tmp-PID`, as large as the corpus's windows): every later build, under
+/// another PID, added its own beside them. A live process's are its own to finish.
+fn remove_dead_temps(dir: &Path) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let name = e.file_name();
+        let Some(pid) = name.to_str().filter(|n| is_cache_file(n)).and_then(|n| {
+            n.rsplit_once(".tmp-")
+                .and_then(|(_, pid)| pid.parse::<u32>().ok())
+        }) else {
+            continue;
+        };
+        if pid != std::process::id()
+            && !crate::io::process_alive(pid)
+            && e.file_type().is_ok_and(|t| t.is_file())
+        {
+            let _ = std::fs::remove_file(e.path());
+        }
+    }
+}
+
+/// Most towns an error lists; the rest are counted.
+const MAX_TOWNS_SHOWN: usize = 12;
+
+/// Refuses a held-out town (`train --val-town`) that no scene of a corpus split by town is in:
+/// it was ignored without a word, and the run validated on the fold alone. The message lists
+/// the towns there are.
+fn check_towns_found(
+    wanted: &[String],
+    found: &std::collections::BTreeSet<String>,
+) -> Result<(), TrainError> {
+    let missing: Vec<&String> = wanted.iter().filter(|t| !found.contains(*t)).collect();
+    if missing.is_empty() {
+        return Ok(());
+    }
+    let quoted = |t: &str| format!("\"{}\"", crate::io::name::shown_counted(t));
+    let there = if found.is_empty() {
+        "no scene is read from a corpus split by town: held-out towns are for --urban \
+         corpora"
+            .to_string()
+    } else {
+        let shown: Vec<String> = found
+            .iter()
+            .take(MAX_TOWNS_SHOWN)
+            .map(|t| quoted(t))
+            .collect();
+        let more = found.len() - shown.len();
+        format!(
+            "the towns of the --urban scenes are {}{}",
+            shown.join(", "),
+            if more > 0 {
+                format!(" and {more} more")
+            } else {
+                String::new()
+            }
+        )
+    };
+    Err(TrainError::Data(format!(
+        "--val-town {}: no scene is in {}; {there} (a town is a scenario id's part before its \
+         first `-`)",
+        missing
+            .iter()
+            .map(|t| quoted(t))
+            .collect::<Vec<_>>()
+            .join(" "),
+        if missing.len() == 1 {
+            "that town"
+        } else {
+            "those towns"
+        }
+    )))
+}
+
 impl WindowStore {
     /// Cuts the windows of every scene of `corpora`, one scene at a time, into `dir`
     /// (`train.windows`, `val.windows`; replaced if present), after [`check_cache_dir`]. The scenes `holdout` names
@@ -397,6 +502,7 @@ impl WindowStore {
     ) -> Result<Self, TrainError> {
         check_cache_dir(dir, corpora)?;
         std::fs::create_dir_all(dir).map_err(|e| io_err(dir, e.to_string()))?;
+        remove_dead_temps(dir);
         // Written under a temporary name and renamed into place at the end: another run
         // training from the same cache keeps reading its open files (the old inodes) instead
         // of finding them truncated under it.
@@ -414,43 +520,58 @@ impl WindowStore {
         let mut summary = Summary::new();
         let (mut read, mut cut) = (0usize, 0usize);
         let opts = crate::io::LoadOptions::default();
-        for c in corpora {
-            let files =
-                crate::io::discover(&c.path).map_err(|e| TrainError::Data(e.to_string()))?;
-            for f in files {
-                let scenes = crate::io::load_scenes(&f, &opts)
-                    .map_err(|e| TrainError::Data(format!("loading {}: {e}", f.display())))?;
-                for s in scenes {
-                    read += 1;
-                    let ws = windows(&s, cfg);
-                    if ws.is_empty() {
-                        progress(read, cut);
-                        continue;
-                    }
-                    let id = s.meta.scenario_id.clone();
-                    let val = holdout.validates(&id, c.split);
-                    let (path, out, offs) = if val {
-                        summary.val_ids.push(id);
-                        (&vp, &mut vw, &mut voff)
-                    } else {
-                        summary.train_ids.push(id);
-                        (&tp, &mut tw, &mut toff)
-                    };
-                    for w in &ws {
-                        if !val {
-                            summary.tally.add(w, cfg);
+        // The towns of the scenes in corpora split by town, to check `holdout.towns` against.
+        let mut towns = std::collections::BTreeSet::new();
+        let cutting = (|| -> Result<(), TrainError> {
+            for c in corpora {
+                let files =
+                    crate::io::discover(&c.path).map_err(|e| TrainError::Data(e.to_string()))?;
+                for f in files {
+                    let scenes = crate::io::load_scenes(&f, &opts)
+                        .map_err(|e| TrainError::Data(format!("loading {}: {e}", f.display())))?;
+                    for s in scenes {
+                        read += 1;
+                        if c.split == SplitBy::Town {
+                            towns.insert(town(&s.meta.scenario_id).to_string());
                         }
-                        let bytes = encode(w, cfg);
-                        out.write_all(&bytes)
-                            .map_err(|e| io_err(path, e.to_string()))?;
-                        offs.push(
-                            offs.last().expect("starts with the header") + bytes.len() as u64,
-                        );
-                        cut += 1;
+                        let ws = windows(&s, cfg);
+                        if ws.is_empty() {
+                            progress(read, cut);
+                            continue;
+                        }
+                        let id = s.meta.scenario_id.clone();
+                        let val = holdout.validates(&id, c.split);
+                        let (path, out, offs) = if val {
+                            summary.val_ids.push(id);
+                            (&vp, &mut vw, &mut voff)
+                        } else {
+                            summary.train_ids.push(id);
+                            (&tp, &mut tw, &mut toff)
+                        };
+                        for w in &ws {
+                            if !val {
+                                summary.tally.add(w, cfg);
+                            }
+                            let bytes = encode(w, cfg);
+                            out.write_all(&bytes)
+                                .map_err(|e| io_err(path, e.to_string()))?;
+                            offs.push(
+                                offs.last().expect("starts with the header") + bytes.len() as u64,
+                            );
+                            cut += 1;
+                        }
+                        progress(read, cut);
                     }
-                    progress(read, cut);
                 }
             }
+            check_towns_found(&holdout.towns, &towns)
+        })();
+        if let Err(e) = cutting {
+            // Half-written windows are no cache: nothing of this run is left in `dir`.
+            drop((tw, vw));
+            let _ = std::fs::remove_file(&tp);
+            let _ = std::fs::remove_file(&vp);
+            return Err(e);
         }
         let mut done = Vec::new();
         for (p, w, name) in [(tp, tw, "train.windows"), (vp, vw, "val.windows")] {
@@ -654,6 +775,45 @@ mod tests {
     }
 
     #[test]
+    fn a_held_out_town_no_scene_is_in_is_refused_naming_the_towns_there() {
+        let (corpus, scene, _) = cut_in();
+        let urban = [Corpus {
+            path: corpus[0].path.clone(),
+            split: SplitBy::Town,
+        }];
+        let there = town(&scene.meta.scenario_id).to_string();
+        let dir = tempfile::tempdir().unwrap();
+        let build = |corpora: &[Corpus], towns: Vec<String>| {
+            let holdout = Holdout { fold: 0, towns };
+            WindowStore::build(
+                corpora,
+                &WindowConfig::ngsim(),
+                &holdout,
+                dir.path(),
+                |_, _| (),
+            )
+        };
+        let e = build(&urban, vec!["DEU_Atlantis".into()])
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(
+            e.starts_with("--val-town \"DEU_Atlantis\": no scene is in that town")
+                && e.contains(&format!("the towns of the --urban scenes are \"{there}\"")),
+            "{e}"
+        );
+        // Nothing half-written is left in the cache directory.
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+        // A town of --data alone (split by scene) is no held-out town either.
+        let e = build(&corpus, vec![there.clone()])
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("held-out towns are for --urban"), "{e}");
+        assert!(build(&urban, vec![there]).is_ok());
+    }
+
+    #[test]
     fn a_window_read_back_from_the_store_is_the_window_cut() {
         // Futures of 4 s, centres observed for 2 s: some windows' futures are complete.
         let cfg = WindowConfig {
@@ -773,11 +933,33 @@ mod tests {
             );
         }
         assert!(check_out_dir(&notes, &corpus).is_ok());
+        // A file, and a directory whose config.json is the user's, are no checkpoint
+        // directory: training replaced the config with its own.
+        let e = check_out_dir(&notes.join("todo.txt"), &corpus)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("todo.txt: the checkpoint directory (--out) is not a directory"),
+            "{e}"
+        );
+        std::fs::write(notes.join("config.json"), "{\"my\": \"settings\"}").unwrap();
+        let e = check_out_dir(&notes, &corpus).unwrap_err().to_string();
+        assert!(
+            e.contains("config.json, which is not a checkpoint's config"),
+            "{e}"
+        );
+        std::fs::remove_file(notes.join("config.json")).unwrap();
         // An earlier run's cache, with what a run stopped while building left, is reused.
         let cache = root.path().join("cache");
         assert_eq!(build(&cache), None);
         std::fs::write(cache.join("val.windows.tmp-4242"), "partial").unwrap();
+        // PIDs above the kernel's limit (at most 2^22) belong to no process: what such a
+        // build left goes, and a live process's (PID 1) stays.
+        std::fs::write(cache.join("train.windows.tmp-4000000001"), "partial").unwrap();
+        std::fs::write(cache.join("train.windows.tmp-1"), "partial").unwrap();
         assert_eq!(build(&cache), None);
+        assert!(!cache.join("train.windows.tmp-4000000001").exists());
+        assert!(cache.join("train.windows.tmp-1").exists());
         std::fs::write(cache.join("val.windows.tmp-"), "x").unwrap();
         assert!(build(&cache).is_some_and(|e| e.contains("val.windows.tmp-,")));
     }

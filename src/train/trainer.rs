@@ -204,6 +204,29 @@ fn positive(name: &str, v: f64) -> Result<(), String> {
     }
 }
 
+/// The `drivescript train` flag that sets each [`TrainConfig`] field a user can give, by the
+/// field's name as [`TrainConfig::validate`] starts its message with it: the message names the
+/// field ("eval_every = 0"), which the user never typed.
+pub const TRAIN_FLAGS: [(&str, &str); 7] = [
+    ("steps", "--steps"),
+    ("batch", "--batch"),
+    ("lr", "--lr"),
+    ("eval_every", "--eval-every"),
+    ("ema_half_life", "--ema-half-life"),
+    ("scale_cap", "--scale-cap"),
+    ("val_towns", "--val-town"),
+];
+
+/// The flag ([`TRAIN_FLAGS`]) that sets the setting a [`TrainConfig::validate`] message is
+/// about, or `None` for a setting no flag gives (a checkpoint's sizes).
+pub fn flag_of(message: &str) -> Option<&'static str> {
+    let field = message.split([' ', ':']).next().unwrap_or_default();
+    TRAIN_FLAGS
+        .iter()
+        .find(|(f, _)| *f == field)
+        .map(|(_, flag)| *flag)
+}
+
 impl TrainConfig {
     /// Checks that training can run with these settings, before any data is read: sizes within
     /// bounds (windows of 10^9 agents or 10^6 layers would abort on allocation), at least one
@@ -773,6 +796,45 @@ pub const OPTIMIZER_FILE: &str = "optimizer.safetensors";
 /// average ([`Ema`]): needed to resume, not to sample.
 pub const ONLINE_FILE: &str = "online.safetensors";
 
+/// Removes the temporary files of [`save`]s that a process which has since died left in
+/// `dir` (`.model.safetensors.PID.tmp`, ...): a Ctrl-C or kill in the middle of a save left
+/// them, each the size of the checkpoint, and each later run under another PID added its own.
+/// Those of a live process (a trainer beside this one) are its own to finish.
+fn remove_dead_temps(dir: &Path) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    let names = [
+        "model.safetensors",
+        ONLINE_FILE,
+        OPTIMIZER_FILE,
+        "config.json",
+    ];
+    for e in entries.flatten() {
+        let name = e.file_name();
+        let Some(name) = name.to_str() else {
+            continue;
+        };
+        let pid = names.iter().find_map(|n| {
+            name.strip_prefix('.')?
+                .strip_prefix(n)?
+                .strip_prefix('.')?
+                .strip_suffix(".tmp")?
+                .parse::<u32>()
+                .ok()
+        });
+        let Some(pid) = pid else {
+            continue;
+        };
+        if pid != std::process::id()
+            && !crate::io::process_alive(pid)
+            && e.file_type().is_ok_and(|t| t.is_file())
+        {
+            let _ = std::fs::remove_file(e.path());
+        }
+    }
+}
+
 /// Writes `model.safetensors`, `config.json` and, when given, the optimiser state
 /// ([`OPTIMIZER_FILE`]) into `dir` (each atomically). With a moving average, that average is
 /// `model.safetensors` and `varmap`'s weights go to [`ONLINE_FILE`]; without one, a stale
@@ -789,6 +851,7 @@ pub fn save(
         message: e,
     };
     std::fs::create_dir_all(dir).map_err(|e| io(dir, e.to_string()))?;
+    remove_dead_temps(dir);
     // Every file is written under a name of this process first and renamed only when all
     // are complete, config last: a kill leaves the previous checkpoint whole (or, in the
     // instant between renames, new weights beside the old config of the same model), and two
@@ -933,6 +996,16 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
         _ => {}
     }
     let cfg_path = dir.join("config.json");
+    // A directory of something else (`--checkpoint /tmp`, a run directory) said only
+    // "DIR/config.json: No such file or directory".
+    if std::fs::symlink_metadata(&cfg_path).is_err() {
+        return Err(io(
+            dir,
+            "is not a checkpoint directory: it holds no config.json (a checkpoint directory \
+             holds config.json and model.safetensors, as `drivescript train --out` writes them)"
+                .into(),
+        ));
+    }
     // Only regular files, each within a cap: a FIFO named config.json waited for a writer
     // forever, and a device read without end.
     let text = crate::io::read_regular_text(&cfg_path, MAX_CONFIG_BYTES, "checkpoint config")
@@ -1280,12 +1353,37 @@ mod tests {
     }
 
     #[test]
+    fn a_save_removes_what_a_killed_save_left_and_keeps_a_live_one_s() {
+        let dir = tempfile::tempdir().unwrap();
+        // PIDs above the kernel's limit (at most 2^22) belong to no process.
+        let dead = dir.path().join(".model.safetensors.4000000001.tmp");
+        let dead_cfg = dir.path().join(".config.json.4000000002.tmp");
+        let live = dir.path().join(format!(".{OPTIMIZER_FILE}.1.tmp"));
+        let mine = dir.path().join(".model.safetensors.x.tmp");
+        for p in [&dead, &dead_cfg, &live, &mine] {
+            std::fs::write(p, "partial").unwrap();
+        }
+        train(
+            &scenes(),
+            tiny_config(1, 1, 1),
+            Some(dir.path()),
+            None,
+            |_, _, _| (),
+        )
+        .unwrap();
+        assert!(!dead.exists() && !dead_cfg.exists());
+        // PID 1 lives; a name that is not a save's is not touched.
+        assert!(live.exists() && mine.exists());
+    }
+
+    #[test]
     fn a_missing_or_truncated_checkpoint_file_is_named_once() {
         // Each was named twice, the weights once as Rust's debug string (`path: "…"`).
         let dir = tempfile::tempdir().unwrap();
         let e = load(dir.path()).err().expect("no config.json").to_string();
-        let cfg = dir.path().join("config.json").display().to_string();
-        assert_eq!(e.matches(&cfg).count(), 1, "{e}");
+        let shown = dir.path().display().to_string();
+        assert_eq!(e.matches(&shown).count(), 1, "{e}");
+        assert!(e.contains("holds no config.json"), "{e}");
         train(
             &scenes(),
             tiny_config(1, 1, 1),
@@ -1322,6 +1420,17 @@ mod tests {
             .expect("absent")
             .to_string();
         assert!(e.contains("nowhere: no such checkpoint directory"), "{e}");
+        // A directory of something else is named, not its absent config.json.
+        let other = dir.path().join("other");
+        std::fs::create_dir(&other).unwrap();
+        let e = load(&other).err().expect("no config.json").to_string();
+        assert!(
+            e.starts_with(&format!(
+                "{}: is not a checkpoint directory: it holds no config.json",
+                other.display()
+            )),
+            "{e}"
+        );
     }
 
     #[test]
