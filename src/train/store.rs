@@ -335,8 +335,9 @@ fn among_inputs(dir: &Path, corpora: &[Corpus]) -> Option<String> {
 /// `corpora`: the checkpoint's files would go among the scenes it is trained on, the same
 /// mistake [`check_cache_dir`] refuses for the window cache. Also refused: a path that is not
 /// a directory (a file, `/dev/null`: it said "OUT/windows: Not a directory"), and a directory
-/// whose `config.json` is not a checkpoint's (training replaced the user's file with its own).
-/// Checked before any data is read.
+/// whose `config.json` is not a checkpoint's (training replaced the user's file with its own),
+/// or that holds a file training writes (weights, optimiser state) without any `config.json`:
+/// every checkpoint has one, so those files are the user's. Checked before any data is read.
 pub fn check_out_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError> {
     let refuse = |why: String| {
         Err(TrainError::Data(format!(
@@ -357,7 +358,24 @@ pub fn check_out_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError> {
         Err(_) => return Ok(()),
     }
     let config = dir.join("config.json");
-    if std::fs::symlink_metadata(&config).is_ok() {
+    if std::fs::symlink_metadata(&config).is_err() {
+        let written = [
+            "model.safetensors",
+            crate::train::trainer::ONLINE_FILE,
+            crate::train::trainer::OPTIMIZER_FILE,
+        ];
+        if let Some(f) = written
+            .iter()
+            .map(|f| dir.join(f))
+            .find(|f| std::fs::symlink_metadata(f).is_ok())
+        {
+            return refuse(format!(
+                "holds {} but no config.json, so it is no checkpoint of drivescript's: training \
+                 would replace that file; move it, or choose another --out",
+                f.display()
+            ));
+        }
+    } else {
         let ours = crate::io::read_regular_text(&config, 16 << 20, "checkpoint config")
             .ok()
             .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
@@ -949,6 +967,14 @@ mod tests {
             "{e}"
         );
         std::fs::remove_file(notes.join("config.json")).unwrap();
+        // Nor is one holding a file training writes without the config every checkpoint has.
+        std::fs::write(notes.join("optimizer.safetensors"), "mine").unwrap();
+        let e = check_out_dir(&notes, &corpus).unwrap_err().to_string();
+        assert!(
+            e.contains("optimizer.safetensors but no config.json"),
+            "{e}"
+        );
+        std::fs::remove_file(notes.join("optimizer.safetensors")).unwrap();
         // An earlier run's cache, with what a run stopped while building left, is reused.
         let cache = root.path().join("cache");
         assert_eq!(build(&cache), None);
