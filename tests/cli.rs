@@ -3376,6 +3376,11 @@ fn sample_counts_out_of_range_name_the_flag_and_its_range() {
             sim("--horizon", "0"),
             "'--horizon <HORIZON>': 0 is not in 1..=100000",
         ),
+        // It said "width 0 is outside 64..8192 pixels", not which flag.
+        (
+            drivescript(&["render", s(&yaml), "-o", s(&out), "--width", "0"]),
+            "'--width <WIDTH>': 0 is not in 64..=8192",
+        ),
     ] {
         let err = String::from_utf8_lossy(&run.stderr).into_owned();
         assert_eq!(run.status.code(), Some(2), "{err}");

@@ -22,8 +22,8 @@ pub struct Args {
     /// Step whose boxes are drawn in SVG/PNG (default: the current step).
     #[arg(long)]
     step: Option<usize>,
-    /// Image width in pixels.
-    #[arg(long, default_value_t = 1000)]
+    /// Image width in pixels, 64 to 8192.
+    #[arg(long, default_value_t = 1000, value_parser = clap::value_parser!(u32).range(64..=8192))]
     width: u32,
     /// Highlight an agent and label it with a role, ID=ROLE (e.g. 389=cutter); repeatable.
     #[arg(long = "role", value_parser = RoleParser)]
