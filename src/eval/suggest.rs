@@ -13,6 +13,9 @@ type Candidate<'a> = (&'a Agent, i64, LanePath);
 
 /// Speed (m/s) above which `suggest` counts a car as moving.
 const MOVING: f64 = 2.0;
+/// Seconds a cutter needs, once its rear is past the victim's front bumper, to move across
+/// into the victim's lane (`suggest` for `cut_in`).
+const CUT_IN_MERGE: f64 = 1.0;
 /// The bumper-to-bumper gap (metres) `suggest` asks a follower to keep.
 const FOLLOW_GAP: f64 = 10.0;
 
@@ -90,7 +93,8 @@ fn can_back_up(scene: &Scene, a: &Agent, horizon: f64) -> bool {
 /// - `cut_in`: a victim and a cutter moving at 2 m/s or more in an adjacent lane within 15 m
 ///   along the victim's path that can end 5 m (bumper to bumper) ahead of the victim holding its speed, accelerating at
 ///   2.5 m/s² and no faster than 0.75 of the sprint bound allows (the kinematic checker's and
-///   realism's bounds): a slower car far behind cannot cut in plausibly;
+///   realism's bounds), and get its rear past the victim's front bumper a second before the
+///   horizon ends, to move across: a slower car far behind cannot cut in plausibly;
 /// - `follow`: a leader ahead in the follower's lane within 60 m, asking for a 10 m gap that
 ///   the follower can bring within the checker's 5–20 m by half the horizon with the leader
 ///   holding its speed, braking at up to 3 m/s² (never backing up) or speeding up at 2 m/s²;
@@ -270,16 +274,23 @@ fn cut_in(scene: &Scene, cands: &[Candidate], horizon: f64) -> Option<Params> {
                         .min(lim.sprint_factor * vc + lim.sprint_margin)
                         - vc)
                         .max(0.0);
-            let gain = (2.5 * horizon).min(cap - vc);
-            let reach = sc - sv - 0.5 * (cutter.length + victim.length)
-                + (vc - vv) * horizon
-                + 0.5 * gain * horizon;
-            // A cutter at rest (a queue at a light) does not cut in.
+            // The bumper-to-bumper gap the cutter can open ahead of the victim in `t`
+            // seconds, the victim holding its speed.
+            let ahead_by = |t: f64| {
+                let gain = (2.5 * t).min(cap - vc);
+                sc - sv - 0.5 * (cutter.length + victim.length) + (vc - vv) * t + 0.5 * gain * t
+            };
+            // A cutter at rest (a queue at a light) does not cut in. It must also clear the
+            // victim's front bumper CUT_IN_MERGE before the horizon ends: one only level at
+            // the end has no time left to move across, and guidance merges it behind the
+            // victim instead, where contact holds it back (held-out NGSIM: the cutters that
+            // ended 9-11 m short started 10 m behind).
             if cutter.id != victim.id
                 && adjacent
                 && vc >= MOVING
                 && (sc - sv).abs() <= 15.0
-                && reach >= 5.0
+                && ahead_by(horizon) >= 5.0
+                && ahead_by((horizon - CUT_IN_MERGE).max(0.0)) >= 0.0
             {
                 return p(&[("cutter", cutter.id as f64), ("victim", victim.id as f64)]);
             }

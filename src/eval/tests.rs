@@ -451,6 +451,23 @@ fn suggestions_pick_agents_for_which_the_behaviour_means_something() {
         (cut.number("cutter").unwrap(), cut.number("victim").unwrap()),
         (2.0, 1.0)
     );
+    // A cutter level with the victim, or 5 m behind at its speed, can get ahead and across
+    // in 4 s; one 10 m behind would be level only at the end, with no time to move across
+    // (guidance merged such cutters behind the victim, 9-11 m short), so the car ahead is
+    // asked to cut in front of it instead.
+    let behind = |d: f64| {
+        let text = format!(
+            "scenario_id: c\nsteps: 51\nroad: {{lanes: 2, length: 400}}\nagents:\n  \
+             - {{id: 1, lane: 0, s: 100, speed: 14}}\n  \
+             - {{id: 2, lane: 1, s: {}, speed: 14}}\n",
+            100.0 - d
+        );
+        let s = yaml::parse(Path::new("c.yaml"), &text).unwrap();
+        suggest(Behavior::CutIn, &s).map(|p| p.number("cutter").unwrap())
+    };
+    assert_eq!(behind(0.0), Some(2.0));
+    assert_eq!(behind(5.0), Some(2.0));
+    assert_eq!(behind(10.0), Some(1.0));
     let f = suggest(Behavior::Follow, &scene("highway_crash.yaml")).unwrap();
     assert_eq!(
         (f.number("follower").unwrap(), f.number("leader").unwrap()),
