@@ -156,6 +156,29 @@ impl AdamW {
             }
             Ok(v)
         };
+        // Moments of variables this model does not have: the state of another model (or a
+        // model of other sizes), which loading by name alone accepted without a word.
+        let known = |k: &str| {
+            k == "step"
+                || k == "origin"
+                || self.slots.iter().any(|s| {
+                    k.strip_prefix("m/")
+                        .or_else(|| k.strip_prefix("v/"))
+                        .is_some_and(|n| n == s.name)
+                })
+        };
+        let mut extra: Vec<&String> = map.keys().filter(|k| !known(k)).collect();
+        if !extra.is_empty() {
+            extra.sort();
+            let n = extra.len();
+            let shown: Vec<&str> = extra.iter().take(3).map(|k| k.as_str()).collect();
+            candle_core::bail!(
+                "holds {n} tensors the model has no variable for ({}{}): the optimiser state \
+                 of another model",
+                shown.join(", "),
+                if n > 3 { ", …" } else { "" }
+            );
+        }
         let mut restored = Vec::with_capacity(self.slots.len());
         for s in &self.slots {
             let shape = s.var.shape();
@@ -217,6 +240,26 @@ mod tests {
         candle_core::safetensors::save(&map, &path).unwrap();
         let e = opt.load(&path).unwrap_err().to_string();
         assert!(e.contains("v/w holds -1: second moments"), "{e}");
+    }
+
+    #[test]
+    fn moments_of_variables_the_model_lacks_are_refused_on_load() {
+        let dev = Device::Cpu;
+        let vm = VarMap::new();
+        let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
+        vb.get_with_hints((3, 2), "w", Init::Const(0.5)).unwrap();
+        let mut opt = AdamW::new(&vm, 0.01, 0.1);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("optimizer.safetensors");
+        opt.save(&path).unwrap();
+        let mut map = candle_core::safetensors::load(&path, &dev).unwrap();
+        map.insert("m/other.weight".into(), Tensor::new(&[1f32], &dev).unwrap());
+        candle_core::safetensors::save(&map, &path).unwrap();
+        let e = opt.load(&path).unwrap_err().to_string();
+        assert!(
+            e.contains("holds 1 tensors the model has no variable for (m/other.weight)"),
+            "{e}"
+        );
     }
 
     /// Matches candle-nn's AdamW (the optimiser the earlier checkpoints were trained with) on
