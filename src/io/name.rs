@@ -78,6 +78,17 @@ pub fn shown(s: &str) -> String {
     out
 }
 
+/// The first `k` of `names` joined by commas, with `, …` after them when there are more: for
+/// naming a few of many unexpected entries (tensors, keys) in a one-line message.
+pub fn first_few<S: AsRef<str>>(names: &[S], k: usize) -> String {
+    let shown: Vec<&str> = names.iter().take(k).map(|n| n.as_ref()).collect();
+    format!(
+        "{}{}",
+        shown.join(", "),
+        if names.len() > k { ", …" } else { "" }
+    )
+}
+
 /// [`shown`] with the length said where it cuts (`xxx… (5000 characters)`): for quoting a
 /// value the user typed in the message that refuses it, so that a 5000-character flag value is
 /// not echoed whole, yet the message says how long it was.

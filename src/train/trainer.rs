@@ -945,15 +945,13 @@ fn check_weights(varmap: &VarMap, path: &Path, model: &DenoiserConfig) -> Result
         .collect();
     if !extra.is_empty() {
         extra.sort();
-        let n = extra.len();
-        extra.truncate(3);
         return Err(format!(
-            "holds {n} tensors the model config.json describes (d {}, {} layers) has no place \
-             for ({}{}): the config and the weights are of different models",
+            "holds {} tensors the model config.json describes (d {}, {} layers) has no place \
+             for ({}): the config and the weights are of different models",
+            extra.len(),
             model.d,
             model.layers,
-            extra.join(", "),
-            if n > 3 { ", …" } else { "" }
+            crate::io::name::first_few(&extra, 3)
         ));
     }
     let mut names: Vec<&String> = vars.keys().collect();
