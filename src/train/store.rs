@@ -376,10 +376,14 @@ pub fn check_out_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError> {
             ));
         }
     } else {
-        let ours = crate::io::read_regular_text(&config, 16 << 20, "checkpoint config")
-            .ok()
-            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
-            .is_some_and(|v| v.get("version").is_some() && v.get("config").is_some());
+        let ours = crate::io::read_regular_text(
+            &config,
+            crate::train::trainer::MAX_CONFIG_BYTES,
+            "checkpoint config",
+        )
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        .is_some_and(|v| v.get("version").is_some() && v.get("config").is_some());
         if !ours {
             return refuse(format!(
                 "holds {}, which is not a checkpoint's config: training would replace it; move \

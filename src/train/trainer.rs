@@ -906,7 +906,7 @@ pub fn save(
 }
 
 /// The largest checkpoint config read: the shipped one is 53 KB (its PCA basis and history).
-const MAX_CONFIG_BYTES: u64 = 16 << 20;
+pub(crate) const MAX_CONFIG_BYTES: u64 = 16 << 20;
 /// The largest weights file read: 1024-wide, 32-layer models stay below it.
 const MAX_WEIGHTS_BYTES: u64 = 4 << 30;
 
