@@ -257,6 +257,7 @@ fn cut_in(scene: &Scene, cands: &[Candidate], horizon: f64) -> Option<Params> {
     let c = scene.meta.current_step;
     let g = scene.map.graph();
     let p = |kv: &[(&str, f64)]| Some(Params::numbers(kv));
+    let lim = KinematicLimits::default();
     for (victim, lv, path) in cands {
         let sv = path.frenet.project(victim.states[c].position()).s;
         for (cutter, lc, _) in cands {
@@ -266,14 +267,7 @@ fn cut_in(scene: &Scene, cands: &[Candidate], horizon: f64) -> Option<Params> {
             let speed = |a: &Agent| a.states[c].vx.hypot(a.states[c].vy);
             let (vc, vv) = (speed(cutter), speed(victim));
             // Speed gain at 2.5 m/s² up to the cap, as a ramp over the horizon.
-            let lim = KinematicLimits::default();
-            let cap = vc
-                + 0.75
-                    * (lim
-                        .max_speed
-                        .min(lim.sprint_factor * vc + lim.sprint_margin)
-                        - vc)
-                        .max(0.0);
+            let cap = vc + 0.75 * (lim.sprint_bound(vc, 0.0) - vc).max(0.0);
             // The bumper-to-bumper gap the cutter can open ahead of the victim in `t`
             // seconds, the victim holding its speed.
             let ahead_by = |t: f64| {
