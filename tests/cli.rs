@@ -2063,6 +2063,40 @@ fn convert_refuses_an_id_that_cannot_name_output_files() {
 }
 
 #[test]
+fn a_scenario_id_too_long_to_name_an_output_file_is_refused_where_it_is_read() {
+    // It used to be read (and printed whole by `inspect`) and refused only once a run had
+    // sampled it and went to write `ID_0.json`.
+    let dir = tempfile::tempdir().unwrap();
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let highway = std::fs::read_to_string(root.join("scripts/scenes/highway.yaml")).unwrap();
+    let long = "a".repeat(201);
+    let yaml = dir.path().join("long.yaml");
+    std::fs::write(
+        &yaml,
+        highway.replace("scenario_id: highway", &format!("scenario_id: {long}")),
+    )
+    .unwrap();
+    let err = fails(&["inspect", s(&yaml)]);
+    assert!(
+        err.contains(s(&yaml))
+            && err.contains("scenario_id: scenario id")
+            && err.contains("is 201 bytes long, more than the 200"),
+        "{err}"
+    );
+    assert!(!err.contains(&long), "the id is quoted whole: {err}");
+    let short = dir.path().join("short.yaml");
+    std::fs::write(
+        &short,
+        highway.replace(
+            "scenario_id: highway",
+            &format!("scenario_id: {}", &long[..200]),
+        ),
+    )
+    .unwrap();
+    ok(&["inspect", s(&short)]);
+}
+
+#[test]
 fn names_read_from_files_with_control_or_invisible_characters_are_refused() {
     // A newline in an id faked an `error:` line in `inspect` (and in the LLM's prompt), an
     // escape sequence reached the terminal, a bidi control reordered what was shown.

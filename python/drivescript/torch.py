@@ -25,6 +25,12 @@ def _function() -> Any:
 
         @staticmethod
         def forward(ctx: Any, traj: "torch.Tensor", script: Any, scene: Any) -> "torch.Tensor":
+            # `.to(float64)` would drop an imaginary part with only a warning.
+            if traj.is_complex() or traj.dtype == torch.bool:
+                raise TypeError(
+                    f"traj: a tensor of {traj.dtype}, but positions and headings are real "
+                    "numbers (a float or int dtype)"
+                )
             arr = traj.detach().to("cpu", torch.float64).contiguous().numpy()
             if arr.ndim == 4:
                 results = script.evaluate_batch(scene, arr)
@@ -54,7 +60,7 @@ def cost(script: Any, scene: Any, traj: Any) -> Any:
 
     ``traj`` is a tensor ``[agents, steps, 3]`` (a scalar comes back) or
     ``[batch, agents, steps, 3]`` (one cost per item, evaluated in parallel), any float dtype
-    and device; it is evaluated in float64 on the CPU and the result and its gradient come
+    and device (complex and bool are a ``TypeError``); it is evaluated in float64 on the CPU and the result and its gradient come
     back in ``traj``'s dtype and device. Unobserved states are NaN and get zero gradient.
     """
     return _function().apply(traj, script, scene)

@@ -17,7 +17,9 @@ use drivescript::sample::{self as sampler, AttemptError, AttemptSpec, SampleConf
 use numpy::ndarray::{Array2, Array3, Array4};
 use numpy::{AllowTypeChange, IntoPyArray, PyArrayLikeDyn, PyUntypedArrayMethods};
 use pyo3::create_exception;
-use pyo3::exceptions::{PyException, PyFileNotFoundError, PyOSError, PyRuntimeError, PyValueError};
+use pyo3::exceptions::{
+    PyException, PyFileNotFoundError, PyOSError, PyRuntimeError, PyTypeError, PyValueError,
+};
 use pyo3::prelude::*;
 use pyo3::types::{PyBool, PyDict, PyFloat, PyInt, PyString};
 
@@ -157,11 +159,40 @@ fn wanted(scene: &Scene, batch: bool) -> String {
 
 /// Reads `[agents, steps, 3]` (or `[batch, agents, steps, 3]`) from any array-like into
 /// trajectories over `steps` future steps of `scene`.
+/// `obj` as float64 numbers. Integers and floats of any width convert; numpy's own conversion
+/// would also take complex numbers (dropping the imaginary part with only a warning), booleans
+/// and numeric strings, none of which is a position, so those are refused.
+fn floats<'py>(
+    what: &str,
+    obj: &Bound<'py, PyAny>,
+) -> PyResult<PyArrayLikeDyn<'py, f64, AllowTypeChange>> {
+    let arr = obj.py().import("numpy")?.call_method1("asarray", (obj,))?;
+    let dtype = arr.getattr("dtype")?;
+    let kind: String = dtype.getattr("kind")?.extract()?;
+    // 'O' (Python objects) converts element by element and raises on anything not a number.
+    if !matches!(kind.as_str(), "f" | "i" | "u" | "O") {
+        return Err(PyTypeError::new_err(format!(
+            "{what}: an array of {} ({}), but positions and headings are real numbers \
+             (float or int)",
+            dtype.str()?,
+            match kind.as_str() {
+                "c" => "complex numbers",
+                "b" => "booleans",
+                "U" | "S" => "strings",
+                "M" | "m" => "dates or durations",
+                _ => "values that are not numbers",
+            }
+        )));
+    }
+    arr.extract()
+}
+
 fn trajectories(
     scene: &Scene,
-    arr: &PyArrayLikeDyn<'_, f64, AllowTypeChange>,
+    obj: &Bound<'_, PyAny>,
     batch: bool,
 ) -> PyResult<(usize, Vec<Trajectories>)> {
+    let arr = &floats(if batch { "trajs" } else { "traj" }, obj)?;
     let shape = arr.shape().to_vec();
     let agents = scene.inner.agents.len();
     let dims = if batch { 4 } else { 3 };
@@ -514,12 +545,7 @@ impl Scene {
     /// Writes `traj` (float64 `[agents, steps, 3]`, NaN where unobserved) as this scene's
     /// future to `path`, atomically, in the rollout JSON format that `drivescript cost
     /// --rollout`, `eval --rollouts` and `render` read.
-    fn write_rollout(
-        &self,
-        py: Python<'_>,
-        path: PathBuf,
-        traj: PyArrayLikeDyn<'_, f64, AllowTypeChange>,
-    ) -> PyResult<()> {
+    fn write_rollout(&self, py: Python<'_>, path: PathBuf, traj: Bound<'_, PyAny>) -> PyResult<()> {
         let (_, mut t) = trajectories(self, &traj, false)?;
         let t = t.remove(0);
         let inner = self.inner.clone();
@@ -732,7 +758,7 @@ impl CostScript {
         &self,
         py: Python<'_>,
         scene: &Scene,
-        traj: PyArrayLikeDyn<'_, f64, AllowTypeChange>,
+        traj: Bound<'_, PyAny>,
     ) -> PyResult<CostResult> {
         let (steps, mut t) = trajectories(scene, &traj, false)?;
         let bound = self.bound(py, scene, steps)?;
@@ -748,7 +774,7 @@ impl CostScript {
         &self,
         py: Python<'_>,
         scene: &Scene,
-        trajs: PyArrayLikeDyn<'_, f64, AllowTypeChange>,
+        trajs: Bound<'_, PyAny>,
     ) -> PyResult<Vec<CostResult>> {
         let (steps, t) = trajectories(scene, &trajs, true)?;
         let bound = self.bound(py, scene, steps)?;
@@ -943,7 +969,7 @@ fn check(
     py: Python<'_>,
     behaviour: &str,
     scene: &Scene,
-    traj: PyArrayLikeDyn<'_, f64, AllowTypeChange>,
+    traj: Bound<'_, PyAny>,
     params: Option<&Bound<'_, PyDict>>,
 ) -> PyResult<Verdict> {
     let b = self::behaviour(behaviour)?;

@@ -240,6 +240,23 @@ def test_other_dtypes_are_converted(scene, cut_in):
     assert cut_in.evaluate(scene, strided).total == a
 
 
+def test_complex_boolean_and_string_arrays_are_type_errors_not_converted(ds, scene, cut_in):
+    # numpy's float64 conversion takes them all: complex with only a warning, dropping the
+    # imaginary part; booleans as 0 and 1; numeric strings parsed.
+    traj = scene.log_future(40)
+    for bad, what in [
+        (traj + 1j, "complex numbers"),
+        (np.isnan(traj), "booleans"),
+        (traj.astype(str), "strings"),
+    ]:
+        with pytest.raises(TypeError, match=f"traj: an array of .*{what}"):
+            cut_in.evaluate(scene, bad)
+        with pytest.raises(TypeError, match=f"trajs: an array of .*{what}"):
+            cut_in.evaluate_batch(scene, bad[None])
+        with pytest.raises(TypeError, match=what):
+            ds.check("cut_in", scene, bad, {"cutter": 401, "victim": 405})
+
+
 def test_script_errors_carry_file_line_and_column(ds, scene):
     with pytest.raises(ds.ScriptError) as e:
         ds.CostScript.from_source("let x = ;\n", name="broken.rhai")

@@ -42,6 +42,14 @@ def test_float32_in_float32_out(ds, scene, cut_in):
     assert cost.dtype == torch.float32 and t.grad.dtype == torch.float32
 
 
+def test_complex_and_boolean_tensors_are_type_errors(ds, scene, cut_in):
+    t = torch.tensor(scene.log_future(40))
+    with pytest.raises(TypeError, match="complex"):
+        ds.torch.cost(cut_in, scene, t.to(torch.complex128))
+    with pytest.raises(TypeError, match="bool"):
+        ds.torch.cost(cut_in, scene, t.isnan())
+
+
 def test_gradcheck_in_float64(ds, scene, cut_in):
     # cut_in holds the victim (`hold(b)`: its gap and contact terms stop the victim's
     # gradient on purpose), so its exact Jacobian is checked w.r.t. the cutter. A short horizon keeps it quick.

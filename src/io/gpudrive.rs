@@ -552,7 +552,9 @@ fn to_scene(path: &Path, file: File) -> Result<Scene, IoError> {
                     .map(|i| object_at(i, Some(a)))
             })
             .unwrap_or_else(|| match e {
-                SceneError::ScenarioId { .. } => "scenario_id".into(),
+                SceneError::ScenarioId { .. } | SceneError::ScenarioIdTooLong { .. } => {
+                    "scenario_id".into()
+                }
                 _ => "objects".into(),
             }),
         error: e,

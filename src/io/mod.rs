@@ -614,8 +614,11 @@ pub fn output_stem(id: &str) -> Result<&str, IoError> {
     if id.is_empty() {
         return bad("it is empty");
     }
-    if id.len() > 200 {
-        return bad("it is longer than 200 bytes");
+    if id.len() > name::MAX_SCENARIO_ID_BYTES {
+        return bad(&format!(
+            "it is longer than {} bytes",
+            name::MAX_SCENARIO_ID_BYTES
+        ));
     }
     if id.starts_with('.') {
         return bad("it starts with a dot");

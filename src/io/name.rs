@@ -9,6 +9,10 @@ use std::fmt;
 /// must not itself be an essay.
 pub const QUOTED_CHARS: usize = 64;
 
+/// The longest scenario id, bytes: ids become file names (`ID_K.json`, within the 255 bytes a
+/// file name may have) and are shown in tables and prompts.
+pub const MAX_SCENARIO_ID_BYTES: usize = 200;
+
 /// A character a name must not hold.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct BadChar(pub char);

@@ -535,7 +535,7 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
         path: path.display().to_string(),
         // The key of the file the fault is under.
         location: match &e {
-            SceneError::ScenarioId { .. } => "scenario_id",
+            SceneError::ScenarioId { .. } | SceneError::ScenarioIdTooLong { .. } => "scenario_id",
             SceneError::BadDt(_) | SceneError::RecordedDt(_) => "dt",
             SceneError::CurrentStep { .. } => "current_step",
             SceneError::DuplicateLane(_) | SceneError::UnknownLane(_) => "map",

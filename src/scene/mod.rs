@@ -55,6 +55,14 @@ pub enum SceneError {
         /// The first bad character.
         bad: crate::io::name::BadChar,
     },
+    /// A scenario id too long to name the files written for it.
+    #[error("scenario id \"{id}\" is {bytes} bytes long, more than the {max} an id may have: ids name output files (ID_K.json); give it a shorter one (`convert --id`)", max = crate::io::name::MAX_SCENARIO_ID_BYTES)]
+    ScenarioIdTooLong {
+        /// The start of the id.
+        id: String,
+        /// Its length in bytes.
+        bytes: usize,
+    },
     /// Two lanes share an id.
     #[error("lane id {0} appears twice")]
     DuplicateLane(LaneId),
@@ -236,6 +244,12 @@ impl Scene {
             return Err(SceneError::ScenarioId {
                 id: crate::io::name::shown(&meta.scenario_id),
                 bad,
+            });
+        }
+        if meta.scenario_id.len() > crate::io::name::MAX_SCENARIO_ID_BYTES {
+            return Err(SceneError::ScenarioIdTooLong {
+                id: crate::io::name::shown(&meta.scenario_id),
+                bytes: meta.scenario_id.len(),
             });
         }
         if !(meta.dt.is_finite() && meta.dt > 0.0) {
