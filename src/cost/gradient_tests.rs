@@ -146,6 +146,7 @@ const EDGE_EXPRS: &[&str] = &[
     "term(\"t\", a.box_edge_distance.sum());",
     "term(\"t\", a.on_road(0.5).sum());",
     "term(\"t\", a.corner_edge_distance(0).sum() + 2.0 * a.corner_edge_distance(2).sum());",
+    "term(\"t\", a.wrong_way_distance.sum() + 2.0 * relu(b.wrong_way_distance + 1.0).sum());",
 ];
 
 const MATH_EXPRS: &[&str] = &[

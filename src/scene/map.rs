@@ -198,7 +198,35 @@ pub struct Map {
     parts: MapParts,
     graph: LaneGraph,
     edge_bounds: Vec<(Point, Point)>,
+    /// Per lane: its centre line's bounds and half its width.
+    lane_extents: Vec<((Point, Point), f64)>,
     exits: Vec<MapExit>,
+}
+
+/// The largest difference (radians) between an agent's heading and a lane's direction for the
+/// lane to go the agent's way in [`Map::outside_own_way`]: 60°, wide enough for a car whose
+/// heading leads or lags a curved lane, narrow enough that a crossing lane in a junction is not
+/// its own.
+pub const OWN_WAY: f64 = std::f64::consts::FRAC_PI_3;
+
+/// Half a lane's width: the median over its centre-line points of half the distance between
+/// its boundaries, 1.75 m where it has none.
+fn half_width(l: &Lane) -> f64 {
+    let (Some(a), Some(b)) = (&l.left_boundary, &l.right_boundary) else {
+        return 1.75;
+    };
+    let mut w: Vec<f64> = l
+        .centerline
+        .points()
+        .iter()
+        .map(|q| 0.5 * (a.distance_to(q) + b.distance_to(q)))
+        .filter(|w| w.is_finite())
+        .collect();
+    if w.is_empty() {
+        return 1.75;
+    }
+    w.sort_unstable_by(f64::total_cmp);
+    w[w.len() / 2]
 }
 
 /// Where the mapped road stops: the open end of a lane with no successor and no mapped lane
@@ -256,11 +284,17 @@ impl Map {
         }
         let graph = LaneGraph::build(&parts.lanes);
         let edge_bounds = parts.road_edges.iter().map(|e| e.line().bounds()).collect();
+        let lane_extents = parts
+            .lanes
+            .iter()
+            .map(|l| (l.centerline.bounds(), half_width(l)))
+            .collect();
         let exits = find_exits(&parts.lanes);
         Ok(Self {
             parts,
             graph,
             edge_bounds,
+            lane_extents,
             exits,
         })
     }
@@ -429,6 +463,37 @@ impl Map {
         w.is_finite().then_some(w)
     }
 
+    /// How far `p` lies outside every vehicle lane going the way `heading` points (within
+    /// [`OWN_WAY`]): the distance to the nearest such lane's centre line less half the lane's
+    /// width, negative inside one. With the nearest centre-line point `q`, so that the value's
+    /// gradient w.r.t. `p` is `(p − q) / |p − q|`. `None` when no vehicle lane goes that way.
+    ///
+    /// A car in the oncoming lanes is on the road, where the road-edge distance cannot see it;
+    /// this can.
+    pub fn outside_own_way(&self, p: Point, heading: f64) -> Option<(f64, Point)> {
+        let mut best: Option<(f64, Point)> = None;
+        for (lane, &((lo, hi), hw)) in self.parts.lanes.iter().zip(&self.lane_extents) {
+            if !lane.lane_type.is_vehicle_lane() {
+                continue;
+            }
+            let dx = (lo.x - p.x).max(p.x - hi.x).max(0.0);
+            let dy = (lo.y - p.y).max(p.y - hi.y).max(0.0);
+            if best.is_some_and(|(b, _)| dx.hypot(dy) - hw >= b) {
+                continue;
+            }
+            let hit = lane.centerline.nearest(&p);
+            let dir = lane.centerline.segment_direction(hit.segment);
+            if wrap_angle(heading - dir.y.atan2(dir.x)).abs() > OWN_WAY {
+                continue;
+            }
+            let d = hit.distance - hw;
+            if best.is_none_or(|(b, _)| d < b) {
+                best = Some((d, lane.centerline.point_at(hit.s)));
+            }
+        }
+        best
+    }
+
     /// The nearest lane to a pose whose direction agrees with `heading` (within 90°).
     ///
     /// Ranks lanes by distance to the centre line plus 2 m per radian of heading difference,
@@ -484,6 +549,42 @@ mod tests {
             (sd(50.0, 9.0) - 2.0).abs() < 1e-9,
             "2 m beyond the left edge"
         );
+    }
+
+    #[test]
+    fn the_oncoming_lanes_are_outside_a_car_s_own_way() {
+        // Eastbound lane 1 (y = 0, 3.5 m wide), westbound lane 2 beside it (y = 3.5, 3 m), and
+        // a footpath (y = -3) that no car drives in.
+        let text = r#"
+steps: 1
+current_step: 0
+map:
+  lanes:
+    - {id: 1, centerline: [[0, 0], [100, 0]], left_boundary: [[0, 1.75], [100, 1.75]], right_boundary: [[0, -1.75], [100, -1.75]]}
+    - {id: 2, centerline: [[100, 3.5], [0, 3.5]], left_boundary: [[100, 2], [0, 2]], right_boundary: [[100, 5], [0, 5]]}
+    - {id: 3, type: other, centerline: [[0, -3], [100, -3]]}
+agents:
+  - {id: 1, states: [[10, 0, 0]]}
+"#;
+        let s = yaml::parse(Path::new("two_way.yaml"), text).unwrap();
+        let out = |x: f64, y: f64, h: f64| s.map.outside_own_way(Point::new(x, y), h).unwrap();
+        let east = 0.0;
+        let west = std::f64::consts::PI;
+        // Eastbound: inside its lane up to 1.75 m from the centre, then outside by the rest.
+        assert!((out(50.0, 1.0, east).0 + 0.75).abs() < 1e-9);
+        assert!(
+            (out(50.0, 3.5, east).0 - 1.75).abs() < 1e-9,
+            "in the oncoming lane"
+        );
+        assert_eq!(out(50.0, 3.5, east).1, Point::new(50.0, 0.0));
+        // Heading a little off the lane (40°) is still its way; crossing it (80°) is not.
+        assert!(out(50.0, 3.5, 0.7).0 > 1.0);
+        assert!(s.map.outside_own_way(Point::new(50.0, 0.0), 1.4).is_none());
+        // Westbound: lane 2 is 3 m wide, so 1.5 m either side of its centre.
+        assert!((out(50.0, 3.5, west).0 + 1.5).abs() < 1e-9);
+        assert!((out(50.0, 0.0, west).0 - 2.0).abs() < 1e-9);
+        // The footpath goes east too, but no car's way.
+        assert!((out(50.0, -3.0, east).0 - 1.25).abs() < 1e-9);
     }
 
     #[test]

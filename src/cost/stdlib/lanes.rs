@@ -99,6 +99,42 @@ fn edge_series(shared: &Shared, a: AgentRef, point: BoxPoint) -> RResult<Series>
     Ok(b.build())
 }
 
+/// The agent's centre's distance outside every lane going its way ([`Map::outside_own_way`]),
+/// per step, with its gradient w.r.t. the centre. The heading only chooses the lanes, so it
+/// gets none: the value does not change with it, except where the choice does.
+fn own_way_series(shared: &Shared, a: AgentRef) -> RResult<Series> {
+    let xs = coord_series(shared, a, Coord::X);
+    let ys = coord_series(shared, a, Coord::Y);
+    let hs = coord_series(shared, a, Coord::Heading);
+    let ctx = shared.borrow();
+    let map = &ctx.scene.map;
+    if !map.lanes().iter().any(|l| l.lane_type.is_vehicle_lane()) {
+        return err("wrong_way_distance: the map has no vehicle lanes");
+    }
+    let (x, y, h) = (&xs.0, &ys.0, &hs.0);
+    let mut b = Builder::new(x.val.len(), x.head, x.dt, x.time0);
+    for k in 0..x.val.len() {
+        if !(x.valid[k] && y.valid[k] && h.valid[k]) {
+            b.push_row(0.0, false, std::iter::empty());
+            continue;
+        }
+        let p = Point::new(x.val[k], y.val[k]);
+        let Some((d, q)) = map.outside_own_way(p, h.val[k]) else {
+            b.push_row(0.0, false, std::iter::empty());
+            continue;
+        };
+        let r = p - q;
+        let n = r.norm();
+        let g = if n > 1e-12 { r / n } else { Point::zeros() };
+        let row: Vec<(u32, f64)> = match (xs.row(k).first(), ys.row(k).first()) {
+            (Some(&(vx, _)), Some(&(vy, _))) => vec![(vx, g.x), (vy, g.y)],
+            _ => vec![],
+        };
+        b.push_row(d, true, row);
+    }
+    Ok(b.build())
+}
+
 pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>) {
     const S: &str = "Lane graph";
     macro_rules! lanefn {
@@ -273,6 +309,11 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     let sh = shared.clone();
     e.register_get("edge_distance", move |a: &mut AgentRef| {
         edge_series(&sh, *a, BoxPoint::Centre)
+    });
+    doc(docs, R, "a.wrong_way_distance -> Series", "How far the agent's centre lies outside every vehicle lane going its way (lane direction within 60° of its heading), metres: the distance to the nearest such lane's centre line less half its width, negative inside one. Positive in the oncoming lanes, which are on the road: `edge_distance` cannot tell them from the agent's own. Unobserved at steps where no lane goes the agent's way; an error on a map without vehicle lanes.");
+    let sh = shared.clone();
+    e.register_get("wrong_way_distance", move |a: &mut AgentRef| {
+        own_way_series(&sh, *a)
     });
     doc(docs, R, "a.box_edge_distance -> Series", "The same for the agent's box corner farthest off the road (positive as soon as any corner is off).");
     let sh = shared.clone();
