@@ -147,6 +147,7 @@ const EDGE_EXPRS: &[&str] = &[
     "term(\"t\", a.on_road(0.5).sum());",
     "term(\"t\", a.corner_edge_distance(0).sum() + 2.0 * a.corner_edge_distance(2).sum());",
     "term(\"t\", a.wrong_way_distance.sum() + 2.0 * relu(b.wrong_way_distance + 1.0).sum());",
+    "term(\"t\", a.corner_wrong_way_distance(1).sum() + 2.0 * a.corner_wrong_way_distance(3).sum());",
 ];
 
 const MATH_EXPRS: &[&str] = &[

@@ -481,14 +481,21 @@ impl Map {
             if best.is_some_and(|(b, _)| dx.hypot(dy) - hw >= b) {
                 continue;
             }
-            let hit = lane.centerline.nearest(&p);
-            let dir = lane.centerline.segment_direction(hit.segment);
-            if wrap_angle(heading - dir.y.atan2(dir.x)).abs() > OWN_WAY {
-                continue;
-            }
-            let d = hit.distance - hw;
-            if best.is_none_or(|(b, _)| d < b) {
-                best = Some((d, lane.centerline.point_at(hit.s)));
+            // The nearest segment going the agent's way, not the lane's nearest segment: a
+            // corner of a car in a curve is often nearest to the part of its own lane that
+            // has already turned.
+            for w in lane.centerline.points().windows(2) {
+                let (a, b) = (w[0], w[1]);
+                let ab = b - a;
+                let len2 = ab.norm_squared();
+                if len2 <= 0.0 || wrap_angle(heading - ab.y.atan2(ab.x)).abs() > OWN_WAY {
+                    continue;
+                }
+                let q = a + ab * ((p - a).dot(&ab) / len2).clamp(0.0, 1.0);
+                let d = (p - q).norm() - hw;
+                if best.is_none_or(|(b, _)| d < b) {
+                    best = Some((d, q));
+                }
             }
         }
         best
@@ -585,6 +592,21 @@ agents:
         assert!((out(50.0, 0.0, west).0 - 2.0).abs() < 1e-9);
         // The footpath goes east too, but no car's way.
         assert!((out(50.0, -3.0, east).0 - 1.25).abs() < 1e-9);
+
+        // A lane that turns north at x = 50: a point nearer its northbound part, heading east,
+        // is measured against its eastbound part, not refused with the whole lane.
+        let text = r#"
+steps: 1
+current_step: 0
+map:
+  lanes:
+    - {id: 1, centerline: [[0, 0], [50, 0], [50, 50]]}
+agents:
+  - {id: 1, states: [[10, 0, 0]]}
+"#;
+        let s = yaml::parse(Path::new("corner.yaml"), text).unwrap();
+        let (d, q) = s.map.outside_own_way(Point::new(48.0, 3.0), east).unwrap();
+        assert!((d - 1.25).abs() < 1e-9 && q == Point::new(48.0, 0.0), "{d} {q}");
     }
 
     #[test]

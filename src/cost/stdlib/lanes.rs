@@ -99,10 +99,11 @@ fn edge_series(shared: &Shared, a: AgentRef, point: BoxPoint) -> RResult<Series>
     Ok(b.build())
 }
 
-/// The agent's centre's distance outside every lane going its way ([`Map::outside_own_way`]),
-/// per step, with its gradient w.r.t. the centre. The heading only chooses the lanes, so it
-/// gets none: the value does not change with it, except where the choice does.
-fn own_way_series(shared: &Shared, a: AgentRef) -> RResult<Series> {
+/// How far one point of the agent's box (its centre, or corner `i`) lies outside every lane
+/// going the agent's way ([`Map::outside_own_way`]), per step, with its gradient. The heading
+/// moves a corner, so a corner's value depends on it; the heading's choice of lanes adds
+/// nothing, as the value does not change with it except where the choice does.
+fn own_way_series(shared: &Shared, a: AgentRef, corner: Option<usize>) -> RResult<Series> {
     let xs = coord_series(shared, a, Coord::X);
     let ys = coord_series(shared, a, Coord::Y);
     let hs = coord_series(shared, a, Coord::Heading);
@@ -111,6 +112,13 @@ fn own_way_series(shared: &Shared, a: AgentRef) -> RResult<Series> {
     if !map.lanes().iter().any(|l| l.lane_type.is_vehicle_lane()) {
         return err("wrong_way_distance: the map has no vehicle lanes");
     }
+    let agent = &ctx.scene.agents[a.idx];
+    let (lx, ly) = corner.map_or((0.0, 0.0), |i| {
+        (
+            CORNERS[i].0 * 0.5 * agent.length,
+            CORNERS[i].1 * 0.5 * agent.width,
+        )
+    });
     let (x, y, h) = (&xs.0, &ys.0, &hs.0);
     let mut b = Builder::new(x.val.len(), x.head, x.dt, x.time0);
     for k in 0..x.val.len() {
@@ -118,16 +126,25 @@ fn own_way_series(shared: &Shared, a: AgentRef) -> RResult<Series> {
             b.push_row(0.0, false, std::iter::empty());
             continue;
         }
-        let p = Point::new(x.val[k], y.val[k]);
-        let Some((d, q)) = map.outside_own_way(p, h.val[k]) else {
+        let th = h.val[k];
+        let (sn, cs) = th.sin_cos();
+        let p = Point::new(x.val[k] + cs * lx - sn * ly, y.val[k] + sn * lx + cs * ly);
+        let Some((d, q)) = map.outside_own_way(p, th) else {
             b.push_row(0.0, false, std::iter::empty());
             continue;
         };
         let r = p - q;
         let n = r.norm();
         let g = if n > 1e-12 { r / n } else { Point::zeros() };
-        let row: Vec<(u32, f64)> = match (xs.row(k).first(), ys.row(k).first()) {
-            (Some(&(vx, _)), Some(&(vy, _))) => vec![(vx, g.x), (vy, g.y)],
+        let dp_dh = Point::new(-sn * lx - cs * ly, cs * lx - sn * ly);
+        let row: Vec<(u32, f64)> = match (xs.row(k).first(), ys.row(k).first(), hs.row(k).first()) {
+            (Some(&(vx, _)), Some(&(vy, _)), Some(&(vh, _))) => {
+                let mut r = vec![(vx, g.x), (vy, g.y)];
+                if corner.is_some() {
+                    r.push((vh, g.dot(&dp_dh)));
+                }
+                r
+            }
             _ => vec![],
         };
         b.push_row(d, true, row);
@@ -313,8 +330,21 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     doc(docs, R, "a.wrong_way_distance -> Series", "How far the agent's centre lies outside every vehicle lane going its way (lane direction within 60° of its heading), metres: the distance to the nearest such lane's centre line less half its width, negative inside one. Positive in the oncoming lanes, which are on the road: `edge_distance` cannot tell them from the agent's own. Unobserved at steps where no lane goes the agent's way; an error on a map without vehicle lanes.");
     let sh = shared.clone();
     e.register_get("wrong_way_distance", move |a: &mut AgentRef| {
-        own_way_series(&sh, *a)
+        own_way_series(&sh, *a, None)
     });
+    doc(docs, R, "a.corner_wrong_way_distance(i) -> Series", "The same for one corner of the box (0 rear right, 1 front right, 2 front left, 3 rear left), each corner measured against the lanes going the agent's way: a car changing between two lanes going its way has every corner inside one of them; one straddling the line to the oncoming lanes has two corners outside.");
+    let sh = shared.clone();
+    e.register_fn(
+        "corner_wrong_way_distance",
+        move |a: &mut AgentRef, i: i64| -> RResult<Series> {
+            match usize::try_from(i).ok().filter(|&i| i < 4) {
+                Some(i) => own_way_series(&sh, *a, Some(i)),
+                None => err(format!(
+                    "corner_wrong_way_distance: corner {i} is not 0, 1, 2 or 3"
+                )),
+            }
+        },
+    );
     doc(docs, R, "a.box_edge_distance -> Series", "The same for the agent's box corner farthest off the road (positive as soon as any corner is off).");
     let sh = shared.clone();
     e.register_get("box_edge_distance", move |a: &mut AgentRef| {
