@@ -703,7 +703,7 @@ fn write_beside(path: &Path, bytes: &[u8]) -> Result<PathBuf, IoError> {
         Ok(_) => std::fs::remove_file(&tmp).map_err(err)?,
         Err(_) => {}
     }
-    let mut f = std::fs::OpenOptions::new()
+    let f = std::fs::OpenOptions::new()
         .write(true)
         .create_new(true)
         .open(&tmp)
