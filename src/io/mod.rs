@@ -845,9 +845,35 @@ fn refuse_socket(path: &Path, meta: &std::fs::Metadata, field: &str) -> Result<(
     Ok(())
 }
 
+/// Refuses an output path with a `..` after a directory that does not exist (`new/../in.yaml`):
+/// no check can tell what it names until that directory is made, and writing made it, so
+/// the path then named the input itself, which was replaced.
+fn check_no_parent_of_missing(path: &Path) -> Result<(), IoError> {
+    let mut prefix = PathBuf::new();
+    for c in path.components() {
+        if c == std::path::Component::ParentDir
+            && !prefix.as_os_str().is_empty()
+            && !prefix.is_dir()
+        {
+            return Err(IoError::invalid(
+                path,
+                "file",
+                format!(
+                    "leaves {} with `..`, but there is no such directory: name the file \
+                     without it",
+                    prefix.display()
+                ),
+            ));
+        }
+        prefix.push(c);
+    }
+    Ok(())
+}
+
 /// Refuses an output path that ends in a separator (`x.svg/`): it names a directory, and the
 /// OS's own answer, "Not a directory", names neither the path nor the slip.
 fn check_names_a_file(path: &Path) -> Result<(), IoError> {
+    check_no_parent_of_missing(path)?;
     let raw = path.as_os_str().as_encoded_bytes();
     if raw.len() > 1
         && raw
@@ -1023,6 +1049,7 @@ pub fn create_output_dir(dir: &Path) -> Result<(), IoError> {
 /// writing would replace what is being read), or a scene file inside an input directory.
 /// `flag` names the output option in the message (`-o`, `--json`).
 pub fn check_output_not_input(output: &Path, inputs: &[&Path], flag: &str) -> Result<(), IoError> {
+    check_no_parent_of_missing(output)?;
     let Ok(out) = std::fs::canonicalize(output) else {
         // Nothing there yet: it cannot be an input.
         return Ok(());
@@ -1089,6 +1116,7 @@ pub fn check_replaces_own(
     what: &str,
     ours: impl FnOnce(&Path) -> bool,
 ) -> Result<(), IoError> {
+    check_no_parent_of_missing(output)?;
     match std::fs::metadata(output) {
         Ok(m) if m.is_file() => {}
         // Said before the command's work, not when its output is written.
@@ -1320,6 +1348,31 @@ mod tests {
                 .to_string();
             assert!(e.contains("not a regular file"), "{e}");
         }
+    }
+
+    #[test]
+    fn a_dot_dot_after_a_directory_that_does_not_exist_is_refused_not_resolved_by_writing() {
+        // `convert in.yaml -o new/../in.yaml` made `new` and replaced in.yaml, exit 0.
+        let dir = tempfile::tempdir().unwrap();
+        let input = dir.path().join("in.yaml");
+        std::fs::write(&input, "# mine\n").unwrap();
+        let sneaky = dir.path().join("new/../in.yaml");
+        super::check_output_not_input(&sneaky, &[&input], "-o").unwrap_err();
+        let e = super::check_replaces_own(&sneaky, "-o", "a YAML scene", |_| true)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("leaves") && e.contains("new with `..`, but there is no such directory"),
+            "{e}"
+        );
+        super::write_atomic(&sneaky, b"x").unwrap_err();
+        assert!(!super::create_atomic(&sneaky, b"x").unwrap_or(false));
+        assert_eq!(std::fs::read_to_string(&input).unwrap(), "# mine\n");
+        assert!(!dir.path().join("new").exists());
+        // Through a directory that exists, `..` is as the OS resolves it.
+        std::fs::create_dir(dir.path().join("sub")).unwrap();
+        super::write_atomic(&dir.path().join("sub/../out.yaml"), b"x").unwrap();
+        assert!(dir.path().join("out.yaml").exists());
     }
 
     #[test]
