@@ -826,6 +826,47 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     })
 }
 
+/// Writes the file that `make` writes at the path it is given (a writer that takes a path,
+/// such as candle's safetensors `save`) to `path` as [`write_atomic`] writes bytes: it is made
+/// in a private directory of the system's temporary directory, read back, and written. Given
+/// the output path itself, or a name beside it that it renamed, such a writer replaced a FIFO
+/// or `/dev/null` with a regular file and left its partial file on a full disk.
+pub fn write_atomic_from<E: std::fmt::Display>(
+    path: &Path,
+    make: impl FnOnce(&Path) -> Result<(), E>,
+) -> Result<(), IoError> {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static NEXT: AtomicU64 = AtomicU64::new(0);
+    check_names_a_file(path)?;
+    let err = |source| IoError::Write {
+        path: path.display().to_string(),
+        source,
+    };
+    let private = std::env::temp_dir().join(format!(
+        "drivescript-{}-{}",
+        std::process::id(),
+        NEXT.fetch_add(1, Ordering::Relaxed)
+    ));
+    // Created, never reused: one left by a process of this id that died is removed first.
+    let _ = std::fs::remove_dir_all(&private);
+    std::fs::create_dir(&private).map_err(err)?;
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "out".into());
+    let made = private.join(name.chars().take(100).collect::<String>());
+    // Errors here name the private file: a full temporary directory is not a full output's.
+    let private_err = |source| IoError::Write {
+        path: made.display().to_string(),
+        source,
+    };
+    let bytes = make(&made)
+        .map_err(|e| private_err(std::io::Error::other(e.to_string())))
+        .and_then(|()| std::fs::read(&made).map_err(private_err));
+    let _ = std::fs::remove_dir_all(&private);
+    write_atomic(path, &bytes?)
+}
+
 /// Refuses an output path that is a socket (named by `field` in the message): it cannot be
 /// opened as a file, and the OS says only "No such device or address".
 fn refuse_socket(path: &Path, meta: &std::fs::Metadata, field: &str) -> Result<(), IoError> {
@@ -1373,6 +1414,43 @@ mod tests {
         std::fs::create_dir(dir.path().join("sub")).unwrap();
         super::write_atomic(&dir.path().join("sub/../out.yaml"), b"x").unwrap();
         assert!(dir.path().join("out.yaml").exists());
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_file_a_writer_makes_at_its_own_path_reaches_a_fifo_in_place() {
+        // `bench sample --export FIFO` renamed its file over the FIFO (as root, over
+        // /dev/null for the whole machine).
+        use std::io::Read;
+        use std::os::unix::fs::FileTypeExt;
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("x.safetensors");
+        super::write_atomic_from(&out, |p| std::fs::write(p, b"made")).unwrap();
+        assert_eq!(std::fs::read(&out).unwrap(), b"made");
+        let e = super::write_atomic_from(&out, |_| Err("no room"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("drivescript-") && e.contains("no room"), "{e}");
+        assert_eq!(std::fs::read(&out).unwrap(), b"made");
+        let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+        assert_eq!(names.len(), 1);
+        let fifo = dir.path().join("f.safetensors");
+        let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+        assert!(made.is_ok_and(|s| s.success()));
+        let f = fifo.clone();
+        // Left running if the FIFO is replaced (then nobody ever writes to it).
+        let reader = std::thread::spawn(move || {
+            let mut t = String::new();
+            std::fs::File::open(&f)
+                .unwrap()
+                .read_to_string(&mut t)
+                .unwrap();
+            t
+        });
+        super::write_atomic_from(&fifo, |p| std::fs::write(p, b"piped")).unwrap();
+        let kind = std::fs::symlink_metadata(&fifo).unwrap().file_type();
+        assert!(kind.is_fifo(), "the FIFO was replaced by {kind:?}");
+        assert_eq!(reader.join().unwrap(), "piped");
     }
 
     #[test]
