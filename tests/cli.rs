@@ -1281,6 +1281,20 @@ fn train_then_simulate_end_to_end() {
         stdout.contains("no scene simulated: nothing written") && !stdout.contains("wrote"),
         "{stdout}"
     );
+    // A scene that fails after writing its rollouts (a directory where its picture goes)
+    // left them, and the run said "nothing written".
+    let late = dir.path().join("late");
+    std::fs::create_dir_all(late.join("highway-cut-in_0.gif")).unwrap();
+    let out = drivescript(&simulate_args(cut_in, s(&ckpt), &[], s(&late)));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(late.join("highway-cut-in_0.json").exists());
+    assert!(
+        !stdout.contains("nothing written")
+            && stdout.contains("no scene simulated to the end")
+            && stdout.contains("left some of them in"),
+        "{stdout}"
+    );
     // Closed loop re-plans every 0.5 s over the model's 4 s horizon.
     let cl = dir.path().join("cl");
     let out = ok(&simulate_args(

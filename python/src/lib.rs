@@ -5,7 +5,7 @@
 //! the library becomes a `RuntimeError` naming it, never an abort.
 
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 use drivescript::cost::{BoundScript, CostError, CostReport, ParamValue, Params, ScriptSpec};
@@ -51,6 +51,47 @@ fn detached<T: Send>(
                 &*payload, what,
             )))
         })
+}
+
+/// [`detached`] for work that can stop early: `f` runs on a thread of its own while this one
+/// checks, every 50 ms, for a signal Python must handle (Ctrl-C's KeyboardInterrupt). When
+/// one comes, `stop` is set, `f` is waited for (it stops starting new work) and the signal's
+/// exception is raised: a long batch ignored Ctrl-C to its end.
+fn detached_interruptible<T: Send>(
+    py: Python<'_>,
+    what: &str,
+    f: impl FnOnce(&AtomicBool) -> PyResult<T> + Send,
+) -> PyResult<T> {
+    let stop = AtomicBool::new(false);
+    let waiter = std::thread::current();
+    std::thread::scope(|s| {
+        let work = s.spawn(|| {
+            let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(&stop)));
+            waiter.unpark();
+            r
+        });
+        loop {
+            let finished = py.detach(|| {
+                std::thread::park_timeout(std::time::Duration::from_millis(50));
+                work.is_finished()
+            });
+            if finished {
+                break;
+            }
+            if let Err(signal) = py.check_signals() {
+                stop.store(true, Ordering::Relaxed);
+                py.detach(|| {
+                    let _ = work.join();
+                });
+                return Err(signal);
+            }
+        }
+        work.join().unwrap_or_else(Err).unwrap_or_else(|payload| {
+            Err(PyRuntimeError::new_err(drivescript::io::internal_error(
+                &*payload, what,
+            )))
+        })
+    })
 }
 
 fn script_error(py: Python<'_>, e: &CostError) -> PyErr {
@@ -778,7 +819,12 @@ impl CostScript {
     ) -> PyResult<Vec<CostResult>> {
         let (steps, t) = trajectories(scene, &trajs, true)?;
         let bound = self.bound(py, scene, steps)?;
-        let reports = detached(py, "cost script", move || Ok(bound.evaluate_batch(&t)))?;
+        let reports = detached_interruptible(py, "cost script", move |stop| {
+            // Stopped only with a signal pending, which is raised instead.
+            Ok(bound
+                .evaluate_batch_until(&t, stop)
+                .unwrap_or_else(|| Ok(Vec::new())))
+        })?;
         let reports = reports.map_err(|(k, e)| {
             let err = script_error(py, &e);
             let _ = err.value(py).setattr("batch_index", k);

@@ -125,6 +125,28 @@ def test_evaluate_batch_equals_evaluate_item_by_item(scene, cut_in):
     assert len({r.total for r in rs}) > 1
 
 
+def test_ctrl_c_stops_a_long_evaluate_batch_and_leaves_the_script_usable(ds, scene):
+    # About 50 ms an item: 400 items took 10 s on two cores, and a Ctrl-C waited for them all.
+    import os
+    import signal
+
+    slow = ds.CostScript.from_source(
+        'let x = agent(401).x;\nlet s = 0.0;\nfor i in 0..200000 { s += 1.0; }\n'
+        'term("t", x.mean() + s * 0.0);\n',
+        name="slow.rhai",
+    )
+    traj = np.nan_to_num(scene.log_future(40))
+    batch = np.stack([traj] * 400)
+    timer = threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGINT))
+    t = time.perf_counter()
+    timer.start()
+    with pytest.raises(KeyboardInterrupt):
+        slow.evaluate_batch(scene, batch)
+    assert time.perf_counter() - t < 3.0, time.perf_counter() - t
+    timer.join()
+    assert len(slow.evaluate_batch(scene, batch[:2])) == 2
+
+
 def test_evaluate_batch_releases_the_gil(scene, cut_in):
     # A batch long enough to tell, on a fast machine as on a slow one: about 0.25 s.
     traj = scene.log_future(40)

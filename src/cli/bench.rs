@@ -448,15 +448,9 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
         };
         let tensors: std::collections::HashMap<String, candle_core::Tensor> =
             reference_run(&trained, &sim, &cfg)?.into_iter().collect();
-        let tmp = out.with_extension("safetensors.tmp");
-        candle_core::safetensors::save(&tensors, &tmp).map_err(|e| {
-            anyhow::anyhow!(
-                "writing {}: {}",
-                tmp.display(),
-                drivescript::model::error::message(e)
-            )
+        drivescript::io::write_atomic_from(out, |p| {
+            candle_core::safetensors::save(&tensors, p).map_err(drivescript::model::error::message)
         })?;
-        std::fs::rename(&tmp, out).with_context(|| format!("writing {}", out.display()))?;
         println!(
             "wrote {} (the unguided run's inputs and outputs)",
             out.display()

@@ -71,11 +71,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
                             if let Some(absent) =
                                 drivescript::scene::description::absent_kept(&s, &args.keep)
                             {
-                                eprintln!(
-                                    "error: {}: scene {}: --keep names agents it does not hold: {absent}",
+                                super::print_error(&format!(
+                                    "{}: scene {}: --keep names agents it does not hold: {absent}",
                                     src.display(),
                                     s.meta.scenario_id,
-                                );
+                                ));
                                 failures += 1;
                                 continue;
                             }

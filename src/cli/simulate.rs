@@ -299,6 +299,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     // Terms that can never steer, said once per run each (their scripts are the same for
     // every scene, and so is usually the reason).
     let warned = std::cell::RefCell::new(std::collections::BTreeSet::<String>::new());
+    let started_writing = std::cell::Cell::new(false);
     // One scene's failure (a script error on its agents, say) is reported and the others go
     // on; the exit code says that something failed.
     let run_one = |raw: &drivescript::scene::Scene| -> Result<bool> {
@@ -374,6 +375,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
         for o in &report.samples {
             super::print_outcome(&format!("{id} sample {}", o.sample), o);
         }
+        // From here a failure (a full disk, a directory where the picture goes) leaves some
+        // of the scene's outputs: the end of the run must not say that nothing was written.
+        started_writing.set(true);
         done.write(&args.output, &id, Some(&run_value))?;
         super::render::write_picture(
             &samples[0].scene,
@@ -485,14 +489,23 @@ pub fn run(args: Args) -> Result<ExitCode> {
         );
     } else if resumed == 0 {
         // A run that wrote nothing leaves nothing, not a record that would refuse the next
-        // run's settings; shards share the record, so theirs stays.
-        if fresh && args.shard.is_none() {
+        // run's settings; shards share the record, so theirs stays, as does the record of
+        // outputs left (`--resume` checks its settings against them).
+        if fresh && args.shard.is_none() && !started_writing.get() {
             let _ = std::fs::remove_file(args.output.join(RUN_FILE));
             if !existed {
                 let _ = std::fs::remove_dir(&args.output);
             }
         }
-        println!("no scene simulated: nothing written");
+        if started_writing.get() {
+            println!(
+                "no scene simulated to the end: a scene that failed while its outputs were \
+                 written left some of them in {} (`--resume` simulates it again)",
+                args.output.display()
+            );
+        } else {
+            println!("no scene simulated: nothing written");
+        }
     }
     if failed > 0 {
         eprintln!("{failed} scenes failed");

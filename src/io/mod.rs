@@ -671,12 +671,20 @@ fn write_beside(path: &Path, bytes: &[u8]) -> Result<PathBuf, IoError> {
         _ => PathBuf::from("."),
     };
     std::fs::create_dir_all(&dir).map_err(err)?;
+    sweep_dead_temporaries(&dir);
     let name = path
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_else(|| "out".into());
+    // The name cut so that the temporary's stays within the 255 bytes a file name may have: a
+    // 245-byte output name, itself valid, was refused as "File name too long".
+    let mut cut = name.len().min(TMP_NAME_PREFIX_BYTES);
+    while !name.is_char_boundary(cut) {
+        cut -= 1;
+    }
     let tmp = dir.join(format!(
-        ".{name}.tmp{}-{:?}",
+        ".{}.tmp{}-{:?}",
+        &name[..cut],
         std::process::id(),
         std::thread::current().id()
     ));
@@ -695,13 +703,70 @@ fn write_beside(path: &Path, bytes: &[u8]) -> Result<PathBuf, IoError> {
         Ok(_) => std::fs::remove_file(&tmp).map_err(err)?,
         Err(_) => {}
     }
-    let mut f = std::fs::OpenOptions::new()
+    let f = std::fs::OpenOptions::new()
         .write(true)
         .create_new(true)
         .open(&tmp)
         .map_err(err)?;
-    std::io::Write::write_all(&mut f, bytes).map_err(err)?;
+    fill_temporary(f, &tmp, bytes).map_err(err)?;
     Ok(tmp)
+}
+
+/// Writes `bytes` into the temporary `tmp` through `f`, removing it when that fails: a full
+/// disk left what was written of it, hidden, holding the space.
+fn fill_temporary(mut f: impl std::io::Write, tmp: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    let done = f.write_all(bytes).and_then(|()| f.flush());
+    drop(f);
+    if done.is_err() {
+        let _ = std::fs::remove_file(tmp);
+    }
+    done
+}
+
+/// The most bytes of an output's name kept in its temporary's name (`.NAME.tmpPID-ThreadId(N)`,
+/// at most 46 bytes more), so that the temporary's name fits in 255 bytes.
+const TMP_NAME_PREFIX_BYTES: usize = 200;
+
+/// Whether `name` is that of a temporary [`write_beside`] makes, and if so the process that
+/// made it.
+fn temporary_owner(name: &str) -> Option<u32> {
+    let (_, rest) = name.strip_prefix('.')?.rsplit_once(".tmp")?;
+    let (pid, thread) = rest.split_once('-')?;
+    let n = thread.strip_prefix("ThreadId(")?.strip_suffix(')')?;
+    if pid.is_empty() || n.is_empty() || !pid.bytes().chain(n.bytes()).all(|b| b.is_ascii_digit()) {
+        return None;
+    }
+    pid.parse().ok()
+}
+
+/// Removes from `dir` the temporaries of [`write_beside`] whose process has died (a Ctrl-C or
+/// a kill in the middle of a write left them, hidden, as large as the output), once per
+/// directory per process: a run writing thousands of files into one directory lists it once.
+fn sweep_dead_temporaries(dir: &Path) {
+    use std::collections::HashSet;
+    use std::sync::Mutex;
+    static SWEPT: Mutex<Option<HashSet<PathBuf>>> = Mutex::new(None);
+    let key = std::fs::canonicalize(dir).unwrap_or_else(|_| dir.to_path_buf());
+    {
+        let mut swept = SWEPT.lock().unwrap_or_else(|p| p.into_inner());
+        if !swept.get_or_insert_with(HashSet::new).insert(key) {
+            return;
+        }
+    }
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    let me = std::process::id();
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let Some(pid) = name.to_str().and_then(temporary_owner) else {
+            continue;
+        };
+        let is_dir = entry.file_type().is_ok_and(|t| t.is_dir());
+        if pid != me && !is_dir && !process_alive(pid) {
+            let _ = std::fs::remove_file(entry.path());
+        }
+    }
 }
 
 /// Whether process `pid` exists (it may belong to another user: then it exists too): whether
@@ -741,6 +806,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
                 "is a directory: name a file to write",
             ));
         }
+        refuse_socket(path, &meta, "file")?;
         if !meta.is_file() {
             use std::io::Write;
             let mut f = std::fs::OpenOptions::new()
@@ -760,9 +826,95 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     })
 }
 
+/// Writes the file that `make` writes at the path it is given (a writer that takes a path,
+/// such as candle's safetensors `save`) to `path` as [`write_atomic`] writes bytes: it is made
+/// in a private directory of the system's temporary directory, read back, and written. Given
+/// the output path itself, or a name beside it that it renamed, such a writer replaced a FIFO
+/// or `/dev/null` with a regular file and left its partial file on a full disk.
+pub fn write_atomic_from<E: std::fmt::Display>(
+    path: &Path,
+    make: impl FnOnce(&Path) -> Result<(), E>,
+) -> Result<(), IoError> {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static NEXT: AtomicU64 = AtomicU64::new(0);
+    check_names_a_file(path)?;
+    let err = |source| IoError::Write {
+        path: path.display().to_string(),
+        source,
+    };
+    let private = std::env::temp_dir().join(format!(
+        "drivescript-{}-{}",
+        std::process::id(),
+        NEXT.fetch_add(1, Ordering::Relaxed)
+    ));
+    // Created, never reused: one left by a process of this id that died is removed first.
+    let _ = std::fs::remove_dir_all(&private);
+    std::fs::create_dir(&private).map_err(err)?;
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "out".into());
+    let made = private.join(name.chars().take(100).collect::<String>());
+    // Errors here name the private file: a full temporary directory is not a full output's.
+    let private_err = |source| IoError::Write {
+        path: made.display().to_string(),
+        source,
+    };
+    let bytes = make(&made)
+        .map_err(|e| private_err(std::io::Error::other(e.to_string())))
+        .and_then(|()| std::fs::read(&made).map_err(private_err));
+    let _ = std::fs::remove_dir_all(&private);
+    write_atomic(path, &bytes?)
+}
+
+/// Refuses an output path that is a socket (named by `field` in the message): it cannot be
+/// opened as a file, and the OS says only "No such device or address".
+fn refuse_socket(path: &Path, meta: &std::fs::Metadata, field: &str) -> Result<(), IoError> {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        if meta.file_type().is_socket() {
+            return Err(IoError::invalid(
+                path,
+                field,
+                "is a socket, which cannot be written as a file: name a file (or a device or \
+                 pipe) to write",
+            ));
+        }
+    }
+    let _ = (path, meta, field);
+    Ok(())
+}
+
+/// Refuses an output path with a `..` after a directory that does not exist (`new/../in.yaml`):
+/// no check can tell what it names until that directory is made, and writing made it, so
+/// the path then named the input itself, which was replaced.
+fn check_no_parent_of_missing(path: &Path) -> Result<(), IoError> {
+    let mut prefix = PathBuf::new();
+    for c in path.components() {
+        if c == std::path::Component::ParentDir
+            && !prefix.as_os_str().is_empty()
+            && !prefix.is_dir()
+        {
+            return Err(IoError::invalid(
+                path,
+                "file",
+                format!(
+                    "leaves {} with `..`, but there is no such directory: name the file \
+                     without it",
+                    prefix.display()
+                ),
+            ));
+        }
+        prefix.push(c);
+    }
+    Ok(())
+}
+
 /// Refuses an output path that ends in a separator (`x.svg/`): it names a directory, and the
 /// OS's own answer, "Not a directory", names neither the path nor the slip.
 fn check_names_a_file(path: &Path) -> Result<(), IoError> {
+    check_no_parent_of_missing(path)?;
     let raw = path.as_os_str().as_encoded_bytes();
     if raw.len() > 1
         && raw
@@ -938,6 +1090,7 @@ pub fn create_output_dir(dir: &Path) -> Result<(), IoError> {
 /// writing would replace what is being read), or a scene file inside an input directory.
 /// `flag` names the output option in the message (`-o`, `--json`).
 pub fn check_output_not_input(output: &Path, inputs: &[&Path], flag: &str) -> Result<(), IoError> {
+    check_no_parent_of_missing(output)?;
     let Ok(out) = std::fs::canonicalize(output) else {
         // Nothing there yet: it cannot be an input.
         return Ok(());
@@ -1004,9 +1157,12 @@ pub fn check_replaces_own(
     what: &str,
     ours: impl FnOnce(&Path) -> bool,
 ) -> Result<(), IoError> {
+    check_no_parent_of_missing(output)?;
     match std::fs::metadata(output) {
         Ok(m) if m.is_file() => {}
-        _ => return Ok(()),
+        // Said before the command's work, not when its output is written.
+        Ok(m) => return refuse_socket(output, &m, flag),
+        Err(_) => return Ok(()),
     }
     if ours(output) {
         return Ok(());
@@ -1233,6 +1389,155 @@ mod tests {
                 .to_string();
             assert!(e.contains("not a regular file"), "{e}");
         }
+    }
+
+    #[test]
+    fn a_dot_dot_after_a_directory_that_does_not_exist_is_refused_not_resolved_by_writing() {
+        // `convert in.yaml -o new/../in.yaml` made `new` and replaced in.yaml, exit 0.
+        let dir = tempfile::tempdir().unwrap();
+        let input = dir.path().join("in.yaml");
+        std::fs::write(&input, "# mine\n").unwrap();
+        let sneaky = dir.path().join("new/../in.yaml");
+        super::check_output_not_input(&sneaky, &[&input], "-o").unwrap_err();
+        let e = super::check_replaces_own(&sneaky, "-o", "a YAML scene", |_| true)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("leaves") && e.contains("new with `..`, but there is no such directory"),
+            "{e}"
+        );
+        super::write_atomic(&sneaky, b"x").unwrap_err();
+        assert!(!super::create_atomic(&sneaky, b"x").unwrap_or(false));
+        assert_eq!(std::fs::read_to_string(&input).unwrap(), "# mine\n");
+        assert!(!dir.path().join("new").exists());
+        // Through a directory that exists, `..` is as the OS resolves it.
+        std::fs::create_dir(dir.path().join("sub")).unwrap();
+        super::write_atomic(&dir.path().join("sub/../out.yaml"), b"x").unwrap();
+        assert!(dir.path().join("out.yaml").exists());
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_file_a_writer_makes_at_its_own_path_reaches_a_fifo_in_place() {
+        // `bench sample --export FIFO` renamed its file over the FIFO (as root, over
+        // /dev/null for the whole machine).
+        use std::io::Read;
+        use std::os::unix::fs::FileTypeExt;
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("x.safetensors");
+        super::write_atomic_from(&out, |p| std::fs::write(p, b"made")).unwrap();
+        assert_eq!(std::fs::read(&out).unwrap(), b"made");
+        let e = super::write_atomic_from(&out, |_| Err("no room"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("drivescript-") && e.contains("no room"), "{e}");
+        assert_eq!(std::fs::read(&out).unwrap(), b"made");
+        let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
+        assert_eq!(names.len(), 1);
+        let fifo = dir.path().join("f.safetensors");
+        let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+        assert!(made.is_ok_and(|s| s.success()));
+        let f = fifo.clone();
+        // Left running if the FIFO is replaced (then nobody ever writes to it).
+        let reader = std::thread::spawn(move || {
+            let mut t = String::new();
+            std::fs::File::open(&f)
+                .unwrap()
+                .read_to_string(&mut t)
+                .unwrap();
+            t
+        });
+        super::write_atomic_from(&fifo, |p| std::fs::write(p, b"piped")).unwrap();
+        let kind = std::fs::symlink_metadata(&fifo).unwrap().file_type();
+        assert!(kind.is_fifo(), "the FIFO was replaced by {kind:?}");
+        assert_eq!(reader.join().unwrap(), "piped");
+    }
+
+    #[test]
+    fn a_write_that_fails_leaves_no_temporary_behind() {
+        // A writer that takes 10 bytes and then finds the disk full.
+        struct Full(usize);
+        impl std::io::Write for Full {
+            fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
+                if self.0 >= 10 {
+                    return Err(std::io::Error::from_raw_os_error(28));
+                }
+                let n = b.len().min(10 - self.0);
+                self.0 += n;
+                Ok(n)
+            }
+            fn flush(&mut self) -> std::io::Result<()> {
+                Ok(())
+            }
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let tmp = dir.path().join(".x.json.tmp1-ThreadId(1)");
+        std::fs::write(&tmp, b"0123456789").unwrap();
+        assert!(super::fill_temporary(Full(0), &tmp, &[b'x'; 100]).is_err());
+        assert!(!tmp.exists());
+        std::fs::write(&tmp, b"").unwrap();
+        super::fill_temporary(Full(0), &tmp, b"short").unwrap();
+        assert!(tmp.exists());
+    }
+
+    #[test]
+    fn an_output_name_near_the_longest_a_file_may_have_is_written() {
+        // Its temporary's name, 30 bytes longer, was refused: "File name too long".
+        let dir = tempfile::tempdir().unwrap();
+        for name in ["a".repeat(250), format!("{}.json", "é".repeat(122))] {
+            let out = dir.path().join(&name);
+            super::write_atomic(&out, b"{}").unwrap();
+            assert_eq!(std::fs::read(&out).unwrap(), b"{}");
+            let other = format!("b{}", name.chars().skip(1).collect::<String>());
+            assert!(super::create_atomic(&dir.path().join(other), b"{}").unwrap());
+        }
+        let names: Vec<String> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        assert!(names.iter().all(|n| !n.starts_with('.')), "{names:?}");
+    }
+
+    #[test]
+    fn temporaries_of_writers_that_died_are_removed_and_no_others() {
+        // A kill in the middle of a write left `.NAME.tmpPID-ThreadId(N)` for good.
+        let dir = tempfile::tempdir().unwrap();
+        let dead = dir.path().join(".old.gif.tmp4000000001-ThreadId(3)");
+        let live = dir.path().join(".old.gif.tmp1-ThreadId(1)");
+        let mine = [
+            ".notes.tmp",
+            ".a.tmp12-ThreadId(x)",
+            ".b.tmp-ThreadId(1)",
+            "c.tmp5-ThreadId(1)",
+        ];
+        for p in [&dead, &live] {
+            std::fs::write(p, b"partial").unwrap();
+        }
+        for n in mine {
+            std::fs::write(dir.path().join(n), b"mine").unwrap();
+        }
+        super::write_atomic(&dir.path().join("new.json"), b"{}").unwrap();
+        assert!(!dead.exists());
+        assert!(live.exists());
+        for n in mine {
+            assert!(dir.path().join(n).exists(), "{n}");
+        }
+        assert_eq!(super::temporary_owner(".x.tmp77-ThreadId(2)"), Some(77));
+        assert_eq!(super::temporary_owner(".x.tmp77-ThreadId()"), None);
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_socket_as_output_is_named_as_such_before_and_at_the_write() {
+        let dir = tempfile::tempdir().unwrap();
+        let sock = dir.path().join("out.json");
+        let _listener = std::os::unix::net::UnixListener::bind(&sock).unwrap();
+        let e = super::write_atomic(&sock, b"{}").unwrap_err().to_string();
+        assert!(e.contains("out.json: file: is a socket"), "{e}");
+        let e = super::check_replaces_own_json(&sock, "table", "an eval table", "--json")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("out.json: --json: is a socket"), "{e}");
     }
 
     #[cfg(unix)]

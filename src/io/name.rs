@@ -125,6 +125,22 @@ pub fn terminal_safe(s: &str) -> String {
     out
 }
 
+/// `s` on one line, whatever it holds: every control character (the line break too) and every
+/// invisible one written as an escape (`\u{000A}`), nothing cut. For a file name in a line of
+/// text: a name may hold a line break or an escape sequence, and directories are walked for
+/// names nobody typed.
+pub fn one_line(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    for c in s.chars() {
+        if unshowable(c) {
+            out.push_str(&format!("\\u{{{:04X}}}", c as u32));
+        } else {
+            out.push(c);
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

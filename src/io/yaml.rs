@@ -352,6 +352,141 @@ fn too_deep(text: &str, max: usize) -> Option<usize> {
     None
 }
 
+/// The most values (scalars and collections) a YAML document may expand to through its
+/// aliases (`*name`) beyond one per byte of its text: 10 million values are hundreds of MB in
+/// memory, far beyond any real scene, batch or test file.
+pub const MAX_YAML_EXPANDED_VALUES: usize = 10_000_000;
+
+/// Refuses YAML `text` whose aliases expand it past [`MAX_YAML_EXPANDED_VALUES`] values (or
+/// one per byte of text, whichever is more), walking its values without keeping them: each
+/// alias repeats its anchor's whole value, so aliases of aliases multiply (a 460 KB scene of
+/// crosswalks that are one 2000-point polygon took 3.4 GB to read). Text with no `*` has no
+/// alias and is not walked. The error is the message to give, naming the line where it can.
+pub fn check_aliases(text: &str) -> Result<(), String> {
+    use serde::de::DeserializeSeed;
+    if !text.contains('*') {
+        return Ok(());
+    }
+    let limit = MAX_YAML_EXPANDED_VALUES.max(text.len());
+    let count = std::cell::Cell::new(0usize);
+    for doc in serde_yaml::Deserializer::from_str(text) {
+        if let Err(e) = (Budget {
+            count: &count,
+            limit,
+        })
+        .deserialize(doc)
+        {
+            // Only the budget's error is this check's to give: a syntax error is the
+            // reader's own, with its own words.
+            if count.get() > limit {
+                return Err(match e.location() {
+                    Some(l) => format!(
+                        "line {}, column {}: {}",
+                        l.line(),
+                        l.column(),
+                        super::without_position(&e.to_string(), l.line(), l.column())
+                    ),
+                    None => e.to_string(),
+                });
+            }
+            return Ok(());
+        }
+    }
+    Ok(())
+}
+
+/// Counts the values of a YAML document as serde walks it (aliases expanded), keeping none,
+/// and stops past `limit`.
+struct Budget<'a> {
+    count: &'a std::cell::Cell<usize>,
+    limit: usize,
+}
+
+impl Budget<'_> {
+    fn take<E: serde::de::Error>(&self) -> Result<(), E> {
+        self.count.set(self.count.get() + 1);
+        if self.count.get() > self.limit {
+            return Err(E::custom(format!(
+                "its aliases (`*name`) expand it to more than {} values: far beyond a real \
+                 file, so it is refused before it fills memory",
+                self.limit
+            )));
+        }
+        Ok(())
+    }
+    fn again(&self) -> Self {
+        Budget {
+            count: self.count,
+            limit: self.limit,
+        }
+    }
+}
+
+impl<'de> serde::de::DeserializeSeed<'de> for Budget<'_> {
+    type Value = ();
+    fn deserialize<D: serde::Deserializer<'de>>(self, d: D) -> Result<(), D::Error> {
+        d.deserialize_any(self)
+    }
+}
+
+impl<'de> serde::de::Visitor<'de> for Budget<'_> {
+    type Value = ();
+    fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        f.write_str("any YAML value")
+    }
+    fn visit_bool<E: serde::de::Error>(self, _: bool) -> Result<(), E> {
+        self.take()
+    }
+    fn visit_i64<E: serde::de::Error>(self, _: i64) -> Result<(), E> {
+        self.take()
+    }
+    fn visit_u64<E: serde::de::Error>(self, _: u64) -> Result<(), E> {
+        self.take()
+    }
+    fn visit_i128<E: serde::de::Error>(self, _: i128) -> Result<(), E> {
+        self.take()
+    }
+    fn visit_u128<E: serde::de::Error>(self, _: u128) -> Result<(), E> {
+        self.take()
+    }
+    fn visit_f64<E: serde::de::Error>(self, _: f64) -> Result<(), E> {
+        self.take()
+    }
+    fn visit_str<E: serde::de::Error>(self, _: &str) -> Result<(), E> {
+        self.take()
+    }
+    fn visit_unit<E: serde::de::Error>(self) -> Result<(), E> {
+        self.take()
+    }
+    fn visit_none<E: serde::de::Error>(self) -> Result<(), E> {
+        self.take()
+    }
+    fn visit_some<D: serde::Deserializer<'de>>(self, d: D) -> Result<(), D::Error> {
+        serde::de::DeserializeSeed::deserialize(self, d)
+    }
+    fn visit_newtype_struct<D: serde::Deserializer<'de>>(self, d: D) -> Result<(), D::Error> {
+        serde::de::DeserializeSeed::deserialize(self, d)
+    }
+    fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut seq: A) -> Result<(), A::Error> {
+        self.take()?;
+        while seq.next_element_seed(self.again())?.is_some() {}
+        Ok(())
+    }
+    fn visit_map<A: serde::de::MapAccess<'de>>(self, mut map: A) -> Result<(), A::Error> {
+        self.take()?;
+        while map.next_key_seed(self.again())?.is_some() {
+            map.next_value_seed(self.again())?;
+        }
+        Ok(())
+    }
+    fn visit_enum<A: serde::de::EnumAccess<'de>>(self, data: A) -> Result<(), A::Error> {
+        // A tagged value (`!tag value`): the tag, then its value.
+        use serde::de::VariantAccess;
+        let ((), v) = data.variant_seed(self.again())?;
+        v.newtype_variant_seed(self)
+    }
+}
+
 /// Parses YAML scene text (`path` is used for messages and metadata).
 pub fn parse(path: &Path, text: &str) -> Result<Scene, IoError> {
     if let Some(line) = too_deep(text, MAX_YAML_DEPTH) {
@@ -363,6 +498,7 @@ pub fn parse(path: &Path, text: &str) -> Result<Scene, IoError> {
             ),
         ));
     }
+    check_aliases(text).map_err(|m| IoError::invalid(path, "aliases", m))?;
     let y: YamlScene = serde_yaml::from_str(text).map_err(|e| match e.location() {
         Some(l) => IoError::invalid(
             path,
@@ -1002,5 +1138,72 @@ mod depth_tests {
         assert_eq!(too_deep("x: 1\ny: [\n [\n  [\n", 2), Some(4));
         let deep = format!("a: {}{}", "[".repeat(100_000), "]".repeat(100_000));
         assert_eq!(too_deep(&deep, 128), Some(1));
+    }
+}
+
+#[cfg(test)]
+mod alias_tests {
+    use std::path::Path;
+
+    /// A scene of 2000 crosswalks that are each one 2000-point polygon, 30 KB of text: over
+    /// 12 million values once its aliases are expanded.
+    fn bomb() -> String {
+        let polygon: Vec<String> = (0..2000)
+            .map(|i| format!("[{}, {}]", i % 7, i % 5))
+            .collect();
+        format!(
+            "scenario_id: bomb\nsteps: 31\ncurrent_step: 10\nmap:\n  lanes:\n    - id: 1\n      \
+             centerline: [[0, 0], [300, 0]]\n  crosswalks:\n    - &p [{}]\n{}agents:\n  - {{id: 1, \
+             lane: 1, s: 10, speed: 10}}\n",
+            polygon.join(", "),
+            "    - *p\n".repeat(2000)
+        )
+    }
+
+    #[test]
+    fn aliases_expanding_past_the_budget_are_refused_before_filling_memory() {
+        // The same scene of 460 KB took 3.4 GB and 14 s to read.
+        let t0 = std::time::Instant::now();
+        let e = super::parse(Path::new("bomb.yaml"), &bomb())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("bomb.yaml: aliases: line ")
+                && e.contains("its aliases (`*name`) expand it to more than 10000000 values"),
+            "{e}"
+        );
+        assert!(t0.elapsed().as_secs() < 10, "{:?}", t0.elapsed());
+        // A few aliases, as a hand-written scene may use them, are read as ever.
+        let text = "scenario_id: reuse\nsteps: 31\ncurrent_step: 10\nmap:\n  lanes:\n    - id: 1\n      \
+                    centerline: &c [[0, 0], [300, 0]]\n    - id: 2\n      centerline: [[0, 3.5], [300, 3.5]]\n  \
+                    road_lines:\n    - {kind: broken, points: *c}\nagents:\n  - {id: 1, lane: 1, s: 10, speed: 10, \
+                    route: [1]}\n";
+        let reused = super::parse(Path::new("reuse.yaml"), text);
+        assert!(reused.is_ok(), "{:?}", reused.err());
+        assert_eq!(super::check_aliases(text), Ok(()));
+        // A syntax error stays the reader's to report.
+        assert_eq!(super::check_aliases("a: *nowhere\n"), Ok(()));
+    }
+
+    #[test]
+    fn batch_and_script_test_files_have_the_same_alias_budget() {
+        let dir = tempfile::tempdir().unwrap();
+        let text = format!(
+            "x: &p [{}]\ny:\n{}",
+            vec!["[1, 2]"; 2000].join(", "),
+            "  - *p\n".repeat(2000)
+        );
+        let batch = dir.path().join("batch.yaml");
+        std::fs::write(&batch, &text).unwrap();
+        let e = crate::llm::batch::read_batch(&batch)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("expand it to more than 10000000 values"), "{e}");
+        let test = dir.path().join("x.test.yaml");
+        std::fs::write(&test, &text).unwrap();
+        let e = crate::cost::script_test::run_test_file(&test)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("expand it to more than 10000000 values"), "{e}");
     }
 }

@@ -635,7 +635,8 @@ impl std::fmt::Display for SceneSummary {
             .map(|(k, v)| format!("{v} {k}"))
             .collect();
         writeln!(f, "scene       {} ({})", self.scenario_id, self.format)?;
-        writeln!(f, "file        {}", self.file)?;
+        // Found by a directory walk, the name is not one the user typed.
+        writeln!(f, "file        {}", crate::io::name::one_line(&self.file))?;
         writeln!(
             f,
             "time        {} steps x {} s = {:.1} s, current step {}",
@@ -679,6 +680,25 @@ impl std::fmt::Display for SceneSummary {
 mod tests {
     use crate::io::yaml;
     use std::path::Path;
+
+    #[test]
+    fn a_summary_shows_a_file_name_with_a_line_break_or_escape_on_its_one_line() {
+        // `inspect DIR` printed a file named `n\n\e[31mred.yaml` as it is: the terminal
+        // turned red and the name broke the layout.
+        let text = "scenario_id: weird\nsteps: 31\ncurrent_step: 10\n\
+                    road: {lanes: 1, lane_width: 3.5, length: 300}\n\
+                    agents:\n  - {id: 1, lane: 0, s: 100, speed: 10}\n";
+        let s = yaml::parse(Path::new("dir/n\n\u{1b}[31mred\u{202E}.yaml"), text).unwrap();
+        let shown = s.summary().to_string();
+        assert!(
+            shown.contains("file        dir/n\\u{000A}\\u{001B}[31mred\\u{202E}.yaml\n"),
+            "{shown}"
+        );
+        assert!(
+            !shown.contains('\u{1b}') && !shown.contains('\u{202E}'),
+            "{shown}"
+        );
+    }
 
     #[test]
     fn a_crop_keeps_the_nearest_observed_agents_over_the_future_asked_for() {
