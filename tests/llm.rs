@@ -883,6 +883,11 @@ fn prompt_show_prints_the_first_prompt() {
     assert!(!out.contains("## Frenet frame"));
     let out = common::ok(&["prompt", "show", s(&samples().join(SCENE)), REQUEST]);
     assert!(out.contains(drivescript::cost::reference_markdown().trim()));
+    // As `ask` refuses it: a prompt asking for nothing is not one to show.
+    for empty in ["", "  \n"] {
+        let err = common::fails(&["prompt", "show", s(&samples().join(SCENE)), empty]);
+        assert!(err.contains("the request is empty"), "{err}");
+    }
 }
 
 #[test]

@@ -216,6 +216,10 @@ pub fn detect_format(path: &Path) -> Result<SceneFormat, IoError> {
              its log_map_archive_*.json) nor a directory of WOMD shards",
         ));
     }
+    // A device or FIFO is no scene whatever its name: `/dev/zero` was "unknown scene format".
+    if std::fs::metadata(path).is_ok_and(|m| !m.is_file()) {
+        return Err(not_regular(path));
+    }
     // The extension decides first: `tfrecord-00000-of-01000_4.json` is JSON, not a shard.
     // JSON is also what AV2 maps, rollouts and reports are written in, so a `.json` is a
     // scene only by its content; other JSON goes on to the checks below (and is refused).
@@ -1361,6 +1365,11 @@ mod tests {
         use super::read_regular;
         let dir = tempfile::tempdir().unwrap();
         let e = read_regular(std::path::Path::new("/dev/zero"), 1 << 20, "a prompt")
+            .unwrap_err()
+            .to_string();
+        assert!(e.starts_with("/dev/zero: file: not a regular file"), "{e}");
+        // Whatever reads it as a scene (`bench io --womd /dev/zero`) says the same.
+        let e = super::detect_format(std::path::Path::new("/dev/zero"))
             .unwrap_err()
             .to_string();
         assert!(e.starts_with("/dev/zero: file: not a regular file"), "{e}");

@@ -2199,6 +2199,11 @@ pub fn first_messages(
     requests: &[String],
     horizon: usize,
 ) -> Result<Fitted, LlmError> {
+    // `prompt show` comes here without `ask`'s checks: it showed the model a prompt asking
+    // for nothing, which `ask` refuses.
+    for r in requests {
+        check_request(r)?;
+    }
     first_prompt(prompts, config, raw, requests, horizon)
         .map_err(|e| LlmError::Context(e.to_string()))
 }

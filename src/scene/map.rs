@@ -606,7 +606,10 @@ agents:
 "#;
         let s = yaml::parse(Path::new("corner.yaml"), text).unwrap();
         let (d, q) = s.map.outside_own_way(Point::new(48.0, 3.0), east).unwrap();
-        assert!((d - 1.25).abs() < 1e-9 && q == Point::new(48.0, 0.0), "{d} {q}");
+        assert!(
+            (d - 1.25).abs() < 1e-9 && q == Point::new(48.0, 0.0),
+            "{d} {q}"
+        );
     }
 
     #[test]
