@@ -26,7 +26,7 @@ fn ids(v: &[i64]) -> Array {
     v.iter().map(|l| Dynamic::from(*l)).collect()
 }
 
-/// Which point of an agent's box [`edge_series`] measures.
+/// Which point of an agent's box [`box_series`] measures.
 #[derive(Clone, Copy)]
 enum BoxPoint {
     Centre,
@@ -41,16 +41,56 @@ const CORNERS: [(f64, f64); 4] = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 
 
 /// Signed road-edge distance of one point of the agent's box, per step.
 fn edge_series(shared: &Shared, a: AgentRef, point: BoxPoint) -> RResult<Series> {
+    if shared.borrow().scene.map.road_edges().is_empty() {
+        return err("the map has no road edges");
+    }
+    box_series(shared, a, point, |map, p, _| {
+        map.nearest_road_edge(p).map(|(d, q)| (d, q, d.signum()))
+    })
+}
+
+/// How far one point of the agent's box (its centre, or a corner) lies outside every lane
+/// going the agent's way ([`Map::outside_own_way`]), per step; unobserved where no lane goes
+/// its way. The heading's choice of lanes adds no gradient: the value does not change with it
+/// except where the choice does.
+fn own_way_series(shared: &Shared, a: AgentRef, point: BoxPoint) -> RResult<Series> {
+    let lanes = shared
+        .borrow()
+        .scene
+        .map
+        .lanes()
+        .iter()
+        .any(|l| l.lane_type.is_vehicle_lane());
+    if !lanes {
+        return err("wrong_way_distance: the map has no vehicle lanes");
+    }
+    box_series(shared, a, point, |map, p, heading| {
+        map.outside_own_way(p, heading).map(|(d, q)| (d, q, 1.0))
+    })
+}
+
+/// A distance from one point of the agent's box to a map feature, per step, with its gradient
+/// w.r.t. the agent's pose. `measure(map, p, heading)` gives the distance, the feature's point
+/// nearest `p` and the sign with which the distance grows away from it (the gradient w.r.t. `p`
+/// is `sign · (p − q) / |p − q|`), or `None` where there is nothing to measure (unobserved).
+fn box_series(
+    shared: &Shared,
+    a: AgentRef,
+    point: BoxPoint,
+    measure: impl Fn(&Map, Point, f64) -> Option<(f64, Point, f64)>,
+) -> RResult<Series> {
     let xs = coord_series(shared, a, Coord::X);
     let ys = coord_series(shared, a, Coord::Y);
     let hs = coord_series(shared, a, Coord::Heading);
     let ctx = shared.borrow();
     let map = &ctx.scene.map;
-    if map.road_edges().is_empty() {
-        return err("the map has no road edges");
-    }
     let agent = &ctx.scene.agents[a.idx];
     let (hl, hw) = (0.5 * agent.length, 0.5 * agent.width);
+    let offsets: &[(f64, f64)] = match point {
+        BoxPoint::Centre => &[(0.0, 0.0)],
+        BoxPoint::Farthest => &CORNERS,
+        BoxPoint::Corner(i) => &CORNERS[i..=i],
+    };
     let (x, y, h) = (&xs.0, &ys.0, &hs.0);
     let mut b = Builder::new(x.val.len(), x.head, x.dt, x.time0);
     for k in 0..x.val.len() {
@@ -60,20 +100,17 @@ fn edge_series(shared: &Shared, a: AgentRef, point: BoxPoint) -> RResult<Series>
         }
         let (cx, cy, th) = (x.val[k], y.val[k], h.val[k]);
         let (sn, cs) = th.sin_cos();
-        let offsets: &[(f64, f64)] = match point {
-            BoxPoint::Centre => &[(0.0, 0.0)],
-            BoxPoint::Farthest => &CORNERS,
-            BoxPoint::Corner(i) => &CORNERS[i..=i],
-        };
         let mut best: Option<(f64, [f64; 3])> = None;
         for &(u, v) in offsets {
             let (lx, ly) = (u * hl, v * hw);
             let p = Point::new(cx + cs * lx - sn * ly, cy + sn * lx + cs * ly);
-            let (d, q) = map.nearest_road_edge(p).expect("edges exist");
+            let Some((d, q, sign)) = measure(map, p, th) else {
+                continue;
+            };
             let r = p - q;
             let n = r.norm();
             let g = if n > 1e-12 {
-                r / n * d.signum()
+                r / n * sign
             } else {
                 Point::zeros()
             };
@@ -83,65 +120,15 @@ fn edge_series(shared: &Shared, a: AgentRef, point: BoxPoint) -> RResult<Series>
                 best = Some((d, grad));
             }
         }
-        let (d, g) = best.expect("at least one point");
+        let Some((d, g)) = best else {
+            b.push_row(0.0, false, std::iter::empty());
+            continue;
+        };
         let row: Vec<(u32, f64)> = match (xs.row(k).first(), ys.row(k).first(), hs.row(k).first()) {
             (Some(&(vx, _)), Some(&(vy, _)), Some(&(vh, _))) => {
                 let mut r = vec![(vx, g[0]), (vy, g[1])];
                 if !matches!(point, BoxPoint::Centre) {
                     r.push((vh, g[2]));
-                }
-                r
-            }
-            _ => vec![],
-        };
-        b.push_row(d, true, row);
-    }
-    Ok(b.build())
-}
-
-/// How far one point of the agent's box (its centre, or corner `i`) lies outside every lane
-/// going the agent's way ([`Map::outside_own_way`]), per step, with its gradient. The heading
-/// moves a corner, so a corner's value depends on it; the heading's choice of lanes adds
-/// nothing, as the value does not change with it except where the choice does.
-fn own_way_series(shared: &Shared, a: AgentRef, corner: Option<usize>) -> RResult<Series> {
-    let xs = coord_series(shared, a, Coord::X);
-    let ys = coord_series(shared, a, Coord::Y);
-    let hs = coord_series(shared, a, Coord::Heading);
-    let ctx = shared.borrow();
-    let map = &ctx.scene.map;
-    if !map.lanes().iter().any(|l| l.lane_type.is_vehicle_lane()) {
-        return err("wrong_way_distance: the map has no vehicle lanes");
-    }
-    let agent = &ctx.scene.agents[a.idx];
-    let (lx, ly) = corner.map_or((0.0, 0.0), |i| {
-        (
-            CORNERS[i].0 * 0.5 * agent.length,
-            CORNERS[i].1 * 0.5 * agent.width,
-        )
-    });
-    let (x, y, h) = (&xs.0, &ys.0, &hs.0);
-    let mut b = Builder::new(x.val.len(), x.head, x.dt, x.time0);
-    for k in 0..x.val.len() {
-        if !(x.valid[k] && y.valid[k] && h.valid[k]) {
-            b.push_row(0.0, false, std::iter::empty());
-            continue;
-        }
-        let th = h.val[k];
-        let (sn, cs) = th.sin_cos();
-        let p = Point::new(x.val[k] + cs * lx - sn * ly, y.val[k] + sn * lx + cs * ly);
-        let Some((d, q)) = map.outside_own_way(p, th) else {
-            b.push_row(0.0, false, std::iter::empty());
-            continue;
-        };
-        let r = p - q;
-        let n = r.norm();
-        let g = if n > 1e-12 { r / n } else { Point::zeros() };
-        let dp_dh = Point::new(-sn * lx - cs * ly, cs * lx - sn * ly);
-        let row: Vec<(u32, f64)> = match (xs.row(k).first(), ys.row(k).first(), hs.row(k).first()) {
-            (Some(&(vx, _)), Some(&(vy, _)), Some(&(vh, _))) => {
-                let mut r = vec![(vx, g.x), (vy, g.y)];
-                if corner.is_some() {
-                    r.push((vh, g.dot(&dp_dh)));
                 }
                 r
             }
@@ -330,7 +317,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     doc(docs, R, "a.wrong_way_distance -> Series", "How far the agent's centre lies outside every vehicle lane going its way (lane direction within 60° of its heading), metres: the distance to the nearest such lane's centre line less half its width, negative inside one. Positive in the oncoming lanes, which are on the road: `edge_distance` cannot tell them from the agent's own. Unobserved at steps where no lane goes the agent's way; an error on a map without vehicle lanes.");
     let sh = shared.clone();
     e.register_get("wrong_way_distance", move |a: &mut AgentRef| {
-        own_way_series(&sh, *a, None)
+        own_way_series(&sh, *a, BoxPoint::Centre)
     });
     doc(docs, R, "a.corner_wrong_way_distance(i) -> Series", "The same for one corner of the box (0 rear right, 1 front right, 2 front left, 3 rear left), each corner measured against the lanes going the agent's way: a car changing between two lanes going its way has every corner inside one of them; one straddling the line to the oncoming lanes has two corners outside.");
     let sh = shared.clone();
@@ -338,7 +325,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
         "corner_wrong_way_distance",
         move |a: &mut AgentRef, i: i64| -> RResult<Series> {
             match usize::try_from(i).ok().filter(|&i| i < 4) {
-                Some(i) => own_way_series(&sh, *a, Some(i)),
+                Some(i) => own_way_series(&sh, *a, BoxPoint::Corner(i)),
                 None => err(format!(
                     "corner_wrong_way_distance: corner {i} is not 0, 1, 2 or 3"
                 )),
