@@ -1359,6 +1359,22 @@ mod tests {
         );
     }
 
+    /// A thread reading `fifo` to its end: left running if the FIFO is replaced (then nobody
+    /// ever writes to it).
+    #[cfg(unix)]
+    fn fifo_reader(fifo: &std::path::Path) -> std::thread::JoinHandle<String> {
+        use std::io::Read;
+        let f = fifo.to_path_buf();
+        std::thread::spawn(move || {
+            let mut t = String::new();
+            std::fs::File::open(&f)
+                .unwrap()
+                .read_to_string(&mut t)
+                .unwrap();
+            t
+        })
+    }
+
     #[cfg(unix)]
     #[test]
     fn only_regular_files_within_their_cap_are_read() {
@@ -1430,7 +1446,6 @@ mod tests {
     fn a_file_a_writer_makes_at_its_own_path_reaches_a_fifo_in_place() {
         // `bench sample --export FIFO` renamed its file over the FIFO (as root, over
         // /dev/null for the whole machine).
-        use std::io::Read;
         use std::os::unix::fs::FileTypeExt;
         let dir = tempfile::tempdir().unwrap();
         let out = dir.path().join("x.safetensors");
@@ -1446,16 +1461,7 @@ mod tests {
         let fifo = dir.path().join("f.safetensors");
         let made = std::process::Command::new("mkfifo").arg(&fifo).status();
         assert!(made.is_ok_and(|s| s.success()));
-        let f = fifo.clone();
-        // Left running if the FIFO is replaced (then nobody ever writes to it).
-        let reader = std::thread::spawn(move || {
-            let mut t = String::new();
-            std::fs::File::open(&f)
-                .unwrap()
-                .read_to_string(&mut t)
-                .unwrap();
-            t
-        });
+        let reader = fifo_reader(&fifo);
         super::write_atomic_from(&fifo, |p| std::fs::write(p, b"piped")).unwrap();
         let kind = std::fs::symlink_metadata(&fifo).unwrap().file_type();
         assert!(kind.is_fifo(), "the FIFO was replaced by {kind:?}");
@@ -1571,7 +1577,6 @@ mod tests {
     #[cfg(unix)]
     #[test]
     fn a_fifo_output_is_written_in_place_and_a_directory_is_refused() {
-        use std::io::Read;
         use std::os::unix::fs::FileTypeExt;
         let dir = tempfile::tempdir().unwrap();
         let e = super::write_atomic(dir.path(), b"x")
@@ -1583,16 +1588,7 @@ mod tests {
         if !made.is_ok_and(|s| s.success()) {
             return;
         }
-        let f = fifo.clone();
-        // Left running if the FIFO is replaced (then nobody ever writes to it).
-        let reader = std::thread::spawn(move || {
-            let mut t = String::new();
-            std::fs::File::open(&f)
-                .unwrap()
-                .read_to_string(&mut t)
-                .unwrap();
-            t
-        });
+        let reader = fifo_reader(&fifo);
         super::write_atomic(&fifo, b"{\"a\": 1}").unwrap();
         let kind = std::fs::symlink_metadata(&fifo).unwrap().file_type();
         assert!(kind.is_fifo(), "the FIFO was replaced by {kind:?}");
