@@ -216,10 +216,6 @@ pub fn detect_format(path: &Path) -> Result<SceneFormat, IoError> {
              its log_map_archive_*.json) nor a directory of WOMD shards",
         ));
     }
-    // A device or FIFO is no scene whatever its name: `/dev/zero` was "unknown scene format".
-    if std::fs::metadata(path).is_ok_and(|m| !m.is_file()) {
-        return Err(not_regular(path));
-    }
     // The extension decides first: `tfrecord-00000-of-01000_4.json` is JSON, not a shard.
     // JSON is also what AV2 maps, rollouts and reports are written in, so a `.json` is a
     // scene only by its content; other JSON goes on to the checks below (and is refused).
@@ -250,8 +246,11 @@ pub fn detect_format(path: &Path) -> Result<SceneFormat, IoError> {
     } else {
         // A `.json` that cannot be read comes here (its content decides): a link loop is
         // named as one, not as an unknown format.
+        // A device or FIFO named like nothing (`/dev/zero`) is named as what it is; one named
+        // like a scene is detected by its name above, and refused where it is read.
         match std::fs::metadata(path) {
             Err(e) if is_link_loop(&e) => Err(read_error(path, e)),
+            Ok(m) if !m.is_file() => Err(not_regular(path)),
             _ => Err(IoError::UnknownFormat {
                 path: path.display().to_string(),
             }),
