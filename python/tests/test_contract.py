@@ -137,13 +137,20 @@ def test_ctrl_c_stops_a_long_evaluate_batch_and_leaves_the_script_usable(ds, sce
     )
     traj = np.nan_to_num(scene.log_future(40))
     batch = np.stack([traj] * 400)
-    timer = threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGINT))
-    t = time.perf_counter()
-    timer.start()
-    with pytest.raises(KeyboardInterrupt):
-        slow.evaluate_batch(scene, batch)
-    assert time.perf_counter() - t < 3.0, time.perf_counter() - t
-    timer.join()
+    # A process started in the background by a non-interactive shell (`cmd &`, as CI may run
+    # the suite) inherits SIGINT ignored, and Python then installs no KeyboardInterrupt
+    # handler: the signal would be dropped before drivescript could see it.
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        timer = threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGINT))
+        t = time.perf_counter()
+        timer.start()
+        with pytest.raises(KeyboardInterrupt):
+            slow.evaluate_batch(scene, batch)
+        assert time.perf_counter() - t < 3.0, time.perf_counter() - t
+        timer.join()
+    finally:
+        signal.signal(signal.SIGINT, before)
     assert len(slow.evaluate_batch(scene, batch[:2])) == 2
 
 
