@@ -159,6 +159,13 @@ impl Polyline {
     /// The closest point of the polyline to `p`.
     /// Ties go to the first segment, as in a scan of them all.
     pub fn nearest(&self, p: &Point) -> SegmentHit {
+        self.nearest_where(p, |_| true)
+            .expect("a polyline's points are finite")
+    }
+
+    /// [`Polyline::nearest`] among the segments `keep` accepts (by index), with the same
+    /// pruning; `None` when it accepts none.
+    pub fn nearest_where(&self, p: &Point, keep: impl Fn(usize) -> bool) -> Option<SegmentHit> {
         let mut best = SegmentHit {
             segment: 0,
             t: 0.0,
@@ -173,7 +180,7 @@ impl Polyline {
         };
         let scan = |c: usize, best: &mut SegmentHit| {
             let end = ((c + 1) * CHUNK).min(self.segment_count());
-            for i in c * CHUNK..end {
+            for i in (c * CHUNK..end).filter(|&i| keep(i)) {
                 let (d, t) = point_segment_distance(p, &self.points[i], &self.points[i + 1]);
                 if d < best.distance || (d == best.distance && i < best.segment) {
                     *best = SegmentHit {
@@ -200,7 +207,7 @@ impl Polyline {
                 scan(c, &mut best);
             }
         }
-        best
+        best.distance.is_finite().then_some(best)
     }
 
     /// Euclidean distance from `p` to the polyline.

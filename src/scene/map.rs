@@ -484,17 +484,16 @@ impl Map {
             // The nearest segment going the agent's way, not the lane's nearest segment: a
             // corner of a car in a curve is often nearest to the part of its own lane that
             // has already turned.
-            for w in lane.centerline.points().windows(2) {
-                let (a, b) = (w[0], w[1]);
-                let ab = b - a;
-                let len2 = ab.norm_squared();
-                if len2 <= 0.0 || wrap_angle(heading - ab.y.atan2(ab.x)).abs() > OWN_WAY {
-                    continue;
-                }
-                let q = a + ab * ((p - a).dot(&ab) / len2).clamp(0.0, 1.0);
-                let d = (p - q).norm() - hw;
+            let line = &lane.centerline;
+            let hit = line.nearest_where(&p, |i| {
+                let dir = line.segment_direction(i);
+                wrap_angle(heading - dir.y.atan2(dir.x)).abs() <= OWN_WAY
+            });
+            if let Some(hit) = hit {
+                let d = hit.distance - hw;
                 if best.is_none_or(|(b, _)| d < b) {
-                    best = Some((d, q));
+                    let (a, b) = (line.points()[hit.segment], line.points()[hit.segment + 1]);
+                    best = Some((d, a + (b - a) * hit.t));
                 }
             }
         }
