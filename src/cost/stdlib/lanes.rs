@@ -36,6 +36,15 @@ enum BoxPoint {
     Corner(usize),
 }
 
+/// Corner `i` of the box (0 rear right, 1 front right, 2 front left, 3 rear left), as `what`
+/// takes it.
+fn corner(what: &str, i: i64) -> RResult<BoxPoint> {
+    match usize::try_from(i).ok().filter(|&i| i < 4) {
+        Some(i) => Ok(BoxPoint::Corner(i)),
+        None => err(format!("{what}: corner {i} is not 0, 1, 2 or 3")),
+    }
+}
+
 /// The box corners in the agent's frame, in units of half length and half width.
 const CORNERS: [(f64, f64); 4] = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)];
 
@@ -324,12 +333,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     e.register_fn(
         "corner_wrong_way_distance",
         move |a: &mut AgentRef, i: i64| -> RResult<Series> {
-            match usize::try_from(i).ok().filter(|&i| i < 4) {
-                Some(i) => own_way_series(&sh, *a, BoxPoint::Corner(i)),
-                None => err(format!(
-                    "corner_wrong_way_distance: corner {i} is not 0, 1, 2 or 3"
-                )),
-            }
+            own_way_series(&sh, *a, corner("corner_wrong_way_distance", i)?)
         },
     );
     doc(docs, R, "a.box_edge_distance -> Series", "The same for the agent's box corner farthest off the road (positive as soon as any corner is off).");
@@ -342,12 +346,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     e.register_fn(
         "corner_edge_distance",
         move |a: &mut AgentRef, i: i64| -> RResult<Series> {
-            match usize::try_from(i).ok().filter(|&i| i < 4) {
-                Some(i) => edge_series(&sh, *a, BoxPoint::Corner(i)),
-                None => err(format!(
-                    "corner_edge_distance: corner {i} is not 0, 1, 2 or 3"
-                )),
-            }
+            edge_series(&sh, *a, corner("corner_edge_distance", i)?)
         },
     );
     doc(docs, R, "a.on_road(k) -> Series", "Soft indicator of the whole box being on the road: sigmoid(-k · box_edge_distance), near 1 on the road, near 0 off it.");
