@@ -1,5 +1,5 @@
-//! Planar geometry: polylines, the Frenet frame of a path, oriented boxes, polygons and
-//! neighbour queries.
+//! Planar geometry: polylines, the Frenet frame of a path, oriented boxes, polygons,
+//! neighbour queries and a grid of segments.
 //!
 //! Everything is in a right-handed world frame in metres; angles are radians counter-clockwise
 //! from +x. "Left" is the side a driver going along a polyline sees on the left (positive `d`).
@@ -9,12 +9,14 @@ mod frenet;
 mod neighbours;
 mod polygon;
 mod polyline;
+mod segment_grid;
 
 pub use boxes::OrientedBox;
 pub use frenet::{FrenetPath, FrenetPoint};
 pub use neighbours::{nearest_distances, pairs_within};
 pub use polygon::Polygon;
 pub use polyline::{Polyline, SegmentHit};
+pub use segment_grid::{GridHit, SegmentGrid};
 
 /// A point or a vector in the plane.
 pub type Point = nalgebra::Vector2<f64>;

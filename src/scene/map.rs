@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 
 use super::lane_graph::LaneGraph;
 use super::SceneError;
-use crate::geom::{wrap_angle, FrenetPath, Point, Polygon, Polyline};
+use crate::geom::{wrap_angle, FrenetPath, Point, Polygon, Polyline, SegmentGrid};
 
 /// Identifier of a lane, as the source numbers it.
 pub type LaneId = i64;
@@ -198,8 +198,11 @@ pub struct Map {
     parts: MapParts,
     graph: LaneGraph,
     edge_bounds: Vec<(Point, Point)>,
-    /// Per lane: its centre line's bounds and half its width.
-    lane_extents: Vec<((Point, Point), f64)>,
+    /// Every vehicle lane's centre-line segments, each offset by half its lane's width, for
+    /// [`Map::outside_own_way`]; `own_way_segments[i]` is segment `i`'s lane index, segment
+    /// index and direction (radians).
+    own_way: SegmentGrid,
+    own_way_segments: Vec<(usize, usize, f64)>,
     exits: Vec<MapExit>,
 }
 
@@ -208,6 +211,10 @@ pub struct Map {
 /// heading leads or lags a curved lane, narrow enough that a crossing lane in a junction is not
 /// its own.
 pub const OWN_WAY: f64 = std::f64::consts::FRAC_PI_3;
+
+/// Cell width (metres) of [`Map::outside_own_way`]'s grid: about two lanes, so that the
+/// cells around a car on its lane hold the answer.
+const OWN_WAY_CELL: f64 = 8.0;
 
 /// Half a lane's width: the median over its centre-line points of half the distance between
 /// its boundaries, 1.75 m where it has none.
@@ -284,17 +291,27 @@ impl Map {
         }
         let graph = LaneGraph::build(&parts.lanes);
         let edge_bounds = parts.road_edges.iter().map(|e| e.line().bounds()).collect();
-        let lane_extents = parts
-            .lanes
-            .iter()
-            .map(|l| (l.centerline.bounds(), half_width(l)))
-            .collect();
+        let mut own_way_segments = Vec::new();
+        let mut segments = Vec::new();
+        for (li, l) in parts.lanes.iter().enumerate() {
+            if !l.lane_type.is_vehicle_lane() {
+                continue;
+            }
+            let (line, hw) = (&l.centerline, half_width(l));
+            for i in 0..line.segment_count() {
+                let dir = line.segment_direction(i);
+                own_way_segments.push((li, i, dir.y.atan2(dir.x)));
+                segments.push((line.points()[i], line.points()[i + 1], hw));
+            }
+        }
+        let own_way = SegmentGrid::new(segments, OWN_WAY_CELL);
         let exits = find_exits(&parts.lanes);
         Ok(Self {
             parts,
             graph,
             edge_bounds,
-            lane_extents,
+            own_way,
+            own_way_segments,
             exits,
         })
     }
@@ -471,33 +488,16 @@ impl Map {
     /// A car in the oncoming lanes is on the road, where the road-edge distance cannot see it;
     /// this can.
     pub fn outside_own_way(&self, p: Point, heading: f64) -> Option<(f64, Point)> {
-        let mut best: Option<(f64, Point)> = None;
-        for (lane, &((lo, hi), hw)) in self.parts.lanes.iter().zip(&self.lane_extents) {
-            if !lane.lane_type.is_vehicle_lane() {
-                continue;
-            }
-            let dx = (lo.x - p.x).max(p.x - hi.x).max(0.0);
-            let dy = (lo.y - p.y).max(p.y - hi.y).max(0.0);
-            if best.is_some_and(|(b, _)| dx.hypot(dy) - hw >= b) {
-                continue;
-            }
-            // The nearest segment going the agent's way, not the lane's nearest segment: a
-            // corner of a car in a curve is often nearest to the part of its own lane that
-            // has already turned.
-            let line = &lane.centerline;
-            let hit = line.nearest_where(&p, |i| {
-                let dir = line.segment_direction(i);
-                wrap_angle(heading - dir.y.atan2(dir.x)).abs() <= OWN_WAY
-            });
-            if let Some(hit) = hit {
-                let d = hit.distance - hw;
-                if best.is_none_or(|(b, _)| d < b) {
-                    let (a, b) = (line.points()[hit.segment], line.points()[hit.segment + 1]);
-                    best = Some((d, a + (b - a) * hit.t));
-                }
-            }
-        }
-        best
+        // The nearest segment going the agent's way, not each lane's nearest segment: a corner
+        // of a car in a curve is often nearest to the part of its own lane that has already
+        // turned.
+        let hit = self.own_way.nearest(&p, |i| {
+            wrap_angle(heading - self.own_way_segments[i].2).abs() <= OWN_WAY
+        })?;
+        let (lane, seg, _) = self.own_way_segments[hit.index];
+        let line = self.parts.lanes[lane].centerline.points();
+        let (a, b) = (line[seg], line[seg + 1]);
+        Some((hit.distance, a + (b - a) * hit.t))
     }
 
     /// The nearest lane to a pose whose direction agrees with `heading` (within 90°).
@@ -609,6 +609,75 @@ agents:
             (d - 1.25).abs() < 1e-9 && q == Point::new(48.0, 0.0),
             "{d} {q}"
         );
+    }
+
+    #[test]
+    fn own_way_through_the_grid_is_a_scan_of_every_lane_segment() {
+        // Real urban maps (AV2 Miami, Lankershim): the grid's answer is the least of (distance
+        // less half width) over every vehicle-lane segment going the way, at points over the
+        // whole map and every heading.
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/samples");
+        let opts = crate::io::LoadOptions::default();
+        for file in [
+            "av2/scenario_0a1e6f0a-1817-4a98-b02e-db8c9327d151.parquet",
+            "commonroad/USA_Lanker-1_1_T-1.xml",
+        ] {
+            let s = crate::io::load_scene(&root.join(file), 0, &opts).unwrap();
+            let m = &s.map;
+            let scan = |p: Point, heading: f64| {
+                let mut best: Option<(f64, Point)> = None;
+                for l in m.lanes().iter().filter(|l| l.lane_type.is_vehicle_lane()) {
+                    let line = &l.centerline;
+                    for i in 0..line.segment_count() {
+                        let dir = line.segment_direction(i);
+                        if crate::geom::wrap_angle(heading - dir.y.atan2(dir.x)).abs()
+                            > super::OWN_WAY
+                        {
+                            continue;
+                        }
+                        let (a, b) = (line.points()[i], line.points()[i + 1]);
+                        let (d, t) = crate::geom::point_segment_distance(&p, &a, &b);
+                        let d = d - super::half_width(l);
+                        if best.is_none_or(|(bd, _)| d < bd) {
+                            best = Some((d, a + (b - a) * t));
+                        }
+                    }
+                }
+                best
+            };
+            let (mut lo, mut hi) = (
+                Point::repeat(f64::INFINITY),
+                Point::repeat(f64::NEG_INFINITY),
+            );
+            for l in m.lanes() {
+                let (a, b) = l.centerline.bounds();
+                (lo, hi) = (lo.inf(&a), hi.sup(&b));
+            }
+            let mut checked = 0;
+            for i in 0..=40 {
+                for j in 0..=40 {
+                    let p = Point::new(
+                        lo.x - 20.0 + (hi.x - lo.x + 40.0) * i as f64 / 40.0,
+                        lo.y - 20.0 + (hi.y - lo.y + 40.0) * j as f64 / 40.0,
+                    );
+                    for k in 0..8 {
+                        let h = -3.0 + 0.79 * k as f64;
+                        let (got, want) = (m.outside_own_way(p, h), scan(p, h));
+                        match (got, want) {
+                            (Some((d, q)), Some((e, r))) => {
+                                assert!((d - e).abs() < 1e-12, "{file} {p:?} {h}: {d} {e}");
+                                // Two segments as near give either point.
+                                assert!(((q - p).norm() - (r - p).norm()).abs() < 1e-9);
+                            }
+                            (None, None) => {}
+                            other => panic!("{file} {p:?} {h}: {other:?}"),
+                        }
+                        checked += 1;
+                    }
+                }
+            }
+            assert_eq!(checked, 41 * 41 * 8);
+        }
     }
 
     #[test]
