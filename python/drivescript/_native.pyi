@@ -140,7 +140,10 @@ class Sampler:
         realism: float = ...,
         polish: int = ...,
     ) -> F64Array:
-        """Guided samples, float64 ``[samples, agents, steps, 3]``, as ``simulate`` draws them."""
+        """Guided samples, float64 ``[samples, agents, steps, 3]``, as ``simulate`` draws them.
+
+        Runs with the GIL released; Ctrl-C stops it within one denoising step
+        (KeyboardInterrupt)."""
 
 class Verdict:
     """A behaviour checker's verdict."""

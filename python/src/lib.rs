@@ -875,7 +875,8 @@ impl Sampler {
     /// agent is absent; `steps` is `horizon` or the model's.
     ///
     /// `task` is "conditional" (history and recorded end points known) or "unconditional"
-    /// (history only: what behaviour scripts such as cut_in are tuned for).
+    /// (history only: what behaviour scripts such as cut_in are tuned for). Ctrl-C stops it
+    /// within one denoising step (KeyboardInterrupt).
     #[pyo3(signature = (scene, scripts = Vec::new(), samples = 4, *, seed = 1, steps = 32,
         task = "conditional", horizon = None, guidance = sampler::BEHAVIOUR_LAMBDA,
         realism = sampler::REALISM_WEIGHT, polish = sampler::POLISH_STEPS))]
@@ -930,8 +931,8 @@ impl Sampler {
             refuse_dead_terms: false,
         };
         let raw = scene.inner.clone();
-        let done = detached(py, "sampler", || {
-            Ok(sampler::attempt(&self.trained, &raw, &spec))
+        let done = detached_interruptible(py, "sampler", |stop| {
+            Ok(sampler::attempt_until(&self.trained, &raw, &spec, stop))
         })?;
         let done = done.map_err(|e| match e {
             AttemptError::Script(e) => script_error(py, &e),

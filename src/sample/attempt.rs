@@ -8,13 +8,14 @@
 
 use std::path::Path;
 use std::rc::Rc;
+use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
 use serde::Serialize;
 
-use super::closed_loop::closed_loop;
+use super::closed_loop::closed_loop_until;
 use super::config::{SampleConfig, SampleError, Task};
-use super::guided::{prepare_for, sample, sampled_horizon, Sample};
+use super::guided::{prepare_for, sample_until, sampled_horizon, Sample};
 use crate::cost::ScriptSpec;
 use crate::cost::{check_params, CostError, CostReport, CostScript, Params};
 use crate::eval::asked::{self, requested, verdicts};
@@ -469,6 +470,18 @@ pub fn attempt(
     raw: &Scene,
     spec: &AttemptSpec,
 ) -> Result<Attempt, AttemptError> {
+    attempt_until(trained, raw, spec, &AtomicBool::new(false))
+}
+
+/// [`attempt`] that another thread may stop by setting `stop` (Python's Ctrl-C): sampling,
+/// the unguided twins' included, ends within one denoising step or polish iteration with
+/// [`SampleError::Stopped`].
+pub fn attempt_until(
+    trained: &Trained,
+    raw: &Scene,
+    spec: &AttemptSpec,
+    stop: &AtomicBool,
+) -> Result<Attempt, AttemptError> {
     let cfg = &spec.cfg;
     cfg.validate().map_err(SampleError::Settings)?;
     let scene = prepare_for(raw, sampled_horizon(trained, cfg)?)?;
@@ -517,8 +530,8 @@ pub fn attempt(
         .map_err(AttemptError::Script)?;
     let t0 = Instant::now();
     let samples = match spec.replan {
-        Some(every) => closed_loop(trained, raw, &spec.scripts, cfg, every)?,
-        None => sample(trained, &scene, &scripts, cfg)?,
+        Some(every) => closed_loop_until(trained, raw, &spec.scripts, cfg, every, stop)?,
+        None => sample_until(trained, &scene, &scripts, cfg, stop)?,
     };
     let seconds = t0.elapsed().as_secs_f64();
     // The rest of the scene is judged against the same samples drawn unguided (same seed, so
@@ -528,8 +541,8 @@ pub fn attempt(
         None
     } else {
         Some(match spec.replan {
-            Some(every) => closed_loop(trained, raw, &[], cfg, every)?,
-            None => sample(trained, &scene, &[], cfg)?,
+            Some(every) => closed_loop_until(trained, raw, &[], cfg, every, stop)?,
+            None => sample_until(trained, &scene, &[], cfg, stop)?,
         })
     };
     let roles = roles(spec.checks.iter().map(|(b, p)| (*b, p)));
@@ -657,6 +670,7 @@ mod tests {
     use crate::cost::Limits;
     use crate::eval::check_against_unguided;
     use crate::io::{load_scene, LoadOptions};
+    use crate::sample::{closed_loop, sample};
     use crate::train::train;
     use std::path::Path;
 

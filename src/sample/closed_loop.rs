@@ -5,6 +5,7 @@
 //! request's horizon stays where the user put it.
 
 use std::rc::Rc;
+use std::sync::atomic::AtomicBool;
 
 use super::config::{SampleConfig, SampleError};
 use super::guided::{
@@ -24,6 +25,26 @@ pub fn closed_loop(
     scripts: &[ScriptSpec],
     cfg: &SampleConfig,
     execute: usize,
+) -> Result<Vec<Sample>, SampleError> {
+    closed_loop_until(
+        trained,
+        scene,
+        scripts,
+        cfg,
+        execute,
+        &AtomicBool::new(false),
+    )
+}
+
+/// [`closed_loop`] that another thread may stop by setting `stop`
+/// ([`sample_until`](super::guided::sample_until)).
+pub fn closed_loop_until(
+    trained: &Trained,
+    scene: &Scene,
+    scripts: &[ScriptSpec],
+    cfg: &SampleConfig,
+    execute: usize,
+    stop: &AtomicBool,
 ) -> Result<Vec<Sample>, SampleError> {
     cfg.validate().map_err(SampleError::Settings)?;
     let future = sampled_horizon(trained, cfg)?;
@@ -67,7 +88,8 @@ pub fn closed_loop(
                 trajectories: &executed,
                 steps: done,
             };
-            let s = sample_after(trained, &view, &compiled, Some(executed), &round_cfg)?.remove(0);
+            let s = sample_after(trained, &view, &compiled, Some(executed), &round_cfg, stop)?
+                .remove(0);
             let take = execute.min(future - done);
             for (a, b) in state.agents.iter_mut().zip(&s.scene.agents) {
                 for t in 0..take {

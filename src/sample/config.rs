@@ -271,6 +271,17 @@ pub enum SampleError {
         /// The scripts' evaluations and their time when it ran out.
         used: crate::cost::Usage,
     },
+    /// Another thread set the run's stop flag ([`sample_until`](super::guided::sample_until)).
+    #[error("sampling stopped before its end, as asked")]
+    Stopped,
+}
+
+/// Ends a run whose stop flag is set.
+pub(super) fn check_stop(stop: &std::sync::atomic::AtomicBool) -> Result<(), SampleError> {
+    if stop.load(std::sync::atomic::Ordering::Relaxed) {
+        return Err(SampleError::Stopped);
+    }
+    Ok(())
 }
 
 /// Stops a run whose scripts have taken more than `cfg.script_budget` together.

@@ -10,10 +10,10 @@ pub mod provenance;
 
 pub use crate::cost::ScriptSpec;
 pub use attempt::{
-    attempt, AgentShare, Attempt, AttemptError, AttemptReport, AttemptSpec, Carried, RealismEvent,
-    SampleOutcome, Settings, TermOutcome, CARRIERS_SHOWN,
+    attempt, attempt_until, AgentShare, Attempt, AttemptError, AttemptReport, AttemptSpec, Carried,
+    RealismEvent, SampleOutcome, Settings, TermOutcome, CARRIERS_SHOWN,
 };
-pub use closed_loop::closed_loop;
+pub use closed_loop::{closed_loop, closed_loop_until};
 pub use config::{
     Clamp, Guidance, LambdaSchedule, SampleConfig, SampleError, Task, BEHAVIOUR_LAMBDA,
     DEFAULT_GUIDANCE, DEFAULT_SCRIPT_BUDGET, MAX_HEUN_STEPS, MAX_SAMPLES, MAX_SCRIPT_BUDGET,
@@ -21,5 +21,5 @@ pub use config::{
 };
 pub use guided::{
     horizon_note, modelled, prepare, prepare_for, recorded_future, reference_run, sample,
-    sampled_horizon, too_few_steps, Sample,
+    sample_until, sampled_horizon, too_few_steps, Sample,
 };
