@@ -544,6 +544,77 @@ fn implausible_lane_widths_are_refused_naming_file_field_and_range() {
 }
 
 #[test]
+fn implausible_speed_limits_and_road_headings_are_refused() {
+    // A NaN, negative or 1e300 limit was read as it was (issue 32): shown to the LLM as
+    // "limit NaN m/s" or in 300 digits, and handed to the speed checkers.
+    let dir = tempfile::tempdir().unwrap();
+    for v in ["-1", "0", ".nan", "1e300", ".inf"] {
+        let f = dir.path().join("road.yaml");
+        std::fs::write(
+            &f,
+            format!("road: {{lanes: 2, length: 100, speed_limit: {v}}}\nagents: [{{id: 1, lane: 0, s: 5, speed: 1}}]\n"),
+        )
+        .unwrap();
+        let err = fails(&["inspect", s(&f)]);
+        assert!(
+            err.contains("road.yaml: road.speed_limit") && err.contains("at most 100 m/s"),
+            "{v}: {err}"
+        );
+        assert!(err.len() < 300, "{err}");
+    }
+    // A road heading that is no angle: NaN panicked while the road was built.
+    for v in [".nan", "1e300", "-400"] {
+        let f = dir.path().join("turned.yaml");
+        std::fs::write(
+            &f,
+            format!("road: {{lanes: 2, length: 100, heading: {v}}}\nagents: [{{id: 1, lane: 0, s: 5, speed: 1}}]\n"),
+        )
+        .unwrap();
+        let err = fails(&["inspect", s(&f)]);
+        assert!(
+            err.contains("turned.yaml: road.heading") && err.contains("-360..=360 degrees"),
+            "{v}: {err}"
+        );
+    }
+    // A road origin far out is said in a few characters.
+    let f = dir.path().join("far.yaml");
+    std::fs::write(
+        &f,
+        "road: {lanes: 2, length: 100, origin: [1e300, 0]}\nagents: [{id: 1, lane: 0, s: 5, speed: 1}]\n",
+    )
+    .unwrap();
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("road.origin") && err.contains("(1e300, 0)"),
+        "{err}"
+    );
+    // CommonRoad: a lanelet's <speedLimit>, caught by the map every reader builds.
+    let xml = copy_to(
+        dir.path(),
+        &samples().join("commonroad/USA_Lanker-1_1_T-1.xml"),
+        "x.xml",
+    );
+    edit(&xml, |t| {
+        let at = t.find("<speedLimit>").expect("a speed limit");
+        let end = at + t[at..].find("</speedLimit>").unwrap();
+        format!("{}<speedLimit>-13.4{}", &t[..at], &t[end..])
+    });
+    let err = fails(&["inspect", s(&xml)]);
+    assert!(
+        err.contains("x.xml") && err.contains("speed limit -13.4 m/s is implausible"),
+        "{err}"
+    );
+    // The edge of the range is a limit.
+    let f = dir.path().join("fast.yaml");
+    std::fs::write(
+        &f,
+        "road: {lanes: 2, length: 100, speed_limit: 100}\nagents: [{id: 1, lane: 0, s: 5, speed: 1}]\n",
+    )
+    .unwrap();
+    ok(&["inspect", s(&f)]);
+}
+
+#[test]
 fn womd_truncated_and_flipped_files_name_the_record() {
     let dir = tempfile::tempdir().unwrap();
     let f = dir.path().join("x.tfrecord");

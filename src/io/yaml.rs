@@ -16,7 +16,7 @@ use super::IoError;
 use crate::geom::{FrenetPath, Point, Polygon, Polyline};
 use crate::scene::{
     Agent, AgentState, AgentType, Lane, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind, RoadLine,
-    RoadLineKind, Scene, SceneError, SceneMeta, SourceFormat, StopLine,
+    RoadLineKind, Scene, SceneError, SceneMeta, SourceFormat, StopLine, LANE_SPEED_LIMIT,
 };
 
 /// A YAML scene file.
@@ -704,10 +704,31 @@ fn road_parts(path: &Path, r: &YamlRoad) -> Result<(MapParts, FrenetPath), IoErr
             ),
         ));
     }
+    if let Some(v) = r.speed_limit.filter(|v| !LANE_SPEED_LIMIT.contains(v)) {
+        return Err(bad(
+            "road.speed_limit",
+            format!(
+                "{} m/s is not a speed limit: it must be more than 0 and at most {} m/s",
+                crate::geom::num(v),
+                LANE_SPEED_LIMIT.end()
+            ),
+        ));
+    }
     if r.length > 100_000.0 || r.lanes > 64 || r.segments as f64 > r.length {
         return Err(bad(
             "road",
             "at most 100 km long, 64 lanes and one segment per metre".into(),
+        ));
+    }
+    // A NaN heading made a road of NaN points, which panicked where the line was built; one
+    // of 1e300 degrees points nowhere in particular (its sine keeps no digits).
+    if !(r.heading.is_finite() && r.heading.abs() <= 360.0) {
+        return Err(bad(
+            "road.heading",
+            format!(
+                "{} is not a heading: it must lie in -360..=360 degrees",
+                crate::geom::num(r.heading)
+            ),
         ));
     }
     let max_offset = r.lanes as f64 * r.lane_width;
@@ -726,8 +747,8 @@ fn road_parts(path: &Path, r: &YamlRoad) -> Result<(MapParts, FrenetPath), IoErr
             "road.origin".into(),
             format!(
                 "({}, {}): the road must lie within {:e} m of the origin",
-                r.origin[0],
-                r.origin[1],
+                crate::geom::num(r.origin[0]),
+                crate::geom::num(r.origin[1]),
                 crate::geom::MAX_COORD
             ),
         ));

@@ -288,6 +288,14 @@ impl Map {
             if !seen.insert(lane.id) {
                 return Err(SceneError::DuplicateLane(lane.id));
             }
+            if let Some(limit) = lane.speed_limit {
+                if !super::LANE_SPEED_LIMIT.contains(&limit) {
+                    return Err(SceneError::SpeedLimit {
+                        lane: lane.id,
+                        limit,
+                    });
+                }
+            }
         }
         let graph = LaneGraph::build(&parts.lanes);
         let edge_bounds = parts.road_edges.iter().map(|e| e.line().bounds()).collect();
