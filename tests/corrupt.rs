@@ -1237,7 +1237,7 @@ fn every_consumer_checks_a_rollout_against_its_scene_the_same_way() {
     let base: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&good).unwrap()).unwrap();
     type Edit = fn(&mut serde_json::Value);
-    let cases: [(&str, Edit, &str); 7] = [
+    let cases: [(&str, Edit, &str); 9] = [
         (
             "missing agent",
             |r| {
@@ -1278,6 +1278,17 @@ fn every_consumer_checks_a_rollout_against_its_scene_the_same_way() {
             "another dt",
             |r| r["dt"] = 0.2.into(),
             "dt: 0.2 s, the scene's is 0.1 s",
+        ),
+        // Said in a few characters, not in 300 digits (issue 32).
+        (
+            "a tiny dt",
+            |r| r["dt"] = 1e-300.into(),
+            "dt: 1e-300 s, the scene's is 0.1 s",
+        ),
+        (
+            "a huge size",
+            |r| r["agents"][1]["width"] = 1e300.into(),
+            "agents[1] (id 2): 4.6 x 1e300 m in the rollout, 4.6 x 1.9 m in the scene",
         ),
     ];
     for (what, edit, want) in cases {
