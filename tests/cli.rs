@@ -3547,3 +3547,39 @@ fn shards_of_another_count_into_one_run_directory_are_refused() {
     );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
 }
+
+#[test]
+fn an_output_path_under_a_file_names_the_file_in_the_way() {
+    // `-o scene.yaml/x.svg` said only "cannot write: File exists (os error 17)" or "Not a
+    // directory (os error 20)" of the whole path (issue 32).
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("in.yaml");
+    std::fs::copy(samples().join("yaml/highway_cut_in.yaml"), &scene).unwrap();
+    let under = |rest: &str| dir.path().join("in.yaml").join(rest);
+    for args in [
+        vec!["render", s(&scene), "-o", s(&under("x.svg"))],
+        vec!["render", s(&scene), "-o", s(&under("a/b/x.png"))],
+        vec!["convert", s(&scene), "-o", s(&under("x.json"))],
+        vec![
+            "simulate",
+            s(&scene),
+            "--checkpoint",
+            "data/checkpoint",
+            "--samples",
+            "1",
+            "-o",
+            s(&under("run")),
+        ],
+    ] {
+        let err = fails(&args);
+        assert!(
+            err.contains(&format!("{} is a file, not a directory", scene.display()))
+                && !err.contains("os error"),
+            "{args:?}: {err}"
+        );
+    }
+    assert_eq!(
+        std::fs::read(&scene).unwrap(),
+        std::fs::read(samples().join("yaml/highway_cut_in.yaml")).unwrap()
+    );
+}

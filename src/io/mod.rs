@@ -673,7 +673,7 @@ fn write_beside(path: &Path, bytes: &[u8]) -> Result<PathBuf, IoError> {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
     };
-    std::fs::create_dir_all(&dir).map_err(err)?;
+    make_dirs(&dir, path)?;
     sweep_dead_temporaries(&dir);
     let name = path
         .file_name()
@@ -1083,9 +1083,40 @@ pub fn create_output_dir(dir: &Path) -> Result<(), IoError> {
     if let Some(why) = what {
         return Err(IoError::invalid(dir, "output directory", why));
     }
-    std::fs::create_dir_all(dir).map_err(|source| IoError::Write {
-        path: dir.display().to_string(),
-        source,
+    make_dirs(dir, dir)
+}
+
+/// Makes `dir` and its parents for the output `path`, naming the part of the path in the way
+/// where one is not a directory: the OS said `File exists` or `Not a directory` of the whole
+/// path (`-o scene.yaml/x.svg`), naming no culprit.
+fn make_dirs(dir: &Path, path: &Path) -> Result<(), IoError> {
+    std::fs::create_dir_all(dir).map_err(|source| {
+        let blocker = dir.ancestors().find(|a| {
+            !a.as_os_str().is_empty() && std::fs::symlink_metadata(a).is_ok() && !a.is_dir()
+        });
+        match blocker {
+            Some(b) => {
+                let what = match std::fs::symlink_metadata(b) {
+                    Ok(m) if m.is_file() => "a file",
+                    Ok(m) if m.file_type().is_symlink() => {
+                        "a symbolic link to something that is not a directory"
+                    }
+                    _ => "a device, FIFO or socket",
+                };
+                IoError::invalid(
+                    path,
+                    "output",
+                    format!(
+                        "{} is {what}, not a directory, so nothing can be written under it",
+                        b.display()
+                    ),
+                )
+            }
+            None => IoError::Write {
+                path: path.display().to_string(),
+                source,
+            },
+        }
     })
 }
 
