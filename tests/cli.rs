@@ -3583,3 +3583,28 @@ fn an_output_path_under_a_file_names_the_file_in_the_way() {
         std::fs::read(samples().join("yaml/highway_cut_in.yaml")).unwrap()
     );
 }
+
+#[test]
+fn a_failed_largest_term_expectation_names_the_largest_plainly() {
+    // It said `(it is Some("ends_in_victim_lane"))`, Rust's debug form (issue 32).
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dir = tempfile::tempdir().unwrap();
+    let t = dir.path().join("x.test.yaml");
+    std::fs::write(
+        &t,
+        format!(
+            "script: {}\ncases:\n  - name: wrong on purpose\n    scene: {}\n    params: {{cutter: 2, victim: 1}}\n    expect: {{largest_term: no_contact}}\n",
+            s(&root.join("scripts/cut_in.rhai")),
+            s(&root.join("scripts/scenes/highway.yaml"))
+        ),
+    )
+    .unwrap();
+    let out = common::drivescript(&["test-scripts", s(&t)]);
+    assert_eq!(out.status.code(), Some(1));
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("FAILED largest term is no_contact (it is ends_in_victim_lane)")
+            && !text.contains("Some("),
+        "{text}"
+    );
+}

@@ -564,7 +564,12 @@ impl Runner {
                 .map(|t| t.name.clone());
             fail(
                 top.as_deref() == Some(name.as_str()),
-                format!("largest term is {name} (it is {top:?})"),
+                // Said plainly: `(it is Some("x"))` was Rust's debug form (issue 32).
+                format!(
+                    "largest term is {name} (it is {})",
+                    top.as_deref()
+                        .unwrap_or("none: the script declared no term")
+                ),
             );
         }
         let gnorm = report.gradient.iter().map(|g| g * g).sum::<f64>().sqrt();
