@@ -3608,3 +3608,48 @@ fn a_failed_largest_term_expectation_names_the_largest_plainly() {
         "{text}"
     );
 }
+
+#[test]
+fn a_second_train_into_one_out_is_refused_while_the_first_runs() {
+    // Both trained, rewrote each other's window cache and replaced each other's checkpoint
+    // files in turn, without a word (issue 32).
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("ck");
+    let args = |seed: &str| {
+        vec![
+            "train".to_string(),
+            "--data".into(),
+            s(&samples().join("commonroad")).into(),
+            "--out".into(),
+            s(&out).into(),
+            "--steps".into(),
+            "1000000".into(),
+            "--eval-every".into(),
+            "1000000".into(),
+            "--seed".into(),
+            seed.into(),
+        ]
+    };
+    let mut first = std::process::Command::new(env!("CARGO_BIN_EXE_drivescript"))
+        .args(args("1"))
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    // The windows are cut after the lock is taken.
+    let t0 = std::time::Instant::now();
+    while !out.join("windows/train.windows").exists() {
+        assert!(t0.elapsed().as_secs() < 120, "the first run made no cache");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let second: Vec<String> = args("2");
+    let second: Vec<&str> = second.iter().map(String::as_str).collect();
+    let err = fails(&second);
+    let _ = first.kill();
+    let _ = first.wait();
+    assert!(
+        err.contains("another drivescript train is writing its checkpoint there"),
+        "{err}"
+    );
+}

@@ -239,6 +239,8 @@ pub fn run(args: Args) -> Result<ExitCode> {
         cfg.val_fold = r.meta.config.val_fold;
         cfg.val_towns = r.meta.config.val_towns.clone();
     }
+    // Held to the end: a second run into this --out is refused, not mixed with this one.
+    let _lock = drivescript::train::store::lock_out_dir(&args.out)?;
     let cache = args
         .cache
         .clone()
