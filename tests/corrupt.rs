@@ -1827,3 +1827,34 @@ fn a_directory_or_a_link_loop_named_like_a_scene_is_named_for_what_it_is() {
         "{err}"
     );
 }
+
+#[cfg(unix)]
+#[test]
+fn a_deep_directory_is_walked_in_time_proportional_to_its_depth_squared_at_most() {
+    // Each level canonicalised its whole path, one lstat per component: time in the cube of
+    // the depth, 23 s for a scene 1,500 directories down (issue 32).
+    let dir = tempfile::tempdir().unwrap();
+    let deep = |top: &str| {
+        let mut p = dir.path().join(top);
+        for _ in 0..1500 {
+            p.push("a");
+        }
+        std::fs::create_dir_all(&p).unwrap();
+        p
+    };
+    std::fs::copy(
+        samples().join("yaml/highway_cut_in.yaml"),
+        deep("d").join("x.yaml"),
+    )
+    .unwrap();
+    std::fs::copy("scripts/cut_in.test.yaml", deep("t").join("x.test.yaml")).unwrap();
+    let t0 = std::time::Instant::now();
+    let (code, out) = run_within(&["inspect", s(&dir.path().join("d"))], 60);
+    assert_eq!(code, Some(0), "{out}");
+    assert!(out.contains("1 scenes read, 0 failed"), "{out}");
+    let (code, out) = run_within(&["test-scripts", s(&dir.path().join("t"))], 60);
+    // The copied test file's script and scenes are not beside it: found, and run, is enough.
+    assert!(code.is_some() && out.contains("x.test.yaml"), "{out}");
+    let took = t0.elapsed().as_secs_f64();
+    assert!(took < 10.0, "{took:.1} s");
+}

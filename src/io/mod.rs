@@ -518,13 +518,33 @@ fn not_regular(path: &Path) -> IoError {
     )
 }
 
+/// Names a file or directory however it is reached (through links, `..`), for walks that must
+/// visit each directory once: its device and inode. Canonicalising the path instead took time
+/// in the cube of the depth (each level resolves every component above it, one `lstat` at a
+/// time): a scene 1,500 directories deep took 23 s to find.
+pub(crate) fn file_id(path: &Path) -> std::io::Result<(u64, u64)> {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        let m = std::fs::metadata(path)?;
+        Ok((m.dev(), m.ino()))
+    }
+    #[cfg(not(unix))]
+    {
+        use std::hash::{Hash, Hasher};
+        let mut h = std::collections::hash_map::DefaultHasher::new();
+        std::fs::canonicalize(path)?.hash(&mut h);
+        Ok((0, h.finish()))
+    }
+}
+
 fn walk(
     dir: &Path,
-    seen: &mut std::collections::HashSet<PathBuf>,
+    seen: &mut std::collections::HashSet<(u64, u64)>,
     out: &mut Vec<PathBuf>,
 ) -> Result<(), IoError> {
-    let canonical = std::fs::canonicalize(dir).map_err(|e| IoError::read(dir, e))?;
-    if !seen.insert(canonical) {
+    let id = file_id(dir).map_err(|e| IoError::read(dir, e))?;
+    if !seen.insert(id) {
         return Ok(());
     }
     let mut entries: Vec<PathBuf> = std::fs::read_dir(dir)
@@ -570,7 +590,7 @@ fn walk(
 pub fn bytes_under(path: &Path) -> Result<u64, IoError> {
     fn add(
         p: &Path,
-        seen: &mut std::collections::HashSet<PathBuf>,
+        seen: &mut std::collections::HashSet<(u64, u64)>,
         total: &mut u64,
     ) -> Result<(), IoError> {
         let meta = match std::fs::metadata(p) {
@@ -586,8 +606,8 @@ pub fn bytes_under(path: &Path) -> Result<u64, IoError> {
             // A FIFO or device is no scene's bytes, and sizing it reads nothing.
             return Ok(());
         }
-        let canonical = std::fs::canonicalize(p).map_err(|e| IoError::read(p, e))?;
-        if !seen.insert(canonical) {
+        let id = file_id(p).map_err(|e| IoError::read(p, e))?;
+        if !seen.insert(id) {
             return Ok(());
         }
         if meta.is_file() {
