@@ -726,6 +726,17 @@ fn a_sort_or_dedup_comparer_s_errors_and_limits_are_reported() {
         &limits,
     );
     assert!(matches!(e, CostError::Limit { .. }), "{e:?}");
+    // sort() of Duals said "no function elements of drivescript::cost::dual::Dual cannot be
+    // sorted (see `drivescript stdlib-doc` ...)".
+    let e = fails(
+        &format!("let b = agent(1);\nlet v = [b.x.last(), b.x.first()];\nv.sort();{tail}"),
+        &[
+            "evil.rhai:3",
+            "sort: elements of Dual cannot be sorted",
+            "value(x)",
+        ],
+    );
+    assert!(!e.to_string().contains("drivescript::"), "{e}");
     // Comparers that work still sort and dedup.
     let r = run(&format!(
         "let v = [1, 3, 2];\nv.sort(|x, y| y - x);\nif v != [3, 2, 1] {{ throw \"unsorted\"; }}\nlet w = [1, 1, 2];\nw.dedup(|x, y| x == y);\nif w != [1, 2] {{ throw \"not deduped\"; }}{tail}"

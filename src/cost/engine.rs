@@ -565,12 +565,12 @@ fn build_engine(
             ));
         }
     });
-    register_comparer_overrides(&mut e);
     e.set_module_resolver(StdlibResolver {
         cache: RefCell::new(HashMap::new()),
     });
     let mut docs = stdlib::register(&mut e, shared);
     register_terms(&mut e, shared, &mut docs);
+    register_comparer_overrides(&mut e, &mut docs);
     (e, docs)
 }
 
@@ -580,11 +580,17 @@ fn build_engine(
 /// past the wall time or the operations limit was stopped and the script went on as if
 /// nothing had happened (the limits seemed not to hold). Registered on the engine, these
 /// come before the package's.
-fn register_comparer_overrides(e: &mut Engine) {
+fn register_comparer_overrides(e: &mut Engine, docs: &mut Vec<DocEntry>) {
     for name in ["sort", "sort_by"] {
         e.register_fn(name, sort_by_comparer);
     }
     e.register_fn("dedup", dedup_by_comparer);
+    stdlib::doc(
+        docs,
+        "Arrays",
+        "v.sort(cmp), v.sort_by(cmp), v.dedup(same)",
+        "An array sorted by a comparer `|a, b| ...` (a whole number whose sign orders the pair, or true when a comes first), or its consecutive duplicates by `same` (true/false) removed; an error in the comparer is the script's error. `v.sort()` orders plain numbers, strings or booleans.",
+    );
 }
 
 fn sort_by_comparer(
@@ -1483,6 +1489,17 @@ impl CostScript {
                 }
             }
             EvalAltResult::ErrorRuntime(v, _) => CostError::Runtime { script, line, column, message: v.to_string() },
+            // Rhai's `sort()` says what it cannot order as a function not found, with the Rust
+            // type path: "no function elements of drivescript::cost::dual::Dual cannot be sorted".
+            EvalAltResult::ErrorFunctionNotFound(sig, _) if sig.starts_with("elements of ") => CostError::Runtime {
+                script,
+                line,
+                column,
+                message: format!(
+                    "sort: {}: sort() orders plain numbers, strings or booleans of one type; a Dual or Series has no order of its own (sort value(x), or give sort a comparer)",
+                    sig.replace("drivescript::cost::dual::", "").replace("drivescript::cost::series::", "")
+                ),
+            },
             EvalAltResult::ErrorFunctionNotFound(sig, _) => CostError::Runtime {
                 script,
                 line,
