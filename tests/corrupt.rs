@@ -503,6 +503,30 @@ fn yaml_errors_name_line_or_agent() {
             && err.contains("at least 2 distinct points"),
         "{err}"
     );
+    // Motion fields beside explicit states, or a lane beside a route, changed nothing and
+    // were dropped without a word (issue 32).
+    let f = dir.path().join("g.yaml");
+    std::fs::write(
+        &f,
+        "steps: 2\ncurrent_step: 0\nroad: {lanes: 2, length: 100}\nagents:\n  - {id: 1, lane: 1, speed: 30, states: [[1, 0, 0], [2, 0, 0]]}\n",
+    )
+    .unwrap();
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("g.yaml: agents[0] (id 1): `lane`, `speed` would be ignored: explicit `states` give the agent's motion; remove them"),
+        "{err}"
+    );
+    let f = dir.path().join("h.yaml");
+    std::fs::write(
+        &f,
+        "steps: 2\ncurrent_step: 0\nmap:\n  lanes:\n    - {id: 7, centerline: [[0, 0], [100, 0]]}\nagents:\n  - {id: 1, lane: 1, route: [7], s: 5, speed: 3}\n",
+    )
+    .unwrap();
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("h.yaml: agents[0] (id 1): `lane` would be ignored: a `route` names the lanes of the agent's motion; remove it"),
+        "{err}"
+    );
     // A scene-level fault is located at its key, not at `agents:`.
     let dt = dir.path().join("dt.yaml");
     std::fs::write(&dt, "road: {lanes: 1, length: 50}\ndt: 0\nagents: []\n").unwrap();
