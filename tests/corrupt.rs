@@ -1882,3 +1882,23 @@ fn a_deep_directory_is_walked_in_time_proportional_to_its_depth_squared_at_most(
     let took = t0.elapsed().as_secs_f64();
     assert!(took < 10.0, "{took:.1} s");
 }
+
+#[cfg(unix)]
+#[test]
+fn a_long_yaml_road_is_read_in_time_proportional_to_its_length() {
+    // Map::new measured each lane's width at every centre-line point against its whole
+    // boundaries: a 4-line scene of a 100 km road wound into a circle took 74 s to read
+    // (issue 32).
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("loop.yaml");
+    std::fs::write(
+        &f,
+        "scenario_id: loop\nroad: {lanes: 4, length: 99999, radius: 16}\nagents:\n  - {id: 1, lane: 0, s: 10, speed: 10}\n",
+    )
+    .unwrap();
+    let t0 = std::time::Instant::now();
+    let (code, out) = run_within(&["inspect", s(&f)], 120);
+    assert_eq!(code, Some(0), "{out}");
+    let took = t0.elapsed().as_secs_f64();
+    assert!(took < 15.0, "{took:.1} s");
+}
