@@ -697,3 +697,49 @@ fn the_rules_planner_s_scripts_have_no_dead_term_for_the_agents_suggest_chooses(
     // 186 (behaviour, scene) pairs when written: every behaviour on most sample scenes.
     assert!(composed > 150, "{composed} scripts composed");
 }
+
+#[test]
+fn a_sort_or_dedup_comparer_s_errors_and_limits_are_reported() {
+    // Rhai's sort and dedup took a failed comparison for "equal": an unknown agent left the
+    // array unsorted, exit 0, and a comparer stopped at the wall time let the script go on
+    // (issue 32).
+    let tail = "\nlet a = agent(1);\nterm(\"x\", relu(a.x.last() - 1e6));";
+    fails(
+        &format!("let v = [3, 2, 1];\nv.sort(|x, y| {{ agent(99999); x - y }});{tail}"),
+        &["evil.rhai:2", "99999"],
+    );
+    fails(
+        &format!("let v = [3, 2, 1];\nv.sort(|x, y| \"bigger\");{tail}"),
+        &["evil.rhai:2", "not a whole number"],
+    );
+    fails(
+        &format!("let v = [3, 3, 1];\nv.dedup(|x, y| {{ agent(99999); true }});{tail}"),
+        &["evil.rhai:2", "99999"],
+    );
+    let limits = Limits {
+        wall_time: Duration::from_millis(300),
+        ..Limits::default()
+    };
+    let e = fails_with(
+        &format!("let v = [];\nfor i in 0..200 {{ v.push(i); }}\nv.sort(|x, y| {{ let z = 0; for k in 0..1000000 {{ z += k; }} x - y }});{tail}"),
+        &["evil.rhai:3", "limit exceeded"],
+        &limits,
+    );
+    assert!(matches!(e, CostError::Limit { .. }), "{e:?}");
+    // sort() of Duals said "no function elements of drivescript::cost::dual::Dual cannot be
+    // sorted (see `drivescript stdlib-doc` ...)".
+    let e = fails(
+        &format!("let b = agent(1);\nlet v = [b.x.last(), b.x.first()];\nv.sort();{tail}"),
+        &[
+            "evil.rhai:3",
+            "sort: elements of Dual cannot be sorted",
+            "value(x)",
+        ],
+    );
+    assert!(!e.to_string().contains("drivescript::"), "{e}");
+    // Comparers that work still sort and dedup.
+    let r = run(&format!(
+        "let v = [1, 3, 2];\nv.sort(|x, y| y - x);\nif v != [3, 2, 1] {{ throw \"unsorted\"; }}\nlet w = [1, 1, 2];\nw.dedup(|x, y| x == y);\nif w != [1, 2] {{ throw \"not deduped\"; }}{tail}"
+    ));
+    assert!(r.is_ok(), "{r:?}");
+}

@@ -3547,3 +3547,109 @@ fn shards_of_another_count_into_one_run_directory_are_refused() {
     );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
 }
+
+#[test]
+fn an_output_path_under_a_file_names_the_file_in_the_way() {
+    // `-o scene.yaml/x.svg` said only "cannot write: File exists (os error 17)" or "Not a
+    // directory (os error 20)" of the whole path (issue 32).
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("in.yaml");
+    std::fs::copy(samples().join("yaml/highway_cut_in.yaml"), &scene).unwrap();
+    let under = |rest: &str| dir.path().join("in.yaml").join(rest);
+    for args in [
+        vec!["render", s(&scene), "-o", s(&under("x.svg"))],
+        vec!["render", s(&scene), "-o", s(&under("a/b/x.png"))],
+        vec!["convert", s(&scene), "-o", s(&under("x.json"))],
+        vec![
+            "simulate",
+            s(&scene),
+            "--checkpoint",
+            "data/checkpoint",
+            "--samples",
+            "1",
+            "-o",
+            s(&under("run")),
+        ],
+    ] {
+        let err = fails(&args);
+        assert!(
+            err.contains(&format!("{} is a file, not a directory", scene.display()))
+                && !err.contains("os error"),
+            "{args:?}: {err}"
+        );
+    }
+    assert_eq!(
+        std::fs::read(&scene).unwrap(),
+        std::fs::read(samples().join("yaml/highway_cut_in.yaml")).unwrap()
+    );
+}
+
+#[test]
+fn a_failed_largest_term_expectation_names_the_largest_plainly() {
+    // It said `(it is Some("ends_in_victim_lane"))`, Rust's debug form (issue 32).
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dir = tempfile::tempdir().unwrap();
+    let t = dir.path().join("x.test.yaml");
+    std::fs::write(
+        &t,
+        format!(
+            "script: {}\ncases:\n  - name: wrong on purpose\n    scene: {}\n    params: {{cutter: 2, victim: 1}}\n    expect: {{largest_term: no_contact}}\n",
+            s(&root.join("scripts/cut_in.rhai")),
+            s(&root.join("scripts/scenes/highway.yaml"))
+        ),
+    )
+    .unwrap();
+    let out = common::drivescript(&["test-scripts", s(&t)]);
+    assert_eq!(out.status.code(), Some(1));
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("FAILED largest term is no_contact (it is ends_in_victim_lane)")
+            && !text.contains("Some("),
+        "{text}"
+    );
+}
+
+#[test]
+fn a_second_train_into_one_out_is_refused_while_the_first_runs() {
+    // Both trained, rewrote each other's window cache and replaced each other's checkpoint
+    // files in turn, without a word (issue 32).
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("ck");
+    let args = |seed: &str| {
+        vec![
+            "train".to_string(),
+            "--data".into(),
+            s(&samples().join("commonroad")).into(),
+            "--out".into(),
+            s(&out).into(),
+            "--steps".into(),
+            "1000000".into(),
+            "--eval-every".into(),
+            "1000000".into(),
+            "--seed".into(),
+            seed.into(),
+        ]
+    };
+    let mut first = std::process::Command::new(env!("CARGO_BIN_EXE_drivescript"))
+        .args(args("1"))
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    // The windows are cut after the lock is taken.
+    let t0 = std::time::Instant::now();
+    while !out.join("windows/train.windows").exists() {
+        assert!(t0.elapsed().as_secs() < 120, "the first run made no cache");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let second: Vec<String> = args("2");
+    let second: Vec<&str> = second.iter().map(String::as_str).collect();
+    let err = fails(&second);
+    let _ = first.kill();
+    let _ = first.wait();
+    assert!(
+        err.contains("another drivescript train is writing its checkpoint there"),
+        "{err}"
+    );
+}

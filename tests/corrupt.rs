@@ -503,6 +503,30 @@ fn yaml_errors_name_line_or_agent() {
             && err.contains("at least 2 distinct points"),
         "{err}"
     );
+    // Motion fields beside explicit states, or a lane beside a route, changed nothing and
+    // were dropped without a word (issue 32).
+    let f = dir.path().join("g.yaml");
+    std::fs::write(
+        &f,
+        "steps: 2\ncurrent_step: 0\nroad: {lanes: 2, length: 100}\nagents:\n  - {id: 1, lane: 1, speed: 30, states: [[1, 0, 0], [2, 0, 0]]}\n",
+    )
+    .unwrap();
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("g.yaml: agents[0] (id 1): `lane`, `speed` would be ignored: explicit `states` give the agent's motion; remove them"),
+        "{err}"
+    );
+    let f = dir.path().join("h.yaml");
+    std::fs::write(
+        &f,
+        "steps: 2\ncurrent_step: 0\nmap:\n  lanes:\n    - {id: 7, centerline: [[0, 0], [100, 0]]}\nagents:\n  - {id: 1, lane: 1, route: [7], s: 5, speed: 3}\n",
+    )
+    .unwrap();
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("h.yaml: agents[0] (id 1): `lane` would be ignored: a `route` names the lanes of the agent's motion; remove it"),
+        "{err}"
+    );
     // A scene-level fault is located at its key, not at `agents:`.
     let dt = dir.path().join("dt.yaml");
     std::fs::write(&dt, "road: {lanes: 1, length: 50}\ndt: 0\nagents: []\n").unwrap();
@@ -541,6 +565,77 @@ fn implausible_lane_widths_are_refused_naming_file_field_and_range() {
         .unwrap();
         ok(&["inspect", s(&f)]);
     }
+}
+
+#[test]
+fn implausible_speed_limits_and_road_headings_are_refused() {
+    // A NaN, negative or 1e300 limit was read as it was (issue 32): shown to the LLM as
+    // "limit NaN m/s" or in 300 digits, and handed to the speed checkers.
+    let dir = tempfile::tempdir().unwrap();
+    for v in ["-1", "0", ".nan", "1e300", ".inf"] {
+        let f = dir.path().join("road.yaml");
+        std::fs::write(
+            &f,
+            format!("road: {{lanes: 2, length: 100, speed_limit: {v}}}\nagents: [{{id: 1, lane: 0, s: 5, speed: 1}}]\n"),
+        )
+        .unwrap();
+        let err = fails(&["inspect", s(&f)]);
+        assert!(
+            err.contains("road.yaml: road.speed_limit") && err.contains("at most 100 m/s"),
+            "{v}: {err}"
+        );
+        assert!(err.len() < 300, "{err}");
+    }
+    // A road heading that is no angle: NaN panicked while the road was built.
+    for v in [".nan", "1e300", "-400"] {
+        let f = dir.path().join("turned.yaml");
+        std::fs::write(
+            &f,
+            format!("road: {{lanes: 2, length: 100, heading: {v}}}\nagents: [{{id: 1, lane: 0, s: 5, speed: 1}}]\n"),
+        )
+        .unwrap();
+        let err = fails(&["inspect", s(&f)]);
+        assert!(
+            err.contains("turned.yaml: road.heading") && err.contains("-360..=360 degrees"),
+            "{v}: {err}"
+        );
+    }
+    // A road origin far out is said in a few characters.
+    let f = dir.path().join("far.yaml");
+    std::fs::write(
+        &f,
+        "road: {lanes: 2, length: 100, origin: [1e300, 0]}\nagents: [{id: 1, lane: 0, s: 5, speed: 1}]\n",
+    )
+    .unwrap();
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("road.origin") && err.contains("(1e300, 0)"),
+        "{err}"
+    );
+    // CommonRoad: a lanelet's <speedLimit>, caught by the map every reader builds.
+    let xml = copy_to(
+        dir.path(),
+        &samples().join("commonroad/USA_Lanker-1_1_T-1.xml"),
+        "x.xml",
+    );
+    edit(&xml, |t| {
+        let at = t.find("<speedLimit>").expect("a speed limit");
+        let end = at + t[at..].find("</speedLimit>").unwrap();
+        format!("{}<speedLimit>-13.4{}", &t[..at], &t[end..])
+    });
+    let err = fails(&["inspect", s(&xml)]);
+    assert!(
+        err.contains("x.xml") && err.contains("speed limit -13.4 m/s is implausible"),
+        "{err}"
+    );
+    // The edge of the range is a limit.
+    let f = dir.path().join("fast.yaml");
+    std::fs::write(
+        &f,
+        "road: {lanes: 2, length: 100, speed_limit: 100}\nagents: [{id: 1, lane: 0, s: 5, speed: 1}]\n",
+    )
+    .unwrap();
+    ok(&["inspect", s(&f)]);
 }
 
 #[test]
@@ -1166,7 +1261,7 @@ fn every_consumer_checks_a_rollout_against_its_scene_the_same_way() {
     let base: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&good).unwrap()).unwrap();
     type Edit = fn(&mut serde_json::Value);
-    let cases: [(&str, Edit, &str); 7] = [
+    let cases: [(&str, Edit, &str); 9] = [
         (
             "missing agent",
             |r| {
@@ -1207,6 +1302,17 @@ fn every_consumer_checks_a_rollout_against_its_scene_the_same_way() {
             "another dt",
             |r| r["dt"] = 0.2.into(),
             "dt: 0.2 s, the scene's is 0.1 s",
+        ),
+        // Said in a few characters, not in 300 digits (issue 32).
+        (
+            "a tiny dt",
+            |r| r["dt"] = 1e-300.into(),
+            "dt: 1e-300 s, the scene's is 0.1 s",
+        ),
+        (
+            "a huge size",
+            |r| r["agents"][1]["width"] = 1e300.into(),
+            "agents[1] (id 2): 4.6 x 1e300 m in the rollout, 4.6 x 1.9 m in the scene",
         ),
     ];
     for (what, edit, want) in cases {
@@ -1744,4 +1850,55 @@ fn a_directory_or_a_link_loop_named_like_a_scene_is_named_for_what_it_is() {
         err.contains("x.yaml: file: is a symbolic link loop"),
         "{err}"
     );
+}
+
+#[cfg(unix)]
+#[test]
+fn a_deep_directory_is_walked_in_time_proportional_to_its_depth_squared_at_most() {
+    // Each level canonicalised its whole path, one lstat per component: time in the cube of
+    // the depth, 23 s for a scene 1,500 directories down (issue 32).
+    let dir = tempfile::tempdir().unwrap();
+    let deep = |top: &str| {
+        let mut p = dir.path().join(top);
+        for _ in 0..1500 {
+            p.push("a");
+        }
+        std::fs::create_dir_all(&p).unwrap();
+        p
+    };
+    std::fs::copy(
+        samples().join("yaml/highway_cut_in.yaml"),
+        deep("d").join("x.yaml"),
+    )
+    .unwrap();
+    std::fs::copy("scripts/cut_in.test.yaml", deep("t").join("x.test.yaml")).unwrap();
+    let t0 = std::time::Instant::now();
+    let (code, out) = run_within(&["inspect", s(&dir.path().join("d"))], 60);
+    assert_eq!(code, Some(0), "{out}");
+    assert!(out.contains("1 scenes read, 0 failed"), "{out}");
+    let (code, out) = run_within(&["test-scripts", s(&dir.path().join("t"))], 60);
+    // The copied test file's script and scenes are not beside it: found, and run, is enough.
+    assert!(code.is_some() && out.contains("x.test.yaml"), "{out}");
+    let took = t0.elapsed().as_secs_f64();
+    assert!(took < 10.0, "{took:.1} s");
+}
+
+#[cfg(unix)]
+#[test]
+fn a_long_yaml_road_is_read_in_time_proportional_to_its_length() {
+    // Map::new measured each lane's width at every centre-line point against its whole
+    // boundaries: a 4-line scene of a 100 km road wound into a circle took 74 s to read
+    // (issue 32).
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("loop.yaml");
+    std::fs::write(
+        &f,
+        "scenario_id: loop\nroad: {lanes: 4, length: 99999, radius: 16}\nagents:\n  - {id: 1, lane: 0, s: 10, speed: 10}\n",
+    )
+    .unwrap();
+    let t0 = std::time::Instant::now();
+    let (code, out) = run_within(&["inspect", s(&f)], 120);
+    assert_eq!(code, Some(0), "{out}");
+    let took = t0.elapsed().as_secs_f64();
+    assert!(took < 15.0, "{took:.1} s");
 }

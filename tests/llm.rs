@@ -2096,6 +2096,26 @@ fn compressed_empty_and_filtered_replies_say_what_they_are() {
 }
 
 #[test]
+fn a_key_echoed_as_the_content_encoding_gets_into_no_message() {
+    // The encoding is quoted from the header; a server putting the Authorization header it got
+    // there had the key printed whole (issue 32). A key longer than the quote's 64 characters
+    // must be redacted before the quote is cut.
+    let key = format!("sk-{}", "k".repeat(80));
+    let srv = Server::start(vec![
+        Canned::raw(200, "{}").header("Content-Encoding", &format!("Bearer {key}")),
+        Canned::raw(400, "{}").header("Content-Encoding", &key),
+    ]);
+    let mut cfg = HttpConfig::new(&srv.url, "test-model");
+    cfg.key = Some(key.clone());
+    cfg.attempts = 1;
+    let c = HttpClient::new(cfg).unwrap();
+    for _ in 0..2 {
+        let e = ask_one(&c).unwrap_err().to_string();
+        assert!(e.contains("[redacted]") && !e.contains("sk-kkkk"), "{e}");
+    }
+}
+
+#[test]
 fn a_key_given_as_the_url_s_user_name_gets_into_no_message() {
     // `http://KEY@host/v1` sends the key as the Basic token of "KEY:"; a server echoing it
     // (as a token or decoded) put it on the terminal.

@@ -243,6 +243,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
         .cache
         .clone()
         .unwrap_or_else(|| args.out.join("windows"));
+    // Before --out is made for the lock: a cache refused leaves nothing behind.
+    drivescript::train::store::check_cache_dir(&cache, &corpora)?;
+    // Held to the end: a second run into this --out is refused, not mixed with this one.
+    let _lock = drivescript::train::store::lock_out_dir(&args.out)?;
     let started = std::time::Instant::now();
     let holdout = Holdout {
         fold: cfg.val_fold,

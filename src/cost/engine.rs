@@ -570,7 +570,106 @@ fn build_engine(
     });
     let mut docs = stdlib::register(&mut e, shared);
     register_terms(&mut e, shared, &mut docs);
+    register_comparer_overrides(&mut e, &mut docs);
     (e, docs)
+}
+
+/// `sort(comparer)` (and `sort_by`) and `dedup(comparer)` that report what goes wrong in the
+/// comparer. Rhai's own drop its errors, taking a failed comparison for "equal" or "keep":
+/// a comparer that named an unknown agent left the array unsorted, exit 0, and one that ran
+/// past the wall time or the operations limit was stopped and the script went on as if
+/// nothing had happened (the limits seemed not to hold). Registered on the engine, these
+/// come before the package's.
+fn register_comparer_overrides(e: &mut Engine, docs: &mut Vec<DocEntry>) {
+    for name in ["sort", "sort_by"] {
+        e.register_fn(name, sort_by_comparer);
+    }
+    e.register_fn("dedup", dedup_by_comparer);
+    stdlib::doc(
+        docs,
+        "Arrays",
+        "v.sort(cmp), v.sort_by(cmp), v.dedup(same)",
+        "An array sorted by a comparer `|a, b| ...` (a whole number whose sign orders the pair, or true when a comes first), or its consecutive duplicates by `same` (true/false) removed; an error in the comparer is the script's error. `v.sort()` orders plain numbers, strings or booleans.",
+    );
+}
+
+fn sort_by_comparer(
+    ctx: NativeCallContext,
+    array: &mut rhai::Array,
+    comparer: rhai::FnPtr,
+) -> Result<(), Box<EvalAltResult>> {
+    use std::cmp::Ordering;
+    if array.len() <= 1 {
+        return Ok(());
+    }
+    let mut failed: Option<Box<EvalAltResult>> = None;
+    let mut items = std::mem::take(array);
+    // `sort_by` may panic on a comparer that is no total order: an error, as Rhai's says.
+    let sorted = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        items.sort_by(|x, y| {
+            if failed.is_some() {
+                return Ordering::Equal;
+            }
+            let got = comparer
+                .call_raw(&ctx, None, [x.clone(), y.clone()])
+                .and_then(|v| {
+                    if let Ok(n) = v.as_int() {
+                        Ok(n.cmp(&0))
+                    } else if let Ok(b) = v.as_bool() {
+                        Ok(if b { Ordering::Less } else { Ordering::Greater })
+                    } else {
+                        stdlib::err(format!(
+                            "sort: the comparer returned a {}, not a whole number (its sign \
+                             orders the pair) or true/false",
+                            v.type_name()
+                        ))
+                    }
+                });
+            got.unwrap_or_else(|e| {
+                failed = Some(e);
+                Ordering::Equal
+            })
+        });
+    }));
+    *array = items;
+    if let Some(e) = failed {
+        return Err(e);
+    }
+    sorted.map_err(|_| {
+        EvalAltResult::ErrorRuntime(
+            "sort: the comparer is no consistent order (a < b and b < a for some pair)".into(),
+            Position::NONE,
+        )
+        .into()
+    })
+}
+
+fn dedup_by_comparer(
+    ctx: NativeCallContext,
+    array: &mut rhai::Array,
+    comparer: rhai::FnPtr,
+) -> Result<(), Box<EvalAltResult>> {
+    let mut failed: Option<Box<EvalAltResult>> = None;
+    array.dedup_by(|x, y| {
+        if failed.is_some() {
+            return false;
+        }
+        let got = comparer
+            .call_raw(&ctx, None, [y.clone(), x.clone()])
+            .and_then(|v| {
+                v.as_bool().or_else(|_| {
+                    stdlib::err(format!(
+                        "dedup: the comparer returned a {}, not true/false",
+                        v.type_name()
+                    ))
+                })
+            });
+        got.unwrap_or_else(|e| {
+            failed = Some(e);
+            false
+        })
+    });
+    failed.map_or(Ok(()), Err)
 }
 
 fn term_value(v: &Dynamic, name: &str) -> Result<Dual, Box<EvalAltResult>> {
@@ -1390,6 +1489,17 @@ impl CostScript {
                 }
             }
             EvalAltResult::ErrorRuntime(v, _) => CostError::Runtime { script, line, column, message: v.to_string() },
+            // Rhai's `sort()` says what it cannot order as a function not found, with the Rust
+            // type path: "no function elements of drivescript::cost::dual::Dual cannot be sorted".
+            EvalAltResult::ErrorFunctionNotFound(sig, _) if sig.starts_with("elements of ") => CostError::Runtime {
+                script,
+                line,
+                column,
+                message: format!(
+                    "sort: {}: sort() orders plain numbers, strings or booleans of one type; a Dual or Series has no order of its own (sort value(x), or give sort a comparer)",
+                    sig.replace("drivescript::cost::dual::", "").replace("drivescript::cost::series::", "")
+                ),
+            },
             EvalAltResult::ErrorFunctionNotFound(sig, _) => CostError::Runtime {
                 script,
                 line,

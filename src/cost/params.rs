@@ -216,6 +216,13 @@ impl Params {
             let val = if let Ok(i) = v.parse::<i64>() {
                 ParamValue::Int(i)
             } else if let Ok(f) = v.parse::<f64>() {
+                // A number written out of range reads as inf: said as written ("1e400 is
+                // beyond ..."), not as "inf is not finite" of a value nobody typed.
+                if f.is_infinite() && v.bytes().any(|b| b.is_ascii_digit()) {
+                    return Err(bad(format!(
+                        "{v} is beyond the largest number (about 1.8e308)"
+                    )));
+                }
                 ParamValue::Float(f)
             } else if v == "true" || v == "false" {
                 ParamValue::Bool(v == "true")
@@ -301,6 +308,11 @@ mod tests {
             (vec!["a=1", "a=2"], "given twice"),
             (vec!["a=inf"], "not finite"),
             (vec!["a=NaN"], "not finite"),
+            // Said as written, not as "inf is not finite" (issue 32).
+            (
+                vec!["gap=-1e400"],
+                "parameter \"gap\": -1e400 is beyond the largest number",
+            ),
             (vec!["gap="], "parameter \"gap\": no value after `=`"),
             (vec!["gap= "], "parameter \"gap\": no value after `=`"),
             (vec!["turn=le\u{1b}[2Jft"], "the control character U+001B"),

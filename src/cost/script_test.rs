@@ -318,16 +318,16 @@ pub fn find_test_files(roots: &[PathBuf]) -> Result<Vec<PathBuf>, ScriptTestErro
 /// gives up.
 fn find_in(
     roots: &[PathBuf],
-    seen: &mut std::collections::HashSet<PathBuf>,
+    seen: &mut std::collections::HashSet<(u64, u64)>,
     out: &mut Vec<PathBuf>,
 ) -> Result<(), ScriptTestError> {
     for r in roots {
         if r.is_dir() {
-            let canonical = std::fs::canonicalize(r).map_err(|e| ScriptTestError::Read {
+            let id = crate::io::file_id(r).map_err(|e| ScriptTestError::Read {
                 path: r.display().to_string(),
                 message: e.to_string(),
             })?;
-            if !seen.insert(canonical) {
+            if !seen.insert(id) {
                 continue;
             }
             let mut entries: Vec<PathBuf> = std::fs::read_dir(r)
@@ -564,7 +564,12 @@ impl Runner {
                 .map(|t| t.name.clone());
             fail(
                 top.as_deref() == Some(name.as_str()),
-                format!("largest term is {name} (it is {top:?})"),
+                // Said plainly: `(it is Some("x"))` was Rust's debug form (issue 32).
+                format!(
+                    "largest term is {name} (it is {})",
+                    top.as_deref()
+                        .unwrap_or("none: the script declared no term")
+                ),
             );
         }
         let gnorm = report.gradient.iter().map(|g| g * g).sum::<f64>().sqrt();

@@ -568,6 +568,8 @@ mod tests {
             (format!("{acc}/scenes"), json!(u64::MAX), "merge.accumulators[0] (log): scenes is 18446744073709551615, but per_scene holds 2 scene rows"),
             (format!("{acc}/scenes"), json!(-2), "merge.accumulators[0].scenes is -2: must be a whole number"),
             (format!("{acc}/ade/0"), json!(-1.5), "merge.accumulators[0] (log): ade[0] is -1.5: must be a distance"),
+            // Merged and printed in the table in 301 digits (issue 32).
+            (format!("{acc}/ade/0"), json!(1e300), "merge.accumulators[0] (log): ade[0] is 1e300: must be a distance: finite, 0 to 3e7 m"),
             (format!("{acc}/collision/0"), json!(1.5), "collision[0] is 1.5: must be a rate: 0 to 1"),
             (format!("{acc}/sim_kin/speed/0"), json!(-3.0), "sim_kin.speed[0] is -3: must be a speed"),
             (format!("{acc}/achieved"), json!(1), "passed 0, achieved 1, checked 0"),

@@ -298,6 +298,10 @@ impl<'a> Measured<'a> {
     }
 }
 
+/// The largest distance a figure may hold, metres: points of a scene lie within
+/// [`crate::geom::MAX_COORD`] of the origin, so none are farther apart than 2√2 of it.
+pub const MAX_DISTANCE: f64 = 3.0e7;
+
 impl Tally {
     /// Scores one scene: `logged` (the reference), the method's samples `sims` (at least one),
     /// the behaviour and its parameters for [`Task::Behaviour`], the samples' unguided twins
@@ -549,6 +553,10 @@ impl Tally {
     /// [`Tally::check`]'s figures, of the whole row or a group.
     fn check_figures(&self) -> Result<(), String> {
         let not_negative = |v: f64| v.is_finite() && v >= 0.0;
+        // Two points of a scene lie within 1e7 m of the origin (`geom::MAX_COORD`), so no
+        // distance between them exceeds 2√2·1e7 m; an ADE of 1e300 was merged and printed in
+        // the table in 301 digits.
+        let distance = |v: f64| not_negative(v) && v <= MAX_DISTANCE;
         let fraction = |v: f64| (0.0..=1.0).contains(&v);
         let finite = |v: f64| v.is_finite();
         // (field, figures, whether one is acceptable, what it must be)
@@ -557,26 +565,26 @@ impl Tally {
             (
                 "ade",
                 &self.ade,
-                &not_negative,
-                "a distance: finite, not negative",
+                &distance,
+                "a distance: finite, 0 to 3e7 m",
             ),
             (
                 "fde",
                 &self.fde,
-                &not_negative,
-                "a distance: finite, not negative",
+                &distance,
+                "a distance: finite, 0 to 3e7 m",
             ),
             (
                 "min_ade",
                 &self.min_ade,
-                &not_negative,
-                "a distance: finite, not negative",
+                &distance,
+                "a distance: finite, 0 to 3e7 m",
             ),
             (
                 "min_fde",
                 &self.min_fde,
-                &not_negative,
-                "a distance: finite, not negative",
+                &distance,
+                "a distance: finite, 0 to 3e7 m",
             ),
             ("collision", &self.collision, &fraction, "a rate: 0 to 1"),
             ("offroad", &self.offroad, &fraction, "a rate: 0 to 1"),
@@ -609,8 +617,8 @@ impl Tally {
             (
                 "sim_kin.nearest_vehicle",
                 &self.sim_kin.nearest_vehicle,
-                &not_negative,
-                "a distance: finite, not negative",
+                &distance,
+                "a distance: finite, 0 to 3e7 m",
             ),
             (
                 "log_kin.speed",
@@ -628,13 +636,16 @@ impl Tally {
             (
                 "log_kin.nearest_vehicle",
                 &self.log_kin.nearest_vehicle,
-                &not_negative,
-                "a distance: finite, not negative",
+                &distance,
+                "a distance: finite, 0 to 3e7 m",
             ),
         ];
         for (name, values, ok, must) in series {
             if let Some((i, v)) = values.iter().enumerate().find(|(_, v)| !ok(**v)) {
-                return Err(format!("{name}[{i}] is {v}: must be {must}"));
+                return Err(format!(
+                    "{name}[{i}] is {}: must be {must}",
+                    crate::geom::num(*v)
+                ));
             }
         }
         // One figure per scene at most (none where a scene had no agent to score).

@@ -155,7 +155,10 @@ impl Rollout {
             ));
         }
         if !(self.dt.is_finite() && self.dt > 0.0) {
-            return Err(bad("dt".into(), format!("{} must be positive", self.dt)));
+            return Err(bad(
+                "dt".into(),
+                format!("{} must be positive", crate::geom::num(self.dt)),
+            ));
         }
         let steps = self.agents.first().map_or(0, |a| a.states.len());
         for (i, a) in self.agents.iter().enumerate() {
@@ -203,7 +206,11 @@ impl Rollout {
         if (self.dt - m.dt).abs() > 1e-9 * m.dt {
             return Err(bad(
                 "dt".into(),
-                format!("{} s, the scene's is {} s", self.dt, m.dt),
+                format!(
+                    "{} s, the scene's is {} s",
+                    crate::geom::num(self.dt),
+                    crate::geom::num(m.dt)
+                ),
             ));
         }
         if self.current_step != m.current_step {
@@ -244,7 +251,10 @@ impl Rollout {
                     loc(),
                     format!(
                         "{} x {} m in the rollout, {} x {} m in the scene",
-                        ra.length, ra.width, a.length, a.width
+                        crate::geom::num(ra.length),
+                        crate::geom::num(ra.width),
+                        crate::geom::num(a.length),
+                        crate::geom::num(a.width)
                     ),
                 ));
             }

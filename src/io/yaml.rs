@@ -16,7 +16,7 @@ use super::IoError;
 use crate::geom::{FrenetPath, Point, Polygon, Polyline};
 use crate::scene::{
     Agent, AgentState, AgentType, Lane, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind, RoadLine,
-    RoadLineKind, Scene, SceneError, SceneMeta, SourceFormat, StopLine,
+    RoadLineKind, Scene, SceneError, SceneMeta, SourceFormat, StopLine, LANE_SPEED_LIMIT,
 };
 
 /// A YAML scene file.
@@ -577,6 +577,46 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
         let loc = format!("agents[{i}] (id {})", a.id);
         let (dl, dw) = default_size(a.agent_type);
         let (length, width) = (a.length.unwrap_or(dl), a.width.unwrap_or(dw));
+        // Motion fields beside explicit states were dropped without a word (a `speed: 30`
+        // that changed nothing); so was a `lane` beside a `route`, which names the lanes.
+        let ignored: Vec<&str> = if a.states.is_some() {
+            [
+                ("lane", a.lane != 0),
+                ("s", a.s != 0.0),
+                ("d", a.d != 0.0),
+                ("speed", a.speed != 0.0),
+                ("accel", a.accel != 0.0),
+                ("lane_change", a.lane_change.is_some()),
+                ("route", a.route.is_some()),
+            ]
+            .iter()
+            .filter(|(_, given)| *given)
+            .map(|(name, _)| *name)
+            .collect()
+        } else if a.route.is_some() && a.lane != 0 {
+            vec!["lane"]
+        } else {
+            Vec::new()
+        };
+        if !ignored.is_empty() {
+            return Err(bad(
+                loc,
+                format!(
+                    "{} would be ignored: {} the agent's motion; remove {}",
+                    ignored
+                        .iter()
+                        .map(|n| format!("`{n}`"))
+                        .collect::<Vec<_>>()
+                        .join(", "),
+                    if a.states.is_some() {
+                        "explicit `states` give"
+                    } else {
+                        "a `route` names the lanes of"
+                    },
+                    if ignored.len() == 1 { "it" } else { "them" }
+                ),
+            ));
+        }
         let mut states = if let Some(explicit) = &a.states {
             if explicit.len() != y.steps {
                 return Err(bad(
@@ -704,10 +744,31 @@ fn road_parts(path: &Path, r: &YamlRoad) -> Result<(MapParts, FrenetPath), IoErr
             ),
         ));
     }
+    if let Some(v) = r.speed_limit.filter(|v| !LANE_SPEED_LIMIT.contains(v)) {
+        return Err(bad(
+            "road.speed_limit",
+            format!(
+                "{} m/s is not a speed limit: it must be more than 0 and at most {} m/s",
+                crate::geom::num(v),
+                LANE_SPEED_LIMIT.end()
+            ),
+        ));
+    }
     if r.length > 100_000.0 || r.lanes > 64 || r.segments as f64 > r.length {
         return Err(bad(
             "road",
             "at most 100 km long, 64 lanes and one segment per metre".into(),
+        ));
+    }
+    // A NaN heading made a road of NaN points, which panicked where the line was built; one
+    // of 1e300 degrees points nowhere in particular (its sine keeps no digits).
+    if !(r.heading.is_finite() && r.heading.abs() <= 360.0) {
+        return Err(bad(
+            "road.heading",
+            format!(
+                "{} is not a heading: it must lie in -360..=360 degrees",
+                crate::geom::num(r.heading)
+            ),
         ));
     }
     let max_offset = r.lanes as f64 * r.lane_width;
@@ -726,8 +787,8 @@ fn road_parts(path: &Path, r: &YamlRoad) -> Result<(MapParts, FrenetPath), IoErr
             "road.origin".into(),
             format!(
                 "({}, {}): the road must lie within {:e} m of the origin",
-                r.origin[0],
-                r.origin[1],
+                crate::geom::num(r.origin[0]),
+                crate::geom::num(r.origin[1]),
                 crate::geom::MAX_COORD
             ),
         ));
@@ -1176,7 +1237,7 @@ mod alias_tests {
         // A few aliases, as a hand-written scene may use them, are read as ever.
         let text = "scenario_id: reuse\nsteps: 31\ncurrent_step: 10\nmap:\n  lanes:\n    - id: 1\n      \
                     centerline: &c [[0, 0], [300, 0]]\n    - id: 2\n      centerline: [[0, 3.5], [300, 3.5]]\n  \
-                    road_lines:\n    - {kind: broken, points: *c}\nagents:\n  - {id: 1, lane: 1, s: 10, speed: 10, \
+                    road_lines:\n    - {kind: broken, points: *c}\nagents:\n  - {id: 1, s: 10, speed: 10, \
                     route: [1]}\n";
         let reused = super::parse(Path::new("reuse.yaml"), text);
         assert!(reused.is_ok(), "{:?}", reused.err());

@@ -45,6 +45,8 @@ pub struct Entry {
     pub behaviour: Option<Behavior>,
     /// The checker's parameters (the roles fill the placeholders).
     pub params: Option<Params>,
+    /// The batch file it was read from, for messages.
+    pub file: PathBuf,
     /// Line in the batch file, for messages.
     pub line: usize,
     /// Whether the scenes are the file's top-level `scenes:` (which `--scenes` replaces).
@@ -71,6 +73,14 @@ fn bad(path: &Path, message: String) -> LlmError {
         path: path.to_path_buf(),
         message,
     }
+}
+
+/// An error of entry `e` found on the scene file `scene`: named by the batch file and the
+/// entry's line, then the scene. Named by the scene file alone, "entry on line 3" pointed
+/// into a file that has no such entry (and "batch:" named no file at all).
+fn entry_err(e: &Entry, scene: Option<&Path>, message: String) -> LlmError {
+    let on = scene.map_or(String::new(), |f| format!(" ({})", f.display()));
+    bad(&e.file, format!("entry on line {}{on}: {message}", e.line))
 }
 
 /// The most a batch file may hold (the paper's tables need a few hundred entries, a few
@@ -185,6 +195,7 @@ pub fn read_batch(path: &Path) -> Result<Vec<Entry>, LlmError> {
             request,
             behaviour,
             params,
+            file: path.to_path_buf(),
             line,
             default_scenes: default,
         });
@@ -261,12 +272,10 @@ pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<S
             files.extend(discover(s).map_err(|err| bad(s, err.to_string()))?);
         }
         if files.is_empty() {
-            return Err(bad(
-                Path::new("batch"),
-                format!(
-                    "entry on line {}: no scene (give `scene:`, a top-level `scenes:`, or --scenes)",
-                    e.line
-                ),
+            return Err(entry_err(
+                e,
+                None,
+                "no scene (give `scene:`, a top-level `scenes:`, or --scenes)".into(),
             ));
         }
         files.sort();
@@ -279,12 +288,10 @@ pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<S
                 let mut params = e.params.clone().unwrap_or_default();
                 if !holes.is_empty() {
                     let b = e.behaviour.ok_or_else(|| {
-                        bad(
-                            &f,
-                            format!(
-                                "entry on line {}: {{placeholders}} need `behaviour:` to choose agents",
-                                e.line
-                            ),
+                        entry_err(
+                            e,
+                            Some(&f),
+                            "{placeholders} need `behaviour:` to choose agents".into(),
                         )
                     })?;
                     if holes.iter().any(|h| params.get(h).is_none()) {
@@ -303,12 +310,9 @@ pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<S
                 }
                 let mut request = e.request.clone();
                 for h in &holes {
-                    let v = params.get(h).ok_or_else(|| {
-                        bad(
-                            &f,
-                            format!("entry on line {}: no value for {{{h}}}", e.line),
-                        )
-                    })?;
+                    let v = params
+                        .get(h)
+                        .ok_or_else(|| entry_err(e, Some(&f), format!("no value for {{{h}}}")))?;
                     request = request.replace(&format!("{{{h}}}"), &v.to_string());
                 }
                 let checks = match e.behaviour {
@@ -325,12 +329,12 @@ pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<S
                         let present = matches!(v, crate::cost::ParamValue::Int(id)
                             if scene.agents.iter().any(|a| a.id == *id));
                         if !present {
-                            return Err(bad(
-                                &f,
+                            return Err(entry_err(
+                                e,
+                                Some(&f),
                                 format!(
-                                    "entry on line {}: scene {id} has no agent {v} ({} {role}): \
-                                     name one of its agents, or give its scenes their own entry",
-                                    e.line,
+                                    "scene {id} has no agent {v} ({} {role}): name one of its \
+                                     agents, or give its scenes their own entry",
                                     b.name()
                                 ),
                             ));
@@ -343,9 +347,8 @@ pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<S
                 if let (Some(b), Some(given)) = (e.behaviour, &e.params) {
                     // As `eval --param`: a name the checker does not read is dropped and the
                     // pair judged on its default.
-                    b.check_param_names(given).map_err(|err| {
-                        bad(&f, format!("entry on line {}: params: {err}", e.line))
-                    })?;
+                    b.check_param_names(given)
+                        .map_err(|err| entry_err(e, Some(&f), format!("params: {err}")))?;
                 }
                 for (b, p) in &checks {
                     use crate::eval::behaviors::CheckError as C;
@@ -355,12 +358,7 @@ pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<S
                             | C::NotANumber { .. }
                             | C::NotAnId { .. }
                             | C::NotAWord { .. }),
-                        ) => {
-                            return Err(bad(
-                                &f,
-                                format!("entry on line {}: scene {id}: {err}", e.line),
-                            ))
-                        }
+                        ) => return Err(entry_err(e, Some(&f), format!("scene {id}: {err}"))),
                         _ => {}
                     }
                 }
@@ -677,6 +675,41 @@ mod tests {
     }
 
     #[test]
+    fn entry_errors_found_on_a_scene_name_the_batch_file() {
+        // "scene.yaml: entry on line 3: no value for {x}" pointed into the scene file, and
+        // "batch: entry on line 3: no scene" named no file (issue 32).
+        let dir = tempfile::tempdir().unwrap();
+        let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes/highway.yaml");
+        let f = dir.path().join("b.yaml");
+        std::fs::write(
+            &f,
+            format!(
+                "scenes: {}\nentries:\n  - request: \"vehicle {{cutter}} passes {{nobody}}\"\n    behaviour: cut_in\n",
+                scene.display()
+            ),
+        )
+        .unwrap();
+        let err = expand(&read_batch(&f).unwrap(), 40)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(
+            err.starts_with(&format!("{}: entry on line 3 (", f.display()))
+                && err.contains("no value for {nobody}"),
+            "{err}"
+        );
+        std::fs::write(&f, "scenes: []\nentries:\n  - request: x\n").unwrap();
+        let err = expand(&read_batch(&f).unwrap(), 40)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(
+            err.starts_with(&format!("{}: entry on line 3: no scene", f.display())),
+            "{err}"
+        );
+    }
+
+    #[test]
     fn parameters_the_checker_cannot_read_refuse_the_entry_before_any_round() {
         let dir = tempfile::tempdir().unwrap();
         let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes/highway.yaml");
@@ -704,8 +737,14 @@ mod tests {
                 .err()
                 .expect(params)
                 .to_string();
+            // Named by the batch file, whose line it is, and then the scene (issue 32: it
+            // was named by the scene file alone).
             assert!(
-                err.contains("entry on line 3: ") && err.contains(says),
+                err.starts_with(&format!(
+                    "{}: entry on line 3 ({}): ",
+                    f.display(),
+                    scene.display()
+                )) && err.contains(says),
                 "{params}: {err}"
             );
         }

@@ -490,7 +490,7 @@ impl HttpClient {
         clock: &ReplyClock,
     ) -> Result<Completion, LlmError> {
         use std::io::BufRead;
-        if let Some(encoding) = compressed(&resp) {
+        if let Some(encoding) = self.compressed(&resp) {
             return Err(LlmError::BadReply {
                 url: url.into(),
                 message: format!(
@@ -658,7 +658,7 @@ impl HttpClient {
                     truncated: got.truncated,
                 });
             }
-            let message = match compressed(&resp) {
+            let message = match self.compressed(&resp) {
                 // Its bytes quoted as text say nothing.
                 Some(encoding) => format!("(a body compressed as {encoding}, not read)"),
                 None => {
@@ -752,14 +752,6 @@ fn follow_redirect(attempt: reqwest::redirect::Attempt<'_>) -> reqwest::redirect
     } else {
         attempt.stop()
     }
-}
-
-/// The body's `Content-Encoding` where it is not plain bytes (the request asks for none, so
-/// only a misbehaving server or proxy compresses), shown safely and cut.
-fn compressed(resp: &reqwest::blocking::Response) -> Option<String> {
-    let v = resp.headers().get(reqwest::header::CONTENT_ENCODING)?;
-    let v = String::from_utf8_lossy(v.as_bytes()).trim().to_string();
-    (!v.is_empty() && !v.eq_ignore_ascii_case("identity")).then(|| crate::io::name::shown(&v))
 }
 
 /// The most a reply body may hold: a completion is a few KB; an endless body (a broken or
@@ -940,6 +932,17 @@ impl HttpClient {
             status,
             location,
         }
+    }
+
+    /// The body's `Content-Encoding` where it is not plain bytes (the request asks for none,
+    /// so only a misbehaving server or proxy compresses), redacted, then shown safely and cut:
+    /// a hostile server can put the `Authorization` header it got there, and a key cut first
+    /// would no longer be found whole.
+    fn compressed(&self, resp: &reqwest::blocking::Response) -> Option<String> {
+        let v = resp.headers().get(reqwest::header::CONTENT_ENCODING)?;
+        let v = String::from_utf8_lossy(v.as_bytes()).trim().to_string();
+        (!v.is_empty() && !v.eq_ignore_ascii_case("identity"))
+            .then(|| crate::io::name::shown(&self.redact(&v)))
     }
 
     fn redact_error(&self, e: LlmError) -> LlmError {

@@ -265,11 +265,20 @@ fn guidance_or_legacy_flag<'de, D: serde::Deserializer<'de>>(
     enum Written {
         Flag(bool),
         Name(crate::sample::Guidance),
+        // Anything else, to be named: untagged, serde said only "data did not match any
+        // variant of untagged enum Written".
+        Other(Value),
     }
     Ok(match Written::deserialize(d)? {
         Written::Flag(true) => crate::sample::Guidance::Denoiser,
         Written::Flag(false) => crate::sample::Guidance::OutputSpace,
         Written::Name(g) => g,
+        Written::Other(v) => {
+            return Err(serde::de::Error::custom(format!(
+                "`guidance` is {}: it is \"denoiser\" or \"output\"",
+                crate::io::name::shown_counted(&v.to_string())
+            )))
+        }
     })
 }
 
@@ -759,6 +768,21 @@ impl State {
                 self.misses,
                 c.fixes + 1
             ));
+        }
+        if self.requests.is_empty() {
+            return Err(
+                "`requests` is empty: a run holds at least the request it started with".into(),
+            );
+        }
+        // A checker that cannot be read was dropped without a word, and the run judged
+        // without it ("Verdict: succeeded" with the request unchecked).
+        for (i, c) in self.checks.iter().enumerate() {
+            let b = Behavior::parse(&c.behaviour)
+                .map_err(|e| format!("`checks[{i}].behaviour`: {e}"))?;
+            let p =
+                Params::from_json(&c.params).map_err(|m| format!("`checks[{i}].params`: {m}"))?;
+            b.check_param_names(&p)
+                .map_err(|e| format!("`checks[{i}].params`: {e}"))?;
         }
         let mut before = None;
         for (i, r) in self.history.iter().enumerate() {
@@ -2430,6 +2454,26 @@ mod tests {
         state["history"].as_array_mut().unwrap().pop();
         let e = read_state(&state.to_string()).unwrap_err();
         assert!(e.contains("`sampled` is 2, but `history` records 1"), "{e}");
+        // A checker that cannot be read, or no request: the run went on without them, and
+        // judged it "succeeded" (issue 32).
+        let mut state = sampled_once();
+        state["checks"] = json!([{"behaviour": "nope", "params": {}}]);
+        let e = read_state(&state.to_string()).unwrap_err();
+        assert!(
+            e.contains("`checks[0].behaviour`") && e.contains("nope"),
+            "{e}"
+        );
+        let mut state = sampled_once();
+        state["checks"] = json!([{"behaviour": "off_road", "params": {"vehicle": 1, "typo": 2}}]);
+        let e = read_state(&state.to_string()).unwrap_err();
+        assert!(
+            e.contains("`checks[0].params`") && e.contains("typo"),
+            "{e}"
+        );
+        let mut state = sampled_once();
+        state["requests"] = json!([]);
+        let e = read_state(&state.to_string()).unwrap_err();
+        assert!(e.contains("`requests` is empty"), "{e}");
     }
 
     #[test]
@@ -2454,8 +2498,17 @@ mod tests {
         v["guidance"] = "denoiser".into();
         let read: SessionConfig = serde_json::from_value(v.clone()).unwrap();
         assert_eq!(read.guidance, crate::sample::Guidance::Denoiser);
-        v["guidance"] = "backwards".into();
-        assert!(serde_json::from_value::<SessionConfig>(v).is_err());
+        // Named, with what it holds (issue 32: "data did not match any variant of untagged
+        // enum Written").
+        v["guidance"] = "back\u{1b}wards".into();
+        let e = serde_json::from_value::<SessionConfig>(v)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("`guidance` is \"back\\u001bwards\": it is \"denoiser\" or \"output\"")
+                && !e.contains("untagged"),
+            "{e}"
+        );
     }
 
     fn record(meets: bool, passed: bool, fully_checked: bool) -> RoundRecord {

@@ -36,6 +36,10 @@ pub const RECORDED_DT: std::ops::RangeInclusive<f64> = 1.0e-3..=10.0;
 /// tracks stay far below it, and a damaged value (a y of 1330 m read as 7e-204) jumps far
 /// above it. Rollouts are not held to it (see [`MAX_SPEED`]).
 pub const MAX_RECORDED_SPEED: f64 = 200.0;
+/// The speed limits a lane may have, m/s (above 0, at most 360 km/h): real limits stay far
+/// inside it. A NaN, negative or 1e300 limit from a damaged file reached the LLM's prompt and
+/// the speed checkers as it was (a NaN limit scored every car as within it).
+pub const LANE_SPEED_LIMIT: std::ops::RangeInclusive<f64> = f64::MIN_POSITIVE..=100.0;
 /// The largest agent length, metres (road trains reach about 55 m).
 pub const MAX_LENGTH: f64 = 100.0;
 /// The largest agent width, metres.
@@ -66,6 +70,14 @@ pub enum SceneError {
     /// Two lanes share an id.
     #[error("lane id {0} appears twice")]
     DuplicateLane(LaneId),
+    /// A lane's speed limit outside [`LANE_SPEED_LIMIT`] (or not a number).
+    #[error("lane {lane}: speed limit {} m/s is implausible (more than 0, at most 100 m/s)", num(*.limit))]
+    SpeedLimit {
+        /// The lane.
+        lane: LaneId,
+        /// Its limit, m/s.
+        limit: f64,
+    },
     /// Two agents share an id.
     #[error("agent id {0} appears twice")]
     DuplicateAgent(AgentId),

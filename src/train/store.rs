@@ -395,6 +395,42 @@ pub fn check_out_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError> {
     Ok(())
 }
 
+/// An exclusive hold on a checkpoint directory (`train --out`) for the life of a run
+/// ([`lock_out_dir`]), released when dropped or when the process ends however it ends.
+#[derive(Debug)]
+pub struct OutLock {
+    _dir: File,
+}
+
+/// Makes the checkpoint directory `dir` (`train --out`) and takes it for this run: an advisory
+/// `flock` on the directory itself, so that no file is added to it and a killed run leaves no
+/// stale lock. Two runs started into one `--out` both trained, rewrote each other's window
+/// cache and replaced each other's checkpoint files in turn (a `config.json` of one run beside
+/// the weights of the other), without a word; the second is now refused.
+pub fn lock_out_dir(dir: &Path) -> Result<OutLock, TrainError> {
+    crate::io::create_output_dir(dir).map_err(|e| TrainError::Data(e.to_string()))?;
+    let file = File::open(dir).map_err(|e| io_err(dir, format!("cannot open it: {e}")))?;
+    #[cfg(unix)]
+    {
+        use std::os::unix::io::AsRawFd;
+        // SAFETY: flock on a descriptor this function owns; no memory is involved.
+        let rc = unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
+        if rc != 0 {
+            let e = std::io::Error::last_os_error();
+            return Err(if e.kind() == std::io::ErrorKind::WouldBlock {
+                TrainError::Data(format!(
+                    "{}: another drivescript train is writing its checkpoint there (--out): \
+                     wait for it to end, or choose another --out",
+                    dir.display()
+                ))
+            } else {
+                io_err(dir, format!("cannot lock it: {e}"))
+            });
+        }
+    }
+    Ok(OutLock { _dir: file })
+}
+
 /// Refuses a cache directory that is, or is inside, a directory of `corpora` (the windows
 /// would go among the scenes they are cut from), and one holding anything besides the
 /// cache's own files: building replaces its files at every start, so a directory of the
