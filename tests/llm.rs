@@ -1851,6 +1851,32 @@ fn an_endless_reply_body_is_an_error_not_an_abort() {
 }
 
 #[test]
+fn a_completion_over_a_megabyte_is_refused_not_kept_and_sent_back() {
+    // Within the 16 MB body cap, but no token limit gives 2 MB of text: kept, it went into
+    // three files of the run directory each round and back to the server with every round.
+    let big = "x".repeat(2 << 20);
+    for canned in [Canned::chat(&big), Canned::stream(&big, Duration::ZERO)] {
+        let srv = Server::start(vec![canned]);
+        let mut cfg = HttpConfig::new(&srv.url, "test-model");
+        cfg.stream = true;
+        let e = HttpClient::new(cfg)
+            .unwrap()
+            .complete(&[Message::new("user", "x")])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("the completion's text is 2.0 MB, over the 1 MB")
+                && e.contains("--max-tokens"),
+            "{e}"
+        );
+    }
+    // At the cap it is a reply.
+    let srv = Server::start(vec![Canned::chat(&"y".repeat(1 << 20))]);
+    let ex = ask_one(&client(&srv.url)).unwrap();
+    assert_eq!(ex.reply.len(), 1 << 20);
+}
+
+#[test]
 fn a_batch_keeps_a_summary_it_did_not_write() {
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("requests.yaml");

@@ -644,6 +644,19 @@ impl HttpClient {
             }
             if (200..300).contains(&status) {
                 let got = self.read_completion(resp, &shown, &clock)?;
+                if got.content.len() > MAX_COMPLETION_BYTES {
+                    return Err(LlmError::BadReply {
+                        url: shown,
+                        message: format!(
+                            "the completion's text is {:.1} MB, over the {} MB drivescript \
+                             keeps (a cost script is a few KB): the server ignored the token \
+                             limit ({} tokens, --max-tokens) or is broken",
+                            got.content.len() as f64 / (1 << 20) as f64,
+                            MAX_COMPLETION_BYTES >> 20,
+                            self.cfg.max_tokens
+                        ),
+                    });
+                }
                 self.check_context(&shown, estimate, got.usage, got.fingerprint.as_deref())?;
                 return Ok(Exchange {
                     url: shown,
@@ -757,6 +770,13 @@ fn follow_redirect(attempt: reqwest::redirect::Attempt<'_>) -> reqwest::redirect
 /// The most a reply body may hold: a completion is a few KB; an endless body (a broken or
 /// hostile server) must end in an error, not fill memory until the process aborts.
 pub const MAX_REPLY_BYTES: u64 = 16 << 20;
+
+/// The most a completion's text may hold: 1 MB, about 250,000 tokens, sixty times the default
+/// `--max-tokens`. A cost script's reply is a few KB, yet every reply is kept in the run
+/// directory (`messages.json`, `state.json`, `transcript.json`, rewritten each round) and sent
+/// back with every later round: a server that ignored the token limit and answered 10 MB twice
+/// made a 96 MB run directory, and twenty such rounds would have written gigabytes.
+pub const MAX_COMPLETION_BYTES: usize = 1 << 20;
 
 /// Reads a reply body within [`MAX_REPLY_BYTES`] (invalid UTF-8 replaced, as `text()` does);
 /// `resp` is read under `clock` ([`ReplyClock::reader`]).
