@@ -1695,6 +1695,12 @@ fn dataset_window_flags_are_checked() {
         let err = fails(&["dataset", "scripts/scenes", arg]);
         assert!(err.contains(want), "{arg}: {err}");
     }
+    // No scene there is 100 s long: the PCA table cannot be made, and that was exit 0.
+    let err = fails(&["dataset", "scripts/scenes", "--future=1000"]);
+    assert!(
+        err.contains("0 complete agent futures of 1000 steps: PCA needs at least 50"),
+        "{err}"
+    );
 }
 
 #[test]

@@ -503,6 +503,30 @@ fn yaml_errors_name_line_or_agent() {
             && err.contains("at least 2 distinct points"),
         "{err}"
     );
+    // A lane that follows itself was dropped from the graph, and a lane on both sides was
+    // taken as both, without a word (issue 32).
+    for (lanes, want) in [
+        (
+            "successors: [1]",
+            "map.lanes[0] (id 1).successors: names lane 1 itself",
+        ),
+        ("left: [1]", "map.lanes[0] (id 1).left: names lane 1 itself"),
+        (
+            "left: [2], right: [2]",
+            "map.lanes[0] (id 1).right: lane 2 is in both left and right",
+        ),
+    ] {
+        let f = dir.path().join("graph.yaml");
+        std::fs::write(
+            &f,
+            format!(
+                "steps: 2\ncurrent_step: 0\nmap:\n  lanes:\n    - {{id: 1, centerline: [[0, 0], [9, 0]], {lanes}}}\n    - {{id: 2, centerline: [[0, 3], [9, 3]]}}\nagents:\n  - {{id: 1, states: [[1, 0, 0], [2, 0, 0]]}}\n"
+            ),
+        )
+        .unwrap();
+        let err = fails(&["inspect", s(&f)]);
+        assert!(err.contains(want), "{lanes}: {err}");
+    }
     // Motion fields beside explicit states, or a lane beside a route, changed nothing and
     // were dropped without a word (issue 32).
     let f = dir.path().join("g.yaml");

@@ -63,8 +63,13 @@ pub fn run(args: Args) -> Result<ExitCode> {
         futures.len()
     );
     if futures.len() < 50 {
-        println!("too few futures to fit PCA");
-        return Ok(ExitCode::SUCCESS);
+        // The table is what the command is for: without it the run has not done its job.
+        anyhow::bail!(
+            "{} complete agent futures of {} steps: PCA needs at least 50 (more scenes, or a \
+             shorter --future / --history)",
+            futures.len(),
+            cfg.future
+        );
     }
     println!("\n| PCA components | position RMSE (m) | variance kept |");
     println!("|---|---|---|");

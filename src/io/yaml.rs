@@ -863,6 +863,29 @@ fn explicit_parts(path: &Path, m: &YamlMap) -> Result<MapParts, IoError> {
     let mut parts = MapParts::default();
     for (i, l) in m.lanes.iter().enumerate() {
         let loc = |f: &str| format!("map.lanes[{i}] (id {}).{f}", l.id);
+        // A hand-written map's slips: the graph dropped a lane that follows itself, and took
+        // a lane on both sides as both, without a word.
+        for (field, ids) in [
+            ("predecessors", &l.predecessors),
+            ("successors", &l.successors),
+            ("left", &l.left),
+            ("right", &l.right),
+        ] {
+            if ids.contains(&l.id) {
+                return Err(IoError::invalid(
+                    path,
+                    loc(field),
+                    format!("names lane {} itself", l.id),
+                ));
+            }
+        }
+        if let Some(both) = l.left.iter().find(|id| l.right.contains(id)) {
+            return Err(IoError::invalid(
+                path,
+                loc("right"),
+                format!("lane {both} is in both left and right: a neighbour lies on one side"),
+            ));
+        }
         let mut lane = Lane::new(l.id, line(loc("centerline"), &l.centerline)?);
         lane.left_boundary = l
             .left_boundary
