@@ -1851,6 +1851,38 @@ fn an_endless_reply_body_is_an_error_not_an_abort() {
 }
 
 #[test]
+fn a_batch_scene_that_cannot_be_read_is_named_once_with_its_entry() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("requests.yaml");
+    std::fs::write(
+        &file,
+        "scenes: nope.yaml\nentries:\n  - request: \"vehicle 1 cuts in\"\n",
+    )
+    .unwrap();
+    let o = ask(
+        &[
+            "--batch",
+            s(&file),
+            "-o",
+            s(&dir.path().join("out")),
+            "--llm",
+            "rules",
+        ],
+        None,
+    );
+    let t = text(&o);
+    let scene = dir.path().join("nope.yaml").display().to_string();
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains(&format!(
+            "requests.yaml: entry on line 3: {scene}: No such file"
+        )),
+        "{t}"
+    );
+    assert_eq!(t.matches(&scene).count(), 1, "{t}");
+}
+
+#[test]
 fn a_completion_over_a_megabyte_is_refused_not_kept_and_sent_back() {
     // Within the 16 MB body cap, but no token limit gives 2 MB of text: kept, it went into
     // three files of the run directory each round and back to the server with every round.

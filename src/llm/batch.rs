@@ -269,7 +269,9 @@ pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<S
     for e in entries {
         let mut files = Vec::new();
         for s in &e.scenes {
-            files.extend(discover(s).map_err(|err| bad(s, err.to_string()))?);
+            // The reader's error names the file it could not read: named again in front, it
+            // read "x.yaml: x.yaml: No such file or directory".
+            files.extend(discover(s).map_err(|err| entry_err(e, None, err.to_string()))?);
         }
         if files.is_empty() {
             return Err(entry_err(
@@ -281,8 +283,8 @@ pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<S
         files.sort();
         let holes = placeholders(&e.request);
         for f in files {
-            for scene in
-                load_scenes(&f, &LoadOptions::default()).map_err(|err| bad(&f, err.to_string()))?
+            for scene in load_scenes(&f, &LoadOptions::default())
+                .map_err(|err| entry_err(e, None, err.to_string()))?
             {
                 let id = scene.meta.scenario_id.clone();
                 let mut params = e.params.clone().unwrap_or_default();
