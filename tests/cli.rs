@@ -578,21 +578,7 @@ fn cost_prints_terms_and_gradients() {
 fn test_scripts_runs_the_suite_and_fails_on_a_broken_expectation() {
     let out = ok(&["test-scripts", "scripts/cut_in.test.yaml"]);
     assert!(out.contains("3 passed, 0 failed"), "{out}");
-    let dir = tempfile::tempdir().unwrap();
-    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
-    let t = dir.path().join("x.test.yaml");
-    std::fs::write(
-        &t,
-        format!(
-            "script: {}\ncases:\n  - name: wrong on purpose\n    scene: {}\n    params: {{vehicle: 1}}\n    expect: {{total_above: 100.0}}\n",
-            s(&root.join("scripts/speed_limit.rhai")),
-            s(&root.join("scripts/scenes/highway.yaml"))
-        ),
-    )
-    .unwrap();
-    let out = common::drivescript(&["test-scripts", s(&t)]);
-    assert_eq!(out.status.code(), Some(1));
-    let text = String::from_utf8_lossy(&out.stdout);
+    let text = failing_case("speed_limit.rhai", "vehicle: 1", "total_above: 100.0");
     assert!(
         text.contains("FAILED total > 100") && text.contains("0 passed, 1 failed"),
         "{text}"
@@ -3590,24 +3576,34 @@ fn an_output_path_under_a_file_names_the_file_in_the_way() {
     );
 }
 
-#[test]
-fn a_failed_largest_term_expectation_names_the_largest_plainly() {
-    // It said `(it is Some("ends_in_victim_lane"))`, Rust's debug form (issue 32).
+/// `test-scripts` on one case of `scripts/SCRIPT` on the highway scene with `params` and the
+/// expectation `expect`, which must fail: exit 1, and what it printed.
+fn failing_case(script: &str, params: &str, expect: &str) -> String {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
     let dir = tempfile::tempdir().unwrap();
     let t = dir.path().join("x.test.yaml");
     std::fs::write(
         &t,
         format!(
-            "script: {}\ncases:\n  - name: wrong on purpose\n    scene: {}\n    params: {{cutter: 2, victim: 1}}\n    expect: {{largest_term: no_contact}}\n",
-            s(&root.join("scripts/cut_in.rhai")),
+            "script: {}\ncases:\n  - name: wrong on purpose\n    scene: {}\n    params: {{{params}}}\n    expect: {{{expect}}}\n",
+            s(&root.join("scripts").join(script)),
             s(&root.join("scripts/scenes/highway.yaml"))
         ),
     )
     .unwrap();
     let out = common::drivescript(&["test-scripts", s(&t)]);
     assert_eq!(out.status.code(), Some(1));
-    let text = String::from_utf8_lossy(&out.stdout);
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+#[test]
+fn a_failed_largest_term_expectation_names_the_largest_plainly() {
+    // It said `(it is Some("ends_in_victim_lane"))`, Rust's debug form (issue 32).
+    let text = failing_case(
+        "cut_in.rhai",
+        "cutter: 2, victim: 1",
+        "largest_term: no_contact",
+    );
     assert!(
         text.contains("FAILED largest term is no_contact (it is ends_in_victim_lane)")
             && !text.contains("Some("),
