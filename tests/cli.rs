@@ -3655,3 +3655,62 @@ fn a_second_train_into_one_out_is_refused_while_the_first_runs() {
         "{err}"
     );
 }
+
+/// A float flag written beyond the largest float is refused as written: it read as infinity
+/// and the flag's range check said `inf`, a value nobody typed (`--lambda inf: must be 0 to
+/// 1000` for `--lambda 1e400`) (issue 32).
+#[test]
+fn float_flags_beyond_the_largest_float_are_refused_as_written() {
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let scene = s(&scene);
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let out = s(&out);
+    let sim = |flag: &'static str| -> Vec<&str> {
+        vec![
+            "simulate",
+            scene,
+            "--checkpoint",
+            "data/checkpoint",
+            flag,
+            "-o",
+            out,
+        ]
+    };
+    let ask =
+        |flag: &'static str| -> Vec<&str> { vec!["ask", scene, "a request", "-o", out, flag] };
+    let train =
+        |flag: &'static str| -> Vec<&str> { vec!["train", "--data", scene, "--out", out, flag] };
+    let cases = [
+        sim("--lambda=-1e400"),
+        sim("--realism=-1e400"),
+        sim("--known-weight=-1e400"),
+        sim("--script-budget=-1e400"),
+        ask("--temperature=-1e400"),
+        ask("--llm-timeout=-1e400"),
+        ask("--reply-deadline=-1e400"),
+        ask("--backoff=-1e400"),
+        ask("--backoff-max=-1e400"),
+        ask("--tolerance=-1e400"),
+        ask("--script-budget=-1e400"),
+        train("--lr=-1e400"),
+        train("--ema-half-life=-1e400"),
+        train("--scale-cap=-1e400"),
+        vec!["bench", "io", "--seconds=-1e400"],
+    ];
+    for args in cases {
+        let run = drivescript(&args);
+        let err = String::from_utf8_lossy(&run.stderr);
+        assert_eq!(run.status.code(), Some(2), "{args:?}: {err}");
+        assert!(
+            err.contains("-1e400 is beyond the largest number")
+                && !err.contains("inf:")
+                && !err.contains("= inf"),
+            "{args:?}: {err}"
+        );
+    }
+    assert!(!dir.path().join("out").exists());
+    // Infinity typed as such still reaches the flag's own check.
+    let err = fails(&["bench", "io", "--seconds", "inf"]);
+    assert!(err.contains("--seconds inf"), "{err}");
+}

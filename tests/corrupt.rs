@@ -432,6 +432,31 @@ fn a_gif_of_a_long_scene_is_refused_not_rendered_for_minutes() {
     ]);
 }
 
+/// 2000 frames (within the frame cap) at `--width 8192` (within the width range) were drawn:
+/// hours and more than a gigabyte (41 frames of a CommonRoad scene took two minutes and
+/// 26 MB). Refused at once with the width that fits (issue 32).
+#[test]
+fn a_gif_of_many_frames_at_a_large_width_is_refused_naming_the_width_that_fits() {
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("long.yaml");
+    std::fs::write(
+        &f,
+        "scenario_id: long\ndt: 0.1\nsteps: 2000\ncurrent_step: 10\nroad: {lanes: 2, length: 100}\n\
+         agents:\n  - {id: 1, lane: 0, s: 1, speed: 0}\n",
+    )
+    .unwrap();
+    let out = dir.path().join("long.gif");
+    let t0 = std::time::Instant::now();
+    let err = fails(&["render", s(&f), "--width", "8192", "-o", s(&out)]);
+    assert!(
+        err.contains("a GIF of 2000 frames of 8192 x 8192 pixels")
+            && err.contains("give --width 1224 or less"),
+        "{err}"
+    );
+    assert!(t0.elapsed().as_secs() < 10, "{:?}", t0.elapsed());
+    assert!(!out.exists());
+}
+
 #[test]
 fn deeply_nested_yaml_is_refused_before_parsing() {
     // 100,000 brackets took 36 s to refuse (the parser is quadratic in the depth).

@@ -1011,7 +1011,7 @@ fn a_batch_stopped_by_an_error_continues_when_run_again() {
         std::fs::write(
             &file,
             format!(
-                "scenes: {}\nentries:\n  - request: \"{first}\"\n    behaviour: cut_in\n    params: {{cutter: 401, victim: 399}}\n  - request: \"vehicle 401 cuts in front of vehicle 405\"\n    behaviour: cut_in\n    params: {{cutter: 401, victim: 405}}\n",
+                "scenes: {}\nentries:\n  - request: \"{first}\"\n    behaviour: cut_in\n    params: {{cutter: 401, victim: 399}}\n  - request: \"vehicle 405 drives off the road\"\n    behaviour: off_road\n    params: {{vehicle: 405}}\n",
                 scene.display()
             ),
         )
@@ -1038,7 +1038,10 @@ fn a_batch_stopped_by_an_error_continues_when_run_again() {
     let summary = std::fs::read_to_string(out.join("summary.md")).unwrap();
     assert!(summary.contains("1 of 2 pairs done"), "{summary}");
     // Run again: the finished pair is read back, not asked again; the stopped one runs.
-    let srv2 = Server::start(vec![Canned::chat(&reply(&cut_in_script(401, 405)))]);
+    // (Another behaviour: a second cut-in of the scene would replace the first's rollouts.)
+    let srv2 = Server::start(vec![Canned::chat(&reply(
+        "let a = agent(405);\nterm(\"off\", relu(a.edge_distance.last() + 1.0), 1.0);\n",
+    ))]);
     let o = ask(&args, Some(&srv2.url));
     let t = text(&o);
     assert_eq!(o.status.code(), Some(0), "{t}");
@@ -1833,6 +1836,38 @@ fn a_batch_pair_naming_an_agent_the_scene_lacks_is_an_error_not_a_failed_pair() 
         t.contains("entry on line 3") && t.contains("has no agent 99999 (cut_in victim)"),
         "{t}"
     );
+}
+
+/// Two pairs whose rollouts go to one file (`rollouts/off_road/SCENE_K.json`: one behaviour
+/// asked of two agents of a scene) are refused before any run, naming both entries: the
+/// second replaced the first's rollouts without a word and `eval` scored its samples for
+/// both (issue 32).
+#[test]
+fn batch_pairs_writing_the_same_rollouts_are_refused_naming_both_entries() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("requests.yaml");
+    std::fs::write(
+        &file,
+        format!(
+            "scenes: {}\nentries:\n  - request: \"vehicle 401 drives off the road\"\n    behaviour: off_road\n    params: {{vehicle: 401}}\n  - request: \"vehicle 405 drives off the road\"\n    behaviour: off_road\n    params: {{vehicle: 405}}\n",
+            samples().join(SCENE).display()
+        ),
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    let o = ask(
+        &["--batch", s(&file), "-o", s(&out), "--llm", "rules"],
+        None,
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("entry on line 6")
+            && t.contains("would replace those of the entry on line 3")
+            && t.contains("rollouts/off_road/"),
+        "{t}"
+    );
+    assert!(!out.join("rollouts").exists(), "{t}");
 }
 
 #[test]

@@ -76,7 +76,7 @@ pub struct Args {
     #[arg(long)]
     model: Option<String>,
     /// Sampling temperature sent with every request, 0 to 2.
-    #[arg(long, default_value_t = 0.2, allow_negative_numbers = true)]
+    #[arg(long, value_parser = float, default_value_t = 0.2, allow_negative_numbers = true)]
     temperature: f64,
     /// Most tokens per reply, 1 to 1,000,000.
     #[arg(long, default_value_t = 4096, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
@@ -93,22 +93,22 @@ pub struct Args {
     /// Seconds of silence allowed: before the reply's head, and between the parts of a reply;
     /// also the longest a streamed reply may go without a token, whatever else it sends
     /// (more than 0, at most 3600).
-    #[arg(long, default_value_t = 300.0, allow_negative_numbers = true)]
+    #[arg(long, value_parser = float, default_value_t = 300.0, allow_negative_numbers = true)]
     llm_timeout: f64,
     /// Seconds a reply may take in all, from the first request (retries and the waits between
     /// them included): past it a reply still coming is abandoned (more than 0, at most 86400).
-    #[arg(long, default_value_t = 1800.0, allow_negative_numbers = true)]
+    #[arg(long, value_parser = float, default_value_t = 1800.0, allow_negative_numbers = true)]
     reply_deadline: f64,
     /// Attempts per request on 429 and 5xx answers, 1 to 20.
     #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=20))]
     attempts: u32,
     /// First wait between attempts, seconds (doubles each time unless the server sends
     /// Retry-After), 0 to 600.
-    #[arg(long, default_value_t = 2.0, allow_negative_numbers = true)]
+    #[arg(long, value_parser = float, default_value_t = 2.0, allow_negative_numbers = true)]
     backoff: f64,
     /// The longest wait between attempts, seconds: the doubling stops there, and a server's
     /// Retry-After asking for more is cut to it (said on the terminal), 0 to 3600.
-    #[arg(long, default_value_t = 600.0, allow_negative_numbers = true)]
+    #[arg(long, value_parser = float, default_value_t = 600.0, allow_negative_numbers = true)]
     backoff_max: f64,
     /// Refinement rounds after the first sampling (0: the first script is final), at most 20.
     #[arg(long, default_value_t = 3, value_parser = usize_in(0, drivescript::llm::session::MAX_ROUNDS))]
@@ -124,7 +124,7 @@ pub struct Args {
     seed: u64,
     /// Largest unweighted script term a sample may keep and still meet the request (finite,
     /// not negative).
-    #[arg(long, default_value_t = 0.05, allow_negative_numbers = true)]
+    #[arg(long, value_parser = float, default_value_t = 0.05, allow_negative_numbers = true)]
     tolerance: f64,
     /// Checkpoint directory (default: the one shipped in data/checkpoint).
     #[arg(long)]
@@ -145,7 +145,7 @@ pub struct Args {
     /// Seconds the cost script may take over one round's sampling, every evaluation together
     /// (more than 0, at most 86400); the same flag and default as `simulate`'s. A script past
     /// it goes back to the model as that round's feedback, and the run goes on.
-    #[arg(long, value_name = "SECONDS", default_value_t = drivescript::sample::DEFAULT_SCRIPT_BUDGET.as_secs_f64(), allow_negative_numbers = true)]
+    #[arg(long, value_parser = float, value_name = "SECONDS", default_value_t = drivescript::sample::DEFAULT_SCRIPT_BUDGET.as_secs_f64(), allow_negative_numbers = true)]
     script_budget: f64,
 }
 
@@ -650,6 +650,23 @@ pub(crate) fn usize_in(
         clap::value_parser!(u64).range(lo as u64..=hi as u64),
         |v| v as usize,
     )
+}
+
+/// A clap parser for a float flag: a number written beyond the largest float (`1e400`) is
+/// refused as written, where Rust's parser reads it as infinity and the flag's range check
+/// then spoke of `inf`, a value nobody typed. `inf` and `nan` typed as such pass through to
+/// that check.
+pub(crate) fn float(text: &str) -> Result<f64, String> {
+    let v: f64 = text
+        .parse()
+        .map_err(|_| format!("{} is not a number", drivescript::io::name::shown(text)))?;
+    if v.is_infinite() && text.bytes().any(|b| b.is_ascii_digit()) {
+        return Err(format!(
+            "{} is beyond the largest number (about 1.8e308)",
+            drivescript::io::name::shown(text)
+        ));
+    }
+    Ok(v)
 }
 
 fn load_one(path: &Path) -> Result<drivescript::scene::Scene, LlmError> {

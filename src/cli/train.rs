@@ -46,7 +46,7 @@ pub struct Args {
     #[arg(long, default_value_t = 8)]
     batch: usize,
     /// Learning rate.
-    #[arg(long, default_value_t = 3e-4)]
+    #[arg(long, value_parser = super::ask::float, default_value_t = 3e-4)]
     lr: f64,
     /// Seed (initialisation, batches, noise, augmentation).
     #[arg(long, default_value_t = 1)]
@@ -70,7 +70,7 @@ pub struct Args {
     /// Half-life, in steps, of the moving average of the weights that the checkpoint samples
     /// with (0: the last step's weights). Default: the setting's (cities 500, ngsim 0), or the
     /// resumed checkpoint's.
-    #[arg(long)]
+    #[arg(long, value_parser = super::ask::float)]
     ema_half_life: Option<f64>,
     /// How a new run scales the PCA components: `common` (one scale for all) or `capped`
     /// (each its own spread, at most the common one). Default: the setting's (cities capped,
@@ -79,7 +79,7 @@ pub struct Args {
     component_scale: Option<ScaleArg>,
     /// With `capped` scales: the cap as a fraction of the common scale, in (0, 1] (default 1).
     /// A resumed run keeps its checkpoint's.
-    #[arg(long)]
+    #[arg(long, value_parser = super::ask::float)]
     scale_cap: Option<f64>,
     /// Train from scratch into an --out directory that already holds a checkpoint (which is
     /// replaced at the first validation). Without it, that is refused.

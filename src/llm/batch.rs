@@ -266,6 +266,11 @@ fn placeholders(request: &str) -> Vec<String> {
 pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<String>), LlmError> {
     let mut out = Vec::new();
     let mut skipped = Vec::new();
+    // Where each pair's rollouts go (`rollouts/LABEL/STEM_K.json`), and the line of the entry
+    // that wrote them: two pairs there replaced each other's files without a word (one
+    // behaviour asked of two agents of one scene, two free-form requests on it), and `eval`
+    // scored the last one's samples for both.
+    let mut rollouts: BTreeMap<(String, String), usize> = BTreeMap::new();
     for e in entries {
         let mut files = Vec::new();
         for s in &e.scenes {
@@ -388,6 +393,26 @@ pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<S
                         .collect::<Vec<_>>()
                         .join("+"),
                 };
+                if let Ok(stem) = output_stem(&id) {
+                    let at = format!("rollouts/{}/{stem}_K.json", path_label(&label));
+                    if let Some(first) = rollouts.insert((path_label(&label), stem.into()), e.line)
+                    {
+                        let other = if first == e.line {
+                            "this entry's, for the scene given to it twice".to_string()
+                        } else {
+                            format!("those of the entry on line {first}")
+                        };
+                        return Err(entry_err(
+                            e,
+                            Some(&f),
+                            format!(
+                                "scene {id}: its rollouts ({at}) would replace {other}: run \
+                                 each (scene, {label}) pair once per batch, or the others in \
+                                 batches of their own"
+                            ),
+                        ));
+                    }
+                }
                 out.push(Instance {
                     scene_path: f.clone(),
                     scene,

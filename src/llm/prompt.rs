@@ -83,6 +83,11 @@ fn check_example(path: &Path, text: &str) -> Result<(), LlmError> {
 /// template goes to the model with each request.
 pub const MAX_TEMPLATE_BYTES: u64 = 256 << 10;
 
+/// The most the templates and examples of a prompt folder may hold together: the shipped
+/// ones hold about 10 KB. Each file's cap alone let 400 examples make a 100 MB system prompt,
+/// sent again with every request and kept in the run's transcript at every round.
+pub const MAX_PROMPTS_BYTES: u64 = 1 << 20;
+
 const FILES: &[(&str, &[&str])] = &[
     ("system.md", &["reasoning", "examples", "reference"]),
     ("chain_of_thought.md", &[]),
@@ -110,13 +115,27 @@ impl Prompts {
     /// Reads every template from `dir` (examples from `dir/examples/*.md`, in name order) and
     /// checks their placeholders.
     pub fn load(dir: &Path) -> Result<Self, LlmError> {
-        let read = |name: &str, allowed: &[&str]| -> Result<String, LlmError> {
+        let mut total = 0u64;
+        let mut read = |name: &str, allowed: &[&str]| -> Result<String, LlmError> {
             let p = dir.join(name);
             let text = crate::io::read_regular_text(&p, MAX_TEMPLATE_BYTES, "a prompt template")
                 .map_err(|e| LlmError::Prompt {
                     path: p.clone(),
                     message: format!("cannot read it: {}", e.reason()),
                 })?;
+            total += text.len() as u64;
+            if total > MAX_PROMPTS_BYTES {
+                return Err(LlmError::Prompt {
+                    path: p,
+                    message: format!(
+                        "with it the templates and examples hold {} KB, over the {} KB a \
+                         prompt folder may hold together (every request sends them all): \
+                         keep fewer or shorter examples",
+                        total >> 10,
+                        MAX_PROMPTS_BYTES >> 10
+                    ),
+                });
+            }
             check_placeholders(&text, allowed).map_err(|message| LlmError::Prompt {
                 path: p.clone(),
                 message,
@@ -129,6 +148,16 @@ impl Prompts {
         }
         let mut examples = Vec::new();
         let ex = dir.join("examples");
+        // Anything but a directory there (a file, a dangling link) is a mistake: skipped, the
+        // model was asked with no worked example and nothing said so.
+        if ex.symlink_metadata().is_ok() && !ex.is_dir() {
+            return Err(LlmError::Prompt {
+                path: ex,
+                message: "not a directory: `examples/` holds the worked examples, one .md file \
+                          each"
+                    .into(),
+            });
+        }
         if ex.is_dir() {
             let mut files: Vec<PathBuf> = std::fs::read_dir(&ex)
                 .map_err(|e| LlmError::Prompt {
@@ -430,5 +459,31 @@ mod tests {
         std::fs::remove_file(dir.path().join("request.md")).unwrap();
         let e = Prompts::load(dir.path()).unwrap_err().to_string();
         assert!(e.contains("request.md") && e.contains("cannot read"), "{e}");
+    }
+
+    /// Each file within its cap, 400 examples made a 100 MB system prompt sent with every
+    /// request; `examples` as a file left the model without examples, exit 0 (issue 32).
+    #[test]
+    fn a_prompt_folder_past_its_total_or_with_examples_not_a_directory_is_refused() {
+        let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("prompts");
+        let dir = tempfile::tempdir().unwrap();
+        for (name, _) in FILES {
+            std::fs::copy(src.join(name), dir.path().join(name)).unwrap();
+        }
+        std::fs::write(dir.path().join("examples"), "not a folder").unwrap();
+        let e = Prompts::load(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("examples: not a directory"), "{e}");
+        std::fs::remove_file(dir.path().join("examples")).unwrap();
+        std::fs::create_dir(dir.path().join("examples")).unwrap();
+        let example = std::fs::read_to_string(src.join("examples/cut_in.md")).unwrap();
+        let big = format!("{example}\n{}", "filler ".repeat(30_000));
+        for i in 0..6 {
+            std::fs::write(dir.path().join(format!("examples/e{i}.md")), &big).unwrap();
+        }
+        let e = Prompts::load(dir.path()).unwrap_err().to_string();
+        assert!(
+            e.contains("examples/e4.md") && e.contains("over the 1024 KB a prompt folder"),
+            "{e}"
+        );
     }
 }

@@ -56,11 +56,35 @@ fn index(r: u8, g: u8, b: u8) -> u8 {
 /// of scene with 100,000 steps rendered for minutes.
 pub const MAX_GIF_FRAMES: usize = 2000;
 
+/// The most pixels a GIF's frames may hold together: [`MAX_GIF_FRAMES`] frames at the default
+/// width. Each limit alone let 2000 frames at `--width 8192` through: 41 took two minutes and
+/// 26 MB, 2000 would take hours and more than a gigabyte.
+pub const MAX_GIF_PIXELS: u64 = 3_000_000_000;
+
 /// An animation of the scene's steps (trails grow as it plays), looping forever: every step,
 /// or the last [`MAX_GIF_FRAMES`] of a longer scene (the motion before them drawn as trails).
 /// `render` refuses such a scene instead of cutting it unasked.
 pub fn render_gif(scene: &Scene, opts: &RenderOptions) -> Result<Vec<u8>, RenderError> {
     let view = View::fit(scene, opts)?;
+    let frames = scene.num_steps().clamp(1, MAX_GIF_FRAMES) as u64;
+    let pixels = frames * view.width as u64 * view.height as u64;
+    if pixels > MAX_GIF_PIXELS {
+        // The width that fits (the height follows it): the pixels grow as its square.
+        let fits = (view.width as f64 * (MAX_GIF_PIXELS as f64 / pixels as f64).sqrt()) as u64;
+        return Err(RenderError::Size(format!(
+            "a GIF of {frames} frames of {} x {} pixels is {:.1} billion pixels, over the {} \
+             billion one may take (minutes to draw, gigabytes to keep): {}",
+            view.width,
+            view.height,
+            pixels as f64 / 1e9,
+            MAX_GIF_PIXELS / 1_000_000_000,
+            if fits >= 64 {
+                format!("give --width {fits} or less, or draw one step (--step N, as PNG or SVG)")
+            } else {
+                "draw one step (--step N, as PNG or SVG)".into()
+            }
+        )));
+    }
     let mut base = RasterCanvas::new(&view)?;
     draw_map(&mut base, scene, &view);
     // In the same corner in every frame: placed once, by the whole recording.
