@@ -1813,18 +1813,13 @@ fn a_batch_that_fails_before_any_result_leaves_its_directory_as_it_found_it() {
         .exists());
 }
 
-#[test]
-fn a_batch_pair_naming_an_agent_the_scene_lacks_is_an_error_not_a_failed_pair() {
+/// `ask --batch` with the rules planner over the sample scene and these `entries:` lines,
+/// which must be refused (exit 1): the temporary directory, the run's `-o` and what it printed.
+fn refused_rules_batch(entries: &str) -> (tempfile::TempDir, std::path::PathBuf, String) {
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("requests.yaml");
-    std::fs::write(
-        &file,
-        format!(
-            "scenes: {}\nentries:\n  - request: \"vehicle 401 cuts in front of vehicle 99999\"\n    behaviour: cut_in\n    params: {{cutter: 401, victim: 99999}}\n",
-            samples().join(SCENE).display()
-        ),
-    )
-    .unwrap();
+    let scenes = samples().join(SCENE).display().to_string();
+    std::fs::write(&file, format!("scenes: {scenes}\nentries:\n{entries}")).unwrap();
     let out = dir.path().join("out");
     let o = ask(
         &["--batch", s(&file), "-o", s(&out), "--llm", "rules"],
@@ -1832,6 +1827,14 @@ fn a_batch_pair_naming_an_agent_the_scene_lacks_is_an_error_not_a_failed_pair() 
     );
     let t = text(&o);
     assert_eq!(o.status.code(), Some(1), "{t}");
+    (dir, out, t)
+}
+
+#[test]
+fn a_batch_pair_naming_an_agent_the_scene_lacks_is_an_error_not_a_failed_pair() {
+    let (_dir, _out, t) = refused_rules_batch(
+        "  - request: \"vehicle 401 cuts in front of vehicle 99999\"\n    behaviour: cut_in\n    params: {cutter: 401, victim: 99999}\n",
+    );
     assert!(
         t.contains("entry on line 3") && t.contains("has no agent 99999 (cut_in victim)"),
         "{t}"
@@ -1844,23 +1847,9 @@ fn a_batch_pair_naming_an_agent_the_scene_lacks_is_an_error_not_a_failed_pair() 
 /// both (issue 32).
 #[test]
 fn batch_pairs_writing_the_same_rollouts_are_refused_naming_both_entries() {
-    let dir = tempfile::tempdir().unwrap();
-    let file = dir.path().join("requests.yaml");
-    std::fs::write(
-        &file,
-        format!(
-            "scenes: {}\nentries:\n  - request: \"vehicle 401 drives off the road\"\n    behaviour: off_road\n    params: {{vehicle: 401}}\n  - request: \"vehicle 405 drives off the road\"\n    behaviour: off_road\n    params: {{vehicle: 405}}\n",
-            samples().join(SCENE).display()
-        ),
-    )
-    .unwrap();
-    let out = dir.path().join("out");
-    let o = ask(
-        &["--batch", s(&file), "-o", s(&out), "--llm", "rules"],
-        None,
+    let (_dir, out, t) = refused_rules_batch(
+        "  - request: \"vehicle 401 drives off the road\"\n    behaviour: off_road\n    params: {vehicle: 401}\n  - request: \"vehicle 405 drives off the road\"\n    behaviour: off_road\n    params: {vehicle: 405}\n",
     );
-    let t = text(&o);
-    assert_eq!(o.status.code(), Some(1), "{t}");
     assert!(
         t.contains("entry on line 6")
             && t.contains("would replace those of the entry on line 3")
