@@ -660,10 +660,11 @@ pub(crate) fn float(text: &str) -> Result<f64, String> {
     let v: f64 = text
         .parse()
         .map_err(|_| format!("{} is not a number", drivescript::io::name::shown(text)))?;
-    if v.is_infinite() && text.bytes().any(|b| b.is_ascii_digit()) {
+    if drivescript::geom::written_beyond_f64(text, v) {
         return Err(format!(
-            "{} is beyond the largest number (about 1.8e308)",
-            drivescript::io::name::shown(text)
+            "{} {}",
+            drivescript::io::name::shown(text),
+            drivescript::geom::BEYOND_F64
         ));
     }
     Ok(v)

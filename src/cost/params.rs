@@ -216,12 +216,8 @@ impl Params {
             let val = if let Ok(i) = v.parse::<i64>() {
                 ParamValue::Int(i)
             } else if let Ok(f) = v.parse::<f64>() {
-                // A number written out of range reads as inf: said as written ("1e400 is
-                // beyond ..."), not as "inf is not finite" of a value nobody typed.
-                if f.is_infinite() && v.bytes().any(|b| b.is_ascii_digit()) {
-                    return Err(bad(format!(
-                        "{v} is beyond the largest number (about 1.8e308)"
-                    )));
+                if crate::geom::written_beyond_f64(v, f) {
+                    return Err(bad(format!("{v} {}", crate::geom::BEYOND_F64)));
                 }
                 ParamValue::Float(f)
             } else if v == "true" || v == "false" {

@@ -64,6 +64,16 @@ pub fn num(v: f64) -> String {
     }
 }
 
+/// Whether `text`, which Rust's parser read as `v`, is a number written beyond the largest
+/// float (`1e400` reads as infinity): said as written ("1e400 is beyond ..."), not as "inf",
+/// a value nobody typed. `inf` typed as such is not.
+pub fn written_beyond_f64(text: &str, v: f64) -> bool {
+    v.is_infinite() && text.bytes().any(|b| b.is_ascii_digit())
+}
+
+/// What [`written_beyond_f64`]'s messages say after the number as written.
+pub const BEYOND_F64: &str = "is beyond the largest number (about 1.8e308)";
+
 /// The largest |x| or |y| accepted, metres. Real maps use local or UTM coordinates (at most a
 /// few million metres); beyond this, f64 keeps too few digits below the metre for resampling
 /// and projections, which then fail where they cannot (1e200 panicked in resampling).
