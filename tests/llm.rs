@@ -2257,6 +2257,22 @@ fn tls_mismatches_and_a_connection_that_never_comes_say_what_they_are() {
     );
 }
 
+#[test]
+fn a_status_line_that_is_not_http_is_named_as_such_with_the_url_once() {
+    // hyper's own words, "invalid HTTP status-code parsed", with reqwest's "error sending
+    // request for url (URL)" after the URL the message starts with.
+    let srv = common::llm_server::one_shot(
+        b"HTTP/1.1 999 \x1b[31mOops\r\nContent-Length: 2\r\n\r\n{}",
+        |_| {},
+    );
+    let url = format!("{srv}/chat/completions");
+    let e = ask_one(&client(&srv)).unwrap_err().to_string();
+    assert!(
+        e.contains("the answer's status line is not valid HTTP") && e.matches(&url).count() == 1,
+        "{e}"
+    );
+}
+
 #[cfg(unix)]
 #[test]
 fn a_setting_in_the_environment_that_is_not_utf8_is_an_error_not_unset() {

@@ -525,6 +525,15 @@ fn build_engine(
         e.register_global_module(pkg);
     }
     e.disable_symbol("eval");
+    // Rhai reads `1e400` as infinity, which then surfaced as "weight inf must be finite", a
+    // number the user never wrote.
+    #[allow(deprecated)] // "volatile", not deprecated (Rhai's words)
+    e.on_parse_token(|token, _, _| match token {
+        rhai::Token::FloatConstant(f) if !f.0.is_finite() => rhai::Token::LexError(Box::new(
+            rhai::LexError::Runtime(format!("the number {} {}", f.1, crate::geom::BEYOND_F64)),
+        )),
+        other => other,
+    });
     e.set_strict_variables(true);
     e.set_max_operations(limits.max_operations)
         .set_max_call_levels(limits.max_call_levels)
@@ -704,6 +713,9 @@ fn printable(s: &str) -> String {
         })
         .collect()
 }
+
+/// Most characters of a script's `throw` value shown in its error.
+const MAX_THROWN_CHARS: usize = 300;
 
 /// Longest term name, characters.
 const MAX_TERM_NAME: usize = 64;
@@ -1488,6 +1500,22 @@ impl CostScript {
                     },
                 }
             }
+            // The stdlib's own errors have no position; one with a position is the script's
+            // `throw`, whose value can be 10,000 characters: it reaches terminals and prompts.
+            EvalAltResult::ErrorRuntime(v, pos) if !pos.is_none() => {
+                let text = v.to_string();
+                let n = text.chars().count();
+                let message = if n > MAX_THROWN_CHARS {
+                    format!(
+                        "{}... ({} more characters)",
+                        text.chars().take(MAX_THROWN_CHARS).collect::<String>(),
+                        n - MAX_THROWN_CHARS
+                    )
+                } else {
+                    text
+                };
+                CostError::Runtime { script, line, column, message }
+            }
             EvalAltResult::ErrorRuntime(v, _) => CostError::Runtime { script, line, column, message: v.to_string() },
             // Rhai's `sort()` says what it cannot order as a function not found, with the Rust
             // type path: "no function elements of drivescript::cost::dual::Dual cannot be sorted".
@@ -1803,6 +1831,39 @@ mod tests {
         .to_string();
         assert!(
             e.contains("tolerance -5e-324 must be") && e.len() < 200,
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn a_literal_beyond_the_largest_float_is_named_as_written() {
+        // Rhai read it as infinity: "weight inf must be finite and non-negative".
+        let e = evaluation_error(
+            "let w = 1;\nterm(\"a\", agent(1).x.last(), 1e400);",
+            Rc::new(highway()),
+        )
+        .to_string();
+        assert!(
+            e.contains("t:2:30: syntax error: the number 1e400 is beyond the largest number"),
+            "{e}"
+        );
+        assert!(!e.contains("inf"), "{e}");
+    }
+
+    #[test]
+    fn a_long_thrown_message_is_cut_and_says_how_much_is_left() {
+        let e = evaluation_error(
+            "let s = \"x\"; s.pad(9000, 'y'); throw s;",
+            Rc::new(highway()),
+        )
+        .to_string();
+        assert!(
+            e.contains("yyy... (8700 more characters)") && e.len() < 600,
+            "{e}"
+        );
+        let e = evaluation_error("throw \"short and clear\";", Rc::new(highway())).to_string();
+        assert!(
+            e.contains("short and clear") && !e.contains("more characters"),
             "{e}"
         );
     }

@@ -1014,7 +1014,12 @@ fn transport_error(e: &reqwest::Error, url: &str, cfg: &HttpConfig) -> LlmError 
         }
     } else {
         // reqwest's Display omits the cause chain, where the useful part is.
-        let mut msg = std::iter::once(e.to_string())
+        // The error names its URL, which the message's caller names already.
+        let own = match e.url() {
+            Some(u) => e.to_string().replace(&format!(" for url ({u})"), ""),
+            None => e.to_string(),
+        };
+        let mut msg = std::iter::once(own)
             .chain(causes(e))
             .collect::<Vec<_>>()
             .join(": ");
@@ -1026,6 +1031,11 @@ fn transport_error(e: &reqwest::Error, url: &str, cfg: &HttpConfig) -> LlmError 
                 "the answer is not HTTP/1.x (it does not start with a status line such as \
                  `HTTP/1.1 200 OK`): a server that speaks TLS asked over http:// (give its URL \
                  as https://), or not an HTTP server",
+            ),
+            (
+                "invalid http status-code",
+                "the answer's status line is not valid HTTP (it must read like `HTTP/1.1 200 OK`: \
+                 a three-digit code and a reason of printable characters): not an HTTP server?",
             ),
             (
                 "invalid http header",
