@@ -1,10 +1,10 @@
 #!/usr/bin/env python3
-"""Simulates longer held-out urban scenes with SUMO from CommonRoad "interactive" scenarios.
+"""Simulates longer urban scenes with SUMO from CommonRoad "interactive" scenarios.
 
 The urban corpora in ../shared/data hold 3.5 s scenes for most towns, too short for 8 s
-futures and with too few yield requests to measure. The CommonRoad scenario repository (the
-public mirror seungju-k1m/CommonRoad, scenarios/interactive/scenario-factory/) has, for the
-same towns, each scene's SUMO network, routes and the CommonRoad map. This script runs SUMO
+futures (to train on) and with too few yield requests (to measure). The CommonRoad scenario
+repository (the public mirror seungju-k1m/CommonRoad, scenarios/interactive/scenario-factory/)
+has, for the same towns, each scene's SUMO network, routes and the CommonRoad map. This script runs SUMO
 on each and writes a CommonRoad 2020a file with the scene's own map and the simulated
 trajectories, which `convert` and `heldout_cities.sh` then cut into instances.
 
@@ -13,10 +13,14 @@ beside every figure that rests on it. A SUMO release other than the one that mad
 repository's files simulates the same starting states differently; the scenes are not a
 replay of the original recordings.
 
+Re-simulate only towns that the corpora hold: some towns are kept out of them on purpose, for
+independent checks. `train` splits by town name, so a held-out town's re-simulation stays
+held out as long as it is given only to measuring.
+
 Needs only SUMO (`python3 -m pip install eclipse-sumo`, or a `sumo` binary on PATH, or
 $SUMO_BINARY).
 
-Usage: sumo_heldout.py OUT_DIR SCENARIO_DIR... [--seconds 12] [--towns A,B]
+Usage: sumo_resimulate.py OUT_DIR SCENARIO_DIR... [--seconds 12] [--towns A,B]
   SCENARIO_DIR holds NAME.sumo.cfg, NAME.cr.xml and the files the .cfg names.
 """
 import argparse
@@ -50,7 +54,7 @@ def sumo_binary():
         found = shutil.which("sumo")
         if found:
             return found
-    sys.exit("sumo_heldout.py: no SUMO: python3 -m pip install eclipse-sumo, or set SUMO_BINARY")
+    sys.exit("sumo_resimulate.py: no SUMO: python3 -m pip install eclipse-sumo, or set SUMO_BINARY")
 
 
 def vtypes(scenario_dir):
@@ -159,7 +163,7 @@ def write_scene(cr_file, out_file, found, dims):
             shapes[ob.get("id")] = (rect.find("length").text, rect.find("width").text)
         if ob.tag in ("dynamicObstacle", "planningProblem"):
             root.remove(ob)
-    root.set("source", root.get("source", "") + "; re-simulated with SUMO by sumo_heldout.py")
+    root.set("source", root.get("source", "") + "; re-simulated with SUMO by sumo_resimulate.py")
     n = 0
     cut = []
     for vid, track in sorted(found.items(), key=lambda kv: kv[0]):
@@ -212,7 +216,7 @@ def main():
     os.makedirs(a.out, exist_ok=True)
     total = 0
     skipped = []
-    with tempfile.TemporaryDirectory(prefix="sumo_heldout.") as work:
+    with tempfile.TemporaryDirectory(prefix="sumo_resimulate.") as work:
         for d in a.scenarios:
             d = d.rstrip("/")
             name = os.path.basename(d)
@@ -220,8 +224,14 @@ def main():
                 continue
             cfg = os.path.join(d, name + ".sumo.cfg")
             cr = os.path.join(d, name + ".cr.xml")
-            if not (os.path.isfile(cfg) and os.path.isfile(cr)):
-                sys.exit(f"sumo_heldout.py: {d}: expected {name}.sumo.cfg and {name}.cr.xml")
+            if not os.path.isdir(d):
+                skipped.append(f"{name}: {d} is not a directory")
+                continue
+            missing = [os.path.basename(f) for f in (cfg, cr) if not os.path.isfile(f)]
+            if missing:
+                # The public mirror has scenario folders with only the network (two of 863).
+                skipped.append(f"{name}: {d} has no {' or '.join(missing)}")
+                continue
             dims = vtypes(d)
             try:
                 fcd = simulate(d, name, a.seconds, work)
