@@ -1951,3 +1951,33 @@ fn a_long_yaml_road_is_read_in_time_proportional_to_its_length() {
     let took = t0.elapsed().as_secs_f64();
     assert!(took < 15.0, "{took:.1} s");
 }
+
+#[test]
+fn a_gpudrive_file_stacking_lanes_on_one_spot_is_refused_at_once_naming_the_lane() {
+    // Lanes are joined end to start by distance in GPUDrive files: 4,000 lanes of 10 cm on one
+    // spot (a 600 KB file) joined each to all the others, 16 million links that took 120 s
+    // and 580 MB before `inspect` printed anything (issue 32).
+    let mut v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(gpudrive_fixture()).unwrap()).unwrap();
+    let roads = v["roads"].as_array_mut().unwrap();
+    let first = roads.len();
+    for i in 0..4000 {
+        roads.push(serde_json::json!({
+            "geometry": [{"x": 0.0, "y": 0.0, "z": 0.0}, {"x": 0.1, "y": 0.0, "z": 0.0}],
+            "type": "lane", "map_element_id": 2, "id": 100_000 + i,
+        }));
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("stacked.json");
+    std::fs::write(&f, serde_json::to_string(&v).unwrap()).unwrap();
+    let t0 = std::time::Instant::now();
+    let (code, out) = run_within(&["inspect", s(&f)], 120);
+    let took = t0.elapsed().as_secs_f64();
+    assert_eq!(code, Some(1), "{out}");
+    assert!(
+        out.contains(&format!("stacked.json: roads[{first}] (id 100000): more than 32 lanes start within 0.5 m of its end"))
+            && out.contains("no road network"),
+        "{out}"
+    );
+    assert!(took < 10.0, "{took:.1} s");
+}
