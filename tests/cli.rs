@@ -3182,6 +3182,32 @@ fn inspect_refuses_agent_flags_without_agents() {
 }
 
 #[test]
+fn bench_io_refuses_a_data_directory_without_scenes() {
+    // Timed as a row of 0 scenes at "inf" ms a scene and NaN MB/s, then its re-encoding failed
+    // naming an empty file in bench's own temporary directory (issue 32).
+    let dir = tempfile::tempdir().unwrap();
+    let womd = dir.path().join("w.tfrecord");
+    let err = fails(&[
+        "bench",
+        "io",
+        "--data",
+        s(dir.path()),
+        "--seconds",
+        "0.05",
+        "--womd-out",
+        s(&womd),
+    ]);
+    assert!(
+        err.contains(&format!(
+            "--data {}: no scene file in it, so there is nothing to time",
+            dir.path().display()
+        )) && !err.contains("drivescript-bench-"),
+        "{err}"
+    );
+    assert!(!womd.exists());
+}
+
+#[test]
 fn bench_refuses_flags_of_another_benchmark_and_outputs_over_what_it_did_not_write() {
     // Each flag was dropped without a word by the benchmarks that do not read it.
     for (args, want) in [

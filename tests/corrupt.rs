@@ -1951,3 +1951,78 @@ fn a_long_yaml_road_is_read_in_time_proportional_to_its_length() {
     let took = t0.elapsed().as_secs_f64();
     assert!(took < 15.0, "{took:.1} s");
 }
+
+#[test]
+fn a_gpudrive_file_stacking_lanes_on_one_spot_is_refused_at_once_naming_the_lane() {
+    // Lanes are joined end to start by distance in GPUDrive files: 4,000 lanes of 10 cm on one
+    // spot (a 600 KB file) joined each to all the others, 16 million links that took 120 s
+    // and 580 MB before `inspect` printed anything (issue 32).
+    let mut v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(gpudrive_fixture()).unwrap()).unwrap();
+    let roads = v["roads"].as_array_mut().unwrap();
+    let first = roads.len();
+    for i in 0..4000 {
+        roads.push(serde_json::json!({
+            "geometry": [{"x": 0.0, "y": 0.0, "z": 0.0}, {"x": 0.1, "y": 0.0, "z": 0.0}],
+            "type": "lane", "map_element_id": 2, "id": 100_000 + i,
+        }));
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("stacked.json");
+    std::fs::write(&f, serde_json::to_string(&v).unwrap()).unwrap();
+    let t0 = std::time::Instant::now();
+    let (code, out) = run_within(&["inspect", s(&f)], 120);
+    let took = t0.elapsed().as_secs_f64();
+    assert_eq!(code, Some(1), "{out}");
+    assert!(
+        out.contains(&format!("stacked.json: roads[{first}] (id 100000): more than 32 lanes start within 0.5 m of its end"))
+            && out.contains("no road network"),
+        "{out}"
+    );
+    assert!(took < 10.0, "{took:.1} s");
+}
+
+#[test]
+fn a_commonroad_map_of_many_lanelets_is_read_in_time_proportional_to_their_number() {
+    // Every probe for a road edge was tried against every lanelet, every dead end against
+    // every centre-line point, every marked bound against every road line: 30,000 lanelets
+    // of two points a bound (a 7.6 MB file) took 21 s, and a file at the size limit would
+    // have taken half an hour (issue 32).
+    let sample =
+        std::fs::read_to_string(samples().join("commonroad/USA_US101-3_3_T-1.xml")).unwrap();
+    let head = &sample[..sample.find("<lanelet ").unwrap()];
+    let start = sample.find("<obstacle").unwrap();
+    let end = sample[start..].find("</obstacle>").unwrap() + start + "</obstacle>".len();
+    let mut xml = String::from(head);
+    let n = 30_000;
+    let cols = (n as f64).sqrt().ceil() as usize;
+    for i in 0..n {
+        let (x, y) = ((i % cols) as f64 * 60.0, (i / cols) as f64 * 10.0);
+        let bound = |dy: f64| {
+            format!(
+                "<point><x>{x}</x><y>{}</y></point><point><x>{}</x><y>{}</y></point>\
+                 <lineMarking>solid</lineMarking>",
+                y + dy,
+                x + 50.0,
+                y + dy
+            )
+        };
+        xml.push_str(&format!(
+            "<lanelet id=\"{}\"><leftBound>{}</leftBound><rightBound>{}</rightBound></lanelet>",
+            10_000 + i,
+            bound(3.5),
+            bound(0.0)
+        ));
+    }
+    xml.push_str(&sample[start..end]);
+    xml.push_str("</commonRoad>\n");
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("many.xml");
+    std::fs::write(&f, xml).unwrap();
+    let t0 = std::time::Instant::now();
+    let (code, out) = run_within(&["inspect", s(&f)], 120);
+    let took = t0.elapsed().as_secs_f64();
+    assert_eq!(code, Some(0), "{out}");
+    assert!(out.contains("30000 lanes"), "{out}");
+    assert!(took < 8.0, "{took:.1} s");
+}

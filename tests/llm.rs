@@ -2198,6 +2198,40 @@ fn a_key_echoed_as_the_content_encoding_gets_into_no_message() {
 }
 
 #[test]
+fn a_key_echoed_where_a_message_is_cut_leaves_no_part_of_it() {
+    // Quoted server text is cut (a stream event at 120 characters, an error message at 300).
+    // A streamed event was cut before the key was redacted, and so was an error message whose
+    // key came JSON-escaped (`\u0073k-...`, whole only once decoded): the key's head before
+    // the cut was printed, "... Bearer sk-TESTKEY-a" (issue 32).
+    let key = "sk-TESTKEY-abcdefghijklmnopqrstuvwxyz0123456789";
+    let event = |data: String| {
+        Canned::raw(200, &format!("data: {data}\n\n")).header("Content-Type", "text/event-stream")
+    };
+    let srv = Server::start(vec![
+        event(format!("{} Bearer {key} trailing", "A".repeat(100))),
+        event(
+            serde_json::json!({"error": {"message": format!("{} Bearer {key}", "x".repeat(280))}})
+                .to_string(),
+        ),
+        Canned::raw(
+            400,
+            &serde_json::json!({"error": {"message": format!("{} Bearer {key}", "x".repeat(280))}})
+                .to_string()
+                .replace("Bearer sk-", "Bearer \\u0073k-"),
+        ),
+    ]);
+    let mut cfg = HttpConfig::new(&srv.url, "test-model");
+    cfg.key = Some(key.into());
+    cfg.attempts = 1;
+    let c = HttpClient::new(cfg).unwrap();
+    for _ in 0..3 {
+        let e = ask_one(&c).unwrap_err().to_string();
+        assert!(!e.contains("sk-TEST") && !e.contains("TESTKEY"), "{e}");
+        assert!(e.contains("Bearer [redacted]"), "{e}");
+    }
+}
+
+#[test]
 fn a_key_given_as_the_url_s_user_name_gets_into_no_message() {
     // `http://KEY@host/v1` sends the key as the Basic token of "KEY:"; a server echoing it
     // (as a token or decoded) put it on the terminal.

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use drivescript::geom::{FrenetPath, Point, Polyline};
 use drivescript::io::{
     check_output_not_input, check_replaces_own, discover, load_scenes, womd, LoadOptions,
@@ -478,6 +478,15 @@ fn bench_io(args: &Args, min: Duration) -> Result<ExitCode> {
     row("CommonRoad XML (samples)", &cr, min)?;
     if let Some(d) = &args.data {
         let extra = discover(d)?;
+        // A set of no scenes was timed as a row of 0 scenes at "inf" ms each, and its
+        // re-encoding failed naming an empty file in bench's own temporary directory.
+        if extra.is_empty() {
+            bail!(
+                "--data {}: no scene file in it, so there is nothing to time (supported: {})",
+                d.display(),
+                drivescript::io::SUPPORTED_FORMATS
+            );
+        }
         row(&format!("CommonRoad/any ({})", d.display()), &extra, min)?;
     }
     row("Argoverse 2 (sample)", &[samples.join("av2")], min)?;

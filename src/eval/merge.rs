@@ -576,6 +576,10 @@ mod tests {
             (format!("{acc}/passed"), json!(2), "passed 2, achieved 0, checked 0: a sample passes only if"),
             (format!("{acc}/groups/urban/scenes"), json!(5), "groups[\"urban\"].scenes is 5: more than the whole row's 2"),
             (format!("{acc}/groups/urban/offroad"), json!([-0.5]), "groups[\"urban\"].offroad[0] is -0.5: must be a rate"),
+            // A relabelled copy of a shard whose rows named no scene hid its scenes from the
+            // check that refuses a scene in two files (issue 32).
+            (format!("{acc}/per_scene/1/scene"), Value::Null, "merge.accumulators[0] (log): per_scene[1].scene is null: must be the scene's name"),
+            (format!("{acc}/per_scene/0"), json!({}), "merge.accumulators[0] (log): per_scene[0] has no scene: each row names the scene it scores"),
             ("/merge/run/horizons".into(), json!([{"steps": 40, "from": "flag", "scenes": -1}]), "merge.run.horizons[0].scenes is -1: must be a whole number"),
             ("/merge/run/skipped".into(), json!(-1), "merge.run.skipped is -1: must be a whole number"),
             ("/merge/run/shards/0".into(), json!(7), "merge.run.shards holds 7: not a shard of 2"),

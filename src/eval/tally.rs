@@ -524,6 +524,25 @@ impl Tally {
                 self.per_scene.len()
             ));
         }
+        // Each row names its scene: the merge refuses a scene in two shard files by these
+        // names, and a relabelled copy of a shard with its rows' names deleted was merged,
+        // its scenes counted twice (issue 32).
+        for (i, row) in self.per_scene.iter().enumerate() {
+            match row.get("scene") {
+                Some(serde_json::Value::String(name)) if !name.is_empty() => {}
+                Some(other) => {
+                    return Err(format!(
+                        "per_scene[{i}].scene is {}: must be the scene's name",
+                        crate::io::name::shown_counted(&other.to_string())
+                    ))
+                }
+                None => {
+                    return Err(format!(
+                        "per_scene[{i}] has no scene: each row names the scene it scores"
+                    ))
+                }
+            }
+        }
         self.check_figures()?;
         let labels: Vec<String> = group_order().iter().map(Group::label).collect();
         for (label, g) in &self.groups {

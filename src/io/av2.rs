@@ -571,6 +571,7 @@ fn read_map(path: &Path) -> Result<Map, IoError> {
         lane.left_neighbors.retain(same);
         lane.right_neighbors.retain(same);
     }
+    let mut line_ends = super::RoadLineEnds::of(&parts.road_lines);
     for (line, mark) in lines {
         let kind = match mark.as_str() {
             "NONE" | "UNKNOWN" => continue,
@@ -583,6 +584,7 @@ fn read_map(path: &Path) -> Result<Map, IoError> {
         };
         super::push_unique_road_line(
             &mut parts.road_lines,
+            &mut line_ends,
             RoadLine {
                 kind,
                 yellow: mark.contains("YELLOW"),

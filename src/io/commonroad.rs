@@ -396,20 +396,17 @@ fn read_map(cx: &Ctx, root: Node, speed_signs: &HashMap<i64, f64>) -> Result<Map
         .iter()
         .filter_map(|l| Some((l.id, l.surface()?)))
         .collect();
+    let grid = SurfaceGrid::new(&surfaces);
     for raw in &raws {
         // Oriented with the road on the left: the right bound as is, the left bound reversed.
         if !raw.has_right {
-            push_edge_runs(&mut parts.road_edges, &raw.right, raw.id, &surfaces);
+            push_edge_runs(&mut parts.road_edges, &raw.right, raw.id, &grid);
         }
         if !raw.has_left {
-            push_edge_runs(
-                &mut parts.road_edges,
-                &raw.left.reversed(),
-                raw.id,
-                &surfaces,
-            );
+            push_edge_runs(&mut parts.road_edges, &raw.left.reversed(), raw.id, &grid);
         }
     }
+    let mut line_ends = super::RoadLineEnds::of(&parts.road_lines);
     for raw in &raws {
         for (line, marking) in [
             (&raw.left, &raw.left_marking),
@@ -424,6 +421,7 @@ fn read_map(cx: &Ctx, root: Node, speed_signs: &HashMap<i64, f64>) -> Result<Map
             };
             super::push_unique_road_line(
                 &mut parts.road_lines,
+                &mut line_ends,
                 RoadLine {
                     kind,
                     yellow: false,
@@ -432,15 +430,12 @@ fn read_map(cx: &Ctx, root: Node, speed_signs: &HashMap<i64, f64>) -> Result<Map
             );
         }
     }
+    // By id through a map: a search of the list per lanelet was quadratic in their number.
+    let by_id: HashMap<i64, &Polygon> = surfaces.iter().map(|(id, p)| (*id, p)).collect();
     parts.drivable_areas = raws
         .iter()
         .filter(|r| !r.crosswalk && r.kind != LaneType::Other)
-        .filter_map(|r| {
-            surfaces
-                .iter()
-                .find(|(id, _)| *id == r.id)
-                .map(|(_, p)| p.clone())
-        })
+        .filter_map(|r| by_id.get(&r.id).map(|p| (*p).clone()))
         .collect();
     Map::new(parts).map_err(|e| IoError::Scene {
         path: cx.path.display().to_string(),
@@ -452,7 +447,7 @@ fn read_map(cx: &Ctx, root: Node, speed_signs: &HashMap<i64, f64>) -> Result<Map
 /// Adds the parts of a candidate edge (road on its left) that do not run inside another
 /// lanelet: probing just outside each segment tells a real edge from a bound that borders
 /// another lanelet without being declared adjacent (common in intersections and merges).
-fn push_edge_runs(out: &mut Vec<RoadEdge>, line: &Polyline, own: i64, surfaces: &[(i64, Polygon)]) {
+fn push_edge_runs(out: &mut Vec<RoadEdge>, line: &Polyline, own: i64, surfaces: &SurfaceGrid) {
     let pts = line.points();
     let mut run: Vec<Point> = Vec::new();
     let flush = |run: &mut Vec<Point>, out: &mut Vec<RoadEdge>| {
@@ -466,9 +461,7 @@ fn push_edge_runs(out: &mut Vec<RoadEdge>, line: &Polyline, own: i64, surfaces: 
     for w in pts.windows(2) {
         let dir = (w[1] - w[0]).normalize();
         let probe = (w[0] + w[1]) * 0.5 + Point::new(dir.y, -dir.x) * 0.3;
-        let interior = surfaces
-            .iter()
-            .any(|(id, poly)| *id != own && poly.contains(&probe));
+        let interior = surfaces.any_contains(&probe, own);
         if interior {
             flush(&mut run, out);
         } else {
@@ -479,6 +472,64 @@ fn push_edge_runs(out: &mut Vec<RoadEdge>, line: &Polyline, own: i64, surfaces: 
         }
     }
     flush(&mut run, out);
+}
+
+/// Side of a cell of [`SurfaceGrid`], metres: a few lanelets wide.
+const SURFACE_CELL: f64 = 16.0;
+/// Most cells a surface is listed in; larger ones are tried for every point.
+const SURFACE_MAX_CELLS: i64 = 256;
+
+/// The lanelets' surfaces listed by the grid cells their bounds cover, so that a probe of
+/// [`push_edge_runs`] tries the surfaces near it only: trying every surface for every probe
+/// made a map of 30,000 lanelets (a 7 MB file) take 20 s, and one at the size limit half an
+/// hour.
+struct SurfaceGrid<'a> {
+    surfaces: &'a [(i64, Polygon)],
+    cells: HashMap<(i64, i64), Vec<usize>>,
+    /// Surfaces over more than [`SURFACE_MAX_CELLS`] cells.
+    large: Vec<usize>,
+}
+
+impl<'a> SurfaceGrid<'a> {
+    fn cell(p: Point) -> (i64, i64) {
+        (
+            (p.x / SURFACE_CELL).floor() as i64,
+            (p.y / SURFACE_CELL).floor() as i64,
+        )
+    }
+
+    fn new(surfaces: &'a [(i64, Polygon)]) -> Self {
+        let mut cells: HashMap<(i64, i64), Vec<usize>> = HashMap::new();
+        let mut large = Vec::new();
+        for (k, (_, poly)) in surfaces.iter().enumerate() {
+            let (lo, hi) = poly.bounds();
+            let ((x0, y0), (x1, y1)) = (Self::cell(lo), Self::cell(hi));
+            let (w, h) = (x1.saturating_sub(x0) + 1, y1.saturating_sub(y0) + 1);
+            if w.saturating_mul(h) > SURFACE_MAX_CELLS {
+                large.push(k);
+                continue;
+            }
+            for x in x0..=x1 {
+                for y in y0..=y1 {
+                    cells.entry((x, y)).or_default().push(k);
+                }
+            }
+        }
+        Self {
+            surfaces,
+            cells,
+            large,
+        }
+    }
+
+    /// Whether `p` lies inside a surface of a lanelet other than `own`.
+    fn any_contains(&self, p: &Point, own: i64) -> bool {
+        let near = self.cells.get(&Self::cell(*p)).into_iter().flatten();
+        near.chain(&self.large).any(|&k| {
+            let (id, poly) = &self.surfaces[k];
+            *id != own && poly.contains(p)
+        })
+    }
 }
 
 /// What the scene model leaves out or folds together, said once per scene: traffic lights

@@ -41,7 +41,7 @@
 //! Errors name the file, the record (`objects[3] (id 1408)`, `roads[12] (id 40)`) and the field;
 //! a JSON syntax or type error names the path to the value (`objects[3].position[40].x`).
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::Path;
 
 use serde::de::{self, DeserializeSeed, IgnoredAny, MapAccess, Visitor};
@@ -66,6 +66,11 @@ pub const JOIN_GAP: f64 = 0.5;
 /// Largest change of direction, degrees, from a lane's last segment to the first segment of a
 /// lane that follows it.
 pub const JOIN_ANGLE: f64 = 45.0;
+/// Most lanes [`infer_lane_graph`] lets start at one lane's end (or end at one lane's start).
+/// WOMD's busiest junctions give a lane a handful of successors; thousands of lanes stacked
+/// on one spot, which a file of a few hundred KB can hold, made millions of links, minutes of
+/// work and gigabytes of memory before anything was said.
+pub const MAX_JOINS: usize = 32;
 
 /// The object types the format writes (WOMD's track types), as agent types.
 const OBJECT_TYPES: [(&str, AgentType); 5] = [
@@ -739,15 +744,31 @@ fn read_roads(
             "{driveways} driveways not represented in the scene model"
         ));
     }
-    infer_lane_graph(&mut parts.lanes);
+    if let Err(crowd) = infer_lane_graph(&mut parts.lanes) {
+        let k = lane_ids.get(&crowd.lane).copied().unwrap_or_default();
+        let (them, here) = if crowd.at_end {
+            ("start", "end")
+        } else {
+            ("end", "start")
+        };
+        return Err(bad(
+            road_at(k, Some(crowd.lane)),
+            format!(
+                "more than {MAX_JOINS} lanes {them} within {JOIN_GAP} m of its {here}, in its \
+                 direction; no junction joins so many: the file stacks lanes on one spot, \
+                 which is no road network"
+            ),
+        ));
+    }
     Ok(parts)
 }
 
 /// Links each lane to the lanes that start where it ends: `b` follows `a` when `a`'s last
 /// point lies within [`JOIN_GAP`] of `b`'s first and the direction turns by at most
 /// [`JOIN_ANGLE`] from `a`'s last segment to `b`'s first (see the module documentation for
-/// why these bounds). Existing edges are kept.
-pub fn infer_lane_graph(lanes: &mut [Lane]) {
+/// why these bounds). Existing edges are kept. A lane that more than [`MAX_JOINS`] lanes
+/// would follow, or precede, is an error, and no lane is linked.
+pub fn infer_lane_graph(lanes: &mut [Lane]) -> Result<(), CrowdedJoin> {
     let min_cos = JOIN_ANGLE.to_radians().cos();
     let ends: Vec<(Point, Point, Point, Point)> = lanes
         .iter()
@@ -762,22 +783,86 @@ pub fn infer_lane_graph(lanes: &mut [Lane]) {
         })
         .collect();
     let ids: Vec<i64> = lanes.iter().map(|l| l.id).collect();
+    // Starts bucketed in cells of JOIN_GAP, so that each end is compared with the starts of
+    // the 3 x 3 cells around it only: comparing every end with every start took minutes for
+    // a file of a few thousand lanes.
+    let cell = |p: Point| {
+        (
+            (p.x / JOIN_GAP).floor() as i64,
+            (p.y / JOIN_GAP).floor() as i64,
+        )
+    };
+    let mut starts: HashMap<(i64, i64), Vec<usize>> = HashMap::new();
+    for (b, &(start, ..)) in ends.iter().enumerate() {
+        starts.entry(cell(start)).or_default().push(b);
+    }
+    // Counted as they are found, so that a crowded spot is refused before its links fill
+    // memory.
+    let mut outs = vec![0usize; lanes.len()];
+    let mut ins = vec![0usize; lanes.len()];
     let mut links = Vec::new();
     for (a, &(_, _, end, end_dir)) in ends.iter().enumerate() {
-        for (b, &(start, start_dir, _, _)) in ends.iter().enumerate() {
-            if a != b && (start - end).norm() <= JOIN_GAP && end_dir.dot(&start_dir) >= min_cos {
-                links.push((a, b));
+        let (cx, cy) = cell(end);
+        for dx in -1..=1 {
+            for dy in -1..=1 {
+                let Some(near) = starts.get(&(cx + dx, cy + dy)) else {
+                    continue;
+                };
+                for &b in near {
+                    let (start, start_dir, _, _) = ends[b];
+                    if a != b
+                        && (start - end).norm() <= JOIN_GAP
+                        && end_dir.dot(&start_dir) >= min_cos
+                    {
+                        links.push((a, b));
+                        outs[a] += 1;
+                        ins[b] += 1;
+                        for (lane, count, at_end) in [(a, outs[a], true), (b, ins[b], false)] {
+                            if count > MAX_JOINS {
+                                return Err(CrowdedJoin {
+                                    lane: ids[lane],
+                                    count,
+                                    at_end,
+                                });
+                            }
+                        }
+                    }
+                }
             }
         }
     }
+    // Sets beside the lists: `contains` on a list per link made a lane that thousands of
+    // lanes start at cost the cube of their number.
+    let mut succ: Vec<HashSet<i64>> = lanes
+        .iter()
+        .map(|l| l.successors.iter().copied().collect())
+        .collect();
+    let mut pred: Vec<HashSet<i64>> = lanes
+        .iter()
+        .map(|l| l.predecessors.iter().copied().collect())
+        .collect();
+    links.sort_unstable();
     for (a, b) in links {
-        if !lanes[a].successors.contains(&ids[b]) {
+        if succ[a].insert(ids[b]) {
             lanes[a].successors.push(ids[b]);
         }
-        if !lanes[b].predecessors.contains(&ids[a]) {
+        if pred[b].insert(ids[a]) {
             lanes[b].predecessors.push(ids[a]);
         }
     }
+    Ok(())
+}
+
+/// A lane [`infer_lane_graph`] would join to more than [`MAX_JOINS`] lanes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct CrowdedJoin {
+    /// The lane.
+    pub lane: i64,
+    /// How many lanes had been found to follow it (or precede it) when the search stopped:
+    /// one more than [`MAX_JOINS`].
+    pub count: usize,
+    /// Whether they start at its end (else they end at its start).
+    pub at_end: bool,
 }
 
 /// Checks the traffic-signal states (per lane: a state, a stop point and a step for each
@@ -974,7 +1059,7 @@ mod tests {
             // Ends where 1 starts but runs against it.
             lane(6, &[(5.0, 0.0), (0.0, 0.0)]),
         ];
-        infer_lane_graph(&mut lanes);
+        infer_lane_graph(&mut lanes).unwrap();
         assert_eq!(lanes[0].successors, vec![2, 5]);
         assert_eq!(lanes[1].predecessors, vec![1]);
         assert!(lanes[2].predecessors.is_empty() && lanes[3].predecessors.is_empty());

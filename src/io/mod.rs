@@ -1366,16 +1366,66 @@ pub(crate) fn file_stem(path: &Path) -> String {
 /// the line between two lanes once per lane.
 pub(crate) fn push_unique_road_line(
     lines: &mut Vec<crate::scene::RoadLine>,
+    ends: &mut RoadLineEnds,
     line: crate::scene::RoadLine,
 ) {
     let (a, b) = (line.line.first(), line.line.last());
-    let dup = lines.iter().any(|l| {
+    let dup = ends.near(a).any(|i| {
+        let l = &lines[i];
         let (p, q) = (l.line.first(), l.line.last());
-        ((p - a).norm() < 1e-3 && (q - b).norm() < 1e-3)
-            || ((p - b).norm() < 1e-3 && (q - a).norm() < 1e-3)
+        ((p - a).norm() < ROAD_LINE_SAME && (q - b).norm() < ROAD_LINE_SAME)
+            || ((p - b).norm() < ROAD_LINE_SAME && (q - a).norm() < ROAD_LINE_SAME)
     });
     if !dup {
+        ends.add(lines.len(), a, b);
         lines.push(line);
+    }
+}
+
+/// Metres within which two road lines' ends are the same ([`push_unique_road_line`]).
+const ROAD_LINE_SAME: f64 = 1e-3;
+
+/// The road lines of a list by the cells (of [`ROAD_LINE_SAME`]) their end points fall in, for
+/// [`push_unique_road_line`]: comparing each new line with every line kept made a map of a
+/// few hundred thousand marked bounds take minutes.
+#[derive(Default)]
+pub(crate) struct RoadLineEnds(std::collections::HashMap<(i64, i64), Vec<usize>>);
+
+impl RoadLineEnds {
+    /// The ends of `lines`, as pushed one by one.
+    pub(crate) fn of(lines: &[crate::scene::RoadLine]) -> Self {
+        let mut ends = Self::default();
+        for (i, l) in lines.iter().enumerate() {
+            ends.add(i, l.line.first(), l.line.last());
+        }
+        ends
+    }
+
+    fn cell(p: crate::geom::Point) -> (i64, i64) {
+        (
+            (p.x / ROAD_LINE_SAME).floor() as i64,
+            (p.y / ROAD_LINE_SAME).floor() as i64,
+        )
+    }
+
+    fn add(&mut self, i: usize, a: crate::geom::Point, b: crate::geom::Point) {
+        for p in [a, b] {
+            let list = self.0.entry(Self::cell(p)).or_default();
+            if list.last() != Some(&i) {
+                list.push(i);
+            }
+        }
+    }
+
+    /// Lines with an end in the cells around `p` (every line with an end within
+    /// [`ROAD_LINE_SAME`] of it, and some farther).
+    fn near(&self, p: crate::geom::Point) -> impl Iterator<Item = usize> + '_ {
+        let (x, y) = Self::cell(p);
+        (-1..=1)
+            .flat_map(move |dx| (-1..=1).map(move |dy| (x + dx, y + dy)))
+            .filter_map(|c| self.0.get(&c))
+            .flatten()
+            .copied()
     }
 }
 

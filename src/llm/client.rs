@@ -533,6 +533,7 @@ impl HttpClient {
             url,
             clock,
             &|e, n| read_error(e, url, &self.cfg, clock, n),
+            &|s| self.redact(s),
             &mut |tokens, since_first| {
                 observe(ClientEvent::Streaming {
                     tokens,
@@ -681,7 +682,7 @@ impl HttpClient {
                         &self.cfg,
                         &clock,
                     )?);
-                    self.redact(&error_message(&text))
+                    error_message_redacted(&text, &|s| self.redact(s))
                 }
             };
             let retryable = status == 429 || (500..600).contains(&status);
@@ -1073,8 +1074,17 @@ fn causes(e: &reqwest::Error) -> Vec<String> {
 /// The error message of a failed request's body: `{"error": {"message": ..., "code": ...}}`
 /// (code a string, number or null), `{"error": "..."}`, `{"message": "..."}`, or the bare text.
 pub fn error_message(body: &str) -> String {
+    error_message_redacted(body, &|s| s.to_string())
+}
+
+/// [`error_message`] with `redact` applied to each text before it is cut: a message cut first
+/// kept the head of a key the server echoed at the cut (`... Bearer sk-TESTKEY-a...`), which no
+/// redaction afterwards recognises; and a key written with JSON escapes (`\u0073k-...`) is
+/// whole only once the body is decoded, here.
+pub fn error_message_redacted(body: &str, redact: &dyn Fn(&str) -> String) -> String {
     let text = body.trim();
     let short = |s: &str| {
+        let s = redact(s.trim());
         let s = s.trim();
         let mut out: String = s.chars().take(300).collect();
         if s.chars().count() > 300 {
@@ -1090,7 +1100,7 @@ pub fn error_message(body: &str) -> String {
         };
     };
     let code = |e: &Value| match &e["code"] {
-        Value::String(s) => format!(" ({s})"),
+        Value::String(s) => format!(" ({})", short(s)),
         Value::Number(n) => format!(" ({n})"),
         _ => String::new(),
     };

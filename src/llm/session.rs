@@ -190,16 +190,17 @@ impl SessionConfig {
                 (!(self.tolerance.is_finite() && self.tolerance >= 0.0)).then(|| {
                     format!(
                         "tolerance = {}: must be finite and not negative",
-                        self.tolerance
+                        crate::geom::num(self.tolerance)
                     )
                 })
             })
             .or_else(|| {
                 let max = crate::sample::MAX_SCRIPT_BUDGET.as_secs_f64();
                 (!(self.script_budget > 0.0 && self.script_budget <= max)).then(|| {
+                    // In a few characters: an edited 1e308 was said in 309 digits.
                     format!(
                         "script_budget = {} s: must be more than 0 and at most {max} s",
-                        self.script_budget
+                        crate::geom::num(self.script_budget)
                     )
                 })
             })
@@ -2442,6 +2443,18 @@ mod tests {
                 json!(0),
                 "`config`: max_agents = 0: must be 1 to 1000",
             ),
+            // Said in 309 digits (issue 32).
+            (
+                "/config/script_budget",
+                json!(1e308),
+                "`config`: script_budget = 1e308 s: must be more than 0 and at most 86400 s",
+            ),
+            (
+                "/config/tolerance",
+                json!(-1e300),
+                "`config`: tolerance = -1e300: must be finite and not negative",
+            ),
+            ("/config/realism", json!(-1e300), "= -1e300: must be"),
         ] {
             let e = edit(pointer, v);
             assert!(e.contains(says), "{pointer}: {e}");

@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 
 use serde_json::Value;
 
-use super::client::{error_message, Usage, MAX_REPLY_BYTES};
+use super::client::{error_message_redacted, Usage, MAX_REPLY_BYTES};
 use super::clock::{abandoned, Abandoned, ReplyClock};
 use super::LlmError;
 
@@ -75,12 +75,14 @@ pub fn is_event_stream(content_type: Option<&str>, head: &[u8]) -> bool {
 /// each chunk with content or reasoning. `read_error` turns a failed read into the client's
 /// error, given the bytes read; a read that times out, or a stream that brings no token for
 /// the clock's progress limit, is a stalled stream, and one still coming at the clock's
-/// deadline is abandoned ([`LlmError::Deadline`]).
+/// deadline is abandoned ([`LlmError::Deadline`]). `redact` takes the client's secrets out of
+/// what the server sent before any of it is quoted, cut, in an error.
 pub fn read_stream<R: Read>(
     body: R,
     url: &str,
     clock: &ReplyClock,
     read_error: &dyn Fn(&std::io::Error, usize) -> LlmError,
+    redact: &dyn Fn(&str) -> String,
     tick: &mut dyn FnMut(usize, Option<Duration>),
 ) -> Result<Streamed, LlmError> {
     let bad = |message: String| LlmError::BadReply {
@@ -150,14 +152,15 @@ pub fn read_stream<R: Read>(
             break;
         }
         let v: Value = serde_json::from_str(data).map_err(|e| {
-            let head: String = data.chars().take(120).collect();
+            // Redacted whole, then cut: cut first, a key echoed across the cut kept its head.
+            let head: String = redact(data).chars().take(120).collect();
             bad(format!("a stream event is not JSON ({e}): {head:?}"))
         })?;
         if v.get("error").is_some_and(|e| !e.is_null()) {
             return Err(bad(format!(
                 "the server sent an error in the middle of the stream, after {} tokens: {}",
                 out.tokens,
-                error_message(data)
+                error_message_redacted(data, redact)
             )));
         }
         if let Some(f) = v["system_fingerprint"].as_str() {
@@ -225,6 +228,7 @@ mod tests {
             "u",
             &clock(60_000, 1000),
             &no_read_error,
+            &|s| s.to_string(),
             &mut |_, _| {},
         )
     }
@@ -257,7 +261,15 @@ mod tests {
             gap: Duration::from_millis(10),
         };
         let t0 = Instant::now();
-        let e = read_stream(body, "u", clock, &no_read_error, &mut |_, _| {}).unwrap_err();
+        let e = read_stream(
+            body,
+            "u",
+            clock,
+            &no_read_error,
+            &|s| s.to_string(),
+            &mut |_, _| {},
+        )
+        .unwrap_err();
         (e, t0.elapsed())
     }
 

@@ -201,7 +201,10 @@ impl SampleConfig {
         }
         let m = self.realism.margin;
         if !(m > 0.0 && m <= 1.0) {
-            return Err(format!("realism margin = {m}: must be in (0, 1]"));
+            return Err(format!(
+                "realism margin = {}: must be in (0, 1]",
+                crate::geom::num(m)
+            ));
         }
         Ok(())
     }

@@ -1,6 +1,6 @@
 //! The lane graph: successor, predecessor and same-direction left/right neighbour edges.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 
 use serde::Serialize;
 
@@ -36,9 +36,18 @@ pub struct EdgeCounts {
     pub right: usize,
 }
 
-fn push_unique(v: &mut Vec<LaneId>, id: LaneId) {
-    if !v.contains(&id) {
-        v.push(id);
+/// Appends `id` to list `which` (0 successors, 1 predecessors, 2 left, 3 right) of lane `at`
+/// unless it is there: `seen` holds every entry, since `contains` on the list made a lane that
+/// thousands of lanes name cost the square of their number, and a file of such lanes the cube.
+fn push_unique(
+    seen: &mut HashSet<(u8, usize, LaneId)>,
+    lists: &mut [Vec<LaneId>],
+    which: u8,
+    at: usize,
+    id: LaneId,
+) {
+    if seen.insert((which, at, id)) {
+        lists[at].push(id);
     }
 }
 
@@ -58,6 +67,7 @@ impl LaneGraph {
             dangling: 0,
             index,
         };
+        let mut seen = HashSet::new();
         for (i, lane) in lanes.iter().enumerate() {
             let lists = [
                 (&lane.successors, 0),
@@ -75,13 +85,13 @@ impl LaneGraph {
                         continue;
                     }
                     let (fwd, back) = match kind {
-                        0 => (&mut g.succ, &mut g.pred),
-                        1 => (&mut g.pred, &mut g.succ),
-                        2 => (&mut g.left, &mut g.right),
-                        _ => (&mut g.right, &mut g.left),
+                        0 => ((&mut g.succ, 0), (&mut g.pred, 1)),
+                        1 => ((&mut g.pred, 1), (&mut g.succ, 0)),
+                        2 => ((&mut g.left, 2), (&mut g.right, 3)),
+                        _ => ((&mut g.right, 3), (&mut g.left, 2)),
                     };
-                    push_unique(&mut fwd[i], other);
-                    push_unique(&mut back[j], lane.id);
+                    push_unique(&mut seen, fwd.0, fwd.1, i, other);
+                    push_unique(&mut seen, back.0, back.1, j, lane.id);
                 }
             }
         }

@@ -1083,12 +1083,14 @@ pub fn load_for_training(dir: &Path) -> Result<Trained, TrainError> {
     };
     if t.meta.config.ema_half_life <= 0.0 {
         return Err(io(
-            "the config keeps no moving average (ema_half_life 0), so these weights belong to              no run of it; remove the file to resume from model.safetensors"
+            "the config keeps no moving average (ema_half_life 0), so these weights belong to \
+             no run of it; remove the file to resume from model.safetensors"
                 .into(),
         ));
     }
+    // The reason only: `io` names the file, and the whole error named it a second time.
     crate::io::open_regular(&online, MAX_WEIGHTS_BYTES, "checkpoint weights")
-        .map_err(|e| io(e.to_string()))?;
+        .map_err(|e| io(e.reason()))?;
     let averaged = super::ema::copies(&t.varmap)?;
     t.varmap.load(&online).map_err(|e| io(candle_message(e)))?;
     check_weights(&t.varmap, &online, &t.meta.config.model).map_err(io)?;
@@ -1346,8 +1348,38 @@ mod tests {
             e.contains(ONLINE_FILE) && e.contains("ema_half_life 0"),
             "{e}"
         );
+        // One space between words: a run of 14 in the middle of the message came from a
+        // line continuation without its backslash (issue 32).
+        assert!(
+            !e.contains("  ") && e.contains("belong to no run of it"),
+            "{e}"
+        );
         // Sampling does not read it.
         assert!(load(dir.path()).is_ok());
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn online_weights_that_are_no_regular_file_are_named_once() {
+        // The file's error came whole inside the error naming the file: "DIR/online.safetensors:
+        // DIR/online.safetensors: file: not a regular file ..." (issue 32).
+        let dir = tempfile::tempdir().unwrap();
+        let mut cfg = tiny_config(2, 5, 2);
+        cfg.ema_half_life = 10.0;
+        train(&scenes(), cfg, Some(dir.path()), None, |_, _, _| ()).unwrap();
+        let online = dir.path().join(ONLINE_FILE);
+        let _ = std::fs::remove_file(&online);
+        let made = std::process::Command::new("mkfifo")
+            .arg(&online)
+            .status()
+            .unwrap();
+        assert!(made.success());
+        let e = load_for_training(dir.path()).err().unwrap().to_string();
+        assert_eq!(e.matches(ONLINE_FILE).count(), 1, "{e}");
+        assert!(
+            e.contains("not a regular file") && !e.contains("file: "),
+            "{e}"
+        );
     }
 
     #[test]
