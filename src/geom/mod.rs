@@ -5,15 +5,19 @@
 //! from +x. "Left" is the side a driver going along a polyline sees on the left (positive `d`).
 
 mod boxes;
+mod cell_index;
 mod frenet;
 mod neighbours;
+mod point_tree;
 mod polygon;
 mod polyline;
 mod segment_grid;
 
 pub use boxes::OrientedBox;
+pub use cell_index::CellIndex;
 pub use frenet::{FrenetPath, FrenetPoint};
 pub use neighbours::{nearest_distances, pairs_within};
+pub use point_tree::PointTree;
 pub use polygon::Polygon;
 pub use polyline::{Polyline, SegmentHit};
 pub use segment_grid::{GridHit, SegmentGrid};

@@ -15,7 +15,7 @@ use std::path::Path;
 use roxmltree::{Document, Node};
 
 use super::{IoError, LoadOptions};
-use crate::geom::{Point, Polygon, Polyline};
+use crate::geom::{CellIndex, Point, Polygon, Polyline};
 use crate::scene::{
     Agent, AgentState, AgentType, Lane, LaneType, Map, MapParts, RoadEdge, RoadEdgeKind, RoadLine,
     RoadLineKind, Scene, SceneMeta, SourceFormat, StopLine,
@@ -396,7 +396,7 @@ fn read_map(cx: &Ctx, root: Node, speed_signs: &HashMap<i64, f64>) -> Result<Map
         .iter()
         .filter_map(|l| Some((l.id, l.surface()?)))
         .collect();
-    let grid = SurfaceGrid::new(&surfaces);
+    let grid = Surfaces::new(&surfaces);
     for raw in &raws {
         // Oriented with the road on the left: the right bound as is, the left bound reversed.
         if !raw.has_right {
@@ -447,7 +447,7 @@ fn read_map(cx: &Ctx, root: Node, speed_signs: &HashMap<i64, f64>) -> Result<Map
 /// Adds the parts of a candidate edge (road on its left) that do not run inside another
 /// lanelet: probing just outside each segment tells a real edge from a bound that borders
 /// another lanelet without being declared adjacent (common in intersections and merges).
-fn push_edge_runs(out: &mut Vec<RoadEdge>, line: &Polyline, own: i64, surfaces: &SurfaceGrid) {
+fn push_edge_runs(out: &mut Vec<RoadEdge>, line: &Polyline, own: i64, surfaces: &Surfaces) {
     let pts = line.points();
     let mut run: Vec<Point> = Vec::new();
     let flush = |run: &mut Vec<Point>, out: &mut Vec<RoadEdge>| {
@@ -474,59 +474,33 @@ fn push_edge_runs(out: &mut Vec<RoadEdge>, line: &Polyline, own: i64, surfaces: 
     flush(&mut run, out);
 }
 
-/// Side of a cell of [`SurfaceGrid`], metres: a few lanelets wide.
+/// Side of the cells that list lanelet surfaces for [`push_edge_runs`], metres: a few lanelets
+/// wide. Trying every surface for every probe made a map of 30,000 lanelets (a 7 MB file) take
+/// 20 s, and one at the size limit half an hour.
 const SURFACE_CELL: f64 = 16.0;
-/// Most cells a surface is listed in; larger ones are tried for every point.
+/// Most cells a surface is listed in; larger ones are tried for every probe.
 const SURFACE_MAX_CELLS: i64 = 256;
 
-/// The lanelets' surfaces listed by the grid cells their bounds cover, so that a probe of
-/// [`push_edge_runs`] tries the surfaces near it only: trying every surface for every probe
-/// made a map of 30,000 lanelets (a 7 MB file) take 20 s, and one at the size limit half an
-/// hour.
-struct SurfaceGrid<'a> {
-    surfaces: &'a [(i64, Polygon)],
-    cells: HashMap<(i64, i64), Vec<usize>>,
-    /// Surfaces over more than [`SURFACE_MAX_CELLS`] cells.
-    large: Vec<usize>,
+/// Lanelet surfaces by the cells they cover ([`SURFACE_CELL`]).
+struct Surfaces<'a> {
+    all: &'a [(i64, Polygon)],
+    index: CellIndex,
 }
 
-impl<'a> SurfaceGrid<'a> {
-    fn cell(p: Point) -> (i64, i64) {
-        (
-            (p.x / SURFACE_CELL).floor() as i64,
-            (p.y / SURFACE_CELL).floor() as i64,
-        )
-    }
-
-    fn new(surfaces: &'a [(i64, Polygon)]) -> Self {
-        let mut cells: HashMap<(i64, i64), Vec<usize>> = HashMap::new();
-        let mut large = Vec::new();
-        for (k, (_, poly)) in surfaces.iter().enumerate() {
+impl<'a> Surfaces<'a> {
+    fn new(all: &'a [(i64, Polygon)]) -> Self {
+        let mut index = CellIndex::new(SURFACE_CELL, SURFACE_MAX_CELLS);
+        for (k, (_, poly)) in all.iter().enumerate() {
             let (lo, hi) = poly.bounds();
-            let ((x0, y0), (x1, y1)) = (Self::cell(lo), Self::cell(hi));
-            let (w, h) = (x1.saturating_sub(x0) + 1, y1.saturating_sub(y0) + 1);
-            if w.saturating_mul(h) > SURFACE_MAX_CELLS {
-                large.push(k);
-                continue;
-            }
-            for x in x0..=x1 {
-                for y in y0..=y1 {
-                    cells.entry((x, y)).or_default().push(k);
-                }
-            }
+            index.insert(k, lo, hi);
         }
-        Self {
-            surfaces,
-            cells,
-            large,
-        }
+        Self { all, index }
     }
 
     /// Whether `p` lies inside a surface of a lanelet other than `own`.
     fn any_contains(&self, p: &Point, own: i64) -> bool {
-        let near = self.cells.get(&Self::cell(*p)).into_iter().flatten();
-        near.chain(&self.large).any(|&k| {
-            let (id, poly) = &self.surfaces[k];
+        self.index.at(*p).any(|k| {
+            let (id, poly) = &self.all[k];
             *id != own && poly.contains(p)
         })
     }

@@ -786,15 +786,11 @@ pub fn infer_lane_graph(lanes: &mut [Lane]) -> Result<(), CrowdedJoin> {
     // Starts bucketed in cells of JOIN_GAP, so that each end is compared with the starts of
     // the 3 x 3 cells around it only: comparing every end with every start took minutes for
     // a file of a few thousand lanes.
-    let cell = |p: Point| {
-        (
-            (p.x / JOIN_GAP).floor() as i64,
-            (p.y / JOIN_GAP).floor() as i64,
-        )
-    };
-    let mut starts: HashMap<(i64, i64), Vec<usize>> = HashMap::new();
+    // Each end is compared with the starts near it only: comparing every end with every start
+    // took minutes for a file of a few thousand lanes.
+    let mut starts = crate::geom::CellIndex::new(JOIN_GAP, 1);
     for (b, &(start, ..)) in ends.iter().enumerate() {
-        starts.entry(cell(start)).or_default().push(b);
+        starts.insert(b, start, start);
     }
     // Counted as they are found, so that a crowded spot is refused before its links fill
     // memory.
@@ -802,30 +798,19 @@ pub fn infer_lane_graph(lanes: &mut [Lane]) -> Result<(), CrowdedJoin> {
     let mut ins = vec![0usize; lanes.len()];
     let mut links = Vec::new();
     for (a, &(_, _, end, end_dir)) in ends.iter().enumerate() {
-        let (cx, cy) = cell(end);
-        for dx in -1..=1 {
-            for dy in -1..=1 {
-                let Some(near) = starts.get(&(cx + dx, cy + dy)) else {
-                    continue;
-                };
-                for &b in near {
-                    let (start, start_dir, _, _) = ends[b];
-                    if a != b
-                        && (start - end).norm() <= JOIN_GAP
-                        && end_dir.dot(&start_dir) >= min_cos
-                    {
-                        links.push((a, b));
-                        outs[a] += 1;
-                        ins[b] += 1;
-                        for (lane, count, at_end) in [(a, outs[a], true), (b, ins[b], false)] {
-                            if count > MAX_JOINS {
-                                return Err(CrowdedJoin {
-                                    lane: ids[lane],
-                                    count,
-                                    at_end,
-                                });
-                            }
-                        }
+        for b in starts.around(end) {
+            let (start, start_dir, _, _) = ends[b];
+            if a != b && (start - end).norm() <= JOIN_GAP && end_dir.dot(&start_dir) >= min_cos {
+                links.push((a, b));
+                outs[a] += 1;
+                ins[b] += 1;
+                for (lane, count, at_end) in [(a, outs[a], true), (b, ins[b], false)] {
+                    if count > MAX_JOINS {
+                        return Err(CrowdedJoin {
+                            lane: ids[lane],
+                            count,
+                            at_end,
+                        });
                     }
                 }
             }

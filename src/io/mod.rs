@@ -1388,44 +1388,26 @@ const ROAD_LINE_SAME: f64 = 1e-3;
 /// The road lines of a list by the cells (of [`ROAD_LINE_SAME`]) their end points fall in, for
 /// [`push_unique_road_line`]: comparing each new line with every line kept made a map of a
 /// few hundred thousand marked bounds take minutes.
-#[derive(Default)]
-pub(crate) struct RoadLineEnds(std::collections::HashMap<(i64, i64), Vec<usize>>);
+pub(crate) struct RoadLineEnds(crate::geom::CellIndex);
 
 impl RoadLineEnds {
     /// The ends of `lines`, as pushed one by one.
     pub(crate) fn of(lines: &[crate::scene::RoadLine]) -> Self {
-        let mut ends = Self::default();
+        let mut ends = Self(crate::geom::CellIndex::new(ROAD_LINE_SAME, 1));
         for (i, l) in lines.iter().enumerate() {
             ends.add(i, l.line.first(), l.line.last());
         }
         ends
     }
 
-    fn cell(p: crate::geom::Point) -> (i64, i64) {
-        (
-            (p.x / ROAD_LINE_SAME).floor() as i64,
-            (p.y / ROAD_LINE_SAME).floor() as i64,
-        )
-    }
-
     fn add(&mut self, i: usize, a: crate::geom::Point, b: crate::geom::Point) {
-        for p in [a, b] {
-            let list = self.0.entry(Self::cell(p)).or_default();
-            if list.last() != Some(&i) {
-                list.push(i);
-            }
-        }
+        self.0.insert(i, a, a);
+        self.0.insert(i, b, b);
     }
 
-    /// Lines with an end in the cells around `p` (every line with an end within
-    /// [`ROAD_LINE_SAME`] of it, and some farther).
+    /// Lines with an end within [`ROAD_LINE_SAME`] of `p`, and some farther.
     fn near(&self, p: crate::geom::Point) -> impl Iterator<Item = usize> + '_ {
-        let (x, y) = Self::cell(p);
-        (-1..=1)
-            .flat_map(move |dx| (-1..=1).map(move |dy| (x + dx, y + dy)))
-            .filter_map(|c| self.0.get(&c))
-            .flatten()
-            .copied()
+        self.0.around(p)
     }
 }
 

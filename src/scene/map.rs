@@ -262,7 +262,7 @@ pub struct MapExit {
 const EXIT_CORRIDOR: f64 = 15.0;
 
 fn find_exits(lanes: &[Lane]) -> Vec<MapExit> {
-    let tree = PointTree::new(
+    let tree = crate::geom::PointTree::new(
         lanes
             .iter()
             .flat_map(|o| o.centerline.points())
@@ -290,104 +290,6 @@ fn find_exits(lanes: &[Lane]) -> Vec<MapExit> {
             })
         })
         .collect()
-}
-
-/// Points in a k-d tree (split at the median, alternately in x and y) with each node's bounds,
-/// for [`find_exits`]: whether any centre-line point lies in the corridor beyond a lane's end.
-/// Trying every point of the map for every dead end was quadratic: a CommonRoad file of 30,000
-/// short lanelets (7 MB) took 15 s in it.
-struct PointTree {
-    points: Vec<Point>,
-    /// Per node: the bounds of its points `points[lo..hi]`, `lo`, `hi`, and its children's
-    /// indices (none for a leaf).
-    nodes: Vec<TreeNode>,
-}
-
-struct TreeNode {
-    lo_corner: Point,
-    hi_corner: Point,
-    lo: usize,
-    hi: usize,
-    children: Option<(usize, usize)>,
-}
-
-/// Points a leaf of [`PointTree`] holds at most.
-const TREE_LEAF: usize = 16;
-
-impl PointTree {
-    fn new(mut points: Vec<Point>) -> Self {
-        let mut nodes = Vec::new();
-        let n = points.len();
-        if n > 0 {
-            Self::build(&mut points, 0, n, true, &mut nodes);
-        }
-        Self { points, nodes }
-    }
-
-    /// Adds the node of `all[lo..hi]` (not empty) and its subtree; returns its index.
-    fn build(all: &mut [Point], lo: usize, hi: usize, x: bool, nodes: &mut Vec<TreeNode>) -> usize {
-        let part = &mut all[lo..hi];
-        let first = part[0];
-        let (a, b) = part
-            .iter()
-            .fold((first, first), |(a, c), p| (a.inf(p), c.sup(p)));
-        let at = nodes.len();
-        nodes.push(TreeNode {
-            lo_corner: a,
-            hi_corner: b,
-            lo,
-            hi,
-            children: None,
-        });
-        if part.len() > TREE_LEAF {
-            let mid = part.len() / 2;
-            let key = |p: &Point| if x { p.x } else { p.y };
-            part.select_nth_unstable_by(mid, |a, b| key(a).total_cmp(&key(b)));
-            let l = Self::build(all, lo, lo + mid, !x, nodes);
-            let r = Self::build(all, lo + mid, hi, !x, nodes);
-            nodes[at].children = Some((l, r));
-        }
-        at
-    }
-
-    /// Whether a point `q` lies in the corridor from `point` along the unit `direction`:
-    /// `(q - point) . direction > ahead` and `|(q - point) x direction| < half_width`. A node
-    /// whose corners are all inside holds only such points (the corridor is convex); one whose
-    /// corners all lie beyond one of its three sides holds none.
-    fn any_in_corridor(&self, point: Point, direction: Point, ahead: f64, half_width: f64) -> bool {
-        let uv = |q: Point| {
-            let r = q - point;
-            (r.dot(&direction), r.perp(&direction))
-        };
-        let inside = |(u, v): (f64, f64)| u > ahead && v.abs() < half_width;
-        let mut stack = match self.nodes.is_empty() {
-            true => vec![],
-            false => vec![0],
-        };
-        while let Some(k) = stack.pop() {
-            let n = &self.nodes[k];
-            let (a, b) = (n.lo_corner, n.hi_corner);
-            let c = [a, Point::new(a.x, b.y), b, Point::new(b.x, a.y)].map(uv);
-            if c.iter().all(|&q| inside(q)) {
-                return true;
-            }
-            if c.iter().all(|q| q.0 <= ahead)
-                || c.iter().all(|q| q.1 >= half_width)
-                || c.iter().all(|q| q.1 <= -half_width)
-            {
-                continue;
-            }
-            match n.children {
-                Some((l, r)) => stack.extend([l, r]),
-                None => {
-                    if self.points[n.lo..n.hi].iter().any(|&p| inside(uv(p))) {
-                        return true;
-                    }
-                }
-            }
-        }
-        false
-    }
 }
 
 impl Map {
