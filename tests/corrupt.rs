@@ -314,7 +314,9 @@ fn commonroad_times_and_time_steps_out_of_reason_are_refused() {
     let err = fails(&["inspect", s(&f)]);
     assert!(
         err.contains("jump.xml")
-            && err.contains("agent 363 step 1: implausible jump: 500.")
+            && err.contains(
+                "agent 363 step 1: implausible jump: 500.8 m from step 0 in 0.1 s (5008 m/s;"
+            )
             && err.contains("from step 0 in 0.1 s")
             && err.contains("recorded motion is at most 200 m/s"),
         "{err}"

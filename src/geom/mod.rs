@@ -68,6 +68,26 @@ pub fn num(v: f64) -> String {
     }
 }
 
+/// A computed value in four significant figures (a measured 237.87322893087398 m/s reads
+/// 237.9), in scientific notation outside 0.001 to 10 million: for numbers nobody typed, which
+/// [`num`] would print to the last of their 17 digits.
+pub fn approx(v: f64) -> String {
+    if !v.is_finite() || v == 0.0 {
+        return format!("{v}");
+    }
+    if v.abs() >= 1e7 || v.abs() < 1e-3 {
+        return format!("{v:.3e}");
+    }
+    let decimals = (3 - v.abs().log10().floor() as i32).max(0) as usize;
+    let s = format!("{v:.decimals$}");
+    // 500.0 reads 500, 0.3000 reads 0.3.
+    if s.contains('.') {
+        s.trim_end_matches('0').trim_end_matches('.').to_string()
+    } else {
+        s
+    }
+}
+
 /// Whether `text`, which Rust's parser read as `v`, is a number written beyond the largest
 /// float (`1e400` reads as infinity): said as written ("1e400 is beyond ..."), not as "inf",
 /// a value nobody typed. `inf` typed as such is not.
@@ -185,6 +205,19 @@ pub fn segments_intersect(a0: &Point, a1: &Point, b0: &Point, b1: &Point) -> boo
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn approx_says_a_computed_value_in_four_figures() {
+        use super::approx;
+        assert_eq!(approx(237.87322893087398), "237.9");
+        assert_eq!(approx(500.00000000000006), "500");
+        assert_eq!(approx(0.30000000000000004), "0.3");
+        assert_eq!(approx(-12.345678), "-12.35");
+        assert_eq!(approx(0.0012345), "0.001234");
+        assert_eq!(approx(1.5e300), "1.500e300");
+        assert_eq!(approx(5e-324), "4.941e-324");
+        assert_eq!(approx(0.0), "0");
+        assert_eq!(approx(f64::INFINITY), "inf");
+    }
 
     #[test]
     fn numbers_in_messages_are_short_however_large_or_small() {

@@ -376,9 +376,9 @@ impl Scene {
                             step: Some(t),
                             what: format!(
                                 "jump: {} m from step {t0} in {} s ({} m/s; recorded motion is at most {MAX_RECORDED_SPEED} m/s)",
-                                num(d),
-                                num(seconds),
-                                num(d / seconds)
+                                crate::geom::approx(d),
+                                crate::geom::approx(seconds),
+                                crate::geom::approx(d / seconds)
                             ),
                         });
                     }
