@@ -2,14 +2,14 @@
 //! success rates over many scenes need no hand-picked ids; each choice asks only for what a
 //! driver there could plausibly do within the horizon.
 
-use super::behaviors::{driven_route, lane_of, merges, path_of, route_of, Behavior};
+use super::behaviors::{driven_route, lane_of, merges, Behavior, Routes};
 use crate::cost::{ParamValue, Params};
 use crate::eval::kinematic::KinematicLimits;
 use crate::geom::Point;
 use crate::scene::{Agent, AgentType, LanePath, Scene, Turn};
 
 /// A vehicle `suggest` may name, with its lane at the current step and that lane's path.
-type Candidate<'a> = (&'a Agent, i64, LanePath);
+type Candidate<'a> = (&'a Agent, i64, std::rc::Rc<LanePath>);
 
 /// Speed (m/s) above which `suggest` counts a car as moving.
 const MOVING: f64 = 2.0;
@@ -118,6 +118,7 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
     // Recorded over the whole horizon without reaching a map exit: a car that leaves the
     // scene within it (every method's car leaves there too) cannot show a behaviour.
     let kept = scene.retire_exited();
+    let routes = Routes::default();
     let mut cands: Vec<Candidate> = scene
         .agents
         .iter()
@@ -128,7 +129,13 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
         // future (NGSIM maps cover a few hundred metres), no lane-based behaviour can be
         // judged at the end of the horizon, whatever the simulator does.
         .filter(|a| lane_of(scene, a, n - 1).is_some())
-        .filter_map(|a| Some((a, lane_of(scene, a, c)?, path_of(scene, a)?)))
+        .filter_map(|a| {
+            Some((
+                a,
+                lane_of(scene, a, c)?,
+                routes.route(scene, a, Turn::Straight)?,
+            ))
+        })
         .collect();
     let centre = scene
         .meta
@@ -229,14 +236,14 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
         }),
         Behavior::CutIn => cut_in(scene, &cands, horizon),
         Behavior::Follow => follow(scene, &cands, horizon),
-        Behavior::Yield => yield_to(scene, &cands, horizon),
+        Behavior::Yield => yield_to(scene, &cands, &routes, horizon),
         // The nearest car whose route has the turn ahead, with the middle of the corner within
         // what it covers over the horizon less a second, speeding up at 1.5 m/s² at most, and
         // not yet reached: a car already round the corner has nothing left to do.
         Behavior::TurnLeft | Behavior::TurnRight => {
             let way = b.turn().expect("a turning behaviour");
             cands.iter().find_map(|(a, _, _)| {
-                let route = route_of(scene, a, way)?;
+                let route = routes.route(scene, a, way)?;
                 let span = route.next_turn(&scene.map, way)?;
                 let to_go = span.middle - route.frenet.project(a.states[c].position()).s;
                 let t = (horizon - 1.0).max(0.0);
@@ -329,7 +336,7 @@ fn follow(scene: &Scene, cands: &[Candidate], horizon: f64) -> Option<Params> {
 }
 
 /// `yield`: see [`suggest`].
-fn yield_to(scene: &Scene, cands: &[Candidate], horizon: f64) -> Option<Params> {
+fn yield_to(scene: &Scene, cands: &[Candidate], routes: &Routes, horizon: f64) -> Option<Params> {
     let c = scene.meta.current_step;
     // How far the yielder could get over the horizon: its current speed with some
     // slack (2.5 m/s² of acceleration).
@@ -359,13 +366,13 @@ fn yield_to(scene: &Scene, cands: &[Candidate], horizon: f64) -> Option<Params> 
     };
     // Each car's route as recorded: a car that turned left at the junction meets the
     // oncoming traffic there, which its path straight on never does.
-    let routes: Vec<(&Agent, Turn, LanePath)> = cands
+    let driven: Vec<(&Agent, Turn, std::rc::Rc<LanePath>)> = cands
         .iter()
-        .filter_map(|(a, _, _)| driven_route(scene, a).map(|(t, p)| (*a, t, p)))
+        .filter_map(|(a, _, _)| driven_route(scene, a, routes).map(|(t, p)| (*a, t, p)))
         .collect();
-    for (a, ta, pa) in &routes {
+    for (a, ta, pa) in &driven {
         let sa0 = pa.frenet.project(a.states[c].position()).s;
-        for (o, to, po) in &routes {
+        for (o, to, po) in &driven {
             if o.id == a.id {
                 continue;
             }

@@ -223,6 +223,19 @@ impl Map {
         behind: f64,
         turn: Turn,
     ) -> Result<LanePath, SceneError> {
+        let lanes = self.lane_sequence(lane, ahead, behind, turn)?;
+        self.path_through(lanes, lane)
+    }
+
+    /// The lanes of [`Map::lane_path`], first to last, without building the path: cheap, where
+    /// the path copies every lane's centre line.
+    pub(crate) fn lane_sequence(
+        &self,
+        lane: LaneId,
+        ahead: f64,
+        behind: f64,
+        turn: Turn,
+    ) -> Result<Vec<LaneId>, SceneError> {
         let first = self.lane(lane).ok_or(SceneError::UnknownLane(lane))?;
         // A set for the loop check and the lanes behind gathered apart: linear in the path's
         // length (a 100 km path over 10^5 lanes took minutes with `contains` and `insert(0)`).
@@ -264,6 +277,20 @@ impl Map {
         behind_lanes.reverse();
         let mut lanes = behind_lanes;
         lanes.extend(ahead_lanes);
+        Ok(lanes)
+    }
+
+    /// The path along `lanes` (consecutive lanes of this map, as [`Map::lane_sequence`] gives
+    /// them), its Frenet origin in `origin`.
+    pub(crate) fn path_through(
+        &self,
+        lanes: Vec<LaneId>,
+        origin: LaneId,
+    ) -> Result<LanePath, SceneError> {
+        if let Some(&bad) = lanes.iter().find(|&&l| self.lane(l).is_none()) {
+            return Err(SceneError::UnknownLane(bad));
+        }
+        let lane = origin;
         let mut points: Vec<crate::geom::Point> = Vec::new();
         let mut lane_starts = Vec::with_capacity(lanes.len());
         let mut s = 0.0;
