@@ -287,15 +287,14 @@ impl Map {
         lanes: Vec<LaneId>,
         origin: LaneId,
     ) -> Result<LanePath, SceneError> {
-        if let Some(&bad) = lanes.iter().find(|&&l| self.lane(l).is_none()) {
-            return Err(SceneError::UnknownLane(bad));
-        }
-        let lane = origin;
         let mut points: Vec<crate::geom::Point> = Vec::new();
         let mut lane_starts = Vec::with_capacity(lanes.len());
         let mut s = 0.0;
         for id in &lanes {
-            let c = &self.lane(*id).expect("lanes exist").centerline;
+            let c = &self
+                .lane(*id)
+                .ok_or(SceneError::UnknownLane(*id))?
+                .centerline;
             if let Some(prev_end) = points.last().copied() {
                 s += (c.first() - prev_end).norm();
             }
@@ -304,13 +303,13 @@ impl Map {
             points.extend_from_slice(c.points());
         }
         let line = Polyline::new(points).map_err(|e| SceneError::Geometry {
-            what: format!("lane path from lane {lane}"),
+            what: format!("lane path from lane {origin}"),
             source: e,
         })?;
         Ok(LanePath {
             lanes,
             lane_starts,
-            origin: lane,
+            origin,
             frenet: FrenetPath::new(line),
         })
     }
