@@ -79,15 +79,21 @@ def rel_attention(w, p, xq, xk, pair, mask, scores):
 class Denoiser:
     """src/model/denoiser.rs with EDM preconditioning (src/model/edm.rs)."""
 
-    def __init__(self, checkpoint):
-        with open(os.path.join(checkpoint, "config.json")) as f:
-            self.meta = json.load(f)
+    def __init__(self, checkpoint, meta=None, tensors=None):
+        """From a checkpoint directory, or from its metadata (`config.json`'s contents) and
+        weights by name (training: the tensors may be parameters)."""
+        if meta is None:
+            with open(os.path.join(checkpoint, "config.json")) as f:
+                meta = json.load(f)
+        if tensors is None:
+            tensors = load_file(os.path.join(checkpoint, "model.safetensors"))
+        self.meta = meta
         cfg = self.meta["config"]
         self.model = cfg["model"]
         self.edm = cfg["edm"]
         # A config without `scores` predates the normalised form (DenoiserConfig::scores).
         self.scores = self.model.get("scores", "raw")
-        self.w = Weights(load_file(os.path.join(checkpoint, "model.safetensors")))
+        self.w = Weights(tensors)
 
     def encode_map(self, ctx):
         """Denoiser::encode_scene: the lanes after lane-lane attention and every layer's
@@ -108,19 +114,27 @@ class Denoiser:
         }
 
     def precondition(self, sigma):
-        sd2 = self.edm["sigma_data"] ** 2
+        """c_skip, c_out, c_in and c_noise for one noise level or one per batch row (`[B]`),
+        computed in float64 like src/model/edm.rs."""
+        sigma = torch.as_tensor(sigma, dtype=torch.float64)
+        sd = self.edm["sigma_data"]
         s2 = sigma * sigma
-        return (sd2 / (s2 + sd2), sigma * self.edm["sigma_data"] / math.sqrt(s2 + sd2),
-                1.0 / math.sqrt(s2 + sd2), math.log(sigma) / 4.0)
+        root = torch.sqrt(s2 + sd * sd)
+        return (sd * sd / (s2 + sd * sd), sigma * sd / root, 1.0 / root, torch.log(sigma) / 4.0)
 
     def denoise(self, ctx, enc, x, sigma):
         w = self.w
         b, n, _ = x.shape
-        c_skip, c_out, c_in, c_noise = (torch.tensor(v, dtype=torch.float32)
+        # One noise level for the batch, or one per row (training).
+        c_skip, c_out, c_in, c_noise = (v.to(torch.float32).to(x.device)
                                         for v in self.precondition(sigma))
-        freqs = torch.tensor([2.0 ** i for i in range(self.model["noise_freqs"])])
-        z = c_noise * freqs
-        noise = torch.cat([z.sin(), z.cos()]).expand(b, n, -1)
+        if c_skip.dim() == 1:
+            c_skip, c_out, c_in = (c.reshape(b, 1, 1) for c in (c_skip, c_out, c_in))
+            c_noise = c_noise.reshape(b, 1)
+        freqs = torch.tensor([2.0 ** i for i in range(self.model["noise_freqs"])],
+                             device=x.device)
+        z = c_noise[..., None] * freqs
+        noise = torch.cat([z.sin(), z.cos()], dim=-1).expand(b, n, -1)
         # What each agent is (type, static, length, width) for models that take it
         # (`attrs` in the config; checkpoints without the field take none).
         attrs = self.model.get("attrs", 0)

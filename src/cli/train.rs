@@ -33,10 +33,17 @@ pub struct Args {
     #[arg(long, value_enum, default_value = "ngsim")]
     setting: Setting,
     /// Checkpoint directory (model.safetensors + config.json, written at every validation).
-    #[arg(long)]
-    out: PathBuf,
+    #[arg(long, required_unless_present = "export")]
+    out: Option<PathBuf>,
+    /// Instead of training: write every window, encoded as the --resume checkpoint's network
+    /// reads it, into this new or empty directory (safetensors files of 1,024 windows, with a
+    /// loss check and the checkpoint's config): what `benches/torch/train.py` trains the same
+    /// network from on an accelerator.
+    #[arg(long, conflicts_with = "out", requires = "resume")]
+    export: Option<PathBuf>,
     /// Directory for the training windows, cut from the scenes once and read back a batch at
-    /// a time (default: OUT/windows; rewritten at every start).
+    /// a time (default: OUT/windows, or a temporary directory with --export; rewritten at
+    /// every start).
     #[arg(long)]
     cache: Option<PathBuf>,
     /// Optimiser steps.
@@ -138,15 +145,22 @@ pub fn run(args: Args) -> Result<ExitCode> {
             split,
         })
         .collect();
+    if let Some(dir) = &args.export {
+        return export_run(&args, dir, &corpora);
+    }
+    let out = args
+        .out
+        .clone()
+        .expect("clap requires --out without --export");
     // Before anything is read or written: a checkpoint among the scenes it learns from.
-    check_out_dir(&args.out, &corpora)?;
+    check_out_dir(&out, &corpora)?;
     // A good checkpoint is never overwritten by accident.
-    if args.out.join("model.safetensors").exists() && args.resume.is_none() && !args.force {
+    if out.join("model.safetensors").exists() && args.resume.is_none() && !args.force {
         anyhow::bail!(
             "{} already holds a checkpoint: continue it with --resume {}, choose another --out, \
              or pass --force to replace it",
-            args.out.display(),
-            args.out.display()
+            out.display(),
+            out.display()
         );
     }
     // Before any data is read: --steps, --batch, --lr and --eval-every.
@@ -239,14 +253,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
         cfg.val_fold = r.meta.config.val_fold;
         cfg.val_towns = r.meta.config.val_towns.clone();
     }
-    let cache = args
-        .cache
-        .clone()
-        .unwrap_or_else(|| args.out.join("windows"));
+    let cache = args.cache.clone().unwrap_or_else(|| out.join("windows"));
     // Before --out is made for the lock: a cache refused leaves nothing behind.
     drivescript::train::store::check_cache_dir(&cache, &corpora)?;
     // Held to the end: a second run into this --out is refused, not mixed with this one.
-    let _lock = drivescript::train::store::lock_out_dir(&args.out)?;
+    let _lock = drivescript::train::store::lock_out_dir(&out)?;
     let started = std::time::Instant::now();
     let holdout = Holdout {
         fold: cfg.val_fold,
@@ -285,7 +296,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         &store,
         cfg,
         resume,
-        Some(&args.out),
+        Some(&out),
         git_revision(),
         |step, loss, val| {
             avg = Some(avg.map_or(loss, |a| 0.98 * a + 0.02 * loss));
@@ -321,7 +332,57 @@ pub fn run(args: Args) -> Result<ExitCode> {
         t.meta.train_scenes.len(),
         t.meta.val_scenes.len(),
         t.meta.pca_rmse_m,
-        args.out.display()
+        out.display()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `train --export DIR`: the windows of the corpora, encoded for the --resume checkpoint.
+fn export_run(args: &Args, dir: &std::path::Path, corpora: &[Corpus]) -> Result<ExitCode> {
+    check_out_dir(dir, corpora)?;
+    let from = args
+        .resume
+        .as_ref()
+        .expect("clap requires --resume with --export");
+    let trained =
+        load_for_training(from).with_context(|| format!("exporting for {}", from.display()))?;
+    let cfg = &trained.meta.config;
+    let holdout = Holdout {
+        fold: cfg.val_fold,
+        towns: cfg.val_towns.clone(),
+    };
+    // A cache of the user's is kept; the default one is this run's scratch space.
+    let (cache, scratch) = match &args.cache {
+        Some(c) => (c.clone(), false),
+        None => (
+            std::env::temp_dir().join(format!("drivescript-export-{}", std::process::id())),
+            true,
+        ),
+    };
+    drivescript::train::store::check_cache_dir(&cache, corpora)?;
+    let started = std::time::Instant::now();
+    let built = WindowStore::build(corpora, &cfg.window, &holdout, &cache, |n, w| {
+        if n % 100 == 0 {
+            eprintln!("  {n} scenes read, {w} windows");
+        }
+    });
+    let result = built.map_err(anyhow::Error::from).and_then(|store| {
+        drivescript::train::export(&store, &trained, dir, 1024, |done, total| {
+            eprintln!("  {done}/{total} files written");
+        })
+        .map_err(anyhow::Error::from)
+    });
+    if scratch {
+        let _ = std::fs::remove_dir_all(&cache);
+    }
+    let e = result.with_context(|| format!("exporting into {}", dir.display()))?;
+    println!(
+        "wrote {} training and {} validation windows in {} files to {} ({:.0} s)",
+        e.train,
+        e.val,
+        e.shards,
+        dir.display(),
+        started.elapsed().as_secs_f64()
     );
     Ok(ExitCode::SUCCESS)
 }

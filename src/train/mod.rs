@@ -5,6 +5,7 @@ pub mod adamw;
 pub mod batch;
 pub mod dataset;
 pub mod ema;
+pub mod export;
 pub mod rng;
 pub mod store;
 pub mod trainer;
@@ -12,6 +13,7 @@ pub mod trainer;
 pub use batch::{build, Batch, ComponentScale, Normaliser};
 pub use dataset::{window_among, window_at, windows, Window, WindowConfig};
 pub use ema::Ema;
+pub use export::{export, Exported};
 pub use store::{
     check_cache_dir, check_out_dir, Corpus, Holdout, SceneWindows, SplitBy, WindowSource,
     WindowStore,
