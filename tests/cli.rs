@@ -1035,6 +1035,83 @@ fn the_yield_example_holds_at_a_merge() {
 }
 
 #[test]
+fn train_export_writes_the_windows_of_a_checkpoint_into_a_new_directory_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let ckpt = dir.path().join("ckpt");
+    ok(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--out",
+        s(&ckpt),
+        "--steps",
+        "2",
+        "--batch",
+        "2",
+        "--eval-every",
+        "2",
+    ]);
+    let exp = dir.path().join("exp");
+    let out = ok(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--export",
+        s(&exp),
+        "--resume",
+        s(&ckpt),
+    ]);
+    assert!(
+        out.contains("training and") && out.contains("files to"),
+        "{out}"
+    );
+    for f in [
+        "train-00000.safetensors",
+        "check.safetensors",
+        "basis.safetensors",
+        "config.json",
+    ] {
+        assert!(exp.join(f).is_file(), "{f}: {out}");
+    }
+    let before = std::fs::read(exp.join("check.safetensors")).unwrap();
+    let err = fails(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--export",
+        s(&exp),
+        "--resume",
+        s(&ckpt),
+    ]);
+    assert!(err.contains("is not empty"), "{err}");
+    assert_eq!(
+        std::fs::read(exp.join("check.safetensors")).unwrap(),
+        before
+    );
+    // The windows are encoded for a checkpoint's network: without one there is nothing to
+    // encode them for; and an export writes no checkpoint.
+    let usage = |args: &[&str]| {
+        let out = drivescript(args);
+        assert_eq!(out.status.code(), Some(2), "{args:?}");
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    let err = usage(&["train", "--data", "scripts/scenes", "--export", s(&exp)]);
+    assert!(err.contains("--resume"), "{err}");
+    let err = usage(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--export",
+        s(&exp),
+        "--resume",
+        s(&ckpt),
+        "--out",
+        s(&ckpt),
+    ]);
+    assert!(err.contains("--out"), "{err}");
+}
+
+#[test]
 fn train_then_simulate_end_to_end() {
     let dir = tempfile::tempdir().unwrap();
     let ckpt = dir.path().join("ckpt");
