@@ -37,7 +37,10 @@ def pairs(w, p, rel, scores, conn=None):
     hk = w.linear(p + ".rk1", rel)
     hv = w.linear(p + ".rv1", rel)
     if conn is not None:
-        e = w.t[p + ".conn.weight"][conn]
+        # A one-hot product, not `table[conn]`: the backward pass of indexing with five
+        # distinct kinds among a million entries took CUDA seconds per step.
+        table = w.t[p + ".conn.weight"]
+        e = F.one_hot(conn, table.shape[0]).to(table.dtype) @ table
         hk = hk + e
         hv = hv + e
     hk, hv = torch.relu(hk), torch.relu(hv)

@@ -248,13 +248,14 @@ def main():
             b = min(beta, (1.0 + step - 1) / (10.0 + step - 1))
             for n_, p in params.items():
                 ema[n_].mul_(b).add_(p.detach(), alpha=1.0 - b)
-        run_loss += l.item() if step % 50 == 0 else 0.0
-        run_n += 1 if step % 50 == 0 else 0
+        # Summed on the device: reading each step's loss would wait for the GPU every step.
+        run_loss = run_loss + l.detach()
+        run_n += 1
         now = time.time()
         if now - last_eval >= a.eval_every:
             last_eval = now
             v = validate(averaged)
-            tr = run_loss / max(run_n, 1)
+            tr = float(run_loss) / max(run_n, 1)
             if not math.isfinite(tr) or (v is not None and not math.isfinite(v)):
                 sys.exit(f"training diverged at step {step} (train {tr}, val {v})")
             history.append([step, tr, v])
@@ -266,7 +267,7 @@ def main():
                 write_checkpoint(os.path.join(a.out, "best"), meta, ema, history, step,
                                  a.batch, a.lr, a.ema_half_life, a.revision)
     v = validate(averaged)
-    history.append([step, run_loss / max(run_n, 1), v])
+    history.append([step, float(run_loss) / max(run_n, 1), v])
     write_checkpoint(os.path.join(a.out, "last"), meta, ema, history, step, a.batch, a.lr,
                      a.ema_half_life, a.revision)
     print(f"done: {step} steps of {a.batch} windows in {time.time() - t0:.0f} s; validation "
