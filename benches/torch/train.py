@@ -147,6 +147,9 @@ def main():
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--revision", default=None, help="git revision to record")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--validate", nargs="+", metavar="CHECKPOINT",
+                    help="only print these checkpoints' validation losses (the fixed set of "
+                         "noise levels and noise of --seed and --batch) and stop")
     a = ap.parse_args()
     dev = torch.device(a.device)
     torch.backends.cuda.matmul.allow_tf32 = True
@@ -219,6 +222,16 @@ def main():
                 total += loss(m, edm, val, basis, idx, sig, noise).item() * len(idx)
                 count += len(idx)
         return total / count
+
+    if a.validate:
+        for ck in a.validate:
+            with open(os.path.join(ck, "config.json")) as f:
+                ck_meta = json.load(f)
+            ck_meta["config"]["edm"] = edm
+            tensors = load_file(os.path.join(ck, "model.safetensors"))
+            m = Denoiser(None, ck_meta, {n: t.to(dev) for n, t in tensors.items()})
+            print(f"{ck}: validation loss {validate(m):.6f}", flush=True)
+        return
 
     start_val = validate(model)
     print(f"validation loss of the starting weights: {start_val}", flush=True)
