@@ -1843,12 +1843,93 @@ fn a_model_error_is_its_message_without_candle_s_backtrace() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(1), "{err}");
     assert!(
-        err.contains("model.safetensors") && err.contains("shape mismatch"),
+        err.contains("model.safetensors") && err.contains("has shape"),
         "{err}"
     );
     assert_eq!(err.trim_end().lines().count(), 1, "{err}");
     assert!(
         !err.contains("candle-core") && !err.contains(" at /"),
+        "{err}"
+    );
+}
+
+/// A checkpoint's weights of the wrong type, shape or layout named no tensor ("invalid shape,
+/// data type, or offset for tensor"), the tensor after a missing one, or the one at fault only
+/// as "lhs: I32, rhs: F32" beside the path in Rust's debug quotes.
+#[test]
+fn a_damaged_checkpoint_names_the_weights_file_and_the_tensor() {
+    let dir = tempfile::tempdir().unwrap();
+    let ck = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("data/checkpoint");
+    std::fs::copy(ck.join("config.json"), dir.path().join("config.json")).unwrap();
+    let cpu = candle_core::Device::Cpu;
+    let good = candle_core::safetensors::load(ck.join("model.safetensors"), &cpu).unwrap();
+    let (name, w) = good
+        .iter()
+        .filter(|(_, w)| w.dims().len() == 2 && w.dims()[0] != w.dims()[1])
+        .map(|(k, w)| (k.clone(), w.clone()))
+        .min_by(|a, b| a.0.cmp(&b.0))
+        .expect("a non-square matrix");
+    let [r, c] = [w.dims()[0], w.dims()[1]];
+    let weights = dir.path().join("model.safetensors");
+    let simulate = || {
+        fails(&[
+            "simulate",
+            s(&samples().join("yaml/highway_cut_in.yaml")),
+            "--checkpoint",
+            s(dir.path()),
+            "-o",
+            s(&dir.path().join("out")),
+        ])
+    };
+    let cases: Vec<(candle_core::Tensor, Option<String>, String)> = vec![
+        (
+            w.t().unwrap().contiguous().unwrap(),
+            None,
+            format!(
+                "tensor `{name}` has shape [{c}, {r}], but the model config.json describes (d "
+            ),
+        ),
+        (
+            w.to_dtype(candle_core::DType::F16).unwrap(),
+            None,
+            format!("tensor `{name}` is F16, but the model's weights are F32"),
+        ),
+        (
+            w.clone(),
+            Some(name.clone()),
+            format!("has no tensor `{name}` (shape [{r}, {c}])"),
+        ),
+    ];
+    for (t, drop, want) in cases {
+        let mut map = good.clone();
+        map.insert(name.clone(), t);
+        if let Some(d) = drop {
+            map.remove(&d);
+        }
+        candle_core::safetensors::save(&map, &weights).unwrap();
+        let err = simulate();
+        assert!(
+            err.contains("model.safetensors: ") && err.contains(&want) && !err.contains("lhs"),
+            "{want}: {err}"
+        );
+    }
+    // A header whose shape does not fit the tensor's bytes.
+    candle_core::safetensors::save(&good, &weights).unwrap();
+    let bytes = std::fs::read(&weights).unwrap();
+    let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+    let mut header: serde_json::Value = serde_json::from_slice(&bytes[8..8 + n]).unwrap();
+    header[&name]["shape"] = serde_json::json!([r + 1, c]);
+    let h = serde_json::to_vec(&header).unwrap();
+    let mut damaged = (h.len() as u64).to_le_bytes().to_vec();
+    damaged.extend_from_slice(&h);
+    damaged.extend_from_slice(&bytes[8 + n..]);
+    std::fs::write(&weights, &damaged).unwrap();
+    let err = simulate();
+    assert!(
+        err.contains(&format!(
+            "tensor `{name}` of shape [{}, {c}] (F32) has data offsets",
+            r + 1
+        )) && err.contains("the header is damaged"),
         "{err}"
     );
 }
