@@ -3509,11 +3509,53 @@ fn demo_refuses_a_request_it_cannot_run_before_printing_anything() {
         assert_eq!(o.status.code(), Some(1), "{err}");
         assert!(out.is_empty(), "{out}");
         assert!(
-            err.contains("the request is empty") || err.contains("does not understand"),
+            err.contains("the request is empty")
+                || err.contains("does not understand")
+                || err.contains("the request is too long"),
             "{err}"
         );
         assert!(err.len() < 2000, "{} bytes: {err}", err.len());
     }
+    assert!(!run.exists());
+}
+
+/// A 100,000-character request to the rules planner failed validation as "script.rhai:1:1:
+/// limit exceeded: script size", blaming a script the user never wrote (the planner quotes
+/// every clause in it); and 60 events overflowed the script at its first repair. A refused
+/// request left an empty run directory holding only its lock.
+#[test]
+fn a_request_too_long_for_the_rules_planner_is_named_as_such() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let run = dir.path().join("run");
+    let long = format!(
+        "vehicle 1 cuts in front of vehicle 2 {}",
+        "x".repeat(100_000)
+    );
+    let many = vec!["vehicle 1 cuts in front of vehicle 2"; 25].join(", ");
+    for (request, what) in [(long, "100037 characters"), (many, "25 events")] {
+        let err = fails(&["ask", s(&scene), &request, "--llm", "rules", "-o", s(&run)]);
+        assert!(
+            err.contains("the request is too long for the rules planner")
+                && err.contains(what)
+                && err.contains("at most 2000 characters and 20 events")
+                && !err.contains("script size"),
+            "{err}"
+        );
+        assert!(err.len() < 2000, "{} bytes", err.len());
+        assert!(!run.exists());
+    }
+    // Nor does a refused request leave an empty run directory holding only its lock.
+    let err = fails(&[
+        "ask",
+        s(&scene),
+        "blah blah",
+        "--llm",
+        "rules",
+        "-o",
+        s(&run),
+    ]);
+    assert!(err.contains("does not understand"), "{err}");
     assert!(!run.exists());
 }
 
