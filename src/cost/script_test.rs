@@ -235,6 +235,26 @@ impl Expect {
                     crate::geom::num(dy)
                 ));
             }
+            // The run normalises the direction through its squared length: [1e308, 1e308]
+            // overflowed to a zero direction and [1e-200, 0] underflowed to NaN, and either
+            // case failed whatever the script did.
+            if !(dx * dx + dy * dy).is_normal() {
+                return Err(format!(
+                    "`towards.direction` is [{}, {}]: its length is out of range; give a \
+                     direction of ordinary size, such as [1, 0]",
+                    crate::geom::num(dx),
+                    crate::geom::num(dy)
+                ));
+            }
+        }
+        if let Some(a) = &self.allows {
+            // An agent is never checked against itself, so the pair was never among the
+            // script's exemptions and the case failed whatever the script did.
+            if let Some([i, _]) = a.collide.iter().find(|[i, j]| i == j) {
+                return Err(format!(
+                    "`allows.collide` pairs agent {i} with itself: a pair is two different agents"
+                ));
+            }
         }
         if self.error.as_deref().is_some_and(|e| e.trim().is_empty()) {
             return Err(
@@ -868,6 +888,18 @@ mod tests {
                 "`towards.direction` is [0, 0]: a direction is two finite numbers, not both 0",
             ),
             ("{error: \"\"}", "`error` is empty"),
+            (
+                "{towards: {agent: 4, direction: [1e308, 1e308]}}",
+                "`towards.direction` is [1e308, 1e308]: its length is out of range",
+            ),
+            (
+                "{towards: {agent: 4, direction: [1e-200, 0]}}",
+                "`towards.direction` is [1e-200, 0]: its length is out of range",
+            ),
+            (
+                "{allows: {collide: [[2, 4], [4, 4]]}}",
+                "`allows.collide` pairs agent 4 with itself",
+            ),
         ] {
             let e = accident_case(dir.path(), &format!("    expect: {expect}\n"))
                 .unwrap_err()
