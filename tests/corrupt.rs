@@ -486,6 +486,47 @@ fn deeply_nested_yaml_is_refused_before_parsing() {
     );
 }
 
+/// The road's three size limits were one message ("at most 100 km long, 64 lanes and one
+/// segment per metre") naming no value, said of a 0.5 m road too; a NaN radius was told
+/// that "|radius| must exceed the road width".
+#[test]
+fn a_generated_road_out_of_range_names_the_field_and_its_value() {
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("r.yaml");
+    for (road, want) in [
+        (
+            "{lanes: 1, length: 0.5}",
+            "road.segments: 1 segments on a road 0.5 m long: a segment is at least 1 m long",
+        ),
+        (
+            "{lanes: 1, length: 1e9}",
+            "road.length: 1e9 m: a road is at most 100 km (100000 m) long",
+        ),
+        (
+            "{lanes: 65, length: 100}",
+            "road.lanes: 65: a road has at most 64 lanes",
+        ),
+        (
+            "{lanes: 1, length: 100, radius: .nan}",
+            "road.radius: NaN is not a radius",
+        ),
+        (
+            "{lanes: 1, length: 100, radius: -.inf}",
+            "road.radius: -inf is not a radius",
+        ),
+    ] {
+        std::fs::write(
+            &f,
+            format!(
+                "scenario_id: t\nroad: {road}\nagents:\n  - {{id: 1, lane: 0, s: 0.2, speed: 5}}\n"
+            ),
+        )
+        .unwrap();
+        let err = fails(&["inspect", s(&f)]);
+        assert!(err.contains(&format!("r.yaml: {want}")), "{road}: {err}");
+    }
+}
+
 #[test]
 fn yaml_errors_name_line_or_agent() {
     let dir = tempfile::tempdir().unwrap();
