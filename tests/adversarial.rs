@@ -743,3 +743,18 @@ fn a_sort_or_dedup_comparer_s_errors_and_limits_are_reported() {
     ));
     assert!(r.is_ok(), "{r:?}");
 }
+
+/// An error inside a closure was said to be "in anon$89dfda3c82566aec" (Rhai's hash of it),
+/// and `throw;` printed the script's name and position followed by nothing.
+#[test]
+fn errors_in_closures_and_empty_throws_say_what_happened() {
+    let e = fails(
+        "let g = |x| x.foo(); g.call(1); term(\"t\", agent(1).x.sum());",
+        &["in a closure (|...| ...): no function foo"],
+    )
+    .to_string();
+    assert!(!e.contains("anon$"), "{e}");
+    fails("fn h(x) { x.foo() } h(1);", &["in h: no function foo"]);
+    fails("throw;", &["the script threw () without a message"]);
+    fails("throw \"  \";", &["the script threw a blank message"]);
+}

@@ -1492,6 +1492,14 @@ impl CostScript {
                 let inner_err = self.map_error(inner);
                 match inner_err {
                     CostError::Limit { limit, .. } => CostError::Limit { script, limit, line, column },
+                    // Rhai names a closure by a hash ("anon$89dfda3c82566aec"), which names
+                    // nothing in the script.
+                    other if f.starts_with("anon$") => CostError::Runtime {
+                        script,
+                        line,
+                        column,
+                        message: format!("in a closure (|...| ...): {}", error_message(&other)),
+                    },
                     other => CostError::Runtime {
                         script,
                         line,
@@ -1505,7 +1513,10 @@ impl CostScript {
             EvalAltResult::ErrorRuntime(v, pos) if !pos.is_none() => {
                 let text = v.to_string();
                 let n = text.chars().count();
-                let message = if n > MAX_THROWN_CHARS {
+                // `throw;` and `throw ""` printed "s.rhai:1:1: " and nothing after it.
+                let message = if text.trim().is_empty() {
+                    if v.is_unit() { "the script threw () without a message".to_string() } else { "the script threw a blank message".to_string() }
+                } else if n > MAX_THROWN_CHARS {
                     format!(
                         "{}... ({} more characters)",
                         text.chars().take(MAX_THROWN_CHARS).collect::<String>(),
