@@ -1480,6 +1480,32 @@ fn a_gzip_bomb_is_refused_before_it_fills_memory() {
     );
 }
 
+/// A rollout's speed is computed from its positions: a jump to 5e6 m was printed as
+/// "implausible speed 2.4999603999999996e7 m/s".
+#[test]
+fn an_implausible_speed_in_a_rollout_is_printed_in_a_few_figures() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let r = dir.path().join("r.json");
+    ok(&["convert", s(&scene), "-o", s(&r)]);
+    let mut v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&r).unwrap()).unwrap();
+    v["agents"][0]["states"][20][0] = 5e6.into();
+    std::fs::write(&r, v.to_string()).unwrap();
+    let err = fails(&[
+        "render",
+        s(&scene),
+        "--rollout",
+        s(&r),
+        "-o",
+        s(&dir.path().join("x.svg")),
+    ]);
+    assert!(
+        err.contains("r.json: rollout: agent 1 step 19: implausible speed 2.500e7 m/s"),
+        "{err}"
+    );
+}
+
 #[test]
 fn random_mutations_of_rollouts_never_panic_and_name_the_file() {
     let dir = tempfile::tempdir().unwrap();
