@@ -2226,3 +2226,43 @@ fn suggesting_agents_on_one_long_road_builds_each_route_once_and_projects_once_o
         assert!(took < 10.0, "{behaviour}: {took:.1} s");
     }
 }
+
+#[test]
+fn scoring_many_cars_on_a_long_road_finds_each_nearest_road_edge_without_scanning_the_road() {
+    // `eval --task unconditional` asks for the nearest road edge once per car and step, and
+    // each ask scanned every edge of the road end to end: 1,500 cars on a 100 km road took
+    // 5.5 s over 20 steps, and twice the cars on twice the road four times as long; now 1.8 s.
+    let mut yaml = String::from(
+        "scenario_id: long-road\ndt: 0.1\nsteps: 31\ncurrent_step: 10\nroad:\n  lanes: 3\n  \
+         lane_width: 3.6\n  length: 99999\n  speed_limit: 29\nagents:\n",
+    );
+    for i in 0..1500 {
+        yaml.push_str(&format!(
+            "  - id: {}\n    lane: {}\n    s: {}\n    speed: 10\n",
+            i + 1,
+            i % 3,
+            100 + (i / 3) * 40
+        ));
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("long.yaml");
+    std::fs::write(&f, yaml).unwrap();
+    let t0 = std::time::Instant::now();
+    let (code, out) = run_within(
+        &[
+            "eval",
+            s(&f),
+            "--task",
+            "unconditional",
+            "--baseline",
+            "cv",
+            "--horizon",
+            "20",
+        ],
+        120,
+    );
+    let took = t0.elapsed().as_secs_f64();
+    assert_eq!(code, Some(0), "{out}");
+    assert!(out.contains("| constant velocity | 1 |"), "{out}");
+    assert!(took < 4.0, "{took:.1} s");
+}
