@@ -85,6 +85,10 @@ pub struct Edit {
     pub ramp: f64,
 }
 
+/// The shortest `sway` period, seconds: far below any time step, far above where the phase
+/// `t / period` stops being a number.
+const MIN_SWAY_PERIOD: f64 = 1e-3;
+
 impl Edit {
     /// Refuses values that would make the candidate's positions NaN or infinite (a `sway`
     /// period of 0 divides by zero): the cost engine cannot say which edit made them so.
@@ -106,9 +110,12 @@ impl Edit {
         if let Some([amp, period]) = self.sway {
             finite("sway amplitude", amp)?;
             finite("sway period", period)?;
-            if period <= 0.0 {
+            // A period of 1e-310 s is above 0, but `t / period` overflows: the sine of
+            // infinity made NaN positions, on which the script's Frenet projection panicked.
+            if period < MIN_SWAY_PERIOD {
                 return Err(format!(
-                    "`sway: [{}, {}]`: the period (seconds, the second number) must be above 0",
+                    "`sway: [{}, {}]`: the period (seconds, the second number) must be at \
+                     least {MIN_SWAY_PERIOD}",
                     crate::geom::num(amp),
                     crate::geom::num(period)
                 ));
@@ -811,7 +818,10 @@ mod tests {
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts");
         for (edit, want) in [
             ("{agent: 2, sway: [1.0, 0.0]}", "sway: [1, 0]"),
-            ("{agent: 2, sway: [1.0, -2.0]}", "must be above 0"),
+            ("{agent: 2, sway: [1.0, -2.0]}", "must be at least 0.001"),
+            // Above 0, but the phase overflowed to NaN positions and the script's Frenet
+            // projection panicked.
+            ("{agent: 2, sway: [1.0, 1e-310]}", "must be at least 0.001"),
             ("{agent: 2, sway: [.nan, 2.0]}", "`sway amplitude` is NaN"),
             ("{agent: 2, lateral: .inf}", "`lateral` is inf"),
             ("{agent: 2, shift: [0, .nan]}", "`shift` is NaN"),
