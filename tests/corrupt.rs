@@ -1006,7 +1006,7 @@ fn gpudrive_errors_name_the_object_road_and_field() {
         (
             "string_x.json",
             |v| v["objects"][1]["velocity"][40]["x"] = json!("fast"),
-            &["objects[1].velocity[40].x (line 1, column", "invalid type: string \"fast\", expected f64"],
+            &["objects[1].velocity[40].x (line 1, column", "invalid type: string \"fast\", expected a number"],
         ),
     ];
     for (name, edit, want) in cases {
@@ -2265,4 +2265,40 @@ fn scoring_many_cars_on_a_long_road_finds_each_nearest_road_edge_without_scannin
     assert_eq!(code, Some(0), "{out}");
     assert!(out.contains("| constant velocity | 1 |"), "{out}");
     assert!(took < 4.0, "{took:.1} s");
+}
+
+#[test]
+fn an_empty_scene_or_rollout_file_is_named_as_empty() {
+    // An empty `.json` was "unknown scene format", an empty `.yaml` "document: give exactly
+    // one of `road` and `map`", an empty rollout "EOF while parsing a value ... (the file
+    // ends early: it is cut short)".
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    for name in ["e.json", "e.yaml"] {
+        let f = dir.path().join(name);
+        std::fs::write(&f, "").unwrap();
+        let err = fails(&["inspect", s(&f)]);
+        assert!(
+            err.contains(&format!("{name}: file: is empty (0 bytes)")),
+            "{err}"
+        );
+    }
+    let r = dir.path().join("r.json");
+    std::fs::write(&r, "").unwrap();
+    let err = fails(&[
+        "render",
+        s(&scene),
+        "--rollout",
+        s(&r),
+        "-o",
+        s(&dir.path().join("x.svg")),
+    ]);
+    assert!(err.contains("r.json: file: is empty (0 bytes)"), "{err}");
+    // In a directory of scenes, an empty one is still an error, not skipped.
+    let d = dir.path().join("scenes");
+    std::fs::create_dir(&d).unwrap();
+    std::fs::copy(&scene, d.join("a.yaml")).unwrap();
+    std::fs::write(d.join("b.yaml"), "").unwrap();
+    let err = fails(&["inspect", s(&d)]);
+    assert!(err.contains("b.yaml: file: is empty (0 bytes)"), "{err}");
 }
