@@ -407,6 +407,17 @@ pub enum TrainError {
         /// The loss.
         value: f64,
     },
+    /// A step made a weight stop being a number (a learning rate of 1e300 does it in one):
+    /// found before the checkpoint is written, which every reader would refuse.
+    #[error("step {step}: tensor `{tensor}` holds {value}: training diverged (lower --lr); the last checkpoint written is kept")]
+    DivergedWeights {
+        /// The step.
+        step: usize,
+        /// The first tensor (by name) holding a value that is not a number.
+        tensor: String,
+        /// That value.
+        value: f64,
+    },
     /// Reading or writing the checkpoint failed.
     #[error("{path}: {message}")]
     Io {
@@ -731,6 +742,17 @@ pub fn train_from(
         run_n += 1;
         let mut val = None;
         if step % cfg.eval_every.max(1) == 0 || step == cfg.steps {
+            // Checked where a checkpoint may be written: `train --lr 1e300` (with nothing held
+            // out to validate on) wrote NaN weights, which every reader refuses, and exited 0.
+            if let Some((tensor, _, value)) =
+                non_finite_weight(&varmap).map_err(TrainError::Data)?
+            {
+                return Err(TrainError::DivergedWeights {
+                    step,
+                    tensor,
+                    value,
+                });
+            }
             // Validated with the weights the checkpoint samples with.
             let averaged = match &ema {
                 Some(e) => Some(Denoiser::new(
@@ -1041,9 +1063,9 @@ fn check_tensors(varmap: &VarMap, path: &Path, model: &DenoiserConfig) -> Result
     Ok(())
 }
 
-/// Checks that the weights loaded into `varmap` are numbers: a NaN weight made every
-/// denoised output NaN, which the sampler's clamps turned into confident nonsense.
-fn check_weights(varmap: &VarMap) -> Result<(), String> {
+/// The first weight of `varmap` (tensors by name) that is not a number: its tensor, its
+/// element and its value.
+fn non_finite_weight(varmap: &VarMap) -> Result<Option<(String, usize, f64)>, String> {
     let vars = varmap.data().lock().unwrap_or_else(|p| p.into_inner());
     let mut names: Vec<&String> = vars.keys().collect();
     names.sort();
@@ -1055,14 +1077,22 @@ fn check_weights(varmap: &VarMap) -> Result<(), String> {
             .and_then(|t| t.to_vec1())
             .map_err(|e| format!("tensor `{name}`: {}", candle_message(e)))?;
         if let Some(i) = values.iter().position(|v| !v.is_finite()) {
-            return Err(format!(
-                "tensor `{name}` holds {} at element {i}: the weights are damaged (or training \
-                 diverged); use another checkpoint",
-                values[i]
-            ));
+            return Ok(Some((name.clone(), i, values[i] as f64)));
         }
     }
-    Ok(())
+    Ok(None)
+}
+
+/// Checks that the weights loaded into `varmap` are numbers: a NaN weight made every
+/// denoised output NaN, which the sampler's clamps turned into confident nonsense.
+fn check_weights(varmap: &VarMap) -> Result<(), String> {
+    match non_finite_weight(varmap)? {
+        Some((name, i, v)) => Err(format!(
+            "tensor `{name}` holds {v} at element {i}: the weights are damaged (or training \
+             diverged); use another checkpoint"
+        )),
+        None => Ok(()),
+    }
 }
 
 /// Reads a checkpoint written by [`save`].
@@ -1698,6 +1728,23 @@ mod tests {
                 && e.contains(&format!("tensor `{name}` holds NaN at element 1")),
             "{e}"
         );
+    }
+
+    #[test]
+    fn weights_a_step_made_not_numbers_are_an_error_not_a_checkpoint() {
+        // `train --lr 1e300` wrote NaN weights, which every reader refuses, and exited 0.
+        let dir = tempfile::tempdir().unwrap();
+        let mut cfg = tiny_config(1, 1, 1);
+        cfg.lr = 1e300;
+        let e = train(&scenes(), cfg, Some(dir.path()), None, |_, _, _| ())
+            .err()
+            .expect("diverged weights")
+            .to_string();
+        assert!(
+            e.starts_with("step 1: tensor `") && e.contains("training diverged (lower --lr)"),
+            "{e}"
+        );
+        assert!(!dir.path().join("model.safetensors").exists());
     }
 
     #[test]
