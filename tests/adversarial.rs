@@ -290,7 +290,7 @@ fn type_errors_name_what_was_given() {
     fails("term(\"t\", agent(1).x);", &["not a Series", "sum()"]);
     fails(
         "term(\"t\", relu(\"x\"));",
-        &["relu expects a Series, Dual or number, got string"],
+        &["relu expects a Series, Dual or number, got a string"],
     );
     fails(
         "term(\"t\", agent(1).x.slice(0, 3) + agent(1).x);",
@@ -757,4 +757,28 @@ fn errors_in_closures_and_empty_throws_say_what_happened() {
     fails("fn h(x) { x.foo() } h(1);", &["in h: no function foo"]);
     fails("throw;", &["the script threw () without a message"]);
     fails("throw \"  \";", &["the script threw a blank message"]);
+}
+
+/// A term of the wrong type was said to be "a drivescript::cost::stdlib::agents::AgentRef"
+/// (the Rust path Rhai reports for a registered type) or "a ()".
+#[test]
+fn a_value_of_the_wrong_type_is_named_as_the_script_knows_it() {
+    for (value, says) in [
+        ("agent(1)", "the value is an Agent, not a Dual or number"),
+        ("agent(1).lane_path()", "the value is a Path, not"),
+        (
+            "agent(1).frenet(agent(1).lane_path())",
+            "the value is a Frenet, not",
+        ),
+        ("()", "the value is nothing (the unit value ()), not"),
+        ("[1, 2]", "the value is an array, not"),
+        ("|x| x", "the value is a function, not"),
+    ] {
+        let e = fails(&format!("term(\"t\", {value});"), &[says]).to_string();
+        assert!(!e.contains("drivescript::"), "{e}");
+    }
+    fails(
+        "term(\"t\", relu(agent(1)));",
+        &["relu expects a Series, Dual or number, got an Agent"],
+    );
 }

@@ -628,9 +628,9 @@ fn sort_by_comparer(
                         Ok(if b { Ordering::Less } else { Ordering::Greater })
                     } else {
                         stdlib::err(format!(
-                            "sort: the comparer returned a {}, not a whole number (its sign \
+                            "sort: the comparer returned {}, not a whole number (its sign \
                              orders the pair) or true/false",
-                            v.type_name()
+                            stdlib::a_type(&v)
                         ))
                     }
                 });
@@ -668,8 +668,8 @@ fn dedup_by_comparer(
             .and_then(|v| {
                 v.as_bool().or_else(|_| {
                     stdlib::err(format!(
-                        "dedup: the comparer returned a {}, not true/false",
-                        v.type_name()
+                        "dedup: the comparer returned {}, not true/false",
+                        stdlib::a_type(&v)
                     ))
                 })
             });
@@ -693,8 +693,8 @@ fn term_value(v: &Dynamic, name: &str) -> Result<Dual, Box<EvalAltResult>> {
     match stdlib::number(v, "term") {
         Ok(f) => Ok(Dual::constant(f)),
         Err(_) => stdlib::err(format!(
-            "term {name:?}: the value is a {}, not a Dual or number",
-            v.type_name()
+            "term {name:?}: the value is {}, not a Dual or number",
+            stdlib::a_type(v)
         )),
     }
 }

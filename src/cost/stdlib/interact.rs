@@ -320,8 +320,8 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
                     Some(a) => idx.push((a.idx, a.held)),
                     None => {
                         return err(format!(
-                            "no_collision_cost: element {k} is a {}, not an Agent",
-                            v.type_name()
+                            "no_collision_cost: element {k} is {}, not an Agent",
+                            super::a_type(v)
                         ))
                     }
                 }
