@@ -3359,7 +3359,7 @@ fn every_checked_flag_quotes_a_long_bad_value_cut_with_its_length() {
         (args(&["demo", "-o", out, "--samples", v]), "--samples"),
         (
             args(&["demo", "-o", out, "--request", v]),
-            "does not understand",
+            "is too long for the rules planner",
         ),
         (args(&["bench", v]), "<WHAT>"),
         (
@@ -3511,7 +3511,7 @@ fn demo_refuses_a_request_it_cannot_run_before_printing_anything() {
         assert!(
             err.contains("the request is empty")
                 || err.contains("does not understand")
-                || err.contains("the request is too long"),
+                || err.contains("is too long for the rules planner"),
             "{err}"
         );
         assert!(err.len() < 2000, "{} bytes: {err}", err.len());
@@ -3536,7 +3536,7 @@ fn a_request_too_long_for_the_rules_planner_is_named_as_such() {
     for (request, what) in [(long, "100037 characters"), (many, "25 events")] {
         let err = fails(&["ask", s(&scene), &request, "--llm", "rules", "-o", s(&run)]);
         assert!(
-            err.contains("the request is too long for the rules planner")
+            err.contains("is too long for the rules planner")
                 && err.contains(what)
                 && err.contains("at most 2000 characters and 20 events")
                 && !err.contains("script size"),

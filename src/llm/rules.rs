@@ -58,12 +58,15 @@ pub enum RulesError {
     /// quotes every clause and adds a block per event, and a 100,000-character request
     /// failed validation as a script too large, blaming the script.
     #[error(
-        "the request is too long for the rules planner: {what} (it reads at most \
+        "the request \"{}\" is too long for the rules planner: {what} (it reads at most \
          {MAX_REQUEST_CHARS} characters and {MAX_REQUEST_EVENTS} events); say it in fewer words, \
-         or run `drivescript ask` with an LLM"
+         or run `drivescript ask` with an LLM",
+        crate::io::name::shown_counted(.request)
     )]
     TooLong {
-        /// What is over the limit, in words ("100,034 characters").
+        /// The request.
+        request: String,
+        /// What is over the limit, in words ("100034 characters").
         what: String,
     },
 }
@@ -865,12 +868,14 @@ pub fn plan_request(request: &str) -> Result<Vec<Event>, RulesError> {
     let chars = request.trim().chars().count();
     if chars > MAX_REQUEST_CHARS {
         return Err(RulesError::TooLong {
+            request: request.trim().to_string(),
             what: format!("{chars} characters"),
         });
     }
     let events = understand_request(request)?;
     if events.len() > MAX_REQUEST_EVENTS {
         return Err(RulesError::TooLong {
+            request: request.trim().to_string(),
             what: format!("{} events", events.len()),
         });
     }
