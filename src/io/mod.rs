@@ -973,8 +973,8 @@ pub(crate) fn without_position(message: &str, line: usize, column: usize) -> Str
     plain_types(&message.replacen(&format!(" at line {line} column {column}"), "", 1))
 }
 
-/// [`without_position`]'s words for serde's "expected <Rust type>".
-fn plain_types(message: &str) -> String {
+/// [`without_position`]'s words for serde's "expected <Rust type>", for any serde message.
+pub(crate) fn plain_types(message: &str) -> String {
     const WORDS: &[(&str, &str)] = &[
         ("i8", "a whole number"),
         ("i16", "a whole number"),

@@ -718,8 +718,12 @@ fn read_state(text: &str) -> Result<State, String> {
             }
         }
     }
-    let state: State =
-        serde_json::from_value(value).map_err(|e| format!("the file is damaged ({e})"))?;
+    let state: State = serde_json::from_value(value).map_err(|e| {
+        format!(
+            "the file is damaged ({})",
+            crate::io::plain_types(&e.to_string())
+        )
+    })?;
     if state.version != STATE_VERSION {
         return Err(format!(
             "version {}: this drivescript reads {STATE_VERSION}",
