@@ -782,3 +782,15 @@ fn a_value_of_the_wrong_type_is_named_as_the_script_knows_it() {
         &["relu expects a Series, Dual or number, got an Agent"],
     );
 }
+
+/// An agent's lane path of the longest length allowed was refused with the agent's place on
+/// its lane added to the length the script gave ("length 100002 must be in (0, 100000]").
+#[test]
+fn an_agent_s_lane_path_is_limited_by_the_length_the_script_gives() {
+    run("let a = agent(1); term(\"t\", a.frenet(a.lane_path(100000.0)).d.abs().sum());")
+        .expect("the longest path allowed");
+    fails(
+        "let a = agent(1); term(\"t\", a.frenet(a.lane_path(100001.0)).d.abs().sum());",
+        &["lane_path: length 100001 must be in (0, 100000] metres"],
+    );
+}
