@@ -794,3 +794,27 @@ fn an_agent_s_lane_path_is_limited_by_the_length_the_script_gives() {
         &["lane_path: length 100001 must be in (0, 100000] metres"],
     );
 }
+
+/// `lane_width` and `lane_ahead` at a NaN, infinite or 1e300 point panicked projecting it
+/// onto the lane ("a polyline's points are finite", exit 101).
+#[test]
+fn lane_functions_at_a_point_on_no_map_are_errors_not_panics() {
+    for call in [
+        "lane_width(100, 0.0 / 0.0, 0.0)",
+        "lane_width(100, 1e300, 0.0)",
+        "lane_width(100, 1e200, 1e200)",
+        "lane_ahead(100, 1.0 / 0.0, 0.0)",
+        "lane_ahead(100, 0.0, 0.0 / 0.0)",
+    ] {
+        let src = format!("let a = agent(1); term(\"t\", a.x.sum()); print({call});");
+        let e = std::panic::catch_unwind(|| run(&src));
+        let e = e.unwrap_or_else(|_| panic!("{call} panicked"));
+        let msg = e.expect_err(call).to_string();
+        assert!(
+            msg.contains("lies on no map: coordinates are numbers within 1e7 m of the origin"),
+            "{call}: {msg}"
+        );
+    }
+    run("let a = agent(1); term(\"t\", a.x.sum()); print(lane_ahead(100, 0, 0)); print(lane_width(100, 1, 0));")
+        .expect("whole numbers are points too");
+}
