@@ -3782,3 +3782,51 @@ fn float_flags_beyond_the_largest_float_are_refused_as_written() {
     let err = fails(&["bench", "io", "--seconds", "inf"]);
     assert!(err.contains("--seconds inf"), "{err}");
 }
+
+/// Rollouts of several samples scored with the default `--samples 1` gave the figures of the
+/// first sample alone, and said nothing.
+#[test]
+fn eval_refuses_rollouts_holding_more_samples_than_it_was_told() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let r = dir.path().join("r");
+    std::fs::create_dir(&r).unwrap();
+    for k in 0..3 {
+        ok(&[
+            "convert",
+            s(&scene),
+            "-o",
+            s(&r.join(format!("highway-cut-in_{k}.json"))),
+        ]);
+    }
+    for samples in ["1", "2"] {
+        let err = fails(&[
+            "eval",
+            s(&scene),
+            "--task",
+            "conditional",
+            "--rollouts",
+            s(&r),
+            "--samples",
+            samples,
+        ]);
+        assert!(
+            err.contains(&format!(
+                "highway-cut-in_{samples}.json: the rollouts hold more samples of scene \
+                 highway-cut-in than --samples {samples}"
+            )),
+            "{err}"
+        );
+    }
+    let out = ok(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "conditional",
+        "--rollouts",
+        s(&r),
+        "--samples",
+        "3",
+    ]);
+    assert!(out.contains("| rollouts in "), "{out}");
+}
