@@ -818,3 +818,25 @@ fn lane_functions_at_a_point_on_no_map_are_errors_not_panics() {
     run("let a = agent(1); term(\"t\", a.x.sum()); print(lane_ahead(100, 0, 0)); print(lane_width(100, 1, 0));")
         .expect("whole numbers are points too");
 }
+
+/// A NaN collision margin made every penalty 0 (a term that never steers, reported only as
+/// dead), a negative one penalised only boxes already deep in each other.
+#[test]
+fn a_collision_margin_that_is_not_a_distance_is_refused() {
+    for (call, says) in [
+        (
+            "collision_penalty(agent(1), agent(2), 0.0 / 0.0).sum()",
+            "collision_penalty: margin NaN must be 0 to 1000 metres",
+        ),
+        (
+            "collision_penalty(agent(1), agent(2), -1.0).sum()",
+            "collision_penalty: margin -1 must be 0 to 1000 metres",
+        ),
+        (
+            "no_collision_cost(vehicles(), 1e300)",
+            "no_collision_cost: margin 1e300 must be 0 to 1000 metres",
+        ),
+    ] {
+        fails(&format!("term(\"t\", {call});"), &[says]);
+    }
+}
