@@ -840,3 +840,39 @@ fn a_collision_margin_that_is_not_a_distance_is_refused() {
         fails(&format!("term(\"t\", {call});"), &[says]);
     }
 }
+
+/// No comparison with NaN holds: `clamp(x, NaN, 5)` clamped every value to 5 (a constant term
+/// with no gradient, said nowhere) and `hinge(x, NaN)` was 0.
+#[test]
+fn a_nan_bound_threshold_or_shape_parameter_is_refused() {
+    for (call, says) in [
+        (
+            "clamp(agent(1).x, 0.0 / 0.0, 5).sum()",
+            "clamp lo is NaN, not a number",
+        ),
+        (
+            "clamp(agent(1).x, 0, 0.0 / 0.0).sum()",
+            "clamp hi is NaN, not a number",
+        ),
+        (
+            "hinge(agent(1).x, 0.0 / 0.0).sum()",
+            "hinge margin is NaN, not a number",
+        ),
+        (
+            "sigmoid(agent(1).x, 0.0 / 0.0).sum()",
+            "sigmoid parameter is NaN, not a number",
+        ),
+        (
+            "agent(1).x.ever_below(0.0 / 0.0)",
+            "ever_below is NaN, not a number",
+        ),
+        (
+            "agent(1).on_road(0.0 / 0.0).sum()",
+            "on_road k is NaN, not a number",
+        ),
+    ] {
+        fails(&format!("term(\"t\", {call});"), &[says]);
+    }
+    run("term(\"t\", clamp(agent(1).x, -1.0 / 0.0, 5.0).sum() + agent(1).x.sum());")
+        .expect("an infinite bound is no bound");
+}

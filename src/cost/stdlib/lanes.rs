@@ -371,7 +371,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     e.register_fn(
         "on_road",
         move |a: &mut AgentRef, k: Dynamic| -> RResult<Series> {
-            let k = number(&k, "on_road k")?;
+            let k = super::real(&k, "on_road k")?;
             let d = edge_series(&sh, *a, BoxPoint::Farthest)?;
             d.map("on_road", |v| {
                 let s = 1.0 / (1.0 + (k * v).exp());

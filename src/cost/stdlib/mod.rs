@@ -176,6 +176,17 @@ pub(crate) fn number(d: &Dynamic, what: &str) -> RResult<f64> {
     }
 }
 
+/// [`number`] for a bound, threshold or shape parameter, refused when NaN: no comparison with
+/// NaN holds, so `clamp(x, NaN, 5)` clamped every value to 5 and `hinge(x, NaN)` was 0,
+/// both without a word. Infinities stay (`clamp(x, -1.0 / 0.0, 5)` has no lower bound).
+pub(crate) fn real(d: &Dynamic, what: &str) -> RResult<f64> {
+    let v = number(d, what)?;
+    if v.is_nan() {
+        return err(format!("{what} is NaN, not a number"));
+    }
+    Ok(v)
+}
+
 /// Registers every native function and returns their documentation.
 pub(crate) fn register(engine: &mut Engine, shared: &Shared) -> Vec<DocEntry> {
     let mut docs = Vec::new();
