@@ -783,6 +783,14 @@ impl CostScript {
         name: &str,
         params: Option<&Bound<'_, PyDict>>,
     ) -> PyResult<Self> {
+        // The name starts every error message: a newline in it faked a line of its own
+        // ("evil\nerror: all good:1:29: ..."), as a scenario id's once did.
+        if let Err(c) = drivescript::io::name::check_name(name) {
+            return Err(PyValueError::new_err(format!(
+                "name {}: holds {c}; a script's name starts its error messages",
+                drivescript::io::name::shown(name)
+            )));
+        }
         let spec = ScriptSpec::new(source, name, params_from(params)?);
         drivescript::cost::check_params(&[&spec.source], &spec.params)
             .and_then(|_| spec.check_syntax())

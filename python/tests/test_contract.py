@@ -476,3 +476,10 @@ def test_positions_beyond_any_map_are_a_value_error_not_an_internal_error(ds, sc
     ]:
         with pytest.raises(ValueError, match="x is 1e300, beyond 1e7 m"):
             call()
+
+
+def test_a_script_name_holding_a_line_break_or_a_bidi_control_is_refused(ds):
+    # The name starts every error message: a newline in it faked a line of its own.
+    for name, char in [("evil\nerror: all good", "U+000A"), ("x\u202ey", "U+202E")]:
+        with pytest.raises(ValueError, match=re.escape(char)):
+            ds.CostScript.from_source('term("x", agent(1).x.sum());', name=name)
