@@ -489,43 +489,34 @@ impl Runner {
         }
         let params = Params::parse(&param_args(&c.params)).map_err(|e| e.to_string())?;
         let name = script_path.display().to_string();
+        // The candidate is the test file's, read before the script runs: a candidate that
+        // could not be read was reported as the script's "trajectories do not fit the scene".
+        let candidate = match (&c.candidate.scene, &c.candidate.rollout) {
+            (None, None) => Trajectories::recorded(&scene),
+            (Some(_), Some(_)) => return Err("candidate: give scene or rollout, not both".into()),
+            (Some(p), None) => {
+                let other = self
+                    .scene(&dir.join(p))
+                    .map_err(|m| format!("candidate.scene: {m}"))?;
+                // Another recording of the same agents stands for a future of this scene:
+                // everything else about it must match.
+                let mut r = Rollout::from_scene(&other);
+                r.scene_id = scene.meta.scenario_id.clone();
+                Trajectories::from_rollout(&scene, &r)
+                    .map_err(|m| format!("candidate.scene: {p}: {m}"))?
+            }
+            (None, Some(p)) => {
+                let r =
+                    Rollout::read(&dir.join(p)).map_err(|e| format!("candidate.rollout: {e}"))?;
+                Trajectories::from_rollout(&scene, &r)
+                    .map_err(|m| format!("candidate.rollout: {p}: {m}"))?
+            }
+        };
         let outcome: Result<(CostScript, CostReport, Trajectories), CostError> = (|| {
             let script =
                 CostScript::compile(source, &name, scene.clone(), &params, &Limits::default())?;
             script.validate()?;
-            let mut traj = match (&c.candidate.scene, &c.candidate.rollout) {
-                (None, None) => Trajectories::recorded(&scene),
-                (Some(_), Some(_)) => {
-                    return Err(CostError::Shape {
-                        script: name.clone(),
-                        message: "candidate: give scene or rollout, not both".into(),
-                    })
-                }
-                (Some(p), None) => {
-                    let other = self.scene(&dir.join(p)).map_err(|m| CostError::Shape {
-                        script: name.clone(),
-                        message: m,
-                    })?;
-                    // Another recording of the same agents stands for a future of this
-                    // scene: everything else about it must match.
-                    let mut r = Rollout::from_scene(&other);
-                    r.scene_id = scene.meta.scenario_id.clone();
-                    Trajectories::from_rollout(&scene, &r).map_err(|m| CostError::Shape {
-                        script: name.clone(),
-                        message: format!("{p}: {m}"),
-                    })?
-                }
-                (None, Some(p)) => {
-                    let r = Rollout::read(&dir.join(p)).map_err(|e| CostError::Shape {
-                        script: name.clone(),
-                        message: e.to_string(),
-                    })?;
-                    Trajectories::from_rollout(&scene, &r).map_err(|m| CostError::Shape {
-                        script: name.clone(),
-                        message: format!("{p}: {m}"),
-                    })?
-                }
-            };
+            let mut traj = candidate;
             for e in &c.edits {
                 apply_edit(&scene, &mut traj, e).map_err(|m| CostError::Shape {
                     script: name.clone(),
@@ -754,6 +745,12 @@ pub fn run_test_file(path: &Path) -> Result<Vec<CaseResult>, ScriptTestError> {
         c.expect
             .check()
             .map_err(|m| invalid(format!("case {:?}: expect: {m}", c.name)))?;
+        if c.candidate.scene.is_some() && c.candidate.rollout.is_some() {
+            return Err(invalid(format!(
+                "case {:?}: candidate: give `scene` or `rollout`, not both",
+                c.name
+            )));
+        }
         for (k, e) in c.edits.iter().enumerate() {
             e.check().map_err(|m| {
                 invalid(format!(
@@ -872,6 +869,38 @@ mod tests {
         )
         .unwrap();
         run_test_file(&t)
+    }
+
+    #[test]
+    fn a_candidate_that_cannot_be_read_is_the_test_file_s_fault_not_the_script_s() {
+        // Both a scene and a rollout ran the script and failed as "accident.rhai: trajectories
+        // do not fit the scene: candidate: give scene or rollout, not both"; an unreadable
+        // rollout was blamed on the script the same way.
+        let dir = tempfile::tempdir().unwrap();
+        let e = accident_case(
+            dir.path(),
+            "    candidate: {scene: a.yaml, rollout: b.json}\n    expect: {total_below: 1}\n",
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("x.test.yaml: case \"c\": candidate: give `scene` or `rollout`, not both"),
+            "{e}"
+        );
+        let r = accident_case(
+            dir.path(),
+            "    candidate: {rollout: /dev/zero}\n    expect: {total_below: 1}\n",
+        )
+        .unwrap();
+        assert!(
+            !r[0].passed
+                && r[0]
+                    .detail
+                    .starts_with("case could not run: candidate.rollout: /dev/zero: ")
+                && !r[0].detail.contains("accident.rhai"),
+            "{}",
+            r[0].detail
+        );
     }
 
     #[test]
