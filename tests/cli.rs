@@ -3830,3 +3830,29 @@ fn eval_refuses_rollouts_holding_more_samples_than_it_was_told() {
     ]);
     assert!(out.contains("| rollouts in "), "{out}");
 }
+
+/// `wrote PATH` printed an output name's escape sequence raw (`-o $'x\e[2J.svg'` cleared the
+/// screen), where every error about the same name escapes it.
+#[test]
+fn the_wrote_line_escapes_what_a_terminal_would_act_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    for name in ["x\u{1b}[2J.svg", "r\u{202e}.json"] {
+        let out = dir.path().join(name);
+        let args = if name.ends_with(".svg") {
+            vec!["render", s(&scene), "-o", s(&out)]
+        } else {
+            vec!["convert", s(&scene), "-o", s(&out)]
+        };
+        let printed = ok(&args);
+        assert!(out.exists(), "{name:?}");
+        assert!(
+            !printed.contains('\u{1b}') && !printed.contains('\u{202e}'),
+            "{printed:?}"
+        );
+        assert!(
+            printed.contains("\\u{001B}[2J.svg") || printed.contains("r\\u{202E}.json"),
+            "{printed:?}"
+        );
+    }
+}

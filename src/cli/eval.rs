@@ -706,7 +706,7 @@ fn report(
             }))?
             .as_bytes(),
         )?;
-        println!("wrote {}", out.display());
+        super::print_wrote(out);
     }
     if skipped > 0 {
         println!("{skipped} scenes skipped: no agents for which the behaviour is meaningful");

@@ -137,6 +137,6 @@ pub fn run(args: Args) -> Result<ExitCode> {
     };
     opts.check_roles(&scene)?;
     write_picture(&scene, &args.output, &opts)?;
-    println!("wrote {}", args.output.display());
+    super::print_wrote(&args.output);
     Ok(ExitCode::SUCCESS)
 }
