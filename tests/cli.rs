@@ -3856,3 +3856,18 @@ fn the_wrote_line_escapes_what_a_terminal_would_act_on() {
         );
     }
 }
+
+/// `render -o .svg` names a hidden file with no extension, and was told only "unknown picture
+/// format; use .svg, .png or .gif".
+#[test]
+fn an_output_named_only_by_its_extension_is_told_so() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let out = dir.path().join(".svg");
+    let err = fails(&["render", s(&scene), "-o", s(&out)]);
+    assert!(
+        err.contains(".svg: the name is only an extension") && err.contains("e.g. out.svg"),
+        "{err}"
+    );
+    assert!(!out.exists());
+}
