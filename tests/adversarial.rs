@@ -290,7 +290,7 @@ fn type_errors_name_what_was_given() {
     fails("term(\"t\", agent(1).x);", &["not a Series", "sum()"]);
     fails(
         "term(\"t\", relu(\"x\"));",
-        &["relu expects a Series, Dual or number, got string"],
+        &["relu expects a Series, Dual or number, got a string"],
     );
     fails(
         "term(\"t\", agent(1).x.slice(0, 3) + agent(1).x);",
@@ -742,4 +742,137 @@ fn a_sort_or_dedup_comparer_s_errors_and_limits_are_reported() {
         "let v = [1, 3, 2];\nv.sort(|x, y| y - x);\nif v != [3, 2, 1] {{ throw \"unsorted\"; }}\nlet w = [1, 1, 2];\nw.dedup(|x, y| x == y);\nif w != [1, 2] {{ throw \"not deduped\"; }}{tail}"
     ));
     assert!(r.is_ok(), "{r:?}");
+}
+
+/// An error inside a closure was said to be "in anon$89dfda3c82566aec" (Rhai's hash of it),
+/// and `throw;` printed the script's name and position followed by nothing.
+#[test]
+fn errors_in_closures_and_empty_throws_say_what_happened() {
+    let e = fails(
+        "let g = |x| x.foo(); g.call(1); term(\"t\", agent(1).x.sum());",
+        &["in a closure (|...| ...): no function foo"],
+    )
+    .to_string();
+    assert!(!e.contains("anon$"), "{e}");
+    fails("fn h(x) { x.foo() } h(1);", &["in h: no function foo"]);
+    fails("throw;", &["the script threw () without a message"]);
+    fails("throw \"  \";", &["the script threw a blank message"]);
+}
+
+/// A term of the wrong type was said to be "a drivescript::cost::stdlib::agents::AgentRef"
+/// (the Rust path Rhai reports for a registered type) or "a ()".
+#[test]
+fn a_value_of_the_wrong_type_is_named_as_the_script_knows_it() {
+    for (value, says) in [
+        ("agent(1)", "the value is an Agent, not a Dual or number"),
+        ("agent(1).lane_path()", "the value is a Path, not"),
+        (
+            "agent(1).frenet(agent(1).lane_path())",
+            "the value is a Frenet, not",
+        ),
+        ("()", "the value is nothing (the unit value ()), not"),
+        ("[1, 2]", "the value is an array, not"),
+        ("|x| x", "the value is a function, not"),
+    ] {
+        let e = fails(&format!("term(\"t\", {value});"), &[says]).to_string();
+        assert!(!e.contains("drivescript::"), "{e}");
+    }
+    fails(
+        "term(\"t\", relu(agent(1)));",
+        &["relu expects a Series, Dual or number, got an Agent"],
+    );
+}
+
+/// An agent's lane path of the longest length allowed was refused with the agent's place on
+/// its lane added to the length the script gave ("length 100002 must be in (0, 100000]").
+#[test]
+fn an_agent_s_lane_path_is_limited_by_the_length_the_script_gives() {
+    run("let a = agent(1); term(\"t\", a.frenet(a.lane_path(100000.0)).d.abs().sum());")
+        .expect("the longest path allowed");
+    fails(
+        "let a = agent(1); term(\"t\", a.frenet(a.lane_path(100001.0)).d.abs().sum());",
+        &["lane_path: length 100001 must be in (0, 100000] metres"],
+    );
+}
+
+/// `lane_width` and `lane_ahead` at a NaN, infinite or 1e300 point panicked projecting it
+/// onto the lane ("a polyline's points are finite", exit 101).
+#[test]
+fn lane_functions_at_a_point_on_no_map_are_errors_not_panics() {
+    for call in [
+        "lane_width(100, 0.0 / 0.0, 0.0)",
+        "lane_width(100, 1e300, 0.0)",
+        "lane_width(100, 1e200, 1e200)",
+        "lane_ahead(100, 1.0 / 0.0, 0.0)",
+        "lane_ahead(100, 0.0, 0.0 / 0.0)",
+    ] {
+        let src = format!("let a = agent(1); term(\"t\", a.x.sum()); print({call});");
+        let e = std::panic::catch_unwind(|| run(&src));
+        let e = e.unwrap_or_else(|_| panic!("{call} panicked"));
+        let msg = e.expect_err(call).to_string();
+        assert!(
+            msg.contains("lies on no map: coordinates are numbers within 1e7 m of the origin"),
+            "{call}: {msg}"
+        );
+    }
+    run("let a = agent(1); term(\"t\", a.x.sum()); print(lane_ahead(100, 0, 0)); print(lane_width(100, 1, 0));")
+        .expect("whole numbers are points too");
+}
+
+/// A NaN collision margin made every penalty 0 (a term that never steers, reported only as
+/// dead), a negative one penalised only boxes already deep in each other.
+#[test]
+fn a_collision_margin_that_is_not_a_distance_is_refused() {
+    for (call, says) in [
+        (
+            "collision_penalty(agent(1), agent(2), 0.0 / 0.0).sum()",
+            "collision_penalty: margin NaN must be 0 to 1000 metres",
+        ),
+        (
+            "collision_penalty(agent(1), agent(2), -1.0).sum()",
+            "collision_penalty: margin -1 must be 0 to 1000 metres",
+        ),
+        (
+            "no_collision_cost(vehicles(), 1e300)",
+            "no_collision_cost: margin 1e300 must be 0 to 1000 metres",
+        ),
+    ] {
+        fails(&format!("term(\"t\", {call});"), &[says]);
+    }
+}
+
+/// No comparison with NaN holds: `clamp(x, NaN, 5)` clamped every value to 5 (a constant term
+/// with no gradient, said nowhere) and `hinge(x, NaN)` was 0.
+#[test]
+fn a_nan_bound_threshold_or_shape_parameter_is_refused() {
+    for (call, says) in [
+        (
+            "clamp(agent(1).x, 0.0 / 0.0, 5).sum()",
+            "clamp lo is NaN, not a number",
+        ),
+        (
+            "clamp(agent(1).x, 0, 0.0 / 0.0).sum()",
+            "clamp hi is NaN, not a number",
+        ),
+        (
+            "hinge(agent(1).x, 0.0 / 0.0).sum()",
+            "hinge margin is NaN, not a number",
+        ),
+        (
+            "sigmoid(agent(1).x, 0.0 / 0.0).sum()",
+            "sigmoid parameter is NaN, not a number",
+        ),
+        (
+            "agent(1).x.ever_below(0.0 / 0.0)",
+            "ever_below is NaN, not a number",
+        ),
+        (
+            "agent(1).on_road(0.0 / 0.0).sum()",
+            "on_road k is NaN, not a number",
+        ),
+    ] {
+        fails(&format!("term(\"t\", {call});"), &[says]);
+    }
+    run("term(\"t\", clamp(agent(1).x, -1.0 / 0.0, 5.0).sum() + agent(1).x.sum());")
+        .expect("an infinite bound is no bound");
 }

@@ -3436,7 +3436,7 @@ fn every_checked_flag_quotes_a_long_bad_value_cut_with_its_length() {
         (args(&["demo", "-o", out, "--samples", v]), "--samples"),
         (
             args(&["demo", "-o", out, "--request", v]),
-            "does not understand",
+            "is too long for the rules planner",
         ),
         (args(&["bench", v]), "<WHAT>"),
         (
@@ -3586,11 +3586,53 @@ fn demo_refuses_a_request_it_cannot_run_before_printing_anything() {
         assert_eq!(o.status.code(), Some(1), "{err}");
         assert!(out.is_empty(), "{out}");
         assert!(
-            err.contains("the request is empty") || err.contains("does not understand"),
+            err.contains("the request is empty")
+                || err.contains("does not understand")
+                || err.contains("is too long for the rules planner"),
             "{err}"
         );
         assert!(err.len() < 2000, "{} bytes: {err}", err.len());
     }
+    assert!(!run.exists());
+}
+
+/// A 100,000-character request to the rules planner failed validation as "script.rhai:1:1:
+/// limit exceeded: script size", blaming a script the user never wrote (the planner quotes
+/// every clause in it); and 60 events overflowed the script at its first repair. A refused
+/// request left an empty run directory holding only its lock.
+#[test]
+fn a_request_too_long_for_the_rules_planner_is_named_as_such() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let run = dir.path().join("run");
+    let long = format!(
+        "vehicle 1 cuts in front of vehicle 2 {}",
+        "x".repeat(100_000)
+    );
+    let many = vec!["vehicle 1 cuts in front of vehicle 2"; 25].join(", ");
+    for (request, what) in [(long, "100037 characters"), (many, "25 events")] {
+        let err = fails(&["ask", s(&scene), &request, "--llm", "rules", "-o", s(&run)]);
+        assert!(
+            err.contains("is too long for the rules planner")
+                && err.contains(what)
+                && err.contains("at most 2000 characters and 20 events")
+                && !err.contains("script size"),
+            "{err}"
+        );
+        assert!(err.len() < 2000, "{} bytes", err.len());
+        assert!(!run.exists());
+    }
+    // Nor does a refused request leave an empty run directory holding only its lock.
+    let err = fails(&[
+        "ask",
+        s(&scene),
+        "blah blah",
+        "--llm",
+        "rules",
+        "-o",
+        s(&run),
+    ]);
+    assert!(err.contains("does not understand"), "{err}");
     assert!(!run.exists());
 }
 
@@ -3816,4 +3858,93 @@ fn float_flags_beyond_the_largest_float_are_refused_as_written() {
     // Infinity typed as such still reaches the flag's own check.
     let err = fails(&["bench", "io", "--seconds", "inf"]);
     assert!(err.contains("--seconds inf"), "{err}");
+}
+
+/// Rollouts of several samples scored with the default `--samples 1` gave the figures of the
+/// first sample alone, and said nothing.
+#[test]
+fn eval_refuses_rollouts_holding_more_samples_than_it_was_told() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let r = dir.path().join("r");
+    std::fs::create_dir(&r).unwrap();
+    for k in 0..3 {
+        ok(&[
+            "convert",
+            s(&scene),
+            "-o",
+            s(&r.join(format!("highway-cut-in_{k}.json"))),
+        ]);
+    }
+    for samples in ["1", "2"] {
+        let err = fails(&[
+            "eval",
+            s(&scene),
+            "--task",
+            "conditional",
+            "--rollouts",
+            s(&r),
+            "--samples",
+            samples,
+        ]);
+        assert!(
+            err.contains(&format!(
+                "highway-cut-in_{samples}.json: the rollouts hold more samples of scene \
+                 highway-cut-in than --samples {samples}"
+            )),
+            "{err}"
+        );
+    }
+    let out = ok(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "conditional",
+        "--rollouts",
+        s(&r),
+        "--samples",
+        "3",
+    ]);
+    assert!(out.contains("| rollouts in "), "{out}");
+}
+
+/// `wrote PATH` printed an output name's escape sequence raw (`-o $'x\e[2J.svg'` cleared the
+/// screen), where every error about the same name escapes it.
+#[test]
+fn the_wrote_line_escapes_what_a_terminal_would_act_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    for name in ["x\u{1b}[2J.svg", "r\u{202e}.json"] {
+        let out = dir.path().join(name);
+        let args = if name.ends_with(".svg") {
+            vec!["render", s(&scene), "-o", s(&out)]
+        } else {
+            vec!["convert", s(&scene), "-o", s(&out)]
+        };
+        let printed = ok(&args);
+        assert!(out.exists(), "{name:?}");
+        assert!(
+            !printed.contains('\u{1b}') && !printed.contains('\u{202e}'),
+            "{printed:?}"
+        );
+        assert!(
+            printed.contains("\\u{001B}[2J.svg") || printed.contains("r\\u{202E}.json"),
+            "{printed:?}"
+        );
+    }
+}
+
+/// `render -o .svg` names a hidden file with no extension, and was told only "unknown picture
+/// format; use .svg, .png or .gif".
+#[test]
+fn an_output_named_only_by_its_extension_is_told_so() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let out = dir.path().join(".svg");
+    let err = fails(&["render", s(&scene), "-o", s(&out)]);
+    assert!(
+        err.contains(".svg: the name is only an extension") && err.contains("e.g. out.svg"),
+        "{err}"
+    );
+    assert!(!out.exists());
 }

@@ -347,7 +347,8 @@ fn path_length(length: f64) -> PyResult<()> {
         Ok(())
     } else {
         Err(PyValueError::new_err(format!(
-            "length {length}: must be in (0, 100000] metres"
+            "length {}: must be in (0, 100000] metres",
+            drivescript::geom::num(length)
         )))
     }
 }
@@ -388,11 +389,14 @@ impl Scene {
                 .map_err(io_error)
         })?;
         // The reader clamps to the scene's last step: asked for in so many words, step 1000
-        // of a 32-step scene came back as step 31 with no future, without a word.
+        // of a 32-step scene came back as step 31 with no future, without a word (and step
+        // 2**64 - 1 still did, its `k + 1` wrapping to 0).
         let meta = &scene.inner.meta;
         if let Some(k) = commonroad_current_step {
             let n = scene.inner.num_steps();
-            if meta.source_format == drivescript::scene::SourceFormat::CommonRoad && k + 1 >= n {
+            if meta.source_format == drivescript::scene::SourceFormat::CommonRoad
+                && k.saturating_add(1) >= n
+            {
                 return Err(PyValueError::new_err(format!(
                     "{}: commonroad_current_step {k} leaves no future (the scene has {n} steps: \
                      give 0 to {})",
@@ -682,12 +686,24 @@ impl CostResult {
     }
 
     fn __repr__(&self) -> String {
+        // Six decimals of 2e302 (positions of 1e300) printed 309 digits.
+        let shown = |v: f64| {
+            if v.is_finite() && (v.abs() >= 1e7 || (v != 0.0 && v.abs() < 1e-6)) {
+                format!("{v:.6e}")
+            } else {
+                format!("{v:.6}")
+            }
+        };
         let terms: Vec<String> = self
             .terms
             .iter()
-            .map(|(n, v, _)| format!("{n}={v:.6}"))
+            .map(|(n, v, _)| format!("{n}={}", shown(*v)))
             .collect();
-        format!("CostResult(total={:.6}, {})", self.total, terms.join(", "))
+        format!(
+            "CostResult(total={}, {})",
+            shown(self.total),
+            terms.join(", ")
+        )
     }
 }
 
@@ -767,6 +783,14 @@ impl CostScript {
         name: &str,
         params: Option<&Bound<'_, PyDict>>,
     ) -> PyResult<Self> {
+        // The name starts every error message: a newline in it faked a line of its own
+        // ("evil\nerror: all good:1:29: ..."), as a scenario id's once did.
+        if let Err(c) = drivescript::io::name::check_name(name) {
+            return Err(PyValueError::new_err(format!(
+                "name {}: holds {c}; a script's name starts its error messages",
+                drivescript::io::name::shown(name)
+            )));
+        }
         let spec = ScriptSpec::new(source, name, params_from(params)?);
         drivescript::cost::check_params(&[&spec.source], &spec.params)
             .and_then(|_| spec.check_syntax())

@@ -1,5 +1,6 @@
 """Every line of the package's contract (python/README.md), and the CLI's numbers."""
 
+import re
 import json
 import subprocess
 import threading
@@ -83,6 +84,8 @@ def test_sizes_types_and_lane_paths_are_the_ones_scripts_see(ds, scene):
         (lambda: scene.agent_lane_path(999999), "no agent 999999"),
         (lambda: scene.agent_lane_path(405, turn="sideways"), "turn"),
         (lambda: scene.lane_path(int(lane), -1.0), "length"),
+        # Printed with all 301 digits.
+        (lambda: scene.agent_lane_path(405, 1e300), r"^length 1e300: must be in"),
         (lambda: scene.lane_path(-12345, 100.0), "lane -12345"),
     ]:
         with pytest.raises(ValueError, match=says):
@@ -394,7 +397,8 @@ def test_a_commonroad_current_step_past_the_scene_is_a_value_error_not_clamped(d
     assert ds.Scene.load(path).current_step == 10
     assert ds.Scene.load(path, commonroad_current_step=20).current_step == 20
     n = ds.Scene.load(path).current_step + 1 + ds.Scene.load(path).future_steps
-    for k in [n - 1, n, 2**40]:
+    # 2**64 - 1 wrapped to 0 in the check and loaded with no future.
+    for k in [n - 1, n, 2**40, 2**64 - 1]:
         with pytest.raises(ValueError, match=f"commonroad_current_step {k} leaves no future"):
             ds.Scene.load(path, commonroad_current_step=k)
 
@@ -454,3 +458,28 @@ def test_help_is_useful(ds):
     for obj in [ds.Scene.load, ds.Scene.log_future, ds.CostScript.from_file, ds.CostScript.evaluate,
                 ds.CostScript.evaluate_batch, ds.Sampler.sample, ds.check, ds.suggest, ds.torch.cost]:
         assert obj.__doc__ and len(obj.__doc__) > 40, obj
+
+
+def test_a_huge_cost_is_shown_in_exponent_form(ds, scene):
+    # Six decimals of a cost of 1e300 printed over 300 digits.
+    big = ds.CostScript.from_source('term("big", agent(401).x.sum() + 1e300);')
+    text = repr(big.evaluate(scene, scene.log_future(40)))
+    assert re.search(r"total=\d\.\d{6}e\d+,", text) and len(text) < 200, text
+
+
+def test_positions_beyond_any_map_are_a_value_error_not_an_internal_error(ds, scene, cut_in):
+    # 1e300 is finite, but a checker's road-edge distance panicked on it ("internal error").
+    far = np.full_like(scene.log_future(40), 1e300)
+    for call in [
+        lambda: ds.check("off_road", scene, far, params={"vehicle": 401}),
+        lambda: cut_in.evaluate(scene, far),
+    ]:
+        with pytest.raises(ValueError, match="x is 1e300, beyond 1e7 m"):
+            call()
+
+
+def test_a_script_name_holding_a_line_break_or_a_bidi_control_is_refused(ds):
+    # The name starts every error message: a newline in it faked a line of its own.
+    for name, char in [("evil\nerror: all good", "U+000A"), ("x\u202ey", "U+202E")]:
+        with pytest.raises(ValueError, match=re.escape(char)):
+            ds.CostScript.from_source('term("x", agent(1).x.sum());', name=name)

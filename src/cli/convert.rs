@@ -53,6 +53,6 @@ pub fn run(args: Args) -> Result<ExitCode> {
         scene.meta.scenario_id = id.clone();
     }
     format.write(&args.output, &scene)?;
-    println!("wrote {}", args.output.display());
+    super::print_wrote(&args.output);
     Ok(ExitCode::SUCCESS)
 }

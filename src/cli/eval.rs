@@ -167,6 +167,16 @@ fn rollouts_for(dir: &Path, scene: &Scene, k: usize) -> Result<Vec<(Scene, Allow
         }
         out.push(read(&p)?);
     }
+    // Rollouts of 4 samples scored with the default --samples 1 gave minADE of one sample,
+    // from a quarter of the run, and said nothing.
+    let next = dir.join(format!("{id}_{k}.json"));
+    if next.exists() {
+        bail!(
+            "{}: the rollouts hold more samples of scene {id} than --samples {k}: give \
+             --samples with the number the run made (`simulate --samples`)",
+            next.display()
+        );
+    }
     Ok(out)
 }
 
@@ -696,7 +706,7 @@ fn report(
             }))?
             .as_bytes(),
         )?;
-        println!("wrote {}", out.display());
+        super::print_wrote(out);
     }
     if skipped > 0 {
         println!("{skipped} scenes skipped: no agents for which the behaviour is meaningful");

@@ -260,6 +260,15 @@ pub(crate) fn print_error(text: &str) {
     eprintln!("error: {}", drivescript::io::name::terminal_safe(text));
 }
 
+/// Prints `wrote PATH` on stdout as a terminal can show it: an output name holding an escape
+/// sequence (`-o $'x\e[2J.svg'`) cleared the screen where errors about it are escaped.
+pub(crate) fn print_wrote(path: &std::path::Path) {
+    println!(
+        "wrote {}",
+        drivescript::io::name::terminal_safe(&path.display().to_string())
+    );
+}
+
 /// An error and its causes on one line, each cause once: many errors already quote their
 /// source (`FILE: No such file or directory`), and anyhow's `{:#}` would repeat it.
 pub(crate) fn describe(e: &anyhow::Error) -> String {

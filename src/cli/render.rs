@@ -86,10 +86,24 @@ fn parse_role(s: &str) -> Result<(i64, String), String> {
 /// The picture format `output`'s extension names, or an error saying which there are.
 fn format_of(output: &Path) -> Result<PictureFormat> {
     PictureFormat::from_path(output).with_context(|| {
-        format!(
-            "{}: unknown picture format; use .svg, .png or .gif",
-            output.display()
-        )
+        // `-o .svg` names a hidden file with no extension, and was told only that its
+        // format is unknown.
+        let name = output
+            .file_name()
+            .map(|n| n.to_string_lossy().to_lowercase())
+            .unwrap_or_default();
+        if [".svg", ".png", ".gif"].contains(&name.as_str()) {
+            format!(
+                "{}: the name is only an extension (a hidden file with none); name the file \
+                 before it, e.g. out{name}",
+                output.display()
+            )
+        } else {
+            format!(
+                "{}: unknown picture format; use .svg, .png or .gif",
+                output.display()
+            )
+        }
     })
 }
 
@@ -137,6 +151,6 @@ pub fn run(args: Args) -> Result<ExitCode> {
     };
     opts.check_roles(&scene)?;
     write_picture(&scene, &args.output, &opts)?;
-    println!("wrote {}", args.output.display());
+    super::print_wrote(&args.output);
     Ok(ExitCode::SUCCESS)
 }

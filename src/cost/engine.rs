@@ -628,9 +628,9 @@ fn sort_by_comparer(
                         Ok(if b { Ordering::Less } else { Ordering::Greater })
                     } else {
                         stdlib::err(format!(
-                            "sort: the comparer returned a {}, not a whole number (its sign \
+                            "sort: the comparer returned {}, not a whole number (its sign \
                              orders the pair) or true/false",
-                            v.type_name()
+                            stdlib::a_type(&v)
                         ))
                     }
                 });
@@ -668,8 +668,8 @@ fn dedup_by_comparer(
             .and_then(|v| {
                 v.as_bool().or_else(|_| {
                     stdlib::err(format!(
-                        "dedup: the comparer returned a {}, not true/false",
-                        v.type_name()
+                        "dedup: the comparer returned {}, not true/false",
+                        stdlib::a_type(&v)
                     ))
                 })
             });
@@ -693,8 +693,8 @@ fn term_value(v: &Dynamic, name: &str) -> Result<Dual, Box<EvalAltResult>> {
     match stdlib::number(v, "term") {
         Ok(f) => Ok(Dual::constant(f)),
         Err(_) => stdlib::err(format!(
-            "term {name:?}: the value is a {}, not a Dual or number",
-            v.type_name()
+            "term {name:?}: the value is {}, not a Dual or number",
+            stdlib::a_type(v)
         )),
     }
 }
@@ -1492,6 +1492,14 @@ impl CostScript {
                 let inner_err = self.map_error(inner);
                 match inner_err {
                     CostError::Limit { limit, .. } => CostError::Limit { script, limit, line, column },
+                    // Rhai names a closure by a hash ("anon$89dfda3c82566aec"), which names
+                    // nothing in the script.
+                    other if f.starts_with("anon$") => CostError::Runtime {
+                        script,
+                        line,
+                        column,
+                        message: format!("in a closure (|...| ...): {}", error_message(&other)),
+                    },
                     other => CostError::Runtime {
                         script,
                         line,
@@ -1505,7 +1513,10 @@ impl CostScript {
             EvalAltResult::ErrorRuntime(v, pos) if !pos.is_none() => {
                 let text = v.to_string();
                 let n = text.chars().count();
-                let message = if n > MAX_THROWN_CHARS {
+                // `throw;` and `throw ""` printed "s.rhai:1:1: " and nothing after it.
+                let message = if text.trim().is_empty() {
+                    if v.is_unit() { "the script threw () without a message".to_string() } else { "the script threw a blank message".to_string() }
+                } else if n > MAX_THROWN_CHARS {
                     format!(
                         "{}... ({} more characters)",
                         text.chars().take(MAX_THROWN_CHARS).collect::<String>(),

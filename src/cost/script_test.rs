@@ -85,6 +85,10 @@ pub struct Edit {
     pub ramp: f64,
 }
 
+/// The shortest `sway` period, seconds: far below any time step, far above where the phase
+/// `t / period` stops being a number.
+const MIN_SWAY_PERIOD: f64 = 1e-3;
+
 impl Edit {
     /// Refuses values that would make the candidate's positions NaN or infinite (a `sway`
     /// period of 0 divides by zero): the cost engine cannot say which edit made them so.
@@ -106,9 +110,12 @@ impl Edit {
         if let Some([amp, period]) = self.sway {
             finite("sway amplitude", amp)?;
             finite("sway period", period)?;
-            if period <= 0.0 {
+            // A period of 1e-310 s is above 0, but `t / period` overflows: the sine of
+            // infinity made NaN positions, on which the script's Frenet projection panicked.
+            if period < MIN_SWAY_PERIOD {
                 return Err(format!(
-                    "`sway: [{}, {}]`: the period (seconds, the second number) must be above 0",
+                    "`sway: [{}, {}]`: the period (seconds, the second number) must be at \
+                     least {MIN_SWAY_PERIOD}",
                     crate::geom::num(amp),
                     crate::geom::num(period)
                 ));
@@ -233,6 +240,26 @@ impl Expect {
                     "`towards.direction` is [{}, {}]: a direction is two finite numbers, not both 0",
                     crate::geom::num(dx),
                     crate::geom::num(dy)
+                ));
+            }
+            // The run normalises the direction through its squared length: [1e308, 1e308]
+            // overflowed to a zero direction and [1e-200, 0] underflowed to NaN, and either
+            // case failed whatever the script did.
+            if !(dx * dx + dy * dy).is_normal() {
+                return Err(format!(
+                    "`towards.direction` is [{}, {}]: its length is out of range; give a \
+                     direction of ordinary size, such as [1, 0]",
+                    crate::geom::num(dx),
+                    crate::geom::num(dy)
+                ));
+            }
+        }
+        if let Some(a) = &self.allows {
+            // An agent is never checked against itself, so the pair was never among the
+            // script's exemptions and the case failed whatever the script did.
+            if let Some([i, _]) = a.collide.iter().find(|[i, j]| i == j) {
+                return Err(format!(
+                    "`allows.collide` pairs agent {i} with itself: a pair is two different agents"
                 ));
             }
         }
@@ -462,43 +489,34 @@ impl Runner {
         }
         let params = Params::parse(&param_args(&c.params)).map_err(|e| e.to_string())?;
         let name = script_path.display().to_string();
+        // The candidate is the test file's, read before the script runs: a candidate that
+        // could not be read was reported as the script's "trajectories do not fit the scene".
+        let candidate = match (&c.candidate.scene, &c.candidate.rollout) {
+            (None, None) => Trajectories::recorded(&scene),
+            (Some(_), Some(_)) => return Err("candidate: give scene or rollout, not both".into()),
+            (Some(p), None) => {
+                let other = self
+                    .scene(&dir.join(p))
+                    .map_err(|m| format!("candidate.scene: {m}"))?;
+                // Another recording of the same agents stands for a future of this scene:
+                // everything else about it must match.
+                let mut r = Rollout::from_scene(&other);
+                r.scene_id = scene.meta.scenario_id.clone();
+                Trajectories::from_rollout(&scene, &r)
+                    .map_err(|m| format!("candidate.scene: {p}: {m}"))?
+            }
+            (None, Some(p)) => {
+                let r =
+                    Rollout::read(&dir.join(p)).map_err(|e| format!("candidate.rollout: {e}"))?;
+                Trajectories::from_rollout(&scene, &r)
+                    .map_err(|m| format!("candidate.rollout: {p}: {m}"))?
+            }
+        };
         let outcome: Result<(CostScript, CostReport, Trajectories), CostError> = (|| {
             let script =
                 CostScript::compile(source, &name, scene.clone(), &params, &Limits::default())?;
             script.validate()?;
-            let mut traj = match (&c.candidate.scene, &c.candidate.rollout) {
-                (None, None) => Trajectories::recorded(&scene),
-                (Some(_), Some(_)) => {
-                    return Err(CostError::Shape {
-                        script: name.clone(),
-                        message: "candidate: give scene or rollout, not both".into(),
-                    })
-                }
-                (Some(p), None) => {
-                    let other = self.scene(&dir.join(p)).map_err(|m| CostError::Shape {
-                        script: name.clone(),
-                        message: m,
-                    })?;
-                    // Another recording of the same agents stands for a future of this
-                    // scene: everything else about it must match.
-                    let mut r = Rollout::from_scene(&other);
-                    r.scene_id = scene.meta.scenario_id.clone();
-                    Trajectories::from_rollout(&scene, &r).map_err(|m| CostError::Shape {
-                        script: name.clone(),
-                        message: format!("{p}: {m}"),
-                    })?
-                }
-                (None, Some(p)) => {
-                    let r = Rollout::read(&dir.join(p)).map_err(|e| CostError::Shape {
-                        script: name.clone(),
-                        message: e.to_string(),
-                    })?;
-                    Trajectories::from_rollout(&scene, &r).map_err(|m| CostError::Shape {
-                        script: name.clone(),
-                        message: format!("{p}: {m}"),
-                    })?
-                }
-            };
+            let mut traj = candidate;
             for e in &c.edits {
                 apply_edit(&scene, &mut traj, e).map_err(|m| CostError::Shape {
                     script: name.clone(),
@@ -727,6 +745,12 @@ pub fn run_test_file(path: &Path) -> Result<Vec<CaseResult>, ScriptTestError> {
         c.expect
             .check()
             .map_err(|m| invalid(format!("case {:?}: expect: {m}", c.name)))?;
+        if c.candidate.scene.is_some() && c.candidate.rollout.is_some() {
+            return Err(invalid(format!(
+                "case {:?}: candidate: give `scene` or `rollout`, not both",
+                c.name
+            )));
+        }
         for (k, e) in c.edits.iter().enumerate() {
             e.check().map_err(|m| {
                 invalid(format!(
@@ -791,7 +815,10 @@ mod tests {
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts");
         for (edit, want) in [
             ("{agent: 2, sway: [1.0, 0.0]}", "sway: [1, 0]"),
-            ("{agent: 2, sway: [1.0, -2.0]}", "must be above 0"),
+            ("{agent: 2, sway: [1.0, -2.0]}", "must be at least 0.001"),
+            // Above 0, but the phase overflowed to NaN positions and the script's Frenet
+            // projection panicked.
+            ("{agent: 2, sway: [1.0, 1e-310]}", "must be at least 0.001"),
             ("{agent: 2, sway: [.nan, 2.0]}", "`sway amplitude` is NaN"),
             ("{agent: 2, lateral: .inf}", "`lateral` is inf"),
             ("{agent: 2, shift: [0, .nan]}", "`shift` is NaN"),
@@ -845,6 +872,38 @@ mod tests {
     }
 
     #[test]
+    fn a_candidate_that_cannot_be_read_is_the_test_file_s_fault_not_the_script_s() {
+        // Both a scene and a rollout ran the script and failed as "accident.rhai: trajectories
+        // do not fit the scene: candidate: give scene or rollout, not both"; an unreadable
+        // rollout was blamed on the script the same way.
+        let dir = tempfile::tempdir().unwrap();
+        let e = accident_case(
+            dir.path(),
+            "    candidate: {scene: a.yaml, rollout: b.json}\n    expect: {total_below: 1}\n",
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("x.test.yaml: case \"c\": candidate: give `scene` or `rollout`, not both"),
+            "{e}"
+        );
+        let r = accident_case(
+            dir.path(),
+            "    candidate: {rollout: /dev/zero}\n    expect: {total_below: 1}\n",
+        )
+        .unwrap();
+        assert!(
+            !r[0].passed
+                && r[0]
+                    .detail
+                    .starts_with("case could not run: candidate.rollout: /dev/zero: ")
+                && !r[0].detail.contains("accident.rhai"),
+            "{}",
+            r[0].detail
+        );
+    }
+
+    #[test]
     fn expectations_that_cannot_fail_or_pass_are_refused_before_the_case_runs() {
         // `total_below: .inf` passed whatever the script did, `.nan` failed whatever it did,
         // a zero direction gave a NaN descent, an empty `error` matched every message.
@@ -868,6 +927,18 @@ mod tests {
                 "`towards.direction` is [0, 0]: a direction is two finite numbers, not both 0",
             ),
             ("{error: \"\"}", "`error` is empty"),
+            (
+                "{towards: {agent: 4, direction: [1e308, 1e308]}}",
+                "`towards.direction` is [1e308, 1e308]: its length is out of range",
+            ),
+            (
+                "{towards: {agent: 4, direction: [1e-200, 0]}}",
+                "`towards.direction` is [1e-200, 0]: its length is out of range",
+            ),
+            (
+                "{allows: {collide: [[2, 4], [4, 4]]}}",
+                "`allows.collide` pairs agent 4 with itself",
+            ),
         ] {
             let e = accident_case(dir.path(), &format!("    expect: {expect}\n"))
                 .unwrap_err()

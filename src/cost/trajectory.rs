@@ -182,7 +182,12 @@ impl Trajectories {
         // Every call from Python passes through here; a complete array (what optimisers
         // pass) is checked and copied in one pass each.
         // (A fold, not `all`: without the early exit it runs on vector registers.)
-        if values.iter().fold(true, |ok, x| ok & x.is_finite()) {
+        // Positions beyond any map are refused as the scene readers refuse them: 1e300 is
+        // finite, but its squares are not, and a checker's road-edge distance panicked on it.
+        let (far, turned) = (crate::geom::MAX_COORD, crate::scene::MAX_HEADING);
+        if values.chunks_exact(3).fold(true, |ok, v| {
+            ok & (v[0].abs() <= far) & (v[1].abs() <= far) & (v[2].abs() <= turned)
+        }) {
             let mut xyh = vec![[0.0; 3]; n];
             xyh.as_flattened_mut().copy_from_slice(values);
             return Ok(Self {
@@ -200,6 +205,20 @@ impl Trajectories {
             let s = [v[0], v[1], v[2]];
             match s.iter().position(|x| !x.is_finite()) {
                 None => {
+                    let limits = [far, far, turned];
+                    if let Some(c) = (0..3).find(|&c| s[c].abs() > limits[c]) {
+                        return Err(format!(
+                            "agent index {}, step {}: {} is {}, beyond {} {} ({})",
+                            i / layout.steps,
+                            i % layout.steps,
+                            ["x", "y", "heading"][c],
+                            crate::geom::num(s[c]),
+                            crate::geom::num(limits[c]),
+                            ["m", "m", "rad"][c],
+                            "positions lie within 1e7 m of the origin and headings within \
+                             1e4 rad, as in every scene"
+                        ));
+                    }
                     t.xyh.push(s);
                     t.valid.push(true);
                 }
@@ -373,6 +392,22 @@ mod tests {
         assert!(e.contains("heading is inf"), "{e}");
         let e = Trajectories::from_array(t.layout, &a[3..]).unwrap_err();
         assert!(e.contains("x 40 steps x 3 wanted"), "{e}");
+        // Finite, but beyond any map: a checker's road-edge distance panicked on 1e300.
+        a[3 * i + 2] = 0.0;
+        a[3 * i] = 1e300;
+        let e = Trajectories::from_array(t.layout, &a).unwrap_err();
+        assert!(
+            e.starts_with(&format!(
+                "agent index {agent}, step {step}: x is 1e300, beyond 1e7 m"
+            )),
+            "{e}"
+        );
+        a[3 * i] = 0.0;
+        a[3 * i + 2] = -2e4;
+        let e = Trajectories::from_array(t.layout, &a).unwrap_err();
+        assert!(e.contains("heading is -20000, beyond 10000 rad"), "{e}");
+        a[3 * i + 2] = 0.0;
+        Trajectories::from_array(t.layout, &a).unwrap();
     }
 
     #[test]

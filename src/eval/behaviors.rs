@@ -359,6 +359,20 @@ pub enum CheckError {
         /// What is wrong.
         message: String,
     },
+    /// A number outside what the checker can judge: a `from` past the scene's end checked
+    /// nothing (`speed_limit from=1e17` passed every sample), a negative tolerance nothing
+    /// could meet.
+    #[error("{behavior}: parameter {name:?} = {value} must be {range}")]
+    OutOfRange {
+        /// The behaviour.
+        behavior: &'static str,
+        /// The parameter.
+        name: &'static str,
+        /// Its value.
+        value: String,
+        /// What it may be, in words.
+        range: String,
+    },
     /// The unguided sample to judge the rest of the scene against does not fit.
     #[error("{behavior}: {message}")]
     Unguided {
@@ -402,6 +416,78 @@ impl<'a> Ctx<'a> {
             }),
             Some(v) => self.numeric(name, v),
         }
+    }
+
+    /// `v`, the value of `name`, when `ok` holds of it; else an error saying it must be
+    /// `range`.
+    fn ranged(
+        &self,
+        name: &'static str,
+        v: f64,
+        ok: bool,
+        range: impl Into<String>,
+    ) -> Result<f64, CheckError> {
+        if ok {
+            Ok(v)
+        } else {
+            Err(CheckError::OutOfRange {
+                behavior: self.b.name(),
+                name,
+                value: crate::geom::num(v),
+                range: range.into(),
+            })
+        }
+    }
+
+    /// A time after the current step, seconds (`name`, else `default`), inside the scene's
+    /// future (before its end unless `to_end`): one given beyond it left nothing to check, and
+    /// `speed_limit from=1e17` passed every sample (`from=1e300` wrapped round to the start).
+    /// The default is the checker's own, kept whatever the horizon.
+    fn seconds_into_future(
+        &self,
+        name: &'static str,
+        default: f64,
+        to_end: bool,
+    ) -> Result<f64, CheckError> {
+        let v = self.or(name, default)?;
+        if self.p.get(name).is_none() {
+            return Ok(v);
+        }
+        let c = self.s.meta.current_step;
+        let future = self.s.num_steps().saturating_sub(c + 1) as f64 * self.s.meta.dt;
+        let inside = v >= 0.0
+            && if to_end {
+                v <= future + 1e-9
+            } else {
+                v < future
+            };
+        self.ranged(
+            name,
+            v,
+            inside,
+            format!(
+                "0 or more seconds and {} the end of the scene's future ({} s)",
+                if to_end { "at most" } else { "before" },
+                crate::geom::approx(future)
+            ),
+        )
+    }
+
+    /// A distance in metres (`name`, else `default`), at most 1000 m and not negative (more
+    /// than 0 where `positive`): 1e300 m passed every sample.
+    fn metres(&self, name: &'static str, default: f64, positive: bool) -> Result<f64, CheckError> {
+        let v = self.or(name, default)?;
+        let low = if positive { v > 0.0 } else { v >= 0.0 };
+        self.ranged(
+            name,
+            v,
+            low && v <= 1000.0,
+            if positive {
+                "more than 0 and at most 1000 m"
+            } else {
+                "0 to 1000 m"
+            },
+        )
     }
 
     fn or(&self, name: &'static str, default: f64) -> Result<f64, CheckError> {
@@ -778,7 +864,13 @@ fn speed_limit(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
     Ok({
         let a = x.agent("vehicle")?;
         let limit = x.get("limit")?;
-        let from = c + (x.or("from", 0.0)? / s.meta.dt).round() as usize;
+        let limit = x.ranged(
+            "limit",
+            limit,
+            limit > 0.0 && limit <= 100.0,
+            "more than 0 and at most 100 m/s",
+        )?;
+        let from = c + (x.seconds_into_future("from", 0.0, false)? / s.meta.dt).round() as usize;
         let vmax = speeds(s, a)
             .iter()
             .filter(|(t, _)| *t > from)
@@ -802,7 +894,13 @@ fn speed_limit(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
 fn target_point(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
     Ok({
         let a = x.agent("vehicle")?;
-        let (tx, ty, tol) = (x.get("x")?, x.get("y")?, x.or("tol", 1.0)?);
+        let far = crate::geom::MAX_COORD;
+        let within_map = format!("within {far:e} m of the origin, as every scene's points");
+        let tx = x.get("x")?;
+        let tx = x.ranged("x", tx, tx.abs() <= far, within_map.clone())?;
+        let ty = x.get("y")?;
+        let ty = x.ranged("y", ty, ty.abs() <= far, within_map)?;
+        let tol = x.metres("tol", 1.0, true)?;
         let end = a.states[x.last(a)?].position();
         let d = (end - Point::new(tx, ty)).norm();
         x.measure("final_distance", d);
@@ -1047,7 +1145,7 @@ fn follow(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
     let (s, c, behavior) = (x.s, x.s.meta.current_step, x.b);
     Ok({
         let (a, b) = (x.agent("follower")?, x.agent("leader")?);
-        let want = x.or("gap", 10.0)?;
+        let want = x.metres("gap", 10.0, false)?;
         let path = path_of(s, b).ok_or_else(|| no_lane(behavior, b.id))?;
         let n = s.num_steps();
         let from = c + 1 + (n - c - 1) / 2;
@@ -1170,7 +1268,7 @@ fn stop(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
     let (s, c) = (x.s, x.s.meta.current_step);
     Ok({
         let a = x.agent("vehicle")?;
-        let within = x.or("within", 4.0)?;
+        let within = x.seconds_into_future("within", 4.0, true)?;
         let from = c + (within / s.meta.dt).round() as usize;
         let after: Vec<f64> = speeds(s, a)
             .into_iter()

@@ -571,6 +571,8 @@ mod tests {
             // Merged and printed in the table in 301 digits (issue 32).
             (format!("{acc}/ade/0"), json!(1e300), "merge.accumulators[0] (log): ade[0] is 1e300: must be a distance: finite, 0 to 3e7 m"),
             (format!("{acc}/collision/0"), json!(1.5), "collision[0] is 1.5: must be a rate: 0 to 1"),
+            // Printed in 301 digits.
+            (format!("{acc}/seconds"), json!(-1e300), "merge.accumulators[0] (log): seconds is -1e300: must be finite, not negative"),
             (format!("{acc}/sim_kin/speed/0"), json!(-3.0), "sim_kin.speed[0] is -3: must be a speed"),
             (format!("{acc}/achieved"), json!(1), "passed 0, achieved 1, checked 0"),
             (format!("{acc}/passed"), json!(2), "passed 2, achieved 0, checked 0: a sample passes only if"),

@@ -714,7 +714,7 @@ impl Tally {
         if !(self.seconds.is_finite() && self.seconds >= 0.0) {
             return Err(format!(
                 "seconds is {}: must be finite, not negative",
-                self.seconds
+                crate::geom::num(self.seconds)
             ));
         }
         Ok(())

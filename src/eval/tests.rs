@@ -803,3 +803,68 @@ fn turns_are_suggested_for_a_car_that_can_reach_the_corner() {
         None
     );
 }
+
+#[test]
+fn numbers_a_checker_cannot_judge_by_are_refused_naming_the_parameter() {
+    // `speed_limit from=1e17` checked nothing and passed every sample (`from=1e300` wrapped
+    // round to the current step); a negative tolerance, limit or gap could never pass, one
+    // of 1e300 m always did.
+    let base = scene("highway.yaml");
+    let future = base.num_future_steps() as f64 * base.meta.dt;
+    for (b, kv, says) in [
+        (
+            Behavior::SpeedLimit,
+            vec![("vehicle", 1.0), ("limit", 30.0), ("from", 1e17)],
+            "speed_limit: parameter \"from\" = 1e17 must be 0 or more seconds and before the end",
+        ),
+        (
+            Behavior::SpeedLimit,
+            vec![("vehicle", 1.0), ("limit", 30.0), ("from", future)],
+            "parameter \"from\"",
+        ),
+        (
+            Behavior::SpeedLimit,
+            vec![("vehicle", 1.0), ("limit", -5.0)],
+            "parameter \"limit\" = -5 must be more than 0 and at most 100 m/s",
+        ),
+        (
+            Behavior::TargetPoint,
+            vec![("vehicle", 1.0), ("x", 0.0), ("y", 0.0), ("tol", 1e300)],
+            "parameter \"tol\" = 1e300 must be more than 0 and at most 1000 m",
+        ),
+        (
+            Behavior::TargetPoint,
+            vec![("vehicle", 1.0), ("x", 1e300), ("y", 0.0)],
+            "parameter \"x\" = 1e300 must be within 1e7 m of the origin",
+        ),
+        (
+            Behavior::Follow,
+            vec![("follower", 1.0), ("leader", 2.0), ("gap", -5.0)],
+            "parameter \"gap\" = -5 must be 0 to 1000 m",
+        ),
+        (
+            Behavior::Stop,
+            vec![("vehicle", 1.0), ("within", future + 0.5)],
+            "parameter \"within\"",
+        ),
+    ] {
+        let e = check(b, &base, &params(&kv))
+            .err()
+            .expect("refused")
+            .to_string();
+        assert!(e.contains(says), "{kv:?}: {e}");
+    }
+    // The ends of the ranges are judged.
+    check(
+        Behavior::SpeedLimit,
+        &base,
+        &params(&[("vehicle", 1.0), ("limit", 30.0), ("from", future - 0.1)]),
+    )
+    .unwrap();
+    check(
+        Behavior::Stop,
+        &base,
+        &params(&[("vehicle", 1.0), ("within", future)]),
+    )
+    .unwrap();
+}

@@ -1090,7 +1090,7 @@ mod tests {
             "{err}"
         );
         assert!(
-            err.contains("invalid type: string \"a\", expected f64"),
+            err.contains("invalid type: string \"a\", expected a number"),
             "{err}"
         );
         let err = e("{\"objects\": [{\"position\": [{\"x\": 1,\n \"y\": 2}, {\"x\": 3");

@@ -216,6 +216,16 @@ pub fn detect_format(path: &Path) -> Result<SceneFormat, IoError> {
              its log_map_archive_*.json) nor a directory of WOMD shards",
         ));
     }
+    // An empty `.json` was "unknown scene format": its content decides whether it is a scene.
+    // (Other names are scenes by name, and their readers say they are empty.)
+    if name.ends_with(".json") && std::fs::metadata(path).is_ok_and(|m| m.is_file() && m.len() == 0)
+    {
+        return Err(IoError::invalid(
+            path,
+            "file",
+            "is empty (0 bytes): not a scene",
+        ));
+    }
     // The extension decides first: `tfrecord-00000-of-01000_4.json` is JSON, not a shard.
     // JSON is also what AV2 maps, rollouts and reports are written in, so a `.json` is a
     // scene only by its content; other JSON goes on to the checks below (and is refused).
@@ -957,8 +967,58 @@ fn check_names_a_file(path: &Path) -> Result<(), IoError> {
 /// A serde error's message without the position serde writes into it (` at line 4 column
 /// 31`), for messages that give that position themselves; other positions (where an
 /// unclosed bracket opened, say) stay.
+/// Rust's names of types, in what serde expected, are said in words: "invalid type: floating
+/// point `1.5`, expected usize" named a type of the program, not what the file should hold.
 pub(crate) fn without_position(message: &str, line: usize, column: usize) -> String {
-    message.replacen(&format!(" at line {line} column {column}"), "", 1)
+    plain_types(&message.replacen(&format!(" at line {line} column {column}"), "", 1))
+}
+
+/// [`without_position`]'s words for serde's "expected <Rust type>", for any serde message.
+pub(crate) fn plain_types(message: &str) -> String {
+    const WORDS: &[(&str, &str)] = &[
+        ("i8", "a whole number"),
+        ("i16", "a whole number"),
+        ("i32", "a whole number from -2147483648 to 2147483647"),
+        (
+            "i64",
+            "a whole number from -9223372036854775808 to 9223372036854775807",
+        ),
+        ("u8", "a whole number from 0 to 255"),
+        ("u16", "a whole number from 0 to 65535"),
+        ("u32", "a whole number from 0 to 4294967295"),
+        ("u64", "a whole number, 0 or more"),
+        ("usize", "a whole number, 0 or more"),
+        ("f32", "a number"),
+        ("f64", "a number"),
+        ("bool", "true or false"),
+    ];
+    let Some(at) = message.rfind("expected ") else {
+        return message.to_string();
+    };
+    let (head, rest) = message.split_at(at + "expected ".len());
+    let word_end = rest
+        .find(|c: char| !(c.is_ascii_alphanumeric() || c == '_'))
+        .unwrap_or(rest.len());
+    let (word, tail) = rest.split_at(word_end);
+    if let Some((_, words)) = WORDS.iter().find(|(rust, _)| *rust == word) {
+        return format!("{head}{words}{tail}");
+    }
+    // "expected tuple struct RolloutState with 4 elements", "expected struct YamlRoad".
+    if word == "tuple" || word == "struct" {
+        let (kind, tail) = match tail.strip_prefix(" struct ") {
+            Some(t) => ("list", t),
+            None => ("mapping of fields", tail.trim_start()),
+        };
+        let name_end = tail
+            .find(|c: char| !(c.is_ascii_alphanumeric() || c == '_'))
+            .unwrap_or(tail.len());
+        let after = &tail[name_end..];
+        return match after.strip_prefix(" with ") {
+            Some(n) => format!("{head}a {kind} of {}", n.replacen("elements", "values", 1)),
+            None => format!("{head}a {kind}{after}"),
+        };
+    }
+    message.to_string()
 }
 
 /// Writes `bytes` to `path` only if nothing is there, atomically: the file appears complete or
@@ -987,6 +1047,11 @@ pub fn create_atomic(path: &Path, bytes: &[u8]) -> Result<bool, IoError> {
 pub(crate) fn read_text(path: &Path) -> Result<String, IoError> {
     let text = String::from_utf8(read_maybe_gz(path)?)
         .map_err(|e| IoError::invalid(path, "file", format!("not UTF-8 text: {e}")))?;
+    // An empty rollout was "EOF while parsing a value ... (the file ends early: it is cut
+    // short)", as if it had been cut.
+    if text.is_empty() {
+        return Err(IoError::invalid(path, "file", "is empty (0 bytes)"));
+    }
     Ok(match text.strip_prefix('\u{FEFF}') {
         Some(rest) => rest.to_string(),
         None => text,
@@ -1414,6 +1479,43 @@ impl RoadLineEnds {
 #[cfg(test)]
 mod tests {
     use super::{output_stem, without_position};
+
+    #[test]
+    fn serde_s_names_of_rust_types_are_said_in_words() {
+        for (serde, want) in [
+            (
+                "invalid type: floating point `1.5`, expected usize at line 2 column 15",
+                "invalid type: floating point `1.5`, expected a whole number, 0 or more",
+            ),
+            (
+                "invalid type: string \"x\", expected f64 at line 2 column 15",
+                "invalid type: string \"x\", expected a number",
+            ),
+            (
+                "invalid value: integer `9223372036854775808`, expected i64 at line 2 column 15",
+                "invalid value: integer `9223372036854775808`, expected a whole number from \
+                 -9223372036854775808 to 9223372036854775807",
+            ),
+            (
+                "invalid length 0, expected tuple struct RolloutState with 4 elements at line 2 column 15",
+                "invalid length 0, expected a list of 4 values",
+            ),
+            (
+                "invalid type: integer `5`, expected struct YamlRoad at line 2 column 15",
+                "invalid type: integer `5`, expected a mapping of fields",
+            ),
+            (
+                "invalid type: integer `5`, expected a sequence at line 2 column 15",
+                "invalid type: integer `5`, expected a sequence",
+            ),
+            (
+                "invalid type: string \"u\", expected u8s at line 2 column 15",
+                "invalid type: string \"u\", expected u8s",
+            ),
+        ] {
+            assert_eq!(without_position(serde, 2, 15), want);
+        }
+    }
 
     #[test]
     fn an_output_path_with_a_trailing_slash_is_named_not_a_bare_os_error() {

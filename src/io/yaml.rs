@@ -754,10 +754,31 @@ fn road_parts(path: &Path, r: &YamlRoad) -> Result<(MapParts, FrenetPath), IoErr
             ),
         ));
     }
-    if r.length > 100_000.0 || r.lanes > 64 || r.segments as f64 > r.length {
+    // One message for the three limits said "at most 100 km long" of a 0.5 m road whose
+    // one segment was the fault, and named no value.
+    if r.length > 100_000.0 {
         return Err(bad(
-            "road",
-            "at most 100 km long, 64 lanes and one segment per metre".into(),
+            "road.length",
+            format!(
+                "{} m: a road is at most 100 km (100000 m) long",
+                crate::geom::num(r.length)
+            ),
+        ));
+    }
+    if r.lanes > 64 {
+        return Err(bad(
+            "road.lanes",
+            format!("{}: a road has at most 64 lanes", r.lanes),
+        ));
+    }
+    if r.segments as f64 > r.length {
+        return Err(bad(
+            "road.segments",
+            format!(
+                "{} segments on a road {} m long: a segment is at least 1 m long",
+                r.segments,
+                crate::geom::num(r.length)
+            ),
         ));
     }
     // A NaN heading made a road of NaN points, which panicked where the line was built; one
@@ -772,7 +793,17 @@ fn road_parts(path: &Path, r: &YamlRoad) -> Result<(MapParts, FrenetPath), IoErr
         ));
     }
     let max_offset = r.lanes as f64 * r.lane_width;
-    if r.radius != 0.0 && (r.radius.abs() <= max_offset + 1.0 || !r.radius.is_finite()) {
+    // NaN and infinities were told that "|radius| must exceed the road width".
+    if !r.radius.is_finite() {
+        return Err(bad(
+            "road.radius",
+            format!(
+                "{} is not a radius: give 0 for a straight road or a number of metres",
+                crate::geom::num(r.radius)
+            ),
+        ));
+    }
+    if r.radius != 0.0 && r.radius.abs() <= max_offset + 1.0 {
         return Err(bad(
             "road.radius",
             format!("|radius| must exceed the road width ({max_offset} m)"),

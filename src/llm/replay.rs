@@ -11,6 +11,8 @@ use std::path::{Path, PathBuf};
 
 use serde_json::Value;
 
+use crate::io::plain_types;
+
 use super::client::Message;
 use super::session::{SessionConfig, StoredCheck, MAX_RUN_FILE_BYTES};
 use super::LlmError;
@@ -73,8 +75,12 @@ pub fn read_transcript(path: &Path) -> Result<Recorded, LlmError> {
             ),
         ));
     }
-    let requests: Vec<String> = serde_json::from_value(t["requests"].clone())
-        .map_err(|e| bad(path, format!("\"requests\": {e}")))?;
+    let requests: Vec<String> = serde_json::from_value(t["requests"].clone()).map_err(|e| {
+        bad(
+            path,
+            format!("\"requests\": {}", plain_types(&e.to_string())),
+        )
+    })?;
     let [request] = requests.as_slice() else {
         return Err(bad(
             path,
@@ -86,7 +92,7 @@ pub fn read_transcript(path: &Path) -> Result<Recorded, LlmError> {
         ));
     };
     let config: SessionConfig = serde_json::from_value(t["config"].clone())
-        .map_err(|e| bad(path, format!("\"config\": {e}")))?;
+        .map_err(|e| bad(path, format!("\"config\": {}", plain_types(&e.to_string()))))?;
     let scene = t["scene"]
         .as_str()
         .map(PathBuf::from)
@@ -103,8 +109,15 @@ pub fn read_transcript(path: &Path) -> Result<Recorded, LlmError> {
         let reply = d["reply"]
             .as_str()
             .ok_or_else(|| bad(path, format!("exchange {k} has no reply")))?;
-        let messages = serde_json::from_value(d["request"]["messages"].clone())
-            .map_err(|e| bad(path, format!("exchange {k}: its request's messages: {e}")))?;
+        let messages = serde_json::from_value(d["request"]["messages"].clone()).map_err(|e| {
+            bad(
+                path,
+                format!(
+                    "exchange {k}: its request's messages: {}",
+                    plain_types(&e.to_string())
+                ),
+            )
+        })?;
         exchanges.push(Exchange {
             messages,
             reply: reply.to_string(),
@@ -117,8 +130,12 @@ pub fn read_transcript(path: &Path) -> Result<Recorded, LlmError> {
     let state = path.with_file_name("state.json");
     let checks = if state.is_file() {
         Some(
-            serde_json::from_value(read_json(&state)?["checks"].clone())
-                .map_err(|e| bad(&state, format!("\"checks\": {e}")))?,
+            serde_json::from_value(read_json(&state)?["checks"].clone()).map_err(|e| {
+                bad(
+                    &state,
+                    format!("\"checks\": {}", plain_types(&e.to_string())),
+                )
+            })?,
         )
     } else {
         None
@@ -241,6 +258,28 @@ mod tests {
         let d = compare(a.path(), b.path()).unwrap();
         assert!(t0.elapsed().as_secs() < 5, "{:?}", t0.elapsed());
         assert_eq!(d, ["round 0: the script differs (or only one run has one)"]);
+    }
+
+    #[test]
+    fn a_damaged_config_is_said_in_words_not_rust_types() {
+        // "\"config\": invalid value: integer `-1`, expected usize".
+        let d = tempfile::tempdir().unwrap();
+        let t = d.path().join("transcript.json");
+        let v = serde_json::json!({
+            "backend": "http", "requests": ["r"], "config": {"rounds": -1},
+            "scene": "s", "records": []
+        });
+        std::fs::write(&t, v.to_string()).unwrap();
+        let e = read_transcript(&t)
+            .err()
+            .expect("a damaged config")
+            .to_string();
+        assert!(
+            e.contains(
+                "\"config\": invalid value: integer `-1`, expected a whole number, 0 or more"
+            ),
+            "{e}"
+        );
     }
 
     #[test]

@@ -54,7 +54,29 @@ pub enum RulesError {
         /// What is missing, in words.
         what: String,
     },
+    /// A request longer, or of more events, than one composed script holds: the script
+    /// quotes every clause and adds a block per event, and a 100,000-character request
+    /// failed validation as a script too large, blaming the script.
+    #[error(
+        "the request \"{}\" is too long for the rules planner: {what} (it reads at most \
+         {MAX_REQUEST_CHARS} characters and {MAX_REQUEST_EVENTS} events); say it in fewer words, \
+         or run `drivescript ask` with an LLM",
+        crate::io::name::shown_counted(.request)
+    )]
+    TooLong {
+        /// The request.
+        request: String,
+        /// What is over the limit, in words ("100034 characters").
+        what: String,
+    },
 }
+
+/// The longest request the rules planner reads, in characters: a request of its vocabulary is
+/// a sentence or a few.
+pub const MAX_REQUEST_CHARS: usize = 2_000;
+/// The most events one request may name: each adds a block of about a kilobyte to the
+/// composed script, which must stay inside the engine's size limit after repairs.
+pub const MAX_REQUEST_EVENTS: usize = 20;
 
 /// Phrases per behaviour, in the order they are tried (negated collisions before accidents,
 /// rightmost before right).
@@ -833,9 +855,31 @@ pub fn understand_partly(request: &str) -> (Vec<Event>, Vec<RulesError>) {
                 behaviour,
                 what,
             }),
+            // Only `plan_request` says a request is too long.
+            Err(e @ RulesError::TooLong { .. }) => left.push(e),
         }
     }
     (events, left)
+}
+
+/// [`understand_request`] for a request the rules planner is to write the script of: refused
+/// where it is longer, or names more events, than one composed script holds.
+pub fn plan_request(request: &str) -> Result<Vec<Event>, RulesError> {
+    let chars = request.trim().chars().count();
+    if chars > MAX_REQUEST_CHARS {
+        return Err(RulesError::TooLong {
+            request: request.trim().to_string(),
+            what: format!("{chars} characters"),
+        });
+    }
+    let events = understand_request(request)?;
+    if events.len() > MAX_REQUEST_EVENTS {
+        return Err(RulesError::TooLong {
+            request: request.trim().to_string(),
+            what: format!("{} events", events.len()),
+        });
+    }
+    Ok(events)
 }
 
 /// Splits a request into events, one per clause naming a known behaviour.

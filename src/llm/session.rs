@@ -23,7 +23,7 @@ use super::feedback::{feedback, Acceptance};
 use super::fit::{fit_conversation, fit_first, FirstTooLarge, Fitted};
 use super::prompt::{PromptOptions, Prompts};
 use super::reply::{parse_reply, Reply};
-use super::rules::{self, understand_request, Event, Tuning};
+use super::rules::{self, Event, Tuning};
 use super::LlmError;
 use crate::cost::{Limits, ParamValue, Params};
 use crate::eval::behaviors::Behavior;
@@ -634,9 +634,10 @@ pub fn unchecked_clauses(requests: &[String]) -> Vec<String> {
     requests
         .iter()
         .flat_map(|r| rules::understand_partly(r).1)
-        .map(|e| match e {
+        .filter_map(|e| match e {
             rules::RulesError::NotUnderstood { clause, .. }
-            | rules::RulesError::Missing { clause, .. } => clause,
+            | rules::RulesError::Missing { clause, .. } => Some(clause),
+            rules::RulesError::TooLong { .. } => None,
         })
         .collect()
 }
@@ -717,8 +718,12 @@ fn read_state(text: &str) -> Result<State, String> {
             }
         }
     }
-    let state: State =
-        serde_json::from_value(value).map_err(|e| format!("the file is damaged ({e})"))?;
+    let state: State = serde_json::from_value(value).map_err(|e| {
+        format!(
+            "the file is damaged ({})",
+            crate::io::plain_types(&e.to_string())
+        )
+    })?;
     if state.version != STATE_VERSION {
         return Err(format!(
             "version {}: this drivescript reads {STATE_VERSION}",
@@ -863,7 +868,7 @@ pub fn check_request(request: &str) -> Result<(), LlmError> {
 /// scene and the whole request (12,000 characters of it) and only then said it could not run.
 pub fn check_rules_request(request: &str) -> Result<(), LlmError> {
     check_request(request)?;
-    super::rules::understand_request(request)?;
+    super::rules::plan_request(request)?;
     Ok(())
 }
 
@@ -937,6 +942,11 @@ impl<'a> Session<'a> {
         checks: Option<Vec<(Behavior, Params)>>,
     ) -> Result<Self, LlmError> {
         check_request(request)?;
+        // Before the directory is made: a request the planner refuses left an empty run
+        // directory holding only its lock.
+        if let Backend::Rules = backend {
+            rules::plan_request(request)?;
+        }
         let lock = open_new(dir, scene_path, &raw, &config, false)?;
         Self::begin(
             lock, dir, scene_path, raw, request, trained, backend, prompts, config, checks,
@@ -959,6 +969,11 @@ impl<'a> Session<'a> {
         checks: Option<Vec<(Behavior, Params)>>,
     ) -> Result<Self, LlmError> {
         check_request(request)?;
+        // Before the directory is made: a request the planner refuses left an empty run
+        // directory holding only its lock.
+        if let Backend::Rules = backend {
+            rules::plan_request(request)?;
+        }
         let lock = open_new(dir, scene_path, &raw, &config, true)?;
         Self::begin(
             lock, dir, scene_path, raw, request, trained, backend, prompts, config, checks,
@@ -979,10 +994,6 @@ impl<'a> Session<'a> {
         checks: Option<Vec<(Behavior, Params)>>,
     ) -> Result<Self, LlmError> {
         let requests = vec![request.trim().to_string()];
-        if let Backend::Rules = backend {
-            // Fails early, with the message that says an LLM is needed.
-            understand_request(request)?;
-        }
         let checks = checks.unwrap_or_else(|| checks_for(&requests));
         let backend = backend.for_run(&config);
         let (model, url) = match &backend {
@@ -1148,7 +1159,7 @@ impl<'a> Session<'a> {
             .map(|(_, s)| s.clone())
             .ok_or_else(|| run_err(&self.dir, "the run has no sampled script to revise yet"))?;
         if let Backend::Rules = self.backend {
-            understand_request(request)?;
+            rules::plan_request(request)?;
         }
         let before = self.state.clone();
         self.state.requests.push(request.trim().to_string());
@@ -1887,7 +1898,7 @@ impl<'a> Session<'a> {
             .state
             .requests
             .iter()
-            .map(|r| understand_request(r))
+            .map(|r| rules::plan_request(r))
             .collect::<Result<Vec<_>, _>>()
             .map_err(|e| e.to_string())?
             .into_iter()

@@ -203,6 +203,12 @@ pub struct Map {
     /// index and direction (radians).
     own_way: SegmentGrid,
     own_way_segments: Vec<(usize, usize, f64)>,
+    /// Every road edge's segments, for [`Map::nearest_road_edge`]; `edge_segments[i]` is
+    /// segment `i`'s edge index and segment index. Each edge scanned in turn (pruned by its
+    /// bounds) cost a query the length of the road: `eval --task unconditional` asks once per
+    /// agent and step, so a scene twice as long with twice the cars took four times as long.
+    edges: SegmentGrid,
+    edge_segments: Vec<(usize, usize)>,
     exits: Vec<MapExit>,
 }
 
@@ -325,6 +331,15 @@ impl Map {
             }
         }
         let own_way = SegmentGrid::new(segments, OWN_WAY_CELL);
+        let (mut edge_segments, mut segments) = (Vec::new(), Vec::new());
+        for (ei, e) in parts.road_edges.iter().enumerate() {
+            let line = e.line();
+            for i in 0..line.segment_count() {
+                edge_segments.push((ei, i));
+                segments.push((line.points()[i], line.points()[i + 1], 0.0));
+            }
+        }
+        let edges = SegmentGrid::new(segments, OWN_WAY_CELL);
         let exits = find_exits(&parts.lanes);
         Ok(Self {
             parts,
@@ -332,6 +347,8 @@ impl Map {
             edge_bounds,
             own_way,
             own_way_segments,
+            edges,
+            edge_segments,
             exits,
         })
     }
@@ -439,29 +456,20 @@ impl Map {
     /// The signed distance of [`Map::signed_distance_to_road_edge`] and the nearest point on
     /// the edge (the distance's gradient w.r.t. `p` is `sign · (p - q) / |p - q|`).
     pub fn nearest_road_edge(&self, p: Point) -> Option<(f64, Point)> {
-        let mut best = f64::INFINITY;
-        let mut best_hit = None;
-        for (i, edge) in self.parts.road_edges.iter().enumerate() {
-            let (lo, hi) = self.edge_bounds[i];
-            let dx = (lo.x - p.x).max(p.x - hi.x).max(0.0);
-            let dy = (lo.y - p.y).max(p.y - hi.y).max(0.0);
-            if dx.hypot(dy) >= best {
-                continue;
-            }
-            let hit = edge.line().nearest(&p);
-            if hit.distance < best {
-                best = hit.distance;
-                best_hit = Some((i, hit));
-            }
-        }
-        let (i, hit) = best_hit?;
+        // Ties go to the lowest index, that is the first edge and its first segment, as in a
+        // scan of every edge in turn.
+        let hit = self.edges.nearest(&p, |_| true)?;
+        let (i, j) = self.edge_segments[hit.index];
+        let best = hit.distance;
         let edge = &self.parts.road_edges[i];
+        let cum = edge.line().arc_lengths();
+        let s = cum[j] + hit.t * (cum[j + 1] - cum[j]);
         let on_road = if self.parts.drivable_areas.is_empty() {
             edge.path.project(p).d >= 0.0
         } else {
             self.parts.drivable_areas.iter().any(|a| a.contains(&p)) || self.in_seam(p)
         };
-        let q = edge.line().point_at(hit.s);
+        let q = edge.line().point_at(s);
         Some((if on_road { -best } else { best }, q))
     }
 

@@ -318,7 +318,12 @@ impl Scene {
                         num(s.y)
                     )
                 } else if s.vx.hypot(s.vy) > MAX_SPEED {
-                    format!("speed {} m/s (at most {MAX_SPEED})", num(s.vx.hypot(s.vy)))
+                    // A speed is computed (from a rollout's positions, or a velocity's two
+                    // components): `num` printed it to 17 digits (2.4999603999999996e7).
+                    format!(
+                        "speed {} m/s (at most {MAX_SPEED})",
+                        crate::geom::approx(s.vx.hypot(s.vy))
+                    )
                 } else if s.heading.abs() > MAX_HEADING {
                     format!(
                         "heading {} rad (at most {MAX_HEADING} in magnitude)",

@@ -407,6 +407,17 @@ pub enum TrainError {
         /// The loss.
         value: f64,
     },
+    /// A step made a weight stop being a number (a learning rate of 1e300 does it in one):
+    /// found before the checkpoint is written, which every reader would refuse.
+    #[error("step {step}: tensor `{tensor}` holds {value}: training diverged (lower --lr); the last checkpoint written is kept")]
+    DivergedWeights {
+        /// The step.
+        step: usize,
+        /// The first tensor (by name) holding a value that is not a number.
+        tensor: String,
+        /// That value.
+        value: f64,
+    },
     /// Reading or writing the checkpoint failed.
     #[error("{path}: {message}")]
     Io {
@@ -731,6 +742,17 @@ pub fn train_from(
         run_n += 1;
         let mut val = None;
         if step % cfg.eval_every.max(1) == 0 || step == cfg.steps {
+            // Checked where a checkpoint may be written: `train --lr 1e300` (with nothing held
+            // out to validate on) wrote NaN weights, which every reader refuses, and exited 0.
+            if let Some((tensor, _, value)) =
+                non_finite_weight(&varmap).map_err(TrainError::Data)?
+            {
+                return Err(TrainError::DivergedWeights {
+                    step,
+                    tensor,
+                    value,
+                });
+            }
             // Validated with the weights the checkpoint samples with.
             let averaged = match &ema {
                 Some(e) => Some(Denoiser::new(
@@ -910,50 +932,141 @@ pub(crate) const MAX_CONFIG_BYTES: u64 = 16 << 20;
 /// The largest weights file read: 1024-wide, 32-layer models stay below it.
 const MAX_WEIGHTS_BYTES: u64 = 4 << 30;
 
-/// The names of the tensors a safetensors file holds, from its header (which the loader has
-/// already read and checked).
-fn tensor_names(path: &Path) -> Result<Vec<String>, String> {
+/// One tensor's entry in a safetensors header.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct TensorEntry {
+    dtype: String,
+    shape: Vec<u64>,
+    data_offsets: [u64; 2],
+}
+
+/// The tensors a safetensors file holds, from its header, each checked against itself: a
+/// known layout, offsets inside the data and tiling it. candle's own checks named no tensor
+/// ("invalid shape, data type, or offset for tensor") or the one after a missing one.
+fn tensor_entries(path: &Path) -> Result<Vec<(String, TensorEntry)>, String> {
     use std::io::Read;
     let mut f = std::fs::File::open(path).map_err(|e| e.to_string())?;
+    let size = f.metadata().map_err(|e| e.to_string())?.len();
     let mut len = [0u8; 8];
-    f.read_exact(&mut len).map_err(|e| e.to_string())?;
+    f.read_exact(&mut len)
+        .map_err(|_| format!("is {size} bytes, too short for a safetensors file"))?;
+    let len = u64::from_le_bytes(len);
     // The safetensors format's own cap on its header.
-    let len = u64::from_le_bytes(len).min(100 << 20);
+    if len > (100 << 20) || len > size - 8 {
+        return Err(format!(
+            "the header says it is {len} bytes, but the file is {size} bytes: not a \
+             safetensors file, or cut short"
+        ));
+    }
     let mut header = Vec::new();
     f.take(len)
         .read_to_end(&mut header)
         .map_err(|e| e.to_string())?;
     let header: serde_json::Map<String, serde_json::Value> =
         serde_json::from_slice(&header).map_err(|e| format!("header: {e}"))?;
-    Ok(header
-        .into_iter()
-        .map(|(k, _)| k)
-        .filter(|k| k != "__metadata__")
-        .collect())
+    let data = size - 8 - len;
+    let mut entries = Vec::new();
+    for (name, v) in header {
+        if name == "__metadata__" {
+            continue;
+        }
+        let shown = crate::io::name::shown(&name);
+        let e: TensorEntry =
+            serde_json::from_value(v).map_err(|e| format!("tensor `{shown}`: header: {e}"))?;
+        if e.dtype != "F32" {
+            return Err(format!(
+                "tensor `{shown}` is {}, but the model's weights are F32",
+                crate::io::name::shown(&e.dtype)
+            ));
+        }
+        let [from, to] = e.data_offsets;
+        let bytes = e.shape.iter().try_fold(4u64, |n, &d| n.checked_mul(d));
+        if from > to || to > data || bytes != Some(to - from) {
+            return Err(format!(
+                "tensor `{shown}` of shape {:?} (F32) has data offsets [{from}, {to}] in \
+                 {data} bytes of data: the header is damaged",
+                e.shape
+            ));
+        }
+        entries.push((name, e));
+    }
+    entries.sort_by_key(|(_, e)| e.data_offsets);
+    let mut at = 0;
+    for (name, e) in &entries {
+        if e.data_offsets[0] != at {
+            return Err(format!(
+                "tensor `{}` starts at byte {} of the data, where the tensor before it ends \
+                 at {at}: a tensor is missing or the header is damaged",
+                crate::io::name::shown(name),
+                e.data_offsets[0]
+            ));
+        }
+        at = e.data_offsets[1];
+    }
+    if at != data {
+        return Err(format!(
+            "the tensors end at byte {at} of the data, but the file holds {data}: the file \
+             is damaged"
+        ));
+    }
+    Ok(entries)
 }
 
-/// Checks that the weights loaded into `varmap` from `path` are the whole of what the file
-/// holds and are numbers. Loading fills the model's tensors by name and ignores the rest, so
-/// a config.json describing a smaller model (2 layers where 3 were trained) loaded without a
-/// word and sampled with a third of the network missing; and a NaN weight made every
-/// denoised output NaN, which the sampler's clamps turned into confident nonsense.
-fn check_weights(varmap: &VarMap, path: &Path, model: &DenoiserConfig) -> Result<(), String> {
+/// Checks, before loading, that a safetensors file holds exactly the tensors of `varmap`,
+/// each of its shape. Loading fills the model's tensors by name and ignores the rest, so a
+/// config.json describing a smaller model (2 layers where 3 were trained) loaded without a
+/// word and sampled with a third of the network missing; and candle's own errors named a
+/// tensor of the wrong shape or type only with "lhs" and "rhs".
+fn check_tensors(varmap: &VarMap, path: &Path, model: &DenoiserConfig) -> Result<(), String> {
+    let entries = tensor_entries(path)?;
     let vars = varmap.data().lock().unwrap_or_else(|p| p.into_inner());
-    let mut extra: Vec<String> = tensor_names(path)?
-        .into_iter()
-        .filter(|n| !vars.contains_key(n))
+    let described = format!(
+        "the model config.json describes (d {}, {} layers)",
+        model.d, model.layers
+    );
+    let mut extra: Vec<&String> = entries
+        .iter()
+        .map(|(n, _)| n)
+        .filter(|n| !vars.contains_key(*n))
         .collect();
     if !extra.is_empty() {
         extra.sort();
         return Err(format!(
-            "holds {} tensors the model config.json describes (d {}, {} layers) has no place \
-             for ({}): the config and the weights are of different models",
+            "holds {} tensors {described} has no place for ({}): the config and the weights \
+             are of different models",
             extra.len(),
-            model.d,
-            model.layers,
             crate::io::name::first_few(&extra, 3)
         ));
     }
+    let mut names: Vec<&String> = vars.keys().collect();
+    names.sort();
+    for name in names {
+        let want: Vec<u64> = vars[name].dims().iter().map(|&d| d as u64).collect();
+        match entries.iter().find(|(n, _)| n == name) {
+            None => {
+                return Err(format!(
+                    "has no tensor `{name}` (shape {want:?}), which {described} needs: the \
+                     config and the weights are of different models, or the file is damaged"
+                ))
+            }
+            Some((_, e)) if e.shape != want => {
+                return Err(format!(
+                    "tensor `{name}` has shape {:?}, but {described} needs {want:?}: the \
+                     config and the weights are of different models",
+                    e.shape
+                ))
+            }
+            Some(_) => {}
+        }
+    }
+    Ok(())
+}
+
+/// The first weight of `varmap` (tensors by name) that is not a number: its tensor, its
+/// element and its value.
+fn non_finite_weight(varmap: &VarMap) -> Result<Option<(String, usize, f64)>, String> {
+    let vars = varmap.data().lock().unwrap_or_else(|p| p.into_inner());
     let mut names: Vec<&String> = vars.keys().collect();
     names.sort();
     for name in names {
@@ -964,14 +1077,22 @@ fn check_weights(varmap: &VarMap, path: &Path, model: &DenoiserConfig) -> Result
             .and_then(|t| t.to_vec1())
             .map_err(|e| format!("tensor `{name}`: {}", candle_message(e)))?;
         if let Some(i) = values.iter().position(|v| !v.is_finite()) {
-            return Err(format!(
-                "tensor `{name}` holds {} at element {i}: the weights are damaged (or training \
-                 diverged); use another checkpoint",
-                values[i]
-            ));
+            return Ok(Some((name.clone(), i, values[i] as f64)));
         }
     }
-    Ok(())
+    Ok(None)
+}
+
+/// Checks that the weights loaded into `varmap` are numbers: a NaN weight made every
+/// denoised output NaN, which the sampler's clamps turned into confident nonsense.
+fn check_weights(varmap: &VarMap) -> Result<(), String> {
+    match non_finite_weight(varmap)? {
+        Some((name, i, v)) => Err(format!(
+            "tensor `{name}` holds {v} at element {i}: the weights are damaged (or training \
+             diverged); use another checkpoint"
+        )),
+        None => Ok(()),
+    }
 }
 
 /// Reads a checkpoint written by [`save`].
@@ -1035,8 +1156,9 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
     let w = dir.join("model.safetensors");
     crate::io::open_regular(&w, MAX_WEIGHTS_BYTES, "checkpoint weights")
         .map_err(|e| io(&w, e.reason()))?;
+    check_tensors(&varmap, &w, &meta.config.model).map_err(|m| io(&w, m))?;
     varmap.load(&w).map_err(|e| io(&w, message_in_file(e)))?;
-    check_weights(&varmap, &w, &meta.config.model).map_err(|m| io(&w, m))?;
+    check_weights(&varmap).map_err(|m| io(&w, m))?;
     let opt_path = dir.join(OPTIMIZER_FILE);
     let optimizer = if opt_path.exists() {
         crate::io::open_regular(&opt_path, 2 * MAX_WEIGHTS_BYTES, "optimiser state")
@@ -1092,8 +1214,9 @@ pub fn load_for_training(dir: &Path) -> Result<Trained, TrainError> {
     crate::io::open_regular(&online, MAX_WEIGHTS_BYTES, "checkpoint weights")
         .map_err(|e| io(e.reason()))?;
     let averaged = super::ema::copies(&t.varmap)?;
+    check_tensors(&t.varmap, &online, &t.meta.config.model).map_err(io)?;
     t.varmap.load(&online).map_err(|e| io(candle_message(e)))?;
-    check_weights(&t.varmap, &online, &t.meta.config.model).map_err(io)?;
+    check_weights(&t.varmap).map_err(io)?;
     t.ema = Some(Ema::from_weights(
         averaged,
         t.meta.config.ema_half_life,
@@ -1605,6 +1728,23 @@ mod tests {
                 && e.contains(&format!("tensor `{name}` holds NaN at element 1")),
             "{e}"
         );
+    }
+
+    #[test]
+    fn weights_a_step_made_not_numbers_are_an_error_not_a_checkpoint() {
+        // `train --lr 1e300` wrote NaN weights, which every reader refuses, and exited 0.
+        let dir = tempfile::tempdir().unwrap();
+        let mut cfg = tiny_config(1, 1, 1);
+        cfg.lr = 1e300;
+        let e = train(&scenes(), cfg, Some(dir.path()), None, |_, _, _| ())
+            .err()
+            .expect("diverged weights")
+            .to_string();
+        assert!(
+            e.starts_with("step 1: tensor `") && e.contains("training diverged (lower --lr)"),
+            "{e}"
+        );
+        assert!(!dir.path().join("model.safetensors").exists());
     }
 
     #[test]

@@ -203,7 +203,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
         } else if v.is_bool() {
             "true or false".to_string()
         } else {
-            format!("a {}", v.type_name())
+            super::a_type(&v)
         };
         err(format!(
             "agent({shown}): an agent id is a whole number, not {what}{from}"

@@ -55,13 +55,23 @@ pub struct FrenetRef {
     pub(crate) to_right: Series,
 }
 
-fn make_path(shared: &Shared, lane: i64, ahead: f64, behind: f64, t: Turn) -> RResult<PathRef> {
+/// Refuses a path length outside (0, 100000] metres, as the script gave it.
+fn check_length(ahead: f64) -> RResult<()> {
     if !(ahead.is_finite() && ahead > 0.0 && ahead <= 100_000.0) {
         return err(format!(
             "lane_path: length {} must be in (0, 100000] metres",
             crate::geom::num(ahead)
         ));
     }
+    Ok(())
+}
+
+fn make_path(shared: &Shared, lane: i64, ahead: f64, behind: f64, t: Turn) -> RResult<PathRef> {
+    check_length(ahead)?;
+    build_path(shared, lane, ahead, behind, t)
+}
+
+fn build_path(shared: &Shared, lane: i64, ahead: f64, behind: f64, t: Turn) -> RResult<PathRef> {
     let key = (lane, ahead.to_bits(), behind.to_bits(), t);
     let mut ctx = shared.borrow_mut();
     let path = match ctx.paths.get(&key) {
@@ -123,6 +133,9 @@ pub(crate) fn agent_lane(shared: &Shared, a: &AgentRef) -> RResult<i64> {
 }
 
 fn agent_path(shared: &Shared, a: &AgentRef, ahead: f64, turn: Turn) -> RResult<PathRef> {
+    // The length the script gave, not with the agent's place on its lane added: 100000 was
+    // refused as "length 100002".
+    check_length(ahead)?;
     let lane = agent_lane(shared, a)?;
     let along = {
         let ctx = shared.borrow();
@@ -135,7 +148,7 @@ fn agent_path(shared: &Shared, a: &AgentRef, ahead: f64, turn: Turn) -> RResult<
             .nearest(&Point::new(s.x, s.y))
             .s
     };
-    make_path(shared, lane, along + ahead, BEHIND, turn)
+    build_path(shared, lane, along + ahead, BEHIND, turn)
 }
 
 /// Frenet series of agent `a` on `p`.

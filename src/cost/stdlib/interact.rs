@@ -198,6 +198,19 @@ pub(crate) fn no_collision_cost(
     Ok(Dual::new(val, grad))
 }
 
+/// A clearance margin, metres: a NaN one made every penalty 0 (a term that never steers), a
+/// negative one penalised only boxes already overlapping by more than it.
+fn margin(m: &Dynamic, what: &str) -> RResult<f64> {
+    let v = number(m, &format!("{what} margin"))?;
+    if !(0.0..=1000.0).contains(&v) {
+        return err(format!(
+            "{what}: margin {} must be 0 to 1000 metres",
+            crate::geom::num(v)
+        ));
+    }
+    Ok(v)
+}
+
 pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>) {
     const S: &str = "Interactions";
     doc(docs, S, "gap(a, b, path) -> Series", "Bumper-to-bumper gap from a to b along the path: s_b - s_a - (length_a + length_b) / 2 (negative when b is behind a).");
@@ -290,7 +303,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
         "collision_penalty",
         move |a: AgentRef, b: AgentRef, m: Dynamic| -> RResult<Series> {
             distinct(&a, &b, "collision_penalty")?;
-            let m = number(&m, "collision_penalty margin")?;
+            let m = margin(&m, "collision_penalty")?;
             let (za, zb) = sizes(&sh, a, b);
             // Boxes whose centres are farther apart than their half-diagonals plus the margin
             // cannot come within the margin: skip the exact clearance there.
@@ -313,15 +326,15 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     e.register_fn(
         "no_collision_cost",
         move |list: Array, m: Dynamic| -> RResult<Dual> {
-            let m = number(&m, "no_collision_cost margin")?;
+            let m = margin(&m, "no_collision_cost")?;
             let mut idx = Vec::with_capacity(list.len());
             for (k, v) in list.iter().enumerate() {
                 match v.clone().try_cast::<AgentRef>() {
                     Some(a) => idx.push((a.idx, a.held)),
                     None => {
                         return err(format!(
-                            "no_collision_cost: element {k} is a {}, not an Agent",
-                            v.type_name()
+                            "no_collision_cost: element {k} is {}, not an Agent",
+                            super::a_type(v)
                         ))
                     }
                 }

@@ -148,6 +148,22 @@ fn box_series(
     Ok(b.build())
 }
 
+/// The point `(x, y)` a lane function measures at, refused where no map reaches: a NaN or
+/// 1e300 made the projection onto the lane panic.
+fn map_point(what: &str, x: &Dynamic, y: &Dynamic) -> RResult<Point> {
+    let (x, y) = (number(x, what)?, number(y, what)?);
+    let far = crate::geom::MAX_COORD;
+    if !(x.abs() <= far && y.abs() <= far) {
+        return err(format!(
+            "{what}: the point ({}, {}) lies on no map: coordinates are numbers within {far:e} m \
+             of the origin",
+            crate::geom::num(x),
+            crate::geom::num(y)
+        ));
+    }
+    Ok(Point::new(x, y))
+}
+
 pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>) {
     const S: &str = "Lane graph";
     macro_rules! lanefn {
@@ -171,14 +187,15 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     let sh = shared.clone();
     e.register_fn(
         "lane_ahead",
-        move |l: i64, x: f64, y: f64| -> RResult<f64> {
+        move |l: i64, x: Dynamic, y: Dynamic| -> RResult<f64> {
+            let p = map_point("lane_ahead", &x, &y)?;
             let ctx = sh.borrow();
             let m = &ctx.scene.map;
             check(m, l)?;
             let path = m
                 .lane_path(l, 2000.0, 0.0, crate::scene::Turn::Straight)
                 .map_err(|e| format!("lane_ahead({l}): {e}"))?;
-            let s = path.frenet.project(crate::geom::Point::new(x, y)).s;
+            let s = path.frenet.project(p).s;
             Ok((path.frenet.length() - s).max(0.0))
         },
     );
@@ -192,7 +209,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     e.register_fn(
         "lane_width",
         move |l: i64, x: Dynamic, y: Dynamic| -> RResult<f64> {
-            let p = Point::new(number(&x, "lane_width x")?, number(&y, "lane_width y")?);
+            let p = map_point("lane_width", &x, &y)?;
             let ctx = sh.borrow();
             if ctx.scene.map.lane(l).is_none() {
                 return err(format!("lane_width: no lane {l} in the map"));
@@ -354,7 +371,7 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     e.register_fn(
         "on_road",
         move |a: &mut AgentRef, k: Dynamic| -> RResult<Series> {
-            let k = number(&k, "on_road k")?;
+            let k = super::real(&k, "on_road k")?;
             let d = edge_series(&sh, *a, BoxPoint::Farthest)?;
             d.map("on_road", |v| {
                 let s = 1.0 / (1.0 + (k * v).exp());

@@ -2,7 +2,7 @@
 
 use rhai::{Dynamic, Engine};
 
-use super::{doc, err, number, DocEntry, RResult, Val};
+use super::{doc, err, number, real, DocEntry, RResult, Val};
 use crate::cost::dual::Dual;
 use crate::cost::series::Series;
 
@@ -263,7 +263,7 @@ fn unary_with_param(
     });
     e.register_fn(name, move |x: Dynamic, p: Dynamic| {
         let what = format!("{name} parameter");
-        let p = number(&p, &what)?;
+        let p = real(&p, &what)?;
         let p = if positive_only {
             positive(p, &what)?
         } else {
@@ -382,7 +382,7 @@ pub(super) fn register(e: &mut Engine, docs: &mut Vec<DocEntry>) {
         "x limited to [lo, hi] (numbers); derivative 1 inside, 0 outside.",
     );
     e.register_fn("clamp", |x: Dynamic, lo: Dynamic, hi: Dynamic| {
-        let (lo, hi) = (number(&lo, "clamp lo")?, number(&hi, "clamp hi")?);
+        let (lo, hi) = (real(&lo, "clamp lo")?, real(&hi, "clamp hi")?);
         if lo > hi {
             let num = crate::geom::num;
             return err(format!("clamp: lo {} is above hi {}", num(lo), num(hi)));
@@ -405,7 +405,7 @@ pub(super) fn register(e: &mut Engine, docs: &mut Vec<DocEntry>) {
         "relu(margin - x): how far x falls short of margin.",
     );
     e.register_fn("hinge", |x: Dynamic, m: Dynamic| {
-        let m = number(&m, "hinge margin")?;
+        let m = real(&m, "hinge margin")?;
         unary(Val::from_dynamic(&x, "hinge")?, "hinge", move |v| {
             relu(m - v).map(|(r, d)| (r, -d))
         })
@@ -560,7 +560,7 @@ pub(super) fn register(e: &mut Engine, docs: &mut Vec<DocEntry>) {
         ("always_above", true, false),
     ] {
         e.register_fn(name, move |s: &mut Series, v: Dynamic| -> RResult<Dual> {
-            let v = number(&v, name)?;
+            let v = real(&v, name)?;
             let m = lift(if use_min { s.min() } else { s.max() })?;
             let miss = if below {
                 m.add_f(-v)

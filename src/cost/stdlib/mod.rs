@@ -126,7 +126,7 @@ impl Val {
         } else {
             err(format!(
                 "{what} expects a Series, Dual or number, got {}",
-                d.type_name()
+                a_type(d)
             ))
         }
     }
@@ -140,6 +140,31 @@ impl Val {
     }
 }
 
+/// What a script value is, with an article, as the script's author knows it: Rhai's
+/// `type_name` gives the Rust path of the types registered here ("the value is a
+/// drivescript::cost::stdlib::agents::AgentRef") and "a ()" for nothing.
+pub(crate) fn a_type(d: &Dynamic) -> String {
+    let name = d.type_name();
+    let word = match name.rsplit("::").next().unwrap_or(name) {
+        "AgentRef" => "an Agent",
+        "PathRef" => "a Path",
+        "FrenetRef" => "a Frenet",
+        "Series" => "a Series",
+        "Dual" => "a Dual",
+        "()" => "nothing (the unit value ())",
+        "array" => "an array",
+        "map" => "a map",
+        "Fn" => "a function",
+        "bool" => "true or false",
+        "string" => "a string",
+        "char" => "a character",
+        "i64" => "a whole number",
+        "f64" => "a decimal number",
+        other => return format!("a {other}"),
+    };
+    word.to_string()
+}
+
 /// A plain number from an int or float argument.
 pub(crate) fn number(d: &Dynamic, what: &str) -> RResult<f64> {
     if let Ok(f) = d.as_float() {
@@ -147,8 +172,19 @@ pub(crate) fn number(d: &Dynamic, what: &str) -> RResult<f64> {
     } else if let Ok(i) = d.as_int() {
         Ok(i as f64)
     } else {
-        err(format!("{what} expects a number, got {}", d.type_name()))
+        err(format!("{what} expects a number, got {}", a_type(d)))
     }
+}
+
+/// [`number`] for a bound, threshold or shape parameter, refused when NaN: no comparison with
+/// NaN holds, so `clamp(x, NaN, 5)` clamped every value to 5 and `hinge(x, NaN)` was 0,
+/// both without a word. Infinities stay (`clamp(x, -1.0 / 0.0, 5)` has no lower bound).
+pub(crate) fn real(d: &Dynamic, what: &str) -> RResult<f64> {
+    let v = number(d, what)?;
+    if v.is_nan() {
+        return err(format!("{what} is NaN, not a number"));
+    }
+    Ok(v)
 }
 
 /// Registers every native function and returns their documentation.
