@@ -1,0 +1,149 @@
+"""How far a checkpoint's unguided samples stray from the lanes of the windows they are drawn
+in, against the recorded futures: a check of the network alone, in seconds, with no guidance,
+no planner and no map geometry beyond the lane centre lines the network itself is shown.
+
+For windows of a `drivescript train --export` directory, each agent with a fully observed
+future: the largest distance, over its 80 future points, to the nearest lane centre line of the
+window (the polylines of the window's own encoding, 20 points a lane). It prints the fraction of agents
+whose future goes more than --far metres from every lane point and the median of that largest
+distance, for the recorded futures (decoded from their PCA coefficients) and for samples of the
+PyTorch port's Heun sampler (`denoiser.py`, which matches drivescript's to 1e-6). With
+`--from-log`, it also starts the sampler from the recorded future plus noise of each level:
+where lanes are lost between the log and pure noise.
+
+    python3 benches/torch/lanes.py EXPORT_DIR CHECKPOINT... [--file train-00010.safetensors]
+"""
+
+import argparse
+import json
+import os
+import sys
+
+import torch
+from safetensors.torch import load_file
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from denoiser import Denoiser  # noqa: E402
+
+CTX = ["lane_points", "lane_mask", "lane_rel", "lane_conn", "agent_hist", "agent_mask",
+       "agent_lane_rel", "agent_rel", "agent_attr"]
+POS_SCALE, REL_SCALE = 10.0, 50.0  # src/train/batch.rs
+
+
+def schedule(edm, n):
+    """src/model/edm.rs, Edm::schedule."""
+    a, b = edm["sigma_max"] ** (1 / edm["rho"]), edm["sigma_min"] ** (1 / edm["rho"])
+    return [(a + i / (max(n, 2) - 1) * (b - a)) ** edm["rho"] for i in range(n)] + [0.0]
+
+
+def advance(hist, history):
+    """Window::advance: metres a step along the heading over up to 4 observed history steps,
+    from the agents' history features `[B, N, history, 4]` (own frame, /POS_SCALE)."""
+    b, n = hist.shape[:2]
+    out = torch.zeros(b, n, dtype=torch.float64)
+    observed = hist[..., 3] > 0
+    for i in range(b):
+        for a in range(n):
+            m = 0
+            while m < 4 and m + 1 < history and observed[i, a, history - 2 - m]:
+                m += 1
+            if m:
+                dx = hist[i, a, history - 1, 0] - hist[i, a, history - 1 - m, 0]
+                out[i, a] = dx.item() * POS_SCALE / m
+    return out
+
+
+def decode(meta, coeffs, adv):
+    """Normaliser::decode plus the constant-velocity anchor: positions `[B, N, F, 2]` in each
+    agent's own frame."""
+    norm = meta["normaliser"]
+    pca = norm["pca"]
+    comps = torch.tensor(pca["components"], dtype=torch.float64).reshape(-1, pca["dim"])
+    mean = torch.tensor(pca["mean"], dtype=torch.float64)
+    scale = torch.tensor(norm["std"], dtype=torch.float64) / norm["sigma_data"]
+    v = ((coeffs.double() * scale) @ comps + mean).reshape(*coeffs.shape[:-1], -1, 3).clone()
+    v[..., 0] += adv[..., None] * torch.arange(1, v.shape[-2] + 1, dtype=torch.float64)
+    return v[..., :2]
+
+
+def lanes_in_agent_frames(ctx):
+    """Every lane point in every agent's frame, `[B, N, M, P]` x and y."""
+    rel = ctx["agent_lane_rel"].double()
+    c, s = rel[..., 2:3], rel[..., 3:4]
+    lx, ly = rel[..., 0:1] * REL_SCALE, rel[..., 1:2] * REL_SCALE
+    p = ctx["lane_points"].double()[:, None] * POS_SCALE
+    return lx + c * p[..., 0] - s * p[..., 1], ly + s * p[..., 0] + c * p[..., 1]
+
+
+def stray(traj, lanes, lane_mask, full):
+    """Per counted agent, the largest distance of a future point to the nearest lane: to the
+    segments between consecutive lane points, since a long lane's 20 points lie tens of metres
+    apart. One window at a time, to bound memory."""
+    lx, ly = lanes
+    out = []
+    for i in range(traj.shape[0]):
+        ax, ay = lx[i][:, None, :, :-1], ly[i][:, None, :, :-1]  # [N, 1, M, P-1]
+        dx, dy = lx[i][:, None, :, 1:] - ax, ly[i][:, None, :, 1:] - ay
+        px, py = traj[i][..., 0][..., None, None], traj[i][..., 1][..., None, None]  # [N, F, 1, 1]
+        t = (((px - ax) * dx + (py - ay) * dy) / (dx * dx + dy * dy).clamp(min=1e-9)).clamp(0, 1)
+        d = ((px - ax - t * dx) ** 2 + (py - ay - t * dy) ** 2).sqrt()  # [N, F, M, P-1]
+        keep = lane_mask[i][None, None, :, None] > 0
+        d = torch.where(keep, d, torch.full_like(d, float("inf")))
+        out.append(d.flatten(-2).min(-1).values.max(-1).values)  # [N]
+    return torch.stack(out)[full]
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("data", help="a `drivescript train --export` directory")
+    ap.add_argument("checkpoints", nargs="+")
+    ap.add_argument("--file", default="train-00010.safetensors", help="which file of windows")
+    ap.add_argument("--windows", type=int, default=64)
+    ap.add_argument("--steps", type=int, default=32, help="Heun steps")
+    ap.add_argument("--far", type=float, default=4.0, help="metres from every lane")
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--from-log", action="store_true")
+    a = ap.parse_args()
+    win = load_file(os.path.join(a.data, a.file))
+    win["lane_conn"] = win["lane_conn"].long()
+    g = torch.Generator().manual_seed(a.seed)
+    idx = torch.randperm(win["target"].shape[0], generator=g)[:a.windows]
+    ctx = {k: win[k][idx] for k in CTX}
+    target, mask, seen = win["target"][idx], win["loss_mask"][idx], win["seen"][idx]
+    b, n, _ = target.shape
+    lanes = lanes_in_agent_frames(ctx)
+    full = seen.reshape(b, n, -1, 3).bool().all(-1).all(-1) & (mask > 0)
+    print(f"{a.file}: {a.windows} windows, {int(full.sum())} agents with a whole future")
+
+    def row(name, meta, coeffs, adv):
+        w = stray(decode(meta, coeffs, adv), lanes, ctx["lane_mask"], full)
+        print(f"  {name:<32} beyond {a.far:g} m: {(w > a.far).double().mean().item():.3f}   "
+              f"median largest distance {w.median().item():.2f} m", flush=True)
+
+    for ck in a.checkpoints:
+        with open(os.path.join(ck, "config.json")) as f:
+            meta = json.load(f)
+        history = meta["config"]["window"]["history"]
+        hist = ctx["agent_hist"].reshape(b, n, history, 4)
+        adv = advance(hist, history)
+        model = Denoiser(ck)
+        print(ck)
+        row("recorded future", meta, target, adv)
+        sig = schedule(meta["config"]["edm"], a.steps)
+        starts = [(None, sig)]
+        if a.from_log:
+            starts += [(s, [x for x in sig if x <= s]) for s in (0.3, 1.0, 3.0, 10.0)]
+        for start, sg in starts:
+            torch.manual_seed(a.seed + 4)
+            with torch.no_grad():
+                x0 = torch.randn(target.shape) * sg[0]
+                if start is not None:
+                    x0 = x0 + target
+                out = model.sample(ctx, x0, sg)
+            name = "sample" if start is None else f"recorded + noise {sg[0]:.2f}"
+            row(name, meta, out, adv)
+
+
+if __name__ == "__main__":
+    main()
