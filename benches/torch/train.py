@@ -48,8 +48,9 @@ def shapes(model, k):
             for lin in ["q", "o", "v", "rv2"]:
                 out[p + lin + ".weight"], out[p + lin + ".bias"] = [d, d], [d]
             out[p + "k.weight"], out[p + "rk2.weight"] = [d, d], [d, d]
+            rel = model.get("agent_lane_features", 4) if block == "agent_lane" else 4
             for lin in ["rk1", "rv1"]:
-                out[p + lin + ".weight"], out[p + lin + ".bias"] = [d, 4], [d]
+                out[p + lin + ".weight"], out[p + lin + ".bias"] = [d, rel], [d]
             out[p + "ff1.weight"], out[p + "ff1.bias"] = [2 * d, d], [2 * d]
             out[p + "ff2.weight"], out[p + "ff2.bias"] = [d, 2 * d], [d]
             for ln in ["ln1", "ln2", "ln_kv", "ln_q"]:

@@ -327,6 +327,7 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
         centres_per_step: 8,
         pad_lanes: true,
         min_future: 0,
+        nearest_lane_pose: false,
     };
     let path = args
         .scene
@@ -375,6 +376,7 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
                 noise_freqs: 8,
                 scores: Scores::Normalised,
                 attrs: 0,
+                agent_lane_features: 4,
             },
             edm: Edm::default(),
             eval_every: usize::MAX,

@@ -88,6 +88,11 @@ pub struct Args {
     /// A resumed run keeps its checkpoint's.
     #[arg(long, value_parser = super::ask::float)]
     scale_cap: Option<f64>,
+    /// A new run gives every agent-lane pair the pose of the lane's point nearest to the agent
+    /// besides its first point's (`nearest_lane_pose` in the checkpoint's window; a resumed run
+    /// keeps its checkpoint's).
+    #[arg(long)]
+    nearest_lane_pose: bool,
     /// Train from scratch into an --out directory that already holds a checkpoint (which is
     /// replaced at the first validation). Without it, that is refused.
     #[arg(long)]
@@ -132,6 +137,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
         scale_cap: args.scale_cap.unwrap_or(base.scale_cap),
         ..base
     };
+    if args.nearest_lane_pose {
+        cfg.window.nearest_lane_pose = true;
+        cfg.model.agent_lane_features = cfg.window.agent_lane_features();
+    }
     if args.data.is_empty() && args.urban.is_empty() {
         anyhow::bail!("nothing to train on: give --data or --urban (or both)");
     }
@@ -193,6 +202,13 @@ pub fn run(args: Args) -> Result<ExitCode> {
                      its scales",
                     dir.display(),
                     r.meta.config.component_scale
+                );
+            }
+            if args.nearest_lane_pose && !r.meta.config.window.nearest_lane_pose {
+                anyhow::bail!(
+                    "--nearest-lane-pose: {} was trained without the lanes' nearest points; a \
+                     resumed run keeps its inputs",
+                    dir.display()
                 );
             }
             if args.scale_cap.is_some_and(|c| c != r.meta.config.scale_cap) {

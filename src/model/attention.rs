@@ -116,9 +116,15 @@ struct QkNorm {
 }
 
 impl RelAttention {
-    /// A block of width `d` whose scores take the form `scores`; `with_connectivity` adds the
-    /// lane connectivity embedding.
-    pub fn new(d: usize, scores: Scores, with_connectivity: bool, vb: VarBuilder) -> Result<Self> {
+    /// A block of width `d` over pairs described by `rel` features whose scores take the form
+    /// `scores`; `with_connectivity` adds the lane connectivity embedding.
+    pub fn new(
+        d: usize,
+        rel: usize,
+        scores: Scores,
+        with_connectivity: bool,
+        vb: VarBuilder,
+    ) -> Result<Self> {
         let qk_norm = match scores {
             Scores::Raw => None,
             Scores::Normalised => Some(QkNorm {
@@ -136,9 +142,9 @@ impl RelAttention {
             k: linear_no_bias(d, d, vb.pp("k"))?,
             v: linear(d, d, vb.pp("v"))?,
             o: linear(d, d, vb.pp("o"))?,
-            rk1: linear(4, d, vb.pp("rk1"))?,
+            rk1: linear(rel, d, vb.pp("rk1"))?,
             rk2: linear_no_bias(d, d, vb.pp("rk2"))?,
-            rv1: linear(4, d, vb.pp("rv1"))?,
+            rv1: linear(rel, d, vb.pp("rv1"))?,
             rv2: linear(d, d, vb.pp("rv2"))?,
             conn: if with_connectivity {
                 Some(embedding(CONNECTIONS, d, vb.pp("conn"))?)
@@ -294,7 +300,7 @@ mod tests {
         let dev = Device::Cpu;
         let vm = VarMap::new();
         let vb = VarBuilder::from_varmap(&vm, DType::F32, &dev);
-        let att = RelAttention::new(8, scores, true, vb).unwrap();
+        let att = RelAttention::new(8, 4, scores, true, vb).unwrap();
         // Gains and biases away from their initial 1 and 0, so that a norm applied to the wrong
         // tensor shows.
         for (name, var) in vm.data().lock().unwrap().iter() {

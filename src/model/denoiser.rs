@@ -34,6 +34,14 @@ pub struct DenoiserConfig {
     /// one kind of road user only.
     #[serde(default)]
     pub attrs: usize,
+    /// Features of an agent-lane pair (`train::WindowConfig::agent_lane_features`): 4, as in
+    /// configs written before the field, or 8 with the lane's nearest point's pose.
+    #[serde(default = "four")]
+    pub agent_lane_features: usize,
+}
+
+fn four() -> usize {
+    4
 }
 
 /// Tensors describing the map and the agents of a batch of windows (see `train::batch`).
@@ -51,7 +59,8 @@ pub struct Context {
     pub agent_hist: Tensor,
     /// 1 for agents present, `[B, N]`.
     pub agent_mask: Tensor,
-    /// Lane j's pose in agent i's frame, `[B, N, M, 4]`.
+    /// Lane j's pose in agent i's frame, `[B, N, M, 4]`, and with
+    /// `WindowConfig::nearest_lane_pose` the pose of its point nearest to agent i, `[B, N, M, 8]`.
     pub agent_lane_rel: Tensor,
     /// Agent j's pose in agent i's frame, `[B, N, N, 4]`.
     pub agent_rel: Tensor,
@@ -113,21 +122,21 @@ impl Denoiser {
     /// Builds the network's variables under `vb`.
     pub fn new(cfg: DenoiserConfig, edm: Edm, vb: VarBuilder) -> Result<Self> {
         let d = cfg.d;
-        let stack = |name: &str, conn: bool| -> Result<Vec<RelAttention>> {
+        let stack = |name: &str, rel: usize, conn: bool| -> Result<Vec<RelAttention>> {
             (0..cfg.layers)
-                .map(|i| RelAttention::new(d, cfg.scores, conn, vb.pp(format!("{name}{i}"))))
+                .map(|i| RelAttention::new(d, rel, cfg.scores, conn, vb.pp(format!("{name}{i}"))))
                 .collect()
         };
         Ok(Self {
             lanes: MiniPointNet::new(d, vb.pp("lanes"))?,
-            lane_lane: stack("lane_lane", true)?,
+            lane_lane: stack("lane_lane", 4, true)?,
             agents: AgentEncoder::new(
                 cfg.history * 4 + cfg.attrs + cfg.k + 2 * cfg.noise_freqs,
                 d,
                 vb.pp("agents"),
             )?,
-            agent_lane: stack("agent_lane", false)?,
-            agent_agent: stack("agent_agent", false)?,
+            agent_lane: stack("agent_lane", cfg.agent_lane_features, false)?,
+            agent_agent: stack("agent_agent", 4, false)?,
             head1: linear(d, d, vb.pp("head1"))?,
             head2: linear(d, cfg.k, vb.pp("head2"))?,
             cfg,

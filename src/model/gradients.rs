@@ -48,11 +48,26 @@ fn batch(cfg: &TrainConfig, norm: Option<&Normaliser>) -> (Batch, Normaliser) {
     )
 }
 
+/// The tiny configuration, with the lanes' nearest points among the agent-lane pair features.
+fn with_nearest_lane_pose(mut cfg: TrainConfig) -> TrainConfig {
+    cfg.window.nearest_lane_pose = true;
+    cfg.model.agent_lane_features = cfg.window.agent_lane_features();
+    cfg
+}
+
 #[test]
 fn every_parameter_receives_a_gradient_after_a_training_step() {
+    for cfg in [
+        tiny_config(1, 3, 1),
+        with_nearest_lane_pose(tiny_config(1, 3, 1)),
+    ] {
+        every_parameter_receives_a_gradient(cfg);
+    }
+}
+
+fn every_parameter_receives_a_gradient(cfg: TrainConfig) {
     // One step first: the output layer starts at zero, which blocks every gradient upstream
     // of it at step 0.
-    let cfg = tiny_config(1, 3, 1);
     let t = train(&scenes(), cfg.clone(), None, None, |_, _, _| ()).unwrap();
     let (b, _) = batch(&cfg, Some(&t.meta.normaliser));
     let dims = b.target.dims3().unwrap();
@@ -129,6 +144,7 @@ fn the_input_gradient_matches_central_finite_differences_in_f64() {
         cfg.model.scores = scores;
         input_gradient_matches_finite_differences(&cfg);
     }
+    input_gradient_matches_finite_differences(&with_nearest_lane_pose(tiny_config(1, 3, 1)));
 }
 
 fn input_gradient_matches_finite_differences(cfg: &TrainConfig) {

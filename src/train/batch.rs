@@ -33,6 +33,27 @@ fn lane_pose(w: &Window, cfg: &WindowConfig, k: usize) -> [f32; 3] {
     ]
 }
 
+/// The pose of the point of polyline `line` nearest to `at`, with the direction of the
+/// segment it lies on.
+fn nearest_pose(line: &[[f32; 2]], at: [f32; 3]) -> [f32; 3] {
+    let mut best = (f32::INFINITY, [line[0][0], line[0][1], 0.0]);
+    for s in line.windows(2) {
+        let (ax, ay) = (s[0][0], s[0][1]);
+        let (dx, dy) = (s[1][0] - ax, s[1][1] - ay);
+        let len2 = dx * dx + dy * dy;
+        if len2 <= 0.0 {
+            continue;
+        }
+        let t = (((at[0] - ax) * dx + (at[1] - ay) * dy) / len2).clamp(0.0, 1.0);
+        let (qx, qy) = (ax + t * dx, ay + t * dy);
+        let d2 = (at[0] - qx).powi(2) + (at[1] - qy).powi(2);
+        if d2 < best.0 {
+            best = (d2, [qx, qy, dy.atan2(dx)]);
+        }
+    }
+    best.1
+}
+
 /// A batch: the context, the normalised target coefficients `[B, N, K]`, the loss mask
 /// `[B, N]` (agents with a future to learn from) and which future coordinates are observed
 /// `[B, N, 3·future]`.
@@ -239,7 +260,8 @@ pub fn build(
     let mut lane_conn = vec![0u32; b * m * m];
     let mut agent_hist = vec![0f32; b * n * h * 4];
     let mut agent_mask = vec![0f32; b * n];
-    let mut agent_lane_rel = vec![0f32; b * n * m * 4];
+    let fl = cfg.agent_lane_features();
+    let mut agent_lane_rel = vec![0f32; b * n * m * fl];
     let mut agent_rel = vec![0f32; b * n * n * 4];
     let mut target = vec![0f32; b * n * k];
     let mut loss_mask = vec![0f32; b * n];
@@ -287,8 +309,13 @@ pub fn build(
                 }
             }
             for (l, pose) in poses.iter().enumerate() {
-                let o = ((wi * n + a) * m + l) * 4;
+                let o = ((wi * n + a) * m + l) * fl;
                 agent_lane_rel[o..o + 4].copy_from_slice(&rel(cur[a], *pose));
+                if cfg.nearest_lane_pose {
+                    let line = &w.lanes[l * p..(l + 1) * p];
+                    agent_lane_rel[o + 4..o + 8]
+                        .copy_from_slice(&rel(cur[a], nearest_pose(line, cur[a])));
+                }
             }
             for a2 in 0..na {
                 let o = ((wi * n + a) * n + a2) * 4;
@@ -322,7 +349,7 @@ pub fn build(
             lane_conn: Tensor::from_vec(lane_conn, (b, m, m), dev)?,
             agent_hist: t(agent_hist, &[b, n, h * 4])?,
             agent_mask: t(agent_mask, &[b, n])?,
-            agent_lane_rel: t(agent_lane_rel, &[b, n, m, 4])?,
+            agent_lane_rel: t(agent_lane_rel, &[b, n, m, fl])?,
             agent_rel: t(agent_rel, &[b, n, n, 4])?,
             agent_attr: t(agent_attr, &[b, n, AGENT_ATTRS])?,
         },
@@ -349,6 +376,82 @@ mod tests {
             variances,
             dim: 6,
         }
+    }
+
+    #[test]
+    fn the_nearest_point_of_a_lane_gives_the_agents_offset_from_it() {
+        // A lane along x from -30 to +30 m, an agent 1.5 m to its left at x = 12 heading
+        // along it, and an agent beyond its end: the first point's pose says 42 m behind,
+        // the nearest point's says 1.5 m to the right, for the first; the second's nearest
+        // point is the lane's end.
+        let line: Vec<[f32; 2]> = (0..20)
+            .map(|i| [-30.0 + 60.0 * i as f32 / 19.0, 0.0])
+            .collect();
+        let q = nearest_pose(&line, [12.0, 1.5, 0.0]);
+        assert!(
+            (q[0] - 12.0).abs() < 1e-4 && q[1].abs() < 1e-6 && q[2].abs() < 1e-6,
+            "{q:?}"
+        );
+        let r = rel([12.0, 1.5, 0.0], q);
+        assert!(r[0].abs() < 1e-5 && (r[1] * REL_SCALE + 1.5).abs() < 1e-4 && r[2] > 0.9999);
+        let start = rel([12.0, 1.5, 0.0], [-30.0, 0.0, 0.0]);
+        assert!((start[0] * REL_SCALE + 42.0).abs() < 1e-4);
+        let end = nearest_pose(&line, [40.0, -2.0, 0.0]);
+        assert!(
+            (end[0] - 30.0).abs() < 1e-4 && end[1].abs() < 1e-6,
+            "{end:?}"
+        );
+    }
+
+    #[test]
+    fn a_window_with_nearest_lane_poses_has_eight_features_per_agent_lane_pair() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes");
+        let scene = crate::io::load_scene(
+            &dir.join("highway.yaml"),
+            0,
+            &crate::io::LoadOptions::default(),
+        )
+        .unwrap();
+        let mut cfg = crate::train::WindowConfig::ngsim();
+        let plain = crate::train::windows(&scene, &cfg);
+        cfg.nearest_lane_pose = true;
+        let near = crate::train::windows(&scene, &cfg);
+        let futures = crate::train::dataset::residual_futures(&plain, &cfg);
+        let norm = Normaliser::new(crate::model::Pca::fit(&futures, 4).unwrap(), 0.5);
+        let dev = Device::Cpu;
+        let a = build(
+            &[&plain[0]],
+            &crate::train::WindowConfig::ngsim(),
+            &norm,
+            &dev,
+        )
+        .unwrap();
+        let b = build(&[&near[0]], &cfg, &norm, &dev).unwrap();
+        let (x, y) = (a.ctx.agent_lane_rel, b.ctx.agent_lane_rel);
+        assert_eq!(x.dims()[3], 4);
+        assert_eq!(y.dims()[3], 8);
+        // The first four are the lane starts' poses, as without the option.
+        let first: Vec<f32> = y
+            .narrow(3, 0, 4)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        assert_eq!(first, x.flatten_all().unwrap().to_vec1::<f32>().unwrap());
+        // The centre agent drives on a lane: some lane's nearest point is within 2 m of it.
+        let near: Vec<f32> = y
+            .narrow(3, 4, 2)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        let lanes = x.dims()[2];
+        let closest = (0..lanes)
+            .map(|l| (near[2 * l].hypot(near[2 * l + 1])) * REL_SCALE)
+            .fold(f32::INFINITY, f32::min);
+        assert!(closest < 2.0, "{closest}");
     }
 
     #[test]

@@ -35,6 +35,12 @@ pub struct WindowConfig {
     /// recordings shorter than the window trained nothing.
     #[serde(default)]
     pub min_future: usize,
+    /// Besides the pose of each lane's first point, give every agent-lane pair the pose of the
+    /// lane's point nearest to the agent ([`crate::train::batch::build`]): the agent's offset
+    /// from a lane it is half-way along, which the first point's pose tells only through the
+    /// lane's pooled shape. Off in configurations written before the field.
+    #[serde(default)]
+    pub nearest_lane_pose: bool,
 }
 
 /// `Ok` when `lo ≤ v ≤ hi`, else a message naming the setting and its range.
@@ -86,6 +92,7 @@ impl WindowConfig {
             centres_per_step: 2,
             pad_lanes: false,
             min_future: 0,
+            nearest_lane_pose: false,
         }
     }
 
@@ -113,6 +120,17 @@ impl WindowConfig {
             centres_per_step: 1,
             pad_lanes: false,
             min_future: 0,
+            nearest_lane_pose: false,
+        }
+    }
+
+    /// Features of an agent-lane pair: the lane's first point's pose in the agent's frame, and
+    /// with [`WindowConfig::nearest_lane_pose`] its nearest point's.
+    pub fn agent_lane_features(&self) -> usize {
+        if self.nearest_lane_pose {
+            8
+        } else {
+            4
         }
     }
 

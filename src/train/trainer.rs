@@ -82,6 +82,7 @@ impl TrainConfig {
                 noise_freqs: 8,
                 scores: Scores::Normalised,
                 attrs: 0,
+                agent_lane_features: 4,
             },
             edm: Edm::default(),
             eval_every: 100,
@@ -249,6 +250,15 @@ impl TrainConfig {
             return Err(format!(
                 "model.history = {} but window.history = {}: they must agree",
                 m.history, w.history
+            ));
+        }
+        if m.agent_lane_features != w.agent_lane_features() {
+            return Err(format!(
+                "model.agent_lane_features = {} but window.nearest_lane_pose = {} gives {}: they \
+                 must agree",
+                m.agent_lane_features,
+                w.nearest_lane_pose,
+                w.agent_lane_features()
             ));
         }
         positive("lr", c.lr)?;
@@ -1249,6 +1259,7 @@ pub(crate) fn tiny_config(steps: usize, seed: u64, eval_every: usize) -> TrainCo
             noise_freqs: 4,
             scores: Scores::Normalised,
             attrs: AGENT_ATTRS,
+            agent_lane_features: 4,
         },
         edm: Edm::default(),
         eval_every,
