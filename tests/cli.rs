@@ -1090,6 +1090,20 @@ fn train_export_writes_the_windows_of_a_checkpoint_into_a_new_directory_only() {
     );
     // The windows are encoded for a checkpoint's network: without one there is nothing to
     // encode them for; and an export writes no checkpoint.
+    // A resumed run keeps its inputs.
+    let err = fails(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--out",
+        s(&ckpt),
+        "--resume",
+        s(&ckpt),
+        "--steps",
+        "4",
+        "--nearest-lane-pose",
+    ]);
+    assert!(err.contains("without the lanes' nearest points"), "{err}");
     let usage = |args: &[&str]| {
         let out = drivescript(args);
         assert_eq!(out.status.code(), Some(2), "{args:?}");
