@@ -3874,6 +3874,28 @@ fn float_flags_beyond_the_largest_float_are_refused_as_written() {
     assert!(err.contains("--seconds inf"), "{err}");
 }
 
+#[test]
+fn ask_repeats_an_out_of_range_number_as_it_was_typed() {
+    // `--tolerance -1` was told "--tolerance -1.0" (Rust's Debug form of the float).
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    for (flag, typed) in [
+        ("--tolerance", "-1"),
+        ("--temperature", "3"),
+        ("--llm-timeout", "0"),
+        ("--reply-deadline", "100000"),
+        ("--backoff", "700"),
+        ("--backoff-max", "5000"),
+    ] {
+        let arg = format!("{flag}={typed}");
+        let err = fails(&["ask", s(&scene), "a request", "-o", s(&out), &arg]);
+        assert!(err.contains(&format!("{flag} {typed}: must")), "{err}");
+        assert!(!err.contains(".0:"), "{err}");
+    }
+    assert!(!out.exists());
+}
+
 /// Rollouts of several samples scored with the default `--samples 1` gave the figures of the
 /// first sample alone, and said nothing.
 #[test]

@@ -7,6 +7,7 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
+use drivescript::geom::num;
 use drivescript::io::name::terminal_safe;
 use drivescript::io::{load_scene, LoadOptions};
 use drivescript::llm::client::ClientEvent;
@@ -681,32 +682,32 @@ fn load_one(path: &Path) -> Result<drivescript::scene::Scene, LlmError> {
 pub fn run(args: Args, given: &[String]) -> Result<ExitCode> {
     if !(args.tolerance.is_finite() && args.tolerance >= 0.0) {
         bail!(
-            "--tolerance {:?}: must be finite and not negative",
-            args.tolerance
+            "--tolerance {}: must be finite and not negative",
+            num(args.tolerance)
         );
     }
     if !(0.0..=2.0).contains(&args.temperature) {
-        bail!("--temperature {:?}: must be 0 to 2", args.temperature);
+        bail!("--temperature {}: must be 0 to 2", num(args.temperature));
     }
     if !(args.llm_timeout > 0.0 && args.llm_timeout <= 3600.0) {
         bail!(
-            "--llm-timeout {:?}: must be more than 0 and at most 3600 seconds",
-            args.llm_timeout
+            "--llm-timeout {}: must be more than 0 and at most 3600 seconds",
+            num(args.llm_timeout)
         );
     }
     if !(args.reply_deadline > 0.0 && args.reply_deadline <= 86400.0) {
         bail!(
-            "--reply-deadline {:?}: must be more than 0 and at most 86400 seconds",
-            args.reply_deadline
+            "--reply-deadline {}: must be more than 0 and at most 86400 seconds",
+            num(args.reply_deadline)
         );
     }
     if !(0.0..=600.0).contains(&args.backoff) {
-        bail!("--backoff {:?}: must be 0 to 600 seconds", args.backoff);
+        bail!("--backoff {}: must be 0 to 600 seconds", num(args.backoff));
     }
     if !(0.0..=3600.0).contains(&args.backoff_max) {
         bail!(
-            "--backoff-max {:?}: must be 0 to 3600 seconds",
-            args.backoff_max
+            "--backoff-max {}: must be 0 to 3600 seconds",
+            num(args.backoff_max)
         );
     }
     super::script_budget(args.script_budget)?;
