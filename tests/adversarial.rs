@@ -239,7 +239,17 @@ fn nan_and_infinity_producers_are_reported() {
     fails("term(\"t\", agent(1).x.sum() + (0.0 / 0.0));", &["NaN"]);
     fails(
         "term(\"t\", pow(agent(1).x - 1000.0, 0.5).sum());",
-        &["pow"],
+        &["pow: invalid arguments (", ", 0.5) at element "],
+    );
+    // The number that makes the power overflow is named beside the element, which was
+    // blamed alone ("pow: invalid argument 62.4 at element 0").
+    fails(
+        "term(\"t\", pow(agent(1).x, 1e300).sum());",
+        &["pow: invalid arguments (", ", 1e300) at element 0"],
+    );
+    fails(
+        "term(\"t\", pow(1e300, agent(1).x).sum());",
+        &["pow: invalid arguments (1e300, "],
     );
     // Every part of the gradient finite, its norm not: `cost` printed "gradient norm: inf"
     // and exited 0, and sampling failed later on the NaN it made.

@@ -168,6 +168,32 @@ impl Series {
 
     /// Elementwise `f`, which returns the value and its derivative, or a domain error.
     pub fn map(&self, name: &str, f: impl Fn(f64) -> Option<(f64, f64)>) -> OpResult<Series> {
+        self.map_or_say(f, |v, i| domain(name, v, i))
+    }
+
+    /// [`Series::map`] of a two-argument function whose other argument is the number `c`
+    /// (`first`: the series is the first argument): a domain error names both arguments, as
+    /// one between two series does (`pow: invalid arguments (62.4, 1e300) at element 0`), not
+    /// the element alone as if it were at fault.
+    pub fn map_with(
+        &self,
+        name: &str,
+        c: f64,
+        first: bool,
+        f: impl Fn(f64) -> Option<(f64, f64)>,
+    ) -> OpResult<Series> {
+        self.map_or_say(f, |v, i| {
+            let (a, b) = if first { (v, c) } else { (c, v) };
+            domain2(name, a, b, i)
+        })
+    }
+
+    /// Elementwise `f`; `say(value, step)` is the error where `f` has none.
+    fn map_or_say(
+        &self,
+        f: impl Fn(f64) -> Option<(f64, f64)>,
+        say: impl Fn(f64, isize) -> String,
+    ) -> OpResult<Series> {
         let d = &self.0;
         let mut b = self.like(d.val.len(), d.head);
         for k in 0..d.val.len() {
@@ -182,7 +208,7 @@ impl Series {
                     b.push_row(0.0, false, std::iter::empty());
                     continue;
                 }
-                return Err(domain(name, d.val[k], k as isize - d.head as isize));
+                return Err(say(d.val[k], k as isize - d.head as isize));
             };
             b.push_row(v, true, self.row(k).iter().map(|&(i, g)| (i, dv * g)));
         }
@@ -580,5 +606,13 @@ mod tests {
             .map("sqrt", |v| (v >= 0.0).then(|| (v.sqrt(), 0.5 / v.sqrt())))
             .unwrap_err();
         assert_eq!(e, "sqrt: invalid argument -1 at element 1");
+        let e = x
+            .map_with("pow", 0.5, true, |v| {
+                (v >= 0.0).then(|| (v.sqrt(), 0.5 / v.sqrt()))
+            })
+            .unwrap_err();
+        assert_eq!(e, "pow: invalid arguments (-1, 0.5) at element 1");
+        let e = x.map_with("pow", 2.0, false, |_| None).unwrap_err();
+        assert_eq!(e, "pow: invalid arguments (2, 0) at element 0");
     }
 }

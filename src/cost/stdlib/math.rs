@@ -30,8 +30,16 @@ pub(crate) fn binary(
                 f(y, x).map(|(v, dy, dx)| (v, dx, dy))
             }))?)
         }
-        (Val::S(s), Val::F(c)) => Val::S(lift(s.map(name, |x| f(x, c).map(|(v, da, _)| (v, da))))?),
-        (Val::F(c), Val::S(s)) => Val::S(lift(s.map(name, |x| f(c, x).map(|(v, _, db)| (v, db))))?),
+        (Val::S(s), Val::F(c)) => {
+            Val::S(lift(s.map_with(name, c, true, |x| {
+                f(x, c).map(|(v, da, _)| (v, da))
+            }))?)
+        }
+        (Val::F(c), Val::S(s)) => {
+            Val::S(lift(s.map_with(name, c, false, |x| {
+                f(c, x).map(|(v, _, db)| (v, db))
+            }))?)
+        }
         (Val::D(x), Val::D(y)) => {
             let (v, da, db) = f(x.val, y.val)
                 .ok_or_else(|| bad(x.val, y.val))
