@@ -1126,22 +1126,22 @@ fn loop_flags_are_checked_before_any_work() {
             "1e308",
             "--backoff 1e308: must be 0 to 600 seconds",
         ),
-        ("--temperature", "3", "--temperature 3.0: must be 0 to 2"),
+        ("--temperature", "3", "--temperature 3: must be 0 to 2"),
         ("--temperature", "NaN", "--temperature NaN: must be 0 to 2"),
         (
             "--llm-timeout",
             "-1",
-            "--llm-timeout -1.0: must be more than 0",
+            "--llm-timeout -1: must be more than 0",
         ),
         (
             "--reply-deadline",
             "0",
-            "--reply-deadline 0.0: must be more than 0 and at most 86400 seconds",
+            "--reply-deadline 0: must be more than 0 and at most 86400 seconds",
         ),
         (
             "--tolerance",
             "-1",
-            "--tolerance -1.0: must be finite and not negative",
+            "--tolerance -1: must be finite and not negative",
         ),
     ] {
         let out = dir.path().join("run");
