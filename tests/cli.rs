@@ -3968,6 +3968,21 @@ fn the_wrote_line_escapes_what_a_terminal_would_act_on() {
             "{printed:?}"
         );
     }
+    // simulate's `wrote N scenes to DIR`, the same for a line break that forged a line.
+    let out = dir.path().join("o\u{1b}[2J\nerror: forged");
+    let printed = ok(&simulate_args(
+        s(&scene),
+        "data/checkpoint",
+        &["--steps", "10"],
+        s(&out),
+    ));
+    assert!(out.join("highway-cut-in_0.json").exists(), "{printed}");
+    assert!(
+        !printed.contains('\u{1b}')
+            && !printed.contains("\nerror: forged")
+            && printed.contains("o\\u{001B}[2J\\u{000A}error: forged"),
+        "{printed:?}"
+    );
 }
 
 /// `render -o .svg` names a hidden file with no extension, and was told only "unknown picture

@@ -727,7 +727,7 @@ pub fn run(args: Args, given: &[String]) -> Result<ExitCode> {
             bail!("--resume DIR takes no scene or request (the run recorded them)");
         }
         let s = reopen(&args, given, dir, &trained)?;
-        println!("resuming {}", dir.display());
+        println!("resuming {}", super::shown(&dir));
         s
     } else if let Some(file) = &args.replay {
         if !args.words.is_empty() {
@@ -742,7 +742,7 @@ pub fn run(args: Args, given: &[String]) -> Result<ExitCode> {
             rec.exchanges.len(),
             rec.model.as_deref().unwrap_or("a model"),
             rec.request,
-            file.display()
+            super::shown(&file)
         );
         let raw = load_one(&rec.scene)?;
         let checks = rec
@@ -766,7 +766,7 @@ pub fn run(args: Args, given: &[String]) -> Result<ExitCode> {
         };
         let mut s = reopen(&args, given, dir, &trained)?;
         s.follow_up(request)?;
-        println!("follow-up on {}: {request}", dir.display());
+        println!("follow-up on {}: {request}", super::shown(&dir));
         s
     } else {
         let [scene, request] = args.words.as_slice() else {
@@ -830,7 +830,7 @@ pub fn run(args: Args, given: &[String]) -> Result<ExitCode> {
             if reproduced {
                 println!(
                     "replay: the same scripts, verdicts and outcome as the recorded run in {}",
-                    original.display()
+                    super::shown(&original)
                 );
             }
             for d in &diffs {
@@ -842,9 +842,9 @@ pub fn run(args: Args, given: &[String]) -> Result<ExitCode> {
         Outcome::Waiting { prompt, reply } => {
             println!(
                 "waiting for a reply: paste {} into a chat, save the answer as {}, then run: drivescript ask --resume {}",
-                prompt.display(),
-                reply.display(),
-                dir.display()
+                super::shown(&prompt),
+                super::shown(&reply),
+                super::shown(&dir)
             );
             Ok(ExitCode::SUCCESS)
         }
@@ -852,7 +852,7 @@ pub fn run(args: Args, given: &[String]) -> Result<ExitCode> {
             eprintln!(
                 "error: no plausible motion meets the request within the horizon; nothing was \
                  asked or sampled (see {})",
-                dir.join("report.md").display()
+                super::shown(&dir.join("report.md"))
             );
             Ok(ExitCode::from(2))
         }
@@ -863,15 +863,15 @@ pub fn run(args: Args, given: &[String]) -> Result<ExitCode> {
                 eprintln!(
                     "{}: {reason} (see {})",
                     if verdict.succeeded { "note" } else { "error" },
-                    dir.join("report.md").display()
+                    super::shown(&dir.join("report.md"))
                 );
             }
             if verdict.round.is_some() {
                 println!(
                     "wrote {}, {} and {}{}",
-                    dir.join("final.rhai").display(),
-                    dir.join("final.gif").display(),
-                    dir.join("report.md").display(),
+                    super::shown(&dir.join("final.rhai")),
+                    super::shown(&dir.join("final.gif")),
+                    super::shown(&dir.join("report.md")),
                     if matches!(outcome, Outcome::Accepted { .. }) {
                         ""
                     } else {
@@ -918,7 +918,7 @@ fn batch(args: &Args, given: &[String], file: &Path, trained: &Trained) -> Resul
     println!(
         "{} pairs; runs in {}",
         instances.len(),
-        out.join("runs").display()
+        super::shown(&out.join("runs"))
     );
     let n = instances.len();
     let batch = Batch {
@@ -963,9 +963,9 @@ fn batch(args: &Args, given: &[String], file: &Path, trained: &Trained) -> Resul
     );
     println!(
         "wrote {}, {} and rollouts per behaviour in {}",
-        out.join("summary.md").display(),
-        out.join("summary.json").display(),
-        out.join("rollouts").display()
+        super::shown(&out.join("summary.md")),
+        super::shown(&out.join("summary.json")),
+        super::shown(&out.join("rollouts"))
     );
     Ok(ExitCode::SUCCESS)
 }

@@ -215,7 +215,7 @@ fn bench_cost(args: &Args, min: Duration) -> Result<ExitCode> {
     println!(
         "scene {} ({}), {} agents x {} future steps, victim {v}, cutter {c}\n",
         scene.meta.scenario_id,
-        path.display(),
+        super::shown(&path),
         scene.agents.len(),
         traj.layout.steps
     );
@@ -354,7 +354,7 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
         scene.meta.scenario_id,
         scene.agents.len(),
         scene.map.lanes().len(),
-        ckpt.display(),
+        super::shown(&ckpt),
         trained.meta.config.model.d,
         trained.meta.config.model.layers,
         trained.meta.config.model.k,
@@ -455,7 +455,7 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
         })?;
         println!(
             "wrote {} (the unguided run's inputs and outputs)",
-            out.display()
+            super::shown(&out)
         );
     }
     Ok(ExitCode::SUCCESS)
@@ -473,7 +473,7 @@ fn bench_io(args: &Args, min: Duration) -> Result<ExitCode> {
         "-".repeat(42)
     );
     if let Some(f) = &args.womd {
-        womd_file_rows(&f.display().to_string(), f, min)?;
+        womd_file_rows(&super::shown(f), f, min)?;
         return Ok(ExitCode::SUCCESS);
     }
     let cr = discover(&samples.join("commonroad"))?;
@@ -489,7 +489,11 @@ fn bench_io(args: &Args, min: Duration) -> Result<ExitCode> {
                 drivescript::io::SUPPORTED_FORMATS
             );
         }
-        row(&format!("CommonRoad/any ({})", d.display()), &extra, min)?;
+        row(
+            &format!("CommonRoad/any ({})", super::shown(d)),
+            &extra,
+            min,
+        )?;
     }
     row("Argoverse 2 (sample)", &[samples.join("av2")], min)?;
     row("YAML (samples)", &discover(&samples.join("yaml"))?, min)?;
@@ -497,7 +501,7 @@ fn bench_io(args: &Args, min: Duration) -> Result<ExitCode> {
     // multi-record file; the larger --data set is the one closest to WOMD's record sizes.
     let mut sets = vec![("samples".to_string(), cr.clone())];
     if let Some(d) = &args.data {
-        sets.push((d.display().to_string(), discover(d)?));
+        sets.push((super::shown(d), discover(d)?));
     }
     let last = sets.len() - 1;
     // A directory of our own in the shared temporary directory, made new (an existing one is
@@ -525,7 +529,7 @@ fn bench_io(args: &Args, min: Duration) -> Result<ExitCode> {
     if let Some(p) = &args.womd_out {
         println!(
             "\nkept the last re-encoded WOMD file at {} (for benches/womd/read.py)",
-            p.display()
+            super::shown(&p)
         );
     }
 

@@ -86,7 +86,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
     let outcome =
         session.run(&mut |line| println!("{}", drivescript::io::name::terminal_safe(line)))?;
-    let dir = args.output.display();
+    let dir = super::shown(&args.output);
     println!(
         "\nwrote {dir}/final.gif (named agents highlighted), {dir}/final.rhai, {dir}/report.md, every round in {dir}/round_N/ and {dir}/transcript.json"
     );
@@ -98,7 +98,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         for (b, p) in session.checks() {
             println!(
                 "  score them: drivescript eval {} --task behaviour --behaviour {} --param {p} --rollouts {dir}/round_{round} --unguided {dir}/round_{round}/unguided --samples {}",
-                scene_path.display(),
+                super::shown(&scene_path),
                 b.name(),
                 args.samples
             );

@@ -260,13 +260,16 @@ pub(crate) fn print_error(text: &str) {
     eprintln!("error: {}", drivescript::io::name::terminal_safe(text));
 }
 
-/// Prints `wrote PATH` on stdout as a terminal can show it: an output name holding an escape
-/// sequence (`-o $'x\e[2J.svg'`) cleared the screen where errors about it are escaped.
+/// A path on one line as a terminal can show it, for progress and `wrote` lines: an output
+/// name holding an escape sequence (`-o $'x\e[2J.svg'`) cleared the screen, and one holding a
+/// line break forged a line, where errors about the same name are escaped (`print_error`).
+pub(crate) fn shown(path: &std::path::Path) -> String {
+    drivescript::io::name::one_line(&path.display().to_string())
+}
+
+/// Prints `wrote PATH` on stdout as [`shown`] writes the path.
 pub(crate) fn print_wrote(path: &std::path::Path) {
-    println!(
-        "wrote {}",
-        drivescript::io::name::terminal_safe(&path.display().to_string())
-    );
+    println!("wrote {}", shown(path));
 }
 
 /// An error and its causes on one line, each cause once: many errors already quote their

@@ -477,7 +477,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         println!(
             "{} already complete in {} (--resume): not simulated again",
             plural(resumed, "scene"),
-            args.output.display()
+            super::shown(&args.output)
         );
     }
     if done > 0 {
@@ -485,7 +485,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             "wrote {} scene{} to {}",
             done,
             if done == 1 { "" } else { "s" },
-            args.output.display()
+            super::shown(&args.output)
         );
     } else if resumed == 0 {
         // A run that wrote nothing leaves nothing, not a record that would refuse the next
@@ -501,7 +501,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             println!(
                 "no scene simulated to the end: a scene that failed while its outputs were \
                  written left some of them in {} (`--resume` simulates it again)",
-                args.output.display()
+                super::shown(&args.output)
             );
         } else {
             println!("no scene simulated: nothing written");

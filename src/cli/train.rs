@@ -240,7 +240,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             }
             println!(
                 "resuming from {} at step {}{}",
-                dir.display(),
+                super::shown(&dir),
                 r.meta.steps_done,
                 if r.optimizer.is_some() {
                     ""
@@ -290,7 +290,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         store.val_len(),
         store.train_scenes().len(),
         store.val_scenes().len(),
-        cache.display(),
+        super::shown(&cache),
         started.elapsed().as_secs_f64(),
         cfg.window.history,
         cfg.window.future,
@@ -348,7 +348,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         t.meta.train_scenes.len(),
         t.meta.val_scenes.len(),
         t.meta.pca_rmse_m,
-        out.display()
+        super::shown(&out)
     );
     Ok(ExitCode::SUCCESS)
 }
@@ -397,7 +397,7 @@ fn export_run(args: &Args, dir: &std::path::Path, corpora: &[Corpus]) -> Result<
         e.train,
         e.val,
         e.shards,
-        dir.display(),
+        super::shown(&dir),
         started.elapsed().as_secs_f64()
     );
     Ok(ExitCode::SUCCESS)
