@@ -3472,3 +3472,26 @@ fn a_resumed_manual_run_refuses_max_tokens_without_advising_context() {
         assert!(!t.contains("--context is not given"), "{t}");
     }
 }
+
+/// A chunk size line that is not hex said "request or response body error" twice: an io
+/// error shows its inner error's text, and both layers were joined.
+#[test]
+fn a_malformed_chunked_reply_names_each_cause_once() {
+    use std::io::Write;
+    let url = common::llm_server::one_shot(
+        b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nTransfer-Encoding: chunked\r\n\r\n",
+        |stream| {
+            let _ = stream.write_all(b"ZZ\r\n{\"x\":1}\r\n0\r\n\r\n");
+        },
+    );
+    let e = ask_one(&client(&url)).unwrap_err().to_string();
+    assert!(
+        e.contains("reading the reply") && e.contains("chunk size"),
+        "{e}"
+    );
+    assert_eq!(
+        e.matches("request or response body error").count(),
+        1,
+        "{e}"
+    );
+}

@@ -828,7 +828,11 @@ fn read_error(
     let mut kinds = vec![e.kind()];
     let mut src: Option<&(dyn std::error::Error + 'static)> = e.get_ref().map(|r| r as _);
     while let Some(s) = src {
-        chain.push(s.to_string());
+        // An io::Error shows its inner error's text, so that layer would be said twice.
+        let text = s.to_string();
+        if chain.last() != Some(&text) {
+            chain.push(text);
+        }
         if let Some(io) = s.downcast_ref::<std::io::Error>() {
             kinds.push(io.kind());
         }
