@@ -2412,6 +2412,11 @@ fn three_shards_and_a_merge_equal_the_single_run() {
         })
         .find(|(_, v)| v["merge"]["accumulators"][0]["ade"][0].is_number())
         .expect("a shard with scenes");
+    let flags = shard["merge"]["accumulators"][0]["implausible"]
+        .as_array()
+        .unwrap()
+        .len();
+    assert!(flags > 0, "{shard}");
     let edited = dir.path().join("edited.json");
     for (field, value, says) in [
         (
@@ -2423,6 +2428,18 @@ fn three_shards_and_a_merge_equal_the_single_run() {
             "scenes",
             serde_json::json!(u64::MAX),
             "scenes is 18446744073709551615, but per_scene holds",
+        ),
+        // Per-agent lists longer than the scenes' agents and samples outweighed every other
+        // shard's in the merged rates.
+        (
+            "implausible",
+            serde_json::json!(vec![true; 100_000]),
+            "implausible holds 100000 flags, and the scene rows' agent_samples sum to",
+        ),
+        (
+            "collided",
+            serde_json::json!(vec![true; flags + 1]),
+            "collided holds",
         ),
     ] {
         let mut v = shard.clone();

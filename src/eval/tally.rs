@@ -371,16 +371,20 @@ impl Tally {
             Some(t) => a.agent_type == t,
             None => a.agent_type == AgentType::Vehicle,
         };
-        let mut flagged = 0;
+        let (mut flagged, mut slots) = (0, 0);
         for (s, judged) in sims.iter().zip(&m.judged) {
             let any = only(s, kinematic::flags(judged, None), keep);
             flagged += any.iter().filter(|f| **f == Some(true)).count();
+            slots += any.len();
             self.implausible.extend(any);
             for (k, v) in Violation::ALL.iter().enumerate() {
                 self.by_kind[k].extend(only(s, kinematic::flags(judged, Some(*v)), keep));
             }
         }
         row["implausible_vehicles"] = json!(flagged);
+        // The per-agent flags this scene added (agents × samples): `check` holds a shard's
+        // lists to the sum of these, so an edited list cannot outweigh the scenes scored.
+        row["agent_samples"] = json!(slots);
         let whole_scenes = g.agent.is_none();
         match task {
             Task::Conditional => {
@@ -543,6 +547,35 @@ impl Tally {
                 }
             }
         }
+        // Every per-agent list is held to the flags the scenes say they added: 100,000
+        // `collided` entries in a shard of one scene were merged into the rate (issue 32).
+        let mut slots: usize = 0;
+        for (i, row) in self.per_scene.iter().enumerate() {
+            let n = row
+                .get("agent_samples")
+                .and_then(serde_json::Value::as_u64)
+                .and_then(|n| usize::try_from(n).ok())
+                .ok_or_else(|| {
+                    format!(
+                        "per_scene[{i}].agent_samples is {}: must be the number of per-agent \
+                         flags the scene added (agents × samples; files written before it was \
+                         recorded cannot be merged: score the shard again)",
+                        row.get("agent_samples").map_or("absent".to_string(), |v| {
+                            crate::io::name::shown_counted(&v.to_string())
+                        })
+                    )
+                })?;
+            slots = slots
+                .checked_add(n)
+                .ok_or_else(|| format!("per_scene[{i}].agent_samples is {n}: the sum overflows"))?;
+        }
+        if self.implausible.len() != slots {
+            return Err(format!(
+                "implausible holds {} flags, and the scene rows' agent_samples sum to {slots}: \
+                 one per agent of every sample",
+                self.implausible.len()
+            ));
+        }
         self.check_figures()?;
         let labels: Vec<String> = group_order().iter().map(Group::label).collect();
         for (label, g) in &self.groups {
@@ -563,6 +596,14 @@ impl Tally {
                 return Err(at(
                     "per_scene and groups: a group holds none (the whole row does)".into(),
                 ));
+            }
+            // A group's scenes are some of the whole row's, each adding as many flags.
+            if g.implausible.len() > self.implausible.len() {
+                return Err(at(format!(
+                    "implausible holds {} flags: more than the whole row's {}",
+                    g.implausible.len(),
+                    self.implausible.len()
+                )));
             }
             g.check_figures().map_err(at)?;
         }
@@ -700,6 +741,16 @@ impl Tally {
                  behaviour, and achieves it only if it was checked (passed <= achieved <= \
                  checked)",
                 self.passed, self.achieved, self.checked
+            ));
+        }
+        // One flag per agent of a sample at most, as `implausible` holds (collisions are
+        // judged in the first sample or in each).
+        if self.collided.len() > self.implausible.len() {
+            return Err(format!(
+                "collided holds {} flags: more than implausible's {} (one per agent of every \
+                 sample)",
+                self.collided.len(),
+                self.implausible.len()
             ));
         }
         for (k, flags) in self.by_kind.iter().enumerate() {
