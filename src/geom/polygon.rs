@@ -9,10 +9,26 @@ pub struct Polygon {
     points: Vec<Point>,
     lo: Point,
     hi: Point,
-    /// Per run of [`CHUNK`] edges (edge `i` joins points `i - 1` and `i`): its lowest and
-    /// highest y and its largest x, so that `contains` skips the runs a ray cannot cross (a
-    /// 2 km lane surface has 4,000 edges).
-    chunks: Vec<[f64; 3]>,
+    /// A tree over the edges (edge `i` joins points `i - 1` and `i`): `levels[0]` holds per
+    /// run of [`CHUNK`] edges its lowest and highest y and its largest x, and each level above
+    /// the same per [`CHUNK`] nodes of the level below, so that `contains` skips whole stretches
+    /// a ray cannot cross. One level was not enough: a 100 km lane surface has 200,000 edges,
+    /// 12,500 runs looked at per point, and scoring 6,000 cars on it spent two thirds of its
+    /// time here.
+    levels: Vec<Vec<[f64; 3]>>,
+}
+
+/// Nodes of `below` merged by [`CHUNK`]: the lowest y, the highest y, the largest x.
+fn merged(below: &[[f64; 3]]) -> Vec<[f64; 3]> {
+    below
+        .chunks(CHUNK)
+        .map(|run| {
+            run.iter().fold(
+                [f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY],
+                |c, n| [c[0].min(n[0]), c[1].max(n[1]), c[2].max(n[2])],
+            )
+        })
+        .collect()
 }
 
 /// Edges per run of [`Polygon::contains`]'s broad phase.
@@ -33,7 +49,7 @@ impl Polygon {
         }
         let (lo, hi) = bounds_of(&pts);
         let n = pts.len();
-        let chunks = (0..n)
+        let chunks: Vec<[f64; 3]> = (0..n)
             .step_by(CHUNK)
             .map(|start| {
                 let mut c = [f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY];
@@ -45,11 +61,16 @@ impl Polygon {
                 c
             })
             .collect();
+        let mut levels = vec![chunks];
+        while levels[levels.len() - 1].len() > CHUNK {
+            let up = merged(&levels[levels.len() - 1]);
+            levels.push(up);
+        }
         Ok(Self {
             points: pts,
             lo,
             hi,
-            chunks,
+            levels,
         })
     }
 
@@ -78,10 +99,26 @@ impl Polygon {
         }
         let n = self.points.len();
         let mut inside = false;
-        for (c, &[ylo, yhi, xhi]) in self.chunks.iter().enumerate() {
-            // No edge of the run straddles the ray's height, or all lie left of p: none
+        let top = self.levels.len() - 1;
+        // (level, node) pairs left to look at, depth first.
+        let mut stack: Vec<(usize, usize)> = (0..self.levels[top].len())
+            .rev()
+            .map(|c| (top, c))
+            .collect();
+        while let Some((level, c)) = stack.pop() {
+            let [ylo, yhi, xhi] = self.levels[level][c];
+            // No edge below the node straddles the ray's height, or all lie left of p: none
             // crosses the ray going right from p.
             if p.y < ylo || p.y >= yhi || xhi < p.x {
+                continue;
+            }
+            if level > 0 {
+                let below = self.levels[level - 1].len();
+                stack.extend(
+                    (c * CHUNK..((c + 1) * CHUNK).min(below))
+                        .rev()
+                        .map(|k| (level - 1, k)),
+                );
                 continue;
             }
             for i in c * CHUNK..((c + 1) * CHUNK).min(n) {
@@ -146,9 +183,16 @@ mod tests {
 
     #[test]
     fn contains_agrees_with_the_even_odd_rule_over_every_edge() {
-        // A comb of 200 teeth (800 points): many crossings along a ray, runs of every kind.
+        // Combs of 200 and 5,000 teeth (800 and 20,000 points, two and three levels of the
+        // tree): many crossings along a ray, runs of every kind.
+        for teeth in [200, 5000] {
+            comb_agrees(teeth);
+        }
+    }
+
+    fn comb_agrees(teeth: usize) {
         let mut pts = Vec::new();
-        for k in 0..200 {
+        for k in 0..teeth {
             let x = k as f64 * 2.0;
             pts.extend([
                 Point::new(x, 0.0),
@@ -157,13 +201,18 @@ mod tests {
                 Point::new(x + 1.0, 1.0),
             ]);
         }
-        pts.push(Point::new(400.0, 0.0));
-        pts.push(Point::new(400.0, -5.0));
+        let end = 2.0 * teeth as f64;
+        pts.push(Point::new(end, 0.0));
+        pts.push(Point::new(end, -5.0));
         pts.push(Point::new(0.0, -5.0));
         let poly = Polygon::new(pts.clone()).unwrap();
+        assert_eq!(poly.levels.len(), if teeth == 200 { 2 } else { 3 });
         let n = pts.len();
         for q in 0..2000 {
-            let p = Point::new((q % 100) as f64 * 4.07 - 2.0, (q / 100) as f64 * 1.13 - 6.0);
+            let p = Point::new(
+                (q % 100) as f64 * (end + 4.0) / 100.0 - 2.0 + 0.07,
+                (q / 100) as f64 * 1.13 - 6.0,
+            );
             let mut want = false;
             for i in 0..n {
                 let (a, b) = (pts[i], pts[(i + n - 1) % n]);
