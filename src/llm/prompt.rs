@@ -88,17 +88,28 @@ pub const MAX_TEMPLATE_BYTES: u64 = 256 << 10;
 /// sent again with every request and kept in the run's transcript at every round.
 pub const MAX_PROMPTS_BYTES: u64 = 1 << 20;
 
-const FILES: &[(&str, &[&str])] = &[
-    ("system.md", &["reasoning", "examples", "reference"]),
-    ("chain_of_thought.md", &[]),
-    ("zero_shot_cot.md", &[]),
-    ("no_cot.md", &[]),
-    ("request.md", &["scene", "request"]),
-    ("refine.md", &["samples", "feedback"]),
-    ("validation.md", &["horizon", "dt", "error"]),
-    ("unusable.md", &["error"]),
-    ("accept_rejected.md", &["reasons"]),
-    ("followup.md", &["request", "script"]),
+/// Each template: the placeholders it may use, and those it must, without which the model
+/// would never hear what it has to act on (an empty `request.md` sent no request, and the
+/// model answered a scene nobody described).
+const FILES: &[(&str, &[&str], &[&str])] = &[
+    (
+        "system.md",
+        &["reasoning", "examples", "reference"],
+        &["reference"],
+    ),
+    ("chain_of_thought.md", &[], &[]),
+    ("zero_shot_cot.md", &[], &[]),
+    ("no_cot.md", &[], &[]),
+    ("request.md", &["scene", "request"], &["scene", "request"]),
+    ("refine.md", &["samples", "feedback"], &["feedback"]),
+    ("validation.md", &["horizon", "dt", "error"], &["error"]),
+    ("unusable.md", &["error"], &["error"]),
+    ("accept_rejected.md", &["reasons"], &["reasons"]),
+    (
+        "followup.md",
+        &["request", "script"],
+        &["request", "script"],
+    ),
 ];
 
 impl Prompts {
@@ -116,7 +127,10 @@ impl Prompts {
     /// checks their placeholders.
     pub fn load(dir: &Path) -> Result<Self, LlmError> {
         let mut total = 0u64;
-        let mut read = |name: &str, allowed: &[&str]| -> Result<String, LlmError> {
+        let mut read = |name: &str,
+                        allowed: &[&str],
+                        required: &[&str]|
+         -> Result<String, LlmError> {
             let p = dir.join(name);
             let text = crate::io::read_regular_text(&p, MAX_TEMPLATE_BYTES, "a prompt template")
                 .map_err(|e| LlmError::Prompt {
@@ -136,15 +150,15 @@ impl Prompts {
                     ),
                 });
             }
-            check_placeholders(&text, allowed).map_err(|message| LlmError::Prompt {
+            check_placeholders(&text, allowed, required).map_err(|message| LlmError::Prompt {
                 path: p.clone(),
                 message,
             })?;
             Ok(text)
         };
         let mut got = Vec::new();
-        for (name, allowed) in FILES {
-            got.push(read(name, allowed)?);
+        for (name, allowed, required) in FILES {
+            got.push(read(name, allowed, required)?);
         }
         let mut examples = Vec::new();
         let ex = dir.join("examples");
@@ -174,7 +188,7 @@ impl Prompts {
                     .unwrap_or_default()
                     .to_string_lossy()
                     .into_owned();
-                let text = read(&format!("examples/{name}"), &[])?;
+                let text = read(&format!("examples/{name}"), &[], &[])?;
                 check_example(&p, &text)?;
                 examples.push((name.clone(), text));
             }
@@ -318,7 +332,8 @@ fn strip_reasoning(t: &str) -> String {
     out.join("\n")
 }
 
-fn check_placeholders(text: &str, allowed: &[&str]) -> Result<(), String> {
+fn check_placeholders(text: &str, allowed: &[&str], required: &[&str]) -> Result<(), String> {
+    let mut used = Vec::new();
     let mut rest = text;
     while let Some(i) = rest.find("{{") {
         let Some(j) = rest[i..].find("}}") else {
@@ -339,7 +354,25 @@ fn check_placeholders(text: &str, allowed: &[&str]) -> Result<(), String> {
                 }
             ));
         }
+        used.push(name);
         rest = &rest[i + j + 2..];
+    }
+    let missing: Vec<String> = required
+        .iter()
+        .filter(|r| !used.contains(r))
+        .map(|r| format!("{{{{{r}}}}}"))
+        .collect();
+    if !missing.is_empty() {
+        let must: Vec<String> = required.iter().map(|r| format!("{{{{{r}}}}}")).collect();
+        return Err(format!(
+            "{}: this file must use {}, or the model is never told what they stand for",
+            if text.trim().is_empty() {
+                "empty".to_string()
+            } else {
+                format!("never uses {}", missing.join(" or "))
+            },
+            must.join(" and ")
+        ));
     }
     Ok(())
 }
@@ -436,7 +469,7 @@ mod tests {
             ),
         ] {
             let dir = tempfile::tempdir().unwrap();
-            for (name, _) in FILES {
+            for (name, _, _) in FILES {
                 std::fs::copy(src.join(name), dir.path().join(name)).unwrap();
             }
             std::fs::create_dir(dir.path().join("examples")).unwrap();
@@ -450,12 +483,44 @@ mod tests {
     fn a_bad_template_names_its_file_and_placeholder() {
         let dir = tempfile::tempdir().unwrap();
         let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("prompts");
-        for (name, _) in FILES {
+        for (name, _, _) in FILES {
             std::fs::copy(src.join(name), dir.path().join(name)).unwrap();
         }
         std::fs::write(dir.path().join("refine.md"), "{{feedback}} {{secret}}").unwrap();
         let e = Prompts::load(dir.path()).unwrap_err().to_string();
         assert!(e.contains("refine.md") && e.contains("{{secret}}"), "{e}");
+        // A template that never says what it carries (an empty request.md sent the model no
+        // request and no scene, exit 0).
+        std::fs::copy(src.join("refine.md"), dir.path().join("refine.md")).unwrap();
+        for (name, text, want) in [
+            (
+                "request.md",
+                "",
+                "request.md: empty: this file must use {{scene}} and {{request}}",
+            ),
+            (
+                "request.md",
+                "Scene: {{scene}}",
+                "request.md: never uses {{request}}: this file must use {{scene}} and {{request}}",
+            ),
+            (
+                "system.md",
+                "  \n",
+                "system.md: empty: this file must use {{reference}}",
+            ),
+            (
+                "refine.md",
+                "{{samples}}",
+                "refine.md: never uses {{feedback}}",
+            ),
+        ] {
+            let before = std::fs::read(dir.path().join(name)).unwrap();
+            std::fs::write(dir.path().join(name), text).unwrap();
+            let e = Prompts::load(dir.path()).unwrap_err().to_string();
+            assert!(e.contains(want), "{e}");
+            std::fs::write(dir.path().join(name), before).unwrap();
+        }
+        Prompts::load(dir.path()).unwrap();
         std::fs::remove_file(dir.path().join("request.md")).unwrap();
         let e = Prompts::load(dir.path()).unwrap_err().to_string();
         assert!(e.contains("request.md") && e.contains("cannot read"), "{e}");
@@ -467,7 +532,7 @@ mod tests {
     fn a_prompt_folder_past_its_total_or_with_examples_not_a_directory_is_refused() {
         let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("prompts");
         let dir = tempfile::tempdir().unwrap();
-        for (name, _) in FILES {
+        for (name, _, _) in FILES {
             std::fs::copy(src.join(name), dir.path().join(name)).unwrap();
         }
         std::fs::write(dir.path().join("examples"), "not a folder").unwrap();
