@@ -548,6 +548,16 @@ fn yaml_errors_name_line_or_agent() {
         err.contains("agents[1] (id 2)") && err.contains("the road has 3 lanes"),
         "{err}"
     );
+    // A lane change to the lane the agent is in changed nothing, and nothing said so.
+    edit(&f, |t| {
+        t.replacen("lane_change: {to: 5", "lane_change: {to: 0", 1)
+    });
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("agents[1] (id 2)")
+            && err.contains("lane_change.to is 0, the agent's own lane"),
+        "{err}"
+    );
 
     let f = copy_to(dir.path(), &src, "c.yaml");
     edit(&f, |t| t.replacen("ego: 1", "ego: 77", 1));

@@ -635,6 +635,16 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
                             format!("lane index out of range: the road has {} lanes", r.lanes),
                         ));
                     }
+                    if let Some(lc) = a.lane_change.as_ref().filter(|c| c.to == a.lane) {
+                        return Err(bad(
+                            loc,
+                            format!(
+                                "lane_change.to is {}, the agent's own lane: a lane change goes \
+                                 to another lane (leave lane_change out to keep the lane)",
+                                lc.to
+                            ),
+                        ));
+                    }
                     lane_motion(a, y, reference, r.lane_width)
                 }
                 (None, Some(route)) => {
