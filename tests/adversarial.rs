@@ -71,6 +71,40 @@ fn infinite_loops_hit_the_operations_limit() {
 }
 
 #[test]
+fn closures_a_native_function_calls_count_against_the_limits() {
+    // Rhai counts a closure's operations on a copy of its counter, dropped when `map` (or
+    // `filter`, `reduce`, `sort`, ...) gets the closure's value: neither the operations limit
+    // nor the wall clock (read every 512 operations of that count) ever came, and these ran
+    // for hours (ten billion closure calls).
+    let arrays = "let r = [];\nr.pad(99990, 0);\nlet s = [];\ns.pad(99990, 0);\n";
+    limit(
+        &format!("{arrays}let a = r.map(|x| s.map(|y| y + 1).len());\nterm(\"x\", 0.0);"),
+        "operations (max 2000000)",
+        5,
+    );
+    // Each statement before the loop shifts the copied counter; none lets it through.
+    for pre in 0..4 {
+        let lets: String = (0..pre).map(|i| format!("let v{i} = {i};\n")).collect();
+        let src = format!(
+            "{lets}{arrays}let a = r.filter(|x| s.filter(|y| y > 0).len() > 0);\nterm(\"x\", 0.0);"
+        );
+        limit(&src, "operations (max 2000000)", pre + 5);
+    }
+    // A closure doing native work its operations do not show (copying a deep accumulator)
+    // is stopped by the wall time, read every 512 operations of every closure.
+    let limits = Limits {
+        wall_time: Duration::from_millis(300),
+        ..Limits::default()
+    };
+    limit_with(
+        "let r = [];\nr.pad(99990, 0);\nlet a = r.reduce(|acc, x| [acc], []);\nterm(\"x\", 0.0);",
+        "wall time (max 0.3 s)",
+        3,
+        &limits,
+    );
+}
+
+#[test]
 fn deep_recursion_hits_the_call_depth_limit() {
     // Reported where the user's script makes the outermost call.
     limit("fn f(n) { f(n + 1) }\nf(0);", "call depth (max 32)", 2);
