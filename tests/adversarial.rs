@@ -144,6 +144,36 @@ fn huge_data_hits_the_size_limits() {
         3,
     );
     limit("let a = [1];\nloop { a += a; }", "elements", 2);
+    // An array a closure builds element by element: Rhai checked only the whole result, by
+    // when `r.map(|x| s)` held ten billion elements (160 GB) and the process had aborted.
+    let big = "let r = [];\nr.pad(99990, 0);\nlet s = [];\ns.pad(99990, 0);\nlet t = \"x\";\nt.pad(9000, \"y\");\n";
+    for (call, what) in [
+        ("let a = r.map(|x| s);", "max 100000 elements"),
+        ("let a = r.map(|x, i| s);", "max 100000 elements"),
+        ("let a = r.zip(r, |x, y| s);", "max 100000 elements"),
+        ("r.for_each(|| this = s);", "max 100000 elements"),
+        ("r.for_each(|i| this = t);", "max 10000 characters"),
+        ("let a = r.map(|x| #{a: 1, b: 2});", "max 10000 entries"),
+    ] {
+        let t0 = Instant::now();
+        limit(&format!("{big}{call}\nterm(\"x\", 0.0);"), what, 7);
+        assert!(
+            t0.elapsed() < Duration::from_secs(5),
+            "{call}: {:?}",
+            t0.elapsed()
+        );
+    }
+    // Within the limits they are Rhai's own.
+    let ok = "let a = [1, 2, 3];\nlet b = a.map(|x| x * 2);\nlet c = a.map(|x, i| i);\n\
+              let d = a.zip([4, 5, 6], |x, y| x + y);\na.for_each(|i| this += i);\n\
+              if b != [2, 4, 6] || c != [0, 1, 2] || d != [5, 7, 9] || a != [1, 3, 5] { throw \"wrong\"; }\n\
+              const K = [1, 2];\nlet e = K.map(|x| x + 1);\n\
+              term(\"x\", agent(1).x.sum() * 0.0);";
+    run(ok).unwrap();
+    fails(
+        "const K = [1, 2];\nK.for_each(|| this = 0);\nterm(\"x\", agent(1).x.sum() * 0.0);",
+        &["evil.rhai:2"],
+    );
 }
 
 #[test]

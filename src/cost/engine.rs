@@ -616,6 +616,127 @@ fn register_comparer_overrides(e: &mut Engine, docs: &mut Vec<DocEntry>) {
         "v.sort(cmp), v.sort_by(cmp), v.dedup(same)",
         "An array sorted by a comparer `|a, b| ...` (a whole number whose sign orders the pair, or true when a comes first), or its consecutive duplicates by `same` (true/false) removed; an error in the comparer is the script's error. `v.sort()` orders plain numbers, strings or booleans.",
     );
+    e.register_fn("map", map_within_limits);
+    e.register_fn("zip", zip_within_limits);
+    // It changes the array: not to be called on a constant, as Rhai's is not.
+    rhai::FuncRegistration::new("for_each")
+        .with_purity(false)
+        .register_into_engine(e, for_each_within_limits);
+    stdlib::doc(
+        docs,
+        "Arrays",
+        "v.map(f), v.zip(w, f), v.for_each(f)",
+        "A new array of `f(x)` (or `f(x, i)`) for each element `x` at index `i`, of `f(x, y)` (or `f(x, y, i)`) for the elements of `v` and `w` side by side, or each element replaced in place where `f` assigns `this`. The array and string size limits hold as the array grows, not only once it is whole.",
+    );
+}
+
+/// Sizes of a value as Rhai's data limits count them: array elements, map entries and string
+/// bytes, nested values included.
+fn data_sizes(v: &Dynamic) -> (usize, usize, usize) {
+    let add =
+        |a: (usize, usize, usize), b: (usize, usize, usize)| (a.0 + b.0, a.1 + b.1, a.2 + b.2);
+    if let Ok(items) = v.as_array_ref() {
+        items
+            .iter()
+            .fold((items.len(), 0, 0), |t, x| add(t, data_sizes(x)))
+    } else if let Ok(m) = v.as_map_ref() {
+        m.values()
+            .fold((0, m.len(), 0), |t, x| add(t, data_sizes(x)))
+    } else if let Ok(s) = v.as_immutable_string_ref() {
+        (0, 0, s.len())
+    } else {
+        (0, 0, 0)
+    }
+}
+
+/// Rhai's error for `sizes` past one of `ctx`'s engine's data limits, if they are.
+fn check_sizes(
+    ctx: &NativeCallContext,
+    sizes: (usize, usize, usize),
+) -> Result<(), Box<EvalAltResult>> {
+    let e = ctx.engine();
+    let over = |n: usize, max: usize| max > 0 && n > max;
+    let what = if over(sizes.2, e.max_string_size()) {
+        "Length of string"
+    } else if over(sizes.0, e.max_array_size()) {
+        "Size of array/BLOB"
+    } else if over(sizes.1, e.max_map_size()) {
+        "Size of object map"
+    } else {
+        return Ok(());
+    };
+    Err(EvalAltResult::ErrorDataTooLarge(what.into(), Position::NONE).into())
+}
+
+/// Rhai's `map`, checking the array it builds against the data limits at every element: Rhai
+/// checks only the whole result, so `r.map(|x| s)` over two 100,000-element arrays filled
+/// memory with ten billion elements before the limit of 100,000 was looked at.
+fn map_within_limits(
+    ctx: NativeCallContext,
+    array: &mut rhai::Array,
+    f: rhai::FnPtr,
+) -> Result<rhai::Array, Box<EvalAltResult>> {
+    let mut out = rhai::Array::with_capacity(array.len());
+    let mut sizes = (0, 0, 0);
+    for (i, item) in array.iter_mut().enumerate() {
+        let ex = [rhai::INT::try_from(i).unwrap_or(rhai::INT::MAX).into()];
+        let v = f.call_raw_with_extra_args("map", &ctx, Some(item), [], ex, Some(0))?;
+        let (a, m, s) = data_sizes(&v);
+        sizes = (sizes.0 + 1 + a, sizes.1 + m, sizes.2 + s);
+        check_sizes(&ctx, sizes)?;
+        out.push(v);
+    }
+    Ok(out)
+}
+
+/// Rhai's `zip`, checked as [`map_within_limits`] is.
+fn zip_within_limits(
+    ctx: NativeCallContext,
+    array: &mut rhai::Array,
+    other: rhai::Array,
+    f: rhai::FnPtr,
+) -> Result<rhai::Array, Box<EvalAltResult>> {
+    let mut out = rhai::Array::with_capacity(array.len().min(other.len()));
+    let mut sizes = (0, 0, 0);
+    for (i, (x, y)) in array.iter_mut().zip(other).enumerate() {
+        let ex = [rhai::INT::try_from(i).unwrap_or(rhai::INT::MAX).into()];
+        let v = f.call_raw_with_extra_args("zip", &ctx, None, [x.clone(), y], ex, None)?;
+        let (a, m, s) = data_sizes(&v);
+        sizes = (sizes.0 + 1 + a, sizes.1 + m, sizes.2 + s);
+        check_sizes(&ctx, sizes)?;
+        out.push(v);
+    }
+    Ok(out)
+}
+
+/// Rhai's `for_each`, checking the array against the data limits after every element it
+/// replaces: `a.for_each(|| this = s)` grew `a` without limit until the call returned.
+fn for_each_within_limits(
+    ctx: NativeCallContext,
+    array: &mut rhai::Array,
+    f: rhai::FnPtr,
+) -> Result<(), Box<EvalAltResult>> {
+    let of = |x: &Dynamic| {
+        let (a, m, s) = data_sizes(x);
+        (1 + a, m, s)
+    };
+    let mut sizes = array
+        .iter()
+        .map(of)
+        .fold((0, 0, 0), |t, x| (t.0 + x.0, t.1 + x.1, t.2 + x.2));
+    for (i, item) in array.iter_mut().enumerate() {
+        let ex = [rhai::INT::try_from(i).unwrap_or(rhai::INT::MAX).into()];
+        let before = of(item);
+        let _ = f.call_raw_with_extra_args("for_each", &ctx, Some(&mut *item), [], ex, None)?;
+        let after = of(item);
+        sizes = (
+            sizes.0 - before.0 + after.0,
+            sizes.1 - before.1 + after.1,
+            sizes.2 - before.2 + after.2,
+        );
+        check_sizes(&ctx, sizes)?;
+    }
+    Ok(())
 }
 
 fn sort_by_comparer(
