@@ -348,10 +348,32 @@ fn extreme_numbers_in_errors_are_said_in_a_few_characters() {
         ("a.x.at_time(1.0e300)", "time 1e300 s is outside"),
         ("a.x.at_time(1.0e-320)", "time 1e-320 s is outside"),
         ("a.x.window(-1.0e300, 1.0)", "time -1e300 s is outside"),
+        // Rhai's own message printed the float to its last of 301 digits.
+        ("to_int(1.0e300)", "Integer overflow: to_int(1e300)"),
+        ("to_int(-1.0e300)", "Integer overflow: to_int(-1e300)"),
     ] {
         let src = format!("let a = agent(1);\nlet v = {call};\nterm(\"t\", a.x.sum());");
         let msg = fails(&src, &[needle]).to_string();
         assert!(msg.len() < 200, "{call}: {msg}");
+    }
+}
+
+#[test]
+fn a_call_no_function_takes_names_its_types_as_a_script_knows_them() {
+    // Rhai listed the Rust types it takes for a string, and `range=` for `a..=b`.
+    for (src, needle) in [
+        ("let v = \"a\" - 1;", "no function - (string, i64)"),
+        (
+            "let v = (1..=3).len();",
+            "no function len (inclusive range)",
+        ),
+        ("let v = (1..3).len();", "no function len (range)"),
+    ] {
+        let msg = fails(&format!("{src}\nterm(\"t\", agent(1).x.sum());"), &[needle]).to_string();
+        assert!(
+            !msg.contains("ImmutableString") && !msg.contains("range="),
+            "{msg}"
+        );
     }
 }
 

@@ -1687,9 +1687,9 @@ impl CostScript {
                 script,
                 line,
                 column,
-                message: format!("no function {sig}{} (see `drivescript stdlib-doc` for what exists and its argument types)", self.given_in(sig)),
+                message: format!("no function {}{} (see `drivescript stdlib-doc` for what exists and its argument types)", script_types(sig), self.given_in(sig)),
             },
-            other => CostError::Runtime { script, line, column, message: strip_position(&other.to_string()) },
+            other => CostError::Runtime { script, line, column, message: short_numbers(&strip_position(&other.to_string())) },
         }
     }
 }
@@ -1701,6 +1701,58 @@ fn error_message(e: &CostError) -> String {
         | CostError::Term { message, .. } => message.clone(),
         other => other.to_string(),
     }
+}
+
+/// A function signature of Rhai's (`len (range=)`, `- (&str | ImmutableString | String, i64)`)
+/// with its arguments' types named as a script knows them: `string`, not the Rust types Rhai
+/// lists for one, and `inclusive range` for the `range=` of `a..=b`.
+fn script_types(sig: &str) -> String {
+    let (Some(a), Some(b)) = (sig.find('('), sig.rfind(')')) else {
+        return sig.to_string();
+    };
+    if a >= b {
+        return sig.to_string();
+    }
+    let args = sig[a + 1..b]
+        .replace("&str | ImmutableString | String", "string")
+        .split(", ")
+        .map(|t| match t.trim() {
+            "range=" => "inclusive range",
+            "range" => "range",
+            _ => t,
+        })
+        .collect::<Vec<_>>()
+        .join(", ");
+    format!("{}({args}){}", &sig[..a], &sig[b + 1..])
+}
+
+/// `message` with every number of more than 20 digits (Rhai prints the float in
+/// `to_int(1e300)`'s overflow to its last of 301 digits) in exponent form.
+fn short_numbers(message: &str) -> String {
+    let bytes = message.as_bytes();
+    let mut out = String::with_capacity(message.len());
+    let mut i = 0;
+    while i < bytes.len() {
+        let number = |j: usize| bytes[j].is_ascii_digit() || bytes[j] == b'.';
+        if bytes[i].is_ascii_digit() && (i == 0 || !number(i - 1)) {
+            let mut j = i;
+            while j < bytes.len() && number(j) {
+                j += 1;
+            }
+            let run = &message[i..j];
+            let digits = run.bytes().filter(u8::is_ascii_digit).count();
+            match run.parse::<f64>() {
+                Ok(v) if digits > 20 => out.push_str(&format!("{v:e}")),
+                _ => out.push_str(run),
+            }
+            i = j;
+        } else {
+            let c = message[i..].chars().next().expect("within the message");
+            out.push(c);
+            i += c.len_utf8();
+        }
+    }
+    out
 }
 
 /// Rhai appends " (line N, position M)" to its messages; the location is reported separately.
