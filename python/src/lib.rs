@@ -45,12 +45,18 @@ fn detached<T: Send>(
     what: &str,
     f: impl FnOnce() -> PyResult<T> + Send,
 ) -> PyResult<T> {
-    py.detach(|| std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)))
-        .unwrap_or_else(|payload| {
-            Err(PyRuntimeError::new_err(drivescript::io::internal_error(
-                &*payload, what,
-            )))
+    // On a thread with the stack scripts need: Python's own thread overflowed comparing or
+    // printing arrays a script nested 5,000 deep, and the interpreter aborted.
+    py.detach(|| {
+        drivescript::cost::on_script_stack(|| {
+            std::panic::catch_unwind(std::panic::AssertUnwindSafe(f))
         })
+    })
+    .unwrap_or_else(|payload| {
+        Err(PyRuntimeError::new_err(drivescript::io::internal_error(
+            &*payload, what,
+        )))
+    })
 }
 
 /// [`detached`] for work that can stop early: `f` runs on a thread of its own while this one
@@ -65,11 +71,15 @@ fn detached_interruptible<T: Send>(
     let stop = AtomicBool::new(false);
     let waiter = std::thread::current();
     std::thread::scope(|s| {
-        let work = s.spawn(|| {
-            let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(&stop)));
-            waiter.unpark();
-            r
-        });
+        // The stack scripts need (a default thread's 2 MB overflowed on nested arrays).
+        let work = std::thread::Builder::new()
+            .stack_size(drivescript::cost::SCRIPT_STACK_BYTES)
+            .spawn_scoped(s, || {
+                let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(&stop)));
+                waiter.unpark();
+                r
+            })
+            .map_err(|e| PyRuntimeError::new_err(format!("{what}: cannot start a thread: {e}")))?;
         loop {
             let finished = py.detach(|| {
                 std::thread::park_timeout(std::time::Duration::from_millis(50));

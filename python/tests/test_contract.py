@@ -318,6 +318,36 @@ def test_limits_and_sandbox_are_the_cli_s(ds, scene):
     assert ds.limits()["max_operations"] == 2_000_000
 
 
+def test_arrays_nested_deep_do_not_overflow_a_thread_s_stack(ds):
+    # Rhai compares, prints and size-checks nested arrays recursively: evaluate() on Python's
+    # own thread overflowed its 8 MB comparing arrays 6,000 deep (a second of `a = [a]`), and
+    # evaluate_batch() on rayon's 2 MB threads at 10,000 levels: the interpreter aborted
+    # ("stack overflow"). Run apart, so that an abort fails this test alone.
+    code = (
+        "import sys, drivescript as ds\n"
+        "scene = ds.Scene.load(sys.argv[1])\n"
+        "def script(n, op):\n"
+        "    return ds.CostScript.from_source('let a = [];\\nfor i in 0..' + str(n) + "
+        "' { a = [a]; }\\n' + op + '\\nterm(\"t\", agent(401).x.mean());\\n', name='deep.rhai')\n"
+        "for call in [lambda: script(6000, 'let b = a == a;').evaluate(scene, scene.log_future(10)),\n"
+        "             lambda: script(12000, '').evaluate_batch(scene, scene.log_future(10)[None])]:\n"
+        "    try:\n"
+        "        call()\n"
+        "        print('evaluated')\n"
+        "    except ds.ScriptError as e:\n"
+        "        print(e)\n"
+    )
+    import os
+    import sys
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
+    out = subprocess.run(
+        [sys.executable, "-c", code, str(SCENE)], capture_output=True, text=True, env=env, timeout=300
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    lines = out.stdout.split("\n")[:2]
+    assert all(l == "evaluated" or "limit exceeded: wall time" in l for l in lines), out.stdout
+
+
 def test_a_constant_term_fails_validation_as_in_the_cli(ds, scene):
     flat = ds.CostScript.from_source('term("flat", 1.0);\n', name="flat.rhai")
     with pytest.raises(ds.ScriptError, match='flat.rhai:1: term "flat"') as e:
