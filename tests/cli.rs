@@ -1115,6 +1115,27 @@ fn train_export_writes_the_windows_of_a_checkpoint_into_a_new_directory_only() {
         std::fs::read(exp.join("check.safetensors")).unwrap(),
         before
     );
+    // Said of --export, the flag given, not of --out.
+    for (target, says) in [
+        ("scripts/scenes/x", "is inside the input directory"),
+        ("scripts/cut_in.rhai", "is not a directory"),
+    ] {
+        let err = fails(&[
+            "train",
+            "--data",
+            "scripts/scenes",
+            "--export",
+            target,
+            "--resume",
+            s(&ckpt),
+        ]);
+        assert!(
+            err.contains("the export directory (--export)")
+                && err.contains(says)
+                && !err.contains("--out"),
+            "{err}"
+        );
+    }
     // The windows are encoded for a checkpoint's network: without one there is nothing to
     // encode them for; and an export writes no checkpoint.
     // A resumed run keeps its inputs.
