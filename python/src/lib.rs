@@ -150,18 +150,52 @@ fn io_error(e: IoError) -> PyErr {
     }
 }
 
+/// A value the caller gave, quoted in the message that refuses it as the CLI quotes a flag's:
+/// its repr, at most 64 characters (with its length where longer) and control characters
+/// escaped. An int Python will not write out (beyond 4,300 digits) is said by its size: its
+/// str() raised inside the message, which printed "<unprintable int object>" and an ignored
+/// exception's traceback on stderr; a 101-digit int or a 1,000-element list was quoted whole.
+fn quoted(v: &Bound<'_, PyAny>) -> String {
+    match v.repr().and_then(|r| r.extract::<String>()) {
+        Ok(r) => drivescript::io::name::shown_counted(&r),
+        Err(_) => match v
+            .call_method0("bit_length")
+            .and_then(|b| b.extract::<u64>())
+        {
+            Ok(bits) => format!("an integer of {bits} bits"),
+            Err(_) => "a value that cannot be shown".to_string(),
+        },
+    }
+}
+
+/// Refuses a path holding a NUL character, which no file's path can hold: it was read as far
+/// as the format check, which called `scene.yaml\0x` an unknown scene format and printed the
+/// NUL raw in the message.
+fn no_nul(path: &std::path::Path, arg: &str) -> PyResult<()> {
+    if path.as_os_str().as_encoded_bytes().contains(&0) {
+        return Err(PyValueError::new_err(format!(
+            "{arg} = \"{}\": a path cannot hold the NUL character (\\u{{0000}})",
+            drivescript::io::name::shown_counted(&path.to_string_lossy())
+        )));
+    }
+    Ok(())
+}
+
 fn params_from(dict: Option<&Bound<'_, PyDict>>) -> PyResult<Params> {
     let mut out = Params::default();
     for (k, v) in dict.into_iter().flat_map(|d| d.iter()) {
-        let name: String = k
-            .extract()
-            .map_err(|_| PyValueError::new_err(format!("parameter names are strings, got {k}")))?;
+        let name: String = k.extract().map_err(|_| {
+            PyValueError::new_err(format!("parameter names are strings, got {}", quoted(&k)))
+        })?;
         // bool before int: Python's True is an int too.
         let value = if v.is_instance_of::<PyBool>() {
             ParamValue::Bool(v.extract()?)
         } else if v.is_instance_of::<PyInt>() {
             ParamValue::Int(v.extract().map_err(|_| {
-                PyValueError::new_err(format!("parameter {name:?} = {v}: out of the 64-bit range"))
+                PyValueError::new_err(format!(
+                    "parameter {name:?} = {}: out of the 64-bit range",
+                    quoted(&v)
+                ))
             })?)
         } else if v.is_instance_of::<PyFloat>() {
             ParamValue::Float(v.extract()?)
@@ -169,7 +203,8 @@ fn params_from(dict: Option<&Bound<'_, PyDict>>) -> PyResult<Params> {
             ParamValue::Str(v.extract()?)
         } else {
             return Err(PyValueError::new_err(format!(
-                "parameter {name:?} = {v}: a parameter is an int, float, bool or str"
+                "parameter {name:?} = {}: a parameter is an int, float, bool or str",
+                quoted(&v)
             )));
         };
         // The library's checks, as `--param` gets them: a NaN limit, a name no script can
@@ -389,6 +424,7 @@ impl Scene {
         index: usize,
         commonroad_current_step: Option<usize>,
     ) -> PyResult<Self> {
+        no_nul(&path, "path")?;
         let opts = LoadOptions {
             commonroad_current_step: commonroad_current_step
                 .unwrap_or(LoadOptions::default().commonroad_current_step),
@@ -601,6 +637,7 @@ impl Scene {
     /// future to `path`, atomically, in the rollout JSON format that `drivescript cost
     /// --rollout`, `eval --rollouts` and `render` read.
     fn write_rollout(&self, py: Python<'_>, path: PathBuf, traj: Bound<'_, PyAny>) -> PyResult<()> {
+        no_nul(&path, "path")?;
         let (_, mut t) = trajectories(self, &traj, false)?;
         let t = t.remove(0);
         let inner = self.inner.clone();
@@ -778,6 +815,7 @@ impl CostScript {
         path: PathBuf,
         params: Option<&Bound<'_, PyDict>>,
     ) -> PyResult<Self> {
+        no_nul(&path, "path")?;
         let params = params_from(params)?;
         ScriptSpec::from_file(&path, params)
             .map(Self::with_spec)
@@ -890,6 +928,7 @@ impl Sampler {
     /// Loads the checkpoint in `checkpoint_dir`.
     #[new]
     fn new(py: Python<'_>, checkpoint_dir: PathBuf) -> PyResult<Self> {
+        no_nul(&checkpoint_dir, "checkpoint_dir")?;
         detached(py, "checkpoint reader", || {
             drivescript::train::load(&checkpoint_dir)
                 .map(|trained| Self { trained })

@@ -377,6 +377,38 @@ def test_parameters_are_checked_as_the_cli_checks_param(ds, scene):
         ds.check("follow", scene, scene.log_future(40), {"leader": 401, "follower": 405, "gapp": 30})
 
 
+def test_a_refused_parameter_value_is_quoted_cut_as_the_cli_quotes_one(ds, capfd):
+    # Quoted whole (a 101-digit int, a 1,000-element list); an int beyond Python's 4,300
+    # digits for str() said "<unprintable int object>" and printed an ignored exception's
+    # traceback on stderr.
+    for value, says in [
+        (10**100, "1" + "0" * 63 + "… (101 characters)"),
+        (10**5000, "an integer of 16610 bits"),
+        ([1] * 1000, "(3000 characters)"),
+    ]:
+        with pytest.raises(ValueError) as e:
+            ds.CostScript.from_file(CUT_IN, params={"cutter": value, "victim": 405})
+        assert says in str(e.value) and len(str(e.value)) < 200, str(e.value)
+    with pytest.raises(ValueError, match="parameter names are strings, got 1$"):
+        ds.CostScript.from_file(CUT_IN, params={1: 2})
+    assert "Exception ignored" not in capfd.readouterr().err
+
+
+def test_a_path_holding_nul_is_refused_as_such(ds, scene, tmp_path):
+    # Read as far as the format check: "unknown scene format", the NUL printed raw.
+    bad = str(ROOT / "data/samples/yaml/highway_cut_in.yaml") + "\0x"
+    for call in [
+        lambda: ds.Scene.load(bad),
+        lambda: ds.CostScript.from_file(bad),
+        lambda: ds.Sampler(bad),
+        lambda: scene.write_rollout(str(tmp_path / "r.json") + "\0", scene.log_future(10)),
+    ]:
+        with pytest.raises(ValueError, match=r"cannot hold the NUL character") as e:
+            call()
+        assert "\0" not in str(e.value) and "\\u{0000}" in str(e.value), str(e.value)
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_nothing_to_evaluate_is_a_value_error_not_a_panic(ds, scene, cut_in, tmp_path):
     # crop(0, n) made a scene of no agents; evaluating on it panicked in the binding.
     for agents, future in [(0, 30), (8, 0)]:
