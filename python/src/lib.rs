@@ -252,10 +252,36 @@ fn floats<'py>(
     what: &str,
     obj: &Bound<'py, PyAny>,
 ) -> PyResult<PyArrayLikeDyn<'py, f64, AllowTypeChange>> {
-    let arr = obj.py().import("numpy")?.call_method1("asarray", (obj,))?;
+    let py = obj.py();
+    let np = py.import("numpy")?;
+    let arr = np.call_method1("asarray", (obj,))?;
     let dtype = arr.getattr("dtype")?;
     let kind: String = dtype.getattr("kind")?.extract()?;
-    // 'O' (Python objects) converts element by element and raises on anything not a number.
+    // 'O' (Python objects, a list mixing types) converts element by element with float(),
+    // which took the strings "1.0" and b"1.0", True and None for positions (None as NaN)
+    // that an array of strings, booleans or no values is refused as: each must be a number.
+    if kind == "O" {
+        let real = py.import("numbers")?.getattr("Real")?;
+        let decimal = py.import("decimal")?.getattr("Decimal")?;
+        let np_bool = np.getattr("bool_")?;
+        for (i, x) in arr.call_method0("ravel")?.try_iter()?.enumerate() {
+            let x = x?;
+            let number = !x.is_instance_of::<PyBool>()
+                && !x.is_instance(&np_bool)?
+                && (x.is_instance(&real)? || x.is_instance(&decimal)?);
+            if !number {
+                let at: Vec<usize> = np
+                    .call_method1("unravel_index", (i, arr.getattr("shape")?))?
+                    .extract()?;
+                return Err(PyTypeError::new_err(format!(
+                    "{what}: the element at {at:?} is {} of type {}, but positions and \
+                     headings are real numbers (float or int; NaN where unobserved)",
+                    quoted(&x),
+                    x.get_type().name()?
+                )));
+            }
+        }
+    }
     if !matches!(kind.as_str(), "f" | "i" | "u" | "O") {
         return Err(PyTypeError::new_err(format!(
             "{what}: an array of {} ({}), but positions and headings are real numbers \

@@ -295,6 +295,26 @@ def test_complex_boolean_and_string_arrays_are_type_errors_not_converted(ds, sce
             ds.check("cut_in", scene, bad, {"cutter": 401, "victim": 405})
 
 
+def test_an_object_array_holding_what_is_not_a_number_is_a_type_error(ds, scene, cut_in):
+    # An object array (a list mixing types) converted element by element with float(): the
+    # strings "1.0" and b"1.0" and True were taken for positions, None for NaN, where the
+    # same values as an array of strings or booleans are refused.
+    traj = scene.log_future(40)
+    for bad, what in [("1.0", "str"), (b"1.0", "bytes"), (True, "bool"), (None, "NoneType")]:
+        o = traj.astype(object)
+        o[1, 0, 0] = bad
+        with pytest.raises(TypeError, match=rf"traj: the element at \[1, 0, 0\] is .* of type {what}"):
+            cut_in.evaluate(scene, o)
+        with pytest.raises(TypeError, match=rf"trajs: the element at \[0, 1, 0, 0\] is .* of type {what}"):
+            cut_in.evaluate_batch(scene, o[None])
+    # Numbers of any kind still convert.
+    import fractions
+    o = traj.astype(object)
+    o[1, 0, 0] = fractions.Fraction(o[1, 0, 0]) if not np.isnan(traj[1, 0, 0]) else np.nan
+    o[1, 0, 1] = np.float32(o[1, 0, 1])
+    assert cut_in.evaluate(scene, o).total == pytest.approx(cut_in.evaluate(scene, traj).total)
+
+
 def test_script_errors_carry_file_line_and_column(ds, scene):
     with pytest.raises(ds.ScriptError) as e:
         ds.CostScript.from_source("let x = ;\n", name="broken.rhai")
