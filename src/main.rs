@@ -49,5 +49,18 @@ fn main() -> std::process::ExitCode {
         // Sound only while the process is single-threaded, as it is here.
         std::env::set_var("RAYON_NUM_THREADS", n.to_string());
     }
-    cli::run()
+    // Cost scripts run on this thread (`cost`, `simulate`, `ask`, ...): it gets the stack
+    // that the deepest data a script may build needs (`SCRIPT_STACK_BYTES`); a main thread's
+    // 8 MB overflowed comparing or printing arrays nested 5,000 deep, and aborted.
+    let big = std::thread::Builder::new()
+        .name("main".into())
+        .stack_size(drivescript::cost::SCRIPT_STACK_BYTES)
+        .spawn(cli::run);
+    match big {
+        Ok(handle) => handle
+            .join()
+            .unwrap_or_else(|payload| std::panic::resume_unwind(payload)),
+        // Where no such thread can be had (a tight `ulimit -v`), on this one.
+        Err(_) => cli::run(),
+    }
 }

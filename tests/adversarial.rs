@@ -71,6 +71,40 @@ fn infinite_loops_hit_the_operations_limit() {
 }
 
 #[test]
+fn closures_a_native_function_calls_count_against_the_limits() {
+    // Rhai counts a closure's operations on a copy of its counter, dropped when `map` (or
+    // `filter`, `reduce`, `sort`, ...) gets the closure's value: neither the operations limit
+    // nor the wall clock (read every 512 operations of that count) ever came, and these ran
+    // for hours (ten billion closure calls).
+    let arrays = "let r = [];\nr.pad(99990, 0);\nlet s = [];\ns.pad(99990, 0);\n";
+    limit(
+        &format!("{arrays}let a = r.map(|x| s.map(|y| y + 1).len());\nterm(\"x\", 0.0);"),
+        "operations (max 2000000)",
+        5,
+    );
+    // Each statement before the loop shifts the copied counter; none lets it through.
+    for pre in 0..4 {
+        let lets: String = (0..pre).map(|i| format!("let v{i} = {i};\n")).collect();
+        let src = format!(
+            "{lets}{arrays}let a = r.filter(|x| s.filter(|y| y > 0).len() > 0);\nterm(\"x\", 0.0);"
+        );
+        limit(&src, "operations (max 2000000)", pre + 5);
+    }
+    // A closure doing native work its operations do not show (copying a deep accumulator)
+    // is stopped by the wall time, read every 512 operations of every closure.
+    let limits = Limits {
+        wall_time: Duration::from_millis(300),
+        ..Limits::default()
+    };
+    limit_with(
+        "let r = [];\nr.pad(99990, 0);\nlet a = r.reduce(|acc, x| [acc], []);\nterm(\"x\", 0.0);",
+        "wall time (max 0.3 s)",
+        3,
+        &limits,
+    );
+}
+
+#[test]
 fn deep_recursion_hits_the_call_depth_limit() {
     // Reported where the user's script makes the outermost call.
     limit("fn f(n) { f(n + 1) }\nf(0);", "call depth (max 32)", 2);
@@ -110,6 +144,36 @@ fn huge_data_hits_the_size_limits() {
         3,
     );
     limit("let a = [1];\nloop { a += a; }", "elements", 2);
+    // An array a closure builds element by element: Rhai checked only the whole result, by
+    // when `r.map(|x| s)` held ten billion elements (160 GB) and the process had aborted.
+    let big = "let r = [];\nr.pad(99990, 0);\nlet s = [];\ns.pad(99990, 0);\nlet t = \"x\";\nt.pad(9000, \"y\");\n";
+    for (call, what) in [
+        ("let a = r.map(|x| s);", "max 100000 elements"),
+        ("let a = r.map(|x, i| s);", "max 100000 elements"),
+        ("let a = r.zip(r, |x, y| s);", "max 100000 elements"),
+        ("r.for_each(|| this = s);", "max 100000 elements"),
+        ("r.for_each(|i| this = t);", "max 10000 characters"),
+        ("let a = r.map(|x| #{a: 1, b: 2});", "max 10000 entries"),
+    ] {
+        let t0 = Instant::now();
+        limit(&format!("{big}{call}\nterm(\"x\", 0.0);"), what, 7);
+        assert!(
+            t0.elapsed() < Duration::from_secs(5),
+            "{call}: {:?}",
+            t0.elapsed()
+        );
+    }
+    // Within the limits they are Rhai's own.
+    let ok = "let a = [1, 2, 3];\nlet b = a.map(|x| x * 2);\nlet c = a.map(|x, i| i);\n\
+              let d = a.zip([4, 5, 6], |x, y| x + y);\na.for_each(|i| this += i);\n\
+              if b != [2, 4, 6] || c != [0, 1, 2] || d != [5, 7, 9] || a != [1, 3, 5] { throw \"wrong\"; }\n\
+              const K = [1, 2];\nlet e = K.map(|x| x + 1);\n\
+              term(\"x\", agent(1).x.sum() * 0.0);";
+    run(ok).unwrap();
+    fails(
+        "const K = [1, 2];\nK.for_each(|| this = 0);\nterm(\"x\", agent(1).x.sum() * 0.0);",
+        &["evil.rhai:2"],
+    );
 }
 
 #[test]
@@ -284,10 +348,32 @@ fn extreme_numbers_in_errors_are_said_in_a_few_characters() {
         ("a.x.at_time(1.0e300)", "time 1e300 s is outside"),
         ("a.x.at_time(1.0e-320)", "time 1e-320 s is outside"),
         ("a.x.window(-1.0e300, 1.0)", "time -1e300 s is outside"),
+        // Rhai's own message printed the float to its last of 301 digits.
+        ("to_int(1.0e300)", "Integer overflow: to_int(1e300)"),
+        ("to_int(-1.0e300)", "Integer overflow: to_int(-1e300)"),
     ] {
         let src = format!("let a = agent(1);\nlet v = {call};\nterm(\"t\", a.x.sum());");
         let msg = fails(&src, &[needle]).to_string();
         assert!(msg.len() < 200, "{call}: {msg}");
+    }
+}
+
+#[test]
+fn a_call_no_function_takes_names_its_types_as_a_script_knows_them() {
+    // Rhai listed the Rust types it takes for a string, and `range=` for `a..=b`.
+    for (src, needle) in [
+        ("let v = \"a\" - 1;", "no function - (string, i64)"),
+        (
+            "let v = (1..=3).len();",
+            "no function len (inclusive range)",
+        ),
+        ("let v = (1..3).len();", "no function len (range)"),
+    ] {
+        let msg = fails(&format!("{src}\nterm(\"t\", agent(1).x.sum());"), &[needle]).to_string();
+        assert!(
+            !msg.contains("ImmutableString") && !msg.contains("range="),
+            "{msg}"
+        );
     }
 }
 

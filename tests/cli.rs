@@ -494,6 +494,33 @@ fn convert_moves_the_current_step() {
 }
 
 #[test]
+fn cost_on_arrays_nested_deep_ends_without_overflowing_the_stack() {
+    // Rhai compares and prints nested arrays recursively, up to 2 KB of stack a level: the
+    // main thread's 8 MB overflowed at 5,000 levels (a second of `a = [a]`) and the process
+    // aborted, exit 134, "stack overflow".
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let dir = tempfile::tempdir().unwrap();
+    let deep = dir.path().join("deep.rhai");
+    std::fs::write(
+        &deep,
+        "let a = [];\nfor i in 0..6000 { a = [a]; }\nlet b = a == a;\nlet c = [a].contains(a);\n\
+         term(\"t\", agent(1).x.mean());\n",
+    )
+    .unwrap();
+    let out = drivescript(&["cost", s(&scene), "--script", s(&deep)]);
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        out.status.success() || text.contains("limit exceeded: wall time"),
+        "{:?}: {text}",
+        out.status
+    );
+}
+
+#[test]
 fn cost_prints_terms_and_gradients() {
     let scene = samples().join("yaml/highway_cut_in.yaml");
     let out = ok(&[
@@ -1088,6 +1115,27 @@ fn train_export_writes_the_windows_of_a_checkpoint_into_a_new_directory_only() {
         std::fs::read(exp.join("check.safetensors")).unwrap(),
         before
     );
+    // Said of --export, the flag given, not of --out.
+    for (target, says) in [
+        ("scripts/scenes/x", "is inside the input directory"),
+        ("scripts/cut_in.rhai", "is not a directory"),
+    ] {
+        let err = fails(&[
+            "train",
+            "--data",
+            "scripts/scenes",
+            "--export",
+            target,
+            "--resume",
+            s(&ckpt),
+        ]);
+        assert!(
+            err.contains("the export directory (--export)")
+                && err.contains(says)
+                && !err.contains("--out"),
+            "{err}"
+        );
+    }
     // The windows are encoded for a checkpoint's network: without one there is nothing to
     // encode them for; and an export writes no checkpoint.
     // A resumed run keeps its inputs.

@@ -2364,6 +2364,20 @@ fn a_connection_reset_in_the_middle_of_the_body_is_a_reset_with_the_url_at_once(
 }
 
 #[test]
+fn a_server_that_fills_usage_with_zeros_has_cut_nothing() {
+    // Counted as a prompt cut to nothing: every reply refused, the user told to enlarge a
+    // context window.
+    let body = serde_json::json!({
+        "choices": [{"index": 0, "message": {"role": "assistant", "content": "ACCEPT"}, "finish_reason": "stop"}],
+        "usage": {"prompt_tokens": 0, "completion_tokens": 0, "total_tokens": 0}
+    });
+    let srv = Server::start(vec![Canned::raw(200, &body.to_string())]);
+    let long = [Message::new("system", "rules ".repeat(4000))];
+    let got = client(&srv.url).complete(&long).unwrap();
+    assert_eq!(got.reply, "ACCEPT");
+}
+
+#[test]
 fn a_server_that_cuts_the_prompt_to_its_window_is_an_error_naming_the_fix() {
     // Ollama's /v1 reads the last 2,048 tokens of a longer prompt and says so only in usage.
     let cut = |fingerprint: Option<&str>| {

@@ -45,12 +45,18 @@ fn detached<T: Send>(
     what: &str,
     f: impl FnOnce() -> PyResult<T> + Send,
 ) -> PyResult<T> {
-    py.detach(|| std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)))
-        .unwrap_or_else(|payload| {
-            Err(PyRuntimeError::new_err(drivescript::io::internal_error(
-                &*payload, what,
-            )))
+    // On a thread with the stack scripts need: Python's own thread overflowed comparing or
+    // printing arrays a script nested 5,000 deep, and the interpreter aborted.
+    py.detach(|| {
+        drivescript::cost::on_script_stack(|| {
+            std::panic::catch_unwind(std::panic::AssertUnwindSafe(f))
         })
+    })
+    .unwrap_or_else(|payload| {
+        Err(PyRuntimeError::new_err(drivescript::io::internal_error(
+            &*payload, what,
+        )))
+    })
 }
 
 /// [`detached`] for work that can stop early: `f` runs on a thread of its own while this one
@@ -65,11 +71,15 @@ fn detached_interruptible<T: Send>(
     let stop = AtomicBool::new(false);
     let waiter = std::thread::current();
     std::thread::scope(|s| {
-        let work = s.spawn(|| {
-            let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(&stop)));
-            waiter.unpark();
-            r
-        });
+        // The stack scripts need (a default thread's 2 MB overflowed on nested arrays).
+        let work = std::thread::Builder::new()
+            .stack_size(drivescript::cost::SCRIPT_STACK_BYTES)
+            .spawn_scoped(s, || {
+                let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(&stop)));
+                waiter.unpark();
+                r
+            })
+            .map_err(|e| PyRuntimeError::new_err(format!("{what}: cannot start a thread: {e}")))?;
         loop {
             let finished = py.detach(|| {
                 std::thread::park_timeout(std::time::Duration::from_millis(50));
@@ -140,18 +150,52 @@ fn io_error(e: IoError) -> PyErr {
     }
 }
 
+/// A value the caller gave, quoted in the message that refuses it as the CLI quotes a flag's:
+/// its repr, at most 64 characters (with its length where longer) and control characters
+/// escaped. An int Python will not write out (beyond 4,300 digits) is said by its size: its
+/// str() raised inside the message, which printed "<unprintable int object>" and an ignored
+/// exception's traceback on stderr; a 101-digit int or a 1,000-element list was quoted whole.
+fn quoted(v: &Bound<'_, PyAny>) -> String {
+    match v.repr().and_then(|r| r.extract::<String>()) {
+        Ok(r) => drivescript::io::name::shown_counted(&r),
+        Err(_) => match v
+            .call_method0("bit_length")
+            .and_then(|b| b.extract::<u64>())
+        {
+            Ok(bits) => format!("an integer of {bits} bits"),
+            Err(_) => "a value that cannot be shown".to_string(),
+        },
+    }
+}
+
+/// Refuses a path holding a NUL character, which no file's path can hold: it was read as far
+/// as the format check, which called `scene.yaml\0x` an unknown scene format and printed the
+/// NUL raw in the message.
+fn no_nul(path: &std::path::Path, arg: &str) -> PyResult<()> {
+    if path.as_os_str().as_encoded_bytes().contains(&0) {
+        return Err(PyValueError::new_err(format!(
+            "{arg} = \"{}\": a path cannot hold the NUL character (\\u{{0000}})",
+            drivescript::io::name::shown_counted(&path.to_string_lossy())
+        )));
+    }
+    Ok(())
+}
+
 fn params_from(dict: Option<&Bound<'_, PyDict>>) -> PyResult<Params> {
     let mut out = Params::default();
     for (k, v) in dict.into_iter().flat_map(|d| d.iter()) {
-        let name: String = k
-            .extract()
-            .map_err(|_| PyValueError::new_err(format!("parameter names are strings, got {k}")))?;
+        let name: String = k.extract().map_err(|_| {
+            PyValueError::new_err(format!("parameter names are strings, got {}", quoted(&k)))
+        })?;
         // bool before int: Python's True is an int too.
         let value = if v.is_instance_of::<PyBool>() {
             ParamValue::Bool(v.extract()?)
         } else if v.is_instance_of::<PyInt>() {
             ParamValue::Int(v.extract().map_err(|_| {
-                PyValueError::new_err(format!("parameter {name:?} = {v}: out of the 64-bit range"))
+                PyValueError::new_err(format!(
+                    "parameter {name:?} = {}: out of the 64-bit range",
+                    quoted(&v)
+                ))
             })?)
         } else if v.is_instance_of::<PyFloat>() {
             ParamValue::Float(v.extract()?)
@@ -159,7 +203,8 @@ fn params_from(dict: Option<&Bound<'_, PyDict>>) -> PyResult<Params> {
             ParamValue::Str(v.extract()?)
         } else {
             return Err(PyValueError::new_err(format!(
-                "parameter {name:?} = {v}: a parameter is an int, float, bool or str"
+                "parameter {name:?} = {}: a parameter is an int, float, bool or str",
+                quoted(&v)
             )));
         };
         // The library's checks, as `--param` gets them: a NaN limit, a name no script can
@@ -207,10 +252,36 @@ fn floats<'py>(
     what: &str,
     obj: &Bound<'py, PyAny>,
 ) -> PyResult<PyArrayLikeDyn<'py, f64, AllowTypeChange>> {
-    let arr = obj.py().import("numpy")?.call_method1("asarray", (obj,))?;
+    let py = obj.py();
+    let np = py.import("numpy")?;
+    let arr = np.call_method1("asarray", (obj,))?;
     let dtype = arr.getattr("dtype")?;
     let kind: String = dtype.getattr("kind")?.extract()?;
-    // 'O' (Python objects) converts element by element and raises on anything not a number.
+    // 'O' (Python objects, a list mixing types) converts element by element with float(),
+    // which took the strings "1.0" and b"1.0", True and None for positions (None as NaN)
+    // that an array of strings, booleans or no values is refused as: each must be a number.
+    if kind == "O" {
+        let real = py.import("numbers")?.getattr("Real")?;
+        let decimal = py.import("decimal")?.getattr("Decimal")?;
+        let np_bool = np.getattr("bool_")?;
+        for (i, x) in arr.call_method0("ravel")?.try_iter()?.enumerate() {
+            let x = x?;
+            let number = !x.is_instance_of::<PyBool>()
+                && !x.is_instance(&np_bool)?
+                && (x.is_instance(&real)? || x.is_instance(&decimal)?);
+            if !number {
+                let at: Vec<usize> = np
+                    .call_method1("unravel_index", (i, arr.getattr("shape")?))?
+                    .extract()?;
+                return Err(PyTypeError::new_err(format!(
+                    "{what}: the element at {at:?} is {} of type {}, but positions and \
+                     headings are real numbers (float or int; NaN where unobserved)",
+                    quoted(&x),
+                    x.get_type().name()?
+                )));
+            }
+        }
+    }
     if !matches!(kind.as_str(), "f" | "i" | "u" | "O") {
         return Err(PyTypeError::new_err(format!(
             "{what}: an array of {} ({}), but positions and headings are real numbers \
@@ -379,6 +450,7 @@ impl Scene {
         index: usize,
         commonroad_current_step: Option<usize>,
     ) -> PyResult<Self> {
+        no_nul(&path, "path")?;
         let opts = LoadOptions {
             commonroad_current_step: commonroad_current_step
                 .unwrap_or(LoadOptions::default().commonroad_current_step),
@@ -591,6 +663,7 @@ impl Scene {
     /// future to `path`, atomically, in the rollout JSON format that `drivescript cost
     /// --rollout`, `eval --rollouts` and `render` read.
     fn write_rollout(&self, py: Python<'_>, path: PathBuf, traj: Bound<'_, PyAny>) -> PyResult<()> {
+        no_nul(&path, "path")?;
         let (_, mut t) = trajectories(self, &traj, false)?;
         let t = t.remove(0);
         let inner = self.inner.clone();
@@ -768,6 +841,7 @@ impl CostScript {
         path: PathBuf,
         params: Option<&Bound<'_, PyDict>>,
     ) -> PyResult<Self> {
+        no_nul(&path, "path")?;
         let params = params_from(params)?;
         ScriptSpec::from_file(&path, params)
             .map(Self::with_spec)
@@ -880,6 +954,7 @@ impl Sampler {
     /// Loads the checkpoint in `checkpoint_dir`.
     #[new]
     fn new(py: Python<'_>, checkpoint_dir: PathBuf) -> PyResult<Self> {
+        no_nul(&checkpoint_dir, "checkpoint_dir")?;
         detached(py, "checkpoint reader", || {
             drivescript::train::load(&checkpoint_dir)
                 .map(|trained| Self { trained })

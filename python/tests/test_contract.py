@@ -295,6 +295,26 @@ def test_complex_boolean_and_string_arrays_are_type_errors_not_converted(ds, sce
             ds.check("cut_in", scene, bad, {"cutter": 401, "victim": 405})
 
 
+def test_an_object_array_holding_what_is_not_a_number_is_a_type_error(ds, scene, cut_in):
+    # An object array (a list mixing types) converted element by element with float(): the
+    # strings "1.0" and b"1.0" and True were taken for positions, None for NaN, where the
+    # same values as an array of strings or booleans are refused.
+    traj = scene.log_future(40)
+    for bad, what in [("1.0", "str"), (b"1.0", "bytes"), (True, "bool"), (None, "NoneType")]:
+        o = traj.astype(object)
+        o[1, 0, 0] = bad
+        with pytest.raises(TypeError, match=rf"traj: the element at \[1, 0, 0\] is .* of type {what}"):
+            cut_in.evaluate(scene, o)
+        with pytest.raises(TypeError, match=rf"trajs: the element at \[0, 1, 0, 0\] is .* of type {what}"):
+            cut_in.evaluate_batch(scene, o[None])
+    # Numbers of any kind still convert.
+    import fractions
+    o = traj.astype(object)
+    o[1, 0, 0] = fractions.Fraction(o[1, 0, 0]) if not np.isnan(traj[1, 0, 0]) else np.nan
+    o[1, 0, 1] = np.float32(o[1, 0, 1])
+    assert cut_in.evaluate(scene, o).total == pytest.approx(cut_in.evaluate(scene, traj).total)
+
+
 def test_script_errors_carry_file_line_and_column(ds, scene):
     with pytest.raises(ds.ScriptError) as e:
         ds.CostScript.from_source("let x = ;\n", name="broken.rhai")
@@ -316,6 +336,36 @@ def test_limits_and_sandbox_are_the_cli_s(ds, scene):
                 scene, scene.log_future(10)
             )
     assert ds.limits()["max_operations"] == 2_000_000
+
+
+def test_arrays_nested_deep_do_not_overflow_a_thread_s_stack(ds):
+    # Rhai compares, prints and size-checks nested arrays recursively: evaluate() on Python's
+    # own thread overflowed its 8 MB comparing arrays 6,000 deep (a second of `a = [a]`), and
+    # evaluate_batch() on rayon's 2 MB threads at 10,000 levels: the interpreter aborted
+    # ("stack overflow"). Run apart, so that an abort fails this test alone.
+    code = (
+        "import sys, drivescript as ds\n"
+        "scene = ds.Scene.load(sys.argv[1])\n"
+        "def script(n, op):\n"
+        "    return ds.CostScript.from_source('let a = [];\\nfor i in 0..' + str(n) + "
+        "' { a = [a]; }\\n' + op + '\\nterm(\"t\", agent(401).x.mean());\\n', name='deep.rhai')\n"
+        "for call in [lambda: script(6000, 'let b = a == a;').evaluate(scene, scene.log_future(10)),\n"
+        "             lambda: script(12000, '').evaluate_batch(scene, scene.log_future(10)[None])]:\n"
+        "    try:\n"
+        "        call()\n"
+        "        print('evaluated')\n"
+        "    except ds.ScriptError as e:\n"
+        "        print(e)\n"
+    )
+    import os
+    import sys
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
+    out = subprocess.run(
+        [sys.executable, "-c", code, str(SCENE)], capture_output=True, text=True, env=env, timeout=300
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    lines = out.stdout.split("\n")[:2]
+    assert all(l == "evaluated" or "limit exceeded: wall time" in l for l in lines), out.stdout
 
 
 def test_a_constant_term_fails_validation_as_in_the_cli(ds, scene):
@@ -345,6 +395,38 @@ def test_parameters_are_checked_as_the_cli_checks_param(ds, scene):
     # A name the checker does not read was dropped, the verdict taken for the default.
     with pytest.raises(ValueError, match='parameter "gapp": the checker does not read it'):
         ds.check("follow", scene, scene.log_future(40), {"leader": 401, "follower": 405, "gapp": 30})
+
+
+def test_a_refused_parameter_value_is_quoted_cut_as_the_cli_quotes_one(ds, capfd):
+    # Quoted whole (a 101-digit int, a 1,000-element list); an int beyond Python's 4,300
+    # digits for str() said "<unprintable int object>" and printed an ignored exception's
+    # traceback on stderr.
+    for value, says in [
+        (10**100, "1" + "0" * 63 + "… (101 characters)"),
+        (10**5000, "an integer of 16610 bits"),
+        ([1] * 1000, "(3000 characters)"),
+    ]:
+        with pytest.raises(ValueError) as e:
+            ds.CostScript.from_file(CUT_IN, params={"cutter": value, "victim": 405})
+        assert says in str(e.value) and len(str(e.value)) < 200, str(e.value)
+    with pytest.raises(ValueError, match="parameter names are strings, got 1$"):
+        ds.CostScript.from_file(CUT_IN, params={1: 2})
+    assert "Exception ignored" not in capfd.readouterr().err
+
+
+def test_a_path_holding_nul_is_refused_as_such(ds, scene, tmp_path):
+    # Read as far as the format check: "unknown scene format", the NUL printed raw.
+    bad = str(ROOT / "data/samples/yaml/highway_cut_in.yaml") + "\0x"
+    for call in [
+        lambda: ds.Scene.load(bad),
+        lambda: ds.CostScript.from_file(bad),
+        lambda: ds.Sampler(bad),
+        lambda: scene.write_rollout(str(tmp_path / "r.json") + "\0", scene.log_future(10)),
+    ]:
+        with pytest.raises(ValueError, match=r"cannot hold the NUL character") as e:
+            call()
+        assert "\0" not in str(e.value) and "\\u{0000}" in str(e.value), str(e.value)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_nothing_to_evaluate_is_a_value_error_not_a_panic(ds, scene, cut_in, tmp_path):

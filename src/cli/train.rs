@@ -5,8 +5,8 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result};
 use drivescript::train::{
-    check_out_dir, load_for_training, train_from, ComponentScale, Corpus, Holdout, SplitBy,
-    TrainConfig, WindowSource, WindowStore,
+    check_export_dir, check_out_dir, load_for_training, train_from, ComponentScale, Corpus,
+    Holdout, SplitBy, TrainConfig, WindowSource, WindowStore,
 };
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -355,7 +355,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
 
 /// `train --export DIR`: the windows of the corpora, encoded for the --resume checkpoint.
 fn export_run(args: &Args, dir: &std::path::Path, corpora: &[Corpus]) -> Result<ExitCode> {
-    check_out_dir(dir, corpora)?;
+    check_export_dir(dir, corpora)?;
     let from = args
         .resume
         .as_ref()

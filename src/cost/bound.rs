@@ -27,6 +27,41 @@ const PER_THREAD: usize = 16;
 
 static NEXT_ID: AtomicU64 = AtomicU64::new(1);
 
+/// The stack of a thread that evaluates scripts. Rhai walks the arrays and maps a script
+/// builds recursively, with no limit on their depth but the array limit's (each level is an
+/// element: 100,000 levels by default): to check their sizes, copy and drop them (about 260
+/// bytes a level), and to compare and print them (`a == b`, `contains`, `index_of`, `dedup`,
+/// `print`: up to 2 KB a level). A main thread's 8 MB overflowed at 5,000 levels, which
+/// `a = [a]` in a loop reaches in a second, and a thread of rayon's pool's 2 MB at 1,000: the
+/// process aborted ("stack overflow"), Python's interpreter with it. 256 MB holds the deepest
+/// array the default limits allow; it is address space, used only as deep as a script goes.
+pub const SCRIPT_STACK_BYTES: usize = 256 << 20;
+
+/// Runs `f` on a thread of the pool that evaluates batches, which has the stack scripts need
+/// ([`SCRIPT_STACK_BYTES`]), and returns what it returns: for a host whose own threads have
+/// less (Python's), wherever a script runs. The pool's threads live on, so the scripts
+/// they compile are kept for the next call.
+pub fn on_script_stack<R: Send>(f: impl FnOnce() -> R + Send) -> R {
+    match pool() {
+        Some(p) => p.install(f),
+        None => f(),
+    }
+}
+
+/// The pool that evaluates batches: rayon's own, but with [`SCRIPT_STACK_BYTES`] of stack per
+/// thread (`None` where it cannot be made: the global pool is used).
+fn pool() -> Option<&'static rayon::ThreadPool> {
+    static POOL: std::sync::OnceLock<Option<rayon::ThreadPool>> = std::sync::OnceLock::new();
+    POOL.get_or_init(|| {
+        rayon::ThreadPoolBuilder::new()
+            .stack_size(SCRIPT_STACK_BYTES)
+            .thread_name(|i| format!("drivescript-script-{i}"))
+            .build()
+            .ok()
+    })
+    .as_ref()
+}
+
 thread_local! {
     static COMPILED: RefCell<Vec<(u64, Rc<CostScript>)>> = const { RefCell::new(Vec::new()) };
 }
@@ -108,21 +143,27 @@ impl BoundScript {
         stop: &AtomicBool,
     ) -> Option<Result<Vec<CostReport>, (usize, CostError)>> {
         let failed = std::sync::atomic::AtomicUsize::new(usize::MAX);
-        let results: Vec<Option<Result<CostReport, CostError>>> = trajs
-            .par_iter()
-            .enumerate()
-            .map(|(k, t)| {
-                // An earlier item has failed: its error is the one reported.
-                if k > failed.load(Ordering::Relaxed) || stop.load(Ordering::Relaxed) {
-                    return None;
-                }
-                let r = self.evaluate(t);
-                if r.is_err() {
-                    failed.fetch_min(k, Ordering::Relaxed);
-                }
-                Some(r)
-            })
-            .collect();
+        let run = || -> Vec<Option<Result<CostReport, CostError>>> {
+            trajs
+                .par_iter()
+                .enumerate()
+                .map(|(k, t)| {
+                    // An earlier item has failed: its error is the one reported.
+                    if k > failed.load(Ordering::Relaxed) || stop.load(Ordering::Relaxed) {
+                        return None;
+                    }
+                    let r = self.evaluate(t);
+                    if r.is_err() {
+                        failed.fetch_min(k, Ordering::Relaxed);
+                    }
+                    Some(r)
+                })
+                .collect()
+        };
+        let results = match pool() {
+            Some(p) => p.install(run),
+            None => run(),
+        };
         let mut out = Vec::with_capacity(results.len());
         for (k, r) in results.into_iter().enumerate() {
             match r {

@@ -19,7 +19,7 @@ mod spec;
 pub mod stdlib;
 mod trajectory;
 
-pub use bound::BoundScript;
+pub use bound::{on_script_stack, BoundScript, SCRIPT_STACK_BYTES};
 pub use dual::{Dual, Grad};
 pub use engine::{
     check_params, module_functions, read_script, reference, reference_markdown,

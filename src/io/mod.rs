@@ -992,6 +992,11 @@ pub(crate) fn plain_types(message: &str) -> String {
         ("f64", "a number"),
         ("bool", "true or false"),
     ];
+    // A number beyond 64 bits is "integer `18446744073709551616` as u128": the type serde
+    // read it as, which says nothing to a user.
+    let message = &message
+        .replace("` as u128, expected ", "`, expected ")
+        .replace("` as i128, expected ", "`, expected ");
     let Some(at) = message.rfind("expected ") else {
         return message.to_string();
     };
@@ -1511,6 +1516,15 @@ mod tests {
             (
                 "invalid type: string \"u\", expected u8s at line 2 column 15",
                 "invalid type: string \"u\", expected u8s",
+            ),
+            // A whole number beyond 64 bits: serde says the Rust type it read it as.
+            (
+                "invalid type: integer `18446744073709551616` as u128, expected usize at line 2 column 15",
+                "invalid type: integer `18446744073709551616`, expected a whole number, 0 or more",
+            ),
+            (
+                "invalid type: integer `-9223372036854775809` as i128, expected u32 at line 2 column 15",
+                "invalid type: integer `-9223372036854775809`, expected a whole number from 0 to 4294967295",
             ),
         ] {
             assert_eq!(without_position(serde, 2, 15), want);

@@ -108,14 +108,20 @@ pub fn window_for(prompt: u64, reply: u64) -> u64 {
 }
 
 /// Whether the server saw the whole prompt: `reported` prompt tokens against the `estimate`
-/// sent. `None` when it did, else the message saying it was cut and how to fix it.
+/// sent. `None` when it did, else the message saying it was cut and how to fix it. A count of
+/// 0 is a server that does not count (proxies and servers that fill `usage` with zeros): no
+/// window holds no token of a prompt, and `ask` failed on every reply of such a server, telling
+/// the user to enlarge a context window that was not the matter.
 pub fn check_prompt_tokens(
     estimate: u64,
     reported: u64,
     reply_tokens: u64,
     kind: ServerKind,
 ) -> Option<String> {
-    if estimate < MIN_CHECKED_TOKENS || (reported as f64) >= TRUNCATED_SHARE * estimate as f64 {
+    if reported == 0
+        || estimate < MIN_CHECKED_TOKENS
+        || (reported as f64) >= TRUNCATED_SHARE * estimate as f64
+    {
         return None;
     }
     Some(format!(
@@ -161,6 +167,11 @@ mod tests {
             None
         );
         assert_eq!(check_prompt_tokens(10, 1, 4096, ServerKind::Ollama), None);
+        // A server that fills usage with zeros counts nothing: it cut nothing either.
+        assert_eq!(
+            check_prompt_tokens(7000, 0, 4096, ServerKind::Unknown),
+            None
+        );
         let m = check_prompt_tokens(7000, 2048, 4096, ServerKind::Ollama).unwrap();
         assert!(
             m.contains("read 2048 tokens of a prompt of about 7000")

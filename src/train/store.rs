@@ -331,6 +331,26 @@ fn among_inputs(dir: &Path, corpora: &[Corpus]) -> Option<String> {
     })
 }
 
+/// [`check_out_dir`] for `train --export DIR`, said of `--export`: the checkpoint's checks
+/// named `--out`, a flag the command was not given (`train --export data/x` was told "the
+/// checkpoint directory (--out) is inside the input directory data"). What the export may
+/// replace it checks itself: nothing (`train::export` writes into a new or empty directory).
+pub fn check_export_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError> {
+    let refuse = |why: String| {
+        Err(TrainError::Data(format!(
+            "{}: the export directory (--export) {why}",
+            dir.display()
+        )))
+    };
+    if let Some(why) = among_inputs(dir, corpora) {
+        return refuse(why);
+    }
+    match std::fs::metadata(dir) {
+        Ok(m) if !m.is_dir() => refuse("is not a directory: name a new or empty directory".into()),
+        _ => Ok(()),
+    }
+}
+
 /// Refuses a checkpoint directory (`train --out`) that is, or is inside, a directory of
 /// `corpora`: the checkpoint's files would go among the scenes it is trained on, the same
 /// mistake [`check_cache_dir`] refuses for the window cache. Also refused: a path that is not
