@@ -12,6 +12,7 @@ PyTorch port's Heun sampler (`denoiser.py`, which matches drivescript's to 1e-6)
 where lanes are lost between the log and pure noise.
 
     python3 benches/torch/lanes.py EXPORT_DIR CHECKPOINT... [--file train-00010.safetensors]
+        [--from-log] [--from-noise SIGMA...]
 """
 
 import argparse
@@ -104,6 +105,10 @@ def main():
     ap.add_argument("--far", type=float, default=4.0, help="metres from every lane")
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--from-log", action="store_true")
+    ap.add_argument("--from-noise", type=float, nargs="*", default=[], metavar="SIGMA",
+                    help="also sample from pure noise of these levels, the schedule cut to them: "
+                         "whether the levels above, where training rarely draws its noise, "
+                         "are where the lanes are lost")
     a = ap.parse_args()
     win = load_file(os.path.join(a.data, a.file))
     win["lane_conn"] = win["lane_conn"].long()
@@ -143,6 +148,12 @@ def main():
                 out = model.sample(ctx, x0, sg)
             name = "sample" if start is None else f"recorded + noise {sg[0]:.2f}"
             row(name, meta, out, adv)
+        for s in a.from_noise:
+            sg = [x for x in sig if x <= s]
+            torch.manual_seed(a.seed + 4)
+            with torch.no_grad():
+                out = model.sample(ctx, torch.randn(target.shape) * sg[0], sg)
+            row(f"noise alone from {sg[0]:.2f}", meta, out, adv)
 
 
 if __name__ == "__main__":
