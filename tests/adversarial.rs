@@ -104,6 +104,29 @@ fn closures_a_native_function_calls_count_against_the_limits() {
     );
 }
 
+/// Rhai checks an assigned item against the size limits, not the array it goes into: 99,990
+/// copies of a 99,990-element array, each assignment within every limit, held 3.2 GB in the
+/// 5 s before the wall time stopped the script (issue 32). The wall time is long here so that
+/// only the growth can stop it.
+#[cfg(target_os = "linux")]
+#[test]
+fn arrays_of_copies_stop_at_the_memory_growth_limit() {
+    let limits = Limits {
+        wall_time: Duration::from_secs(120),
+        max_memory_growth: 256 << 20,
+        ..Limits::default()
+    };
+    let t0 = std::time::Instant::now();
+    limit_with(
+        "let s = [];\ns.pad(99990, 0);\nlet a = [];\na.pad(99990, 0);\n\
+         for i in 0..99990 { a[i] = s; }\nterm(\"x\", 0.0);",
+        "memory (the process grew by over 256 MB in this evaluation",
+        5,
+        &limits,
+    );
+    assert!(t0.elapsed() < Duration::from_secs(60), "{:?}", t0.elapsed());
+}
+
 #[test]
 fn deep_recursion_hits_the_call_depth_limit() {
     // Reported where the user's script makes the outermost call.

@@ -1187,6 +1187,7 @@ fn limits<'py>(py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
     d.set_item("wall_time", l.wall_time.as_secs_f64())?;
     d.set_item("max_source_bytes", l.max_source_bytes)?;
     d.set_item("max_series_bytes", l.max_series_bytes)?;
+    d.set_item("max_memory_growth", l.max_memory_growth)?;
     Ok(d)
 }
 

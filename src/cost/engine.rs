@@ -65,6 +65,11 @@ pub struct Limits {
     /// Bytes of series (values and gradients) alive at once, checked as the script runs: the
     /// wall clock alone let a nine-line script hold gigabytes and abort the process.
     pub max_series_bytes: usize,
+    /// Bytes the process may grow by during one evaluation, read from the operating system
+    /// every few milliseconds of an evaluation that runs that long (Linux; not checked
+    /// elsewhere): arrays and maps of copies (`a[i] = s` of a large `s`) hold more than the
+    /// size limits, which count an assigned item alone, let through.
+    pub max_memory_growth: usize,
 }
 
 impl Default for Limits {
@@ -86,6 +91,8 @@ impl Default for Limits {
             max_source_bytes: MAX_SOURCE_BYTES,
             // The hand-written scripts hold a few MB on the largest scenes.
             max_series_bytes: 512 << 20,
+            // Above the series limit, which the growth includes.
+            max_memory_growth: 1 << 30,
         }
     }
 }
@@ -466,6 +473,9 @@ pub(crate) const MEMORY_MARK: &str = "drivescript:memory";
 /// operations ever came: `r.map(|x| s.map(|y| y + 1).len())` over two 100,000-element arrays
 /// ran for hours past the 5 s wall time.
 pub(crate) const OPERATIONS_MARK: &str = "drivescript:operations";
+/// What `on_progress` stops a script with when the process grows past
+/// [`Limits::max_memory_growth`] during one evaluation.
+pub(crate) const GROWTH_MARK: &str = "drivescript:growth";
 
 /// A compiled cost script bound to a scene.
 pub struct CostScript {
@@ -555,6 +565,10 @@ fn build_engine(
         .set_max_modules(limits.max_modules);
     let (t0, wall, memory) = (started.clone(), limits.wall_time, limits.max_series_bytes);
     let (count, max_ops) = (ops.clone(), limits.max_operations);
+    let (watch, growth) = (
+        super::resident::GrowthWatch::default(),
+        limits.max_memory_growth,
+    );
     // Every operation is counted here, not by the number Rhai passes: see OPERATIONS_MARK.
     e.on_progress(move |_| {
         let ops = count.get() + 1;
@@ -568,6 +582,8 @@ fn build_engine(
             Some(Dynamic::from(WALL_TIME_MARK.to_string()))
         } else if super::series::live_series_bytes() > memory {
             Some(Dynamic::from(MEMORY_MARK.to_string()))
+        } else if watch.over(t0.get(), ops, growth) {
+            Some(Dynamic::from(GROWTH_MARK.to_string()))
         } else {
             None
         }
@@ -1624,6 +1640,14 @@ impl CostScript {
             EvalAltResult::ErrorTerminated(tok, _) if tok.to_string() == WALL_TIME_MARK => {
                 limit(format!("wall time (max {:.1} s)", l.wall_time.as_secs_f64()))
             }
+            EvalAltResult::ErrorTerminated(tok, _) if tok.to_string() == GROWTH_MARK => limit(
+                format!(
+                    "memory (the process grew by over {} MB in this evaluation; arrays or maps \
+                     of copies, e.g. `a[i] = s` of a large `s`, hold more than the size limits \
+                     count)",
+                    l.max_memory_growth >> 20
+                ),
+            ),
             EvalAltResult::ErrorTerminated(tok, _) if tok.to_string() == MEMORY_MARK => limit(
                 format!(
                     "memory (max {} MB of series held at once; keep fewer series alive, e.g. \

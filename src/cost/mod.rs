@@ -14,6 +14,7 @@ mod params;
 pub mod probe;
 mod realism;
 mod report;
+mod resident;
 mod series;
 mod spec;
 pub mod stdlib;
