@@ -1826,6 +1826,16 @@ fn dataset_window_flags_are_checked() {
         err.contains("0 complete agent futures of 1000 steps: PCA needs at least 50"),
         "{err}"
     );
+    // A folder with no scene file said the same, as if its scenes were too short.
+    let dir = tempfile::tempdir().unwrap();
+    let err = fails(&["dataset", s(dir.path())]);
+    assert!(
+        err.contains(&format!(
+            "{}: no scene file in it (supported: ",
+            s(dir.path())
+        )),
+        "{err}"
+    );
 }
 
 #[test]

@@ -38,7 +38,16 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let (mut scenes, mut used, mut wins, mut agents, mut lanes) = (0, 0, 0, 0usize, 0usize);
     let mut futures = Vec::new();
     for root in &args.scenes {
-        for src in discover(root)? {
+        let files = discover(root)?;
+        // An empty folder was reported as "0 complete agent futures ... PCA needs at least 50".
+        if files.is_empty() {
+            anyhow::bail!(
+                "{}: no scene file in it (supported: {})",
+                root.display(),
+                drivescript::io::SUPPORTED_FORMATS
+            );
+        }
+        for src in files {
             for s in load_scenes(&src, &LoadOptions::default())? {
                 scenes += 1;
                 let w = windows(&s, &cfg);
