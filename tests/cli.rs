@@ -1152,6 +1152,37 @@ fn train_export_writes_the_windows_of_a_checkpoint_into_a_new_directory_only() {
         "--nearest-lane-pose",
     ]);
     assert!(err.contains("without the lanes' nearest points"), "{err}");
+    // And its training noise levels; a new run's are checked before any data is read.
+    let err = fails(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--out",
+        s(&ckpt),
+        "--resume",
+        s(&ckpt),
+        "--steps",
+        "4",
+        "--p-mean=-0.4",
+    ]);
+    assert!(
+        err.contains("--p-mean -0.4: ")
+            && err.contains("drew its noise levels with p_mean -1.2; a resumed run keeps them"),
+        "{err}"
+    );
+    let err = fails(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--out",
+        s(&dir.path().join("fresh")),
+        "--p-std",
+        "0",
+    ]);
+    assert!(
+        err.contains("--p-std: edm.p_std = 0: must be positive"),
+        "{err}"
+    );
     let usage = |args: &[&str]| {
         let out = drivescript(args);
         assert_eq!(out.status.code(), Some(2), "{args:?}");
@@ -3930,6 +3961,7 @@ fn float_flags_beyond_the_largest_float_are_refused_as_written() {
         train("--lr=-1e400"),
         train("--ema-half-life=-1e400"),
         train("--scale-cap=-1e400"),
+        train("--p-mean=-1e400"),
         vec!["bench", "io", "--seconds=-1e400"],
     ];
     for args in cases {

@@ -88,6 +88,15 @@ pub struct Args {
     /// A resumed run keeps its checkpoint's.
     #[arg(long, value_parser = super::ask::float)]
     scale_cap: Option<f64>,
+    /// A new run draws its training noise levels with ln σ ~ N(P_MEAN, P_STD²) (EDM's P_mean;
+    /// default -1.2). Higher trains the levels where the sampler places a car on its route more
+    /// often; the validation loss is drawn the same way, so it compares only runs of one
+    /// P_MEAN and P_STD. A resumed run keeps its checkpoint's.
+    #[arg(long, value_parser = super::ask::float, allow_negative_numbers = true)]
+    p_mean: Option<f64>,
+    /// EDM's P_std for a new run (default 1.2; see --p-mean).
+    #[arg(long, value_parser = super::ask::float)]
+    p_std: Option<f64>,
     /// A new run gives every agent-lane pair the pose of the lane's point nearest to the agent
     /// besides its first point's (`nearest_lane_pose` in the checkpoint's window; a resumed run
     /// keeps its checkpoint's).
@@ -137,6 +146,8 @@ pub fn run(args: Args) -> Result<ExitCode> {
         scale_cap: args.scale_cap.unwrap_or(base.scale_cap),
         ..base
     };
+    cfg.edm.p_mean = args.p_mean.unwrap_or(cfg.edm.p_mean);
+    cfg.edm.p_std = args.p_std.unwrap_or(cfg.edm.p_std);
     if args.nearest_lane_pose {
         cfg.window.nearest_lane_pose = true;
         cfg.model.agent_lane_features = cfg.window.agent_lane_features();
@@ -210,6 +221,20 @@ pub fn run(args: Args) -> Result<ExitCode> {
                      resumed run keeps its inputs",
                     dir.display()
                 );
+            }
+            for (flag, given, kept) in [
+                ("--p-mean", args.p_mean, r.meta.config.edm.p_mean),
+                ("--p-std", args.p_std, r.meta.config.edm.p_std),
+            ] {
+                if let Some(v) = given.filter(|v| *v != kept) {
+                    anyhow::bail!(
+                        "{flag} {}: {} drew its noise levels with {} {}; a resumed run keeps them",
+                        drivescript::geom::num(v),
+                        dir.display(),
+                        flag.trim_start_matches("--").replace('-', "_"),
+                        drivescript::geom::num(kept)
+                    );
+                }
             }
             if args.scale_cap.is_some_and(|c| c != r.meta.config.scale_cap) {
                 anyhow::bail!(

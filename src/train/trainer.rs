@@ -208,8 +208,10 @@ fn positive(name: &str, v: f64) -> Result<(), String> {
 /// The `drivescript train` flag that sets each [`TrainConfig`] field a user can give, by the
 /// field's name as [`TrainConfig::validate`] starts its message with it: the message names the
 /// field ("eval_every = 0"), which the user never typed.
-pub const TRAIN_FLAGS: [(&str, &str); 7] = [
+pub const TRAIN_FLAGS: [(&str, &str); 9] = [
     ("steps", "--steps"),
+    ("edm.p_mean", "--p-mean"),
+    ("edm.p_std", "--p-std"),
     ("batch", "--batch"),
     ("lr", "--lr"),
     ("eval_every", "--eval-every"),
