@@ -559,6 +559,17 @@ fn yaml_errors_name_line_or_agent() {
         "{err}"
     );
 
+    // A motion field far out of range was "step 0: implausible position (-5e307, 1.8)".
+    let f = copy_to(dir.path(), &src, "b2.yaml");
+    edit(&f, |t| {
+        t.replacen("speed: 26", "speed: 26\n    accel: -1e308", 1)
+    });
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("agents[1] (id 2): accel is -1e308 m/s²: must be within ±50 m/s²"),
+        "{err}"
+    );
+
     let f = copy_to(dir.path(), &src, "c.yaml");
     edit(&f, |t| t.replacen("ego: 1", "ego: 77", 1));
     let err = fails(&["inspect", s(&f)]);
@@ -1120,22 +1131,23 @@ fn implausible_coordinates_speeds_and_sizes_are_refused_at_read_time() {
         "{err}"
     );
     // Agents: a speed of 1e300 m/s (the YAML scene drives it back over its history too) and
-    // of 1e6 m/s, and a 1e30 m car. Huge numbers print in exponent form.
+    // of 1e6 m/s, named as the field that gives them (the scene's check said "implausible
+    // position (-1e300, 5.4)" and "implausible speed"; rollouts keep that check, below), and a
+    // 1e30 m car. Huge numbers print in exponent form.
     let src = samples().join("yaml/highway_cut_in.yaml");
     let f = copy_to(dir.path(), &src, "fast.yaml");
     edit(&f, |t| t.replacen("speed: 24", "speed: 1.0e300", 1));
     let err = fails(&["inspect", s(&f)]);
     assert!(
         err.contains("fast.yaml")
-            && err.contains("agent 1 step 0: implausible position (-1e300, 5.4)"),
+            && err.contains("agents[0] (id 1): speed is 1e300 m/s: must be within ±100 m/s"),
         "{err}"
     );
     let f = copy_to(dir.path(), &src, "faster.yaml");
     edit(&f, |t| t.replacen("speed: 24", "speed: 1.0e6", 1));
     let err = fails(&["inspect", s(&f)]);
     assert!(
-        err.contains("agent 1 step 0: implausible speed 1000000 m/s (at most 100000)")
-            && err.matches("implausible").count() == 1,
+        err.contains("agents[0] (id 1): speed is 1000000 m/s: must be within ±100 m/s"),
         "{err}"
     );
     let f = copy_to(dir.path(), &src, "big.yaml");

@@ -282,6 +282,13 @@ pub struct YamlAgent {
     pub is_static: bool,
 }
 
+/// The most a generated agent's `speed` may be, m/s (360 km/h).
+const MAX_YAML_SPEED: f64 = 100.0;
+/// The most a generated agent's `accel` may be, m/s² (5 g).
+const MAX_YAML_ACCEL: f64 = 50.0;
+/// The most a generated agent's `s` or `d` may be, m: ten times the longest road.
+const MAX_MOTION_COORD: f64 = 1e6;
+
 fn is_zero_f64(v: &f64) -> bool {
     *v == 0.0
 }
@@ -616,6 +623,25 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
                     if ignored.len() == 1 { "it" } else { "them" }
                 ),
             ));
+        }
+        // A motion field far out of range came out as "step 0: implausible position
+        // (-5e307, 1.8)", naming neither the field nor what it may be.
+        for (field, v, max, unit) in [
+            ("s", a.s, MAX_MOTION_COORD, "m"),
+            ("d", a.d, MAX_MOTION_COORD, "m"),
+            ("speed", a.speed, MAX_YAML_SPEED, "m/s"),
+            ("accel", a.accel, MAX_YAML_ACCEL, "m/s²"),
+        ] {
+            if !(v.abs() <= max) {
+                return Err(bad(
+                    loc,
+                    format!(
+                        "{field} is {} {unit}: must be within ±{} {unit}",
+                        crate::geom::num(v),
+                        crate::geom::num(max)
+                    ),
+                ));
+            }
         }
         let mut states = if let Some(explicit) = &a.states {
             if explicit.len() != y.steps {
