@@ -7,7 +7,11 @@ future: the largest distance, over its 80 future points, to the nearest lane cen
 window (the polylines of the window's own encoding, 20 points a lane). It prints the fraction of agents
 whose future goes more than --far metres from every lane point and the median of that largest
 distance, for the recorded futures (decoded from their PCA coefficients) and for samples of the
-PyTorch port's Heun sampler (`denoiser.py`, which matches drivescript's to 1e-6). With
+PyTorch port's Heun sampler (`denoiser.py`, which matches drivescript's to 1e-6). The nearest
+lane's distance saturates near half a lane width (past it the next lane's centre line is
+nearer), so it also prints the fraction of agents that come more than 1.75 m from every lane
+their recorded future follows (within 1 m of it), and that median: a sample that takes another
+legal route counts as off its route there. With
 `--from-log`, it also starts the sampler from the recorded future plus noise of each level:
 where lanes are lost between the log and pure noise.
 
@@ -76,10 +80,10 @@ def lanes_in_agent_frames(ctx):
     return lx + c * p[..., 0] - s * p[..., 1], ly + s * p[..., 0] + c * p[..., 1]
 
 
-def stray(traj, lanes, lane_mask, full):
-    """Per counted agent, the largest distance of a future point to the nearest lane: to the
+def per_lane(traj, lanes, lane_mask):
+    """Per window, the distance of every future point to every lane `[N, F, M]` (to the
     segments between consecutive lane points, since a long lane's 20 points lie tens of metres
-    apart. One window at a time, to bound memory."""
+    apart; infinite for padding). One window at a time, to bound memory."""
     lx, ly = lanes
     out = []
     for i in range(traj.shape[0]):
@@ -87,10 +91,20 @@ def stray(traj, lanes, lane_mask, full):
         dx, dy = lx[i][:, None, :, 1:] - ax, ly[i][:, None, :, 1:] - ay
         px, py = traj[i][..., 0][..., None, None], traj[i][..., 1][..., None, None]  # [N, F, 1, 1]
         t = (((px - ax) * dx + (py - ay) * dy) / (dx * dx + dy * dy).clamp(min=1e-9)).clamp(0, 1)
-        d = ((px - ax - t * dx) ** 2 + (py - ay - t * dy) ** 2).sqrt()  # [N, F, M, P-1]
-        keep = lane_mask[i][None, None, :, None] > 0
-        d = torch.where(keep, d, torch.full_like(d, float("inf")))
-        out.append(d.flatten(-2).min(-1).values.max(-1).values)  # [N]
+        d = ((px - ax - t * dx) ** 2 + (py - ay - t * dy) ** 2).sqrt().min(-1).values  # [N, F, M]
+        keep = lane_mask[i][None, None, :] > 0
+        out.append(torch.where(keep, d, torch.full_like(d, float("inf"))))
+    return out
+
+
+def stray(d, full, route=None):
+    """Per counted agent, the largest distance of a future point to the nearest lane, or to
+    the nearest of its route's lanes (`route`, per window `[N, M]`)."""
+    out = []
+    for i, di in enumerate(d):
+        if route is not None:
+            di = torch.where(route[i][:, None, :], di, torch.full_like(di, float("inf")))
+        out.append(di.min(-1).values.max(-1).values)  # [N]
     return torch.stack(out)[full]
 
 
@@ -121,10 +135,21 @@ def main():
     full = seen.reshape(b, n, -1, 3).bool().all(-1).all(-1) & (mask > 0)
     print(f"{a.file}: {a.windows} windows, {int(full.sum())} agents with a whole future")
 
+    route = None
+
     def row(name, meta, coeffs, adv):
-        w = stray(decode(meta, coeffs, adv), lanes, ctx["lane_mask"], full)
+        nonlocal route
+        d = per_lane(decode(meta, coeffs, adv), lanes, ctx["lane_mask"])
+        if route is None:
+            # The lanes the recorded future follows: those it comes within 1 m of. The nearest
+            # lane alone cannot tell a car half a lane over from one on the next lane, since
+            # past 1.75 m the next lane's centre line is nearer.
+            route = [di.min(1).values <= 1.0 for di in d]
+        w, r = stray(d, full), stray(d, full, route)
         print(f"  {name:<32} beyond {a.far:g} m: {(w > a.far).double().mean().item():.3f}   "
-              f"median largest distance {w.median().item():.2f} m", flush=True)
+              f"median largest distance {w.median().item():.2f} m   off its route's lanes by "
+              f"over 1.75 m: {(r > 1.75).double().mean().item():.3f}, median "
+              f"{r.median().item():.2f} m", flush=True)
 
     for ck in a.checkpoints:
         with open(os.path.join(ck, "config.json")) as f:
