@@ -167,6 +167,27 @@ fn render_svg_png_gif() {
         "{}",
         &text[..400]
     );
+    // Two roles for one agent, the second written with a leading zero, were echoed as
+    // `--role 1261=victim`, a value nobody typed.
+    let out = drivescript(&[
+        "render",
+        s(&scene),
+        "--role",
+        "1261=cutter",
+        "--role",
+        "01261=victim",
+        "-o",
+        s(&roles),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        out.status.code() == Some(1)
+            && err.contains(
+                "the role \"victim\" for agent 1261: agent 1261 already has the role \"cutter\""
+            )
+            && !err.contains("1261=victim"),
+        "{err}"
+    );
     let out = drivescript(&["render", s(&scene), "--role", "cutter", "-o", s(&roles)]);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(

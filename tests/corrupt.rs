@@ -570,6 +570,16 @@ fn yaml_errors_name_line_or_agent() {
         "{err}"
     );
 
+    // A tag was read by the field's type whatever it said: `id: !!str 3` was agent 3 while
+    // `id: "3"` was refused.
+    let f = copy_to(dir.path(), &src, "b3.yaml");
+    edit(&f, |t| t.replacen("  - id: 3", "  - id: !!str 3", 1));
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("b3.yaml: line ") && err.contains("YAML tags such as `!!str` are not read"),
+        "{err}"
+    );
+
     let f = copy_to(dir.path(), &src, "c.yaml");
     edit(&f, |t| t.replacen("ego: 1", "ego: 77", 1));
     let err = fails(&["inspect", s(&f)]);

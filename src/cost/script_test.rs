@@ -702,7 +702,7 @@ pub fn run_test_file(path: &Path) -> Result<Vec<CaseResult>, ScriptTestError> {
     // The I/O error names the file itself.
     let text = crate::io::read_regular_text(path, MAX_TEST_FILE_BYTES, "a script test file")
         .map_err(|e| ScriptTestError::Io(e.to_string()))?;
-    crate::io::yaml::check_aliases(&text).map_err(|message| ScriptTestError::Read {
+    crate::io::yaml::check_text(&text).map_err(|message| ScriptTestError::Read {
         path: path.display().to_string(),
         message,
     })?;

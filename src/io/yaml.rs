@@ -319,14 +319,29 @@ pub fn read(path: &Path) -> Result<Scene, IoError> {
 /// The deepest flow nesting (`[`, `{`) a YAML scene may have; real scenes nest four deep.
 pub const MAX_YAML_DEPTH: usize = 128;
 
-/// The line of the first flow collection nested deeper than `max`, if one is: the YAML
-/// parser's time grows with the square of the depth (100,000 brackets took 36 s to refuse).
-/// Brackets inside quotes and comments do not count.
-fn too_deep(text: &str, max: usize) -> Option<usize> {
+/// What [`structure`] finds wrong with YAML text before it is parsed.
+#[derive(Debug, PartialEq)]
+enum Structure {
+    /// The line of the first flow collection nested deeper than the limit: the YAML parser's
+    /// time grows with the square of the depth (100,000 brackets took 36 s to refuse).
+    TooDeep(usize),
+    /// The line and text of the first tag (`!!str`, `!point`): serde reads a tagged scalar by
+    /// the field's type whatever the tag says, so `id: !!str 1` was agent 1 while `id: "1"` was
+    /// refused, and `!!int "1"` was "invalid type: integer `1`, expected i64".
+    Tag(usize, String),
+}
+
+/// The first of [`Structure`]'s problems in `text`, if any. Brackets and `!` inside quotes and
+/// comments do not count, nor a `!` inside a plain scalar (`wow !` is text: a tag only starts
+/// a value).
+fn structure(text: &str, max_depth: usize) -> Option<Structure> {
     let (mut depth, mut line) = (0usize, 1usize);
     let mut quote: Option<char> = None;
     let mut chars = text.chars().peekable();
     let mut prev = '\n';
+    // The last character that is not a space or tab: a value starts after one of `:-[{,?`
+    // or at the start of a line.
+    let mut last = '\n';
     while let Some(c) = chars.next() {
         match (quote, c) {
             (_, '\n') => {
@@ -347,16 +362,60 @@ fn too_deep(text: &str, max: usize) -> Option<usize> {
             }
             (None, '[' | '{') => {
                 depth += 1;
-                if depth > max {
-                    return Some(line);
+                if depth > max_depth {
+                    return Some(Structure::TooDeep(line));
                 }
             }
             (None, ']' | '}') => depth = depth.saturating_sub(1),
+            (None, '!')
+                if (prev.is_whitespace() || "[{,".contains(prev))
+                    && ("\n:-[{?".contains(last) || (last == ',' && depth > 0)) =>
+            {
+                let mut tag = String::from('!');
+                while let Some(&n) = chars.peek() {
+                    if n.is_whitespace() || ",[]{}".contains(n) || tag.chars().count() >= 40 {
+                        break;
+                    }
+                    tag.push(n);
+                    chars.next();
+                }
+                return Some(Structure::Tag(line, tag));
+            }
             _ => {}
+        }
+        if c != ' ' && c != '\t' {
+            last = c;
         }
         prev = c;
     }
     None
+}
+
+/// The message for a tag [`structure`] found.
+fn tag_message(tag: &str) -> String {
+    format!(
+        "YAML tags such as `{}` are not read: write the value itself (a number bare, text in \
+         quotes); a tag does not change how drivescript reads a value",
+        super::name::one_line(tag)
+    )
+}
+
+/// Refuses YAML text (a batch or script test file) with flow collections nested past
+/// [`MAX_YAML_DEPTH`], a tag, or aliases past [`MAX_YAML_EXPANDED_VALUES`]; the error is the
+/// message to give, naming the line.
+pub fn check_text(text: &str) -> Result<(), String> {
+    match structure(text, MAX_YAML_DEPTH) {
+        Some(Structure::TooDeep(line)) => Err(format!("line {line}: {}", too_deep_message())),
+        Some(Structure::Tag(line, tag)) => Err(format!("line {line}: {}", tag_message(&tag))),
+        None => check_aliases(text),
+    }
+}
+
+fn too_deep_message() -> String {
+    format!(
+        "collections nested more than {MAX_YAML_DEPTH} deep: not a scene, batch or test file \
+         (refused before parsing)"
+    )
 }
 
 /// The most values (scalars and collections) a YAML document may expand to through its
@@ -496,14 +555,22 @@ impl<'de> serde::de::Visitor<'de> for Budget<'_> {
 
 /// Parses YAML scene text (`path` is used for messages and metadata).
 pub fn parse(path: &Path, text: &str) -> Result<Scene, IoError> {
-    if let Some(line) = too_deep(text, MAX_YAML_DEPTH) {
-        return Err(IoError::invalid(
-            path,
-            format!("line {line}"),
-            format!(
-                "collections nested more than {MAX_YAML_DEPTH} deep: not a scene (refused before parsing)"
-            ),
-        ));
+    match structure(text, MAX_YAML_DEPTH) {
+        Some(Structure::TooDeep(line)) => {
+            return Err(IoError::invalid(
+                path,
+                format!("line {line}"),
+                too_deep_message(),
+            ))
+        }
+        Some(Structure::Tag(line, tag)) => {
+            return Err(IoError::invalid(
+                path,
+                format!("line {line}"),
+                tag_message(&tag),
+            ))
+        }
+        None => {}
     }
     check_aliases(text).map_err(|m| IoError::invalid(path, "aliases", m))?;
     let y: YamlScene = serde_yaml::from_str(text).map_err(|e| match e.location() {
@@ -1276,7 +1343,17 @@ fn lane_motion(a: &YamlAgent, y: &YamlScene, reference: &FrenetPath, w: f64) -> 
 
 #[cfg(test)]
 mod depth_tests {
-    use super::too_deep;
+    use super::{structure, Structure};
+
+    fn too_deep(text: &str, max: usize) -> Option<usize> {
+        match structure(text, max) {
+            Some(Structure::TooDeep(line)) => Some(line),
+            other => {
+                assert_eq!(other, None);
+                None
+            }
+        }
+    }
 
     #[test]
     fn flow_nesting_is_measured_outside_quotes_and_comments() {
@@ -1289,6 +1366,31 @@ mod depth_tests {
         assert_eq!(too_deep("x: 1\ny: [\n [\n  [\n", 2), Some(4));
         let deep = format!("a: {}{}", "[".repeat(100_000), "]".repeat(100_000));
         assert_eq!(too_deep(&deep, 128), Some(1));
+    }
+
+    #[test]
+    fn a_tag_is_found_where_a_value_starts_and_nowhere_else() {
+        let tag = |t: &str| match structure(t, 128) {
+            Some(Structure::Tag(line, tag)) => Some((line, tag)),
+            _ => None,
+        };
+        assert_eq!(tag("a: 1\nid: !!str 1\n"), Some((2, "!!str".into())));
+        assert_eq!(tag("- !point [1, 2]\n"), Some((1, "!point".into())));
+        assert_eq!(tag("a: [1, !!int \"2\"]\n"), Some((1, "!!int".into())));
+        assert_eq!(tag("!!map\na: 1\n"), Some((1, "!!map".into())));
+        assert_eq!(tag("? !k a\n: 1\n"), Some((1, "!k".into())));
+        // Text, not tags: inside plain scalars, quotes and comments, and after a comma
+        // outside flow collections (a plain scalar may hold `, !`).
+        for text in [
+            "a: wow!\n",
+            "a: wow !nice\n",
+            "a: 'x !y'\n",
+            "a: \"!z\"\n",
+            "a: 1 # !c\n",
+            "a: x, !y\n",
+        ] {
+            assert_eq!(tag(text), None, "{text}");
+        }
     }
 }
 
@@ -1356,5 +1458,22 @@ mod alias_tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("expand it to more than 10000000 values"), "{e}");
+        // And the same refusal of tags, naming the line.
+        let text = "scenes: [a.yaml]\nentries:\n  - {scene: 0, request: !!str 1}\n";
+        std::fs::write(&batch, text).unwrap();
+        std::fs::write(&test, text).unwrap();
+        for e in [
+            crate::llm::batch::read_batch(&batch)
+                .unwrap_err()
+                .to_string(),
+            crate::cost::script_test::run_test_file(&test)
+                .unwrap_err()
+                .to_string(),
+        ] {
+            assert!(
+                e.contains("line 3: YAML tags such as `!!str` are not read"),
+                "{e}"
+            );
+        }
     }
 }

@@ -91,7 +91,7 @@ pub const MAX_BATCH_BYTES: u64 = 4 << 20;
 pub fn read_batch(path: &Path) -> Result<Vec<Entry>, LlmError> {
     let text = crate::io::read_regular_text(path, MAX_BATCH_BYTES, "a batch file")
         .map_err(|e| bad(path, format!("cannot read the batch file: {}", e.reason())))?;
-    crate::io::yaml::check_aliases(&text).map_err(|m| bad(path, m))?;
+    crate::io::yaml::check_text(&text).map_err(|m| bad(path, m))?;
     let v: serde_yaml::Value =
         serde_yaml::from_str(&text).map_err(|e| bad(path, format!("not YAML: {e}")))?;
     if !v.is_mapping() {

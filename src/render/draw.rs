@@ -631,7 +631,7 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(
-            e.starts_with("--role 4010=victim: the scene has no agent 4010"),
+            e.starts_with("the role \"victim\" for agent 4010: the scene has no agent 4010"),
             "{e}"
         );
         assert!(e.contains("401"), "{e}");
@@ -639,7 +639,7 @@ mod tests {
             .check_roles(&scene)
             .unwrap_err()
             .to_string();
-        assert!(e.contains("twice"), "{e}");
+        assert!(e.contains("agent 401 already has the role \"cutter\""), "{e}");
     }
 
     #[test]

@@ -24,8 +24,10 @@ pub enum RenderError {
     /// The picture would be empty or absurdly large.
     #[error("cannot render: {0}")]
     Size(String),
-    /// A role names an agent the scene lacks, or an agent twice.
-    #[error("--role {id}={role}: {message}")]
+    /// A role names an agent the scene lacks, or an agent twice. The id is the number the
+    /// value was read as, so the message says "agent" and "role" rather than echoing a value
+    /// (`01=b` was echoed as `1=b`).
+    #[error("the role {role:?} for agent {id}: {message}")]
     Role {
         /// The agent id.
         id: crate::scene::AgentId,
@@ -88,8 +90,10 @@ impl RenderOptions {
                 role: role.clone(),
                 message,
             };
-            if self.roles[..i].iter().any(|(a, _)| a == id) {
-                return Err(err(format!("agent {id} is given a role twice")));
+            if let Some((_, first)) = self.roles[..i].iter().find(|(a, _)| a == id) {
+                return Err(err(format!(
+                    "agent {id} already has the role {first:?}; give each agent one role"
+                )));
             }
             if !scene.agents.iter().any(|a| a.id == *id) {
                 let ids: Vec<String> = scene.agents.iter().map(|a| a.id.to_string()).collect();
