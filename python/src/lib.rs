@@ -18,7 +18,8 @@ use numpy::ndarray::{Array2, Array3, Array4};
 use numpy::{AllowTypeChange, IntoPyArray, PyArrayLikeDyn, PyUntypedArrayMethods};
 use pyo3::create_exception;
 use pyo3::exceptions::{
-    PyException, PyFileNotFoundError, PyOSError, PyRuntimeError, PyTypeError, PyValueError,
+    PyException, PyFileNotFoundError, PyOSError, PyOverflowError, PyRuntimeError, PyTypeError,
+    PyValueError,
 };
 use pyo3::prelude::*;
 use pyo3::types::{PyBool, PyDict, PyFloat, PyInt, PyString};
@@ -168,6 +169,102 @@ fn quoted(v: &Bound<'_, PyAny>) -> String {
     }
 }
 
+/// A number argument, converted in the function rather than by pyo3 so that its errors name
+/// the argument: pyo3 names it only in an exception note ("while processing 'index'"), which
+/// Python before 3.11 never shows and `str(e)` leaves out, under "can't convert negative int
+/// to unsigned" or "int too large to convert to float".
+enum Arg<T> {
+    /// The signature's default.
+    Default(T),
+    /// What the caller passed, not yet converted.
+    Given(Py<PyAny>),
+}
+
+impl<'a, 'py, T> FromPyObject<'a, 'py> for Arg<T> {
+    type Error = PyErr;
+    fn extract(obj: Borrowed<'a, 'py, PyAny>) -> PyResult<Self> {
+        Ok(Arg::Given(obj.to_owned().unbind()))
+    }
+}
+
+/// The number types an [`Arg`] converts to.
+trait ArgNumber: Sized + Copy {
+    /// Converts `v`, whose type has been checked to be a number of this kind; `Err(())`
+    /// where its value is out of this type's range.
+    fn convert(v: &Bound<'_, PyAny>) -> Result<Self, ()>;
+    /// Whether values of this type are whole numbers.
+    const WHOLE: bool;
+    /// The range, for messages.
+    fn range() -> String;
+}
+
+macro_rules! whole_arg {
+    ($($t:ty),*) => {$(
+        impl ArgNumber for $t {
+            fn convert(v: &Bound<'_, PyAny>) -> Result<Self, ()> {
+                // Python's own conversion through __index__ (numpy integers too); a value
+                // past i128 is out of every range here.
+                let wide: i128 = v.extract().map_err(|_| ())?;
+                <$t>::try_from(wide).map_err(|_| ())
+            }
+            const WHOLE: bool = true;
+            fn range() -> String {
+                format!("a whole number from {} to {}", <$t>::MIN, <$t>::MAX)
+            }
+        }
+    )*};
+}
+whole_arg!(usize, u64, i64);
+
+impl ArgNumber for f64 {
+    fn convert(v: &Bound<'_, PyAny>) -> Result<Self, ()> {
+        v.extract().map_err(|_| ())
+    }
+    const WHOLE: bool = false;
+    fn range() -> String {
+        "a number float64 holds".into()
+    }
+}
+
+impl<T: ArgNumber> Arg<T> {
+    /// The value, or an error naming the argument `name`: TypeError for what is not a number
+    /// of this kind (a bool, a str, a float for a whole number), ValueError for a number out
+    /// of range.
+    fn get(&self, py: Python<'_>, name: &str) -> PyResult<T> {
+        let v = match self {
+            Arg::Default(v) => return Ok(*v),
+            Arg::Given(v) => v.bind(py),
+        };
+        let kind_ok = !v.is_instance_of::<PyBool>()
+            && if T::WHOLE {
+                v.hasattr("__index__")?
+            } else {
+                !v.is_instance_of::<PyString>() && v.hasattr("__float__")?
+                    || v.hasattr("__index__")?
+            };
+        if !kind_ok {
+            return Err(PyTypeError::new_err(format!(
+                "{name} = {}: a {}, but {name} is {}",
+                quoted(v),
+                v.get_type().name()?,
+                if T::WHOLE {
+                    "an int"
+                } else {
+                    "a number (float or int)"
+                }
+            )));
+        }
+        T::convert(v).map_err(|()| {
+            PyValueError::new_err(format!("{name} = {}: must be {}", quoted(v), T::range()))
+        })
+    }
+}
+
+/// [`Arg::get`] for an optional argument.
+fn opt<T: ArgNumber>(py: Python<'_>, a: &Option<Arg<T>>, name: &str) -> PyResult<Option<T>> {
+    a.as_ref().map(|a| a.get(py, name)).transpose()
+}
+
 /// Refuses a path holding a NUL character, which no file's path can hold: it was read as far
 /// as the format check, which called `scene.yaml\0x` an unknown scene format and printed the
 /// NUL raw in the message.
@@ -264,21 +361,36 @@ fn floats<'py>(
         let real = py.import("numbers")?.getattr("Real")?;
         let decimal = py.import("decimal")?.getattr("Decimal")?;
         let np_bool = np.getattr("bool_")?;
+        let float = py.import("builtins")?.getattr("float")?;
         for (i, x) in arr.call_method0("ravel")?.try_iter()?.enumerate() {
             let x = x?;
             let number = !x.is_instance_of::<PyBool>()
                 && !x.is_instance(&np_bool)?
                 && (x.is_instance(&real)? || x.is_instance(&decimal)?);
+            let at = || -> PyResult<Vec<usize>> {
+                np.call_method1("unravel_index", (i, arr.getattr("shape")?))?
+                    .extract()
+            };
             if !number {
-                let at: Vec<usize> = np
-                    .call_method1("unravel_index", (i, arr.getattr("shape")?))?
-                    .extract()?;
                 return Err(PyTypeError::new_err(format!(
-                    "{what}: the element at {at:?} is {} of type {}, but positions and \
+                    "{what}: the element at {:?} is {} of type {}, but positions and \
                      headings are real numbers (float or int; NaN where unobserved)",
+                    at()?,
                     quoted(&x),
                     x.get_type().name()?
                 )));
+            }
+            // An int past float64's range (10**400) failed in numpy's conversion below with
+            // only "int too large to convert to float", naming no element.
+            if let Err(e) = float.call1((&x,)) {
+                let err = PyOverflowError::new_err(format!(
+                    "{what}: the element at {:?} is {}, which no float64 holds ({})",
+                    at()?,
+                    quoted(&x),
+                    e.value(py)
+                ));
+                err.set_cause(py, Some(e));
+                return Err(err);
             }
         }
     }
@@ -443,13 +555,15 @@ impl Scene {
     /// Raises FileNotFoundError or OSError where the file cannot be read, ValueError where
     /// it is not a valid scene (the message names the file and the record).
     #[staticmethod]
-    #[pyo3(signature = (path, index = 0, commonroad_current_step = None))]
+    #[pyo3(signature = (path, index = Arg::Default(0), commonroad_current_step = None))]
     fn load(
         py: Python<'_>,
         path: PathBuf,
-        index: usize,
-        commonroad_current_step: Option<usize>,
+        index: Arg<usize>,
+        commonroad_current_step: Option<Arg<usize>>,
     ) -> PyResult<Self> {
+        let index = index.get(py, "index")?;
+        let commonroad_current_step = opt(py, &commonroad_current_step, "commonroad_current_step")?;
         no_nul(&path, "path")?;
         let opts = LoadOptions {
             commonroad_current_step: commonroad_current_step
@@ -517,9 +631,9 @@ impl Scene {
     fn log_future<'py>(
         &self,
         py: Python<'py>,
-        steps: Option<usize>,
+        steps: Option<Arg<usize>>,
     ) -> PyResult<Bound<'py, PyAny>> {
-        let scene = self.over(steps)?;
+        let scene = self.over(opt(py, &steps, "steps")?)?;
         array3(py, &Trajectories::recorded(&scene))
     }
 
@@ -531,9 +645,9 @@ impl Scene {
     fn filled_future<'py>(
         &self,
         py: Python<'py>,
-        steps: Option<usize>,
+        steps: Option<Arg<usize>>,
     ) -> PyResult<Bound<'py, PyAny>> {
-        let scene = self.over(steps)?;
+        let scene = self.over(opt(py, &steps, "steps")?)?;
         array3(py, &Trajectories::filled(&scene))
     }
 
@@ -574,10 +688,11 @@ impl Scene {
     fn lane_path<'py>(
         &self,
         py: Python<'py>,
-        lane: i64,
-        length: f64,
+        lane: Arg<i64>,
+        length: Arg<f64>,
         turn: &str,
     ) -> PyResult<Bound<'py, PyAny>> {
+        let (lane, length) = (lane.get(py, "lane")?, length.get(py, "length")?);
         let turn = turn_word(turn)?;
         path_length(length)?;
         let path = self
@@ -596,14 +711,15 @@ impl Scene {
     /// Raises ValueError for an unknown agent, one not observed at the current step or near
     /// no lane going its way, a length outside (0, 100000] or a turn other than "straight",
     /// "left" and "right".
-    #[pyo3(signature = (agent_id, length = 300.0, turn = "straight"))]
+    #[pyo3(signature = (agent_id, length = Arg::Default(300.0), turn = "straight"))]
     fn agent_lane_path<'py>(
         &self,
         py: Python<'py>,
-        agent_id: i64,
-        length: f64,
+        agent_id: Arg<i64>,
+        length: Arg<f64>,
         turn: &str,
     ) -> PyResult<Bound<'py, PyAny>> {
+        let (agent_id, length) = (agent_id.get(py, "agent_id")?, length.get(py, "length")?);
         let turn = turn_word(turn)?;
         path_length(length)?;
         let idx = self
@@ -630,7 +746,8 @@ impl Scene {
     ///
     /// Raises ValueError where the scene is shorter than `future + 1` steps or no observed
     /// vehicle is on a lane.
-    fn crop(&self, agents: usize, future: usize) -> PyResult<Self> {
+    fn crop(&self, py: Python<'_>, agents: Arg<usize>, future: Arg<usize>) -> PyResult<Self> {
+        let (agents, future) = (agents.get(py, "agents")?, future.get(py, "future")?);
         self.inner
             .crop(agents, future)
             .map(Scene::wrap)
@@ -976,24 +1093,37 @@ impl Sampler {
     /// `task` is "conditional" (history and recorded end points known) or "unconditional"
     /// (history only: what behaviour scripts such as cut_in are tuned for). Ctrl-C stops it
     /// within one denoising step (KeyboardInterrupt).
-    #[pyo3(signature = (scene, scripts = Vec::new(), samples = 4, *, seed = 1, steps = 32,
-        task = "conditional", horizon = None, guidance = sampler::BEHAVIOUR_LAMBDA,
-        realism = sampler::REALISM_WEIGHT, polish = sampler::POLISH_STEPS))]
+    #[pyo3(signature = (scene, scripts = Vec::new(), samples = Arg::Default(4), *,
+        seed = Arg::Default(1), steps = Arg::Default(32), task = "conditional", horizon = None,
+        guidance = Arg::Default(sampler::BEHAVIOUR_LAMBDA),
+        realism = Arg::Default(sampler::REALISM_WEIGHT),
+        polish = Arg::Default(sampler::POLISH_STEPS)))]
     #[allow(clippy::too_many_arguments)]
     fn sample<'py>(
         &self,
         py: Python<'py>,
         scene: &Scene,
         scripts: Vec<PyRef<'py, CostScript>>,
-        samples: usize,
-        seed: u64,
-        steps: usize,
+        samples: Arg<usize>,
+        seed: Arg<u64>,
+        steps: Arg<usize>,
         task: &str,
-        horizon: Option<usize>,
-        guidance: f64,
-        realism: f64,
-        polish: usize,
+        horizon: Option<Arg<usize>>,
+        guidance: Arg<f64>,
+        realism: Arg<f64>,
+        polish: Arg<usize>,
     ) -> PyResult<Bound<'py, PyAny>> {
+        let (samples, seed, steps) = (
+            samples.get(py, "samples")?,
+            seed.get(py, "seed")?,
+            steps.get(py, "steps")?,
+        );
+        let horizon = opt(py, &horizon, "horizon")?;
+        let (guidance, realism, polish) = (
+            guidance.get(py, "guidance")?,
+            realism.get(py, "realism")?,
+            polish.get(py, "polish")?,
+        );
         let task = match task {
             "conditional" => sampler::Task::Conditional,
             "unconditional" => sampler::Task::Unconditional,
@@ -1150,8 +1280,9 @@ fn suggest<'py>(
     py: Python<'py>,
     behaviour: &str,
     scene: &Scene,
-    steps: Option<usize>,
+    steps: Option<Arg<usize>>,
 ) -> PyResult<Option<Bound<'py, PyDict>>> {
+    let steps = opt(py, &steps, "steps")?;
     let b = self::behaviour(behaviour)?;
     // The horizon checked as `log_future` checks it: 0 steps suggested agents for a
     // behaviour that has no time to happen.

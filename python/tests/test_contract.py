@@ -307,6 +307,11 @@ def test_an_object_array_holding_what_is_not_a_number_is_a_type_error(ds, scene,
             cut_in.evaluate(scene, o)
         with pytest.raises(TypeError, match=rf"trajs: the element at \[0, 1, 0, 0\] is .* of type {what}"):
             cut_in.evaluate_batch(scene, o[None])
+    # An int past float64's range failed in numpy's conversion naming no element.
+    o = traj.astype(object)
+    o[1, 0, 2] = 10**400
+    with pytest.raises(OverflowError, match=r"traj: the element at \[1, 0, 2\] is 1000.*\(401 characters\), which no float64 holds"):
+        cut_in.evaluate(scene, o)
     # Numbers of any kind still convert.
     import fractions
     o = traj.astype(object)
@@ -490,6 +495,36 @@ def test_a_bad_guidance_weight_names_the_keyword(ds, scene):
     for bad in [float("nan"), float("inf"), -1.0]:
         with pytest.raises(ValueError, match="sampler settings: guidance: lambda = "):
             sampler.sample(scene, samples=1, guidance=bad)
+
+
+def test_a_number_argument_out_of_range_or_of_another_type_is_named_in_the_message(ds, scene):
+    # pyo3 named the argument only in an exception note, which Python before 3.11 never
+    # shows and str(e) leaves out: "can't convert negative int to unsigned".
+    sampler = ds.Sampler(ROOT / "data/checkpoint")
+    cases = [
+        (lambda: ds.Scene.load(SCENE, index=-1), ValueError, "index = -1: must be a whole number from 0 to"),
+        (lambda: ds.Scene.load(SCENE, index=True), TypeError, "index = True: a bool, but index is an int"),
+        (lambda: ds.Scene.load(SCENE, commonroad_current_step=1.5), TypeError, "commonroad_current_step = 1.5: a float"),
+        (lambda: scene.log_future(10**400), ValueError, "(401 characters): must be a whole number from 0 to"),
+        (lambda: scene.filled_future(-3), ValueError, "steps = -3: must be"),
+        (lambda: scene.lane_path(2**70, 100.0), ValueError, "lane = 1180591620717411303424: must be a whole number from -9223372036854775808"),
+        (lambda: scene.lane_path(1, 10**400), ValueError, "(401 characters): must be a number float64 holds"),
+        (lambda: scene.agent_lane_path(401, "300"), TypeError, "length = '300': a str, but length is a number"),
+        (lambda: scene.crop(-1, 40), ValueError, "agents = -1: must be"),
+        (lambda: ds.suggest("cut_in", scene, steps=-1), ValueError, "steps = -1: must be"),
+        (lambda: sampler.sample(scene, samples=0.5), TypeError, "samples = 0.5: a float, but samples is an int"),
+        (lambda: sampler.sample(scene, seed=-1), ValueError, "seed = -1: must be a whole number from 0 to 18446744073709551615"),
+        (lambda: sampler.sample(scene, horizon=-8), ValueError, "horizon = -8: must be"),
+        (lambda: sampler.sample(scene, realism=10**400), ValueError, "(401 characters): must be a number float64 holds"),
+        (lambda: sampler.sample(scene, polish=None), TypeError, "polish = None: a NoneType"),
+    ]
+    for call, kind, says in cases:
+        with pytest.raises(kind) as e:
+            call()
+        assert says in str(e.value), str(e.value)
+    # Numbers of other Python and numpy types still convert.
+    assert scene.log_future(np.int64(10)).shape[1] == 10
+    assert scene.agent_lane_path(np.int64(401), np.float32(50)).shape[1] == 2
 
 
 def test_the_sampler_returns_samples_by_agents_by_steps_by_3(ds, scene, cut_in):

@@ -639,7 +639,10 @@ mod tests {
             .check_roles(&scene)
             .unwrap_err()
             .to_string();
-        assert!(e.contains("agent 401 already has the role \"cutter\""), "{e}");
+        assert!(
+            e.contains("agent 401 already has the role \"cutter\""),
+            "{e}"
+        );
     }
 
     #[test]
