@@ -1672,6 +1672,54 @@ fn train_writes_its_checkpoint_outside_the_inputs() {
 }
 
 #[test]
+fn train_says_why_it_has_no_window_to_train_on() {
+    // Both were told "no scene is long enough for 51 steps": an empty folder, and scenes
+    // every one of which is held out for validation.
+    let dir = tempfile::tempdir().unwrap();
+    let empty = dir.path().join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    let out = dir.path().join("ckpt");
+    let err = fails(&[
+        "train",
+        "--data",
+        s(&empty),
+        "--out",
+        s(&out),
+        "--steps",
+        "1",
+    ]);
+    assert!(
+        err.contains(&format!(
+            "{}: no scene file in it (supported: ",
+            empty.display()
+        )),
+        "{err}"
+    );
+    let data = dir.path().join("data");
+    std::fs::create_dir(&data).unwrap();
+    std::fs::copy("scripts/scenes/highway_cut_in.yaml", data.join("a.yaml")).unwrap();
+    let err = fails(&[
+        "train",
+        "--urban",
+        s(&data),
+        "--val-town",
+        "highway",
+        "--out",
+        s(&out),
+        "--steps",
+        "1",
+    ]);
+    assert!(
+        err.contains("every scene long enough for ")
+            && err.contains(
+                " steps (1) is held out for validation: validate on fewer towns or add scenes"
+            ),
+        "{err}"
+    );
+    assert!(!out.join("model.safetensors").exists());
+}
+
+#[test]
 fn train_refuses_settings_it_cannot_train_with_before_reading_data() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("ckpt");

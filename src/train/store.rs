@@ -604,6 +604,14 @@ impl WindowStore {
             for c in corpora {
                 let files =
                     crate::io::discover(&c.path).map_err(|e| TrainError::Data(e.to_string()))?;
+                // An empty folder was told "no scene is long enough for 51 steps".
+                if files.is_empty() {
+                    return Err(TrainError::Data(format!(
+                        "{}: no scene file in it (supported: {})",
+                        crate::io::name::one_line(&c.path.display().to_string()),
+                        crate::io::SUPPORTED_FORMATS
+                    )));
+                }
                 for f in files {
                     let scenes = crate::io::load_scenes(&f, &opts)
                         .map_err(|e| TrainError::Data(format!("loading {}: {e}", f.display())))?;

@@ -638,10 +638,15 @@ pub fn train_from(
     let step_rng =
         move |step: usize| Rng::new(seed ^ (step as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
     if source.train_len() == 0 {
-        return Err(TrainError::Data(format!(
-            "no scene is long enough for {} steps",
-            cfg.window.history + cfg.window.centre_future()
-        )));
+        let steps = cfg.window.history + cfg.window.centre_future();
+        // Every window held out was also told "no scene is long enough".
+        return Err(TrainError::Data(match source.val_scenes().len() {
+            0 => format!("no scene is long enough for {steps} steps"),
+            n => format!(
+                "every scene long enough for {steps} steps ({n}) is held out for validation: \
+                 validate on fewer towns or add scenes"
+            ),
+        }));
     }
     let futures = source.futures();
     cfg.model.history = cfg.window.history;
