@@ -108,12 +108,23 @@ pub fn read_script(path: &std::path::Path) -> Result<String, CostError> {
         .map_err(|e| CostError::Read(e.to_string()))
 }
 
+/// `script:line:column`, as far as they are known (0 is unknown): a limit reached where Rhai
+/// gives no position, or a total no one line makes, printed `m.rhai:0:0`, which points at no
+/// line of the file.
+fn place(script: &str, line: usize, column: usize) -> String {
+    match (line, column) {
+        (0, _) => script.to_string(),
+        (l, 0) => format!("{script}:{l}"),
+        (l, c) => format!("{script}:{l}:{c}"),
+    }
+}
+
 /// Errors from compiling, validating or evaluating a cost script. Each names the script and,
 /// where there is one, the line and column.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum CostError {
     /// The script does not parse.
-    #[error("{script}:{line}:{column}: syntax error: {message}")]
+    #[error("{}: syntax error: {message}", place(.script, *.line, *.column))]
     Syntax {
         /// Script name.
         script: String,
@@ -125,7 +136,7 @@ pub enum CostError {
         message: String,
     },
     /// Evaluation failed.
-    #[error("{script}:{line}:{column}: {message}")]
+    #[error("{}: {message}", place(.script, *.line, *.column))]
     Runtime {
         /// Script name.
         script: String,
@@ -137,19 +148,19 @@ pub enum CostError {
         message: String,
     },
     /// A resource limit was reached.
-    #[error("{script}:{line}:{column}: limit exceeded: {limit}")]
+    #[error("{}: limit exceeded: {limit}", place(.script, *.line, *.column))]
     Limit {
         /// Script name.
         script: String,
         /// Which limit and its value.
         limit: String,
-        /// Line.
+        /// Line (0 when unknown).
         line: usize,
-        /// Column.
+        /// Column (0 when unknown).
         column: usize,
     },
     /// A term is unusable as a guidance cost.
-    #[error("{script}:{line}: term {term:?}: {message}")]
+    #[error("{}: term {term:?}: {message}", place(.script, *.line, 0))]
     Term {
         /// Script name.
         script: String,
@@ -1789,6 +1800,39 @@ fn strip_position(s: &str) -> String {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn an_error_names_as_much_of_its_place_as_is_known() {
+        let limit = |line, column| {
+            super::CostError::Limit {
+                script: "m.rhai".into(),
+                limit: "wall time (max 5.0 s)".into(),
+                line,
+                column,
+            }
+            .to_string()
+        };
+        assert_eq!(
+            limit(5, 26),
+            "m.rhai:5:26: limit exceeded: wall time (max 5.0 s)"
+        );
+        assert_eq!(
+            limit(5, 0),
+            "m.rhai:5: limit exceeded: wall time (max 5.0 s)"
+        );
+        // It said "m.rhai:0:0:", a place that is in no file.
+        assert_eq!(limit(0, 0), "m.rhai: limit exceeded: wall time (max 5.0 s)");
+        let term = super::CostError::Term {
+            script: "s.rhai".into(),
+            term: "a".into(),
+            line: 0,
+            message: "the weighted total overflows to inf; use smaller weights".into(),
+        };
+        assert!(
+            term.to_string().starts_with("s.rhai: term \"a\": "),
+            "{term}"
+        );
+    }
+
     #[test]
     fn parameters_are_found_as_calls_and_as_constants_not_inside_words() {
         let src = "let m = param(\"margin\", 0.5);\nlet w = weight * 2.0; // reweighted\n";
