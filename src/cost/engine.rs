@@ -657,42 +657,86 @@ fn register_comparer_overrides(e: &mut Engine, docs: &mut Vec<DocEntry>) {
     );
 }
 
-/// Sizes of a value as Rhai's data limits count them: array elements, map entries and string
+/// The size of a value as Rhai's data limits count it: array elements, map entries and string
 /// bytes, nested values included.
-fn data_sizes(v: &Dynamic) -> (usize, usize, usize) {
-    let add =
-        |a: (usize, usize, usize), b: (usize, usize, usize)| (a.0 + b.0, a.1 + b.1, a.2 + b.2);
-    if let Ok(items) = v.as_array_ref() {
-        items
-            .iter()
-            .fold((items.len(), 0, 0), |t, x| add(t, data_sizes(x)))
-    } else if let Ok(m) = v.as_map_ref() {
-        m.values()
-            .fold((0, m.len(), 0), |t, x| add(t, data_sizes(x)))
-    } else if let Ok(s) = v.as_immutable_string_ref() {
-        (0, 0, s.len())
-    } else {
-        (0, 0, 0)
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+struct DataSize {
+    elements: usize,
+    entries: usize,
+    bytes: usize,
+}
+
+impl std::ops::Add for DataSize {
+    type Output = Self;
+    fn add(self, o: Self) -> Self {
+        DataSize {
+            elements: self.elements + o.elements,
+            entries: self.entries + o.entries,
+            bytes: self.bytes + o.bytes,
+        }
     }
 }
 
-/// Rhai's error for `sizes` past one of `ctx`'s engine's data limits, if they are.
-fn check_sizes(
-    ctx: &NativeCallContext,
-    sizes: (usize, usize, usize),
-) -> Result<(), Box<EvalAltResult>> {
-    let e = ctx.engine();
-    let over = |n: usize, max: usize| max > 0 && n > max;
-    let what = if over(sizes.2, e.max_string_size()) {
-        "Length of string"
-    } else if over(sizes.0, e.max_array_size()) {
-        "Size of array/BLOB"
-    } else if over(sizes.1, e.max_map_size()) {
-        "Size of object map"
-    } else {
-        return Ok(());
-    };
-    Err(EvalAltResult::ErrorDataTooLarge(what.into(), Position::NONE).into())
+impl std::ops::Sub for DataSize {
+    type Output = Self;
+    /// Only of a part already counted in `self`.
+    fn sub(self, o: Self) -> Self {
+        DataSize {
+            elements: self.elements - o.elements,
+            entries: self.entries - o.entries,
+            bytes: self.bytes - o.bytes,
+        }
+    }
+}
+
+impl DataSize {
+    fn of(v: &Dynamic) -> Self {
+        if let Ok(items) = v.as_array_ref() {
+            let own = DataSize {
+                elements: items.len(),
+                ..Default::default()
+            };
+            items.iter().fold(own, |t, x| t + DataSize::of(x))
+        } else if let Ok(m) = v.as_map_ref() {
+            let own = DataSize {
+                entries: m.len(),
+                ..Default::default()
+            };
+            m.values().fold(own, |t, x| t + DataSize::of(x))
+        } else if let Ok(s) = v.as_immutable_string_ref() {
+            DataSize {
+                bytes: s.len(),
+                ..Default::default()
+            }
+        } else {
+            DataSize::default()
+        }
+    }
+
+    /// `v` as an element of an array: its own size and its place.
+    fn element(v: &Dynamic) -> Self {
+        DataSize::of(v)
+            + DataSize {
+                elements: 1,
+                ..Default::default()
+            }
+    }
+
+    /// Rhai's error for this size past one of `ctx`'s engine's data limits, if it is.
+    fn check(self, ctx: &NativeCallContext) -> Result<(), Box<EvalAltResult>> {
+        let e = ctx.engine();
+        let over = |n: usize, max: usize| max > 0 && n > max;
+        let what = if over(self.bytes, e.max_string_size()) {
+            "Length of string"
+        } else if over(self.elements, e.max_array_size()) {
+            "Size of array/BLOB"
+        } else if over(self.entries, e.max_map_size()) {
+            "Size of object map"
+        } else {
+            return Ok(());
+        };
+        Err(EvalAltResult::ErrorDataTooLarge(what.into(), Position::NONE).into())
+    }
 }
 
 /// Rhai's `map`, checking the array it builds against the data limits at every element: Rhai
@@ -704,13 +748,12 @@ fn map_within_limits(
     f: rhai::FnPtr,
 ) -> Result<rhai::Array, Box<EvalAltResult>> {
     let mut out = rhai::Array::with_capacity(array.len());
-    let mut sizes = (0, 0, 0);
+    let mut size = DataSize::default();
     for (i, item) in array.iter_mut().enumerate() {
         let ex = [rhai::INT::try_from(i).unwrap_or(rhai::INT::MAX).into()];
         let v = f.call_raw_with_extra_args("map", &ctx, Some(item), [], ex, Some(0))?;
-        let (a, m, s) = data_sizes(&v);
-        sizes = (sizes.0 + 1 + a, sizes.1 + m, sizes.2 + s);
-        check_sizes(&ctx, sizes)?;
+        size = size + DataSize::element(&v);
+        size.check(&ctx)?;
         out.push(v);
     }
     Ok(out)
@@ -724,13 +767,12 @@ fn zip_within_limits(
     f: rhai::FnPtr,
 ) -> Result<rhai::Array, Box<EvalAltResult>> {
     let mut out = rhai::Array::with_capacity(array.len().min(other.len()));
-    let mut sizes = (0, 0, 0);
+    let mut size = DataSize::default();
     for (i, (x, y)) in array.iter_mut().zip(other).enumerate() {
         let ex = [rhai::INT::try_from(i).unwrap_or(rhai::INT::MAX).into()];
         let v = f.call_raw_with_extra_args("zip", &ctx, None, [x.clone(), y], ex, None)?;
-        let (a, m, s) = data_sizes(&v);
-        sizes = (sizes.0 + 1 + a, sizes.1 + m, sizes.2 + s);
-        check_sizes(&ctx, sizes)?;
+        size = size + DataSize::element(&v);
+        size.check(&ctx)?;
         out.push(v);
     }
     Ok(out)
@@ -743,25 +785,15 @@ fn for_each_within_limits(
     array: &mut rhai::Array,
     f: rhai::FnPtr,
 ) -> Result<(), Box<EvalAltResult>> {
-    let of = |x: &Dynamic| {
-        let (a, m, s) = data_sizes(x);
-        (1 + a, m, s)
-    };
-    let mut sizes = array
+    let mut size = array
         .iter()
-        .map(of)
-        .fold((0, 0, 0), |t, x| (t.0 + x.0, t.1 + x.1, t.2 + x.2));
+        .fold(DataSize::default(), |t, x| t + DataSize::element(x));
     for (i, item) in array.iter_mut().enumerate() {
         let ex = [rhai::INT::try_from(i).unwrap_or(rhai::INT::MAX).into()];
-        let before = of(item);
+        let before = DataSize::element(item);
         let _ = f.call_raw_with_extra_args("for_each", &ctx, Some(&mut *item), [], ex, None)?;
-        let after = of(item);
-        sizes = (
-            sizes.0 - before.0 + after.0,
-            sizes.1 - before.1 + after.1,
-            sizes.2 - before.2 + after.2,
-        );
-        check_sizes(&ctx, sizes)?;
+        size = size - before + DataSize::element(item);
+        size.check(&ctx)?;
     }
     Ok(())
 }

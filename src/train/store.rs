@@ -331,24 +331,44 @@ fn among_inputs(dir: &Path, corpora: &[Corpus]) -> Option<String> {
     })
 }
 
+/// What every output directory of training is checked for first: that it lies apart from the
+/// inputs ([`among_inputs`]) and, where something is there, that it is a directory (`not_dir`
+/// says what to name instead). `what` names it in the message ("the checkpoint directory
+/// (--out)"). Whether the directory exists.
+fn apart_from_inputs(
+    dir: &Path,
+    corpora: &[Corpus],
+    what: &str,
+    not_dir: &str,
+) -> Result<bool, TrainError> {
+    let why = match among_inputs(dir, corpora) {
+        Some(why) => why,
+        None => match std::fs::metadata(dir) {
+            Ok(m) if !m.is_dir() => format!("is not a directory{not_dir}"),
+            Ok(_) => return Ok(true),
+            Err(_) => return Ok(false),
+        },
+    };
+    Err(refusal(dir, what, why))
+}
+
+/// The error refusing output directory `dir`, named by `what`, for `why`.
+fn refusal(dir: &Path, what: &str, why: String) -> TrainError {
+    TrainError::Data(format!("{}: {what} {why}", dir.display()))
+}
+
 /// [`check_out_dir`] for `train --export DIR`, said of `--export`: the checkpoint's checks
 /// named `--out`, a flag the command was not given (`train --export data/x` was told "the
 /// checkpoint directory (--out) is inside the input directory data"). What the export may
 /// replace it checks itself: nothing (`train::export` writes into a new or empty directory).
 pub fn check_export_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError> {
-    let refuse = |why: String| {
-        Err(TrainError::Data(format!(
-            "{}: the export directory (--export) {why}",
-            dir.display()
-        )))
-    };
-    if let Some(why) = among_inputs(dir, corpora) {
-        return refuse(why);
-    }
-    match std::fs::metadata(dir) {
-        Ok(m) if !m.is_dir() => refuse("is not a directory: name a new or empty directory".into()),
-        _ => Ok(()),
-    }
+    apart_from_inputs(
+        dir,
+        corpora,
+        "the export directory (--export)",
+        ": name a new or empty directory",
+    )
+    .map(|_| ())
 }
 
 /// Refuses a checkpoint directory (`train --out`) that is, or is inside, a directory of
@@ -359,23 +379,15 @@ pub fn check_export_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError
 /// or that holds a file training writes (weights, optimiser state) without any `config.json`:
 /// every checkpoint has one, so those files are the user's. Checked before any data is read.
 pub fn check_out_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError> {
-    let refuse = |why: String| {
-        Err(TrainError::Data(format!(
-            "{}: the checkpoint directory (--out) {why}",
-            dir.display()
-        )))
-    };
-    if let Some(why) = among_inputs(dir, corpora) {
-        return refuse(why);
-    }
-    match std::fs::metadata(dir) {
-        Ok(m) if !m.is_dir() => {
-            return refuse(
-                "is not a directory: name a new directory, or an earlier run's checkpoint".into(),
-            )
-        }
-        Ok(_) => {}
-        Err(_) => return Ok(()),
+    const WHAT: &str = "the checkpoint directory (--out)";
+    let refuse = |why: String| Err(refusal(dir, WHAT, why));
+    if !apart_from_inputs(
+        dir,
+        corpora,
+        WHAT,
+        ": name a new directory, or an earlier run's checkpoint",
+    )? {
+        return Ok(());
     }
     let config = dir.join("config.json");
     if std::fs::symlink_metadata(&config).is_err() {
@@ -456,19 +468,10 @@ pub fn lock_out_dir(dir: &Path) -> Result<OutLock, TrainError> {
 /// cache's own files: building replaces its files at every start, so a directory of the
 /// user's (or a checkpoint's) is no cache to write into. An earlier run's cache is reused.
 pub fn check_cache_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError> {
-    let cache_err = |message: String| {
-        Err(TrainError::Data(format!(
-            "{}: the window cache (--cache, default OUT/windows) {message}",
-            dir.display()
-        )))
-    };
-    if let Some(why) = among_inputs(dir, corpora) {
-        return cache_err(why);
-    }
-    match std::fs::metadata(dir) {
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
-        Ok(m) if !m.is_dir() => return cache_err("is not a directory".into()),
-        _ => {}
+    const WHAT: &str = "the window cache (--cache, default OUT/windows)";
+    let cache_err = |message: String| Err(refusal(dir, WHAT, message));
+    if !apart_from_inputs(dir, corpora, WHAT, "")? {
+        return Ok(());
     }
     let entries = std::fs::read_dir(dir).map_err(|e| io_err(dir, e.to_string()))?;
     for e in entries {
