@@ -331,22 +331,45 @@ enum Structure {
     Tag(usize, String),
 }
 
-/// The first of [`Structure`]'s problems in `text`, if any. Brackets and `!` inside quotes and
-/// comments do not count, nor a `!` inside a plain scalar (`wow !` is text: a tag only starts
-/// a value).
+/// The first of [`Structure`]'s problems in `text`, if any. Brackets and `!` inside quotes,
+/// comments and block scalars (`|`, `>`) do not count, nor a `!` inside a plain scalar (`wow !`
+/// is text: a tag only starts a value) or at the start of an indented line (a plain scalar's
+/// continuation may start with one).
 fn structure(text: &str, max_depth: usize) -> Option<Structure> {
     let (mut depth, mut line) = (0usize, 1usize);
     let mut quote: Option<char> = None;
-    let mut chars = text.chars().peekable();
+    let mut chars = text.char_indices().peekable();
     let mut prev = '\n';
-    // The last character that is not a space or tab: a value starts after one of `:-[{,?`
-    // or at the start of a line.
+    // The last character that is not a space or tab: a value starts after one of `:-[{,?`.
     let mut last = '\n';
-    while let Some(c) = chars.next() {
+    // The indentation of the line being read, and that of a line that opened a block scalar.
+    let (mut indent, mut block) = (leading_spaces(text), None::<usize>);
+    while let Some((i, c)) = chars.next() {
         match (quote, c) {
             (_, '\n') => {
                 line += 1;
                 // Flow scalars may span lines, but a quote left open is the parser's to report.
+                let mut next = i + 1;
+                if let Some(parent) = block.take() {
+                    // A block scalar's text is every following line that is blank or indented
+                    // past the line that opened it.
+                    loop {
+                        let rest = &text[next..];
+                        let n = leading_spaces(rest);
+                        match rest[n..].chars().next() {
+                            Some('\n') => {}
+                            Some(_) if n > parent => {}
+                            _ => break,
+                        }
+                        match rest.find('\n') {
+                            Some(end) => next += end + 1,
+                            None => next = text.len(),
+                        }
+                        line += 1;
+                    }
+                    while chars.next_if(|&(j, _)| j < next).is_some() {}
+                }
+                indent = leading_spaces(&text[next..]);
             }
             (Some('"'), '\\') => {
                 chars.next();
@@ -356,9 +379,10 @@ fn structure(text: &str, max_depth: usize) -> Option<Structure> {
             // A quote opens a scalar only where a token starts (`O'Brien` is plain).
             (None, '"' | '\'') if prev.is_whitespace() || "[{,:-".contains(prev) => quote = Some(c),
             (None, '#') if prev.is_whitespace() => {
-                while chars.peek().is_some_and(|&n| n != '\n') {
-                    chars.next();
-                }
+                while chars.next_if(|&(_, n)| n != '\n').is_some() {}
+            }
+            (None, '|' | '>') if depth == 0 && prev.is_whitespace() && ":-?".contains(last) => {
+                block = Some(indent)
             }
             (None, '[' | '{') => {
                 depth += 1;
@@ -369,16 +393,18 @@ fn structure(text: &str, max_depth: usize) -> Option<Structure> {
             (None, ']' | '}') => depth = depth.saturating_sub(1),
             (None, '!')
                 if (prev.is_whitespace() || "[{,".contains(prev))
-                    && ("\n:-[{?".contains(last) || (last == ',' && depth > 0)) =>
+                    && (":-[{?".contains(last)
+                        || (last == ',' && depth > 0)
+                        || prev == '\n' && depth == 0) =>
             {
-                let mut tag = String::from('!');
-                while let Some(&n) = chars.peek() {
-                    if n.is_whitespace() || ",[]{}".contains(n) || tag.chars().count() >= 40 {
-                        break;
-                    }
-                    tag.push(n);
-                    chars.next();
-                }
+                let tag: String = std::iter::once('!')
+                    .chain(
+                        text[i + 1..]
+                            .chars()
+                            .take_while(|n| !n.is_whitespace() && !",[]{}".contains(*n)),
+                    )
+                    .take(40)
+                    .collect();
                 return Some(Structure::Tag(line, tag));
             }
             _ => {}
@@ -389,6 +415,11 @@ fn structure(text: &str, max_depth: usize) -> Option<Structure> {
         prev = c;
     }
     None
+}
+
+/// The spaces at the start of `s`.
+fn leading_spaces(s: &str) -> usize {
+    s.len() - s.trim_start_matches(' ').len()
 }
 
 /// The message for a tag [`structure`] found.
@@ -1379,6 +1410,11 @@ mod depth_tests {
         assert_eq!(tag("a: [1, !!int \"2\"]\n"), Some((1, "!!int".into())));
         assert_eq!(tag("!!map\na: 1\n"), Some((1, "!!map".into())));
         assert_eq!(tag("? !k a\n: 1\n"), Some((1, "!k".into())));
+        // Past a block scalar's text, the lines are read again.
+        assert_eq!(
+            tag("a: |\n  !x\n\n  y\nb: !!str 1\n"),
+            Some((5, "!!str".into()))
+        );
         // Text, not tags: inside plain scalars, quotes and comments, and after a comma
         // outside flow collections (a plain scalar may hold `, !`).
         for text in [
@@ -1388,6 +1424,9 @@ mod depth_tests {
             "a: \"!z\"\n",
             "a: 1 # !c\n",
             "a: x, !y\n",
+            "a: some\n  !continued\n",
+            "a: |\n  x: !not a tag\n\n  - !nor this\nb: 1\n",
+            "- >\n    [[[[[\n",
         ] {
             assert_eq!(tag(text), None, "{text}");
         }
