@@ -2341,3 +2341,37 @@ fn an_empty_scene_or_rollout_file_is_named_as_empty() {
     let err = fails(&["inspect", s(&d)]);
     assert!(err.contains("b.yaml: file: is empty (0 bytes)"), "{err}");
 }
+
+#[test]
+fn a_scene_given_as_a_rollout_or_a_rollout_as_a_scene_is_named_for_what_it_is() {
+    // `--rollout scene.yaml` said "line 1, column 1: expected value"; a rollout given where a
+    // scene goes said "unknown scene format" and listed the formats.
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let xml = samples().join("commonroad/USA_US101-3_3_T-1.xml");
+    let out = dir.path().join("x.svg");
+    for (f, what) in [
+        (&scene, "its content is text"),
+        (&xml, "its content is XML text"),
+    ] {
+        let err = fails(&["render", s(&scene), "--rollout", s(f), "-o", s(&out)]);
+        assert!(
+            err.contains("file: not a rollout: ")
+                && err.contains(what)
+                && err.contains("a rollout is the JSON"),
+            "{err}"
+        );
+    }
+    let r = dir.path().join("r.json");
+    ok(&["convert", s(&scene), "-o", s(&r)]);
+    let err = fails(&["inspect", s(&r)]);
+    assert!(
+        err.contains("r.json: file: is a drivescript rollout (sampled trajectories), not a scene"),
+        "{err}"
+    );
+    // A rollout whose JSON is damaged is still named by the place in it.
+    let text = std::fs::read_to_string(&r).unwrap();
+    std::fs::write(&r, text.replacen("\"dt\":0.1", "\"dt\":\"a\"", 1)).unwrap();
+    let err = fails(&["render", s(&scene), "--rollout", s(&r), "-o", s(&out)]);
+    assert!(err.contains("r.json: dt (line 1"), "{err}");
+}
