@@ -995,3 +995,42 @@ fn a_nan_bound_threshold_or_shape_parameter_is_refused() {
     run("term(\"t\", clamp(agent(1).x, -1.0 / 0.0, 5.0).sum() + agent(1).x.sum());")
         .expect("an infinite bound is no bound");
 }
+
+/// `s[0]` on a Series said "Indexer unavailable: Series [i64]": Rhai's words and Rust's
+/// integer type, and not what to write instead.
+#[test]
+fn indexing_a_series_with_brackets_names_the_function_that_does_it() {
+    let e = fails(
+        "let v = agent(1).speed[0];\nterm(\"t\", agent(1).x.last());",
+        &["a value of type Series cannot be indexed with [ ]: use s.at(i)"],
+    )
+    .to_string();
+    assert!(!e.contains("i64") && !e.contains("Indexer"), "{e}");
+    assert!(e.starts_with("evil.rhai:1:"), "{e}");
+    let e = fails(
+        "let a = agent(1);\na[0] = 1;",
+        &["a value of type Agent cannot be indexed with [ ]"],
+    )
+    .to_string();
+    assert!(e.starts_with("evil.rhai:2:"), "{e}");
+}
+
+/// A closure capturing the array it is mapped over said "Data race detected on argument #1
+/// of function 'map'", which told a script's author neither what was wrong nor what to do.
+#[test]
+fn a_closure_holding_the_array_it_maps_says_to_give_it_a_copy() {
+    let e = fails(
+        "let a = [1, 2];\nlet b = a.map(|x| a.len());\nterm(\"t\", agent(1).x.last());",
+        &[
+            "argument #1 of function 'map' is also held by a closure",
+            "give the closure a copy",
+        ],
+    )
+    .to_string();
+    assert!(!e.contains("Data race"), "{e}");
+    // The copy it suggests runs.
+    run(
+        "let a = [1, 2];\nlet c = a;\nlet b = a.map(|x| c.len());\nterm(\"t\", agent(1).x.last());",
+    )
+    .expect("a copy in the closure");
+}

@@ -1707,6 +1707,35 @@ impl CostScript {
                     sig.replace("drivescript::cost::dual::", "").replace("drivescript::cost::series::", "")
                 ),
             },
+            // A closure that captures the array it is mapped over (`a.map(|x| a.len())`) said
+            // "Data race detected on argument #1 of function 'map'": Rhai's words for a variable
+            // lent twice at once, with no way out.
+            EvalAltResult::ErrorDataRace(what, _) => CostError::Runtime {
+                script,
+                line,
+                column,
+                message: format!(
+                    "{} is also held by a closure (|...| ...) that runs while it is in use; give \
+                     the closure a copy instead (`let c = a;` before it, and `c` inside)",
+                    if what.is_empty() { "a variable" } else { what.as_str() }
+                ),
+            },
+            // "Indexer unavailable: Series [i64]" named Rhai's machinery and Rust's integer
+            // type, not what to write instead.
+            EvalAltResult::ErrorIndexingType(t, _) => {
+                let what = t.split(" [").next().unwrap_or(t).trim();
+                let hint = match what {
+                    "Series" => ": use s.at(i) for element i (negative counts from the end), or s.at_time(t)",
+                    "Dual" => ": a Dual is one number; value(x) gives it as a float",
+                    _ => "",
+                };
+                CostError::Runtime {
+                    script,
+                    line,
+                    column,
+                    message: format!("a value of type {what} cannot be indexed with [ ]{hint}"),
+                }
+            }
             EvalAltResult::ErrorFunctionNotFound(sig, _) => CostError::Runtime {
                 script,
                 line,
