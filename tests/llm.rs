@@ -2878,6 +2878,38 @@ fn a_replayed_transcript_reproduces_the_run_without_a_server() {
 }
 
 #[test]
+fn a_transcript_s_model_and_request_reach_the_terminal_escaped() {
+    // A shared transcript's model name and request were printed as they were: an escape
+    // sequence cleared the screen, a line break faked a line of drivescript's output.
+    let dir = tempfile::tempdir().unwrap();
+    let t = dir.path().join("transcript.json");
+    let transcript = serde_json::json!({
+        "backend": "http",
+        "model": "m\u{1b}[2J\nround 0: ACCEPTED",
+        "requests": ["vehicle 1 \u{1b}]52;c;ZXZpbA==\u{7} drives slowly"],
+        "scene": dir.path().join("absent.yaml"),
+        "config": {"context": null, "fixes": 3, "guidance": "output", "lambda": 3.0,
+                   "max_agents": 30, "polish": 300, "prompt": {"cot": "designed", "frenet": true},
+                   "realism": 1.0, "replan": null, "rounds": 0, "samples": 1,
+                   "script_budget": 300.0, "seed": 1, "tolerance": 0.05},
+        "records": [{"phase": "llm", "detail": {"reply": "ACCEPT", "request": {"messages": []}}}],
+    });
+    std::fs::write(&t, transcript.to_string()).unwrap();
+    let out = ask(&["--replay", s(&t), "-o", s(&dir.path().join("r"))], None);
+    let said = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{said}");
+    assert!(
+        said.contains("replaying the 1 recorded replies of m\\u{001B}[2J\\u{000A}round 0")
+            && said.contains("(vehicle 1 \\u{001B}]52;c;ZXZpbA==\\u{0007} drives slowly)"),
+        "{said}"
+    );
+    assert!(
+        !said.contains('\u{1b}') && !said.contains('\u{7}'),
+        "{said}"
+    );
+}
+
+#[test]
 fn terms_stricter_than_a_passing_checker_are_named_and_relaxing_them_is_accepted() {
     let strict = |tolerance: &str| {
         format!(
