@@ -721,6 +721,29 @@ fn the_manual_backend_round_trips_through_files() {
 }
 
 #[test]
+fn a_manual_reply_is_held_to_the_size_a_server_s_is() {
+    // A 4 MB file saved as the reply was taken, kept in state.json and every later round's
+    // messages.json, and sent again with every later round (a server's is refused over 1 MB).
+    let dir = tempfile::tempdir().unwrap();
+    let d = s(dir.path());
+    let scene = samples().join(SCENE);
+    let args = [s(&scene), REQUEST, "-o", d, "--llm", "manual"];
+    let out = ask(&args, None);
+    assert_eq!(out.status.code(), Some(0), "{}", text(&out));
+    let big = format!("{}\n{}", reply(IDLE), "x".repeat(4 << 20));
+    std::fs::write(dir.path().join("round_0/reply.md"), big).unwrap();
+    let out = ask(&["--resume", d], None);
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("round_0/reply.md: cannot read the reply (")
+            && t.contains("the most for a model's reply"),
+        "{t}"
+    );
+    assert!(!dir.path().join("round_1").exists(), "{t}");
+}
+
+#[test]
 fn a_run_started_with_relative_paths_resumes_from_another_directory() {
     // state.json kept the scene and the prompts as typed; `--resume` from any other directory
     // said "the scene ... changed (or went) since the run started ...; start a new run on it".
