@@ -284,6 +284,21 @@ impl Expect {
                 ));
             }
         }
+        // A case that expects an error stops at it: a threshold beside it was never looked
+        // at, and `{error: ..., total_below: -5}` passed.
+        if self.error.is_some() {
+            let unchecked = Expect {
+                error: None,
+                ..self.clone()
+            };
+            if !unchecked.checks_nothing() {
+                return Err(
+                    "`error` expects the script to fail, so nothing else given beside it can be \
+                     checked: put the other expectations in a case of their own"
+                        .into(),
+                );
+            }
+        }
         if self.error.as_deref().is_some_and(|e| e.trim().is_empty()) {
             return Err(
                 "`error` is empty: every message contains it; give a part of the message expected"
@@ -768,6 +783,26 @@ pub fn run_test_file(path: &Path) -> Result<Vec<CaseResult>, ScriptTestError> {
         c.expect
             .check()
             .map_err(|m| invalid(format!("case {:?}: expect: {m}", c.name)))?;
+        // A list or a map was written out as YAML and read as a word ("agent(a: 1): an agent
+        // id is a whole number, not a word"), or refused for the line break inside it.
+        for (k, v) in &c.params {
+            use serde_yaml::Value as V;
+            let kind = match v {
+                V::Null => Some("nothing (null)"),
+                V::Sequence(_) => Some("a list"),
+                V::Mapping(_) => Some("a map"),
+                V::Tagged(_) => Some("a tagged value"),
+                V::Bool(_) | V::Number(_) | V::String(_) => None,
+            };
+            if let Some(kind) = kind {
+                return Err(invalid(format!(
+                    "case {:?}: params.{}: is {kind}; a parameter is a number, a word or \
+                     true/false",
+                    c.name,
+                    crate::io::name::shown(k)
+                )));
+            }
+        }
         if c.candidate.scene.is_some() && c.candidate.rollout.is_some() {
             return Err(invalid(format!(
                 "case {:?}: candidate: give `scene` or `rollout`, not both",
@@ -960,6 +995,11 @@ mod tests {
                 "`towards.direction` is [0, 0]: a direction is two finite numbers, not both 0",
             ),
             ("{error: \"\"}", "`error` is empty"),
+            // The threshold was never looked at, and the case passed.
+            (
+                "{error: \"unknown agent\", total_below: -5}",
+                "`error` expects the script to fail, so nothing else given beside it can be checked",
+            ),
             (
                 "{towards: {agent: 4, direction: [1e308, 1e308]}}",
                 "`towards.direction` is [1e308, 1e308]: its length is out of range",
@@ -1013,6 +1053,36 @@ mod tests {
             "{}",
             r[0].detail
         );
+    }
+
+    #[test]
+    fn a_parameter_given_as_a_list_or_map_is_named_as_such() {
+        // Read as the word "a: 1" (or refused for the line break in "- 2\n- 3").
+        let dir = tempfile::tempdir().unwrap();
+        for (value, kind) in [
+            ("{a: 1}", "a map"),
+            ("[4, 5]", "a list"),
+            ("~", "nothing (null)"),
+        ] {
+            let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts");
+            let t = dir.path().join("x.test.yaml");
+            std::fs::write(
+                &t,
+                format!(
+                    "script: {}\ncases:\n  - name: c\n    scene: {}\n    params: {{attacker: {value}, target: 2}}\n    expect: {{total_above: 0}}\n",
+                    root.join("accident.rhai").display(),
+                    root.join("scenes/highway.yaml").display()
+                ),
+            )
+            .unwrap();
+            let e = run_test_file(&t).unwrap_err().to_string();
+            assert!(
+                e.contains(&format!(
+                    "x.test.yaml: case \"c\": params.attacker: is {kind}; a parameter is"
+                )),
+                "{value}: {e}"
+            );
+        }
     }
 
     #[test]
