@@ -1034,3 +1034,22 @@ fn a_closure_holding_the_array_it_maps_says_to_give_it_a_copy() {
     )
     .expect("a copy in the closure");
 }
+
+/// `s.smooth_min(0)` was said to be smooth_max's mistake, and `s.window(3, 1)` was "slice(29,
+/// 10) is empty": both named what the script never called.
+#[test]
+fn a_bad_smooth_min_or_window_is_named_as_the_script_wrote_it() {
+    let e = fails(
+        "term(\"t\", agent(1).speed.smooth_min(0.0));",
+        &["smooth_min: beta must be positive, got 0"],
+    )
+    .to_string();
+    assert!(!e.contains("smooth_max"), "{e}");
+    let e = fails(
+        "term(\"t\", agent(1).x.window(3.0, 1.0).mean());",
+        &["window(3, 1): the end is before the start"],
+    )
+    .to_string();
+    assert!(!e.contains("slice"), "{e}");
+    run("term(\"t\", agent(1).x.window(1.0, 1.0).mean());").expect("a window of one step");
+}
