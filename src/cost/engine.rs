@@ -593,6 +593,8 @@ fn build_engine(
         let mut c = sh.borrow_mut();
         if c.prints.len() < max_lines {
             c.prints.push(printable(s));
+        } else {
+            c.prints_dropped += 1;
         }
     });
     let sh = shared.clone();
@@ -604,6 +606,8 @@ fn build_engine(
                 pos.line().unwrap_or(0),
                 printable(s)
             ));
+        } else {
+            c.prints_dropped += 1;
         }
     });
     e.set_module_resolver(StdlibResolver {
@@ -1229,6 +1233,7 @@ impl CostScript {
             traj,
             terms: Vec::new(),
             prints: Vec::new(),
+            prints_dropped: 0,
             paths: HashMap::new(),
             widths: HashMap::new(),
             coords: HashMap::new(),
@@ -1493,6 +1498,7 @@ impl CostScript {
             c.traj.valid.clone_from(&traj.valid);
             c.terms.clear();
             c.prints.clear();
+            c.prints_dropped = 0;
             c.coords.clear();
             c.may_reverse.clear();
             c.may_collide.clear();
@@ -1521,7 +1527,16 @@ impl CostScript {
                 grad: (*t.value.grad).clone(),
             })
             .collect();
-        let mut report = CostReport::new(terms, traj.layout, c.prints.clone(), t0.elapsed());
+        let mut prints = c.prints.clone();
+        // The lines past the cap were dropped without a word: 100,000 prints in a loop
+        // showed 200 lines, as if the loop had run 200 times.
+        if c.prints_dropped > 0 {
+            prints.push(format!(
+                "... and {} more print lines, not kept (at most {} are)",
+                c.prints_dropped, self.limits.max_print_lines
+            ));
+        }
+        let mut report = CostReport::new(terms, traj.layout, prints, t0.elapsed());
         // Finite weights times finite values can still overflow; a total of inf would reach
         // the sampler as a gradient naming neither term nor script. The per-term search runs
         // only when the sums say something overflowed.
@@ -2061,6 +2076,28 @@ mod tests {
         assert_eq!(r.prints[0], "a\\u{1b}[31mred");
         assert!(r.prints[1].ends_with("\\u{7}\""), "{:?}", r.prints);
         assert!(r.prints.iter().all(|p| !p.chars().any(char::is_control)));
+    }
+
+    #[test]
+    fn prints_past_the_cap_are_counted_not_dropped_without_a_word() {
+        // 1,000 prints showed 200 lines, as if the loop had run 200 times.
+        let r = evaluate_recorded(
+            "for i in 0..1000 { print(i); }\nterm(\"x\", agent(1).x.last());",
+            highway(),
+        );
+        let max = Limits::default().max_print_lines;
+        assert_eq!(r.prints.len(), max + 1);
+        assert_eq!(r.prints[max - 1], (max - 1).to_string());
+        assert_eq!(
+            r.prints[max],
+            format!(
+                "... and {} more print lines, not kept (at most {max} are)",
+                1000 - max
+            )
+        );
+        // A few are all kept, with no count after them.
+        let r = evaluate_recorded("print(1);\nterm(\"x\", agent(1).x.last());", highway());
+        assert_eq!(r.prints, vec!["1".to_string()]);
     }
 
     #[test]
