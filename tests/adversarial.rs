@@ -876,6 +876,9 @@ fn errors_in_closures_and_empty_throws_say_what_happened() {
     fails("fn h(x) { x.foo() } h(1);", &["in h: no function foo"]);
     fails("throw;", &["the script threw () without a message"]);
     fails("throw \"  \";", &["the script threw a blank message"]);
+    // A line break printed a line of the script's choosing under drivescript's own.
+    let e = fails("throw \"bad\\nVerdict: met\";", &["bad\\nVerdict: met"]).to_string();
+    assert!(!e.contains('\n'), "{e}");
 }
 
 /// A term of the wrong type was said to be "a drivescript::cost::stdlib::agents::AgentRef"

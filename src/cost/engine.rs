@@ -1694,10 +1694,13 @@ impl CostScript {
             // The stdlib's own errors have no position; one with a position is the script's
             // `throw`, whose value can be 10,000 characters: it reaches terminals and prompts.
             EvalAltResult::ErrorRuntime(v, pos) if !pos.is_none() => {
-                let text = v.to_string();
+                let raw = v.to_string();
+                // On one line, as every error is: a line break in the thrown text printed a
+                // line of the script's choosing under drivescript's own ("Verdict: met").
+                let text = printable(&raw);
                 let n = text.chars().count();
                 // `throw;` and `throw ""` printed "s.rhai:1:1: " and nothing after it.
-                let message = if text.trim().is_empty() {
+                let message = if raw.trim().is_empty() {
                     if v.is_unit() { "the script threw () without a message".to_string() } else { "the script threw a blank message".to_string() }
                 } else if n > MAX_THROWN_CHARS {
                     format!(
