@@ -876,6 +876,9 @@ fn errors_in_closures_and_empty_throws_say_what_happened() {
     fails("fn h(x) { x.foo() } h(1);", &["in h: no function foo"]);
     fails("throw;", &["the script threw () without a message"]);
     fails("throw \"  \";", &["the script threw a blank message"]);
+    // A line break printed a line of the script's choosing under drivescript's own.
+    let e = fails("throw \"bad\\nVerdict: met\";", &["bad\\nVerdict: met"]).to_string();
+    assert!(!e.contains('\n'), "{e}");
 }
 
 /// A term of the wrong type was said to be "a drivescript::cost::stdlib::agents::AgentRef"
@@ -994,4 +997,62 @@ fn a_nan_bound_threshold_or_shape_parameter_is_refused() {
     }
     run("term(\"t\", clamp(agent(1).x, -1.0 / 0.0, 5.0).sum() + agent(1).x.sum());")
         .expect("an infinite bound is no bound");
+}
+
+/// `s[0]` on a Series said "Indexer unavailable: Series [i64]": Rhai's words and Rust's
+/// integer type, and not what to write instead.
+#[test]
+fn indexing_a_series_with_brackets_names_the_function_that_does_it() {
+    let e = fails(
+        "let v = agent(1).speed[0];\nterm(\"t\", agent(1).x.last());",
+        &["a value of type Series cannot be indexed with [ ]: use s.at(i)"],
+    )
+    .to_string();
+    assert!(!e.contains("i64") && !e.contains("Indexer"), "{e}");
+    assert!(e.starts_with("evil.rhai:1:"), "{e}");
+    let e = fails(
+        "let a = agent(1);\na[0] = 1;",
+        &["a value of type Agent cannot be indexed with [ ]"],
+    )
+    .to_string();
+    assert!(e.starts_with("evil.rhai:2:"), "{e}");
+}
+
+/// A closure capturing the array it is mapped over said "Data race detected on argument #1
+/// of function 'map'", which told a script's author neither what was wrong nor what to do.
+#[test]
+fn a_closure_holding_the_array_it_maps_says_to_give_it_a_copy() {
+    let e = fails(
+        "let a = [1, 2];\nlet b = a.map(|x| a.len());\nterm(\"t\", agent(1).x.last());",
+        &[
+            "argument #1 of function 'map' is also held by a closure",
+            "give the closure a copy",
+        ],
+    )
+    .to_string();
+    assert!(!e.contains("Data race"), "{e}");
+    // The copy it suggests runs.
+    run(
+        "let a = [1, 2];\nlet c = a;\nlet b = a.map(|x| c.len());\nterm(\"t\", agent(1).x.last());",
+    )
+    .expect("a copy in the closure");
+}
+
+/// `s.smooth_min(0)` was said to be smooth_max's mistake, and `s.window(3, 1)` was "slice(29,
+/// 10) is empty": both named what the script never called.
+#[test]
+fn a_bad_smooth_min_or_window_is_named_as_the_script_wrote_it() {
+    let e = fails(
+        "term(\"t\", agent(1).speed.smooth_min(0.0));",
+        &["smooth_min: beta must be positive, got 0"],
+    )
+    .to_string();
+    assert!(!e.contains("smooth_max"), "{e}");
+    let e = fails(
+        "term(\"t\", agent(1).x.window(3.0, 1.0).mean());",
+        &["window(3, 1): the end is before the start"],
+    )
+    .to_string();
+    assert!(!e.contains("slice"), "{e}");
+    run("term(\"t\", agent(1).x.window(1.0, 1.0).mean());").expect("a window of one step");
 }

@@ -2351,3 +2351,93 @@ fn an_empty_scene_or_rollout_file_is_named_as_empty() {
     let err = fails(&["inspect", s(&d)]);
     assert!(err.contains("b.yaml: file: is empty (0 bytes)"), "{err}");
 }
+
+#[test]
+fn a_scene_given_as_a_rollout_or_a_rollout_as_a_scene_is_named_for_what_it_is() {
+    // `--rollout scene.yaml` said "line 1, column 1: expected value"; a rollout given where a
+    // scene goes said "unknown scene format" and listed the formats.
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let xml = samples().join("commonroad/USA_US101-3_3_T-1.xml");
+    let out = dir.path().join("x.svg");
+    for (f, what) in [
+        (&scene, "its content is text"),
+        (&xml, "its content is XML text"),
+    ] {
+        let err = fails(&["render", s(&scene), "--rollout", s(f), "-o", s(&out)]);
+        assert!(
+            err.contains("file: not a rollout: ")
+                && err.contains(what)
+                && err.contains("a rollout is the JSON"),
+            "{err}"
+        );
+    }
+    let r = dir.path().join("r.json");
+    ok(&["convert", s(&scene), "-o", s(&r)]);
+    let err = fails(&["inspect", s(&r)]);
+    assert!(
+        err.contains("r.json: file: is a drivescript rollout (sampled trajectories), not a scene"),
+        "{err}"
+    );
+    // A rollout whose JSON is damaged is still named by the place in it.
+    let text = std::fs::read_to_string(&r).unwrap();
+    std::fs::write(&r, text.replacen("\"dt\":0.1", "\"dt\":\"a\"", 1)).unwrap();
+    let err = fails(&["render", s(&scene), "--rollout", s(&r), "-o", s(&out)]);
+    assert!(err.contains("r.json: dt (line 1"), "{err}");
+}
+
+#[test]
+fn a_lane_change_that_cannot_happen_as_written_is_refused_naming_the_field() {
+    // A duration of 0, -3 or NaN moved the car across in one step; a duration of 1e308, or a
+    // start after the last step, never moved it; all read without a word. A NaN start was
+    // "step 0: state is not finite".
+    let dir = tempfile::tempdir().unwrap();
+    let src = samples().join("yaml/highway_cut_in.yaml");
+    for (k, (change, want)) in [
+        (
+            "start: 1.5, duration: 0",
+            "lane_change.duration is 0 s: must be more than 0 and at most 60 s",
+        ),
+        ("start: 1.5, duration: -3", "lane_change.duration is -3 s"),
+        (
+            "start: 1.5, duration: .nan",
+            "lane_change.duration is NaN s",
+        ),
+        (
+            "start: 1.5, duration: 1e308",
+            "lane_change.duration is 1e308 s",
+        ),
+        (
+            "start: .nan, duration: 3.0",
+            "lane_change.start is NaN: must be a finite number",
+        ),
+        (
+            "start: 1e308, duration: 3.0",
+            "lane_change.start is 1e308 s, at or after the scene's last step (8 s after the \
+             current step)",
+        ),
+        ("start: -.inf, duration: 3.0", "lane_change.start is -inf"),
+        (
+            "start: -5, duration: 3.0",
+            "lane_change ends -2 s after the current step, before the scene's first step (-1 s): \
+             the agent is in lane 1 throughout",
+        ),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let f = copy_to(dir.path(), &src, &format!("lc{k}.yaml"));
+        edit(&f, |t| t.replacen("start: 1.5, duration: 3.0", change, 1));
+        let err = fails(&["inspect", s(&f)]);
+        assert!(
+            err.contains(&format!("lc{k}.yaml: agents[1] (id 2): {want}")),
+            "{change}: {err}"
+        );
+    }
+    // One that starts in the history and ends after the first step still reads.
+    let f = copy_to(dir.path(), &src, "ok.yaml");
+    edit(&f, |t| {
+        t.replacen("start: 1.5, duration: 3.0", "start: -0.5, duration: 3.0", 1)
+    });
+    ok(&["inspect", s(&f)]);
+}

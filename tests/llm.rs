@@ -721,6 +721,29 @@ fn the_manual_backend_round_trips_through_files() {
 }
 
 #[test]
+fn a_manual_reply_is_held_to_the_size_a_server_s_is() {
+    // A 4 MB file saved as the reply was taken, kept in state.json and every later round's
+    // messages.json, and sent again with every later round (a server's is refused over 1 MB).
+    let dir = tempfile::tempdir().unwrap();
+    let d = s(dir.path());
+    let scene = samples().join(SCENE);
+    let args = [s(&scene), REQUEST, "-o", d, "--llm", "manual"];
+    let out = ask(&args, None);
+    assert_eq!(out.status.code(), Some(0), "{}", text(&out));
+    let big = format!("{}\n{}", reply(IDLE), "x".repeat(4 << 20));
+    std::fs::write(dir.path().join("round_0/reply.md"), big).unwrap();
+    let out = ask(&["--resume", d], None);
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("round_0/reply.md: cannot read the reply (")
+            && t.contains("the most for a model's reply"),
+        "{t}"
+    );
+    assert!(!dir.path().join("round_1").exists(), "{t}");
+}
+
+#[test]
 fn a_run_started_with_relative_paths_resumes_from_another_directory() {
     // state.json kept the scene and the prompts as typed; `--resume` from any other directory
     // said "the scene ... changed (or went) since the run started ...; start a new run on it".
@@ -2874,6 +2897,38 @@ fn a_replayed_transcript_reproduces_the_run_without_a_server() {
     assert!(
         t.contains("replay differs: sampling round 1: the verdict differs"),
         "{t}"
+    );
+}
+
+#[test]
+fn a_transcript_s_model_and_request_reach_the_terminal_escaped() {
+    // A shared transcript's model name and request were printed as they were: an escape
+    // sequence cleared the screen, a line break faked a line of drivescript's output.
+    let dir = tempfile::tempdir().unwrap();
+    let t = dir.path().join("transcript.json");
+    let transcript = serde_json::json!({
+        "backend": "http",
+        "model": "m\u{1b}[2J\nround 0: ACCEPTED",
+        "requests": ["vehicle 1 \u{1b}]52;c;ZXZpbA==\u{7} drives slowly"],
+        "scene": dir.path().join("absent.yaml"),
+        "config": {"context": null, "fixes": 3, "guidance": "output", "lambda": 3.0,
+                   "max_agents": 30, "polish": 300, "prompt": {"cot": "designed", "frenet": true},
+                   "realism": 1.0, "replan": null, "rounds": 0, "samples": 1,
+                   "script_budget": 300.0, "seed": 1, "tolerance": 0.05},
+        "records": [{"phase": "llm", "detail": {"reply": "ACCEPT", "request": {"messages": []}}}],
+    });
+    std::fs::write(&t, transcript.to_string()).unwrap();
+    let out = ask(&["--replay", s(&t), "-o", s(&dir.path().join("r"))], None);
+    let said = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{said}");
+    assert!(
+        said.contains("replaying the 1 recorded replies of m\\u{001B}[2J\\u{000A}round 0")
+            && said.contains("(vehicle 1 \\u{001B}]52;c;ZXZpbA==\\u{0007} drives slowly)"),
+        "{said}"
+    );
+    assert!(
+        !said.contains('\u{1b}') && !said.contains('\u{7}'),
+        "{said}"
     );
 }
 

@@ -737,11 +737,13 @@ pub fn run(args: Args, given: &[String]) -> Result<ExitCode> {
             bail!("--replay needs -o DIR, a new run directory");
         };
         let rec = drivescript::llm::replay::read_transcript(file)?;
+        // The model's name and the request are the transcript's, a file that may come from
+        // anyone: an escape sequence in them reached the terminal, a line break faked a line.
         println!(
             "LLM: none; replaying the {} recorded replies of {} ({}) from {}",
             rec.exchanges.len(),
-            rec.model.as_deref().unwrap_or("a model"),
-            rec.request,
+            drivescript::io::name::shown(rec.model.as_deref().unwrap_or("a model")),
+            terminal_safe(&rec.request),
             super::shown(&file)
         );
         let raw = load_one(&rec.scene)?;

@@ -604,6 +604,8 @@ fn build_engine(
         let mut c = sh.borrow_mut();
         if c.prints.len() < max_lines {
             c.prints.push(printable(s));
+        } else {
+            c.prints_dropped += 1;
         }
     });
     let sh = shared.clone();
@@ -615,6 +617,8 @@ fn build_engine(
                 pos.line().unwrap_or(0),
                 printable(s)
             ));
+        } else {
+            c.prints_dropped += 1;
         }
     });
     e.set_module_resolver(StdlibResolver {
@@ -1272,6 +1276,7 @@ impl CostScript {
             traj,
             terms: Vec::new(),
             prints: Vec::new(),
+            prints_dropped: 0,
             paths: HashMap::new(),
             widths: HashMap::new(),
             coords: HashMap::new(),
@@ -1536,6 +1541,7 @@ impl CostScript {
             c.traj.valid.clone_from(&traj.valid);
             c.terms.clear();
             c.prints.clear();
+            c.prints_dropped = 0;
             c.coords.clear();
             c.may_reverse.clear();
             c.may_collide.clear();
@@ -1564,7 +1570,16 @@ impl CostScript {
                 grad: (*t.value.grad).clone(),
             })
             .collect();
-        let mut report = CostReport::new(terms, traj.layout, c.prints.clone(), t0.elapsed());
+        let mut prints = c.prints.clone();
+        // The lines past the cap were dropped without a word: 100,000 prints in a loop
+        // showed 200 lines, as if the loop had run 200 times.
+        if c.prints_dropped > 0 {
+            prints.push(format!(
+                "... and {} more print lines, not kept (at most {} are)",
+                c.prints_dropped, self.limits.max_print_lines
+            ));
+        }
+        let mut report = CostReport::new(terms, traj.layout, prints, t0.elapsed());
         // Finite weights times finite values can still overflow; a total of inf would reach
         // the sampler as a gradient naming neither term nor script. The per-term search runs
         // only when the sums say something overflowed.
@@ -1722,10 +1737,13 @@ impl CostScript {
             // The stdlib's own errors have no position; one with a position is the script's
             // `throw`, whose value can be 10,000 characters: it reaches terminals and prompts.
             EvalAltResult::ErrorRuntime(v, pos) if !pos.is_none() => {
-                let text = v.to_string();
+                let raw = v.to_string();
+                // On one line, as every error is: a line break in the thrown text printed a
+                // line of the script's choosing under drivescript's own ("Verdict: met").
+                let text = printable(&raw);
                 let n = text.chars().count();
                 // `throw;` and `throw ""` printed "s.rhai:1:1: " and nothing after it.
-                let message = if text.trim().is_empty() {
+                let message = if raw.trim().is_empty() {
                     if v.is_unit() { "the script threw () without a message".to_string() } else { "the script threw a blank message".to_string() }
                 } else if n > MAX_THROWN_CHARS {
                     format!(
@@ -1750,6 +1768,35 @@ impl CostScript {
                     sig.replace("drivescript::cost::dual::", "").replace("drivescript::cost::series::", "")
                 ),
             },
+            // A closure that captures the array it is mapped over (`a.map(|x| a.len())`) said
+            // "Data race detected on argument #1 of function 'map'": Rhai's words for a variable
+            // lent twice at once, with no way out.
+            EvalAltResult::ErrorDataRace(what, _) => CostError::Runtime {
+                script,
+                line,
+                column,
+                message: format!(
+                    "{} is also held by a closure (|...| ...) that runs while it is in use; give \
+                     the closure a copy instead (`let c = a;` before it, and `c` inside)",
+                    if what.is_empty() { "a variable" } else { what.as_str() }
+                ),
+            },
+            // "Indexer unavailable: Series [i64]" named Rhai's machinery and Rust's integer
+            // type, not what to write instead.
+            EvalAltResult::ErrorIndexingType(t, _) => {
+                let what = t.split(" [").next().unwrap_or(t).trim();
+                let hint = match what {
+                    "Series" => ": use s.at(i) for element i (negative counts from the end), or s.at_time(t)",
+                    "Dual" => ": a Dual is one number; value(x) gives it as a float",
+                    _ => "",
+                };
+                CostError::Runtime {
+                    script,
+                    line,
+                    column,
+                    message: format!("a value of type {what} cannot be indexed with [ ]{hint}"),
+                }
+            }
             EvalAltResult::ErrorFunctionNotFound(sig, _) => CostError::Runtime {
                 script,
                 line,
@@ -2108,6 +2155,28 @@ mod tests {
         assert_eq!(r.prints[0], "a\\u{1b}[31mred");
         assert!(r.prints[1].ends_with("\\u{7}\""), "{:?}", r.prints);
         assert!(r.prints.iter().all(|p| !p.chars().any(char::is_control)));
+    }
+
+    #[test]
+    fn prints_past_the_cap_are_counted_not_dropped_without_a_word() {
+        // 1,000 prints showed 200 lines, as if the loop had run 200 times.
+        let r = evaluate_recorded(
+            "for i in 0..1000 { print(i); }\nterm(\"x\", agent(1).x.last());",
+            highway(),
+        );
+        let max = Limits::default().max_print_lines;
+        assert_eq!(r.prints.len(), max + 1);
+        assert_eq!(r.prints[max - 1], (max - 1).to_string());
+        assert_eq!(
+            r.prints[max],
+            format!(
+                "... and {} more print lines, not kept (at most {max} are)",
+                1000 - max
+            )
+        );
+        // A few are all kept, with no count after them.
+        let r = evaluate_recorded("print(1);\nterm(\"x\", agent(1).x.last());", highway());
+        assert_eq!(r.prints, vec!["1".to_string()]);
     }
 
     #[test]

@@ -147,6 +147,27 @@ impl Edit {
         if self.lateral.is_none() && self.shift.is_none() && self.sway.is_none() && !self.freeze {
             return Err("it changes nothing: give lateral, shift, sway or freeze".into());
         }
+        // `freeze` holds the current state over the whole future, so anything beside it was
+        // dropped without a word and the case ran on a future the file did not describe.
+        if self.freeze {
+            let ignored: Vec<&str> = [
+                ("lateral", self.lateral.is_some()),
+                ("shift", self.shift.is_some()),
+                ("sway", self.sway.is_some()),
+                ("from", self.from != 0.0),
+                ("ramp", self.ramp != 0.0),
+            ]
+            .into_iter()
+            .filter_map(|(f, given)| given.then_some(f))
+            .collect();
+            if !ignored.is_empty() {
+                return Err(format!(
+                    "`freeze` holds the current state for the whole future, so `{}` would be \
+                     ignored: give freeze alone, or a separate edit",
+                    ignored.join("`, `")
+                ));
+            }
+        }
         finite("from", self.from)?;
         finite("ramp", self.ramp)?;
         if self.ramp < 0.0 {
@@ -261,6 +282,21 @@ impl Expect {
                 return Err(format!(
                     "`allows.collide` pairs agent {i} with itself: a pair is two different agents"
                 ));
+            }
+        }
+        // A case that expects an error stops at it: a threshold beside it was never looked
+        // at, and `{error: ..., total_below: -5}` passed.
+        if self.error.is_some() {
+            let unchecked = Expect {
+                error: None,
+                ..self.clone()
+            };
+            if !unchecked.checks_nothing() {
+                return Err(
+                    "`error` expects the script to fail, so nothing else given beside it can be \
+                     checked: put the other expectations in a case of their own"
+                        .into(),
+                );
             }
         }
         if self.error.as_deref().is_some_and(|e| e.trim().is_empty()) {
@@ -407,7 +443,7 @@ fn check_edit(scene: &Scene, e: &Edit) -> Result<(), String> {
         return Err(format!("edit: no agent {}", e.agent));
     }
     let last = super::VarLayout::of(scene).steps as f64 * scene.meta.dt;
-    if !e.freeze && e.sway.is_none() && e.from > last {
+    if !e.freeze && e.from > last {
         return Err(format!(
             "edit of agent {} starts {} s after the current step, after the last future step \
              ({} s): it changes nothing",
@@ -449,7 +485,9 @@ fn apply_edit(scene: &Scene, traj: &mut Trajectories, e: &Edit) -> Result<(), St
             traj.xyh[i][1] += c * d * w;
         }
         if let Some([amp, period]) = e.sway {
-            let d = amp * (std::f64::consts::TAU * t / period).sin();
+            // Blended in from `from` over `ramp` like every other edit: the sway started at
+            // the current step whatever `from` said.
+            let d = amp * (std::f64::consts::TAU * t / period).sin() * w;
             let (s, c) = cur.heading.sin_cos();
             traj.xyh[i][0] += -s * d;
             traj.xyh[i][1] += c * d;
@@ -745,6 +783,26 @@ pub fn run_test_file(path: &Path) -> Result<Vec<CaseResult>, ScriptTestError> {
         c.expect
             .check()
             .map_err(|m| invalid(format!("case {:?}: expect: {m}", c.name)))?;
+        // A list or a map was written out as YAML and read as a word ("agent(a: 1): an agent
+        // id is a whole number, not a word"), or refused for the line break inside it.
+        for (k, v) in &c.params {
+            use serde_yaml::Value as V;
+            let kind = match v {
+                V::Null => Some("nothing (null)"),
+                V::Sequence(_) => Some("a list"),
+                V::Mapping(_) => Some("a map"),
+                V::Tagged(_) => Some("a tagged value"),
+                V::Bool(_) | V::Number(_) | V::String(_) => None,
+            };
+            if let Some(kind) = kind {
+                return Err(invalid(format!(
+                    "case {:?}: params.{}: is {kind}; a parameter is a number, a word or \
+                     true/false",
+                    c.name,
+                    crate::io::name::shown(k)
+                )));
+            }
+        }
         if c.candidate.scene.is_some() && c.candidate.rollout.is_some() {
             return Err(invalid(format!(
                 "case {:?}: candidate: give `scene` or `rollout`, not both",
@@ -832,6 +890,16 @@ mod tests {
             (
                 "{agent: 2, from: 1}",
                 "changes nothing: give lateral, shift, sway or freeze",
+            ),
+            // The shift (or the start) was dropped without a word and the case passed on
+            // the frozen future.
+            (
+                "{agent: 2, freeze: true, shift: [-45, 0]}",
+                "`freeze` holds the current state for the whole future, so `shift` would be ignored",
+            ),
+            (
+                "{agent: 2, freeze: true, lateral: 1, from: 2}",
+                "so `lateral`, `from` would be ignored",
             ),
         ] {
             let t = dir.path().join("x.test.yaml");
@@ -927,6 +995,11 @@ mod tests {
                 "`towards.direction` is [0, 0]: a direction is two finite numbers, not both 0",
             ),
             ("{error: \"\"}", "`error` is empty"),
+            // The threshold was never looked at, and the case passed.
+            (
+                "{error: \"unknown agent\", total_below: -5}",
+                "`error` expects the script to fail, so nothing else given beside it can be checked",
+            ),
             (
                 "{towards: {agent: 4, direction: [1e308, 1e308]}}",
                 "`towards.direction` is [1e308, 1e308]: its length is out of range",
@@ -980,6 +1053,81 @@ mod tests {
             "{}",
             r[0].detail
         );
+    }
+
+    #[test]
+    fn a_parameter_given_as_a_list_or_map_is_named_as_such() {
+        // Read as the word "a: 1" (or refused for the line break in "- 2\n- 3").
+        let dir = tempfile::tempdir().unwrap();
+        for (value, kind) in [
+            ("{a: 1}", "a map"),
+            ("[4, 5]", "a list"),
+            ("~", "nothing (null)"),
+        ] {
+            let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts");
+            let t = dir.path().join("x.test.yaml");
+            std::fs::write(
+                &t,
+                format!(
+                    "script: {}\ncases:\n  - name: c\n    scene: {}\n    params: {{attacker: {value}, target: 2}}\n    expect: {{total_above: 0}}\n",
+                    root.join("accident.rhai").display(),
+                    root.join("scenes/highway.yaml").display()
+                ),
+            )
+            .unwrap();
+            let e = run_test_file(&t).unwrap_err().to_string();
+            assert!(
+                e.contains(&format!(
+                    "x.test.yaml: case \"c\": params.attacker: is {kind}; a parameter is"
+                )),
+                "{value}: {e}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_sway_starts_at_its_from_like_every_edit() {
+        // The sway began at the current step whatever `from` said: one starting after the
+        // last future step passed as a swaying candidate.
+        let dir = tempfile::tempdir().unwrap();
+        let r = accident_case(
+            dir.path(),
+            "    edits: [{agent: 4, sway: [3, 2], from: 1e9}]\n    expect: {total_above: 10}\n",
+        )
+        .unwrap();
+        assert!(
+            !r[0].passed && r[0].detail.contains("starts 1e9 s after the current step"),
+            "{}",
+            r[0].detail
+        );
+        let mut edit = Edit {
+            agent: 1,
+            lateral: None,
+            shift: None,
+            freeze: false,
+            sway: Some([1.0, 4.0]),
+            from: 2.0,
+            ramp: 0.0,
+        };
+        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes/highway.yaml");
+        let scene = load_scene(&p, 0, &LoadOptions::default()).unwrap();
+        let recorded = Trajectories::recorded(&scene);
+        let mut traj = recorded.clone();
+        apply_edit(&scene, &mut traj, &edit).unwrap();
+        let dt = scene.meta.dt;
+        let a = scene.agents.iter().position(|x| x.id == 1).unwrap();
+        let n = traj.layout.steps;
+        let moved = |traj: &Trajectories, k: usize| {
+            let (p, q) = (traj.xyh[a * n + k], recorded.xyh[a * n + k]);
+            (p[0] - q[0]).hypot(p[1] - q[1])
+        };
+        let before = ((2.0 / dt) as usize).saturating_sub(2);
+        assert_eq!(moved(&traj, before), 0.0);
+        assert!((0..n).any(|k| moved(&traj, k) > 0.5));
+        edit.from = 0.0;
+        let mut now = recorded.clone();
+        apply_edit(&scene, &mut now, &edit).unwrap();
+        assert!(moved(&now, before) > 0.0);
     }
 
     #[cfg(unix)]

@@ -404,6 +404,13 @@ impl Series {
 
     /// Smooth minimum `-smooth_max(-v)`.
     pub fn smooth_min(&self, beta: f64) -> OpResult<Dual> {
+        // Checked here: through `smooth_max` a bad beta was said to be smooth_max's.
+        if !(beta.is_finite() && beta > 0.0) {
+            return Err(format!(
+                "smooth_min: beta must be positive, got {}",
+                crate::geom::num(beta)
+            ));
+        }
         let neg = self.map("neg", |v| Some((-v, -1.0)))?;
         Ok(neg.smooth_max(beta)?.mul_f(-1.0))
     }
@@ -506,6 +513,16 @@ impl Series {
 
     /// The elements between `t0` and `t1` seconds after the current step (inclusive).
     pub fn window(&self, t0: f64, t1: f64) -> OpResult<Series> {
+        // Said in the times given: "slice(29, 10) is empty" named steps and a function the
+        // script never called.
+        if t1 < t0 {
+            return Err(format!(
+                "window({}, {}): the end is before the start; give window(t0, t1) with t0 <= t1 \
+                 (seconds after the current step)",
+                crate::geom::num(t0),
+                crate::geom::num(t1)
+            ));
+        }
         let a = self.index_of_time(t0, "window")?;
         let b = self.index_of_time(t1, "window")?;
         self.slice(a, b + 1)

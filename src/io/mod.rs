@@ -261,11 +261,36 @@ pub fn detect_format(path: &Path) -> Result<SceneFormat, IoError> {
         match std::fs::metadata(path) {
             Err(e) if is_link_loop(&e) => Err(read_error(path, e)),
             Ok(m) if !m.is_file() => Err(not_regular(path)),
+            // A rollout given as a scene was "unknown scene format" and a list of formats,
+            // which left the user guessing what the file they named is.
+            _ if name.ends_with(".json") && is_rollout_file(path) => Err(IoError::invalid(
+                path,
+                "file",
+                "is a drivescript rollout (sampled trajectories), not a scene: give its scene \
+                 and pass it with --rollout (render, cost) or --rollouts DIR (eval)",
+            )),
             _ => Err(IoError::UnknownFormat {
                 path: path.display().to_string(),
             }),
         }
     }
+}
+
+/// Whether a file begins as the rollouts drivescript writes do (`{"format":
+/// "drivescript-rollout"`, the first key [`rollout::Rollout`] serialises).
+fn is_rollout_file(path: &Path) -> bool {
+    use std::io::Read;
+    let Ok(f) = open_regular(path, u64::MAX, "a scene file") else {
+        return false;
+    };
+    let mut head = Vec::new();
+    if f.take(256).read_to_end(&mut head).is_err() {
+        return false;
+    }
+    let head = String::from_utf8_lossy(&head);
+    let head: String = head.chars().filter(|c| !c.is_whitespace()).collect();
+    head.trim_start_matches('\u{feff}')
+        .starts_with(&format!("{{\"format\":\"{}\"", rollout::FORMAT_TAG))
 }
 
 /// Whether opening a path failed because its symbolic links lead back to themselves.

@@ -306,8 +306,23 @@ impl Rollout {
         let text = super::read_text(path)?;
         // Named by the path to the value (`agents[0].states[20][0]`), and a NaN that Python's
         // json.dump wrote said to be one: "expected value" at a column alone said neither.
-        let r: Rollout = serde_json::from_str(&text)
-            .map_err(|e| super::gpudrive::json_error(path, &text, &e))?;
+        let r: Rollout = serde_json::from_str(&text).map_err(|e| {
+            // A scene given where a rollout goes (`--rollout scene.yaml`) was "line 1, column
+            // 1: expected value", which named neither what the file is nor what was wanted.
+            let head = &text.as_bytes()[..text.len().min(16)];
+            match super::classify(head) {
+                super::Content::Json => super::gpudrive::json_error(path, &text, &e),
+                other => IoError::invalid(
+                    path,
+                    "file",
+                    format!(
+                        "not a rollout: its content is {}, and a rollout is the JSON that \
+                         `simulate` or `convert SCENE -o FILE.json` writes",
+                        other.describe()
+                    ),
+                ),
+            }
+        })?;
         r.validate(path)?;
         Ok(r)
     }

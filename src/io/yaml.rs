@@ -233,6 +233,52 @@ fn default_lc_duration() -> f64 {
     3.0
 }
 
+/// The longest `lane_change.duration`: a lane change takes a few seconds; one of 1e308 s never
+/// moved the agent off its lane, and said nothing.
+pub const MAX_LANE_CHANGE_SECONDS: f64 = 60.0;
+
+/// Refuses a lane change that cannot be the one the file describes: a `duration` of 0, below
+/// 0 or NaN moved the agent across in one step (the motion clamps it to a microsecond), and
+/// one that starts after the last step or ends before the first changed nothing in the
+/// scene; a NaN `start` was "step 0: state is not finite", naming no field.
+fn lane_change_problem(lc: &YamlLaneChange, y: &YamlScene) -> Result<(), String> {
+    let first = -(y.current_step as f64) * y.dt;
+    let last = (y.steps as f64 - 1.0 - y.current_step as f64) * y.dt;
+    let num = crate::geom::num;
+    if !(lc.duration > 0.0 && lc.duration <= MAX_LANE_CHANGE_SECONDS) {
+        return Err(format!(
+            "lane_change.duration is {} s: must be more than 0 and at most \
+             {MAX_LANE_CHANGE_SECONDS} s",
+            num(lc.duration)
+        ));
+    }
+    if !lc.start.is_finite() {
+        return Err(format!(
+            "lane_change.start is {}: must be a finite number of seconds after the current step",
+            num(lc.start)
+        ));
+    }
+    if lc.start >= last {
+        return Err(format!(
+            "lane_change.start is {} s, at or after the scene's last step ({} s after the \
+             current step): the lane change would not happen in the scene",
+            num(lc.start),
+            num(last)
+        ));
+    }
+    if lc.start + lc.duration <= first {
+        return Err(format!(
+            "lane_change ends {} s after the current step, before the scene's first step ({} \
+             s): the agent is in lane {} throughout; give `lane: {}` instead",
+            num(lc.start + lc.duration),
+            num(first),
+            lc.to,
+            lc.to
+        ));
+    }
+    Ok(())
+}
+
 /// An agent of a YAML scene.
 #[derive(Debug, Clone, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
@@ -740,6 +786,9 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
                     ),
                 ));
             }
+        }
+        if let Some(lc) = &a.lane_change {
+            lane_change_problem(lc, y).map_err(|m| bad(loc.clone(), m))?;
         }
         let mut states = if let Some(explicit) = &a.states {
             if explicit.len() != y.steps {

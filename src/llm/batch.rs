@@ -317,9 +317,29 @@ pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<S
                 }
                 let mut request = e.request.clone();
                 for h in &holes {
-                    let v = params
-                        .get(h)
-                        .ok_or_else(|| entry_err(e, Some(&f), format!("no value for {{{h}}}")))?;
+                    // Said with what could fill it: "no value for {foo}" left the user to
+                    // guess the names the behaviour's agents go by.
+                    let v = params.get(h).ok_or_else(|| {
+                        let known: Vec<String> =
+                            params.names().map(|n| format!("{{{n}}}")).collect();
+                        entry_err(
+                            e,
+                            Some(&f),
+                            format!(
+                                "no value for {{{h}}}: {}",
+                                if known.is_empty() {
+                                    "neither `params:` nor the behaviour's agents give one"
+                                        .to_string()
+                                } else {
+                                    format!(
+                                        "the placeholders `params:` and the behaviour's agents \
+                                         fill are {}",
+                                        known.join(", ")
+                                    )
+                                }
+                            ),
+                        )
+                    })?;
                     request = request.replace(&format!("{{{h}}}"), &v.to_string());
                 }
                 let checks = match e.behaviour {
@@ -722,7 +742,7 @@ mod tests {
             .to_string();
         assert!(
             err.starts_with(&format!("{}: entry on line 3 (", f.display()))
-                && err.contains("no value for {nobody}"),
+                && err.contains("no value for {nobody}: the placeholders `params:` and the behaviour's agents fill are {cutter}, {victim}"),
             "{err}"
         );
         std::fs::write(&f, "scenes: []\nentries:\n  - request: x\n").unwrap();

@@ -1165,6 +1165,14 @@ fn parse_completion(text: &str, url: &str) -> Result<Completion, LlmError> {
         let head: String = text.trim().chars().take(120).collect();
         bad(format!("the reply is not JSON ({e}); it begins {head:?}"))
     })?;
+    // Some servers (and proxies) answer an overloaded or refused request with HTTP 200 and
+    // an error body: "the reply has no choices array" hid what the server said.
+    if v.get("error").is_some_and(|e| !e.is_null()) && v.get("choices").is_none() {
+        return Err(bad(format!(
+            "the server answered HTTP 200 with an error and no completion: {}",
+            error_message(text)
+        )));
+    }
     let choices = v["choices"]
         .as_array()
         .ok_or_else(|| bad("the reply has no \"choices\" array".into()))?;
@@ -1181,6 +1189,11 @@ fn parse_completion(text: &str, url: &str) -> Result<Completion, LlmError> {
             .join(""),
         _ => match first["text"].as_str() {
             Some(s) => s.to_string(),
+            // A reasoning model that spent the whole token limit thinking sends no content
+            // (its thoughts go in `reasoning_content`): that is a reply cut off at the limit,
+            // as a stream of the same reply is, which the user can fix with --max-tokens; it
+            // was called "a refusal or a tool call" and ended the run.
+            None if first["finish_reason"].as_str() == Some("length") => String::new(),
             None => {
                 return Err(bad(
                     "the first choice has no message content (a refusal or a tool call?)".into(),
@@ -1304,6 +1317,32 @@ mod tests {
         assert!(e.to_string().contains("empty"), "{e}");
         let e = parse_completion(r#"{"id": 1}"#, "u").unwrap_err();
         assert!(e.to_string().contains("no \"choices\""), "{e}");
+    }
+
+    #[test]
+    fn an_error_in_a_200_reply_and_a_reply_of_only_reasoning_cut_at_the_limit_say_so() {
+        // Said "the reply has no \"choices\" array", not what the server said.
+        let e = parse_completion(
+            r#"{"error": {"message": "model is overloaded", "code": 503}}"#,
+            "u",
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("HTTP 200 with an error") && e.contains("model is overloaded (503)"),
+            "{e}"
+        );
+        // Said "no message content (a refusal or a tool call?)" and ended the run.
+        let got = parse_completion(
+            r#"{"choices":[{"message":{"content":null,"reasoning_content":"hmm"},"finish_reason":"length"}]}"#,
+            "u",
+        )
+        .unwrap();
+        assert!(got.truncated && got.content.is_empty());
+        let e = parse_completion(r#"{"choices":[{"message":{"content":null}}]}"#, "u")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("no message content"), "{e}");
     }
 
     #[test]

@@ -137,6 +137,23 @@ impl Prompts {
                     path: p.clone(),
                     message: format!("cannot read it: {}", e.reason()),
                 })?;
+            // A control character is nothing a model reads, and `prompt show` prints the
+            // templates as they are: an escape sequence in a shared prompt folder reached the
+            // terminal (cleared it, retitled the window).
+            if let Some((line, c)) = text.lines().enumerate().find_map(|(k, l)| {
+                l.chars()
+                    .find(|&c| c.is_control() && c != '\t')
+                    .map(|c| (k + 1, c))
+            }) {
+                return Err(LlmError::Prompt {
+                    path: p,
+                    message: format!(
+                        "line {line} holds the control character U+{:04X}: a template is \
+                         text for the model; remove it",
+                        c as u32
+                    ),
+                });
+            }
             total += text.len() as u64;
             if total > MAX_PROMPTS_BYTES {
                 return Err(LlmError::Prompt {
@@ -520,6 +537,19 @@ mod tests {
             assert!(e.contains(want), "{e}");
             std::fs::write(dir.path().join(name), before).unwrap();
         }
+        // Printed as they are by `prompt show`: an escape sequence reached the terminal.
+        let before = std::fs::read(dir.path().join("request.md")).unwrap();
+        std::fs::write(
+            dir.path().join("request.md"),
+            "{{scene}}\r\n\u{1b}]0;pwned\u{7}{{request}}\n",
+        )
+        .unwrap();
+        let e = Prompts::load(dir.path()).unwrap_err().to_string();
+        assert!(
+            e.contains("request.md: line 2 holds the control character U+001B"),
+            "{e}"
+        );
+        std::fs::write(dir.path().join("request.md"), before).unwrap();
         Prompts::load(dir.path()).unwrap();
         std::fs::remove_file(dir.path().join("request.md")).unwrap();
         let e = Prompts::load(dir.path()).unwrap_err().to_string();

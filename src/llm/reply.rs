@@ -20,6 +20,12 @@ pub enum Reply {
 /// Why a reply cannot be used; the message goes back to the model.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ReplyError {
+    /// Nothing but whitespace: a server that sent an empty completion, or an empty file.
+    #[error(
+        "the reply is empty: send the whole script in one ```rhai block, or the single word \
+         ACCEPT on its own line"
+    )]
+    Blank,
     /// Neither a code block nor ACCEPT.
     #[error(
         "the reply has no ```rhai code block and does not ACCEPT: send the whole script in one \
@@ -41,6 +47,11 @@ pub enum ReplyError {
 /// untagged block is taken (models forget the tag). `ACCEPT` counts when it stands on a line
 /// of its own (markdown emphasis allowed) and the reply carries no script.
 pub fn parse_reply(text: &str) -> Result<Reply, ReplyError> {
+    // An empty completion was said to have "no ```rhai code block", as if the model had
+    // written something else.
+    if text.trim().is_empty() {
+        return Err(ReplyError::Blank);
+    }
     let mut blocks: Vec<(String, String)> = Vec::new(); // (tag, body)
     let mut outside = String::new();
     let mut open: Option<(usize, String, String)> = None; // (line, tag, body)
@@ -108,6 +119,17 @@ pub fn parse_reply(text: &str) -> Result<Reply, ReplyError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_empty_reply_is_called_empty() {
+        for text in ["", " \n\t\n"] {
+            assert_eq!(parse_reply(text), Err(ReplyError::Blank));
+        }
+        assert!(ReplyError::Blank
+            .to_string()
+            .starts_with("the reply is empty"));
+        assert_eq!(parse_reply("hello"), Err(ReplyError::NoScript));
+    }
 
     #[test]
     fn a_script_block_with_its_reasoning() {

@@ -2193,7 +2193,15 @@ impl Session<'_> {
         }
         if let Backend::Manual = self.backend {
             let reply = rdir.join("reply.md");
-            return Ok(match read_run_file(&reply) {
+            // Held to a server's cap: every reply is kept in `state.json` and each round's
+            // `messages.json` and sent again with every later round, so a pasted 4 MB file
+            // went on into each, and state.json grew past what --resume reads back.
+            let read = crate::io::read_regular_text(
+                &reply,
+                super::client::MAX_COMPLETION_BYTES as u64,
+                "a model's reply",
+            );
+            return Ok(match read {
                 Ok(t) if !t.trim().is_empty() => {
                     self.record(n, "manual reply read", t0, None);
                     Got::Text(t)

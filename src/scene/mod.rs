@@ -480,7 +480,9 @@ impl Scene {
         if total <= future {
             return Err(SceneError::TooShort {
                 steps: total,
-                needed: future + 1,
+                // `future` is any usize a caller gives (Python's `crop(1, 2**64 - 1)`): +1
+                // overflowed, a panic in a debug build and "0 are needed" in a release one.
+                needed: future.saturating_add(1),
             });
         }
         let current = self.meta.current_step.min(total - future - 1);
@@ -749,6 +751,11 @@ agents:
         assert_eq!((late.meta.current_step, late.num_steps()), (5, 31));
         let e = s.crop(2, 31).unwrap_err();
         assert_eq!(e.to_string(), "the scene has 31 steps, 32 are needed");
+        let e = s.crop(2, usize::MAX).unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            format!("the scene has 31 steps, {} are needed", usize::MAX)
+        );
         // Nothing to keep is an error, not an empty scene.
         for (n, future) in [(0, 15), (3, 0)] {
             let e = s.crop(n, future).unwrap_err().to_string();

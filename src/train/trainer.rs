@@ -196,6 +196,15 @@ impl CheckpointMeta {
     }
 }
 
+/// The range of the EDM noise levels (`sigma_data`, `sigma_min`, `sigma_max`) a checkpoint
+/// may give: far around EDM's 0.002 to 80, within what the model's f32 arithmetic holds
+/// after squaring.
+pub const MIN_SIGMA: f64 = 1e-6;
+/// See [`MIN_SIGMA`].
+pub const MAX_SIGMA: f64 = 1e6;
+/// The largest schedule exponent `rho`: EDM's is 7; the levels are raised to it.
+pub const MAX_RHO: f64 = 1000.0;
+
 /// `Ok` when `v` is positive and finite, else a message naming the setting.
 fn positive(name: &str, v: f64) -> Result<(), String> {
     if v.is_finite() && v > 0.0 {
@@ -283,6 +292,28 @@ impl TrainConfig {
         positive("edm.p_std", e.p_std)?;
         if !e.p_mean.is_finite() {
             return Err(format!("edm.p_mean = {}: must be finite", e.p_mean));
+        }
+        // Positive is not enough: a σ_min of 1e-320 (below what the model's f32 holds) or a
+        // σ_max of 1e308 passed, and sampling ended in "non-finite sample at sampling step
+        // 32", naming no file or field. EDM's levels are 0.002 to 80 around σ_data 0.5.
+        for (name, v) in [
+            ("edm.sigma_data", e.sigma_data),
+            ("edm.sigma_min", e.sigma_min),
+            ("edm.sigma_max", e.sigma_max),
+        ] {
+            if !(MIN_SIGMA..=MAX_SIGMA).contains(&v) {
+                return Err(format!(
+                    "{name} = {}: must be {MIN_SIGMA:e} to {MAX_SIGMA:e} (a noise level in the \
+                     data's units; EDM's run from 0.002 to 80)",
+                    crate::geom::num(v)
+                ));
+            }
+        }
+        if e.rho > MAX_RHO {
+            return Err(format!(
+                "edm.rho = {}: must be at most {MAX_RHO} (EDM's is 7)",
+                crate::geom::num(e.rho)
+            ));
         }
         if e.sigma_min >= e.sigma_max {
             return Err(format!(
@@ -1646,6 +1677,23 @@ mod tests {
                 "/config/model/layers",
                 1_000_000u64.into(),
                 "config.model.layers = 1000000",
+            ),
+            // Positive and finite, yet sampling ended in "non-finite sample at sampling step
+            // 32", naming neither the file nor the field.
+            (
+                "/config/edm/sigma_min",
+                1e-320.into(),
+                "config.edm.sigma_min = 1e-320: must be 1e-6 to 1e6",
+            ),
+            (
+                "/config/edm/sigma_max",
+                1e308.into(),
+                "config.edm.sigma_max = 1e308: must be 1e-6 to 1e6",
+            ),
+            (
+                "/config/edm/rho",
+                1e9.into(),
+                "config.edm.rho = 1e9: must be at most 1000",
             ),
             ("/config/lr", (-1.0).into(), "config.lr = -1"),
             ("/normaliser/std/0", 0.0.into(), "normaliser.std[0] = 0"),

@@ -52,6 +52,8 @@ pub(crate) struct Ctx {
     pub traj: Trajectories,
     pub terms: Vec<Term>,
     pub prints: Vec<String>,
+    /// `print`/`debug` lines past [`super::Limits::max_print_lines`], counted, not kept.
+    pub prints_dropped: usize,
     pub paths: HashMap<(i64, u64, u64, Turn), Rc<LanePath>>,
     pub widths: HashMap<usize, Rc<Vec<(f64, f64)>>>,
     pub params: std::collections::BTreeMap<String, Dynamic>,
