@@ -2412,6 +2412,28 @@ fn names_read_from_files_with_control_or_invisible_characters_are_refused() {
         !text.contains("\nerror: fake") && !text.contains('\u{1b}'),
         "{text}"
     );
+    // Two cases of one name made two rows nobody could tell apart.
+    let case = format!(
+        "  - name: same\n    scene: {}\n    params: {{vehicle: 1, limit: 30}}\n    expect: {{total_below: 1.0}}\n",
+        s(&root.join("scripts/scenes/highway.yaml"))
+    );
+    std::fs::write(
+        &t,
+        format!(
+            "script: {}\ncases:\n{case}{case}",
+            s(&root.join("scripts/speed_limit.rhai"))
+        ),
+    )
+    .unwrap();
+    let out = common::drivescript(&["test-scripts", s(&t)]);
+    assert_eq!(out.status.code(), Some(1));
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains(
+            "x.test.yaml: cases[1]: the name \"same\" is also cases[0]'s: give each case its own name"
+        ),
+        "{text}"
+    );
 }
 
 #[test]
@@ -3070,7 +3092,8 @@ const DEAD_TERMS: &str = "let a = agent(1);\n\
     term(\"moves\", a.x.last());\n\
     term(\"never\", relu(a.speed - 50.0).mean());\n\
     term(\"nil\", 0.0 * a.x.last());\n\
-    term(\"guard\", no_collision_cost(vehicles(), 0.5));\n";
+    term(\"guard\", no_collision_cost(vehicles(), 0.5));\n\
+    term(\"flat\", 1.0 + 0.0 * a.x.last());\n";
 
 #[test]
 fn cost_and_simulate_name_terms_no_perturbed_future_moves() {
@@ -3096,8 +3119,15 @@ fn cost_and_simulate_name_terms_no_perturbed_future_moves() {
         !err.contains("\"guard\"") && !err.contains("\"moves\""),
         "{err}"
     );
+    // A constant other than 0 passed without a word.
+    assert!(
+        err.contains(
+            "dead.rhai:6: term \"flat\": its gradient is zero on the recorded future and on"
+        ) && err.contains("(its value, 1, does not follow the motion)"),
+        "{err}"
+    );
     let v: Value = serde_json::from_slice(&out.stdout).unwrap();
-    assert_eq!(v["warnings"].as_array().unwrap().len(), 2, "{v}");
+    assert_eq!(v["warnings"].as_array().unwrap().len(), 3, "{v}");
     // `simulate` says it once per run, however many scenes share the script, and keeps it in
     // the costs report.
     let out_dir = dir.path().join("sim");
@@ -3120,7 +3150,7 @@ fn cost_and_simulate_name_terms_no_perturbed_future_moves() {
             .unwrap();
     let w = costs["warnings"].as_array().unwrap();
     assert!(
-        w.len() == 2 && w[0].as_str().unwrap().contains(&line("never", 3)),
+        w.len() == 3 && w[0].as_str().unwrap().contains(&line("never", 3)),
         "{costs}"
     );
 }

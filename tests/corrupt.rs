@@ -1178,7 +1178,15 @@ fn cost_on_a_scene_without_a_future_is_an_error_not_a_panic() {
         "nofuture.yaml",
     );
     // 11 steps with current step 10: nothing after it (it panicked in the cost report).
-    edit(&f, |t| t.replacen("steps: 91", "steps: 11", 1));
+    // The cut-in's lane change, which starts after the last step, goes too: a lane change
+    // the scene cannot hold is refused on reading.
+    edit(&f, |t| {
+        t.replacen("steps: 91", "steps: 11", 1).replacen(
+            "    lane_change: {to: 1, start: 1.5, duration: 3.0}\n",
+            "",
+            1,
+        )
+    });
     let err = fails(&["cost", s(&f), "--script", "scripts/no_collisions.rhai"]);
     assert!(
         err.contains("scene highway-cut-in has no step after its current step 10"),

@@ -208,8 +208,8 @@ pub enum CostError {
     },
 }
 
-/// A term no probe moves ([`CostScript::dead_terms`]): 0 with a zero gradient on the recorded
-/// future and on every perturbed one, so it can never steer sampling.
+/// A term no probe moves ([`CostScript::dead_terms`]): a zero gradient on the recorded future
+/// and on every perturbed one, so it can never steer sampling.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DeadTerm {
     /// The script that declares it.
@@ -218,19 +218,34 @@ pub struct DeadTerm {
     pub term: String,
     /// Line of its `term(...)` call.
     pub line: usize,
+    /// A value other than 0 it took on some probe (a constant, a saturated sigmoid); `None`
+    /// where it was 0 on every one.
+    pub value: Option<f64>,
 }
 
 impl DeadTerm {
     /// Why it cannot steer, and what to do, in words (without the script, line and term).
     pub fn message(&self) -> String {
-        format!(
-            "it is 0 with a zero gradient on the recorded future and on {} perturbed ones ({}), \
-             so it can never steer sampling: a term must grow as the motion departs from what is \
-             asked (a relu whose threshold no plausible motion reaches, or anything times 0, is \
-             always 0)",
+        let probes = format!(
+            "on the recorded future and on {} perturbed ones ({})",
             super::probe::PROBES.len(),
             super::probe::PROBES.join(", ")
-        )
+        );
+        match self.value {
+            None => format!(
+                "it is 0 with a zero gradient {probes}, so it can never steer sampling: a term \
+                 must grow as the motion departs from what is asked (a relu whose threshold no \
+                 plausible motion reaches, or anything times 0, is always 0)"
+            ),
+            // `1.0 + 0.0 * a.x.last()` or `sigmoid(a.x, 1e308)` passed validation without a
+            // word: not 0, but no more able to steer than a term that is.
+            Some(v) => format!(
+                "its gradient is zero {probes} (its value, {}, does not follow the motion), so \
+                 it can never steer sampling: a term must grow as the motion departs from what \
+                 is asked (a constant, a step or a saturated sigmoid does not)",
+                crate::geom::num(v)
+            ),
+        }
     }
 
     /// As a validation error, for callers that refuse such a term (the LLM loop).
@@ -1459,8 +1474,8 @@ impl CostScript {
         Ok(report)
     }
 
-    /// The terms that can never steer sampling: 0 with a zero gradient on the recorded
-    /// future (gaps filled) and on every perturbed future of [`super::probe::PROBES`]. A guard
+    /// The terms that can never steer sampling: a zero gradient on the recorded future (gaps
+    /// filled) and on every perturbed future of [`super::probe::PROBES`], whatever their value. A guard
     /// that is 0 on the log but wakes when cars collide, leave the road or speed up is not
     /// one of them. Where the script fails on a probe (a lane lookup far off the map, say), or
     /// declares other terms there, nothing is said: only what every probe shows is reported.
@@ -1475,21 +1490,29 @@ impl CostScript {
             f.extend(super::probe::probe_futures(&c.scene));
             f
         };
-        let mut dead: Option<Vec<(String, usize)>> = None;
+        // Each term with a zero gradient on every probe so far, and a value other than 0 it
+        // took on one.
+        let mut dead: Option<Vec<(String, usize, Option<f64>)>> = None;
         let since = Instant::now();
         for traj in &futures {
             let Ok(report) = self.evaluate_since(traj, Some(since)) else {
                 return Vec::new();
             };
-            let here: Vec<(String, usize)> = report
+            let here: Vec<(String, usize, Option<f64>)> = report
                 .terms
                 .iter()
-                .filter(|t| t.value == 0.0 && t.grad.iter().all(|(_, g)| *g == 0.0))
-                .map(|t| (t.name.clone(), t.line))
+                .filter(|t| t.grad.iter().all(|(_, g)| *g == 0.0))
+                .map(|t| (t.name.clone(), t.line, (t.value != 0.0).then_some(t.value)))
                 .collect();
             dead = Some(match dead {
                 None => here,
-                Some(d) => d.into_iter().filter(|t| here.contains(t)).collect(),
+                Some(d) => d
+                    .into_iter()
+                    .filter_map(|(name, line, value)| {
+                        let now = here.iter().find(|h| h.0 == name && h.1 == line)?;
+                        Some((name, line, value.or(now.2)))
+                    })
+                    .collect(),
             });
             if dead.as_ref().is_some_and(Vec::is_empty) {
                 break;
@@ -1497,10 +1520,11 @@ impl CostScript {
         }
         dead.unwrap_or_default()
             .into_iter()
-            .map(|(term, line)| DeadTerm {
+            .map(|(term, line, value)| DeadTerm {
                 script: self.name.clone(),
                 term,
                 line,
+                value,
             })
             .collect()
     }

@@ -213,8 +213,18 @@ impl Params {
             check_name(k).map_err(bad)?;
             let v = v.trim();
             check_value(v).map_err(bad)?;
+            let digits = v.strip_prefix(['-', '+']).unwrap_or(v);
             let val = if let Ok(i) = v.parse::<i64>() {
                 ParamValue::Int(i)
+            } else if !digits.is_empty() && digits.bytes().all(|b| b.is_ascii_digit()) {
+                // Read as a float, `cutter=9223372036854775808` reached the script as
+                // 9.223372036854776e18 and was refused as "not a decimal number", a value
+                // nobody wrote.
+                return Err(bad(format!(
+                    "{v} is a whole number beyond ±{}, which no parameter holds (write it with a \
+                     decimal point or an exponent if a real number is meant)",
+                    i64::MAX
+                )));
             } else if let Ok(f) = v.parse::<f64>() {
                 if crate::geom::written_beyond_f64(v, f) {
                     return Err(bad(format!("{v} {}", crate::geom::BEYOND_F64)));
@@ -309,6 +319,11 @@ mod tests {
                 vec!["gap=-1e400"],
                 "parameter \"gap\": -1e400 is beyond the largest number",
             ),
+            (
+                vec!["cutter=9223372036854775808"],
+                "parameter \"cutter\": 9223372036854775808 is a whole number beyond ±9223372036854775807",
+            ),
+            (vec!["cutter=-99999999999999999999"], "is a whole number beyond"),
             (vec!["gap="], "parameter \"gap\": no value after `=`"),
             (vec!["gap= "], "parameter \"gap\": no value after `=`"),
             (vec!["turn=le\u{1b}[2Jft"], "the control character U+001B"),

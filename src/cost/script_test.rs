@@ -772,6 +772,13 @@ pub fn run_test_file(path: &Path) -> Result<Vec<CaseResult>, ScriptTestError> {
                 crate::io::name::shown(&c.name)
             )));
         }
+        // Two rows of one name in the results table could not be told apart: which failed?
+        if let Some(j) = file.cases[..k].iter().position(|o| o.name == c.name) {
+            return Err(invalid(format!(
+                "cases[{k}]: the name {:?} is also cases[{j}]'s: give each case its own name",
+                c.name
+            )));
+        }
     }
     if let Some(c) = file.cases.iter().find(|c| c.expect.checks_nothing()) {
         return Err(invalid(format!(
