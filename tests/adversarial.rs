@@ -1056,3 +1056,16 @@ fn a_bad_smooth_min_or_window_is_named_as_the_script_wrote_it() {
     assert!(!e.contains("slice"), "{e}");
     run("term(\"t\", agent(1).x.window(1.0, 1.0).mean());").expect("a window of one step");
 }
+
+/// `a.x = 3` said "No writable property 'x' - a setter is not registered for type 'Agent' to
+/// handle 'i64'": Rhai's words and Rust's integer type.
+#[test]
+fn assigning_a_read_only_property_says_so_in_the_script_s_words() {
+    let e = fails(
+        "let a = agent(1);\na.x = 3;\nterm(\"t\", agent(1).x.last());",
+        &[".x cannot be assigned: a value of type Agent has read-only properties"],
+    )
+    .to_string();
+    assert!(e.starts_with("evil.rhai:2:"), "{e}");
+    assert!(!e.contains("i64") && !e.contains("setter"), "{e}");
+}

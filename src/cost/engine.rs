@@ -1827,6 +1827,22 @@ impl CostScript {
                 column,
                 message: format!("no function {}{} (see `drivescript stdlib-doc` for what exists and its argument types)", script_types(sig), self.given_in(sig)),
             },
+            // Rhai's own: "No writable property 'x' - a setter is not registered for type
+            // 'Agent' to handle 'i64'", in Rust's type names.
+            EvalAltResult::ErrorDotExpr(m, _) if m.starts_with("No writable property '") => {
+                let prop = m.split('\'').nth(1).unwrap_or("?");
+                let of = m.split('\'').nth(3).unwrap_or("this value");
+                CostError::Runtime {
+                    script,
+                    line,
+                    column,
+                    message: format!(
+                        ".{prop} cannot be assigned: a value of type {} has read-only properties (keep \
+                         what you compute in a variable of your own)",
+                        script_types(&format!("({of})")).trim_matches(['(', ')'])
+                    ),
+                }
+            }
             other => CostError::Runtime { script, line, column, message: short_numbers(&strip_position(&other.to_string())) },
         }
     }
