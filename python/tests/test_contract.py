@@ -448,7 +448,11 @@ def test_nothing_to_evaluate_is_a_value_error_not_a_panic(ds, scene, cut_in, tmp
     # A scene that ends at its current step (commonroad_current_step past the end is refused).
     ended_path = tmp_path / "ended.yaml"
     ended_path.write_text(
-        (ROOT / "data/samples/yaml/highway_cut_in.yaml").read_text().replace("steps: 91", "steps: 11")
+        (ROOT / "data/samples/yaml/highway_cut_in.yaml")
+        .read_text()
+        .replace("steps: 91", "steps: 11")
+        # A lane change after the last step is refused on reading: it would not happen.
+        .replace("    lane_change: {to: 1, start: 1.5, duration: 3.0}\n", "")
     )
     ended = ds.Scene.load(ended_path)
     with pytest.raises(ValueError, match="records no step after its current step"):
