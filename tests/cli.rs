@@ -1226,6 +1226,53 @@ fn train_export_writes_the_windows_of_a_checkpoint_into_a_new_directory_only() {
 }
 
 #[test]
+fn train_export_refuses_the_training_flags_it_would_ignore() {
+    // An export cuts and holds out windows as the --resume checkpoint's config says and trains
+    // nothing: `--val-fold 3` exported fold 0's split without a word, and --steps, --lr,
+    // --nearest-lane-pose and the rest were dropped the same way (issue 32). Refused before
+    // anything is read, so neither the checkpoint nor the directory need exist.
+    let dir = tempfile::tempdir().unwrap();
+    let (exp, ckpt) = (dir.path().join("exp"), dir.path().join("ckpt"));
+    for flag in [
+        &["--val-fold", "3"][..],
+        &["--val-town", "DEU_Flensburg"],
+        &["--steps", "7"],
+        &["--batch", "3"],
+        &["--lr", "0.5"],
+        &["--seed", "4"],
+        &["--eval-every", "2"],
+        &["--ema-half-life", "5"],
+        &["--component-scale", "capped"],
+        &["--scale-cap", "0.5"],
+        &["--p-mean=-0.4"],
+        &["--p-std", "2"],
+        &["--nearest-lane-pose"],
+        &["--force"],
+        &["--setting", "cities"],
+    ] {
+        let mut args = vec![
+            "train",
+            "--data",
+            "scripts/scenes",
+            "--export",
+            s(&exp),
+            "--resume",
+            s(&ckpt),
+        ];
+        args.extend_from_slice(flag);
+        let out = drivescript(&args);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{flag:?}: {err}");
+        let name = flag[0].split('=').next().unwrap();
+        assert!(
+            err.contains("--export") && err.contains(name) && err.contains("cannot be used"),
+            "{flag:?}: {err}"
+        );
+        assert!(!exp.exists(), "{flag:?}");
+    }
+}
+
+#[test]
 fn train_then_simulate_end_to_end() {
     let dir = tempfile::tempdir().unwrap();
     let ckpt = dir.path().join("ckpt");
