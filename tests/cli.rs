@@ -1226,6 +1226,44 @@ fn train_export_writes_the_windows_of_a_checkpoint_into_a_new_directory_only() {
 }
 
 #[test]
+fn eval_merge_refuses_samples_which_the_shards_record() {
+    // Every other flag of a single run was refused beside --merge; --samples 3 was ignored and
+    // the shards merged as they were (issue 32). Refused before any file is read.
+    let out = drivescript(&["eval", "--merge", "a.json", "b.json", "--samples", "3"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("--merge") && err.contains("--samples") && err.contains("cannot be used"),
+        "{err}"
+    );
+}
+
+#[test]
+fn render_refuses_a_step_for_a_gif_which_draws_every_step() {
+    // `render -o x.gif --step 3` wrote the whole animation, byte for byte the one without
+    // --step, and said nothing of the step (issue 32).
+    let dir = tempfile::tempdir().unwrap();
+    let gif = dir.path().join("x.gif");
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let err = fails(&["render", "-o", s(&gif), "--step", "3", s(&scene)]);
+    assert!(
+        err.contains("step 3: a GIF draws every step") && err.contains("as PNG or SVG"),
+        "{err}"
+    );
+    assert!(!gif.exists());
+    // One step is drawn as PNG; the animation without --step.
+    ok(&[
+        "render",
+        "-o",
+        s(&dir.path().join("x.png")),
+        "--step",
+        "3",
+        s(&scene),
+    ]);
+    ok(&["render", "-o", s(&gif), s(&scene)]);
+}
+
+#[test]
 fn train_export_refuses_the_training_flags_it_would_ignore() {
     // An export cuts and holds out windows as the --resume checkpoint's config says and trains
     // nothing: `--val-fold 3` exported fold 0's split without a word, and --steps, --lr,

@@ -113,7 +113,9 @@ pub struct Args {
     shard: Option<drivescript::io::shard::Shard>,
     /// Combine the --json files of the shards of one evaluation (same task, methods,
     /// behaviour, parameters and horizon; every shard once) into the table a single run prints.
-    #[arg(long, value_name = "JSON", num_args = 1.., conflicts_with_all = ["scenes", "task", "shard", "rollouts", "baselines", "behaviour", "params", "auto", "unguided", "horizon", "all_steps"])]
+    // Every flag of a single run is refused beside it: the shards' files say how they were
+    // made (--samples 3 was ignored without a word).
+    #[arg(long, value_name = "JSON", num_args = 1.., conflicts_with_all = ["scenes", "task", "shard", "rollouts", "samples", "baselines", "behaviour", "params", "auto", "unguided", "horizon", "all_steps"])]
     merge: Vec<PathBuf>,
 }
 
