@@ -1239,6 +1239,25 @@ fn eval_merge_refuses_samples_which_the_shards_record() {
 }
 
 #[test]
+fn eval_refuses_a_baseline_named_twice() {
+    // `--baseline cv --baseline cv` scored it twice: two identical rows of one method (issue 32).
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let err = fails(&[
+        "eval",
+        "--task",
+        "conditional",
+        "--baseline",
+        "cv",
+        "--baseline",
+        "lane",
+        "--baseline",
+        "cv",
+        s(&scene),
+    ]);
+    assert!(err.contains("--baseline cv: given twice"), "{err}");
+}
+
+#[test]
 fn render_refuses_a_step_for_a_gif_which_draws_every_step() {
     // `render -o x.gif --step 3` wrote the whole animation, byte for byte the one without
     // --step, and said nothing of the step (issue 32).

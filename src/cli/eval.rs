@@ -234,6 +234,19 @@ pub fn run(args: Args) -> Result<ExitCode> {
             args.samples
         );
     }
+    // A baseline named twice was scored twice: two rows of one method, in the table and in
+    // --json, as if they were two measurements.
+    if let Some(b) = (1..args.baselines.len())
+        .map(|i| args.baselines[i])
+        .enumerate()
+        .find(|(i, b)| args.baselines[..=*i].contains(b))
+        .map(|(_, b)| b)
+    {
+        let name = clap::ValueEnum::to_possible_value(&b)
+            .map(|v| v.get_name().to_string())
+            .unwrap_or_default();
+        bail!("--baseline {name}: given twice (each baseline is scored once)");
+    }
     let mut methods: Vec<(String, Option<Baseline>)> = Vec::new();
     let baselines = if args.baselines.is_empty() && args.rollouts.is_none() {
         vec![BaselineArg::Log, BaselineArg::Cv, BaselineArg::Lane]
