@@ -1239,6 +1239,19 @@ fn eval_merge_refuses_samples_which_the_shards_record() {
 }
 
 #[test]
+fn test_scripts_given_a_cost_script_says_so() {
+    // A .rhai read as a test file said "line 1, column 1: unknown field `// Follow`, expected
+    // `script` or `cases`" (issue 32).
+    let err = fails(&["test-scripts", "scripts/follow.rhai"]);
+    assert!(
+        err.contains("scripts/follow.rhai: is a cost script, not a test file")
+            && err.contains("scripts/follow.test.yaml")
+            && !err.contains("unknown field"),
+        "{err}"
+    );
+}
+
+#[test]
 fn eval_refuses_a_baseline_named_twice() {
     // `--baseline cv --baseline cv` scored it twice: two identical rows of one method (issue 32).
     let scene = samples().join("yaml/highway_cut_in.yaml");
