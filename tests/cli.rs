@@ -1226,6 +1226,123 @@ fn train_export_writes_the_windows_of_a_checkpoint_into_a_new_directory_only() {
 }
 
 #[test]
+fn eval_merge_refuses_samples_which_the_shards_record() {
+    // Every other flag of a single run was refused beside --merge; --samples 3 was ignored and
+    // the shards merged as they were (issue 32). Refused before any file is read.
+    let out = drivescript(&["eval", "--merge", "a.json", "b.json", "--samples", "3"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("--merge") && err.contains("--samples") && err.contains("cannot be used"),
+        "{err}"
+    );
+}
+
+#[test]
+fn test_scripts_given_a_cost_script_says_so() {
+    // A .rhai read as a test file said "line 1, column 1: unknown field `// Follow`, expected
+    // `script` or `cases`" (issue 32).
+    let err = fails(&["test-scripts", "scripts/follow.rhai"]);
+    assert!(
+        err.contains("scripts/follow.rhai: is a cost script, not a test file")
+            && err.contains("scripts/follow.test.yaml")
+            && !err.contains("unknown field"),
+        "{err}"
+    );
+}
+
+#[test]
+fn eval_refuses_a_baseline_named_twice() {
+    // `--baseline cv --baseline cv` scored it twice: two identical rows of one method (issue 32).
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let err = fails(&[
+        "eval",
+        "--task",
+        "conditional",
+        "--baseline",
+        "cv",
+        "--baseline",
+        "lane",
+        "--baseline",
+        "cv",
+        s(&scene),
+    ]);
+    assert!(err.contains("--baseline cv: given twice"), "{err}");
+}
+
+#[test]
+fn render_refuses_a_step_for_a_gif_which_draws_every_step() {
+    // `render -o x.gif --step 3` wrote the whole animation, byte for byte the one without
+    // --step, and said nothing of the step (issue 32).
+    let dir = tempfile::tempdir().unwrap();
+    let gif = dir.path().join("x.gif");
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let err = fails(&["render", "-o", s(&gif), "--step", "3", s(&scene)]);
+    assert!(
+        err.contains("step 3: a GIF draws every step") && err.contains("as PNG or SVG"),
+        "{err}"
+    );
+    assert!(!gif.exists());
+    // One step is drawn as PNG; the animation without --step.
+    ok(&[
+        "render",
+        "-o",
+        s(&dir.path().join("x.png")),
+        "--step",
+        "3",
+        s(&scene),
+    ]);
+    ok(&["render", "-o", s(&gif), s(&scene)]);
+}
+
+#[test]
+fn train_export_refuses_the_training_flags_it_would_ignore() {
+    // An export cuts and holds out windows as the --resume checkpoint's config says and trains
+    // nothing: `--val-fold 3` exported fold 0's split without a word, and --steps, --lr,
+    // --nearest-lane-pose and the rest were dropped the same way (issue 32). Refused before
+    // anything is read, so neither the checkpoint nor the directory need exist.
+    let dir = tempfile::tempdir().unwrap();
+    let (exp, ckpt) = (dir.path().join("exp"), dir.path().join("ckpt"));
+    for flag in [
+        &["--val-fold", "3"][..],
+        &["--val-town", "DEU_Flensburg"],
+        &["--steps", "7"],
+        &["--batch", "3"],
+        &["--lr", "0.5"],
+        &["--seed", "4"],
+        &["--eval-every", "2"],
+        &["--ema-half-life", "5"],
+        &["--component-scale", "capped"],
+        &["--scale-cap", "0.5"],
+        &["--p-mean=-0.4"],
+        &["--p-std", "2"],
+        &["--nearest-lane-pose"],
+        &["--force"],
+        &["--setting", "cities"],
+    ] {
+        let mut args = vec![
+            "train",
+            "--data",
+            "scripts/scenes",
+            "--export",
+            s(&exp),
+            "--resume",
+            s(&ckpt),
+        ];
+        args.extend_from_slice(flag);
+        let out = drivescript(&args);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{flag:?}: {err}");
+        let name = flag[0].split('=').next().unwrap();
+        assert!(
+            err.contains("--export") && err.contains(name) && err.contains("cannot be used"),
+            "{flag:?}: {err}"
+        );
+        assert!(!exp.exists(), "{flag:?}");
+    }
+}
+
+#[test]
 fn train_then_simulate_end_to_end() {
     let dir = tempfile::tempdir().unwrap();
     let ckpt = dir.path().join("ckpt");

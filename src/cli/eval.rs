@@ -113,7 +113,9 @@ pub struct Args {
     shard: Option<drivescript::io::shard::Shard>,
     /// Combine the --json files of the shards of one evaluation (same task, methods,
     /// behaviour, parameters and horizon; every shard once) into the table a single run prints.
-    #[arg(long, value_name = "JSON", num_args = 1.., conflicts_with_all = ["scenes", "task", "shard", "rollouts", "baselines", "behaviour", "params", "auto", "unguided", "horizon", "all_steps"])]
+    // Every flag of a single run is refused beside it: the shards' files say how they were
+    // made (--samples 3 was ignored without a word).
+    #[arg(long, value_name = "JSON", num_args = 1.., conflicts_with_all = ["scenes", "task", "shard", "rollouts", "samples", "baselines", "behaviour", "params", "auto", "unguided", "horizon", "all_steps"])]
     merge: Vec<PathBuf>,
 }
 
@@ -231,6 +233,19 @@ pub fn run(args: Args) -> Result<ExitCode> {
             "--samples {}: the number of samples per scene in --rollouts; baselines have one",
             args.samples
         );
+    }
+    // A baseline named twice was scored twice: two rows of one method, in the table and in
+    // --json, as if they were two measurements.
+    if let Some(b) = (1..args.baselines.len())
+        .map(|i| args.baselines[i])
+        .enumerate()
+        .find(|(i, b)| args.baselines[..=*i].contains(b))
+        .map(|(_, b)| b)
+    {
+        let name = clap::ValueEnum::to_possible_value(&b)
+            .map(|v| v.get_name().to_string())
+            .unwrap_or_default();
+        bail!("--baseline {name}: given twice (each baseline is scored once)");
     }
     let mut methods: Vec<(String, Option<Baseline>)> = Vec::new();
     let baselines = if args.baselines.is_empty() && args.rollouts.is_none() {

@@ -39,7 +39,19 @@ pub struct Args {
     /// reads it, into this new or empty directory (safetensors files of 1,024 windows, with a
     /// loss check and the checkpoint's config): what `benches/torch/train.py` trains the same
     /// network from on an accelerator.
-    #[arg(long, conflicts_with = "out", requires = "resume")]
+    // Only the corpora, --resume and --cache bear on an export: the windows are cut and held
+    // out as the checkpoint's config says and nothing is trained, so a training flag beside
+    // it is refused (--val-fold 3 was ignored without a word, and fold 0 exported).
+    #[arg(
+        long,
+        conflicts_with = "out",
+        requires = "resume",
+        conflicts_with_all = [
+            "setting", "steps", "batch", "lr", "seed", "eval_every", "val_fold", "val_town",
+            "ema_half_life", "component_scale", "scale_cap", "p_mean", "p_std",
+            "nearest_lane_pose", "force",
+        ]
+    )]
     export: Option<PathBuf>,
     /// Directory for the training windows, cut from the scenes once and read back a batch at
     /// a time (default: OUT/windows, or a temporary directory with --export; rewritten at

@@ -408,6 +408,18 @@ fn find_in(
                     out.push(p);
                 }
             }
+        } else if r.extension().is_some_and(|e| e == "rhai") {
+            // Read as a test file, a script was "line 1, column 1: unknown field `// Follow`,
+            // expected `script` or `cases`": the user meant its tests.
+            let tests = r.with_extension("test.yaml");
+            return Err(ScriptTestError::Read {
+                path: r.display().to_string(),
+                message: format!(
+                    "is a cost script, not a test file: test-scripts runs *.test.yaml files \
+                     ({} holds this script's tests when it has any)",
+                    crate::io::name::terminal_safe(&tests.display().to_string())
+                ),
+            });
         } else if r.exists() {
             out.push(r.clone());
         } else {

@@ -65,6 +65,10 @@ pub const MAX_GIF_PIXELS: u64 = 3_000_000_000;
 /// or the last [`MAX_GIF_FRAMES`] of a longer scene (the motion before them drawn as trails).
 /// `render` refuses such a scene instead of cutting it unasked.
 pub fn render_gif(scene: &Scene, opts: &RenderOptions) -> Result<Vec<u8>, RenderError> {
+    // The frames set their own steps below: a step given here would be dropped unsaid.
+    if let Some(step) = opts.step {
+        return Err(RenderError::StepOfAnimation(step));
+    }
     let view = View::fit(scene, opts)?;
     let frames = scene.num_steps().clamp(1, MAX_GIF_FRAMES) as u64;
     let pixels = frames * view.width as u64 * view.height as u64;

@@ -36,6 +36,13 @@ pub enum RenderError {
         /// What is wrong.
         message: String,
     },
+    /// A step was asked of an animation, which draws them all: the GIF came out the same as
+    /// without it (`render -o x.gif --step 3` wrote every frame without a word).
+    #[error(
+        "step {0}: a GIF draws every step of the scene; draw one step as PNG or SVG (--step N \
+         -o NAME.png), or leave the step out for the animation"
+    )]
+    StepOfAnimation(usize),
     /// The encoder failed.
     #[error("{format} encoding failed: {message}")]
     Encode {
