@@ -101,6 +101,12 @@ fn inspect_agents_lists_lanes_gaps_and_neighbours() {
             && err.contains("--keep names agents it does not hold: 77, 88"),
         "{err}"
     );
+    // A duplicate id was accepted without a word.
+    let err = fails(&["inspect", "--agents", s(&scene), "--keep", "4", "2", "4"]);
+    assert!(
+        err.contains("--keep names agent 4 twice (value 3 of the list)"),
+        "{err}"
+    );
     // Thousands of absent ids are counted past the first few, not all echoed.
     let ids: Vec<String> = (1000..6000).map(|i| i.to_string()).collect();
     let mut args = vec!["inspect", "--agents", s(&scene), "--keep"];

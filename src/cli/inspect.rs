@@ -50,6 +50,18 @@ struct Entry {
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
+    // Accepted without a word: `--keep 1 1` listed agent 1 once.
+    if let Some((k, id)) = args
+        .keep
+        .iter()
+        .enumerate()
+        .find(|(k, id)| args.keep[..*k].contains(id))
+    {
+        anyhow::bail!(
+            "--keep names agent {id} twice (value {} of the list)",
+            k + 1
+        );
+    }
     let opts = LoadOptions::default();
     let mut summaries = Vec::new();
     let mut failures = 0usize;

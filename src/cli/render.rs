@@ -138,8 +138,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
     // pictures show the last frames of a longer scene).
     if format == PictureFormat::Gif && scene.num_steps() > MAX_GIF_FRAMES {
         bail!(
-            "a GIF of {} steps is more than {MAX_GIF_FRAMES} frames; draw one step (--step N, as \
-             SVG or PNG) or cut the scene first (convert --current-step)",
+            "{}: a GIF of {} steps is more than {MAX_GIF_FRAMES} frames; draw one step (--step \
+             N, as SVG or PNG) or cut the scene first (convert --current-step)",
+            super::shown(&args.scene),
             scene.num_steps()
         );
     }
