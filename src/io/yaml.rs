@@ -477,13 +477,20 @@ fn tag_message(tag: &str) -> String {
     )
 }
 
+/// The line and message of [`structure`]'s first problem in `text`, if any.
+fn structure_error(text: &str) -> Option<(usize, String)> {
+    match structure(text, MAX_YAML_DEPTH)? {
+        Structure::TooDeep(line) => Some((line, too_deep_message())),
+        Structure::Tag(line, tag) => Some((line, tag_message(&tag))),
+    }
+}
+
 /// Refuses YAML text (a batch or script test file) with flow collections nested past
 /// [`MAX_YAML_DEPTH`], a tag, or aliases past [`MAX_YAML_EXPANDED_VALUES`]; the error is the
 /// message to give, naming the line.
 pub fn check_text(text: &str) -> Result<(), String> {
-    match structure(text, MAX_YAML_DEPTH) {
-        Some(Structure::TooDeep(line)) => Err(format!("line {line}: {}", too_deep_message())),
-        Some(Structure::Tag(line, tag)) => Err(format!("line {line}: {}", tag_message(&tag))),
+    match structure_error(text) {
+        Some((line, message)) => Err(format!("line {line}: {message}")),
         None => check_aliases(text),
     }
 }
@@ -632,22 +639,8 @@ impl<'de> serde::de::Visitor<'de> for Budget<'_> {
 
 /// Parses YAML scene text (`path` is used for messages and metadata).
 pub fn parse(path: &Path, text: &str) -> Result<Scene, IoError> {
-    match structure(text, MAX_YAML_DEPTH) {
-        Some(Structure::TooDeep(line)) => {
-            return Err(IoError::invalid(
-                path,
-                format!("line {line}"),
-                too_deep_message(),
-            ))
-        }
-        Some(Structure::Tag(line, tag)) => {
-            return Err(IoError::invalid(
-                path,
-                format!("line {line}"),
-                tag_message(&tag),
-            ))
-        }
-        None => {}
+    if let Some((line, message)) = structure_error(text) {
+        return Err(IoError::invalid(path, format!("line {line}"), message));
     }
     check_aliases(text).map_err(|m| IoError::invalid(path, "aliases", m))?;
     let y: YamlScene = serde_yaml::from_str(text).map_err(|e| match e.location() {
