@@ -328,6 +328,7 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
         pad_lanes: true,
         min_future: 0,
         nearest_lane_pose: false,
+        route_times: 0,
     };
     let path = args
         .scene
@@ -377,6 +378,7 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
                 scores: Scores::Normalised,
                 attrs: 0,
                 agent_lane_features: 4,
+                route_times: 0,
             },
             edm: Edm::default(),
             eval_every: usize::MAX,

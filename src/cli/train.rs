@@ -49,7 +49,7 @@ pub struct Args {
         conflicts_with_all = [
             "setting", "steps", "batch", "lr", "seed", "eval_every", "val_fold", "val_town",
             "ema_half_life", "component_scale", "scale_cap", "p_mean", "p_std",
-            "nearest_lane_pose", "force",
+            "nearest_lane_pose", "route_times", "force",
         ]
     )]
     export: Option<PathBuf>,
@@ -114,6 +114,11 @@ pub struct Args {
     /// keeps its checkpoint's).
     #[arg(long)]
     nearest_lane_pose: bool,
+    /// A new run measures each agent's noisy future against the lanes at this many future
+    /// times (`route_times` in the checkpoint's window and model; 0 for none, the default; a
+    /// resumed run keeps its checkpoint's).
+    #[arg(long)]
+    route_times: Option<usize>,
     /// Train from scratch into an --out directory that already holds a checkpoint (which is
     /// replaced at the first validation). Without it, that is refused.
     #[arg(long)]
@@ -163,6 +168,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
     if args.nearest_lane_pose {
         cfg.window.nearest_lane_pose = true;
         cfg.model.agent_lane_features = cfg.window.agent_lane_features();
+    }
+    if let Some(t) = args.route_times {
+        cfg.window.route_times = t;
+        cfg.model.route_times = t;
     }
     if args.data.is_empty() && args.urban.is_empty() {
         anyhow::bail!("nothing to train on: give --data or --urban (or both)");
@@ -232,6 +241,17 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     "--nearest-lane-pose: {} was trained without the lanes' nearest points; a \
                      resumed run keeps its inputs",
                     dir.display()
+                );
+            }
+            if let Some(t) = args
+                .route_times
+                .filter(|t| *t != r.meta.config.window.route_times)
+            {
+                anyhow::bail!(
+                    "--route-times {t}: {} measures futures against the lanes at {} times; a \
+                     resumed run keeps its inputs",
+                    dir.display(),
+                    r.meta.config.window.route_times
                 );
             }
             for (flag, given, kept) in [

@@ -11,6 +11,7 @@ use super::attention::{Pairs, RelAttention, Scores};
 use super::edm::Edm;
 use super::encoder::{noise_features, AgentEncoder, MiniPointNet};
 use super::ops::{linear, Linear};
+use super::route::{route_features, RouteInputs, FEATURES_PER_TIME};
 
 /// Sizes of the network.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -38,6 +39,11 @@ pub struct DenoiserConfig {
     /// configs written before the field, or 8 with the lane's nearest point's pose.
     #[serde(default = "four")]
     pub agent_lane_features: usize,
+    /// Future times at which each agent's noisy future is measured against the lanes
+    /// ([`super::route`], `train::WindowConfig::route_times`); 0, as in configs written before
+    /// the field, for none.
+    #[serde(default)]
+    pub route_times: usize,
 }
 
 fn four() -> usize {
@@ -67,6 +73,9 @@ pub struct Context {
     /// What each agent is, `[B, N, A]` (`train::dataset::agent_attributes`); a model reads the
     /// first [`DenoiserConfig::attrs`] of them.
     pub agent_attr: Tensor,
+    /// What route features are measured with; present when the window configuration asks
+    /// for them (`train::WindowConfig::route_times`).
+    pub route: Option<RouteInputs>,
 }
 
 impl Context {
@@ -82,6 +91,7 @@ impl Context {
             agent_lane_rel: self.agent_lane_rel.to_dtype(dtype)?,
             agent_rel: self.agent_rel.to_dtype(dtype)?,
             agent_attr: self.agent_attr.to_dtype(dtype)?,
+            route: self.route.as_ref().map(|r| r.to_dtype(dtype)).transpose()?,
         })
     }
 }
@@ -131,7 +141,11 @@ impl Denoiser {
             lanes: MiniPointNet::new(d, vb.pp("lanes"))?,
             lane_lane: stack("lane_lane", 4, true)?,
             agents: AgentEncoder::new(
-                cfg.history * 4 + cfg.attrs + cfg.k + 2 * cfg.noise_freqs,
+                cfg.history * 4
+                    + cfg.attrs
+                    + cfg.k
+                    + 2 * cfg.noise_freqs
+                    + FEATURES_PER_TIME * cfg.route_times,
                 d,
                 vb.pp("agents"),
             )?,
@@ -206,6 +220,23 @@ impl Denoiser {
             parts.push(ctx.agent_attr.narrow(2, 0, self.cfg.attrs)?);
         }
         parts.extend([x.broadcast_mul(&c_in)?, noise]);
+        if self.cfg.route_times > 0 {
+            let route = ctx.route.as_ref().ok_or_else(|| {
+                candle_core::Error::Msg(format!(
+                    "the model measures futures against the lanes at {} times, but the batch \
+                     has no route inputs (window.route_times = 0)",
+                    self.cfg.route_times
+                ))
+            })?;
+            if route.basis.dim(1)? != 3 * self.cfg.route_times {
+                candle_core::bail!(
+                    "the model measures futures against the lanes at {} times, the batch at {}",
+                    self.cfg.route_times,
+                    route.basis.dim(1)? / 3
+                );
+            }
+            parts.push(route_features(x, route)?);
+        }
         let feats = Tensor::cat(&parts, 2)?;
         let mut a = self.agents.forward(&feats)?;
         let layers = self.agent_lane.iter().zip(&self.agent_agent);

@@ -55,11 +55,20 @@ fn with_nearest_lane_pose(mut cfg: TrainConfig) -> TrainConfig {
     cfg
 }
 
+/// The tiny configuration, measuring each agent's noisy future against the lanes at three
+/// times.
+fn with_route(mut cfg: TrainConfig) -> TrainConfig {
+    cfg.window.route_times = 3;
+    cfg.model.route_times = 3;
+    cfg
+}
+
 #[test]
 fn every_parameter_receives_a_gradient_after_a_training_step() {
     for cfg in [
         tiny_config(1, 3, 1),
         with_nearest_lane_pose(tiny_config(1, 3, 1)),
+        with_route(tiny_config(1, 3, 1)),
     ] {
         every_parameter_receives_a_gradient(cfg);
     }
@@ -145,6 +154,9 @@ fn the_input_gradient_matches_central_finite_differences_in_f64() {
         input_gradient_matches_finite_differences(&cfg);
     }
     input_gradient_matches_finite_differences(&with_nearest_lane_pose(tiny_config(1, 3, 1)));
+    // The route features' choice of nearest lane point is piecewise constant in the input;
+    // between switches their gradient is the decoded pose's.
+    input_gradient_matches_finite_differences(&with_route(tiny_config(1, 3, 1)));
 }
 
 fn input_gradient_matches_finite_differences(cfg: &TrainConfig) {

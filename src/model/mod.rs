@@ -10,6 +10,7 @@ pub mod error;
 mod gradients;
 pub mod ops;
 pub mod pca;
+pub mod route;
 
 pub use attention::Scores;
 pub use denoiser::{Context, Denoiser, DenoiserConfig, SceneEncoding};

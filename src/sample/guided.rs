@@ -259,6 +259,13 @@ pub fn reference_run(
     scene: &Scene,
     cfg: &SampleConfig,
 ) -> Result<Vec<(String, Tensor)>, SampleError> {
+    if trained.meta.config.window.route_times > 0 {
+        return Err(SampleError::Settings(
+            "the checkpoint measures futures against the lanes (route_times > 0), which the \
+             PyTorch port (benches/torch) does not compute: there is no port to check"
+                .into(),
+        ));
+    }
     let su = setup(trained, scene, cfg)?;
     let unguided = |x: &Tensor, sigma: f64, _| -> Result<Tensor, SampleError> {
         let d = su

@@ -3,12 +3,16 @@
 use candle_core::{Device, Result, Tensor};
 
 use super::dataset::{Window, WindowConfig, AGENT_ATTRS};
+use crate::model::route::RouteInputs;
 use crate::model::{Context, Pca};
 
 /// Metres per unit of the relative-pose features (keeps them near 1).
 pub const REL_SCALE: f32 = 50.0;
 /// Metres per unit of lane points and history positions.
 pub const POS_SCALE: f32 = 10.0;
+
+/// Where route inputs put the points of absent lanes (metres): never the nearest.
+const FAR: f32 = 1e5;
 
 /// `(Δx, Δy, cos Δθ, sin Δθ)` of pose `j` in pose `i`'s frame, positions scaled.
 pub fn rel(i: [f32; 3], j: [f32; 3]) -> [f32; 4] {
@@ -268,6 +272,10 @@ pub fn build(
     let dim = 3 * cfg.future;
     let mut seen_mask = vec![0f32; b * n * dim];
     let mut agent_attr = vec![0f32; b * n * AGENT_ATTRS];
+    let rt = cfg.route_times;
+    let route_steps = crate::model::route::route_steps(cfg.future, rt);
+    let mut route_points = vec![FAR; if rt > 0 { b * n * m * p * 4 } else { 0 }];
+    let mut route_offset = vec![0f32; b * n * rt * 3];
     for (wi, w) in windows.iter().enumerate() {
         let nl = w.lane_ids.len();
         let poses: Vec<[f32; 3]> = (0..nl).map(|l| lane_pose(w, cfg, l)).collect();
@@ -317,6 +325,40 @@ pub fn build(
                         .copy_from_slice(&rel(cur[a], nearest_pose(line, cur[a])));
                 }
             }
+            if rt > 0 {
+                let row = &mut route_points[(wi * n + a) * m * p * 4..][..nl * p * 4];
+                for l in 0..nl {
+                    let line = &w.lanes[l * p..(l + 1) * p];
+                    for j in 0..p {
+                        let (q, r) = if j + 1 < p {
+                            (line[j], line[j + 1])
+                        } else {
+                            (line[j - 1], line[j])
+                        };
+                        let (dx, dy) = (line[j][0] - cur[a][0], line[j][1] - cur[a][1]);
+                        let (tx, ty) = (r[0] - q[0], r[1] - q[1]);
+                        let len = (tx * tx + ty * ty).sqrt();
+                        let (hc, hs) = if len > 0.0 {
+                            (tx / len, ty / len)
+                        } else {
+                            (1.0, 0.0)
+                        };
+                        let o = (l * p + j) * 4;
+                        row[o] = c * dx + s * dy;
+                        row[o + 1] = -s * dx + c * dy;
+                        row[o + 2] = c * hc + s * hs;
+                        row[o + 3] = -s * hc + c * hs;
+                    }
+                }
+                let advance = w.advance(cfg, a);
+                let off = &mut route_offset[(wi * n + a) * rt * 3..][..rt * 3];
+                for (i, st) in route_steps.iter().enumerate() {
+                    for d in 0..3 {
+                        off[i * 3 + d] = norm.pca.mean[st * 3 + d] as f32;
+                    }
+                    off[i * 3] += (advance * (st + 1) as f64) as f32;
+                }
+            }
             for a2 in 0..na {
                 let o = ((wi * n + a) * n + a2) * 4;
                 agent_rel[o..o + 4].copy_from_slice(&rel(cur[a], cur[a2]));
@@ -341,6 +383,25 @@ pub fn build(
         }
     }
     let t = |v: Vec<f32>, shape: &[usize]| Tensor::from_vec(v, shape, dev);
+    let route = if rt > 0 {
+        let dim = norm.pca.components.len() / k.max(1);
+        let mut basis = vec![0f32; k * rt * 3];
+        for (c, row) in norm.pca.components.chunks(dim.max(1)).enumerate() {
+            let scale = norm.std[c] / norm.sigma_data;
+            for (i, st) in route_steps.iter().enumerate() {
+                for d in 0..3 {
+                    basis[(c * rt + i) * 3 + d] = (row[st * 3 + d] * scale) as f32;
+                }
+            }
+        }
+        Some(RouteInputs {
+            points: t(route_points, &[b, n, m * p, 4])?,
+            basis: t(basis, &[k, rt * 3])?,
+            offset: t(route_offset, &[b, n, rt * 3])?,
+        })
+    } else {
+        None
+    };
     Ok(Batch {
         ctx: Context {
             lane_points: t(lane_points, &[b, m, p, 2])?,
@@ -352,6 +413,7 @@ pub fn build(
             agent_lane_rel: t(agent_lane_rel, &[b, n, m, fl])?,
             agent_rel: t(agent_rel, &[b, n, n, 4])?,
             agent_attr: t(agent_attr, &[b, n, AGENT_ATTRS])?,
+            route,
         },
         target: t(target, &[b, n, k])?,
         loss_mask: t(loss_mask, &[b, n])?,
@@ -452,6 +514,73 @@ mod tests {
             .map(|l| (near[2 * l].hypot(near[2 * l + 1])) * REL_SCALE)
             .fold(f32::INFINITY, f32::min);
         assert!(closest < 2.0, "{closest}");
+    }
+
+    #[test]
+    fn route_inputs_decode_the_target_to_the_recorded_future_beside_its_lane() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes");
+        let scene = crate::io::load_scene(
+            &dir.join("highway.yaml"),
+            0,
+            &crate::io::LoadOptions::default(),
+        )
+        .unwrap();
+        let mut cfg = crate::train::WindowConfig::ngsim();
+        cfg.route_times = 4;
+        let ws = crate::train::windows(&scene, &cfg);
+        let futures = crate::train::dataset::residual_futures(&ws, &cfg);
+        // Enough components to reproduce the futures to centimetres, and capped scales, so
+        // that the scales differ per component.
+        let norm = Normaliser::capped(crate::model::Pca::fit(&futures, 12).unwrap(), 0.5);
+        let b = build(&[&ws[0]], &cfg, &norm, &Device::Cpu).unwrap();
+        let r = b.ctx.route.as_ref().unwrap();
+        let n = cfg.max_agents;
+        let steps = crate::model::route::route_steps(cfg.future, 4);
+        let pose: Vec<f32> = b
+            .target
+            .reshape((n, ()))
+            .unwrap()
+            .matmul(&r.basis)
+            .unwrap()
+            .reshape((1, n, 12))
+            .unwrap()
+            .add(&r.offset)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        let mask: Vec<f32> = b.loss_mask.flatten_all().unwrap().to_vec1().unwrap();
+        let feats: Vec<f32> = crate::model::route::route_features(&b.target, r)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        let mut checked = 0;
+        for a in (0..n).filter(|a| mask[*a] > 0.0) {
+            let Some(future) = ws[0].agent_future(&cfg, a) else {
+                continue;
+            };
+            for (i, st) in steps.iter().enumerate() {
+                for d in 0..3 {
+                    let (got, want) = (pose[(a * 4 + i) * 3 + d], future[st * 3 + d] as f32);
+                    assert!(
+                        (got - want).abs() < 0.05,
+                        "agent {a}, step {st}, coordinate {d}: {got} against {want}"
+                    );
+                }
+                // The highway's cars keep to their lanes: well within half a lane of the
+                // nearest lane point, heading along it.
+                let f = &feats[(a * 4 + i) * 4..][..4];
+                assert!(
+                    f[0].abs() < (1.75f32 / 2.0).tanh() && f[2] > 0.95,
+                    "agent {a}: {f:?}"
+                );
+            }
+            checked += 1;
+        }
+        assert!(checked >= 3, "{checked}");
     }
 
     #[test]

@@ -41,6 +41,10 @@ pub struct WindowConfig {
     /// lane's pooled shape. Off in configurations written before the field.
     #[serde(default)]
     pub nearest_lane_pose: bool,
+    /// Future times at which the denoiser measures each agent's noisy future against the
+    /// lanes ([`crate::model::route`]): 0 (configurations written before the field) for none.
+    #[serde(default)]
+    pub route_times: usize,
 }
 
 /// `Ok` when `lo ≤ v ≤ hi`, else a message naming the setting and its range.
@@ -64,7 +68,8 @@ impl WindowConfig {
         within("max_lanes", self.max_lanes, 1, 2048)?;
         within("lane_points", self.lane_points, 2, 1000)?;
         within("centres_per_step", self.centres_per_step, 1, 1024)?;
-        within("min_future", self.min_future, 0, self.future)
+        within("min_future", self.min_future, 0, self.future)?;
+        within("route_times", self.route_times, 0, self.future)
     }
 
     /// Future steps a centre must be observed for ([`WindowConfig::min_future`], 0 meaning all).
@@ -93,6 +98,7 @@ impl WindowConfig {
             pad_lanes: false,
             min_future: 0,
             nearest_lane_pose: false,
+            route_times: 0,
         }
     }
 
@@ -121,6 +127,7 @@ impl WindowConfig {
             pad_lanes: false,
             min_future: 0,
             nearest_lane_pose: false,
+            route_times: 0,
         }
     }
 

@@ -58,6 +58,13 @@ pub fn export(
             "windows per file must be at least 1".into(),
         ));
     }
+    if from.meta.config.window.route_times > 0 {
+        return Err(TrainError::Config(
+            "the checkpoint measures futures against the lanes (route_times > 0), which the \
+             PyTorch port (benches/torch) does not compute: it has nothing to export to"
+                .into(),
+        ));
+    }
     if source.train_len() < CHECK_WINDOWS {
         return Err(TrainError::Data(format!(
             "{} training windows: the export's loss check needs at least {CHECK_WINDOWS}",
@@ -236,6 +243,7 @@ mod tests {
             agent_lane_rel: cat("agent_lane_rel"),
             agent_rel: cat("agent_rel"),
             agent_attr: cat("agent_attr"),
+            route: None,
         };
         let batch = crate::train::Batch {
             ctx,

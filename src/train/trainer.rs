@@ -83,6 +83,7 @@ impl TrainConfig {
                 scores: Scores::Normalised,
                 attrs: 0,
                 agent_lane_features: 4,
+                route_times: 0,
             },
             edm: Edm::default(),
             eval_every: 100,
@@ -270,6 +271,12 @@ impl TrainConfig {
                 m.agent_lane_features,
                 w.nearest_lane_pose,
                 w.agent_lane_features()
+            ));
+        }
+        if m.route_times != w.route_times {
+            return Err(format!(
+                "model.route_times = {} but window.route_times = {}: they must agree",
+                m.route_times, w.route_times
             ));
         }
         positive("lr", c.lr)?;
@@ -1298,6 +1305,7 @@ pub(crate) fn tiny_config(steps: usize, seed: u64, eval_every: usize) -> TrainCo
             scores: Scores::Normalised,
             attrs: AGENT_ATTRS,
             agent_lane_features: 4,
+            route_times: 0,
         },
         edm: Edm::default(),
         eval_every,
