@@ -910,6 +910,14 @@ fn eval_scores_rollouts_over_their_own_horizon_by_default() {
             && out.contains("| log replay | cyclists | accident | - | - | - |"),
         "{out}"
     );
+    // With a cyclist scored, the implausible legend speaks of road users and the cyclist's
+    // own limits (it said "fraction of vehicles ... a car cannot drive" under cyclist rows).
+    assert!(
+        out.contains("implausible: fraction of road users")
+            && out.contains("cyclists above 15 m/s or beyond 5 m/s², turning tighter than 0.5 1/m")
+            && !out.contains("fraction of vehicles (pooled over scenes and samples)"),
+        "{out}"
+    );
     // An explicit horizon still rules, and is said.
     let out = eval(&["--horizon", "30"]);
     assert!(
@@ -2049,6 +2057,21 @@ fn dataset_window_flags_are_checked() {
         err.contains("0 complete agent futures of 1000 steps: PCA needs at least 50"),
         "{err}"
     );
+    // Futures of one step hold 3 numbers: rows for 4 to 32 components all read "1.00000
+    // variance kept".
+    let out = ok(&[
+        "dataset",
+        "scripts/scenes",
+        "--history=1",
+        "--future=1",
+        "--stride=1",
+    ]);
+    assert!(!out.contains("| 4 |"), "{out}");
+    assert!(
+        out.contains("A future of 1 steps holds 3 numbers (x, y, heading per step): 3 components keep it exactly"),
+        "{out}"
+    );
+    assert!(ok(&["dataset", "scripts/scenes"]).contains("| 32 |"));
     // A folder with no scene file said the same, as if its scenes were too short.
     let dir = tempfile::tempdir().unwrap();
     let err = fails(&["dataset", s(dir.path())]);

@@ -86,12 +86,26 @@ pub fn run(args: Args) -> Result<ExitCode> {
         .variances
         .iter()
         .sum::<f64>();
-    for k in [4, 8, 12, 16, 24, 32] {
+    let dim = futures[0].len();
+    let ks: Vec<usize> = [4, 8, 12, 16, 24, 32]
+        .into_iter()
+        .filter(|k| *k < dim)
+        .collect();
+    for &k in &ks {
         let p = Pca::fit(&futures, k)?;
         println!(
             "| {k} | {:.3} | {:.5} |",
             p.position_rmse(&futures),
             p.variances.iter().sum::<f64>() / total
+        );
+    }
+    if ks.len() < 6 {
+        // Rows at or past the dimension would all read "1.00000 variance kept" and say
+        // nothing about how many a model needs.
+        println!(
+            "\nA future of {} steps holds {dim} numbers (x, y, heading per step): {dim} \
+             components keep it exactly, so the rows from {dim} on are left out.",
+            cfg.future
         );
     }
     Ok(ExitCode::SUCCESS)

@@ -14,7 +14,7 @@ use drivescript::io::{
     check_output_not_input, check_replaces_own_json, discover, read_each, rollout::Rollout,
     write_atomic, LoadOptions, OutputNames,
 };
-use drivescript::scene::Scene;
+use drivescript::scene::{AgentType, KinematicLimits, Scene};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
@@ -638,6 +638,43 @@ fn table_row(
     (line, row)
 }
 
+/// The legend of the implausible column; `others` are the road users besides vehicles that
+/// the table scored, each judged by its own kind's limits.
+fn implausible_legend(others: &[AgentType]) -> String {
+    let car = "reversing, sprinting, braking or accelerating beyond 7 m/s², swerving, crabbing or \
+               turning tighter than Waymax's curvature bound";
+    let asked = "not counted: what a behaviour asks of the agents it names (the car reverse asks \
+                 to back up)";
+    if others.is_empty() {
+        return format!(
+            "implausible: fraction of vehicles (pooled over scenes and samples) whose future a \
+             car cannot drive: {car} (docs/evaluation.md); {asked}"
+        );
+    }
+    let limits: Vec<String> = others
+        .iter()
+        .filter_map(|t| {
+            let l = KinematicLimits::default().for_type(*t)?;
+            let mut s = format!(
+                "{}s above {} m/s or beyond {} m/s²",
+                t.name(),
+                drivescript::geom::num(l.max_speed),
+                drivescript::geom::num(l.max_accel)
+            );
+            if l.max_curvature.is_finite() {
+                s += &format!(", turning tighter than {} 1/m", drivescript::geom::num(l.max_curvature));
+            }
+            Some(s)
+        })
+        .collect();
+    format!(
+        "implausible: fraction of road users (pooled over scenes and samples) whose future their \
+         kind cannot move along, each by its own limits: vehicles {car}; {} (docs/evaluation.md); \
+         {asked}",
+        limits.join("; ")
+    )
+}
+
 /// Prints the table over `accs` (one per method), writes --json, and says how the run went.
 fn report(
     task: Task,
@@ -665,6 +702,12 @@ fn report(
             accs.iter()
                 .any(|a| a.groups.get(l).is_some_and(|t| t.scenes > 0))
         })
+        .collect();
+    // Cyclists and pedestrians scored: the implausible legend names their limits too.
+    let others: Vec<AgentType> = present
+        .iter()
+        .filter_map(|(g, _)| g.agent)
+        .filter(|t| *t != AgentType::Vehicle)
         .collect();
     let kinds = present.iter().filter(|(g, _)| g.agent.is_none()).count();
     let types = present.iter().filter(|(g, _)| g.map.is_none()).count();
@@ -701,9 +744,7 @@ fn report(
             if task == Task::Behaviour { " (an accident's own pair excepted)" } else { "" }
         );
     }
-    println!(
-        "\nimplausible: fraction of vehicles (pooled over scenes and samples) whose future a car cannot drive: reversing, sprinting, braking or accelerating beyond 7 m/s², swerving, crabbing or turning tighter than Waymax's curvature bound (docs/evaluation.md); not counted: what a behaviour asks of the agents it names (the car reverse asks to back up)"
-    );
+    println!("\n{}", implausible_legend(&others));
     if let Some(line) = merge.horizons.line() {
         println!("\n{line}");
     }
