@@ -584,6 +584,24 @@ fn yaml_errors_name_line_or_agent() {
         "{err}"
     );
 
+    // A top-level key given twice was "line 1, column 1: duplicate field", and a second
+    // document serde's "not supported", with no line.
+    let f = copy_to(dir.path(), &src, "b4.yaml");
+    edit(&f, |t| format!("{t}steps: 3\n"));
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("b4.yaml: line ")
+            && err.contains("`steps` is given a second time (first on line "),
+        "{err}"
+    );
+    let f = copy_to(dir.path(), &src, "b5.yaml");
+    edit(&f, |t| format!("{t}---\nsteps: 3\n"));
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("b5.yaml: line ") && err.contains("a second YAML document starts here"),
+        "{err}"
+    );
+
     let f = copy_to(dir.path(), &src, "c.yaml");
     edit(&f, |t| t.replacen("ego: 1", "ego: 77", 1));
     let err = fails(&["inspect", s(&f)]);

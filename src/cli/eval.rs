@@ -662,7 +662,10 @@ fn implausible_legend(others: &[AgentType]) -> String {
                 drivescript::geom::num(l.max_accel)
             );
             if l.max_curvature.is_finite() {
-                s += &format!(", turning tighter than {} 1/m", drivescript::geom::num(l.max_curvature));
+                s += &format!(
+                    ", turning tighter than {} 1/m",
+                    drivescript::geom::num(l.max_curvature)
+                );
             }
             Some(s)
         })

@@ -375,6 +375,13 @@ enum Structure {
     /// the field's type whatever the tag says, so `id: !!str 1` was agent 1 while `id: "1"` was
     /// refused, and `!!int "1"` was "invalid type: integer `1`, expected i64".
     Tag(usize, String),
+    /// The line and text of a top-level key given a second time, and the line of the first:
+    /// serde said "duplicate field `steps`" at line 1, column 1 (the mapping's start) for a
+    /// scene and named no line at all for a batch file.
+    DuplicateKey(usize, String, usize),
+    /// The line of a `---` that starts a second document: serde said only that more than one
+    /// document "is not supported".
+    SecondDocument(usize),
 }
 
 /// The first of [`Structure`]'s problems in `text`, if any. Brackets and `!` inside quotes,
@@ -390,6 +397,12 @@ fn structure(text: &str, max_depth: usize) -> Option<Structure> {
     let mut last = '\n';
     // The indentation of the line being read, and that of a line that opened a block scalar.
     let (mut indent, mut block) = (leading_spaces(text), None::<usize>);
+    // Top-level keys of the document and their lines; whether anything but comments was read.
+    let mut keys: Vec<(String, usize)> = Vec::new();
+    let mut content = false;
+    if let Some(found) = line_start(text, 1, &mut keys, &mut content) {
+        return Some(found);
+    }
     while let Some((i, c)) = chars.next() {
         match (quote, c) {
             (_, '\n') => {
@@ -416,6 +429,11 @@ fn structure(text: &str, max_depth: usize) -> Option<Structure> {
                     while chars.next_if(|&(j, _)| j < next).is_some() {}
                 }
                 indent = leading_spaces(&text[next..]);
+                if depth == 0 && quote.is_none() {
+                    if let Some(found) = line_start(&text[next..], line, &mut keys, &mut content) {
+                        return Some(found);
+                    }
+                }
             }
             (Some('"'), '\\') => {
                 chars.next();
@@ -463,6 +481,45 @@ fn structure(text: &str, max_depth: usize) -> Option<Structure> {
     None
 }
 
+/// What the start of a line outside any flow collection, quote or block scalar says: a `---`
+/// after content starts a second document; `key:` at column 0 is a top-level key, refused
+/// when given before. `rest` is the text from the line's start.
+fn line_start(
+    rest: &str,
+    line: usize,
+    keys: &mut Vec<(String, usize)>,
+    content: &mut bool,
+) -> Option<Structure> {
+    let first = rest.split('\n').next().unwrap_or("");
+    let first = first.strip_suffix('\r').unwrap_or(first);
+    let marker = first
+        .strip_prefix("---")
+        .is_some_and(|t| t.is_empty() || t.starts_with([' ', '\t']));
+    if marker {
+        if *content {
+            return Some(Structure::SecondDocument(line));
+        }
+        return None;
+    }
+    let body = first.trim_start();
+    if !body.is_empty() && !body.starts_with('#') {
+        *content = true;
+    }
+    if first.starts_with([' ', '\t', '-', '#', '"', '\'', '[', '{', '?', '%']) {
+        return None;
+    }
+    let key = first
+        .find(": ")
+        .or_else(|| first.strip_suffix(':').map(|k| k.len()))
+        .map(|end| &first[..end])
+        .filter(|k| !k.is_empty() && !k.contains(" #"))?;
+    if let Some((_, at)) = keys.iter().find(|(k, _)| k == key) {
+        return Some(Structure::DuplicateKey(line, key.to_string(), *at));
+    }
+    keys.push((key.to_string(), line));
+    None
+}
+
 /// The spaces at the start of `s`.
 fn leading_spaces(s: &str) -> usize {
     s.len() - s.trim_start_matches(' ').len()
@@ -482,6 +539,17 @@ fn structure_error(text: &str) -> Option<(usize, String)> {
     match structure(text, MAX_YAML_DEPTH)? {
         Structure::TooDeep(line) => Some((line, too_deep_message())),
         Structure::Tag(line, tag) => Some((line, tag_message(&tag))),
+        Structure::DuplicateKey(line, key, first) => Some((
+            line,
+            format!(
+                "`{}` is given a second time (first on line {first}): give each key once",
+                super::name::one_line(&key)
+            ),
+        )),
+        Structure::SecondDocument(line) => Some((
+            line,
+            "a second YAML document starts here (`---`): the file must hold one".into(),
+        )),
     }
 }
 
@@ -1442,6 +1510,36 @@ mod depth_tests {
     }
 
     #[test]
+    fn a_top_level_key_given_twice_and_a_second_document_are_found_by_line() {
+        let st = |t: &str| structure(t, 128);
+        assert_eq!(
+            st("a: 1\nsteps: 60\nb: [1,\n  2]\nsteps: 61\n"),
+            Some(Structure::DuplicateKey(5, "steps".into(), 2))
+        );
+        assert_eq!(
+            st("scenes: x\r\nscenes: y\r\n"),
+            Some(Structure::DuplicateKey(2, "scenes".into(), 1))
+        );
+        assert_eq!(
+            st("# c\n---\na: 1\n---\nb: 2\n"),
+            Some(Structure::SecondDocument(4))
+        );
+        // Not keys: nested ones (serde names those), text of block scalars, quoted
+        // continuation lines, and a `---` that opens the one document.
+        for text in [
+            "a:\n  b: 1\n  b: 2\n",
+            "a: |\n  a: 1\nb: 2\n",
+            "a: \"x\nb: y\"\nb: 2\n",
+            "---\na: 1\nb: 2\n",
+            "a: 1 # a: 2\nb: 2\n",
+            "s: |\n  ---\n  x\nt: 1\n",
+            "agents:\n- {id: 1}\n- {id: 1}\n",
+        ] {
+            assert_eq!(st(text), None, "{text:?}");
+        }
+    }
+
+    #[test]
     fn a_tag_is_found_where_a_value_starts_and_nowhere_else() {
         let tag = |t: &str| match structure(t, 128) {
             Some(Structure::Tag(line, tag)) => Some((line, tag)),
@@ -1555,6 +1653,30 @@ mod alias_tests {
                 e.contains("line 3: YAML tags such as `!!str` are not read"),
                 "{e}"
             );
+        }
+        // A top-level key given twice, and a second document, by line (serde named none).
+        for (text, want) in [
+            (
+                "scenes: [a.yaml]\nscenes: [b.yaml]\nentries: []\n",
+                "line 2: `scenes` is given a second time (first on line 1)",
+            ),
+            (
+                "scenes: [a.yaml]\nentries: []\n---\nscenes: [b.yaml]\n",
+                "line 3: a second YAML document starts here (`---`)",
+            ),
+        ] {
+            std::fs::write(&batch, text).unwrap();
+            std::fs::write(&test, text).unwrap();
+            for e in [
+                crate::llm::batch::read_batch(&batch)
+                    .unwrap_err()
+                    .to_string(),
+                crate::cost::script_test::run_test_file(&test)
+                    .unwrap_err()
+                    .to_string(),
+            ] {
+                assert!(e.contains(want), "{e}");
+            }
         }
     }
 }
