@@ -3685,6 +3685,30 @@ fn bench_refuses_flags_of_another_benchmark_and_outputs_over_what_it_did_not_wri
     let err = fails(&["bench", "io", "--data", s(&data), "--womd-out", s(&input)]);
     assert!(err.contains("inside the input directory"), "{err}");
     assert_eq!(std::fs::read(&input).unwrap(), before);
+    // --womd that is not a file: the table's header was printed before the error, which
+    // said "loading the WOMD → scenes (x) scenes".
+    #[cfg(unix)]
+    {
+        let fifo = dir.path().join("fifo");
+        assert!(std::process::Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .unwrap()
+            .success());
+        for (path, want) in [(&fifo, "a FIFO, socket or device"), (&data, "a directory")] {
+            let o = drivescript(&["bench", "io", "--womd", s(path)]);
+            let (out, err) = (
+                String::from_utf8_lossy(&o.stdout),
+                String::from_utf8_lossy(&o.stderr),
+            );
+            assert_eq!(o.status.code(), Some(1), "{err}");
+            assert!(out.is_empty(), "{out}");
+            assert!(
+                err.contains(&format!("--womd {}: not a regular file ({want}", s(path))),
+                "{err}"
+            );
+        }
+    }
 }
 
 #[test]

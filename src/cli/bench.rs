@@ -83,7 +83,7 @@ fn load_all(sources: &[PathBuf]) -> Result<usize> {
 }
 
 fn row(name: &str, sources: &[PathBuf], min: Duration) -> Result<()> {
-    let n = load_all(sources).with_context(|| format!("loading the {name} scenes"))?;
+    let n = load_all(sources).with_context(|| format!("timing {name}"))?;
     let mut bytes = 0u64;
     for p in sources {
         bytes = bytes.saturating_add(drivescript::io::bytes_under(p)?);
@@ -465,6 +465,38 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
 
 fn bench_io(args: &Args, min: Duration) -> Result<ExitCode> {
     let samples = super::samples_dir();
+    // Inputs are checked before the table starts: an error under a header read as a
+    // benchmark that began and broke.
+    if let Some(f) = &args.womd {
+        let meta = std::fs::metadata(f).with_context(|| format!("--womd {}", super::shown(f)))?;
+        if !meta.is_file() {
+            bail!(
+                "--womd {}: not a regular file ({}): --womd times one WOMD TFRecord file",
+                super::shown(f),
+                if meta.is_dir() {
+                    "a directory"
+                } else {
+                    "a FIFO, socket or device, which reading could block forever"
+                }
+            );
+        }
+    }
+    let extra = match &args.data {
+        Some(d) => {
+            let extra = discover(d).with_context(|| format!("--data {}", super::shown(d)))?;
+            // A set of no scenes was timed as a row of 0 scenes at "inf" ms each, and its
+            // re-encoding failed naming an empty file in bench's own temporary directory.
+            if extra.is_empty() {
+                bail!(
+                    "--data {}: no scene file in it, so there is nothing to time (supported: {})",
+                    d.display(),
+                    drivescript::io::SUPPORTED_FORMATS
+                );
+            }
+            extra
+        }
+        None => Vec::new(),
+    };
     println!("## Scene readers\n");
     println!(
         "| {:<40} | scenes |  reps |   scenes/s |  ms/scene | input MB/s |",
@@ -481,16 +513,6 @@ fn bench_io(args: &Args, min: Duration) -> Result<ExitCode> {
     let cr = discover(&samples.join("commonroad"))?;
     row("CommonRoad XML (samples)", &cr, min)?;
     if let Some(d) = &args.data {
-        let extra = discover(d)?;
-        // A set of no scenes was timed as a row of 0 scenes at "inf" ms each, and its
-        // re-encoding failed naming an empty file in bench's own temporary directory.
-        if extra.is_empty() {
-            bail!(
-                "--data {}: no scene file in it, so there is nothing to time (supported: {})",
-                d.display(),
-                drivescript::io::SUPPORTED_FORMATS
-            );
-        }
         row(
             &format!("CommonRoad/any ({})", super::shown(d)),
             &extra,
@@ -503,7 +525,7 @@ fn bench_io(args: &Args, min: Duration) -> Result<ExitCode> {
     // multi-record file; the larger --data set is the one closest to WOMD's record sizes.
     let mut sets = vec![("samples".to_string(), cr.clone())];
     if let Some(d) = &args.data {
-        sets.push((super::shown(d), discover(d)?));
+        sets.push((super::shown(d), extra.clone()));
     }
     let last = sets.len() - 1;
     // A directory of our own in the shared temporary directory, made new (an existing one is
