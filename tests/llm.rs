@@ -1898,6 +1898,47 @@ fn an_endless_reply_body_is_an_error_not_an_abort() {
 }
 
 #[test]
+fn a_reply_that_is_not_utf8_is_an_error_not_replacement_characters() {
+    // JSON is UTF-8; `"content":"\xff\xfe"` was stored as U+FFFD U+FFFD in reply.md, and the
+    // user was told only that the reply had no rhai block.
+    use std::io::Write;
+    let streamed = common::llm_server::one_shot(
+        b"HTTP/1.1 200 OK\r\nContent-Type: text/event-stream\r\nConnection: close\r\n\r\n",
+        |stream| {
+            let _ = stream.write_all(
+                b"data: {\"choices\":[{\"index\":0,\"delta\":{\"content\":\"ok \"}}]}\n\n",
+            );
+            let _ = stream.write_all(
+                b"data: {\"choices\":[{\"index\":0,\"delta\":{\"content\":\"\xff\xfe\"}}]}\n\n",
+            );
+            let _ = stream.write_all(b"data: [DONE]\n\n");
+        },
+    );
+    let e = ask_one(&client(&streamed)).unwrap_err().to_string();
+    assert!(
+        e.contains("a stream event is not UTF-8 (byte 50 of the event, after 1 tokens)"),
+        "{e}"
+    );
+    let body: &'static [u8] =
+        b"{\"choices\":[{\"index\":0,\"message\":{\"role\":\"assistant\",\"content\":\"\xff\"},\"finish_reason\":\"stop\"}]}";
+    let head = format!(
+        "HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n",
+        body.len()
+    );
+    let plain = common::llm_server::one_shot(
+        Box::leak(head.into_bytes().into_boxed_slice()),
+        move |stream| {
+            let _ = stream.write_all(body);
+        },
+    );
+    let e = ask_one(&client(&plain)).unwrap_err().to_string();
+    assert!(
+        e.contains("the reply body (HTTP 200) is not UTF-8 (byte 65)"),
+        "{e}"
+    );
+}
+
+#[test]
 fn a_batch_scene_that_cannot_be_read_is_named_once_with_its_entry() {
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("requests.yaml");

@@ -511,7 +511,20 @@ impl HttpClient {
             .fill_buf()
             .map_err(|e| read_error(&e, url, &self.cfg, clock, 0))?;
         if !(self.cfg.stream && super::stream::is_event_stream(content_type.as_deref(), head)) {
-            let text = self.redact(&read_body(body, url, &self.cfg, clock)?);
+            let raw = read_body(body, url, &self.cfg, clock)?;
+            if let Err(e) = std::str::from_utf8(&raw) {
+                // A completion is JSON, which is UTF-8: lossy decoding stored U+FFFD in the
+                // reply without a word.
+                return Err(LlmError::BadReply {
+                    url: url.into(),
+                    message: format!(
+                        "the reply body (HTTP {status}) is not UTF-8 (byte {}), as JSON must be: \
+                         the server is broken or sends another encoding",
+                        e.valid_up_to() + 1
+                    ),
+                });
+            }
+            let text = self.redact(&String::from_utf8_lossy(&raw));
             if text.trim().is_empty() {
                 return Err(LlmError::BadReply {
                     url: url.into(),
@@ -676,12 +689,12 @@ impl HttpClient {
                 // Its bytes quoted as text say nothing.
                 Some(encoding) => format!("(a body compressed as {encoding}, not read)"),
                 None => {
-                    let text = self.redact(&read_body(
+                    let text = self.redact(&String::from_utf8_lossy(&read_body(
                         clock.reader(resp, false),
                         &shown,
                         &self.cfg,
                         &clock,
-                    )?);
+                    )?));
                     error_message_redacted(&text, &|s| self.redact(s))
                 }
             };
@@ -779,14 +792,14 @@ pub const MAX_REPLY_BYTES: u64 = 16 << 20;
 /// made a 96 MB run directory, and twenty such rounds would have written gigabytes.
 pub const MAX_COMPLETION_BYTES: usize = 1 << 20;
 
-/// Reads a reply body within [`MAX_REPLY_BYTES`] (invalid UTF-8 replaced, as `text()` does);
-/// `resp` is read under `clock` ([`ReplyClock::reader`]).
+/// Reads a reply body's bytes within [`MAX_REPLY_BYTES`]; `resp` is read under `clock`
+/// ([`ReplyClock::reader`]).
 fn read_body(
     resp: impl std::io::Read,
     url: &str,
     cfg: &HttpConfig,
     clock: &ReplyClock,
-) -> Result<String, LlmError> {
+) -> Result<Vec<u8>, LlmError> {
     use std::io::Read;
     let mut buf = Vec::new();
     if let Err(e) = resp.take(MAX_REPLY_BYTES + 1).read_to_end(&mut buf) {
@@ -802,7 +815,7 @@ fn read_body(
             ),
         });
     }
-    Ok(String::from_utf8_lossy(&buf).into_owned())
+    Ok(buf)
 }
 
 /// What a failed read of a reply body means: the reply's deadline passed ([`ReplyClock`]),

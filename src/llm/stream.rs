@@ -147,6 +147,15 @@ pub fn read_stream<R: Read>(
         let Some(data) = text.strip_prefix("data:") else {
             continue;
         };
+        // JSON is UTF-8: bytes that are not were stored as U+FFFD in the reply without a word.
+        if let Err(e) = std::str::from_utf8(&line) {
+            return Err(bad(format!(
+                "a stream event is not UTF-8 (byte {} of the event, after {} tokens), as JSON \
+                 must be: the server is broken or sends another encoding",
+                e.valid_up_to() + 1,
+                out.tokens
+            )));
+        }
         let data = data.trim();
         if data == "[DONE]" {
             break;
