@@ -602,6 +602,19 @@ fn yaml_errors_name_line_or_agent() {
         "{err}"
     );
 
+    // A road wound past a full turn ran over itself, and its cars read as off the road.
+    let f = dir.path().join("wound.yaml");
+    std::fs::write(
+        &f,
+        "scenario_id: a\nsteps: 60\ncurrent_step: 10\nroad: {lanes: 1, length: 400, radius: 50}\nagents:\n  - {id: 1, lane: 0, s: 30, speed: 10}\n",
+    )
+    .unwrap();
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("road.radius: a road of 400 m at radius 50 winds 1.27 times round and runs over itself: give a length of at most 2π·|radius| (314.1 m)"),
+        "{err}"
+    );
+
     let f = copy_to(dir.path(), &src, "c.yaml");
     edit(&f, |t| t.replacen("ego: 1", "ego: 77", 1));
     let err = fails(&["inspect", s(&f)]);
@@ -2149,12 +2162,13 @@ fn a_deep_directory_is_walked_in_time_proportional_to_its_depth_squared_at_most(
 fn a_long_yaml_road_is_read_in_time_proportional_to_its_length() {
     // Map::new measured each lane's width at every centre-line point against its whole
     // boundaries: a 4-line scene of a 100 km road wound into a circle took 74 s to read
-    // (issue 32).
+    // (issue 32). A road may not wind past a full turn any more: this one is most of a
+    // circle of 16 km, as many points as the old worst case of a 16 m radius.
     let dir = tempfile::tempdir().unwrap();
     let f = dir.path().join("loop.yaml");
     std::fs::write(
         &f,
-        "scenario_id: loop\nroad: {lanes: 4, length: 99999, radius: 16}\nagents:\n  - {id: 1, lane: 0, s: 10, speed: 10}\n",
+        "scenario_id: loop\nroad: {lanes: 4, length: 99999, radius: 16000}\nagents:\n  - {id: 1, lane: 0, s: 10, speed: 10}\n",
     )
     .unwrap();
     let t0 = std::time::Instant::now();

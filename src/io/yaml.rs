@@ -1053,6 +1053,22 @@ fn road_parts(path: &Path, r: &YamlRoad) -> Result<(MapParts, FrenetPath), IoErr
             format!("|radius| must exceed the road width ({max_offset} m)"),
         ));
     }
+    // Past a full turn the road runs over itself: lanes cross lanes, and cars on their centre
+    // lines read as off the road (a 400 m road at radius 50 was accepted and scored so).
+    let turn = 2.0 * std::f64::consts::PI * r.radius.abs();
+    if r.radius != 0.0 && r.length > turn {
+        return Err(bad(
+            "road.radius",
+            format!(
+                "a road of {} m at radius {} winds {:.2} times round and runs over itself: give \
+                 a length of at most 2π·|radius| ({} m) or a larger radius",
+                crate::geom::num(r.length),
+                crate::geom::num(r.radius),
+                r.length / turn,
+                crate::geom::num((turn * 10.0).floor() / 10.0)
+            ),
+        ));
+    }
     let reach = r.length + max_offset;
     if !(r.origin[0].is_finite() && r.origin[1].is_finite())
         || r.origin[0].abs() + reach > crate::geom::MAX_COORD
