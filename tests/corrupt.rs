@@ -797,6 +797,74 @@ fn implausible_speed_limits_and_road_headings_are_refused() {
 }
 
 #[test]
+fn commonroad_lanelets_read_other_than_as_written_are_named() {
+    // A lanelet naming itself as a neighbour or successor, with coinciding or swapped bounds
+    // loaded with "1 scenes read, 0 failed" and no word; the self link was dropped unsaid.
+    let dir = tempfile::tempdir().unwrap();
+    let src = samples().join("commonroad/USA_Lanker-1_1_T-1.xml");
+    // Lanelet 3419's text, edited by `f`.
+    let variant = |name: &str, f: &dyn Fn(&str) -> String| {
+        let xml = copy_to(dir.path(), &src, name);
+        edit(&xml, |t| {
+            let at = t.find("<lanelet id=\"3419\">").unwrap();
+            let end = at + t[at..].find("</lanelet>").unwrap();
+            format!("{}{}{}", &t[..at], f(&t[at..end]), &t[end..])
+        });
+        xml
+    };
+    let bound = |l: &str, which: &str| {
+        let (open, close) = (format!("<{which}>"), format!("</{which}>"));
+        let at = l.find(&open).unwrap();
+        l[at..at + l[at..].find(&close).unwrap() + close.len()].to_string()
+    };
+    let summary = |p: &Path| -> serde_json::Value {
+        serde_json::from_str(&ok(&["inspect", s(p), "--json"])).unwrap()
+    };
+    let before = summary(&src);
+    let own = variant("own.xml", &|l| l.replace("ref=\"3422\"", "ref=\"3419\""));
+    let out = ok(&["inspect", s(&own)]);
+    assert!(
+        out.contains("lanelet 3419 names itself as its own successor, predecessor or neighbour: that link is dropped"),
+        "{out}"
+    );
+    let swapped = variant("swapped.xml", &|l| {
+        let (lb, rb) = (bound(l, "leftBound"), bound(l, "rightBound"));
+        l.replace(&lb, "@L@")
+            .replace(&rb, &lb.replace("leftBound", "rightBound"))
+            .replace("@L@", &rb.replace("rightBound", "leftBound"))
+    });
+    let out = ok(&["inspect", s(&swapped)]);
+    assert!(
+        out.contains("lanelet 3419: the leftBound lies right of the driving direction (bounds swapped): read with the bounds swapped back"),
+        "{out}"
+    );
+    // Swapped back, the map is the one written the right way round: lane boundaries
+    // included, as `convert` writes them.
+    let after = summary(&swapped);
+    for k in ["lanes", "road_edges", "road_lines", "lane_graph"] {
+        assert_eq!(after[0][k], before[0][k], "{k}");
+    }
+    let map_of = |p: &Path, out: &str| {
+        let o = dir.path().join(out);
+        ok(&["convert", s(p), "-o", s(&o)]);
+        let t = std::fs::read_to_string(&o).unwrap();
+        t[t.find("map:").unwrap()..t.find("agents:").unwrap()].to_string()
+    };
+    assert!(map_of(&swapped, "b.yaml") == map_of(&src, "a.yaml"));
+    let flat = variant("flat.xml", &|l| {
+        let (lb, rb) = (bound(l, "leftBound"), bound(l, "rightBound"));
+        l.replace(&rb, &lb.replace("leftBound", "rightBound"))
+    });
+    let out = ok(&["inspect", s(&flat)]);
+    assert!(
+        out.contains("lanelet 3419: the bounds coincide (zero width)"),
+        "{out}"
+    );
+    // The sample as written says none of this.
+    assert!(!ok(&["inspect", s(&src)]).contains("lanelet"));
+}
+
+#[test]
 fn womd_truncated_and_flipped_files_name_the_record() {
     let dir = tempfile::tempdir().unwrap();
     let f = dir.path().join("x.tfrecord");

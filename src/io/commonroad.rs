@@ -206,7 +206,8 @@ pub fn parse(path: &Path, text: &str, opts: &LoadOptions) -> Result<Scene, IoErr
         .unwrap_or_else(|| super::file_stem(path));
 
     let speed_signs = speed_limit_signs(&cx, root)?;
-    let map = read_map(&cx, root, &speed_signs)?;
+    let mut lanelet_notes = LaneletNotes::default();
+    let map = read_map(&cx, root, &speed_signs, &mut lanelet_notes)?;
     let (agents, steps) = read_agents(&cx, root)?;
     let current_step = opts.commonroad_current_step.min(steps.saturating_sub(1));
     let meta = SceneMeta {
@@ -216,7 +217,10 @@ pub fn parse(path: &Path, text: &str, opts: &LoadOptions) -> Result<Scene, IoErr
         dt,
         current_step,
         ego: None,
-        warnings: warnings(root),
+        warnings: warnings(root)
+            .into_iter()
+            .chain(lanelet_notes.warnings())
+            .collect(),
     };
     Scene::recorded(meta, map, agents).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
@@ -290,7 +294,90 @@ fn centerline(left: &Polyline, right: &Polyline) -> Polyline {
     Polyline::new(mid).unwrap_or_else(|_| left.clone())
 }
 
-fn read_map(cx: &Ctx, root: Node, speed_signs: &HashMap<i64, f64>) -> Result<Map, IoError> {
+/// Lanelets the map reads other than as written, said once per scene with their ids.
+#[derive(Default)]
+struct LaneletNotes {
+    /// Naming themselves as a successor, predecessor or neighbour: the graph drops the link.
+    own_link: Vec<i64>,
+    /// Left bound right of the driving direction: read with the bounds swapped back.
+    swapped: Vec<i64>,
+    /// Bounds that coincide: no surface, so nothing on it reads as on the road.
+    zero_width: Vec<i64>,
+}
+
+impl LaneletNotes {
+    fn warnings(&self) -> Vec<String> {
+        let ids = |v: &[i64]| {
+            let mut shown: Vec<String> = v.iter().take(5).map(|i| i.to_string()).collect();
+            if v.len() > 5 {
+                shown.push(format!("and {} more", v.len() - 5));
+            }
+            format!(
+                "lanelet{} {}",
+                if v.len() == 1 { "" } else { "s" },
+                shown.join(", ")
+            )
+        };
+        let mut out = Vec::new();
+        if !self.own_link.is_empty() {
+            out.push(format!(
+                "{} name{} itself as its own successor, predecessor or neighbour: that link is \
+                 dropped",
+                ids(&self.own_link),
+                if self.own_link.len() == 1 { "s" } else { "" }
+            ));
+        }
+        if !self.swapped.is_empty() {
+            out.push(format!(
+                "{}: the leftBound lies right of the driving direction (bounds swapped): read \
+                 with the bounds swapped back",
+                ids(&self.swapped)
+            ));
+        }
+        if !self.zero_width.is_empty() {
+            out.push(format!(
+                "{}: the bounds coincide (zero width): no surface, so nothing on it reads as on \
+                 the road",
+                ids(&self.zero_width)
+            ));
+        }
+        out
+    }
+}
+
+/// Mean width of a lanelet (metres) and on which side its left bound lies: the mean sine of
+/// the angle from the driving direction to the right-to-left vector, near 1 where the left
+/// bound lies left, as CommonRoad's bounds do, and near -1 where they are swapped; 0 where a
+/// lanelet is too short (under 1 m) for its direction to say.
+fn signed_width(left: &Polyline, right: &Polyline) -> (f64, f64) {
+    let n = left.points().len().max(right.points().len()).max(2);
+    let (l, r) = (left.resample_count(n), right.resample_count(n));
+    let (mut width, mut side, mut length) = (0.0, 0.0, 0.0);
+    for i in 0..n {
+        let (a, b) = (l.points()[i], r.points()[i]);
+        let (j, k) = if i + 1 < n { (i, i + 1) } else { (i - 1, i) };
+        let dir = (l.points()[k] + r.points()[k]) * 0.5 - (l.points()[j] + r.points()[j]) * 0.5;
+        let across = a - b;
+        width += across.norm();
+        side += dir.x * across.y - dir.y * across.x;
+        length += dir.norm();
+    }
+    let width = width / n as f64;
+    if length < 1.0 || width <= 0.0 {
+        return (width, 0.0);
+    }
+    (width, side / (length * width))
+}
+
+/// Below this mean width (metres) a lanelet's bounds coincide.
+const ZERO_WIDTH: f64 = 0.05;
+
+fn read_map(
+    cx: &Ctx,
+    root: Node,
+    speed_signs: &HashMap<i64, f64>,
+    notes: &mut LaneletNotes,
+) -> Result<Map, IoError> {
     let mut parts = MapParts::default();
     let mut raws = Vec::new();
     let mut intersection_lanes = std::collections::HashSet::new();
@@ -307,8 +394,8 @@ fn read_map(cx: &Ctx, root: Node, speed_signs: &HashMap<i64, f64>) -> Result<Map
         let id = cx.id(node, "id")?;
         let lb = cx.need(node, "leftBound")?;
         let rb = cx.need(node, "rightBound")?;
-        let left = cx.polyline(lb)?;
-        let right = cx.polyline(rb)?;
+        let mut left = cx.polyline(lb)?;
+        let mut right = cx.polyline(rb)?;
         let marking = |b: Node| {
             cx.child(b, "lineMarking")
                 .and_then(|m| m.text())
@@ -367,21 +454,40 @@ fn read_map(cx: &Ctx, root: Node, speed_signs: &HashMap<i64, f64>) -> Result<Map
                 .push(Polygon::new(ring).map_err(|e| cx.err(node, e.to_string()))?);
             continue;
         }
+        let (mut left_marking, mut right_marking) = (marking(lb), marking(rb));
+        let (width, side) = signed_width(&left, &right);
+        if width < ZERO_WIDTH {
+            notes.zero_width.push(id);
+        } else if side < -0.5 {
+            notes.swapped.push(id);
+            std::mem::swap(&mut left, &mut right);
+            std::mem::swap(&mut left_marking, &mut right_marking);
+        }
+        let (successors, predecessors) = (refs("successor")?, refs("predecessor")?);
+        if successors
+            .iter()
+            .chain(&predecessors)
+            .chain(&left_same)
+            .chain(&right_same)
+            .any(|r| *r == id)
+        {
+            notes.own_link.push(id);
+        }
         let mut lane = Lane::new(id, centerline(&left, &right));
         lane.left_boundary = Some(left.clone());
         lane.right_boundary = Some(right.clone());
         lane.lane_type = kind;
         lane.speed_limit = speed_limit;
         lane.is_intersection = intersection_lanes.contains(&id);
-        lane.predecessors = refs("predecessor")?;
-        lane.successors = refs("successor")?;
+        lane.predecessors = predecessors;
+        lane.successors = successors;
         lane.left_neighbors = left_same.into_iter().collect();
         lane.right_neighbors = right_same.into_iter().collect();
         parts.lanes.push(lane);
         raws.push(RawLanelet {
             id,
-            left_marking: marking(lb),
-            right_marking: marking(rb),
+            left_marking,
+            right_marking,
             left,
             right,
             has_left,
