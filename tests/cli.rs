@@ -950,6 +950,33 @@ fn simulate_args<'a>(
 }
 
 #[test]
+fn simulate_takes_a_script_reading_a_parameter_as_a_constant() {
+    // Parameters are constants (`cutter` for `--param cutter=2`, docs/cost-scripts.md); the
+    // syntax check simulate runs before any scene had none, and refused the script:
+    // "Undefined variable: cutter".
+    let dir = tempfile::tempdir().unwrap();
+    let script = dir.path().join("p.rhai");
+    std::fs::write(&script, "term(\"x\", agent(cutter).speed.mean());\n").unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let out = dir.path().join("sim");
+    ok(&simulate_args(
+        s(&scene),
+        "data/checkpoint",
+        &[
+            "--script",
+            s(&script),
+            "--param",
+            "cutter=2",
+            "--steps",
+            "8",
+            "--horizon",
+            "5",
+        ],
+        s(&out),
+    ));
+}
+
+#[test]
 fn a_slow_script_stops_at_the_run_s_script_budget_instead_of_running_for_minutes() {
     let dir = tempfile::tempdir().unwrap();
     // Tens of milliseconds per evaluation, within the per-call limit: the run's hundreds of

@@ -387,6 +387,19 @@ def test_parameters_the_script_does_not_use_are_value_errors(ds):
         ds.CostScript.from_file(CUT_IN, params={"cutter": [401], "victim": 405})
 
 
+def test_a_script_from_source_reads_its_parameters_as_constants_as_from_a_file(ds, scene, tmp_path):
+    # Parameters are constants in the script (docs/cost-scripts.md); from_source's syntax check
+    # had none and refused every script reading one: "Undefined variable: cutter".
+    source = 'term("x", agent(cutter).x.last());\n'
+    (tmp_path / "x.rhai").write_text(source)
+    traj = scene.log_future(10)
+    by_source = ds.CostScript.from_source(source, params={"cutter": 401}).evaluate(scene, traj)
+    by_file = ds.CostScript.from_file(tmp_path / "x.rhai", params={"cutter": 401})
+    assert by_source.total == by_file.evaluate(scene, traj).total
+    with pytest.raises(ds.ScriptError, match="syntax error"):
+        ds.CostScript.from_source("let a = agent(cutter;\n", params={"cutter": 401})
+
+
 def test_parameters_are_checked_as_the_cli_checks_param(ds, scene):
     # A NaN limit compared false with every speed: speed_limit scored 0 whatever the car did.
     limit = ROOT / "scripts/speed_limit.rhai"
