@@ -281,13 +281,27 @@ fn no_nul(path: &std::path::Path, arg: &str) -> PyResult<()> {
 fn params_from(dict: Option<&Bound<'_, PyDict>>) -> PyResult<Params> {
     let mut out = Params::default();
     for (k, v) in dict.into_iter().flat_map(|d| d.iter()) {
+        // A str that is no UTF-8 (a lone surrogate, as os.fsdecode makes of bytes that are
+        // not text) was said to be no string, or raised UnicodeEncodeError naming no parameter.
         let name: String = k.extract().map_err(|_| {
-            PyValueError::new_err(format!("parameter names are strings, got {}", quoted(&k)))
+            PyValueError::new_err(if k.is_instance_of::<PyString>() {
+                format!(
+                    "parameter name {}: holds a lone surrogate, which is not text",
+                    quoted(&k)
+                )
+            } else {
+                format!("parameter names are strings, got {}", quoted(&k))
+            })
         })?;
         // bool before int: Python's True is an int too.
         let value = if v.is_instance_of::<PyBool>() {
             ParamValue::Bool(v.extract()?)
-        } else if v.is_instance_of::<PyInt>() {
+        } else if v.is_instance_of::<PyInt>()
+            // NumPy's integers (an id taken from an array of them) are ints to Python's
+            // __index__, as every whole-number argument here takes them; they were refused as
+            // "not an int, float, bool or str".
+            || (!v.is_instance_of::<PyFloat>() && v.hasattr("__index__")?)
+        {
             ParamValue::Int(v.extract().map_err(|_| {
                 PyValueError::new_err(format!(
                     "parameter {name:?} = {}: out of the 64-bit range",
@@ -297,7 +311,12 @@ fn params_from(dict: Option<&Bound<'_, PyDict>>) -> PyResult<Params> {
         } else if v.is_instance_of::<PyFloat>() {
             ParamValue::Float(v.extract()?)
         } else if v.is_instance_of::<PyString>() {
-            ParamValue::Str(v.extract()?)
+            ParamValue::Str(v.extract().map_err(|_| {
+                PyValueError::new_err(format!(
+                    "parameter {name:?} = {}: holds a lone surrogate, which is not text",
+                    quoted(&v)
+                ))
+            })?)
         } else {
             return Err(PyValueError::new_err(format!(
                 "parameter {name:?} = {}: a parameter is an int, float, bool or str",
@@ -980,6 +999,14 @@ impl CostScript {
             return Err(PyValueError::new_err(format!(
                 "name {}: holds {c}; a script's name starts its error messages",
                 drivescript::io::name::shown(name)
+            )));
+        }
+        // An empty name began every message with a bare place, ":1:1: syntax error: ...".
+        if name.trim().is_empty() {
+            return Err(PyValueError::new_err(format!(
+                "name {:?}: is blank; a script's name starts its error messages (the \
+                 default is \"<script>\")",
+                name
             )));
         }
         let spec = ScriptSpec::new(source, name, params_from(params)?);

@@ -617,3 +617,20 @@ def test_a_script_name_holding_a_line_break_or_a_bidi_control_is_refused(ds):
     for name, char in [("evil\nerror: all good", "U+000A"), ("x\u202ey", "U+202E")]:
         with pytest.raises(ValueError, match=re.escape(char)):
             ds.CostScript.from_source('term("x", agent(1).x.sum());', name=name)
+    # A blank name began every message with a bare place: ":1:1: syntax error: ...".
+    for name in ["", "  "]:
+        with pytest.raises(ValueError, match="is blank"):
+            ds.CostScript.from_source('term("x", agent(1).x.sum());', name=name)
+
+
+def test_numpy_integers_and_text_that_is_no_utf8_as_parameters(ds, scene):
+    # An id taken from an array of ids is a NumPy integer: it was refused as "not an int".
+    ids = np.array(scene.agent_ids)
+    by_numpy = ds.CostScript.from_file(CUT_IN, params={"cutter": ids[ids == 401][0], "victim": np.int32(405)})
+    assert by_numpy.params == CUT_IN_PARAMS and type(by_numpy.params["cutter"]) is int
+    # A lone surrogate raised UnicodeEncodeError naming no parameter (a value), or was said to
+    # be no string at all (a name).
+    with pytest.raises(ValueError, match='parameter "turn" = .*lone surrogate'):
+        ds.CostScript.from_file(CUT_IN, params={"cutter": 401, "victim": 405, "turn": "l\udcff"})
+    with pytest.raises(ValueError, match="parameter name .*lone surrogate"):
+        ds.CostScript.from_file(CUT_IN, params={"cutter": 401, "victim": 405, "t\udcff": 1})
