@@ -2453,3 +2453,37 @@ fn a_lane_change_that_cannot_happen_as_written_is_refused_naming_the_field() {
     });
     ok(&["inspect", s(&f)]);
 }
+
+#[test]
+fn a_static_agent_given_a_motion_is_refused_naming_the_fields() {
+    // A static agent holds its first observed pose: `{static: true, s: 5, speed: 10}` stood
+    // at s = -5 (its pose 1 s before the current step) for the whole scene, without a word.
+    let dir = tempfile::tempdir().unwrap();
+    let scene = |agent: &str| {
+        format!(
+            "scenario_id: parked\nsteps: 60\ncurrent_step: 10\nroad: {{lanes: 2, length: 200}}\n\
+             agents:\n  - {{id: 1, lane: 0, s: 50, speed: 10}}\n  - {agent}\n"
+        )
+    };
+    for (k, (agent, want)) in [
+        (
+            "{id: 2, lane: 1, s: 5, speed: 10, static: true}",
+            "agents[1] (id 2): `speed` would be ignored: a `static` agent stands still",
+        ),
+        (
+            "{id: 2, lane: 0, s: 5, accel: 1, lane_change: {to: 1, start: 1}, static: true}",
+            "agents[1] (id 2): `accel`, `lane_change` would be ignored",
+        ),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let f = dir.path().join(format!("static{k}.yaml"));
+        std::fs::write(&f, scene(agent)).unwrap();
+        let err = fails(&["inspect", s(&f)]);
+        assert!(err.contains(&format!("static{k}.yaml: {want}")), "{err}");
+    }
+    let f = dir.path().join("parked.yaml");
+    std::fs::write(&f, scene("{id: 2, lane: 1, s: 5, static: true}")).unwrap();
+    ok(&["inspect", s(&f)]);
+}

@@ -780,6 +780,35 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
                 ));
             }
         }
+        // A static agent holds its first observed pose: with a speed, an acceleration or a
+        // lane change that pose is not the one at `s`, so `{static: true, s: 5, speed: 10}`
+        // stood at s = -5 for the whole scene, without a word.
+        if a.is_static && a.states.is_none() {
+            let moving: Vec<&str> = [
+                ("speed", a.speed != 0.0),
+                ("accel", a.accel != 0.0),
+                ("lane_change", a.lane_change.is_some()),
+            ]
+            .iter()
+            .filter(|(_, given)| *given)
+            .map(|(name, _)| *name)
+            .collect();
+            if !moving.is_empty() {
+                return Err(bad(
+                    loc,
+                    format!(
+                        "{} would be ignored: a `static` agent stands still at its pose at `s`; \
+                         remove {}",
+                        moving
+                            .iter()
+                            .map(|n| format!("`{n}`"))
+                            .collect::<Vec<_>>()
+                            .join(", "),
+                        if moving.len() == 1 { "it" } else { "them" }
+                    ),
+                ));
+            }
+        }
         if let Some(lc) = &a.lane_change {
             lane_change_problem(lc, y).map_err(|m| bad(loc.clone(), m))?;
         }
