@@ -618,6 +618,11 @@ fn yaml_errors_name_line_or_agent() {
             "left: [2], right: [2]",
             "map.lanes[0] (id 1).right: lane 2 is in both left and right",
         ),
+        // A mistyped id was dropped from the graph without a word, and the lane ended there.
+        (
+            "successors: [2, 99]",
+            "map.lanes[0] (id 1).successors: names lane 99, which is not in the map",
+        ),
     ] {
         let f = dir.path().join("graph.yaml");
         std::fs::write(

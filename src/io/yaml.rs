@@ -1097,6 +1097,7 @@ fn explicit_parts(path: &Path, m: &YamlMap) -> Result<MapParts, IoError> {
         Polygon::new(to_points(v)).map_err(|e| IoError::invalid(path, loc, e.to_string()))
     };
     let mut parts = MapParts::default();
+    let lane_ids: std::collections::HashSet<i64> = m.lanes.iter().map(|l| l.id).collect();
     for (i, l) in m.lanes.iter().enumerate() {
         let loc = |f: &str| format!("map.lanes[{i}] (id {}).{f}", l.id);
         // A hand-written map's slips: the graph dropped a lane that follows itself, and took
@@ -1112,6 +1113,15 @@ fn explicit_parts(path: &Path, m: &YamlMap) -> Result<MapParts, IoError> {
                     path,
                     loc(field),
                     format!("names lane {} itself", l.id),
+                ));
+            }
+            // A mistyped id (`successors: [99]`) was dropped from the graph without a word,
+            // and the lane ended there. (A map written by drivescript names only its lanes.)
+            if let Some(missing) = ids.iter().find(|id| !lane_ids.contains(id)) {
+                return Err(IoError::invalid(
+                    path,
+                    loc(field),
+                    format!("names lane {missing}, which is not in the map"),
                 ));
             }
         }
