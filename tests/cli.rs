@@ -1885,6 +1885,12 @@ fn train_refuses_settings_it_cannot_train_with_before_reading_data() {
             "batch = 1000000000: must be 1 to 4096",
         ),
         ("--eval-every", "0", "eval_every = 0: must be at least 1"),
+        // It said "window.route_times = 41", naming no flag.
+        (
+            "--route-times",
+            "41",
+            "window.route_times = 41: must be 0 to 40",
+        ),
     ] {
         // A data directory that does not exist: the settings are refused first.
         let arg = format!("{flag}={value}");
