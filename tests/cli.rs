@@ -3698,6 +3698,44 @@ fn bench_refuses_flags_of_another_benchmark_and_outputs_over_what_it_did_not_wri
 }
 
 #[test]
+fn bench_sample_times_a_checkpoint_with_the_inputs_it_was_trained_with() {
+    // bench sample replaced the checkpoint's window with the paper's, inputs included: a
+    // --nearest-lane-pose checkpoint failed with "shape mismatch in matmul", a --route-times
+    // one with "the batch has no route inputs (window.route_times = 0)".
+    let dir = tempfile::tempdir().unwrap();
+    for (name, flag) in [
+        ("nearest", &["--nearest-lane-pose"][..]),
+        ("route", &["--route-times", "4"]),
+    ] {
+        let ckpt = dir.path().join(name);
+        let mut args = vec![
+            "train",
+            "--data",
+            "scripts/scenes",
+            "--out",
+            s(&ckpt),
+            "--steps",
+            "2",
+            "--eval-every",
+            "1",
+        ];
+        args.extend(flag);
+        ok(&args);
+        let out = ok(&[
+            "bench",
+            "sample",
+            "--repeat",
+            "1",
+            "--only",
+            "unguided",
+            "--checkpoint",
+            s(&ckpt),
+        ]);
+        assert!(out.contains("| sampling, unguided |"), "{name}: {out}");
+    }
+}
+
+#[test]
 fn a_file_name_with_escape_sequences_reaches_no_terminal() {
     // A per-file error quoted the name as it is: the rest of the terminal turned red.
     let dir = tempfile::tempdir().unwrap();
