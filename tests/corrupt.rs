@@ -992,6 +992,25 @@ fn gpudrive_errors_name_the_object_road_and_field() {
             &["roads[18] (id 41).geometry[0]: (1e300, -4.5) is not a map coordinate"],
         ),
         (
+            // A Nocturne file (no scenario_id or metadata) marking two self-driving cars: the
+            // first was taken for the ego without a word.
+            "two_avs.json",
+            |v| {
+                let o = v.as_object_mut().unwrap();
+                o.remove("scenario_id");
+                o.remove("metadata");
+                for k in 0..4 {
+                    let h = v["objects"][k]["heading"].as_array_mut().unwrap();
+                    for a in h.iter_mut() {
+                        *a = json!(a.as_f64().unwrap().to_degrees());
+                    }
+                }
+                v["objects"][0]["is_av"] = json!(true);
+                v["objects"][2]["is_av"] = json!(true);
+            },
+            &["objects[2].is_av: objects[0] is marked is_av too: a scenario has one self-driving car"],
+        ),
+        (
             "truck.json",
             |v| v["objects"][0]["type"] = json!("truck"),
             &["objects[0] (id 101).type: \"truck\" is not an object type of the format (vehicle, pedestrian, cyclist, other, unset)"],
