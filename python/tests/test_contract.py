@@ -634,3 +634,16 @@ def test_numpy_integers_and_text_that_is_no_utf8_as_parameters(ds, scene):
         ds.CostScript.from_file(CUT_IN, params={"cutter": 401, "victim": 405, "turn": "l\udcff"})
     with pytest.raises(ValueError, match="parameter name .*lone surrogate"):
         ds.CostScript.from_file(CUT_IN, params={"cutter": 401, "victim": 405, "t\udcff": 1})
+
+
+def test_a_path_may_be_bytes_as_for_python_s_own_file_functions(ds, scene, tmp_path):
+    # The TypeError for an int said "expected str, bytes or os.PathLike object", and bytes were
+    # then refused: "'bytes' object is not an instance of 'str'".
+    assert ds.Scene.load(bytes(SCENE)).agent_ids == scene.agent_ids
+    assert ds.CostScript.from_file(bytes(CUT_IN), params=CUT_IN_PARAMS).name == str(CUT_IN)
+    assert ds.Sampler(bytes(ROOT / "data/checkpoint")).horizon > 0
+    out = tmp_path / "r.json"
+    scene.write_rollout(bytes(out), scene.log_future(5))
+    assert out.exists()
+    with pytest.raises(TypeError, match="expected str, bytes or os.PathLike object, not int"):
+        ds.Scene.load(123)
