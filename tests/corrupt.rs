@@ -261,6 +261,24 @@ fn flipped_bytes_in_an_av2_parquet_never_pass_as_far_moved_agents() {
 }
 
 #[test]
+fn a_commonroad_number_broken_by_a_comment_is_read_whole() {
+    // `<x>20<!-- c -->.8465</x>` is 20.8465 to XML; its first text piece alone was read, 20,
+    // without a word.
+    let dir = tempfile::tempdir().unwrap();
+    let f = copy_to(
+        dir.path(),
+        &samples().join("commonroad/USA_US101-4_1_T-1.xml"),
+        "comment.xml",
+    );
+    edit(&f, |t| {
+        t.replacen("<x>20.8465</x>", "<x>20<!-- c -->.8465</x>", 1)
+    });
+    let scene = load_scenes(&f, &LoadOptions::default()).unwrap().remove(0);
+    let a = scene.agents.iter().find(|a| a.id == 373).unwrap();
+    assert_eq!(a.states[0].x, 20.8465);
+}
+
+#[test]
 fn commonroad_times_and_time_steps_out_of_reason_are_refused() {
     let dir = tempfile::tempdir().unwrap();
     let src = samples().join("commonroad/USA_US101-3_3_T-1.xml");
