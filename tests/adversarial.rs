@@ -1069,3 +1069,22 @@ fn assigning_a_read_only_property_says_so_in_the_script_s_words() {
     assert!(e.starts_with("evil.rhai:2:"), "{e}");
     assert!(!e.contains("i64") && !e.contains("setter"), "{e}");
 }
+
+#[test]
+fn a_syntax_check_takes_a_parameter_read_as_a_constant_and_still_refuses_bad_syntax() {
+    let limits = Limits::default();
+    // `cutter` is a constant once `--param cutter=1` is given with a scene; the check runs
+    // without parameters, and said "Undefined variable: cutter" (simulate --script --param,
+    // Python's CostScript.from_source(params=...)).
+    let reads = "let a = agent(cutter);\nterm(\"x\", a.speed.mean());\n";
+    CostScript::check_syntax(reads, "p.rhai", &limits).unwrap();
+    let e = CostScript::check_syntax("let a = agent(cutter;\n", "p.rhai", &limits)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.starts_with("p.rhai:1:") && e.contains("syntax error"),
+        "{e}"
+    );
+    // On a scene without the parameter, the name is still refused, with its place.
+    fails(reads, &["evil.rhai:1:", "cutter"]);
+}

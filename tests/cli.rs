@@ -958,6 +958,33 @@ fn simulate_args<'a>(
 }
 
 #[test]
+fn simulate_takes_a_script_reading_a_parameter_as_a_constant() {
+    // Parameters are constants (`cutter` for `--param cutter=2`, docs/cost-scripts.md); the
+    // syntax check simulate runs before any scene had none, and refused the script:
+    // "Undefined variable: cutter".
+    let dir = tempfile::tempdir().unwrap();
+    let script = dir.path().join("p.rhai");
+    std::fs::write(&script, "term(\"x\", agent(cutter).speed.mean());\n").unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let out = dir.path().join("sim");
+    ok(&simulate_args(
+        s(&scene),
+        "data/checkpoint",
+        &[
+            "--script",
+            s(&script),
+            "--param",
+            "cutter=2",
+            "--steps",
+            "8",
+            "--horizon",
+            "5",
+        ],
+        s(&out),
+    ));
+}
+
+#[test]
 fn a_slow_script_stops_at_the_run_s_script_budget_instead_of_running_for_minutes() {
     let dir = tempfile::tempdir().unwrap();
     // Tens of milliseconds per evaluation, within the per-call limit: the run's hundreds of
@@ -1866,6 +1893,12 @@ fn train_refuses_settings_it_cannot_train_with_before_reading_data() {
             "batch = 1000000000: must be 1 to 4096",
         ),
         ("--eval-every", "0", "eval_every = 0: must be at least 1"),
+        // It said "window.route_times = 41", naming no flag.
+        (
+            "--route-times",
+            "41",
+            "window.route_times = 41: must be 0 to 40",
+        ),
     ] {
         // A data directory that does not exist: the settings are refused first.
         let arg = format!("{flag}={value}");
@@ -3708,6 +3741,44 @@ fn bench_refuses_flags_of_another_benchmark_and_outputs_over_what_it_did_not_wri
                 "{err}"
             );
         }
+    }
+}
+
+#[test]
+fn bench_sample_times_a_checkpoint_with_the_inputs_it_was_trained_with() {
+    // bench sample replaced the checkpoint's window with the paper's, inputs included: a
+    // --nearest-lane-pose checkpoint failed with "shape mismatch in matmul", a --route-times
+    // one with "the batch has no route inputs (window.route_times = 0)".
+    let dir = tempfile::tempdir().unwrap();
+    for (name, flag) in [
+        ("nearest", &["--nearest-lane-pose"][..]),
+        ("route", &["--route-times", "4"]),
+    ] {
+        let ckpt = dir.path().join(name);
+        let mut args = vec![
+            "train",
+            "--data",
+            "scripts/scenes",
+            "--out",
+            s(&ckpt),
+            "--steps",
+            "2",
+            "--eval-every",
+            "1",
+        ];
+        args.extend(flag);
+        ok(&args);
+        let out = ok(&[
+            "bench",
+            "sample",
+            "--repeat",
+            "1",
+            "--only",
+            "unguided",
+            "--checkpoint",
+            s(&ckpt),
+        ]);
+        assert!(out.contains("| sampling, unguided |"), "{name}: {out}");
     }
 }
 

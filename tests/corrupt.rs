@@ -261,6 +261,24 @@ fn flipped_bytes_in_an_av2_parquet_never_pass_as_far_moved_agents() {
 }
 
 #[test]
+fn a_commonroad_number_broken_by_a_comment_is_read_whole() {
+    // `<x>20<!-- c -->.8465</x>` is 20.8465 to XML; its first text piece alone was read, 20,
+    // without a word.
+    let dir = tempfile::tempdir().unwrap();
+    let f = copy_to(
+        dir.path(),
+        &samples().join("commonroad/USA_US101-4_1_T-1.xml"),
+        "comment.xml",
+    );
+    edit(&f, |t| {
+        t.replacen("<x>20.8465</x>", "<x>20<!-- c -->.8465</x>", 1)
+    });
+    let scene = load_scenes(&f, &LoadOptions::default()).unwrap().remove(0);
+    let a = scene.agents.iter().find(|a| a.id == 373).unwrap();
+    assert_eq!(a.states[0].x, 20.8465);
+}
+
+#[test]
 fn commonroad_times_and_time_steps_out_of_reason_are_refused() {
     let dir = tempfile::tempdir().unwrap();
     let src = samples().join("commonroad/USA_US101-3_3_T-1.xml");
@@ -648,6 +666,11 @@ fn yaml_errors_name_line_or_agent() {
         (
             "left: [2], right: [2]",
             "map.lanes[0] (id 1).right: lane 2 is in both left and right",
+        ),
+        // A mistyped id was dropped from the graph without a word, and the lane ended there.
+        (
+            "successors: [2, 99]",
+            "map.lanes[0] (id 1).successors: names lane 99, which is not in the map",
         ),
     ] {
         let f = dir.path().join("graph.yaml");
@@ -1084,6 +1107,25 @@ fn gpudrive_errors_name_the_object_road_and_field() {
             "far_sign.json",
             |v| v["roads"][18]["geometry"][0]["x"] = json!(1e300),
             &["roads[18] (id 41).geometry[0]: (1e300, -4.5) is not a map coordinate"],
+        ),
+        (
+            // A Nocturne file (no scenario_id or metadata) marking two self-driving cars: the
+            // first was taken for the ego without a word.
+            "two_avs.json",
+            |v| {
+                let o = v.as_object_mut().unwrap();
+                o.remove("scenario_id");
+                o.remove("metadata");
+                for k in 0..4 {
+                    let h = v["objects"][k]["heading"].as_array_mut().unwrap();
+                    for a in h.iter_mut() {
+                        *a = json!(a.as_f64().unwrap().to_degrees());
+                    }
+                }
+                v["objects"][0]["is_av"] = json!(true);
+                v["objects"][2]["is_av"] = json!(true);
+            },
+            &["objects[2].is_av: objects[0] is marked is_av too: a scenario has one self-driving car"],
         ),
         (
             "truck.json",
@@ -2551,5 +2593,39 @@ fn a_lane_change_that_cannot_happen_as_written_is_refused_naming_the_field() {
     edit(&f, |t| {
         t.replacen("start: 1.5, duration: 3.0", "start: -0.5, duration: 3.0", 1)
     });
+    ok(&["inspect", s(&f)]);
+}
+
+#[test]
+fn a_static_agent_given_a_motion_is_refused_naming_the_fields() {
+    // A static agent holds its first observed pose: `{static: true, s: 5, speed: 10}` stood
+    // at s = -5 (its pose 1 s before the current step) for the whole scene, without a word.
+    let dir = tempfile::tempdir().unwrap();
+    let scene = |agent: &str| {
+        format!(
+            "scenario_id: parked\nsteps: 60\ncurrent_step: 10\nroad: {{lanes: 2, length: 200}}\n\
+             agents:\n  - {{id: 1, lane: 0, s: 50, speed: 10}}\n  - {agent}\n"
+        )
+    };
+    for (k, (agent, want)) in [
+        (
+            "{id: 2, lane: 1, s: 5, speed: 10, static: true}",
+            "agents[1] (id 2): `speed` would be ignored: a `static` agent stands still",
+        ),
+        (
+            "{id: 2, lane: 0, s: 5, accel: 1, lane_change: {to: 1, start: 1}, static: true}",
+            "agents[1] (id 2): `accel`, `lane_change` would be ignored",
+        ),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let f = dir.path().join(format!("static{k}.yaml"));
+        std::fs::write(&f, scene(agent)).unwrap();
+        let err = fails(&["inspect", s(&f)]);
+        assert!(err.contains(&format!("static{k}.yaml: {want}")), "{err}");
+    }
+    let f = dir.path().join("parked.yaml");
+    std::fs::write(&f, scene("{id: 2, lane: 1, s: 5, static: true}")).unwrap();
     ok(&["inspect", s(&f)]);
 }

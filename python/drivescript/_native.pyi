@@ -7,6 +7,7 @@ import numpy as np
 import numpy.typing as npt
 
 ParamValue = Union[int, float, bool, str]
+AnyPath = Union[str, bytes, PathLike[str], PathLike[bytes]]
 ArrayLike = npt.ArrayLike
 F64Array = npt.NDArray[np.float64]
 
@@ -29,7 +30,7 @@ class Scene:
 
     @staticmethod
     def load(
-        path: Union[str, PathLike[str]],
+        path: AnyPath,
         index: int = 0,
         commonroad_current_step: Optional[int] = None,
     ) -> "Scene":
@@ -71,7 +72,7 @@ class Scene:
         """At most ``agents`` observed agents near a lane vehicle, ``future`` steps ahead."""
     def log_history(self) -> F64Array:
         """Recorded history up to the current step, ``[agents, current_step + 1, 3]``."""
-    def write_rollout(self, path: Union[str, PathLike[str]], traj: ArrayLike) -> None:
+    def write_rollout(self, path: AnyPath, traj: ArrayLike) -> None:
         """Writes ``traj`` as this scene's future in rollout JSON (atomically)."""
 
 class CostResult:
@@ -97,7 +98,7 @@ class CostScript:
 
     @staticmethod
     def from_file(
-        path: Union[str, PathLike[str]], params: Optional[Mapping[str, ParamValue]] = None
+        path: AnyPath, params: Optional[Mapping[str, ParamValue]] = None
     ) -> "CostScript":
         """Reads a script file; unknown parameters raise ValueError."""
     @staticmethod
@@ -122,7 +123,7 @@ class CostScript:
 class Sampler:
     """The guided diffusion sampler with a checkpoint directory."""
 
-    def __init__(self, checkpoint_dir: Union[str, PathLike[str]]) -> None: ...
+    def __init__(self, checkpoint_dir: AnyPath) -> None: ...
     @property
     def horizon(self) -> int:
         """Future steps the model generates."""

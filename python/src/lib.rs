@@ -265,6 +265,35 @@ fn opt<T: ArgNumber>(py: Python<'_>, a: &Option<Arg<T>>, name: &str) -> PyResult
     a.as_ref().map(|a| a.get(py, name)).transpose()
 }
 
+/// A path argument as Python's own file functions take one: a str, bytes or os.PathLike
+/// (pyo3's PathBuf took str only, after os.fspath's TypeError had said "expected str, bytes or
+/// os.PathLike object": bytes were then refused as "'bytes' object is not an instance of
+/// 'str'"). Converted with os.fsencode, so a name os.listdir gave as bytes, or as str with
+/// surrogate escapes, is the file's.
+struct PathArg(PathBuf);
+
+impl<'a, 'py> FromPyObject<'a, 'py> for PathArg {
+    type Error = PyErr;
+    fn extract(obj: Borrowed<'a, 'py, PyAny>) -> PyResult<Self> {
+        let py = obj.py();
+        let bytes: Vec<u8> = py
+            .import("os")?
+            .call_method1("fsencode", (obj.to_owned(),))?
+            .extract()?;
+        #[cfg(unix)]
+        let path = {
+            use std::os::unix::ffi::OsStringExt;
+            PathBuf::from(std::ffi::OsString::from_vec(bytes))
+        };
+        #[cfg(not(unix))]
+        let path = PathBuf::from(
+            String::from_utf8(bytes)
+                .map_err(|e| PyValueError::new_err(format!("a path that is not UTF-8: {e}")))?,
+        );
+        Ok(PathArg(path))
+    }
+}
+
 /// Refuses a path holding a NUL character, which no file's path can hold: it was read as far
 /// as the format check, which called `scene.yaml\0x` an unknown scene format and printed the
 /// NUL raw in the message.
@@ -281,13 +310,27 @@ fn no_nul(path: &std::path::Path, arg: &str) -> PyResult<()> {
 fn params_from(dict: Option<&Bound<'_, PyDict>>) -> PyResult<Params> {
     let mut out = Params::default();
     for (k, v) in dict.into_iter().flat_map(|d| d.iter()) {
+        // A str that is no UTF-8 (a lone surrogate, as os.fsdecode makes of bytes that are
+        // not text) was said to be no string, or raised UnicodeEncodeError naming no parameter.
         let name: String = k.extract().map_err(|_| {
-            PyValueError::new_err(format!("parameter names are strings, got {}", quoted(&k)))
+            PyValueError::new_err(if k.is_instance_of::<PyString>() {
+                format!(
+                    "parameter name {}: holds a lone surrogate, which is not text",
+                    quoted(&k)
+                )
+            } else {
+                format!("parameter names are strings, got {}", quoted(&k))
+            })
         })?;
         // bool before int: Python's True is an int too.
         let value = if v.is_instance_of::<PyBool>() {
             ParamValue::Bool(v.extract()?)
-        } else if v.is_instance_of::<PyInt>() {
+        } else if v.is_instance_of::<PyInt>()
+            // NumPy's integers (an id taken from an array of them) are ints to Python's
+            // __index__, as every whole-number argument here takes them; they were refused as
+            // "not an int, float, bool or str".
+            || (!v.is_instance_of::<PyFloat>() && v.hasattr("__index__")?)
+        {
             ParamValue::Int(v.extract().map_err(|_| {
                 PyValueError::new_err(format!(
                     "parameter {name:?} = {}: out of the 64-bit range",
@@ -297,7 +340,12 @@ fn params_from(dict: Option<&Bound<'_, PyDict>>) -> PyResult<Params> {
         } else if v.is_instance_of::<PyFloat>() {
             ParamValue::Float(v.extract()?)
         } else if v.is_instance_of::<PyString>() {
-            ParamValue::Str(v.extract()?)
+            ParamValue::Str(v.extract().map_err(|_| {
+                PyValueError::new_err(format!(
+                    "parameter {name:?} = {}: holds a lone surrogate, which is not text",
+                    quoted(&v)
+                ))
+            })?)
         } else {
             return Err(PyValueError::new_err(format!(
                 "parameter {name:?} = {}: a parameter is an int, float, bool or str",
@@ -558,12 +606,13 @@ impl Scene {
     #[pyo3(signature = (path, index = Arg::Default(0), commonroad_current_step = None))]
     fn load(
         py: Python<'_>,
-        path: PathBuf,
+        path: PathArg,
         index: Arg<usize>,
         commonroad_current_step: Option<Arg<usize>>,
     ) -> PyResult<Self> {
         let index = index.get(py, "index")?;
         let commonroad_current_step = opt(py, &commonroad_current_step, "commonroad_current_step")?;
+        let path = path.0;
         no_nul(&path, "path")?;
         let opts = LoadOptions {
             commonroad_current_step: commonroad_current_step
@@ -779,7 +828,8 @@ impl Scene {
     /// Writes `traj` (float64 `[agents, steps, 3]`, NaN where unobserved) as this scene's
     /// future to `path`, atomically, in the rollout JSON format that `drivescript cost
     /// --rollout`, `eval --rollouts` and `render` read.
-    fn write_rollout(&self, py: Python<'_>, path: PathBuf, traj: Bound<'_, PyAny>) -> PyResult<()> {
+    fn write_rollout(&self, py: Python<'_>, path: PathArg, traj: Bound<'_, PyAny>) -> PyResult<()> {
+        let path = path.0;
         no_nul(&path, "path")?;
         let (_, mut t) = trajectories(self, &traj, false)?;
         let t = t.remove(0);
@@ -955,9 +1005,10 @@ impl CostScript {
     #[pyo3(signature = (path, params = None))]
     fn from_file(
         py: Python<'_>,
-        path: PathBuf,
+        path: PathArg,
         params: Option<&Bound<'_, PyDict>>,
     ) -> PyResult<Self> {
+        let path = path.0;
         no_nul(&path, "path")?;
         let params = params_from(params)?;
         ScriptSpec::from_file(&path, params)
@@ -980,6 +1031,14 @@ impl CostScript {
             return Err(PyValueError::new_err(format!(
                 "name {}: holds {c}; a script's name starts its error messages",
                 drivescript::io::name::shown(name)
+            )));
+        }
+        // An empty name began every message with a bare place, ":1:1: syntax error: ...".
+        if name.trim().is_empty() {
+            return Err(PyValueError::new_err(format!(
+                "name {:?}: is blank; a script's name starts its error messages (the \
+                 default is \"<script>\")",
+                name
             )));
         }
         let spec = ScriptSpec::new(source, name, params_from(params)?);
@@ -1070,7 +1129,8 @@ struct Sampler {
 impl Sampler {
     /// Loads the checkpoint in `checkpoint_dir`.
     #[new]
-    fn new(py: Python<'_>, checkpoint_dir: PathBuf) -> PyResult<Self> {
+    fn new(py: Python<'_>, checkpoint_dir: PathArg) -> PyResult<Self> {
+        let checkpoint_dir = checkpoint_dir.0;
         no_nul(&checkpoint_dir, "checkpoint_dir")?;
         detached(py, "checkpoint reader", || {
             drivescript::train::load(&checkpoint_dir)

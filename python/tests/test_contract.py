@@ -387,6 +387,19 @@ def test_parameters_the_script_does_not_use_are_value_errors(ds):
         ds.CostScript.from_file(CUT_IN, params={"cutter": [401], "victim": 405})
 
 
+def test_a_script_from_source_reads_its_parameters_as_constants_as_from_a_file(ds, scene, tmp_path):
+    # Parameters are constants in the script (docs/cost-scripts.md); from_source's syntax check
+    # had none and refused every script reading one: "Undefined variable: cutter".
+    source = 'term("x", agent(cutter).x.last());\n'
+    (tmp_path / "x.rhai").write_text(source)
+    traj = scene.log_future(10)
+    by_source = ds.CostScript.from_source(source, params={"cutter": 401}).evaluate(scene, traj)
+    by_file = ds.CostScript.from_file(tmp_path / "x.rhai", params={"cutter": 401})
+    assert by_source.total == by_file.evaluate(scene, traj).total
+    with pytest.raises(ds.ScriptError, match="syntax error"):
+        ds.CostScript.from_source("let a = agent(cutter;\n", params={"cutter": 401})
+
+
 def test_parameters_are_checked_as_the_cli_checks_param(ds, scene):
     # A NaN limit compared false with every speed: speed_limit scored 0 whatever the car did.
     limit = ROOT / "scripts/speed_limit.rhai"
@@ -604,3 +617,33 @@ def test_a_script_name_holding_a_line_break_or_a_bidi_control_is_refused(ds):
     for name, char in [("evil\nerror: all good", "U+000A"), ("x\u202ey", "U+202E")]:
         with pytest.raises(ValueError, match=re.escape(char)):
             ds.CostScript.from_source('term("x", agent(1).x.sum());', name=name)
+    # A blank name began every message with a bare place: ":1:1: syntax error: ...".
+    for name in ["", "  "]:
+        with pytest.raises(ValueError, match="is blank"):
+            ds.CostScript.from_source('term("x", agent(1).x.sum());', name=name)
+
+
+def test_numpy_integers_and_text_that_is_no_utf8_as_parameters(ds, scene):
+    # An id taken from an array of ids is a NumPy integer: it was refused as "not an int".
+    ids = np.array(scene.agent_ids)
+    by_numpy = ds.CostScript.from_file(CUT_IN, params={"cutter": ids[ids == 401][0], "victim": np.int32(405)})
+    assert by_numpy.params == CUT_IN_PARAMS and type(by_numpy.params["cutter"]) is int
+    # A lone surrogate raised UnicodeEncodeError naming no parameter (a value), or was said to
+    # be no string at all (a name).
+    with pytest.raises(ValueError, match='parameter "turn" = .*lone surrogate'):
+        ds.CostScript.from_file(CUT_IN, params={"cutter": 401, "victim": 405, "turn": "l\udcff"})
+    with pytest.raises(ValueError, match="parameter name .*lone surrogate"):
+        ds.CostScript.from_file(CUT_IN, params={"cutter": 401, "victim": 405, "t\udcff": 1})
+
+
+def test_a_path_may_be_bytes_as_for_python_s_own_file_functions(ds, scene, tmp_path):
+    # The TypeError for an int said "expected str, bytes or os.PathLike object", and bytes were
+    # then refused: "'bytes' object is not an instance of 'str'".
+    assert ds.Scene.load(bytes(SCENE)).agent_ids == scene.agent_ids
+    assert ds.CostScript.from_file(bytes(CUT_IN), params=CUT_IN_PARAMS).name == str(CUT_IN)
+    assert ds.Sampler(bytes(ROOT / "data/checkpoint")).horizon > 0
+    out = tmp_path / "r.json"
+    scene.write_rollout(bytes(out), scene.log_future(5))
+    assert out.exists()
+    with pytest.raises(TypeError, match="expected str, bytes or os.PathLike object, not int"):
+        ds.Scene.load(123)

@@ -340,9 +340,14 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
         .clone()
         .unwrap_or_else(|| samples.join("../checkpoint"));
     let mut trained = load(&ckpt).with_context(|| format!("loading {}", ckpt.display()))?;
-    // The network does not depend on the window's size; its PCA horizon stays the checkpoint's.
+    // The network does not depend on the window's size; its PCA horizon and the inputs it
+    // reads stay the checkpoint's (a --nearest-lane-pose checkpoint failed with "shape
+    // mismatch in matmul", a --route-times one with "the batch has no route inputs").
+    let own = &trained.meta.config.window;
     trained.meta.config.window = WindowConfig {
-        future: trained.meta.config.window.future,
+        future: own.future,
+        nearest_lane_pose: own.nearest_lane_pose,
+        route_times: own.route_times,
         ..window
     };
     let median = |mut v: Vec<f64>| {

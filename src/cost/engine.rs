@@ -1282,6 +1282,18 @@ impl CostScript {
         params: &Params,
         limits: &Limits,
     ) -> Result<Self, CostError> {
+        Self::compile_with(source, name, scene, params, limits, true)
+    }
+
+    /// [`CostScript::compile`], refusing names no scope defines only where `strict_variables`.
+    fn compile_with(
+        source: &str,
+        name: &str,
+        scene: Rc<Scene>,
+        params: &Params,
+        limits: &Limits,
+        strict_variables: bool,
+    ) -> Result<Self, CostError> {
         let traj = Trajectories::filled(&scene);
         let started = Rc::new(Cell::new(Instant::now()));
         let ops = Rc::new(Cell::new(0));
@@ -1325,7 +1337,8 @@ impl CostScript {
             });
         }
         no_reserved(params)?;
-        let (engine, docs) = build_engine(&shared, limits, &started, &ops);
+        let (mut engine, docs) = build_engine(&shared, limits, &started, &ops);
+        engine.set_strict_variables(strict_variables);
         let mut scope = Scope::new();
         scope.push_constant("DT", scene.meta.dt);
         scope.push_constant("STEPS", scene.num_future_steps() as i64);
@@ -1417,7 +1430,11 @@ impl CostScript {
     }
 
     /// Compiles `source` without a scene: what fails here (syntax, imports, size limits) fails
-    /// on every scene, so a command with many scenes says it once, before any work.
+    /// on every scene, so a command with many scenes says it once, before any work. A name no
+    /// scope defines is not refused here: parameters are constants of the scope (`cutter` for
+    /// `--param cutter=1`), given with each scene, and this check has none, so every script
+    /// reading one was refused as "Undefined variable" (`simulate --script --param`, Python's
+    /// `CostScript.from_source(params=...)`). Such a name is refused on the first scene.
     pub fn check_syntax(source: &str, name: &str, limits: &Limits) -> Result<(), CostError> {
         let meta = crate::scene::SceneMeta {
             source_format: crate::scene::SourceFormat::Yaml,
@@ -1430,7 +1447,15 @@ impl CostScript {
         };
         let scene = Scene::new(meta, crate::scene::Map::empty(), Vec::new())
             .expect("an empty scene is consistent");
-        Self::compile(source, name, Rc::new(scene), &Params::default(), limits).map(|_| ())
+        Self::compile_with(
+            source,
+            name,
+            Rc::new(scene),
+            &Params::default(),
+            limits,
+            false,
+        )
+        .map(|_| ())
     }
 
     /// The script's name.

@@ -53,7 +53,14 @@ impl Ctx<'_> {
     }
 
     fn number(&self, node: Node) -> Result<f64, IoError> {
-        let text = node.text().unwrap_or("").trim();
+        // Every text piece: `<x>20<!-- c -->.8465</x>` is 20.8465 to XML, and its first
+        // piece alone was read as 20 without a word.
+        let whole: String = node
+            .children()
+            .filter(|c| c.is_text())
+            .filter_map(|c| c.text())
+            .collect();
+        let text = whole.trim();
         let v: f64 = text
             .parse()
             .map_err(|_| self.err(node, format!("expected a number, found {text:?}")))?;

@@ -495,11 +495,18 @@ fn to_scene(path: &Path, file: File) -> Result<Scene, IoError> {
     let ids: Vec<AgentId> = agents.iter().map(|a| a.id).collect();
 
     let sdc = file.metadata.as_ref().and_then(|m| m.sdc_track_index);
-    let av = file
-        .objects
-        .iter()
-        .position(|o| o.is_av == Some(true))
-        .map(|i| i as i64);
+    let marked: Vec<usize> = (file.objects.iter().enumerate())
+        .filter(|(_, o)| o.is_av == Some(true))
+        .map(|(i, _)| i)
+        .collect();
+    // The first of two was taken for the ego without a word.
+    if let [first, second, ..] = marked[..] {
+        return Err(bad(
+            format!("objects[{second}].is_av"),
+            format!("objects[{first}] is marked is_av too: a scenario has one self-driving car"),
+        ));
+    }
+    let av = marked.first().map(|&i| i as i64);
     let ego = match sdc.or(av) {
         Some(k) => Some(
             usize::try_from(k)

@@ -848,6 +848,35 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
                 ));
             }
         }
+        // A static agent holds its first observed pose: with a speed, an acceleration or a
+        // lane change that pose is not the one at `s`, so `{static: true, s: 5, speed: 10}`
+        // stood at s = -5 for the whole scene, without a word.
+        if a.is_static && a.states.is_none() {
+            let moving: Vec<&str> = [
+                ("speed", a.speed != 0.0),
+                ("accel", a.accel != 0.0),
+                ("lane_change", a.lane_change.is_some()),
+            ]
+            .iter()
+            .filter(|(_, given)| *given)
+            .map(|(name, _)| *name)
+            .collect();
+            if !moving.is_empty() {
+                return Err(bad(
+                    loc,
+                    format!(
+                        "{} would be ignored: a `static` agent stands still at its pose at `s`; \
+                         remove {}",
+                        moving
+                            .iter()
+                            .map(|n| format!("`{n}`"))
+                            .collect::<Vec<_>>()
+                            .join(", "),
+                        if moving.len() == 1 { "it" } else { "them" }
+                    ),
+                ));
+            }
+        }
         if let Some(lc) = &a.lane_change {
             lane_change_problem(lc, y).map_err(|m| bad(loc.clone(), m))?;
         }
@@ -1152,6 +1181,7 @@ fn explicit_parts(path: &Path, m: &YamlMap) -> Result<MapParts, IoError> {
         Polygon::new(to_points(v)).map_err(|e| IoError::invalid(path, loc, e.to_string()))
     };
     let mut parts = MapParts::default();
+    let lane_ids: std::collections::HashSet<i64> = m.lanes.iter().map(|l| l.id).collect();
     for (i, l) in m.lanes.iter().enumerate() {
         let loc = |f: &str| format!("map.lanes[{i}] (id {}).{f}", l.id);
         // A hand-written map's slips: the graph dropped a lane that follows itself, and took
@@ -1167,6 +1197,15 @@ fn explicit_parts(path: &Path, m: &YamlMap) -> Result<MapParts, IoError> {
                     path,
                     loc(field),
                     format!("names lane {} itself", l.id),
+                ));
+            }
+            // A mistyped id (`successors: [99]`) was dropped from the graph without a word,
+            // and the lane ended there. (A map written by drivescript names only its lanes.)
+            if let Some(missing) = ids.iter().find(|id| !lane_ids.contains(id)) {
+                return Err(IoError::invalid(
+                    path,
+                    loc(field),
+                    format!("names lane {missing}, which is not in the map"),
                 ));
             }
         }

@@ -218,7 +218,7 @@ fn positive(name: &str, v: f64) -> Result<(), String> {
 /// The `drivescript train` flag that sets each [`TrainConfig`] field a user can give, by the
 /// field's name as [`TrainConfig::validate`] starts its message with it: the message names the
 /// field ("eval_every = 0"), which the user never typed.
-pub const TRAIN_FLAGS: [(&str, &str); 9] = [
+pub const TRAIN_FLAGS: [(&str, &str); 10] = [
     ("steps", "--steps"),
     ("edm.p_mean", "--p-mean"),
     ("edm.p_std", "--p-std"),
@@ -228,6 +228,8 @@ pub const TRAIN_FLAGS: [(&str, &str); 9] = [
     ("ema_half_life", "--ema-half-life"),
     ("scale_cap", "--scale-cap"),
     ("val_towns", "--val-town"),
+    // "window.route_times = 41: must be 0 to 40" named a setting the user never wrote.
+    ("window.route_times", "--route-times"),
 ];
 
 /// The flag ([`TRAIN_FLAGS`]) that sets the setting a [`TrainConfig::validate`] message is
