@@ -36,7 +36,8 @@ class Scene:
     ) -> "Scene":
         """Reads scene ``index`` of ``path`` (every format the CLI reads). CommonRoad scenes
         start their future at ``commonroad_current_step`` (left out: 10, or a shorter scene's
-        last step); given, it must leave at least one future step."""
+        last step); given, it must leave at least one future step, and the scene must be
+        CommonRoad's (other formats carry their own current step)."""
     @property
     def agent_ids(self) -> List[int]:
         """Agent ids, in the order of every trajectory array's agent axis."""
@@ -73,7 +74,8 @@ class Scene:
     def log_history(self) -> F64Array:
         """Recorded history up to the current step, ``[agents, current_step + 1, 3]``."""
     def write_rollout(self, path: AnyPath, traj: ArrayLike) -> None:
-        """Writes ``traj`` as this scene's future in rollout JSON (atomically)."""
+        """Writes ``traj`` as this scene's future in rollout JSON (atomically); ``path``
+        must end in ``.json``."""
 
 class CostResult:
     """One evaluation: total, per-term values and weights, gradient, prints."""

@@ -627,6 +627,18 @@ impl Scene {
         // of a 32-step scene came back as step 31 with no future, without a word (and step
         // 2**64 - 1 still did, its `k + 1` wrapping to 0).
         let meta = &scene.inner.meta;
+        if commonroad_current_step.is_some()
+            && meta.source_format != drivescript::scene::SourceFormat::CommonRoad
+        {
+            // Other formats carry their own current step: the argument was ignored unsaid.
+            return Err(PyValueError::new_err(format!(
+                "{}: commonroad_current_step applies to CommonRoad scenes only; this {} scene \
+                 has its own current step ({})",
+                path.display(),
+                meta.source_format.name(),
+                meta.current_step
+            )));
+        }
         if let Some(k) = commonroad_current_step {
             let n = scene.inner.num_steps();
             if meta.source_format == drivescript::scene::SourceFormat::CommonRoad
@@ -831,6 +843,17 @@ impl Scene {
     fn write_rollout(&self, py: Python<'_>, path: PathArg, traj: Bound<'_, PyAny>) -> PyResult<()> {
         let path = path.0;
         no_nul(&path, "path")?;
+        // `convert -o` picks the format by the extension: JSON under r.yaml was a file that
+        // every reader of YAML refuses.
+        if !path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("json"))
+        {
+            return Err(PyValueError::new_err(format!(
+                "path {}: a rollout is JSON: give a name ending in .json",
+                path.display()
+            )));
+        }
         let (_, mut t) = trajectories(self, &traj, false)?;
         let t = t.remove(0);
         let inner = self.inner.clone();

@@ -474,11 +474,16 @@ def test_nothing_to_evaluate_is_a_value_error_not_a_panic(ds, scene, cut_in, tmp
 
 def test_a_rollout_replaces_only_an_earlier_rollout(ds, scene, tmp_path):
     # write_rollout onto the scene it came from (or any file of the user's) replaced it.
-    mine = tmp_path / "scene.yaml"
+    mine = tmp_path / "notes.json"
     mine.write_text((ROOT / "data/samples/yaml/highway_cut_in.yaml").read_text())
     with pytest.raises(ValueError, match="already exists and is not a rollout JSON"):
         scene.write_rollout(mine, scene.log_future(40))
     assert mine.read_text().startswith("# Three-lane highway")
+    # Rollout JSON under a .yaml name (or none) was written as asked.
+    for name in ["r.yaml", "r"]:
+        with pytest.raises(ValueError, match="a rollout is JSON: give a name ending in .json"):
+            scene.write_rollout(tmp_path / name, scene.log_future(40))
+        assert not (tmp_path / name).exists()
     again = tmp_path / "r.json"
     scene.write_rollout(again, scene.log_future(40))
     scene.write_rollout(again, scene.log_future(30))
@@ -494,6 +499,13 @@ def test_missing_or_malformed_files_are_os_and_value_errors(ds, tmp_path):
     bad.write_text("agents: [1, 2\n")
     with pytest.raises(ValueError, match="bad.yaml"):
         ds.Scene.load(bad)
+
+
+def test_a_commonroad_current_step_for_another_format_is_a_value_error_not_ignored(ds):
+    path = ROOT / "data/samples/yaml/highway_cut_in.yaml"
+    with pytest.raises(ValueError, match="commonroad_current_step applies to CommonRoad scenes only"):
+        ds.Scene.load(path, commonroad_current_step=3)
+    assert ds.Scene.load(path).current_step == 10
 
 
 def test_a_commonroad_current_step_past_the_scene_is_a_value_error_not_clamped(ds):
