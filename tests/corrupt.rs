@@ -1059,6 +1059,43 @@ fn gpudrive_fixture() -> PathBuf {
 }
 
 #[test]
+fn a_gpudrive_object_never_observed_is_named_and_a_file_of_them_refused() {
+    // Every `valid` false loaded as a scene of agents that are nowhere, ego included.
+    let dir = tempfile::tempdir().unwrap();
+    let mut v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(gpudrive_fixture()).unwrap()).unwrap();
+    let n = v["objects"].as_array().unwrap().len();
+    let blind = |o: &mut serde_json::Value| {
+        for f in o["valid"].as_array_mut().unwrap() {
+            *f = serde_json::Value::Bool(false);
+        }
+    };
+    blind(&mut v["objects"][1]);
+    let id = v["objects"][1]["id"].clone();
+    let one = dir.path().join("one.json");
+    std::fs::write(&one, v.to_string()).unwrap();
+    let out = ok(&["inspect", s(&one)]);
+    assert!(
+        out.contains(&format!(
+            "warning     object {id} never observed (every `valid` false)"
+        )),
+        "{out}"
+    );
+    for k in 0..n {
+        blind(&mut v["objects"][k]);
+    }
+    let all = dir.path().join("all.json");
+    std::fs::write(&all, v.to_string()).unwrap();
+    let err = fails(&["inspect", s(&all)]);
+    assert!(
+        err.contains(&format!(
+            "all.json: objects: no object is observed at any step ({n} objects"
+        )),
+        "{err}"
+    );
+}
+
+#[test]
 fn gpudrive_errors_name_the_object_road_and_field() {
     use serde_json::{json, Value};
     let dir = tempfile::tempdir().unwrap();

@@ -1158,7 +1158,18 @@ impl Sampler {
         detached(py, "checkpoint reader", || {
             drivescript::train::load(&checkpoint_dir)
                 .map(|trained| Self { trained })
-                .map_err(|e| PyValueError::new_err(e.to_string()))
+                .map_err(|e| {
+                    // A directory that is not there is an OSError, as for Scene.load (the
+                    // README promises one), not a ValueError like a malformed checkpoint.
+                    let absent = matches!(e, drivescript::train::TrainError::Io { .. })
+                        && std::fs::metadata(&checkpoint_dir)
+                            .is_err_and(|m| m.kind() == std::io::ErrorKind::NotFound);
+                    if absent {
+                        PyFileNotFoundError::new_err(e.to_string())
+                    } else {
+                        PyValueError::new_err(e.to_string())
+                    }
+                })
         })
     }
 

@@ -493,6 +493,9 @@ def test_a_rollout_replaces_only_an_earlier_rollout(ds, scene, tmp_path):
 def test_missing_or_malformed_files_are_os_and_value_errors(ds, tmp_path):
     with pytest.raises(FileNotFoundError):
         ds.Scene.load(tmp_path / "nope.xml")
+    # A checkpoint directory that is not there was a ValueError.
+    with pytest.raises(FileNotFoundError, match="no such checkpoint directory"):
+        ds.Sampler(tmp_path / "nope")
     with pytest.raises(OSError):
         ds.CostScript.from_file(tmp_path / "nope.rhai")
     bad = tmp_path / "bad.yaml"

@@ -493,6 +493,34 @@ fn to_scene(path: &Path, file: File) -> Result<Scene, IoError> {
         });
     }
     let ids: Vec<AgentId> = agents.iter().map(|a| a.id).collect();
+    // An object never observed has nothing to replay or to start a sample from: a file of
+    // such objects loaded as a scene of agents that are nowhere, ego included, without a word.
+    let unseen: Vec<String> = agents
+        .iter()
+        .filter(|a| a.states.iter().all(|s| !s.valid))
+        .map(|a| a.id.to_string())
+        .collect();
+    if !agents.is_empty() && unseen.len() == agents.len() {
+        return Err(bad(
+            "objects".into(),
+            format!(
+                "no object is observed at any step ({} objects, every `valid` false): the file \
+                 holds no traffic",
+                agents.len()
+            ),
+        ));
+    }
+    if !unseen.is_empty() {
+        let mut shown: Vec<String> = unseen.iter().take(5).cloned().collect();
+        if unseen.len() > 5 {
+            shown.push(format!("and {} more", unseen.len() - 5));
+        }
+        warnings.push(format!(
+            "object{} {} never observed (every `valid` false): kept as agents with no state",
+            if unseen.len() == 1 { "" } else { "s" },
+            shown.join(", ")
+        ));
+    }
 
     let sdc = file.metadata.as_ref().and_then(|m| m.sdc_track_index);
     let marked: Vec<usize> = (file.objects.iter().enumerate())
