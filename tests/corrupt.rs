@@ -633,6 +633,19 @@ fn yaml_errors_name_line_or_agent() {
         "{err}"
     );
 
+    // A lane's boundaries on the wrong sides of its centre line loaded without a word.
+    let f = dir.path().join("sides.yaml");
+    std::fs::write(
+        &f,
+        "steps: 2\ncurrent_step: 0\nmap:\n  lanes:\n    - {id: 1, centerline: [[0, 0], [50, 0]], left_boundary: [[0, -1.75], [50, -1.75]], right_boundary: [[0, 1.75], [50, 1.75]]}\nagents: []\n",
+    )
+    .unwrap();
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("left_boundary: lies right of the centre line (1.75 m on average): a left boundary lies on the left in the direction of travel"),
+        "{err}"
+    );
+
     let f = copy_to(dir.path(), &src, "c.yaml");
     edit(&f, |t| t.replacen("ego: 1", "ego: 77", 1));
     let err = fails(&["inspect", s(&f)]);

@@ -1227,6 +1227,32 @@ fn explicit_parts(path: &Path, m: &YamlMap) -> Result<MapParts, IoError> {
             .as_deref()
             .map(|b| line(loc("right_boundary"), b))
             .transpose()?;
+        // A boundary on the wrong side of its centre line loaded without a word: the lane's
+        // surface and the road edges built from it turn inside out.
+        let centre = FrenetPath::new(lane.centerline.clone());
+        for (field, b, sign) in [
+            ("left_boundary", &lane.left_boundary, 1.0),
+            ("right_boundary", &lane.right_boundary, -1.0),
+        ] {
+            let Some(b) = b else { continue };
+            let pts = b.points();
+            let mean = pts.iter().map(|p| centre.project(*p).d).sum::<f64>() / pts.len() as f64;
+            if mean * sign < -0.05 {
+                return Err(IoError::invalid(
+                    path,
+                    loc(field),
+                    format!(
+                        "lies {} of the centre line ({} m on average): a {} boundary lies on \
+                         the {} in the direction of travel (are the two swapped, or the centre \
+                         line reversed?)",
+                        if sign > 0.0 { "right" } else { "left" },
+                        crate::geom::num((mean.abs() * 100.0).round() / 100.0),
+                        if sign > 0.0 { "left" } else { "right" },
+                        if sign > 0.0 { "left" } else { "right" },
+                    ),
+                ));
+            }
+        }
         lane.lane_type = l.lane_type;
         lane.speed_limit = l.speed_limit;
         lane.is_intersection = l.intersection;
