@@ -142,29 +142,28 @@ mod tests {
             offset,
         };
         // Pose (1, 0.5, 0): nearest (0, 0); 1 m along, 0.5 m to the left, same heading.
-        let x = Tensor::new(&[[[0.5f32]]], &dev).unwrap();
-        let f: Vec<f32> = route_features(&x, &r)
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .to_vec1()
-            .unwrap();
-        let want = [(0.5f32 / 2.0).tanh(), (1.0f32 / 5.0).tanh(), 1.0, 0.0];
-        for (a, b) in f.iter().zip(want) {
-            assert!((a - b).abs() < 1e-6, "{f:?}");
-        }
         // Pose (1, 9.5, 0): nearest (10, 10), heading +y; 0.5 m short of it along the lane,
         // 9 m to its left, heading 90° to its right.
-        let x = Tensor::new(&[[[9.5f32]]], &dev).unwrap();
-        let f: Vec<f32> = route_features(&x, &r)
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .to_vec1()
-            .unwrap();
-        let want = [(9f32 / 2.0).tanh(), (-0.5f32 / 5.0).tanh(), 0.0, -1.0];
-        for (a, b) in f.iter().zip(want) {
-            assert!((a - b).abs() < 1e-6, "{f:?}");
+        for (y, want) in [
+            (
+                0.5f32,
+                [(0.5f32 / 2.0).tanh(), (1.0f32 / 5.0).tanh(), 1.0, 0.0],
+            ),
+            (
+                9.5,
+                [(9f32 / 2.0).tanh(), (-0.5f32 / 5.0).tanh(), 0.0, -1.0],
+            ),
+        ] {
+            let x = Tensor::new(&[[[y]]], &dev).unwrap();
+            let f: Vec<f32> = route_features(&x, &r)
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1()
+                .unwrap();
+            for (a, b) in f.iter().zip(want) {
+                assert!((a - b).abs() < 1e-6, "{y}: {f:?}");
+            }
         }
     }
 }
