@@ -13,10 +13,13 @@ nearer), so it also prints the fraction of agents that come more than 1.75 m fro
 their recorded future follows (within 1 m of it), and that median: a sample that takes another
 legal route counts as off its route there. With
 `--from-log`, it also starts the sampler from the recorded future plus noise of each level:
-where lanes are lost between the log and pure noise.
+where lanes are lost between the log and pure noise. With `--split SIGMA...`, one denoising
+step from the recorded future plus noise of each level, its error (and the noise's) split into
+the part along the recorded path and the part across it (RMS over the future points, metres):
+whether the network removes noise across the lane as it does along it.
 
     python3 benches/torch/lanes.py EXPORT_DIR CHECKPOINT... [--file train-00010.safetensors]
-        [--from-log] [--from-noise SIGMA...]
+        [--from-log] [--from-noise SIGMA...] [--split SIGMA...]
 """
 
 import argparse
@@ -108,6 +111,20 @@ def stray(d, full, route=None):
     return torch.stack(out)[full]
 
 
+def along_across(err, path):
+    """RMS of `err` `[A, F, 2]` along and across `path` `[A, F, 2]` (the direction of travel
+    from each point to the next; the last point takes its predecessor's; a standing agent,
+    its own x axis)."""
+    t = torch.zeros_like(path)
+    t[:, :-1] = path[:, 1:] - path[:, :-1]
+    t[:, -1] = t[:, -2]
+    norm = t.norm(dim=-1, keepdim=True)
+    t = torch.where(norm > 1e-3, t / norm.clamp(min=1e-9), torch.tensor([1.0, 0.0], dtype=t.dtype))
+    along = (err * t).sum(-1)
+    across = err[..., 0] * -t[..., 1] + err[..., 1] * t[..., 0]
+    return along.pow(2).mean().sqrt().item(), across.pow(2).mean().sqrt().item()
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -123,6 +140,9 @@ def main():
                     help="also sample from pure noise of these levels, the schedule cut to them: "
                          "whether the levels above, where training rarely draws its noise, "
                          "are where the lanes are lost")
+    ap.add_argument("--split", type=float, nargs="*", default=[], metavar="SIGMA",
+                    help="one denoising step from the recorded future plus noise of these levels: "
+                         "its error along and across the recorded path")
     a = ap.parse_args()
     win = load_file(os.path.join(a.data, a.file))
     win["lane_conn"] = win["lane_conn"].long()
@@ -173,6 +193,18 @@ def main():
                 out = model.sample(ctx, x0, sg)
             name = "sample" if start is None else f"recorded + noise {sg[0]:.2f}"
             row(name, meta, out, adv)
+        if a.split:
+            enc = model.encode_map(ctx)
+            path = decode(meta, target, adv)[full]
+        for s in a.split:
+            torch.manual_seed(a.seed + 5)
+            with torch.no_grad():
+                noisy = target + torch.randn(target.shape) * s
+                den = model.denoise(ctx, enc, noisy, s)
+            na, nc = along_across(decode(meta, noisy, adv)[full] - path, path)
+            da, dc = along_across(decode(meta, den, adv)[full] - path, path)
+            print(f"  one step from recorded + noise {s:<6g} noise along {na:7.2f} m across "
+                  f"{nc:7.2f} m   denoised along {da:6.2f} m across {dc:6.2f} m", flush=True)
         for s in a.from_noise:
             sg = [x for x in sig if x <= s]
             torch.manual_seed(a.seed + 4)
