@@ -2319,6 +2319,22 @@ fn a_deep_directory_is_walked_in_time_proportional_to_its_depth_squared_at_most(
 
 #[cfg(unix)]
 #[test]
+fn a_yaml_file_of_many_top_level_keys_is_checked_in_linear_time() {
+    // The check for a key given twice compared each top-level key with every one before it:
+    // 200,000 keys (2.5 MB) would have taken 2·10¹⁰ comparisons.
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("keys.yaml");
+    let text: String = (0..200_000).map(|i| format!("k{i}: 1\n")).collect();
+    std::fs::write(&f, text).unwrap();
+    let t0 = std::time::Instant::now();
+    let (code, out) = run_within(&["inspect", s(&f)], 60);
+    assert_eq!(code, Some(1), "{out}");
+    assert!(out.contains("unknown field `k0`"), "{out}");
+    let took = t0.elapsed().as_secs_f64();
+    assert!(took < 10.0, "{took:.1} s");
+}
+
+#[test]
 fn a_long_yaml_road_is_read_in_time_proportional_to_its_length() {
     // Map::new measured each lane's width at every centre-line point against its whole
     // boundaries: a 4-line scene of a 100 km road wound into a circle took 74 s to read

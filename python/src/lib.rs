@@ -845,10 +845,7 @@ impl Scene {
         no_nul(&path, "path")?;
         // `convert -o` picks the format by the extension: JSON under r.yaml was a file that
         // every reader of YAML refuses.
-        if !path
-            .extension()
-            .is_some_and(|e| e.eq_ignore_ascii_case("json"))
-        {
+        if SceneOutput::from_path(&path) != Some(SceneOutput::Rollout) {
             return Err(PyValueError::new_err(format!(
                 "path {}: a rollout is JSON: give a name ending in .json",
                 path.display()

@@ -315,14 +315,11 @@ struct LaneletNotes {
 impl LaneletNotes {
     fn warnings(&self) -> Vec<String> {
         let ids = |v: &[i64]| {
-            let mut shown: Vec<String> = v.iter().take(5).map(|i| i.to_string()).collect();
-            if v.len() > 5 {
-                shown.push(format!("and {} more", v.len() - 5));
-            }
+            let all: Vec<String> = v.iter().map(i64::to_string).collect();
             format!(
                 "lanelet{} {}",
                 if v.len() == 1 { "" } else { "s" },
-                shown.join(", ")
+                super::first_few(&all)
             )
         };
         let mut out = Vec::new();

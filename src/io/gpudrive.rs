@@ -511,14 +511,10 @@ fn to_scene(path: &Path, file: File) -> Result<Scene, IoError> {
         ));
     }
     if !unseen.is_empty() {
-        let mut shown: Vec<String> = unseen.iter().take(5).cloned().collect();
-        if unseen.len() > 5 {
-            shown.push(format!("and {} more", unseen.len() - 5));
-        }
         warnings.push(format!(
             "object{} {} never observed (every `valid` false): kept as agents with no state",
             if unseen.len() == 1 { "" } else { "s" },
-            shown.join(", ")
+            super::first_few(&unseen)
         ));
     }
 

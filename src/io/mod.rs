@@ -545,6 +545,18 @@ pub fn discover(path: &Path) -> Result<Vec<PathBuf>, IoError> {
     Ok(out)
 }
 
+/// The first five of `items` joined by commas, and how many more there are: for warnings that
+/// name what they are about without growing with the file.
+pub(crate) fn first_few(items: &[String]) -> String {
+    let mut shown: Vec<&str> = items.iter().take(5).map(String::as_str).collect();
+    let more = items.len().saturating_sub(5);
+    let tail = format!("and {more} more");
+    if more > 0 {
+        shown.push(&tail);
+    }
+    shown.join(", ")
+}
+
 fn not_regular(path: &Path) -> IoError {
     IoError::invalid(
         path,

@@ -398,7 +398,7 @@ fn structure(text: &str, max_depth: usize) -> Option<Structure> {
     // The indentation of the line being read, and that of a line that opened a block scalar.
     let (mut indent, mut block) = (leading_spaces(text), None::<usize>);
     // Top-level keys of the document and their lines; whether anything but comments was read.
-    let mut keys: Vec<(String, usize)> = Vec::new();
+    let mut keys: std::collections::HashMap<String, usize> = Default::default();
     let mut content = false;
     if let Some(found) = line_start(text, 1, &mut keys, &mut content) {
         return Some(found);
@@ -487,7 +487,7 @@ fn structure(text: &str, max_depth: usize) -> Option<Structure> {
 fn line_start(
     rest: &str,
     line: usize,
-    keys: &mut Vec<(String, usize)>,
+    keys: &mut std::collections::HashMap<String, usize>,
     content: &mut bool,
 ) -> Option<Structure> {
     let first = rest.split('\n').next().unwrap_or("");
@@ -513,11 +513,16 @@ fn line_start(
         .or_else(|| first.strip_suffix(':').map(|k| k.len()))
         .map(|end| &first[..end])
         .filter(|k| !k.is_empty() && !k.contains(" #"))?;
-    if let Some((_, at)) = keys.iter().find(|(k, _)| k == key) {
-        return Some(Structure::DuplicateKey(line, key.to_string(), *at));
+    // A map: a file of 100,000 distinct top-level keys compared each with all before it.
+    match keys.entry(key.to_string()) {
+        std::collections::hash_map::Entry::Occupied(first) => {
+            Some(Structure::DuplicateKey(line, key.to_string(), *first.get()))
+        }
+        std::collections::hash_map::Entry::Vacant(v) => {
+            v.insert(line);
+            None
+        }
     }
-    keys.push((key.to_string(), line));
-    None
 }
 
 /// The spaces at the start of `s`.
@@ -1230,9 +1235,15 @@ fn explicit_parts(path: &Path, m: &YamlMap) -> Result<MapParts, IoError> {
         // A boundary on the wrong side of its centre line loaded without a word: the lane's
         // surface and the road edges built from it turn inside out.
         let centre = FrenetPath::new(lane.centerline.clone());
-        for (field, b, sign) in [
-            ("left_boundary", &lane.left_boundary, 1.0),
-            ("right_boundary", &lane.right_boundary, -1.0),
+        for (field, b, sign, side, other) in [
+            ("left_boundary", &lane.left_boundary, 1.0, "left", "right"),
+            (
+                "right_boundary",
+                &lane.right_boundary,
+                -1.0,
+                "right",
+                "left",
+            ),
         ] {
             let Some(b) = b else { continue };
             let pts = b.points();
@@ -1242,13 +1253,10 @@ fn explicit_parts(path: &Path, m: &YamlMap) -> Result<MapParts, IoError> {
                     path,
                     loc(field),
                     format!(
-                        "lies {} of the centre line ({} m on average): a {} boundary lies on \
-                         the {} in the direction of travel (are the two swapped, or the centre \
-                         line reversed?)",
-                        if sign > 0.0 { "right" } else { "left" },
+                        "lies {other} of the centre line ({} m on average): a {side} boundary \
+                         lies on the {side} in the direction of travel (are the two swapped, or \
+                         the centre line reversed?)",
                         crate::geom::num((mean.abs() * 100.0).round() / 100.0),
-                        if sign > 0.0 { "left" } else { "right" },
-                        if sign > 0.0 { "left" } else { "right" },
                     ),
                 ));
             }

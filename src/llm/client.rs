@@ -511,20 +511,19 @@ impl HttpClient {
             .fill_buf()
             .map_err(|e| read_error(&e, url, &self.cfg, clock, 0))?;
         if !(self.cfg.stream && super::stream::is_event_stream(content_type.as_deref(), head)) {
-            let raw = read_body(body, url, &self.cfg, clock)?;
-            if let Err(e) = std::str::from_utf8(&raw) {
-                // A completion is JSON, which is UTF-8: lossy decoding stored U+FFFD in the
-                // reply without a word.
-                return Err(LlmError::BadReply {
+            // A completion is JSON, which is UTF-8: lossy decoding stored U+FFFD in the reply
+            // without a word.
+            let raw = String::from_utf8(read_body(body, url, &self.cfg, clock)?).map_err(|e| {
+                LlmError::BadReply {
                     url: url.into(),
                     message: format!(
                         "the reply body (HTTP {status}) is not UTF-8 (byte {}), as JSON must be: \
                          the server is broken or sends another encoding",
-                        e.valid_up_to() + 1
+                        e.utf8_error().valid_up_to() + 1
                     ),
-                });
-            }
-            let text = self.redact(&String::from_utf8_lossy(&raw));
+                }
+            })?;
+            let text = self.redact(&raw);
             if text.trim().is_empty() {
                 return Err(LlmError::BadReply {
                     url: url.into(),

@@ -14,6 +14,11 @@ const LATERAL_SCALE: f64 = 2.0;
 /// apart, so this offset says how well the nearest point stands for the lane.
 const LONGITUDINAL_SCALE: f64 = 5.0;
 
+/// Why a checkpoint with route features cannot go to the PyTorch port (`train --export`,
+/// `bench sample --export`).
+pub const NOT_PORTED: &str = "the checkpoint measures futures against the lanes (route_times > \
+     0), which the PyTorch port (benches/torch) does not compute";
+
 /// Features per route time: lateral offset, longitudinal offset, cos and sin of the heading
 /// difference.
 pub const FEATURES_PER_TIME: usize = 4;

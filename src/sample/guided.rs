@@ -260,11 +260,10 @@ pub fn reference_run(
     cfg: &SampleConfig,
 ) -> Result<Vec<(String, Tensor)>, SampleError> {
     if trained.meta.config.window.route_times > 0 {
-        return Err(SampleError::Settings(
-            "the checkpoint measures futures against the lanes (route_times > 0), which the \
-             PyTorch port (benches/torch) does not compute: there is no port to check"
-                .into(),
-        ));
+        return Err(SampleError::Settings(format!(
+            "{}: there is no port to check",
+            crate::model::route::NOT_PORTED
+        )));
     }
     let su = setup(trained, scene, cfg)?;
     let unguided = |x: &Tensor, sigma: f64, _| -> Result<Tensor, SampleError> {

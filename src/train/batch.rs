@@ -440,6 +440,17 @@ mod tests {
         }
     }
 
+    /// The sample highway of scripts/scenes.
+    fn highway() -> crate::scene::Scene {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes");
+        crate::io::load_scene(
+            &dir.join("highway.yaml"),
+            0,
+            &crate::io::LoadOptions::default(),
+        )
+        .unwrap()
+    }
+
     #[test]
     fn the_nearest_point_of_a_lane_gives_the_agents_offset_from_it() {
         // A lane along x from -30 to +30 m, an agent 1.5 m to its left at x = 12 heading
@@ -467,13 +478,7 @@ mod tests {
 
     #[test]
     fn a_window_with_nearest_lane_poses_has_eight_features_per_agent_lane_pair() {
-        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes");
-        let scene = crate::io::load_scene(
-            &dir.join("highway.yaml"),
-            0,
-            &crate::io::LoadOptions::default(),
-        )
-        .unwrap();
+        let scene = highway();
         let mut cfg = crate::train::WindowConfig::ngsim();
         let plain = crate::train::windows(&scene, &cfg);
         cfg.nearest_lane_pose = true;
@@ -518,13 +523,7 @@ mod tests {
 
     #[test]
     fn route_inputs_decode_the_target_to_the_recorded_future_beside_its_lane() {
-        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes");
-        let scene = crate::io::load_scene(
-            &dir.join("highway.yaml"),
-            0,
-            &crate::io::LoadOptions::default(),
-        )
-        .unwrap();
+        let scene = highway();
         let mut cfg = crate::train::WindowConfig::ngsim();
         cfg.route_times = 4;
         let ws = crate::train::windows(&scene, &cfg);

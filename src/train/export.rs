@@ -59,11 +59,10 @@ pub fn export(
         ));
     }
     if from.meta.config.window.route_times > 0 {
-        return Err(TrainError::Config(
-            "the checkpoint measures futures against the lanes (route_times > 0), which the \
-             PyTorch port (benches/torch) does not compute: it has nothing to export to"
-                .into(),
-        ));
+        return Err(TrainError::Config(format!(
+            "{}: it has nothing to export to",
+            crate::model::route::NOT_PORTED
+        )));
     }
     if source.train_len() < CHECK_WINDOWS {
         return Err(TrainError::Data(format!(
