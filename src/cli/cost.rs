@@ -15,7 +15,7 @@ pub struct Args {
     #[arg(long)]
     script: PathBuf,
     /// Script parameters, name=value (visible as constants).
-    #[arg(long = "param", num_args = 1..)]
+    #[arg(long = "param", num_args = 1.., value_parser = super::param_value)]
     params: Vec<String>,
     /// Evaluate this rollout's future instead of the recorded one.
     #[arg(long)]

@@ -80,7 +80,7 @@ pub struct Args {
     #[arg(long)]
     behaviour: Option<String>,
     /// Checker parameters for --task behaviour, name=value.
-    #[arg(long = "param", num_args = 1..)]
+    #[arg(long = "param", num_args = 1.., value_parser = super::param_value)]
     params: Vec<String>,
     /// For --task behaviour: choose the agents of every scene automatically
     /// (`eval::suggest::suggest`); --param values override the suggestion.

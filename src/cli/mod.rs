@@ -376,3 +376,29 @@ pub(crate) fn load_indexed(
         r => Ok(r?),
     }
 }
+
+/// `--param`'s value parser: a value without `=` is refused at once. `--param` takes every value
+/// up to the next flag, so `cost --param a=1 scene.yaml` read the scene as a parameter and said
+/// only that `<SCENE>` was not given.
+pub(crate) fn param_value(text: &str) -> Result<String, String> {
+    if text.contains('=') {
+        Ok(text.to_string())
+    } else {
+        // clap quotes the value before this message.
+        Err(
+            "not name=value: --param takes every value up to the next flag, so give the scenes \
+             before --param, or end its list with `--`"
+                .into(),
+        )
+    }
+}
+
+/// `--keep`'s value parser, for the same reason as [`param_value`]: `inspect --agents --keep 4
+/// scene.yaml` read the scene as an agent id.
+pub(crate) fn agent_id_value(text: &str) -> Result<i64, String> {
+    text.parse().map_err(|_| {
+        "not an agent id (a whole number): --keep takes every value up to the next flag, so \
+         give the scenes before --keep, or end its list with `--`"
+            .into()
+    })
+}

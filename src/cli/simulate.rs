@@ -53,7 +53,7 @@ pub struct Args {
     #[arg(long = "script")]
     scripts: Vec<PathBuf>,
     /// Script parameters, name=value.
-    #[arg(long = "param", num_args = 1..)]
+    #[arg(long = "param", num_args = 1.., value_parser = super::param_value)]
     params: Vec<String>,
     /// Samples (one batch), 1 to 1024.
     #[arg(long, default_value_t = 1, value_parser = super::ask::usize_in(1, drivescript::sample::MAX_SAMPLES))]
