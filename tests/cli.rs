@@ -3733,6 +3733,52 @@ fn bench_io_refuses_a_data_directory_without_scenes() {
 }
 
 #[test]
+fn bench_io_and_dataset_report_a_bad_file_and_go_on_with_the_rest() {
+    // Both stopped at the first bad file (other commands report it and go on), and bench
+    // called the set "CommonRoad/any".
+    let dir = tempfile::tempdir().unwrap();
+    for f in ["highway_cut_in.yaml", "curved_two_lanes.yaml"] {
+        std::fs::copy(samples().join("yaml").join(f), dir.path().join(f)).unwrap();
+    }
+    std::fs::write(dir.path().join("a_bad.yaml"), "steps: [oops\n").unwrap();
+    let o = drivescript(&["bench", "io", "--data", s(dir.path()), "--seconds", "0.05"]);
+    let (out, err) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
+    assert_eq!(o.status.code(), Some(1), "{out}{err}");
+    assert!(
+        err.contains("--data: ") && err.contains("a_bad.yaml"),
+        "{err}"
+    );
+    assert!(
+        out.contains(&format!("--data {} (2 of 3 files)", dir.path().display()))
+            && out.contains("## Frenet projection"),
+        "{out}"
+    );
+    let o = drivescript(&["dataset", s(dir.path()), "--history=1", "--future=1"]);
+    let (out, err) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
+    assert_eq!(o.status.code(), Some(1), "{out}{err}");
+    assert!(err.contains("a_bad.yaml"), "{err}");
+    assert!(
+        out.contains("1 sources or records could not be read (above); the rest:")
+            && out.contains("2 scenes, 2 long enough"),
+        "{out}"
+    );
+    // None readable: said, not timed.
+    std::fs::remove_file(dir.path().join("highway_cut_in.yaml")).unwrap();
+    std::fs::remove_file(dir.path().join("curved_two_lanes.yaml")).unwrap();
+    let err = fails(&["bench", "io", "--data", s(dir.path()), "--seconds", "0.05"]);
+    assert!(
+        err.contains("none of its 1 scene files could be read"),
+        "{err}"
+    );
+}
+
+#[test]
 fn bench_refuses_flags_of_another_benchmark_and_outputs_over_what_it_did_not_write() {
     // Each flag was dropped without a word by the benchmarks that do not read it.
     for (args, want) in [

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use anyhow::Result;
-use drivescript::io::{discover, load_scenes, LoadOptions};
+use drivescript::io::{discover, read_each, LoadOptions};
 use drivescript::model::Pca;
 use drivescript::train::{windows, WindowConfig};
 
@@ -37,8 +37,18 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
     let (mut scenes, mut used, mut wins, mut agents, mut lanes) = (0, 0, 0, 0usize, 0usize);
     let mut futures = Vec::new();
+    // A bad file is reported and the others still counted, as `inspect` does: the first one
+    // stopped the whole corpus.
+    let mut failures = 0usize;
     for root in &args.scenes {
-        let files = discover(root)?;
+        let files = match discover(root) {
+            Ok(f) => f,
+            Err(e) => {
+                super::print_error(&e.to_string());
+                failures += 1;
+                continue;
+            }
+        };
         // An empty folder was reported as "0 complete agent futures ... PCA needs at least 50".
         if files.is_empty() {
             anyhow::bail!(
@@ -48,7 +58,15 @@ pub fn run(args: Args) -> Result<ExitCode> {
             );
         }
         for src in files {
-            for s in load_scenes(&src, &LoadOptions::default())? {
+            for s in read_each(&src, &LoadOptions::default()) {
+                let s = match s {
+                    Ok(s) => s,
+                    Err(e) => {
+                        super::print_error(&e.to_string());
+                        failures += 1;
+                        continue;
+                    }
+                };
                 scenes += 1;
                 let w = windows(&s, &cfg);
                 if !w.is_empty() {
@@ -62,6 +80,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 }
             }
         }
+    }
+    if failures > 0 {
+        println!("{failures} sources or records could not be read (above); the rest:");
     }
     println!(
         "{scenes} scenes, {used} long enough for {} + {} steps; {wins} windows; {:.1} agents and {:.1} lanes per window; {} complete agent futures",
@@ -108,5 +129,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
             cfg.future
         );
     }
-    Ok(ExitCode::SUCCESS)
+    Ok(if failures > 0 {
+        ExitCode::FAILURE
+    } else {
+        ExitCode::SUCCESS
+    })
 }
