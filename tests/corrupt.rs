@@ -685,6 +685,15 @@ fn yaml_errors_name_line_or_agent() {
             "successors: [2, 99]",
             "map.lanes[0] (id 1).successors: names lane 99, which is not in the map",
         ),
+        // A successor far from the lane's end was kept, and paths along it jumped the gap.
+        (
+            "successors: [2]",
+            "map.lanes[0] (id 1).successors: names lane 2, but lane 2 starts 9.49 m from the end of lane 1 (at most 2 m",
+        ),
+        (
+            "predecessors: [2]",
+            "map.lanes[0] (id 1).predecessors: names lane 2, but lane 1 starts 9.49 m from the end of lane 2 (at most 2 m",
+        ),
     ] {
         let f = dir.path().join("graph.yaml");
         std::fs::write(
@@ -896,8 +905,48 @@ fn commonroad_lanelets_read_other_than_as_written_are_named() {
         out.contains("lanelet 3419: the bounds coincide (zero width)"),
         "{out}"
     );
+    // A successor far from the lanelet's end loaded without a word, and paths along the link
+    // jumped the gap.
+    let far = variant("far.xml", &|l| {
+        l.replace("successor ref=\"3432\"", "successor ref=\"3672\"")
+    });
+    let out = ok(&["inspect", s(&far)]);
+    assert!(
+        out.contains("lanelet links whose ends do not meet (over 2 m apart), so a path along them jumps the gap: 3672 starts ")
+            && out.contains(" m from the end of 3419"),
+        "{out}"
+    );
     // The sample as written says none of this.
     assert!(!ok(&["inspect", s(&src)]).contains("lanelet"));
+}
+
+#[test]
+fn a_yaml_lane_too_short_to_have_a_direction_is_not_judged_swapped() {
+    // `convert` of real towns wrote maps its own reader refused: lanelets of 0.1-0.3 m whose
+    // centre lines zigzag read as having their boundaries on the wrong side (4 of 260 maps).
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("short.yaml");
+    std::fs::write(
+        &f,
+        "steps: 2\ncurrent_step: 0\nmap:\n  lanes:\n    - {id: 1, centerline: [[59.99, 464.26], [59.96, 464.27], [60.01, 464.19]], left_boundary: [[61.42, 465.24], [61.42, 465.23], [61.44, 465.19]], right_boundary: [[58.56, 463.29], [58.46, 463.35], [58.57, 463.19]]}\n    - {id: 2, centerline: [[0, 0], [9, 0]], left_boundary: [[0, -1.5], [9, -1.5]], right_boundary: [[0, 1.5], [9, 1.5]]}\nagents:\n  - {id: 1, states: [[1, 0, 0], [2, 0, 0]]}\n",
+    )
+    .unwrap();
+    // Lane 2 is long enough to judge, and is judged.
+    let err = fails(&["inspect", s(&f)]);
+    assert!(
+        err.contains("map.lanes[1] (id 2).left_boundary: lies right of the centre line"),
+        "{err}"
+    );
+    let t = std::fs::read_to_string(&f).unwrap();
+    std::fs::write(
+        &f,
+        t.replace(
+            "[[0, -1.5], [9, -1.5]], right_boundary: [[0, 1.5], [9, 1.5]]",
+            "[[0, 1.5], [9, 1.5]], right_boundary: [[0, -1.5], [9, -1.5]]",
+        ),
+    )
+    .unwrap();
+    ok(&["inspect", s(&f)]);
 }
 
 #[test]

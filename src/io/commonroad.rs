@@ -310,6 +310,8 @@ struct LaneletNotes {
     swapped: Vec<i64>,
     /// Bounds that coincide: no surface, so nothing on it reads as on the road.
     zero_width: Vec<i64>,
+    /// Successor or predecessor links between lanelets whose ends do not meet.
+    far: Vec<crate::scene::FarLink>,
 }
 
 impl LaneletNotes {
@@ -345,6 +347,29 @@ impl LaneletNotes {
                 ids(&self.zero_width)
             ));
         }
+        if !self.far.is_empty() {
+            let all: Vec<String> = self
+                .far
+                .iter()
+                .map(|f| {
+                    let (from, to) = if f.successor {
+                        (f.lane, f.other)
+                    } else {
+                        (f.other, f.lane)
+                    };
+                    format!(
+                        "{to} starts {} m from the end of {from}",
+                        crate::geom::num((f.gap * 100.0).round() / 100.0)
+                    )
+                })
+                .collect();
+            out.push(format!(
+                "lanelet links whose ends do not meet (over {} m apart), so a path along them \
+                 jumps the gap: {}",
+                crate::scene::LINK_GAP,
+                super::first_few(&all)
+            ));
+        }
         out
     }
 }
@@ -367,7 +392,7 @@ fn signed_width(left: &Polyline, right: &Polyline) -> (f64, f64) {
         length += dir.norm();
     }
     let width = width / n as f64;
-    if length < 1.0 || width <= 0.0 {
+    if length < crate::scene::MIN_JUDGED_LENGTH || width <= 0.0 {
         return (width, 0.0);
     }
     (width, side / (length * width))
@@ -547,6 +572,7 @@ fn read_map(
         .filter(|r| !r.crosswalk && r.kind != LaneType::Other)
         .filter_map(|r| by_id.get(&r.id).map(|p| (*p).clone()))
         .collect();
+    notes.far = crate::scene::far_links(&parts.lanes);
     Map::new(parts).map_err(|e| IoError::Scene {
         path: cx.path.display().to_string(),
         location: "lanelet network".into(),

@@ -1233,8 +1233,10 @@ fn explicit_parts(path: &Path, m: &YamlMap) -> Result<MapParts, IoError> {
             .map(|b| line(loc("right_boundary"), b))
             .transpose()?;
         // A boundary on the wrong side of its centre line loaded without a word: the lane's
-        // surface and the road edges built from it turn inside out.
+        // surface and the road edges built from it turn inside out. Lanes too short to have a
+        // direction are not judged (a real map converted to YAML holds some).
         let centre = FrenetPath::new(lane.centerline.clone());
+        let judged = lane.centerline.length() >= crate::scene::MIN_JUDGED_LENGTH;
         for (field, b, sign, side, other) in [
             ("left_boundary", &lane.left_boundary, 1.0, "left", "right"),
             (
@@ -1245,7 +1247,9 @@ fn explicit_parts(path: &Path, m: &YamlMap) -> Result<MapParts, IoError> {
                 "left",
             ),
         ] {
-            let Some(b) = b else { continue };
+            let Some(b) = b.as_ref().filter(|_| judged) else {
+                continue;
+            };
             let pts = b.points();
             let mean = pts.iter().map(|p| centre.project(*p).d).sum::<f64>() / pts.len() as f64;
             if mean * sign < -0.05 {
@@ -1269,6 +1273,27 @@ fn explicit_parts(path: &Path, m: &YamlMap) -> Result<MapParts, IoError> {
         lane.left_neighbors = l.left.clone();
         lane.right_neighbors = l.right.clone();
         parts.lanes.push(lane);
+    }
+    // A link to a lane far from the end was kept, and a path along it jumped (206 m in the
+    // report); routes were checked, links not.
+    if let Some(f) = crate::scene::far_links(&parts.lanes).first() {
+        let i = m.lanes.iter().position(|l| l.id == f.lane).unwrap_or(0);
+        let (field, from, to) = if f.successor {
+            ("successors", f.lane, f.other)
+        } else {
+            ("predecessors", f.other, f.lane)
+        };
+        return Err(IoError::invalid(
+            path,
+            format!("map.lanes[{i}] (id {}).{field}", f.lane),
+            format!(
+                "names lane {}, but lane {to} starts {} m from the end of lane {from} (at most \
+                 {} m: a path along the link would jump the gap)",
+                f.other,
+                crate::geom::num((f.gap * 100.0).round() / 100.0),
+                crate::scene::LINK_GAP
+            ),
+        ));
     }
     for (i, e) in m.road_edges.iter().enumerate() {
         parts.road_edges.push(RoadEdge::new(

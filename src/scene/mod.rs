@@ -15,11 +15,11 @@ use serde::Serialize;
 pub use agents::{velocities_from_positions, Agent, AgentId, AgentState, AgentType};
 pub use description::{describe, DescribeOptions, SceneDescription};
 pub use kinematic_limits::KinematicLimits;
-pub use lane_graph::{EdgeCounts, LaneGraph};
+pub use lane_graph::{far_links, EdgeCounts, FarLink, LaneGraph, LINK_GAP};
 pub use lane_path::{LanePath, Turn, TurnSpan, TURN_THRESHOLD};
 pub use map::{
     Lane, LaneId, LaneType, Map, MapExit, MapParts, RoadEdge, RoadEdgeKind, RoadLine, RoadLineKind,
-    StopLine,
+    StopLine, MIN_JUDGED_LENGTH,
 };
 
 use crate::geom::{num, GeomError, MAX_COORD};
