@@ -921,6 +921,39 @@ fn commonroad_lanelets_read_other_than_as_written_are_named() {
 }
 
 #[test]
+fn a_generated_agent_leaving_its_road_in_the_future_is_named() {
+    // `road: {length: 50}` with a car at s 45 and 30 m/s loaded without a word, its recorded
+    // future 64 m past the road's end (issue 32). A history that comes onto the road is what
+    // recorded agents do at a map's edge, and is not said.
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("off.yaml");
+    std::fs::write(
+        &f,
+        "steps: 34\ncurrent_step: 10\nroad: {lanes: 2, length: 50}\nagents:\n  - {id: 1, lane: 0, s: 45, speed: 30}\n  - {id: 2, lane: 1, s: 5, speed: 10}\n  - {id: 3, lane: 1, s: 2, speed: -3}\n  - {id: 4, lane: 0, s: 20, speed: 1}\n",
+    )
+    .unwrap();
+    let out = ok(&["inspect", s(&f)]);
+    assert!(
+        out.contains("generated agents whose states leave the road or route they are placed on (the map ends there): 1 (off its end from step 12, up to 64 m past its end), 3 (off its start from step 17, up to 4.9 m before its start)"),
+        "{out}"
+    );
+    // On a route of an explicit map, the route's length counts.
+    let g = dir.path().join("route.yaml");
+    std::fs::write(
+        &g,
+        "steps: 20\ncurrent_step: 0\nmap:\n  lanes:\n    - {id: 7, centerline: [[0, 0], [100, 0]], successors: [8]}\n    - {id: 8, centerline: [[100, 0], [150, 0]]}\nagents:\n  - {id: 1, route: [7, 8], s: 120, speed: 10}\n  - {id: 2, route: [7], s: 97, speed: 10}\n",
+    )
+    .unwrap();
+    let out = ok(&["inspect", s(&g)]);
+    assert!(
+        out.contains(
+            "placed on (the map ends there): 2 (off its end from step 4, up to 16 m past its end)"
+        ) && !out.contains(": 1 ("),
+        "{out}"
+    );
+}
+
+#[test]
 fn a_yaml_lane_too_short_to_have_a_direction_is_not_judged_swapped() {
     // `convert` of real towns wrote maps its own reader refused: lanelets of 0.1-0.3 m whose
     // centre lines zigzag read as having their boundaries on the wrong side (4 of 260 maps).

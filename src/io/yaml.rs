@@ -790,6 +790,7 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
     })?;
 
     let mut agents = Vec::new();
+    let mut off_road = Vec::new();
     for (i, a) in y.agents.iter().enumerate() {
         let loc = format!("agents[{i}] (id {})", a.id);
         let (dl, dw) = default_size(a.agent_type);
@@ -913,6 +914,7 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
                             ),
                         ));
                     }
+                    off_road.extend(leaves_reference(a, y, r.length));
                     lane_motion(a, y, reference, r.lane_width)
                 }
                 (None, Some(route)) => {
@@ -924,6 +926,7 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
                         ));
                     }
                     let reference = route_path(&map, route).map_err(|m| bad(loc.clone(), m))?;
+                    off_road.extend(leaves_reference(a, y, reference.length()));
                     lane_motion(a, y, &reference, 0.0)
                 }
                 (Some(_), Some(_)) => {
@@ -983,7 +986,15 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
         dt: y.dt,
         current_step: y.current_step,
         ego: y.ego,
-        warnings: Vec::new(),
+        warnings: if off_road.is_empty() {
+            Vec::new()
+        } else {
+            vec![format!(
+                "generated agents whose states leave the road or route they are placed on (the \
+                 map ends there): {}",
+                super::first_few(&off_road)
+            )]
+        },
     };
     Scene::recorded(meta, map, agents).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
@@ -1544,17 +1555,67 @@ fn route_path(map: &Map, route: &[i64]) -> Result<FrenetPath, String> {
 
 /// States along `reference` at lateral offset `(lane + 0.5) · w + d` (with `w = 0` along a
 /// route's centre line).
+/// A generated agent's arc length along its reference at step `k`: constant acceleration
+/// until the speed reaches zero, then standing still.
+fn s_at(a: &YamlAgent, y: &YamlScene, k: usize) -> f64 {
+    let tau = (k as f64 - y.current_step as f64) * y.dt;
+    if a.accel != 0.0 && (a.speed / a.accel) < 0.0 && tau > -a.speed / a.accel {
+        let t_stop = -a.speed / a.accel;
+        a.s + a.speed * t_stop + 0.5 * a.accel * t_stop * t_stop
+    } else {
+        a.s + a.speed * tau + 0.5 * a.accel * tau * tau
+    }
+}
+
+/// Where a generated agent's states from the current step on leave its reference (the road,
+/// or its route), which ends at `length`: the agent, the first step off it, which end, and how
+/// far past it the agent gets. A car driven 120 m past a 50 m road's end loaded without a
+/// word. Leaving may be meant, so this is said, not refused; a history that comes onto the
+/// road is not said, as recorded agents enter a map's crop.
+fn leaves_reference(a: &YamlAgent, y: &YamlScene, length: f64) -> Option<String> {
+    // A static agent holds its pose at `valid_from` for the whole scene.
+    let steps = if a.is_static {
+        a.valid_from..a.valid_from + 1
+    } else {
+        a.valid_from.max(y.current_step)..y.steps
+    };
+    let mut first = None;
+    let (mut before, mut past) = (0.0f64, 0.0f64);
+    for k in steps {
+        let s = s_at(a, y, k);
+        if s < 0.0 || s > length {
+            first.get_or_insert((k, s < 0.0));
+            before = before.max(-s);
+            past = past.max(s - length);
+        }
+    }
+    let (k, starts_before) = first?;
+    let m = |v: f64| crate::geom::num((v * 10.0).round() / 10.0);
+    let how = match (before > 0.0, past > 0.0) {
+        (true, true) => format!(
+            "{} m before its start and {} m past its end",
+            m(before),
+            m(past)
+        ),
+        (true, false) => format!("up to {} m before its start", m(before)),
+        _ => format!("up to {} m past its end", m(past)),
+    };
+    Some(format!(
+        "{} (off {} from step {k}, {how})",
+        a.id,
+        if starts_before {
+            "its start"
+        } else {
+            "its end"
+        }
+    ))
+}
+
 fn lane_motion(a: &YamlAgent, y: &YamlScene, reference: &FrenetPath, w: f64) -> Vec<AgentState> {
     let centre = |k: usize| (k as f64 + 0.5) * w;
     let pos = |k: usize| -> (f64, f64) {
         let tau = (k as f64 - y.current_step as f64) * y.dt;
-        // Constant acceleration until the speed reaches zero, then standing still.
-        let s = if a.accel != 0.0 && (a.speed / a.accel) < 0.0 && tau > -a.speed / a.accel {
-            let t_stop = -a.speed / a.accel;
-            a.s + a.speed * t_stop + 0.5 * a.accel * t_stop * t_stop
-        } else {
-            a.s + a.speed * tau + 0.5 * a.accel * tau * tau
-        };
+        let s = s_at(a, y, k);
         let mut d = centre(a.lane) + a.d;
         if let Some(lc) = &a.lane_change {
             let u = ((tau - lc.start) / lc.duration.max(1e-6)).clamp(0.0, 1.0);
