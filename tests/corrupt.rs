@@ -1154,6 +1154,37 @@ fn gpudrive_fixture() -> PathBuf {
 }
 
 #[test]
+fn a_gpudrive_lane_drawn_out_and_back_is_named() {
+    // A lane whose geometry is g + reversed(g) + g loaded without a word, its length read as
+    // three times the road's (issue 32).
+    let dir = tempfile::tempdir().unwrap();
+    let mut v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(gpudrive_fixture()).unwrap()).unwrap();
+    let k = v["roads"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .position(|r| r["type"] == "lane")
+        .unwrap();
+    let id = v["roads"][k]["id"].clone();
+    let g = v["roads"][k]["geometry"].as_array().unwrap().clone();
+    let back: Vec<serde_json::Value> = g.iter().rev().skip(1).cloned().collect();
+    let again: Vec<serde_json::Value> = g.iter().skip(1).cloned().collect();
+    v["roads"][k]["geometry"] = serde_json::Value::Array([g, back, again].concat());
+    let f = dir.path().join("back.json");
+    std::fs::write(&f, v.to_string()).unwrap();
+    let out = ok(&["inspect", s(&f)]);
+    assert!(
+        out.contains(&format!(
+            "lanes whose centre line turns back on itself (over 150° within a metre), read as written, so their lengths and paths along them are wrong: {id} (180° at "
+        )),
+        "{out}"
+    );
+    // The fixture as written says nothing of it.
+    assert!(!ok(&["inspect", s(&gpudrive_fixture())]).contains("turns back"));
+}
+
+#[test]
 fn a_gpudrive_object_never_observed_is_named_and_a_file_of_them_refused() {
     // Every `valid` false loaded as a scene of agents that are nowhere, ego included.
     let dir = tempfile::tempdir().unwrap();

@@ -134,6 +134,26 @@ impl Polyline {
         Polyline::new(pts).expect("resampling a valid polyline keeps two distinct points")
     }
 
+    /// The sharpest turn along the line, judged between consecutive pieces of `spacing`
+    /// metres (so that centimetre jitter between close points does not count): where it is
+    /// (arc length) and by how much (degrees, 0 to 180). A line shorter than two pieces has
+    /// no turn to judge and gives `None`.
+    pub fn sharpest_turn(&self, spacing: f64) -> Option<(f64, f64)> {
+        if self.length() < 2.0 * spacing {
+            return None;
+        }
+        let r = self.resample_spacing(spacing);
+        let p = r.points();
+        let step = self.length() / (p.len() - 1) as f64;
+        (1..p.len() - 1)
+            .map(|i| {
+                let (a, b) = (p[i] - p[i - 1], p[i + 1] - p[i]);
+                let turn = (a.x * b.y - a.y * b.x).atan2(a.dot(&b)).abs().to_degrees();
+                (i as f64 * step, turn)
+            })
+            .max_by(|x, y| x.1.total_cmp(&y.1))
+    }
+
     /// The same points in reverse order.
     pub fn reversed(&self) -> Polyline {
         Polyline::new(self.points.iter().rev().copied()).expect("reversal keeps the points")
@@ -244,6 +264,30 @@ mod tests {
             Point::new(10.0, 5.0),
         ])
         .unwrap()
+    }
+
+    #[test]
+    fn the_sharpest_turn_is_found_where_it_is_and_jitter_under_a_piece_is_not_one() {
+        let (s, turn) = l_shape().sharpest_turn(0.5).unwrap();
+        assert!(
+            (s - 10.0).abs() < 0.26 && (turn - 90.0).abs() < 1e-6,
+            "{s} {turn}"
+        );
+        let back = Polyline::new([
+            Point::new(0.0, 0.0),
+            Point::new(10.0, 0.0),
+            Point::new(4.0, 0.0),
+        ])
+        .unwrap();
+        let (s, turn) = back.sharpest_turn(0.5).unwrap();
+        assert!((s - 10.0).abs() < 0.26 && turn > 179.0, "{s} {turn}");
+        // Centimetre zigzags between points 2 cm apart along a straight line.
+        let zig =
+            Polyline::new((0..500).map(|k| Point::new(k as f64 * 0.02, 0.01 * (k % 2) as f64)))
+                .unwrap();
+        assert!(zig.sharpest_turn(0.5).unwrap().1 < 10.0);
+        let short = Polyline::new([Point::new(0.0, 0.0), Point::new(0.9, 0.0)]).unwrap();
+        assert_eq!(short.sharpest_turn(0.5), None);
     }
 
     #[test]

@@ -775,6 +775,8 @@ fn read_roads(
             "{driveways} driveways not represented in the scene model"
         ));
     }
+    // A lane drawn out and back loaded without a word, its 40 m read as 120 m.
+    warnings.extend(super::turning_back_warning(&parts.lanes));
     if let Err(crowd) = infer_lane_graph(&mut parts.lanes) {
         let k = lane_ids.get(&crowd.lane).copied().unwrap_or_default();
         let (them, here) = if crowd.at_end {

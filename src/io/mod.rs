@@ -557,6 +557,25 @@ pub(crate) fn first_few(items: &[String]) -> String {
     shown.join(", ")
 }
 
+/// The warning that names [`crate::scene::lanes_turning_back`], if any do (the readers of
+/// polylines given as they are: WOMD, GPUDrive).
+pub(crate) fn turning_back_warning(lanes: &[crate::scene::Lane]) -> Option<String> {
+    let back = crate::scene::lanes_turning_back(lanes);
+    if back.is_empty() {
+        return None;
+    }
+    let named: Vec<String> = back
+        .iter()
+        .map(|(id, s, turn)| format!("{id} ({turn:.0}° at {s:.1} m)"))
+        .collect();
+    Some(format!(
+        "lanes whose centre line turns back on itself (over {}° within a metre), \
+         read as written, so their lengths and paths along them are wrong: {}",
+        crate::scene::MAX_LANE_TURN,
+        first_few(&named)
+    ))
+}
+
 fn not_regular(path: &Path) -> IoError {
     IoError::invalid(
         path,

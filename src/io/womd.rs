@@ -368,6 +368,7 @@ pub fn scenario_to_scene(sc: &pb::Scenario, path: &Path, index: usize) -> Result
         ));
     }
 
+    warnings.extend(super::turning_back_warning(&parts.lanes));
     let map = Map::new(parts).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
         location: loc.clone(),

@@ -178,6 +178,27 @@ pub const SEAM_GAP: f64 = 0.5;
 /// their boundaries read as swapped at random.
 pub const MIN_JUDGED_LENGTH: f64 = 1.0;
 
+/// Sharpest turn (degrees) a lane's centre line may take between consecutive half-metre
+/// pieces before it counts as turning back on itself. On 66,790 lane centre lines of 1,250
+/// CommonRoad towns and the AV2 sample the sharpest is 111° (99.99% under 64°); a line
+/// drawn out and back (`g + reversed(g)`) turns by 180°, and its length and every path along
+/// it are wrong.
+pub const MAX_LANE_TURN: f64 = 150.0;
+
+/// Lanes whose centre lines turn back on themselves (see [`MAX_LANE_TURN`]): each one's id,
+/// where (arc length, metres) and by how much (degrees), as a reader's warning names them.
+pub fn lanes_turning_back(lanes: &[Lane]) -> Vec<(LaneId, f64, f64)> {
+    lanes
+        .iter()
+        .filter_map(|l| {
+            l.centerline
+                .sharpest_turn(0.5)
+                .filter(|(_, turn)| *turn > MAX_LANE_TURN)
+                .map(|(s, turn)| (l.id, s, turn))
+        })
+        .collect()
+}
+
 /// The parts a reader assembles into a [`Map`].
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct MapParts {
