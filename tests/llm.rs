@@ -3607,3 +3607,142 @@ fn a_malformed_chunked_reply_names_each_cause_once() {
         "{e}"
     );
 }
+
+/// A refusal or a tool call (streamed or not) was called an empty reply, asked for again up
+/// to --fixes times, or "no message content (a refusal or a tool call?)" without the model's
+/// words; streamed content parts were dropped; a chunk of a second choice was appended to the
+/// reply; a reply the server stopped itself (`finish_reason: "abort"`) went back to the model
+/// as its own unclosed script; a byte order mark before a JSON body made it "not JSON".
+#[test]
+fn refusals_tool_calls_content_parts_and_other_choices_are_read_for_what_they_are() {
+    use serde_json::json;
+    let ev = |v: serde_json::Value| v.to_string();
+    let stop = || ev(json!({"choices": [{"index": 0, "delta": {}, "finish_reason": "stop"}]}));
+    let srv = Server::start(vec![
+        Canned::events(
+            vec![
+                ev(json!({"choices": [{"index": 0, "delta": {"role": "assistant", "refusal": ""}}]})),
+                ev(json!({"choices": [{"index": 0, "delta": {"refusal": "I can't help with crashes."}}]})),
+                stop(),
+                "[DONE]".into(),
+            ],
+            Duration::ZERO,
+        ),
+        Canned::raw(
+            200,
+            &json!({"choices": [{"index": 0, "message": {"role": "assistant", "content": null, "refusal": "No, sorry."}, "finish_reason": "stop"}]})
+                .to_string(),
+        ),
+        Canned::events(
+            vec![
+                ev(json!({"choices": [{"index": 0, "delta": {"tool_calls": [{"index": 0, "id": "c", "type": "function", "function": {"name": "run_code", "arguments": ""}}]}}]})),
+                ev(json!({"choices": [{"index": 0, "delta": {}, "finish_reason": "tool_calls"}]})),
+                "[DONE]".into(),
+            ],
+            Duration::ZERO,
+        ),
+        Canned::raw(
+            200,
+            &json!({"choices": [{"message": {"content": null, "tool_calls": [{"id": "c", "type": "function", "function": {"name": "search", "arguments": "{}"}}]}, "finish_reason": "tool_calls"}]})
+                .to_string(),
+        ),
+        Canned::events(
+            vec![
+                ev(json!({"choices": [{"index": 0, "delta": {"content": [{"type": "text", "text": "ACC"}]}}]})),
+                ev(json!({"choices": [{"index": 0, "delta": {"content": "EPT"}}]})),
+                stop(),
+                "[DONE]".into(),
+            ],
+            Duration::ZERO,
+        ),
+        Canned::events(
+            vec![
+                ev(json!({"choices": [{"index": 0, "delta": {"content": "ACCEPT"}}]})),
+                ev(json!({"choices": [{"index": 1, "delta": {"content": " and more"}}]})),
+                stop(),
+                "[DONE]".into(),
+            ],
+            Duration::ZERO,
+        ),
+        Canned::events(
+            vec![
+                ev(json!({"choices": [{"index": 0, "delta": {"content": "```rhai\nlet a"}}]})),
+                ev(json!({"choices": [{"index": 0, "delta": {}, "finish_reason": "abort"}]})),
+                "[DONE]".into(),
+            ],
+            Duration::ZERO,
+        ),
+        Canned::raw(
+            200,
+            &format!(
+                "\u{feff}{}",
+                json!({"choices": [{"message": {"content": "ACCEPT"}, "finish_reason": "stop"}]})
+            ),
+        ),
+    ]);
+    let c = client(&srv.url);
+    for want in [
+        "the model refused to answer: \"I can't help with crashes.\"",
+        "the model refused to answer: \"No, sorry.\"",
+        "a call of the tool run_code and no text",
+        "a call of the tool search and no text",
+    ] {
+        let e = ask_one(&c).unwrap_err().to_string();
+        assert!(e.contains(want), "{want}: {e}");
+    }
+    assert_eq!(ask_one(&c).unwrap().reply, "ACCEPT");
+    assert_eq!(ask_one(&c).unwrap().reply, "ACCEPT");
+    let e = ask_one(&c).unwrap_err();
+    assert!(
+        matches!(e, LlmError::Reset { .. })
+            && e.to_string().contains("finish_reason \"abort\"")
+            && e.to_string().contains("after 1 tokens"),
+        "{e}"
+    );
+    assert_eq!(ask_one(&c).unwrap().reply, "ACCEPT");
+}
+
+/// A stream that begins with a byte order mark lost its first event (for some servers the
+/// whole reply: "the reply is empty"); a JSON body labelled as an event stream was read as
+/// events and called "ended after 0 tokens", as if the server had died.
+#[test]
+fn a_stream_after_a_byte_order_mark_and_json_labelled_as_a_stream_are_read_whole() {
+    use std::io::Write;
+    let chunk = serde_json::json!({"choices": [{"index": 0, "delta": {"content": "ACCEPT"}, "finish_reason": "stop"}]});
+    let body = format!("\u{feff}data: {chunk}\n\ndata: [DONE]\n\n");
+    let url = common::llm_server::one_shot(
+        b"HTTP/1.1 200 OK\r\nContent-Type: text/event-stream\r\nConnection: close\r\n\r\n",
+        move |stream| {
+            let _ = stream.write_all(body.as_bytes());
+            let _ = stream.shutdown(std::net::Shutdown::Both);
+        },
+    );
+    assert_eq!(ask_one(&client(&url)).unwrap().reply, "ACCEPT");
+    let json = serde_json::json!({"choices": [{"message": {"content": "ACCEPT"}, "finish_reason": "stop"}]})
+        .to_string();
+    let head = format!(
+        "HTTP/1.1 200 OK\r\nContent-Type: text/event-stream\r\nContent-Length: {}\r\n\r\n",
+        json.len()
+    );
+    let url = common::llm_server::one_shot(
+        Box::leak(head.into_bytes().into_boxed_slice()),
+        move |stream| {
+            let _ = stream.write_all(json.as_bytes());
+        },
+    );
+    assert_eq!(ask_one(&client(&url)).unwrap().reply, "ACCEPT");
+    // An error event's message was dropped: "the event stream ended after 0 tokens".
+    let url = common::llm_server::one_shot(
+        b"HTTP/1.1 200 OK\r\nContent-Type: text/event-stream\r\nConnection: close\r\n\r\n",
+        |stream| {
+            let _ =
+                stream.write_all(b"event: error\ndata: {\"message\": \"upstream overloaded\"}\n\n");
+            let _ = stream.shutdown(std::net::Shutdown::Both);
+        },
+    );
+    let e = ask_one(&client(&url)).unwrap_err().to_string();
+    assert!(
+        e.contains("an error event after 0 tokens: upstream overloaded"),
+        "{e}"
+    );
+}

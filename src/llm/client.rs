@@ -533,7 +533,8 @@ impl HttpClient {
                     ),
                 });
             }
-            return parse_completion(&text, url).map_err(|e| self.redact_error(e));
+            return parse_completion_redacted(&text, url, &|s| self.redact(s))
+                .map_err(|e| self.redact_error(e));
         }
         let observe = |e: ClientEvent<'_>| {
             if let Some(o) = &self.observer {
@@ -1166,13 +1167,26 @@ struct Completion {
     streamed: bool,
 }
 
-/// The first choice's text, the usage and whether the token limit cut it off, of a successful
-/// reply body.
+/// [`parse_completion_redacted`] redacting nothing.
+#[cfg(test)]
 fn parse_completion(text: &str, url: &str) -> Result<Completion, LlmError> {
+    parse_completion_redacted(text, url, &|s| s.to_string())
+}
+
+/// The first choice's text, the usage and whether the token limit cut it off, of a successful
+/// reply body; `redact` is applied to what the server wrote (a refusal, a tool's name) before
+/// any of it is cut into a message.
+fn parse_completion_redacted(
+    text: &str,
+    url: &str,
+    redact: &dyn Fn(&str) -> String,
+) -> Result<Completion, LlmError> {
     let bad = |why: String| LlmError::BadReply {
         url: url.into(),
         message: why,
     };
+    // JSON's own rule lets a reader ignore a byte order mark, which some gateways send.
+    let text = text.trim_start_matches('\u{feff}');
     let v: Value = serde_json::from_str(text).map_err(|e| {
         let head: String = text.trim().chars().take(120).collect();
         bad(format!("the reply is not JSON ({e}); it begins {head:?}"))
@@ -1191,31 +1205,51 @@ fn parse_completion(text: &str, url: &str) -> Result<Completion, LlmError> {
     let first = choices
         .first()
         .ok_or_else(|| bad("the reply's \"choices\" is empty".into()))?;
-    let content = match &first["message"]["content"] {
-        Value::String(s) => s.clone(),
-        // Some servers return content parts.
-        Value::Array(parts) => parts
-            .iter()
-            .filter_map(|p| p["text"].as_str())
-            .collect::<Vec<_>>()
-            .join(""),
-        _ => match first["text"].as_str() {
-            Some(s) => s.to_string(),
-            // A reasoning model that spent the whole token limit thinking sends no content
-            // (its thoughts go in `reasoning_content`): that is a reply cut off at the limit,
-            // as a stream of the same reply is, which the user can fix with --max-tokens; it
-            // was called "a refusal or a tool call" and ended the run.
-            None if first["finish_reason"].as_str() == Some("length") => String::new(),
-            None => {
-                return Err(bad(
-                    "the first choice has no message content (a refusal or a tool call?)".into(),
-                ))
-            }
-        },
+    let message = &first["message"];
+    // A refusal or a tool call carries no text; the model's words say why, and were dropped
+    // ("no message content (a refusal or a tool call?)", or an empty reply asked for again).
+    let mut tools = Vec::new();
+    super::stream::tool_names(message, &mut tools);
+    let tool_finish = matches!(
+        first["finish_reason"].as_str(),
+        Some("tool_calls" | "function_call")
+    );
+    let no_text = || {
+        super::stream::no_text_reason(
+            &super::stream::refusal_text(message),
+            &tools,
+            tool_finish,
+            redact,
+        )
     };
     if first["finish_reason"].as_str() == Some("content_filter") {
-        return Err(bad(content_filtered(content.chars().count())));
+        let chars =
+            super::stream::content_text(&message["content"]).map_or(0, |t| t.chars().count());
+        return Err(bad(content_filtered(chars)));
     }
+    // Some servers return content parts (text, and refusals).
+    let text = super::stream::content_text(&message["content"])
+        .or_else(|| first["text"].as_str().map(str::to_string));
+    if text.as_deref().is_none_or(|t| t.trim().is_empty()) {
+        if let Some(why) = no_text() {
+            return Err(bad(why));
+        }
+    }
+    let content = match text {
+        Some(s) => s,
+        // A reasoning model that spent the whole token limit thinking sends no content
+        // (its thoughts go in `reasoning_content`): that is a reply cut off at the limit,
+        // as a stream of the same reply is, which the user can fix with --max-tokens; it
+        // was called "a refusal or a tool call" and ended the run.
+        None if first["finish_reason"].as_str() == Some("length") => String::new(),
+        None => {
+            let got: String = message["content"].to_string().chars().take(60).collect();
+            return Err(bad(format!(
+                "the first choice has no message content: `content` is {got}, not text, and \
+                 the message holds no refusal or tool call"
+            )));
+        }
+    };
     let usage = v
         .get("usage")
         .and_then(|u| serde_json::from_value::<Usage>(u.clone()).ok());
