@@ -2657,6 +2657,11 @@ fn a_diverging_training_stops_with_an_error_and_writes_nothing() {
     ]);
     assert!(err.contains("training diverged"), "{err}");
     assert!(!out.join("model.safetensors").exists());
+    // Said "the last checkpoint written is kept" of a run that wrote none.
+    assert!(
+        err.contains("this run wrote no checkpoint") && !err.contains("is kept"),
+        "{err}"
+    );
 }
 
 /// `simulate` unguided (λ = 0) with the shipped checkpoint, plus `extra` flags.
