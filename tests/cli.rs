@@ -4451,3 +4451,54 @@ fn an_output_named_only_by_its_extension_is_told_so() {
     );
     assert!(!out.exists());
 }
+
+/// An edit that cannot change the candidate: a `freeze` after another edit of the same agent
+/// undid that edit, and a shift, lateral move or sway of size 0 moved nothing; each case ran
+/// on a future its file did not describe, and passed.
+#[test]
+fn test_scripts_refuses_edits_that_are_undone_or_move_nothing() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dir = tempfile::tempdir().unwrap();
+    for (edits, want) in [
+        (
+            "[{agent: 3, shift: [1, 0]}, {agent: 3, freeze: true}]",
+            "edit 2 (agent 3): `freeze` holds the current state for the whole future, so edit 1 of the same agent would be undone",
+        ),
+        ("[{agent: 3, shift: [0, 0]}]", "edit 1 (agent 3): it changes nothing"),
+        ("[{agent: 3, sway: [0, 2]}]", "edit 1 (agent 3): it changes nothing"),
+        ("[{agent: 3, lateral: 0.0, ramp: 1}]", "it changes nothing"),
+    ] {
+        let t = dir.path().join("x.test.yaml");
+        std::fs::write(
+            &t,
+            format!(
+                "script: {}\ncases:\n  - name: c\n    scene: {}\n    params: {{follower: 3, leader: 1, gap: 10}}\n    edits: {edits}\n    expect: {{total_above: 0}}\n",
+                s(&root.join("scripts/follow.rhai")),
+                s(&root.join("scripts/scenes/highway_crash.yaml"))
+            ),
+        )
+        .unwrap();
+        let out = common::drivescript(&["test-scripts", s(&t)]);
+        let text = String::from_utf8_lossy(&out.stdout).into_owned()
+            + String::from_utf8_lossy(&out.stderr).as_ref();
+        assert_eq!(out.status.code(), Some(1), "{edits}: {text}");
+        assert!(text.contains(want) && text.contains("0 passed"), "{edits}: {text}");
+    }
+    // A freeze first, then a shift of the frozen car, is an edit of its own.
+    let t = dir.path().join("x.test.yaml");
+    std::fs::write(
+        &t,
+        format!(
+            "script: {}\ncases:\n  - name: c\n    scene: {}\n    params: {{follower: 3, leader: 1, gap: 10}}\n    edits: [{{agent: 3, freeze: true}}, {{agent: 3, shift: [-20, 0]}}]\n    expect: {{terms_above: {{keeps_gap: 1}}}}\n",
+            s(&root.join("scripts/follow.rhai")),
+            s(&root.join("scripts/scenes/highway_crash.yaml"))
+        ),
+    )
+    .unwrap();
+    let out = common::drivescript(&["test-scripts", s(&t)]);
+    assert!(
+        String::from_utf8_lossy(&out.stdout).contains("1 passed, 0 failed"),
+        "{}",
+        String::from_utf8_lossy(&out.stdout)
+    );
+}
