@@ -541,8 +541,16 @@ fn read_map(path: &Path) -> Result<Map, IoError> {
             .map_err(|e| geom_err(format!("lane_segments[{key}].centerline"), e))?;
         dirs.insert(l.id, c.last() - c.first());
         let mut lane = Lane::new(l.id, c);
-        lane.left_boundary = Polyline::new(pts(&l.left_lane_boundary)).ok();
-        lane.right_boundary = Polyline::new(pts(&l.right_lane_boundary)).ok();
+        // A boundary of fewer than two distinct points is left out, as before; one with a
+        // point beyond any map (1e300: a damaged file) was left out too, without a word,
+        // where the same point in the centre line is refused.
+        let boundary = |field: &str, points: &[JsonPoint]| match Polyline::new(pts(points)) {
+            Ok(b) => Ok(Some(b)),
+            Err(crate::geom::GeomError::TooFewPoints { .. }) => Ok(None),
+            Err(e) => Err(geom_err(format!("lane_segments[{key}].{field}"), e)),
+        };
+        lane.left_boundary = boundary("left_lane_boundary", &l.left_lane_boundary)?;
+        lane.right_boundary = boundary("right_lane_boundary", &l.right_lane_boundary)?;
         lane.lane_type = match l.lane_type.as_deref() {
             Some("VEHICLE") => LaneType::SurfaceStreet,
             Some("BIKE") => LaneType::Bike,
