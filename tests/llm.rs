@@ -3746,3 +3746,45 @@ fn a_stream_after_a_byte_order_mark_and_json_labelled_as_a_stream_are_read_whole
         "{e}"
     );
 }
+
+/// A streamed refusal was an empty reply, asked for again until --fixes ran out (four paid
+/// requests, each refused alike); as an error it would stop a batch at that pair however
+/// often the batch was run again. The run now gives up at once, exit 2, in the model's words.
+#[test]
+fn a_refusal_ends_the_run_after_one_request_in_the_model_s_words() {
+    let refusal = serde_json::json!({"choices": [{"index": 0, "delta": {"refusal": "I won't stage a crash."}}]});
+    let stop = serde_json::json!({"choices": [{"index": 0, "delta": {}, "finish_reason": "stop"}]});
+    let srv = Server::start(vec![Canned::events(
+        vec![refusal.to_string(), stop.to_string(), "[DONE]".into()],
+        Duration::ZERO,
+    )]);
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("r");
+    let out = ask_cut_in(&run, &["--samples", "1"], Some(&srv.url));
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(2), "{t}");
+    assert!(
+        t.contains("gave up")
+            && t.contains("the model refused to answer: \"I won't stage a crash.\""),
+        "{t}"
+    );
+    assert_eq!(srv.received().len(), 1, "{t}");
+    assert_no_key(&run);
+}
+
+/// `vehicle {cutter} cuts in front of vehicle {cutter}` with `behaviour: cut_in` ran: the
+/// victim the checker judged was chosen for each scene and named nowhere in the request, and
+/// every pair counted as a failure of the loop ("not planned"), exit 0.
+#[test]
+fn a_batch_request_that_leaves_out_a_role_its_checker_judges_is_refused() {
+    let (_dir, out, t) = refused_rules_batch(
+        "  - request: \"vehicle {cutter} cuts in front of vehicle {cutter}\"\n    behaviour: cut_in\n",
+    );
+    assert!(
+        t.contains(
+            "entry on line 3: the request names no {victim}, an agent cut_in's checker judges"
+        ) && t.contains("{cutter}, {victim}"),
+        "{t}"
+    );
+    assert!(!out.join("runs").exists(), "{t}");
+}

@@ -1215,7 +1215,8 @@ fn parse_completion_redacted(
         Some("tool_calls" | "function_call")
     );
     let no_text = || {
-        super::stream::no_text_reason(
+        super::stream::no_text_error(
+            url,
             &super::stream::refusal_text(message),
             &tools,
             tool_finish,
@@ -1231,8 +1232,8 @@ fn parse_completion_redacted(
     let text = super::stream::content_text(&message["content"])
         .or_else(|| first["text"].as_str().map(str::to_string));
     if text.as_deref().is_none_or(|t| t.trim().is_empty()) {
-        if let Some(why) = no_text() {
-            return Err(bad(why));
+        if let Some(e) = no_text() {
+            return Err(e);
         }
     }
     let content = match text {

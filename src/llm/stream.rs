@@ -118,10 +118,32 @@ pub(crate) fn tool_names(message: &Value, into: &mut Vec<String>) {
 }
 
 /// Why a reply with no text cannot be used, where the model said why: it refused (its
-/// words, cut to 300 characters), or it called a tool drivescript never offered. `None`
-/// where it did neither (an empty reply, which goes back to the model as such). What the
-/// server sent is `redact`ed before it is cut, so that no part of a key it echoed is left.
-pub(crate) fn no_text_reason(
+/// words, cut to 300 characters: [`LlmError::Refused`]), or it called a tool drivescript
+/// never offered (an unusable reply). `None` where it did neither (an empty reply, which goes
+/// back to the model as such). What the server sent is `redact`ed before it is cut, so that
+/// no part of a key it echoed is left.
+pub(crate) fn no_text_error(
+    url: &str,
+    refusal: &str,
+    tools: &[String],
+    tool_finish: bool,
+    redact: &dyn Fn(&str) -> String,
+) -> Option<LlmError> {
+    let reason = no_text_reason(refusal, tools, tool_finish, redact)?;
+    Some(if refusal.trim().is_empty() {
+        LlmError::BadReply {
+            url: url.into(),
+            message: reason,
+        }
+    } else {
+        LlmError::Refused {
+            url: url.into(),
+            message: reason,
+        }
+    })
+}
+
+fn no_text_reason(
     refusal: &str,
     tools: &[String],
     tool_finish: bool,
@@ -351,8 +373,8 @@ pub fn read_stream<R: Read>(
         }
     }
     if out.content.trim().is_empty() {
-        if let Some(why) = no_text_reason(&refusal, &tools, tool_finish, redact) {
-            return Err(bad(why));
+        if let Some(e) = no_text_error(url, &refusal, &tools, tool_finish, redact) {
+            return Err(e);
         }
     }
     Ok(out)
