@@ -4502,3 +4502,49 @@ fn test_scripts_refuses_edits_that_are_undone_or_move_nothing() {
         String::from_utf8_lossy(&out.stdout)
     );
 }
+
+/// `params: {gapp: 30}` (for `gap`) ran the case on the script's default gap, and it passed;
+/// `cost --param gapp=30` refuses the same typo. Thresholds no total can meet (`total_below:
+/// 1, total_above: 2`) failed the case whatever the script did.
+#[test]
+fn test_scripts_refuses_a_parameter_the_script_never_reads_and_thresholds_that_exclude_each_other()
+{
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dir = tempfile::tempdir().unwrap();
+    for (params, expect, want) in [
+        (
+            "{follower: 3, leader: 1, gapp: 30}",
+            "{total_below: 0.01}",
+            "parameter \"gapp\": no script reads it",
+        ),
+        (
+            "{follower: 3, leader: 1}",
+            "{total_below: 1, total_above: 2}",
+            "the total must be at most 1 and above 2: no value is both",
+        ),
+        (
+            "{follower: 3, leader: 1}",
+            "{terms_below: {keeps_gap: 0.5}, terms_above: {keeps_gap: 0.5}}",
+            "term keeps_gap must be at most 0.5 and above 0.5",
+        ),
+    ] {
+        let t = dir.path().join("x.test.yaml");
+        std::fs::write(
+            &t,
+            format!(
+                "script: {}\ncases:\n  - name: c\n    scene: {}\n    params: {params}\n    expect: {expect}\n",
+                s(&root.join("scripts/follow.rhai")),
+                s(&root.join("scripts/scenes/highway_crash.yaml"))
+            ),
+        )
+        .unwrap();
+        let out = common::drivescript(&["test-scripts", s(&t)]);
+        let text = String::from_utf8_lossy(&out.stdout).into_owned()
+            + String::from_utf8_lossy(&out.stderr).as_ref();
+        assert_eq!(out.status.code(), Some(1), "{params}: {text}");
+        assert!(
+            text.contains(want) && text.contains("0 passed"),
+            "{params}: {text}"
+        );
+    }
+}

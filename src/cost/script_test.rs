@@ -266,6 +266,28 @@ impl Expect {
         for (k, v) in &self.terms_above {
             finite(format!("terms_above.{}", crate::io::name::shown(k)), *v)?;
         }
+        // A total (or a term) at most `below` and above `above`, where `below <= above`:
+        // the case failed whatever the script did.
+        let both = |what: String, below: f64, above: f64| {
+            if below <= above {
+                Err(format!(
+                    "{what} must be at most {} and above {}: no value is both; the thresholds \
+                     are swapped or mistyped",
+                    crate::geom::num(below),
+                    crate::geom::num(above)
+                ))
+            } else {
+                Ok(())
+            }
+        };
+        if let (Some(b), Some(a)) = (self.total_below, self.total_above) {
+            both("the total".into(), b, a)?;
+        }
+        for (k, b) in &self.terms_below {
+            if let Some(a) = self.terms_above.get(k) {
+                both(format!("term {}", crate::io::name::shown(k)), *b, *a)?;
+            }
+        }
         if let Some(t) = &self.towards {
             let [dx, dy] = t.direction;
             if !(dx.is_finite() && dy.is_finite()) || dx == 0.0 && dy == 0.0 {
@@ -550,6 +572,9 @@ impl Runner {
             check_edit(&scene, e)?;
         }
         let params = Params::parse(&param_args(&c.params)).map_err(|e| e.to_string())?;
+        // A parameter the script never reads (`gapp: 30` for `gap`) ran the case on the
+        // default, and it passed; `cost --param` and `simulate --param` refuse it.
+        crate::cost::check_params(&[source], &params).map_err(|e| format!("params: {e}"))?;
         let name = script_path.display().to_string();
         // The candidate is the test file's, read before the script runs: a candidate that
         // could not be read was reported as the script's "trajectories do not fit the scene".
