@@ -153,8 +153,9 @@ pub fn read(path: &Path) -> Result<Scene, IoError> {
         })?;
         (path.to_path_buf(), m)
     };
-    let map = read_map(&map_json)?;
-    let (agents, meta) = read_tracks(&parquet)?;
+    let (map, map_warnings) = read_map(&map_json)?;
+    let (agents, mut meta) = read_tracks(&parquet)?;
+    meta.warnings.extend(map_warnings);
     // The ids in the file names are the scenario's: a map of another scenario would be read
     // as this one's without a word.
     for (file, named) in [
@@ -522,7 +523,8 @@ fn pts(v: &[JsonPoint]) -> Vec<Point> {
     v.iter().map(|p| Point::new(p.x, p.y)).collect()
 }
 
-fn read_map(path: &Path) -> Result<Map, IoError> {
+/// The map of a `log_map_archive_*.json`, with what the scene's warnings should say of it.
+fn read_map(path: &Path) -> Result<(Map, Vec<String>), IoError> {
     let text = super::read_text(path)?;
     let m: JsonMap = serde_json::from_str(&text).map_err(|e| {
         IoError::invalid(
@@ -536,6 +538,7 @@ fn read_map(path: &Path) -> Result<Map, IoError> {
         |what: String, e: crate::geom::GeomError| IoError::invalid(path, what, e.to_string());
     let mut lines: Vec<(Polyline, String)> = Vec::new();
     let mut dirs: HashMap<i64, Point> = HashMap::new();
+    let mut unknown_types: std::collections::BTreeMap<String, usize> = Default::default();
     for (key, l) in &m.lane_segments {
         let c = Polyline::new(pts(&l.centerline))
             .map_err(|e| geom_err(format!("lane_segments[{key}].centerline"), e))?;
@@ -555,7 +558,14 @@ fn read_map(path: &Path) -> Result<Map, IoError> {
             Some("VEHICLE") => LaneType::SurfaceStreet,
             Some("BIKE") => LaneType::Bike,
             Some("BUS") => LaneType::Bus,
-            _ => LaneType::Other,
+            // AV2 has these three only: another (a damaged or edited file) made the lane one
+            // of no known type without a word.
+            Some(other) => {
+                let shown = format!("\"{}\"", super::name::shown(other));
+                *unknown_types.entry(shown).or_insert(0usize) += 1;
+                LaneType::Other
+            }
+            None => LaneType::Other,
         };
         lane.is_intersection = l.is_intersection;
         lane.predecessors = l.predecessors.clone();
@@ -623,9 +633,19 @@ fn read_map(path: &Path) -> Result<Map, IoError> {
             Polygon::new(ring).map_err(|e| geom_err(format!("pedestrian_crossings[{key}]"), e))?,
         );
     }
-    Map::new(parts).map_err(|e| IoError::Scene {
+    let warnings = unknown_types
+        .iter()
+        .map(|(t, n)| {
+            format!(
+                "map: {n} lane segment(s) of lane_type {t}, not one of AV2's (VEHICLE, BIKE, \
+                 BUS): read as lanes of no known type"
+            )
+        })
+        .collect();
+    let map = Map::new(parts).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
         location: "lane_segments".into(),
         error: e,
-    })
+    })?;
+    Ok((map, warnings))
 }
