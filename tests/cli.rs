@@ -4548,3 +4548,35 @@ fn test_scripts_refuses_a_parameter_the_script_never_reads_and_thresholds_that_e
         );
     }
 }
+
+/// A scene whose id cannot name an output file stopped `simulate` over a directory of scenes
+/// with "scenario id \"a/b\" cannot name an output file", naming no file.
+#[test]
+fn an_id_that_cannot_name_an_output_file_names_the_scene_file_holding_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let scenes = dir.path().join("scenes");
+    std::fs::create_dir(&scenes).unwrap();
+    let yaml = scenes.join("odd.yaml");
+    std::fs::write(
+        &yaml,
+        "scenario_id: a/b\ndt: 0.1\nsteps: 60\ncurrent_step: 10\nroad: {lanes: 1, length: 300}\nagents:\n  - {id: 1, lane: 0, s: 30, speed: 10}\n",
+    )
+    .unwrap();
+    let err = fails(&[
+        "simulate",
+        s(&scenes),
+        "--checkpoint",
+        "data/checkpoint",
+        "--samples",
+        "1",
+        "-o",
+        s(&dir.path().join("out")),
+    ]);
+    assert!(
+        err.contains(&format!(
+            "{}: scenario_id: scenario id \"a/b\" cannot name an output file",
+            s(&yaml)
+        )),
+        "{err}"
+    );
+}
