@@ -3788,3 +3788,33 @@ fn a_batch_request_that_leaves_out_a_role_its_checker_judges_is_refused() {
     );
     assert!(!out.join("runs").exists(), "{t}");
 }
+
+/// `Retry-After` may be an HTTP date (`Wed, 21 Oct 2099 07:28:00 GMT`) as well as seconds: the
+/// date was ignored, and the request retried after the plain backoff without a word.
+#[test]
+fn a_retry_after_given_as_an_http_date_is_honoured_like_seconds() {
+    let srv = Server::start(vec![
+        Canned::raw(503, r#"{"error": {"message": "busy"}}"#)
+            .header("Retry-After", "Wed, 21 Oct 2099 07:28:00 GMT"),
+        Canned::raw(503, r#"{"error": {"message": "busy"}}"#)
+            .header("Retry-After", "Wed, 21 Oct 2015 07:28:00 GMT"),
+        Canned::chat("after the waits"),
+    ]);
+    let mut cfg = HttpConfig::new(&srv.url, "m");
+    cfg.backoff = Duration::from_millis(20);
+    cfg.backoff_max = Duration::from_millis(300);
+    let ex = ask_one(&HttpClient::new(cfg).unwrap()).unwrap();
+    assert_eq!(ex.reply, "after the waits");
+    // 2099 is decades away: cut to the ceiling, and said; 2015 is past: no wait at all.
+    assert!(
+        ex.retries[0].contains("Retry-After asked: capped at the backoff ceiling")
+            && ex.retries[0].contains("(waited 0.3 s"),
+        "{:?}",
+        ex.retries
+    );
+    assert!(
+        ex.retries[1].contains("(waited 0.0 s, as Retry-After asked)"),
+        "{:?}",
+        ex.retries
+    );
+}

@@ -647,7 +647,12 @@ impl HttpClient {
                 .headers()
                 .get(reqwest::header::RETRY_AFTER)
                 .and_then(|v| v.to_str().ok())
-                .and_then(|v| v.trim().parse::<f64>().ok())
+                .and_then(|v| {
+                    v.trim()
+                        .parse::<f64>()
+                        .ok()
+                        .or_else(|| seconds_until_http_date(v, std::time::SystemTime::now()))
+                })
                 .filter(|s| s.is_finite() && *s >= 0.0);
             if let Some(location) = resp
                 .headers()
@@ -754,6 +759,46 @@ impl HttpClient {
         }
         unreachable!("the last attempt returns")
     }
+}
+
+/// Seconds from `now` until the HTTP date `v` (`Wed, 21 Oct 2099 07:28:00 GMT`, the form HTTP
+/// requires a sender to use), which `Retry-After` may carry instead of a number of seconds: it
+/// was ignored, and the request retried after the plain backoff without a word. 0 for a date
+/// already past; `None` for anything else.
+fn seconds_until_http_date(v: &str, now: std::time::SystemTime) -> Option<f64> {
+    const MONTHS: [&str; 12] = [
+        "Jan", "Feb", "Mar", "Apr", "May", "Jun", "Jul", "Aug", "Sep", "Oct", "Nov", "Dec",
+    ];
+    let parts: Vec<&str> = v.split_ascii_whitespace().collect();
+    let [weekday, day, month, year, time, "GMT"] = parts[..] else {
+        return None;
+    };
+    if !weekday.ends_with(',') {
+        return None;
+    }
+    let day: i64 = day.parse().ok().filter(|d| (1..=31).contains(d))?;
+    let month = MONTHS.iter().position(|m| *m == month)? as i64 + 1;
+    let year: i64 = year.parse().ok().filter(|y| (1970..=9999).contains(y))?;
+    let hms: Vec<i64> = time
+        .split(':')
+        .map(|x| x.parse().ok())
+        .collect::<Option<Vec<i64>>>()?;
+    let [h, m, sec] = hms[..] else { return None };
+    if !((0..24).contains(&h) && (0..60).contains(&m) && (0..=60).contains(&sec)) {
+        return None;
+    }
+    // Days since 1970-01-01 of a proleptic Gregorian date (H. Hinnant's days_from_civil).
+    let y = if month <= 2 { year - 1 } else { year };
+    let era = y.div_euclid(400);
+    let yoe = y - era * 400;
+    let doy = (153 * ((month + 9) % 12) + 2) / 5 + day - 1;
+    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
+    let at = (era * 146_097 + doe - 719_468) * 86_400 + h * 3600 + m * 60 + sec;
+    let now = now
+        .duration_since(std::time::UNIX_EPOCH)
+        .ok()?
+        .as_secs_f64();
+    Some((at as f64 - now).max(0.0))
 }
 
 /// Which redirects the client follows: a 307 or 308 (which keep the method and the body) to
