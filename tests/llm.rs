@@ -3818,3 +3818,32 @@ fn a_retry_after_given_as_an_http_date_is_honoured_like_seconds() {
         ex.retries
     );
 }
+
+/// A `--prompts` folder that is not there was "prompt template /nowhere/system.md: cannot read
+/// it: No such file or directory", as if one template of it were missing.
+#[test]
+fn a_prompt_folder_that_is_missing_or_a_file_is_named_as_such() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("prompts.md");
+    std::fs::write(&file, "x").unwrap();
+    for (folder, why) in [
+        (dir.path().join("nowhere"), "does not exist"),
+        (file, "is a file, not a folder"),
+    ] {
+        let err = common::fails(&[
+            "prompt",
+            "show",
+            s(&samples().join(SCENE)),
+            REQUEST,
+            "--prompts",
+            s(&folder),
+        ]);
+        assert!(
+            err.contains(&format!(
+                "the prompt folder {} (--prompts) {why}",
+                s(&folder)
+            )) && !err.contains("system.md: cannot read it"),
+            "{err}"
+        );
+    }
+}
