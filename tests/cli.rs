@@ -2707,6 +2707,11 @@ fn a_diverging_training_stops_with_an_error_and_writes_nothing() {
     ]);
     assert!(err.contains("training diverged"), "{err}");
     assert!(!out.join("model.safetensors").exists());
+    // Said "the last checkpoint written is kept" of a run that wrote none.
+    assert!(
+        err.contains("this run wrote no checkpoint") && !err.contains("is kept"),
+        "{err}"
+    );
 }
 
 /// `simulate` unguided (λ = 0) with the shipped checkpoint, plus `extra` flags.
@@ -4541,4 +4546,133 @@ fn an_output_named_only_by_its_extension_is_told_so() {
         "{err}"
     );
     assert!(!out.exists());
+}
+
+/// An edit that cannot change the candidate: a `freeze` after another edit of the same agent
+/// undid that edit, and a shift, lateral move or sway of size 0 moved nothing; each case ran
+/// on a future its file did not describe, and passed.
+#[test]
+fn test_scripts_refuses_edits_that_are_undone_or_move_nothing() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dir = tempfile::tempdir().unwrap();
+    for (edits, want) in [
+        (
+            "[{agent: 3, shift: [1, 0]}, {agent: 3, freeze: true}]",
+            "edit 2 (agent 3): `freeze` holds the current state for the whole future, so edit 1 of the same agent would be undone",
+        ),
+        ("[{agent: 3, shift: [0, 0]}]", "edit 1 (agent 3): it changes nothing"),
+        ("[{agent: 3, sway: [0, 2]}]", "edit 1 (agent 3): it changes nothing"),
+        ("[{agent: 3, lateral: 0.0, ramp: 1}]", "it changes nothing"),
+    ] {
+        let t = dir.path().join("x.test.yaml");
+        std::fs::write(
+            &t,
+            format!(
+                "script: {}\ncases:\n  - name: c\n    scene: {}\n    params: {{follower: 3, leader: 1, gap: 10}}\n    edits: {edits}\n    expect: {{total_above: 0}}\n",
+                s(&root.join("scripts/follow.rhai")),
+                s(&root.join("scripts/scenes/highway_crash.yaml"))
+            ),
+        )
+        .unwrap();
+        let out = common::drivescript(&["test-scripts", s(&t)]);
+        let text = String::from_utf8_lossy(&out.stdout).into_owned()
+            + String::from_utf8_lossy(&out.stderr).as_ref();
+        assert_eq!(out.status.code(), Some(1), "{edits}: {text}");
+        assert!(text.contains(want) && text.contains("0 passed"), "{edits}: {text}");
+    }
+    // A freeze first, then a shift of the frozen car, is an edit of its own.
+    let t = dir.path().join("x.test.yaml");
+    std::fs::write(
+        &t,
+        format!(
+            "script: {}\ncases:\n  - name: c\n    scene: {}\n    params: {{follower: 3, leader: 1, gap: 10}}\n    edits: [{{agent: 3, freeze: true}}, {{agent: 3, shift: [-20, 0]}}]\n    expect: {{terms_above: {{keeps_gap: 1}}}}\n",
+            s(&root.join("scripts/follow.rhai")),
+            s(&root.join("scripts/scenes/highway_crash.yaml"))
+        ),
+    )
+    .unwrap();
+    let out = common::drivescript(&["test-scripts", s(&t)]);
+    assert!(
+        String::from_utf8_lossy(&out.stdout).contains("1 passed, 0 failed"),
+        "{}",
+        String::from_utf8_lossy(&out.stdout)
+    );
+}
+
+/// `params: {gapp: 30}` (for `gap`) ran the case on the script's default gap, and it passed;
+/// `cost --param gapp=30` refuses the same typo. Thresholds no total can meet (`total_below:
+/// 1, total_above: 2`) failed the case whatever the script did.
+#[test]
+fn test_scripts_refuses_a_parameter_the_script_never_reads_and_thresholds_that_exclude_each_other()
+{
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dir = tempfile::tempdir().unwrap();
+    for (params, expect, want) in [
+        (
+            "{follower: 3, leader: 1, gapp: 30}",
+            "{total_below: 0.01}",
+            "parameter \"gapp\": no script reads it",
+        ),
+        (
+            "{follower: 3, leader: 1}",
+            "{total_below: 1, total_above: 2}",
+            "the total must be at most 1 and above 2: no value is both",
+        ),
+        (
+            "{follower: 3, leader: 1}",
+            "{terms_below: {keeps_gap: 0.5}, terms_above: {keeps_gap: 0.5}}",
+            "term keeps_gap must be at most 0.5 and above 0.5",
+        ),
+    ] {
+        let t = dir.path().join("x.test.yaml");
+        std::fs::write(
+            &t,
+            format!(
+                "script: {}\ncases:\n  - name: c\n    scene: {}\n    params: {params}\n    expect: {expect}\n",
+                s(&root.join("scripts/follow.rhai")),
+                s(&root.join("scripts/scenes/highway_crash.yaml"))
+            ),
+        )
+        .unwrap();
+        let out = common::drivescript(&["test-scripts", s(&t)]);
+        let text = String::from_utf8_lossy(&out.stdout).into_owned()
+            + String::from_utf8_lossy(&out.stderr).as_ref();
+        assert_eq!(out.status.code(), Some(1), "{params}: {text}");
+        assert!(
+            text.contains(want) && text.contains("0 passed"),
+            "{params}: {text}"
+        );
+    }
+}
+
+/// A scene whose id cannot name an output file stopped `simulate` over a directory of scenes
+/// with "scenario id \"a/b\" cannot name an output file", naming no file.
+#[test]
+fn an_id_that_cannot_name_an_output_file_names_the_scene_file_holding_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let scenes = dir.path().join("scenes");
+    std::fs::create_dir(&scenes).unwrap();
+    let yaml = scenes.join("odd.yaml");
+    std::fs::write(
+        &yaml,
+        "scenario_id: a/b\ndt: 0.1\nsteps: 60\ncurrent_step: 10\nroad: {lanes: 1, length: 300}\nagents:\n  - {id: 1, lane: 0, s: 30, speed: 10}\n",
+    )
+    .unwrap();
+    let err = fails(&[
+        "simulate",
+        s(&scenes),
+        "--checkpoint",
+        "data/checkpoint",
+        "--samples",
+        "1",
+        "-o",
+        s(&dir.path().join("out")),
+    ]);
+    assert!(
+        err.contains(&format!(
+            "{}: scenario_id: scenario id \"a/b\" cannot name an output file",
+            s(&yaml)
+        )),
+        "{err}"
+    );
 }

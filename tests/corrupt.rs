@@ -123,6 +123,55 @@ fn av2_errors_name_the_file() {
     );
 }
 
+/// A lane boundary holding a point beyond any map (a damaged file) was left out of the lane
+/// without a word, where the same point in the centre line is refused naming the field. A
+/// boundary of fewer than two distinct points is still left out, as before. A lane type AV2
+/// does not have is said in the scene's warnings.
+#[test]
+fn an_av2_lane_boundary_beyond_any_map_is_refused_naming_it() {
+    let dir = tempfile::tempdir().unwrap();
+    for e in std::fs::read_dir(samples().join("av2")).unwrap() {
+        let p = e.unwrap().path();
+        std::fs::copy(&p, dir.path().join(p.file_name().unwrap())).unwrap();
+    }
+    let map = dir
+        .path()
+        .join("log_map_archive_0a1e6f0a-1817-4a98-b02e-db8c9327d151.json");
+    let good: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&map).unwrap()).unwrap();
+    let key = good["lane_segments"]
+        .as_object()
+        .unwrap()
+        .keys()
+        .next()
+        .unwrap()
+        .clone();
+    let mut far = good.clone();
+    far["lane_segments"][&key]["right_lane_boundary"][1]["x"] = serde_json::json!(1e300);
+    std::fs::write(&map, far.to_string()).unwrap();
+    let err = fails(&["inspect", s(dir.path())]);
+    assert!(
+        err.contains(&format!(
+            "lane_segments[{key}].right_lane_boundary: point 1 (1e300, "
+        )) && err.contains("not a plausible map coordinate"),
+        "{err}"
+    );
+    let mut short = good.clone();
+    let one = short["lane_segments"][&key]["left_lane_boundary"][0].clone();
+    short["lane_segments"][&key]["left_lane_boundary"] = serde_json::json!([one]);
+    std::fs::write(&map, short.to_string()).unwrap();
+    ok(&["inspect", s(dir.path())]);
+    // A lane type AV2 does not have made the lane one of no known type without a word.
+    let mut odd = good.clone();
+    odd["lane_segments"][&key]["lane_type"] = serde_json::json!("HOVERCRAFT");
+    std::fs::write(&map, odd.to_string()).unwrap();
+    let out = ok(&["inspect", s(dir.path())]);
+    assert!(
+        out.contains("map: 1 lane segment(s) of lane_type \"HOVERCRAFT\", not one of AV2's"),
+        "{out}"
+    );
+}
+
 const AV2_ID: &str = "0a1e6f0a-1817-4a98-b02e-db8c9327d151";
 
 #[test]

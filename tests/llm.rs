@@ -3607,3 +3607,243 @@ fn a_malformed_chunked_reply_names_each_cause_once() {
         "{e}"
     );
 }
+
+/// A refusal or a tool call (streamed or not) was called an empty reply, asked for again up
+/// to --fixes times, or "no message content (a refusal or a tool call?)" without the model's
+/// words; streamed content parts were dropped; a chunk of a second choice was appended to the
+/// reply; a reply the server stopped itself (`finish_reason: "abort"`) went back to the model
+/// as its own unclosed script; a byte order mark before a JSON body made it "not JSON".
+#[test]
+fn refusals_tool_calls_content_parts_and_other_choices_are_read_for_what_they_are() {
+    use serde_json::json;
+    let ev = |v: serde_json::Value| v.to_string();
+    let stop = || ev(json!({"choices": [{"index": 0, "delta": {}, "finish_reason": "stop"}]}));
+    let srv = Server::start(vec![
+        Canned::events(
+            vec![
+                ev(json!({"choices": [{"index": 0, "delta": {"role": "assistant", "refusal": ""}}]})),
+                ev(json!({"choices": [{"index": 0, "delta": {"refusal": "I can't help with crashes."}}]})),
+                stop(),
+                "[DONE]".into(),
+            ],
+            Duration::ZERO,
+        ),
+        Canned::raw(
+            200,
+            &json!({"choices": [{"index": 0, "message": {"role": "assistant", "content": null, "refusal": "No, sorry."}, "finish_reason": "stop"}]})
+                .to_string(),
+        ),
+        Canned::events(
+            vec![
+                ev(json!({"choices": [{"index": 0, "delta": {"tool_calls": [{"index": 0, "id": "c", "type": "function", "function": {"name": "run_code", "arguments": ""}}]}}]})),
+                ev(json!({"choices": [{"index": 0, "delta": {}, "finish_reason": "tool_calls"}]})),
+                "[DONE]".into(),
+            ],
+            Duration::ZERO,
+        ),
+        Canned::raw(
+            200,
+            &json!({"choices": [{"message": {"content": null, "tool_calls": [{"id": "c", "type": "function", "function": {"name": "search", "arguments": "{}"}}]}, "finish_reason": "tool_calls"}]})
+                .to_string(),
+        ),
+        Canned::events(
+            vec![
+                ev(json!({"choices": [{"index": 0, "delta": {"content": [{"type": "text", "text": "ACC"}]}}]})),
+                ev(json!({"choices": [{"index": 0, "delta": {"content": "EPT"}}]})),
+                stop(),
+                "[DONE]".into(),
+            ],
+            Duration::ZERO,
+        ),
+        Canned::events(
+            vec![
+                ev(json!({"choices": [{"index": 0, "delta": {"content": "ACCEPT"}}]})),
+                ev(json!({"choices": [{"index": 1, "delta": {"content": " and more"}}]})),
+                stop(),
+                "[DONE]".into(),
+            ],
+            Duration::ZERO,
+        ),
+        Canned::events(
+            vec![
+                ev(json!({"choices": [{"index": 0, "delta": {"content": "```rhai\nlet a"}}]})),
+                ev(json!({"choices": [{"index": 0, "delta": {}, "finish_reason": "abort"}]})),
+                "[DONE]".into(),
+            ],
+            Duration::ZERO,
+        ),
+        Canned::raw(
+            200,
+            &format!(
+                "\u{feff}{}",
+                json!({"choices": [{"message": {"content": "ACCEPT"}, "finish_reason": "stop"}]})
+            ),
+        ),
+    ]);
+    let c = client(&srv.url);
+    for want in [
+        "the model refused to answer: \"I can't help with crashes.\"",
+        "the model refused to answer: \"No, sorry.\"",
+        "a call of the tool run_code and no text",
+        "a call of the tool search and no text",
+    ] {
+        let e = ask_one(&c).unwrap_err().to_string();
+        assert!(e.contains(want), "{want}: {e}");
+    }
+    assert_eq!(ask_one(&c).unwrap().reply, "ACCEPT");
+    assert_eq!(ask_one(&c).unwrap().reply, "ACCEPT");
+    let e = ask_one(&c).unwrap_err();
+    assert!(
+        matches!(e, LlmError::Reset { .. })
+            && e.to_string().contains("finish_reason \"abort\"")
+            && e.to_string().contains("after 1 tokens"),
+        "{e}"
+    );
+    assert_eq!(ask_one(&c).unwrap().reply, "ACCEPT");
+}
+
+/// A stream that begins with a byte order mark lost its first event (for some servers the
+/// whole reply: "the reply is empty"); a JSON body labelled as an event stream was read as
+/// events and called "ended after 0 tokens", as if the server had died.
+#[test]
+fn a_stream_after_a_byte_order_mark_and_json_labelled_as_a_stream_are_read_whole() {
+    use std::io::Write;
+    let chunk = serde_json::json!({"choices": [{"index": 0, "delta": {"content": "ACCEPT"}, "finish_reason": "stop"}]});
+    let body = format!("\u{feff}data: {chunk}\n\ndata: [DONE]\n\n");
+    let url = common::llm_server::one_shot(
+        b"HTTP/1.1 200 OK\r\nContent-Type: text/event-stream\r\nConnection: close\r\n\r\n",
+        move |stream| {
+            let _ = stream.write_all(body.as_bytes());
+            let _ = stream.shutdown(std::net::Shutdown::Both);
+        },
+    );
+    assert_eq!(ask_one(&client(&url)).unwrap().reply, "ACCEPT");
+    let json = serde_json::json!({"choices": [{"message": {"content": "ACCEPT"}, "finish_reason": "stop"}]})
+        .to_string();
+    let head = format!(
+        "HTTP/1.1 200 OK\r\nContent-Type: text/event-stream\r\nContent-Length: {}\r\n\r\n",
+        json.len()
+    );
+    let url = common::llm_server::one_shot(
+        Box::leak(head.into_bytes().into_boxed_slice()),
+        move |stream| {
+            let _ = stream.write_all(json.as_bytes());
+        },
+    );
+    assert_eq!(ask_one(&client(&url)).unwrap().reply, "ACCEPT");
+    // An error event's message was dropped: "the event stream ended after 0 tokens".
+    let url = common::llm_server::one_shot(
+        b"HTTP/1.1 200 OK\r\nContent-Type: text/event-stream\r\nConnection: close\r\n\r\n",
+        |stream| {
+            let _ =
+                stream.write_all(b"event: error\ndata: {\"message\": \"upstream overloaded\"}\n\n");
+            let _ = stream.shutdown(std::net::Shutdown::Both);
+        },
+    );
+    let e = ask_one(&client(&url)).unwrap_err().to_string();
+    assert!(
+        e.contains("an error event after 0 tokens: upstream overloaded"),
+        "{e}"
+    );
+}
+
+/// A streamed refusal was an empty reply, asked for again until --fixes ran out (four paid
+/// requests, each refused alike); as an error it would stop a batch at that pair however
+/// often the batch was run again. The run now gives up at once, exit 2, in the model's words.
+#[test]
+fn a_refusal_ends_the_run_after_one_request_in_the_model_s_words() {
+    let refusal = serde_json::json!({"choices": [{"index": 0, "delta": {"refusal": "I won't stage a crash."}}]});
+    let stop = serde_json::json!({"choices": [{"index": 0, "delta": {}, "finish_reason": "stop"}]});
+    let srv = Server::start(vec![Canned::events(
+        vec![refusal.to_string(), stop.to_string(), "[DONE]".into()],
+        Duration::ZERO,
+    )]);
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("r");
+    let out = ask_cut_in(&run, &["--samples", "1"], Some(&srv.url));
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(2), "{t}");
+    assert!(
+        t.contains("gave up")
+            && t.contains("the model refused to answer: \"I won't stage a crash.\""),
+        "{t}"
+    );
+    assert_eq!(srv.received().len(), 1, "{t}");
+    assert_no_key(&run);
+}
+
+/// `vehicle {cutter} cuts in front of vehicle {cutter}` with `behaviour: cut_in` ran: the
+/// victim the checker judged was chosen for each scene and named nowhere in the request, and
+/// every pair counted as a failure of the loop ("not planned"), exit 0.
+#[test]
+fn a_batch_request_that_leaves_out_a_role_its_checker_judges_is_refused() {
+    let (_dir, out, t) = refused_rules_batch(
+        "  - request: \"vehicle {cutter} cuts in front of vehicle {cutter}\"\n    behaviour: cut_in\n",
+    );
+    assert!(
+        t.contains(
+            "entry on line 3: the request names no {victim}, an agent cut_in's checker judges"
+        ) && t.contains("{cutter}, {victim}"),
+        "{t}"
+    );
+    assert!(!out.join("runs").exists(), "{t}");
+}
+
+/// `Retry-After` may be an HTTP date (`Wed, 21 Oct 2099 07:28:00 GMT`) as well as seconds: the
+/// date was ignored, and the request retried after the plain backoff without a word.
+#[test]
+fn a_retry_after_given_as_an_http_date_is_honoured_like_seconds() {
+    let srv = Server::start(vec![
+        Canned::raw(503, r#"{"error": {"message": "busy"}}"#)
+            .header("Retry-After", "Wed, 21 Oct 2099 07:28:00 GMT"),
+        Canned::raw(503, r#"{"error": {"message": "busy"}}"#)
+            .header("Retry-After", "Wed, 21 Oct 2015 07:28:00 GMT"),
+        Canned::chat("after the waits"),
+    ]);
+    let mut cfg = HttpConfig::new(&srv.url, "m");
+    cfg.backoff = Duration::from_millis(20);
+    cfg.backoff_max = Duration::from_millis(300);
+    let ex = ask_one(&HttpClient::new(cfg).unwrap()).unwrap();
+    assert_eq!(ex.reply, "after the waits");
+    // 2099 is decades away: cut to the ceiling, and said; 2015 is past: no wait at all.
+    assert!(
+        ex.retries[0].contains("Retry-After asked: capped at the backoff ceiling")
+            && ex.retries[0].contains("(waited 0.3 s"),
+        "{:?}",
+        ex.retries
+    );
+    assert!(
+        ex.retries[1].contains("(waited 0.0 s, as Retry-After asked)"),
+        "{:?}",
+        ex.retries
+    );
+}
+
+/// A `--prompts` folder that is not there was "prompt template /nowhere/system.md: cannot read
+/// it: No such file or directory", as if one template of it were missing.
+#[test]
+fn a_prompt_folder_that_is_missing_or_a_file_is_named_as_such() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("prompts.md");
+    std::fs::write(&file, "x").unwrap();
+    for (folder, why) in [
+        (dir.path().join("nowhere"), "does not exist"),
+        (file, "is a file, not a folder"),
+    ] {
+        let err = common::fails(&[
+            "prompt",
+            "show",
+            s(&samples().join(SCENE)),
+            REQUEST,
+            "--prompts",
+            s(&folder),
+        ]);
+        assert!(
+            err.contains(&format!(
+                "the prompt folder {} (--prompts) {why}",
+                s(&folder)
+            )) && !err.contains("system.md: cannot read it"),
+            "{err}"
+        );
+    }
+}

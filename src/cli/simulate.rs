@@ -414,7 +414,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             }
             // An id that cannot name a file stops the run; a second scene of one name is
             // reported and left out.
-            output_stem(&raw.meta.scenario_id)?;
+            drivescript::io::output_stem_in(&raw.meta.scenario_id, &src)?;
             let stem = match names.claim(&raw.meta.scenario_id, &src) {
                 Ok(stem) => stem,
                 Err(e) => {

@@ -147,6 +147,18 @@ impl Edit {
         if self.lateral.is_none() && self.shift.is_none() && self.sway.is_none() && !self.freeze {
             return Err("it changes nothing: give lateral, shift, sway or freeze".into());
         }
+        // Given, but of size 0 (`shift: [0, 0]`, `sway: [0, 2]`): the case ran on the
+        // unedited future, as one of no edit does.
+        let zero = self.lateral.is_none_or(|d| d == 0.0)
+            && self.shift.is_none_or(|[x, y]| x == 0.0 && y == 0.0)
+            && self.sway.is_none_or(|[amp, _]| amp == 0.0);
+        if zero && !self.freeze {
+            return Err(
+                "it changes nothing: its lateral, shift and sway are 0; give one of some size, \
+                 or freeze"
+                    .into(),
+            );
+        }
         // `freeze` holds the current state over the whole future, so anything beside it was
         // dropped without a word and the case ran on a future the file did not describe.
         if self.freeze {
@@ -253,6 +265,28 @@ impl Expect {
         }
         for (k, v) in &self.terms_above {
             finite(format!("terms_above.{}", crate::io::name::shown(k)), *v)?;
+        }
+        // A total (or a term) at most `below` and above `above`, where `below <= above`:
+        // the case failed whatever the script did.
+        let both = |what: String, below: f64, above: f64| {
+            if below <= above {
+                Err(format!(
+                    "{what} must be at most {} and above {}: no value is both; the thresholds \
+                     are swapped or mistyped",
+                    crate::geom::num(below),
+                    crate::geom::num(above)
+                ))
+            } else {
+                Ok(())
+            }
+        };
+        if let (Some(b), Some(a)) = (self.total_below, self.total_above) {
+            both("the total".into(), b, a)?;
+        }
+        for (k, b) in &self.terms_below {
+            if let Some(a) = self.terms_above.get(k) {
+                both(format!("term {}", crate::io::name::shown(k)), *b, *a)?;
+            }
         }
         if let Some(t) = &self.towards {
             let [dx, dy] = t.direction;
@@ -538,6 +572,9 @@ impl Runner {
             check_edit(&scene, e)?;
         }
         let params = Params::parse(&param_args(&c.params)).map_err(|e| e.to_string())?;
+        // A parameter the script never reads (`gapp: 30` for `gap`) ran the case on the
+        // default, and it passed; `cost --param` and `simulate --param` refuse it.
+        crate::cost::check_params(&[source], &params).map_err(|e| format!("params: {e}"))?;
         let name = script_path.display().to_string();
         // The candidate is the test file's, read before the script runs: a candidate that
         // could not be read was reported as the script's "trajectories do not fit the scene".
@@ -837,6 +874,23 @@ pub fn run_test_file(path: &Path) -> Result<Vec<CaseResult>, ScriptTestError> {
                     e.agent
                 ))
             })?;
+            // Edits apply in order, and `freeze` sets the agent's whole future to its current
+            // state: an earlier edit of the same agent (`[{agent: 3, shift: [5, 0]}, {agent:
+            // 3, freeze: true}]`) was undone without a word.
+            if let Some(j) = c.edits[..k]
+                .iter()
+                .position(|o| e.freeze && o.agent == e.agent)
+            {
+                return Err(invalid(format!(
+                    "case {:?}: edit {} (agent {}): `freeze` holds the current state for the \
+                     whole future, so edit {} of the same agent would be undone: give freeze \
+                     alone, or first",
+                    c.name,
+                    k + 1,
+                    e.agent,
+                    j + 1
+                )));
+            }
         }
     }
     let dir = path.parent().unwrap_or(Path::new("."));

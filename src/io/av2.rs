@@ -153,8 +153,9 @@ pub fn read(path: &Path) -> Result<Scene, IoError> {
         })?;
         (path.to_path_buf(), m)
     };
-    let map = read_map(&map_json)?;
-    let (agents, meta) = read_tracks(&parquet)?;
+    let (map, map_warnings) = read_map(&map_json)?;
+    let (agents, mut meta) = read_tracks(&parquet)?;
+    meta.warnings.extend(map_warnings);
     // The ids in the file names are the scenario's: a map of another scenario would be read
     // as this one's without a word.
     for (file, named) in [
@@ -522,7 +523,8 @@ fn pts(v: &[JsonPoint]) -> Vec<Point> {
     v.iter().map(|p| Point::new(p.x, p.y)).collect()
 }
 
-fn read_map(path: &Path) -> Result<Map, IoError> {
+/// The map of a `log_map_archive_*.json`, with what the scene's warnings should say of it.
+fn read_map(path: &Path) -> Result<(Map, Vec<String>), IoError> {
     let text = super::read_text(path)?;
     let m: JsonMap = serde_json::from_str(&text).map_err(|e| {
         IoError::invalid(
@@ -536,18 +538,34 @@ fn read_map(path: &Path) -> Result<Map, IoError> {
         |what: String, e: crate::geom::GeomError| IoError::invalid(path, what, e.to_string());
     let mut lines: Vec<(Polyline, String)> = Vec::new();
     let mut dirs: HashMap<i64, Point> = HashMap::new();
+    let mut unknown_types: std::collections::BTreeMap<String, usize> = Default::default();
     for (key, l) in &m.lane_segments {
         let c = Polyline::new(pts(&l.centerline))
             .map_err(|e| geom_err(format!("lane_segments[{key}].centerline"), e))?;
         dirs.insert(l.id, c.last() - c.first());
         let mut lane = Lane::new(l.id, c);
-        lane.left_boundary = Polyline::new(pts(&l.left_lane_boundary)).ok();
-        lane.right_boundary = Polyline::new(pts(&l.right_lane_boundary)).ok();
+        // A boundary of fewer than two distinct points is left out, as before; one with a
+        // point beyond any map (1e300: a damaged file) was left out too, without a word,
+        // where the same point in the centre line is refused.
+        let boundary = |field: &str, points: &[JsonPoint]| match Polyline::new(pts(points)) {
+            Ok(b) => Ok(Some(b)),
+            Err(crate::geom::GeomError::TooFewPoints { .. }) => Ok(None),
+            Err(e) => Err(geom_err(format!("lane_segments[{key}].{field}"), e)),
+        };
+        lane.left_boundary = boundary("left_lane_boundary", &l.left_lane_boundary)?;
+        lane.right_boundary = boundary("right_lane_boundary", &l.right_lane_boundary)?;
         lane.lane_type = match l.lane_type.as_deref() {
             Some("VEHICLE") => LaneType::SurfaceStreet,
             Some("BIKE") => LaneType::Bike,
             Some("BUS") => LaneType::Bus,
-            _ => LaneType::Other,
+            // AV2 has these three only: another (a damaged or edited file) made the lane one
+            // of no known type without a word.
+            Some(other) => {
+                let shown = format!("\"{}\"", super::name::shown(other));
+                *unknown_types.entry(shown).or_insert(0usize) += 1;
+                LaneType::Other
+            }
+            None => LaneType::Other,
         };
         lane.is_intersection = l.is_intersection;
         lane.predecessors = l.predecessors.clone();
@@ -615,9 +633,19 @@ fn read_map(path: &Path) -> Result<Map, IoError> {
             Polygon::new(ring).map_err(|e| geom_err(format!("pedestrian_crossings[{key}]"), e))?,
         );
     }
-    Map::new(parts).map_err(|e| IoError::Scene {
+    let warnings = unknown_types
+        .iter()
+        .map(|(t, n)| {
+            format!(
+                "map: {n} lane segment(s) of lane_type {t}, not one of AV2's (VEHICLE, BIKE, \
+                 BUS): read as lanes of no known type"
+            )
+        })
+        .collect();
+    let map = Map::new(parts).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
         location: "lane_segments".into(),
         error: e,
-    })
+    })?;
+    Ok((map, warnings))
 }

@@ -721,6 +721,13 @@ pub fn output_stem(id: &str) -> Result<&str, IoError> {
     Ok(id)
 }
 
+/// [`output_stem`] of the scenario id read from `source`, the error naming that file: "scenario
+/// id \"a/b\" cannot name an output file" stopped a run over a directory of scenes without
+/// saying which file holds it.
+pub fn output_stem_in<'a>(id: &'a str, source: &Path) -> Result<&'a str, IoError> {
+    output_stem(id).map_err(|e| IoError::invalid(source, "scenario_id", e.to_string()))
+}
+
 /// The output names claimed by the scenes of one run, so that two scenes with one name
 /// neither overwrite each other's outputs nor are scored against the same rollouts.
 #[derive(Debug, Default)]
@@ -730,7 +737,7 @@ impl OutputNames {
     /// Claims the output name of `scenario_id` (read from `source`): the name, or an error
     /// naming the source that claimed it first.
     pub fn claim(&mut self, scenario_id: &str, source: &Path) -> Result<String, IoError> {
-        let stem = output_stem(scenario_id)?.to_string();
+        let stem = output_stem_in(scenario_id, source)?.to_string();
         if let Some(first) = self.0.get(&stem) {
             return Err(IoError::invalid(
                 source,

@@ -342,6 +342,33 @@ pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<S
                     })?;
                     request = request.replace(&format!("{{{h}}}"), &v.to_string());
                 }
+                // A role the behaviour's checker judges, chosen per scene but named nowhere in
+                // the request (`vehicle {cutter} cuts in front of vehicle {cutter}`: {victim}
+                // left out): the request asked of one car what the checker judged against
+                // another, and every pair counted as a failure of the loop.
+                if let (Some(b), false) = (e.behaviour, holes.is_empty()) {
+                    let given = |r: &str| e.params.as_ref().is_some_and(|p| p.get(r).is_some());
+                    if let Some(role) = b
+                        .roles()
+                        .iter()
+                        .find(|r| !given(r) && !holes.iter().any(|h| h == *r))
+                    {
+                        let roles: Vec<String> =
+                            b.roles().iter().map(|r| format!("{{{r}}}")).collect();
+                        return Err(entry_err(
+                            e,
+                            None,
+                            format!(
+                                "the request names no {{{role}}}, an agent {}'s checker \
+                                 judges: it would be chosen for each scene and never named in \
+                                 the request; write each of {} where the request names that \
+                                 agent (or give it in `params:`)",
+                                b.name(),
+                                roles.join(", ")
+                            ),
+                        ));
+                    }
+                }
                 let checks = match e.behaviour {
                     Some(b) => vec![(b, params.clone())],
                     None => understand_request(&request)

@@ -533,7 +533,8 @@ impl HttpClient {
                     ),
                 });
             }
-            return parse_completion(&text, url).map_err(|e| self.redact_error(e));
+            return parse_completion_redacted(&text, url, &|s| self.redact(s))
+                .map_err(|e| self.redact_error(e));
         }
         let observe = |e: ClientEvent<'_>| {
             if let Some(o) = &self.observer {
@@ -646,7 +647,12 @@ impl HttpClient {
                 .headers()
                 .get(reqwest::header::RETRY_AFTER)
                 .and_then(|v| v.to_str().ok())
-                .and_then(|v| v.trim().parse::<f64>().ok())
+                .and_then(|v| {
+                    v.trim()
+                        .parse::<f64>()
+                        .ok()
+                        .or_else(|| seconds_until_http_date(v, std::time::SystemTime::now()))
+                })
                 .filter(|s| s.is_finite() && *s >= 0.0);
             if let Some(location) = resp
                 .headers()
@@ -753,6 +759,46 @@ impl HttpClient {
         }
         unreachable!("the last attempt returns")
     }
+}
+
+/// Seconds from `now` until the HTTP date `v` (`Wed, 21 Oct 2099 07:28:00 GMT`, the form HTTP
+/// requires a sender to use), which `Retry-After` may carry instead of a number of seconds: it
+/// was ignored, and the request retried after the plain backoff without a word. 0 for a date
+/// already past; `None` for anything else.
+fn seconds_until_http_date(v: &str, now: std::time::SystemTime) -> Option<f64> {
+    const MONTHS: [&str; 12] = [
+        "Jan", "Feb", "Mar", "Apr", "May", "Jun", "Jul", "Aug", "Sep", "Oct", "Nov", "Dec",
+    ];
+    let parts: Vec<&str> = v.split_ascii_whitespace().collect();
+    let [weekday, day, month, year, time, "GMT"] = parts[..] else {
+        return None;
+    };
+    if !weekday.ends_with(',') {
+        return None;
+    }
+    let day: i64 = day.parse().ok().filter(|d| (1..=31).contains(d))?;
+    let month = MONTHS.iter().position(|m| *m == month)? as i64 + 1;
+    let year: i64 = year.parse().ok().filter(|y| (1970..=9999).contains(y))?;
+    let hms: Vec<i64> = time
+        .split(':')
+        .map(|x| x.parse().ok())
+        .collect::<Option<Vec<i64>>>()?;
+    let [h, m, sec] = hms[..] else { return None };
+    if !((0..24).contains(&h) && (0..60).contains(&m) && (0..=60).contains(&sec)) {
+        return None;
+    }
+    // Days since 1970-01-01 of a proleptic Gregorian date (H. Hinnant's days_from_civil).
+    let y = if month <= 2 { year - 1 } else { year };
+    let era = y.div_euclid(400);
+    let yoe = y - era * 400;
+    let doy = (153 * ((month + 9) % 12) + 2) / 5 + day - 1;
+    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
+    let at = (era * 146_097 + doe - 719_468) * 86_400 + h * 3600 + m * 60 + sec;
+    let now = now
+        .duration_since(std::time::UNIX_EPOCH)
+        .ok()?
+        .as_secs_f64();
+    Some((at as f64 - now).max(0.0))
 }
 
 /// Which redirects the client follows: a 307 or 308 (which keep the method and the body) to
@@ -1166,13 +1212,26 @@ struct Completion {
     streamed: bool,
 }
 
-/// The first choice's text, the usage and whether the token limit cut it off, of a successful
-/// reply body.
+/// [`parse_completion_redacted`] redacting nothing.
+#[cfg(test)]
 fn parse_completion(text: &str, url: &str) -> Result<Completion, LlmError> {
+    parse_completion_redacted(text, url, &|s| s.to_string())
+}
+
+/// The first choice's text, the usage and whether the token limit cut it off, of a successful
+/// reply body; `redact` is applied to what the server wrote (a refusal, a tool's name) before
+/// any of it is cut into a message.
+fn parse_completion_redacted(
+    text: &str,
+    url: &str,
+    redact: &dyn Fn(&str) -> String,
+) -> Result<Completion, LlmError> {
     let bad = |why: String| LlmError::BadReply {
         url: url.into(),
         message: why,
     };
+    // JSON's own rule lets a reader ignore a byte order mark, which some gateways send.
+    let text = text.trim_start_matches('\u{feff}');
     let v: Value = serde_json::from_str(text).map_err(|e| {
         let head: String = text.trim().chars().take(120).collect();
         bad(format!("the reply is not JSON ({e}); it begins {head:?}"))
@@ -1191,31 +1250,52 @@ fn parse_completion(text: &str, url: &str) -> Result<Completion, LlmError> {
     let first = choices
         .first()
         .ok_or_else(|| bad("the reply's \"choices\" is empty".into()))?;
-    let content = match &first["message"]["content"] {
-        Value::String(s) => s.clone(),
-        // Some servers return content parts.
-        Value::Array(parts) => parts
-            .iter()
-            .filter_map(|p| p["text"].as_str())
-            .collect::<Vec<_>>()
-            .join(""),
-        _ => match first["text"].as_str() {
-            Some(s) => s.to_string(),
-            // A reasoning model that spent the whole token limit thinking sends no content
-            // (its thoughts go in `reasoning_content`): that is a reply cut off at the limit,
-            // as a stream of the same reply is, which the user can fix with --max-tokens; it
-            // was called "a refusal or a tool call" and ended the run.
-            None if first["finish_reason"].as_str() == Some("length") => String::new(),
-            None => {
-                return Err(bad(
-                    "the first choice has no message content (a refusal or a tool call?)".into(),
-                ))
-            }
-        },
+    let message = &first["message"];
+    // A refusal or a tool call carries no text; the model's words say why, and were dropped
+    // ("no message content (a refusal or a tool call?)", or an empty reply asked for again).
+    let mut tools = Vec::new();
+    super::stream::tool_names(message, &mut tools);
+    let tool_finish = matches!(
+        first["finish_reason"].as_str(),
+        Some("tool_calls" | "function_call")
+    );
+    let no_text = || {
+        super::stream::no_text_error(
+            url,
+            &super::stream::refusal_text(message),
+            &tools,
+            tool_finish,
+            redact,
+        )
     };
     if first["finish_reason"].as_str() == Some("content_filter") {
-        return Err(bad(content_filtered(content.chars().count())));
+        let chars =
+            super::stream::content_text(&message["content"]).map_or(0, |t| t.chars().count());
+        return Err(bad(content_filtered(chars)));
     }
+    // Some servers return content parts (text, and refusals).
+    let text = super::stream::content_text(&message["content"])
+        .or_else(|| first["text"].as_str().map(str::to_string));
+    if text.as_deref().is_none_or(|t| t.trim().is_empty()) {
+        if let Some(e) = no_text() {
+            return Err(e);
+        }
+    }
+    let content = match text {
+        Some(s) => s,
+        // A reasoning model that spent the whole token limit thinking sends no content
+        // (its thoughts go in `reasoning_content`): that is a reply cut off at the limit,
+        // as a stream of the same reply is, which the user can fix with --max-tokens; it
+        // was called "a refusal or a tool call" and ended the run.
+        None if first["finish_reason"].as_str() == Some("length") => String::new(),
+        None => {
+            let got: String = message["content"].to_string().chars().take(60).collect();
+            return Err(bad(format!(
+                "the first choice has no message content: `content` is {got}, not text, and \
+                 the message holds no refusal or tool call"
+            )));
+        }
+    };
     let usage = v
         .get("usage")
         .and_then(|u| serde_json::from_value::<Usage>(u.clone()).ok());

@@ -200,6 +200,16 @@ pub enum LlmError {
         /// What is wrong.
         message: String,
     },
+    /// The model refused to answer (`refusal` in its message): a run gives up on it, as
+    /// on any answer it cannot use, rather than asking again for the same refusal; a batch
+    /// records the pair so and goes on.
+    #[error("{url}: {message}")]
+    Refused {
+        /// The endpoint.
+        url: String,
+        /// The model's words, redacted and cut.
+        message: String,
+    },
     /// Any other transport failure.
     #[error("{url}: {message}")]
     Transport {

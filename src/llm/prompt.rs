@@ -126,6 +126,20 @@ impl Prompts {
     /// Reads every template from `dir` (examples from `dir/examples/*.md`, in name order) and
     /// checks their placeholders.
     pub fn load(dir: &Path) -> Result<Self, LlmError> {
+        // A folder that is not there (or a file) was "prompt template DIR/system.md: cannot
+        // read it: No such file or directory", as if one template of it were missing.
+        let folder = |why: &str| {
+            Err(LlmError::Setup(format!(
+                "the prompt folder {} (--prompts) {why}: it holds system.md, request.md and the \
+                 other templates, and examples/ (the shipped one is prompts/)",
+                crate::io::name::terminal_safe(&dir.display().to_string())
+            )))
+        };
+        match std::fs::metadata(dir) {
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return folder("does not exist"),
+            Ok(m) if !m.is_dir() => return folder("is a file, not a folder"),
+            _ => {}
+        }
         let mut total = 0u64;
         let mut read = |name: &str,
                         allowed: &[&str],

@@ -2121,7 +2121,16 @@ impl Session<'_> {
         if let Backend::Http(c) = &self.backend {
             progress(&format!("round {n}: asking {} ...", c.config().model));
             let sent = self.to_send(n, progress)?;
-            let ex = c.complete(&sent)?;
+            // A refusal ends the run as one that did not succeed, saying why: asked again it
+            // was refused again (up to --fixes times), and as an error it stopped a batch at
+            // the pair for good, however often the batch was run again.
+            let ex = match c.complete(&sent) {
+                Err(LlmError::Refused { message, .. }) => {
+                    progress(&format!("round {n}: {message}"));
+                    return Ok(Got::GiveUp(message));
+                }
+                other => other?,
+            };
             // Without usage the check that the server read the whole prompt cannot run:
             // said, not skipped in silence.
             let usage = ex.usage.map_or_else(

@@ -62,12 +62,122 @@ fn received(s: &Streamed) -> String {
 /// Whether a reply body is a stream of events: by its type, or by its first bytes where a
 /// server labels it wrongly.
 pub fn is_event_stream(content_type: Option<&str>, head: &[u8]) -> bool {
+    let head = String::from_utf8_lossy(head);
+    let head = head.trim_start_matches('\u{feff}').trim_start();
+    // A JSON body labelled as a stream (a proxy's or a server's mislabel) was read as events:
+    // it held none, and the reply was called "ended after 0 tokens", as if the server died.
+    if head.starts_with('{') {
+        return false;
+    }
     if content_type.is_some_and(|t| t.to_ascii_lowercase().contains("text/event-stream")) {
         return true;
     }
-    let head = String::from_utf8_lossy(head);
-    let head = head.trim_start();
     head.starts_with("data:") || head.starts_with("event:") || head.starts_with(": ")
+}
+
+/// The text of a message's `content`: a string, or an array of parts whose `text` fields
+/// are joined (some servers send content parts, streamed too); anything else is none.
+pub(crate) fn content_text(v: &Value) -> Option<String> {
+    match v {
+        Value::String(s) => Some(s.clone()),
+        Value::Array(parts) => Some(
+            parts
+                .iter()
+                .filter(|p| p["type"].as_str().is_none_or(|t| t == "text"))
+                .filter_map(|p| p["text"].as_str())
+                .collect::<Vec<_>>()
+                .join(""),
+        ),
+        _ => None,
+    }
+}
+
+/// The refusal a message carries (`refusal`, or content parts of type `refusal`), if any.
+pub(crate) fn refusal_text(message: &Value) -> String {
+    let mut out = message["refusal"].as_str().unwrap_or("").to_string();
+    if let Some(parts) = message["content"].as_array() {
+        for p in parts.iter().filter(|p| p["type"] == "refusal") {
+            out.push_str(p["refusal"].as_str().unwrap_or(""));
+        }
+    }
+    out
+}
+
+/// The names of the tools a message calls (`tool_calls`, or the older `function_call`), as
+/// sent, each once.
+pub(crate) fn tool_names(message: &Value, into: &mut Vec<String>) {
+    let calls = message["tool_calls"].as_array().into_iter().flatten();
+    let names = calls
+        .map(|c| &c["function"]["name"])
+        .chain(std::iter::once(&message["function_call"]["name"]));
+    for n in names.filter_map(Value::as_str).filter(|n| !n.is_empty()) {
+        if !into.iter().any(|x| x == n) {
+            into.push(n.to_string());
+        }
+    }
+}
+
+/// Why a reply with no text cannot be used, where the model said why: it refused (its
+/// words, cut to 300 characters: [`LlmError::Refused`]), or it called a tool drivescript
+/// never offered (an unusable reply). `None` where it did neither (an empty reply, which goes
+/// back to the model as such). What the server sent is `redact`ed before it is cut, so that
+/// no part of a key it echoed is left.
+pub(crate) fn no_text_error(
+    url: &str,
+    refusal: &str,
+    tools: &[String],
+    tool_finish: bool,
+    redact: &dyn Fn(&str) -> String,
+) -> Option<LlmError> {
+    let reason = no_text_reason(refusal, tools, tool_finish, redact)?;
+    Some(if refusal.trim().is_empty() {
+        LlmError::BadReply {
+            url: url.into(),
+            message: reason,
+        }
+    } else {
+        LlmError::Refused {
+            url: url.into(),
+            message: reason,
+        }
+    })
+}
+
+fn no_text_reason(
+    refusal: &str,
+    tools: &[String],
+    tool_finish: bool,
+    redact: &dyn Fn(&str) -> String,
+) -> Option<String> {
+    let refusal = redact(refusal.trim());
+    let refusal = refusal.trim();
+    if !refusal.is_empty() {
+        let mut shown: String = refusal.chars().take(300).collect();
+        if refusal.chars().count() > 300 {
+            shown.push_str("...");
+        }
+        return Some(format!(
+            "the model refused to answer: \"{}\"; asking again gets the same answer: reword \
+             the request, or use another model",
+            crate::io::name::terminal_safe(&shown.replace(['\n', '\r'], " "))
+        ));
+    }
+    if !tools.is_empty() || tool_finish {
+        let names: Vec<String> = tools
+            .iter()
+            .map(|t| crate::io::name::shown_counted(&redact(t)))
+            .collect();
+        let which = match names.len() {
+            0 => "a tool".to_string(),
+            _ => format!("the tool {}", crate::io::name::first_few(&names, 3)),
+        };
+        return Some(format!(
+            "the model answered with a call of {which} and no text: drivescript offers it no \
+             tools, so a proxy or the server's chat template adds them; turn that off, or use \
+             another model"
+        ));
+    }
+    None
 }
 
 /// Reads the events of `body` until `data: [DONE]`, a chunk with a `finish_reason` followed
@@ -94,6 +204,8 @@ pub fn read_stream<R: Read>(
     let mut out = Streamed::default();
     let mut first: Option<Instant> = None;
     let mut finished = false;
+    let (mut refusal, mut tools, mut tool_finish) = (String::new(), Vec::new(), false);
+    let mut event = String::new();
     let mut got = 0usize;
     let mut line = Vec::new();
     loop {
@@ -141,12 +253,34 @@ pub fn read_stream<R: Read>(
             });
         }
         let text = String::from_utf8_lossy(&line);
+        // A byte order mark may begin a stream (the event-stream format ignores it): the
+        // first event, the whole reply from some servers, was skipped as a line of no field.
+        let text = if got == n {
+            text.trim_start_matches('\u{feff}')
+        } else {
+            text.as_ref()
+        };
         let text = text.trim();
-        // Blank lines end events; `:` lines are keep-alive comments; `event:`, `id:` and
-        // `retry:` carry nothing a completion needs.
+        // Blank lines end events; `:` lines are keep-alive comments; `id:` and `retry:`
+        // carry nothing a completion needs. `event: error` names an event that carries the
+        // server's error in a shape of its own (`{"message": ...}`): it was read as a chunk of
+        // no choices and the stream called "ended after 0 tokens", the message dropped.
+        if text.is_empty() {
+            event.clear();
+        }
+        if let Some(name) = text.strip_prefix("event:") {
+            event = name.trim().to_string();
+        }
         let Some(data) = text.strip_prefix("data:") else {
             continue;
         };
+        if event.eq_ignore_ascii_case("error") {
+            return Err(bad(format!(
+                "the server sent an error event after {} tokens: {}",
+                out.tokens,
+                error_message_redacted(data, redact)
+            )));
+        }
         // JSON is UTF-8: bytes that are not were stored as U+FFFD in the reply without a word.
         if let Err(e) = std::str::from_utf8(&line) {
             return Err(bad(format!(
@@ -181,13 +315,25 @@ pub fn read_stream<R: Read>(
         {
             out.usage = Some(u);
         }
-        let Some(choice) = v["choices"].as_array().and_then(|c| c.first()) else {
+        // The first choice is the one of index 0 (a choice with none is taken for it): a
+        // chunk of another choice (a gateway asking for several) was appended to the reply.
+        let Some(choice) = v["choices"]
+            .as_array()
+            .and_then(|c| c.iter().find(|c| c["index"].as_u64().unwrap_or(0) == 0))
+        else {
             continue;
         };
-        let piece = choice["delta"]["content"]
-            .as_str()
-            .or_else(|| choice["text"].as_str())
-            .unwrap_or("");
+        let delta = &choice["delta"];
+        // Content parts (an array of `{type: "text", text}`) were dropped, and the reply
+        // called empty.
+        let piece = content_text(&delta["content"])
+            .or_else(|| choice["text"].as_str().map(str::to_string))
+            .unwrap_or_default();
+        let piece = piece.as_str();
+        // A refusal or a tool call brings no content: the reply was called empty and asked
+        // for again, up to --fixes times, each answered alike.
+        refusal.push_str(&refusal_text(delta));
+        tool_names(delta, &mut tools);
         let thought = ["reasoning_content", "reasoning"]
             .iter()
             .any(|k| choice["delta"][k].as_str().is_some_and(|t| !t.is_empty()));
@@ -208,8 +354,27 @@ pub fn read_stream<R: Read>(
                     out.content.chars().count(),
                 )));
             }
+            // vLLM ends a request it stopped itself (the client went, the server shuts down)
+            // with "abort"; the part that came was taken for the model's whole reply.
+            if ["abort", "aborted", "error", "cancelled", "canceled"].contains(&reason) {
+                return Err(LlmError::Reset {
+                    url: url.into(),
+                    bytes: got,
+                    message: format!(
+                        "the server stopped the reply itself (finish_reason \"{reason}\") after \
+                         {} tokens",
+                        out.tokens
+                    ),
+                });
+            }
+            tool_finish |= reason == "tool_calls" || reason == "function_call";
             finished = true;
             out.truncated |= reason == "length";
+        }
+    }
+    if out.content.trim().is_empty() {
+        if let Some(e) = no_text_error(url, &refusal, &tools, tool_finish, redact) {
+            return Err(e);
         }
     }
     Ok(out)

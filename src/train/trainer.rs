@@ -450,7 +450,7 @@ pub enum TrainError {
     Pca(#[from] crate::model::PcaError),
     /// The loss stopped being a number: training stops before the step is applied and
     /// before anything is written, so the last checkpoint stays good.
-    #[error("{which} loss is {value} at step {step}: training diverged (lower --lr); the last checkpoint written is kept")]
+    #[error("{which} loss is {value} at step {step}: training diverged (lower --lr); {kept}")]
     Diverged {
         /// `training` or `validation`.
         which: &'static str,
@@ -458,11 +458,17 @@ pub enum TrainError {
         step: usize,
         /// The loss.
         value: f64,
+        /// What of the run is left ([`kept`]).
+        kept: String,
     },
     /// A step made a weight stop being a number (a learning rate of 1e300 does it in one):
     /// found before the checkpoint is written, which every reader would refuse.
-    #[error("step {step}: tensor `{tensor}` holds {value}: training diverged (lower --lr); the last checkpoint written is kept")]
+    #[error(
+        "step {step}: tensor `{tensor}` holds {value}: training diverged (lower --lr); {kept}"
+    )]
     DivergedWeights {
+        /// What of the run is left ([`kept`]).
+        kept: String,
         /// The step.
         step: usize,
         /// The first tensor (by name) holding a value that is not a number.
@@ -764,6 +770,8 @@ pub fn train_from(
         ema_updates: 0,
     };
     let (mut run_loss, mut run_n) = (0.0, 0usize);
+    // The step of the last checkpoint this run wrote, for a divergence's message.
+    let mut saved: Option<usize> = None;
     for step in start..=cfg.steps {
         let mut rng = step_rng(step);
         opt.lr = learning_rate(cfg.lr, step, cfg.steps);
@@ -789,6 +797,7 @@ pub fn train_from(
                 which: "training",
                 step,
                 value: lv,
+                kept: kept(saved),
             });
         }
         opt.step(&l.backward()?)?;
@@ -805,6 +814,7 @@ pub fn train_from(
                 non_finite_weight(&varmap).map_err(TrainError::Data)?
             {
                 return Err(TrainError::DivergedWeights {
+                    kept: kept(saved),
                     step,
                     tensor,
                     value,
@@ -841,6 +851,7 @@ pub fn train_from(
                     which: "validation",
                     step,
                     value: x,
+                    kept: kept(saved),
                 });
             }
             meta.history.push((step, run_loss / run_n.max(1) as f64, v));
@@ -850,6 +861,7 @@ pub fn train_from(
             val = v;
             if let Some(dir) = out {
                 save(dir, &varmap, &meta, Some(&opt), ema.as_ref())?;
+                saved = Some(step);
             }
         }
         progress(step, lv, val);
@@ -863,6 +875,15 @@ pub fn train_from(
         optimizer: Some(opt),
         ema,
     })
+}
+
+/// What a diverged run leaves, said in its error: "the last checkpoint written is kept" was
+/// said of a run that diverged before it wrote any.
+fn kept(saved: Option<usize>) -> String {
+    match saved {
+        Some(step) => format!("the checkpoint written at step {step} is kept"),
+        None => "this run wrote no checkpoint".into(),
+    }
 }
 
 /// AdamW's decoupled weight decay.
