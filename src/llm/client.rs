@@ -135,8 +135,16 @@ impl HttpConfig {
         if !matches!(u.scheme(), "http" | "https") {
             return Err(bad("must start with http:// or https://"));
         }
-        if u.host_str().is_none_or(str::is_empty) {
-            return Err(bad("names no host"));
+        // The URL standard skips any number of slashes after `http:`, so `http:///v1` (the
+        // host left out) named host "v1", and the error was a failed connection to http://v1.
+        let after_scheme = self.url.trim().split_once(':').map_or("", |(_, rest)| rest);
+        let host_written = after_scheme
+            .strip_prefix("//")
+            .is_some_and(|rest| !rest.starts_with(['/', '\\']));
+        if u.host_str().is_none_or(str::is_empty) || !host_written {
+            return Err(bad(
+                "names no host (write it right after `//`, as http://localhost:8080/v1)",
+            ));
         }
         check_max_tokens_field(&self.max_tokens_field)?;
         if self
@@ -1474,6 +1482,27 @@ mod tests {
             c.endpoint(),
             "https://h/openai/v1/chat/completions?api-version=2024-06-01"
         );
+    }
+
+    #[test]
+    fn a_url_without_its_host_is_named_so_not_read_as_the_host_of_its_path() {
+        // `http:///v1` connected to host "v1" (the URL standard skips the extra slash).
+        for url in [
+            "http:///v1",
+            "http:v1",
+            "https:\\\\h/v1",
+            "http:////h/v1",
+            " http:///v1",
+        ] {
+            let e = HttpClient::new(HttpConfig::new(url, "m"))
+                .err()
+                .expect(url)
+                .to_string();
+            assert!(e.contains("names no host"), "{url}: {e}");
+        }
+        for url in ["http://h/v1", "HTTP://h:1/v1", " http://127.0.0.1:9/v1 "] {
+            assert!(HttpClient::new(HttpConfig::new(url, "m")).is_ok(), "{url}");
+        }
     }
 
     #[test]
