@@ -260,6 +260,42 @@ fn placeholders(request: &str) -> Vec<String> {
     out
 }
 
+/// Braces in a request are placeholders only: `{name}`, a name of letters, digits and `_`.
+/// `{{vehicle}}` was read as the placeholder `{vehicle`, and said as "no value for
+/// {{vehicle}"; a lone brace went to the model as written.
+fn check_braces(request: &str) -> Result<(), String> {
+    let mut rest = request;
+    while let Some(i) = rest.find(['{', '}']) {
+        let problem = if rest[i..].starts_with('}') {
+            Some("a `}` that closes no placeholder".to_string())
+        } else {
+            match rest[i + 1..].find(['{', '}']) {
+                Some(j) if rest[i + 1..].as_bytes()[j] == b'}' => {
+                    let name = &rest[i + 1..i + 1 + j];
+                    rest = &rest[i + 1 + j + 1..];
+                    if !name.is_empty()
+                        && name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+                    {
+                        continue;
+                    }
+                    Some(format!(
+                        "`{{{}}}`, whose name is not one of letters, digits and `_`",
+                        crate::io::name::shown(name)
+                    ))
+                }
+                _ => Some("a `{` that no `}` closes before the next brace".to_string()),
+            }
+        };
+        if let Some(p) = problem {
+            return Err(format!(
+                "the request holds {p}: braces are placeholders only, `{{role}}`, and cannot be \
+                 escaped"
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// Every (scene, request) pair of `entries`, with agents chosen for `{role}` placeholders.
 /// Pairs whose scene has no agents suited to the behaviour are returned as skip messages,
 /// never dropped silently. `horizon` is the sampler's.
@@ -286,6 +322,7 @@ pub fn expand(entries: &[Entry], horizon: usize) -> Result<(Vec<Instance>, Vec<S
             ));
         }
         files.sort();
+        check_braces(&e.request).map_err(|m| entry_err(e, None, m))?;
         let holes = placeholders(&e.request);
         for f in files {
             for scene in load_scenes(&f, &LoadOptions::default())
@@ -820,6 +857,29 @@ mod tests {
                     scene.display()
                 )) && err.contains(says),
                 "{params}: {err}"
+            );
+        }
+    }
+
+    #[test]
+    fn braces_in_a_request_are_placeholders_or_an_error_naming_them() {
+        for ok in ["vehicle {cutter} passes {victim_2}", "no braces", ""] {
+            assert_eq!(check_braces(ok), Ok(()), "{ok}");
+        }
+        for (bad, says) in [
+            (
+                "vehicle {{vehicle}} brakes",
+                "a `{` that no `}` closes before the next brace",
+            ),
+            ("vehicle {cutter passes", "a `{` that no `}` closes"),
+            ("vehicle cutter} passes", "a `}` that closes no placeholder"),
+            ("vehicle {a b} passes", "`{a b}`, whose name is not one of"),
+            ("vehicle {} passes", "`{}`, whose name is not one of"),
+        ] {
+            let e = check_braces(bad).unwrap_err();
+            assert!(
+                e.contains(says) && e.contains("cannot be escaped"),
+                "{bad}: {e}"
             );
         }
     }
