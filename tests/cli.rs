@@ -1035,6 +1035,32 @@ fn simulate_takes_a_script_reading_a_parameter_as_a_constant() {
 }
 
 #[test]
+fn simulate_says_that_a_script_prints_and_where_to_see_it() {
+    // `print` shows under `cost`; under `simulate` its lines were dropped without a word.
+    let dir = tempfile::tempdir().unwrap();
+    let script = dir.path().join("p.rhai");
+    std::fs::write(
+        &script,
+        "print(\"speed\");\nterm(\"x\", agent(2).speed.mean());\n",
+    )
+    .unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let out = dir.path().join("sim");
+    let o = drivescript(&simulate_args(
+        s(&scene),
+        "data/checkpoint",
+        &["--script", s(&script), "--steps", "8", "--horizon", "5"],
+        s(&out),
+    ));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        err.contains("p.rhai prints: sampling does not show what it prints; `drivescript cost` on the scene with this script does"),
+        "{err}"
+    );
+}
+
+#[test]
 fn a_slow_script_stops_at_the_run_s_script_budget_instead_of_running_for_minutes() {
     let dir = tempfile::tempdir().unwrap();
     // Tens of milliseconds per evaluation, within the per-call limit: the run's hundreds of

@@ -496,7 +496,16 @@ pub fn attempt_until(
         .iter()
         .map(|s| {
             let c = CostScript::compile(&s.source, &s.name, shared.clone(), &s.params, &s.limits)?;
-            c.validate()?;
+            let checked = c.validate()?;
+            // Sampling evaluates a script hundreds of times and shows none of its prints: a
+            // user debugging with `print` under `simulate` saw nothing and no word why.
+            if !checked.prints.is_empty() {
+                warnings.push(format!(
+                    "script {} prints: sampling does not show what it prints; `drivescript cost` \
+                     on the scene with this script does",
+                    s.name
+                ));
+            }
             let dead = c.dead_terms();
             if spec.refuse_dead_terms {
                 if let Some(first) = dead.first() {
