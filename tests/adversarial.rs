@@ -999,6 +999,49 @@ fn a_nan_bound_threshold_or_shape_parameter_is_refused() {
         .expect("an infinite bound is no bound");
 }
 
+/// Sharpness parameters at their extremes: `on_road(-5)` turned the indicator over (0 on the
+/// road) and was taken without a word, `on_road(inf)` and `sigmoid(x, inf)` ended as "a
+/// non-finite gradient (NaN)" naming no call, `s.smooth_max(1e300)` on a series of positions
+/// too (0 × inf in the gradient of elements whose weight underflowed), and `softplus(x,
+/// 1e300)` was "term is inf" though it is x there.
+#[test]
+fn sharpness_parameters_at_their_extremes_are_refused_by_name_or_computed() {
+    for (call, says) in [
+        (
+            "agent(1).on_road(-5.0).sum()",
+            "on_road: k must be positive (the sharpness of the step; 1 to 10 is usual), got -5",
+        ),
+        ("agent(1).on_road(0.0).sum()", "on_road: k must be positive"),
+        (
+            "agent(1).on_road(1.0 / 0.0).sum()",
+            "on_road: k must be positive",
+        ),
+        (
+            "sigmoid(agent(1).x, 1.0 / 0.0).sum()",
+            "sigmoid parameter must be a finite number, got inf",
+        ),
+    ] {
+        fails(&format!("term(\"t\", {call});"), &[says]);
+    }
+    // Vehicle 1's x grows over the future: its last value is the maximum.
+    for beta in ["1e300", "1e308", "1e6"] {
+        let r = run(&format!("term(\"t\", agent(1).x.smooth_max({beta}));"))
+            .unwrap_or_else(|e| panic!("smooth_max({beta}): {e}"));
+        let last = run("term(\"t\", agent(1).x.last());").unwrap();
+        assert!(
+            (r.terms[0].value - last.terms[0].value).abs() < 1e-9,
+            "{beta}: {} vs {}",
+            r.terms[0].value,
+            last.terms[0].value
+        );
+    }
+    let r = run("term(\"t\", softplus(agent(1).x, 1e300).sum());").unwrap();
+    let x = run("term(\"t\", agent(1).x.sum());").unwrap();
+    assert!((r.terms[0].value - x.terms[0].value).abs() < 1e-6 * x.terms[0].value.abs());
+    // A negative sigmoid k is a step the other way, and stays allowed.
+    run("term(\"t\", sigmoid(agent(1).x - 62.0, -1.0).sum());").unwrap();
+}
+
 /// `s[0]` on a Series said "Indexer unavailable: Series [i64]": Rhai's words and Rust's
 /// integer type, and not what to write instead.
 #[test]

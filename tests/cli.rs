@@ -195,6 +195,42 @@ fn womd_files_written_by_convert_inspect_and_render() {
     );
 }
 
+/// A TFRecord has no drivable areas and no lane boundaries of its own: `convert -o x.tfrecord`
+/// of a CommonRoad scene dropped its 12 drivable areas and 12 lanes' boundaries without a
+/// word, and the file read back as another map (off-road from road edges only, 3.6 m lanes).
+/// Now each part it cannot hold is said; YAML, which holds every part, says nothing.
+#[test]
+fn convert_says_what_a_tfrecord_cannot_hold() {
+    let dir = tempfile::tempdir().unwrap();
+    let xml = samples().join("commonroad/USA_US101-3_3_T-1.xml");
+    let tf = dir.path().join("us101.tfrecord");
+    let out = drivescript(&["convert", s(&xml), "-o", s(&tf)]);
+    assert!(out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("us101.tfrecord does not hold 12 drivable area(s): WOMD has none")
+            && err.contains("does not hold the boundaries of 12 lane(s)"),
+        "{err}"
+    );
+    assert_eq!(inspect_json(s(&tf))[0]["drivable_areas"], 0);
+    // AV2's static objects lose their flag.
+    let out = drivescript(&["convert", s(&samples().join("av2")), "-o", s(&tf)]);
+    assert!(out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("does not hold which 8 agent(s) are static"),
+        "{err}"
+    );
+    let yaml = dir.path().join("us101.yaml");
+    let out = drivescript(&["convert", s(&xml), "-o", s(&yaml)]);
+    assert!(out.status.success());
+    assert!(
+        out.stderr.is_empty(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
 #[test]
 fn render_svg_png_gif() {
     let dir = tempfile::tempdir().unwrap();
@@ -323,6 +359,33 @@ fn convert_to_yaml_round_trips_every_format() {
             );
         }
         assert_eq!(b["format"], "yaml");
+    }
+}
+
+/// AV2's static objects (cones, parked things) were written as `static: true` beside their
+/// recorded states, and the YAML reader then replaced those states with the first observed
+/// pose at every step: 8 objects of the AV2 sample moved, and 5 unobserved for part of the
+/// recording were present throughout, so the file read back as another scene without a word.
+/// Explicit states are now kept as given; the trajectories of the YAML are the source's.
+#[test]
+fn explicit_states_of_a_static_agent_read_back_as_written() {
+    let dir = tempfile::tempdir().unwrap();
+    let yaml = dir.path().join("av2.yaml");
+    ok(&["convert", s(&samples().join("av2")), "-o", s(&yaml)]);
+    assert!(std::fs::read_to_string(&yaml)
+        .unwrap()
+        .contains("static: true"));
+    let (a, b) = (dir.path().join("a.json"), dir.path().join("b.json"));
+    ok(&["convert", s(&samples().join("av2")), "-o", s(&a)]);
+    ok(&["convert", s(&yaml), "-o", s(&b)]);
+    let agents = |p: &std::path::Path| {
+        let v: Value = serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap();
+        v["agents"].clone()
+    };
+    let (a, b) = (agents(&a), agents(&b));
+    assert_eq!(a.as_array().unwrap().len(), 58);
+    for (x, y) in a.as_array().unwrap().iter().zip(b.as_array().unwrap()) {
+        assert_eq!(x, y, "agent {} changed on the way through YAML", x["id"]);
     }
 }
 
@@ -3953,6 +4016,37 @@ fn a_long_role_value_is_quoted_cut_with_its_length() {
     ]);
     let err = String::from_utf8_lossy(&run.stderr).into_owned();
     assert!(err.contains("1 to 32 printable characters"), "{err}");
+}
+
+/// `--role 1=cutter,2=victim` (two roles in one value) labelled agent 1 "cutter,2=victim" and
+/// left agent 2 plain, exit 0. A role holding '=' is refused, naming the repeated flag.
+#[test]
+fn two_roles_in_one_role_value_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let out = dir.path().join("x.svg");
+    for value in ["1=cutter,2=victim", "1=cutter 2=victim", "1=a=b"] {
+        let run = drivescript(&["render", s(&scene), "--role", value, "-o", s(&out)]);
+        assert_eq!(run.status.code(), Some(2), "{value}");
+        let err = String::from_utf8_lossy(&run.stderr).into_owned();
+        assert!(
+            err.contains(&format!(
+                "'{value}': a role cannot hold '=': give --role once per agent"
+            )),
+            "{err}"
+        );
+        assert!(!out.exists());
+    }
+    ok(&[
+        "render",
+        s(&scene),
+        "--role",
+        "1=cutter",
+        "--role",
+        "2=victim",
+        "-o",
+        s(&out),
+    ]);
 }
 
 /// Every flag whose value is checked quotes a long bad value cut to 64 characters with its

@@ -2939,6 +2939,48 @@ fn a_replayed_transcript_reproduces_the_run_without_a_server() {
         t.contains("replay differs: sampling round 1: the verdict differs"),
         "{t}"
     );
+    // The transcript shared on its own, without its run directory: nothing was compared and
+    // nothing said, so a replay that ended otherwise exited 0. Its recorded outcome is
+    // compared now, and what could not be is said.
+    let alone = dir.path().join("alone");
+    std::fs::create_dir(&alone).unwrap();
+    let recorded = std::fs::read_to_string(run.join("transcript.json")).unwrap();
+    std::fs::write(alone.join("transcript.json"), &recorded).unwrap();
+    let out = ask(
+        &[
+            "--replay",
+            s(&alone.join("transcript.json")),
+            "-o",
+            s(&dir.path().join("fourth")),
+        ],
+        None,
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(0), "{t}");
+    assert!(
+        t.contains("replay: only the outcome was compared: ")
+            && t.contains("has no state.json beside it")
+            && !t.contains("replay differs"),
+        "{t}"
+    );
+    let mut v: serde_json::Value = serde_json::from_str(&recorded).unwrap();
+    v["outcome"] = serde_json::json!({"RoundsUsed": {"round": 0, "sample": 0}});
+    std::fs::write(alone.join("transcript.json"), v.to_string()).unwrap();
+    let out = ask(
+        &[
+            "--replay",
+            s(&alone.join("transcript.json")),
+            "-o",
+            s(&dir.path().join("fifth")),
+        ],
+        None,
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(2), "{t}");
+    assert!(
+        t.contains("replay differs: the outcome differs: {\"RoundsUsed\""),
+        "{t}"
+    );
 }
 
 #[test]

@@ -826,18 +826,18 @@ pub fn run(args: Args, given: &[String]) -> Result<ExitCode> {
     let mut reproduced = true;
     if let Some(file) = &args.replay {
         let original = file.parent().unwrap_or(Path::new("."));
-        if original.join("state.json").is_file() {
-            let diffs = drivescript::llm::replay::compare(original, &dir)?;
-            reproduced = diffs.is_empty();
-            if reproduced {
-                println!(
-                    "replay: the same scripts, verdicts and outcome as the recorded run in {}",
-                    super::shown(&original)
-                );
-            }
-            for d in &diffs {
-                println!("replay differs: {d}");
-            }
+        let c = drivescript::llm::replay::compare_replay(file, &dir)?;
+        reproduced = c.differences.is_empty();
+        match &c.not_compared {
+            None if reproduced => println!(
+                "replay: the same scripts, verdicts and outcome as the recorded run in {}",
+                super::shown(original)
+            ),
+            None => {}
+            Some(why) => println!("replay: {why}"),
+        }
+        for d in &c.differences {
+            println!("replay differs: {d}");
         }
     }
     match outcome {

@@ -54,5 +54,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
     format.write(&args.output, &scene)?;
     super::print_wrote(&args.output);
+    // What the format cannot hold, so that a round trip that changes the scene says so.
+    for lost in format.left_out(&scene) {
+        eprintln!("note: {} does not hold {lost}", super::shown(&args.output));
+    }
     Ok(ExitCode::SUCCESS)
 }

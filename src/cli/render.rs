@@ -71,6 +71,14 @@ fn parse_role(s: &str) -> Result<(i64, String), String> {
         .parse()
         .map_err(|_| format!("{}: {} is not an agent id", q(s), q(id)))?;
     let role = role.trim();
+    // `--role 389=cutter,401=victim` labelled 389 "cutter,401=victim" and left 401 plain.
+    if role.contains('=') {
+        return Err(format!(
+            "{}: a role cannot hold '=': give --role once per agent (--role 389=cutter --role \
+             401=victim)",
+            q(s)
+        ));
+    }
     if role.is_empty()
         || role.chars().count() > 32
         || role.chars().any(drivescript::io::name::unshowable)

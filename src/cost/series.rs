@@ -392,11 +392,14 @@ impl Series {
             .collect();
         let z: f64 = w.iter().map(|(e, _, _)| e).sum();
         let val = w.iter().map(|(e, v, _)| e * v).sum::<f64>() / z;
-        // ∂/∂vᵢ = pᵢ (1 + β (vᵢ − val)), pᵢ the softmax weight.
+        // ∂/∂vᵢ = pᵢ (1 + β (vᵢ − val)), pᵢ the softmax weight. An element whose weight
+        // underflowed to 0 adds nothing (pᵢ falls faster than β (vᵢ − val) grows); written
+        // out it was 0 × inf = NaN for a large beta ("a non-finite gradient").
         Ok(Dual::new(
             val,
             accumulate(
                 w.iter()
+                    .filter(|&&(e, _, _)| e > 0.0)
                     .map(|&(e, v, r)| (r, e / z * (1.0 + beta * (v - val)))),
             ),
         ))

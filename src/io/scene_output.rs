@@ -63,6 +63,60 @@ impl SceneOutput {
         check_replaces_own(output, flag, self.what(), |p| self.holds_own(p))
     }
 
+    /// What of `scene` this format cannot hold, one line each ("12 drivable areas ..."), for
+    /// `convert` to say: a WOMD TFRecord has no drivable areas and no lane boundaries of its
+    /// own (its lanes point into road lines), no static agents and no bus lanes. A
+    /// file that reads back without them would otherwise change what `eval` counts as off the
+    /// road, and what `lane_width` and `f.to_left` give, without a word. Empty for YAML, which
+    /// holds every part, and for a rollout, which holds trajectories by design.
+    pub fn left_out(self, scene: &Scene) -> Vec<String> {
+        let map = &scene.map;
+        let mut lost = Vec::new();
+        match self {
+            // A rollout holds trajectories only, as its name says; YAML holds every part.
+            Self::Yaml | Self::Rollout => {}
+            Self::Tfrecord => {
+                let areas = map.drivable_areas().len();
+                if areas > 0 {
+                    lost.push(format!(
+                        "{areas} drivable area(s): WOMD has none, so the file's off-road \
+                         distance comes from its road edges alone"
+                    ));
+                }
+                let bounded = map
+                    .lanes()
+                    .iter()
+                    .filter(|l| l.left_boundary.is_some() || l.right_boundary.is_some())
+                    .count();
+                if bounded > 0 {
+                    lost.push(format!(
+                        "the boundaries of {bounded} lane(s): WOMD lanes have none of their own, \
+                         so lane_width and f.to_left/f.to_right fall back to a 3.6 m lane"
+                    ));
+                }
+                let parked = scene.agents.iter().filter(|a| a.is_static).count();
+                if parked > 0 {
+                    lost.push(format!(
+                        "which {parked} agent(s) are static: WOMD has no such flag, so they \
+                         read back as agents that the sampler moves"
+                    ));
+                }
+                let bus = map
+                    .lanes()
+                    .iter()
+                    .filter(|l| l.lane_type == crate::scene::LaneType::Bus)
+                    .count();
+                if bus > 0 {
+                    lost.push(format!(
+                        "the type of {bus} bus lane(s): WOMD has no bus lanes; they are written \
+                         as surface streets"
+                    ));
+                }
+            }
+        }
+        lost
+    }
+
     /// Writes `scene` to `path` in this format, atomically (devices and pipes in place).
     pub fn write(self, path: &Path, scene: &Scene) -> Result<(), IoError> {
         match self {

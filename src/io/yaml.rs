@@ -955,8 +955,11 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
         for s in states.iter_mut().take(a.valid_from) {
             *s = AgentState::INVALID;
         }
-        if a.is_static {
-            // It holds its first observed pose, standing still.
+        if a.is_static && a.states.is_none() {
+            // It holds its first observed pose, standing still. Explicit states are kept as
+            // written: `convert` writes a recorded static object's (AV2's jitter by
+            // millimetres, and its unobserved steps), and filling them with the first pose
+            // moved it and made it present where it was not observed.
             if let Some(first) = states.iter().find(|s| s.valid).copied() {
                 for s in states.iter_mut().skip(a.valid_from) {
                     *s = AgentState {

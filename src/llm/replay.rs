@@ -93,6 +93,11 @@ pub fn read_transcript(path: &Path) -> Result<Recorded, LlmError> {
     };
     let config: SessionConfig = serde_json::from_value(t["config"].clone())
         .map_err(|e| bad(path, format!("\"config\": {}", plain_types(&e.to_string()))))?;
+    // A setting out of range was said as "sampler settings: samples = 0: must be 1 to 1024",
+    // naming neither the transcript nor its config, though no flag of the user's gave it.
+    if let Some(p) = config.problem() {
+        return Err(bad(path, format!("\"config\": {p}")));
+    }
     let scene = t["scene"]
         .as_str()
         .map(PathBuf::from)
@@ -236,6 +241,56 @@ pub fn compare(original: &Path, replayed: &Path) -> Result<Vec<String>, LlmError
     Ok(out)
 }
 
+/// What [`compare_replay`] found: the differences, and what it could not compare.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ReplayComparison {
+    /// Where the replay differs (empty when it reproduces what was compared).
+    pub differences: Vec<String>,
+    /// What was left uncompared, in words (`None` when the whole run was compared).
+    pub not_compared: Option<String>,
+}
+
+/// Compares the replay in `replayed` with the run recorded in `transcript`. With the run's
+/// directory beside it (its state.json and rounds) the whole run is compared ([`compare`]).
+/// A transcript moved or shared on its own holds the outcome alone: that is compared, and
+/// what could not be is said. A replay of such a transcript compared nothing before and said
+/// nothing, so a changed outcome passed as reproduced (exit 0).
+pub fn compare_replay(transcript: &Path, replayed: &Path) -> Result<ReplayComparison, LlmError> {
+    let original = transcript.parent().unwrap_or(Path::new("."));
+    if original.join("state.json").is_file() {
+        return Ok(ReplayComparison {
+            differences: compare(original, replayed)?,
+            not_compared: None,
+        });
+    }
+    let t = read_json(transcript)?;
+    let b = read_json(&replayed.join("state.json"))?;
+    let mut differences = Vec::new();
+    let why = format!(
+        "{} has no state.json beside it (the transcript was moved from its run directory), so \
+         the scripts and verdicts of its rounds could not be compared",
+        transcript.display()
+    );
+    if t["outcome"].is_null() {
+        return Ok(ReplayComparison {
+            differences,
+            not_compared: Some(format!(
+                "nothing was compared: {why}, and it records no outcome"
+            )),
+        });
+    }
+    if t["outcome"] != b["outcome"] {
+        differences.push(format!(
+            "the outcome differs: {} recorded, {} replayed",
+            t["outcome"], b["outcome"]
+        ));
+    }
+    Ok(ReplayComparison {
+        differences,
+        not_compared: Some(format!("only the outcome was compared: {why}")),
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -278,6 +333,27 @@ mod tests {
             e.contains(
                 "\"config\": invalid value: integer `-1`, expected a whole number, 0 or more"
             ),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn a_config_setting_out_of_range_names_the_transcript() {
+        // "sampler settings: samples = 0: must be 1 to 1024", naming no file.
+        let d = tempfile::tempdir().unwrap();
+        let t = d.path().join("transcript.json");
+        let v = serde_json::json!({
+            "backend": "http", "requests": ["r"], "scene": "s", "records": [],
+            "config": {"context": null, "fixes": 3, "guidance": "output", "lambda": 3.0,
+                       "max_agents": 30, "polish": 300,
+                       "prompt": {"cot": "designed", "frenet": true}, "realism": 1.0,
+                       "replan": null, "rounds": 1, "samples": 0, "script_budget": 300.0,
+                       "seed": 1, "tolerance": 0.05}
+        });
+        std::fs::write(&t, v.to_string()).unwrap();
+        let e = read_transcript(&t).err().expect("samples 0").to_string();
+        assert!(
+            e.contains("transcript.json") && e.contains("\"config\": samples = 0: must be 1 to"),
             "{e}"
         );
     }

@@ -54,20 +54,30 @@ pub fn parse_reply(text: &str) -> Result<Reply, ReplyError> {
     }
     let mut blocks: Vec<(String, String)> = Vec::new(); // (tag, body)
     let mut outside = String::new();
-    let mut open: Option<(usize, String, String)> = None; // (line, tag, body)
+    // (line, tag, body, fence). Markdown fences a block with ``` or ~~~ (some models and
+    // chat UIs write the latter); a ~~~rhai block was "no ```rhai code block".
+    let mut open: Option<(usize, String, String, &str)> = None;
     for (i, line) in text.lines().enumerate() {
         let t = line.trim_start();
         match &mut open {
             None => {
-                if let Some(rest) = t.strip_prefix("```") {
-                    open = Some((i + 1, rest.trim().to_ascii_lowercase(), String::new()));
+                if let Some((fence, rest)) = ["```", "~~~"]
+                    .iter()
+                    .find_map(|f| t.strip_prefix(f).map(|r| (*f, r)))
+                {
+                    open = Some((
+                        i + 1,
+                        rest.trim().to_ascii_lowercase(),
+                        String::new(),
+                        fence,
+                    ));
                 } else {
                     outside.push_str(line);
                     outside.push('\n');
                 }
             }
-            Some((_, tag, body)) => {
-                if t.trim_end() == "```" {
+            Some((_, tag, body, fence)) => {
+                if t.trim_end() == *fence {
                     blocks.push((std::mem::take(tag), std::mem::take(body)));
                     open = None;
                 } else {
@@ -97,7 +107,7 @@ pub fn parse_reply(text: &str) -> Result<Reply, ReplyError> {
             source: body.clone(),
         });
     }
-    if let Some((line, tag, _)) = open {
+    if let Some((line, tag, _, _)) = open {
         if tag == "rhai" || tag.is_empty() {
             return Err(ReplyError::Unclosed(line));
         }
@@ -129,6 +139,26 @@ mod tests {
             .to_string()
             .starts_with("the reply is empty"));
         assert_eq!(parse_reply("hello"), Err(ReplyError::NoScript));
+    }
+
+    #[test]
+    fn a_block_fenced_with_tildes_is_read_as_one_fenced_with_backticks() {
+        // "the reply has no ```rhai code block" for a valid Markdown fence.
+        let r = parse_reply("Plan.\n~~~rhai\nterm(\"x\", agent(1).x.last());\n~~~\n").unwrap();
+        assert_eq!(
+            r,
+            Reply::Script {
+                reasoning: "Plan.".into(),
+                source: "term(\"x\", agent(1).x.last());\n".into(),
+            }
+        );
+        // A fence closes only with its own kind: ``` inside a ~~~ block is text.
+        let r = parse_reply("~~~rhai\nlet s = \"```\";\n```\n~~~\n").unwrap();
+        assert!(matches!(r, Reply::Script { source, .. } if source == "let s = \"```\";\n```\n"));
+        assert_eq!(
+            parse_reply("~~~rhai\nlet a = 1;\n"),
+            Err(ReplyError::Unclosed(1))
+        );
     }
 
     #[test]

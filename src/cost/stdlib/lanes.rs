@@ -371,7 +371,16 @@ pub(super) fn register(e: &mut Engine, shared: &Shared, docs: &mut Vec<DocEntry>
     e.register_fn(
         "on_road",
         move |a: &mut AgentRef, k: Dynamic| -> RResult<Series> {
+            // A k of 0 or below turns the indicator over (near 0 on the road) or flat, and a
+            // term built on it is 0 on the road, silently: the same k must be positive as
+            // softplus's beta and ttc's cap.
             let k = super::real(&k, "on_road k")?;
+            if !(k.is_finite() && k > 0.0) {
+                return err(format!(
+                    "on_road: k must be positive (the sharpness of the step; 1 to 10 is usual), got {}",
+                    crate::geom::num(k)
+                ));
+            }
             let d = edge_series(&sh, *a, BoxPoint::Farthest)?;
             d.map("on_road", |v| {
                 let s = 1.0 / (1.0 + (k * v).exp());

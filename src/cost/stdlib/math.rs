@@ -175,9 +175,12 @@ fn neg(v: f64) -> Option<(f64, f64)> {
 fn softplus(v: f64, beta: f64) -> Option<(f64, f64)> {
     let z = beta * v;
     // log(1 + e^z) without overflow.
-    let sp = if z > 30.0 { z } else { z.exp().ln_1p() };
     let sig = 1.0 / (1.0 + (-z).exp());
-    Some((sp / beta, sig))
+    if z > 30.0 {
+        // log(1 + e^z) / beta = v within 1e-13 here; z / beta overflowed for a huge beta.
+        return Some((v, sig));
+    }
+    Some((z.exp().ln_1p() / beta, sig))
 }
 fn sigmoid(v: f64, k: f64) -> Option<(f64, f64)> {
     let s = 1.0 / (1.0 + (-k * v).exp());
@@ -274,8 +277,14 @@ fn unary_with_param(
         let p = real(&p, &what)?;
         let p = if positive_only {
             positive(p, &what)?
-        } else {
+        } else if p.is_finite() {
             p
+        } else {
+            // sigmoid's k: an infinite one is a step with no gradient, and NaN at 0.
+            return err(format!(
+                "{what} must be a finite number, got {}",
+                crate::geom::num(p)
+            ));
         };
         unary(Val::from_dynamic(&x, name)?, name, move |v| f(v, p)).map(Val::into_dynamic)
     });
