@@ -170,6 +170,52 @@ fn an_av2_lane_boundary_beyond_any_map_is_refused_naming_it() {
         out.contains("map: 1 lane segment(s) of lane_type \"HOVERCRAFT\", not one of AV2's"),
         "{out}"
     );
+    // A lane naming itself, a lane of coinciding boundaries, a key that is not the id and a
+    // map of no lanes loaded without a word (issue 32).
+    let id = good["lane_segments"][&key]["id"].clone();
+    let mut own = good.clone();
+    own["lane_segments"][&key]["left_neighbor_id"] = id.clone();
+    std::fs::write(&map, own.to_string()).unwrap();
+    let out = ok(&["inspect", s(dir.path())]);
+    assert!(
+        out.contains(&format!("map: lane segment(s) {id} name themselves as their own successor, predecessor or neighbour: that link is dropped")),
+        "{out}"
+    );
+    let mut flat = good.clone();
+    flat["lane_segments"][&key]["right_lane_boundary"] =
+        good["lane_segments"][&key]["left_lane_boundary"].clone();
+    std::fs::write(&map, flat.to_string()).unwrap();
+    let out = ok(&["inspect", s(dir.path())]);
+    assert!(
+        out.contains(&format!(
+            "map: lane segment(s) {id}: the boundaries coincide (zero width)"
+        )),
+        "{out}"
+    );
+    let mut rekeyed = good.clone();
+    rekeyed["lane_segments"][&key]["id"] = serde_json::json!(7);
+    std::fs::write(&map, rekeyed.to_string()).unwrap();
+    let err = fails(&["inspect", s(dir.path())]);
+    assert!(
+        err.contains(&format!(
+            "lane_segments[{key}].id: is 7, not the segment's key: AV2 keys each lane segment by its id"
+        )),
+        "{err}"
+    );
+    let mut bare = good.clone();
+    bare["lane_segments"] = serde_json::json!({});
+    std::fs::write(&map, bare.to_string()).unwrap();
+    let out = ok(&["inspect", s(dir.path())]);
+    assert!(out.contains("map: no lane segments"), "{out}");
+    // The sample as written says none of this.
+    std::fs::write(&map, good.to_string()).unwrap();
+    let out = ok(&["inspect", s(dir.path())]);
+    assert!(
+        !out.contains("name themselves")
+            && !out.contains("coincide")
+            && !out.contains("no lane segments"),
+        "{out}"
+    );
 }
 
 const AV2_ID: &str = "0a1e6f0a-1817-4a98-b02e-db8c9327d151";

@@ -539,7 +539,31 @@ fn read_map(path: &Path) -> Result<(Map, Vec<String>), IoError> {
     let mut lines: Vec<(Polyline, String)> = Vec::new();
     let mut dirs: HashMap<i64, Point> = HashMap::new();
     let mut unknown_types: std::collections::BTreeMap<String, usize> = Default::default();
+    // Read as written without a word before: a lane naming itself (the graph drops the
+    // link), and one whose boundaries coincide (no surface).
+    let (mut own_link, mut zero_width) = (Vec::new(), Vec::new());
     for (key, l) in &m.lane_segments {
+        // AV2 keys each segment by its id: a key that differs (an edited file) made the
+        // links that name one of the two point outside the map.
+        if key.trim().parse::<i64>().ok() != Some(l.id) {
+            return Err(IoError::invalid(
+                path,
+                format!("lane_segments[{}].id", super::name::shown(key)),
+                format!(
+                    "is {}, not the segment's key: AV2 keys each lane segment by its id",
+                    l.id
+                ),
+            ));
+        }
+        if l.successors
+            .iter()
+            .chain(&l.predecessors)
+            .chain(&l.left_neighbor_id)
+            .chain(&l.right_neighbor_id)
+            .any(|r| *r == l.id)
+        {
+            own_link.push(l.id.to_string());
+        }
         let c = Polyline::new(pts(&l.centerline))
             .map_err(|e| geom_err(format!("lane_segments[{key}].centerline"), e))?;
         dirs.insert(l.id, c.last() - c.first());
@@ -554,6 +578,11 @@ fn read_map(path: &Path) -> Result<(Map, Vec<String>), IoError> {
         };
         lane.left_boundary = boundary("left_lane_boundary", &l.left_lane_boundary)?;
         lane.right_boundary = boundary("right_lane_boundary", &l.right_lane_boundary)?;
+        if let (Some(lb), Some(rb)) = (&lane.left_boundary, &lane.right_boundary) {
+            if super::commonroad::signed_width(lb, rb).0 < super::commonroad::ZERO_WIDTH {
+                zero_width.push(l.id.to_string());
+            }
+        }
         lane.lane_type = match l.lane_type.as_deref() {
             Some("VEHICLE") => LaneType::SurfaceStreet,
             Some("BIKE") => LaneType::Bike,
@@ -633,7 +662,7 @@ fn read_map(path: &Path) -> Result<(Map, Vec<String>), IoError> {
             Polygon::new(ring).map_err(|e| geom_err(format!("pedestrian_crossings[{key}]"), e))?,
         );
     }
-    let warnings = unknown_types
+    let mut warnings: Vec<String> = unknown_types
         .iter()
         .map(|(t, n)| {
             format!(
@@ -642,6 +671,27 @@ fn read_map(path: &Path) -> Result<(Map, Vec<String>), IoError> {
             )
         })
         .collect();
+    if !own_link.is_empty() {
+        warnings.push(format!(
+            "map: lane segment(s) {} name themselves as their own successor, predecessor or \
+             neighbour: that link is dropped",
+            super::first_few(&own_link)
+        ));
+    }
+    if !zero_width.is_empty() {
+        warnings.push(format!(
+            "map: lane segment(s) {}: the boundaries coincide (zero width): no surface, so \
+             nothing on it reads as on the lane",
+            super::first_few(&zero_width)
+        ));
+    }
+    if m.lane_segments.is_empty() {
+        warnings.push(
+            "map: no lane segments: no agent is on a lane, and lane-based script terms and the \
+             model's lane inputs are empty"
+                .into(),
+        );
+    }
     let map = Map::new(parts).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
         location: "lane_segments".into(),

@@ -378,7 +378,7 @@ impl LaneletNotes {
 /// the angle from the driving direction to the right-to-left vector, near 1 where the left
 /// bound lies left, as CommonRoad's bounds do, and near -1 where they are swapped; 0 where a
 /// lanelet is too short (under 1 m) for its direction to say.
-fn signed_width(left: &Polyline, right: &Polyline) -> (f64, f64) {
+pub(super) fn signed_width(left: &Polyline, right: &Polyline) -> (f64, f64) {
     let n = left.points().len().max(right.points().len()).max(2);
     let (l, r) = (left.resample_count(n), right.resample_count(n));
     let (mut width, mut side, mut length) = (0.0, 0.0, 0.0);
@@ -399,7 +399,7 @@ fn signed_width(left: &Polyline, right: &Polyline) -> (f64, f64) {
 }
 
 /// Below this mean width (metres) a lanelet's bounds coincide.
-const ZERO_WIDTH: f64 = 0.05;
+pub(super) const ZERO_WIDTH: f64 = 0.05;
 
 fn read_map(
     cx: &Ctx,
