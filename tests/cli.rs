@@ -4668,12 +4668,31 @@ fn an_output_named_only_by_its_extension_is_told_so() {
     assert!(!out.exists());
 }
 
+/// Runs `test-scripts` on a one-case file for scripts/follow.rhai on highway_crash (`case`:
+/// the case's keys after `scene:`, YAML); returns the exit code and stdout + stderr.
+fn follow_case(dir: &std::path::Path, case: &str) -> (Option<i32>, String) {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let t = dir.join("x.test.yaml");
+    std::fs::write(
+        &t,
+        format!(
+            "script: {}\ncases:\n  - name: c\n    scene: {}\n{case}",
+            s(&root.join("scripts/follow.rhai")),
+            s(&root.join("scripts/scenes/highway_crash.yaml"))
+        ),
+    )
+    .unwrap();
+    let out = common::drivescript(&["test-scripts", s(&t)]);
+    let text = String::from_utf8_lossy(&out.stdout).into_owned()
+        + String::from_utf8_lossy(&out.stderr).as_ref();
+    (out.status.code(), text)
+}
+
 /// An edit that cannot change the candidate: a `freeze` after another edit of the same agent
 /// undid that edit, and a shift, lateral move or sway of size 0 moved nothing; each case ran
 /// on a future its file did not describe, and passed.
 #[test]
 fn test_scripts_refuses_edits_that_are_undone_or_move_nothing() {
-    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
     let dir = tempfile::tempdir().unwrap();
     for (edits, want) in [
         (
@@ -4684,39 +4703,19 @@ fn test_scripts_refuses_edits_that_are_undone_or_move_nothing() {
         ("[{agent: 3, sway: [0, 2]}]", "edit 1 (agent 3): it changes nothing"),
         ("[{agent: 3, lateral: 0.0, ramp: 1}]", "it changes nothing"),
     ] {
-        let t = dir.path().join("x.test.yaml");
-        std::fs::write(
-            &t,
-            format!(
-                "script: {}\ncases:\n  - name: c\n    scene: {}\n    params: {{follower: 3, leader: 1, gap: 10}}\n    edits: {edits}\n    expect: {{total_above: 0}}\n",
-                s(&root.join("scripts/follow.rhai")),
-                s(&root.join("scripts/scenes/highway_crash.yaml"))
-            ),
-        )
-        .unwrap();
-        let out = common::drivescript(&["test-scripts", s(&t)]);
-        let text = String::from_utf8_lossy(&out.stdout).into_owned()
-            + String::from_utf8_lossy(&out.stderr).as_ref();
-        assert_eq!(out.status.code(), Some(1), "{edits}: {text}");
+        let (code, text) = follow_case(
+            dir.path(),
+            &format!("    params: {{follower: 3, leader: 1, gap: 10}}\n    edits: {edits}\n    expect: {{total_above: 0}}\n"),
+        );
+        assert_eq!(code, Some(1), "{edits}: {text}");
         assert!(text.contains(want) && text.contains("0 passed"), "{edits}: {text}");
     }
     // A freeze first, then a shift of the frozen car, is an edit of its own.
-    let t = dir.path().join("x.test.yaml");
-    std::fs::write(
-        &t,
-        format!(
-            "script: {}\ncases:\n  - name: c\n    scene: {}\n    params: {{follower: 3, leader: 1, gap: 10}}\n    edits: [{{agent: 3, freeze: true}}, {{agent: 3, shift: [-20, 0]}}]\n    expect: {{terms_above: {{keeps_gap: 1}}}}\n",
-            s(&root.join("scripts/follow.rhai")),
-            s(&root.join("scripts/scenes/highway_crash.yaml"))
-        ),
-    )
-    .unwrap();
-    let out = common::drivescript(&["test-scripts", s(&t)]);
-    assert!(
-        String::from_utf8_lossy(&out.stdout).contains("1 passed, 0 failed"),
-        "{}",
-        String::from_utf8_lossy(&out.stdout)
+    let (_, text) = follow_case(
+        dir.path(),
+        "    params: {follower: 3, leader: 1, gap: 10}\n    edits: [{agent: 3, freeze: true}, {agent: 3, shift: [-20, 0]}]\n    expect: {terms_above: {keeps_gap: 1}}\n",
     );
+    assert!(text.contains("1 passed, 0 failed"), "{text}");
 }
 
 /// `params: {gapp: 30}` (for `gap`) ran the case on the script's default gap, and it passed;
@@ -4725,7 +4724,6 @@ fn test_scripts_refuses_edits_that_are_undone_or_move_nothing() {
 #[test]
 fn test_scripts_refuses_a_parameter_the_script_never_reads_and_thresholds_that_exclude_each_other()
 {
-    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
     let dir = tempfile::tempdir().unwrap();
     for (params, expect, want) in [
         (
@@ -4744,20 +4742,11 @@ fn test_scripts_refuses_a_parameter_the_script_never_reads_and_thresholds_that_e
             "term keeps_gap must be at most 0.5 and above 0.5",
         ),
     ] {
-        let t = dir.path().join("x.test.yaml");
-        std::fs::write(
-            &t,
-            format!(
-                "script: {}\ncases:\n  - name: c\n    scene: {}\n    params: {params}\n    expect: {expect}\n",
-                s(&root.join("scripts/follow.rhai")),
-                s(&root.join("scripts/scenes/highway_crash.yaml"))
-            ),
-        )
-        .unwrap();
-        let out = common::drivescript(&["test-scripts", s(&t)]);
-        let text = String::from_utf8_lossy(&out.stdout).into_owned()
-            + String::from_utf8_lossy(&out.stderr).as_ref();
-        assert_eq!(out.status.code(), Some(1), "{params}: {text}");
+        let (code, text) = follow_case(
+            dir.path(),
+            &format!("    params: {params}\n    expect: {expect}\n"),
+        );
+        assert_eq!(code, Some(1), "{params}: {text}");
         assert!(
             text.contains(want) && text.contains("0 passed"),
             "{params}: {text}"
