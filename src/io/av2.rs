@@ -579,7 +579,7 @@ fn read_map(path: &Path) -> Result<(Map, Vec<String>), IoError> {
         lane.left_boundary = boundary("left_lane_boundary", &l.left_lane_boundary)?;
         lane.right_boundary = boundary("right_lane_boundary", &l.right_lane_boundary)?;
         if let (Some(lb), Some(rb)) = (&lane.left_boundary, &lane.right_boundary) {
-            if super::commonroad::signed_width(lb, rb).0 < super::commonroad::ZERO_WIDTH {
+            if crate::scene::signed_width(lb, rb).0 < crate::scene::ZERO_WIDTH {
                 zero_width.push(l.id.to_string());
             }
         }

@@ -374,33 +374,6 @@ impl LaneletNotes {
     }
 }
 
-/// Mean width of a lanelet (metres) and on which side its left bound lies: the mean sine of
-/// the angle from the driving direction to the right-to-left vector, near 1 where the left
-/// bound lies left, as CommonRoad's bounds do, and near -1 where they are swapped; 0 where a
-/// lanelet is too short (under 1 m) for its direction to say.
-pub(super) fn signed_width(left: &Polyline, right: &Polyline) -> (f64, f64) {
-    let n = left.points().len().max(right.points().len()).max(2);
-    let (l, r) = (left.resample_count(n), right.resample_count(n));
-    let (mut width, mut side, mut length) = (0.0, 0.0, 0.0);
-    for i in 0..n {
-        let (a, b) = (l.points()[i], r.points()[i]);
-        let (j, k) = if i + 1 < n { (i, i + 1) } else { (i - 1, i) };
-        let dir = (l.points()[k] + r.points()[k]) * 0.5 - (l.points()[j] + r.points()[j]) * 0.5;
-        let across = a - b;
-        width += across.norm();
-        side += dir.x * across.y - dir.y * across.x;
-        length += dir.norm();
-    }
-    let width = width / n as f64;
-    if length < crate::scene::MIN_JUDGED_LENGTH || width <= 0.0 {
-        return (width, 0.0);
-    }
-    (width, side / (length * width))
-}
-
-/// Below this mean width (metres) a lanelet's bounds coincide.
-pub(super) const ZERO_WIDTH: f64 = 0.05;
-
 fn read_map(
     cx: &Ctx,
     root: Node,
@@ -484,8 +457,8 @@ fn read_map(
             continue;
         }
         let (mut left_marking, mut right_marking) = (marking(lb), marking(rb));
-        let (width, side) = signed_width(&left, &right);
-        if width < ZERO_WIDTH {
+        let (width, side) = crate::scene::signed_width(&left, &right);
+        if width < crate::scene::ZERO_WIDTH {
             notes.zero_width.push(id);
         } else if side < -0.5 {
             notes.swapped.push(id);

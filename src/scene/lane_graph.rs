@@ -196,6 +196,7 @@ impl LaneGraph {
         }
     }
 }
+
 /// Largest gap (metres) between a lane's end and the start of a lane it names as successor,
 /// or between a predecessor's end and its start, before the link counts as far. On 14,539
 /// links of 260 real maps (CommonRoad samples, SUMO and scenario-factory towns) the largest
@@ -220,8 +221,6 @@ pub struct FarLink {
 /// not judged (a cropped map names lanes outside it).
 pub fn far_links(lanes: &[Lane]) -> Vec<FarLink> {
     let by_id: HashMap<LaneId, &Lane> = lanes.iter().map(|l| (l.id, l)).collect();
-    let first = |l: &Lane| l.centerline.points()[0];
-    let last = |l: &Lane| *l.centerline.points().last().expect("a polyline has points");
     let mut out = Vec::new();
     // A link given from both ends (a successor, and the predecessor back) is one link.
     let mut seen = HashSet::new();
@@ -234,9 +233,9 @@ pub fn far_links(lanes: &[Lane]) -> Vec<FarLink> {
                     continue;
                 }
                 let gap = if successor {
-                    (first(o) - last(l)).norm()
+                    (o.centerline.first() - l.centerline.last()).norm()
                 } else {
-                    (first(l) - last(o)).norm()
+                    (l.centerline.first() - o.centerline.last()).norm()
                 };
                 // NaN never reaches here (polylines are finite), so `>` is the whole test.
                 if gap > LINK_GAP {

@@ -178,6 +178,33 @@ pub const SEAM_GAP: f64 = 0.5;
 /// their boundaries read as swapped at random.
 pub const MIN_JUDGED_LENGTH: f64 = 1.0;
 
+/// Mean width (metres) of a lane given by its bounds, and on which side its left bound lies:
+/// the mean sine of the angle from the driving direction to the right-to-left vector, near 1
+/// where the left bound lies left and near -1 where the bounds are swapped; 0 where the lane
+/// is shorter than [`MIN_JUDGED_LENGTH`] for its direction to say.
+pub fn signed_width(left: &Polyline, right: &Polyline) -> (f64, f64) {
+    let n = left.points().len().max(right.points().len()).max(2);
+    let (l, r) = (left.resample_count(n), right.resample_count(n));
+    let (mut width, mut side, mut length) = (0.0, 0.0, 0.0);
+    for i in 0..n {
+        let (a, b) = (l.points()[i], r.points()[i]);
+        let (j, k) = if i + 1 < n { (i, i + 1) } else { (i - 1, i) };
+        let dir = (l.points()[k] + r.points()[k]) * 0.5 - (l.points()[j] + r.points()[j]) * 0.5;
+        let across = a - b;
+        width += across.norm();
+        side += dir.x * across.y - dir.y * across.x;
+        length += dir.norm();
+    }
+    let width = width / n as f64;
+    if length < MIN_JUDGED_LENGTH || width <= 0.0 {
+        return (width, 0.0);
+    }
+    (width, side / (length * width))
+}
+
+/// Below this mean width (metres) a lane's bounds coincide: it has no surface.
+pub const ZERO_WIDTH: f64 = 0.05;
+
 /// Sharpest turn (degrees) a lane's centre line may take between consecutive half-metre
 /// pieces before it counts as turning back on itself. On 66,790 lane centre lines of 1,250
 /// CommonRoad towns and the AV2 sample the sharpest is 111° (99.99% under 64°); a line

@@ -18,8 +18,8 @@ pub use kinematic_limits::KinematicLimits;
 pub use lane_graph::{far_links, EdgeCounts, FarLink, LaneGraph, LINK_GAP};
 pub use lane_path::{LanePath, Turn, TurnSpan, TURN_THRESHOLD};
 pub use map::{
-    lanes_turning_back, Lane, LaneId, LaneType, Map, MapExit, MapParts, RoadEdge, RoadEdgeKind,
-    RoadLine, RoadLineKind, StopLine, MAX_LANE_TURN, MIN_JUDGED_LENGTH,
+    lanes_turning_back, signed_width, Lane, LaneId, LaneType, Map, MapExit, MapParts, RoadEdge,
+    RoadEdgeKind, RoadLine, RoadLineKind, StopLine, MAX_LANE_TURN, MIN_JUDGED_LENGTH, ZERO_WIDTH,
 };
 
 use crate::geom::{num, GeomError, MAX_COORD};
