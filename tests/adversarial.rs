@@ -717,6 +717,30 @@ fn a_term_no_probe_moves_is_named_and_guards_the_log_leaves_at_0_are_not() {
             && msg.contains("can never steer sampling"),
         "{msg}"
     );
+    // A weight of 0, or one so small that the weighted gradient underflows, stills a term
+    // whose value moves: it was taken without a word (issue 32). A small normal weight steers.
+    let weighted = "let a = agent(1);\n\
+                    term(\"off\", a.x.last(), 0.0);\n\
+                    term(\"tiny\", a.x.last(), 1e-320);\n\
+                    term(\"small\", a.x.last(), 1e-6);\n";
+    assert_eq!(
+        dead(weighted, scene(), &Params::default()),
+        vec![("off".to_string(), 2), ("tiny".to_string(), 3)]
+    );
+    let s = CostScript::compile(
+        weighted,
+        "w.rhai",
+        scene(),
+        &Params::default(),
+        &Limits::default(),
+    )
+    .unwrap();
+    let msg = s.dead_terms()[0].to_string();
+    assert!(
+        msg.starts_with("w.rhai:2: term \"off\": its weight, 0, makes its gradient 0")
+            && msg.contains("give it a weight above 0"),
+        "{msg}"
+    );
     // Guards at 0 on the recorded highway, each woken by a probe: cars meeting, leaving the
     // road, speeding up, backing up, turning.
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("scripts");

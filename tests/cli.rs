@@ -2246,6 +2246,20 @@ fn dataset_window_flags_are_checked() {
     assert!(ok(&["dataset", "scripts/scenes"]).contains("| 32 |"));
     // A folder with no scene file said the same, as if its scenes were too short.
     let dir = tempfile::tempdir().unwrap();
+    // A scenario given twice is counted twice, and said to be (it was counted in silence).
+    let o = drivescript(&[
+        "dataset",
+        "scripts/scenes",
+        "scripts/scenes/highway_cut_in.yaml",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        err.contains("warning: scenario ")
+            && err.contains("was read 2 times (from scripts/scenes/highway_cut_in.yaml)"),
+        "{err}"
+    );
+    assert_eq!(err.matches("warning:").count(), 1, "{err}");
     let err = fails(&["dataset", s(dir.path())]);
     assert!(
         err.contains(&format!(

@@ -741,6 +741,23 @@ fn a_manual_reply_is_held_to_the_size_a_server_s_is() {
         "{t}"
     );
     assert!(!dir.path().join("round_1").exists(), "{t}");
+    // A link planted as the reply had what it named read into state.json and every later
+    // prompt: refused, and nothing of the file it names is kept.
+    let reply_md = dir.path().join("round_0/reply.md");
+    std::fs::remove_file(&reply_md).unwrap();
+    let secret = dir.path().join("secret.md");
+    std::fs::write(&secret, reply(IDLE) + "SECRET-TOKEN-123\n").unwrap();
+    std::os::unix::fs::symlink(&secret, &reply_md).unwrap();
+    let out = ask(&["--resume", d], None);
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("round_0/reply.md: is a symbolic link (to ") && t.contains("), not the reply"),
+        "{t}"
+    );
+    let state = std::fs::read_to_string(dir.path().join("state.json")).unwrap();
+    assert!(!state.contains("SECRET-TOKEN"), "{state}");
+    assert!(!dir.path().join("round_1").exists(), "{t}");
 }
 
 #[test]
@@ -1510,7 +1527,7 @@ fn errors_about_an_entry_inside_a_run_directory_name_that_entry() {
         std::fs::remove_file(&link).unwrap();
     }
     // A reply saved as a link that leads nowhere ("run directory DIR: ...: No such file or
-    // directory" of a name `ls` lists).
+    // directory" of a name `ls` lists); a link is no reply wherever it leads.
     #[cfg(unix)]
     {
         let reply = r0.join("reply.md");
@@ -1518,7 +1535,7 @@ fn errors_about_an_entry_inside_a_run_directory_name_that_entry() {
         let t = resume();
         assert!(
             t.contains(&format!(
-                "{}: cannot read the reply (is a symbolic link to {}, which does not exist)",
+                "{}: is a symbolic link (to {}), not the reply",
                 reply.display(),
                 dir.path().join("gone.md").display()
             )),
@@ -3812,6 +3829,38 @@ fn a_refusal_ends_the_run_after_one_request_in_the_model_s_words() {
     );
     assert_eq!(srv.received().len(), 1, "{t}");
     assert_no_key(&run);
+    // The request is a call the run made: recorded, counted, and given up on in a replay
+    // (the report said "LLM calls: 0", and the transcript held nothing to replay).
+    let report = std::fs::read_to_string(run.join("report.md")).unwrap();
+    assert!(report.contains("LLM calls: 1."), "{report}");
+    let transcript: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(run.join("transcript.json")).unwrap()).unwrap();
+    let llm: Vec<&serde_json::Value> = transcript["records"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|r| r["phase"] == "llm")
+        .collect();
+    assert_eq!(llm.len(), 1, "{transcript}");
+    assert!(
+        llm[0]["detail"]["refused"]
+            .as_str()
+            .is_some_and(|m| m.contains("I won't stage a crash.")),
+        "{transcript}"
+    );
+    assert!(llm[0]["detail"]["request"]["messages"].is_array());
+    let again = dir.path().join("again");
+    let out = ask(
+        &["--replay", s(&run.join("transcript.json")), "-o", s(&again)],
+        None,
+    );
+    let t = text(&out);
+    assert_eq!(out.status.code(), Some(2), "{t}");
+    assert!(
+        t.contains("the model refused to answer: \"I won't stage a crash.\"")
+            && t.contains("replay: the same scripts, verdicts and outcome as the recorded run"),
+        "{t}"
+    );
 }
 
 /// `vehicle {cutter} cuts in front of vehicle {cutter}` with `behaviour: cut_in` ran: the

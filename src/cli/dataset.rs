@@ -40,6 +40,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     // A bad file is reported and the others still counted, as `inspect` does: the first one
     // stopped the whole corpus.
     let mut failures = 0usize;
+    let mut copies = drivescript::io::copies::ScenarioCopies::new();
     for root in &args.scenes {
         let files = match discover(root) {
             Ok(f) => f,
@@ -68,6 +69,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     }
                 };
                 scenes += 1;
+                copies.add(&s.meta.scenario_id, &src);
                 let w = windows(&s, &cfg);
                 if !w.is_empty() {
                     used += 1;
@@ -80,6 +82,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 }
             }
         }
+    }
+    for w in copies.warnings() {
+        eprintln!("warning: {}", drivescript::io::name::terminal_safe(&w));
     }
     if failures > 0 {
         println!("{failures} sources or records could not be read (above); the rest:");

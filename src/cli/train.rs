@@ -341,6 +341,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
             eprintln!("  {n} scenes read, {w} windows");
         }
     })?;
+    for w in store.repeated_scenarios() {
+        eprintln!("warning: {}", drivescript::io::name::terminal_safe(&w));
+    }
     println!(
         "{} training and {} validation windows ({} and {} scenes) in {} ({:.0} s); window {} + {} steps, {} agents, {} lanes",
         store.train_len(),
@@ -440,6 +443,9 @@ fn export_run(args: &Args, dir: &std::path::Path, corpora: &[Corpus]) -> Result<
         }
     });
     let result = built.map_err(anyhow::Error::from).and_then(|store| {
+        for w in store.repeated_scenarios() {
+            eprintln!("warning: {}", drivescript::io::name::terminal_safe(&w));
+        }
         drivescript::train::export(&store, &trained, dir, 1024, |done, total| {
             eprintln!("  {done}/{total} files written");
         })

@@ -221,6 +221,10 @@ pub struct DeadTerm {
     /// A value other than 0 it took on some probe (a constant, a saturated sigmoid); `None`
     /// where it was 0 on every one.
     pub value: Option<f64>,
+    /// Its weight, where the weight alone stills it: the value moved on some probe, but
+    /// weighted by 0 (or a weight so small that the product is 0 in the sampler's single
+    /// precision) it steers nothing.
+    pub weighted_out: Option<f64>,
 }
 
 impl DeadTerm {
@@ -231,6 +235,16 @@ impl DeadTerm {
             super::probe::PROBES.len(),
             super::probe::PROBES.join(", ")
         );
+        if let Some(w) = self.weighted_out {
+            // A weight of 0 (or 1e-320) was taken without a word: the term was reported and
+            // judged against its tolerance, yet could never move a sample towards it.
+            return format!(
+                "its weight, {}, makes its gradient 0 {probes}, though its value follows the \
+                 motion, so it can never steer sampling: give it a weight above 0 (1 is the \
+                 default), or drop the term",
+                crate::geom::num(w)
+            );
+        }
         match self.value {
             None => format!(
                 "it is 0 with a zero gradient {probes}, so it can never steer sampling: a term \
@@ -1515,27 +1529,38 @@ impl CostScript {
             f.extend(super::probe::probe_futures(&c.scene));
             f
         };
-        // Each term with a zero gradient on every probe so far, and a value other than 0 it
-        // took on one.
-        let mut dead: Option<Vec<(String, usize, Option<f64>)>> = None;
+        // Each term with a zero weighted gradient on every probe so far, a value other than 0
+        // it took on one, and its weight where its unweighted gradient moved on one.
+        type Still = (String, usize, Option<f64>, Option<f64>);
+        let mut dead: Option<Vec<Still>> = None;
         let since = Instant::now();
         for traj in &futures {
             let Ok(report) = self.evaluate_since(traj, Some(since)) else {
                 return Vec::new();
             };
-            let here: Vec<(String, usize, Option<f64>)> = report
+            let here: Vec<Still> = report
                 .terms
                 .iter()
-                .filter(|t| t.grad.iter().all(|(_, g)| *g == 0.0))
-                .map(|t| (t.name.clone(), t.line, (t.value != 0.0).then_some(t.value)))
+                // The sampler steers in single precision: a product that rounds to 0 there
+                // (a weight of 1e-320) moves nothing, as a weight of 0 does.
+                .filter(|t| t.grad.iter().all(|(_, g)| (t.weight * g) as f32 == 0.0))
+                .map(|t| {
+                    let moved = t.grad.iter().any(|(_, g)| *g != 0.0);
+                    (
+                        t.name.clone(),
+                        t.line,
+                        (t.value != 0.0).then_some(t.value),
+                        moved.then_some(t.weight),
+                    )
+                })
                 .collect();
             dead = Some(match dead {
                 None => here,
                 Some(d) => d
                     .into_iter()
-                    .filter_map(|(name, line, value)| {
+                    .filter_map(|(name, line, value, weight)| {
                         let now = here.iter().find(|h| h.0 == name && h.1 == line)?;
-                        Some((name, line, value.or(now.2)))
+                        Some((name, line, value.or(now.2), weight.or(now.3)))
                     })
                     .collect(),
             });
@@ -1545,11 +1570,12 @@ impl CostScript {
         }
         dead.unwrap_or_default()
             .into_iter()
-            .map(|(term, line, value)| DeadTerm {
+            .map(|(term, line, value, weighted_out)| DeadTerm {
                 script: self.name.clone(),
                 term,
                 line,
                 value,
+                weighted_out,
             })
             .collect()
     }

@@ -182,6 +182,15 @@ impl Edit {
         }
         finite("from", self.from)?;
         finite("ramp", self.ramp)?;
+        // Seconds after the current step: a negative one behaved as 0, the past untouched, so
+        // the case ran on another edit than the file wrote.
+        if self.from < 0.0 {
+            return Err(format!(
+                "`from` is {}: seconds after the current step, at least 0 (an edit changes \
+                 the future only)",
+                crate::geom::num(self.from)
+            ));
+        }
         if self.ramp < 0.0 {
             return Err(format!(
                 "`ramp` is {}: seconds, at least 0",
@@ -954,6 +963,11 @@ mod tests {
             ("{agent: 2, lateral: .inf}", "`lateral` is inf"),
             ("{agent: 2, shift: [0, .nan]}", "`shift` is NaN"),
             ("{agent: 2, lateral: 1, ramp: -1}", "`ramp` is -1"),
+            // Behaved as `from: 0`.
+            (
+                "{agent: 2, lateral: 1, from: -2}",
+                "`from` is -2: seconds after the current step, at least 0",
+            ),
             // Made the positions infinite, blamed on the script ("term ... is inf").
             (
                 "{agent: 2, lateral: 1e300}",

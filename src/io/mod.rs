@@ -12,6 +12,7 @@
 
 pub mod av2;
 pub mod commonroad;
+pub mod copies;
 pub mod gpudrive;
 pub mod json;
 pub mod name;

@@ -22,8 +22,10 @@ use super::LlmError;
 pub struct Exchange {
     /// The messages that were sent.
     pub messages: Vec<Message>,
-    /// What came back.
+    /// What came back (empty where the model refused).
     pub reply: String,
+    /// The model's refusal, where it refused: the run gave up on it, and so does the replay.
+    pub refused: Option<String>,
     /// The transcript's record of it (usage, latency, ...), kept in the replay's transcript.
     pub detail: Value,
 }
@@ -111,9 +113,12 @@ pub fn read_transcript(path: &Path) -> Result<Recorded, LlmError> {
         .enumerate()
     {
         let d = &r["detail"];
-        let reply = d["reply"]
-            .as_str()
-            .ok_or_else(|| bad(path, format!("exchange {k} has no reply")))?;
+        let refused = d["refused"].as_str().map(str::to_string);
+        let reply = match (d["reply"].as_str(), &refused) {
+            (Some(r), _) => r,
+            (None, Some(_)) => "",
+            (None, None) => return Err(bad(path, format!("exchange {k} has no reply"))),
+        };
         let messages = serde_json::from_value(d["request"]["messages"].clone()).map_err(|e| {
             bad(
                 path,
@@ -126,6 +131,7 @@ pub fn read_transcript(path: &Path) -> Result<Recorded, LlmError> {
         exchanges.push(Exchange {
             messages,
             reply: reply.to_string(),
+            refused,
             detail: d.clone(),
         });
     }

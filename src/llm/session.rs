@@ -2125,8 +2125,17 @@ impl Session<'_> {
             // was refused again (up to --fixes times), and as an error it stopped a batch at
             // the pair for good, however often the batch was run again.
             let ex = match c.complete(&sent) {
-                Err(LlmError::Refused { message, .. }) => {
+                Err(LlmError::Refused { url, message }) => {
                     progress(&format!("round {n}: {message}"));
+                    // A call the server answered: unrecorded, the report said "LLM calls: 0"
+                    // for a run that made one, and its replay had nothing to give up on.
+                    let detail = serde_json::json!({
+                        "url": url,
+                        "request": c.body(&sent),
+                        "refused": message,
+                        "latency": t0.elapsed().as_secs_f64(),
+                    });
+                    self.record(n, "llm", t0, Some(detail));
                     return Ok(Got::GiveUp(message));
                 }
                 other => other?,
@@ -2198,10 +2207,37 @@ impl Session<'_> {
             let mut detail = ex.detail.clone();
             detail["replayed"] = true.into();
             self.record(n, "llm", t0, Some(detail));
+            if let Some(message) = &ex.refused {
+                progress(&format!("round {n}: {message}"));
+                return Ok(Got::GiveUp(message.clone()));
+            }
             return Ok(Got::Text(ex.reply.clone()));
         }
         if let Backend::Manual = self.backend {
             let reply = rdir.join("reply.md");
+            // The round's directory is the run's own (`own_subdir`): a link planted there as
+            // the reply had whatever it named (a key file) copied into state.json and every
+            // later prompt, as a link planted as the round's directory would have.
+            if reply
+                .symlink_metadata()
+                .is_ok_and(|m| m.file_type().is_symlink())
+            {
+                let to = std::fs::read_link(&reply)
+                    .map(|t| {
+                        format!(
+                            " (to {})",
+                            crate::io::name::one_line(&t.display().to_string())
+                        )
+                    })
+                    .unwrap_or_default();
+                return Err(file_err(
+                    &reply,
+                    format!(
+                        "is a symbolic link{to}, not the reply: save the model's answer in this \
+                         file itself, then --resume"
+                    ),
+                ));
+            }
             // Held to a server's cap: every reply is kept in `state.json` and each round's
             // `messages.json` and sent again with every later round, so a pasted 4 MB file
             // went on into each, and state.json grew past what --resume reads back.

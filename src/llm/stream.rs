@@ -180,100 +180,76 @@ fn no_text_reason(
     None
 }
 
-/// Reads the events of `body` until `data: [DONE]`, a chunk with a `finish_reason` followed
-/// by the end of the body, or an error. `tick(tokens, since_first_token)` is called after
-/// each chunk with content or reasoning. `read_error` turns a failed read into the client's
-/// error, given the bytes read; a read that times out, or a stream that brings no token for
-/// the clock's progress limit, is a stalled stream, and one still coming at the clock's
-/// deadline is abandoned ([`LlmError::Deadline`]). `redact` takes the client's secrets out of
-/// what the server sent before any of it is quoted, cut, in an error.
-pub fn read_stream<R: Read>(
-    body: R,
-    url: &str,
-    clock: &ReplyClock,
-    read_error: &dyn Fn(&std::io::Error, usize) -> LlmError,
-    redact: &dyn Fn(&str) -> String,
-    tick: &mut dyn FnMut(usize, Option<Duration>),
-) -> Result<Streamed, LlmError> {
-    let bad = |message: String| LlmError::BadReply {
-        url: url.into(),
-        message,
-    };
-    clock.restart_progress();
-    let mut reader = BufReader::new(clock.reader(body, true).take(MAX_REPLY_BYTES + 1));
-    let mut out = Streamed::default();
-    let mut first: Option<Instant> = None;
-    let mut finished = false;
-    let (mut refusal, mut tools, mut tool_finish) = (String::new(), Vec::new(), false);
-    let mut event = String::new();
-    let mut got = 0usize;
-    let mut line = Vec::new();
+/// Reads one line of an event stream into `line`, its end included: the format ends lines
+/// with LF, CRLF or a bare CR, and a server ending them with CR alone (the format allows it)
+/// had its whole stream read as one line, which never ended. `after_cr` carries a CR that
+/// ended the last line, so that the LF of a CRLF split across reads is not taken for an empty
+/// line (which would end an event early). Returns the bytes taken from the reader.
+fn read_event_line<R: BufRead>(
+    reader: &mut R,
+    line: &mut Vec<u8>,
+    after_cr: &mut bool,
+) -> std::io::Result<usize> {
+    let mut taken = 0;
     loop {
-        line.clear();
-        let n = match reader.read_until(b'\n', &mut line) {
-            Ok(n) => n,
-            Err(e) => {
-                let stalled = |keepalive| LlmError::Stalled {
-                    url: url.into(),
-                    seconds: clock.progress().as_secs_f64(),
-                    tokens: out.tokens,
-                    keepalive,
-                };
-                return Err(match abandoned(&e) {
-                    Some(Abandoned::Deadline) => clock.past_deadline(url, &received(&out)),
-                    Some(Abandoned::NoProgress) => stalled(true),
-                    None => match read_error(&e, got) {
-                        LlmError::Deadline { .. } => clock.past_deadline(url, &received(&out)),
-                        LlmError::Timeout { .. } => stalled(false),
-                        other => other,
-                    },
-                });
+        let buf = match reader.fill_buf() {
+            Ok(b) => b,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(e) => return Err(e),
+        };
+        if buf.is_empty() {
+            return Ok(taken);
+        }
+        let mut start = 0;
+        if std::mem::take(after_cr) && buf[0] == b'\n' {
+            start = 1;
+        }
+        match buf[start..].iter().position(|&b| b == b'\n' || b == b'\r') {
+            Some(i) => {
+                let end = start + i;
+                line.extend_from_slice(&buf[start..=end]);
+                *after_cr = buf[end] == b'\r';
+                reader.consume(end + 1);
+                return Ok(taken + end + 1);
             }
-        };
-        got += n;
-        if got as u64 > MAX_REPLY_BYTES {
-            return Err(bad(format!(
-                "the streamed reply is larger than {} MB: no completion is; the server is \
-                 broken or not an LLM server",
-                MAX_REPLY_BYTES >> 20
-            )));
-        }
-        if n == 0 {
-            if finished {
-                break;
+            None => {
+                line.extend_from_slice(&buf[start..]);
+                let n = buf.len();
+                reader.consume(n);
+                taken += n;
             }
-            // The body ended without the reply's end: the server went away mid-reply.
-            return Err(LlmError::Reset {
-                url: url.into(),
-                bytes: got,
-                message: format!(
-                    "the event stream ended after {} tokens without a finish_reason or [DONE]",
-                    out.tokens
-                ),
-            });
         }
-        let text = String::from_utf8_lossy(&line);
-        // A byte order mark may begin a stream (the event-stream format ignores it): the
-        // first event, the whole reply from some servers, was skipped as a line of no field.
-        let text = if got == n {
-            text.trim_start_matches('\u{feff}')
-        } else {
-            text.as_ref()
+    }
+}
+
+/// What a stream has brought so far, and how its reply ends.
+#[derive(Default)]
+struct Reading {
+    out: Streamed,
+    first: Option<Instant>,
+    finished: bool,
+    refusal: String,
+    tools: Vec<String>,
+    tool_finish: bool,
+    got: usize,
+}
+
+impl Reading {
+    /// Takes one event's data (its `data:` lines joined): `Ok(true)` where it is `[DONE]`.
+    fn event(
+        &mut self,
+        data: &str,
+        event: &str,
+        url: &str,
+        clock: &ReplyClock,
+        redact: &dyn Fn(&str) -> String,
+        tick: &mut dyn FnMut(usize, Option<Duration>),
+    ) -> Result<bool, LlmError> {
+        let bad = |message: String| LlmError::BadReply {
+            url: url.into(),
+            message,
         };
-        let text = text.trim();
-        // Blank lines end events; `:` lines are keep-alive comments; `id:` and `retry:`
-        // carry nothing a completion needs. `event: error` names an event that carries the
-        // server's error in a shape of its own (`{"message": ...}`): it was read as a chunk of
-        // no choices and the stream called "ended after 0 tokens", the message dropped.
-        if text.is_empty() {
-            event.clear();
-        }
-        if let Some(name) = text.strip_prefix("event:") {
-            event = name.trim().to_string();
-        }
-        let Some(data) = text.strip_prefix("data:") else {
-            continue;
-        };
+        let out = &mut self.out;
         if event.eq_ignore_ascii_case("error") {
             return Err(bad(format!(
                 "the server sent an error event after {} tokens: {}",
@@ -281,18 +257,8 @@ pub fn read_stream<R: Read>(
                 error_message_redacted(data, redact)
             )));
         }
-        // JSON is UTF-8: bytes that are not were stored as U+FFFD in the reply without a word.
-        if let Err(e) = std::str::from_utf8(&line) {
-            return Err(bad(format!(
-                "a stream event is not UTF-8 (byte {} of the event, after {} tokens), as JSON \
-                 must be: the server is broken or sends another encoding",
-                e.valid_up_to() + 1,
-                out.tokens
-            )));
-        }
-        let data = data.trim();
         if data == "[DONE]" {
-            break;
+            return Ok(true);
         }
         let v: Value = serde_json::from_str(data).map_err(|e| {
             // Redacted whole, then cut: cut first, a key echoed across the cut kept its head.
@@ -321,7 +287,7 @@ pub fn read_stream<R: Read>(
             .as_array()
             .and_then(|c| c.iter().find(|c| c["index"].as_u64().unwrap_or(0) == 0))
         else {
-            continue;
+            return Ok(false);
         };
         let delta = &choice["delta"];
         // Content parts (an array of `{type: "text", text}`) were dropped, and the reply
@@ -332,8 +298,8 @@ pub fn read_stream<R: Read>(
         let piece = piece.as_str();
         // A refusal or a tool call brings no content: the reply was called empty and asked
         // for again, up to --fixes times, each answered alike.
-        refusal.push_str(&refusal_text(delta));
-        tool_names(delta, &mut tools);
+        self.refusal.push_str(&refusal_text(delta));
+        tool_names(delta, &mut self.tools);
         let thought = ["reasoning_content", "reasoning"]
             .iter()
             .any(|k| choice["delta"][k].as_str().is_some_and(|t| !t.is_empty()));
@@ -345,7 +311,7 @@ pub fn read_stream<R: Read>(
         }
         if !piece.is_empty() || thought {
             clock.token();
-            let t = *first.get_or_insert_with(Instant::now);
+            let t = *self.first.get_or_insert_with(Instant::now);
             tick(out.tokens + out.reasoning, Some(t.elapsed()));
         }
         if let Some(reason) = choice["finish_reason"].as_str() {
@@ -359,7 +325,7 @@ pub fn read_stream<R: Read>(
             if ["abort", "aborted", "error", "cancelled", "canceled"].contains(&reason) {
                 return Err(LlmError::Reset {
                     url: url.into(),
-                    bytes: got,
+                    bytes: self.got,
                     message: format!(
                         "the server stopped the reply itself (finish_reason \"{reason}\") after \
                          {} tokens",
@@ -367,11 +333,163 @@ pub fn read_stream<R: Read>(
                     ),
                 });
             }
-            tool_finish |= reason == "tool_calls" || reason == "function_call";
-            finished = true;
+            self.tool_finish |= reason == "tool_calls" || reason == "function_call";
+            self.finished = true;
             out.truncated |= reason == "length";
         }
+        Ok(false)
     }
+}
+
+/// Whether the data gathered for an event is whole: `[DONE]`, or a JSON value. An event's
+/// JSON may come over several `data:` lines (the format joins them), and some servers end no
+/// event with a blank line, so an event is taken as soon as its data parses, without waiting
+/// for the blank line that may never come.
+fn whole(data: &str) -> bool {
+    data == "[DONE]" || serde_json::from_str::<serde::de::IgnoredAny>(data).is_ok()
+}
+
+/// Reads the events of `body` until `data: [DONE]`, a chunk with a `finish_reason` followed
+/// by the end of the body, or an error. `tick(tokens, since_first_token)` is called after
+/// each chunk with content or reasoning. `read_error` turns a failed read into the client's
+/// error, given the bytes read; a read that times out, or a stream that brings no token for
+/// the clock's progress limit, is a stalled stream, and one still coming at the clock's
+/// deadline is abandoned ([`LlmError::Deadline`]). `redact` takes the client's secrets out of
+/// what the server sent before any of it is quoted, cut, in an error.
+pub fn read_stream<R: Read>(
+    body: R,
+    url: &str,
+    clock: &ReplyClock,
+    read_error: &dyn Fn(&std::io::Error, usize) -> LlmError,
+    redact: &dyn Fn(&str) -> String,
+    tick: &mut dyn FnMut(usize, Option<Duration>),
+) -> Result<Streamed, LlmError> {
+    let bad = |message: String| LlmError::BadReply {
+        url: url.into(),
+        message,
+    };
+    clock.restart_progress();
+    let mut reader = BufReader::new(clock.reader(body, true).take(MAX_REPLY_BYTES + 1));
+    let mut r = Reading::default();
+    let mut event = String::new();
+    // The data of the event being read: its `data:` lines, joined by newlines.
+    let mut data = String::new();
+    let mut line = Vec::new();
+    let mut after_cr = false;
+    loop {
+        line.clear();
+        let n = match read_event_line(&mut reader, &mut line, &mut after_cr) {
+            Ok(n) => n,
+            Err(e) => {
+                let out = &r.out;
+                let stalled = |keepalive| LlmError::Stalled {
+                    url: url.into(),
+                    seconds: clock.progress().as_secs_f64(),
+                    tokens: out.tokens,
+                    keepalive,
+                };
+                return Err(match abandoned(&e) {
+                    Some(Abandoned::Deadline) => clock.past_deadline(url, &received(out)),
+                    Some(Abandoned::NoProgress) => stalled(true),
+                    None => match read_error(&e, r.got) {
+                        LlmError::Deadline { .. } => clock.past_deadline(url, &received(out)),
+                        LlmError::Timeout { .. } => stalled(false),
+                        other => other,
+                    },
+                });
+            }
+        };
+        let first_line = r.got == 0;
+        r.got += n;
+        if r.got as u64 > MAX_REPLY_BYTES {
+            return Err(bad(format!(
+                "the streamed reply is larger than {} MB: no completion is; the server is \
+                 broken or not an LLM server",
+                MAX_REPLY_BYTES >> 20
+            )));
+        }
+        // The end of the body, or a blank line, ends an event whatever its data holds; data
+        // that did not parse then is no JSON, and is said to be.
+        let text = String::from_utf8_lossy(&line);
+        // A byte order mark may begin a stream (the event-stream format ignores it): the
+        // first event, the whole reply from some servers, was skipped as a line of no field.
+        let text = if first_line {
+            text.trim_start_matches('\u{feff}')
+        } else {
+            text.as_ref()
+        };
+        let text = text.trim();
+        if n == 0 || text.is_empty() {
+            if !data.is_empty() && r.event(&data, &event, url, clock, redact, tick)? {
+                break;
+            }
+            data.clear();
+            event.clear();
+        }
+        if n == 0 {
+            if r.finished {
+                break;
+            }
+            // The body ended without the reply's end: the server went away mid-reply.
+            return Err(LlmError::Reset {
+                url: url.into(),
+                bytes: r.got,
+                message: format!(
+                    "the event stream ended after {} tokens without a finish_reason or [DONE]",
+                    r.out.tokens
+                ),
+            });
+        }
+        // `:` lines are keep-alive comments; `id:` and `retry:` carry nothing a completion
+        // needs. `event: error` names an event that carries the server's error in a shape of
+        // its own (`{"message": ...}`): it was read as a chunk of no choices and the stream
+        // called "ended after 0 tokens", the message dropped.
+        if let Some(name) = text.strip_prefix("event:") {
+            event = name.trim().to_string();
+        }
+        let Some(more) = text.strip_prefix("data:") else {
+            continue;
+        };
+        // JSON is UTF-8: bytes that are not were stored as U+FFFD in the reply without a word.
+        if let Err(e) = std::str::from_utf8(&line) {
+            return Err(bad(format!(
+                "a stream event is not UTF-8 (byte {} of the event, after {} tokens), as JSON \
+                 must be: the server is broken or sends another encoding",
+                e.valid_up_to() + 1,
+                r.out.tokens
+            )));
+        }
+        let more = more.trim();
+        // Data that never parsed, then `[DONE]` with no blank line between (a server that
+        // ends no event with one): the data is said to be no JSON, rather than the reply
+        // stalling on it for want of a token.
+        if more == "[DONE]" && !data.is_empty() {
+            r.event(&data, &event, url, clock, redact, tick)?;
+            data.clear();
+        }
+        if !data.is_empty() {
+            data.push('\n');
+        }
+        data.push_str(more);
+        // An error event's plain-text message is taken at once: the server may keep the
+        // stream open after it.
+        let error_text = event.eq_ignore_ascii_case("error") && !data.starts_with(['{', '[']);
+        if whole(&data) || error_text {
+            let done = r.event(&data, &event, url, clock, redact, tick)?;
+            data.clear();
+            event.clear();
+            if done {
+                break;
+            }
+        }
+    }
+    let Reading {
+        out,
+        refusal,
+        tools,
+        tool_finish,
+        ..
+    } = r;
     if out.content.trim().is_empty() {
         if let Some(e) = no_text_error(url, &refusal, &tools, tool_finish, redact) {
             return Err(e);
@@ -522,6 +640,84 @@ mod tests {
         assert!(e.to_string().contains("out of memory"), "{e}");
         let e = read("data: <html>\n").unwrap_err();
         assert!(e.to_string().contains("not JSON"), "{e}");
+    }
+
+    /// A body that gives one byte per read, so that every line end is split across reads.
+    struct Trickle<'a>(&'a [u8]);
+
+    impl Read for Trickle<'_> {
+        fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+            let Some((&b, rest)) = self.0.split_first() else {
+                return Ok(0);
+            };
+            buf[0] = b;
+            self.0 = rest;
+            Ok(1)
+        }
+    }
+
+    #[test]
+    fn an_event_over_several_data_lines_and_any_line_end_are_read() {
+        // The format joins an event's `data:` lines and ends lines with LF, CRLF or CR: an
+        // event split over lines was refused as "not JSON", and a stream of bare CRs was one
+        // line that never ended (issue 32).
+        let lf = "data: {\"choices\":[{\"delta\":\n\
+                  data: {\"content\":\"AC\"}}]}\n\n\
+                  : keep-alive\n\n\
+                  data: {\"choices\":[{\"delta\":{\"content\":\"CEPT\"},\n\
+                  data:  \"finish_reason\":\"stop\"}]}\n\n\
+                  data: [DONE]\n\n";
+        for body in [
+            lf.to_string(),
+            lf.replace('\n', "\r\n"),
+            lf.replace('\n', "\r"),
+        ] {
+            for trickle in [false, true] {
+                let got = if trickle {
+                    read_stream(
+                        Trickle(body.as_bytes()),
+                        "u",
+                        &clock(60_000, 1000),
+                        &no_read_error,
+                        &|s| s.to_string(),
+                        &mut |_, _| {},
+                    )
+                } else {
+                    read(&body)
+                };
+                let s = got.unwrap_or_else(|e| panic!("{body:?}: {e}"));
+                assert_eq!((s.content.as_str(), s.tokens), ("ACCEPT", 2), "{body:?}");
+            }
+        }
+        // Servers that end no event with a blank line still work, one event per line.
+        let s = read(
+            "data: {\"choices\":[{\"delta\":{\"content\":\"a\"}}]}\r\
+             data: {\"choices\":[{\"delta\":{\"content\":\"b\"},\"finish_reason\":\"stop\"}]}\r\
+             data: [DONE]\r",
+        )
+        .unwrap();
+        assert_eq!((s.content.as_str(), s.tokens), ("ab", 2));
+        // Data that never parses is said to be no JSON at a blank line, at [DONE] and at the
+        // end of the body, never waited on.
+        for body in [
+            "data: {\"choices\":\n\ndata: [DONE]\n\n",
+            "data: {\"choices\":\ndata: [DONE]\n",
+            "data: {\"choices\":\n",
+        ] {
+            let e = read(body).unwrap_err().to_string();
+            assert!(
+                e.contains("not JSON") && e.contains("choices"),
+                "{body:?}: {e}"
+            );
+        }
+        // An error event's JSON over two lines is read whole.
+        let e = read("event: error\ndata: {\"message\":\ndata: \"out of memory\"}\n\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("error event") && e.contains("out of memory"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -45,6 +45,11 @@ pub trait WindowSource {
     fn type_counts(&self) -> BTreeMap<AgentType, usize> {
         self.summary().tally.types.clone()
     }
+    /// Warnings naming the scenarios read from the corpora more than once, whose windows
+    /// were each cut once per copy; none where each was read once.
+    fn repeated_scenarios(&self) -> Vec<String> {
+        self.summary().copies.warnings()
+    }
 }
 
 /// What every [`WindowSource`] knows besides its windows: the scenes on each side of the
@@ -53,6 +58,7 @@ pub struct Summary {
     train_ids: Vec<String>,
     val_ids: Vec<String>,
     tally: Tally,
+    copies: crate::io::copies::ScenarioCopies,
 }
 
 impl Summary {
@@ -61,6 +67,7 @@ impl Summary {
             train_ids: Vec::new(),
             val_ids: Vec::new(),
             tally: Tally::new(),
+            copies: crate::io::copies::ScenarioCopies::new(),
         }
     }
 }
@@ -620,6 +627,7 @@ impl WindowStore {
                         .map_err(|e| TrainError::Data(format!("loading {}: {e}", f.display())))?;
                     for s in scenes {
                         read += 1;
+                        summary.copies.add(&s.meta.scenario_id, &f);
                         if c.split == SplitBy::Town {
                             towns.insert(town(&s.meta.scenario_id).to_string());
                         }
@@ -900,6 +908,35 @@ mod tests {
             .to_string();
         assert!(e.contains("held-out towns are for --urban"), "{e}");
         assert!(build(&urban, vec![there]).is_ok());
+    }
+
+    #[test]
+    fn a_scenario_in_two_corpora_is_cut_twice_and_said() {
+        let (corpus, _, fold) = cut_in();
+        let dir = tempfile::tempdir().unwrap();
+        let copy = dir.path().join("copy");
+        std::fs::create_dir(&copy).unwrap();
+        std::fs::copy(&corpus[0].path, copy.join("again.yaml")).unwrap();
+        let cfg = WindowConfig::ngsim();
+        let once = store(&corpus, &cfg, fold + 1, &dir.path().join("c1"));
+        assert!(once.repeated_scenarios().is_empty());
+        let both = [
+            corpus[0].clone(),
+            Corpus {
+                path: copy.clone(),
+                split: SplitBy::Scene,
+            },
+        ];
+        let twice = store(&both, &cfg, fold + 1, &dir.path().join("c2"));
+        assert_eq!(twice.train_len(), 2 * once.train_len());
+        let w = twice.repeated_scenarios();
+        assert_eq!(w.len(), 1, "{w:?}");
+        assert!(
+            w[0].contains("was read 2 times")
+                && w[0].contains("highway_cut_in.yaml")
+                && w[0].contains("again.yaml"),
+            "{w:?}"
+        );
     }
 
     #[test]
