@@ -472,10 +472,7 @@ fn files_far_larger_than_any_scene_are_refused_before_reading() {
         p
     };
     let err = fails(&["inspect", s(&huge("big.yaml"))]);
-    assert!(
-        err.contains("big.yaml: file: holds more than 64 MB"),
-        "{err}"
-    );
+    assert!(err.contains("big.yaml: holds more than 64 MB"), "{err}");
     let av2 = dir.path().join("av2");
     std::fs::create_dir(&av2).unwrap();
     std::fs::copy(
@@ -502,7 +499,7 @@ fn files_far_larger_than_any_scene_are_refused_before_reading() {
         "-o",
         s(&dir.path().join("x.svg")),
     ]);
-    assert!(err.contains("r.json: file: holds more than 64 MB"), "{err}");
+    assert!(err.contains("r.json: holds more than 64 MB"), "{err}");
     // A GPUDrive scenario is told by its first key, and then refused by its size.
     let big = dir.path().join("big.json");
     std::fs::write(&big, "{\"objects\": [").unwrap();
@@ -513,10 +510,7 @@ fn files_far_larger_than_any_scene_are_refused_before_reading() {
         .set_len(65 << 20)
         .unwrap();
     let err = fails(&["inspect", s(&big)]);
-    assert!(
-        err.contains("big.json: file: holds more than 64 MB"),
-        "{err}"
-    );
+    assert!(err.contains("big.json: holds more than 64 MB"), "{err}");
 }
 
 #[test]
@@ -2457,7 +2451,7 @@ fn a_directory_or_a_link_loop_named_like_a_scene_is_named_for_what_it_is() {
         std::fs::create_dir(&d).unwrap();
         let err = fails(&["render", s(&d), "-o", s(&svg)]);
         assert!(
-            err.contains(&format!("{name}: file: is a directory"))
+            err.contains(&format!("{name}: is a directory"))
                 && !err.contains("unknown scene format"),
             "{err}"
         );
@@ -2476,7 +2470,7 @@ fn a_directory_or_a_link_loop_named_like_a_scene_is_named_for_what_it_is() {
             }
             let err = fails(&args);
             assert!(
-                err.contains(&format!("a.{ext}: file: is a symbolic link loop"))
+                err.contains(&format!("a.{ext}: is a symbolic link loop"))
                     && !err.contains("unknown scene format"),
                 "{cmd}: {err}"
             );
@@ -2488,10 +2482,7 @@ fn a_directory_or_a_link_loop_named_like_a_scene_is_named_for_what_it_is() {
     std::os::unix::fs::symlink(scenes.join("y.yaml"), scenes.join("x.yaml")).unwrap();
     std::os::unix::fs::symlink(scenes.join("x.yaml"), scenes.join("y.yaml")).unwrap();
     let err = fails(&["inspect", s(&scenes)]);
-    assert!(
-        err.contains("x.yaml: file: is a symbolic link loop"),
-        "{err}"
-    );
+    assert!(err.contains("x.yaml: is a symbolic link loop"), "{err}");
 }
 
 #[cfg(unix)]
@@ -2756,7 +2747,7 @@ fn an_empty_scene_or_rollout_file_is_named_as_empty() {
         std::fs::write(&f, "").unwrap();
         let err = fails(&["inspect", s(&f)]);
         assert!(
-            err.contains(&format!("{name}: file: is empty (0 bytes)")),
+            err.contains(&format!("{name}: is empty (0 bytes)")),
             "{err}"
         );
     }
@@ -2770,14 +2761,14 @@ fn an_empty_scene_or_rollout_file_is_named_as_empty() {
         "-o",
         s(&dir.path().join("x.svg")),
     ]);
-    assert!(err.contains("r.json: file: is empty (0 bytes)"), "{err}");
+    assert!(err.contains("r.json: is empty (0 bytes)"), "{err}");
     // In a directory of scenes, an empty one is still an error, not skipped.
     let d = dir.path().join("scenes");
     std::fs::create_dir(&d).unwrap();
     std::fs::copy(&scene, d.join("a.yaml")).unwrap();
     std::fs::write(d.join("b.yaml"), "").unwrap();
     let err = fails(&["inspect", s(&d)]);
-    assert!(err.contains("b.yaml: file: is empty (0 bytes)"), "{err}");
+    assert!(err.contains("b.yaml: is empty (0 bytes)"), "{err}");
 }
 
 #[test]
@@ -2794,7 +2785,7 @@ fn a_scene_given_as_a_rollout_or_a_rollout_as_a_scene_is_named_for_what_it_is() 
     ] {
         let err = fails(&["render", s(&scene), "--rollout", s(f), "-o", s(&out)]);
         assert!(
-            err.contains("file: not a rollout: ")
+            err.contains(": not a rollout: ")
                 && err.contains(what)
                 && err.contains("a rollout is the JSON"),
             "{err}"
@@ -2804,7 +2795,7 @@ fn a_scene_given_as_a_rollout_or_a_rollout_as_a_scene_is_named_for_what_it_is() 
     ok(&["convert", s(&scene), "-o", s(&r)]);
     let err = fails(&["inspect", s(&r)]);
     assert!(
-        err.contains("r.json: file: is a drivescript rollout (sampled trajectories), not a scene"),
+        err.contains("r.json: is a drivescript rollout (sampled trajectories), not a scene"),
         "{err}"
     );
     // A rollout whose JSON is damaged is still named by the place in it.

@@ -91,8 +91,9 @@ pub enum IoError {
         /// The file.
         path: String,
     },
-    /// The content is malformed at a given place.
-    #[error("{path}: {location}: {message}")]
+    /// The content is malformed at a given place (the whole file where `location` is
+    /// "file", which is then not said: "x.json: file: is empty" said "file" twice).
+    #[error("{path}: {}", located(location, message))]
     Invalid {
         /// The file.
         path: String,
@@ -132,6 +133,15 @@ pub enum IoError {
     },
 }
 
+/// `location: message`, or the message alone where the location is the whole file.
+fn located(location: &str, message: &str) -> String {
+    if location == "file" {
+        message.to_string()
+    } else {
+        format!("{location}: {message}")
+    }
+}
+
 impl IoError {
     /// What is wrong, without the file's name: for errors of other modules that name the file
     /// themselves.
@@ -141,10 +151,7 @@ impl IoError {
             IoError::Write { source, .. } => format!("cannot write: {source}"),
             IoError::Invalid {
                 location, message, ..
-            } if location == "file" => message.clone(),
-            IoError::Invalid {
-                location, message, ..
-            } => format!("{location}: {message}"),
+            } => located(location, message),
             other => other.to_string(),
         }
     }
@@ -1645,12 +1652,12 @@ mod tests {
         let e = read_regular(std::path::Path::new("/dev/zero"), 1 << 20, "a prompt")
             .unwrap_err()
             .to_string();
-        assert!(e.starts_with("/dev/zero: file: not a regular file"), "{e}");
+        assert!(e.starts_with("/dev/zero: not a regular file"), "{e}");
         // Whatever reads it as a scene (`bench io --womd /dev/zero`) says the same.
         let e = super::detect_format(std::path::Path::new("/dev/zero"))
             .unwrap_err()
             .to_string();
-        assert!(e.starts_with("/dev/zero: file: not a regular file"), "{e}");
+        assert!(e.starts_with("/dev/zero: not a regular file"), "{e}");
         let e = read_regular(dir.path(), 1 << 20, "a prompt")
             .unwrap_err()
             .to_string();
@@ -1661,9 +1668,7 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(
-            e.contains(
-                "big.md: file: holds more than 2048 bytes (3000 bytes), the most for a prompt"
-            ),
+            e.contains("big.md: holds more than 2048 bytes (3000 bytes), the most for a prompt"),
             "{e}"
         );
         assert_eq!(read_regular(&big, 3000, "a prompt").unwrap().len(), 3000);
@@ -1810,7 +1815,7 @@ mod tests {
         let sock = dir.path().join("out.json");
         let _listener = std::os::unix::net::UnixListener::bind(&sock).unwrap();
         let e = super::write_atomic(&sock, b"{}").unwrap_err().to_string();
-        assert!(e.contains("out.json: file: is a socket"), "{e}");
+        assert!(e.contains("out.json: is a socket"), "{e}");
         let e = super::check_replaces_own_json(&sock, "table", "an eval table", "--json")
             .unwrap_err()
             .to_string();
@@ -1899,7 +1904,7 @@ mod tests {
         std::fs::write(&p, &xml).unwrap();
         let e = super::read_maybe_gz(&p).unwrap_err().to_string();
         assert!(
-            e.contains("plain.xml.gz: file: not gzip-compressed, it is XML text")
+            e.contains("plain.xml.gz: not gzip-compressed, it is XML text")
                 && e.contains("(starts with `<commonRoad")
                 && e.contains("rename it to plain.xml"),
             "{e}"
@@ -1907,7 +1912,7 @@ mod tests {
         let p = dir.path().join("empty.xml.gz");
         std::fs::write(&p, b"").unwrap();
         let e = super::read_maybe_gz(&p).unwrap_err().to_string();
-        assert!(e.contains("empty.xml.gz: file: is empty"), "{e}");
+        assert!(e.contains("empty.xml.gz: is empty"), "{e}");
 
         let mut enc = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
         enc.write_all(&xml).unwrap();
@@ -1920,7 +1925,7 @@ mod tests {
             let e = super::read_maybe_gz(&p).unwrap_err().to_string();
             assert!(
                 e.contains(&format!(
-                    "junk.xml.gz: file: {} bytes of trailing data after the gzip stream (which \
+                    "junk.xml.gz: {} bytes of trailing data after the gzip stream (which \
                      ends at byte {})",
                     junk.len(),
                     gz.len()
