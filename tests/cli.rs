@@ -2038,6 +2038,11 @@ fn train_refuses_settings_it_cannot_train_with_before_reading_data() {
             "41",
             "window.route_times = 41: must be 0 to 40",
         ),
+        (
+            "--across-weight",
+            "0.5",
+            "across_weight = 0.5: must be 1 (the plain error) to 1000",
+        ),
     ] {
         // A data directory that does not exist: the settings are refused first.
         let arg = format!("{flag}={value}");

@@ -49,7 +49,7 @@ pub struct Args {
         conflicts_with_all = [
             "setting", "steps", "batch", "lr", "seed", "eval_every", "val_fold", "val_town",
             "ema_half_life", "component_scale", "scale_cap", "p_mean", "p_std",
-            "nearest_lane_pose", "route_times", "force",
+            "nearest_lane_pose", "route_times", "across_weight", "force",
         ]
     )]
     export: Option<PathBuf>,
@@ -119,6 +119,12 @@ pub struct Args {
     /// resumed run keeps its checkpoint's).
     #[arg(long)]
     route_times: Option<usize>,
+    /// A new run weighs the part of each position error across the recorded path this many
+    /// times the rest, 1 to 1000 (default 1, the plain error; `across_weight` in the
+    /// checkpoint's config). Validation losses then compare only runs of one weight. A resumed
+    /// run keeps its checkpoint's.
+    #[arg(long, value_parser = super::ask::float)]
+    across_weight: Option<f64>,
     /// Train from scratch into an --out directory that already holds a checkpoint (which is
     /// replaced at the first validation). Without it, that is refused.
     #[arg(long)]
@@ -161,6 +167,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             None => base.component_scale,
         },
         scale_cap: args.scale_cap.unwrap_or(base.scale_cap),
+        across_weight: args.across_weight.unwrap_or(base.across_weight),
         ..base
     };
     cfg.edm.p_mean = args.p_mean.unwrap_or(cfg.edm.p_mean);
@@ -267,6 +274,18 @@ pub fn run(args: Args) -> Result<ExitCode> {
                         drivescript::geom::num(kept)
                     );
                 }
+            }
+            if let Some(w) = args
+                .across_weight
+                .filter(|w| *w != r.meta.config.across_weight)
+            {
+                anyhow::bail!(
+                    "--across-weight {}: {} weighs the error across the path {} times; a \
+                     resumed run keeps its loss",
+                    drivescript::geom::num(w),
+                    dir.display(),
+                    drivescript::geom::num(r.meta.config.across_weight)
+                );
             }
             if args.scale_cap.is_some_and(|c| c != r.meta.config.scale_cap) {
                 anyhow::bail!(

@@ -69,9 +69,57 @@ fn every_parameter_receives_a_gradient_after_a_training_step() {
         tiny_config(1, 3, 1),
         with_nearest_lane_pose(tiny_config(1, 3, 1)),
         with_route(tiny_config(1, 3, 1)),
+        TrainConfig {
+            across_weight: 4.0,
+            ..tiny_config(1, 3, 1)
+        },
     ] {
         every_parameter_receives_a_gradient(cfg);
     }
+}
+
+#[test]
+fn the_across_path_error_is_weighed_apart_and_linearly() {
+    let cfg = tiny_config(1, 3, 1);
+    let t = train(&scenes(), cfg.clone(), None, None, |_, _, _| ()).unwrap();
+    let (b, _) = batch(&cfg, Some(&t.meta.normaliser));
+    // Normals: unit, across the recorded heading, where a target's future step is observed;
+    // zero elsewhere.
+    let normals: Vec<f32> = b.normals.flatten_all().unwrap().to_vec1().unwrap();
+    let seen: Vec<f32> = b.seen.flatten_all().unwrap().to_vec1().unwrap();
+    let mut unit = 0;
+    for (nv, sv) in normals.chunks(3).zip(seen.chunks(3)) {
+        let len = (nv[0] * nv[0] + nv[1] * nv[1]).sqrt();
+        assert_eq!(nv[2], 0.0);
+        if sv[0] == 1.0 {
+            assert!((len - 1.0).abs() < 1e-5, "{nv:?}");
+            unit += 1;
+        } else {
+            assert_eq!(len, 0.0, "{nv:?}");
+        }
+    }
+    assert!(unit > 0);
+    let dims = b.target.dims3().unwrap();
+    let mut rng = Rng::new(3);
+    let noise: Vec<f32> = (0..dims.0 * dims.1 * dims.2)
+        .map(|_| rng.normal() as f32)
+        .collect();
+    let noise = Tensor::from_vec(noise, dims, &Device::Cpu).unwrap();
+    let sigma = [0.5, 2.0, 5.0, 20.0];
+    let at = |w: f64| {
+        loss(&t.model, &cfg.edm, &b, &sigma[..cfg.batch], &noise, w)
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap() as f64
+    };
+    let (plain, two, five) = (at(1.0), at(2.0), at(5.0));
+    // The across part is counted once in the plain error and w - 1 times more.
+    let across = two - plain;
+    assert!(across > 0.0 && across < plain, "{plain} {two}");
+    assert!(
+        ((five - plain) - 4.0 * across).abs() < 1e-3 * five,
+        "{plain} {two} {five}"
+    );
 }
 
 fn every_parameter_receives_a_gradient(cfg: TrainConfig) {
@@ -86,7 +134,7 @@ fn every_parameter_receives_a_gradient(cfg: TrainConfig) {
         .collect();
     let noise = Tensor::from_vec(noise, dims, &Device::Cpu).unwrap();
     let sigma = [0.05, 0.5, 2.0, 20.0];
-    let l = loss(&t.model, &cfg.edm, &b, &sigma[..cfg.batch], &noise).unwrap();
+    let l = loss(&t.model, &cfg.edm, &b, &sigma[..cfg.batch], &noise, 1.0).unwrap();
     let grads = l.backward().unwrap();
     let data = t.varmap.data().lock().unwrap();
     let mut names: Vec<&String> = data.keys().collect();

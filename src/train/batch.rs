@@ -75,6 +75,11 @@ pub struct Batch {
     /// The loss basis, `[K, 3·future]` ([`Normaliser::loss_basis`]): normalised coefficients
     /// times these are the future in the normaliser's loss scale.
     pub basis: Tensor,
+    /// Per observed future step of each target, the unit normal of the recorded path in the
+    /// agent's frame, `(-sin h, cos h, 0)` (zeros elsewhere), `[B, N, 3·future]`: a position
+    /// error times it is the part across the path, which the loss can weigh apart
+    /// (`TrainConfig::across_weight`).
+    pub normals: Tensor,
 }
 
 /// Observed future steps an agent needs to have a target: fewer say too little about where
@@ -271,6 +276,7 @@ pub fn build(
     let mut loss_mask = vec![0f32; b * n];
     let dim = 3 * cfg.future;
     let mut seen_mask = vec![0f32; b * n * dim];
+    let mut normals = vec![0f32; b * n * dim];
     let mut agent_attr = vec![0f32; b * n * AGENT_ATTRS];
     let rt = cfg.route_times;
     let route_steps = crate::model::route::route_steps(cfg.future, rt);
@@ -379,6 +385,16 @@ pub fn build(
                         r.fill(1.0);
                     }
                 }
+                if let Some((future, _)) = w.agent_future_seen(cfg, a) {
+                    let row = &mut normals[(wi * n + a) * dim..(wi * n + a + 1) * dim];
+                    for ((r, p), s) in row.chunks_mut(3).zip(future.chunks(3)).zip(&seen) {
+                        if *s {
+                            let (sin, cos) = p[2].sin_cos();
+                            r[0] = -sin as f32;
+                            r[1] = cos as f32;
+                        }
+                    }
+                }
             }
         }
     }
@@ -418,6 +434,7 @@ pub fn build(
         target: t(target, &[b, n, k])?,
         loss_mask: t(loss_mask, &[b, n])?,
         seen: t(seen_mask, &[b, n, dim])?,
+        normals: t(normals, &[b, n, dim])?,
         basis: t(
             norm.loss_basis().iter().map(|v| *v as f32).collect(),
             &[k, dim],

@@ -58,6 +58,15 @@ pub fn export(
             "windows per file must be at least 1".into(),
         ));
     }
+    // The port trains the plain error: an export of a run that weighs the across part apart
+    // would train another loss than the run's without a word.
+    if from.meta.config.across_weight != 1.0 {
+        return Err(TrainError::Config(format!(
+            "the checkpoint weighs the error across the path {} times (across_weight), which \
+             the PyTorch port (benches/torch) does not: it has nothing to export to",
+            crate::geom::num(from.meta.config.across_weight)
+        )));
+    }
     if from.meta.config.window.route_times > 0 {
         return Err(TrainError::Config(format!(
             "{}: it has nothing to export to",
@@ -146,7 +155,7 @@ pub fn export(
         .map(|_| rng.normal() as f32)
         .collect();
     let noise = Tensor::from_vec(noise, (CHECK_WINDOWS, n, k), &dev)?;
-    let l = loss(&from.model, edm, &b, &sigma, &noise)?;
+    let l = loss(&from.model, edm, &b, &sigma, &noise, 1.0)?;
     let sigma = Tensor::from_vec(sigma, CHECK_WINDOWS, &dev)?;
     save(
         "check.safetensors",
@@ -249,6 +258,7 @@ mod tests {
             target: cat("target"),
             loss_mask: cat("loss_mask"),
             seen: cat("seen"),
+            normals: cat("seen").zeros_like().unwrap(),
             basis: read("basis.safetensors")["basis"].clone(),
         };
         let check = read("check.safetensors");
@@ -259,6 +269,7 @@ mod tests {
             &batch,
             &sigma,
             &check["noise"],
+            1.0,
         )
         .unwrap()
         .to_scalar::<f32>()

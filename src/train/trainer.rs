@@ -58,6 +58,13 @@ pub struct TrainConfig {
     /// ([`Normaliser::capped_at`]); checkpoints from before the option capped at 1.
     #[serde(default = "one")]
     pub scale_cap: f64,
+    /// Weight of the part of the training loss's position error across the recorded path,
+    /// relative to the rest (1: the plain error; checkpoints from before the option). Over
+    /// 8 s where a car is along its path is uncertain by metres and where it is across its
+    /// lane by decimetres, so a plain error is mostly the along part, and networks trained on
+    /// it left a lane by a metre from the recorded future with little noise.
+    #[serde(default = "one")]
+    pub across_weight: f64,
 }
 
 fn one() -> f64 {
@@ -92,6 +99,7 @@ impl TrainConfig {
             ema_half_life: 0.0,
             component_scale: ComponentScale::Common,
             scale_cap: 1.0,
+            across_weight: 1.0,
         }
     }
 
@@ -218,7 +226,7 @@ fn positive(name: &str, v: f64) -> Result<(), String> {
 /// The `drivescript train` flag that sets each [`TrainConfig`] field a user can give, by the
 /// field's name as [`TrainConfig::validate`] starts its message with it: the message names the
 /// field ("eval_every = 0"), which the user never typed.
-pub const TRAIN_FLAGS: [(&str, &str); 10] = [
+pub const TRAIN_FLAGS: [(&str, &str); 11] = [
     ("steps", "--steps"),
     ("edm.p_mean", "--p-mean"),
     ("edm.p_std", "--p-std"),
@@ -227,6 +235,7 @@ pub const TRAIN_FLAGS: [(&str, &str); 10] = [
     ("eval_every", "--eval-every"),
     ("ema_half_life", "--ema-half-life"),
     ("scale_cap", "--scale-cap"),
+    ("across_weight", "--across-weight"),
     ("val_towns", "--val-town"),
     // "window.route_times = 41: must be 0 to 40" named a setting the user never wrote.
     ("window.route_times", "--route-times"),
@@ -292,6 +301,12 @@ impl TrainConfig {
             return Err(format!(
                 "scale_cap = {}: must be in (0, 1], a fraction of the common scale",
                 c.scale_cap
+            ));
+        }
+        if !(c.across_weight.is_finite() && (1.0..=1000.0).contains(&c.across_weight)) {
+            return Err(format!(
+                "across_weight = {}: must be 1 (the plain error) to 1000",
+                c.across_weight
             ));
         }
         positive("edm.sigma_data", e.sigma_data)?;
@@ -523,13 +538,15 @@ fn seeded_init(varmap: &VarMap, rng: &mut Rng) -> candle_core::Result<()> {
     Ok(())
 }
 
-/// The weighted EDM loss of a batch for given noise levels and noise.
+/// The weighted EDM loss of a batch for given noise levels and noise, the position error
+/// across each recorded path weighted `across_weight` times the rest.
 pub(crate) fn loss(
     model: &Denoiser,
     edm: &Edm,
     b: &super::Batch,
     sigma: &[f64],
     noise: &Tensor,
+    across_weight: f64,
 ) -> candle_core::Result<Tensor> {
     let dev = noise.device();
     let bsz = sigma.len();
@@ -553,7 +570,17 @@ pub(crate) fn loss(
         .reshape((bsz * n, k))?
         .matmul(&b.basis.to_dtype(dt)?)?
         .reshape((bsz, n, dim))?;
-    let err = (traj.sqr()?.mul(&b.seen.to_dtype(dt)?)?.sum(D::Minus1)? / k as f64)?; // [B, N]
+    let mut err = (traj.sqr()?.mul(&b.seen.to_dtype(dt)?)?.sum(D::Minus1)? / k as f64)?; // [B, N]
+    if across_weight != 1.0 {
+        // The across part is already in the plain error once: it is added (w - 1) times more.
+        let steps = dim / 3;
+        let across = traj
+            .mul(&b.normals.to_dtype(dt)?)?
+            .reshape((bsz, n, steps, 3))?
+            .sum(D::Minus1)?;
+        let extra = (across.sqr()?.sum(D::Minus1)? * ((across_weight - 1.0) / k as f64))?;
+        err = (err + extra)?;
+    }
     let w = Tensor::from_vec(
         sigma
             .iter()
@@ -667,6 +694,7 @@ pub fn train_from(
         cfg.seed = c.seed;
         cfg.component_scale = c.component_scale;
         cfg.scale_cap = c.scale_cap;
+        cfg.across_weight = c.across_weight;
         cfg.val_fold = c.val_fold;
         cfg.val_towns = c.val_towns.clone();
     }
@@ -790,7 +818,7 @@ pub fn train_from(
             .map(|_| rng.normal() as f32)
             .collect();
         let noise = Tensor::from_vec(noise, (cfg.batch, cfg.window.max_agents, cfg.model.k), &dev)?;
-        let l = loss(&model, &cfg.edm, &b, &sigma, &noise)?;
+        let l = loss(&model, &cfg.edm, &b, &sigma, &noise, cfg.across_weight)?;
         let lv = l.to_scalar::<f32>()? as f64;
         if !lv.is_finite() {
             return Err(TrainError::Diverged {
@@ -843,7 +871,8 @@ pub fn train_from(
                     (cfg.batch, cfg.window.max_agents, cfg.model.k),
                     &dev,
                 )?;
-                total += loss(judged, &cfg.edm, &b, sig, &noise)?.to_scalar::<f32>()? as f64;
+                total += loss(judged, &cfg.edm, &b, sig, &noise, cfg.across_weight)?
+                    .to_scalar::<f32>()? as f64;
             }
             let v = (!val_batches.is_empty()).then(|| total / val_batches.len() as f64);
             if let Some(x) = v.filter(|x| !x.is_finite()) {
@@ -1337,6 +1366,7 @@ pub(crate) fn tiny_config(steps: usize, seed: u64, eval_every: usize) -> TrainCo
         ema_half_life: 0.0,
         component_scale: ComponentScale::Common,
         scale_cap: 1.0,
+        across_weight: 1.0,
     }
 }
 
