@@ -1371,6 +1371,26 @@ fn train_export_writes_the_windows_of_a_checkpoint_into_a_new_directory_only() {
             && err.contains("drew its noise levels with p_mean -1.2; a resumed run keeps them"),
         "{err}"
     );
+    // And its loss.
+    let err = fails(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--out",
+        s(&ckpt),
+        "--resume",
+        s(&ckpt),
+        "--steps",
+        "4",
+        "--across-weight",
+        "10",
+    ]);
+    assert!(
+        err.contains("--across-weight 10: ")
+            && err
+                .contains("weighs the error across the path 1 times; a resumed run keeps its loss"),
+        "{err}"
+    );
     let err = fails(&[
         "train",
         "--data",
