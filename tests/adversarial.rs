@@ -689,6 +689,13 @@ fn dead(src: &str, scene: Rc<Scene>, params: &Params) -> Vec<(String, usize)> {
         .collect()
 }
 
+/// The message of the first term of `src` (named `name`) that no probe moves.
+fn first_dead(src: &str, name: &str) -> String {
+    let s =
+        CostScript::compile(src, name, scene(), &Params::default(), &Limits::default()).unwrap();
+    s.dead_terms()[0].to_string()
+}
+
 #[test]
 fn a_term_no_probe_moves_is_named_and_guards_the_log_leaves_at_0_are_not() {
     // Vehicle 1 drives at 20 m/s: over 50 m/s it never goes (the probes reach 40 m/s), and
@@ -702,15 +709,7 @@ fn a_term_no_probe_moves_is_named_and_guards_the_log_leaves_at_0_are_not() {
         dead(src, scene(), &Params::default()),
         vec![("never".to_string(), 2), ("zero".to_string(), 3)]
     );
-    let s = CostScript::compile(
-        src,
-        "t.rhai",
-        scene(),
-        &Params::default(),
-        &Limits::default(),
-    )
-    .unwrap();
-    let msg = s.dead_terms()[0].to_string();
+    let msg = first_dead(src, "t.rhai");
     assert!(
         msg.starts_with("t.rhai:2: term \"never\": it is 0 with a zero gradient")
             && msg.contains("every car crowded onto one path")
@@ -727,15 +726,7 @@ fn a_term_no_probe_moves_is_named_and_guards_the_log_leaves_at_0_are_not() {
         dead(weighted, scene(), &Params::default()),
         vec![("off".to_string(), 2), ("tiny".to_string(), 3)]
     );
-    let s = CostScript::compile(
-        weighted,
-        "w.rhai",
-        scene(),
-        &Params::default(),
-        &Limits::default(),
-    )
-    .unwrap();
-    let msg = s.dead_terms()[0].to_string();
+    let msg = first_dead(weighted, "w.rhai");
     assert!(
         msg.starts_with("w.rhai:2: term \"off\": its weight, 0, makes its gradient 0")
             && msg.contains("give it a weight above 0"),

@@ -1340,51 +1340,37 @@ fn train_export_writes_the_windows_of_a_checkpoint_into_a_new_directory_only() {
     // The windows are encoded for a checkpoint's network: without one there is nothing to
     // encode them for; and an export writes no checkpoint.
     // A resumed run keeps its inputs.
-    let err = fails(&[
-        "train",
-        "--data",
-        "scripts/scenes",
-        "--out",
-        s(&ckpt),
-        "--resume",
-        s(&ckpt),
-        "--steps",
-        "4",
-        "--nearest-lane-pose",
-    ]);
+    let resumed = |flag: &[&str]| {
+        let ckpt = s(&ckpt);
+        fails(
+            &[
+                &[
+                    "train",
+                    "--data",
+                    "scripts/scenes",
+                    "--out",
+                    ckpt,
+                    "--resume",
+                    ckpt,
+                    "--steps",
+                    "4",
+                ],
+                flag,
+            ]
+            .concat(),
+        )
+    };
+    let err = resumed(&["--nearest-lane-pose"]);
     assert!(err.contains("without the lanes' nearest points"), "{err}");
     // And its training noise levels; a new run's are checked before any data is read.
-    let err = fails(&[
-        "train",
-        "--data",
-        "scripts/scenes",
-        "--out",
-        s(&ckpt),
-        "--resume",
-        s(&ckpt),
-        "--steps",
-        "4",
-        "--p-mean=-0.4",
-    ]);
+    let err = resumed(&["--p-mean=-0.4"]);
     assert!(
         err.contains("--p-mean -0.4: ")
             && err.contains("drew its noise levels with p_mean -1.2; a resumed run keeps them"),
         "{err}"
     );
     // And its loss.
-    let err = fails(&[
-        "train",
-        "--data",
-        "scripts/scenes",
-        "--out",
-        s(&ckpt),
-        "--resume",
-        s(&ckpt),
-        "--steps",
-        "4",
-        "--across-weight",
-        "10",
-    ]);
+    let err = resumed(&["--across-weight", "10"]);
     assert!(
         err.contains("--across-weight 10: ")
             && err
