@@ -1406,6 +1406,139 @@ fn train_export_writes_the_windows_of_a_checkpoint_into_a_new_directory_only() {
 }
 
 #[test]
+fn a_resumed_run_refuses_another_seed_or_setting_and_keeps_another_run_s_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let tiny = |out: &std::path::Path, seed: &str| {
+        ok(&[
+            "train",
+            "--data",
+            "scripts/scenes",
+            "--out",
+            s(out),
+            "--steps",
+            "2",
+            "--batch",
+            "2",
+            "--eval-every",
+            "2",
+            "--seed",
+            seed,
+        ])
+    };
+    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+    tiny(&a, "1");
+    tiny(&b, "9");
+    let weights = |d: &std::path::Path| std::fs::read(d.join("model.safetensors")).unwrap();
+    let before = weights(&b);
+    // Resuming a into b replaced b's own checkpoint with a's continuation, exit 0.
+    let more = |out: &std::path::Path, from: &std::path::Path, extra: &[&str]| {
+        let mut args = vec![
+            "train",
+            "--data",
+            "scripts/scenes",
+            "--out",
+            s(out),
+            "--resume",
+            s(from),
+            "--steps",
+            "4",
+            "--batch",
+            "2",
+            "--eval-every",
+            "2",
+        ];
+        args.extend_from_slice(extra);
+        fails(&args)
+    };
+    let err = more(&b, &a, &[]);
+    assert!(
+        err.contains("already holds a checkpoint")
+            && err.contains("--resume continues another one")
+            && err.contains("--force"),
+        "{err}"
+    );
+    assert_eq!(weights(&b), before);
+    // The seed and the setting of a resumed run were its checkpoint's, whatever was given.
+    let err = more(&a, &a, &["--seed", "77"]);
+    assert!(
+        err.contains("--seed 77: ") && err.contains("trained with seed 1"),
+        "{err}"
+    );
+    let err = more(&a, &a, &["--setting", "cities"]);
+    assert!(
+        err.contains("--setting: ") && err.contains("40-step futures without"),
+        "{err}"
+    );
+    // The checkpoint's own seed and setting, given again, are no change.
+    ok(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--out",
+        s(&a),
+        "--resume",
+        s(&a),
+        "--steps",
+        "4",
+        "--batch",
+        "2",
+        "--eval-every",
+        "2",
+        "--seed",
+        "1",
+        "--setting",
+        "ngsim",
+    ]);
+    // A config edited to a fold no scene hashes to validated on nothing without a word.
+    let cfg = a.join("config.json");
+    let mut v: Value = serde_json::from_str(&std::fs::read_to_string(&cfg).unwrap()).unwrap();
+    v["config"]["val_fold"] = 11.into();
+    std::fs::write(&cfg, v.to_string()).unwrap();
+    let err = more(&a, &a, &[]);
+    assert!(
+        err.contains("config.val_fold = 11: must be 0 to 9"),
+        "{err}"
+    );
+    // A cache named as a checkpoint file became a directory there, and the checkpoint could
+    // not be saved after the whole run: "Is a directory".
+    let c = dir.path().join("c");
+    let cache = c.join("model.safetensors");
+    let err = fails(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--out",
+        s(&c),
+        "--cache",
+        s(&cache),
+        "--steps",
+        "2",
+        "--batch",
+        "2",
+        "--eval-every",
+        "2",
+    ]);
+    assert!(
+        err.contains("is where the checkpoint in") && err.contains("writes its model.safetensors"),
+        "{err}"
+    );
+    assert!(!cache.exists());
+    // A damaged config of the checkpoint resumed in place says where it is not JSON.
+    let text = std::fs::read_to_string(&cfg).unwrap().replacen(
+        "\"ema_half_life\":0.0",
+        "\"ema_half_life\":NaN",
+        1,
+    );
+    assert!(text.contains("NaN"), "{text}");
+    std::fs::write(&cfg, text).unwrap();
+    let err = more(&a, &a, &[]);
+    assert!(
+        err.contains("which is not a checkpoint's config (line 1, column"),
+        "{err}"
+    );
+}
+
+#[test]
 fn eval_merge_refuses_samples_which_the_shards_record() {
     // Every other flag of a single run was refused beside --merge; --samples 3 was ignored and
     // the shards merged as they were (issue 32). Refused before any file is read.

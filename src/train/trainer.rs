@@ -255,6 +255,15 @@ impl TrainConfig {
         if c.eval_every == 0 {
             return Err("eval_every = 0: must be at least 1".into());
         }
+        // A checkpoint's config edited to fold 10 or more held out no scene at all (no id
+        // hashes there) and trained on, validating on nothing, without a word.
+        if c.val_fold >= VAL_FOLDS {
+            return Err(format!(
+                "val_fold = {}: must be 0 to {}",
+                c.val_fold,
+                VAL_FOLDS - 1
+            ));
+        }
         w.validate().map_err(|e| format!("window.{e}"))?;
         within("model.d", m.d, 1, 1024)?;
         within("model.layers", m.layers, 1, 32)?;
