@@ -4006,6 +4006,39 @@ fn bench_io_and_dataset_report_a_bad_file_and_go_on_with_the_rest() {
 }
 
 #[test]
+fn bench_cost_refuses_a_scene_of_fewer_than_two_vehicles_before_its_table() {
+    // One agent panicked (index out of bounds); a pedestrian as the second agent printed two
+    // rows of the table, then stopped at no_collisions.rhai.
+    let dir = tempfile::tempdir().unwrap();
+    let head = "dt: 0.1\nsteps: 91\ncurrent_step: 10\nroad: {lanes: 2, lane_width: 3.6, \
+                length: 400, segments: 1, speed_limit: 29}\nego: 1\nagents:\n  - {id: 1, lane: 0, \
+                s: 60, speed: 24}\n";
+    for (name, more) in [
+        ("one", ""),
+        (
+            "walker",
+            "  - {id: 2, type: pedestrian, lane: 1, s: 70, speed: 1}\n",
+        ),
+    ] {
+        let path = dir.path().join(format!("{name}.yaml"));
+        std::fs::write(&path, format!("scenario_id: {name}\n{head}{more}")).unwrap();
+        let out = drivescript(&["bench", "cost", "--scene", s(&path), "--seconds", "0.05"]);
+        let (stdout, err) = (
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr),
+        );
+        assert_eq!(out.status.code(), Some(1), "{name}: {err}");
+        assert!(
+            err.contains("the bench scene has 1 vehicle(s)")
+                && err.contains("needs at least two (--scene)")
+                && !err.contains("panicked")
+                && !stdout.contains("| cut_in"),
+            "{name}: {stdout}{err}"
+        );
+    }
+}
+
+#[test]
 fn bench_refuses_flags_of_another_benchmark_and_outputs_over_what_it_did_not_write() {
     // Each flag was dropped without a word by the benchmarks that do not read it.
     for (args, want) in [
