@@ -2359,8 +2359,22 @@ fn dataset_window_flags_are_checked() {
     // No scene there is 100 s long: the PCA table cannot be made, and that was exit 0.
     let err = fails(&["dataset", "scripts/scenes", "--future=1000"]);
     assert!(
-        err.contains("0 complete agent futures of 1000 steps: PCA needs at least 50"),
+        err.contains("0 complete agent futures of 1000 steps: PCA needs at least 3000"),
         "{err}"
+    );
+    // 76 futures of 40 steps: past 50, short of the 120 numbers a future holds. The table's
+    // header was printed, then "PCA needs at least 120 samples, got 76".
+    let out = drivescript(&["dataset", "scripts/scenes", "--stride", "100000"]);
+    let (stdout, err) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("PCA needs at least 120 (at least 50, and one per number of a future")
+            && err.contains("a smaller --stride")
+            && !stdout.contains("| PCA components"),
+        "{stdout}{err}"
     );
     // Futures of one step hold 3 numbers: rows for 4 to 32 components all read "1.00000
     // variance kept".
