@@ -177,6 +177,17 @@ impl HttpConfig {
     /// percent-decoded.
     fn secrets(&self) -> Vec<String> {
         let mut out: Vec<String> = self.key.iter().map(|k| k.trim().to_string()).collect();
+        // The key percent-encoded too, as a proxy or server that echoes the request URL-encoded
+        // writes it: a key holding `+`, `/` or `=` (`openssl rand -base64 32`, which vLLM's
+        // --api-key takes) was shown whole in that form ("Bearer%20abc%2Bdef%2F...").
+        for k in self.key.iter().map(|k| k.trim()) {
+            for upper in [true, false] {
+                let encoded = percent_encode(k, upper);
+                if encoded != k {
+                    out.push(encoded);
+                }
+            }
+        }
         if let Ok(u) = reqwest::Url::parse(&self.url) {
             let password = u.password().map(str::to_string);
             let query = u.query().into_iter().flat_map(|q| {
@@ -289,6 +300,22 @@ fn base64(bytes: &[u8]) -> String {
             } else {
                 out.push('=');
             }
+        }
+    }
+    out
+}
+
+/// `s` with every byte but URL's unreserved ones (letters, digits, `-`, `.`, `_`, `~`) written
+/// as `%XX`, in upper- or lower-case hex.
+fn percent_encode(s: &str, upper: bool) -> String {
+    let mut out = String::with_capacity(s.len());
+    for &b in s.as_bytes() {
+        if b.is_ascii_alphanumeric() || b"-._~".contains(&b) {
+            out.push(b as char);
+        } else if upper {
+            out.push_str(&format!("%{b:02X}"));
+        } else {
+            out.push_str(&format!("%{b:02x}"));
         }
     }
     out
@@ -1560,6 +1587,25 @@ mod tests {
         assert_eq!(base64(b"u:pw-url-secret-1"), "dTpwdy11cmwtc2VjcmV0LTE=");
         assert_eq!(base64(b"ab"), "YWI=");
         assert_eq!(base64(b"a"), "YQ==");
+    }
+
+    #[test]
+    fn a_key_echoed_percent_encoded_is_redacted() {
+        let mut cfg = HttpConfig::new("http://h/v1", "m");
+        cfg.key = Some("Zm9v+YmFy/cXV4=sk".into());
+        let c = HttpClient::new(cfg).unwrap();
+        for echoed in [
+            "bad auth header: Bearer%20Zm9v%2BYmFy%2FcXV4%3Dsk",
+            "bad auth header: Bearer%20Zm9v%2bYmFy%2fcXV4%3dsk",
+            "bad auth header: Bearer Zm9v+YmFy/cXV4=sk",
+        ] {
+            let r = c.redact(echoed);
+            assert!(!r.contains("Zm9v") && r.contains("[redacted]"), "{r}");
+        }
+        // A key of unreserved characters only is the same encoded: no second entry.
+        let mut cfg = HttpConfig::new("http://h/v1", "m");
+        cfg.key = Some("sk-abc_DEF.123~x".into());
+        assert_eq!(HttpClient::new(cfg).unwrap().secrets.len(), 1);
     }
 
     #[test]
