@@ -962,8 +962,8 @@ fn read_error(
     }
 }
 
-/// `text` with every occurrence of `key` replaced by `[redacted]`, also where whitespace was
-/// put inside it: a server that wrapped the echoed key across lines (`sk-TES\nT123xyz`) showed
+/// `text` with every occurrence of `key` replaced by `[redacted]`, in any letter case, also
+/// where whitespace was put inside it: a server that wrapped the echoed key across lines (`sk-TES\nT123xyz`) showed
 /// it once the error's lines were joined. Keys shorter than 8 bytes are left alone: no real key
 /// is that short, and replacing a common word everywhere would garble replies.
 pub fn redact_key(text: &str, key: Option<&str>) -> String {
@@ -980,14 +980,16 @@ pub fn redact_key(text: &str, key: Option<&str>) -> String {
     let mut out = String::with_capacity(text.len());
     let (mut i, mut copied) = (0, 0);
     while i < chars.len() {
-        if chars[i].1 != want[0] {
+        // In any case, too: a server that wrote the header it refused in capitals
+        // ("SK-TESTKEY...") showed all but the letters' case of the key.
+        if !chars[i].1.eq_ignore_ascii_case(&want[0]) {
             i += 1;
             continue;
         }
         // Match the key's characters in order, skipping whitespace between them.
         let (mut j, mut m) = (i, 0);
         while j < chars.len() && m < want.len() {
-            if chars[j].1 == want[m] {
+            if chars[j].1.eq_ignore_ascii_case(&want[m]) {
                 m += 1;
             } else if !(m > 0 && chars[j].1.is_whitespace()) {
                 break;
@@ -1396,6 +1398,10 @@ mod tests {
             "a [redacted] b sk-TEST12"
         );
         assert_eq!(redact_key("sk-TEST123xyz", k), "[redacted]");
+        assert_eq!(
+            redact_key("full SK-TEST123XYZ and sk-test123xyz", k),
+            "full [redacted] and [redacted]"
+        );
         assert_eq!(redact_key("no key", None), "no key");
     }
 
