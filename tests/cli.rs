@@ -1489,6 +1489,17 @@ fn a_resumed_run_refuses_another_seed_or_setting_and_keeps_another_run_s_checkpo
         "--setting",
         "ngsim",
     ]);
+    // A truncated optimiser state was "invalid header length", candle's words.
+    let opt = a.join("optimizer.safetensors");
+    let bytes = std::fs::read(&opt).unwrap();
+    std::fs::write(&opt, &bytes[..1000]).unwrap();
+    let err = more(&a, &a, &[]);
+    assert!(
+        err.contains("optimizer.safetensors: the header says it is")
+            && err.contains("but the file is 1000 bytes: not a safetensors file, or cut short"),
+        "{err}"
+    );
+    std::fs::write(&opt, &bytes).unwrap();
     // A config edited to a fold no scene hashes to validated on nothing without a word.
     let cfg = a.join("config.json");
     let mut v: Value = serde_json::from_str(&std::fs::read_to_string(&cfg).unwrap()).unwrap();
