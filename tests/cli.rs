@@ -1412,6 +1412,150 @@ fn train_export_writes_the_windows_of_a_checkpoint_into_a_new_directory_only() {
 }
 
 #[test]
+fn a_resumed_run_refuses_another_seed_or_setting_and_keeps_another_run_s_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let tiny = |out: &std::path::Path, seed: &str| {
+        ok(&[
+            "train",
+            "--data",
+            "scripts/scenes",
+            "--out",
+            s(out),
+            "--steps",
+            "2",
+            "--batch",
+            "2",
+            "--eval-every",
+            "2",
+            "--seed",
+            seed,
+        ])
+    };
+    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+    tiny(&a, "1");
+    tiny(&b, "9");
+    let weights = |d: &std::path::Path| std::fs::read(d.join("model.safetensors")).unwrap();
+    let before = weights(&b);
+    // Resuming a into b replaced b's own checkpoint with a's continuation, exit 0.
+    let more = |out: &std::path::Path, from: &std::path::Path, extra: &[&str]| {
+        let mut args = vec![
+            "train",
+            "--data",
+            "scripts/scenes",
+            "--out",
+            s(out),
+            "--resume",
+            s(from),
+            "--steps",
+            "4",
+            "--batch",
+            "2",
+            "--eval-every",
+            "2",
+        ];
+        args.extend_from_slice(extra);
+        fails(&args)
+    };
+    let err = more(&b, &a, &[]);
+    assert!(
+        err.contains("already holds a checkpoint")
+            && err.contains("--resume continues another one")
+            && err.contains("--force"),
+        "{err}"
+    );
+    assert_eq!(weights(&b), before);
+    // The seed and the setting of a resumed run were its checkpoint's, whatever was given.
+    let err = more(&a, &a, &["--seed", "77"]);
+    assert!(
+        err.contains("--seed 77: ") && err.contains("trained with seed 1"),
+        "{err}"
+    );
+    let err = more(&a, &a, &["--setting", "cities"]);
+    assert!(
+        err.contains("--setting: ") && err.contains("40-step futures without"),
+        "{err}"
+    );
+    // The checkpoint's own seed and setting, given again, are no change.
+    ok(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--out",
+        s(&a),
+        "--resume",
+        s(&a),
+        "--steps",
+        "4",
+        "--batch",
+        "2",
+        "--eval-every",
+        "2",
+        "--seed",
+        "1",
+        "--setting",
+        "ngsim",
+    ]);
+    // A truncated optimiser state was "invalid header length", candle's words.
+    let opt = a.join("optimizer.safetensors");
+    let bytes = std::fs::read(&opt).unwrap();
+    std::fs::write(&opt, &bytes[..1000]).unwrap();
+    let err = more(&a, &a, &[]);
+    assert!(
+        err.contains("optimizer.safetensors: the header says it is")
+            && err.contains("but the file is 1000 bytes: not a safetensors file, or cut short"),
+        "{err}"
+    );
+    std::fs::write(&opt, &bytes).unwrap();
+    // A config edited to a fold no scene hashes to validated on nothing without a word.
+    let cfg = a.join("config.json");
+    let mut v: Value = serde_json::from_str(&std::fs::read_to_string(&cfg).unwrap()).unwrap();
+    v["config"]["val_fold"] = 11.into();
+    std::fs::write(&cfg, v.to_string()).unwrap();
+    let err = more(&a, &a, &[]);
+    assert!(
+        err.contains("config.val_fold = 11: must be 0 to 9"),
+        "{err}"
+    );
+    // A cache named as a checkpoint file became a directory there, and the checkpoint could
+    // not be saved after the whole run: "Is a directory".
+    let c = dir.path().join("c");
+    let cache = c.join("model.safetensors");
+    let err = fails(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--out",
+        s(&c),
+        "--cache",
+        s(&cache),
+        "--steps",
+        "2",
+        "--batch",
+        "2",
+        "--eval-every",
+        "2",
+    ]);
+    assert!(
+        err.contains("is where the checkpoint in") && err.contains("writes its model.safetensors"),
+        "{err}"
+    );
+    assert!(!cache.exists());
+    // A damaged config of the checkpoint resumed in place says where it is not JSON.
+    let text = std::fs::read_to_string(&cfg).unwrap().replacen(
+        "\"ema_half_life\":0.0",
+        "\"ema_half_life\":NaN",
+        1,
+    );
+    assert!(text.contains("NaN"), "{text}");
+    std::fs::write(&cfg, text).unwrap();
+    let err = more(&a, &a, &[]);
+    assert!(
+        err.contains("which is not a checkpoint's config (line 1, column"),
+        "{err}"
+    );
+}
+
+#[test]
 fn eval_merge_refuses_samples_which_the_shards_record() {
     // Every other flag of a single run was refused beside --merge; --samples 3 was ignored and
     // the shards merged as they were (issue 32). Refused before any file is read.
@@ -2237,8 +2381,22 @@ fn dataset_window_flags_are_checked() {
     // No scene there is 100 s long: the PCA table cannot be made, and that was exit 0.
     let err = fails(&["dataset", "scripts/scenes", "--future=1000"]);
     assert!(
-        err.contains("0 complete agent futures of 1000 steps: PCA needs at least 50"),
+        err.contains("0 complete agent futures of 1000 steps: PCA needs at least 3000"),
         "{err}"
+    );
+    // 76 futures of 40 steps: past 50, short of the 120 numbers a future holds. The table's
+    // header was printed, then "PCA needs at least 120 samples, got 76".
+    let out = drivescript(&["dataset", "scripts/scenes", "--stride", "100000"]);
+    let (stdout, err) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("PCA needs at least 120 (at least 50, and one per number of a future")
+            && err.contains("a smaller --stride")
+            && !stdout.contains("| PCA components"),
+        "{stdout}{err}"
     );
     // Futures of one step hold 3 numbers: rows for 4 to 32 components all read "1.00000
     // variance kept".
@@ -3895,6 +4053,39 @@ fn bench_io_and_dataset_report_a_bad_file_and_go_on_with_the_rest() {
         err.contains("none of its 1 scene files could be read"),
         "{err}"
     );
+}
+
+#[test]
+fn bench_cost_refuses_a_scene_of_fewer_than_two_vehicles_before_its_table() {
+    // One agent panicked (index out of bounds); a pedestrian as the second agent printed two
+    // rows of the table, then stopped at no_collisions.rhai.
+    let dir = tempfile::tempdir().unwrap();
+    let head = "dt: 0.1\nsteps: 91\ncurrent_step: 10\nroad: {lanes: 2, lane_width: 3.6, \
+                length: 400, segments: 1, speed_limit: 29}\nego: 1\nagents:\n  - {id: 1, lane: 0, \
+                s: 60, speed: 24}\n";
+    for (name, more) in [
+        ("one", ""),
+        (
+            "walker",
+            "  - {id: 2, type: pedestrian, lane: 1, s: 70, speed: 1}\n",
+        ),
+    ] {
+        let path = dir.path().join(format!("{name}.yaml"));
+        std::fs::write(&path, format!("scenario_id: {name}\n{head}{more}")).unwrap();
+        let out = drivescript(&["bench", "cost", "--scene", s(&path), "--seconds", "0.05"]);
+        let (stdout, err) = (
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr),
+        );
+        assert_eq!(out.status.code(), Some(1), "{name}: {err}");
+        assert!(
+            err.contains("the bench scene has 1 vehicle(s)")
+                && err.contains("needs at least two (--scene)")
+                && !err.contains("panicked")
+                && !stdout.contains("| cut_in"),
+            "{name}: {stdout}{err}"
+        );
+    }
 }
 
 #[test]

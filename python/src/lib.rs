@@ -40,6 +40,10 @@ create_exception!(
 /// The most future steps a trajectory may have: `drivescript cost --horizon`'s bound.
 const MAX_STEPS: usize = 10_000;
 
+/// The most numbers one `evaluate_batch` takes (2 GiB of float64): a batch of 1,024 samples of
+/// 24 agents over 1,000 steps is under a third of it.
+const MAX_BATCH_VALUES: usize = 1 << 28;
+
 /// Runs `f` with the GIL released, turning a panic into a `RuntimeError` that names it.
 fn detached<T: Send>(
     py: Python<'_>,
@@ -483,6 +487,19 @@ fn trajectories(
     }
     let steps = shape[dims - 2];
     let layout = VarLayout { agents, steps };
+    // A batch view that holds no memory (`np.broadcast_to(traj, (10**9, ...))`) is copied
+    // item by item, and each item gets a gradient as large: the process grew until the
+    // system's OOM killer ended it (or another program), with no exception.
+    if batch && shape[0] > MAX_BATCH_VALUES / layout.len() {
+        let per = (MAX_BATCH_VALUES / layout.len()).max(1);
+        return Err(PyValueError::new_err(format!(
+            "trajectories of shape {shape:?}: {} items of {} numbers, more than evaluate_batch \
+             takes at once ({MAX_BATCH_VALUES} numbers, 2 GiB of float64, copied and given a \
+             gradient each): evaluate it in parts of at most {per} items",
+            shape[0],
+            layout.len()
+        )));
+    }
     // A C-contiguous float64 array (what numpy and torch hand over) is read in place; any
     // other (Fortran order, a strided view) in logical order.
     let copied: Vec<f64>;

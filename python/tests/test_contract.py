@@ -662,3 +662,14 @@ def test_a_path_may_be_bytes_as_for_python_s_own_file_functions(ds, scene, tmp_p
     assert out.exists()
     with pytest.raises(TypeError, match="expected str, bytes or os.PathLike object, not int"):
         ds.Scene.load(123)
+
+
+def test_a_batch_too_large_to_copy_is_a_value_error_not_the_oom_killer(ds, scene, cut_in):
+    # A broadcast view holds no memory, but its items were copied and each given a gradient:
+    # the process grew until the system's OOM killer ended it, with no exception.
+    traj = scene.log_future(40)
+    huge = np.broadcast_to(traj, (10**9,) + traj.shape)
+    with pytest.raises(ValueError, match=r"more than evaluate_batch takes at once .* evaluate it in parts of at most \d+ items"):
+        cut_in.evaluate_batch(scene, huge)
+    # Still usable, and a batch under the cap runs.
+    assert len(cut_in.evaluate_batch(scene, np.broadcast_to(traj, (3,) + traj.shape))) == 3

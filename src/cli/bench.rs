@@ -210,8 +210,25 @@ fn bench_cost(args: &Args, min: Duration) -> Result<ExitCode> {
             scene.meta.current_step
         );
     }
+    // The rows judge a cut-in of one vehicle by another and collisions between vehicles: a
+    // scene of one agent panicked here (index out of bounds), and one whose second agent was
+    // a pedestrian printed half the table, then stopped at no_collisions.rhai.
+    let vehicles: Vec<usize> = (0..scene.agents.len())
+        .filter(|&i| scene.agents[i].agent_type == drivescript::scene::AgentType::Vehicle)
+        .collect();
+    let (vi, ci) = match vehicles[..] {
+        [vi, ci, ..] => (vi, ci),
+        _ => anyhow::bail!(
+            "{}: the bench scene has {} vehicle(s) observed at step {}: `bench cost` times a \
+             cut-in of one vehicle by another and collisions between vehicles, so it needs at \
+             least two (--scene)",
+            path.display(),
+            vehicles.len(),
+            scene.meta.current_step
+        ),
+    };
     let traj = Trajectories::filled(&scene);
-    let (v, c) = (scene.agents[0].id, scene.agents[1].id);
+    let (v, c) = (scene.agents[vi].id, scene.agents[ci].id);
     println!(
         "scene {} ({}), {} agents x {} future steps, victim {v}, cutter {c}\n",
         scene.meta.scenario_id,
@@ -240,7 +257,7 @@ fn bench_cost(args: &Args, min: Duration) -> Result<ExitCode> {
             )?,
             Box::new({
                 let (s, t) = (scene.clone(), traj.clone());
-                move || handwritten::cut_in(&s, &t, 1, 0, 5.0, 0.5).map_or(f64::NAN, |r| r.0)
+                move || handwritten::cut_in(&s, &t, ci, vi, 5.0, 0.5).map_or(f64::NAN, |r| r.0)
             }),
         ),
         (
@@ -248,7 +265,7 @@ fn bench_cost(args: &Args, min: Duration) -> Result<ExitCode> {
             load("rightmost_lane.rhai", vec![format!("vehicle={v}")])?,
             Box::new({
                 let (s, t) = (scene.clone(), traj.clone());
-                move || handwritten::rightmost(&s, &t, 0, 0.5).map_or(f64::NAN, |r| r.0)
+                move || handwritten::rightmost(&s, &t, vi, 0.5).map_or(f64::NAN, |r| r.0)
             }),
         ),
         (

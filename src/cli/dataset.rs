@@ -97,13 +97,19 @@ pub fn run(args: Args) -> Result<ExitCode> {
         lanes as f64 / wins.max(1) as f64,
         futures.len()
     );
-    if futures.len() < 50 {
-        // The table is what the command is for: without it the run has not done its job.
+    // The table is what the command is for: without it the run has not done its job. Its
+    // variance is out of a basis of every component, which needs as many futures as a future
+    // holds numbers: 76 futures of 40 steps (`--stride 100000`) passed the check of 50, printed
+    // the table's header, then stopped at "PCA needs at least 120 samples", naming no cause.
+    let needed = 50.max(3 * cfg.future);
+    if futures.len() < needed {
         anyhow::bail!(
-            "{} complete agent futures of {} steps: PCA needs at least 50 (more scenes, or a \
-             shorter --future / --history)",
+            "{} complete agent futures of {} steps: PCA needs at least {needed} (at least 50, \
+             and one per number of a future, which holds {}; more scenes, a smaller --stride, or \
+             a shorter --future / --history)",
             futures.len(),
-            cfg.future
+            cfg.future,
+            3 * cfg.future
         );
     }
     println!("\n| PCA components | position RMSE (m) | variance kept |");

@@ -29,9 +29,12 @@ pub struct Args {
     /// held out a town at a time, so that validation measures places the model never saw.
     #[arg(long, num_args = 1..)]
     urban: Vec<PathBuf>,
-    /// Window sizes and network of a new run (a resumed run keeps its checkpoint's).
-    #[arg(long, value_enum, default_value = "ngsim")]
-    setting: Setting,
+    /// Window sizes and network of a new run (default ngsim; a resumed run keeps its
+    /// checkpoint's, and refuses another).
+    // No clap default: a resumed run must tell a setting given from none (`--setting cities`
+    // beside an ngsim checkpoint was ignored without a word).
+    #[arg(long, value_enum)]
+    setting: Option<Setting>,
     /// Checkpoint directory (model.safetensors + config.json, written at every validation).
     #[arg(long, required_unless_present = "export")]
     out: Option<PathBuf>,
@@ -67,9 +70,10 @@ pub struct Args {
     /// Learning rate.
     #[arg(long, value_parser = super::ask::float, default_value_t = 3e-4)]
     lr: f64,
-    /// Seed (initialisation, batches, noise, augmentation).
-    #[arg(long, default_value_t = 1)]
-    seed: u64,
+    /// Seed (initialisation, batches, noise, augmentation; default 1). A resumed run keeps its
+    /// checkpoint's, and refuses another.
+    #[arg(long)]
+    seed: Option<u64>,
     /// Validation (and checkpoint) every this many steps.
     #[arg(long, default_value_t = 100)]
     eval_every: usize,
@@ -148,7 +152,7 @@ fn git_revision() -> Option<String> {
 }
 
 pub fn run(args: Args) -> Result<ExitCode> {
-    let base = match args.setting {
+    let base = match args.setting.unwrap_or(Setting::Ngsim) {
         Setting::Ngsim => TrainConfig::ngsim(),
         Setting::Cities => TrainConfig::cities(),
     };
@@ -156,7 +160,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         steps: args.steps,
         batch: args.batch,
         lr: args.lr,
-        seed: args.seed,
+        seed: args.seed.unwrap_or(base.seed),
         eval_every: args.eval_every,
         val_fold: args.val_fold.unwrap_or(0),
         val_towns: args.val_town.clone(),
@@ -202,15 +206,8 @@ pub fn run(args: Args) -> Result<ExitCode> {
         .expect("clap requires --out without --export");
     // Before anything is read or written: a checkpoint among the scenes it learns from.
     check_out_dir(&out, &corpora)?;
-    // A good checkpoint is never overwritten by accident.
-    if out.join("model.safetensors").exists() && args.resume.is_none() && !args.force {
-        anyhow::bail!(
-            "{} already holds a checkpoint: continue it with --resume {}, choose another --out, \
-             or pass --force to replace it",
-            out.display(),
-            out.display()
-        );
-    }
+    // A good checkpoint is never overwritten by accident, by a new run or another's resume.
+    drivescript::train::check_replaces_checkpoint(&out, args.resume.as_deref(), args.force)?;
     // Before any data is read: --steps, --batch, --lr and --eval-every.
     if let Err(e) = cfg.validate() {
         match drivescript::train::trainer::flag_of(&e) {
@@ -226,6 +223,31 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 cfg.ema_half_life = r.meta.config.ema_half_life;
             }
             let fold = r.meta.config.val_fold;
+            let kept = &r.meta.config;
+            if let Some(seed) = args.seed.filter(|s| *s != kept.seed) {
+                anyhow::bail!(
+                    "--seed {seed}: {} was trained with seed {}; a resumed run keeps its seed \
+                     (each step's batch and noise come from it and the step number)",
+                    dir.display(),
+                    kept.seed
+                );
+            }
+            if args.setting.is_some()
+                && (base.window.future != kept.window.future
+                    || base.model.attrs != kept.model.attrs)
+            {
+                anyhow::bail!(
+                    "--setting: {} has {}-step futures {} the agents' types and sizes as \
+                     inputs, the other setting's network; a resumed run keeps its setting",
+                    dir.display(),
+                    kept.window.future,
+                    if kept.model.attrs > 0 {
+                        "and"
+                    } else {
+                        "without"
+                    }
+                );
+            }
             if args.val_fold.is_some_and(|f| f != fold) {
                 anyhow::bail!(
                     "--val-fold {}: {} held out fold {fold}; a resumed run keeps its fold",
@@ -348,6 +370,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let cache = args.cache.clone().unwrap_or_else(|| out.join("windows"));
     // Before --out is made for the lock: a cache refused leaves nothing behind.
     drivescript::train::store::check_cache_dir(&cache, &corpora)?;
+    drivescript::train::check_cache_beside_checkpoint(&cache, &out)?;
     // Held to the end: a second run into this --out is refused, not mixed with this one.
     let _lock = drivescript::train::store::lock_out_dir(&out)?;
     let started = std::time::Instant::now();

@@ -870,12 +870,28 @@ fn speed_limit(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
             limit > 0.0 && limit <= 100.0,
             "more than 0 and at most 100 m/s",
         )?;
-        let from = c + (x.seconds_into_future("from", 0.0, false)? / s.meta.dt).round() as usize;
-        let vmax = speeds(s, a)
+        let from_s = x.seconds_into_future("from", 0.0, false)?;
+        let from = c + (from_s / s.meta.dt).round() as usize;
+        let judged: Vec<f64> = speeds(s, a)
             .iter()
             .filter(|(t, _)| *t > from)
             .map(|v| v.1)
-            .fold(0.0, f64::max);
+            .collect();
+        // A vehicle never observed there has no speed to judge: the fold's 0 passed it as
+        // "stays under the limit" (a trajectory of NaN from Python's `check`, or a logged car
+        // that left the recording).
+        if judged.is_empty() {
+            return Err(CheckError::Agent {
+                behavior: x.b.name(),
+                message: format!(
+                    "agent {} is not observed at two steps in a row after {} s into the \
+                     future, so it has no speed to judge",
+                    a.id,
+                    crate::geom::approx(from_s)
+                ),
+            });
+        }
+        let vmax = judged.iter().copied().fold(0.0, f64::max);
         x.measure("max_speed", vmax);
         x.measure("limit", limit);
         let ok = vmax <= limit + 0.5;

@@ -868,3 +868,26 @@ fn numbers_a_checker_cannot_judge_by_are_refused_naming_the_parameter() {
     )
     .unwrap();
 }
+
+#[test]
+fn a_speed_limit_of_a_vehicle_never_observed_after_from_is_not_judged_as_kept() {
+    // With no speed to judge, the maximum was the fold's 0: "stays under the limit", passed
+    // (a trajectory of NaN given to Python's `check`).
+    let mut gone = scene("highway.yaml");
+    let c = gone.meta.current_step;
+    let a = gone.agents.iter_mut().find(|a| a.id == 2).unwrap();
+    for t in c + 1..a.states.len() {
+        a.states[t] = crate::scene::AgentState::INVALID;
+    }
+    let e = check(
+        Behavior::SpeedLimit,
+        &gone,
+        &params(&[("vehicle", 2.0), ("limit", 25.0)]),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        e.contains("agent 2 is not observed at two steps in a row after 0 s into the future"),
+        "{e}"
+    );
+}

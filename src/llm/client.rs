@@ -177,6 +177,17 @@ impl HttpConfig {
     /// percent-decoded.
     fn secrets(&self) -> Vec<String> {
         let mut out: Vec<String> = self.key.iter().map(|k| k.trim().to_string()).collect();
+        // The key percent-encoded too, as a proxy or server that echoes the request URL-encoded
+        // writes it: a key holding `+`, `/` or `=` (`openssl rand -base64 32`, which vLLM's
+        // --api-key takes) was shown whole in that form ("Bearer%20abc%2Bdef%2F...").
+        for k in self.key.iter().map(|k| k.trim()) {
+            for upper in [true, false] {
+                let encoded = percent_encode(k, upper);
+                if encoded != k {
+                    out.push(encoded);
+                }
+            }
+        }
         if let Ok(u) = reqwest::Url::parse(&self.url) {
             let password = u.password().map(str::to_string);
             let query = u.query().into_iter().flat_map(|q| {
@@ -289,6 +300,22 @@ fn base64(bytes: &[u8]) -> String {
             } else {
                 out.push('=');
             }
+        }
+    }
+    out
+}
+
+/// `s` with every byte but URL's unreserved ones (letters, digits, `-`, `.`, `_`, `~`) written
+/// as `%XX`, in upper- or lower-case hex.
+fn percent_encode(s: &str, upper: bool) -> String {
+    let mut out = String::with_capacity(s.len());
+    for &b in s.as_bytes() {
+        if b.is_ascii_alphanumeric() || b"-._~".contains(&b) {
+            out.push(b as char);
+        } else if upper {
+            out.push_str(&format!("%{b:02X}"));
+        } else {
+            out.push_str(&format!("%{b:02x}"));
         }
     }
     out
@@ -935,8 +962,8 @@ fn read_error(
     }
 }
 
-/// `text` with every occurrence of `key` replaced by `[redacted]`, also where whitespace was
-/// put inside it: a server that wrapped the echoed key across lines (`sk-TES\nT123xyz`) showed
+/// `text` with every occurrence of `key` replaced by `[redacted]`, in any letter case, also
+/// where whitespace was put inside it: a server that wrapped the echoed key across lines (`sk-TES\nT123xyz`) showed
 /// it once the error's lines were joined. Keys shorter than 8 bytes are left alone: no real key
 /// is that short, and replacing a common word everywhere would garble replies.
 pub fn redact_key(text: &str, key: Option<&str>) -> String {
@@ -953,14 +980,16 @@ pub fn redact_key(text: &str, key: Option<&str>) -> String {
     let mut out = String::with_capacity(text.len());
     let (mut i, mut copied) = (0, 0);
     while i < chars.len() {
-        if chars[i].1 != want[0] {
+        // In any case, too: a server that wrote the header it refused in capitals
+        // ("SK-TESTKEY...") showed all but the letters' case of the key.
+        if !chars[i].1.eq_ignore_ascii_case(&want[0]) {
             i += 1;
             continue;
         }
         // Match the key's characters in order, skipping whitespace between them.
         let (mut j, mut m) = (i, 0);
         while j < chars.len() && m < want.len() {
-            if chars[j].1 == want[m] {
+            if chars[j].1.eq_ignore_ascii_case(&want[m]) {
                 m += 1;
             } else if !(m > 0 && chars[j].1.is_whitespace()) {
                 break;
@@ -1369,6 +1398,10 @@ mod tests {
             "a [redacted] b sk-TEST12"
         );
         assert_eq!(redact_key("sk-TEST123xyz", k), "[redacted]");
+        assert_eq!(
+            redact_key("full SK-TEST123XYZ and sk-test123xyz", k),
+            "full [redacted] and [redacted]"
+        );
         assert_eq!(redact_key("no key", None), "no key");
     }
 
@@ -1560,6 +1593,25 @@ mod tests {
         assert_eq!(base64(b"u:pw-url-secret-1"), "dTpwdy11cmwtc2VjcmV0LTE=");
         assert_eq!(base64(b"ab"), "YWI=");
         assert_eq!(base64(b"a"), "YQ==");
+    }
+
+    #[test]
+    fn a_key_echoed_percent_encoded_is_redacted() {
+        let mut cfg = HttpConfig::new("http://h/v1", "m");
+        cfg.key = Some("Zm9v+YmFy/cXV4=sk".into());
+        let c = HttpClient::new(cfg).unwrap();
+        for echoed in [
+            "bad auth header: Bearer%20Zm9v%2BYmFy%2FcXV4%3Dsk",
+            "bad auth header: Bearer%20Zm9v%2bYmFy%2fcXV4%3dsk",
+            "bad auth header: Bearer Zm9v+YmFy/cXV4=sk",
+        ] {
+            let r = c.redact(echoed);
+            assert!(!r.contains("Zm9v") && r.contains("[redacted]"), "{r}");
+        }
+        // A key of unreserved characters only is the same encoded: no second entry.
+        let mut cfg = HttpConfig::new("http://h/v1", "m");
+        cfg.key = Some("sk-abc_DEF.123~x".into());
+        assert_eq!(HttpClient::new(cfg).unwrap().secrets.len(), 1);
     }
 
     #[test]

@@ -219,6 +219,21 @@ pub fn claim_shards(dir: &Path, count: usize) -> Result<(), ProvenanceError> {
                 if theirs == count.to_string() {
                     return Ok(());
                 }
+                // A damaged file ("garbage", empty, 0) was read as another split, and the
+                // message asked for `--shard I/garbage`, a flag no run can be given.
+                let valid = theirs
+                    .parse::<usize>()
+                    .is_ok_and(|n| (1..=crate::io::shard::MAX_SHARDS).contains(&n));
+                if !valid {
+                    return Err(io(format!(
+                        "holds \"{}\", not a number of shards (1 to {}): the file is damaged; \
+                         it records how many ways this run's scenes are split (the N of the \
+                         first --shard I/N into this directory): write that number into it, \
+                         or choose another -o",
+                        crate::io::name::shown(theirs),
+                        crate::io::shard::MAX_SHARDS
+                    )));
+                }
                 return Err(ProvenanceError::OtherShards {
                     dir: dir.display().to_string(),
                     theirs: crate::io::name::shown(theirs),
@@ -270,6 +285,27 @@ fn first_difference(at: &str, a: &Value, b: &Value) -> Option<(String, String, S
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_damaged_shard_count_is_said_so_not_taken_for_another_split() {
+        let dir = tempfile::tempdir().unwrap();
+        for damaged in ["garbage\n", "", "0\n", "99999999999999999999\n"] {
+            std::fs::write(dir.path().join(SHARDS_FILE), damaged).unwrap();
+            let e = claim_shards(dir.path(), 2).unwrap_err().to_string();
+            assert!(
+                e.contains("run.shards: holds \"")
+                    && e.contains("not a number of shards (1 to 1000000): the file is damaged")
+                    && !e.contains("give --shard I/"),
+                "{damaged:?}: {e}"
+            );
+        }
+        // Another valid split is still refused as one.
+        std::fs::write(dir.path().join(SHARDS_FILE), "3\n").unwrap();
+        let e = claim_shards(dir.path(), 2).unwrap_err().to_string();
+        assert!(e.contains("give --shard I/3"), "{e}");
+        std::fs::write(dir.path().join(SHARDS_FILE), "2\n").unwrap();
+        claim_shards(dir.path(), 2).unwrap();
+    }
 
     fn record(seed: u64) -> RunRecord {
         RunRecord {

@@ -15,8 +15,8 @@ pub use dataset::{window_among, window_at, windows, Window, WindowConfig};
 pub use ema::Ema;
 pub use export::{export, Exported};
 pub use store::{
-    check_cache_dir, check_export_dir, check_out_dir, Corpus, Holdout, SceneWindows, SplitBy,
-    WindowSource, WindowStore,
+    check_cache_beside_checkpoint, check_cache_dir, check_export_dir, check_out_dir,
+    check_replaces_checkpoint, Corpus, Holdout, SceneWindows, SplitBy, WindowSource, WindowStore,
 };
 pub use trainer::{
     is_validation, learning_rate, load, load_for_training, save, train, train_from, val_fold,

@@ -415,21 +415,110 @@ pub fn check_out_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError> {
             ));
         }
     } else {
-        let ours = crate::io::read_regular_text(
+        // Why it is not, where it cannot be read as JSON: a checkpoint's own config damaged
+        // (a NaN written into it by hand) was called "not a checkpoint's config" with no
+        // more, as if it were a file of the user's that happened to be there.
+        let read = crate::io::read_regular_text(
             &config,
             crate::train::trainer::MAX_CONFIG_BYTES,
             "checkpoint config",
         )
-        .ok()
-        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
-        .is_some_and(|v| v.get("version").is_some() && v.get("config").is_some());
-        if !ours {
+        .map_err(|e| e.reason())
+        .and_then(|t| {
+            serde_json::from_str::<serde_json::Value>(&t).map_err(|e| {
+                format!(
+                    "line {}, column {}: {}",
+                    e.line(),
+                    e.column(),
+                    crate::io::without_position(&e.to_string(), e.line(), e.column())
+                )
+            })
+        });
+        let why = match read {
+            Ok(v) if v.get("version").is_some() && v.get("config").is_some() => None,
+            Ok(_) => Some(String::new()),
+            Err(e) => Some(format!(" ({e})")),
+        };
+        if let Some(why) = why {
             return refuse(format!(
-                "holds {}, which is not a checkpoint's config: training would replace it; move \
-                 it, or choose another --out",
+                "holds {}, which is not a checkpoint's config{why}: training would replace it; \
+                 move it, or choose another --out",
                 config.display()
             ));
         }
+    }
+    Ok(())
+}
+
+/// Refuses a run that would replace the checkpoint already in `out` (`train --out`) with
+/// another run's, unless `force`: a new run (no `resume`), or one resuming a checkpoint in
+/// another directory. Only resuming `out` itself continues the checkpoint that is there.
+/// `train --resume A --out B`, where B held a checkpoint of its own, replaced B's weights,
+/// config and optimiser state with A's continuation without a word.
+pub fn check_replaces_checkpoint(
+    out: &Path,
+    resume: Option<&Path>,
+    force: bool,
+) -> Result<(), TrainError> {
+    if force || std::fs::symlink_metadata(out.join("model.safetensors")).is_err() {
+        return Ok(());
+    }
+    let same = |a: &Path, b: &Path| match (a.canonicalize(), b.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => a == b,
+    };
+    match resume {
+        Some(from) if same(from, out) => Ok(()),
+        Some(from) => Err(TrainError::Data(format!(
+            "{}: the checkpoint directory (--out) already holds a checkpoint, and --resume \
+             continues another one ({}): training would replace the first with the second's \
+             continuation; give --out {} to continue it in place, choose another --out, or pass \
+             --force to replace it",
+            out.display(),
+            from.display(),
+            from.display()
+        ))),
+        None => Err(TrainError::Data(format!(
+            "{} already holds a checkpoint: continue it with --resume {}, choose another --out, \
+             or pass --force to replace it",
+            out.display(),
+            out.display()
+        ))),
+    }
+}
+
+/// Refuses a window cache (`train --cache`) at the path of a file the checkpoint in `out` is
+/// written as: `--cache OUT/model.safetensors` made that a directory of windows, trained, and
+/// only then failed to save the checkpoint ("Is a directory"), the run's work lost.
+pub fn check_cache_beside_checkpoint(cache: &Path, out: &Path) -> Result<(), TrainError> {
+    let resolved = |p: &Path| {
+        p.canonicalize()
+            .or_else(|_| std::path::absolute(p))
+            .unwrap_or_else(|_| p.to_path_buf())
+    };
+    let Some(name) = cache.file_name().and_then(|n| n.to_str()) else {
+        return Ok(());
+    };
+    let files = [
+        "config.json",
+        "model.safetensors",
+        crate::train::trainer::ONLINE_FILE,
+        crate::train::trainer::OPTIMIZER_FILE,
+    ];
+    let parent = match cache.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    if files.contains(&name) && resolved(parent) == resolved(out) {
+        return Err(refusal(
+            cache,
+            "the window cache (--cache)",
+            format!(
+                "is where the checkpoint in {} writes its {name}: give the cache another \
+                 name (the default is OUT/windows)",
+                out.display()
+            ),
+        ));
     }
     Ok(())
 }

@@ -264,6 +264,15 @@ impl TrainConfig {
         if c.eval_every == 0 {
             return Err("eval_every = 0: must be at least 1".into());
         }
+        // A checkpoint's config edited to fold 10 or more held out no scene at all (no id
+        // hashes there) and trained on, validating on nothing, without a word.
+        if c.val_fold >= VAL_FOLDS {
+            return Err(format!(
+                "val_fold = {}: must be 0 to {}",
+                c.val_fold,
+                VAL_FOLDS - 1
+            ));
+        }
         w.validate().map_err(|e| format!("window.{e}"))?;
         within("model.d", m.d, 1, 1024)?;
         within("model.layers", m.layers, 1, 32)?;
@@ -1048,10 +1057,10 @@ struct TensorEntry {
     data_offsets: [u64; 2],
 }
 
-/// The tensors a safetensors file holds, from its header, each checked against itself: a
-/// known layout, offsets inside the data and tiling it. candle's own checks named no tensor
-/// ("invalid shape, data type, or offset for tensor") or the one after a missing one.
-fn tensor_entries(path: &Path) -> Result<Vec<(String, TensorEntry)>, String> {
+/// A safetensors file opened past its 8-byte header length, with its size and that length,
+/// checked to fit in the file: a file cut short was "invalid header length" in candle's words
+/// (the optimiser state's), naming neither lengths nor the likely cause.
+fn safetensors_header(path: &Path) -> Result<(std::fs::File, u64, u64), String> {
     use std::io::Read;
     let mut f = std::fs::File::open(path).map_err(|e| e.to_string())?;
     let size = f.metadata().map_err(|e| e.to_string())?.len();
@@ -1066,6 +1075,15 @@ fn tensor_entries(path: &Path) -> Result<Vec<(String, TensorEntry)>, String> {
              safetensors file, or cut short"
         ));
     }
+    Ok((f, size, len))
+}
+
+/// The tensors a safetensors file holds, from its header, each checked against itself: a
+/// known layout, offsets inside the data and tiling it. candle's own checks named no tensor
+/// ("invalid shape, data type, or offset for tensor") or the one after a missing one.
+fn tensor_entries(path: &Path) -> Result<Vec<(String, TensorEntry)>, String> {
+    use std::io::Read;
+    let (mut f, size, len) = safetensors_header(path)?;
     let mut header = Vec::new();
     f.take(len)
         .read_to_end(&mut header)
@@ -1270,6 +1288,7 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
     let optimizer = if opt_path.exists() {
         crate::io::open_regular(&opt_path, 2 * MAX_WEIGHTS_BYTES, "optimiser state")
             .map_err(|e| io(&opt_path, e.reason()))?;
+        safetensors_header(&opt_path).map_err(|m| io(&opt_path, m))?;
         let mut opt = AdamW::new(&varmap, meta.config.lr, WEIGHT_DECAY);
         opt.load(&opt_path)
             .map_err(|e| io(&opt_path, message_in_file(e)))?;
