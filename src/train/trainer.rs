@@ -1083,7 +1083,7 @@ fn safetensors_header(path: &Path) -> Result<(std::fs::File, u64, u64), String> 
 /// ("invalid shape, data type, or offset for tensor") or the one after a missing one.
 fn tensor_entries(path: &Path) -> Result<Vec<(String, TensorEntry)>, String> {
     use std::io::Read;
-    let (mut f, size, len) = safetensors_header(path)?;
+    let (f, size, len) = safetensors_header(path)?;
     let mut header = Vec::new();
     f.take(len)
         .read_to_end(&mut header)
