@@ -2797,6 +2797,28 @@ fn convert_and_render_replace_only_an_earlier_output_of_their_own_format() {
     let err = fails(&["render", s(&y), "--rollout", s(&rollout), "-o", s(&rollout)]);
     assert!(err.contains("-o: is the input itself"), "{err}");
     assert_eq!(std::fs::read(&rollout).unwrap(), before);
+    // A link at the output name, even to an earlier output of the format, is left alone: the
+    // rename replaced the link itself with a file (issue 32).
+    #[cfg(unix)]
+    for (command, out) in [("convert", "a.yaml"), ("render", "a.png")] {
+        let link = p(&format!("link-{out}"));
+        std::os::unix::fs::symlink(p(out), &link).unwrap();
+        let before = std::fs::read(p(out)).unwrap();
+        let err = fails(&[command, s(&y), "-o", s(&link)]);
+        assert!(
+            err.contains(&format!(
+                "{}: -o: is a symbolic link (to {}): writing would replace the link",
+                link.display(),
+                p(out).display()
+            )),
+            "{command}: {err}"
+        );
+        assert!(std::fs::symlink_metadata(&link)
+            .unwrap()
+            .file_type()
+            .is_symlink());
+        assert_eq!(std::fs::read(p(out)).unwrap(), before);
+    }
 }
 
 #[test]

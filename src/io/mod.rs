@@ -893,15 +893,17 @@ pub(crate) fn process_alive(pid: u32) -> bool {
 }
 
 /// Writes `bytes` to `path` atomically: a temporary file beside it, then a rename. Only a new
-/// path or a regular file (or a link to one) is replaced so; a device or a FIFO (`/dev/null`,
-/// `/dev/stdout`, a pipe) is written in place, as a shell's `>` would: renaming over
-/// `/dev/null` would replace it for the whole machine. A directory is an error.
+/// path or a regular file is replaced so; a device or a FIFO (`/dev/null`, `/dev/stdout`, a
+/// pipe, or a link to one) is written in place, as a shell's `>` would: renaming over
+/// `/dev/null` would replace it for the whole machine. A directory is an error, and so is a
+/// symbolic link to a file or to nothing ([`refuse_output_link`]).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     let err = |source| IoError::Write {
         path: path.display().to_string(),
         source,
     };
     check_names_a_file(path)?;
+    refuse_output_link(path, "file")?;
     if let Ok(meta) = std::fs::metadata(path) {
         if meta.is_dir() {
             return Err(IoError::invalid(
@@ -969,6 +971,33 @@ pub fn write_atomic_from<E: std::fmt::Display>(
         .and_then(|()| std::fs::read(&made).map_err(private_err));
     let _ = std::fs::remove_dir_all(&private);
     write_atomic(path, &bytes?)
+}
+
+/// Refuses an output path that is a symbolic link to a regular file, to nothing (dangling) or
+/// to itself (named by `field` in the message): the rename that writes an output replaced the
+/// link itself with a regular file, and an output replaces only a user's regular file. A link
+/// to a device or a FIFO (`/dev/stdout` is one) passes: such a path is written in place.
+fn refuse_output_link(path: &Path, field: &str) -> Result<(), IoError> {
+    let is_link = std::fs::symlink_metadata(path).is_ok_and(|m| m.file_type().is_symlink());
+    if !is_link {
+        return Ok(());
+    }
+    match std::fs::metadata(path) {
+        Ok(m) if !m.is_file() => Ok(()),
+        _ => {
+            let to = std::fs::read_link(path)
+                .map(|t| format!(" (to {})", name::one_line(&t.display().to_string())))
+                .unwrap_or_default();
+            Err(IoError::invalid(
+                path,
+                field,
+                format!(
+                    "is a symbolic link{to}: writing would replace the link with a file; name \
+                     the file it leads to, or remove the link first"
+                ),
+            ))
+        }
+    }
 }
 
 /// Refuses an output path that is a socket (named by `field` in the message): it cannot be
@@ -1353,6 +1382,8 @@ pub fn check_replaces_own(
     ours: impl FnOnce(&Path) -> bool,
 ) -> Result<(), IoError> {
     check_no_parent_of_missing(output)?;
+    // Said before the command's work, as write_atomic would say it after.
+    refuse_output_link(output, flag)?;
     match std::fs::metadata(output) {
         Ok(m) if m.is_file() => {}
         // Said before the command's work, not when its output is written.
@@ -1990,6 +2021,49 @@ mod tests {
         std::fs::write(&p, &gz[..gz.len() / 2]).unwrap();
         let e = super::read_text(&p).unwrap_err().to_string();
         assert!(e.contains("cut.yaml.gz: gzip stream: truncated"), "{e}");
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn an_output_name_that_is_a_link_to_a_file_or_to_nothing_is_left_alone() {
+        let dir = tempfile::tempdir().unwrap();
+        let earlier = dir.path().join("earlier.json");
+        std::fs::write(&earlier, "{\"format\": 1}").unwrap();
+        let link = dir.path().join("out.json");
+        std::os::unix::fs::symlink(&earlier, &link).unwrap();
+        let dangling = dir.path().join("gone.json");
+        std::os::unix::fs::symlink(dir.path().join("nowhere"), &dangling).unwrap();
+        for (p, to) in [(&link, &earlier), (&dangling, &dir.path().join("nowhere"))] {
+            let e = super::write_atomic(p, b"new").unwrap_err().to_string();
+            assert!(
+                e.contains(&format!("is a symbolic link (to {})", to.display()))
+                    && e.contains("name the file it leads to"),
+                "{e}"
+            );
+            let e = super::check_replaces_own(p, "-o", "a rollout", |_| true)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("-o: is a symbolic link"), "{e}");
+            assert!(std::fs::symlink_metadata(p)
+                .unwrap()
+                .file_type()
+                .is_symlink());
+        }
+        assert_eq!(
+            std::fs::read_to_string(&earlier).unwrap(),
+            "{\"format\": 1}"
+        );
+        // A link to a device is written through, as /dev/stdout is.
+        let null = dir.path().join("null");
+        std::os::unix::fs::symlink("/dev/null", &null).unwrap();
+        super::write_atomic(&null, b"x").unwrap();
+        assert!(std::fs::symlink_metadata(&null)
+            .unwrap()
+            .file_type()
+            .is_symlink());
+        // The file it leads to is written as any regular file is.
+        super::write_atomic(&earlier, b"new").unwrap();
+        assert_eq!(std::fs::read(&earlier).unwrap(), b"new");
     }
 
     #[cfg(unix)]
