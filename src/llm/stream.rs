@@ -235,10 +235,13 @@ struct Reading {
 }
 
 impl Reading {
-    /// Takes one event's data (its `data:` lines joined): `Ok(true)` where it is `[DONE]`.
+    /// Takes one event's data (its `data:` lines joined), with its JSON where the caller has
+    /// parsed it already: `Ok(true)` where it is `[DONE]`.
+    #[allow(clippy::too_many_arguments)]
     fn event(
         &mut self,
         data: &str,
+        parsed: Option<Value>,
         event: &str,
         url: &str,
         clock: &ReplyClock,
@@ -260,11 +263,14 @@ impl Reading {
         if data == "[DONE]" {
             return Ok(true);
         }
-        let v: Value = serde_json::from_str(data).map_err(|e| {
-            // Redacted whole, then cut: cut first, a key echoed across the cut kept its head.
-            let head: String = redact(data).chars().take(120).collect();
-            bad(format!("a stream event is not JSON ({e}): {head:?}"))
-        })?;
+        let v: Value = match parsed {
+            Some(v) => v,
+            None => serde_json::from_str(data).map_err(|e| {
+                // Redacted whole, then cut: cut first, a key echoed across the cut kept its head.
+                let head: String = redact(data).chars().take(120).collect();
+                bad(format!("a stream event is not JSON ({e}): {head:?}"))
+            })?,
+        };
         if v.get("error").is_some_and(|e| !e.is_null()) {
             return Err(bad(format!(
                 "the server sent an error in the middle of the stream, after {} tokens: {}",
@@ -341,12 +347,12 @@ impl Reading {
     }
 }
 
-/// Whether the data gathered for an event is whole: `[DONE]`, or a JSON value. An event's
-/// JSON may come over several `data:` lines (the format joins them), and some servers end no
-/// event with a blank line, so an event is taken as soon as its data parses, without waiting
-/// for the blank line that may never come.
-fn whole(data: &str) -> bool {
-    data == "[DONE]" || serde_json::from_str::<serde::de::IgnoredAny>(data).is_ok()
+/// The JSON of the data gathered for an event, where it is whole. An event's JSON may come
+/// over several `data:` lines (the format joins them), and some servers end no event with a
+/// blank line, so an event is taken as soon as its data parses, without waiting for the blank
+/// line that may never come.
+fn whole(data: &str) -> Option<Value> {
+    serde_json::from_str(data).ok()
 }
 
 /// Reads the events of `body` until `data: [DONE]`, a chunk with a `finish_reason` followed
@@ -420,7 +426,7 @@ pub fn read_stream<R: Read>(
         };
         let text = text.trim();
         if n == 0 || text.is_empty() {
-            if !data.is_empty() && r.event(&data, &event, url, clock, redact, tick)? {
+            if !data.is_empty() && r.event(&data, None, &event, url, clock, redact, tick)? {
                 break;
             }
             data.clear();
@@ -464,7 +470,7 @@ pub fn read_stream<R: Read>(
         // ends no event with one): the data is said to be no JSON, rather than the reply
         // stalling on it for want of a token.
         if more == "[DONE]" && !data.is_empty() {
-            r.event(&data, &event, url, clock, redact, tick)?;
+            r.event(&data, None, &event, url, clock, redact, tick)?;
             data.clear();
         }
         if !data.is_empty() {
@@ -474,8 +480,9 @@ pub fn read_stream<R: Read>(
         // An error event's plain-text message is taken at once: the server may keep the
         // stream open after it.
         let error_text = event.eq_ignore_ascii_case("error") && !data.starts_with(['{', '[']);
-        if whole(&data) || error_text {
-            let done = r.event(&data, &event, url, clock, redact, tick)?;
+        let parsed = whole(&data);
+        if data == "[DONE]" || parsed.is_some() || error_text {
+            let done = r.event(&data, parsed, &event, url, clock, redact, tick)?;
             data.clear();
             event.clear();
             if done {
