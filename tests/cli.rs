@@ -2914,17 +2914,14 @@ fn names_read_from_files_with_control_or_invisible_characters_are_refused() {
         assert!(!err.contains("\nerror: fake"), "{err}");
         assert!(!err.contains('\u{202E}'), "{err}");
     }
-    let t = dir.path().join("x.test.yaml");
-    std::fs::write(
-        &t,
-        format!(
-            "script: {}\ncases:\n  - name: \"ok\\nerror: fake \\e[2J\"\n    scene: {}\n    params: {{vehicle: 1, limit: 30}}\n    expect: {{total_below: 1.0}}\n",
-            s(&root.join("scripts/speed_limit.rhai")),
+    let out = run_test_file(
+        dir.path(),
+        "speed_limit.rhai",
+        &format!(
+            "  - name: \"ok\\nerror: fake \\e[2J\"\n    scene: {}\n    params: {{vehicle: 1, limit: 30}}\n    expect: {{total_below: 1.0}}\n",
             s(&root.join("scripts/scenes/highway.yaml"))
         ),
-    )
-    .unwrap();
-    let out = common::drivescript(&["test-scripts", s(&t)]);
+    );
     assert_eq!(out.status.code(), Some(1));
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(
@@ -2940,15 +2937,7 @@ fn names_read_from_files_with_control_or_invisible_characters_are_refused() {
         "  - name: same\n    scene: {}\n    params: {{vehicle: 1, limit: 30}}\n    expect: {{total_below: 1.0}}\n",
         s(&root.join("scripts/scenes/highway.yaml"))
     );
-    std::fs::write(
-        &t,
-        format!(
-            "script: {}\ncases:\n{case}{case}",
-            s(&root.join("scripts/speed_limit.rhai"))
-        ),
-    )
-    .unwrap();
-    let out = common::drivescript(&["test-scripts", s(&t)]);
+    let out = run_test_file(dir.path(), "speed_limit.rhai", &format!("{case}{case}"));
     assert_eq!(out.status.code(), Some(1));
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(
@@ -4640,22 +4629,35 @@ fn an_output_path_under_a_file_names_the_file_in_the_way() {
     );
 }
 
+/// `test-scripts` on `DIR/x.test.yaml`, written as a test file of `scripts/SCRIPT` whose
+/// `cases:` list is `cases` (YAML).
+fn run_test_file(dir: &std::path::Path, script: &str, cases: &str) -> std::process::Output {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let t = dir.join("x.test.yaml");
+    std::fs::write(
+        &t,
+        format!(
+            "script: {}\ncases:\n{cases}",
+            s(&root.join("scripts").join(script))
+        ),
+    )
+    .unwrap();
+    common::drivescript(&["test-scripts", s(&t)])
+}
+
 /// `test-scripts` on one case of `scripts/SCRIPT` on the highway scene with `params` and the
 /// expectation `expect`, which must fail: exit 1, and what it printed.
 fn failing_case(script: &str, params: &str, expect: &str) -> String {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
     let dir = tempfile::tempdir().unwrap();
-    let t = dir.path().join("x.test.yaml");
-    std::fs::write(
-        &t,
-        format!(
-            "script: {}\ncases:\n  - name: wrong on purpose\n    scene: {}\n    params: {{{params}}}\n    expect: {{{expect}}}\n",
-            s(&root.join("scripts").join(script)),
+    let out = run_test_file(
+        dir.path(),
+        script,
+        &format!(
+            "  - name: wrong on purpose\n    scene: {}\n    params: {{{params}}}\n    expect: {{{expect}}}\n",
             s(&root.join("scripts/scenes/highway.yaml"))
         ),
-    )
-    .unwrap();
-    let out = common::drivescript(&["test-scripts", s(&t)]);
+    );
     assert_eq!(out.status.code(), Some(1));
     String::from_utf8_lossy(&out.stdout).into_owned()
 }
@@ -4910,17 +4912,14 @@ fn an_output_named_only_by_its_extension_is_told_so() {
 /// the case's keys after `scene:`, YAML); returns the exit code and stdout + stderr.
 fn follow_case(dir: &std::path::Path, case: &str) -> (Option<i32>, String) {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
-    let t = dir.join("x.test.yaml");
-    std::fs::write(
-        &t,
-        format!(
-            "script: {}\ncases:\n  - name: c\n    scene: {}\n{case}",
-            s(&root.join("scripts/follow.rhai")),
+    let out = run_test_file(
+        dir,
+        "follow.rhai",
+        &format!(
+            "  - name: c\n    scene: {}\n{case}",
             s(&root.join("scripts/scenes/highway_crash.yaml"))
         ),
-    )
-    .unwrap();
-    let out = common::drivescript(&["test-scripts", s(&t)]);
+    );
     let text = String::from_utf8_lossy(&out.stdout).into_owned()
         + String::from_utf8_lossy(&out.stderr).as_ref();
     (out.status.code(), text)
