@@ -188,6 +188,12 @@ impl HttpConfig {
                 }
             }
         }
+        // And base64-encoded, as a server that echoes the raw header block or a `Basic`-style
+        // blob writes it: within any base64 text the key lands at one of three alignments,
+        // and each has a run of characters that only the key's bytes decide.
+        for k in self.key.iter().map(|k| k.trim()) {
+            out.extend(base64_cores(k.as_bytes()));
+        }
         if let Ok(u) = reqwest::Url::parse(&self.url) {
             let password = u.password().map(str::to_string);
             let query = u.query().into_iter().flat_map(|q| {
@@ -300,6 +306,32 @@ fn base64(bytes: &[u8]) -> String {
             } else {
                 out.push('=');
             }
+        }
+    }
+    out
+}
+
+/// The parts of any base64 text holding `bytes` that `bytes` alone decide, one for each of the
+/// three alignments the bytes can have there, in the standard and the URL-safe alphabet: the
+/// characters that also encode a neighbouring byte are left off both ends.
+fn base64_cores(bytes: &[u8]) -> Vec<String> {
+    let mut out = Vec::new();
+    for offset in 0..3 {
+        let mut padded = vec![0u8; offset];
+        padded.extend_from_slice(bytes);
+        let encoded = base64(&padded);
+        // Characters wholly inside the bytes: from the first 6-bit group that starts at or
+        // after bit 8·offset to the last one that ends at or before the bytes' end.
+        let from = (8 * offset).div_ceil(6);
+        let to = (8 * padded.len()) / 6;
+        if to <= from + 4 {
+            continue;
+        }
+        let core = &encoded[from..to];
+        out.push(core.to_string());
+        let url_safe = core.replace('+', "-").replace('/', "_");
+        if url_safe != core {
+            out.push(url_safe);
         }
     }
     out
@@ -963,9 +995,12 @@ fn read_error(
 }
 
 /// `text` with every occurrence of `key` replaced by `[redacted]`, in any letter case, also
-/// where whitespace was put inside it: a server that wrapped the echoed key across lines (`sk-TES\nT123xyz`) showed
-/// it once the error's lines were joined. Keys shorter than 8 bytes are left alone: no real key
-/// is that short, and replacing a common word everywhere would garble replies.
+/// where whitespace or invisible characters were put inside it, and where any of its characters
+/// are written as escapes (`%73`, `&#115;`, `&#x73;`, `\u0073`, `\x73`): a server that wrapped
+/// the echoed key across lines (`sk-TES\nT123xyz`), wrote it in capitals, spaced it with zero-width
+/// characters or echoed it as HTML entities showed it to anyone who read the text as it is
+/// meant to be read. Keys shorter than 8 bytes are left alone: no real key is that short, and
+/// replacing a common word everywhere would garble replies.
 pub fn redact_key(text: &str, key: Option<&str>) -> String {
     let Some(k) = key.map(str::trim).filter(|k| k.len() >= 8) else {
         return text.to_string();
@@ -980,21 +1015,25 @@ pub fn redact_key(text: &str, key: Option<&str>) -> String {
     let mut out = String::with_capacity(text.len());
     let (mut i, mut copied) = (0, 0);
     while i < chars.len() {
-        // In any case, too: a server that wrote the header it refused in capitals
-        // ("SK-TESTKEY...") showed all but the letters' case of the key.
-        if !chars[i].1.eq_ignore_ascii_case(&want[0]) {
+        let Some((first, len)) = escaped_unit(&chars, i) else {
+            break;
+        };
+        if !first.eq_ignore_ascii_case(&want[0]) {
             i += 1;
             continue;
         }
-        // Match the key's characters in order, skipping whitespace between them.
-        let (mut j, mut m) = (i, 0);
-        while j < chars.len() && m < want.len() {
-            if chars[j].1.eq_ignore_ascii_case(&want[m]) {
+        // Match the key's characters in order, skipping what cannot be seen between them.
+        let (mut j, mut m) = (i + len, 1);
+        while m < want.len() {
+            let Some((c, len)) = escaped_unit(&chars, j) else {
+                break;
+            };
+            if c.eq_ignore_ascii_case(&want[m]) {
                 m += 1;
-            } else if !(m > 0 && chars[j].1.is_whitespace()) {
+            } else if !(c.is_whitespace() || invisible(c)) {
                 break;
             }
-            j += 1;
+            j += len;
         }
         if m == want.len() {
             out.push_str(&text[copied..chars[i].0]);
@@ -1007,6 +1046,62 @@ pub fn redact_key(text: &str, key: Option<&str>) -> String {
     }
     out.push_str(&text[copied..]);
     out
+}
+
+/// The character at `chars[i]` as a reader of the text would see it, and how many characters
+/// it takes: itself, or the character a percent, HTML or backslash escape starting there
+/// stands for. `None` past the end.
+fn escaped_unit(chars: &[(usize, char)], i: usize) -> Option<(char, usize)> {
+    let c = chars.get(i)?.1;
+    let at = |k: usize| chars.get(i + k).map(|c| c.1);
+    // Up to `max` digits of `radix` from offset `from`: the value and how many were read.
+    let digits = |from: usize, radix: u32, max: usize| {
+        let mut v: u32 = 0;
+        let mut n = 0;
+        while n < max {
+            match at(from + n).and_then(|c| c.to_digit(radix)) {
+                Some(d) => v = v.saturating_mul(radix).saturating_add(d),
+                None => break,
+            }
+            n += 1;
+        }
+        (v, n)
+    };
+    let decoded = match c {
+        '%' => match digits(1, 16, 2) {
+            (v, 2) if v < 0x80 => Some((v, 3)),
+            _ => None,
+        },
+        '&' if at(1) == Some('#') => {
+            let hex = matches!(at(2), Some('x' | 'X'));
+            let from = if hex { 3 } else { 2 };
+            let (v, n) = digits(from, if hex { 16 } else { 10 }, 8);
+            (n > 0 && at(from + n) == Some(';')).then_some((v, from + n + 1))
+        }
+        '\\' if at(1) == Some('u') => match digits(2, 16, 4) {
+            (v, 4) => Some((v, 6)),
+            _ => None,
+        },
+        '\\' if at(1) == Some('x') => match digits(2, 16, 2) {
+            (v, 2) => Some((v, 4)),
+            _ => None,
+        },
+        _ => None,
+    };
+    Some(
+        decoded
+            .and_then(|(v, n)| char::from_u32(v).map(|c| (c, n)))
+            .unwrap_or((c, 1)),
+    )
+}
+
+/// Characters that print as nothing: zero-width spaces and joiners, the soft hyphen, bidi
+/// marks and controls, variation selectors and the byte-order mark.
+fn invisible(c: char) -> bool {
+    matches!(c,
+        '\u{ad}' | '\u{34f}' | '\u{61c}' | '\u{180e}' | '\u{200b}'..='\u{200f}'
+        | '\u{202a}'..='\u{202e}' | '\u{2060}'..='\u{206f}' | '\u{fe00}'..='\u{fe0f}'
+        | '\u{feff}')
 }
 
 impl HttpClient {
@@ -1596,6 +1691,51 @@ mod tests {
     }
 
     #[test]
+    fn a_key_echoed_as_entities_escapes_base64_or_with_invisible_characters_is_redacted() {
+        let key = "sk-TEST123xyz";
+        let mut cfg = HttpConfig::new("http://h/v1", "m");
+        cfg.key = Some(key.into());
+        let c = HttpClient::new(cfg).unwrap();
+        let entities: String = key.chars().map(|ch| format!("&#{};", ch as u32)).collect();
+        let hex_entities: String = key
+            .chars()
+            .map(|ch| format!("&#x{:X};", ch as u32))
+            .collect();
+        let json: String = key
+            .chars()
+            .map(|ch| format!("\\u{:04x}", ch as u32))
+            .collect();
+        let zero_width: String = key.chars().flat_map(|ch| [ch, '\u{200b}']).collect();
+        let mixed = "sk-&#84;E%53T\\x31\u{feff}23\u{ad}xyz";
+        let header = format!("Authorization: Bearer {key}");
+        let mut echoes = vec![entities, hex_entities, json, zero_width, mixed.to_string()];
+        // The header block base64-encoded at each of the three alignments, and the token alone.
+        for prefix in ["", "x", "xy"] {
+            echoes.push(base64(format!("{prefix}{header}").as_bytes()));
+        }
+        echoes.push(base64(format!("Bearer {key}").as_bytes()));
+        echoes.push(base64(key.as_bytes()).replace('+', "-").replace('/', "_"));
+        for echoed in echoes {
+            let r = c.redact(&format!("the server said: {echoed} (end)"));
+            assert!(
+                r.contains("[redacted]") && r.ends_with(" (end)"),
+                "{echoed} -> {r}"
+            );
+            // What is left of the key is at most two characters of the key's ends.
+            for window in key.as_bytes().windows(4) {
+                let w = std::str::from_utf8(window).unwrap();
+                assert!(!r.contains(w), "{echoed} -> {r}");
+            }
+            let decoded_left: String = r.chars().filter(|c| c.is_ascii_alphanumeric()).collect();
+            assert!(!decoded_left.contains("TEST123"), "{echoed} -> {r}");
+        }
+        // Escapes that stand for other characters, and text near the key, are left alone.
+        for plain in ["50%25 off &#65;&#66; \\u0041", "sk-TEST12 is not the key"] {
+            assert_eq!(c.redact(plain), plain);
+        }
+    }
+
+    #[test]
     fn a_key_echoed_percent_encoded_is_redacted() {
         let mut cfg = HttpConfig::new("http://h/v1", "m");
         cfg.key = Some("Zm9v+YmFy/cXV4=sk".into());
@@ -1608,10 +1748,11 @@ mod tests {
             let r = c.redact(echoed);
             assert!(!r.contains("Zm9v") && r.contains("[redacted]"), "{r}");
         }
-        // A key of unreserved characters only is the same encoded: no second entry.
+        // A key of unreserved characters only is the same encoded: no percent-encoded entry.
         let mut cfg = HttpConfig::new("http://h/v1", "m");
         cfg.key = Some("sk-abc_DEF.123~x".into());
-        assert_eq!(HttpClient::new(cfg).unwrap().secrets.len(), 1);
+        let secrets = HttpClient::new(cfg).unwrap().secrets;
+        assert!(!secrets.iter().any(|s| s.contains('%')), "{secrets:?}");
     }
 
     #[test]
