@@ -2333,6 +2333,46 @@ fn a_key_given_as_the_url_s_user_name_gets_into_no_message() {
 }
 
 #[test]
+fn answers_whose_head_http_cannot_read_say_what_is_wrong_with_it() {
+    // Two Content-Lengths that disagree, or one that is not a number, were hyper's "invalid
+    // content-length parsed", which names neither the header nor who is at fault.
+    let body = r#"{"choices":[{"message":{"role":"assistant","content":"ACCEPT"}}]}"#;
+    for head in [
+        format!(
+            "Content-Length: {}\r\nContent-Length: {}",
+            body.len(),
+            body.len() + 5
+        ),
+        "Content-Length: abc".to_string(),
+    ] {
+        let reply =
+            format!("HTTP/1.1 200 OK\r\nContent-Type: application/json\r\n{head}\r\n\r\n{body}");
+        let srv = common::llm_server::one_shot(leak(reply), |_| {});
+        let e = ask_one(&client(&srv)).unwrap_err().to_string();
+        assert!(
+            e.contains("the answer's Content-Length header is not one whole number"),
+            "{head}: {e}"
+        );
+    }
+    let many: String = (0..200).map(|i| format!("X-Header-{i}: v\r\n")).collect();
+    let reply = format!(
+        "HTTP/1.1 200 OK\r\n{many}Content-Length: {}\r\n\r\n{body}",
+        body.len()
+    );
+    let srv = common::llm_server::one_shot(leak(reply), |_| {});
+    let e = ask_one(&client(&srv)).unwrap_err().to_string();
+    assert!(
+        e.contains("the answer's status line and headers are larger than an HTTP client reads"),
+        "{e}"
+    );
+}
+
+/// A reply built at run time, kept for the rest of the test process as `one_shot` needs.
+fn leak(reply: String) -> &'static [u8] {
+    Box::leak(reply.into_bytes().into_boxed_slice())
+}
+
+#[test]
 fn tls_mismatches_and_a_connection_that_never_comes_say_what_they_are() {
     // An https:// URL for a plain-HTTP server (Ollama's own port) was "cannot connect ...
     // (connection refused or no such host): start one (`ollama serve` ...)" of a server that

@@ -1237,6 +1237,12 @@ fn transport_error(e: &reqwest::Error, url: &str, cfg: &HttpConfig) -> LlmError 
                 "the answer's headers are not valid HTTP: not an HTTP server?",
             ),
             (
+                "invalid content-length",
+                "the answer's Content-Length header is not one whole number (missing, not \
+                 digits, or given twice with different values): a broken server or a proxy \
+                 between",
+            ),
+            (
                 "message head is too large",
                 "the answer's status line and headers are larger than an HTTP client reads: \
                  not an LLM server?",
