@@ -346,6 +346,7 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
         min_future: 0,
         nearest_lane_pose: false,
         route_times: 0,
+        goals: false,
     };
     let path = args
         .scene
@@ -365,6 +366,7 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
         future: own.future,
         nearest_lane_pose: own.nearest_lane_pose,
         route_times: own.route_times,
+        goals: own.goals,
         ..window
     };
     let median = |mut v: Vec<f64>| {
@@ -401,6 +403,7 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
                 attrs: 0,
                 agent_lane_features: 4,
                 route_times: 0,
+                goals: false,
             },
             edm: Edm::default(),
             eval_every: usize::MAX,

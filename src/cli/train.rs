@@ -52,7 +52,7 @@ pub struct Args {
         conflicts_with_all = [
             "setting", "steps", "batch", "lr", "seed", "eval_every", "val_fold", "val_town",
             "ema_half_life", "component_scale", "scale_cap", "p_mean", "p_std",
-            "nearest_lane_pose", "route_times", "across_weight", "force",
+            "nearest_lane_pose", "route_times", "goals", "across_weight", "force",
         ]
     )]
     export: Option<PathBuf>,
@@ -123,6 +123,12 @@ pub struct Args {
     /// resumed run keeps its checkpoint's).
     #[arg(long)]
     route_times: Option<usize>,
+    /// A new run gives the network each agent's recorded end point as an input, for half the
+    /// agents of each training batch (`goals` in the checkpoint's window and model): its
+    /// conditional simulation then samples futures that end there instead of pulling
+    /// unconditional ones to it. A resumed run keeps its checkpoint's.
+    #[arg(long)]
+    goals: bool,
     /// A new run weighs the part of each position error across the recorded path this many
     /// times the rest, 1 to 1000 (default 1, the plain error; `across_weight` in the
     /// checkpoint's config). Validation losses then compare only runs of one weight. A resumed
@@ -183,6 +189,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
     if let Some(t) = args.route_times {
         cfg.window.route_times = t;
         cfg.model.route_times = t;
+    }
+    if args.goals {
+        cfg.window.goals = true;
+        cfg.model.goals = true;
     }
     if args.data.is_empty() && args.urban.is_empty() {
         anyhow::bail!("nothing to train on: give --data or --urban (or both)");
@@ -269,6 +279,13 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 anyhow::bail!(
                     "--nearest-lane-pose: {} was trained without the lanes' nearest points; a \
                      resumed run keeps its inputs",
+                    dir.display()
+                );
+            }
+            if args.goals && !r.meta.config.window.goals {
+                anyhow::bail!(
+                    "--goals: {} was trained without agents' end points; a resumed run keeps \
+                     its inputs",
                     dir.display()
                 );
             }

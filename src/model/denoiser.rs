@@ -44,7 +44,16 @@ pub struct DenoiserConfig {
     /// the field, for none.
     #[serde(default)]
     pub route_times: usize,
+    /// Whether each agent's end point, where given, is an input ([`Context::agent_goal`];
+    /// `train::WindowConfig::goals`); false in configs written before the field.
+    #[serde(default)]
+    pub goals: bool,
 }
+
+/// Features of an agent's end point ([`Context::agent_goal`]): its position in the agent's
+/// frame (÷ 50 m), the heading change to it (sin, cos), when it is reached (as a fraction of
+/// the future) and 1 where it is given (all 0 where it is not).
+pub const GOAL_FEATURES: usize = 6;
 
 fn four() -> usize {
     4
@@ -76,6 +85,9 @@ pub struct Context {
     /// What route features are measured with; present when the window configuration asks
     /// for them (`train::WindowConfig::route_times`).
     pub route: Option<RouteInputs>,
+    /// Each agent's end point where it is given, `[B, N, GOAL_FEATURES]`; present when the
+    /// window configuration asks for it (`train::WindowConfig::goals`).
+    pub agent_goal: Option<Tensor>,
 }
 
 impl Context {
@@ -92,6 +104,11 @@ impl Context {
             agent_rel: self.agent_rel.to_dtype(dtype)?,
             agent_attr: self.agent_attr.to_dtype(dtype)?,
             route: self.route.as_ref().map(|r| r.to_dtype(dtype)).transpose()?,
+            agent_goal: self
+                .agent_goal
+                .as_ref()
+                .map(|g| g.to_dtype(dtype))
+                .transpose()?,
         })
     }
 }
@@ -145,7 +162,8 @@ impl Denoiser {
                     + cfg.attrs
                     + cfg.k
                     + 2 * cfg.noise_freqs
-                    + FEATURES_PER_TIME * cfg.route_times,
+                    + FEATURES_PER_TIME * cfg.route_times
+                    + if cfg.goals { GOAL_FEATURES } else { 0 },
                 d,
                 vb.pp("agents"),
             )?,
@@ -236,6 +254,16 @@ impl Denoiser {
                 );
             }
             parts.push(route_features(x, route)?);
+        }
+        if self.cfg.goals {
+            let goal = ctx.agent_goal.as_ref().ok_or_else(|| {
+                candle_core::Error::Msg(
+                    "the model reads agents' end points, but the batch has none \
+                     (window.goals = false)"
+                        .into(),
+                )
+            })?;
+            parts.push(goal.clone());
         }
         let feats = Tensor::cat(&parts, 2)?;
         let mut a = self.agents.forward(&feats)?;

@@ -16,7 +16,7 @@ use crate::scene::Scene;
 use crate::train::dataset::residual_futures;
 use crate::train::rng::Rng;
 use crate::train::trainer::{loss, tiny_config};
-use crate::train::{build, train, windows, Batch, Normaliser, TrainConfig, Window};
+use crate::train::{build, train, windows, Batch, Goals, Normaliser, TrainConfig, Window};
 
 fn scenes() -> Vec<Scene> {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes");
@@ -43,7 +43,14 @@ fn batch(cfg: &TrainConfig, norm: Option<&Normaliser>) -> (Batch, Normaliser) {
         .collect();
     let refs: Vec<&Window> = picked.iter().collect();
     (
-        build(&refs, &cfg.window, &norm, &Device::Cpu).unwrap(),
+        build(
+            &refs,
+            &cfg.window,
+            &norm,
+            Goals::Drawn { keep: 0.5, seed: 5 },
+            &Device::Cpu,
+        )
+        .unwrap(),
         norm,
     )
 }
@@ -52,6 +59,13 @@ fn batch(cfg: &TrainConfig, norm: Option<&Normaliser>) -> (Batch, Normaliser) {
 fn with_nearest_lane_pose(mut cfg: TrainConfig) -> TrainConfig {
     cfg.window.nearest_lane_pose = true;
     cfg.model.agent_lane_features = cfg.window.agent_lane_features();
+    cfg
+}
+
+/// The tiny configuration, with agents' end points as inputs.
+fn with_goals(mut cfg: TrainConfig) -> TrainConfig {
+    cfg.window.goals = true;
+    cfg.model.goals = true;
     cfg
 }
 
@@ -69,6 +83,7 @@ fn every_parameter_receives_a_gradient_after_a_training_step() {
         tiny_config(1, 3, 1),
         with_nearest_lane_pose(tiny_config(1, 3, 1)),
         with_route(tiny_config(1, 3, 1)),
+        with_goals(tiny_config(1, 3, 1)),
         TrainConfig {
             across_weight: 4.0,
             ..tiny_config(1, 3, 1)

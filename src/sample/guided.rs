@@ -13,7 +13,7 @@ use candle_core::{Device, Tensor, Var};
 
 use crate::cost::{CostReport, CostScript, Realism, Trajectories};
 use crate::scene::{velocities_from_positions, AgentId, AgentState, AgentType, Scene};
-use crate::train::{build, Trained, Window};
+use crate::train::{build, Goals, Trained, Window};
 
 use super::config::*;
 use super::heun::{heun, polish};
@@ -221,7 +221,12 @@ fn setup<'a>(
     // Batch row `s·W + w` is window w of sample s.
     let refs: Vec<&Window> = (0..kk).flat_map(|_| plan.windows.iter()).collect();
     let rows = kk * nw;
-    let batch = build(&refs, &wcfg, &trained.meta.normaliser, &dev)?;
+    // A model that reads end points is given the recorded ones where they are known.
+    let goals = match cfg.task {
+        Task::Conditional => Goals::Recorded,
+        Task::Unconditional => Goals::Hidden,
+    };
+    let batch = build(&refs, &wcfg, &trained.meta.normaliser, goals, &dev)?;
     // Weights as constants: a backward pass for guidance through the denoiser then walks only
     // from the output to the noisy coefficients, not into 400,000 weights and the map encoder
     // (10x the work, all of it thrown away).

@@ -4,7 +4,7 @@ use candle_core::{Device, Result, Tensor};
 
 use super::dataset::{Window, WindowConfig, AGENT_ATTRS};
 use crate::model::route::RouteInputs;
-use crate::model::{Context, Pca};
+use crate::model::{Context, Pca, GOAL_FEATURES};
 
 /// Metres per unit of the relative-pose features (keeps them near 1).
 pub const REL_SCALE: f32 = 50.0;
@@ -25,6 +25,44 @@ pub fn rel(i: [f32; 3], j: [f32; 3]) -> [f32; 4] {
         dh.cos(),
         dh.sin(),
     ]
+}
+
+/// Which agents' end points a batch gives the denoiser, for a model that reads them
+/// ([`WindowConfig::goals`]; ignored otherwise). An agent's end point is its last observed
+/// state after the current step in the window.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Goals {
+    /// None: unconditional sampling, where the future is not known.
+    Hidden,
+    /// Every agent's that the window observes: conditional sampling, where the recorded end
+    /// point is known.
+    Recorded,
+    /// Each agent's with probability `keep`, drawn from `seed`, the window's index and the
+    /// agent's: training, so that one model learns both with and without them.
+    Drawn {
+        /// Probability that an agent's end point is given.
+        keep: f64,
+        /// Seed of the draw.
+        seed: u64,
+    },
+}
+
+impl Goals {
+    fn given(&self, window: usize, agent: usize) -> bool {
+        match *self {
+            Goals::Hidden => false,
+            Goals::Recorded => true,
+            Goals::Drawn { keep, seed } => {
+                // splitmix64 of the seed and the slot: independent of batch order elsewhere.
+                let mut z = seed
+                    ^ ((window as u64) << 32 | agent as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+                z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+                z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+                z ^= z >> 31;
+                ((z >> 11) as f64 / (1u64 << 53) as f64) < keep
+            }
+        }
+    }
 }
 
 /// Pose of lane `k` of a window: its first point and the direction to its second.
@@ -238,6 +276,7 @@ pub fn build(
     windows: &[&Window],
     cfg: &WindowConfig,
     norm: &Normaliser,
+    goals: Goals,
     dev: &Device,
 ) -> Result<Batch> {
     // Lanes are padded to the batch's largest map, not to `max_lanes`: NGSIM windows hold 26
@@ -282,6 +321,7 @@ pub fn build(
     let route_steps = crate::model::route::route_steps(cfg.future, rt);
     let mut route_points = vec![FAR; if rt > 0 { b * n * m * p * 4 } else { 0 }];
     let mut route_offset = vec![0f32; b * n * rt * 3];
+    let mut agent_goal = vec![0f32; if cfg.goals { b * n * GOAL_FEATURES } else { 0 }];
     for (wi, w) in windows.iter().enumerate() {
         let nl = w.lane_ids.len();
         let poses: Vec<[f32; 3]> = (0..nl).map(|l| lane_pose(w, cfg, l)).collect();
@@ -365,6 +405,20 @@ pub fn build(
                     off[i * 3] += (advance * (st + 1) as f64) as f32;
                 }
             }
+            if cfg.goals && goals.given(wi, a) {
+                if let Some(t) = (h..steps).rev().find(|t| w.valid[a * steps + t]) {
+                    let r = rel(cur[a], w.states[a * steps + t]);
+                    let o = (wi * n + a) * GOAL_FEATURES;
+                    agent_goal[o..o + GOAL_FEATURES].copy_from_slice(&[
+                        r[0],
+                        r[1],
+                        r[3],
+                        r[2],
+                        (t + 1 - h) as f32 / cfg.future as f32,
+                        1.0,
+                    ]);
+                }
+            }
             for a2 in 0..na {
                 let o = ((wi * n + a) * n + a2) * 4;
                 agent_rel[o..o + 4].copy_from_slice(&rel(cur[a], cur[a2]));
@@ -430,6 +484,11 @@ pub fn build(
             agent_rel: t(agent_rel, &[b, n, n, 4])?,
             agent_attr: t(agent_attr, &[b, n, AGENT_ATTRS])?,
             route,
+            agent_goal: if cfg.goals {
+                Some(t(agent_goal, &[b, n, GOAL_FEATURES])?)
+            } else {
+                None
+            },
         },
         target: t(target, &[b, n, k])?,
         loss_mask: t(loss_mask, &[b, n])?,
@@ -507,10 +566,11 @@ mod tests {
             &[&plain[0]],
             &crate::train::WindowConfig::ngsim(),
             &norm,
+            Goals::Hidden,
             &dev,
         )
         .unwrap();
-        let b = build(&[&near[0]], &cfg, &norm, &dev).unwrap();
+        let b = build(&[&near[0]], &cfg, &norm, Goals::Hidden, &dev).unwrap();
         let (x, y) = (a.ctx.agent_lane_rel, b.ctx.agent_lane_rel);
         assert_eq!(x.dims()[3], 4);
         assert_eq!(y.dims()[3], 8);
@@ -539,6 +599,76 @@ mod tests {
     }
 
     #[test]
+    fn end_points_are_given_where_asked_at_the_last_observed_future_state() {
+        let scene = highway();
+        let mut cfg = crate::train::WindowConfig::ngsim();
+        cfg.goals = true;
+        let ws = crate::train::windows(&scene, &cfg);
+        let futures = crate::train::dataset::residual_futures(&ws, &cfg);
+        let norm = Normaliser::new(crate::model::Pca::fit(&futures, 4).unwrap(), 0.5);
+        let refs: Vec<&Window> = ws.iter().take(4).collect();
+        let feats = |goals: Goals| -> Vec<f32> {
+            let b = build(&refs, &cfg, &norm, goals, &Device::Cpu).unwrap();
+            b.ctx
+                .agent_goal
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1()
+                .unwrap()
+        };
+        let (n, h, steps) = (cfg.max_agents, cfg.history, cfg.steps());
+        let recorded = feats(Goals::Recorded);
+        let mut given = 0;
+        for (wi, w) in refs.iter().enumerate() {
+            for a in 0..n {
+                let f = &recorded[(wi * n + a) * GOAL_FEATURES..][..GOAL_FEATURES];
+                let present = a < w.agents.len() && w.valid[a * steps + h - 1];
+                let last = (h..steps).rev().find(|t| present && w.valid[a * steps + t]);
+                let Some(t) = last else {
+                    assert!(f.iter().all(|v| *v == 0.0), "{f:?}");
+                    continue;
+                };
+                given += 1;
+                let r = rel(w.states[a * steps + h - 1], w.states[a * steps + t]);
+                let want = [
+                    r[0],
+                    r[1],
+                    r[3],
+                    r[2],
+                    (t + 1 - h) as f32 / cfg.future as f32,
+                    1.0,
+                ];
+                for (x, y) in f.iter().zip(want) {
+                    assert!((x - y).abs() < 1e-6, "{f:?} {want:?}");
+                }
+            }
+        }
+        assert!(given > 4);
+        assert!(feats(Goals::Hidden).iter().all(|v| *v == 0.0));
+        // Drawn: about half given, the same for the same seed, another set for another.
+        let flags = |seed| -> Vec<f32> {
+            feats(Goals::Drawn { keep: 0.5, seed })
+                .chunks(GOAL_FEATURES)
+                .map(|f| f[5])
+                .collect()
+        };
+        let (a, b) = (flags(1), flags(2));
+        let count = |v: &[f32]| v.iter().filter(|x| **x == 1.0).count();
+        assert_eq!(a, flags(1));
+        assert_ne!(a, b);
+        assert!(
+            count(&a) > 0 && count(&a) < given,
+            "{} of {given}",
+            count(&a)
+        );
+        // A configuration without end points builds none, whatever is asked.
+        cfg.goals = false;
+        let b = build(&refs, &cfg, &norm, Goals::Recorded, &Device::Cpu).unwrap();
+        assert!(b.ctx.agent_goal.is_none());
+    }
+
+    #[test]
     fn route_inputs_decode_the_target_to_the_recorded_future_beside_its_lane() {
         let scene = highway();
         let mut cfg = crate::train::WindowConfig::ngsim();
@@ -548,7 +678,7 @@ mod tests {
         // Enough components to reproduce the futures to centimetres, and capped scales, so
         // that the scales differ per component.
         let norm = Normaliser::capped(crate::model::Pca::fit(&futures, 12).unwrap(), 0.5);
-        let b = build(&[&ws[0]], &cfg, &norm, &Device::Cpu).unwrap();
+        let b = build(&[&ws[0]], &cfg, &norm, Goals::Hidden, &Device::Cpu).unwrap();
         let r = b.ctx.route.as_ref().unwrap();
         let n = cfg.max_agents;
         let steps = crate::model::route::route_steps(cfg.future, 4);

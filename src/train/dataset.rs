@@ -45,6 +45,12 @@ pub struct WindowConfig {
     /// lanes ([`crate::model::route`]): 0 (configurations written before the field) for none.
     #[serde(default)]
     pub route_times: usize,
+    /// Give the denoiser each agent's recorded end point as an input where it is known
+    /// ([`crate::train::batch::Goals`]): conditional simulation then samples from a model of
+    /// the futures that end there, not from one of every future with a pull to the end.
+    /// Off in configurations written before the field.
+    #[serde(default)]
+    pub goals: bool,
 }
 
 /// `Ok` when `lo ≤ v ≤ hi`, else a message naming the setting and its range.
@@ -99,6 +105,7 @@ impl WindowConfig {
             min_future: 0,
             nearest_lane_pose: false,
             route_times: 0,
+            goals: false,
         }
     }
 
@@ -128,6 +135,7 @@ impl WindowConfig {
             min_future: 0,
             nearest_lane_pose: false,
             route_times: 0,
+            goals: false,
         }
     }
 

@@ -8,7 +8,7 @@ use std::path::Path;
 
 use candle_core::{Device, Tensor};
 
-use super::batch::build;
+use super::batch::{build, Goals};
 use super::dataset::Window;
 use super::rng::Rng;
 use super::store::WindowSource;
@@ -67,6 +67,13 @@ pub fn export(
             crate::geom::num(from.meta.config.across_weight)
         )));
     }
+    if from.meta.config.window.goals {
+        return Err(TrainError::Config(
+            "the checkpoint reads agents' end points (window.goals), which the PyTorch port \
+             (benches/torch) does not: it has nothing to export to"
+                .into(),
+        ));
+    }
     if from.meta.config.window.route_times > 0 {
         return Err(TrainError::Config(format!(
             "{}: it has nothing to export to",
@@ -107,7 +114,7 @@ pub fn export(
     };
     let tensors = |ws: &[Window]| -> Result<HashMap<String, Tensor>, TrainError> {
         let refs: Vec<&Window> = ws.iter().collect();
-        let b = build(&refs, &window, norm, &dev)?;
+        let b = build(&refs, &window, norm, Goals::Hidden, &dev)?;
         let c = b.ctx;
         Ok(HashMap::from([
             ("lane_points".to_string(), c.lane_points),
@@ -144,7 +151,7 @@ pub fn export(
         .map(|i| source.train_window(i))
         .collect::<Result<_, _>>()?;
     let refs: Vec<&Window> = first.iter().collect();
-    let b = build(&refs, &window, norm, &dev)?;
+    let b = build(&refs, &window, norm, Goals::Hidden, &dev)?;
     let edm = &meta.config.edm;
     let mut rng = Rng::new(meta.config.seed ^ 0xE8907);
     let sigma: Vec<f64> = (0..CHECK_WINDOWS)
@@ -252,6 +259,7 @@ mod tests {
             agent_rel: cat("agent_rel"),
             agent_attr: cat("agent_attr"),
             route: None,
+            agent_goal: None,
         };
         let batch = crate::train::Batch {
             ctx,

@@ -10,7 +10,7 @@ pub mod rng;
 pub mod store;
 pub mod trainer;
 
-pub use batch::{build, Batch, ComponentScale, Normaliser};
+pub use batch::{build, Batch, ComponentScale, Goals, Normaliser};
 pub use dataset::{window_among, window_at, windows, Window, WindowConfig};
 pub use ema::Ema;
 pub use export::{export, Exported};

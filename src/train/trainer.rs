@@ -8,7 +8,11 @@ use candle_nn::{VarBuilder, VarMap};
 use serde::{Deserialize, Serialize};
 
 use super::adamw::AdamW;
-use super::batch::{build, ComponentScale, Normaliser};
+use super::batch::{build, ComponentScale, Goals, Normaliser};
+
+/// The share of agents whose end point a training batch gives a model that reads them: half,
+/// so that it learns futures with and without one (conditional and unconditional simulation).
+const GOAL_KEEP: f64 = 0.5;
 use super::dataset::{within, Window, WindowConfig, AGENT_ATTRS};
 use super::ema::Ema;
 use super::rng::Rng;
@@ -91,6 +95,7 @@ impl TrainConfig {
                 attrs: 0,
                 agent_lane_features: 4,
                 route_times: 0,
+                goals: false,
             },
             edm: Edm::default(),
             eval_every: 100,
@@ -291,6 +296,12 @@ impl TrainConfig {
                 m.agent_lane_features,
                 w.nearest_lane_pose,
                 w.agent_lane_features()
+            ));
+        }
+        if m.goals != w.goals {
+            return Err(format!(
+                "model.goals = {} but window.goals = {}: they must agree",
+                m.goals, w.goals
             ));
         }
         if m.route_times != w.route_times {
@@ -819,7 +830,17 @@ pub fn train_from(
             })
             .collect::<Result<_, TrainError>>()?;
         let refs: Vec<&Window> = picked.iter().collect();
-        let b = build(&refs, &cfg.window, &norm, &dev)?;
+        // Drawn only by runs that read end points: the others' random streams stay as they
+        // were, so that a resumed old run goes on as it would have.
+        let goals = if cfg.window.goals {
+            Goals::Drawn {
+                keep: GOAL_KEEP,
+                seed: rng.next_u64(),
+            }
+        } else {
+            Goals::Hidden
+        };
+        let b = build(&refs, &cfg.window, &norm, goals, &dev)?;
         let sigma: Vec<f64> = (0..cfg.batch)
             .map(|_| cfg.edm.train_sigma(rng.normal()))
             .collect();
@@ -868,13 +889,17 @@ pub fn train_from(
             };
             let judged = averaged.as_ref().unwrap_or(&model);
             let mut total = 0.0;
-            for (idx, sig, n) in &val_batches {
+            for (vi, (idx, sig, n)) in val_batches.iter().enumerate() {
                 let ws: Vec<Window> = idx
                     .iter()
                     .map(|i| source.val_window(*i))
                     .collect::<Result<_, _>>()?;
                 let refs: Vec<&Window> = ws.iter().collect();
-                let b = build(&refs, &cfg.window, &norm, &dev)?;
+                let goals = Goals::Drawn {
+                    keep: GOAL_KEEP,
+                    seed: vi as u64,
+                };
+                let b = build(&refs, &cfg.window, &norm, goals, &dev)?;
                 let noise = Tensor::from_vec(
                     n.clone(),
                     (cfg.batch, cfg.window.max_agents, cfg.model.k),
@@ -1377,6 +1402,7 @@ pub(crate) fn tiny_config(steps: usize, seed: u64, eval_every: usize) -> TrainCo
             attrs: AGENT_ATTRS,
             agent_lane_features: 4,
             route_times: 0,
+            goals: false,
         },
         edm: Edm::default(),
         eval_every,
