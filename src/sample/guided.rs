@@ -270,6 +270,13 @@ pub fn reference_run(
             crate::model::route::NOT_PORTED
         )));
     }
+    if trained.meta.config.window.goals {
+        return Err(SampleError::Settings(
+            "the checkpoint reads agents' end points (window.goals), which the PyTorch port \
+             (benches/torch) does not: there is no port to check"
+                .into(),
+        ));
+    }
     let su = setup(trained, scene, cfg)?;
     let unguided = |x: &Tensor, sigma: f64, _| -> Result<Tensor, SampleError> {
         let d = su
