@@ -1362,6 +1362,11 @@ fn train_export_writes_the_windows_of_a_checkpoint_into_a_new_directory_only() {
     };
     let err = resumed(&["--nearest-lane-pose"]);
     assert!(err.contains("without the lanes' nearest points"), "{err}");
+    let err = resumed(&["--goals"]);
+    assert!(
+        err.contains("--goals: ") && err.contains("was trained without agents' end points"),
+        "{err}"
+    );
     // And its training noise levels; a new run's are checked before any data is read.
     let err = resumed(&["--p-mean=-0.4"]);
     assert!(
@@ -1647,6 +1652,7 @@ fn train_export_refuses_the_training_flags_it_would_ignore() {
         &["--p-mean=-0.4"],
         &["--p-std", "2"],
         &["--nearest-lane-pose"],
+        &["--goals"],
         &["--force"],
         &["--setting", "cities"],
     ] {
@@ -1670,6 +1676,63 @@ fn train_export_refuses_the_training_flags_it_would_ignore() {
         );
         assert!(!exp.exists(), "{flag:?}");
     }
+}
+
+#[test]
+fn a_model_that_reads_end_points_simulates_both_tasks_and_is_not_exported() {
+    let dir = tempfile::tempdir().unwrap();
+    let ckpt = dir.path().join("ckpt");
+    let ck = s(&ckpt);
+    ok(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--out",
+        ck,
+        "--steps",
+        "2",
+        "--batch",
+        "2",
+        "--eval-every",
+        "2",
+        "--goals",
+    ]);
+    let config: Value =
+        serde_json::from_str(&std::fs::read_to_string(ckpt.join("config.json")).unwrap()).unwrap();
+    assert_eq!(config["config"]["window"]["goals"], true);
+    assert_eq!(config["config"]["model"]["goals"], true);
+    for task in ["conditional", "unconditional"] {
+        let out = dir.path().join(task);
+        ok(&[
+            "simulate",
+            "scripts/scenes/highway.yaml",
+            "--checkpoint",
+            ck,
+            "--task",
+            task,
+            "--samples",
+            "1",
+            "--steps",
+            "8",
+            "-o",
+            s(&out),
+        ]);
+        assert!(out.join("highway_0.json").exists(), "{task}");
+    }
+    let err = fails(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--export",
+        s(&dir.path().join("exp")),
+        "--resume",
+        ck,
+    ]);
+    assert!(
+        err.contains("reads agents' end points (window.goals)")
+            && err.contains("nothing to export to"),
+        "{err}"
+    );
 }
 
 #[test]
