@@ -630,15 +630,20 @@ mod tests {
                     continue;
                 };
                 given += 1;
-                let r = rel(w.states[a * steps + h - 1], w.states[a * steps + t]);
+                // The end point in the agent's current frame, worked out here by hand.
+                let (now, end) = (w.states[a * steps + h - 1], w.states[a * steps + t]);
+                let (dx, dy) = (end[0] - now[0], end[1] - now[1]);
+                let (sin, cos) = now[2].sin_cos();
                 let want = [
-                    r[0],
-                    r[1],
-                    r[3],
-                    r[2],
+                    (dx * cos + dy * sin) / 50.0,
+                    (dy * cos - dx * sin) / 50.0,
+                    (end[2] - now[2]).sin(),
+                    (end[2] - now[2]).cos(),
                     (t + 1 - h) as f32 / cfg.future as f32,
                     1.0,
                 ];
+                // Highway cars drive ahead: their end points lie ahead of them.
+                assert!(want[0] > 0.0 && want[3] > 0.9, "{want:?}");
                 for (x, y) in f.iter().zip(want) {
                     assert!((x - y).abs() < 1e-6, "{f:?} {want:?}");
                 }
