@@ -286,11 +286,11 @@ fn lane_type(name: &str) -> (LaneType, bool) {
 
 fn centerline(left: &Polyline, right: &Polyline) -> Polyline {
     let len = left.length().max(right.length());
-    let n = left
-        .points()
-        .len()
-        .max(right.points().len())
-        .max((len / CENTERLINE_SPACING).ceil() as usize + 1);
+    // At most MAX_RESAMPLED_POINTS from the spacing: a bound running thousands of kilometres
+    // (within the coordinate limit) made millions of points.
+    let n = left.points().len().max(right.points().len()).max(
+        ((len / CENTERLINE_SPACING).ceil() as usize + 1).min(crate::geom::MAX_RESAMPLED_POINTS),
+    );
     let (l, r) = (left.resample_count(n), right.resample_count(n));
     let mid = l
         .points()
