@@ -3602,6 +3602,17 @@ fn a_conditional_eval_with_no_recorded_future_is_an_error_not_a_row_of_dashes() 
         err.contains("nothing was scored") && err.contains("recorded future"),
         "{err}"
     );
+    // The unconditional table of the same scene was a row of dashes with exit 0: a scene was
+    // counted, though no agent is observed at any future step.
+    let err = fails(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "unconditional",
+        "--baseline",
+        "cv",
+    ]);
+    assert!(err.contains("nothing was scored"), "{err}");
 }
 
 /// A script with two terms nothing can move and one guard the log leaves at 0.
