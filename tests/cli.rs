@@ -1569,6 +1569,49 @@ fn eval_merge_refuses_samples_which_the_shards_record() {
 }
 
 #[test]
+fn eval_merge_refuses_shards_of_evaluations_of_different_scenes() {
+    // Shard 0/2 of one scene and shard 1/2 of another merged into one table, exit 0: the
+    // shards' settings agreed and nothing recorded what they had read.
+    let dir = tempfile::tempdir().unwrap();
+    let shard = |scene: &str, i: usize, name: &str| {
+        let out = dir.path().join(name);
+        let run = drivescript(&[
+            "eval",
+            s(&samples().join(scene)),
+            "--task",
+            "conditional",
+            "--baseline",
+            "cv",
+            "--shard",
+            &format!("{i}/2"),
+            "--json",
+            s(&out),
+        ]);
+        assert!(out.exists(), "{name}");
+        (out, run)
+    };
+    let us101 = "commonroad/USA_US101-3_3_T-1.xml";
+    let peach = "commonroad/USA_Peach-4_8_T-1.xml";
+    let (a, _) = shard(us101, 0, "a.json");
+    // The other shard holds no scene: it says so and exits 0, as `simulate --shard` does (it
+    // said "nothing was scored: no scene ... was read from the given paths", exit 1).
+    let (b, empty) = shard(us101, 1, "b.json");
+    let said = String::from_utf8_lossy(&empty.stdout);
+    assert!(
+        empty.status.success() && said.contains("shard 1/2 holds none of the 1 scenes"),
+        "{said}{}",
+        String::from_utf8_lossy(&empty.stderr)
+    );
+    let (other, _) = shard(peach, 1, "other.json");
+    ok(&["eval", "--merge", s(&a), s(&b)]);
+    let err = fails(&["eval", "--merge", s(&a), s(&other)]);
+    assert!(
+        err.contains("shards of evaluations of different scenes") && err.contains("other.json"),
+        "{err}"
+    );
+}
+
+#[test]
 fn test_scripts_given_a_cost_script_says_so() {
     // A .rhai read as a test file said "line 1, column 1: unknown field `// Follow`, expected
     // `script` or `cases`" (issue 32).
