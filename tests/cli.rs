@@ -3919,6 +3919,22 @@ fn cost_checks_a_rollout_as_eval_and_render_do() {
         s(&dir.path().join("x.svg")),
     ]);
     assert!(render.contains("bad.json"), "{render}");
+    // A rollout that stops at the current step was told to hold the recording's 91 steps
+    // ("agent 1 has 11 states in the rollout, the scene has 91 steps"), though 12 pass.
+    let mut v: Value = serde_json::from_str(&std::fs::read_to_string(&rec).unwrap()).unwrap();
+    for a in v["agents"].as_array_mut().unwrap() {
+        a["states"].as_array_mut().unwrap().truncate(11);
+    }
+    let now = dir.path().join("now.json");
+    std::fs::write(&now, serde_json::to_string(&v).unwrap()).unwrap();
+    let out = cost(&now);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("now.json")
+            && err.contains("the rollout stops at the current step (step 10, 11 states)")
+            && !err.contains("91"),
+        "{err}"
+    );
 }
 
 #[test]
