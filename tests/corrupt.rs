@@ -961,6 +961,23 @@ fn commonroad_lanelets_read_other_than_as_written_are_named() {
         out.contains("lanelet 3419 names itself as its own successor, predecessor or neighbour: that link is dropped"),
         "{out}"
     );
+    // A direction CommonRoad does not have was read as "opposite": the right neighbour of
+    // lanelet 3419 left the lane graph without a word.
+    let sideways = variant("sideways.xml", &|l| {
+        l.replace(
+            "drivingDir=\"same\" ref=\"3422\"",
+            "drivingDir=\"Same\" ref=\"3422\"",
+        )
+    });
+    let err = fails(&["inspect", s(&sideways)]);
+    assert!(
+        err.contains("sideways.xml: line ")
+            && err.contains("<adjacentRight>")
+            && err.contains(
+                "drivingDir=\"Same\" is not a direction of CommonRoad's: same or opposite"
+            ),
+        "{err}"
+    );
     let swapped = variant("swapped.xml", &|l| {
         let (lb, rb) = (bound(l, "leftBound"), bound(l, "rightBound"));
         l.replace(&lb, "@L@")
