@@ -2120,6 +2120,35 @@ fn a_batch_refuses_a_pair_s_run_revised_with_a_follow_up() {
 }
 
 #[test]
+fn a_scenes_flag_naming_nothing_is_named_as_the_flag_s() {
+    // It was reported as the batch file's: "requests.yaml: entry on line 3: nowhere: No such
+    // file or directory (os error 2)", though the file never named that path.
+    let dir = tempfile::tempdir().unwrap();
+    let file = one_pair_batch(dir.path());
+    let out = dir.path().join("out");
+    let o = ask(
+        &[
+            "--batch",
+            s(&file),
+            "-o",
+            s(&out),
+            "--llm",
+            "rules",
+            "--scenes",
+            "nowhere",
+        ],
+        None,
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("--scenes nowhere: no such file or directory") && !t.contains("entry on line"),
+        "{t}"
+    );
+    assert!(!out.exists());
+}
+
+#[test]
 fn a_second_batch_file_into_the_same_directory_is_refused_not_mixed_in() {
     let dir = tempfile::tempdir().unwrap();
     let first = one_pair_batch(dir.path());
