@@ -4920,6 +4920,26 @@ fn eval_refuses_rollouts_holding_more_samples_than_it_was_told() {
         "3",
     ]);
     assert!(out.contains("| rollouts in "), "{out}");
+    // An unnumbered rollout beside them: with --samples 1 it was scored alone and the three
+    // samples left out without a word.
+    ok(&[
+        "convert",
+        s(&scene),
+        "-o",
+        s(&r.join("highway-cut-in.json")),
+    ]);
+    let err = fails(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "conditional",
+        "--rollouts",
+        s(&r),
+    ]);
+    assert!(
+        err.contains("the rollouts hold both highway-cut-in.json and numbered samples"),
+        "{err}"
+    );
 }
 
 /// `wrote PATH` printed an output name's escape sequence raw (`-o $'x\e[2J.svg'` cleared the

@@ -156,6 +156,17 @@ fn rollouts_for(dir: &Path, scene: &Scene, k: usize) -> Result<Vec<(Scene, Allow
     };
     let single = dir.join(format!("{id}.json"));
     if k == 1 && single.exists() {
+        // Beside numbered samples, which of them is meant cannot be told: the numbered ones
+        // were left out without a word (4 samples of a run, and a recording converted beside
+        // them, scored as the recording).
+        let first = dir.join(format!("{id}_0.json"));
+        if first.exists() {
+            bail!(
+                "{}: the rollouts hold both {id}.json and numbered samples ({id}_0.json, ...): \
+                 move one away, or give --samples with the number the run made",
+                first.display()
+            );
+        }
         return Ok(vec![read(&single)?]);
     }
     let mut out = Vec::new();
