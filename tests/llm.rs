@@ -1095,6 +1095,12 @@ fn a_batch_stopped_by_an_error_continues_when_run_again() {
     let t = text(&o);
     assert_eq!(o.status.code(), Some(1), "{t}");
     assert!(t.contains("holds a run of the request"), "{t}");
+    // In the request's words, not Rust's `Some("...")`.
+    assert!(
+        t.contains("the request \"vehicle 401 cuts in front of vehicle 399\"")
+            && !t.contains("Some("),
+        "{t}"
+    );
 }
 
 #[test]

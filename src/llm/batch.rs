@@ -1226,10 +1226,14 @@ impl Batch<'_> {
             },
         )?;
         if session.requests().first() != Some(&inst.request) {
-            return Err(other(format!(
-                "the request {:?}",
-                session.requests().first()
-            )));
+            // Quoted as the request's words: `{:?}` of the Option printed `Some("...")`.
+            return Err(other(match session.requests().first() {
+                Some(r) => format!(
+                    "the request \"{}\" (the batch file's entry said so when it ran)",
+                    crate::io::name::shown(r)
+                ),
+                None => "no request".into(),
+            }));
         }
         // A pair's run revised by hand (`ask --continue DIR "..."`) was read back as the
         // pair's: its follow-up rounds were counted as refinement rounds of the batch's
