@@ -1475,6 +1475,13 @@ fn a_resumed_run_refuses_another_seed_or_setting_and_keeps_another_run_s_checkpo
         err.contains("--setting: ") && err.contains("40-step futures without"),
         "{err}"
     );
+    // Said as the flag spells it, not as Rust's `Common`.
+    let err = more(&a, &a, &["--component-scale", "capped"]);
+    assert!(
+        err.contains("scales its PCA components as `--component-scale common`")
+            && !err.contains("Common"),
+        "{err}"
+    );
     // The checkpoint's own seed and setting, given again, are no change.
     ok(&[
         "train",
