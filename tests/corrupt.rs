@@ -1827,7 +1827,7 @@ fn every_consumer_checks_a_rollout_against_its_scene_the_same_way() {
         (
             "relabelled",
             |r| r["agents"][1]["type"] = "pedestrian".into(),
-            "agents[1] (id 2): a Pedestrian in the rollout, a Vehicle in the scene",
+            "agents[1] (id 2): type pedestrian in the rollout, vehicle in the scene",
         ),
         (
             "resized",
