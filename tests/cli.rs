@@ -1480,6 +1480,13 @@ fn a_resumed_run_refuses_another_seed_or_setting_and_keeps_another_run_s_checkpo
         err.contains("--setting: ") && err.contains("40-step futures without"),
         "{err}"
     );
+    // Said as the flag spells it, not as Rust's `Common`.
+    let err = more(&a, &a, &["--component-scale", "capped"]);
+    assert!(
+        err.contains("scales its PCA components as `--component-scale common`")
+            && !err.contains("Common"),
+        "{err}"
+    );
     // The checkpoint's own seed and setting, given again, are no change.
     ok(&[
         "train",
@@ -1569,6 +1576,49 @@ fn eval_merge_refuses_samples_which_the_shards_record() {
     assert_eq!(out.status.code(), Some(2), "{err}");
     assert!(
         err.contains("--merge") && err.contains("--samples") && err.contains("cannot be used"),
+        "{err}"
+    );
+}
+
+#[test]
+fn eval_merge_refuses_shards_of_evaluations_of_different_scenes() {
+    // Shard 0/2 of one scene and shard 1/2 of another merged into one table, exit 0: the
+    // shards' settings agreed and nothing recorded what they had read.
+    let dir = tempfile::tempdir().unwrap();
+    let shard = |scene: &str, i: usize, name: &str| {
+        let out = dir.path().join(name);
+        let run = drivescript(&[
+            "eval",
+            s(&samples().join(scene)),
+            "--task",
+            "conditional",
+            "--baseline",
+            "cv",
+            "--shard",
+            &format!("{i}/2"),
+            "--json",
+            s(&out),
+        ]);
+        assert!(out.exists(), "{name}");
+        (out, run)
+    };
+    let us101 = "commonroad/USA_US101-3_3_T-1.xml";
+    let peach = "commonroad/USA_Peach-4_8_T-1.xml";
+    let (a, _) = shard(us101, 0, "a.json");
+    // The other shard holds no scene: it says so and exits 0, as `simulate --shard` does (it
+    // said "nothing was scored: no scene ... was read from the given paths", exit 1).
+    let (b, empty) = shard(us101, 1, "b.json");
+    let said = String::from_utf8_lossy(&empty.stdout);
+    assert!(
+        empty.status.success() && said.contains("shard 1/2 holds none of the 1 scenes"),
+        "{said}{}",
+        String::from_utf8_lossy(&empty.stderr)
+    );
+    let (other, _) = shard(peach, 1, "other.json");
+    ok(&["eval", "--merge", s(&a), s(&b)]);
+    let err = fails(&["eval", "--merge", s(&a), s(&other)]);
+    assert!(
+        err.contains("shards of evaluations of different scenes") && err.contains("other.json"),
         "{err}"
     );
 }
@@ -3665,6 +3715,17 @@ fn a_conditional_eval_with_no_recorded_future_is_an_error_not_a_row_of_dashes() 
         err.contains("nothing was scored") && err.contains("recorded future"),
         "{err}"
     );
+    // The unconditional table of the same scene was a row of dashes with exit 0: a scene was
+    // counted, though no agent is observed at any future step.
+    let err = fails(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "unconditional",
+        "--baseline",
+        "cv",
+    ]);
+    assert!(err.contains("nothing was scored"), "{err}");
 }
 
 /// A script with two terms nothing can move and one guard the log leaves at 0.
@@ -3928,6 +3989,22 @@ fn cost_checks_a_rollout_as_eval_and_render_do() {
         s(&dir.path().join("x.svg")),
     ]);
     assert!(render.contains("bad.json"), "{render}");
+    // A rollout that stops at the current step was told to hold the recording's 91 steps
+    // ("agent 1 has 11 states in the rollout, the scene has 91 steps"), though 12 pass.
+    let mut v: Value = serde_json::from_str(&std::fs::read_to_string(&rec).unwrap()).unwrap();
+    for a in v["agents"].as_array_mut().unwrap() {
+        a["states"].as_array_mut().unwrap().truncate(11);
+    }
+    let now = dir.path().join("now.json");
+    std::fs::write(&now, serde_json::to_string(&v).unwrap()).unwrap();
+    let out = cost(&now);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("now.json")
+            && err.contains("the rollout stops at the current step (step 10, 11 states)")
+            && !err.contains("91"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -4913,6 +4990,26 @@ fn eval_refuses_rollouts_holding_more_samples_than_it_was_told() {
         "3",
     ]);
     assert!(out.contains("| rollouts in "), "{out}");
+    // An unnumbered rollout beside them: with --samples 1 it was scored alone and the three
+    // samples left out without a word.
+    ok(&[
+        "convert",
+        s(&scene),
+        "-o",
+        s(&r.join("highway-cut-in.json")),
+    ]);
+    let err = fails(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "conditional",
+        "--rollouts",
+        s(&r),
+    ]);
+    assert!(
+        err.contains("the rollouts hold both highway-cut-in.json and numbered samples"),
+        "{err}"
+    );
 }
 
 /// `wrote PATH` printed an output name's escape sequence raw (`-o $'x\e[2J.svg'` cleared the

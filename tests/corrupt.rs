@@ -961,6 +961,23 @@ fn commonroad_lanelets_read_other_than_as_written_are_named() {
         out.contains("lanelet 3419 names itself as its own successor, predecessor or neighbour: that link is dropped"),
         "{out}"
     );
+    // A direction CommonRoad does not have was read as "opposite": the right neighbour of
+    // lanelet 3419 left the lane graph without a word.
+    let sideways = variant("sideways.xml", &|l| {
+        l.replace(
+            "drivingDir=\"same\" ref=\"3422\"",
+            "drivingDir=\"Same\" ref=\"3422\"",
+        )
+    });
+    let err = fails(&["inspect", s(&sideways)]);
+    assert!(
+        err.contains("sideways.xml: line ")
+            && err.contains("<adjacentRight>")
+            && err.contains(
+                "drivingDir=\"Same\" is not a direction of CommonRoad's: same or opposite"
+            ),
+        "{err}"
+    );
     let swapped = variant("swapped.xml", &|l| {
         let (lb, rb) = (bound(l, "leftBound"), bound(l, "rightBound"));
         l.replace(&lb, "@L@")
@@ -1810,7 +1827,7 @@ fn every_consumer_checks_a_rollout_against_its_scene_the_same_way() {
         (
             "relabelled",
             |r| r["agents"][1]["type"] = "pedestrian".into(),
-            "agents[1] (id 2): a Pedestrian in the rollout, a Vehicle in the scene",
+            "agents[1] (id 2): type pedestrian in the rollout, vehicle in the scene",
         ),
         (
             "resized",
@@ -2626,6 +2643,52 @@ fn a_commonroad_map_of_many_lanelets_is_read_in_time_proportional_to_their_numbe
     assert_eq!(code, Some(0), "{out}");
     assert!(out.contains("30000 lanes"), "{out}");
     assert!(took < 8.0, "{took:.1} s");
+}
+
+#[cfg(unix)]
+#[test]
+fn a_lanelet_thousands_of_kilometres_long_is_read_in_bounded_memory() {
+    // Coordinates may lie 1e7 m from the origin, so a lanelet may run 28,000 km corner to
+    // corner: its centre line was resampled every 2 m and judged for turns every half metre,
+    // 56 million points. One such lanelet took 3 GB to `inspect`; a 220 KB file of 13 of
+    // them took more than 6 GB and aborted ("memory allocation of 268435456 bytes failed").
+    let sample =
+        std::fs::read_to_string(samples().join("commonroad/USA_US101-3_3_T-1.xml")).unwrap();
+    let head = &sample[..sample.find("<lanelet ").unwrap()];
+    let start = sample.find("<obstacle").unwrap();
+    let end = sample[start..].find("</obstacle>").unwrap() + start + "</obstacle>".len();
+    let bound = |dy: f64| {
+        format!(
+            "<point><x>-9.9e6</x><y>{}</y></point><point><x>9.9e6</x><y>{}</y></point>",
+            -9.9e6 + dy,
+            9.9e6 + dy
+        )
+    };
+    let xml = format!(
+        "{head}<lanelet id=\"1\"><leftBound>{}</leftBound><rightBound>{}</rightBound></lanelet>\
+         {}</commonRoad>\n",
+        bound(3.5),
+        bound(0.0),
+        &sample[start..end]
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("far.xml");
+    std::fs::write(&f, xml).unwrap();
+    let child = std::process::Command::new(env!("CARGO_BIN_EXE_drivescript"))
+        .args(["inspect", s(&f)])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut status = 0;
+    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: waits for our own child, writing into the two locals.
+    let pid = unsafe { libc::wait4(child.id() as i32, &mut status, 0, &mut usage) };
+    assert_eq!(pid, child.id() as i32);
+    assert_eq!(libc::WEXITSTATUS(status), 0);
+    // ru_maxrss is in kilobytes on Linux.
+    let peak_mb = usage.ru_maxrss as f64 / 1024.0;
+    assert!(peak_mb < 400.0, "peak {peak_mb:.0} MB");
 }
 
 /// 1,500 cars, 40 m apart on three lanes, on one 100 km road (a 60 KB file), `steps` long.

@@ -1095,6 +1095,12 @@ fn a_batch_stopped_by_an_error_continues_when_run_again() {
     let t = text(&o);
     assert_eq!(o.status.code(), Some(1), "{t}");
     assert!(t.contains("holds a run of the request"), "{t}");
+    // In the request's words, not Rust's `Some("...")`.
+    assert!(
+        t.contains("the request \"vehicle 401 cuts in front of vehicle 399\"")
+            && !t.contains("Some("),
+        "{t}"
+    );
 }
 
 #[test]
@@ -2039,6 +2045,113 @@ fn a_batch_keeps_a_summary_it_did_not_write() {
         std::fs::read_to_string(out.join("summary.md")).unwrap(),
         "my notes"
     );
+}
+
+#[test]
+fn a_batch_keeps_a_file_of_the_user_s_where_a_rollout_goes() {
+    // A fresh -o holding rollouts/cut_in/ID_0.json (and unguided/ID_0.json) of the user's:
+    // the batch replaced both with its rollouts, exit 0.
+    let dir = tempfile::tempdir().unwrap();
+    let file = one_pair_batch(dir.path());
+    let out = dir.path().join("out");
+    let mine = out.join("rollouts/cut_in/unguided/USA_US101-3_3_T-1_0.json");
+    std::fs::create_dir_all(mine.parent().unwrap()).unwrap();
+    std::fs::write(&mine, "my notes").unwrap();
+    let o = ask(
+        &[
+            "--batch",
+            s(&file),
+            "-o",
+            s(&out),
+            "--llm",
+            "rules",
+            "--rounds",
+            "0",
+            "--samples",
+            "1",
+        ],
+        None,
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("unguided/USA_US101-3_3_T-1_0.json") && t.contains("is not a rollout"),
+        "{t}"
+    );
+    assert_eq!(std::fs::read_to_string(&mine).unwrap(), "my notes");
+}
+
+#[test]
+fn a_batch_refuses_a_pair_s_run_revised_with_a_follow_up() {
+    // `ask --continue` on a pair's run, then the batch again: the follow-up's round was
+    // counted as a refinement round of the batch's request (mean rounds 2.00 for a batch of
+    // --rounds 0) and its samples copied as the pair's rollouts, exit 0.
+    let dir = tempfile::tempdir().unwrap();
+    let file = one_pair_batch(dir.path());
+    let out = dir.path().join("out");
+    let batch = || {
+        ask(
+            &[
+                "--batch",
+                s(&file),
+                "-o",
+                s(&out),
+                "--llm",
+                "rules",
+                "--rounds",
+                "0",
+                "--samples",
+                "1",
+            ],
+            None,
+        )
+    };
+    let o = batch();
+    assert!(o.status.success(), "{}", text(&o));
+    let run = out.join("runs/000_cut_in_USA_US101-3_3_T-1");
+    let o = ask(
+        &["--continue", s(&run), "vehicle 401 drives off the road"],
+        None,
+    );
+    assert!(run.join("state.json").exists(), "{}", text(&o));
+    let o = batch();
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("000_cut_in_USA_US101-3_3_T-1")
+            && t.contains("revised with a follow-up request")
+            && t.contains("vehicle 401 drives off the road"),
+        "{t}"
+    );
+}
+
+#[test]
+fn a_scenes_flag_naming_nothing_is_named_as_the_flag_s() {
+    // It was reported as the batch file's: "requests.yaml: entry on line 3: nowhere: No such
+    // file or directory (os error 2)", though the file never named that path.
+    let dir = tempfile::tempdir().unwrap();
+    let file = one_pair_batch(dir.path());
+    let out = dir.path().join("out");
+    let o = ask(
+        &[
+            "--batch",
+            s(&file),
+            "-o",
+            s(&out),
+            "--llm",
+            "rules",
+            "--scenes",
+            "nowhere",
+        ],
+        None,
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("--scenes nowhere: no such file or directory") && !t.contains("entry on line"),
+        "{t}"
+    );
+    assert!(!out.exists());
 }
 
 #[test]

@@ -902,6 +902,17 @@ fn batch(args: &Args, given: &[String], file: &Path, trained: &Trained) -> Resul
         bail!("--batch runs without a person: use --llm http or --llm rules");
     }
     let mut entries = read_batch(file)?;
+    // A --scenes path that is not there was reported as the batch file's ("FILE: entry on
+    // line 3: sub: No such file or directory"), though the file never named it.
+    for p in &args.scenes {
+        if std::fs::metadata(p).is_err() {
+            bail!(
+                "--scenes {}: no such file or directory (a --scenes path is taken from the \
+                 current directory, not the batch file's)",
+                super::shown(p)
+            );
+        }
+    }
     if !args.scenes.is_empty() {
         for e in entries.iter_mut().filter(|e| e.default_scenes) {
             e.scenes = args.scenes.clone();

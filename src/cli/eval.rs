@@ -156,6 +156,17 @@ fn rollouts_for(dir: &Path, scene: &Scene, k: usize) -> Result<Vec<(Scene, Allow
     };
     let single = dir.join(format!("{id}.json"));
     if k == 1 && single.exists() {
+        // Beside numbered samples, which of them is meant cannot be told: the numbered ones
+        // were left out without a word (4 samples of a run, and a recording converted beside
+        // them, scored as the recording).
+        let first = dir.join(format!("{id}_0.json"));
+        if first.exists() {
+            bail!(
+                "{}: the rollouts hold both {id}.json and numbered samples ({id}_0.json, ...): \
+                 move one away, or give --samples with the number the run made",
+                first.display()
+            );
+        }
         return Ok(vec![read(&single)?]);
     }
     let mut out = Vec::new();
@@ -316,6 +327,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let mut run_skipped = 0;
     let mut names = OutputNames::default();
     let mut horizons = Horizons::default();
+    // Every scene read, this shard's or not: the shards of one run agree on them.
+    let mut read_ids: Vec<String> = Vec::new();
+    let mut own_scenes = 0usize;
     for src in &sources {
         bar.set_message(
             src.file_name()
@@ -327,6 +341,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         let mut scenes = Vec::new();
         for item in read_each(src, &LoadOptions::default()) {
             let claimed = item.and_then(|s| {
+                read_ids.push(s.meta.scenario_id.clone());
                 if args
                     .shard
                     .is_some_and(|sh| !sh.contains(&s.meta.scenario_id))
@@ -336,7 +351,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 names.claim(&s.meta.scenario_id, src).map(|_| Some(s))
             });
             match claimed {
-                Ok(Some(s)) => scenes.push(s),
+                Ok(Some(s)) => {
+                    own_scenes += 1;
+                    scenes.push(s)
+                }
                 Ok(None) => {}
                 Err(e) => {
                     bar.suspend(|| super::print_error(&e.to_string()));
@@ -476,8 +494,15 @@ pub fn run(args: Args) -> Result<ExitCode> {
         "all_steps": args.all_steps,
         "unguided": args.unguided,
         "shards": args.shard.map_or(1, |s| s.count),
+        "scenes": drivescript::eval::merge::corpus(&read_ids),
     });
     let shard = args.shard.map(|s| s.index);
+    // A shard of an array job with more shards than scenes holds none: it says so and exits 0,
+    // as `simulate --shard` does (it said "no scene ... was read from the given paths", exit 1).
+    let empty_shard = args
+        .shard
+        .filter(|_| own_scenes == 0 && failures == 0 && !read_ids.is_empty())
+        .map(|sh| (sh, read_ids.len()));
     report(
         task,
         &methods.iter().map(|m| m.0.clone()).collect::<Vec<_>>(),
@@ -492,6 +517,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
             run_skipped,
             horizons,
         },
+        empty_shard,
     )
 }
 
@@ -686,6 +712,7 @@ fn report(
     behaviour: Option<Behavior>,
     json_out: Option<&Path>,
     merge: &RunRecord,
+    empty_shard: Option<(drivescript::io::shard::Shard, usize)>,
 ) -> Result<ExitCode> {
     let (skipped, failures, run_skipped) = (merge.skipped, merge.failures, merge.run_skipped);
     let bins = JsdBins::default();
@@ -784,6 +811,10 @@ fn report(
     // A conditional table needs an agent with a recorded future to compare with: scenes read
     // but holding none printed a row of dashes and passed.
     let scored = accs.iter().any(|a| a.scored(task.into()));
+    if let (false, Some((sh, n))) = (scored, empty_shard) {
+        println!("shard {sh} holds none of the {n} scenes");
+        return Ok(ExitCode::SUCCESS);
+    }
     if !scored {
         eprintln!(
             "error: nothing was scored: no scene with agents and a {}{} was read from the given paths",
@@ -807,11 +838,12 @@ fn report(
 fn merge(files: &[PathBuf], json_out: Option<&Path>) -> Result<ExitCode> {
     let m = drivescript::eval::merge::merge(files)?;
     println!(
-        "merged {} of {} shard{} from {} files",
+        "merged {} of {} shard{} from {} file{}",
         m.run.shards.len().max(1),
         m.shards,
         if m.shards == 1 { "" } else { "s" },
-        files.len()
+        files.len(),
+        if files.len() == 1 { "" } else { "s" }
     );
     report(
         m.task.into(),
@@ -820,5 +852,6 @@ fn merge(files: &[PathBuf], json_out: Option<&Path>) -> Result<ExitCode> {
         m.behaviour,
         json_out,
         &m.run,
+        None,
     )
 }

@@ -268,11 +268,15 @@ pub fn run(args: Args) -> Result<ExitCode> {
             if args.component_scale.is_some()
                 && cfg.component_scale != r.meta.config.component_scale
             {
+                // Named as the flag spells it: `{:?}` printed Rust's `Common`.
                 anyhow::bail!(
-                    "--component-scale: {} scales its PCA components {:?}; a resumed run keeps \
-                     its scales",
+                    "--component-scale: {} scales its PCA components as `--component-scale \
+                     {}`; a resumed run keeps its scales",
                     dir.display(),
-                    r.meta.config.component_scale
+                    match r.meta.config.component_scale {
+                        ComponentScale::Common => "common",
+                        ComponentScale::Capped => "capped",
+                    }
                 );
             }
             if args.nearest_lane_pose && !r.meta.config.window.nearest_lane_pose {

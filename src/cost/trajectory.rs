@@ -148,6 +148,19 @@ impl Trajectories {
                 .iter()
                 .find(|x| x.id == agent.id)
                 .ok_or_else(|| format!("the rollout has no agent {}", agent.id))?;
+            // `cost` cuts the scene to a rollout's own horizon, but not to none: a rollout
+            // that stops at the current step was told to have the recording's length, though
+            // one step more passes.
+            if ra.states.len() == scene.meta.current_step + 1 && scene.num_steps() > ra.states.len()
+            {
+                return Err(format!(
+                    "agent {}: the rollout stops at the current step (step {}, {} states): it \
+                     holds no future step for the script to judge",
+                    agent.id,
+                    scene.meta.current_step,
+                    ra.states.len()
+                ));
+            }
             if ra.states.len() != scene.num_steps() {
                 return Err(format!(
                     "agent {} has {} states in the rollout, the scene has {} steps",

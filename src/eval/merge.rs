@@ -143,6 +143,21 @@ pub struct RunRecord {
     pub horizons: Horizons,
 }
 
+/// What every shard of one evaluation read, whichever shard it scored: how many scenes and a
+/// checksum of their scenario ids (sorted, CRC-32C), for `merge.run.settings.scenes`. Each
+/// shard reads every scene to learn which are its own, so the shards of one run agree on it,
+/// on any machine and under any path; the shards of two corpora do not. Without it, shard
+/// 0/2 of one corpus and shard 1/2 of another merged into one table, exit 0.
+pub fn corpus(ids: &[String]) -> Value {
+    let mut sorted: Vec<&str> = ids.iter().map(String::as_str).collect();
+    sorted.sort_unstable();
+    let joined = sorted.join("\n");
+    json!({
+        "count": sorted.len(),
+        "crc32c": crate::io::tfrecord::crc32c(joined.as_bytes()),
+    })
+}
+
 /// The `merge` object of an `eval --json` file: what [`merge`] reads back.
 pub fn record_json(accumulators: &[Tally], run: &RunRecord) -> Value {
     json!({"accumulators": accumulators, "run": run})
@@ -374,6 +389,30 @@ pub fn merge(files: &[PathBuf]) -> Result<Merged, MergeError> {
                 accs = a;
             }
             Some((f0, r0, _)) => {
+                let (c0, c1) = (r0.settings.get("scenes"), run.settings.get("scenes"));
+                if c0 != c1 {
+                    let count = |c: &Value| c.get("count").map_or(Value::Null, Value::clone);
+                    let why = match (c0, c1) {
+                        (Some(a), Some(b)) if count(a) == count(b) => {
+                            format!("both read {} scenes, but with other scenario ids", count(a))
+                        }
+                        (Some(a), Some(b)) => {
+                            format!("{} scenes read against {}", count(a), count(b))
+                        }
+                        // One of the two has no record (they differ, so not both).
+                        _ => format!(
+                            "{} was written by an earlier drivescript, which did not record \
+                             the scenes it read: run that shard again",
+                            if c0.is_none() { f0 } else { f }.display()
+                        ),
+                    };
+                    return Err(MergeError::Shards(format!(
+                        "{} and {}: shards of evaluations of different scenes ({why}): merge \
+                         the shards of one run, each run over the same scenes",
+                        f0.display(),
+                        f.display(),
+                    )));
+                }
                 if run.settings != r0.settings {
                     return Err(MergeError::Shards(format!(
                         "{} and {}: not shards of one evaluation (settings {} against {})",

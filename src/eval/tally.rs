@@ -772,12 +772,15 @@ impl Tally {
     }
 
     /// Whether anything was scored for `task`: a conditional row needs an agent with a
-    /// recorded future to compare with, a behaviour row a checked sample.
+    /// recorded future to compare with, a behaviour row a checked sample, an unconditional row
+    /// an agent observed at a future step (a scene counted without one, such as rollouts that
+    /// stop at the current step or hide every future state, printed a row of dashes and
+    /// passed).
     pub fn scored(&self, task: Task) -> bool {
         match task {
             Task::Behaviour => self.checked > 0,
             Task::Conditional => !self.ade.is_empty(),
-            Task::Unconditional => self.scenes > 0,
+            Task::Unconditional => !self.scr.is_empty(),
         }
     }
 }

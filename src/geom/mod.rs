@@ -19,7 +19,7 @@ pub use frenet::{FrenetPath, FrenetPoint};
 pub use neighbours::{nearest_distances, pairs_within};
 pub use point_tree::PointTree;
 pub use polygon::Polygon;
-pub use polyline::{Polyline, SegmentHit};
+pub use polyline::{Polyline, SegmentHit, MAX_RESAMPLED_POINTS};
 pub use segment_grid::{GridHit, SegmentGrid};
 
 /// A point or a vector in the plane.

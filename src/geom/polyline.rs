@@ -5,6 +5,13 @@ use super::{point_segment_distance, GeomError, Point};
 /// Consecutive points closer than this are merged: zero-length segments have no direction.
 const MERGE_EPS: f64 = 1e-6;
 
+/// The most points [`Polyline::resample_spacing`] makes (and a reader's resampling should):
+/// 50 km at half a metre. Coordinates may lie 1e7 m from the origin, so one lane may run
+/// 28,000 km; resampled every half metre, that was 56 million points (900 MB) per lane, and a
+/// 220 KB CommonRoad file of such lanelets took more than 6 GB and aborted. Longer lines are
+/// resampled more coarsely.
+pub const MAX_RESAMPLED_POINTS: usize = 100_000;
+
 /// Segments per bounding box of [`Polyline::nearest`]'s broad phase.
 const CHUNK: usize = 16;
 
@@ -120,10 +127,11 @@ impl Polyline {
         d.y.atan2(d.x)
     }
 
-    /// Resamples to points every `spacing` metres (the last point is always kept).
+    /// Resamples to points every `spacing` metres (the last point is always kept), or evenly
+    /// at [`MAX_RESAMPLED_POINTS`] where that would make more.
     pub fn resample_spacing(&self, spacing: f64) -> Polyline {
         let n = ((self.length() / spacing.max(1e-3)).ceil() as usize).max(1) + 1;
-        self.resample_count(n)
+        self.resample_count(n.min(MAX_RESAMPLED_POINTS))
     }
 
     /// Resamples to exactly `n >= 2` points evenly spaced in arc length.
@@ -255,6 +263,17 @@ pub(crate) fn bounds_of(points: &[Point]) -> (Point, Point) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn resampling_a_line_thousands_of_kilometres_long_is_bounded() {
+        // Corner to corner of the coordinate range: 56 million points at half a metre.
+        let l = Polyline::new([Point::new(-9.9e6, -9.9e6), Point::new(9.9e6, 9.9e6)]).unwrap();
+        assert_eq!(l.resample_spacing(0.5).points().len(), MAX_RESAMPLED_POINTS);
+        let (_, turn) = l.sharpest_turn(0.5).unwrap();
+        assert!(turn < 1e-6, "{turn}");
+        // Short lines keep their spacing.
+        assert_eq!(l_shape().resample_spacing(0.5).points().len(), 31);
+    }
 
     fn l_shape() -> Polyline {
         Polyline::new([

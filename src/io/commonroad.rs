@@ -286,11 +286,11 @@ fn lane_type(name: &str) -> (LaneType, bool) {
 
 fn centerline(left: &Polyline, right: &Polyline) -> Polyline {
     let len = left.length().max(right.length());
-    let n = left
-        .points()
-        .len()
-        .max(right.points().len())
-        .max((len / CENTERLINE_SPACING).ceil() as usize + 1);
+    // At most MAX_RESAMPLED_POINTS from the spacing: a bound running thousands of kilometres
+    // (within the coordinate limit) made millions of points.
+    let n = left.points().len().max(right.points().len()).max(
+        ((len / CENTERLINE_SPACING).ceil() as usize + 1).min(crate::geom::MAX_RESAMPLED_POINTS),
+    );
     let (l, r) = (left.resample_count(n), right.resample_count(n));
     let mid = l
         .points()
@@ -413,7 +413,23 @@ fn read_map(
             match cx.child(node, name) {
                 Some(a) => {
                     let r = cx.id(a, "ref")?;
-                    let same = a.attribute("drivingDir").unwrap_or("same") == "same";
+                    // The format knows two directions: any other word (`Same`, a typo) was
+                    // read as "opposite", and the neighbour dropped from the lane graph
+                    // without a word.
+                    let same = match a.attribute("drivingDir").map(str::trim) {
+                        None | Some("same") => true,
+                        Some("opposite") => false,
+                        Some(other) => {
+                            return Err(cx.err(
+                                a,
+                                format!(
+                                    "drivingDir=\"{}\" is not a direction of CommonRoad's: \
+                                     same or opposite",
+                                    crate::io::name::shown(other)
+                                ),
+                            ))
+                        }
+                    };
                     Ok((same.then_some(r), true))
                 }
                 None => Ok((None, false)),

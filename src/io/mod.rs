@@ -286,7 +286,7 @@ pub fn detect_format(path: &Path) -> Result<SceneFormat, IoError> {
 
 /// Whether a file begins as the rollouts drivescript writes do (`{"format":
 /// "drivescript-rollout"`, the first key [`rollout::Rollout`] serialises).
-fn is_rollout_file(path: &Path) -> bool {
+pub(crate) fn is_rollout_file(path: &Path) -> bool {
     use std::io::Read;
     let Ok(f) = open_regular(path, u64::MAX, "a scene file") else {
         return false;

@@ -240,9 +240,11 @@ impl Rollout {
             if ra.agent_type != a.agent_type {
                 return Err(bad(
                     loc(),
+                    // The files' words (`Pedestrian` was Rust's).
                     format!(
-                        "a {:?} in the rollout, a {:?} in the scene",
-                        ra.agent_type, a.agent_type
+                        "type {} in the rollout, {} in the scene",
+                        ra.agent_type.name(),
+                        a.agent_type.name()
                     ),
                 ));
             }

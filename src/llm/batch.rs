@@ -1226,10 +1226,28 @@ impl Batch<'_> {
             },
         )?;
         if session.requests().first() != Some(&inst.request) {
-            return Err(other(format!(
-                "the request {:?}",
-                session.requests().first()
-            )));
+            // Quoted as the request's words: `{:?}` of the Option printed `Some("...")`.
+            return Err(other(match session.requests().first() {
+                Some(r) => format!(
+                    "the request \"{}\" (the batch file's entry said so when it ran)",
+                    crate::io::name::shown(r)
+                ),
+                None => "no request".into(),
+            }));
+        }
+        // A pair's run revised by hand (`ask --continue DIR "..."`) was read back as the
+        // pair's: its follow-up rounds were counted as refinement rounds of the batch's
+        // request, and the follow-up's samples copied as the pair's rollouts, exit 0.
+        if let Some(follow) = session.requests().get(1) {
+            return Err(bad(
+                dir,
+                format!(
+                    "holds the pair's run revised with a follow-up request (`ask --continue`: \
+                     \"{}\"): its rounds are no longer the batch's request alone; move the run \
+                     directory away to run the pair again, or choose another -o",
+                    crate::io::name::shown(follow)
+                ),
+            ));
         }
         Ok(session)
     }
@@ -1256,6 +1274,15 @@ impl Batch<'_> {
                     break;
                 };
                 let dst = to.join(sub).join(format!("{stem}_{i}.json"));
+                // Only a rollout (an earlier batch's) is replaced: a user's file at that name,
+                // in an -o the batch made no claim on yet, was overwritten, exit 0.
+                crate::io::check_replaces_own(
+                    &dst,
+                    "file",
+                    "a rollout",
+                    crate::io::is_rollout_file,
+                )
+                .map_err(LlmError::Io)?;
                 write_atomic(&dst, &bytes).map_err(|e| bad(&dst, e.to_string()))?;
             }
         }

@@ -71,7 +71,29 @@ pub fn closed_loop_until(
         let mut first_realism = None;
         let mut fixed = Vec::new();
         let mut round = 0u64;
+        let mut last: Option<Scene> = None;
         while done < future {
+            // Every modelled agent has ended (its recording stopped, in the conditional task)
+            // or left the map: the round would have nothing to simulate, and failed the whole
+            // run with "no vehicle is observed at the current step". The last round's sample
+            // already says what the rest of the horizon holds (the ended agents unobserved, the
+            // others on their log or their fixed velocity), so it is kept as it is.
+            if let Some(prev) = &last {
+                let now = c0 + done;
+                let anyone = state
+                    .agents
+                    .iter()
+                    .any(|a| modelled(trained, a) && a.states.get(now).is_some_and(|s| s.valid));
+                if !anyone {
+                    for (a, b) in state.agents.iter_mut().zip(&prev.agents) {
+                        let end = (c0 + future + 1).min(a.states.len()).min(b.states.len());
+                        for step in now + 1..end {
+                            a.states[step] = b.states[step];
+                        }
+                    }
+                    break;
+                }
+            }
             // The scene as seen from the round's current step, with the model's full horizon.
             let mut view = state.clone();
             view.meta.current_step = c0 + done;
@@ -106,6 +128,7 @@ pub fn closed_loop_until(
                 first_realism = s.realism.as_ref().map(|r| r.0.clone());
                 fixed = s.fixed.clone();
             }
+            last = Some(s.scene);
         }
         // Score the executed trajectory over the whole horizon, as seen from the start.
         let traj = crate::cost::Trajectories::recorded(&state);
@@ -139,6 +162,42 @@ mod tests {
     use super::*;
     use crate::cost::Params;
     use crate::sample::guided::tests::{quick, setup};
+
+    #[test]
+    fn a_recording_that_ends_before_the_horizon_ends_the_rounds_not_the_run() {
+        // A conditional run ends each agent where its recording stops: with 12 recorded steps
+        // of a 40-step horizon, the round at the 15th step found no agent to simulate and the
+        // whole run failed ("no vehicle is observed at the current step"), as `simulate
+        // --closed-loop` did on every NGSIM sample shorter than the horizon.
+        let (t, scene) = setup();
+        let c = scene.meta.current_step;
+        let cut = scene.over_horizon(12);
+        let short = Scene::new(cut.meta.clone(), cut.map.clone(), cut.agents).unwrap();
+        let cfg = SampleConfig {
+            samples: 1,
+            task: crate::sample::Task::Conditional,
+            ..quick()
+        };
+        let future = sampled_horizon(&t, &cfg).unwrap();
+        assert!(future > 20, "the model's horizon is {future} steps");
+        let out = closed_loop(&t, &short, &[], &cfg, 5).unwrap().remove(0);
+        for (a, log) in out.scene.agents.iter().zip(&short.agents) {
+            if !modelled(&t, log) {
+                continue;
+            }
+            // Observed while the log lasts, unobserved after it.
+            let end = (c + 1..log.states.len())
+                .rev()
+                .find(|&k| log.states[k].valid)
+                .unwrap_or(c);
+            assert!(a.states[end].valid, "agent {} at its last step {end}", a.id);
+            assert!(
+                a.states[end + 1..].iter().all(|s| !s.valid),
+                "agent {} after step {end}",
+                a.id
+            );
+        }
+    }
 
     #[test]
     fn every_round_guides_towards_the_deadline_the_user_gave() {

@@ -92,10 +92,10 @@ pub enum ProvenanceError {
         /// This shard's count.
         ours: usize,
     },
-    /// The directory holds rollouts no record accounts for.
+    /// The directory holds rollouts (or pictures, or unguided twins) no record accounts for.
     #[error(
-        "{dir}: holds rollouts ({example}) but no {RUN_FILE} saying what made them: choose an \
-         empty -o"
+        "{dir}: holds files of the kinds a run writes ({example}) but no {RUN_FILE} saying what \
+         made them: choose an empty -o"
     )]
     Unattributed {
         /// The directory.
@@ -169,11 +169,27 @@ impl RunRecord {
                     if source.kind() == std::io::ErrorKind::NotFound =>
                 {
                     if dir.exists() {
-                        let rollouts = std::fs::read_dir(dir)
-                            .map_err(|e| io(dir, e.to_string()))?
-                            .filter_map(|e| e.ok())
-                            .map(|e| e.file_name().to_string_lossy().into_owned())
-                            .find(|n| n.ends_with(".json"));
+                        // Every name a run writes: rollouts and costs (.json), pictures
+                        // (.gif) and, with --auto, unguided/SCENARIO_K.json. Only the first was
+                        // looked for: a user's unguided/ID_0.json or ID_0.gif was replaced.
+                        let kinds = |d: &Path, exts: &[&str]| -> Result<Option<String>, _> {
+                            if !d.is_dir() {
+                                return Ok(None);
+                            }
+                            // Files only: a directory at such a name is never replaced
+                            // (writing there fails, naming it).
+                            Ok(std::fs::read_dir(d)
+                                .map_err(|e| io(d, e.to_string()))?
+                                .filter_map(|e| e.ok())
+                                .filter(|e| e.file_type().is_ok_and(|t| !t.is_dir()))
+                                .map(|e| e.file_name().to_string_lossy().into_owned())
+                                .find(|n| exts.iter().any(|x| n.ends_with(x))))
+                        };
+                        let rollouts = match kinds(dir, &[".json", ".gif"])? {
+                            Some(n) => Some(n),
+                            None => kinds(&dir.join("unguided"), &[".json"])?
+                                .map(|n| format!("unguided/{n}")),
+                        };
                         if let Some(example) = rollouts {
                             return Err(ProvenanceError::Unattributed {
                                 dir: shown,
@@ -366,6 +382,29 @@ mod tests {
             e.contains("scene_0.json") && e.contains("no run.json"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn pictures_and_unguided_twins_without_a_record_are_not_replaced() {
+        // Only top-level .json files were looked for: `simulate --auto` replaced a user's
+        // unguided/ID_0.json and ID_0.gif in a fresh -o, exit 0.
+        for (name, shown) in [
+            ("scene_0.gif", "scene_0.gif"),
+            ("unguided/scene_0.json", "unguided/scene_0.json"),
+        ] {
+            let dir = tempfile::tempdir().unwrap();
+            let f = dir.path().join(name);
+            std::fs::create_dir_all(f.parent().unwrap()).unwrap();
+            std::fs::write(&f, "my notes").unwrap();
+            let e = record(1).claim(dir.path(), false).unwrap_err().to_string();
+            assert!(e.contains(shown) && e.contains("no run.json"), "{e}");
+            assert!(!dir.path().join(RUN_FILE).exists());
+        }
+        // Other files (a README) leave the directory free.
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("README.md"), "notes").unwrap();
+        std::fs::create_dir(dir.path().join("unguided")).unwrap();
+        assert!(record(1).claim(dir.path(), false).unwrap());
     }
 
     #[test]
