@@ -164,29 +164,40 @@ def interrupted_within(seconds, call):
 
 
 def test_evaluate_batch_releases_the_gil(scene, cut_in):
-    # A batch long enough to tell, on a fast machine as on a slow one: about 0.25 s.
+    # One call, long enough to tell on a fast machine as on a slow one: about half a second
+    # by a timing of 64 rows. On a busy machine that timing can run slow and the batch then
+    # come out too short, so a batch that was too quick is timed and sized again (one call
+    # each: a loop of calls would let this thread run between them whatever the GIL does).
     traj = scene.log_future(40)
-    t = time.perf_counter()
-    cut_in.evaluate_batch(scene, np.stack([traj] * 64))
-    per_64 = time.perf_counter() - t
-    batch = np.stack([traj] * min(4096, 64 * int(np.ceil(0.25 / per_64))))
-    done = threading.Event()
+    for _ in range(3):
+        per_64 = min(timed(lambda: cut_in.evaluate_batch(scene, np.stack([traj] * 64)))
+                     for _ in range(3))
+        batch = np.stack([traj] * min(8192, 64 * int(np.ceil(0.5 / per_64))))
+        done = threading.Event()
 
-    def run():
-        cut_in.evaluate_batch(scene, batch)
-        done.set()
+        def run():
+            cut_in.evaluate_batch(scene, batch)
+            done.set()
 
-    t = threading.Thread(target=run)
-    ticks = 0
-    t.start()
-    start = time.perf_counter()
-    while not done.is_set():
-        ticks += 1
-    elapsed = time.perf_counter() - start
-    t.join()
+        t = threading.Thread(target=run)
+        ticks = 0
+        t.start()
+        start = time.perf_counter()
+        while not done.is_set():
+            ticks += 1
+        elapsed = time.perf_counter() - start
+        t.join()
+        if elapsed > 0.05:
+            break
     # With the GIL held for the whole batch this loop would not run until it ends.
-    assert elapsed > 0.05, "the batch was too quick to tell"
+    assert elapsed > 0.05, f"the batch was too quick to tell: {len(batch)} rows in {elapsed:.3f} s"
     assert ticks > 10_000, f"{ticks} iterations in {elapsed:.3f} s while the batch ran"
+
+
+def timed(call):
+    t = time.perf_counter()
+    call()
+    return time.perf_counter() - t
 
 
 def write_rollout(scene, traj, path):
