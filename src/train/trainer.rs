@@ -9,10 +9,6 @@ use serde::{Deserialize, Serialize};
 
 use super::adamw::AdamW;
 use super::batch::{build, ComponentScale, Goals, Normaliser};
-
-/// The share of agents whose end point a training batch gives a model that reads them: half,
-/// so that it learns futures with and without one (conditional and unconditional simulation).
-const GOAL_KEEP: f64 = 0.5;
 use super::dataset::{within, Window, WindowConfig, AGENT_ATTRS};
 use super::ema::Ema;
 use super::rng::Rng;
@@ -20,6 +16,10 @@ use super::store::{SceneWindows, WindowSource};
 use crate::model::error::{message as candle_message, message_in_file};
 use crate::model::{Denoiser, DenoiserConfig, Edm, Pca, Scores};
 use crate::scene::{AgentType, Scene};
+
+/// The share of agents whose end point a training batch gives a model that reads them: half,
+/// so that it learns futures with and without one (conditional and unconditional simulation).
+const GOAL_KEEP: f64 = 0.5;
 
 /// Everything a training run is configured by.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
