@@ -3311,6 +3311,28 @@ fn a_run_directory_takes_one_run() {
         good,
         "the same seed, the same rollout"
     );
+    // The scene's file edited since: its outputs are not this scene's (they were taken for
+    // them, "already complete", and eval scored them against the new recording).
+    let copy = dir.path().join("edited.yaml");
+    std::fs::copy(&scene, &copy).unwrap();
+    let resumed = |scene: &std::path::Path| unguided(scene, &out, &["--resume"]);
+    let o = resumed(&copy);
+    assert!(
+        o.status.success()
+            && String::from_utf8_lossy(&o.stdout).contains("1 scene already complete")
+    );
+    let text = std::fs::read_to_string(&copy).unwrap();
+    std::fs::write(&copy, text.replacen("length: 12.0", "length: 11.0", 1)).unwrap();
+    let o = resumed(&copy);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{e}");
+    assert!(
+        e.contains("highway-cut-in: the scene is not the one its outputs in")
+            && e.contains("its file changed since")
+            && e.contains("remove highway-cut-in_costs.json there to sample it again"),
+        "{e}"
+    );
+    assert_eq!(std::fs::read(&rollout).unwrap(), good, "kept");
     // Another seed into the same directory: never.
     let o = sim(&["--resume", "--seed", "2"]);
     let e = String::from_utf8_lossy(&o.stderr);

@@ -423,16 +423,24 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     continue;
                 }
             };
-            if args.resume
-                && drivescript::sample::attempt::outputs_complete(
+            if args.resume {
+                match drivescript::sample::attempt::outputs_complete(
                     &args.output,
                     &stem,
-                    &raw.meta.scenario_id,
+                    &raw,
                     cfg.samples,
-                )
-            {
-                resumed += 1;
-                continue;
+                ) {
+                    Ok(true) => {
+                        resumed += 1;
+                        continue;
+                    }
+                    Ok(false) => {}
+                    Err(e) => {
+                        super::print_error(&e.to_string());
+                        failed += 1;
+                        continue;
+                    }
+                }
             }
             // A bug that panics on one scene costs that scene, not the run.
             let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| run_one(&raw)))

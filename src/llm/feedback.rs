@@ -557,6 +557,7 @@ mod tests {
             samples: Vec::new(),
             not_sampled: Vec::new(),
             warnings: Vec::new(),
+            scene_crc32c: "00000000".into(),
         }
     }
 

@@ -238,6 +238,9 @@ pub struct AttemptReport {
     pub samples: Vec<SampleOutcome>,
     /// Agents the model does not move (types it never saw), as `type id`.
     pub not_sampled: Vec<String>,
+    /// CRC-32C of the scene as read ([`scene_crc32c`]): a resumed run tells by it whether the
+    /// scene's file changed since these samples were drawn.
+    pub scene_crc32c: String,
     /// What validation found worth saying without refusing: terms that can never steer
     /// ([`AttemptSpec::refuse_dead_terms`]), each naming its script, line and term.
     #[serde(skip_serializing_if = "Vec::is_empty")]
@@ -422,24 +425,84 @@ pub fn skipped_file(dir: &Path, stem: &str) -> std::path::PathBuf {
     dir.join(format!("{stem}_skipped.json"))
 }
 
-/// Whether `dir` holds scene `stem` (scenario `scenario_id`) finished by a run of `samples`
-/// samples, for `simulate --resume`: every sample's rollout reads back as one of that
-/// scenario, and the cost report and the picture (written last) are there; or the scene was
-/// left out on purpose ([`skipped_file`]). Outputs are written atomically, so a killed run
-/// leaves none half-written; one damaged since (truncated by a full disk elsewhere, edited)
-/// made the scene "already complete" for good, and `eval` failed on it later.
-pub fn outputs_complete(dir: &Path, stem: &str, scenario_id: &str, samples: usize) -> bool {
+/// CRC-32C of a scene as read (its map, agents and time grid, as `convert` writes them to
+/// YAML), 8 hex digits: the same whatever format or file it was read from.
+pub fn scene_crc32c(scene: &Scene) -> String {
+    let yaml = crate::io::yaml::to_yaml(scene);
+    // Without the comment lines, which name the file it was read from: a copy elsewhere is
+    // the same scene.
+    let body: String = yaml
+        .lines()
+        .filter(|l| !l.trim_start().starts_with('#'))
+        .flat_map(|l| [l, "\n"])
+        .collect();
+    super::provenance::text_crc32c(body.as_bytes())
+}
+
+/// A resumed run's scene whose outputs were drawn from another version of it.
+#[derive(Debug, thiserror::Error)]
+#[error(
+    "{stem}: the scene is not the one its outputs in {dir} were sampled from (scene checksum \
+     {then} then, {now} now: its file changed since); simulate it into another -o, or remove \
+     {stem}_costs.json there to sample it again"
+)]
+pub struct SceneChanged {
+    /// The scene's output stem.
+    pub stem: String,
+    /// The run directory.
+    pub dir: String,
+    /// The checksum its cost report records.
+    pub then: String,
+    /// The scene's checksum now.
+    pub now: String,
+}
+
+/// Whether `dir` holds scene `stem` finished by a run of `samples` samples, for `simulate
+/// --resume`: every sample's rollout reads back as one of that scenario, and the cost report
+/// and the picture (written last) are there; or the scene was left out on purpose
+/// ([`skipped_file`]). Outputs are written atomically, so a killed run leaves none
+/// half-written; one damaged since (truncated by a full disk elsewhere, edited) made the scene
+/// "already complete" for good, and `eval` failed on it later. Finished outputs of another
+/// version of the scene (its file edited since) are an error: they were taken for this
+/// scene's, and the table over them was of a scene no longer there. Reports written before
+/// they recorded the scene's checksum are taken as they were.
+pub fn outputs_complete(
+    dir: &Path,
+    stem: &str,
+    scene: &Scene,
+    samples: usize,
+) -> Result<bool, SceneChanged> {
     if skipped_file(dir, stem).is_file() {
-        return true;
+        return Ok(true);
     }
     let rollouts_read = (0..samples).all(|k| {
         crate::io::rollout::Rollout::read(&dir.join(format!("{stem}_{k}.json")))
-            .is_ok_and(|r| r.scene_id == scenario_id)
+            .is_ok_and(|r| r.scene_id == scene.meta.scenario_id)
     });
-    rollouts_read
-        && [format!("{stem}_costs.json"), format!("{stem}_0.gif")]
-            .iter()
-            .all(|f| dir.join(f).is_file())
+    let costs = dir.join(format!("{stem}_costs.json"));
+    if !(rollouts_read && costs.is_file() && dir.join(format!("{stem}_0.gif")).is_file()) {
+        return Ok(false);
+    }
+    let recorded = crate::io::read_regular_text(&costs, 64 << 20, "a cost report")
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        .and_then(|v| v["scene_crc32c"].as_str().map(str::to_string));
+    match recorded {
+        Some(then) => {
+            let now = scene_crc32c(scene);
+            if then == now {
+                Ok(true)
+            } else {
+                Err(SceneChanged {
+                    stem: stem.into(),
+                    dir: dir.display().to_string(),
+                    then,
+                    now,
+                })
+            }
+        }
+        None => Ok(true),
+    }
 }
 
 /// Writes [`skipped_file`] into `dir` and, where `twins` is true, into `dir/unguided`, with the
@@ -665,6 +728,7 @@ pub fn attempt_until(
             .unwrap_or_default(),
         samples: outcomes,
         warnings,
+        scene_crc32c: scene_crc32c(raw),
     };
     Ok(Attempt {
         samples,
