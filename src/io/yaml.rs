@@ -1358,8 +1358,18 @@ fn pts_out(pts: &[Point]) -> YamlPoints {
 }
 
 /// The whole scene (map and every agent's states) as a YAML document that [`parse`] reads
-/// back to the same scene.
+/// back to the same scene, headed by a comment naming the file it was read from.
 pub fn to_yaml(scene: &Scene) -> String {
+    format!(
+        "# drivescript scene converted from {} ({})\n{}",
+        scene.meta.source_file,
+        scene.meta.source_format.name(),
+        yaml_document(scene)
+    )
+}
+
+/// [`to_yaml`] without its header: the same for the same scene from any file or format.
+pub fn yaml_document(scene: &Scene) -> String {
     let g = scene.map.graph();
     let map = YamlMap {
         lanes: scene
@@ -1462,15 +1472,7 @@ pub fn to_yaml(scene: &Scene) -> String {
         agents,
         ego: scene.meta.ego,
     };
-    let header = format!(
-        "# drivescript scene converted from {} ({})\n",
-        scene.meta.source_file,
-        scene.meta.source_format.name()
-    );
-    header
-        + serde_yaml::to_string(&doc)
-            .expect("scenes serialise to YAML")
-            .as_str()
+    serde_yaml::to_string(&doc).expect("scenes serialise to YAML")
 }
 
 fn explicit_states(xyh: &[Option<Vec<f64>>], dt: f64) -> Result<Vec<AgentState>, (usize, String)> {

@@ -428,15 +428,7 @@ pub fn skipped_file(dir: &Path, stem: &str) -> std::path::PathBuf {
 /// CRC-32C of a scene as read (its map, agents and time grid, as `convert` writes them to
 /// YAML), 8 hex digits: the same whatever format or file it was read from.
 pub fn scene_crc32c(scene: &Scene) -> String {
-    let yaml = crate::io::yaml::to_yaml(scene);
-    // Without the comment lines, which name the file it was read from: a copy elsewhere is
-    // the same scene.
-    let body: String = yaml
-        .lines()
-        .filter(|l| !l.trim_start().starts_with('#'))
-        .flat_map(|l| [l, "\n"])
-        .collect();
-    super::provenance::text_crc32c(body.as_bytes())
+    super::provenance::text_crc32c(crate::io::yaml::yaml_document(scene).as_bytes())
 }
 
 /// A resumed run's scene whose outputs were drawn from another version of it.
