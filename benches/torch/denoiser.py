@@ -96,6 +96,12 @@ class Denoiser:
         self.edm = cfg["edm"]
         # A config without `scores` predates the normalised form (DenoiserConfig::scores).
         self.scores = self.model.get("scores", "raw")
+        # Per-component data spreads (`sigma_data_components`, benches/torch/train.py's
+        # --sigma-data-components): EDM's preconditioning assumes every coordinate spreads by
+        # sigma_data, which the capped PCA scales break (the largest components spread by up
+        # to 18 times it). Absent: the one sigma_data, as drivescript.
+        sdk = self.edm.get("sigma_data_components")
+        self.sdk = None if sdk is None else torch.tensor(sdk, dtype=torch.float64)
         self.w = Weights(tensors)
 
     def encode_map(self, ctx):
@@ -120,10 +126,15 @@ class Denoiser:
         """c_skip, c_out, c_in and c_noise for one noise level or one per batch row (`[B]`),
         computed in float64 like src/model/edm.rs."""
         sigma = torch.as_tensor(sigma, dtype=torch.float64)
-        sd = self.edm["sigma_data"]
-        s2 = sigma * sigma
+        c_noise = torch.log(sigma) / 4.0
+        if self.sdk is None:
+            sd, s = self.edm["sigma_data"], sigma
+        else:
+            # [K], or [B, K] for one level per row.
+            sd, s = self.sdk, sigma[..., None]
+        s2 = s * s
         root = torch.sqrt(s2 + sd * sd)
-        return (sd * sd / (s2 + sd * sd), sigma * sd / root, 1.0 / root, torch.log(sigma) / 4.0)
+        return (sd * sd / (s2 + sd * sd), s * sd / root, 1.0 / root, c_noise)
 
     def denoise(self, ctx, enc, x, sigma):
         w = self.w
@@ -131,8 +142,8 @@ class Denoiser:
         # One noise level for the batch, or one per row (training).
         c_skip, c_out, c_in, c_noise = (v.to(torch.float32).to(x.device)
                                         for v in self.precondition(sigma))
-        if c_skip.dim() == 1:
-            c_skip, c_out, c_in = (c.reshape(b, 1, 1) for c in (c_skip, c_out, c_in))
+        if c_noise.dim() == 1:
+            c_skip, c_out, c_in = (c.reshape(b, 1, -1) for c in (c_skip, c_out, c_in))
             c_noise = c_noise.reshape(b, 1)
         freqs = torch.tensor([2.0 ** i for i in range(self.model["noise_freqs"])],
                              device=x.device)

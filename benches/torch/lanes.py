@@ -153,7 +153,7 @@ def main():
     b, n, _ = target.shape
     lanes = lanes_in_agent_frames(ctx)
     full = seen.reshape(b, n, -1, 3).bool().all(-1).all(-1) & (mask > 0)
-    print(f"{a.file}: {a.windows} windows, {int(full.sum())} agents with a whole future")
+    print(f"{a.file}: {b} windows, {int(full.sum())} agents with a whole future")
 
     route = None
 
@@ -170,6 +170,16 @@ def main():
               f"median largest distance {w.median().item():.2f} m   off its route's lanes by "
               f"over 1.75 m: {(r > 1.75).double().mean().item():.3f}, median "
               f"{r.median().item():.2f} m", flush=True)
+        # How far from the recorded future itself: a network that learnt these windows gives
+        # them back, whatever the lanes.
+        gap = (decode(meta, coeffs, adv) - decode(meta, target, adv)).norm(dim=-1)[full]
+        cols = []
+        for sec in (1, 2, 4, 8):
+            if 10 * sec <= gap.shape[-1]:
+                g_ = gap[:, 10 * sec - 1]
+                cols.append(f"{sec} s {g_.median().item():.2f} / {g_.quantile(0.9).item():.2f}")
+        print(f"  {'':<32} from the recorded future, median / 90th percentile (m): "
+              + ", ".join(cols), flush=True)
 
     for ck in a.checkpoints:
         with open(os.path.join(ck, "config.json")) as f:

@@ -92,18 +92,27 @@ def load_windows(data, kind, dev):
     return out
 
 
-def loss(model, edm, win, basis, idx, sigma, noise):
-    """src/train/trainer.rs, `loss`."""
+def loss(model, edm, win, basis, idx, sigma, noise, per_component_weight=False):
+    """src/train/trainer.rs, `loss`. With per-component spreads, the weight is still the one
+    `sigma_data`'s, so that an error counts by its metres, unless `per_component_weight`."""
     ctx = {key: win[key][idx] for key in CTX}
     target, seen, mask = win["target"][idx], win["seen"][idx], win["loss_mask"][idx]
     b, n, k = target.shape
     x = target + noise * sigma.reshape(b, 1, 1).float()
     enc = model.encode_map(ctx)
     d = model.denoise(ctx, enc, x, sigma)
-    traj = ((d - target).reshape(b * n, k) @ basis).reshape(b, n, -1)
+    diff = d - target
+    if model.sdk is None or not per_component_weight:
+        sd = edm["sigma_data"]
+        w = ((sigma * sigma + sd * sd) / (sigma * sd) ** 2).float().reshape(b, 1)
+    else:
+        # EDM's weight 1/c_out², per component: each coefficient's error divided by its c_out
+        # before the basis takes it to metres (for one sigma_data, the same as the weight
+        # in the other branch).
+        diff = diff / model.precondition(sigma)[1].float().to(d.device).reshape(b, 1, k)
+        w = torch.ones(b, 1, device=d.device)
+    traj = (diff.reshape(b * n, k) @ basis).reshape(b, n, -1)
     err = (traj.square() * seen).sum(-1) / k
-    sd = edm["sigma_data"]
-    w = ((sigma * sigma + sd * sd) / (sigma * sd) ** 2).float().reshape(b, 1)
     return (err * w * mask).sum() / mask.sum().clamp(min=1.0)
 
 
@@ -146,6 +155,16 @@ def main():
     ap.add_argument("--ema-half-life", type=float, default=500.0)
     ap.add_argument("--eval-every", type=float, default=30.0, help="seconds")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--p-mean", type=float, help="EDM's P_mean for the training noise levels "
+                    "(default: the export's, as `drivescript train --p-mean`)")
+    ap.add_argument("--p-std", type=float, help="EDM's P_std (default: the export's)")
+    ap.add_argument("--per-component-weight", action="store_true",
+                    help="with --sigma-data-components, weigh each component's error by its own "
+                         "1/c_out² (EDM's unit-variance target) instead of the one sigma_data's")
+    ap.add_argument("--sigma-data-components", action="store_true",
+                    help="precondition each PCA component by its own spread in the training "
+                         "windows (at least 0.05) instead of the one sigma_data; the checkpoint "
+                         "then holds `sigma_data_components`, which only this port reads")
     ap.add_argument("--revision", default=None, help="git revision to record")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--validate", nargs="+", metavar="CHECKPOINT",
@@ -158,6 +177,10 @@ def main():
     with open(os.path.join(a.data, "config.json")) as f:
         meta = json.load(f)
     edm = meta["config"]["edm"]
+    if a.p_mean is not None:
+        edm["p_mean"] = a.p_mean
+    if a.p_std is not None:
+        edm["p_std"] = a.p_std
     basis = load_file(os.path.join(a.data, "basis.safetensors"))["basis"].to(dev)
     k = basis.shape[0]
     train = load_windows(a.data, "train", dev)
@@ -179,6 +202,12 @@ def main():
         print(f"loss check: drivescript {want:.6f}, this port {got:.6f}", flush=True)
         if not abs(got - want) <= 1e-3 * abs(want):
             sys.exit("the port's loss differs from drivescript's: not training")
+
+    if a.sigma_data_components:
+        rows = train["target"][train["loss_mask"] > 0]
+        edm["sigma_data_components"] = rows.double().std(0).clamp(min=0.05).tolist()
+        print("per-component sigma_data: "
+              + " ".join(f"{v:.2f}" for v in edm["sigma_data_components"]), flush=True)
 
     model_cfg = dict(meta["config"]["model"])
     gen = torch.Generator().manual_seed(a.seed)
@@ -220,7 +249,8 @@ def main():
         total, count = 0.0, 0
         with torch.no_grad():
             for idx, sig, noise in val_sets:
-                total += loss(m, edm, val, basis, idx, sig, noise).item() * len(idx)
+                total += loss(m, edm, val, basis, idx, sig, noise,
+                              a.per_component_weight).item() * len(idx)
                 count += len(idx)
         return total / count
 
@@ -254,7 +284,7 @@ def main():
         z = torch.randn(a.batch, device=dev, dtype=torch.float64)
         sigma = torch.exp(edm["p_mean"] + edm["p_std"] * z)
         noise = torch.randn(a.batch, n_agents, k, device=dev)
-        l = loss(model, edm, train, basis, idx, sigma, noise)
+        l = loss(model, edm, train, basis, idx, sigma, noise, a.per_component_weight)
         opt.zero_grad(set_to_none=True)
         l.backward()
         opt.step()
@@ -274,7 +304,8 @@ def main():
                 sys.exit(f"training diverged at step {step} (train {tr}, val {v})")
             history.append([step, tr, v])
             run_loss, run_n = 0.0, 0
-            print(f"step {step:>7}  {now - t0:6.0f} s  train {tr:.4f}  val {v:.4f}  "
+            vs = "-" if v is None else f"{v:.4f}"
+            print(f"step {step:>7}  {now - t0:6.0f} s  train {tr:.4f}  val {vs}  "
                   f"lr {learning_rate(a.lr, frac):.2e}", flush=True)
             if v is not None and (best is None or v < best):
                 best = v

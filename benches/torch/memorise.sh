@@ -1,0 +1,64 @@
+#!/bin/bash
+# Can the network learn futures it is trained on? Trains fresh networks with PyTorch on a GPU
+# machine, side by side, each on a small set of scenes, then asks each to give back its own
+# training windows (`lanes.py`: unguided samples against the recorded futures, and one
+# denoising step from the recorded future plus noise of each level). README.md beside this
+# file, "Does the network learn its own windows?".
+#
+# It expects, in the folder named by PACK (default .dev, relative to the repository root):
+#   ds.xz           an x86-64 `drivescript` built here (`strip`, then `xz -9`)
+#   sets.tar.xz     one folder of scene files per training set (their names are the sets')
+# and trains, for M minutes each, one network per line of RUNS ("NAME SET TRAIN.PY-FLAGS..."),
+# evaluating each on its own set's training windows and data/cities-wip on the same windows.
+# env: OUT, M (minutes), RUNS, FROM (data/cities-wip), BATCH (256), SPLIT (noise levels).
+set -u
+cd "$(dirname "$0")/../.."
+T0=$(date +%s)
+PY=${PY:-python3}
+PACK=${PACK:-.dev}
+FROM=${FROM:-data/cities-wip}
+SPLIT=${SPLIT:-0.05 0.3 1 3 10 30 80}
+log() { echo "[$(( $(date +%s) - T0 )) s] $*"; }
+export PYTHONUNBUFFERED=1 PACK
+nvidia-smi -L 2>&1 | head -2
+$PY - <<'PYEOF'
+import lzma, os, shutil, tarfile
+pack = os.environ["PACK"]
+with lzma.open(os.path.join(pack, "ds.xz")) as f, open("/tmp/ds", "wb") as g:
+    shutil.copyfileobj(f, g)
+os.chmod("/tmp/ds", 0o755)
+shutil.rmtree("/tmp/sets", ignore_errors=True)
+with tarfile.open(os.path.join(pack, "sets.tar.xz")) as t:
+    t.extractall("/tmp/sets")
+PYEOF
+log extracted
+for s in $(ls /tmp/sets); do
+  rm -rf /tmp/e_$s
+  /tmp/ds train --export /tmp/e_$s --resume "$FROM" --urban /tmp/sets/$s 2>&1 \
+    | grep -v "scenes read\|files written" &
+done
+wait
+log exported
+rm -rf /tmp/logs; mkdir -p /tmp/logs
+while read -r name set flags; do
+  [ -z "$name" ] && continue
+  $PY benches/torch/train.py /tmp/e_$set /tmp/r_$name --minutes $M --batch ${BATCH:-256} \
+    --eval-every 20 $flags > /tmp/logs/$name.train.log 2>&1 &
+done <<< "$RUNS"
+sleep 60
+nvidia-smi --query-gpu=utilization.gpu,memory.used --format=csv 2>&1
+wait
+log trained
+for f in /tmp/logs/*.train.log; do echo "== $f"; cat $f; done > $OUT/train.log
+grep -h "done:" /tmp/logs/*.train.log
+tar cf $OUT/checkpoints.tar -C /tmp $(cd /tmp && ls -d r_*/last)
+# The evaluations run on the CPU (lanes.py's sampler is the port's, on CPU tensors), side by side.
+while read -r name set flags; do
+  [ -z "$name" ] && continue
+  OMP_NUM_THREADS=3 $PY benches/torch/lanes.py /tmp/e_$set /tmp/r_$name/last "$FROM" \
+    --file train-00000.safetensors --windows 64 --from-log --split $SPLIT \
+    > /tmp/logs/$name.lanes.log 2>&1 &
+done <<< "$RUNS"
+wait
+log evaluated
+for f in /tmp/logs/*.lanes.log; do echo "== $f"; cat $f; done | tee $OUT/lanes.log
