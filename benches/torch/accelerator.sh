@@ -17,18 +17,9 @@ PACK=${PACK:-.dev}
 LIMIT=${LIMIT:-560}
 FROM=${FROM:-data/cities-wip}
 log() { echo "[$(( $(date +%s) - T0 )) s] $*"; }
-export PYTHONUNBUFFERED=1 PACK
+export PYTHONUNBUFFERED=1
 nvidia-smi -L 2>&1 | head -2
-$PY - <<'PYEOF'
-import lzma, os, shutil, tarfile
-pack = os.environ["PACK"]
-with lzma.open(os.path.join(pack, "ds.xz")) as f, open("/tmp/ds", "wb") as g:
-    shutil.copyfileobj(f, g)
-os.chmod("/tmp/ds", 0o755)
-shutil.rmtree("/tmp/scn", ignore_errors=True)
-with tarfile.open(os.path.join(pack, "scenes.tar.xz")) as t:
-    t.extractall("/tmp/scn")
-PYEOF
+$PY benches/torch/unpack.py "$PACK" scenes.tar.xz /tmp/scn || exit 1
 log extracted
 rm -rf /tmp/exp /tmp/A /tmp/B
 extra=""

@@ -19,18 +19,9 @@ PACK=${PACK:-.dev}
 FROM=${FROM:-data/cities-wip}
 SPLIT=${SPLIT:-0.05 0.3 1 3 10 30 80}
 log() { echo "[$(( $(date +%s) - T0 )) s] $*"; }
-export PYTHONUNBUFFERED=1 PACK
+export PYTHONUNBUFFERED=1
 nvidia-smi -L 2>&1 | head -2
-$PY - <<'PYEOF'
-import lzma, os, shutil, tarfile
-pack = os.environ["PACK"]
-with lzma.open(os.path.join(pack, "ds.xz")) as f, open("/tmp/ds", "wb") as g:
-    shutil.copyfileobj(f, g)
-os.chmod("/tmp/ds", 0o755)
-shutil.rmtree("/tmp/sets", ignore_errors=True)
-with tarfile.open(os.path.join(pack, "sets.tar.xz")) as t:
-    t.extractall("/tmp/sets")
-PYEOF
+$PY benches/torch/unpack.py "$PACK" sets.tar.xz /tmp/sets || exit 1
 log extracted
 for s in $(ls /tmp/sets); do
   rm -rf /tmp/e_$s
