@@ -1816,7 +1816,28 @@ fn a_batch_that_fails_before_any_result_leaves_its_directory_as_it_found_it() {
     let t = text(&o);
     assert_eq!(o.status.code(), Some(1), "{t}");
     assert!(t.contains("summary.md: it is not a summary"), "{t}");
+    // Refused before any pair: where the runs would go is not announced.
+    assert!(!t.contains("runs in"), "{t}");
     assert_eq!(entries(&mine), ["notes.txt", "summary.md"]);
+    // Nor for an -o that is a file.
+    let o = ask(
+        &[
+            "--batch",
+            s(&file),
+            "-o",
+            s(&mine.join("notes.txt")),
+            "--llm",
+            "rules",
+        ],
+        None,
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(!t.contains("runs in"), "{t}");
+    assert_eq!(
+        std::fs::read_to_string(mine.join("notes.txt")).unwrap(),
+        "mine"
+    );
     // A single run there is not taken for a batch's.
     let o = ask(
         &[

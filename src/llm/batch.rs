@@ -1039,6 +1039,13 @@ pub struct Batch<'a> {
 
 /// What [`Batch::run`] reports as it goes.
 pub enum Progress<'e> {
+    /// The output directory is made, locked and holds nothing of another's: the pairs start,
+    /// their runs in `runs`. Said here, not before [`Batch::run`], so a batch refused at
+    /// these checks does not announce where its runs go.
+    Ready {
+        /// The directory of the pairs' run directories.
+        runs: &'e Path,
+    },
     /// A line of the current pair's session.
     Line(&'e str),
     /// A pair is finished (`resumed`: its run directory held a finished or stopped run).
@@ -1108,6 +1115,9 @@ impl Batch<'_> {
         progress: &mut dyn FnMut(Progress),
     ) -> Result<(), LlmError> {
         self.check_outputs_are_ours()?;
+        progress(Progress::Ready {
+            runs: &self.out.join("runs"),
+        });
         for (k, inst) in self.instances.iter().enumerate() {
             if self
                 .shard
