@@ -830,6 +830,14 @@ pub fn run_test_file(path: &Path) -> Result<Vec<CaseResult>, ScriptTestError> {
                 crate::io::name::shown(&c.name)
             )));
         }
+        // A row of no name (`name: ''`, or spaces) said nothing of which case it was, and a
+        // name shown as blank could not be told from the table's empty cells.
+        if c.name.trim().is_empty() {
+            return Err(invalid(format!(
+                "cases[{k}]: the name {:?} is blank: give each case a name it can be told by",
+                c.name
+            )));
+        }
         // Two rows of one name in the results table could not be told apart: which failed?
         if let Some(j) = file.cases[..k].iter().position(|o| o.name == c.name) {
             return Err(invalid(format!(
@@ -1140,6 +1148,29 @@ mod tests {
             "{}",
             r[0].detail
         );
+    }
+
+    #[test]
+    fn a_blank_case_name_is_refused_naming_the_case() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts");
+        for name in ["''", "'   '"] {
+            let t = dir.path().join("x.test.yaml");
+            std::fs::write(
+                &t,
+                format!(
+                    "script: {}\ncases:\n  - name: {name}\n    scene: {}\n    params: {{attacker: 4, target: 2}}\n    expect: {{total_above: 0}}\n",
+                    root.join("accident.rhai").display(),
+                    root.join("scenes/highway.yaml").display()
+                ),
+            )
+            .unwrap();
+            let e = run_test_file(&t).unwrap_err().to_string();
+            assert!(
+                e.contains("x.test.yaml: cases[0]: the name") && e.contains("is blank"),
+                "{name}: {e}"
+            );
+        }
     }
 
     #[test]
