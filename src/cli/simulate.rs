@@ -70,7 +70,7 @@ pub struct Args {
     horizon: Option<usize>,
     /// Guidance strength of the scripts, default 3 (chosen on held-out NGSIM behaviours with
     /// the fading schedule: data/checkpoint/README.md); above 0 only with --script or --auto.
-    #[arg(long, value_parser = super::ask::float)]
+    #[arg(long, value_parser = super::ask::float, allow_negative_numbers = true)]
     lambda: Option<f64>,
     /// Where the guidance gradient is taken: at the denoised output, or pulled back through
     /// the denoiser (the paper's rule, slower); the same flag and default as `ask`'s.
@@ -91,11 +91,11 @@ pub struct Args {
     /// (speed, reversing, acceleration, lateral acceleration, crabbing) and clear of every
     /// other agent; 0 turns realism off. A script exempts an agent it asks to back up with
     /// `allow(a, "reverse")`, and two it asks to collide with `allow(a, "collide", b)`.
-    #[arg(long, value_parser = super::ask::float, default_value_t = drivescript::sample::REALISM_WEIGHT)]
+    #[arg(long, value_parser = super::ask::float, default_value_t = drivescript::sample::REALISM_WEIGHT, allow_negative_numbers = true)]
     realism: f64,
     /// Weight of the known-state cost (conditional end points), default 1; above 0 only with
     /// --task conditional.
-    #[arg(long, value_parser = super::ask::float)]
+    #[arg(long, value_parser = super::ask::float, allow_negative_numbers = true)]
     known_weight: Option<f64>,
     /// How λ varies with the noise level σ: constant or fading (λ·σ/(σ+σ_data)).
     #[arg(long, value_enum, default_value = "fading")]
@@ -322,7 +322,13 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 Some(p) => params = p,
                 None => {
                     let reason = format!("no agents suited to {}", b.name());
-                    drivescript::sample::attempt::write_skipped(&args.output, &id, &reason, true)?;
+                    drivescript::sample::attempt::write_skipped(
+                        &args.output,
+                        &id,
+                        raw,
+                        &reason,
+                        true,
+                    )?;
                     println!("{id}: {reason}; skipped");
                     return Ok(false);
                 }
