@@ -5162,6 +5162,47 @@ fn a_long_gif_says_how_many_frames_are_drawn_as_it_goes() {
     assert!(o.status.success() && o.stderr.is_empty(), "{o:?}");
 }
 
+/// A scene whose rollouts failed was counted in the horizon line ("(2 scenes)") under a
+/// table of the one scene scored.
+#[test]
+fn the_horizon_line_counts_only_the_scenes_scored() {
+    let dir = tempfile::tempdir().unwrap();
+    let r = dir.path().join("r");
+    std::fs::create_dir(&r).unwrap();
+    let yaml = samples().join("yaml");
+    ok(&[
+        "convert",
+        s(&yaml.join("highway_cut_in.yaml")),
+        "-o",
+        s(&r.join("highway-cut-in.json")),
+    ]);
+    let o = drivescript(&[
+        "eval",
+        s(&yaml),
+        "--task",
+        "conditional",
+        "--rollouts",
+        s(&r),
+    ]);
+    let (out, err) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("missing rollout for scene curved-two-lanes"),
+        "{err}"
+    );
+    let line = out
+        .lines()
+        .find(|l| l.starts_with("horizon ("))
+        .unwrap_or_default();
+    assert!(
+        line.contains("the rollouts' own (1 scene)") && line.matches(" steps, ").count() == 1,
+        "{out}"
+    );
+}
+
 /// A numbered sample past a missing one was left out unsaid: with `ID_1.json` gone,
 /// `--samples 1` scored `ID_0.json` alone beside an `ID_2.json`, and an unnumbered rollout
 /// beside `ID_1.json` (no `ID_0.json`) was scored alone.

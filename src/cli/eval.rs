@@ -429,7 +429,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     continue;
                 }
             }
-            horizons.count(scene.num_future_steps(), from);
+            // Counted once a method has scored the scene: a scene whose rollouts failed was
+            // counted in the horizon line ("(2 scenes)") under a table of 1.
+            let mut scored = false;
             // Every method, and the log it is compared with, loses its cars where they leave
             // the map.
             let reference = scene.retire_exited();
@@ -483,6 +485,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     twins.as_deref(),
                     &allowed,
                 );
+                scored = true;
+            }
+            if scored {
+                horizons.count(scene.num_future_steps(), from);
             }
         }
         bar.inc(1);
