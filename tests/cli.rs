@@ -3132,6 +3132,31 @@ fn unguided(
     drivescript(&a)
 }
 
+/// `--resume --horizon 40` took the 20-step rollouts of a `--horizon 20` run as complete,
+/// exit 0; the horizon is the run's, as its seed is.
+#[test]
+fn a_resumed_run_keeps_its_horizon() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let sim = |extra: &[&str]| unguided(&scene, &out, extra);
+    let o = sim(&["--horizon", "20", "--steps", "8"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for other in [&["--horizon", "40"][..], &[]] {
+        let mut extra = vec!["--resume", "--steps", "8"];
+        extra.extend_from_slice(other);
+        let o = sim(&extra);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{other:?}: {e}");
+        assert!(e.contains("differs in settings.horizon: 20 there"), "{e}");
+    }
+    let o = sim(&["--resume", "--steps", "8", "--horizon", "20"]);
+    assert!(
+        o.status.success() && String::from_utf8_lossy(&o.stdout).contains("already complete"),
+        "{o:?}"
+    );
+}
+
 /// The table rows of an `eval` output, without the timing column.
 fn table_rows(out: &str) -> Vec<String> {
     out.lines()

@@ -256,26 +256,33 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
     let existed = args.output.exists();
     drivescript::io::create_output_dir(&args.output)?;
+    let mut settings = serde_json::json!({
+        "task": format!("{:?}", cfg.task),
+        "samples": cfg.samples,
+        "seed": cfg.seed,
+        "steps": cfg.steps,
+        "lambda": cfg.lambda,
+        "guidance": format!("{:?}", cfg.guidance),
+        "schedule": format!("{:?}", cfg.schedule),
+        "clamp": format!("{:?}", cfg.clamp),
+        "realism": cfg.realism.weight,
+        "known_weight": cfg.known_weight,
+        "polish": cfg.polish,
+        "closed_loop": args.closed_loop,
+        "auto": args.auto,
+    });
+    // A horizon shorter than the model's, recorded: `--resume --horizon 40` took the 20-step
+    // rollouts of a `--horizon 20` run as complete. The model's own is left out, as runs
+    // before the field recorded it, so that they resume as they were.
+    if future != trained.meta.config.window.future {
+        settings["horizon"] = future.into();
+    }
     let record = RunRecord {
         command: "simulate".into(),
         version: env!("CARGO_PKG_VERSION").into(),
         checkpoint: args.checkpoint.display().to_string(),
         weights_crc32c: file_crc32c(&args.checkpoint.join("model.safetensors"))?,
-        settings: serde_json::json!({
-            "task": format!("{:?}", cfg.task),
-            "samples": cfg.samples,
-            "seed": cfg.seed,
-            "steps": cfg.steps,
-            "lambda": cfg.lambda,
-            "guidance": format!("{:?}", cfg.guidance),
-            "schedule": format!("{:?}", cfg.schedule),
-            "clamp": format!("{:?}", cfg.clamp),
-            "realism": cfg.realism.weight,
-            "known_weight": cfg.known_weight,
-            "polish": cfg.polish,
-            "closed_loop": args.closed_loop,
-            "auto": args.auto,
-        }),
+        settings,
         scripts: specs
             .iter()
             .map(|s| (s.name.clone(), text_crc32c(s.source.as_bytes())))
