@@ -1259,6 +1259,29 @@ impl Batch<'_> {
                 ),
             ));
         }
+        // A run goes on with the settings it started with: a batch run again with another
+        // --seed, --samples or --rounds reported the pairs finished before with the old ones
+        // beside new pairs with the new, as one batch's summary, exit 0.
+        let (then, now) = (
+            serde_json::to_value(session.config()).unwrap_or_default(),
+            serde_json::to_value(&self.config).unwrap_or_default(),
+        );
+        if let (Some(then), Some(now)) = (then.as_object(), now.as_object()) {
+            if let Some((key, was)) = then
+                .iter()
+                .find(|(k, v)| now.get(k.as_str()).is_some_and(|n| n != *v))
+            {
+                return Err(bad(
+                    dir,
+                    format!(
+                        "holds the pair's run made with {key} = {was}, and this batch runs with \
+                         {key} = {}: a run goes on with the settings it started with; give the \
+                         batch its first run's settings, or choose another -o",
+                        now[key.as_str()]
+                    ),
+                ));
+            }
+        }
         Ok(session)
     }
 
