@@ -85,6 +85,10 @@ pub struct Edit {
     pub ramp: f64,
 }
 
+/// The least distance, metres, an edit must move its agent at some future step: below it
+/// the case runs on what is, to any script, the unedited future.
+const MIN_EDIT_MOVE: f64 = 1e-6;
+
 /// The shortest `sway` period, seconds: far below any time step, far above where the phase
 /// `t / period` stops being a number.
 const MIN_SWAY_PERIOD: f64 = 1e-3;
@@ -519,6 +523,10 @@ fn apply_edit(scene: &Scene, traj: &mut Trajectories, e: &Edit) -> Result<(), St
     let cur = scene.agents[a].states[scene.meta.current_step];
     let n = traj.layout.steps;
     let dt = scene.meta.dt;
+    // The farthest the edit moves the agent: a ramp of 1e300 s, or a sway of period 1e300 s,
+    // is of some size but moves nothing within the future, and the case ran on the unedited
+    // future, as one of no edit does.
+    let mut moved = 0.0f64;
     for k in 0..n {
         let i = a * n + k;
         if e.freeze {
@@ -534,6 +542,7 @@ fn apply_edit(scene: &Scene, traj: &mut Trajectories, e: &Edit) -> Result<(), St
         } else {
             1.0
         };
+        let before = traj.xyh[i];
         if let Some(d) = e.lateral {
             let (s, c) = cur.heading.sin_cos();
             traj.xyh[i][0] += -s * d * w;
@@ -551,6 +560,19 @@ fn apply_edit(scene: &Scene, traj: &mut Trajectories, e: &Edit) -> Result<(), St
             traj.xyh[i][0] += dx * w;
             traj.xyh[i][1] += dy * w;
         }
+        moved = moved.max((traj.xyh[i][0] - before[0]).hypot(traj.xyh[i][1] - before[1]));
+    }
+    if !e.freeze && moved < MIN_EDIT_MOVE {
+        return Err(format!(
+            "edit of agent {} moves it at most {} m over the future (ramp {} s{}): it changes \
+             nothing; give a shorter ramp or period, or a larger size",
+            e.agent,
+            crate::geom::num(moved),
+            crate::geom::num(e.ramp),
+            e.sway
+                .map(|[_, p]| format!(", sway period {} s", crate::geom::num(p)))
+                .unwrap_or_default()
+        ));
     }
     Ok(())
 }
@@ -1015,6 +1037,37 @@ mod tests {
                 "{edit}: {e}"
             );
         }
+    }
+
+    #[test]
+    fn an_edit_that_moves_nothing_within_the_future_is_refused() {
+        // A ramp or a sway period far beyond the future moved the agent by 1e-299 m: the case
+        // passed on the unedited future.
+        let dir = tempfile::tempdir().unwrap();
+        for (edit, want) in [
+            ("{agent: 2, lateral: 1.0, ramp: 1e300}", "(ramp 1e300 s)"),
+            ("{agent: 2, sway: [1.0, 1e300]}", "sway period 1e300 s"),
+        ] {
+            let r = accident_case(
+                dir.path(),
+                &format!("    edits: [{edit}]\n    expect: {{total_above: 0}}\n"),
+            )
+            .unwrap();
+            assert!(
+                !r[0].passed
+                    && r[0].detail.contains("edit of agent 2 moves it at most")
+                    && r[0].detail.contains(want),
+                "{edit}: {}",
+                r[0].detail
+            );
+        }
+        // A long ramp that still moves the agent is an edit.
+        let r = accident_case(
+            dir.path(),
+            "    edits: [{agent: 2, lateral: 1.0, ramp: 100}]\n    expect: {total_above: 0}\n",
+        )
+        .unwrap();
+        assert!(!r[0].detail.contains("moves it at most"), "{}", r[0].detail);
     }
 
     /// `run_test_file` on one case of accident.rhai on the highway with `rest` (edits and
