@@ -5228,6 +5228,41 @@ fn the_horizon_line_counts_only_the_scenes_scored() {
     );
 }
 
+/// `eval --json DIR` ran the whole evaluation, printed its table and then failed writing the
+/// file (an evaluation can take hours); a directory named as a picture was drawn first too.
+#[test]
+fn an_output_that_is_a_directory_is_refused_before_the_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let json = dir.path().join("results.json");
+    std::fs::create_dir(&json).unwrap();
+    let o = drivescript(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "conditional",
+        "--baseline",
+        "log",
+        "--json",
+        s(&json),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("results.json: --json: is a directory: name a file to write"),
+        "{err}"
+    );
+    assert!(
+        o.stdout.is_empty(),
+        "{}",
+        String::from_utf8_lossy(&o.stdout)
+    );
+    let svg = dir.path().join("picture.svg");
+    std::fs::create_dir(&svg).unwrap();
+    let err = fails(&["render", s(&scene), "-o", s(&svg)]);
+    assert!(err.contains("picture.svg: -o: is a directory"), "{err}");
+}
+
 /// A numbered sample past a missing one was left out unsaid: with `ID_1.json` gone,
 /// `--samples 1` scored `ID_0.json` alone beside an `ID_2.json`, and an unnumbered rollout
 /// beside `ID_1.json` (no `ID_0.json`) was scored alone.
