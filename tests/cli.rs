@@ -5263,6 +5263,36 @@ fn an_output_that_is_a_directory_is_refused_before_the_work() {
     assert!(err.contains("picture.svg: -o: is a directory"), "{err}");
 }
 
+/// A demo whose scene lacks the request's agents samples no round, and said it wrote
+/// final.gif and final.rhai all the same.
+#[test]
+fn a_demo_that_samples_nothing_names_only_what_it_wrote() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("two.yaml");
+    std::fs::write(
+        &scene,
+        "steps: 51\ncurrent_step: 10\nroad: {lanes: 2, lane_width: 3.6, length: 300}\nagents:\n  - {id: 1, lane: 0, s: 50, speed: 20}\n  - {id: 2, lane: 1, s: 60, speed: 20}\n",
+    )
+    .unwrap();
+    let out = dir.path().join("demo");
+    let o = drivescript(&[
+        "demo",
+        "--scene",
+        s(&scene),
+        "-o",
+        s(&out),
+        "--samples",
+        "1",
+    ]);
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(o.status.code(), Some(2), "{text}");
+    assert!(!out.join("final.gif").exists());
+    assert!(
+        !text.contains("final.gif") && text.contains("report.md and"),
+        "{text}"
+    );
+}
+
 /// A numbered sample past a missing one was left out unsaid: with `ID_1.json` gone,
 /// `--samples 1` scored `ID_0.json` alone beside an `ID_2.json`, and an unnumbered rollout
 /// beside `ID_1.json` (no `ID_0.json`) was scored alone.
