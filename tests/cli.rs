@@ -1172,7 +1172,7 @@ fn a_slow_script_stops_at_the_run_s_script_budget_instead_of_running_for_minutes
         s(&out),
     ));
     assert!(
-        err.contains("--script-budget 0.0: must be more than 0"),
+        err.contains("--script-budget 0: must be more than 0"),
         "{err}"
     );
 }
