@@ -369,13 +369,26 @@ fn refusal(dir: &Path, what: &str, why: String) -> TrainError {
 /// checkpoint directory (--out) is inside the input directory data"). What the export may
 /// replace it checks itself: nothing (`train::export` writes into a new or empty directory).
 pub fn check_export_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError> {
-    apart_from_inputs(
+    let exists = apart_from_inputs(
         dir,
         corpora,
         "the export directory (--export)",
         ": name a new or empty directory",
-    )
-    .map(|_| ())
+    )?;
+    // Said before the windows are cut, as `train::export` would say it after (a large corpus
+    // was read and cut first, minutes of work, and then refused).
+    if exists
+        && std::fs::read_dir(dir)
+            .map_err(|e| io_err(dir, e.to_string()))?
+            .next()
+            .is_some()
+    {
+        return Err(io_err(
+            dir,
+            "is not empty: export into a new or empty directory (nothing in it is replaced)".into(),
+        ));
+    }
+    Ok(())
 }
 
 /// Refuses a checkpoint directory (`train --out`) that is, or is inside, a directory of
@@ -1251,6 +1264,18 @@ mod tests {
             !h.validates("DEU_Reutlingen-3_1_T-1", SplitBy::Scene)
                 || is_validation("DEU_Reutlingen-3_1_T-1", 0)
         );
+    }
+
+    #[test]
+    fn an_export_directory_holding_anything_is_refused_before_any_window_is_cut() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("export");
+        check_export_dir(&out, &[]).unwrap();
+        std::fs::create_dir(&out).unwrap();
+        check_export_dir(&out, &[]).unwrap();
+        std::fs::write(out.join("notes.txt"), "mine").unwrap();
+        let e = check_export_dir(&out, &[]).unwrap_err().to_string();
+        assert!(e.contains("export") && e.contains("is not empty"), "{e}");
     }
 
     #[test]
