@@ -1172,7 +1172,7 @@ fn a_slow_script_stops_at_the_run_s_script_budget_instead_of_running_for_minutes
         s(&out),
     ));
     assert!(
-        err.contains("--script-budget 0.0: must be more than 0"),
+        err.contains("--script-budget 0: must be more than 0"),
         "{err}"
     );
 }
@@ -1311,7 +1311,11 @@ fn train_export_writes_the_windows_of_a_checkpoint_into_a_new_directory_only() {
         "--resume",
         s(&ckpt),
     ]);
-    assert!(err.contains("is not empty"), "{err}");
+    // Refused before the windows are cut, not after ("exporting into ...").
+    assert!(
+        err.contains("is not empty") && !err.contains("exporting into"),
+        "{err}"
+    );
     assert_eq!(
         std::fs::read(exp.join("check.safetensors")).unwrap(),
         before
@@ -3132,6 +3136,31 @@ fn unguided(
     drivescript(&a)
 }
 
+/// `--resume --horizon 40` took the 20-step rollouts of a `--horizon 20` run as complete,
+/// exit 0; the horizon is the run's, as its seed is.
+#[test]
+fn a_resumed_run_keeps_its_horizon() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let sim = |extra: &[&str]| unguided(&scene, &out, extra);
+    let o = sim(&["--horizon", "20", "--steps", "8"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for other in [&["--horizon", "40"][..], &[]] {
+        let mut extra = vec!["--resume", "--steps", "8"];
+        extra.extend_from_slice(other);
+        let o = sim(&extra);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{other:?}: {e}");
+        assert!(e.contains("differs in settings.horizon: 20 there"), "{e}");
+    }
+    let o = sim(&["--resume", "--steps", "8", "--horizon", "20"]);
+    assert!(
+        o.status.success() && String::from_utf8_lossy(&o.stdout).contains("already complete"),
+        "{o:?}"
+    );
+}
+
 /// The table rows of an `eval` output, without the timing column.
 fn table_rows(out: &str) -> Vec<String> {
     out.lines()
@@ -3714,6 +3743,34 @@ fn scenes_an_auto_run_skipped_are_skipped_by_eval_over_the_same_list() {
         s(&out_dir),
     ));
     assert!(!out.contains("no agents suited"), "{out}");
+    // The skipped scene's file edited since: it was taken as skipped for good, whatever it
+    // now holds.
+    let junction = scenes.join("junction.yaml");
+    let text = std::fs::read_to_string(&junction).unwrap();
+    std::fs::write(
+        &junction,
+        text.replace("s: 35, speed: 10", "s: 36, speed: 10"),
+    )
+    .unwrap();
+    let e = fails(&simulate_args(
+        s(&scenes),
+        "data/checkpoint",
+        &[
+            "--auto",
+            "cut_in",
+            "--steps",
+            "8",
+            "--task",
+            "unconditional",
+            "--resume",
+        ],
+        s(&out_dir),
+    ));
+    assert!(
+        e.contains("junction: the scene is not the one its outputs in")
+            && e.contains("remove junction_skipped.json and unguided/junction_skipped.json"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -5030,6 +5087,261 @@ fn eval_refuses_rollouts_holding_more_samples_than_it_was_told() {
     ]);
     assert!(
         err.contains("the rollouts hold both highway-cut-in.json and numbered samples"),
+        "{err}"
+    );
+}
+
+/// A negative number after a flag was read as the flag `-1`: "unexpected argument '-1' found",
+/// with the tip to write `-- -1` (which passes it as a scene), for every flag not marked to
+/// take one (`--lambda`, `--realism`, `--lr`, `--index`, ...); `--script-budget -0` was
+/// repeated as Rust writes the float ("-0.0").
+#[test]
+fn a_negative_number_is_the_flag_s_value_and_its_check_names_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let out = dir.path().join("out");
+    let sim = |flag: &str, v: &str| {
+        fails(&[
+            "simulate",
+            s(&scene),
+            "--checkpoint",
+            "data/checkpoint",
+            "-o",
+            s(&out),
+            flag,
+            v,
+        ])
+    };
+    for (flag, v, says) in [
+        ("--lambda", "-1", "--lambda -1: must be 0 to 1000"),
+        ("--realism", "-2", "--realism -2: must be 0 to 1000"),
+        (
+            "--known-weight",
+            "-1",
+            "--known-weight -1: must be 0 to 1000",
+        ),
+        (
+            "--script-budget",
+            "-0",
+            "--script-budget -0: must be more than 0",
+        ),
+    ] {
+        let err = sim(flag, v);
+        assert!(err.contains(says), "{flag} {v}: {err}");
+        assert!(!err.contains("unexpected argument"), "{err}");
+    }
+    let train = |flag: &str, v: &str| {
+        fails(&[
+            "train",
+            "--data",
+            "scripts/scenes",
+            "--out",
+            s(&out),
+            flag,
+            v,
+        ])
+    };
+    for (flag, v, says) in [
+        ("--lr", "-1", "--lr: lr = -1: must be positive"),
+        ("--scale-cap", "-1", "--scale-cap: scale_cap = -1"),
+        (
+            "--across-weight",
+            "-3",
+            "--across-weight: across_weight = -3",
+        ),
+        (
+            "--ema-half-life",
+            "-5",
+            "--ema-half-life: ema_half_life = -5",
+        ),
+    ] {
+        let err = train(flag, v);
+        assert!(err.contains(says), "{flag} {v}: {err}");
+    }
+    // A count is no number below 0: clap's own refusal names the flag and the value.
+    let o = drivescript(&["render", s(&scene), "--index", "-1", "-o", s(&out)]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("invalid value '-1' for '--index"), "{err}");
+    assert!(!out.exists());
+}
+
+/// A GIF of thousands of frames drew for half a minute without a word; one of a few frames
+/// still says nothing.
+#[test]
+fn a_long_gif_says_how_many_frames_are_drawn_as_it_goes() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("long.yaml");
+    std::fs::write(
+        &scene,
+        "steps: 250\ncurrent_step: 10\nroad: {lanes: 2, lane_width: 3.6, length: 300}\nagents:\n  - {id: 1, lane: 0, s: 50, speed: 1}\n",
+    )
+    .unwrap();
+    let gif = dir.path().join("long.gif");
+    let o = drivescript(&["render", s(&scene), "-o", s(&gif), "--width", "64"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        err.contains("drew 25 of 250 frames") && err.contains("drew 250 of 250 frames"),
+        "{err}"
+    );
+    assert_eq!(err.lines().count(), 10, "{err}");
+    let short = samples().join("yaml/highway_cut_in.yaml");
+    let o = drivescript(&["render", s(&short), "-o", s(&gif), "--width", "64"]);
+    assert!(o.status.success() && o.stderr.is_empty(), "{o:?}");
+}
+
+/// A scene whose rollouts failed was counted in the horizon line ("(2 scenes)") under a
+/// table of the one scene scored.
+#[test]
+fn the_horizon_line_counts_only_the_scenes_scored() {
+    let dir = tempfile::tempdir().unwrap();
+    let r = dir.path().join("r");
+    std::fs::create_dir(&r).unwrap();
+    let yaml = samples().join("yaml");
+    ok(&[
+        "convert",
+        s(&yaml.join("highway_cut_in.yaml")),
+        "-o",
+        s(&r.join("highway-cut-in.json")),
+    ]);
+    let o = drivescript(&[
+        "eval",
+        s(&yaml),
+        "--task",
+        "conditional",
+        "--rollouts",
+        s(&r),
+    ]);
+    let (out, err) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("missing rollout for scene curved-two-lanes"),
+        "{err}"
+    );
+    let line = out
+        .lines()
+        .find(|l| l.starts_with("horizon ("))
+        .unwrap_or_default();
+    assert!(
+        line.contains("the rollouts' own (1 scene)") && line.matches(" steps, ").count() == 1,
+        "{out}"
+    );
+}
+
+/// `eval --json DIR` ran the whole evaluation, printed its table and then failed writing the
+/// file (an evaluation can take hours); a directory named as a picture was drawn first too.
+#[test]
+fn an_output_that_is_a_directory_is_refused_before_the_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let json = dir.path().join("results.json");
+    std::fs::create_dir(&json).unwrap();
+    let o = drivescript(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "conditional",
+        "--baseline",
+        "log",
+        "--json",
+        s(&json),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("results.json: --json: is a directory: name a file to write"),
+        "{err}"
+    );
+    assert!(
+        o.stdout.is_empty(),
+        "{}",
+        String::from_utf8_lossy(&o.stdout)
+    );
+    let svg = dir.path().join("picture.svg");
+    std::fs::create_dir(&svg).unwrap();
+    let err = fails(&["render", s(&scene), "-o", s(&svg)]);
+    assert!(err.contains("picture.svg: -o: is a directory"), "{err}");
+}
+
+/// A demo whose scene lacks the request's agents samples no round, and said it wrote
+/// final.gif and final.rhai all the same.
+#[test]
+fn a_demo_that_samples_nothing_names_only_what_it_wrote() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("two.yaml");
+    std::fs::write(
+        &scene,
+        "steps: 51\ncurrent_step: 10\nroad: {lanes: 2, lane_width: 3.6, length: 300}\nagents:\n  - {id: 1, lane: 0, s: 50, speed: 20}\n  - {id: 2, lane: 1, s: 60, speed: 20}\n",
+    )
+    .unwrap();
+    let out = dir.path().join("demo");
+    let o = drivescript(&[
+        "demo",
+        "--scene",
+        s(&scene),
+        "-o",
+        s(&out),
+        "--samples",
+        "1",
+    ]);
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(o.status.code(), Some(2), "{text}");
+    assert!(!out.join("final.gif").exists());
+    assert!(
+        !text.contains("final.gif") && text.contains("report.md and"),
+        "{text}"
+    );
+}
+
+/// A numbered sample past a missing one was left out unsaid: with `ID_1.json` gone,
+/// `--samples 1` scored `ID_0.json` alone beside an `ID_2.json`, and an unnumbered rollout
+/// beside `ID_1.json` (no `ID_0.json`) was scored alone.
+#[test]
+fn eval_refuses_a_numbered_sample_past_a_missing_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let r = dir.path().join("r");
+    std::fs::create_dir(&r).unwrap();
+    for name in ["highway-cut-in_0.json", "highway-cut-in_2.json"] {
+        ok(&["convert", s(&scene), "-o", s(&r.join(name))]);
+    }
+    let eval = |extra: &[&str]| {
+        let mut a = vec![
+            "eval",
+            s(&scene),
+            "--task",
+            "conditional",
+            "--rollouts",
+            s(&r),
+        ];
+        a.extend_from_slice(extra);
+        fails(&a)
+    };
+    let err = eval(&[]);
+    assert!(
+        err.contains("highway-cut-in_2.json: the rollouts hold more samples of scene"),
+        "{err}"
+    );
+    // With the number the run made, the gap is named.
+    let err = eval(&["--samples", "3"]);
+    assert!(
+        err.contains("highway-cut-in_1.json: missing rollout for scene highway-cut-in"),
+        "{err}"
+    );
+    std::fs::remove_file(r.join("highway-cut-in_0.json")).unwrap();
+    ok(&[
+        "convert",
+        s(&scene),
+        "-o",
+        s(&r.join("highway-cut-in.json")),
+    ]);
+    let err = eval(&[]);
+    assert!(
+        err.contains("highway-cut-in_2.json: the rollouts hold both highway-cut-in.json"),
         "{err}"
     );
 }

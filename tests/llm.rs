@@ -1101,6 +1101,40 @@ fn a_batch_stopped_by_an_error_continues_when_run_again() {
             && !t.contains("Some("),
         "{t}"
     );
+    // Run again with another setting: the pairs done before were reported with their own
+    // settings beside new ones, as one batch, exit 0.
+    write("vehicle 401 cuts in front of vehicle 399");
+    for (flag, value, says) in [
+        (
+            "--seed",
+            "5",
+            "made with seed = 1, and this batch runs with seed = 5",
+        ),
+        (
+            "--samples",
+            "2",
+            "made with samples = 4, and this batch runs with samples = 2",
+        ),
+        (
+            "--rounds",
+            "2",
+            "made with rounds = 0, and this batch runs with rounds = 2",
+        ),
+    ] {
+        let mut again = args.to_vec();
+        if flag == "--rounds" {
+            again.truncate(again.len() - 2);
+        }
+        again.extend([flag, value]);
+        let o = ask(&again, Some(&srv2.url));
+        let t = text(&o);
+        assert_eq!(o.status.code(), Some(1), "{t}");
+        assert!(
+            t.contains(says) && t.contains("the settings it started with"),
+            "{t}"
+        );
+    }
+    assert_eq!(srv2.received().len(), 1);
 }
 
 #[test]
@@ -1816,7 +1850,28 @@ fn a_batch_that_fails_before_any_result_leaves_its_directory_as_it_found_it() {
     let t = text(&o);
     assert_eq!(o.status.code(), Some(1), "{t}");
     assert!(t.contains("summary.md: it is not a summary"), "{t}");
+    // Refused before any pair: where the runs would go is not announced.
+    assert!(!t.contains("runs in"), "{t}");
     assert_eq!(entries(&mine), ["notes.txt", "summary.md"]);
+    // Nor for an -o that is a file.
+    let o = ask(
+        &[
+            "--batch",
+            s(&file),
+            "-o",
+            s(&mine.join("notes.txt")),
+            "--llm",
+            "rules",
+        ],
+        None,
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(!t.contains("runs in"), "{t}");
+    assert_eq!(
+        std::fs::read_to_string(mine.join("notes.txt")).unwrap(),
+        "mine"
+    );
     // A single run there is not taken for a batch's.
     let o = ask(
         &[

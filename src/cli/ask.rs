@@ -928,11 +928,7 @@ fn batch(args: &Args, given: &[String], file: &Path, trained: &Trained) -> Resul
     }
     let (backend, line) = args.backend(given)?;
     println!("{line}");
-    println!(
-        "{} pairs; runs in {}",
-        instances.len(),
-        super::shown(&out.join("runs"))
-    );
+    let prompts = args.prompt.load()?;
     let n = instances.len();
     let batch = Batch {
         file: file.to_path_buf(),
@@ -941,12 +937,13 @@ fn batch(args: &Args, given: &[String], file: &Path, trained: &Trained) -> Resul
         out: out.clone(),
         trained,
         backend,
-        prompts: args.prompt.load()?,
+        prompts,
         config: args.session_config(),
         shard: args.shard,
     };
     let verbose = args.verbose;
     let results = batch.run(&mut |p| match p {
+        Progress::Ready { runs } => println!("{n} pairs; runs in {}", super::shown(runs)),
         Progress::Line(l) if verbose => println!("  {}", terminal_safe(l)),
         Progress::Line(_) => {}
         Progress::Done { k, result, resumed } => println!(

@@ -87,9 +87,15 @@ pub fn run(args: Args) -> Result<ExitCode> {
     let outcome =
         session.run(&mut |line| println!("{}", drivescript::io::name::terminal_safe(line)))?;
     let dir = super::shown(&args.output);
-    println!(
-        "\nwrote {dir}/final.gif (named agents highlighted), {dir}/final.rhai, {dir}/report.md, every round in {dir}/round_N/ and {dir}/transcript.json"
-    );
+    // As `ask` says it: a run that sampled no round wrote no final picture or script, and the
+    // line named them anyway (a --scene without the request's agents).
+    if session.verdict().round.is_some() {
+        println!(
+            "\nwrote {dir}/final.gif (named agents highlighted), {dir}/final.rhai, {dir}/report.md, every round in {dir}/round_N/ and {dir}/transcript.json"
+        );
+    } else {
+        println!("\nwrote {dir}/report.md and {dir}/transcript.json (no round was sampled)");
+    }
     if let Outcome::Accepted { round, .. } | Outcome::RoundsUsed { round, .. } = &outcome {
         println!(
             "rollouts of the final round, in {dir}: {}",

@@ -154,15 +154,21 @@ fn rollouts_for(dir: &Path, scene: &Scene, k: usize) -> Result<Vec<(Scene, Allow
         let r = Rollout::read(p)?;
         Ok((r.apply_to(scene, p)?, asked::kinds(&r.allowed)))
     };
+    // The first numbered sample from `from` on that is there. Every number a run can make is
+    // looked at, not only the next: with ID_1.json gone, ID_2.json was left out unsaid.
+    let stray = |from: usize| {
+        (from..drivescript::sample::MAX_SAMPLES)
+            .map(|j| dir.join(format!("{id}_{j}.json")))
+            .find(|p| p.exists())
+    };
     let single = dir.join(format!("{id}.json"));
     if k == 1 && single.exists() {
         // Beside numbered samples, which of them is meant cannot be told: the numbered ones
         // were left out without a word (4 samples of a run, and a recording converted beside
         // them, scored as the recording).
-        let first = dir.join(format!("{id}_0.json"));
-        if first.exists() {
+        if let Some(first) = stray(0) {
             bail!(
-                "{}: the rollouts hold both {id}.json and numbered samples ({id}_0.json, ...): \
+                "{}: the rollouts hold both {id}.json and numbered samples ({id}_K.json): \
                  move one away, or give --samples with the number the run made",
                 first.display()
             );
@@ -182,8 +188,7 @@ fn rollouts_for(dir: &Path, scene: &Scene, k: usize) -> Result<Vec<(Scene, Allow
     }
     // Rollouts of 4 samples scored with the default --samples 1 gave minADE of one sample,
     // from a quarter of the run, and said nothing.
-    let next = dir.join(format!("{id}_{k}.json"));
-    if next.exists() {
+    if let Some(next) = stray(k) {
         bail!(
             "{}: the rollouts hold more samples of scene {id} than --samples {k}: give \
              --samples with the number the run made (`simulate --samples`)",
@@ -424,7 +429,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     continue;
                 }
             }
-            horizons.count(scene.num_future_steps(), from);
+            // Counted once a method has scored the scene: a scene whose rollouts failed was
+            // counted in the horizon line ("(2 scenes)") under a table of 1.
+            let mut scored = false;
             // Every method, and the log it is compared with, loses its cars where they leave
             // the map.
             let reference = scene.retire_exited();
@@ -478,6 +485,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
                     twins.as_deref(),
                     &allowed,
                 );
+                scored = true;
+            }
+            if scored {
+                horizons.count(scene.num_future_steps(), from);
             }
         }
         bar.inc(1);

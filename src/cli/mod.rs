@@ -170,7 +170,7 @@ impl From<GuidanceArg> for drivescript::sample::Guidance {
 /// Parses the command line and runs the subcommand; errors are printed with their causes.
 pub fn run() -> ExitCode {
     use clap::{CommandFactory, FromArgMatches};
-    let matches = Cli::command()
+    let matches = negatives_as_values(Cli::command())
         .try_get_matches()
         .unwrap_or_else(|e| quoted_cut(e).exit());
     let cli = Cli::from_arg_matches(&matches)
@@ -203,6 +203,21 @@ pub fn run() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// `cmd` with every option that takes a value taking a negative number as one, in every
+/// subcommand: clap otherwise reads `--lambda -1` (or `--index -1`, `--lr -1`) as the flag
+/// `-1`, said "unexpected argument '-1' found" with the tip to write `-- -1`, which passes it
+/// as a scene instead; read as the value, the flag's own check names it and its range.
+fn negatives_as_values(cmd: clap::Command) -> clap::Command {
+    cmd.mut_args(|a| {
+        if !a.is_positional() && a.get_action().takes_values() {
+            a.allow_negative_numbers(true)
+        } else {
+            a
+        }
+    })
+    .mut_subcommands(negatives_as_values)
 }
 
 /// clap's error with every value and argument the user typed quoted as
@@ -348,7 +363,8 @@ pub(crate) fn script_budget(seconds: f64) -> anyhow::Result<std::time::Duration>
     // not as the sampler's "script budget = 0 s".
     if !(seconds >= 1e-9 && seconds <= max.as_secs_f64()) {
         anyhow::bail!(
-            "--script-budget {seconds:?}: must be more than 0 and at most {} seconds",
+            "--script-budget {}: must be more than 0 and at most {} seconds",
+            drivescript::geom::num(seconds),
             max.as_secs()
         );
     }

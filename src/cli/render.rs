@@ -6,7 +6,10 @@ use std::process::ExitCode;
 use anyhow::{bail, Context, Result};
 use drivescript::io::name::shown_counted;
 use drivescript::io::{check_output_not_input, check_replaces_own, rollout::Rollout, write_atomic};
-use drivescript::render::{PictureFormat, RenderOptions, MAX_GIF_FRAMES};
+use drivescript::render::{render_gif_with_progress, PictureFormat, RenderOptions, MAX_GIF_FRAMES};
+
+/// The fewest frames of a GIF whose drawing is said as it goes (a few seconds' work).
+const GIF_PROGRESS_FRAMES: usize = 200;
 use drivescript::scene::Scene;
 
 #[derive(clap::Args)]
@@ -159,7 +162,20 @@ pub fn run(args: Args) -> Result<ExitCode> {
         ..RenderOptions::default()
     };
     opts.check_roles(&scene)?;
-    write_picture(&scene, &args.output, &opts)?;
+    if format == PictureFormat::Gif {
+        // A 2,000-frame GIF takes half a minute, which passed without a word: the frames
+        // drawn are said on stderr at each tenth of a long one.
+        let mut said = 0;
+        let bytes = render_gif_with_progress(&scene, &opts, &mut |k, n| {
+            if n >= GIF_PROGRESS_FRAMES && k * 10 / n > said {
+                said = k * 10 / n;
+                eprintln!("drew {k} of {n} frames");
+            }
+        })?;
+        write_atomic(&args.output, &bytes)?;
+    } else {
+        write_picture(&scene, &args.output, &opts)?;
+    }
     super::print_wrote(&args.output);
     Ok(ExitCode::SUCCESS)
 }

@@ -70,7 +70,7 @@ pub struct Args {
     horizon: Option<usize>,
     /// Guidance strength of the scripts, default 3 (chosen on held-out NGSIM behaviours with
     /// the fading schedule: data/checkpoint/README.md); above 0 only with --script or --auto.
-    #[arg(long, value_parser = super::ask::float)]
+    #[arg(long, value_parser = super::ask::float, allow_negative_numbers = true)]
     lambda: Option<f64>,
     /// Where the guidance gradient is taken: at the denoised output, or pulled back through
     /// the denoiser (the paper's rule, slower); the same flag and default as `ask`'s.
@@ -91,11 +91,11 @@ pub struct Args {
     /// (speed, reversing, acceleration, lateral acceleration, crabbing) and clear of every
     /// other agent; 0 turns realism off. A script exempts an agent it asks to back up with
     /// `allow(a, "reverse")`, and two it asks to collide with `allow(a, "collide", b)`.
-    #[arg(long, value_parser = super::ask::float, default_value_t = drivescript::sample::REALISM_WEIGHT)]
+    #[arg(long, value_parser = super::ask::float, default_value_t = drivescript::sample::REALISM_WEIGHT, allow_negative_numbers = true)]
     realism: f64,
     /// Weight of the known-state cost (conditional end points), default 1; above 0 only with
     /// --task conditional.
-    #[arg(long, value_parser = super::ask::float)]
+    #[arg(long, value_parser = super::ask::float, allow_negative_numbers = true)]
     known_weight: Option<f64>,
     /// How λ varies with the noise level σ: constant or fading (λ·σ/(σ+σ_data)).
     #[arg(long, value_enum, default_value = "fading")]
@@ -256,26 +256,33 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
     let existed = args.output.exists();
     drivescript::io::create_output_dir(&args.output)?;
+    let mut settings = serde_json::json!({
+        "task": format!("{:?}", cfg.task),
+        "samples": cfg.samples,
+        "seed": cfg.seed,
+        "steps": cfg.steps,
+        "lambda": cfg.lambda,
+        "guidance": format!("{:?}", cfg.guidance),
+        "schedule": format!("{:?}", cfg.schedule),
+        "clamp": format!("{:?}", cfg.clamp),
+        "realism": cfg.realism.weight,
+        "known_weight": cfg.known_weight,
+        "polish": cfg.polish,
+        "closed_loop": args.closed_loop,
+        "auto": args.auto,
+    });
+    // A horizon shorter than the model's, recorded: `--resume --horizon 40` took the 20-step
+    // rollouts of a `--horizon 20` run as complete. The model's own is left out, as runs
+    // before the field recorded it, so that they resume as they were.
+    if future != trained.meta.config.window.future {
+        settings["horizon"] = future.into();
+    }
     let record = RunRecord {
         command: "simulate".into(),
         version: env!("CARGO_PKG_VERSION").into(),
         checkpoint: args.checkpoint.display().to_string(),
         weights_crc32c: file_crc32c(&args.checkpoint.join("model.safetensors"))?,
-        settings: serde_json::json!({
-            "task": format!("{:?}", cfg.task),
-            "samples": cfg.samples,
-            "seed": cfg.seed,
-            "steps": cfg.steps,
-            "lambda": cfg.lambda,
-            "guidance": format!("{:?}", cfg.guidance),
-            "schedule": format!("{:?}", cfg.schedule),
-            "clamp": format!("{:?}", cfg.clamp),
-            "realism": cfg.realism.weight,
-            "known_weight": cfg.known_weight,
-            "polish": cfg.polish,
-            "closed_loop": args.closed_loop,
-            "auto": args.auto,
-        }),
+        settings,
         scripts: specs
             .iter()
             .map(|s| (s.name.clone(), text_crc32c(s.source.as_bytes())))
@@ -322,7 +329,13 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 Some(p) => params = p,
                 None => {
                     let reason = format!("no agents suited to {}", b.name());
-                    drivescript::sample::attempt::write_skipped(&args.output, &id, &reason, true)?;
+                    drivescript::sample::attempt::write_skipped(
+                        &args.output,
+                        &id,
+                        raw,
+                        &reason,
+                        true,
+                    )?;
                     println!("{id}: {reason}; skipped");
                     return Ok(false);
                 }

@@ -85,6 +85,10 @@ pub struct Edit {
     pub ramp: f64,
 }
 
+/// The least distance, metres, an edit must move its agent at some future step: below it
+/// the case runs on what is, to any script, the unedited future.
+const MIN_EDIT_MOVE: f64 = 1e-6;
+
 /// The shortest `sway` period, seconds: far below any time step, far above where the phase
 /// `t / period` stops being a number.
 const MIN_SWAY_PERIOD: f64 = 1e-3;
@@ -519,6 +523,10 @@ fn apply_edit(scene: &Scene, traj: &mut Trajectories, e: &Edit) -> Result<(), St
     let cur = scene.agents[a].states[scene.meta.current_step];
     let n = traj.layout.steps;
     let dt = scene.meta.dt;
+    // The farthest the edit moves the agent: a ramp of 1e300 s, or a sway of period 1e300 s,
+    // is of some size but moves nothing within the future, and the case ran on the unedited
+    // future, as one of no edit does.
+    let mut moved = 0.0f64;
     for k in 0..n {
         let i = a * n + k;
         if e.freeze {
@@ -534,6 +542,7 @@ fn apply_edit(scene: &Scene, traj: &mut Trajectories, e: &Edit) -> Result<(), St
         } else {
             1.0
         };
+        let before = traj.xyh[i];
         if let Some(d) = e.lateral {
             let (s, c) = cur.heading.sin_cos();
             traj.xyh[i][0] += -s * d * w;
@@ -551,6 +560,19 @@ fn apply_edit(scene: &Scene, traj: &mut Trajectories, e: &Edit) -> Result<(), St
             traj.xyh[i][0] += dx * w;
             traj.xyh[i][1] += dy * w;
         }
+        moved = moved.max((traj.xyh[i][0] - before[0]).hypot(traj.xyh[i][1] - before[1]));
+    }
+    if !e.freeze && moved < MIN_EDIT_MOVE {
+        return Err(format!(
+            "edit of agent {} moves it at most {} m over the future (ramp {} s{}): it changes \
+             nothing; give a shorter ramp or period, or a larger size",
+            e.agent,
+            crate::geom::num(moved),
+            crate::geom::num(e.ramp),
+            e.sway
+                .map(|[_, p]| format!(", sway period {} s", crate::geom::num(p)))
+                .unwrap_or_default()
+        ));
     }
     Ok(())
 }
@@ -830,6 +852,14 @@ pub fn run_test_file(path: &Path) -> Result<Vec<CaseResult>, ScriptTestError> {
                 crate::io::name::shown(&c.name)
             )));
         }
+        // A row of no name (`name: ''`, or spaces) said nothing of which case it was, and a
+        // name shown as blank could not be told from the table's empty cells.
+        if c.name.trim().is_empty() {
+            return Err(invalid(format!(
+                "cases[{k}]: the name {:?} is blank: give each case a name it can be told by",
+                c.name
+            )));
+        }
         // Two rows of one name in the results table could not be told apart: which failed?
         if let Some(j) = file.cases[..k].iter().position(|o| o.name == c.name) {
             return Err(invalid(format!(
@@ -1009,6 +1039,37 @@ mod tests {
         }
     }
 
+    #[test]
+    fn an_edit_that_moves_nothing_within_the_future_is_refused() {
+        // A ramp or a sway period far beyond the future moved the agent by 1e-299 m: the case
+        // passed on the unedited future.
+        let dir = tempfile::tempdir().unwrap();
+        for (edit, want) in [
+            ("{agent: 2, lateral: 1.0, ramp: 1e300}", "(ramp 1e300 s)"),
+            ("{agent: 2, sway: [1.0, 1e300]}", "sway period 1e300 s"),
+        ] {
+            let r = accident_case(
+                dir.path(),
+                &format!("    edits: [{edit}]\n    expect: {{total_above: 0}}\n"),
+            )
+            .unwrap();
+            assert!(
+                !r[0].passed
+                    && r[0].detail.contains("edit of agent 2 moves it at most")
+                    && r[0].detail.contains(want),
+                "{edit}: {}",
+                r[0].detail
+            );
+        }
+        // A long ramp that still moves the agent is an edit.
+        let r = accident_case(
+            dir.path(),
+            "    edits: [{agent: 2, lateral: 1.0, ramp: 100}]\n    expect: {total_above: 0}\n",
+        )
+        .unwrap();
+        assert!(!r[0].detail.contains("moves it at most"), "{}", r[0].detail);
+    }
+
     /// `run_test_file` on one case of accident.rhai on the highway with `rest` (edits and
     /// expect lines).
     fn accident_case(dir: &Path, rest: &str) -> Result<Vec<CaseResult>, ScriptTestError> {
@@ -1140,6 +1201,29 @@ mod tests {
             "{}",
             r[0].detail
         );
+    }
+
+    #[test]
+    fn a_blank_case_name_is_refused_naming_the_case() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts");
+        for name in ["''", "'   '"] {
+            let t = dir.path().join("x.test.yaml");
+            std::fs::write(
+                &t,
+                format!(
+                    "script: {}\ncases:\n  - name: {name}\n    scene: {}\n    params: {{attacker: 4, target: 2}}\n    expect: {{total_above: 0}}\n",
+                    root.join("accident.rhai").display(),
+                    root.join("scenes/highway.yaml").display()
+                ),
+            )
+            .unwrap();
+            let e = run_test_file(&t).unwrap_err().to_string();
+            assert!(
+                e.contains("x.test.yaml: cases[0]: the name") && e.contains("is blank"),
+                "{name}: {e}"
+            );
+        }
     }
 
     #[test]

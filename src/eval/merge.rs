@@ -339,7 +339,42 @@ fn read_shard(path: &Path) -> Result<(RunRecord, Settings, Vec<Tally>), MergeErr
             )
         })?;
     }
+    check_horizons(&run).map_err(|m| bad(path, m))?;
     Ok((run, s, accs))
+}
+
+/// Refuses horizons no evaluation scores over, and more scenes scored than the run read: a
+/// shard saying `steps: 0` or a million, or 5 scenes of a run of 2, was merged and its line
+/// printed ("horizon: 0 steps, ... (6 scenes)") under a table of 2 scenes, exit 0.
+fn check_horizons(run: &RunRecord) -> Result<(), String> {
+    for (i, c) in run.horizons.0.iter().enumerate() {
+        if !(1..=crate::io::MAX_STEPS).contains(&c.steps) {
+            return Err(format!(
+                "merge.run.horizons[{i}].steps is {}: must be 1 to {} future steps",
+                c.steps,
+                crate::io::MAX_STEPS
+            ));
+        }
+    }
+    let read = run
+        .settings
+        .get("scenes")
+        .and_then(|c| c.get("count"))
+        .and_then(Value::as_u64);
+    let scored = run
+        .horizons
+        .0
+        .iter()
+        .try_fold(0u64, |t, c| t.checked_add(c.scenes as u64));
+    if let (Some(read), Some(scored)) = (read, scored) {
+        if scored > read {
+            return Err(format!(
+                "merge.run.horizons count {scored} scenes scored, but the run read {read} \
+                 (merge.run.settings.scenes.count)"
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// The scenes a shard scored, by name, sorted: its first method's per-scene rows (every
@@ -622,6 +657,8 @@ mod tests {
             (format!("{acc}/per_scene/1/scene"), Value::Null, "merge.accumulators[0] (log): per_scene[1].scene is null: must be the scene's name"),
             (format!("{acc}/per_scene/0"), json!({}), "merge.accumulators[0] (log): per_scene[0] has no scene: each row names the scene it scores"),
             ("/merge/run/horizons".into(), json!([{"steps": 40, "from": "flag", "scenes": -1}]), "merge.run.horizons[0].scenes is -1: must be a whole number"),
+            ("/merge/run/horizons".into(), json!([{"steps": 0, "from": "recording", "scenes": 1}]), "merge.run.horizons[0].steps is 0: must be 1 to 100000 future steps"),
+            ("/merge/run/horizons".into(), json!([{"steps": 1000000, "from": "recording", "scenes": 1}]), "merge.run.horizons[0].steps is 1000000: must be 1 to"),
             ("/merge/run/skipped".into(), json!(-1), "merge.run.skipped is -1: must be a whole number"),
             ("/merge/run/shards/0".into(), json!(7), "merge.run.shards holds 7: not a shard of 2"),
             ("/merge/run/settings/shards".into(), json!(1e18), "must be 1 to 1000000"),
@@ -662,6 +699,17 @@ mod tests {
                 "h1.json: merge.run.horizons[0].scenes is 1: summed with the shards before, it \
                  overflows"
             ),
+            "{e}"
+        );
+        // More scenes scored than the run read (a shard's line said 6 scenes under a table
+        // of 2).
+        let mut read = b.clone();
+        read["merge"]["run"]["settings"]["scenes"] = json!({"count": 3, "crc32c": 1});
+        read["merge"]["run"]["horizons"] = json!([{"steps": 40, "from": "recording", "scenes": 2}, {"steps": 80, "from": "recording", "scenes": 2}]);
+        let f = write(dir.path(), "read.json", &read);
+        let e = merge(&[f]).unwrap_err().to_string();
+        assert!(
+            e.contains("read.json: merge.run.horizons count 4 scenes scored, but the run read 3"),
             "{e}"
         );
         // One file twice, and one shard in two files.

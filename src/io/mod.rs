@@ -1386,6 +1386,14 @@ pub fn check_replaces_own(
     refuse_output_link(output, flag)?;
     match std::fs::metadata(output) {
         Ok(m) if m.is_file() => {}
+        // A directory too: `eval --json DIR` ran the whole evaluation and failed writing it.
+        Ok(m) if m.is_dir() => {
+            return Err(IoError::invalid(
+                output,
+                flag,
+                "is a directory: name a file to write",
+            ))
+        }
         // Said before the command's work, not when its output is written.
         Ok(m) => return refuse_socket(output, &m, flag),
         Err(_) => return Ok(()),

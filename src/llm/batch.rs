@@ -1039,6 +1039,13 @@ pub struct Batch<'a> {
 
 /// What [`Batch::run`] reports as it goes.
 pub enum Progress<'e> {
+    /// The output directory is made, locked and holds nothing of another's: the pairs start,
+    /// their runs in `runs`. Said here, not before [`Batch::run`], so a batch refused at
+    /// these checks does not announce where its runs go.
+    Ready {
+        /// The directory of the pairs' run directories.
+        runs: &'e Path,
+    },
     /// A line of the current pair's session.
     Line(&'e str),
     /// A pair is finished (`resumed`: its run directory held a finished or stopped run).
@@ -1108,6 +1115,9 @@ impl Batch<'_> {
         progress: &mut dyn FnMut(Progress),
     ) -> Result<(), LlmError> {
         self.check_outputs_are_ours()?;
+        progress(Progress::Ready {
+            runs: &self.out.join("runs"),
+        });
         for (k, inst) in self.instances.iter().enumerate() {
             if self
                 .shard
@@ -1248,6 +1258,29 @@ impl Batch<'_> {
                     crate::io::name::shown(follow)
                 ),
             ));
+        }
+        // A run goes on with the settings it started with: a batch run again with another
+        // --seed, --samples or --rounds reported the pairs finished before with the old ones
+        // beside new pairs with the new, as one batch's summary, exit 0.
+        let (then, now) = (
+            serde_json::to_value(session.config()).unwrap_or_default(),
+            serde_json::to_value(&self.config).unwrap_or_default(),
+        );
+        if let (Some(then), Some(now)) = (then.as_object(), now.as_object()) {
+            if let Some((key, was)) = then
+                .iter()
+                .find(|(k, v)| now.get(k.as_str()).is_some_and(|n| n != *v))
+            {
+                return Err(bad(
+                    dir,
+                    format!(
+                        "holds the pair's run made with {key} = {was}, and this batch runs with \
+                         {key} = {}: a run goes on with the settings it started with; give the \
+                         batch its first run's settings, or choose another -o",
+                        now[key.as_str()]
+                    ),
+                ));
+            }
         }
         Ok(session)
     }

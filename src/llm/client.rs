@@ -193,6 +193,15 @@ impl HttpConfig {
         // and each has a run of characters that only the key's bytes decide.
         for k in self.key.iter().map(|k| k.trim()) {
             out.extend(base64_cores(k.as_bytes()));
+            // And the base64 of its percent-encoded form, as a server that base64-encodes the
+            // request URL or a form body it echoes writes it (a key of unreserved characters
+            // is the same encoded, and was covered above).
+            for upper in [true, false] {
+                let encoded = percent_encode(k, upper);
+                if encoded != k {
+                    out.extend(base64_cores(encoded.as_bytes()));
+                }
+            }
         }
         if let Ok(u) = reqwest::Url::parse(&self.url) {
             let password = u.password().map(str::to_string);
@@ -1067,16 +1076,58 @@ fn escaped_unit(chars: &[(usize, char)], i: usize) -> Option<(char, usize)> {
         }
         (v, n)
     };
+    // Whether the characters from offset `from` spell `word`, in any letter case.
+    let spells = |from: usize, word: &str| {
+        word.chars()
+            .enumerate()
+            .all(|(k, w)| at(from + k).is_some_and(|c| c.eq_ignore_ascii_case(&w)))
+    };
     let decoded = match c {
-        '%' => match digits(1, 16, 2) {
-            (v, 2) if v < 0x80 => Some((v, 3)),
-            _ => None,
-        },
-        '&' if at(1) == Some('#') => {
-            let hex = matches!(at(2), Some('x' | 'X'));
-            let from = if hex { 3 } else { 2 };
-            let (v, n) = digits(from, if hex { 16 } else { 10 }, 8);
-            (n > 0 && at(from + n) == Some(';')).then_some((v, from + n + 1))
+        '%' => {
+            // Encoded twice or more (`%2573`, the `%` of `%73` itself encoded as `%25`), as a
+            // proxy that encodes what a server already encoded writes it: a `25` is skipped
+            // while another hex pair follows it.
+            let mut p = 1;
+            while spells(p, "25") && digits(p + 2, 16, 2).1 == 2 {
+                p += 2;
+            }
+            match digits(p, 16, 2) {
+                (v, 2) if v < 0x80 => Some((v, p + 2)),
+                _ => None,
+            }
+        }
+        '&' => {
+            // `&amp;#115;`: an entity whose `&` was itself escaped, as text HTML-escaped twice
+            // shows it (the key was shown whole in that form); any number of `amp;`.
+            let mut p = 1;
+            while spells(p, "amp;") {
+                p += 4;
+            }
+            // The named entities of the characters a key holds besides letters and digits
+            // (`openssl rand -base64` keys hold `+`, `/` and `=`).
+            let named = [
+                ("plus;", '+'),
+                ("sol;", '/'),
+                ("equals;", '='),
+                ("lowbar;", '_'),
+                ("period;", '.'),
+                ("colon;", ':'),
+                ("percnt;", '%'),
+                ("num;", '#'),
+            ]
+            .into_iter()
+            .find(|(w, _)| spells(p, w))
+            .map(|(w, ch)| (ch as u32, p + w.len()));
+            if at(p) == Some('#') {
+                let hex = matches!(at(p + 1), Some('x' | 'X'));
+                let from = if hex { p + 2 } else { p + 1 };
+                let (v, n) = digits(from, if hex { 16 } else { 10 }, 8);
+                (n > 0 && at(from + n) == Some(';')).then_some((v, from + n + 1))
+            } else if named.is_some() {
+                named
+            } else {
+                (p > 1).then_some(('&' as u32, p))
+            }
         }
         '\\' if at(1) == Some('u') => match digits(2, 16, 4) {
             (v, 4) => Some((v, 6)),
@@ -1713,8 +1764,27 @@ mod tests {
             .collect();
         let zero_width: String = key.chars().flat_map(|ch| [ch, '\u{200b}']).collect();
         let mixed = "sk-&#84;E%53T\\x31\u{feff}23\u{ad}xyz";
+        // HTML-escaped twice or thrice, and percent-encoded twice.
+        let twice: String = key
+            .chars()
+            .map(|ch| format!("&amp;#{};", ch as u32))
+            .collect();
+        let thrice: String = key
+            .chars()
+            .map(|ch| format!("&AMP;amp;#x{:x};", ch as u32))
+            .collect();
+        let percent_twice: String = key.bytes().map(|b| format!("%25{b:02X}")).collect();
         let header = format!("Authorization: Bearer {key}");
-        let mut echoes = vec![entities, hex_entities, json, zero_width, mixed.to_string()];
+        let mut echoes = vec![
+            entities,
+            hex_entities,
+            json,
+            zero_width,
+            mixed.to_string(),
+            twice,
+            thrice,
+            percent_twice,
+        ];
         // The header block base64-encoded at each of the three alignments, and the token alone.
         for prefix in ["", "x", "xy"] {
             echoes.push(base64(format!("{prefix}{header}").as_bytes()));
@@ -1736,7 +1806,10 @@ mod tests {
             assert!(!decoded_left.contains("TEST123"), "{echoed} -> {r}");
         }
         // Escapes that stand for other characters, and text near the key, are left alone.
-        for plain in ["50%25 off &#65;&#66; \\u0041", "sk-TEST12 is not the key"] {
+        for plain in [
+            "50%25 off &#65;&#66; \\u0041 &amp; &amp;#66; &plus; %2541",
+            "sk-TEST12 is not the key",
+        ] {
             assert_eq!(c.redact(plain), plain);
         }
     }
@@ -1753,6 +1826,24 @@ mod tests {
         ] {
             let r = c.redact(echoed);
             assert!(!r.contains("Zm9v") && r.contains("[redacted]"), "{r}");
+        }
+        // Its `+`, `/` and `=` as named HTML entities, and the base64 of its percent-encoded
+        // form at each alignment (a server base64-encoding the URL or form body it echoes).
+        let mut echoes = vec!["Zm9v&plus;YmFy&sol;cXV4&equals;sk".to_string()];
+        for prefix in ["", "x", "xy"] {
+            for encoded in ["Zm9v%2BYmFy%2FcXV4%3Dsk", "Zm9v%2bYmFy%2fcXV4%3dsk"] {
+                echoes.push(base64(format!("{prefix}key={encoded}").as_bytes()));
+            }
+        }
+        for echoed in echoes {
+            let r = c.redact(&format!("echo: {echoed} (end)"));
+            assert!(
+                r.contains("[redacted]") && r.ends_with(" (end)"),
+                "{echoed} -> {r}"
+            );
+            // Nothing of the base64 that only the key decides is left.
+            let blob = base64(b"key=Zm9v%2BYmFy%2FcXV4%3Dsk");
+            assert!(!r.contains(&blob[8..20]), "{echoed} -> {r}");
         }
         // A key of unreserved characters only is the same encoded: no percent-encoded entry.
         let mut cfg = HttpConfig::new("http://h/v1", "m");

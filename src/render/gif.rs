@@ -65,6 +65,16 @@ pub const MAX_GIF_PIXELS: u64 = 3_000_000_000;
 /// or the last [`MAX_GIF_FRAMES`] of a longer scene (the motion before them drawn as trails).
 /// `render` refuses such a scene instead of cutting it unasked.
 pub fn render_gif(scene: &Scene, opts: &RenderOptions) -> Result<Vec<u8>, RenderError> {
+    render_gif_with_progress(scene, opts, &mut |_, _| {})
+}
+
+/// [`render_gif`], calling `progress(done, frames)` after each frame is drawn: the longest
+/// GIFs take half a minute, and a caller said nothing all that time.
+pub fn render_gif_with_progress(
+    scene: &Scene,
+    opts: &RenderOptions,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<Vec<u8>, RenderError> {
     // The frames set their own steps below: a step given here would be dropped unsaid.
     if let Some(step) = opts.step {
         return Err(RenderError::StepOfAnimation(step));
@@ -104,7 +114,8 @@ pub fn render_gif(scene: &Scene, opts: &RenderOptions) -> Result<Vec<u8>, Render
         enc.set_repeat(gif::Repeat::Infinite).map_err(err)?;
         let delay = ((scene.meta.dt * 100.0).round() as u16).max(2);
         let steps = scene.num_steps().max(1);
-        for step in steps.saturating_sub(MAX_GIF_FRAMES)..steps {
+        let first = steps.saturating_sub(MAX_GIF_FRAMES);
+        for step in first..steps {
             let mut c = RasterCanvas {
                 pixmap: base.pixmap.clone(),
             };
@@ -123,7 +134,33 @@ pub fn render_gif(scene: &Scene, opts: &RenderOptions) -> Result<Vec<u8>, Render
             let mut frame = gif::Frame::from_indexed_pixels(w, h, px, None);
             frame.delay = if step + 1 == steps { delay * 10 } else { delay };
             enc.write_frame(&frame).map_err(err)?;
+            progress(step + 1 - first, steps - first);
         }
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_frame_is_reported_as_it_is_drawn() {
+        let scene = crate::io::load_scene(
+            &std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("data/samples/yaml/highway_cut_in.yaml"),
+            0,
+            &crate::io::LoadOptions::default(),
+        )
+        .unwrap();
+        let opts = RenderOptions {
+            width: 64,
+            ..RenderOptions::default()
+        };
+        let mut seen = Vec::new();
+        let bytes = render_gif_with_progress(&scene, &opts, &mut |k, n| seen.push((k, n))).unwrap();
+        let n = scene.num_steps();
+        assert_eq!(seen, (1..=n).map(|k| (k, n)).collect::<Vec<_>>());
+        assert_eq!(bytes, render_gif(&scene, &opts).unwrap());
+    }
 }

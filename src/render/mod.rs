@@ -10,7 +10,7 @@ mod gif;
 mod raster;
 mod svg;
 
-pub use self::gif::{render_gif, MAX_GIF_FRAMES};
+pub use self::gif::{render_gif, render_gif_with_progress, MAX_GIF_FRAMES};
 pub use draw::View;
 pub use format::PictureFormat;
 pub use raster::render_png;

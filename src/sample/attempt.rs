@@ -436,7 +436,7 @@ pub fn scene_crc32c(scene: &Scene) -> String {
 #[error(
     "{stem}: the scene is not the one its outputs in {dir} were sampled from (scene checksum \
      {then} then, {now} now: its file changed since); simulate it into another -o, or remove \
-     {stem}_costs.json there to sample it again"
+     {file} there to sample it again"
 )]
 pub struct SceneChanged {
     /// The scene's output stem.
@@ -447,6 +447,9 @@ pub struct SceneChanged {
     pub then: String,
     /// The scene's checksum now.
     pub now: String,
+    /// The file in `dir` that records the checksum then (the cost report, or the file that
+    /// says the scene was skipped), to remove for sampling the scene again.
+    pub file: String,
 }
 
 /// Whether `dir` holds scene `stem` finished by a run of `samples` samples, for `simulate
@@ -464,8 +467,24 @@ pub fn outputs_complete(
     scene: &Scene,
     samples: usize,
 ) -> Result<bool, SceneChanged> {
-    if skipped_file(dir, stem).is_file() {
-        return Ok(true);
+    let skipped = skipped_file(dir, stem);
+    if skipped.is_file() {
+        // A scene skipped then and edited since (agents suited to the behaviour added) was
+        // taken as skipped for good: the marker records the checksum of the scene it judged.
+        let recorded = crate::io::read_regular_text(&skipped, 1 << 20, "a skipped-scene file")
+            .ok()
+            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+            .and_then(|v| v["scene_crc32c"].as_str().map(str::to_string));
+        return match recorded {
+            Some(then) if then != scene_crc32c(scene) => Err(SceneChanged {
+                stem: stem.into(),
+                dir: dir.display().to_string(),
+                then,
+                now: scene_crc32c(scene),
+                file: format!("{stem}_skipped.json and unguided/{stem}_skipped.json"),
+            }),
+            _ => Ok(true),
+        };
     }
     let rollouts_read = (0..samples).all(|k| {
         crate::io::rollout::Rollout::read(&dir.join(format!("{stem}_{k}.json")))
@@ -490,6 +509,7 @@ pub fn outputs_complete(
                     dir: dir.display().to_string(),
                     then,
                     now,
+                    file: format!("{stem}_costs.json"),
                 })
             }
         }
@@ -498,12 +518,20 @@ pub fn outputs_complete(
 }
 
 /// Writes [`skipped_file`] into `dir` and, where `twins` is true, into `dir/unguided`, with the
-/// reason; atomically, as every output.
-pub fn write_skipped(dir: &Path, stem: &str, reason: &str, twins: bool) -> Result<(), IoError> {
+/// reason and `scene`'s checksum ([`scene_crc32c`]); atomically, as every output.
+pub fn write_skipped(
+    dir: &Path,
+    stem: &str,
+    scene: &Scene,
+    reason: &str,
+    twins: bool,
+) -> Result<(), IoError> {
     let stem = output_stem(stem)?;
     let text = serde_json::to_string_pretty(&serde_json::json!({
         "scenario_id": stem,
         "skipped": reason,
+        // What `simulate --resume` compares the scene with ([`outputs_complete`]).
+        "scene_crc32c": scene_crc32c(scene),
     }))
     .expect("a JSON object serialises");
     let mut dirs = vec![dir.to_path_buf()];

@@ -369,13 +369,26 @@ fn refusal(dir: &Path, what: &str, why: String) -> TrainError {
 /// checkpoint directory (--out) is inside the input directory data"). What the export may
 /// replace it checks itself: nothing (`train::export` writes into a new or empty directory).
 pub fn check_export_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError> {
-    apart_from_inputs(
+    let exists = apart_from_inputs(
         dir,
         corpora,
         "the export directory (--export)",
         ": name a new or empty directory",
-    )
-    .map(|_| ())
+    )?;
+    // Said before the windows are cut, as `train::export` would say it after (a large corpus
+    // was read and cut first, minutes of work, and then refused).
+    if exists
+        && std::fs::read_dir(dir)
+            .map_err(|e| io_err(dir, e.to_string()))?
+            .next()
+            .is_some()
+    {
+        return Err(io_err(
+            dir,
+            "is not empty: export into a new or empty directory (nothing in it is replaced)".into(),
+        ));
+    }
+    Ok(())
 }
 
 /// Refuses a checkpoint directory (`train --out`) that is, or is inside, a directory of
@@ -586,6 +599,28 @@ pub fn check_cache_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError>
         }
     }
     Ok(())
+}
+
+/// A new, empty directory in the system's temporary directory for a run's scratch window
+/// cache (`train --export` without `--cache`), made here so that it is this run's own: the
+/// fixed name `drivescript-export-PID` took over a directory of that name already there (left
+/// by another user, or by an earlier process of the same id), built windows into it and then
+/// removed it whole. Its name starts with `prefix`.
+pub fn scratch_dir(prefix: &str) -> Result<PathBuf, TrainError> {
+    let base = std::env::temp_dir();
+    let pid = std::process::id();
+    for k in 0..1000 {
+        let dir = base.join(format!("{prefix}-{pid}-{k}"));
+        match std::fs::create_dir(&dir) {
+            Ok(()) => return Ok(dir),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+            Err(e) => return Err(io_err(&dir, e.to_string())),
+        }
+    }
+    Err(io_err(
+        &base,
+        format!("holds {prefix}-{pid}-0 to -999 already: no scratch directory could be made"),
+    ))
 }
 
 /// Removes the windows a build stopped by Ctrl-C or a kill left in the cache `dir`
@@ -1229,5 +1264,34 @@ mod tests {
             !h.validates("DEU_Reutlingen-3_1_T-1", SplitBy::Scene)
                 || is_validation("DEU_Reutlingen-3_1_T-1", 0)
         );
+    }
+
+    #[test]
+    fn an_export_directory_holding_anything_is_refused_before_any_window_is_cut() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("export");
+        check_export_dir(&out, &[]).unwrap();
+        std::fs::create_dir(&out).unwrap();
+        check_export_dir(&out, &[]).unwrap();
+        std::fs::write(out.join("notes.txt"), "mine").unwrap();
+        let e = check_export_dir(&out, &[]).unwrap_err().to_string();
+        assert!(e.contains("export") && e.contains("is not empty"), "{e}");
+    }
+
+    #[test]
+    fn a_scratch_directory_is_made_new_never_taken_over() {
+        let prefix = "drivescript-scratch-test";
+        let taken = std::env::temp_dir().join(format!("{prefix}-{}-0", std::process::id()));
+        std::fs::create_dir_all(&taken).unwrap();
+        std::fs::write(taken.join("mine.txt"), "keep").unwrap();
+        let made = scratch_dir(prefix).unwrap();
+        assert_ne!(made, taken);
+        assert_eq!(std::fs::read_dir(&made).unwrap().count(), 0);
+        assert_eq!(
+            std::fs::read_to_string(taken.join("mine.txt")).unwrap(),
+            "keep"
+        );
+        std::fs::remove_dir_all(&made).unwrap();
+        std::fs::remove_dir_all(&taken).unwrap();
     }
 }

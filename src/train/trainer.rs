@@ -464,6 +464,15 @@ impl CheckpointMeta {
                 max * max
             ));
         }
+        // The average is updated once a step at most: more updates than steps is no count a
+        // run wrote, and a resumed run took it for its warm-up without a word.
+        if self.ema_updates > self.steps_done as u64 {
+            return Err(format!(
+                "ema_updates = {}: more than the {} steps the weights were trained (the moving \
+                 average is updated once a step)",
+                self.ema_updates, self.steps_done
+            ));
+        }
         Ok(())
     }
 }
@@ -1802,6 +1811,11 @@ mod tests {
                 "config.edm.rho = 1e9: must be at most 1000",
             ),
             ("/config/lr", (-1.0).into(), "config.lr = -1"),
+            (
+                "/ema_updates",
+                1_000_000_000_000_000u64.into(),
+                "ema_updates = 1000000000000000: more than the",
+            ),
             ("/normaliser/std/0", 0.0.into(), "normaliser.std[0] = 0"),
             ("/normaliser/std/1", (-1.0).into(), "normaliser.std[1] = -1"),
             (
