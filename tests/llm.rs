@@ -1133,6 +1133,11 @@ fn a_batch_stopped_by_an_error_continues_when_run_again() {
             t.contains(says) && t.contains("the settings it started with"),
             "{t}"
         );
+        // Running the same command again meets the same refusal: not advised.
+        assert!(
+            t.contains("cannot be continued") && !t.contains("run the same command again"),
+            "{t}"
+        );
     }
     assert_eq!(srv2.received().len(), 1);
 }

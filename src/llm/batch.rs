@@ -1139,6 +1139,21 @@ impl Batch<'_> {
                     ),
                 )
             };
+            // A pair's run this batch cannot continue (another request, settings or follow-up)
+            // is refused as it is: running the same command again meets the same refusal.
+            let refused = |e: LlmError| {
+                bad(
+                    &dir,
+                    format!(
+                        "pair {} of {} ({}, {:?}) cannot be continued: {e}. The pairs finished \
+                         before it are in the summary",
+                        k + 1,
+                        self.instances.len(),
+                        inst.scene.meta.scenario_id,
+                        inst.request
+                    ),
+                )
+            };
             let resumed = dir.join("state.json").exists();
             // A run directory this batch creates is its own to remove, should it fail first.
             started.fresh = (std::fs::symlink_metadata(&dir).is_err()).then(|| dir.clone());
@@ -1169,6 +1184,7 @@ impl Batch<'_> {
                     outcome: format!("not planned: {e}"),
                     verdict: run_verdict(&[]),
                 },
+                Err(e) if resumed => return Err(refused(e)),
                 Err(e) => return Err(stopped(e)),
                 Ok(mut session) => {
                     let outcome = session.run(&mut |l| progress(Progress::Line(l)));

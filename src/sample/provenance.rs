@@ -294,7 +294,16 @@ fn first_difference(at: &str, a: &Value, b: &Value) -> Option<(String, String, S
             })
         }
         _ if a == b => None,
-        _ => Some((at.to_string(), a.to_string(), b.to_string())),
+        _ => Some((at.to_string(), recorded(a), recorded(b))),
+    }
+}
+
+/// A recorded value as a user reads it: `null` is a setting left to its default (the model's
+/// horizon, say), which "null" did not say.
+fn recorded(v: &Value) -> String {
+    match v {
+        Value::Null => "not given (the default)".into(),
+        _ => v.to_string(),
     }
 }
 
@@ -371,6 +380,18 @@ mod tests {
         // Another run: never, and the message says what differs.
         let e = record(2).claim(dir.path(), true).unwrap_err().to_string();
         assert!(e.contains("settings.seed: 1 there, 2 here"), "{e}");
+        // A setting left to its default is said so, not printed as JSON's null.
+        let mut defaulted = record(1);
+        defaulted.settings["horizon"] = serde_json::Value::Null;
+        let mut given = record(1);
+        given.settings["horizon"] = 20.into();
+        let other = tempfile::tempdir().unwrap();
+        given.claim(other.path(), false).unwrap();
+        let e = defaulted.claim(other.path(), true).unwrap_err().to_string();
+        assert!(
+            e.contains("settings.horizon: 20 there, not given (the default) here"),
+            "{e}"
+        );
     }
 
     #[test]
