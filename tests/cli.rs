@@ -5100,63 +5100,60 @@ fn a_negative_number_is_the_flag_s_value_and_its_check_names_it() {
     let dir = tempfile::tempdir().unwrap();
     let scene = samples().join("yaml/highway_cut_in.yaml");
     let out = dir.path().join("out");
-    let sim = |flag: &str, v: &str| {
-        fails(&[
-            "simulate",
-            s(&scene),
-            "--checkpoint",
-            "data/checkpoint",
-            "-o",
-            s(&out),
-            flag,
-            v,
-        ])
-    };
-    for (flag, v, says) in [
-        ("--lambda", "-1", "--lambda -1: must be 0 to 1000"),
-        ("--realism", "-2", "--realism -2: must be 0 to 1000"),
+    let sim = [
+        "simulate",
+        s(&scene),
+        "--checkpoint",
+        "data/checkpoint",
+        "-o",
+        s(&out),
+    ];
+    let train = ["train", "--data", "scripts/scenes", "--out", s(&out)];
+    for (command, flag, v, says) in [
+        (&sim[..], "--lambda", "-1", "--lambda -1: must be 0 to 1000"),
         (
+            &sim[..],
+            "--realism",
+            "-2",
+            "--realism -2: must be 0 to 1000",
+        ),
+        (
+            &sim[..],
             "--known-weight",
             "-1",
             "--known-weight -1: must be 0 to 1000",
         ),
         (
+            &sim[..],
             "--script-budget",
             "-0",
             "--script-budget -0: must be more than 0",
         ),
-    ] {
-        let err = sim(flag, v);
-        assert!(err.contains(says), "{flag} {v}: {err}");
-        assert!(!err.contains("unexpected argument"), "{err}");
-    }
-    let train = |flag: &str, v: &str| {
-        fails(&[
-            "train",
-            "--data",
-            "scripts/scenes",
-            "--out",
-            s(&out),
-            flag,
-            v,
-        ])
-    };
-    for (flag, v, says) in [
-        ("--lr", "-1", "--lr: lr = -1: must be positive"),
-        ("--scale-cap", "-1", "--scale-cap: scale_cap = -1"),
+        (&train[..], "--lr", "-1", "--lr: lr = -1: must be positive"),
         (
+            &train[..],
+            "--scale-cap",
+            "-1",
+            "--scale-cap: scale_cap = -1",
+        ),
+        (
+            &train[..],
             "--across-weight",
             "-3",
             "--across-weight: across_weight = -3",
         ),
         (
+            &train[..],
             "--ema-half-life",
             "-5",
             "--ema-half-life: ema_half_life = -5",
         ),
     ] {
-        let err = train(flag, v);
+        let mut args = command.to_vec();
+        args.extend([flag, v]);
+        let err = fails(&args);
         assert!(err.contains(says), "{flag} {v}: {err}");
+        assert!(!err.contains("unexpected argument"), "{err}");
     }
     // A count is no number below 0: clap's own refusal names the flag and the value.
     let o = drivescript(&["render", s(&scene), "--index", "-1", "-o", s(&out)]);
