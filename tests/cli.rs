@@ -3728,7 +3728,7 @@ fn scenes_an_auto_run_skipped_are_skipped_by_eval_over_the_same_list() {
         "{out}"
     );
     // --resume counts the skipped scene as done.
-    let out = ok(&simulate_args(
+    let resume = simulate_args(
         s(&scenes),
         "data/checkpoint",
         &[
@@ -3741,7 +3741,8 @@ fn scenes_an_auto_run_skipped_are_skipped_by_eval_over_the_same_list() {
             "--resume",
         ],
         s(&out_dir),
-    ));
+    );
+    let out = ok(&resume);
     assert!(!out.contains("no agents suited"), "{out}");
     // The skipped scene's file edited since: it was taken as skipped for good, whatever it
     // now holds.
@@ -3752,20 +3753,7 @@ fn scenes_an_auto_run_skipped_are_skipped_by_eval_over_the_same_list() {
         text.replace("s: 35, speed: 10", "s: 36, speed: 10"),
     )
     .unwrap();
-    let e = fails(&simulate_args(
-        s(&scenes),
-        "data/checkpoint",
-        &[
-            "--auto",
-            "cut_in",
-            "--steps",
-            "8",
-            "--task",
-            "unconditional",
-            "--resume",
-        ],
-        s(&out_dir),
-    ));
+    let e = fails(&resume);
     assert!(
         e.contains("junction: the scene is not the one its outputs in")
             && e.contains("remove junction_skipped.json and unguided/junction_skipped.json"),
