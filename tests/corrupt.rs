@@ -2606,12 +2606,7 @@ fn a_commonroad_map_of_many_lanelets_is_read_in_time_proportional_to_their_numbe
     // every centre-line point, every marked bound against every road line: 30,000 lanelets
     // of two points a bound (a 7.6 MB file) took 21 s, and a file at the size limit would
     // have taken half an hour (issue 32).
-    let sample =
-        std::fs::read_to_string(samples().join("commonroad/USA_US101-3_3_T-1.xml")).unwrap();
-    let head = &sample[..sample.find("<lanelet ").unwrap()];
-    let start = sample.find("<obstacle").unwrap();
-    let end = sample[start..].find("</obstacle>").unwrap() + start + "</obstacle>".len();
-    let mut xml = String::from(head);
+    let mut lanelets = String::new();
     let n = 30_000;
     let cols = (n as f64).sqrt().ceil() as usize;
     for i in 0..n {
@@ -2625,15 +2620,14 @@ fn a_commonroad_map_of_many_lanelets_is_read_in_time_proportional_to_their_numbe
                 y + dy
             )
         };
-        xml.push_str(&format!(
+        lanelets.push_str(&format!(
             "<lanelet id=\"{}\"><leftBound>{}</leftBound><rightBound>{}</rightBound></lanelet>",
             10_000 + i,
             bound(3.5),
             bound(0.0)
         ));
     }
-    xml.push_str(&sample[start..end]);
-    xml.push_str("</commonRoad>\n");
+    let xml = sample_with_lanelets(&lanelets);
     let dir = tempfile::tempdir().unwrap();
     let f = dir.path().join("many.xml");
     std::fs::write(&f, xml).unwrap();
@@ -2652,11 +2646,6 @@ fn a_lanelet_thousands_of_kilometres_long_is_read_in_bounded_memory() {
     // corner: its centre line was resampled every 2 m and judged for turns every half metre,
     // 56 million points. One such lanelet took 3 GB to `inspect`; a 220 KB file of 13 of
     // them took more than 6 GB and aborted ("memory allocation of 268435456 bytes failed").
-    let sample =
-        std::fs::read_to_string(samples().join("commonroad/USA_US101-3_3_T-1.xml")).unwrap();
-    let head = &sample[..sample.find("<lanelet ").unwrap()];
-    let start = sample.find("<obstacle").unwrap();
-    let end = sample[start..].find("</obstacle>").unwrap() + start + "</obstacle>".len();
     let bound = |dy: f64| {
         format!(
             "<point><x>-9.9e6</x><y>{}</y></point><point><x>9.9e6</x><y>{}</y></point>",
@@ -2664,13 +2653,11 @@ fn a_lanelet_thousands_of_kilometres_long_is_read_in_bounded_memory() {
             9.9e6 + dy
         )
     };
-    let xml = format!(
-        "{head}<lanelet id=\"1\"><leftBound>{}</leftBound><rightBound>{}</rightBound></lanelet>\
-         {}</commonRoad>\n",
+    let xml = sample_with_lanelets(&format!(
+        "<lanelet id=\"1\"><leftBound>{}</leftBound><rightBound>{}</rightBound></lanelet>",
         bound(3.5),
-        bound(0.0),
-        &sample[start..end]
-    );
+        bound(0.0)
+    ));
     let dir = tempfile::tempdir().unwrap();
     let f = dir.path().join("far.xml");
     std::fs::write(&f, xml).unwrap();
@@ -2689,6 +2676,17 @@ fn a_lanelet_thousands_of_kilometres_long_is_read_in_bounded_memory() {
     // ru_maxrss is in kilobytes on Linux.
     let peak_mb = usage.ru_maxrss as f64 / 1024.0;
     assert!(peak_mb < 400.0, "peak {peak_mb:.0} MB");
+}
+
+/// A CommonRoad file of the US-101 sample's header and first obstacle around `lanelets` (the
+/// XML of its lanelets, in place of the sample's).
+fn sample_with_lanelets(lanelets: &str) -> String {
+    let sample =
+        std::fs::read_to_string(samples().join("commonroad/USA_US101-3_3_T-1.xml")).unwrap();
+    let head = &sample[..sample.find("<lanelet ").unwrap()];
+    let start = sample.find("<obstacle").unwrap();
+    let end = sample[start..].find("</obstacle>").unwrap() + start + "</obstacle>".len();
+    format!("{head}{lanelets}{}</commonRoad>\n", &sample[start..end])
 }
 
 /// 1,500 cars, 40 m apart on three lanes, on one 100 km road (a 60 KB file), `steps` long.
