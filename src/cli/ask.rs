@@ -77,7 +77,7 @@ pub struct Args {
     #[arg(long)]
     model: Option<String>,
     /// Sampling temperature sent with every request, 0 to 2.
-    #[arg(long, value_parser = float, default_value_t = 0.2, allow_negative_numbers = true)]
+    #[arg(long, value_parser = float, default_value_t = 0.2)]
     temperature: f64,
     /// Most tokens per reply, 1 to 1,000,000.
     #[arg(long, default_value_t = 4096, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
@@ -94,22 +94,22 @@ pub struct Args {
     /// Seconds of silence allowed: before the reply's head, and between the parts of a reply;
     /// also the longest a streamed reply may go without a token, whatever else it sends
     /// (more than 0, at most 3600).
-    #[arg(long, value_parser = float, default_value_t = 300.0, allow_negative_numbers = true)]
+    #[arg(long, value_parser = float, default_value_t = 300.0)]
     llm_timeout: f64,
     /// Seconds a reply may take in all, from the first request (retries and the waits between
     /// them included): past it a reply still coming is abandoned (more than 0, at most 86400).
-    #[arg(long, value_parser = float, default_value_t = 1800.0, allow_negative_numbers = true)]
+    #[arg(long, value_parser = float, default_value_t = 1800.0)]
     reply_deadline: f64,
     /// Attempts per request on 429 and 5xx answers, 1 to 20.
     #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=20))]
     attempts: u32,
     /// First wait between attempts, seconds (doubles each time unless the server sends
     /// Retry-After), 0 to 600.
-    #[arg(long, value_parser = float, default_value_t = 2.0, allow_negative_numbers = true)]
+    #[arg(long, value_parser = float, default_value_t = 2.0)]
     backoff: f64,
     /// The longest wait between attempts, seconds: the doubling stops there, and a server's
     /// Retry-After asking for more is cut to it (said on the terminal), 0 to 3600.
-    #[arg(long, value_parser = float, default_value_t = 600.0, allow_negative_numbers = true)]
+    #[arg(long, value_parser = float, default_value_t = 600.0)]
     backoff_max: f64,
     /// Refinement rounds after the first sampling (0: the first script is final), at most 20.
     #[arg(long, default_value_t = 3, value_parser = usize_in(0, drivescript::llm::session::MAX_ROUNDS))]
@@ -125,7 +125,7 @@ pub struct Args {
     seed: u64,
     /// Largest unweighted script term a sample may keep and still meet the request (finite,
     /// not negative).
-    #[arg(long, value_parser = float, default_value_t = 0.05, allow_negative_numbers = true)]
+    #[arg(long, value_parser = float, default_value_t = 0.05)]
     tolerance: f64,
     /// Checkpoint directory (default: the one shipped in data/checkpoint).
     #[arg(long)]
@@ -146,7 +146,7 @@ pub struct Args {
     /// Seconds the cost script may take over one round's sampling, every evaluation together
     /// (more than 0, at most 86400); the same flag and default as `simulate`'s. A script past
     /// it goes back to the model as that round's feedback, and the run goes on.
-    #[arg(long, value_parser = float, value_name = "SECONDS", default_value_t = drivescript::sample::DEFAULT_SCRIPT_BUDGET.as_secs_f64(), allow_negative_numbers = true)]
+    #[arg(long, value_parser = float, value_name = "SECONDS", default_value_t = drivescript::sample::DEFAULT_SCRIPT_BUDGET.as_secs_f64())]
     script_budget: f64,
 }
 

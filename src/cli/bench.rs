@@ -22,7 +22,7 @@ pub struct Args {
     data: Option<PathBuf>,
     /// Minimum time spent on each row, 0.05 to 3600 seconds (`bench io` and `bench cost`;
     /// default 1).
-    #[arg(long, value_parser = super::ask::float, allow_negative_numbers = true)]
+    #[arg(long, value_parser = super::ask::float)]
     seconds: Option<f64>,
     /// Scene for `bench cost`, cropped to 24 agents x 80 future steps (default: NGSIM US-101
     /// scene 23_1 from ../shared/data when present, else the US-101 sample with its 22 agents).

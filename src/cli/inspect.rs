@@ -24,7 +24,7 @@ pub struct Args {
     #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..=100000), requires = "agents")]
     max_agents: u64,
     /// With --agents: agents always listed, whatever the cap (each must be in every scene).
-    #[arg(long, num_args = 1.., value_parser = super::agent_id_value, allow_negative_numbers = true, requires = "agents")]
+    #[arg(long, num_args = 1.., value_parser = super::agent_id_value, requires = "agents")]
     keep: Vec<i64>,
     /// With --agents: future steps the sampler simulates (the shipped model's 40).
     #[arg(long, default_value_t = 40, value_parser = clap::value_parser!(u64).range(1..=10000), requires = "agents")]

@@ -7,10 +7,10 @@ use anyhow::{bail, Context, Result};
 use drivescript::io::name::shown_counted;
 use drivescript::io::{check_output_not_input, check_replaces_own, rollout::Rollout, write_atomic};
 use drivescript::render::{render_gif_with_progress, PictureFormat, RenderOptions, MAX_GIF_FRAMES};
+use drivescript::scene::Scene;
 
 /// The fewest frames of a GIF whose drawing is said as it goes (a few seconds' work).
 const GIF_PROGRESS_FRAMES: usize = 200;
-use drivescript::scene::Scene;
 
 #[derive(clap::Args)]
 pub struct Args {

@@ -70,7 +70,7 @@ pub struct Args {
     horizon: Option<usize>,
     /// Guidance strength of the scripts, default 3 (chosen on held-out NGSIM behaviours with
     /// the fading schedule: data/checkpoint/README.md); above 0 only with --script or --auto.
-    #[arg(long, value_parser = super::ask::float, allow_negative_numbers = true)]
+    #[arg(long, value_parser = super::ask::float)]
     lambda: Option<f64>,
     /// Where the guidance gradient is taken: at the denoised output, or pulled back through
     /// the denoiser (the paper's rule, slower); the same flag and default as `ask`'s.
@@ -91,11 +91,11 @@ pub struct Args {
     /// (speed, reversing, acceleration, lateral acceleration, crabbing) and clear of every
     /// other agent; 0 turns realism off. A script exempts an agent it asks to back up with
     /// `allow(a, "reverse")`, and two it asks to collide with `allow(a, "collide", b)`.
-    #[arg(long, value_parser = super::ask::float, default_value_t = drivescript::sample::REALISM_WEIGHT, allow_negative_numbers = true)]
+    #[arg(long, value_parser = super::ask::float, default_value_t = drivescript::sample::REALISM_WEIGHT)]
     realism: f64,
     /// Weight of the known-state cost (conditional end points), default 1; above 0 only with
     /// --task conditional.
-    #[arg(long, value_parser = super::ask::float, allow_negative_numbers = true)]
+    #[arg(long, value_parser = super::ask::float)]
     known_weight: Option<f64>,
     /// How λ varies with the noise level σ: constant or fading (λ·σ/(σ+σ_data)).
     #[arg(long, value_enum, default_value = "fading")]
@@ -112,7 +112,7 @@ pub struct Args {
     /// Seconds the cost scripts may take over one scene's sampling, every evaluation together
     /// (more than 0, at most 86400): past it the scene fails with an error that says how many
     /// evaluations ran and their mean time, instead of running for hours.
-    #[arg(long, value_parser = super::ask::float, value_name = "SECONDS", default_value_t = drivescript::sample::DEFAULT_SCRIPT_BUDGET.as_secs_f64(), allow_negative_numbers = true)]
+    #[arg(long, value_parser = super::ask::float, value_name = "SECONDS", default_value_t = drivescript::sample::DEFAULT_SCRIPT_BUDGET.as_secs_f64())]
     script_budget: f64,
     /// Checkpoint directory (model.safetensors + config.json).
     #[arg(long)]

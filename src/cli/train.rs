@@ -68,7 +68,7 @@ pub struct Args {
     #[arg(long, default_value_t = 8)]
     batch: usize,
     /// Learning rate.
-    #[arg(long, value_parser = super::ask::float, default_value_t = 3e-4, allow_negative_numbers = true)]
+    #[arg(long, value_parser = super::ask::float, default_value_t = 3e-4)]
     lr: f64,
     /// Seed (initialisation, batches, noise, augmentation; default 1). A resumed run keeps its
     /// checkpoint's, and refuses another.
@@ -93,7 +93,7 @@ pub struct Args {
     /// Half-life, in steps, of the moving average of the weights that the checkpoint samples
     /// with (0: the last step's weights). Default: the setting's (cities 500, ngsim 0), or the
     /// resumed checkpoint's.
-    #[arg(long, value_parser = super::ask::float, allow_negative_numbers = true)]
+    #[arg(long, value_parser = super::ask::float)]
     ema_half_life: Option<f64>,
     /// How a new run scales the PCA components: `common` (one scale for all) or `capped`
     /// (each its own spread, at most the common one). Default: the setting's (cities capped,
@@ -102,16 +102,16 @@ pub struct Args {
     component_scale: Option<ScaleArg>,
     /// With `capped` scales: the cap as a fraction of the common scale, in (0, 1] (default 1).
     /// A resumed run keeps its checkpoint's.
-    #[arg(long, value_parser = super::ask::float, allow_negative_numbers = true)]
+    #[arg(long, value_parser = super::ask::float)]
     scale_cap: Option<f64>,
     /// A new run draws its training noise levels with ln σ ~ N(P_MEAN, P_STD²) (EDM's P_mean;
     /// default -1.2). Higher trains the levels where the sampler places a car on its route more
     /// often; the validation loss is drawn the same way, so it compares only runs of one
     /// P_MEAN and P_STD. A resumed run keeps its checkpoint's.
-    #[arg(long, value_parser = super::ask::float, allow_negative_numbers = true)]
+    #[arg(long, value_parser = super::ask::float)]
     p_mean: Option<f64>,
     /// EDM's P_std for a new run (default 1.2; see --p-mean).
-    #[arg(long, value_parser = super::ask::float, allow_negative_numbers = true)]
+    #[arg(long, value_parser = super::ask::float)]
     p_std: Option<f64>,
     /// A new run gives every agent-lane pair the pose of the lane's point nearest to the agent
     /// besides its first point's (`nearest_lane_pose` in the checkpoint's window; a resumed run
@@ -133,7 +133,7 @@ pub struct Args {
     /// times the rest, 1 to 1000 (default 1, the plain error; `across_weight` in the
     /// checkpoint's config). Validation losses then compare only runs of one weight. A resumed
     /// run keeps its checkpoint's.
-    #[arg(long, value_parser = super::ask::float, allow_negative_numbers = true)]
+    #[arg(long, value_parser = super::ask::float)]
     across_weight: Option<f64>,
     /// Train from scratch into an --out directory that already holds a checkpoint (which is
     /// replaced at the first validation). Without it, that is refused.

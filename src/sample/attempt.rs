@@ -467,24 +467,35 @@ pub fn outputs_complete(
     scene: &Scene,
     samples: usize,
 ) -> Result<bool, SceneChanged> {
+    // Ok(true) where the scene is the one the record was written for (or the record, from
+    // before checksums were kept, says nothing).
+    let judged = |record: &Path, cap: u64, what: &str, file: String| {
+        let then = crate::io::read_regular_text(record, cap, what)
+            .ok()
+            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+            .and_then(|v| v["scene_crc32c"].as_str().map(str::to_string));
+        let now = scene_crc32c(scene);
+        match then {
+            Some(then) if then != now => Err(SceneChanged {
+                stem: stem.into(),
+                dir: dir.display().to_string(),
+                then,
+                now,
+                file,
+            }),
+            _ => Ok(true),
+        }
+    };
     let skipped = skipped_file(dir, stem);
     if skipped.is_file() {
         // A scene skipped then and edited since (agents suited to the behaviour added) was
         // taken as skipped for good: the marker records the checksum of the scene it judged.
-        let recorded = crate::io::read_regular_text(&skipped, 1 << 20, "a skipped-scene file")
-            .ok()
-            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
-            .and_then(|v| v["scene_crc32c"].as_str().map(str::to_string));
-        return match recorded {
-            Some(then) if then != scene_crc32c(scene) => Err(SceneChanged {
-                stem: stem.into(),
-                dir: dir.display().to_string(),
-                then,
-                now: scene_crc32c(scene),
-                file: format!("{stem}_skipped.json and unguided/{stem}_skipped.json"),
-            }),
-            _ => Ok(true),
-        };
+        return judged(
+            &skipped,
+            1 << 20,
+            "a skipped-scene file",
+            format!("{stem}_skipped.json and unguided/{stem}_skipped.json"),
+        );
     }
     let rollouts_read = (0..samples).all(|k| {
         crate::io::rollout::Rollout::read(&dir.join(format!("{stem}_{k}.json")))
@@ -494,27 +505,12 @@ pub fn outputs_complete(
     if !(rollouts_read && costs.is_file() && dir.join(format!("{stem}_0.gif")).is_file()) {
         return Ok(false);
     }
-    let recorded = crate::io::read_regular_text(&costs, 64 << 20, "a cost report")
-        .ok()
-        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
-        .and_then(|v| v["scene_crc32c"].as_str().map(str::to_string));
-    match recorded {
-        Some(then) => {
-            let now = scene_crc32c(scene);
-            if then == now {
-                Ok(true)
-            } else {
-                Err(SceneChanged {
-                    stem: stem.into(),
-                    dir: dir.display().to_string(),
-                    then,
-                    now,
-                    file: format!("{stem}_costs.json"),
-                })
-            }
-        }
-        None => Ok(true),
-    }
+    judged(
+        &costs,
+        64 << 20,
+        "a cost report",
+        format!("{stem}_costs.json"),
+    )
 }
 
 /// Writes [`skipped_file`] into `dir` and, where `twins` is true, into `dir/unguided`, with the
