@@ -7,6 +7,7 @@ mod kinematic_limits;
 mod lane_graph;
 mod lane_path;
 mod map;
+pub mod routes;
 
 use std::collections::{BTreeMap, HashSet};
 

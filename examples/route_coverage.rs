@@ -1,0 +1,157 @@
+//! How closely recorded futures follow a route of the lane graph (`scene::routes`), against the
+//! straight line of the current heading that the cities model's futures are told from.
+//!
+//! Directories are read file by file. For every moving vehicle with a whole future of HORIZON steps from the current step (10), the
+//! largest offset of its future across the route it strays from least, and across the line
+//! of its current heading; the shares within each distance.
+//!
+//!     cargo run --release --example route_coverage -- HORIZON SCENE_OR_DIR...
+
+use std::path::Path;
+
+use drivescript::geom::Point;
+use drivescript::io::{load_scenes, LoadOptions};
+use drivescript::scene::routes::{candidate_routes, fit_route};
+use drivescript::scene::AgentType;
+
+const LIMITS: [f64; 5] = [0.5, 1.0, 1.75, 3.5, 7.0];
+
+fn main() -> anyhow::Result<()> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    anyhow::ensure!(
+        args.len() >= 2,
+        "usage: route_coverage HORIZON SCENE_OR_DIR..."
+    );
+    let horizon: usize = args[0].parse()?;
+    let (mut route_max, mut line_max, mut counts) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut no_route, mut still) = (0usize, 0usize);
+    // Residual futures, along then across, in the route's frame and in the heading's.
+    let (mut in_route, mut in_plane): (Vec<Vec<f64>>, Vec<Vec<f64>>) = (Vec::new(), Vec::new());
+    let mut files = Vec::new();
+    for arg in &args[1..] {
+        let path = Path::new(arg);
+        if path.is_dir() {
+            let mut inside: Vec<_> = std::fs::read_dir(path)?
+                .map(|e| e.map(|e| e.path()))
+                .collect::<Result<_, _>>()?;
+            inside.sort();
+            files.extend(inside);
+        } else {
+            files.push(path.to_path_buf());
+        }
+    }
+    for file in &files {
+        for scene in load_scenes(file, &LoadOptions::default())? {
+            let c = scene.meta.current_step;
+            for a in &scene.agents {
+                if a.agent_type != AgentType::Vehicle || a.is_static {
+                    continue;
+                }
+                if c + horizon >= a.states.len() || !(c..=c + horizon).all(|t| a.is_valid(t)) {
+                    continue;
+                }
+                let now = a.states[c];
+                let pts: Vec<Point> = a.states[c + 1..=c + horizon]
+                    .iter()
+                    .map(|s| s.position())
+                    .collect();
+                let moved = pts.windows(2).map(|w| (w[1] - w[0]).norm()).sum::<f64>();
+                if moved < 2.0 {
+                    still += 1;
+                    continue;
+                }
+                let (hc, hs) = (now.heading.cos(), now.heading.sin());
+                let line = pts
+                    .iter()
+                    .map(|p| (-(p.x - now.x) * hs + (p.y - now.y) * hc).abs())
+                    .fold(0.0, f64::max);
+                let routes =
+                    candidate_routes(&scene.map, now.position(), now.heading, moved + 20.0);
+                counts.push(routes.len());
+                let speed = now.speed();
+                match fit_route(&routes, &pts) {
+                    Some(f) => {
+                        route_max.push(f.max_offset);
+                        let p0 = routes[f.route].frenet.project(now.position());
+                        let along =
+                            f.s.iter()
+                                .enumerate()
+                                .map(|(t, s)| s - p0.s - speed * 0.1 * (t + 1) as f64);
+                        let across = f.d.iter().map(|d| d - p0.d);
+                        in_route.push(along.chain(across).collect());
+                        let along = pts.iter().enumerate().map(|(t, p)| {
+                            (p.x - now.x) * hc + (p.y - now.y) * hs - speed * 0.1 * (t + 1) as f64
+                        });
+                        let across = pts.iter().map(|p| -(p.x - now.x) * hs + (p.y - now.y) * hc);
+                        in_plane.push(along.chain(across).collect());
+                    }
+                    None => no_route += 1,
+                }
+                line_max.push(line);
+            }
+        }
+    }
+    let n = line_max.len();
+    println!("{n} moving vehicles with {horizon} future steps ({still} moved under 2 m, left out); {no_route} with no route");
+    counts.sort_unstable();
+    if !counts.is_empty() {
+        println!(
+            "routes per vehicle: median {}, max {}",
+            counts[counts.len() / 2],
+            counts[counts.len() - 1]
+        );
+    }
+    let share =
+        |v: &[f64], lim: f64| v.iter().filter(|&&x| x <= lim).count() as f64 / n.max(1) as f64;
+    println!(
+        "largest offset     | {}",
+        LIMITS.map(|l| format!("<= {l} m")).join(" | ")
+    );
+    println!(
+        "best route         | {}",
+        LIMITS
+            .map(|l| format!("{:.3}", share(&route_max, l)))
+            .join(" | ")
+    );
+    println!(
+        "line of the heading | {}",
+        LIMITS
+            .map(|l| format!("{:.3}", share(&line_max, l)))
+            .join(" | ")
+    );
+    for (name, rows) in [("route frame", &in_route), ("heading frame", &in_plane)] {
+        let (along, across) = spread(rows, horizon);
+        println!(
+            "{name}: RMS residual along {along:.2} m, across {across:.2} m; PCA reconstruction RMS (m) with {}",
+            [2, 4, 8, 12, 20].map(|k| format!("{k}: {:.3}", pca_rmse(rows, k))).join(", ")
+        );
+    }
+    Ok(())
+}
+
+/// RMS of the along and the across halves of the residuals.
+fn spread(rows: &[Vec<f64>], horizon: usize) -> (f64, f64) {
+    let n = (rows.len() * horizon).max(1) as f64;
+    let sq = |r: &[f64]| r.iter().map(|v| v * v).sum::<f64>();
+    let along: f64 = rows.iter().map(|r| sq(&r[..horizon])).sum();
+    let across: f64 = rows.iter().map(|r| sq(&r[horizon..])).sum();
+    ((along / n).sqrt(), (across / n).sqrt())
+}
+
+/// Position RMS error (per point) of the residuals rebuilt from their first `k` principal
+/// components (fitted on these same rows).
+fn pca_rmse(rows: &[Vec<f64>], k: usize) -> f64 {
+    let (n, dim) = (rows.len(), rows[0].len());
+    let mean: Vec<f64> = (0..dim)
+        .map(|j| rows.iter().map(|r| r[j]).sum::<f64>() / n as f64)
+        .collect();
+    let m = nalgebra::DMatrix::from_fn(n, dim, |i, j| rows[i][j] - mean[j]);
+    let svd = m.clone().svd(false, true);
+    let v = svd.v_t.expect("asked for");
+    let mut order: Vec<usize> = (0..svd.singular_values.len()).collect();
+    order.sort_by(|a, b| svd.singular_values[*b].total_cmp(&svd.singular_values[*a]));
+    let basis = nalgebra::DMatrix::from_fn(k.min(order.len()), dim, |i, j| v[(order[i], j)]);
+    let rebuilt = (&m * basis.transpose()) * &basis;
+    let err = (m - rebuilt).map(|e| e * e).sum();
+    (err / (n * dim / 2) as f64).sqrt()
+}

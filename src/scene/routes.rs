@@ -1,0 +1,207 @@
+//! Routes: the lane paths a vehicle can take from where it stands, and how closely a future
+//! follows the nearest of them.
+//!
+//! A future told as "this route, so far along it, so far across it" is on its lane by
+//! construction; a future told in the plane has to learn the lanes to a few decimetres, which
+//! the cities model did not (data/cities-wip/README.md, "The network does not learn even one
+//! scene's futures").
+
+use super::lane_path::{LanePath, Turn};
+use super::map::{LaneId, Map};
+use crate::geom::{wrap_angle, Point};
+
+/// How far from a lane's centre line (metres) a vehicle may stand for a route to start on it:
+/// beyond half a lane, as a car mid-way through a lane change stands.
+pub const ORIGIN_RADIUS: f64 = 2.5;
+
+/// How far a lane's direction may differ from the vehicle's heading (radians, 45°) for a
+/// route to start on it: of the lanes that overlap in a junction, those going its way.
+pub const ORIGIN_HEADING: f64 = std::f64::consts::FRAC_PI_4;
+
+/// Routes kept at most: three turns from each of four origin lanes.
+pub const MAX_ROUTES: usize = 12;
+
+/// Metres each route reaches behind the vehicle, so that the first step measures from a point
+/// on the path, not from its extension.
+const BEHIND: f64 = 30.0;
+
+/// The routes from the pose `(p, heading)`, each reaching at least `ahead` metres past `p`
+/// where the lane graph goes that far: straight on, left and right at the forks, from every
+/// lane whose centre line passes within [`ORIGIN_RADIUS`] of `p` going within
+/// [`ORIGIN_HEADING`] of `heading`, nearest lane first. Where no lane qualifies, the routes
+/// start on [`Map::lane_at`]'s lane; a map with no lane going the vehicle's way gives none.
+/// Routes with the same lanes are kept once.
+pub fn candidate_routes(map: &Map, p: Point, heading: f64, ahead: f64) -> Vec<LanePath> {
+    let mut origins: Vec<(f64, LaneId, f64)> = map
+        .lanes()
+        .iter()
+        .filter_map(|lane| {
+            let hit = lane.centerline.nearest(&p);
+            let dir = lane.centerline.segment_direction(hit.segment);
+            let diff = wrap_angle(heading - dir.y.atan2(dir.x)).abs();
+            (hit.distance <= ORIGIN_RADIUS && diff <= ORIGIN_HEADING).then_some((
+                hit.distance,
+                lane.id,
+                hit.s,
+            ))
+        })
+        .collect();
+    origins.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    if origins.is_empty() {
+        if let Some(id) = map.lane_at(p, heading) {
+            let lane = map.lane(id).expect("lane_at names a lane of the map");
+            origins.push((0.0, id, lane.centerline.nearest(&p).s));
+        }
+    }
+    let mut routes: Vec<LanePath> = Vec::new();
+    for (_, lane, along) in origins {
+        for turn in [Turn::Straight, Turn::Left, Turn::Right] {
+            if routes.len() == MAX_ROUTES {
+                return routes;
+            }
+            // The origin is a lane of this map, so only a malformed graph could refuse it.
+            let Ok(path) = map.lane_path(lane, along + ahead, BEHIND, turn) else {
+                continue;
+            };
+            if !routes.iter().any(|r| r.lanes == path.lanes) {
+                routes.push(path);
+            }
+        }
+    }
+    routes
+}
+
+/// Points measured against one route ([`fit_route`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RouteFit {
+    /// Which of the routes, by index.
+    pub route: usize,
+    /// Arc length along the route of each point.
+    pub s: Vec<f64>,
+    /// Signed offset across the route of each point, positive to the left.
+    pub d: Vec<f64>,
+    /// The largest `|d|`.
+    pub max_offset: f64,
+}
+
+/// The route the points stray from least: the smallest largest offset across it, the first
+/// route on a tie. `None` with no routes or no points.
+pub fn fit_route(routes: &[LanePath], points: &[Point]) -> Option<RouteFit> {
+    if points.is_empty() {
+        return None;
+    }
+    let mut best: Option<RouteFit> = None;
+    for (i, r) in routes.iter().enumerate() {
+        let (mut s, mut d) = (Vec::with_capacity(points.len()), Vec::new());
+        let mut max_offset: f64 = 0.0;
+        for q in points {
+            let f = r.frenet.project(*q);
+            max_offset = max_offset.max(f.d.abs());
+            // Worse than the best already: its offsets are not needed.
+            if best.as_ref().is_some_and(|b| max_offset >= b.max_offset) {
+                break;
+            }
+            s.push(f.s);
+            d.push(f.d);
+        }
+        if best.as_ref().is_none_or(|b| max_offset < b.max_offset) {
+            best = Some(RouteFit {
+                route: i,
+                s,
+                d,
+                max_offset,
+            });
+        }
+    }
+    best
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::io::yaml;
+    use std::path::Path;
+
+    /// Lane 1 runs east into a fork (2 straight on, 3 left, 4 right), 0 leads into it, 5 runs
+    /// beside 1 on its left and 6 runs west beside it on its right.
+    fn fork() -> crate::scene::Scene {
+        let text = r#"
+steps: 2
+current_step: 0
+map:
+  lanes:
+    - {id: 0, centerline: [[-50, 0], [0, 0]], successors: [1]}
+    - {id: 1, centerline: [[0, 0], [50, 0]], successors: [2, 3, 4], left: [5]}
+    - {id: 2, centerline: [[50, 0], [100, 0]]}
+    - {id: 3, centerline: [[50, 0], [60, 2], [68, 10], [70, 20], [70, 60]]}
+    - {id: 4, centerline: [[50, 0], [60, -2], [68, -10], [70, -20], [70, -60]]}
+    - {id: 5, centerline: [[0, 3.5], [50, 3.5]]}
+    - {id: 6, centerline: [[50, -3.5], [0, -3.5]]}
+agents:
+  - {id: 1, states: [[10, 0, 0], [11, 0, 0]]}
+"#;
+        yaml::parse(Path::new("fork.yaml"), text).unwrap()
+    }
+
+    #[test]
+    fn a_car_before_a_fork_has_a_route_for_each_turn_and_one_from_the_lane_beside() {
+        let s = fork();
+        let routes = candidate_routes(&s.map, Point::new(10.0, 0.5), 0.0, 80.0);
+        let lanes: Vec<Vec<LaneId>> = routes.iter().map(|r| r.lanes.clone()).collect();
+        // Lane 1 is nearest (0.5 m), then 5 (3.0 m is beyond the radius), so only lane 1's
+        // three turns; lane 6 goes the other way.
+        assert_eq!(lanes, vec![vec![0, 1, 2], vec![0, 1, 3], vec![0, 1, 4]]);
+        // Half-way to lane 5, both lanes start routes, lane 1's first; lane 5 has no fork.
+        let routes = candidate_routes(&s.map, Point::new(10.0, 1.7), 0.0, 80.0);
+        let lanes: Vec<Vec<LaneId>> = routes.iter().map(|r| r.lanes.clone()).collect();
+        assert_eq!(
+            lanes,
+            vec![vec![0, 1, 2], vec![0, 1, 3], vec![0, 1, 4], vec![5]]
+        );
+        // Facing west, only lane 6 goes its way.
+        let routes = candidate_routes(&s.map, Point::new(10.0, -3.0), std::f64::consts::PI, 80.0);
+        assert_eq!(routes.len(), 1);
+        assert_eq!(routes[0].lanes, vec![6]);
+    }
+
+    #[test]
+    fn a_turning_future_fits_the_turning_route() {
+        let s = fork();
+        let routes = candidate_routes(&s.map, Point::new(10.0, 0.0), 0.0, 80.0);
+        // Along lane 1, then up lane 3's last leg 0.3 m to its right.
+        let mut pts: Vec<Point> = (0..5)
+            .map(|i| Point::new(10.0 + 10.0 * i as f64, 0.0))
+            .collect();
+        pts.extend((0..4).map(|i| Point::new(70.3, 25.0 + 10.0 * i as f64)));
+        let fit = fit_route(&routes, &pts).unwrap();
+        assert_eq!(routes[fit.route].lanes, vec![0, 1, 3]);
+        // The frame turns smoothly across the corner's vertices: 0.3 m to within 2 mm.
+        assert!((fit.max_offset - 0.3).abs() < 2e-3, "{fit:?}");
+        assert!(
+            (fit.d.last().unwrap() + 0.3).abs() < 2e-3,
+            "right of the route is negative"
+        );
+        assert_eq!(fit.s.len(), pts.len());
+        // Straight on, the straight route fits exactly.
+        let pts: Vec<Point> = (0..9)
+            .map(|i| Point::new(10.0 + 10.0 * i as f64, 0.0))
+            .collect();
+        let fit = fit_route(&routes, &pts).unwrap();
+        assert_eq!(
+            (routes[fit.route].lanes.clone(), fit.max_offset),
+            (vec![0, 1, 2], 0.0)
+        );
+        // Arc length counts from the route's start: lane 0, the whole lane behind lane 1.
+        assert!((fit.s[0] - 60.0).abs() < 1e-9, "{:?}", fit.s);
+        assert!(fit_route(&routes, &[]).is_none() && fit_route(&[], &pts).is_none());
+    }
+
+    #[test]
+    fn a_car_away_from_every_lane_starts_on_the_lane_going_its_way() {
+        let s = fork();
+        let routes = candidate_routes(&s.map, Point::new(20.0, 12.0), 0.0, 80.0);
+        // 8.5 m from lane 5, 12 m from lane 1: lane 5, which has no fork.
+        let lanes: Vec<Vec<LaneId>> = routes.iter().map(|r| r.lanes.clone()).collect();
+        assert_eq!(lanes, vec![vec![5]]);
+    }
+}
