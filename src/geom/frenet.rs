@@ -24,6 +24,21 @@ pub struct FrenetPoint {
     pub dd: [f64; 2],
 }
 
+/// A Frenet point taken to the world ([`FrenetPath::frame_at`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FramePoint {
+    /// The world point.
+    pub point: Point,
+    /// ∂point/∂s.
+    pub along: Point,
+    /// ∂point/∂d: the unit normal, left of the direction of travel.
+    pub across: Point,
+    /// The path's heading at `s` (radians), as [`FrenetPath::heading_at`].
+    pub heading: f64,
+    /// ∂heading/∂s, as [`FrenetPath::curvature_at`].
+    pub curvature: f64,
+}
+
 /// A reference path with smooth, continuous Frenet coordinates.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FrenetPath {
@@ -293,6 +308,25 @@ impl FrenetPath {
         let (piece, t) = self.piece_at(s);
         let n = piece.normal(t);
         piece.a + piece.e * t + n * (d / n.norm().max(1e-12))
+    }
+
+    /// The world point at `(s, d)` with the frame's derivatives there: what a computation
+    /// graph needs to take Frenet coordinates to the plane.
+    pub fn frame_at(&self, s: f64, d: f64) -> FramePoint {
+        let (piece, t) = self.piece_at(s);
+        let n = piece.normal(t);
+        let len = n.norm().max(1e-12);
+        let unit = n / len;
+        let m = piece.n1 - piece.n0;
+        // d(n/|n|)/dt: the normal turns as it is interpolated along the piece.
+        let turn = (m - unit * unit.dot(&m)) / len;
+        FramePoint {
+            point: piece.a + piece.e * t + unit * d,
+            along: (piece.e + turn * d) / piece.scale,
+            across: unit,
+            heading: (-n.x).atan2(n.y),
+            curvature: cross(&n, &m) / (len * len * piece.scale),
+        }
     }
 
     /// Heading (radians) of the path's tangent at `s`, consistent with the Frenet frame.

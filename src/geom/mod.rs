@@ -15,7 +15,7 @@ mod segment_grid;
 
 pub use boxes::OrientedBox;
 pub use cell_index::CellIndex;
-pub use frenet::{FrenetPath, FrenetPoint};
+pub use frenet::{FramePoint, FrenetPath, FrenetPoint};
 pub use neighbours::{nearest_distances, pairs_within};
 pub use point_tree::PointTree;
 pub use polygon::Polygon;

@@ -11,6 +11,7 @@ mod gradients;
 pub mod ops;
 pub mod pca;
 pub mod route;
+pub mod route_frame;
 
 pub use attention::Scores;
 pub use denoiser::{Context, Denoiser, DenoiserConfig, SceneEncoding, GOAL_FEATURES};
