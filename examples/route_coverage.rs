@@ -11,7 +11,7 @@ use std::path::Path;
 
 use drivescript::geom::Point;
 use drivescript::io::{load_scenes, LoadOptions};
-use drivescript::scene::routes::{candidate_routes, fit_route};
+use drivescript::scene::routes::{candidate_routes, fit_route, route_residual};
 use drivescript::scene::AgentType;
 
 const LIMITS: [f64; 5] = [0.5, 1.0, 1.75, 3.5, 7.0];
@@ -72,13 +72,20 @@ fn main() -> anyhow::Result<()> {
                 match fit_route(&routes, &pts) {
                     Some(f) => {
                         route_max.push(f.max_offset);
-                        let p0 = routes[f.route].frenet.project(now.position());
-                        let along =
-                            f.s.iter()
-                                .enumerate()
-                                .map(|(t, s)| s - p0.s - speed * 0.1 * (t + 1) as f64);
-                        let across = f.d.iter().map(|d| d - p0.d);
-                        in_route.push(along.chain(across).collect());
+                        let future: Vec<Option<[f64; 3]>> = a.states[c + 1..=c + horizon]
+                            .iter()
+                            .map(|s| Some([s.x, s.y, s.heading]))
+                            .collect();
+                        let current = [now.x, now.y, now.heading];
+                        let r =
+                            route_residual(&routes[f.route].frenet, current, &future, speed * 0.1);
+                        let r: Vec<[f64; 3]> = r.into_iter().flatten().collect();
+                        in_route.push(
+                            r.iter()
+                                .map(|v| v[0])
+                                .chain(r.iter().map(|v| v[1]))
+                                .collect(),
+                        );
                         let along = pts.iter().enumerate().map(|(t, p)| {
                             (p.x - now.x) * hc + (p.y - now.y) * hs - speed * 0.1 * (t + 1) as f64
                         });

@@ -8,7 +8,7 @@
 
 use super::lane_path::{LanePath, Turn};
 use super::map::{LaneId, Map};
-use crate::geom::{wrap_angle, Point};
+use crate::geom::{wrap_angle, FrenetPath, Point};
 
 /// How far from a lane's centre line (metres) a vehicle may stand for a route to start on it:
 /// beyond half a lane, as a car mid-way through a lane change stands.
@@ -116,6 +116,51 @@ pub fn fit_route(routes: &[LanePath], points: &[Point]) -> Option<RouteFit> {
     best
 }
 
+/// A future told against its route, per future step `[along, across, heading]`: the
+/// distance along the route beyond `advance` metres a step from the current pose, the offset
+/// across it beyond the current one, and the heading beyond the route's there (unwrapped, so
+/// continuous through ±π). `None` where the step is unobserved. The form the route-frame
+/// model generates; [`from_route_residual`] inverts it.
+pub fn route_residual(
+    path: &FrenetPath,
+    current: [f64; 3],
+    future: &[Option<[f64; 3]>],
+    advance: f64,
+) -> Vec<Option<[f64; 3]>> {
+    let start = path.project(Point::new(current[0], current[1]));
+    let mut prev = 0.0;
+    future
+        .iter()
+        .enumerate()
+        .map(|(t, st)| {
+            let st = (*st)?;
+            let f = path.project(Point::new(st[0], st[1]));
+            let h = prev + wrap_angle(st[2] - path.heading_at(f.s) - prev);
+            prev = h;
+            Some([f.s - start.s - advance * (t + 1) as f64, f.d - start.d, h])
+        })
+        .collect()
+}
+
+/// World poses `(x, y, heading)` of a future told against its route ([`route_residual`]).
+pub fn from_route_residual(
+    path: &FrenetPath,
+    current: [f64; 3],
+    residual: &[[f64; 3]],
+    advance: f64,
+) -> Vec<[f64; 3]> {
+    let start = path.project(Point::new(current[0], current[1]));
+    residual
+        .iter()
+        .enumerate()
+        .map(|(t, r)| {
+            let s = start.s + advance * (t + 1) as f64 + r[0];
+            let p = path.to_cartesian(s, start.d + r[1]);
+            [p.x, p.y, wrap_angle(path.heading_at(s) + r[2])]
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -203,5 +248,58 @@ agents:
         // 8.5 m from lane 5, 12 m from lane 1: lane 5, which has no fork.
         let lanes: Vec<Vec<LaneId>> = routes.iter().map(|r| r.lanes.clone()).collect();
         assert_eq!(lanes, vec![vec![5]]);
+    }
+
+    #[test]
+    fn a_future_told_against_its_route_comes_back_to_the_plane() {
+        let s = fork();
+        let routes = candidate_routes(&s.map, Point::new(10.0, 0.0), 0.0, 80.0);
+        let left = routes.iter().find(|r| r.lanes == vec![0, 1, 3]).unwrap();
+        let path = &left.frenet;
+        // 0.2 m left of lane 1 at 12 m/s, drifting 0.1 m right a second and slowing 1 m/s²,
+        // heading 0.05 rad left of the lane, for 8 s: round the corner onto lane 3.
+        // (The frame's normals lean towards the corner all along lane 1, so the pose is set in
+        // the frame, not in the plane.)
+        let start = 60.0;
+        let p0 = path.to_cartesian(start, 0.2);
+        let current = [p0.x, p0.y, path.heading_at(start)];
+        let future: Vec<[f64; 3]> = (1..=80)
+            .map(|t| {
+                let tau = 0.1 * t as f64;
+                let along = start + 12.0 * tau - 0.5 * tau * tau;
+                let p = path.to_cartesian(along, 0.2 - 0.1 * tau);
+                [p.x, p.y, path.heading_at(along) + 0.05]
+            })
+            .collect();
+        assert!(future[79][2] > 1.2, "it ends heading nearly north");
+        let observed: Vec<Option<[f64; 3]>> = future.iter().map(|f| Some(*f)).collect();
+        let r: Vec<[f64; 3]> = route_residual(path, current, &observed, 1.2)
+            .into_iter()
+            .map(Option::unwrap)
+            .collect();
+        for (t, v) in r.iter().enumerate() {
+            let tau = 0.1 * (t + 1) as f64;
+            assert!(
+                (v[0] + 0.5 * tau * tau).abs() < 1e-9,
+                "step {t}: along {}",
+                v[0]
+            );
+            assert!((v[1] + 0.1 * tau).abs() < 1e-9, "step {t}: across {}", v[1]);
+            assert!((v[2] - 0.05).abs() < 1e-9, "step {t}: heading {}", v[2]);
+        }
+        let back = from_route_residual(path, current, &r, 1.2);
+        for (got, want) in back.iter().zip(&future) {
+            let ok = (got[0] - want[0]).abs() < 1e-9
+                && (got[1] - want[1]).abs() < 1e-9
+                && wrap_angle(got[2] - want[2]).abs() < 1e-9;
+            assert!(ok, "{got:?} {want:?}");
+        }
+        // Unobserved steps stay unobserved, and the heading stays unwrapped past them.
+        let mut gaps = observed.clone();
+        gaps[3] = None;
+        gaps[4] = None;
+        let g = route_residual(path, current, &gaps, 1.2);
+        assert_eq!((g[3], g[4]), (None, None));
+        assert_eq!(g[5], Some(r[5]));
     }
 }
