@@ -347,6 +347,7 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
         nearest_lane_pose: false,
         route_times: 0,
         goals: false,
+        route_frame: false,
     };
     let path = args
         .scene

@@ -116,6 +116,36 @@ pub fn fit_route(routes: &[LanePath], points: &[Point]) -> Option<RouteFit> {
     best
 }
 
+/// Metres a stored route reaches behind the vehicle ([`route_line`]).
+pub const LINE_BEHIND: f64 = 10.0;
+
+/// The line a vehicle's future is told against, in the world: the route of [`candidate_routes`]
+/// that the `observed` future points stray from least (with none observed, the first route:
+/// straight on from the nearest lane), from [`LINE_BEHIND`] metres behind `(p, heading)` to
+/// `reach` metres ahead (less where the lane graph ends), with the lanes' own vertices. Where
+/// no lane goes its way, the line of its heading: told against that, a future is what the
+/// heading-frame model generates.
+pub fn route_line(map: &Map, p: Point, heading: f64, observed: &[Point], reach: f64) -> Vec<Point> {
+    let routes = candidate_routes(map, p, heading, reach + LINE_BEHIND);
+    let chosen = if observed.is_empty() {
+        routes.first()
+    } else {
+        fit_route(&routes, observed).map(|f| &routes[f.route])
+    };
+    let line = chosen.and_then(|route| {
+        let s0 = route.frenet.project(p).s;
+        let part = route
+            .frenet
+            .polyline()
+            .slice(s0 - LINE_BEHIND, s0 + reach)?;
+        Some(part.points().to_vec())
+    });
+    line.unwrap_or_else(|| {
+        let dir = Point::new(heading.cos(), heading.sin());
+        vec![p - dir * LINE_BEHIND, p + dir * reach]
+    })
+}
+
 /// A future told against its route, per future step `[along, across, heading]`: the
 /// distance along the route beyond `advance` metres a step from the current pose, the offset
 /// across it beyond the current one, and the heading beyond the route's there (unwrapped, so

@@ -5,7 +5,8 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::geom::{wrap_angle, Point};
+use crate::geom::{wrap_angle, FrenetPath, Point, Polyline};
+use crate::scene::routes::{route_line, route_residual};
 use crate::scene::{AgentType, Scene};
 
 /// Window sizes and how windows are cut.
@@ -51,6 +52,13 @@ pub struct WindowConfig {
     /// Off in configurations written before the field.
     #[serde(default)]
     pub goals: bool,
+    /// Tell each agent's future against its route of the lane graph
+    /// ([`crate::scene::routes`]): the distance along it beyond constant speed, the offset
+    /// across it and the heading beyond its own, so that a future is on its lane by
+    /// construction. Off (the line of the agent's heading) in configurations written before
+    /// the field.
+    #[serde(default)]
+    pub route_frame: bool,
 }
 
 /// `Ok` when `lo ≤ v ≤ hi`, else a message naming the setting and its range.
@@ -75,7 +83,15 @@ impl WindowConfig {
         within("lane_points", self.lane_points, 2, 1000)?;
         within("centres_per_step", self.centres_per_step, 1, 1024)?;
         within("min_future", self.min_future, 0, self.future)?;
-        within("route_times", self.route_times, 0, self.future)
+        within("route_times", self.route_times, 0, self.future)?;
+        if self.route_frame && self.route_times > 0 {
+            return Err(
+                "route_frame with route_times: the route features measure a future told \
+                 along the agent's heading, not along its route"
+                    .into(),
+            );
+        }
+        Ok(())
     }
 
     /// Future steps a centre must be observed for ([`WindowConfig::min_future`], 0 meaning all).
@@ -106,6 +122,7 @@ impl WindowConfig {
             nearest_lane_pose: false,
             route_times: 0,
             goals: false,
+            route_frame: false,
         }
     }
 
@@ -136,6 +153,7 @@ impl WindowConfig {
             nearest_lane_pose: false,
             route_times: 0,
             goals: false,
+            route_frame: false,
         }
     }
 
@@ -179,6 +197,9 @@ pub struct Window {
     pub lane_conn: Vec<u8>,
     /// What each agent slot is ([`agent_attributes`]), `max_agents` rows (zeros for padding).
     pub attrs: Vec<[f32; AGENT_ATTRS]>,
+    /// With [`WindowConfig::route_frame`], each agent slot's route ([`route_line`]) in the
+    /// centre frame (empty for slots not observed at the current step); otherwise empty.
+    pub routes: Vec<Vec<[f32; 2]>>,
 }
 
 /// Features that say what a road user is: vehicle, cyclist, pedestrian (one-hot; other types
@@ -312,6 +333,14 @@ pub fn window_among(
             lanes[k * cfg.lane_points + j] = [f[0] as f32, f[1] as f32];
         }
     }
+    let routes = if cfg.route_frame {
+        agents
+            .iter()
+            .map(|&i| agent_route(scene, cfg, c, i, origin))
+            .collect()
+    } else {
+        Vec::new()
+    };
     let m = cfg.max_lanes;
     let mut lane_conn = vec![0u8; m * m];
     let g = scene.map.graph();
@@ -341,7 +370,38 @@ pub fn window_among(
         lane_ids,
         lane_conn,
         attrs,
+        routes,
     }
+}
+
+/// Agent `i`'s route at scene step `c` ([`route_line`], chosen by its recorded future) in the
+/// frame at `origin`; empty unless it is observed at `c`. It reaches as far as the agent
+/// could go in the window's future at one and a half times its speed (at least 8 m/s), and
+/// 20 m more.
+fn agent_route(
+    scene: &Scene,
+    cfg: &WindowConfig,
+    c: usize,
+    i: usize,
+    origin: [f64; 3],
+) -> Vec<[f32; 2]> {
+    let a = &scene.agents[i];
+    let Some(now) = a.states.get(c).filter(|s| s.valid) else {
+        return Vec::new();
+    };
+    let observed: Vec<Point> = (c + 1..=c + cfg.future)
+        .filter_map(|t| a.states.get(t).filter(|s| s.valid))
+        .map(|s| s.position())
+        .collect();
+    let horizon = cfg.future as f64 * scene.meta.dt;
+    let reach = 20.0 + (1.5 * now.speed()).max(8.0) * horizon;
+    route_line(&scene.map, now.position(), now.heading, &observed, reach)
+        .into_iter()
+        .map(|p| {
+            let f = to_frame(origin, p, 0.0);
+            [f[0] as f32, f[1] as f32]
+        })
+        .collect()
 }
 
 /// Subtracts the constant-velocity anchor (`advance` metres per step along +x of the agent's
@@ -387,7 +447,7 @@ impl Window {
                 wrap_angle(st[2] as f64 + angle) as f32,
             ];
         }
-        for p in &mut w.lanes {
+        for p in w.lanes.iter_mut().chain(w.routes.iter_mut().flatten()) {
             let (x, y) = (p[0], p[1]);
             *p = [c * x - s * y, s * x + c * y];
         }
@@ -419,10 +479,12 @@ impl Window {
     /// straight ahead): what the model generates. Most of a future is its speed; against the
     /// anchor the network only has to model how the agent deviates from holding it, and an
     /// untrained or uncertain model falls back to constant velocity instead of standing still.
+    ///
+    /// With [`WindowConfig::route_frame`], the future told against the agent's route instead
+    /// ([`route_residual`]): the anchor is the same speed held along the route.
     pub fn agent_residual(&self, cfg: &WindowConfig, k: usize) -> Option<Vec<f64>> {
-        let mut v = self.agent_future(cfg, k)?;
-        remove_anchor(&mut v, self.advance(cfg, k));
-        Some(v)
+        let (v, seen) = self.agent_residual_seen(cfg, k)?;
+        seen.iter().all(|s| *s).then_some(v)
     }
 
     /// Future `(x, y, heading)` of agent slot `k` in its own current frame, flattened
@@ -471,6 +533,9 @@ impl Window {
         cfg: &WindowConfig,
         k: usize,
     ) -> Option<(Vec<f64>, Vec<bool>)> {
+        if cfg.route_frame {
+            return self.route_residual_seen(cfg, k);
+        }
         let (mut v, seen) = self.agent_future_seen(cfg, k)?;
         remove_anchor(&mut v, self.advance(cfg, k));
         for (p, s) in v.chunks_mut(3).zip(&seen) {
@@ -479,6 +544,33 @@ impl Window {
             }
         }
         Some((v, seen))
+    }
+
+    /// [`Window::agent_residual_seen`] told against the agent's route (`routes[k]`): `None`
+    /// where the slot has no route or is not observed at the current step.
+    fn route_residual_seen(&self, cfg: &WindowConfig, k: usize) -> Option<(Vec<f64>, Vec<bool>)> {
+        let steps = cfg.steps();
+        let c = k * steps + cfg.history - 1;
+        if !self.valid[c] {
+            return None;
+        }
+        let line = self.routes.get(k)?;
+        let points = line.iter().map(|p| Point::new(p[0] as f64, p[1] as f64));
+        // Windows come from `window_among` or a store that checked its routes.
+        let path = FrenetPath::new(Polyline::new(points).ok()?);
+        let pose = |i: usize| {
+            let s = self.states[i];
+            [s[0] as f64, s[1] as f64, s[2] as f64]
+        };
+        let future: Vec<Option<[f64; 3]>> = (1..=cfg.future)
+            .map(|j| self.valid[c + j].then(|| pose(c + j)))
+            .collect();
+        let r = route_residual(&path, pose(c), &future, self.advance(cfg, k));
+        let seen = r.iter().map(Option::is_some).collect();
+        Some((
+            r.into_iter().flat_map(|v| v.unwrap_or([0.0; 3])).collect(),
+            seen,
+        ))
     }
 }
 
@@ -569,5 +661,55 @@ mod tests {
             assert!(v[0] > 1.5 && v[0] < 3.0, "{}", v[0]);
         }
         assert!(w.agent_future(&cfg, 10).is_none(), "padding has no future");
+    }
+
+    #[test]
+    fn a_turning_future_told_against_its_route_stays_on_it_whichever_way_the_window_faces() {
+        // Vehicle 1 turns left at the crossroads: 14.6 m north of its lane's line after 4 s.
+        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes/crossroads_left.yaml");
+        let s = load_scene(&p, 0, &LoadOptions::default()).unwrap();
+        let cfg = WindowConfig {
+            route_frame: true,
+            ..WindowConfig::ngsim()
+        };
+        let w = window_at(&s, &cfg, 10, 0);
+        assert_eq!(w.routes.len(), 2);
+        let plain = WindowConfig::ngsim();
+        let heading_frame = w.agent_residual(&plain, 0).unwrap();
+        let across = |v: &[f64]| v.chunks(3).map(|p| p[1].abs()).fold(0.0, f64::max);
+        assert!(across(&heading_frame) > 14.0, "{}", across(&heading_frame));
+        let route_frame = w.agent_residual(&cfg, 0).unwrap();
+        assert!(across(&route_frame) < 0.05, "{}", across(&route_frame));
+        // At constant speed along the route, only the corner's cut lengthens the path a little.
+        let along = route_frame
+            .chunks(3)
+            .map(|p| p[0].abs())
+            .fold(0.0, f64::max);
+        assert!(along < 0.5, "{along}");
+        // Rotating the window (training's augmentation) leaves the residual as it was.
+        let turned = w.rotated(1.1).agent_residual(&cfg, 0).unwrap();
+        for (a, b) in route_frame.iter().zip(&turned) {
+            assert!((a - b).abs() < 1e-3, "{a} {b}");
+        }
+        // And the residual goes back to the window's own future.
+        let line: Vec<Point> = w.routes[0]
+            .iter()
+            .map(|p| Point::new(p[0] as f64, p[1] as f64))
+            .collect();
+        let path = FrenetPath::new(Polyline::new(line).unwrap());
+        let steps = cfg.steps();
+        let cur = w.states[cfg.history - 1];
+        let current = [cur[0] as f64, cur[1] as f64, cur[2] as f64];
+        let res: Vec<[f64; 3]> = route_frame.chunks(3).map(|p| [p[0], p[1], p[2]]).collect();
+        let back =
+            crate::scene::routes::from_route_residual(&path, current, &res, w.advance(&cfg, 0));
+        for (j, b) in back.iter().enumerate() {
+            let st = w.states[cfg.history + j];
+            assert!((b[0] - st[0] as f64).abs() < 1e-3 && (b[1] - st[1] as f64).abs() < 1e-3);
+        }
+        let _ = steps;
+        // The standing vehicle 2 has a route too; a window without routes has none.
+        assert!(w.routes[1].len() >= 2);
+        assert!(window_at(&s, &plain, 10, 0).routes.is_empty());
     }
 }

@@ -880,6 +880,16 @@ fn encode(w: &Window, cfg: &WindowConfig) -> Vec<u8> {
         }
         b.extend(&w.lane_conn[l * m..l * m + nl]);
     }
+    if cfg.route_frame {
+        for k in 0..na {
+            let line = w.routes.get(k).map_or(&[][..], |r| &r[..]);
+            b.extend((line.len() as u32).to_le_bytes());
+            for q in line {
+                b.extend(q[0].to_le_bytes());
+                b.extend(q[1].to_le_bytes());
+            }
+        }
+    }
     b
 }
 
@@ -911,6 +921,7 @@ fn decode(b: &[u8], cfg: &WindowConfig) -> Result<Window, String> {
         lane_ids: Vec::with_capacity(nl),
         lane_conn: vec![0u8; m * m],
         attrs: vec![[0f32; AGENT_ATTRS]; cfg.max_agents],
+        routes: Vec::new(),
     };
     for k in 0..na {
         w.agents.push(r.u64()? as usize);
@@ -929,6 +940,28 @@ fn decode(b: &[u8], cfg: &WindowConfig) -> Result<Window, String> {
             *q = [r.f32()?, r.f32()?];
         }
         w.lane_conn[l * m..l * m + nl].copy_from_slice(r.take(nl)?);
+    }
+    if cfg.route_frame {
+        for k in 0..na {
+            let n = r.u32()? as usize;
+            // Past the bytes left it is cut short, before anything is allocated for it.
+            if n.saturating_mul(8) > b.len() - r.at {
+                return Err(format!(
+                    "agent slot {k}: a route of {n} points, more than the bytes left"
+                ));
+            }
+            let line: Vec<[f32; 2]> = (0..n)
+                .map(|_| Ok([r.f32()?, r.f32()?]))
+                .collect::<Result<_, String>>()?;
+            let points = line
+                .iter()
+                .map(|p| crate::geom::Point::new(p[0] as f64, p[1] as f64));
+            if n > 0 {
+                crate::geom::Polyline::new(points)
+                    .map_err(|e| format!("agent slot {k}: route: {e}"))?;
+            }
+            w.routes.push(line);
+        }
     }
     if r.at != b.len() {
         return Err(format!("{} bytes left over", b.len() - r.at));
@@ -1065,10 +1098,17 @@ mod tests {
 
     #[test]
     fn a_window_read_back_from_the_store_is_the_window_cut() {
+        for route_frame in [false, true] {
+            window_read_back(route_frame);
+        }
+    }
+
+    fn window_read_back(route_frame: bool) {
         // Futures of 4 s, centres observed for 2 s: some windows' futures are complete.
         let cfg = WindowConfig {
             stride: 20,
             min_future: 20,
+            route_frame,
             ..WindowConfig::ngsim()
         };
         let dir = tempfile::tempdir().unwrap();
@@ -1089,6 +1129,7 @@ mod tests {
             assert_eq!(n, cut.len());
             for (i, w) in cut.iter().enumerate() {
                 assert_eq!(&get(i), w, "window {i}");
+                assert_eq!(w.routes.len(), if route_frame { w.agents.len() } else { 0 });
             }
             assert_eq!(store.train_len() + store.val_len(), cut.len());
             assert_eq!(store.futures().is_empty(), val);
@@ -1293,5 +1334,32 @@ mod tests {
         );
         std::fs::remove_dir_all(&made).unwrap();
         std::fs::remove_dir_all(&taken).unwrap();
+    }
+
+    #[test]
+    fn a_route_longer_than_its_bytes_is_refused_by_its_slot() {
+        let cfg = WindowConfig {
+            route_frame: true,
+            ..WindowConfig::ngsim()
+        };
+        let (_, scene, _) = cut_in();
+        let w = windows(&scene, &cfg).remove(0);
+        let mut b = encode(&w, &cfg);
+        assert_eq!(decode(&b, &cfg).unwrap(), w);
+        // The first slot's route count sits after the lanes: find it by its own value.
+        let n = w.routes[0].len() as u32;
+        let at = b.len() - w.routes.iter().map(|r| 4 + r.len() * 8).sum::<usize>();
+        assert_eq!(b[at..at + 4], n.to_le_bytes());
+        b[at..at + 4].copy_from_slice(&u32::MAX.to_le_bytes());
+        let err = decode(&b, &cfg).unwrap_err();
+        assert!(
+            err.starts_with("agent slot 0: a route of 4294967295 points"),
+            "{err}"
+        );
+        // A route of one point is no line.
+        let mut one = w.clone();
+        one.routes[1].truncate(1);
+        let err = decode(&encode(&one, &cfg), &cfg).unwrap_err();
+        assert!(err.starts_with("agent slot 1: route: "), "{err}");
     }
 }
