@@ -80,7 +80,13 @@ fn detached_interruptible<T: Send>(
         let work = std::thread::Builder::new()
             .stack_size(drivescript::cost::SCRIPT_STACK_BYTES)
             .spawn_scoped(s, || {
-                let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(&stop)));
+                // On the library's pool, as `detached` runs: the sampler's parallel tensor
+                // operations took rayon's global pool, whose threads a process forked from
+                // this one (multiprocessing, a DataLoader's workers) never has: sampling
+                // there waited for them forever.
+                let r = drivescript::cost::on_script_stack(|| {
+                    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(&stop)))
+                });
                 waiter.unpark();
                 r
             })
@@ -403,6 +409,21 @@ fn floats<'py>(
 ) -> PyResult<PyArrayLikeDyn<'py, f64, AllowTypeChange>> {
     let py = obj.py();
     let np = py.import("numpy")?;
+    // numpy's asarray keeps a masked array's data and drops its mask: the values under the
+    // mask (whatever was left there) were read as positions, without a word.
+    if obj.is_instance(&np.getattr("ma")?.getattr("MaskedArray")?)? {
+        let masked: usize = np
+            .getattr("ma")?
+            .call_method1("count_masked", (obj,))?
+            .extract()?;
+        if masked > 0 {
+            return Err(PyValueError::new_err(format!(
+                "{what}: a masked array with {masked} masked values, which would be read as \
+                 the positions they hide: give unobserved states as NaN \
+                 ({what}.filled(numpy.nan))"
+            )));
+        }
+    }
     let arr = np.call_method1("asarray", (obj,))?;
     let dtype = arr.getattr("dtype")?;
     let kind: String = dtype.getattr("kind")?.extract()?;
@@ -1194,7 +1215,7 @@ impl Sampler {
     }
 
     /// Samples futures of `scene` guided by `scripts`, as `drivescript simulate` does (same
-    /// settings and defaults; the scripts are compiled and validated on the scene cut to the
+    /// settings and defaults, guidance in output space, save `samples`: 4 here, 1 there; the scripts are compiled and validated on the scene cut to the
     /// sampled horizon first). Returns float64 `[samples, agents, steps, 3]`, NaN where an
     /// agent is absent; `steps` is `horizon` or the model's.
     ///
@@ -1227,11 +1248,25 @@ impl Sampler {
             steps.get(py, "steps")?,
         );
         let horizon = opt(py, &horizon, "horizon")?;
+        let guidance_given = matches!(guidance, Arg::Given(_));
         let (guidance, realism, polish) = (
             guidance.get(py, "guidance")?,
             realism.get(py, "realism")?,
             polish.get(py, "polish")?,
         );
+        // As `simulate --lambda` without a script: a weight with nothing to weigh was
+        // dropped without a word (0, unguided, says nothing wrong).
+        // (One out of range is the sampler's settings error, below.)
+        if guidance_given
+            && guidance > 0.0
+            && guidance <= sampler::MAX_WEIGHT
+            && scripts.is_empty()
+        {
+            return Err(PyValueError::new_err(format!(
+                "guidance = {}: no script to weigh; give scripts (or leave guidance out)",
+                drivescript::geom::num(guidance)
+            )));
+        }
         let task = match task {
             "conditional" => sampler::Task::Conditional,
             "unconditional" => sampler::Task::Unconditional,
@@ -1248,7 +1283,10 @@ impl Sampler {
             seed,
             lambda: guidance,
             task,
-            guidance: sampler::Guidance::Denoiser,
+            // Where guidance acts, as `simulate` takes it by default: the denoiser, which
+            // `simulate` left for output space (one setting, one default), gave other samples
+            // than the CLI for the same seed and settings, without a word.
+            guidance: sampler::DEFAULT_GUIDANCE,
             known_weight: 1.0,
             schedule: sampler::LambdaSchedule::Fading,
             clamp: sampler::Clamp::Coordinate,
