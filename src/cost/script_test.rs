@@ -650,7 +650,8 @@ impl Runner {
                 let msg = e.to_string();
                 // Matched in what the error says, after the script's name that begins it:
                 // `error: "accident"` passed for any error of accident.rhai.
-                let said = msg.strip_prefix(name.as_str()).unwrap_or(&msg);
+                let shown = crate::io::name::one_line(&name);
+                let said = msg.strip_prefix(shown.as_str()).unwrap_or(&msg);
                 return Ok((said.contains(want.as_str()), format!("error: {msg}")));
             }
             (Err(e), None) => return Ok((false, format!("unexpected error: {e}"))),
