@@ -594,6 +594,15 @@ def test_a_commonroad_current_step_past_the_scene_is_a_value_error_not_clamped(d
             ds.Scene.load(path, commonroad_current_step=k)
 
 
+def test_a_script_given_twice_is_refused_as_simulate_refuses_it(ds, scene, cut_in):
+    # It weighed twice, where `simulate --script F --script F` is refused.
+    sampler = ds.Sampler(ROOT / "data/checkpoint")
+    again = ds.CostScript.from_file(CUT_IN, params=CUT_IN_PARAMS)
+    for twice in [[cut_in, cut_in], [cut_in, again]]:
+        with pytest.raises(ValueError, match=r"scripts\[1\] is scripts\[0\] again .*each script counts once"):
+            sampler.sample(scene, scripts=twice, samples=1, steps=8)
+
+
 def test_a_bad_guidance_weight_names_the_keyword(ds, scene):
     sampler = ds.Sampler(ROOT / "data/checkpoint")
     for bad in [float("nan"), float("inf"), -1.0]:
@@ -751,6 +760,33 @@ def test_numpy_integers_and_text_that_is_no_utf8_as_parameters(ds, scene):
         ds.CostScript.from_file(CUT_IN, params={"cutter": 401, "victim": 405, "turn": "l\udcff"})
     with pytest.raises(ValueError, match="parameter name .*lone surrogate"):
         ds.CostScript.from_file(CUT_IN, params={"cutter": 401, "victim": 405, "t\udcff": 1})
+
+
+def test_a_str_argument_that_is_no_text_or_too_long_a_name_is_named(ds, scene, cut_in):
+    # A lone surrogate (bytes that are not UTF-8, as os.fsdecode gives them) raised
+    # "'utf-8' codec can't encode character", naming no argument; a name of 100,000
+    # characters began every message of the script.
+    bad = b"let x = 1;\xff".decode("utf-8", "surrogateescape")
+    sampler = ds.Sampler(ROOT / "data/checkpoint")
+    for call, arg in [
+        (lambda: ds.CostScript.from_source(bad), "source"),
+        (lambda: ds.CostScript.from_source("let x = 1;", name=bad), "name"),
+        (lambda: scene.lane_path(1, 50.0, turn=bad), "turn"),
+        (lambda: scene.agent_lane_path(401, turn=bad), "turn"),
+        (lambda: ds.check(bad, scene, scene.log_future(40), CUT_IN_PARAMS), "behaviour"),
+        (lambda: ds.suggest(bad, scene), "behaviour"),
+        (lambda: sampler.sample(scene, task=bad), "task"),
+    ]:
+        with pytest.raises(ValueError, match=rf"^{arg} = .*: holds a lone surrogate, which is not text"):
+            call()
+    with pytest.raises(TypeError, match="^behaviour = 7: a int, but behaviour is a str"):
+        ds.check(7, scene, scene.log_future(40), CUT_IN_PARAMS)
+    with pytest.raises(ValueError, match="100000 characters; a script's name starts its error messages") as e:
+        ds.CostScript.from_source("let x = ;", name="n" * 100_000)
+    assert len(str(e.value)) < 300
+    # The defaults still hold.
+    assert ds.CostScript.from_source("let x = 1;").name == "<script>"
+    assert scene.agent_lane_path(401).shape[1] == 2
 
 
 def test_a_path_may_be_bytes_as_for_python_s_own_file_functions(ds, scene, tmp_path):
