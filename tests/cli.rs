@@ -931,9 +931,15 @@ fn eval_shows_a_rollouts_directory_s_name_on_one_line_and_merge_reads_it_back() 
         !out.contains('\u{1b}') && !out.lines().any(|l| l.starts_with("| fake")),
         "{out}"
     );
-    assert!(out.contains("r\\u{000A}| fake | 9 |\\u{001B}[2J | 1 |"), "{out}");
+    assert!(
+        out.contains("r\\u{000A}| fake | 9 |\\u{001B}[2J | 1 |"),
+        "{out}"
+    );
     let merged = ok(&["eval", "--merge", s(&json)]);
-    assert!(merged.contains("r\\u{000A}| fake | 9 |\\u{001B}[2J | 1 |"), "{merged}");
+    assert!(
+        merged.contains("r\\u{000A}| fake | 9 |\\u{001B}[2J | 1 |"),
+        "{merged}"
+    );
 }
 
 fn rollouts_offroad(out: &str) -> f64 {

@@ -1721,7 +1721,11 @@ fn resume_refuses_another_checkpoint_than_the_run_s() {
     let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/checkpoint");
     let own = dir.path().join("own checkpoint");
     std::fs::create_dir(&own).unwrap();
-    std::fs::copy(shipped.join("model.safetensors"), own.join("model.safetensors")).unwrap();
+    std::fs::copy(
+        shipped.join("model.safetensors"),
+        own.join("model.safetensors"),
+    )
+    .unwrap();
     // The same network, trained further in this story: another config.json.
     let config = std::fs::read_to_string(shipped.join("config.json")).unwrap();
     std::fs::write(own.join("config.json"), format!("{config}\n")).unwrap();

@@ -1316,10 +1316,7 @@ impl Sampler {
         // As `simulate --lambda` without a script: a weight with nothing to weigh was
         // dropped without a word (0, unguided, says nothing wrong).
         // (One out of range is the sampler's settings error, below.)
-        if guidance_given
-            && guidance > 0.0
-            && guidance <= sampler::MAX_WEIGHT
-            && scripts.is_empty()
+        if guidance_given && guidance > 0.0 && guidance <= sampler::MAX_WEIGHT && scripts.is_empty()
         {
             return Err(PyValueError::new_err(format!(
                 "guidance = {}: no script to weigh; give scripts (or leave guidance out)",
