@@ -451,6 +451,7 @@ fn wanted(scene: &Scene, batch: bool) -> String {
 /// and numeric strings, none of which is a position, so those are refused.
 fn floats<'py>(
     what: &str,
+    wanted: &str,
     obj: &Bound<'py, PyAny>,
 ) -> PyResult<PyArrayLikeDyn<'py, f64, AllowTypeChange>> {
     let py = obj.py();
@@ -470,7 +471,20 @@ fn floats<'py>(
             )));
         }
     }
-    let arr = np.call_method1("asarray", (obj,))?;
+    // Nested lists of uneven lengths: numpy's "setting an array element with a sequence. The
+    // requested array has an inhomogeneous shape" named neither the argument nor the shape
+    // wanted.
+    let arr = np.call_method1("asarray", (obj,)).map_err(|e| {
+        if !e.is_instance_of::<PyValueError>(py) {
+            return e;
+        }
+        let err = PyValueError::new_err(format!(
+            "{what}: not an array of one shape ({}): {wanted}",
+            e.value(py)
+        ));
+        err.set_cause(py, Some(e));
+        err
+    })?;
     let dtype = arr.getattr("dtype")?;
     let kind: String = dtype.getattr("kind")?.extract()?;
     // 'O' (Python objects, a list mixing types) converts element by element with float(),
@@ -535,7 +549,11 @@ fn trajectories(
     obj: &Bound<'_, PyAny>,
     batch: bool,
 ) -> PyResult<(usize, Vec<Trajectories>)> {
-    let arr = &floats(if batch { "trajs" } else { "traj" }, obj)?;
+    let arr = &floats(
+        if batch { "trajs" } else { "traj" },
+        &wanted(scene, batch),
+        obj,
+    )?;
     let shape = arr.shape().to_vec();
     let agents = scene.inner.agents.len();
     let dims = if batch { 4 } else { 3 };

@@ -267,6 +267,22 @@ def test_a_wrong_shape_is_a_value_error_naming_the_shape(scene, cut_in):
         cut_in.evaluate_batch(scene, np.zeros((n, 40, 3)))
 
 
+def test_nested_lists_of_uneven_lengths_are_a_value_error_naming_the_shape(ds, scene, cut_in, tmp_path):
+    # numpy's "setting an array element with a sequence" named neither the argument nor the
+    # shape wanted.
+    rag = scene.log_future(40).tolist()
+    rag[0] = rag[0][:5]
+    for call, arg in [
+        (lambda: cut_in.evaluate(scene, rag), "traj"),
+        (lambda: cut_in.evaluate_batch(scene, [rag]), "trajs"),
+        (lambda: ds.check("cut_in", scene, rag, CUT_IN_PARAMS), "traj"),
+        (lambda: scene.write_rollout(tmp_path / "r.json", rag), "traj"),
+    ]:
+        with pytest.raises(ValueError, match=rf"^{arg}: not an array of one shape \(.*\): expected shape \(.*22, steps, 3\)"):
+            call()
+    assert not (tmp_path / "r.json").exists()
+
+
 def test_a_half_observed_state_is_a_value_error_naming_agent_and_step(scene, cut_in):
     traj = scene.log_future(40)
     a = int(np.argwhere(~np.isnan(traj[:, 3, 0]))[0][0])
