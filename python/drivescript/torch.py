@@ -95,7 +95,18 @@ def cost(script: Any, scene: Any, traj: Any) -> Any:
     beyond the dtype's range an ``OverflowError``); it is evaluated in float64 on the CPU and the result and its gradient come
     back in ``traj``'s dtype and device. Unobserved states are NaN and get zero gradient.
     """
-    return _function().apply(traj, script, scene)
+    fn = _function()
+    import torch
+
+    # An array or a list failed inside forward with "'numpy.ndarray' object has no attribute
+    # 'is_complex'", naming neither the argument nor what it should be.
+    if not isinstance(traj, torch.Tensor):
+        raise TypeError(
+            f"traj: a {type(traj).__module__}.{type(traj).__qualname__}, but "
+            "drivescript.torch.cost takes a torch.Tensor (torch.tensor(traj)); "
+            "script.evaluate(scene, traj) takes arrays"
+        )
+    return fn.apply(traj, script, scene)
 
 
 __all__ = ["cost"]

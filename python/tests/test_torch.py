@@ -50,6 +50,14 @@ def test_complex_and_boolean_tensors_are_type_errors(ds, scene, cut_in):
         ds.torch.cost(cut_in, scene, t.isnan())
 
 
+def test_what_is_not_a_tensor_is_a_type_error_naming_the_argument(ds, scene, cut_in):
+    # "'numpy.ndarray' object has no attribute 'is_complex'" named neither.
+    traj = scene.log_future(40)
+    for bad, kind in [(traj, "numpy.ndarray"), (traj.tolist(), "builtins.list"), (None, "builtins.NoneType")]:
+        with pytest.raises(TypeError, match=rf"^traj: a {kind}, but drivescript.torch.cost takes a torch.Tensor"):
+            ds.torch.cost(cut_in, scene, bad)
+
+
 def test_an_integer_tensor_is_a_type_error_not_a_truncated_cost(ds, scene, cut_in):
     # The cost came back in the tensor's dtype: 3.7 as 3, without a word.
     t = torch.tensor(scene.log_future(40)).nan_to_num().round().to(torch.int64)
