@@ -1146,3 +1146,27 @@ fn a_syntax_check_takes_a_parameter_read_as_a_constant_and_still_refuses_bad_syn
     // On a scene without the parameter, the name is still refused, with its place.
     fails(reads, &["evil.rhai:1:", "cutter"]);
 }
+
+#[test]
+fn a_script_named_with_a_line_break_is_named_on_one_line() {
+    // A script's name is its path: a file named `a\nerror: all good.rhai` began every message
+    // with a line of its own, which read as a second, reassuring error.
+    let name = "a\nerror: all good \u{1b}[2J.rhai";
+    let shown = "a\\u{000A}error: all good \\u{001B}[2J.rhai";
+    let compiled = |src: &str| {
+        CostScript::compile(src, name, scene(), &Params::default(), &Limits::default())
+            .and_then(|s| s.validate())
+    };
+    for (src, says) in [
+        ("let x = ;", ":1:9: syntax error"),
+        ("let x = 1;", ": the script declares no term"),
+        ("let a = agent(424242);\nterm(\"t\", a.x.mean());", ":1:"),
+        ("term(\"t\", 1.0);", ":1: term \"t\""),
+    ] {
+        let e = compiled(src).expect_err(src).to_string();
+        assert!(
+            e.starts_with(&format!("{shown}{says}")) && !e.contains('\n') && !e.contains('\u{1b}'),
+            "{src:?}: {e:?}"
+        );
+    }
+}

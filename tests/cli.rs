@@ -902,6 +902,46 @@ fn eval_prints_tables_for_baselines_and_rollouts() {
 }
 
 /// The off-road figure of the rollouts row of a conditional `eval` table.
+#[test]
+fn eval_shows_a_rollouts_directory_s_name_on_one_line_and_merge_reads_it_back() {
+    // The name starts a row of the table: a line break in the directory's name split the row
+    // (here into a fake one) and an escape sequence reached the terminal as it was.
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("commonroad/USA_US101-3_3_T-1.xml");
+    let rolls = dir.path().join("r\n| fake | 9 |\u{1b}[2J");
+    std::fs::create_dir(&rolls).unwrap();
+    ok(&[
+        "convert",
+        s(&scene),
+        "-o",
+        s(&rolls.join("USA_US101-3_3_T-1.json")),
+    ]);
+    let json = dir.path().join("e.json");
+    let out = ok(&[
+        "eval",
+        s(&scene),
+        "--task",
+        "conditional",
+        "--rollouts",
+        s(&rolls),
+        "--json",
+        s(&json),
+    ]);
+    assert!(
+        !out.contains('\u{1b}') && !out.lines().any(|l| l.starts_with("| fake")),
+        "{out}"
+    );
+    assert!(
+        out.contains("r\\u{000A}| fake | 9 |\\u{001B}[2J | 1 |"),
+        "{out}"
+    );
+    let merged = ok(&["eval", "--merge", s(&json)]);
+    assert!(
+        merged.contains("r\\u{000A}| fake | 9 |\\u{001B}[2J | 1 |"),
+        "{merged}"
+    );
+}
+
 fn rollouts_offroad(out: &str) -> f64 {
     let row = out
         .lines()

@@ -1714,6 +1714,52 @@ fn resume_refuses_a_scene_that_changed_since_the_run_started() {
 }
 
 #[test]
+fn resume_refuses_another_checkpoint_than_the_run_s() {
+    // The run's checkpoint was not recorded: `--resume` went on with the default one (or any
+    // --checkpoint given), its later rounds sampled by another model, without a word.
+    let dir = tempfile::tempdir().unwrap();
+    let shipped = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/checkpoint");
+    let own = dir.path().join("own checkpoint");
+    std::fs::create_dir(&own).unwrap();
+    std::fs::copy(
+        shipped.join("model.safetensors"),
+        own.join("model.safetensors"),
+    )
+    .unwrap();
+    // The same network, trained further in this story: another config.json.
+    let config = std::fs::read_to_string(shipped.join("config.json")).unwrap();
+    std::fs::write(own.join("config.json"), format!("{config}\n")).unwrap();
+    let run = dir.path().join("run");
+    let o = ask(
+        &[
+            s(&samples().join(SCENE)),
+            REQUEST,
+            "-o",
+            s(&run),
+            "--llm",
+            "manual",
+            "--checkpoint",
+            s(&own),
+        ],
+        None,
+    );
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+    let o = ask(&["--resume", s(&run)], None);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains(&format!(
+            "the run samples with the checkpoint {} (checksum",
+            own.display()
+        )) && t.contains(&format!("give --checkpoint {}", own.display())),
+        "{t}"
+    );
+    // With its own checkpoint it goes on (the manual backend waits for the reply again).
+    let o = ask(&["--resume", s(&run), "--checkpoint", s(&own)], None);
+    assert_eq!(o.status.code(), Some(0), "{}", text(&o));
+}
+
+#[test]
 fn a_reply_cut_off_at_the_token_limit_says_to_raise_max_tokens() {
     let body = serde_json::json!({
         "choices": [{"index": 0, "message": {"role": "assistant", "content": "1. Events: one cut-in.\n\n```rhai\nlet a = agent(401);\nterm(\"x\", a.x"}, "finish_reason": "length"}],

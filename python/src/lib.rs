@@ -37,6 +37,9 @@ create_exception!(
      `line` and `column` say where (None where the error has no such place)."
 );
 
+/// The longest name `CostScript.from_source` takes, characters (a path's length).
+const MAX_NAME_CHARS: usize = 4096;
+
 /// The most future steps a trajectory may have: `drivescript cost --horizon`'s bound.
 const MAX_STEPS: usize = 10_000;
 
@@ -80,7 +83,13 @@ fn detached_interruptible<T: Send>(
         let work = std::thread::Builder::new()
             .stack_size(drivescript::cost::SCRIPT_STACK_BYTES)
             .spawn_scoped(s, || {
-                let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(&stop)));
+                // On the library's pool, as `detached` runs: the sampler's parallel tensor
+                // operations took rayon's global pool, whose threads a process forked from
+                // this one (multiprocessing, a DataLoader's workers) never has: sampling
+                // there waited for them forever.
+                let r = drivescript::cost::on_script_stack(|| {
+                    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| f(&stop)))
+                });
                 waiter.unpark();
                 r
             })
@@ -269,6 +278,49 @@ fn opt<T: ArgNumber>(py: Python<'_>, a: &Option<Arg<T>>, name: &str) -> PyResult
     a.as_ref().map(|a| a.get(py, name)).transpose()
 }
 
+/// A str argument, converted in the function so that its errors name it: a str holding a lone
+/// surrogate (what `os.fsdecode` or `errors="surrogateescape"` make of bytes that are not
+/// UTF-8) raised pyo3's UnicodeEncodeError, "'utf-8' codec can't encode character", which
+/// names no argument.
+enum Text {
+    /// The signature's default.
+    Default(&'static str),
+    /// What the caller passed, not yet converted.
+    Given(Py<PyAny>),
+}
+
+impl<'a, 'py> FromPyObject<'a, 'py> for Text {
+    type Error = PyErr;
+    fn extract(obj: Borrowed<'a, 'py, PyAny>) -> PyResult<Self> {
+        Ok(Text::Given(obj.to_owned().unbind()))
+    }
+}
+
+impl Text {
+    /// The text, or an error naming the argument `name`: TypeError for what is not a str,
+    /// ValueError for a str that is not text.
+    fn get(&self, py: Python<'_>, name: &str) -> PyResult<String> {
+        let v = match self {
+            Text::Default(s) => return Ok((*s).to_string()),
+            Text::Given(v) => v.bind(py),
+        };
+        if !v.is_instance_of::<PyString>() {
+            return Err(PyTypeError::new_err(format!(
+                "{name} = {}: a {}, but {name} is a str",
+                quoted(v),
+                v.get_type().name()?
+            )));
+        }
+        v.extract::<String>().map_err(|_| {
+            PyValueError::new_err(format!(
+                "{name} = {}: holds a lone surrogate, which is not text (a str decoded from \
+                 bytes that are not UTF-8)",
+                quoted(v)
+            ))
+        })
+    }
+}
+
 /// A path argument as Python's own file functions take one: a str, bytes or os.PathLike
 /// (pyo3's PathBuf took str only, after os.fspath's TypeError had said "expected str, bytes or
 /// os.PathLike object": bytes were then refused as "'bytes' object is not an instance of
@@ -399,11 +451,40 @@ fn wanted(scene: &Scene, batch: bool) -> String {
 /// and numeric strings, none of which is a position, so those are refused.
 fn floats<'py>(
     what: &str,
+    wanted: &str,
     obj: &Bound<'py, PyAny>,
 ) -> PyResult<PyArrayLikeDyn<'py, f64, AllowTypeChange>> {
     let py = obj.py();
     let np = py.import("numpy")?;
-    let arr = np.call_method1("asarray", (obj,))?;
+    // numpy's asarray keeps a masked array's data and drops its mask: the values under the
+    // mask (whatever was left there) were read as positions, without a word.
+    if obj.is_instance(&np.getattr("ma")?.getattr("MaskedArray")?)? {
+        let masked: usize = np
+            .getattr("ma")?
+            .call_method1("count_masked", (obj,))?
+            .extract()?;
+        if masked > 0 {
+            return Err(PyValueError::new_err(format!(
+                "{what}: a masked array with {masked} masked values, which would be read as \
+                 the positions they hide: give unobserved states as NaN \
+                 ({what}.filled(numpy.nan))"
+            )));
+        }
+    }
+    // Nested lists of uneven lengths: numpy's "setting an array element with a sequence. The
+    // requested array has an inhomogeneous shape" named neither the argument nor the shape
+    // wanted.
+    let arr = np.call_method1("asarray", (obj,)).map_err(|e| {
+        if !e.is_instance_of::<PyValueError>(py) {
+            return e;
+        }
+        let err = PyValueError::new_err(format!(
+            "{what}: not an array of one shape ({}): {wanted}",
+            e.value(py)
+        ));
+        err.set_cause(py, Some(e));
+        err
+    })?;
     let dtype = arr.getattr("dtype")?;
     let kind: String = dtype.getattr("kind")?.extract()?;
     // 'O' (Python objects, a list mixing types) converts element by element with float(),
@@ -468,7 +549,11 @@ fn trajectories(
     obj: &Bound<'_, PyAny>,
     batch: bool,
 ) -> PyResult<(usize, Vec<Trajectories>)> {
-    let arr = &floats(if batch { "trajs" } else { "traj" }, obj)?;
+    let arr = &floats(
+        if batch { "trajs" } else { "traj" },
+        &wanted(scene, batch),
+        obj,
+    )?;
     let shape = arr.shape().to_vec();
     let agents = scene.inner.agents.len();
     let dims = if batch { 4 } else { 3 };
@@ -762,16 +847,16 @@ impl Scene {
     /// are measured along this polyline, s from its first point.
     ///
     /// Raises ValueError for an unknown lane, a length outside (0, 100000] or another turn.
-    #[pyo3(signature = (lane, length, turn = "straight"))]
+    #[pyo3(signature = (lane, length, turn = Text::Default("straight")))]
     fn lane_path<'py>(
         &self,
         py: Python<'py>,
         lane: Arg<i64>,
         length: Arg<f64>,
-        turn: &str,
+        turn: Text,
     ) -> PyResult<Bound<'py, PyAny>> {
         let (lane, length) = (lane.get(py, "lane")?, length.get(py, "length")?);
-        let turn = turn_word(turn)?;
+        let turn = turn_word(&turn.get(py, "turn")?)?;
         path_length(length)?;
         let path = self
             .inner
@@ -789,16 +874,16 @@ impl Scene {
     /// Raises ValueError for an unknown agent, one not observed at the current step or near
     /// no lane going its way, a length outside (0, 100000] or a turn other than "straight",
     /// "left" and "right".
-    #[pyo3(signature = (agent_id, length = Arg::Default(300.0), turn = "straight"))]
+    #[pyo3(signature = (agent_id, length = Arg::Default(300.0), turn = Text::Default("straight")))]
     fn agent_lane_path<'py>(
         &self,
         py: Python<'py>,
         agent_id: Arg<i64>,
         length: Arg<f64>,
-        turn: &str,
+        turn: Text,
     ) -> PyResult<Bound<'py, PyAny>> {
         let (agent_id, length) = (agent_id.get(py, "agent_id")?, length.get(py, "length")?);
-        let turn = turn_word(turn)?;
+        let turn = turn_word(&turn.get(py, "turn")?)?;
         path_length(length)?;
         let idx = self
             .inner
@@ -1055,13 +1140,25 @@ impl CostScript {
 
     /// A script from its source text, named `name` in messages.
     #[staticmethod]
-    #[pyo3(signature = (source, name = "<script>", params = None))]
+    #[pyo3(signature = (source, name = Text::Default("<script>"), params = None))]
     fn from_source(
         py: Python<'_>,
-        source: String,
-        name: &str,
+        source: Text,
+        name: Text,
         params: Option<&Bound<'_, PyDict>>,
     ) -> PyResult<Self> {
+        let (source, name) = (source.get(py, "source")?, name.get(py, "name")?);
+        let name = name.as_str();
+        // The name starts every error message: one of 100,000 characters made every message
+        // as long.
+        let chars = name.chars().count();
+        if chars > MAX_NAME_CHARS {
+            return Err(PyValueError::new_err(format!(
+                "name {}: {chars} characters; a script's name starts its error messages, so it \
+                 is at most {MAX_NAME_CHARS}",
+                drivescript::io::name::shown_counted(name)
+            )));
+        }
         // The name starts every error message: a newline in it faked a line of its own
         // ("evil\nerror: all good:1:29: ..."), as a scenario id's once did.
         if let Err(c) = drivescript::io::name::check_name(name) {
@@ -1194,7 +1291,7 @@ impl Sampler {
     }
 
     /// Samples futures of `scene` guided by `scripts`, as `drivescript simulate` does (same
-    /// settings and defaults; the scripts are compiled and validated on the scene cut to the
+    /// settings and defaults, guidance in output space, save `samples`: 4 here, 1 there; the scripts are compiled and validated on the scene cut to the
     /// sampled horizon first). Returns float64 `[samples, agents, steps, 3]`, NaN where an
     /// agent is absent; `steps` is `horizon` or the model's.
     ///
@@ -1202,7 +1299,8 @@ impl Sampler {
     /// (history only: what behaviour scripts such as cut_in are tuned for). Ctrl-C stops it
     /// within one denoising step (KeyboardInterrupt).
     #[pyo3(signature = (scene, scripts = Vec::new(), samples = Arg::Default(4), *,
-        seed = Arg::Default(1), steps = Arg::Default(32), task = "conditional", horizon = None,
+        seed = Arg::Default(1), steps = Arg::Default(32), task = Text::Default("conditional"),
+        horizon = None,
         guidance = Arg::Default(sampler::BEHAVIOUR_LAMBDA),
         realism = Arg::Default(sampler::REALISM_WEIGHT),
         polish = Arg::Default(sampler::POLISH_STEPS)))]
@@ -1215,7 +1313,7 @@ impl Sampler {
         samples: Arg<usize>,
         seed: Arg<u64>,
         steps: Arg<usize>,
-        task: &str,
+        task: Text,
         horizon: Option<Arg<usize>>,
         guidance: Arg<f64>,
         realism: Arg<f64>,
@@ -1227,12 +1325,37 @@ impl Sampler {
             steps.get(py, "steps")?,
         );
         let horizon = opt(py, &horizon, "horizon")?;
+        let guidance_given = matches!(guidance, Arg::Given(_));
         let (guidance, realism, polish) = (
             guidance.get(py, "guidance")?,
             realism.get(py, "realism")?,
             polish.get(py, "polish")?,
         );
-        let task = match task {
+        // As `simulate --lambda` without a script: a weight with nothing to weigh was
+        // dropped without a word (0, unguided, says nothing wrong).
+        // (One out of range is the sampler's settings error, below.)
+        if guidance_given && guidance > 0.0 && guidance <= sampler::MAX_WEIGHT && scripts.is_empty()
+        {
+            return Err(PyValueError::new_err(format!(
+                "guidance = {}: no script to weigh; give scripts (or leave guidance out)",
+                drivescript::geom::num(guidance)
+            )));
+        }
+        // As `simulate --script F --script F`: a script given twice weighed twice as much,
+        // without a word.
+        for (i, s) in scripts.iter().enumerate() {
+            if let Some(j) = scripts[..i]
+                .iter()
+                .position(|t| t.spec.source == s.spec.source && t.spec.params == s.spec.params)
+            {
+                return Err(PyValueError::new_err(format!(
+                    "scripts[{i}] is scripts[{j}] again ({}, the same source and parameters): \
+                     each script counts once; to weigh it more, raise guidance",
+                    drivescript::io::name::shown(&s.spec.name)
+                )));
+            }
+        }
+        let task = match task.get(py, "task")?.as_str() {
             "conditional" => sampler::Task::Conditional,
             "unconditional" => sampler::Task::Unconditional,
             other => {
@@ -1248,7 +1371,10 @@ impl Sampler {
             seed,
             lambda: guidance,
             task,
-            guidance: sampler::Guidance::Denoiser,
+            // Where guidance acts, as `simulate` takes it by default: the denoiser, which
+            // `simulate` left for output space (one setting, one default), gave other samples
+            // than the CLI for the same seed and settings, without a word.
+            guidance: sampler::DEFAULT_GUIDANCE,
             known_weight: 1.0,
             schedule: sampler::LambdaSchedule::Fading,
             clamp: sampler::Clamp::Coordinate,
@@ -1351,12 +1477,12 @@ fn behaviour(name: &str) -> PyResult<Behavior> {
 #[pyo3(signature = (behaviour, scene, traj, params = None))]
 fn check(
     py: Python<'_>,
-    behaviour: &str,
+    behaviour: Text,
     scene: &Scene,
     traj: Bound<'_, PyAny>,
     params: Option<&Bound<'_, PyDict>>,
 ) -> PyResult<Verdict> {
-    let b = self::behaviour(behaviour)?;
+    let b = self::behaviour(&behaviour.get(py, "behaviour")?)?;
     let params = params_from(params)?;
     // As `eval --param`: a name the checker does not read (`gapp`) was dropped without a word
     // and the verdict taken for its default.
@@ -1386,12 +1512,12 @@ fn check(
 #[pyo3(signature = (behaviour, scene, steps = None))]
 fn suggest<'py>(
     py: Python<'py>,
-    behaviour: &str,
+    behaviour: Text,
     scene: &Scene,
     steps: Option<Arg<usize>>,
 ) -> PyResult<Option<Bound<'py, PyDict>>> {
     let steps = opt(py, &steps, "steps")?;
-    let b = self::behaviour(behaviour)?;
+    let b = self::behaviour(&behaviour.get(py, "behaviour")?)?;
     // The horizon checked as `log_future` checks it: 0 steps suggested agents for a
     // behaviour that has no time to happen.
     let steps = scene.horizon(steps)?;

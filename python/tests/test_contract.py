@@ -267,6 +267,22 @@ def test_a_wrong_shape_is_a_value_error_naming_the_shape(scene, cut_in):
         cut_in.evaluate_batch(scene, np.zeros((n, 40, 3)))
 
 
+def test_nested_lists_of_uneven_lengths_are_a_value_error_naming_the_shape(ds, scene, cut_in, tmp_path):
+    # numpy's "setting an array element with a sequence" named neither the argument nor the
+    # shape wanted.
+    rag = scene.log_future(40).tolist()
+    rag[0] = rag[0][:5]
+    for call, arg in [
+        (lambda: cut_in.evaluate(scene, rag), "traj"),
+        (lambda: cut_in.evaluate_batch(scene, [rag]), "trajs"),
+        (lambda: ds.check("cut_in", scene, rag, CUT_IN_PARAMS), "traj"),
+        (lambda: scene.write_rollout(tmp_path / "r.json", rag), "traj"),
+    ]:
+        with pytest.raises(ValueError, match=rf"^{arg}: not an array of one shape \(.*\): expected shape \(.*22, steps, 3\)"):
+            call()
+    assert not (tmp_path / "r.json").exists()
+
+
 def test_a_half_observed_state_is_a_value_error_naming_agent_and_step(scene, cut_in):
     traj = scene.log_future(40)
     a = int(np.argwhere(~np.isnan(traj[:, 3, 0]))[0][0])
@@ -331,6 +347,27 @@ def test_an_object_array_holding_what_is_not_a_number_is_a_type_error(ds, scene,
     assert cut_in.evaluate(scene, o).total == pytest.approx(cut_in.evaluate(scene, traj).total)
 
 
+def test_a_masked_array_is_refused_not_read_under_its_mask(ds, scene, cut_in, tmp_path):
+    # numpy.asarray drops the mask: the values under it were read as positions.
+    traj = scene.log_future(40)
+    hidden = traj.copy()
+    hidden[1, 5, :] = 1e6
+    m = np.ma.masked_array(hidden, mask=np.zeros_like(hidden, dtype=bool))
+    m[1, 5, :] = np.ma.masked
+    for call in [
+        lambda: cut_in.evaluate(scene, m),
+        lambda: cut_in.evaluate_batch(scene, m[None]),
+        lambda: ds.check("cut_in", scene, m, CUT_IN_PARAMS),
+        lambda: scene.write_rollout(tmp_path / "m.json", m),
+    ]:
+        with pytest.raises(ValueError, match="a masked array with 3 masked values"):
+            call()
+    assert not (tmp_path / "m.json").exists()
+    # One with nothing masked is its data.
+    clear = np.ma.masked_array(traj, mask=False)
+    assert cut_in.evaluate(scene, clear).total == cut_in.evaluate(scene, traj).total
+
+
 def test_script_errors_carry_file_line_and_column(ds, scene):
     with pytest.raises(ds.ScriptError) as e:
         ds.CostScript.from_source("let x = ;\n", name="broken.rhai")
@@ -382,6 +419,46 @@ def test_arrays_nested_deep_do_not_overflow_a_thread_s_stack(ds):
     assert out.returncode == 0, out.stderr[-2000:]
     lines = out.stdout.split("\n")[:2]
     assert all(l == "evaluated" or "limit exceeded: wall time" in l for l in lines), out.stdout
+
+
+def test_a_process_forked_after_use_evaluates_and_samples(ds):
+    # multiprocessing's default on Linux (and a DataLoader's workers) forks: the child held
+    # the pools' memory but none of their threads, and its first evaluate() or sample()
+    # waited for them forever. Run apart, the child killed if it hangs.
+    code = (
+        "import os, sys, time, signal, drivescript as ds\n"
+        "scene = ds.Scene.load(sys.argv[1])\n"
+        "script = ds.CostScript.from_file(sys.argv[2], params={'cutter': 401, 'victim': 405})\n"
+        "sampler = ds.Sampler(sys.argv[3])\n"
+        "def work():\n"
+        "    r = script.evaluate(scene, scene.log_future(40)).total\n"
+        "    b = script.evaluate_batch(scene, scene.log_future(40)[None])[0].total\n"
+        "    s = sampler.sample(scene, [script], samples=1, steps=8, polish=0).shape\n"
+        "    return r, b, s\n"
+        "parent = work()\n"
+        "pid = os.fork()\n"
+        "if pid == 0:\n"
+        "    os._exit(0 if work() == parent else 3)\n"
+        "t = time.time()\n"
+        "while time.time() - t < 120:\n"
+        "    done, status = os.waitpid(pid, os.WNOHANG)\n"
+        "    if done:\n"
+        "        print('child exit', os.waitstatus_to_exitcode(status))\n"
+        "        sys.exit(0)\n"
+        "    time.sleep(0.1)\n"
+        "os.kill(pid, signal.SIGKILL)\n"
+        "os.waitpid(pid, 0)\n"
+        "print('child hung')\n"
+    )
+    import os
+    import sys
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
+    out = subprocess.run(
+        [sys.executable, "-c", code, str(SCENE), str(CUT_IN), str(ROOT / "data/checkpoint")],
+        capture_output=True, text=True, env=env, timeout=300,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "child exit 0", out.stdout + out.stderr[-2000:]
 
 
 def test_a_constant_term_fails_validation_as_in_the_cli(ds, scene):
@@ -533,11 +610,25 @@ def test_a_commonroad_current_step_past_the_scene_is_a_value_error_not_clamped(d
             ds.Scene.load(path, commonroad_current_step=k)
 
 
+def test_a_script_given_twice_is_refused_as_simulate_refuses_it(ds, scene, cut_in):
+    # It weighed twice, where `simulate --script F --script F` is refused.
+    sampler = ds.Sampler(ROOT / "data/checkpoint")
+    again = ds.CostScript.from_file(CUT_IN, params=CUT_IN_PARAMS)
+    for twice in [[cut_in, cut_in], [cut_in, again]]:
+        with pytest.raises(ValueError, match=r"scripts\[1\] is scripts\[0\] again .*each script counts once"):
+            sampler.sample(scene, scripts=twice, samples=1, steps=8)
+
+
 def test_a_bad_guidance_weight_names_the_keyword(ds, scene):
     sampler = ds.Sampler(ROOT / "data/checkpoint")
     for bad in [float("nan"), float("inf"), -1.0]:
         with pytest.raises(ValueError, match="sampler settings: guidance: lambda = "):
             sampler.sample(scene, samples=1, guidance=bad)
+    # A weight with no script to weigh was dropped without a word, where `simulate --lambda 5`
+    # with no --script is refused.
+    with pytest.raises(ValueError, match="guidance = 5: no script to weigh"):
+        sampler.sample(scene, samples=1, steps=8, guidance=5.0)
+    assert sampler.sample(scene, samples=1, steps=8, polish=0, guidance=0.0).shape[0] == 1
 
 
 def test_a_number_argument_out_of_range_or_of_another_type_is_named_in_the_message(ds, scene):
@@ -582,6 +673,31 @@ def test_the_sampler_returns_samples_by_agents_by_steps_by_3(ds, scene, cut_in):
         sampler.sample(scene, steps=1)
     with pytest.raises(ValueError, match="task"):
         sampler.sample(scene, task="sideways")
+
+
+def test_the_sampler_gives_the_samples_simulate_gives_for_the_same_settings(ds, scene, cut_in, cli, tmp_path):
+    # Python guided through the denoiser after `simulate` had moved to output space (its
+    # default): the same seed and settings gave other samples, without a word.
+    out = tmp_path / "sim"
+    cmd = [cli, "simulate", str(SCENE), "--script", str(CUT_IN), "--checkpoint",
+           str(ROOT / "data/checkpoint"), "--samples", "1", "--steps", "8", "--polish", "0",
+           "--seed", "3", "-o", str(out), "--param"]
+    cmd += [f"{k}={v}" for k, v in CUT_IN_PARAMS.items()]
+    subprocess.run(cmd, capture_output=True, text=True, check=True)
+    docs = [json.loads(p.read_text()) for p in out.glob("*.json")]
+    (r,) = [d for d in docs if d.get("format") == "drivescript-rollout"]
+    a = ds.Sampler(ROOT / "data/checkpoint").sample(
+        scene, scripts=[cut_in], samples=1, steps=8, polish=0, seed=3
+    )[0]
+    c = r["current_step"]
+    by_id = {g["id"]: g["states"] for g in r["agents"]}
+    compared = 0
+    for i, agent in enumerate(scene.agent_ids):
+        for k, st in enumerate(by_id.get(agent, [])[c + 1 : c + 1 + a.shape[1]]):
+            if st[3]:
+                assert np.allclose(a[i, k], st[:3], atol=1e-6), (agent, k, a[i, k], st)
+                compared += 1
+    assert compared > 0
 
 
 def test_ctrl_c_stops_a_long_sampling_run_and_leaves_the_sampler_usable(ds, scene, cut_in):
@@ -660,6 +776,33 @@ def test_numpy_integers_and_text_that_is_no_utf8_as_parameters(ds, scene):
         ds.CostScript.from_file(CUT_IN, params={"cutter": 401, "victim": 405, "turn": "l\udcff"})
     with pytest.raises(ValueError, match="parameter name .*lone surrogate"):
         ds.CostScript.from_file(CUT_IN, params={"cutter": 401, "victim": 405, "t\udcff": 1})
+
+
+def test_a_str_argument_that_is_no_text_or_too_long_a_name_is_named(ds, scene, cut_in):
+    # A lone surrogate (bytes that are not UTF-8, as os.fsdecode gives them) raised
+    # "'utf-8' codec can't encode character", naming no argument; a name of 100,000
+    # characters began every message of the script.
+    bad = b"let x = 1;\xff".decode("utf-8", "surrogateescape")
+    sampler = ds.Sampler(ROOT / "data/checkpoint")
+    for call, arg in [
+        (lambda: ds.CostScript.from_source(bad), "source"),
+        (lambda: ds.CostScript.from_source("let x = 1;", name=bad), "name"),
+        (lambda: scene.lane_path(1, 50.0, turn=bad), "turn"),
+        (lambda: scene.agent_lane_path(401, turn=bad), "turn"),
+        (lambda: ds.check(bad, scene, scene.log_future(40), CUT_IN_PARAMS), "behaviour"),
+        (lambda: ds.suggest(bad, scene), "behaviour"),
+        (lambda: sampler.sample(scene, task=bad), "task"),
+    ]:
+        with pytest.raises(ValueError, match=rf"^{arg} = .*: holds a lone surrogate, which is not text"):
+            call()
+    with pytest.raises(TypeError, match="^behaviour = 7: a int, but behaviour is a str"):
+        ds.check(7, scene, scene.log_future(40), CUT_IN_PARAMS)
+    with pytest.raises(ValueError, match="100000 characters; a script's name starts its error messages") as e:
+        ds.CostScript.from_source("let x = ;", name="n" * 100_000)
+    assert len(str(e.value)) < 300
+    # The defaults still hold.
+    assert ds.CostScript.from_source("let x = 1;").name == "<script>"
+    assert scene.agent_lane_path(401).shape[1] == 2
 
 
 def test_a_path_may_be_bytes_as_for_python_s_own_file_functions(ds, scene, tmp_path):

@@ -50,6 +50,45 @@ def test_complex_and_boolean_tensors_are_type_errors(ds, scene, cut_in):
         ds.torch.cost(cut_in, scene, t.isnan())
 
 
+def test_what_is_not_a_tensor_is_a_type_error_naming_the_argument(ds, scene, cut_in):
+    # "'numpy.ndarray' object has no attribute 'is_complex'" named neither.
+    traj = scene.log_future(40)
+    for bad, kind in [(traj, "numpy.ndarray"), (traj.tolist(), "builtins.list"), (None, "builtins.NoneType")]:
+        with pytest.raises(TypeError, match=rf"^traj: a {kind}, but drivescript.torch.cost takes a torch.Tensor"):
+            ds.torch.cost(cut_in, scene, bad)
+
+
+def test_an_integer_tensor_is_a_type_error_not_a_truncated_cost(ds, scene, cut_in):
+    # The cost came back in the tensor's dtype: 3.7 as 3, without a word.
+    t = torch.tensor(scene.log_future(40)).nan_to_num().round().to(torch.int64)
+    with pytest.raises(TypeError, match="torch.int64.*give a float tensor"):
+        ds.torch.cost(cut_in, scene, t)
+
+
+def test_a_cost_beyond_the_dtype_s_range_is_an_overflow_error_not_inf(ds, scene):
+    # 70,000 is past float16's 65,504: the cost came back as inf.
+    big = ds.CostScript.from_source(
+        'term("far", abs(agent(401).x - 70000.0).mean());\n', name="big.rhai"
+    )
+    t = torch.tensor(scene.log_future(40), dtype=torch.float16, requires_grad=True)
+    with pytest.raises(OverflowError, match="cost holds .*float16 .*65504"):
+        ds.torch.cost(big, scene, t)
+    assert torch.isfinite(ds.torch.cost(big, scene, t.detach().float()))
+
+
+def test_a_second_derivative_is_refused_not_zero(ds, scene, cut_in):
+    # The engine's gradient was taken for a constant: the Hessian came out as zeros.
+    t = torch.tensor(scene.log_future(12))
+    with pytest.raises(RuntimeError, match="a first derivative only"):
+        torch.autograd.functional.hessian(lambda x: ds.torch.cost(cut_in, scene, x), t)
+    x = t.clone().requires_grad_(True)
+    with pytest.raises(RuntimeError, match="create_graph=True"):
+        torch.autograd.grad(ds.torch.cost(cut_in, scene, x), x, create_graph=True)
+    # The first derivative alone is as before.
+    (g,) = torch.autograd.grad(ds.torch.cost(cut_in, scene, x), x)
+    assert np.array_equal(g.numpy(), cut_in.evaluate(scene, t.numpy()).grad)
+
+
 def test_gradcheck_in_float64(ds, scene, cut_in):
     # cut_in holds the victim (`hold(b)`: its gap and contact terms stop the victim's
     # gradient on purpose), so its exact Jacobian is checked w.r.t. the cutter. A short horizon keeps it quick.

@@ -225,8 +225,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
     // Every method is simulated over the horizon, so 10^8 steps aborted on allocation; a
     // horizon of 0 scores nothing.
-    if let Some(h) = args.horizon.filter(|h| !(1..=10_000).contains(h)) {
-        anyhow::bail!("--horizon {h}: must be 1 to 10000 steps");
+    let max = drivescript::eval::merge::MAX_HORIZON_FLAG;
+    if let Some(h) = args.horizon.filter(|h| !(1..=max).contains(h)) {
+        anyhow::bail!("--horizon {h}: must be 1 to {max} steps");
     }
     // A flag of another task would be dropped without a word, and the table taken for what
     // the user asked.
@@ -281,7 +282,15 @@ pub fn run(args: Args) -> Result<ExitCode> {
         if !d.is_dir() {
             bail!("{}: --rollouts must be a directory", d.display());
         }
-        methods.push((format!("rollouts in {}", d.display()), None));
+        // On one line: the name starts a row of the table (and of --json, which --merge
+        // refuses with a line break or an escape sequence in it).
+        methods.push((
+            format!(
+                "rollouts in {}",
+                drivescript::io::name::one_line(&d.display().to_string())
+            ),
+            None,
+        ));
         // Scoring the first of four samples, say, was a table of one sample per scene whose
         // only sign was the empty minADE column.
         if let Some(k) = drivescript::sample::provenance::recorded_samples(d) {

@@ -49,17 +49,29 @@ pub fn on_script_stack<R: Send>(f: impl FnOnce() -> R + Send) -> R {
 }
 
 /// The pool that evaluates batches: rayon's own, but with [`SCRIPT_STACK_BYTES`] of stack per
-/// thread (`None` where it cannot be made: the global pool is used).
+/// thread (`None` where it cannot be made: the global pool is used), one per process. A
+/// process forked from one that had made it (Python's `multiprocessing` on Linux, a PyTorch
+/// DataLoader's workers) holds the pool's memory but none of its threads: every evaluation
+/// there waited for them forever. It makes a pool of its own (the parent's copy, whose
+/// threads it never had, is left as it is).
 fn pool() -> Option<&'static rayon::ThreadPool> {
-    static POOL: std::sync::OnceLock<Option<rayon::ThreadPool>> = std::sync::OnceLock::new();
-    POOL.get_or_init(|| {
-        rayon::ThreadPoolBuilder::new()
-            .stack_size(SCRIPT_STACK_BYTES)
-            .thread_name(|i| format!("drivescript-script-{i}"))
-            .build()
-            .ok()
-    })
-    .as_ref()
+    type Made = (u32, Option<&'static rayon::ThreadPool>);
+    static POOL: std::sync::Mutex<Option<Made>> = std::sync::Mutex::new(None);
+    let pid = std::process::id();
+    let mut made = POOL.lock().unwrap_or_else(|p| p.into_inner());
+    match *made {
+        Some((owner, pool)) if owner == pid => pool,
+        _ => {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .stack_size(SCRIPT_STACK_BYTES)
+                .thread_name(|i| format!("drivescript-script-{i}"))
+                .build()
+                .ok()
+                .map(|p| &*Box::leak(Box::new(p)));
+            *made = Some((pid, pool));
+            pool
+        }
+    }
 }
 
 thread_local! {

@@ -112,11 +112,18 @@ pub fn read_script(path: &std::path::Path) -> Result<String, CostError> {
 /// gives no position, or a total no one line makes, printed `m.rhai:0:0`, which points at no
 /// line of the file.
 fn place(script: &str, line: usize, column: usize) -> String {
+    let script = one_line(script);
     match (line, column) {
-        (0, _) => script.to_string(),
+        (0, _) => script,
         (l, 0) => format!("{script}:{l}"),
         (l, c) => format!("{script}:{l}:{c}"),
     }
+}
+
+/// A script's name (its path, for a file) on one line: a file named `a\nerror: all good.rhai`
+/// began every message of the script with a line of its own.
+fn one_line(script: &str) -> String {
+    crate::io::name::one_line(script)
 }
 
 /// Errors from compiling, validating or evaluating a cost script. Each names the script and,
@@ -172,7 +179,7 @@ pub enum CostError {
         message: String,
     },
     /// The scene has no step after its current one: there is no future to score or guide.
-    #[error("{script}: scene {scene} has no step after its current step {current}: there is no future to score")]
+    #[error("{}: scene {scene} has no step after its current step {current}: there is no future to score", one_line(.script))]
     NoFuture {
         /// Script name.
         script: String,
@@ -182,7 +189,7 @@ pub enum CostError {
         current: usize,
     },
     /// The script declared nothing.
-    #[error("{script}: the script declares no term; call term(name, value) at least once")]
+    #[error("{}: the script declares no term; call term(name, value) at least once", one_line(.script))]
     NoTerms {
         /// Script name.
         script: String,
@@ -199,7 +206,7 @@ pub enum CostError {
     #[error("{0}")]
     Read(String),
     /// Trajectories that do not belong to the scene.
-    #[error("{script}: trajectories do not fit the scene: {message}")]
+    #[error("{}: trajectories do not fit the scene: {message}", one_line(.script))]
     Shape {
         /// Script name.
         script: String,

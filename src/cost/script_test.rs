@@ -648,7 +648,11 @@ impl Runner {
         let (script, report, traj) = match (outcome, &x.error) {
             (Err(e), Some(want)) => {
                 let msg = e.to_string();
-                return Ok((msg.contains(want.as_str()), format!("error: {msg}")));
+                // Matched in what the error says, after the script's name that begins it:
+                // `error: "accident"` passed for any error of accident.rhai.
+                let shown = crate::io::name::one_line(&name);
+                let said = msg.strip_prefix(shown.as_str()).unwrap_or(&msg);
+                return Ok((said.contains(want.as_str()), format!("error: {msg}")));
             }
             (Err(e), None) => return Ok((false, format!("unexpected error: {e}"))),
             (Ok((_, r, _)), Some(want)) => {
@@ -1201,6 +1205,33 @@ mod tests {
             "{}",
             r[0].detail
         );
+    }
+
+    #[test]
+    fn an_expected_error_is_matched_in_the_message_not_in_the_script_s_name() {
+        // Every message begins with the script's path: `error: "accident"` (or ".rhai")
+        // passed for whatever error accident.rhai raised.
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts");
+        let dir = tempfile::tempdir().unwrap();
+        let t = dir.path().join("x.test.yaml");
+        let case = |want: &str| {
+            std::fs::write(
+                &t,
+                format!(
+                    "script: {}\ncases:\n  - name: c\n    scene: {}\n    params: {{attacker: 4, target: 424242}}\n    expect: {{error: {want:?}}}\n",
+                    root.join("accident.rhai").display(),
+                    root.join("scenes/highway.yaml").display()
+                ),
+            )
+            .unwrap();
+            run_test_file(&t).unwrap().remove(0)
+        };
+        for want in ["accident", ".rhai", "scripts/"] {
+            let r = case(want);
+            assert!(!r.passed, "{want}: {}", r.detail);
+        }
+        let r = case("424242");
+        assert!(r.passed, "{}", r.detail);
     }
 
     #[test]

@@ -180,6 +180,9 @@ pub struct Merged {
     pub shards: usize,
 }
 
+/// The most steps `eval --horizon` takes.
+pub const MAX_HORIZON_FLAG: usize = 10_000;
+
 /// The whole numbers of a file's `merge.run`, and of each accumulator (and group).
 const RUN_COUNTS: &[&str] = &["skipped", "failures", "run_skipped"];
 const TALLY_COUNTS: &[&str] = &["scenes", "passed", "achieved", "checked"];
@@ -240,6 +243,17 @@ fn settings(s: &Value) -> Result<Settings, String> {
         .and_then(|m| serde_json::from_value(m.clone()).ok())
         .filter(|m: &Vec<String>| !m.is_empty())
         .ok_or("merge.run.settings.methods: must be a list of the methods' names")?;
+    // The names start the table's rows: an escape sequence in one (a file's, not the user's)
+    // was printed to the terminal as it was, and a line break split a row in two.
+    for (i, m) in methods.iter().enumerate() {
+        if let Err(c) = crate::io::name::check_name(m) {
+            return Err(format!(
+                "merge.run.settings.methods[{i}] is \"{}\": holds {c}; a method's name starts \
+                 a row of the table",
+                crate::io::name::shown(m)
+            ));
+        }
+    }
     let shards = match s.get("shards") {
         // Files written before shards were counted are whole runs.
         None => 1,
@@ -354,6 +368,58 @@ fn check_horizons(run: &RunRecord) -> Result<(), String> {
                 c.steps,
                 crate::io::MAX_STEPS
             ));
+        }
+    }
+    // `--horizon H` scores every scene over H steps from the flag, and without it no scene's
+    // horizon is the flag's: a shard saying `horizon: 40` in its settings and 80 steps (or
+    // the recording's) in its horizon line was merged and both printed, exit 0.
+    match run.settings.get("horizon") {
+        // Files written before the setting was recorded say nothing to check against.
+        None => {}
+        Some(Value::Null) => {
+            if let Some((i, c)) = run
+                .horizons
+                .0
+                .iter()
+                .enumerate()
+                .find(|(_, c)| c.from == HorizonFrom::Flag)
+            {
+                return Err(format!(
+                    "merge.run.horizons[{i}] says {} steps from --horizon, but \
+                     merge.run.settings.horizon is null (no --horizon given)",
+                    c.steps
+                ));
+            }
+        }
+        Some(h) => {
+            let flag = h
+                .as_u64()
+                .filter(|h| (1..=MAX_HORIZON_FLAG as u64).contains(h))
+                .ok_or_else(|| {
+                    format!(
+                        "merge.run.settings.horizon is {h}: must be null or 1 to \
+                         {MAX_HORIZON_FLAG} steps (eval --horizon's range)"
+                    )
+                })? as usize;
+            if let Some((i, c)) = run
+                .horizons
+                .0
+                .iter()
+                .enumerate()
+                .find(|(_, c)| (c.steps, c.from) != (flag, HorizonFrom::Flag))
+            {
+                let from = match c.from {
+                    HorizonFrom::Flag => "--horizon",
+                    HorizonFrom::Rollouts => "the rollouts",
+                    HorizonFrom::Recording => "the recording",
+                };
+                return Err(format!(
+                    "merge.run.horizons[{i}] says {} steps from {from}, but \
+                     merge.run.settings.horizon is {flag}: with --horizon every scene is \
+                     scored over its {flag} steps",
+                    c.steps
+                ));
+            }
         }
     }
     let read = run
@@ -663,6 +729,8 @@ mod tests {
             ("/merge/run/shards/0".into(), json!(7), "merge.run.shards holds 7: not a shard of 2"),
             ("/merge/run/settings/shards".into(), json!(1e18), "must be 1 to 1000000"),
             ("/merge/run/settings/task".into(), json!("nonsense"), "merge.run.settings.task is \"nonsense\""),
+            ("/merge/run/settings/methods/0".into(), json!("log\u{1b}]52;c;eA==\u{7}"), "merge.run.settings.methods[0] is \"log\\u{001B}]52;c;eA==\\u{0007}\": holds the control character U+001B"),
+            ("/merge/run/settings/methods/0".into(), json!("log\n| ours | 0.0"), "merge.run.settings.methods[0] is \"log\\u{000A}| ours | 0.0\": holds the control character U+000A"),
         ] {
             let e = edit(&pointer, v);
             assert!(
@@ -712,6 +780,28 @@ mod tests {
             e.contains("read.json: merge.run.horizons count 4 scenes scored, but the run read 3"),
             "{e}"
         );
+        // A horizon line that contradicts the shard's own --horizon setting was merged and
+        // printed under the table, exit 0.
+        for (setting, horizons, says) in [
+            (json!(40), json!([{"steps": 80, "from": "flag", "scenes": 1}]), "merge.run.horizons[0] says 80 steps from --horizon, but merge.run.settings.horizon is 40"),
+            (json!(40), json!([{"steps": 40, "from": "recording", "scenes": 1}]), "merge.run.horizons[0] says 40 steps from the recording, but merge.run.settings.horizon is 40"),
+            (Value::Null, json!([{"steps": 40, "from": "flag", "scenes": 1}]), "merge.run.horizons[0] says 40 steps from --horizon, but merge.run.settings.horizon is null"),
+            (json!(0), json!([]), "merge.run.settings.horizon is 0: must be null or 1 to 10000"),
+            (json!("40"), json!([]), "merge.run.settings.horizon is \"40\": must be null or 1 to 10000"),
+            (json!(20000), json!([{"steps": 20000, "from": "flag", "scenes": 1}]), "merge.run.settings.horizon is 20000: must be null or 1 to 10000"),
+        ] {
+            let mut h = b.clone();
+            h["merge"]["run"]["settings"]["horizon"] = setting.clone();
+            h["merge"]["run"]["horizons"] = horizons;
+            let f = write(dir.path(), "horizon.json", &h);
+            let e = merge(&[f]).map(|_| "accepted".to_string()).unwrap_or_else(|e| e.to_string());
+            assert!(e.contains("horizon.json: ") && e.contains(says), "{setting}: {e}");
+        }
+        let mut agree = b.clone();
+        agree["merge"]["run"]["settings"]["horizon"] = json!(40);
+        agree["merge"]["run"]["horizons"] = json!([{"steps": 40, "from": "flag", "scenes": 2}]);
+        let f = write(dir.path(), "agree.json", &agree);
+        read_shard(&f).unwrap();
         // One file twice, and one shard in two files.
         let e = merge(&[fa.clone(), fa.clone()]).unwrap_err().to_string();
         assert!(e.contains("shard 0/2 is in both"), "{e}");

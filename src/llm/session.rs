@@ -438,6 +438,11 @@ struct State {
     /// runs written before it was kept): `--resume` refuses a scene that changed since.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     scene_crc32c: Option<u32>,
+    /// The checkpoint the run samples with (absent in runs written before it was kept):
+    /// `--resume` and `--continue` refuse another, which went on with the default one (or
+    /// any given) without a word, the run's rounds sampled by two models.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    checkpoint: Option<crate::train::CheckpointOrigin>,
     requests: Vec<String>,
     backend: String,
     model: Option<String>,
@@ -1009,6 +1014,7 @@ impl<'a> Session<'a> {
                 version: STATE_VERSION,
                 scene: absolute(scene_path),
                 scene_crc32c: scene_fingerprint(scene_path),
+                checkpoint: trained.origin.clone(),
                 requests,
                 backend: backend.name().into(),
                 model,
@@ -1122,6 +1128,23 @@ impl<'a> Session<'a> {
                         "the scene {} changed (or went) since the run started: its rounds were \
                          asked, sampled and judged on the old one; start a new run on it",
                         state.scene.display()
+                    ),
+                ));
+            }
+        }
+        if let (Some(was), Some(now)) = (&state.checkpoint, &trained.origin) {
+            if was.crc32c != now.crc32c {
+                return Err(run_err(
+                    dir,
+                    format!(
+                        "the run samples with the checkpoint {} (checksum {:08x}), and the one \
+                         given, {}, is another (checksum {:08x}): its rounds would go on with \
+                         another model; give --checkpoint {}",
+                        crate::io::name::one_line(&was.dir.display().to_string()),
+                        was.crc32c,
+                        crate::io::name::one_line(&now.dir.display().to_string()),
+                        now.crc32c,
+                        crate::io::name::one_line(&was.dir.display().to_string()),
                     ),
                 ));
             }
@@ -2379,6 +2402,7 @@ mod tests {
             version: STATE_VERSION,
             scene: "scene.xml".into(),
             scene_crc32c: Some(7),
+            checkpoint: None,
             requests: vec!["vehicle 401 cuts in front of vehicle 399".into()],
             backend: "rules".into(),
             model: None,

@@ -20,5 +20,6 @@ pub use store::{
 };
 pub use trainer::{
     is_validation, learning_rate, load, load_for_training, save, train, train_from, val_fold,
-    CheckpointMeta, TrainConfig, TrainError, Trained, ONLINE_FILE, OPTIMIZER_FILE, VAL_FOLDS,
+    CheckpointMeta, CheckpointOrigin, TrainConfig, TrainError, Trained, ONLINE_FILE,
+    OPTIMIZER_FILE, VAL_FOLDS,
 };

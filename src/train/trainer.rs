@@ -630,6 +630,8 @@ pub(crate) fn loss(
 
 /// A trained model and its metadata.
 pub struct Trained {
+    /// The checkpoint it was read from ([`load`]); `None` for a network trained in memory.
+    pub origin: Option<CheckpointOrigin>,
     /// Weights.
     pub varmap: VarMap,
     /// The network.
@@ -642,6 +644,16 @@ pub struct Trained {
     /// The moving average of the weights, when training keeps one: then `varmap` holds the
     /// weights training continues from ([`ONLINE_FILE`]) and the average is what samples.
     pub ema: Option<Ema>,
+}
+
+/// Where a checkpoint was read from, and a checksum of what it samples with: `ask --resume`
+/// refuses to go on with another model than the run's.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct CheckpointOrigin {
+    /// The checkpoint directory, absolute where it could be made so.
+    pub dir: PathBuf,
+    /// CRC-32C of `config.json` followed by `model.safetensors`.
+    pub crc32c: u32,
 }
 
 impl Trained {
@@ -941,6 +953,7 @@ pub fn train_from(
     meta.steps_done = cfg.steps;
     meta.ema_updates = ema.as_ref().map_or(0, |e| e.updates);
     Ok(Trained {
+        origin: None,
         varmap,
         model,
         meta,
@@ -1318,6 +1331,12 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
     check_tensors(&varmap, &w, &meta.config.model).map_err(|m| io(&w, m))?;
     varmap.load(&w).map_err(|e| io(&w, message_in_file(e)))?;
     check_weights(&varmap).map_err(|m| io(&w, m))?;
+    let weights = crate::io::read_regular(&w, MAX_WEIGHTS_BYTES, "checkpoint weights")
+        .map_err(|e| io(&w, e.reason()))?;
+    let origin = CheckpointOrigin {
+        dir: std::path::absolute(dir).unwrap_or_else(|_| dir.to_path_buf()),
+        crc32c: crc32c::crc32c_append(crc32c::crc32c(text.as_bytes()), &weights),
+    };
     let opt_path = dir.join(OPTIMIZER_FILE);
     let optimizer = if opt_path.exists() {
         crate::io::open_regular(&opt_path, 2 * MAX_WEIGHTS_BYTES, "optimiser state")
@@ -1341,6 +1360,7 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
         None
     };
     Ok(Trained {
+        origin: Some(origin),
         varmap,
         model,
         meta,
