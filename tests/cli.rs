@@ -3410,6 +3410,45 @@ fn a_run_directory_takes_one_run() {
 }
 
 #[test]
+fn a_run_resumed_after_its_checkpoint_config_changed_is_refused() {
+    // Only the weights were checksummed: a config.json edited in place (another noise
+    // schedule here) resumed the run with another sampler, exit 0.
+    let dir = tempfile::tempdir().unwrap();
+    let ck = dir.path().join("ck");
+    std::fs::create_dir(&ck).unwrap();
+    for f in ["config.json", "model.safetensors"] {
+        std::fs::copy(std::path::Path::new("data/checkpoint").join(f), ck.join(f)).unwrap();
+    }
+    let out = dir.path().join("run");
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let sim = |extra: &[&str]| {
+        let mut a = vec!["simulate", s(&scene), "--checkpoint", s(&ck)];
+        a.extend(["--task", "unconditional", "--lambda", "0", "-o", s(&out)]);
+        a.extend(extra);
+        drivescript(&a)
+    };
+    assert!(sim(&[]).status.success());
+    let run: Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
+    assert_eq!(run["config_crc32c"].as_str().unwrap().len(), 8);
+    assert!(sim(&["--resume"]).status.success(), "unchanged, it resumes");
+    let mut cfg: Value =
+        serde_json::from_str(&std::fs::read_to_string(ck.join("config.json")).unwrap()).unwrap();
+    cfg["config"]["edm"]["sigma_max"] = serde_json::json!(60.0);
+    std::fs::write(ck.join("config.json"), cfg.to_string()).unwrap();
+    let o = sim(&["--resume"]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{e}");
+    assert!(e.contains("differs in config_crc32c"), "{e}");
+    // A record written before the field resumes as it did.
+    let mut old = run.clone();
+    old.as_object_mut().unwrap().remove("config_crc32c");
+    std::fs::write(out.join("run.json"), old.to_string()).unwrap();
+    let o = sim(&["--resume"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+#[test]
 fn eval_judges_the_rest_of_the_scene_against_the_unguided_twin() {
     // The twin drives the highway as recorded; the guided sample keeps vehicle 1 under its
     // speed limit, but stacks vehicle 3 on vehicle 1 and vehicle 4 on vehicle 2 from the

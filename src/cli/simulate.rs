@@ -282,6 +282,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         version: env!("CARGO_PKG_VERSION").into(),
         checkpoint: args.checkpoint.display().to_string(),
         weights_crc32c: file_crc32c(&args.checkpoint.join("model.safetensors"))?,
+        config_crc32c: Some(file_crc32c(&args.checkpoint.join("config.json"))?),
         settings,
         scripts: specs
             .iter()

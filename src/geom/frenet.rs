@@ -473,4 +473,52 @@ mod tests {
             fd_check(&f, f.to_cartesian(s, d));
         }
     }
+
+    #[test]
+    fn the_frame_at_a_point_is_the_derivative_of_the_map_to_the_plane() {
+        // A quarter circle of radius 20 m, then straight on: points on the bend, at its
+        // vertices, on the straight and beyond both ends.
+        let mut pts: Vec<Point> = (0..=12)
+            .map(|k| {
+                let a = std::f64::consts::FRAC_PI_2 * k as f64 / 12.0;
+                Point::new(20.0 * a.sin(), 20.0 * (1.0 - a.cos()))
+            })
+            .collect();
+        pts.push(Point::new(20.0, 60.0));
+        let path = FrenetPath::new(Polyline::new(pts).unwrap());
+        let eps = 1e-6;
+        for (s, d) in [
+            (-5.0, 0.5),
+            (2.5, 0.3),
+            (9.0, -0.8),
+            (16.0, 1.5),
+            (24.0, -2.0),
+            (30.5, 0.0),
+            (45.0, 0.7),
+            (90.0, -1.0),
+        ] {
+            let f = path.frame_at(s, d);
+            assert!((f.point - path.to_cartesian(s, d)).norm() < 1e-12, "at {s}");
+            assert_eq!(f.heading, path.heading_at(s));
+            assert!((f.curvature - path.curvature_at(s)).abs() < 1e-12, "at {s}");
+            let ds = (path.to_cartesian(s + eps, d) - path.to_cartesian(s - eps, d)) / (2.0 * eps);
+            let dd = (path.to_cartesian(s, d + eps) - path.to_cartesian(s, d - eps)) / (2.0 * eps);
+            assert!(
+                (f.along - ds).norm() < 1e-6,
+                "at {s}: along {:?} against {ds:?}",
+                f.along
+            );
+            assert!(
+                (f.across - dd).norm() < 1e-6,
+                "at {s}: across {:?} against {dd:?}",
+                f.across
+            );
+            let dh = (path.heading_at(s + eps) - path.heading_at(s - eps)) / (2.0 * eps);
+            assert!(
+                (f.curvature - dh).abs() < 1e-5,
+                "at {s}: curvature {} against {dh}",
+                f.curvature
+            );
+        }
+    }
 }

@@ -11,7 +11,6 @@ mod gradients;
 pub mod ops;
 pub mod pca;
 pub mod route;
-pub mod route_frame;
 
 pub use attention::Scores;
 pub use denoiser::{Context, Denoiser, DenoiserConfig, SceneEncoding, GOAL_FEATURES};

@@ -42,6 +42,11 @@ pub struct RunRecord {
     pub checkpoint: String,
     /// CRC-32C of the checkpoint's weights file, hex.
     pub weights_crc32c: String,
+    /// CRC-32C of the checkpoint's `config.json`, hex: its noise schedule, normaliser and
+    /// window shape sample as much as the weights do. Absent in runs written before the
+    /// field, which resume without the check.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub config_crc32c: Option<String>,
     /// Task, seed, samples, steps, guidance settings, behaviour: what the sampler was told.
     pub settings: Value,
     /// Each script: its file name and a CRC-32C of its text.
@@ -150,7 +155,12 @@ impl RunRecord {
                 Ok(text) => {
                     let theirs: Value = serde_json::from_str(&text)
                         .map_err(|e| io(&file, format!("not a run record: {e}")))?;
-                    let ours = serde_json::to_value(self).expect("records serialise");
+                    let mut ours = serde_json::to_value(self).expect("records serialise");
+                    if theirs.get("config_crc32c").is_none() {
+                        ours.as_object_mut()
+                            .expect("a record is an object")
+                            .remove("config_crc32c");
+                    }
                     if let Some((field, a, b)) = first_difference("", &theirs, &ours) {
                         return Err(ProvenanceError::OtherRun {
                             dir: shown,
@@ -338,6 +348,7 @@ mod tests {
             version: "0.1.0".into(),
             checkpoint: "data/checkpoint".into(),
             weights_crc32c: "0123abcd".into(),
+            config_crc32c: Some("4567cdef".into()),
             settings: serde_json::json!({"task": "unconditional", "seed": seed}),
             scripts: vec![("cut_in.rhai".into(), "deadbeef".into())],
             params: String::new(),
