@@ -64,11 +64,17 @@ pub(crate) fn check_states(
     }
 }
 
+/// A path as an error shows it: on one line, control and invisible characters escaped, so
+/// that a file named `a\nerror: all good.xml` cannot print a line of its own.
+fn shown(path: &str) -> String {
+    name::one_line(path)
+}
+
 /// Errors from reading or writing scenes and rollouts.
 #[derive(Debug, thiserror::Error)]
 pub enum IoError {
     /// The file could not be opened or read.
-    #[error("{path}: {source}")]
+    #[error("{}: {source}", shown(.path))]
     Read {
         /// The file.
         path: String,
@@ -77,7 +83,7 @@ pub enum IoError {
         source: std::io::Error,
     },
     /// The file could not be written.
-    #[error("{path}: cannot write: {source}")]
+    #[error("{}: cannot write: {source}", shown(.path))]
     Write {
         /// The file.
         path: String,
@@ -86,14 +92,14 @@ pub enum IoError {
         source: std::io::Error,
     },
     /// The format cannot be told from the name.
-    #[error("{path}: unknown scene format; supported: {SUPPORTED_FORMATS}")]
+    #[error("{}: unknown scene format; supported: {SUPPORTED_FORMATS}", shown(.path))]
     UnknownFormat {
         /// The file.
         path: String,
     },
     /// The content is malformed at a given place (the whole file where `location` is
     /// "file", which is then not said: "x.json: file: is empty" said "file" twice).
-    #[error("{path}: {}", located(location, message))]
+    #[error("{}: {}", shown(.path), located(location, message))]
     Invalid {
         /// The file.
         path: String,
@@ -111,7 +117,7 @@ pub enum IoError {
         message: String,
     },
     /// A scene number past the last scene of a multi-scene source ([`load_scene`]).
-    #[error("{path}: scene {index}: the source holds only {count} scenes")]
+    #[error("{}: scene {index}: the source holds only {count} scenes", shown(.path))]
     NoSuchScene {
         /// The source.
         path: String,
@@ -121,7 +127,7 @@ pub enum IoError {
         count: usize,
     },
     /// The content parsed but makes an inconsistent scene.
-    #[error("{path}: {location}: {error}")]
+    #[error("{}: {location}: {error}", shown(.path))]
     Scene {
         /// The file.
         path: String,
@@ -1593,7 +1599,7 @@ impl RoadLineEnds {
 
 #[cfg(test)]
 mod tests {
-    use super::{output_stem, without_position};
+    use super::{load_scenes, output_stem, without_position, LoadOptions};
 
     #[test]
     fn serde_s_names_of_rust_types_are_said_in_words() {
@@ -2144,6 +2150,23 @@ mod tests {
         ] {
             let e = output_stem(bad).unwrap_err().to_string();
             assert!(e.contains(why), "{bad:?}: {e}");
+        }
+    }
+
+    #[test]
+    fn a_path_with_a_line_break_is_shown_on_one_line_in_every_error() {
+        // Paths reached messages raw: a file named `a\nerror: all good.yaml` printed a line
+        // of its own, an escape sequence in a name reached the terminal.
+        let dir = tempfile::tempdir().unwrap();
+        let bad = dir.path().join("scene\nerror: all good\u{1b}[2J.yaml");
+        std::fs::write(&bad, "agents: [").unwrap();
+        let missing = dir.path().join("gone\nerror: all good.yaml");
+        for path in [&bad, &missing] {
+            let err = load_scenes(path, &LoadOptions::default())
+                .unwrap_err()
+                .to_string();
+            assert!(!err.contains('\n') && !err.contains('\u{1b}'), "{err}");
+            assert!(err.contains("\\u{000A}error: all good"), "{err}");
         }
     }
 }
