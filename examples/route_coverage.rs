@@ -13,6 +13,7 @@ use drivescript::geom::Point;
 use drivescript::io::{load_scenes, LoadOptions};
 use drivescript::scene::routes::{candidate_routes, fit_route, route_residual};
 use drivescript::scene::AgentType;
+use drivescript::train::dataset::to_frame;
 
 const LIMITS: [f64; 5] = [0.5, 1.0, 1.75, 3.5, 7.0];
 
@@ -60,15 +61,17 @@ fn main() -> anyhow::Result<()> {
                     still += 1;
                     continue;
                 }
-                let (hc, hs) = (now.heading.cos(), now.heading.sin());
-                let line = pts
+                // The future in the current heading's frame: x along it, y across.
+                let local: Vec<[f64; 3]> = pts
                     .iter()
-                    .map(|p| (-(p.x - now.x) * hs + (p.y - now.y) * hc).abs())
-                    .fold(0.0, f64::max);
+                    .map(|p| to_frame([now.x, now.y, now.heading], *p, 0.0))
+                    .collect();
+                let line = local.iter().map(|f| f[1].abs()).fold(0.0, f64::max);
+                // Metres a step at the current speed: the constant-speed anchor of both frames.
+                let advance = now.speed() * scene.meta.dt;
                 let routes =
                     candidate_routes(&scene.map, now.position(), now.heading, moved + 20.0);
                 counts.push(routes.len());
-                let speed = now.speed();
                 match fit_route(&routes, &pts) {
                     Some(f) => {
                         route_max.push(f.max_offset);
@@ -77,8 +80,7 @@ fn main() -> anyhow::Result<()> {
                             .map(|s| Some([s.x, s.y, s.heading]))
                             .collect();
                         let current = [now.x, now.y, now.heading];
-                        let r =
-                            route_residual(&routes[f.route].frenet, current, &future, speed * 0.1);
+                        let r = route_residual(&routes[f.route].frenet, current, &future, advance);
                         let r: Vec<[f64; 3]> = r.into_iter().flatten().collect();
                         in_route.push(
                             r.iter()
@@ -86,10 +88,11 @@ fn main() -> anyhow::Result<()> {
                                 .chain(r.iter().map(|v| v[1]))
                                 .collect(),
                         );
-                        let along = pts.iter().enumerate().map(|(t, p)| {
-                            (p.x - now.x) * hc + (p.y - now.y) * hs - speed * 0.1 * (t + 1) as f64
-                        });
-                        let across = pts.iter().map(|p| -(p.x - now.x) * hs + (p.y - now.y) * hc);
+                        let along = local
+                            .iter()
+                            .enumerate()
+                            .map(|(t, f)| f[0] - advance * (t + 1) as f64);
+                        let across = local.iter().map(|f| f[1]);
                         in_plane.push(along.chain(across).collect());
                     }
                     None => no_route += 1,
