@@ -155,7 +155,11 @@ class Denoiser:
         parts = [ctx["agent_hist"]]
         if attrs > 0:
             parts.append(ctx["agent_attr"][..., :attrs])
-        feats = torch.cat(parts + [x * c_in, noise], dim=2)
+        parts += [x * c_in, noise]
+        # Futures told against lane routes (`route_frame`): the route ahead is an input.
+        if self.model.get("route_frame", False):
+            parts.append(ctx["agent_route"])
+        feats = torch.cat(parts, dim=2)
         a = w.linear("agents.l2", torch.relu(w.linear("agents.l1", feats)))
         sc = self.scores
         for i in range(self.model["layers"]):

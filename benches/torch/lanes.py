@@ -61,9 +61,10 @@ def advance(hist, history):
     return out
 
 
-def decode(meta, coeffs, adv):
+def decode(meta, coeffs, adv, route=None):
     """Normaliser::decode plus the constant-velocity anchor: positions `[B, N, F, 2]` in each
-    agent's own frame."""
+    agent's own frame. A checkpoint that tells futures against lane routes (`route_frame`)
+    needs the windows' `agent_route` ([`from_route`])."""
     norm = meta["normaliser"]
     pca = norm["pca"]
     comps = torch.tensor(pca["components"], dtype=torch.float64).reshape(-1, pca["dim"])
@@ -71,7 +72,38 @@ def decode(meta, coeffs, adv):
     scale = torch.tensor(norm["std"], dtype=torch.float64) / norm["sigma_data"]
     v = ((coeffs.double() * scale) @ comps + mean).reshape(*coeffs.shape[:-1], -1, 3).clone()
     v[..., 0] += adv[..., None] * torch.arange(1, v.shape[-2] + 1, dtype=torch.float64)
+    if meta["config"]["window"].get("route_frame", False):
+        return from_route(v, route)
     return v[..., :2]
+
+
+def from_route(v, route):
+    """src/scene/routes.rs, from_route_residual, for futures `v` `[B, N, F, 3]` (along with the
+    anchor added, across, heading) on the route as the network reads it (`agent_route`, 16
+    points 5 m apart from where the agent projects onto its route): straight segments between
+    those points, continued straight past both ends. It matches drivescript's path to the
+    corners' smoothing within the 75 m the points cover; past them drivescript's route goes on
+    with its lanes where this one goes straight. An agent without a route (all points zero)
+    is decoded along its heading."""
+    b, n = v.shape[:2]
+    q = route.double().reshape(b, n, -1, 2) * REL_SCALE
+    p = q.shape[2]
+    seg = q[:, :, 1:] - q[:, :, :-1]
+    ln = seg.norm(dim=-1)
+    has = ln[..., 0] > 1e-6
+    unit = seg / ln.clamp(min=1e-9)[..., None]
+    cum = torch.cat([torch.zeros(b, n, 1, dtype=ln.dtype), ln.cumsum(-1)], -1)
+    t0 = unit[:, :, 0]
+    # The agent (the origin) left of the route's first point: d0.
+    d0 = t0[..., 1] * q[:, :, 0, 0] - t0[..., 0] * q[:, :, 0, 1]
+    u, d = v[..., 0], d0[..., None] + v[..., 1]
+    i = (torch.searchsorted(cum.contiguous(), u.contiguous(), right=True) - 1).clamp(0, p - 2)
+    start = q.gather(2, i[..., None].expand(-1, -1, -1, 2))
+    dirn = unit.gather(2, i[..., None].expand(-1, -1, -1, 2))
+    along = (u - cum.gather(2, i))[..., None]
+    normal = torch.stack([-dirn[..., 1], dirn[..., 0]], -1)
+    pos = start + dirn * along + normal * d[..., None]
+    return torch.where(has[..., None, None], pos, v[..., :2])
 
 
 def lanes_in_agent_frames(ctx):
@@ -148,7 +180,8 @@ def main():
     win["lane_conn"] = win["lane_conn"].long()
     g = torch.Generator().manual_seed(a.seed)
     idx = torch.randperm(win["target"].shape[0], generator=g)[:a.windows]
-    ctx = {k: win[k][idx] for k in CTX}
+    ctx = {k: win[k][idx] for k in CTX + ["agent_route"] if k in win}
+    route_in = ctx.get("agent_route")
     target, mask, seen = win["target"][idx], win["loss_mask"][idx], win["seen"][idx]
     b, n, _ = target.shape
     lanes = lanes_in_agent_frames(ctx)
@@ -159,7 +192,7 @@ def main():
 
     def row(name, meta, coeffs, adv):
         nonlocal route
-        d = per_lane(decode(meta, coeffs, adv), lanes, ctx["lane_mask"])
+        d = per_lane(decode(meta, coeffs, adv, route_in), lanes, ctx["lane_mask"])
         if route is None:
             # The lanes the recorded future follows: those it comes within 1 m of. The nearest
             # lane alone cannot tell a car half a lane over from one on the next lane, since
@@ -172,7 +205,7 @@ def main():
               f"{r.median().item():.2f} m", flush=True)
         # How far from the recorded future itself: a network that learnt these windows gives
         # them back, whatever the lanes.
-        gap = (decode(meta, coeffs, adv) - decode(meta, target, adv)).norm(dim=-1)[full]
+        gap = (decode(meta, coeffs, adv, route_in) - decode(meta, target, adv, route_in)).norm(dim=-1)[full]
         cols = []
         for sec in (1, 2, 4, 8):
             if 10 * sec <= gap.shape[-1]:
@@ -205,14 +238,14 @@ def main():
             row(name, meta, out, adv)
         if a.split:
             enc = model.encode_map(ctx)
-            path = decode(meta, target, adv)[full]
+            path = decode(meta, target, adv, route_in)[full]
         for s in a.split:
             torch.manual_seed(a.seed + 5)
             with torch.no_grad():
                 noisy = target + torch.randn(target.shape) * s
                 den = model.denoise(ctx, enc, noisy, s)
-            na, nc = along_across(decode(meta, noisy, adv)[full] - path, path)
-            da, dc = along_across(decode(meta, den, adv)[full] - path, path)
+            na, nc = along_across(decode(meta, noisy, adv, route_in)[full] - path, path)
+            da, dc = along_across(decode(meta, den, adv, route_in)[full] - path, path)
             print(f"  one step from recorded + noise {s:<6g} noise along {na:7.2f} m across "
                   f"{nc:7.2f} m   denoised along {da:6.2f} m across {dc:6.2f} m", flush=True)
         for s in a.from_noise:

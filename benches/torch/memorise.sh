@@ -8,9 +8,13 @@
 # It expects, in the folder named by PACK (default .dev, relative to the repository root):
 #   ds.xz           an x86-64 `drivescript` built here (`strip`, then `xz -9`)
 #   sets.tar.xz     one folder of scene files per training set (their names are the sets')
-# and trains, for M minutes each, one network per line of RUNS ("NAME SET TRAIN.PY-FLAGS..."),
-# evaluating each on its own set's training windows and data/cities-wip on the same windows.
-# env: OUT, M (minutes), RUNS, FROM (data/cities-wip), BATCH (256), SPLIT (noise levels).
+# and trains, for M minutes each, one network per line of RUNS ("NAME EXPORT TRAIN.PY-FLAGS..."),
+# evaluating each on its own export's training windows, beside the checkpoint the export was
+# encoded with (COMPARE=0: without it). Each line of EXPORTS ("EXPORT SET CHECKPOINT") encodes a
+# set as that checkpoint's network reads it (a route-frame checkpoint: futures told against
+# lane routes); without EXPORTS, every set is encoded with FROM and the export takes its name.
+# env: OUT, M (minutes), RUNS, EXPORTS, FROM (data/cities-wip), BATCH (256), SPLIT (noise
+# levels), COMPARE (1), LANES_FLAGS (lanes.py's, default --windows 64 --from-log).
 set -u
 cd "$(dirname "$0")/../.."
 T0=$(date +%s)
@@ -23,11 +27,17 @@ export PYTHONUNBUFFERED=1
 nvidia-smi -L 2>&1 | head -2
 $PY benches/torch/unpack.py "$PACK" sets.tar.xz /tmp/sets || exit 1
 log extracted
-for s in $(ls /tmp/sets); do
-  rm -rf /tmp/e_$s
-  /tmp/ds train --export /tmp/e_$s --resume "$FROM" --urban /tmp/sets/$s 2>&1 \
+if [ -z "${EXPORTS:-}" ]; then
+  EXPORTS=$(for s in $(ls /tmp/sets); do echo "$s $s $FROM"; done)
+fi
+declare -A CHECK
+while read -r name set from; do
+  [ -z "$name" ] && continue
+  CHECK[$name]=$from
+  rm -rf /tmp/e_$name
+  /tmp/ds train --export /tmp/e_$name --resume "$from" --urban /tmp/sets/$set 2>&1 \
     | grep -v "scenes read\|files written" &
-done
+done <<< "$EXPORTS"
 wait
 log exported
 rm -rf /tmp/logs; mkdir -p /tmp/logs
@@ -46,8 +56,10 @@ tar cf $OUT/checkpoints.tar -C /tmp $(cd /tmp && ls -d r_*/last)
 # The evaluations run on the CPU (lanes.py's sampler is the port's, on CPU tensors), side by side.
 while read -r name set flags; do
   [ -z "$name" ] && continue
-  OMP_NUM_THREADS=3 $PY benches/torch/lanes.py /tmp/e_$set /tmp/r_$name/last "$FROM" \
-    --file train-00000.safetensors --windows 64 --from-log --split $SPLIT \
+  compare=${CHECK[$set]}
+  [ "${COMPARE:-1}" = 0 ] && compare=
+  OMP_NUM_THREADS=3 $PY benches/torch/lanes.py /tmp/e_$set /tmp/r_$name/last $compare \
+    --file train-00000.safetensors ${LANES_FLAGS:---windows 64 --from-log} --split $SPLIT \
     > /tmp/logs/$name.lanes.log 2>&1 &
 done <<< "$RUNS"
 wait

@@ -32,6 +32,8 @@ from denoiser import Denoiser  # noqa: E402
 
 CTX = ["lane_points", "lane_mask", "lane_rel", "lane_conn", "agent_hist", "agent_mask",
        "agent_lane_rel", "agent_rel", "agent_attr"]
+# src/model/denoiser.rs, ROUTE_FEATURES: (x, y) of 16 points of each agent's route ahead.
+ROUTE_FEATURES = 32
 
 
 def shapes(model, k):
@@ -39,7 +41,8 @@ def shapes(model, k):
     d, hist, f = model["d"], model["history"], model["noise_freqs"]
     out = {"lanes.l1.weight": [d, 2], "lanes.l1.bias": [d], "lanes.l2.weight": [d, d],
            "lanes.l2.bias": [d], "lanes.l3.weight": [d, d], "lanes.l3.bias": [d],
-           "agents.l1.weight": [d, hist * 4 + model.get("attrs", 0) + 2 * f + k],
+           "agents.l1.weight": [d, hist * 4 + model.get("attrs", 0) + 2 * f + k
+                                + (ROUTE_FEATURES if model.get("route_frame") else 0)],
            "agents.l1.bias": [d], "agents.l2.weight": [d, d], "agents.l2.bias": [d],
            "head1.weight": [d, d], "head1.bias": [d], "head2.weight": [k, d], "head2.bias": [k]}
     for i in range(model["layers"]):
@@ -95,7 +98,7 @@ def load_windows(data, kind, dev):
 def loss(model, edm, win, basis, idx, sigma, noise, per_component_weight=False):
     """src/train/trainer.rs, `loss`. With per-component spreads, the weight is still the one
     `sigma_data`'s, so that an error counts by its metres, unless `per_component_weight`."""
-    ctx = {key: win[key][idx] for key in CTX}
+    ctx = {key: win[key][idx] for key in CTX + ["agent_route"] if key in win}
     target, seen, mask = win["target"][idx], win["seen"][idx], win["loss_mask"][idx]
     b, n, k = target.shape
     x = target + noise * sigma.reshape(b, 1, 1).float()

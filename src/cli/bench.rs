@@ -405,6 +405,7 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
                 agent_lane_features: 4,
                 route_times: 0,
                 goals: false,
+                route_frame: false,
             },
             edm: Edm::default(),
             eval_every: usize::MAX,

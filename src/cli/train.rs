@@ -52,7 +52,8 @@ pub struct Args {
         conflicts_with_all = [
             "setting", "steps", "batch", "lr", "seed", "eval_every", "val_fold", "val_town",
             "ema_half_life", "component_scale", "scale_cap", "p_mean", "p_std",
-            "nearest_lane_pose", "route_times", "goals", "across_weight", "force",
+            "nearest_lane_pose", "route_times", "goals", "route_frame", "across_weight",
+            "force",
         ]
     )]
     export: Option<PathBuf>,
@@ -129,6 +130,13 @@ pub struct Args {
     /// unconditional ones to it. A resumed run keeps its checkpoint's.
     #[arg(long)]
     goals: bool,
+    /// A new run tells each vehicle's future against a route of the lane graph (the distance
+    /// along it beyond constant speed, the offset across it, the heading beyond the route's)
+    /// and gives the route ahead as an input (`route_frame` in the checkpoint's window and
+    /// model), so that a future with no offset follows its lanes. A resumed run keeps its
+    /// checkpoint's.
+    #[arg(long)]
+    route_frame: bool,
     /// A new run weighs the part of each position error across the recorded path this many
     /// times the rest, 1 to 1000 (default 1, the plain error; `across_weight` in the
     /// checkpoint's config). Validation losses then compare only runs of one weight. A resumed
@@ -193,6 +201,10 @@ pub fn run(args: Args) -> Result<ExitCode> {
     if args.goals {
         cfg.window.goals = true;
         cfg.model.goals = true;
+    }
+    if args.route_frame {
+        cfg.window.route_frame = true;
+        cfg.model.route_frame = true;
     }
     if args.data.is_empty() && args.urban.is_empty() {
         anyhow::bail!("nothing to train on: give --data or --urban (or both)");
@@ -283,6 +295,13 @@ pub fn run(args: Args) -> Result<ExitCode> {
                 anyhow::bail!(
                     "--nearest-lane-pose: {} was trained without the lanes' nearest points; a \
                      resumed run keeps its inputs",
+                    dir.display()
+                );
+            }
+            if args.route_frame && !r.meta.config.window.route_frame {
+                anyhow::bail!(
+                    "--route-frame: {} was trained with futures told along each agent's \
+                     heading; a resumed run keeps its form of the future",
                     dir.display()
                 );
             }

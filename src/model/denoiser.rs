@@ -48,7 +48,16 @@ pub struct DenoiserConfig {
     /// `train::WindowConfig::goals`); false in configs written before the field.
     #[serde(default)]
     pub goals: bool,
+    /// Whether futures are told against each agent's lane route and the route is an input
+    /// ([`Context::agent_route`]; `train::WindowConfig::route_frame`); false in configs written
+    /// before the field.
+    #[serde(default)]
+    pub route_frame: bool,
 }
+
+/// Features of an agent's route ([`Context::agent_route`]): `(x, y)` of each of
+/// [`crate::scene::routes::AHEAD_POINTS`] points.
+pub const ROUTE_FEATURES: usize = 2 * crate::scene::routes::AHEAD_POINTS;
 
 /// Features of an agent's end point ([`Context::agent_goal`]): its position in the agent's
 /// frame (÷ 50 m), the heading change to it (sin, cos), when it is reached (as a fraction of
@@ -88,6 +97,10 @@ pub struct Context {
     /// Each agent's end point where it is given, `[B, N, GOAL_FEATURES]`; present when the
     /// window configuration asks for it (`train::WindowConfig::goals`).
     pub agent_goal: Option<Tensor>,
+    /// Each agent's route ahead ([`crate::scene::routes::route_ahead`]) in its own frame,
+    /// ÷ 50 m, `[B, N, ROUTE_FEATURES]` (zeros for an agent without one); present when the
+    /// window configuration tells futures against routes (`train::WindowConfig::route_frame`).
+    pub agent_route: Option<Tensor>,
 }
 
 impl Context {
@@ -106,6 +119,11 @@ impl Context {
             route: self.route.as_ref().map(|r| r.to_dtype(dtype)).transpose()?,
             agent_goal: self
                 .agent_goal
+                .as_ref()
+                .map(|g| g.to_dtype(dtype))
+                .transpose()?,
+            agent_route: self
+                .agent_route
                 .as_ref()
                 .map(|g| g.to_dtype(dtype))
                 .transpose()?,
@@ -163,7 +181,8 @@ impl Denoiser {
                     + cfg.k
                     + 2 * cfg.noise_freqs
                     + FEATURES_PER_TIME * cfg.route_times
-                    + if cfg.goals { GOAL_FEATURES } else { 0 },
+                    + if cfg.goals { GOAL_FEATURES } else { 0 }
+                    + if cfg.route_frame { ROUTE_FEATURES } else { 0 },
                 d,
                 vb.pp("agents"),
             )?,
@@ -264,6 +283,16 @@ impl Denoiser {
                 )
             })?;
             parts.push(goal.clone());
+        }
+        if self.cfg.route_frame {
+            let route = ctx.agent_route.as_ref().ok_or_else(|| {
+                candle_core::Error::Msg(
+                    "the model tells futures against lane routes, but the batch has no routes \
+                     (window.route_frame = false)"
+                        .into(),
+                )
+            })?;
+            parts.push(route.clone());
         }
         let feats = Tensor::cat(&parts, 2)?;
         let mut a = self.agents.forward(&feats)?;

@@ -77,6 +77,13 @@ fn with_route(mut cfg: TrainConfig) -> TrainConfig {
     cfg
 }
 
+/// The tiny configuration, with futures told against lane routes and the route as an input.
+fn with_route_frame(mut cfg: TrainConfig) -> TrainConfig {
+    cfg.window.route_frame = true;
+    cfg.model.route_frame = true;
+    cfg
+}
+
 #[test]
 fn every_parameter_receives_a_gradient_after_a_training_step() {
     for cfg in [
@@ -84,6 +91,7 @@ fn every_parameter_receives_a_gradient_after_a_training_step() {
         with_nearest_lane_pose(tiny_config(1, 3, 1)),
         with_route(tiny_config(1, 3, 1)),
         with_goals(tiny_config(1, 3, 1)),
+        with_route_frame(tiny_config(1, 3, 1)),
         TrainConfig {
             across_weight: 4.0,
             ..tiny_config(1, 3, 1)
@@ -220,6 +228,7 @@ fn the_input_gradient_matches_central_finite_differences_in_f64() {
     // The route features' choice of nearest lane point is piecewise constant in the input;
     // between switches their gradient is the decoded pose's.
     input_gradient_matches_finite_differences(&with_route(tiny_config(1, 3, 1)));
+    input_gradient_matches_finite_differences(&with_route_frame(tiny_config(1, 3, 1)));
 }
 
 fn input_gradient_matches_finite_differences(cfg: &TrainConfig) {

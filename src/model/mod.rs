@@ -13,6 +13,8 @@ pub mod pca;
 pub mod route;
 
 pub use attention::Scores;
-pub use denoiser::{Context, Denoiser, DenoiserConfig, SceneEncoding, GOAL_FEATURES};
+pub use denoiser::{
+    Context, Denoiser, DenoiserConfig, SceneEncoding, GOAL_FEATURES, ROUTE_FEATURES,
+};
 pub use edm::Edm;
 pub use pca::{Pca, PcaError};

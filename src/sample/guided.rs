@@ -13,11 +13,11 @@ use candle_core::{Device, Tensor, Var};
 
 use crate::cost::{CostReport, CostScript, Realism, Trajectories};
 use crate::scene::{velocities_from_positions, AgentId, AgentState, AgentType, Scene};
-use crate::train::{build, Goals, Trained, Window};
+use crate::train::{build, Goals, RouteHint, Trained, Window};
 
 use super::config::*;
 use super::heun::{heun, polish};
-use super::plan::{tile, Aligned, Plan, Slot};
+use super::plan::{tile, Aligned, Plan, Slot, Tiling};
 
 /// The scene cut to the model's horizon: `current + 1 + future` steps, unobserved beyond the
 /// recording. Cost scripts are compiled against this scene.
@@ -167,7 +167,18 @@ fn setup<'a>(
                     .into(),
             )
         })?;
-    let (windows, slots, copies) = tile(scene, &wcfg, c, centre, &trained.meta);
+    // Conditional simulation is given where each agent ends, and takes the route that leads
+    // there; unconditional knows nothing of the future.
+    let hint = match cfg.task {
+        Task::Conditional => RouteHint::EndPoint,
+        Task::Unconditional => RouteHint::Unknown,
+    };
+    let Tiling {
+        windows,
+        slots,
+        copies,
+        routes,
+    } = tile(scene, &wcfg, c, centre, &trained.meta, hint);
     let mut base = Trajectories::filled(scene);
     let mut modelled = vec![false; scene.agents.len()];
     for sl in &slots {
@@ -215,6 +226,7 @@ fn setup<'a>(
         base,
         fixed,
         held: Vec::new(),
+        routes,
     };
     let (n, k, _, nw) = plan.dims();
     let kk = cfg.samples.max(1);
@@ -494,7 +506,7 @@ pub(crate) fn sample_after(
                     step,
                 });
             }
-            plan.to_coeffs(&world, t.layout.steps, &mut g, s);
+            plan.to_coeffs(&world, t.layout.steps, &mut g, s, dv);
             totals.push(total);
         }
         Ok((totals, g))
@@ -1019,7 +1031,12 @@ pub(crate) mod tests {
             max_agents: 2,
             ..t.meta.config.window
         };
-        let (windows, slots, copies) = tile(&s, &wcfg, c, 0, &t.meta);
+        let Tiling {
+            windows,
+            slots,
+            copies,
+            ..
+        } = tile(&s, &wcfg, c, 0, &t.meta, RouteHint::Unknown);
         let observed: Vec<usize> = (0..s.agents.len())
             .filter(|&i| s.agents[i].is_valid(c))
             .collect();
@@ -1061,7 +1078,12 @@ pub(crate) mod tests {
     fn headings_follow_the_path_forwards_and_backwards_but_never_sideways() {
         let (t, s) = setup();
         let c = s.meta.current_step;
-        let (windows, slots, copies) = tile(&s, &t.meta.config.window, c, 0, &t.meta);
+        let Tiling {
+            windows,
+            slots,
+            copies,
+            ..
+        } = tile(&s, &t.meta.config.window, c, 0, &t.meta, RouteHint::Unknown);
         let sl = slots[0];
         let plan = Plan {
             trained: &t,
@@ -1071,6 +1093,7 @@ pub(crate) mod tests {
             base: Trajectories::filled(&s),
             fixed: Vec::new(),
             held: Vec::new(),
+            routes: Vec::new(),
         };
         let [x0, y0, h0] = sl.pose;
         let drive = |angle: f64| {
@@ -1099,7 +1122,12 @@ pub(crate) mod tests {
     fn a_car_turns_only_as_it_rolls() {
         let (t, s) = setup();
         let c = s.meta.current_step;
-        let (windows, slots, copies) = tile(&s, &t.meta.config.window, c, 0, &t.meta);
+        let Tiling {
+            windows,
+            slots,
+            copies,
+            ..
+        } = tile(&s, &t.meta.config.window, c, 0, &t.meta, RouteHint::Unknown);
         let sl = slots[0];
         assert_eq!(sl.curvature, 0.3, "a car's steering bound");
         let plan = Plan {
@@ -1110,6 +1138,7 @@ pub(crate) mod tests {
             base: Trajectories::filled(&s),
             fixed: Vec::new(),
             held: Vec::new(),
+            routes: Vec::new(),
         };
         let [x0, y0, h0] = sl.pose;
         // Steps of `step(j)` metres straight ahead, the model's heading wobbling by ±0.2 rad.
@@ -1186,7 +1215,12 @@ pub(crate) mod tests {
         let c = s.meta.current_step;
         // Windows of 3 agents: the plan's dimensions follow the model's window config.
         t.meta.config.window.max_agents = 3;
-        let (windows, slots, copies) = tile(&s, &t.meta.config.window, c, 0, &t.meta);
+        let Tiling {
+            windows,
+            slots,
+            copies,
+            ..
+        } = tile(&s, &t.meta.config.window, c, 0, &t.meta, RouteHint::Unknown);
         assert!(copies.iter().any(|cp| cp.len() > 1), "windows overlap");
         let plan = Plan {
             trained: &t,
@@ -1196,6 +1230,7 @@ pub(crate) mod tests {
             base: Trajectories::filled(&s),
             fixed: Vec::new(),
             held: Vec::new(),
+            routes: Vec::new(),
         };
         let (n, k, _, nw) = (3, t.meta.config.model.k, 0, plan.windows.len());
         let len = nw * n * k;

@@ -4,9 +4,11 @@
 //! trajectories with headings aligned to the path.
 
 use crate::cost::Trajectories;
+use crate::geom::{wrap_angle, FrenetPath, Point, Polyline};
+use crate::scene::routes::route_residual;
 use crate::scene::{AgentId, AgentType, KinematicLimits, Scene};
 use crate::train::dataset::{add_anchor, remove_anchor};
-use crate::train::{window_among, Trained, Window};
+use crate::train::{window_among, RouteHint, Trained, Window};
 
 use super::config::Clamp;
 
@@ -27,6 +29,44 @@ pub(super) struct Plan<'a> {
     pub(super) fixed: Vec<(AgentId, AgentType)>,
     /// Per slot, the agent that the conditional task shows standing ([`Plan::standing`]).
     pub(super) held: Vec<Option<Held>>,
+    /// Per slot, the route its future is told against, for a checkpoint that tells futures
+    /// against routes (`route_frame`); `None` everywhere otherwise.
+    pub(super) routes: Vec<Option<Route>>,
+}
+
+/// A modelled agent's route in the world ([`crate::train::WindowConfig::route_frame`]), with
+/// where the agent stands on it: its coefficients decode to `(along, across, heading)` beyond
+/// `(s0, d0)` and the route's heading ([`crate::scene::routes::from_route_residual`]).
+#[derive(Debug, Clone)]
+pub(super) struct Route {
+    path: FrenetPath,
+    s0: f64,
+    d0: f64,
+}
+
+impl Route {
+    /// The route of `slot` in window `w` (whose frame it is stored in), taken to the world;
+    /// `None` where the slot has none.
+    fn of(w: &Window, slot: usize, pose: [f64; 3]) -> Option<Self> {
+        let (sn, cs) = w.origin[2].sin_cos();
+        let line = w.routes.get(slot)?.iter().map(|q| {
+            let (x, y) = (q[0] as f64, q[1] as f64);
+            Point::new(w.origin[0] + cs * x - sn * y, w.origin[1] + sn * x + cs * y)
+        });
+        let path = FrenetPath::new(Polyline::new(line).ok()?);
+        let f = path.project(Point::new(pose[0], pose[1]));
+        Some(Self {
+            path,
+            s0: f.s,
+            d0: f.d,
+        })
+    }
+
+    /// The world pose of one decoded step `(along, across, heading)` (the anchor added), with
+    /// the frame's derivatives there.
+    fn frame(&self, r: &[f64]) -> crate::geom::FramePoint {
+        self.path.frame_at(self.s0 + r[0], self.d0 + r[1])
+    }
 }
 
 /// A modelled agent held standing: it rolls at an even pace from where it stands to its
@@ -102,7 +142,8 @@ pub(super) struct Slot {
     pub(super) curvature: f64,
 }
 
-/// Cuts windows until every agent observed at step `c` sits in one: the first centred on
+/// Cuts windows until every agent observed at step `c` sits in one (with routes chosen as
+/// `hint` says, for a checkpoint that tells futures against them): the first centred on
 /// `centre`, each next one on the uncovered agent nearest to it. A window holds at most
 /// `max_agents` agents, and NGSIM scenes have up to a hundred; agents left outside would
 /// drift at constant velocity, ignored by the model and by guidance. Windows overlap, and
@@ -116,7 +157,8 @@ pub(super) fn tile(
     c: usize,
     centre: usize,
     meta: &crate::train::CheckpointMeta,
-) -> (Vec<Window>, Vec<Slot>, Vec<Vec<(usize, usize)>>) {
+    hint: RouteHint,
+) -> Tiling {
     let moves = |i: usize| meta.models(&scene.agents[i]);
     let observed = |i: usize| scene.agents[i].is_valid(c) && moves(i);
     // A model that reads what each agent is was trained with every road user and obstacle in
@@ -137,7 +179,7 @@ pub(super) fn tile(
     let mut order = Vec::new();
     let mut next = Some(centre);
     while let Some(ci) = next {
-        let w = window_among(scene, wcfg, c, ci, &context);
+        let w = window_among(scene, wcfg, c, ci, &context, hint);
         let wi = windows.len();
         for (slot, &ai) in w.agents.iter().enumerate() {
             if !observed(ai) {
@@ -172,7 +214,24 @@ pub(super) fn tile(
         });
         copies.push(list.iter().map(|&(w, s, _)| (w, s)).collect());
     }
-    (windows, slots, copies)
+    let routes = slots
+        .iter()
+        .map(|sl| Route::of(&windows[sl.window], sl.slot, sl.pose))
+        .collect();
+    Tiling {
+        windows,
+        slots,
+        copies,
+        routes,
+    }
+}
+
+/// What [`tile`] cuts: [`Plan`]'s fields of the same names.
+pub(super) struct Tiling {
+    pub(super) windows: Vec<Window>,
+    pub(super) slots: Vec<Slot>,
+    pub(super) copies: Vec<Vec<(usize, usize)>>,
+    pub(super) routes: Vec<Option<Route>>,
 }
 
 impl Plan<'_> {
@@ -212,6 +271,16 @@ impl Plan<'_> {
                                 p0[1] + u * (h.end[1] - p0[1]),
                                 p0[2],
                             ];
+                            t.valid[i] = true;
+                        }
+                        continue;
+                    }
+                    if let Some(route) = self.routes.get(si).and_then(Option::as_ref) {
+                        for j in 0..f.min(t.layout.steps) {
+                            let r = &local[j * 3..j * 3 + 3];
+                            let fp = route.frame(r);
+                            let i = ai * t.layout.steps + j;
+                            t.xyh[i] = [fp.point.x, fp.point.y, wrap_angle(fp.heading + r[2])];
                             t.valid[i] = true;
                         }
                         continue;
@@ -371,7 +440,8 @@ impl Plan<'_> {
         let c = scene.meta.current_step;
         self.slots
             .iter()
-            .map(|sl| {
+            .enumerate()
+            .map(|(si, sl)| {
                 let (j, ex, ey) = ends[sl.agent]?;
                 let a = &scene.agents[sl.agent];
                 let (dx, dy) = (ex - sl.pose[0], ey - sl.pose[1]);
@@ -382,15 +452,29 @@ impl Plan<'_> {
                 if !stands {
                     return None;
                 }
-                let (sn, cs) = sl.pose[2].sin_cos();
-                let (tx, ty) = (cs * dx + sn * dy, -sn * dx + cs * dy);
                 let mut local = vec![0.0; 3 * f];
-                for i in 0..f {
-                    let u = ((i + 1) as f64 / (j + 1) as f64).min(1.0);
-                    local[i * 3] = u * tx;
-                    local[i * 3 + 1] = u * ty;
+                if let Some(route) = self.routes.get(si).and_then(Option::as_ref) {
+                    // The same roll in the plane, told against the route.
+                    let future: Vec<Option<[f64; 3]>> = (0..f)
+                        .map(|i| {
+                            let u = ((i + 1) as f64 / (j + 1) as f64).min(1.0);
+                            Some([sl.pose[0] + u * dx, sl.pose[1] + u * dy, sl.pose[2]])
+                        })
+                        .collect();
+                    let r = route_residual(&route.path, sl.pose, &future, sl.advance);
+                    for (i, v) in r.into_iter().enumerate() {
+                        local[i * 3..i * 3 + 3].copy_from_slice(&v.expect("every step given"));
+                    }
+                } else {
+                    let (sn, cs) = sl.pose[2].sin_cos();
+                    let (tx, ty) = (cs * dx + sn * dy, -sn * dx + cs * dy);
+                    for i in 0..f {
+                        let u = ((i + 1) as f64 / (j + 1) as f64).min(1.0);
+                        local[i * 3] = u * tx;
+                        local[i * 3 + 1] = u * ty;
+                    }
+                    remove_anchor(&mut local, sl.advance);
                 }
-                remove_anchor(&mut local, sl.advance);
                 Some(Held {
                     coeffs: norm.encode(&local),
                     end_step: j,
@@ -415,24 +499,42 @@ impl Plan<'_> {
         }
     }
 
-    /// Gradient of a dense world-coordinate gradient w.r.t. the normalised coefficients.
-    pub(super) fn to_coeffs(&self, world: &[f64], steps: usize, out: &mut [f32], sample: usize) {
+    /// Gradient of a dense world-coordinate gradient w.r.t. the normalised coefficients, for
+    /// the trajectories [`Plan::trajectories`] decoded from `coeffs` (a route's frame turns
+    /// along it, so the chain rule depends on where each step lies).
+    pub(super) fn to_coeffs(
+        &self,
+        world: &[f64],
+        steps: usize,
+        out: &mut [f32],
+        sample: usize,
+        coeffs: &[f32],
+    ) {
         let (n, k, f, nw) = self.dims();
         let norm = &self.trained.meta.normaliser;
         let dim = norm.pca.dim;
-        for (
-            &Slot {
-                agent: ai,
-                pose: p0,
-                ..
-            },
-            copies,
-        ) in self.slots.iter().zip(&self.copies)
-        {
+        for (si, (sl, copies)) in self.slots.iter().zip(&self.copies).enumerate() {
+            let (ai, p0) = (sl.agent, sl.pose);
             let (sn, cs) = p0[2].sin_cos();
             let mut local = vec![0.0; dim];
+            let route = self.routes.get(si).and_then(Option::as_ref);
+            let decoded = route.map(|_| {
+                let (wi, slot) = copies[0];
+                let row = (sample * nw + wi) * n + slot;
+                let mut v = norm.decode(&coeffs[row * k..(row + 1) * k]);
+                add_anchor(&mut v, sl.advance);
+                v
+            });
             for j in 0..f.min(steps) {
                 let g = &world[(ai * steps + j) * 3..(ai * steps + j) * 3 + 3];
+                if let (Some(route), Some(v)) = (route, &decoded) {
+                    // x = frame(s0 + along, d0 + across), heading = route's there + heading.
+                    let fp = route.frame(&v[j * 3..j * 3 + 3]);
+                    local[j * 3] = g[0] * fp.along.x + g[1] * fp.along.y + g[2] * fp.curvature;
+                    local[j * 3 + 1] = g[0] * fp.across.x + g[1] * fp.across.y;
+                    local[j * 3 + 2] = g[2];
+                    continue;
+                }
                 local[j * 3] = cs * g[0] + sn * g[1];
                 local[j * 3 + 1] = -sn * g[0] + cs * g[1];
                 local[j * 3 + 2] = g[2];
@@ -446,5 +548,131 @@ impl Plan<'_> {
                 out[((sample * nw + wi) * n + slot) * k + c] += g as f32;
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::io::{load_scene, LoadOptions};
+    use crate::train::rng::Rng;
+    use crate::train::trainer::tiny_config;
+    use std::path::Path;
+
+    /// A tiny model that tells futures against routes, and the crossroads where vehicle 1 turns
+    /// left (vehicle 2 waits across the junction), prepared for it.
+    fn crossroads() -> (Trained, Scene) {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes");
+        let scenes: Vec<Scene> = ["crossroads_left.yaml", "highway.yaml"]
+            .iter()
+            .map(|f| load_scene(&dir.join(f), 0, &LoadOptions::default()).unwrap())
+            .collect();
+        let mut cfg = tiny_config(2, 3, 2);
+        cfg.window.route_frame = true;
+        cfg.model.route_frame = true;
+        let t = crate::train::train(&scenes, cfg, None, None, |_, _, _| {}).unwrap();
+        let s = crate::sample::prepare(&scenes[0], &t).unwrap();
+        (t, s)
+    }
+
+    fn plan<'a>(t: &'a Trained, s: &Scene, hint: RouteHint) -> Plan<'a> {
+        let c = s.meta.current_step;
+        let tiling = tile(s, &t.meta.config.window, c, 0, &t.meta, hint);
+        Plan {
+            trained: t,
+            windows: tiling.windows,
+            slots: tiling.slots,
+            copies: tiling.copies,
+            base: Trajectories::filled(s),
+            fixed: Vec::new(),
+            held: Vec::new(),
+            routes: tiling.routes,
+        }
+    }
+
+    #[test]
+    fn the_route_is_the_one_to_the_given_end_or_straight_on_when_nothing_is_known() {
+        let (t, s) = crossroads();
+        let end_of = |p: &Plan, agent: usize| {
+            let si = p.slots.iter().position(|sl| sl.agent == agent).unwrap();
+            let r = p.routes[si].as_ref().expect("a route");
+            r.path.to_cartesian(r.path.length(), 0.0)
+        };
+        // Given its end (conditional), vehicle 1 takes the left turn north.
+        let given = plan(&t, &s, RouteHint::EndPoint);
+        let e = end_of(&given, 0);
+        assert!(e.y > 30.0 && (e.x - 62.0).abs() < 0.5, "{e:?}");
+        // Knowing nothing, it goes straight on east.
+        let e = end_of(&plan(&t, &s, RouteHint::Unknown), 0);
+        assert!(e.y.abs() < 1e-6 && e.x > 100.0, "{e:?}");
+        // The waiting vehicle 2 faces west on lane 10 either way.
+        let e = end_of(&given, 1);
+        assert!(e.x < 60.0 && (e.y - 3.5).abs() < 1e-6, "{e:?}");
+    }
+
+    #[test]
+    fn coefficients_decode_along_the_route_and_the_chain_rule_matches_finite_differences() {
+        let (t, s) = crossroads();
+        let plan = plan(&t, &s, RouteHint::EndPoint);
+        let (n, k, f, nw) = plan.dims();
+        let norm = &t.meta.normaliser;
+        // The coefficients of "constant speed along the route": the car rounds the corner.
+        let si = plan.slots.iter().position(|sl| sl.agent == 0).unwrap();
+        let sl = plan.slots[si];
+        let mut zero = vec![0.0; 3 * f];
+        for (j, v) in norm.pca.mean.iter().enumerate() {
+            zero[j] = -v;
+        }
+        let mut coeffs = vec![0f32; nw * n * k];
+        let row = sl.window * n + sl.slot;
+        coeffs[row * k..(row + 1) * k].copy_from_slice(&norm.encode(&zero));
+        let tr = &plan.trajectories(&coeffs)[0];
+        let steps = tr.layout.steps;
+        let last = tr.xyh[sl.agent * steps + f - 1];
+        // 8 m/s for 4 s from 10 m before the junction: on lane 3's northward leg (x = 62),
+        // to the PCA's reconstruction error, heading north as the route's frame does there
+        // (its normals turn smoothly from corner to end, so 5 m into a 50 m leg it still
+        // leans 0.15 rad into the corner).
+        assert!((last[0] - 62.0).abs() < 0.5 && last[1] > 8.0, "{last:?}");
+        assert!(
+            (last[2] - std::f64::consts::FRAC_PI_2).abs() < 0.2,
+            "{last:?}"
+        );
+        // The chain rule of to_coeffs against central differences of a linear objective of
+        // the decoded trajectories, at random coefficients.
+        let mut rng = Rng::new(9);
+        let coeffs: Vec<f32> = (0..nw * n * k).map(|_| 0.5 * rng.normal() as f32).collect();
+        let world: Vec<f64> = (0..tr.xyh.len() * 3).map(|_| rng.normal()).collect();
+        let objective = |c: &[f32]| -> f64 {
+            let tr = &plan.trajectories(c)[0];
+            tr.xyh
+                .iter()
+                .zip(&tr.valid)
+                .flat_map(|(p, v)| p.map(|x| if *v { x } else { 0.0 }))
+                .zip(&world)
+                .map(|(a, b)| a * b)
+                .sum()
+        };
+        let mut g = vec![0f32; coeffs.len()];
+        plan.to_coeffs(&world, steps, &mut g, 0, &coeffs);
+        let h = 1e-3f32;
+        let mut checked = 0;
+        for (si, sl) in plan.slots.iter().enumerate() {
+            assert!(plan.routes[si].is_some());
+            let row = sl.window * n + sl.slot;
+            for c in row * k..(row + 1) * k {
+                let (mut up, mut down) = (coeffs.clone(), coeffs.clone());
+                up[c] += h;
+                down[c] -= h;
+                let fd = (objective(&up) - objective(&down)) / (2.0 * h as f64);
+                let an = g[c] as f64;
+                assert!(
+                    (fd - an).abs() <= 2e-3 * fd.abs().max(1.0),
+                    "coefficient {c}: finite differences {fd}, chain rule {an}"
+                );
+                checked += 1;
+            }
+        }
+        assert_eq!(checked, plan.slots.len() * k);
     }
 }

@@ -146,6 +146,23 @@ pub fn route_line(map: &Map, p: Point, heading: f64, observed: &[Point], reach: 
     })
 }
 
+/// Points of a route the network reads ([`route_ahead`]).
+pub const AHEAD_POINTS: usize = 16;
+
+/// Metres between the points of [`route_ahead`]: with [`AHEAD_POINTS`], 75 m ahead, what a
+/// car at 10 m/s covers in 8 s.
+pub const AHEAD_SPACING: f64 = 5.0;
+
+/// [`AHEAD_POINTS`] points of `path` [`AHEAD_SPACING`] apart, on its centre line from where
+/// `p` projects onto it: the route as the network reads it. Past the path's end they continue
+/// straight, as the future told against it does.
+pub fn route_ahead(path: &FrenetPath, p: Point) -> Vec<Point> {
+    let s0 = path.project(p).s;
+    (0..AHEAD_POINTS)
+        .map(|i| path.to_cartesian(s0 + AHEAD_SPACING * i as f64, 0.0))
+        .collect()
+}
+
 /// A future told against its route, per future step `[along, across, heading]`: the
 /// distance along the route beyond `advance` metres a step from the current pose, the offset
 /// across it beyond the current one, and the heading beyond the route's there (unwrapped, so

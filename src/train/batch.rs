@@ -4,7 +4,8 @@ use candle_core::{Device, Result, Tensor};
 
 use super::dataset::{Window, WindowConfig, AGENT_ATTRS};
 use crate::model::route::RouteInputs;
-use crate::model::{Context, Pca, GOAL_FEATURES};
+use crate::model::{Context, Pca, GOAL_FEATURES, ROUTE_FEATURES};
+use crate::scene::routes::route_ahead;
 
 /// Metres per unit of the relative-pose features (keeps them near 1).
 pub const REL_SCALE: f32 = 50.0;
@@ -322,6 +323,14 @@ pub fn build(
     let mut route_points = vec![FAR; if rt > 0 { b * n * m * p * 4 } else { 0 }];
     let mut route_offset = vec![0f32; b * n * rt * 3];
     let mut agent_goal = vec![0f32; if cfg.goals { b * n * GOAL_FEATURES } else { 0 }];
+    let mut agent_route = vec![
+        0f32;
+        if cfg.route_frame {
+            b * n * ROUTE_FEATURES
+        } else {
+            0
+        }
+    ];
     for (wi, w) in windows.iter().enumerate() {
         let nl = w.lane_ids.len();
         let poses: Vec<[f32; 3]> = (0..nl).map(|l| lane_pose(w, cfg, l)).collect();
@@ -419,6 +428,14 @@ pub fn build(
                     ]);
                 }
             }
+            if let Some(path) = w.route_path(a).filter(|_| cfg.route_frame) {
+                let here = crate::geom::Point::new(cur[a][0] as f64, cur[a][1] as f64);
+                let o = (wi * n + a) * ROUTE_FEATURES;
+                for (j, q) in route_ahead(&path, here).iter().enumerate() {
+                    let r = rel(cur[a], [q.x as f32, q.y as f32, 0.0]);
+                    agent_route[o + 2 * j..o + 2 * j + 2].copy_from_slice(&r[..2]);
+                }
+            }
             for a2 in 0..na {
                 let o = ((wi * n + a) * n + a2) * 4;
                 agent_rel[o..o + 4].copy_from_slice(&rel(cur[a], cur[a2]));
@@ -489,6 +506,11 @@ pub fn build(
             } else {
                 None
             },
+            agent_route: if cfg.route_frame {
+                Some(t(agent_route, &[b, n, ROUTE_FEATURES])?)
+            } else {
+                None
+            },
         },
         target: t(target, &[b, n, k])?,
         loss_mask: t(loss_mask, &[b, n])?,
@@ -550,6 +572,50 @@ mod tests {
             (end[0] - 30.0).abs() < 1e-4 && end[1].abs() < 1e-6,
             "{end:?}"
         );
+    }
+
+    #[test]
+    fn the_route_ahead_is_given_in_the_agents_own_frame_whichever_way_the_window_faces() {
+        // Vehicle 1 takes the left turn 10 m ahead of it, at 8 m/s.
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/scenes");
+        let opts = crate::io::LoadOptions::default();
+        let scene = crate::io::load_scene(&dir.join("crossroads_left.yaml"), 0, &opts).unwrap();
+        let cfg = crate::train::WindowConfig {
+            route_frame: true,
+            ..crate::train::WindowConfig::ngsim()
+        };
+        let w = crate::train::window_at(&scene, &cfg, 10, 0);
+        let futures = crate::train::dataset::residual_futures(&[w.clone()], &cfg);
+        let norm = Normaliser::new(crate::model::Pca::fit(&futures, 1).unwrap(), 0.5);
+        let route = |w: &Window| -> Vec<f32> {
+            let b = build(&[w], &cfg, &norm, Goals::Hidden, &Device::Cpu).unwrap();
+            let r = b.ctx.agent_route.unwrap();
+            assert_eq!(r.dims(), [1, cfg.max_agents, ROUTE_FEATURES]);
+            r.flatten_all().unwrap().to_vec1().unwrap()
+        };
+        let r = route(&w);
+        let point = |j: usize| (r[2 * j] * REL_SCALE, r[2 * j + 1] * REL_SCALE);
+        // From where it stands, straight on to the junction, 5 m apart...
+        for j in 0..3 {
+            let (x, y) = point(j);
+            assert!(
+                (x - 5.0 * j as f32).abs() < 1e-3 && y.abs() < 1e-3,
+                "{j}: {x} {y}"
+            );
+        }
+        // ...then round the corner to the north, on lane 3's last leg (x = 62 - 40).
+        let (x, y) = point(crate::scene::routes::AHEAD_POINTS - 1);
+        assert!((x - 22.0).abs() < 0.1 && y > 40.0, "{x} {y}");
+        // The same in a rotated window (training's augmentation).
+        for (a, b) in r.iter().zip(&route(&w.rotated(0.7))) {
+            assert!((a - b).abs() < 1e-4, "{a} {b}");
+        }
+        // Slots beyond the window's agents have none; a window without routes gives no tensor.
+        assert!(r[2 * ROUTE_FEATURES..].iter().all(|v| *v == 0.0));
+        let plain = crate::train::WindowConfig::ngsim();
+        let w = crate::train::window_at(&scene, &plain, 10, 0);
+        let b = build(&[&w], &plain, &norm, Goals::Hidden, &Device::Cpu).unwrap();
+        assert!(b.ctx.agent_route.is_none());
     }
 
     #[test]

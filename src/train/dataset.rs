@@ -273,7 +273,21 @@ pub fn window_at(scene: &Scene, cfg: &WindowConfig, c: usize, centre: usize) -> 
 }
 
 fn window(scene: &Scene, cfg: &WindowConfig, c: usize, centre: usize) -> Window {
-    window_among(scene, cfg, c, centre, &|_| true)
+    window_among(scene, cfg, c, centre, &|_| true, RouteHint::Recorded)
+}
+
+/// What chooses the route each agent's future is told against ([`WindowConfig::route_frame`];
+/// [`route_line`] picks among the lane paths open to it).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RouteHint {
+    /// The route its recorded future strays from least: training, where the future is the
+    /// target.
+    Recorded,
+    /// The route nearest its last recorded point within the window's future: conditional
+    /// simulation, which is given where each agent ends.
+    EndPoint,
+    /// Straight on from the nearest lane going its way: nothing of its future is known.
+    Unknown,
 }
 
 /// [`window_at`] holding only the agents for which `keep` is true (and `centre`).
@@ -283,6 +297,7 @@ pub fn window_among(
     c: usize,
     centre: usize,
     keep: &dyn Fn(usize) -> bool,
+    hint: RouteHint,
 ) -> Window {
     let s0 = scene.agents[centre].states[c];
     let origin = [s0.x, s0.y, s0.heading];
@@ -336,7 +351,7 @@ pub fn window_among(
     let routes = if cfg.route_frame {
         agents
             .iter()
-            .map(|&i| agent_route(scene, cfg, c, i, origin))
+            .map(|&i| agent_route(scene, cfg, c, i, origin, hint))
             .collect()
     } else {
         Vec::new()
@@ -374,25 +389,31 @@ pub fn window_among(
     }
 }
 
-/// Agent `i`'s route at scene step `c` ([`route_line`], chosen by its recorded future) in the
-/// frame at `origin`; empty unless it is observed at `c`. It reaches as far as the agent
-/// could go in the window's future at one and a half times its speed (at least 8 m/s), and
-/// 20 m more.
+/// Agent `i`'s route at scene step `c` ([`route_line`], chosen as `hint` says) in the frame at
+/// `origin`; empty unless it is observed at `c`. It reaches as far as the agent could go in
+/// the window's future at one and a half times its speed (at least 8 m/s), and 20 m more.
 fn agent_route(
     scene: &Scene,
     cfg: &WindowConfig,
     c: usize,
     i: usize,
     origin: [f64; 3],
+    hint: RouteHint,
 ) -> Vec<[f32; 2]> {
     let a = &scene.agents[i];
     let Some(now) = a.states.get(c).filter(|s| s.valid) else {
         return Vec::new();
     };
-    let observed: Vec<Point> = (c + 1..=c + cfg.future)
-        .filter_map(|t| a.states.get(t).filter(|s| s.valid))
-        .map(|s| s.position())
-        .collect();
+    let mut observed: Vec<Point> = match hint {
+        RouteHint::Unknown => Vec::new(),
+        RouteHint::Recorded | RouteHint::EndPoint => (c + 1..=c + cfg.future)
+            .filter_map(|t| a.states.get(t).filter(|s| s.valid))
+            .map(|s| s.position())
+            .collect(),
+    };
+    if hint == RouteHint::EndPoint && observed.len() > 1 {
+        observed.drain(..observed.len() - 1);
+    }
     let horizon = cfg.future as f64 * scene.meta.dt;
     let reach = 20.0 + (1.5 * now.speed()).max(8.0) * horizon;
     route_line(&scene.map, now.position(), now.heading, &observed, reach)
@@ -546,6 +567,15 @@ impl Window {
         Some((v, seen))
     }
 
+    /// Slot `k`'s route ([`Window::routes`]) as a path in the centre frame; `None` where it
+    /// has none.
+    pub fn route_path(&self, k: usize) -> Option<FrenetPath> {
+        let line = self.routes.get(k)?;
+        let points = line.iter().map(|p| Point::new(p[0] as f64, p[1] as f64));
+        // Windows come from `window_among` or a store that checked its routes.
+        Some(FrenetPath::new(Polyline::new(points).ok()?))
+    }
+
     /// [`Window::agent_residual_seen`] told against the agent's route (`routes[k]`): `None`
     /// where the slot has no route or is not observed at the current step.
     fn route_residual_seen(&self, cfg: &WindowConfig, k: usize) -> Option<(Vec<f64>, Vec<bool>)> {
@@ -554,10 +584,7 @@ impl Window {
         if !self.valid[c] {
             return None;
         }
-        let line = self.routes.get(k)?;
-        let points = line.iter().map(|p| Point::new(p[0] as f64, p[1] as f64));
-        // Windows come from `window_among` or a store that checked its routes.
-        let path = FrenetPath::new(Polyline::new(points).ok()?);
+        let path = self.route_path(k)?;
         let pose = |i: usize| {
             let s = self.states[i];
             [s[0] as f64, s[1] as f64, s[2] as f64]

@@ -32,7 +32,8 @@ pub struct Exported {
 /// encoding, sizes and normaliser of `from`:
 ///
 /// - `train-NNNNN.safetensors`, `val-NNNNN.safetensors`: up to `per_shard` windows each, the
-///   tensors of [`build`] (the context's fields by name, `target`, `loss_mask`, `seen`) with
+///   tensors of [`build`] (the context's fields by name, `agent_route` where the checkpoint
+///   tells futures against routes, `target`, `loss_mask`, `seen`) with
 ///   lanes padded to the window's `max_lanes`, so that every file has the same shapes;
 /// - `basis.safetensors`: the loss basis (`basis`);
 /// - `check.safetensors`: noise levels `sigma`, noise `noise` and the loss `loss` that `from`'s
@@ -116,7 +117,8 @@ pub fn export(
         let refs: Vec<&Window> = ws.iter().collect();
         let b = build(&refs, &window, norm, Goals::Hidden, &dev)?;
         let c = b.ctx;
-        Ok(HashMap::from([
+        let route = c.agent_route.map(|r| ("agent_route".to_string(), r));
+        Ok(HashMap::from_iter(route.into_iter().chain([
             ("lane_points".to_string(), c.lane_points),
             ("lane_mask".to_string(), c.lane_mask),
             ("lane_rel".to_string(), c.lane_rel),
@@ -129,7 +131,7 @@ pub fn export(
             ("target".to_string(), b.target),
             ("loss_mask".to_string(), b.loss_mask),
             ("seen".to_string(), b.seen),
-        ]))
+        ])))
     };
     let (nt, nv) = (source.train_len(), source.val_len());
     let files = nt.div_ceil(per_shard) + nv.div_ceil(per_shard);
@@ -260,6 +262,7 @@ mod tests {
             agent_attr: cat("agent_attr"),
             route: None,
             agent_goal: None,
+            agent_route: None,
         };
         let batch = crate::train::Batch {
             ctx,

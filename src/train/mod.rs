@@ -11,7 +11,7 @@ pub mod store;
 pub mod trainer;
 
 pub use batch::{build, Batch, ComponentScale, Goals, Normaliser};
-pub use dataset::{window_among, window_at, windows, Window, WindowConfig};
+pub use dataset::{window_among, window_at, windows, RouteHint, Window, WindowConfig};
 pub use ema::Ema;
 pub use export::{export, Exported};
 pub use store::{

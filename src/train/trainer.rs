@@ -96,6 +96,7 @@ impl TrainConfig {
                 agent_lane_features: 4,
                 route_times: 0,
                 goals: false,
+                route_frame: false,
             },
             edm: Edm::default(),
             eval_every: 100,
@@ -302,6 +303,12 @@ impl TrainConfig {
             return Err(format!(
                 "model.goals = {} but window.goals = {}: they must agree",
                 m.goals, w.goals
+            ));
+        }
+        if m.route_frame != w.route_frame {
+            return Err(format!(
+                "model.route_frame = {} but window.route_frame = {}: they must agree",
+                m.route_frame, w.route_frame
             ));
         }
         if m.route_times != w.route_times {
@@ -1432,6 +1439,7 @@ pub(crate) fn tiny_config(steps: usize, seed: u64, eval_every: usize) -> TrainCo
             agent_lane_features: 4,
             route_times: 0,
             goals: false,
+            route_frame: false,
         },
         edm: Edm::default(),
         eval_every,
