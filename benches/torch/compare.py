@@ -41,7 +41,8 @@ def main():
                                                  "--export", ref_path], a.threads)
         ref = load_file(ref_path)
     ctx = {k: ref[k] for k in ["lane_points", "lane_mask", "lane_rel", "agent_hist",
-                               "agent_mask", "agent_attr", "agent_lane_rel", "agent_rel"]}
+                               "agent_mask", "agent_attr", "agent_lane_rel", "agent_rel",
+                               "agent_route"] if k in ref}
     ctx["lane_conn"] = ref["lane_conn"].long()
     sigmas = ref["sigmas"].double().tolist()
     model = Denoiser(a.checkpoint)

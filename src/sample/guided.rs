@@ -135,10 +135,13 @@ struct Setup<'a> {
     rows: usize,
 }
 
+/// `route_cost`, where guidance asks for something: what an unconditional run's routes are
+/// chosen by ([`Plan::cheapest_routes`], for a checkpoint that tells futures against routes).
 fn setup<'a>(
     trained: &'a Trained,
     scene: &Scene,
     cfg: &SampleConfig,
+    route_cost: Option<&dyn Fn(&Trajectories) -> Result<f64, SampleError>>,
 ) -> Result<Setup<'a>, SampleError> {
     cfg.validate().map_err(SampleError::Settings)?;
     if let Some(why) = too_few_steps(trained, cfg.steps) {
@@ -218,7 +221,7 @@ fn setup<'a>(
             }
         }
     }
-    let plan = Plan {
+    let mut plan = Plan {
         trained,
         windows,
         slots,
@@ -228,6 +231,9 @@ fn setup<'a>(
         held: Vec::new(),
         routes,
     };
+    if let Some(cost) = route_cost.filter(|_| cfg.task == Task::Unconditional) {
+        plan.cheapest_routes(scene, cost)?;
+    }
     let (n, k, _, nw) = plan.dims();
     let kk = cfg.samples.max(1);
     // Batch row `s·W + w` is window w of sample s.
@@ -268,7 +274,8 @@ type CostsAndGradient = Result<(Vec<f64>, Vec<f32>), SampleError>;
 
 /// An unguided run's tensors, for checking a port of the denoiser against this one: the
 /// batch's context (`lane_points`, `lane_mask`, `lane_rel`, `lane_conn`, `agent_hist`,
-/// `agent_mask`, `agent_lane_rel`, `agent_rel`), the initial noise `x0`, the noise levels
+/// `agent_mask`, `agent_lane_rel`, `agent_rel`, and `agent_route` for a checkpoint that tells
+/// futures against routes), the initial noise `x0`, the noise levels
 /// `sigmas`, the first denoised estimate `d0` (`D(x0; σ_0)`) and the final coefficients
 /// `x_final`. `benches/torch/` reads them.
 pub fn reference_run(
@@ -289,7 +296,7 @@ pub fn reference_run(
                 .into(),
         ));
     }
-    let su = setup(trained, scene, cfg)?;
+    let su = setup(trained, scene, cfg, None)?;
     let unguided = |x: &Tensor, sigma: f64, _| -> Result<Tensor, SampleError> {
         let d = su
             .model
@@ -302,24 +309,26 @@ pub fn reference_run(
     let last = heun(su.x0.clone(), &su.sigmas, unguided)?;
     let c = &su.batch.ctx;
     let sig = Tensor::new(su.sigmas.as_slice(), &Device::Cpu)?;
-    Ok([
-        ("lane_points", c.lane_points.clone()),
-        ("lane_mask", c.lane_mask.clone()),
-        ("lane_rel", c.lane_rel.clone()),
-        ("lane_conn", c.lane_conn.clone()),
-        ("agent_hist", c.agent_hist.clone()),
-        ("agent_mask", c.agent_mask.clone()),
-        ("agent_attr", c.agent_attr.clone()),
-        ("agent_lane_rel", c.agent_lane_rel.clone()),
-        ("agent_rel", c.agent_rel.clone()),
-        ("x0", su.x0.clone()),
-        ("sigmas", sig),
-        ("d0", d0),
-        ("x_final", last),
-    ]
-    .into_iter()
-    .map(|(k, v)| (k.to_string(), v))
-    .collect())
+    let route = c.agent_route.clone().map(|r| ("agent_route", r));
+    Ok(route
+        .into_iter()
+        .chain([
+            ("lane_points", c.lane_points.clone()),
+            ("lane_mask", c.lane_mask.clone()),
+            ("lane_rel", c.lane_rel.clone()),
+            ("lane_conn", c.lane_conn.clone()),
+            ("agent_hist", c.agent_hist.clone()),
+            ("agent_mask", c.agent_mask.clone()),
+            ("agent_attr", c.agent_attr.clone()),
+            ("agent_lane_rel", c.agent_lane_rel.clone()),
+            ("agent_rel", c.agent_rel.clone()),
+            ("x0", su.x0.clone()),
+            ("sigmas", sig),
+            ("d0", d0),
+            ("x_final", last),
+        ])
+        .map(|(k, v)| (k.to_string(), v))
+        .collect())
 }
 
 /// Samples `cfg.samples` futures of `scene` (already [`prepare`]d), guided by `scripts`
@@ -380,6 +389,13 @@ pub(crate) fn sample_after(
         check_script_budget(scripts, cfg)?;
         Ok(report)
     };
+    // Each script's cost, as guidance weighs them.
+    let route_cost = |t: &Trajectories| -> Result<f64, SampleError> {
+        scripts
+            .iter()
+            .map(|script| evaluate(script, t).map(|r| r.total))
+            .sum()
+    };
     let dev = Device::Cpu;
     let c = scene.meta.current_step;
     let Setup {
@@ -390,7 +406,12 @@ pub(crate) fn sample_after(
         sigmas,
         x0,
         rows,
-    } = setup(trained, scene, cfg)?;
+    } = setup(
+        trained,
+        scene,
+        cfg,
+        (!scripts.is_empty() && cfg.lambda > 0.0).then_some(&route_cost),
+    )?;
     let model = &model;
     let (n, k, _, _) = plan.dims();
     let kk = cfg.samples.max(1);

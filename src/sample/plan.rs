@@ -7,7 +7,7 @@ use crate::cost::Trajectories;
 use crate::geom::{wrap_angle, FrenetPath, Point, Polyline};
 use crate::scene::routes::route_residual;
 use crate::scene::{AgentId, AgentType, KinematicLimits, Scene};
-use crate::train::dataset::{add_anchor, remove_anchor};
+use crate::train::dataset::{add_anchor, agent_route_lines, line_point, remove_anchor};
 use crate::train::{window_among, RouteHint, Trained, Window};
 
 use super::config::Clamp;
@@ -484,6 +484,71 @@ impl Plan<'_> {
             .collect()
     }
 
+    /// Tells slot `si`'s future against `line` (a route in the world) from now on: in every
+    /// window that holds the agent, so that each copy reads the route its owner decodes along.
+    fn set_route(&mut self, si: usize, line: &[Point]) {
+        for &(wi, slot) in &self.copies[si] {
+            let w = &mut self.windows[wi];
+            let origin = w.origin;
+            w.routes[slot] = line.iter().map(|p| line_point(origin, *p)).collect();
+        }
+        let (wi, slot) = self.copies[si][0];
+        self.routes[si] = Route::of(&self.windows[wi], slot, self.slots[si].pose);
+    }
+
+    /// Gives each modelled agent with a choice of routes the one whose constant-speed future
+    /// along it costs least by `cost` (the others on the routes they have), one agent at a
+    /// time in slot order: a script that asks a car to turn left at the junction ahead then
+    /// samples it on the left turn's route, where a future with no offset across it already
+    /// turns. Of equal costs the earlier route wins: straight on from the nearest lane first
+    /// ([`crate::scene::routes::candidate_routes`]).
+    pub(super) fn cheapest_routes<E>(
+        &mut self,
+        scene: &Scene,
+        cost: &dyn Fn(&Trajectories) -> Result<f64, E>,
+    ) -> Result<(), E> {
+        if self.routes.iter().all(Option::is_none) {
+            return Ok(());
+        }
+        let (n, k, f, nw) = self.dims();
+        let norm = &self.trained.meta.normaliser;
+        let zero = norm.encode(&vec![0.0; 3 * f]);
+        let mut coeffs = vec![0f32; nw * n * k];
+        for copies in &self.copies {
+            for &(wi, slot) in copies {
+                let o = (wi * n + slot) * k;
+                coeffs[o..o + k].copy_from_slice(&zero);
+            }
+        }
+        let wcfg = self.trained.meta.config.window;
+        let c = scene.meta.current_step;
+        let evaluate = |plan: &Plan| -> Result<f64, E> {
+            let mut t = plan.trajectories(&coeffs).swap_remove(0);
+            plan.align_headings(&mut t);
+            cost(&t)
+        };
+        for si in 0..self.slots.len() {
+            if self.routes[si].is_none() {
+                continue;
+            }
+            let lines = agent_route_lines(scene, &wcfg, c, self.slots[si].agent);
+            if lines.len() < 2 {
+                continue;
+            }
+            let mut best: Option<(usize, f64)> = None;
+            for (i, line) in lines.iter().enumerate() {
+                self.set_route(si, line);
+                let v = evaluate(self)?;
+                if best.is_none_or(|(_, b)| v < b) {
+                    best = Some((i, v));
+                }
+            }
+            let (i, _) = best.expect("at least two routes");
+            self.set_route(si, &lines[i]);
+        }
+        Ok(())
+    }
+
     /// Writes each held agent's coefficients ([`Plan::standing`]) to every copy of it.
     pub(super) fn hold(&self, d: &mut [f32]) {
         let (n, k, _, nw) = self.dims();
@@ -611,6 +676,52 @@ mod tests {
     }
 
     #[test]
+    fn a_script_that_asks_for_a_turn_gets_the_route_that_turns_that_way() {
+        use crate::cost::{CostScript, Limits, Params};
+        let (t, s) = crossroads();
+        let script = |name: &str| {
+            let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("scripts")
+                .join(name);
+            CostScript::compile(
+                &std::fs::read_to_string(path).unwrap(),
+                name,
+                std::rc::Rc::new(s.clone()),
+                &Params::parse(&["vehicle=1"]).unwrap(),
+                &Limits::default(),
+            )
+            .unwrap()
+        };
+        for (name, north) in [("turn_left.rhai", true), ("turn_right.rhai", false)] {
+            let script = script(name);
+            let mut p = plan(&t, &s, RouteHint::Unknown);
+            let cost = |tr: &Trajectories| -> Result<f64, crate::cost::CostError> {
+                script.evaluate(tr).map(|r| r.total)
+            };
+            p.cheapest_routes(&s, &cost).unwrap();
+            let si = p.slots.iter().position(|sl| sl.agent == 0).unwrap();
+            let r = p.routes[si].as_ref().unwrap();
+            let e = r.path.to_cartesian(r.path.length(), 0.0);
+            assert_eq!(e.y > 30.0, north, "{name}: {e:?}");
+            assert_eq!(e.y < -30.0, !north, "{name}: {e:?}");
+            // Every window that holds vehicle 1 reads the route it decodes along.
+            for &(wi, slot) in &p.copies[si] {
+                let w = &p.windows[wi];
+                let last = *w.routes[slot].last().unwrap();
+                let (sn, cs) = w.origin[2].sin_cos();
+                let (x, y) = (last[0] as f64, last[1] as f64);
+                let world = (w.origin[0] + cs * x - sn * y, w.origin[1] + sn * x + cs * y);
+                assert!((world.0 - e.x).abs() < 1e-3 && (world.1 - e.y).abs() < 1e-3);
+            }
+            // Vehicle 2, whom the script does not name, keeps the first of its routes.
+            let sj = p.slots.iter().position(|sl| sl.agent == 1).unwrap();
+            let r = p.routes[sj].as_ref().unwrap();
+            let e = r.path.to_cartesian(r.path.length(), 0.0);
+            assert!((e.y - 3.5).abs() < 1e-6, "{e:?}");
+        }
+    }
+
+    #[test]
     fn coefficients_decode_along_the_route_and_the_chain_rule_matches_finite_differences() {
         let (t, s) = crossroads();
         let plan = plan(&t, &s, RouteHint::EndPoint);
@@ -619,10 +730,7 @@ mod tests {
         // The coefficients of "constant speed along the route": the car rounds the corner.
         let si = plan.slots.iter().position(|sl| sl.agent == 0).unwrap();
         let sl = plan.slots[si];
-        let mut zero = vec![0.0; 3 * f];
-        for (j, v) in norm.pca.mean.iter().enumerate() {
-            zero[j] = -v;
-        }
+        let zero = vec![0.0; 3 * f];
         let mut coeffs = vec![0f32; nw * n * k];
         let row = sl.window * n + sl.slot;
         coeffs[row * k..(row + 1) * k].copy_from_slice(&norm.encode(&zero));

@@ -132,18 +132,38 @@ pub fn route_line(map: &Map, p: Point, heading: f64, observed: &[Point], reach: 
     } else {
         fit_route(&routes, observed).map(|f| &routes[f.route])
     };
-    let line = chosen.and_then(|route| {
-        let s0 = route.frenet.project(p).s;
-        let part = route
-            .frenet
-            .polyline()
-            .slice(s0 - LINE_BEHIND, s0 + reach)?;
-        Some(part.points().to_vec())
-    });
-    line.unwrap_or_else(|| {
-        let dir = Point::new(heading.cos(), heading.sin());
-        vec![p - dir * LINE_BEHIND, p + dir * reach]
-    })
+    chosen
+        .and_then(|route| cut(route, p, reach))
+        .unwrap_or_else(|| heading_line(p, heading, reach))
+}
+
+/// Every route of [`candidate_routes`] as [`route_line`] cuts it, in the same order; the line
+/// of the heading alone where no lane goes the vehicle's way.
+pub fn route_lines(map: &Map, p: Point, heading: f64, reach: f64) -> Vec<Vec<Point>> {
+    let lines: Vec<Vec<Point>> = candidate_routes(map, p, heading, reach + LINE_BEHIND)
+        .iter()
+        .filter_map(|route| cut(route, p, reach))
+        .collect();
+    if lines.is_empty() {
+        vec![heading_line(p, heading, reach)]
+    } else {
+        lines
+    }
+}
+
+/// `route` from [`LINE_BEHIND`] metres behind where `p` projects onto it to `reach` ahead.
+fn cut(route: &LanePath, p: Point, reach: f64) -> Option<Vec<Point>> {
+    let s0 = route.frenet.project(p).s;
+    let part = route
+        .frenet
+        .polyline()
+        .slice(s0 - LINE_BEHIND, s0 + reach)?;
+    Some(part.points().to_vec())
+}
+
+fn heading_line(p: Point, heading: f64, reach: f64) -> Vec<Point> {
+    let dir = Point::new(heading.cos(), heading.sin());
+    vec![p - dir * LINE_BEHIND, p + dir * reach]
 }
 
 /// Points of a route the network reads ([`route_ahead`]).

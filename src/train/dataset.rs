@@ -6,7 +6,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::geom::{wrap_angle, FrenetPath, Point, Polyline};
-use crate::scene::routes::{route_line, route_residual};
+use crate::scene::routes::{route_line, route_lines, route_residual};
 use crate::scene::{AgentType, Scene};
 
 /// Window sizes and how windows are cut.
@@ -389,9 +389,8 @@ pub fn window_among(
     }
 }
 
-/// Agent `i`'s route at scene step `c` ([`route_line`], chosen as `hint` says) in the frame at
-/// `origin`; empty unless it is observed at `c`. It reaches as far as the agent could go in
-/// the window's future at one and a half times its speed (at least 8 m/s), and 20 m more.
+/// Agent `i`'s route at scene step `c` ([`route_line`], chosen as `hint` says, reaching
+/// [`route_reach`]) in the frame at `origin`; empty unless it is observed at `c`.
 fn agent_route(
     scene: &Scene,
     cfg: &WindowConfig,
@@ -414,15 +413,35 @@ fn agent_route(
     if hint == RouteHint::EndPoint && observed.len() > 1 {
         observed.drain(..observed.len() - 1);
     }
-    let horizon = cfg.future as f64 * scene.meta.dt;
-    let reach = 20.0 + (1.5 * now.speed()).max(8.0) * horizon;
+    let reach = route_reach(scene, cfg, now.speed());
     route_line(&scene.map, now.position(), now.heading, &observed, reach)
-        .into_iter()
-        .map(|p| {
-            let f = to_frame(origin, p, 0.0);
-            [f[0] as f32, f[1] as f32]
-        })
+        .iter()
+        .map(|p| line_point(origin, *p))
         .collect()
+}
+
+/// Metres a route reaches ahead of an agent at `speed` ([`agent_route`]): as far as it could go
+/// in the window's future at one and a half times its speed (at least 8 m/s), and 20 m more.
+fn route_reach(scene: &Scene, cfg: &WindowConfig, speed: f64) -> f64 {
+    let horizon = cfg.future as f64 * scene.meta.dt;
+    20.0 + (1.5 * speed).max(8.0) * horizon
+}
+
+/// A world point of a route as [`Window::routes`] stores it, in the frame at `origin`.
+pub fn line_point(origin: [f64; 3], p: Point) -> [f32; 2] {
+    let f = to_frame(origin, p, 0.0);
+    [f[0] as f32, f[1] as f32]
+}
+
+/// Every route open to agent `i` at scene step `c`, in the world, cut as [`window_among`]
+/// cuts the one it chooses ([`crate::scene::routes::route_lines`]); none unless it is
+/// observed at `c`.
+pub fn agent_route_lines(scene: &Scene, cfg: &WindowConfig, c: usize, i: usize) -> Vec<Vec<Point>> {
+    let Some(now) = scene.agents[i].states.get(c).filter(|s| s.valid) else {
+        return Vec::new();
+    };
+    let reach = route_reach(scene, cfg, now.speed());
+    route_lines(&scene.map, now.position(), now.heading, reach)
 }
 
 /// Subtracts the constant-velocity anchor (`advance` metres per step along +x of the agent's
