@@ -1302,6 +1302,101 @@ fn the_yield_example_holds_at_a_merge() {
     }
 }
 
+/// `train --export E --cache E` cut every window of the corpus into E, then refused E as "not
+/// empty" (its own cache) and left the windows there; a cache inside the export directory did
+/// the same. Both are refused before any scene is read, naming both flags.
+#[test]
+fn train_export_refuses_a_cache_in_or_around_the_export_directory() {
+    let dir = tempfile::tempdir().unwrap();
+    let exp = dir.path().join("exp");
+    for (cache, says) in [
+        (exp.clone(), "is the export directory (--export)"),
+        (
+            exp.join("windows"),
+            "is inside the export directory (--export)",
+        ),
+        (
+            dir.path().to_path_buf(),
+            "holds the export directory (--export)",
+        ),
+    ] {
+        let err = fails(&[
+            "train",
+            "--data",
+            "scripts/scenes",
+            "--export",
+            s(&exp),
+            "--cache",
+            s(&cache),
+            "--resume",
+            "data/checkpoint",
+        ]);
+        assert!(
+            err.contains("the window cache (--cache)")
+                && err.contains(says)
+                && !err.contains("exporting into"),
+            "{err}"
+        );
+        assert!(!exp.exists(), "{err}");
+    }
+}
+
+/// `train --resume CK --steps N` with N no more than CK's steps read the whole corpus and cut
+/// its windows into the cache before saying "the checkpoint has already done ... steps".
+#[test]
+fn a_resumed_run_with_no_steps_left_is_refused_before_the_windows_are_cut() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let err = fails(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--resume",
+        "data/checkpoint",
+        "--out",
+        s(&out),
+        "--steps",
+        "5000",
+    ]);
+    assert!(
+        err.contains("the checkpoint has already done 10000 steps"),
+        "{err}"
+    );
+    assert!(!out.exists(), "{err}");
+}
+
+/// `train --out X --cache X` trained and wrote its checkpoint among the windows; the same
+/// command resumed (`--resume X`) was then refused, the cache holding files not its own. A
+/// cache that is, or holds, the checkpoint directory is refused before the windows are cut.
+#[test]
+fn a_window_cache_that_is_or_holds_the_checkpoint_directory_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    for (cache, says) in [
+        (out.clone(), "is the"),
+        (dir.path().to_path_buf(), "holds the"),
+    ] {
+        let err = fails(&[
+            "train",
+            "--data",
+            "scripts/scenes",
+            "--out",
+            s(&out),
+            "--cache",
+            s(&cache),
+            "--steps",
+            "2",
+        ]);
+        assert!(
+            err.contains(&format!(
+                "the window cache (--cache) {says} checkpoint directory (--out)"
+            )),
+            "{err}"
+        );
+        assert!(!out.exists(), "{err}");
+    }
+}
+
 #[test]
 fn train_export_writes_the_windows_of_a_checkpoint_into_a_new_directory_only() {
     let dir = tempfile::tempdir().unwrap();
@@ -5066,6 +5161,27 @@ fn float_flags_beyond_the_largest_float_are_refused_as_written() {
     // Infinity typed as such still reaches the flag's own check.
     let err = fails(&["bench", "io", "--seconds", "inf"]);
     assert!(err.contains("--seconds inf"), "{err}");
+}
+
+/// A training noise setting whose levels are past what f32 holds (`--p-mean 700`, `-50`,
+/// `--p-std 50`) was taken, the windows cut, and the run stopped at its first step with
+/// "training loss is NaN ... training diverged (lower --lr)", blaming a flag not given. It is
+/// refused before any data is read, naming the flag and its range.
+#[test]
+fn training_noise_levels_past_f32_are_refused_naming_the_flag() {
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    for (flag, value) in [("--p-mean", "700"), ("--p-mean", "-50"), ("--p-std", "50")] {
+        let arg = format!("{flag}={value}");
+        let err = fails(&["train", "--data", s(&scene), "--out", s(&out), &arg]);
+        assert!(
+            err.contains(&format!("{flag}: ")) && err.contains("must be") && !err.contains("--lr"),
+            "{arg}: {err}"
+        );
+        assert!(!err.contains("windows"), "{arg}: {err}");
+    }
+    assert!(!out.exists());
 }
 
 #[test]
