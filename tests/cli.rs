@@ -1365,6 +1365,48 @@ fn a_resumed_run_with_no_steps_left_is_refused_before_the_windows_are_cut() {
     assert!(!out.exists(), "{err}");
 }
 
+/// A scene whose steps are not 0.1 s apart (`dt: 0.5`) was sampled by the 10 Hz model as if
+/// each step took 0.1 s (futures five times too slow) and trained on the same way, exit 0.
+/// Sampling, training and `dataset` refuse it naming the file, the scene and its step.
+#[test]
+fn a_scene_of_another_time_step_is_refused_by_sampling_and_training() {
+    let dir = tempfile::tempdir().unwrap();
+    let corpus = dir.path().join("corpus");
+    std::fs::create_dir(&corpus).unwrap();
+    let text = std::fs::read_to_string("scripts/scenes/highway_cut_in.yaml").unwrap();
+    let scene = corpus.join("slow.yaml");
+    std::fs::write(&scene, text.replacen("steps: 81", "dt: 0.5\nsteps: 81", 1)).unwrap();
+    let says = |err: &str| {
+        assert!(
+            err.contains("slow.yaml: scene highway-cut-in: its steps are 0.5 s apart")
+                && err.contains("0.1 s (10 Hz)"),
+            "{err}"
+        );
+    };
+    let out = dir.path().join("out");
+    says(&fails(&[
+        "simulate",
+        s(&scene),
+        "--checkpoint",
+        "data/checkpoint",
+        "-o",
+        s(&out),
+    ]));
+    assert!(!out.join("highway-cut-in_0.json").exists());
+    let ckpt = dir.path().join("ckpt");
+    says(&fails(&[
+        "train",
+        "--data",
+        s(&corpus),
+        "--out",
+        s(&ckpt),
+        "--steps",
+        "2",
+    ]));
+    assert!(!ckpt.join("model.safetensors").exists());
+    says(&fails(&["dataset", s(&corpus)]));
+}
+
 /// `train --out X --cache X` trained and wrote its checkpoint among the windows; the same
 /// command resumed (`--resume X`) was then refused, the cache holding files not its own. A
 /// cache that is, or holds, the checkpoint directory is refused before the windows are cut.
