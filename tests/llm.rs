@@ -4197,3 +4197,53 @@ fn a_prompt_folder_that_is_missing_or_a_file_is_named_as_such() {
         );
     }
 }
+
+/// A reply naming a key twice in one object (two `choices`, a message with two `content`s)
+/// was read as its last copy without a word, though other readers (a proxy between) take the
+/// first: a reply holding two answers is no answer. Scene, rollout and checkpoint files refuse
+/// the same.
+#[test]
+fn a_reply_naming_a_key_twice_is_refused_not_read_as_its_last_copy() {
+    let choice = |c: &str| {
+        format!(
+            r#"{{"index": 0, "message": {{"role": "assistant", "content": "{c}"}}, "finish_reason": "stop"}}"#
+        )
+    };
+    let choices_twice = format!(
+        r#"{{"choices": [{}], "choices": [{}]}}"#,
+        choice("ACCEPT"),
+        choice("x")
+    );
+    let content_twice = r#"{"choices": [{"index": 0, "message": {"role": "assistant", "content": "ACCEPT", "content": "x"}, "finish_reason": "stop"}]}"#;
+    for (body, key) in [
+        (choices_twice.as_str(), "choices"),
+        (content_twice, "content"),
+    ] {
+        let srv = Server::start(vec![Canned::raw(200, body)]);
+        let mut cfg = HttpConfig::new(&srv.url, "m");
+        cfg.stream = false;
+        let e = ask_one(&HttpClient::new(cfg).unwrap())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains(&format!(
+                "the reply holds the key \"{key}\" twice in one object"
+            )),
+            "{e}"
+        );
+    }
+    let event = r#"{"choices": [{"index": 0, "delta": {"content": "ACCEPT", "content": "x"}}]}"#;
+    let srv = Server::start(vec![Canned::events(
+        vec![event.into(), "[DONE]".into()],
+        Duration::ZERO,
+    )]);
+    let mut cfg = HttpConfig::new(&srv.url, "m");
+    cfg.stream = true;
+    let e = ask_one(&HttpClient::new(cfg).unwrap())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("a stream event holds the key \"content\" twice in one object"),
+        "{e}"
+    );
+}
