@@ -4247,3 +4247,30 @@ fn a_reply_naming_a_key_twice_is_refused_not_read_as_its_last_copy() {
         "{e}"
     );
 }
+
+/// A scene whose steps are not 0.1 s apart cannot be sampled by the 10 Hz model; ask sent the
+/// model its request (a paid request) and got a script before the first round's sampling
+/// refused it. It is refused before any request, and no run directory is made.
+#[test]
+fn ask_refuses_a_scene_of_another_time_step_before_asking_the_model() {
+    let dir = tempfile::tempdir().unwrap();
+    let xml = std::fs::read_to_string(samples().join(SCENE)).unwrap();
+    assert!(xml.contains("timeStepSize=\"0.1\""));
+    let scene = dir.path().join("slow.xml");
+    std::fs::write(
+        &scene,
+        xml.replacen("timeStepSize=\"0.1\"", "timeStepSize=\"0.5\"", 1),
+    )
+    .unwrap();
+    let srv = Server::start(vec![Canned::chat(&reply("term(\"x\", 0.0);\n"))]);
+    let out = dir.path().join("run");
+    let o = ask(&[s(&scene), REQUEST, "-o", s(&out)], Some(&srv.url));
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("slow.xml: scene") && t.contains("its steps are 0.5 s apart"),
+        "{t}"
+    );
+    assert!(srv.received().is_empty(), "{t}");
+    assert!(!out.exists(), "{t}");
+}
