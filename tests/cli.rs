@@ -5738,3 +5738,21 @@ fn an_id_that_cannot_name_an_output_file_names_the_scene_file_holding_it() {
         "{err}"
     );
 }
+
+/// `train --val-town` given for many towns no scene is in repeated every one of them: 3,000
+/// gave a message of 24 KB. The first twelve are named and the rest counted.
+#[test]
+fn many_held_out_towns_no_scene_is_in_are_counted_not_all_repeated() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let towns: Vec<String> = (0..100).map(|i| format!("--val-town=T{i:03}")).collect();
+    let mut args = vec!["train", "--urban", "scripts/scenes", "--out", s(&out)];
+    args.extend(towns.iter().map(String::as_str));
+    let err = fails(&args);
+    assert!(
+        err.contains("--val-town \"T000\" \"T001\"") && err.contains("\"T011\" and 88 more:"),
+        "{err}"
+    );
+    assert!(!err.contains("T012"), "{err}");
+    assert!(err.len() < 1500, "{} bytes: {err}", err.len());
+}

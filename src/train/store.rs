@@ -730,14 +730,23 @@ fn check_towns_found(
             }
         )
     };
+    // At most MAX_TOWNS_SHOWN of them, the rest counted: 3,000 towns given were all repeated,
+    // a message of 24 KB.
+    let shown_missing: Vec<String> = missing
+        .iter()
+        .take(MAX_TOWNS_SHOWN)
+        .map(|t| quoted(t))
+        .collect();
+    let more_missing = missing.len() - shown_missing.len();
     Err(TrainError::Data(format!(
-        "--val-town {}: no scene is in {}; {there} (a town is a scenario id's part before its \
+        "--val-town {}{}: no scene is in {}; {there} (a town is a scenario id's part before its \
          first `-`)",
-        missing
-            .iter()
-            .map(|t| quoted(t))
-            .collect::<Vec<_>>()
-            .join(" "),
+        shown_missing.join(" "),
+        if more_missing > 0 {
+            format!(" and {more_missing} more")
+        } else {
+            String::new()
+        },
         if missing.len() == 1 {
             "that town"
         } else {
