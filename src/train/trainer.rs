@@ -222,6 +222,11 @@ pub const MAX_RHO: f64 = 1000.0;
 /// 1.2): with `p_mean` within ln [`MIN_SIGMA`] to ln [`MAX_SIGMA`], six spreads either way stay
 /// within what the loss weight 1/σ² and σ² hold in f32.
 pub const MAX_P_STD: f64 = 4.0;
+/// The most numbers the network may hold in one layer for the pairs of one window it attends
+/// over (agent-lane, lane-lane, agent-agent) or for its lane points, `d` for each: 128 MB of
+/// f32. The settings hold at most 262,144 (64 × 64 lanes × d 64), the paper's WOMD sizes
+/// 2,560,000 (200 × 200 × 64).
+pub const MAX_PAIR_VALUES: usize = 1 << 25;
 
 /// `Ok` when `v` is positive and finite, else a message naming the setting.
 fn positive(name: &str, v: f64) -> Result<(), String> {
@@ -287,6 +292,30 @@ impl TrainConfig {
         within("model.layers", m.layers, 1, 32)?;
         within("model.k", m.k, 1, 3 * w.future)?;
         within("model.noise_freqs", m.noise_freqs, 1, 64)?;
+        // Each within its range is not enough: the network holds d numbers for every pair of
+        // a window it attends over and for every lane point, so 1024 agents, 2048 lanes and
+        // d 64 (each allowed) asked 512 MB a layer to sample one window, and sampling or
+        // training aborted on allocation (or took the machine's memory).
+        let (a, l) = (w.max_agents, w.max_lanes);
+        for (what, sizes) in [
+            ("window.max_agents × window.max_lanes", [a, l]),
+            ("window.max_lanes × window.max_lanes", [l, l]),
+            ("window.max_agents × window.max_agents", [a, a]),
+            ("window.max_lanes × window.lane_points", [l, w.lane_points]),
+        ] {
+            let values = sizes[0] * sizes[1] * m.d;
+            if values > MAX_PAIR_VALUES {
+                return Err(format!(
+                    "{what} × model.d = {} × {} × {} = {values}: at most {MAX_PAIR_VALUES} (the \
+                     network holds d numbers for each, {} MB a layer for one window); lower \
+                     one of them",
+                    sizes[0],
+                    sizes[1],
+                    m.d,
+                    values * 4 >> 20
+                ));
+            }
+        }
         if m.history != w.history {
             return Err(format!(
                 "model.history = {} but window.history = {}: they must agree",
