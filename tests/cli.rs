@@ -5756,3 +5756,29 @@ fn many_held_out_towns_no_scene_is_in_are_counted_not_all_repeated() {
     assert!(!err.contains("T012"), "{err}");
     assert!(err.len() < 1500, "{} bytes: {err}", err.len());
 }
+
+/// `train --out C`, where C is another run's window cache (`--cache C`), wrote the checkpoint
+/// among its windows, and that run's next start refused its cache as holding files not its
+/// own. It is refused before anything is read or written.
+#[test]
+fn a_checkpoint_directory_that_is_a_window_cache_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let cache = dir.path().join("cache");
+    std::fs::create_dir(&cache).unwrap();
+    std::fs::write(cache.join("train.windows"), b"DSWIN01\n").unwrap();
+    let err = fails(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--out",
+        s(&cache),
+        "--steps",
+        "2",
+    ]);
+    assert!(
+        err.contains("train.windows but no config.json: it is a window cache (--cache)"),
+        "{err}"
+    );
+    let left: Vec<_> = std::fs::read_dir(&cache).unwrap().collect();
+    assert_eq!(left.len(), 1, "{err}");
+}

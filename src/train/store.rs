@@ -455,6 +455,20 @@ pub fn check_out_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError> {
                 f.display()
             ));
         }
+        // Another run's window cache (`--cache DIR`): the checkpoint's files were written
+        // among its windows, and that run's next start refused its cache as holding files
+        // not its own.
+        if let Some(f) = CACHE_FILES
+            .iter()
+            .map(|f| dir.join(f))
+            .find(|f| std::fs::symlink_metadata(f).is_ok())
+        {
+            return refuse(format!(
+                "holds {} but no config.json: it is a window cache (--cache), which holds its \
+                 own files alone; choose another --out",
+                f.display()
+            ));
+        }
     } else {
         // Why it is not, where it cannot be read as JSON: a checkpoint's own config damaged
         // (a NaN written into it by hand) was called "not a checkpoint's config" with no
