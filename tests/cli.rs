@@ -1302,6 +1302,143 @@ fn the_yield_example_holds_at_a_merge() {
     }
 }
 
+/// `train --export E --cache E` cut every window of the corpus into E, then refused E as "not
+/// empty" (its own cache) and left the windows there; a cache inside the export directory did
+/// the same. Both are refused before any scene is read, naming both flags.
+#[test]
+fn train_export_refuses_a_cache_in_or_around_the_export_directory() {
+    let dir = tempfile::tempdir().unwrap();
+    let exp = dir.path().join("exp");
+    for (cache, says) in [
+        (exp.clone(), "is the export directory (--export)"),
+        (
+            exp.join("windows"),
+            "is inside the export directory (--export)",
+        ),
+        (
+            dir.path().to_path_buf(),
+            "holds the export directory (--export)",
+        ),
+    ] {
+        let err = fails(&[
+            "train",
+            "--data",
+            "scripts/scenes",
+            "--export",
+            s(&exp),
+            "--cache",
+            s(&cache),
+            "--resume",
+            "data/checkpoint",
+        ]);
+        assert!(
+            err.contains("the window cache (--cache)")
+                && err.contains(says)
+                && !err.contains("exporting into"),
+            "{err}"
+        );
+        assert!(!exp.exists(), "{err}");
+    }
+}
+
+/// `train --resume CK --steps N` with N no more than CK's steps read the whole corpus and cut
+/// its windows into the cache before saying "the checkpoint has already done ... steps".
+#[test]
+fn a_resumed_run_with_no_steps_left_is_refused_before_the_windows_are_cut() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let err = fails(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--resume",
+        "data/checkpoint",
+        "--out",
+        s(&out),
+        "--steps",
+        "5000",
+    ]);
+    assert!(
+        err.contains("the checkpoint has already done 10000 steps"),
+        "{err}"
+    );
+    assert!(!out.exists(), "{err}");
+}
+
+/// A scene whose steps are not 0.1 s apart (`dt: 0.5`) was sampled by the 10 Hz model as if
+/// each step took 0.1 s (futures five times too slow) and trained on the same way, exit 0.
+/// Sampling, training and `dataset` refuse it naming the file, the scene and its step.
+#[test]
+fn a_scene_of_another_time_step_is_refused_by_sampling_and_training() {
+    let dir = tempfile::tempdir().unwrap();
+    let corpus = dir.path().join("corpus");
+    std::fs::create_dir(&corpus).unwrap();
+    let text = std::fs::read_to_string("scripts/scenes/highway_cut_in.yaml").unwrap();
+    let scene = corpus.join("slow.yaml");
+    std::fs::write(&scene, text.replacen("steps: 81", "dt: 0.5\nsteps: 81", 1)).unwrap();
+    let says = |err: &str| {
+        assert!(
+            err.contains("slow.yaml: scene highway-cut-in: its steps are 0.5 s apart")
+                && err.contains("0.1 s (10 Hz)"),
+            "{err}"
+        );
+    };
+    let out = dir.path().join("out");
+    says(&fails(&[
+        "simulate",
+        s(&scene),
+        "--checkpoint",
+        "data/checkpoint",
+        "-o",
+        s(&out),
+    ]));
+    assert!(!out.join("highway-cut-in_0.json").exists());
+    let ckpt = dir.path().join("ckpt");
+    says(&fails(&[
+        "train",
+        "--data",
+        s(&corpus),
+        "--out",
+        s(&ckpt),
+        "--steps",
+        "2",
+    ]));
+    assert!(!ckpt.join("model.safetensors").exists());
+    says(&fails(&["dataset", s(&corpus)]));
+}
+
+/// `train --out X --cache X` trained and wrote its checkpoint among the windows; the same
+/// command resumed (`--resume X`) was then refused, the cache holding files not its own. A
+/// cache that is, or holds, the checkpoint directory is refused before the windows are cut.
+#[test]
+fn a_window_cache_that_is_or_holds_the_checkpoint_directory_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    for (cache, says) in [
+        (out.clone(), "is the"),
+        (dir.path().to_path_buf(), "holds the"),
+    ] {
+        let err = fails(&[
+            "train",
+            "--data",
+            "scripts/scenes",
+            "--out",
+            s(&out),
+            "--cache",
+            s(&cache),
+            "--steps",
+            "2",
+        ]);
+        assert!(
+            err.contains(&format!(
+                "the window cache (--cache) {says} checkpoint directory (--out)"
+            )),
+            "{err}"
+        );
+        assert!(!out.exists(), "{err}");
+    }
+}
+
 #[test]
 fn train_export_writes_the_windows_of_a_checkpoint_into_a_new_directory_only() {
     let dir = tempfile::tempdir().unwrap();
@@ -5068,6 +5205,27 @@ fn float_flags_beyond_the_largest_float_are_refused_as_written() {
     assert!(err.contains("--seconds inf"), "{err}");
 }
 
+/// A training noise setting whose levels are past what f32 holds (`--p-mean 700`, `-50`,
+/// `--p-std 50`) was taken, the windows cut, and the run stopped at its first step with
+/// "training loss is NaN ... training diverged (lower --lr)", blaming a flag not given. It is
+/// refused before any data is read, naming the flag and its range.
+#[test]
+fn training_noise_levels_past_f32_are_refused_naming_the_flag() {
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    for (flag, value) in [("--p-mean", "700"), ("--p-mean", "-50"), ("--p-std", "50")] {
+        let arg = format!("{flag}={value}");
+        let err = fails(&["train", "--data", s(&scene), "--out", s(&out), &arg]);
+        assert!(
+            err.contains(&format!("{flag}: ")) && err.contains("must be") && !err.contains("--lr"),
+            "{arg}: {err}"
+        );
+        assert!(!err.contains("windows"), "{arg}: {err}");
+    }
+    assert!(!out.exists());
+}
+
 #[test]
 fn ask_repeats_an_out_of_range_number_as_it_was_typed() {
     // `--tolerance -1` was told "--tolerance -1.0" (Rust's Debug form of the float).
@@ -5579,4 +5737,48 @@ fn an_id_that_cannot_name_an_output_file_names_the_scene_file_holding_it() {
         )),
         "{err}"
     );
+}
+
+/// `train --val-town` given for many towns no scene is in repeated every one of them: 3,000
+/// gave a message of 24 KB. The first twelve are named and the rest counted.
+#[test]
+fn many_held_out_towns_no_scene_is_in_are_counted_not_all_repeated() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let towns: Vec<String> = (0..100).map(|i| format!("--val-town=T{i:03}")).collect();
+    let mut args = vec!["train", "--urban", "scripts/scenes", "--out", s(&out)];
+    args.extend(towns.iter().map(String::as_str));
+    let err = fails(&args);
+    assert!(
+        err.contains("--val-town \"T000\" \"T001\"") && err.contains("\"T011\" and 88 more:"),
+        "{err}"
+    );
+    assert!(!err.contains("T012"), "{err}");
+    assert!(err.len() < 1500, "{} bytes: {err}", err.len());
+}
+
+/// `train --out C`, where C is another run's window cache (`--cache C`), wrote the checkpoint
+/// among its windows, and that run's next start refused its cache as holding files not its
+/// own. It is refused before anything is read or written.
+#[test]
+fn a_checkpoint_directory_that_is_a_window_cache_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let cache = dir.path().join("cache");
+    std::fs::create_dir(&cache).unwrap();
+    std::fs::write(cache.join("train.windows"), b"DSWIN01\n").unwrap();
+    let err = fails(&[
+        "train",
+        "--data",
+        "scripts/scenes",
+        "--out",
+        s(&cache),
+        "--steps",
+        "2",
+    ]);
+    assert!(
+        err.contains("train.windows but no config.json: it is a window cache (--cache)"),
+        "{err}"
+    );
+    let left: Vec<_> = std::fs::read_dir(&cache).unwrap().collect();
+    assert_eq!(left.len(), 1, "{err}");
 }

@@ -2955,3 +2955,80 @@ fn a_static_agent_given_a_motion_is_refused_naming_the_fields() {
     std::fs::write(&f, scene("{id: 2, lane: 1, s: 5, static: true}")).unwrap();
     ok(&["inspect", s(&f)]);
 }
+
+/// A checkpoint whose futures are told along each agent's route (`window.route_frame`, which
+/// training can write but the sampler cannot decode yet) sampled futures read along the
+/// agent's heading, in the wrong frame, with exit 0. Sampling refuses it naming the field;
+/// training may still resume it.
+#[test]
+fn a_checkpoint_trained_along_routes_is_refused_for_sampling_naming_the_field() {
+    let dir = tempfile::tempdir().unwrap();
+    let ck = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("data/checkpoint");
+    std::fs::copy(
+        ck.join("model.safetensors"),
+        dir.path().join("model.safetensors"),
+    )
+    .unwrap();
+    let mut config: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(ck.join("config.json")).unwrap()).unwrap();
+    config["config"]["window"]["route_frame"] = serde_json::Value::Bool(true);
+    std::fs::write(
+        dir.path().join("config.json"),
+        serde_json::to_vec(&config).unwrap(),
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    let err = fails(&[
+        "simulate",
+        s(&samples().join("yaml/highway_cut_in.yaml")),
+        "--checkpoint",
+        s(dir.path()),
+        "-o",
+        s(&out),
+    ]);
+    assert!(
+        err.contains("config.json") && err.contains("route_frame"),
+        "{err}"
+    );
+    assert!(!out.exists(), "{err}");
+    assert!(drivescript::train::load_for_training(dir.path()).is_ok());
+}
+
+/// A checkpoint config whose window sizes are each within range but together enormous
+/// (1024 agents, 2048 lanes, d 64: 512 MB a layer for one window) aborted `simulate` on
+/// allocation (exit 134), or took the machine's memory. It is refused naming the fields.
+#[test]
+fn a_checkpoint_whose_window_sizes_together_are_too_large_is_refused_not_an_abort() {
+    let dir = tempfile::tempdir().unwrap();
+    let ck = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("data/checkpoint");
+    std::fs::copy(
+        ck.join("model.safetensors"),
+        dir.path().join("model.safetensors"),
+    )
+    .unwrap();
+    let mut config: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(ck.join("config.json")).unwrap()).unwrap();
+    let w = &mut config["config"]["window"];
+    w["max_agents"] = 1024.into();
+    w["max_lanes"] = 2048.into();
+    w["pad_lanes"] = true.into();
+    std::fs::write(
+        dir.path().join("config.json"),
+        serde_json::to_vec(&config).unwrap(),
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    let err = fails(&[
+        "simulate",
+        s(&samples().join("yaml/highway_cut_in.yaml")),
+        "--checkpoint",
+        s(dir.path()),
+        "-o",
+        s(&out),
+    ]);
+    assert!(
+        err.contains("config.json")
+            && err.contains("window.max_agents × window.max_lanes × model.d = 1024 × 2048 × 64"),
+        "{err}"
+    );
+}

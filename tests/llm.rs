@@ -4197,3 +4197,80 @@ fn a_prompt_folder_that_is_missing_or_a_file_is_named_as_such() {
         );
     }
 }
+
+/// A reply naming a key twice in one object (two `choices`, a message with two `content`s)
+/// was read as its last copy without a word, though other readers (a proxy between) take the
+/// first: a reply holding two answers is no answer. Scene, rollout and checkpoint files refuse
+/// the same.
+#[test]
+fn a_reply_naming_a_key_twice_is_refused_not_read_as_its_last_copy() {
+    let choice = |c: &str| {
+        format!(
+            r#"{{"index": 0, "message": {{"role": "assistant", "content": "{c}"}}, "finish_reason": "stop"}}"#
+        )
+    };
+    let choices_twice = format!(
+        r#"{{"choices": [{}], "choices": [{}]}}"#,
+        choice("ACCEPT"),
+        choice("x")
+    );
+    let content_twice = r#"{"choices": [{"index": 0, "message": {"role": "assistant", "content": "ACCEPT", "content": "x"}, "finish_reason": "stop"}]}"#;
+    for (body, key) in [
+        (choices_twice.as_str(), "choices"),
+        (content_twice, "content"),
+    ] {
+        let srv = Server::start(vec![Canned::raw(200, body)]);
+        let mut cfg = HttpConfig::new(&srv.url, "m");
+        cfg.stream = false;
+        let e = ask_one(&HttpClient::new(cfg).unwrap())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains(&format!(
+                "the reply holds the key \"{key}\" twice in one object"
+            )),
+            "{e}"
+        );
+    }
+    let event = r#"{"choices": [{"index": 0, "delta": {"content": "ACCEPT", "content": "x"}}]}"#;
+    let srv = Server::start(vec![Canned::events(
+        vec![event.into(), "[DONE]".into()],
+        Duration::ZERO,
+    )]);
+    let mut cfg = HttpConfig::new(&srv.url, "m");
+    cfg.stream = true;
+    let e = ask_one(&HttpClient::new(cfg).unwrap())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("a stream event holds the key \"content\" twice in one object"),
+        "{e}"
+    );
+}
+
+/// A scene whose steps are not 0.1 s apart cannot be sampled by the 10 Hz model; ask sent the
+/// model its request (a paid request) and got a script before the first round's sampling
+/// refused it. It is refused before any request, and no run directory is made.
+#[test]
+fn ask_refuses_a_scene_of_another_time_step_before_asking_the_model() {
+    let dir = tempfile::tempdir().unwrap();
+    let xml = std::fs::read_to_string(samples().join(SCENE)).unwrap();
+    assert!(xml.contains("timeStepSize=\"0.1\""));
+    let scene = dir.path().join("slow.xml");
+    std::fs::write(
+        &scene,
+        xml.replacen("timeStepSize=\"0.1\"", "timeStepSize=\"0.5\"", 1),
+    )
+    .unwrap();
+    let srv = Server::start(vec![Canned::chat(&reply("term(\"x\", 0.0);\n"))]);
+    let out = dir.path().join("run");
+    let o = ask(&[s(&scene), REQUEST, "-o", s(&out)], Some(&srv.url));
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("slow.xml: scene") && t.contains("its steps are 0.5 s apart"),
+        "{t}"
+    );
+    assert!(srv.received().is_empty(), "{t}");
+    assert!(!out.exists(), "{t}");
+}

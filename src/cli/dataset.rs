@@ -68,6 +68,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
                         continue;
                     }
                 };
+                if let Some(m) = drivescript::train::dataset::step_mismatch(&s) {
+                    super::print_error(&m);
+                    failures += 1;
+                    continue;
+                }
                 scenes += 1;
                 copies.add(&s.meta.scenario_id, &src);
                 let w = windows(&s, &cfg);

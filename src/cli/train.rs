@@ -241,6 +241,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
         Some(dir) => {
             let r = load_for_training(dir)
                 .with_context(|| format!("resuming from {}", dir.display()))?;
+            drivescript::train::trainer::check_steps_left(&r, cfg.steps)?;
             if args.ema_half_life.is_none() {
                 cfg.ema_half_life = r.meta.config.ema_half_life;
             }
@@ -498,6 +499,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
 /// `train --export DIR`: the windows of the corpora, encoded for the --resume checkpoint.
 fn export_run(args: &Args, dir: &std::path::Path, corpora: &[Corpus]) -> Result<ExitCode> {
     check_export_dir(dir, corpora)?;
+    if let Some(cache) = &args.cache {
+        drivescript::train::store::check_cache_apart_from_export(cache, dir)?;
+    }
     let from = args
         .resume
         .as_ref()

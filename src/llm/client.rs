@@ -1421,9 +1421,13 @@ fn parse_completion_redacted(
     };
     // JSON's own rule lets a reader ignore a byte order mark, which some gateways send.
     let text = text.trim_start_matches('\u{feff}');
-    let v: Value = serde_json::from_str(text).map_err(|e| {
+    let v: Value = super::stream::parse_json(text).map_err(|e| {
         let head: String = text.trim().chars().take(120).collect();
-        bad(format!("the reply is not JSON ({e}); it begins {head:?}"))
+        bad(if e.is_data() {
+            format!("the reply holds {e}, so which answer it gives is unclear; it begins {head:?}")
+        } else {
+            format!("the reply is not JSON ({e}); it begins {head:?}")
+        })
     })?;
     // Some servers (and proxies) answer an overloaded or refused request with HTTP 200 and
     // an error body: "the reply has no choices array" hid what the server said.

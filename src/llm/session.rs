@@ -952,6 +952,7 @@ impl<'a> Session<'a> {
         if let Backend::Rules = backend {
             rules::plan_request(request)?;
         }
+        check_scene_step(&raw)?;
         let lock = open_new(dir, scene_path, &raw, &config, false)?;
         Self::begin(
             lock, dir, scene_path, raw, request, trained, backend, prompts, config, checks,
@@ -979,6 +980,7 @@ impl<'a> Session<'a> {
         if let Backend::Rules = backend {
             rules::plan_request(request)?;
         }
+        check_scene_step(&raw)?;
         let lock = open_new(dir, scene_path, &raw, &config, true)?;
         Self::begin(
             lock, dir, scene_path, raw, request, trained, backend, prompts, config, checks,
@@ -2298,6 +2300,16 @@ impl Session<'_> {
             Ok(t) => Got::Text(t),
             Err(reason) => Got::GiveUp(reason),
         })
+    }
+}
+
+/// Refuses, before the run directory is made or the model asked, a scene the sampler cannot
+/// sample ([`crate::train::dataset::step_mismatch`]): a scene of 0.5-s steps got a request
+/// and a reply before the first round's sampling refused it, each round of a batch again.
+fn check_scene_step(raw: &Scene) -> Result<(), LlmError> {
+    match crate::train::dataset::step_mismatch(raw) {
+        Some(m) => Err(LlmError::Setup(m)),
+        None => Ok(()),
     }
 }
 

@@ -58,6 +58,9 @@ pub fn sampled_horizon(trained: &Trained, cfg: &SampleConfig) -> Result<usize, S
 /// [`prepare`] for a horizon of `future` steps (at most the model's: see
 /// [`sampled_horizon`]).
 pub fn prepare_for(scene: &Scene, future: usize) -> Result<Scene, SampleError> {
+    if let Some(m) = crate::train::dataset::step_mismatch(scene) {
+        return Err(SampleError::Scene(m));
+    }
     let s = scene.over_horizon(future);
     Scene::new(s.meta.clone(), s.map.clone(), s.agents)
         .map_err(|e| SampleError::Scene(e.to_string()))

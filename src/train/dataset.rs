@@ -206,6 +206,30 @@ pub struct Window {
 /// all zero), static, and its length and width (so that a bus is not a car).
 pub const AGENT_ATTRS: usize = 6;
 
+/// Seconds between the steps of every window, and so of every model trained on them: the
+/// settings' history and future are counted in steps of 10 Hz recordings, and a checkpoint
+/// records no step of its own.
+pub const WINDOW_DT: f64 = 0.1;
+
+/// Why `scene` can be neither cut into windows nor sampled by a model: its steps are not
+/// [`WINDOW_DT`] apart. A scene of 0.5-s (or 0.04-s) steps was taught, and sampled, as if each
+/// step were 0.1 s: futures five times too slow (or 2.5 times too fast), with exit 0. The
+/// message names the scene's file and id.
+pub fn step_mismatch(scene: &Scene) -> Option<String> {
+    let dt = scene.meta.dt;
+    // Within 1 %: recorded timestamps jitter (a WOMD scene's step is their median).
+    ((dt / WINDOW_DT - 1.0).abs() > 0.01).then(|| {
+        format!(
+            "{}: scene {}: its steps are {} s apart, but the model's are {WINDOW_DT} s (10 Hz): \
+             its motion would be read as if each of its steps took {WINDOW_DT} s; resample the \
+             scene to 10 Hz",
+            crate::io::name::one_line(&scene.meta.source_file),
+            crate::io::name::shown_counted(&scene.meta.scenario_id),
+            crate::geom::num(dt)
+        )
+    })
+}
+
 /// [`AGENT_ATTRS`] features of `a`: the model's input that tells a truck from a car from a
 /// cyclist, and a parked car from one that drives.
 pub fn agent_attributes(a: &crate::scene::Agent) -> [f32; AGENT_ATTRS] {

@@ -391,6 +391,34 @@ pub fn check_export_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError
     Ok(())
 }
 
+/// Refuses a window cache (`train --cache`) that is the export directory (`train --export`),
+/// or lies inside it or around it: the windows were cut into it (the whole corpus read first),
+/// and the export then refused the directory as "not empty", leaving the cache there; an
+/// export inside the cache is a directory the cache refuses at its next start.
+pub fn check_cache_apart_from_export(cache: &Path, export: &Path) -> Result<(), TrainError> {
+    let (Some(c), Some(e)) = (resolved(cache), resolved(export)) else {
+        return Ok(());
+    };
+    let why = if c == e {
+        "is the export directory (--export)"
+    } else if c.starts_with(&e) {
+        "is inside the export directory (--export)"
+    } else if e.starts_with(&c) {
+        "holds the export directory (--export)"
+    } else {
+        return Ok(());
+    };
+    Err(refusal(
+        cache,
+        "the window cache (--cache)",
+        format!(
+            "{why} {}: the export directory holds the export's files alone; give the cache a \
+             directory apart from it (or leave --cache out for a temporary one)",
+            export.display()
+        ),
+    ))
+}
+
 /// Refuses a checkpoint directory (`train --out`) that is, or is inside, a directory of
 /// `corpora`: the checkpoint's files would go among the scenes it is trained on, the same
 /// mistake [`check_cache_dir`] refuses for the window cache. Also refused: a path that is not
@@ -424,6 +452,20 @@ pub fn check_out_dir(dir: &Path, corpora: &[Corpus]) -> Result<(), TrainError> {
             return refuse(format!(
                 "holds {} but no config.json, so it is no checkpoint of drivescript's: training \
                  would replace that file; move it, or choose another --out",
+                f.display()
+            ));
+        }
+        // Another run's window cache (`--cache DIR`): the checkpoint's files were written
+        // among its windows, and that run's next start refused its cache as holding files
+        // not its own.
+        if let Some(f) = CACHE_FILES
+            .iter()
+            .map(|f| dir.join(f))
+            .find(|f| std::fs::symlink_metadata(f).is_ok())
+        {
+            return refuse(format!(
+                "holds {} but no config.json: it is a window cache (--cache), which holds its \
+                 own files alone; choose another --out",
                 f.display()
             ));
         }
@@ -503,7 +545,26 @@ pub fn check_replaces_checkpoint(
 /// Refuses a window cache (`train --cache`) at the path of a file the checkpoint in `out` is
 /// written as: `--cache OUT/model.safetensors` made that a directory of windows, trained, and
 /// only then failed to save the checkpoint ("Is a directory"), the run's work lost.
+///
+/// Also refused: a cache that is the checkpoint directory itself, or holds it. The run
+/// trained, and the checkpoint's files lay among the windows, so the next start (a resume
+/// with the same flags) refused the cache as holding files not its own.
 pub fn check_cache_beside_checkpoint(cache: &Path, out: &Path) -> Result<(), TrainError> {
+    if let (Some(c), Some(o)) = (resolved(cache), resolved(out)) {
+        if o.starts_with(&c) {
+            return Err(refusal(
+                cache,
+                "the window cache (--cache)",
+                format!(
+                    "{} the checkpoint directory (--out) {}: the cache holds its own files \
+                     alone, and its next start would refuse the checkpoint's; give the cache \
+                     another directory (the default is OUT/windows)",
+                    if o == c { "is" } else { "holds" },
+                    out.display()
+                ),
+            ));
+        }
+    }
     let resolved = |p: &Path| {
         p.canonicalize()
             .or_else(|_| std::path::absolute(p))
@@ -683,14 +744,23 @@ fn check_towns_found(
             }
         )
     };
+    // At most MAX_TOWNS_SHOWN of them, the rest counted: 3,000 towns given were all repeated,
+    // a message of 24 KB.
+    let shown_missing: Vec<String> = missing
+        .iter()
+        .take(MAX_TOWNS_SHOWN)
+        .map(|t| quoted(t))
+        .collect();
+    let more_missing = missing.len() - shown_missing.len();
     Err(TrainError::Data(format!(
-        "--val-town {}: no scene is in {}; {there} (a town is a scenario id's part before its \
+        "--val-town {}{}: no scene is in {}; {there} (a town is a scenario id's part before its \
          first `-`)",
-        missing
-            .iter()
-            .map(|t| quoted(t))
-            .collect::<Vec<_>>()
-            .join(" "),
+        shown_missing.join(" "),
+        if more_missing > 0 {
+            format!(" and {more_missing} more")
+        } else {
+            String::new()
+        },
         if missing.len() == 1 {
             "that town"
         } else {
@@ -750,6 +820,9 @@ impl WindowStore {
                     let scenes = crate::io::load_scenes(&f, &opts)
                         .map_err(|e| TrainError::Data(format!("loading {}: {e}", f.display())))?;
                     for s in scenes {
+                        if let Some(m) = super::dataset::step_mismatch(&s) {
+                            return Err(TrainError::Data(m));
+                        }
                         read += 1;
                         summary.copies.add(&s.meta.scenario_id, &f);
                         if c.split == SplitBy::Town {

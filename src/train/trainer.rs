@@ -219,6 +219,15 @@ pub const MIN_SIGMA: f64 = 1e-6;
 pub const MAX_SIGMA: f64 = 1e6;
 /// The largest schedule exponent `rho`: EDM's is 7; the levels are raised to it.
 pub const MAX_RHO: f64 = 1000.0;
+/// The largest `edm.p_std`, the spread of ln σ training draws its noise levels from (EDM's is
+/// 1.2): with `p_mean` within ln [`MIN_SIGMA`] to ln [`MAX_SIGMA`], six spreads either way stay
+/// within what the loss weight 1/σ² and σ² hold in f32.
+pub const MAX_P_STD: f64 = 4.0;
+/// The most numbers the network may hold in one layer for the pairs of one window it attends
+/// over (agent-lane, lane-lane, agent-agent) or for its lane points, `d` for each: 128 MB of
+/// f32. The settings hold at most 262,144 (64 × 64 lanes × d 64), the paper's WOMD sizes
+/// 2,560,000 (200 × 200 × 64).
+pub const MAX_PAIR_VALUES: usize = 1 << 25;
 
 /// `Ok` when `v` is positive and finite, else a message naming the setting.
 fn positive(name: &str, v: f64) -> Result<(), String> {
@@ -284,6 +293,30 @@ impl TrainConfig {
         within("model.layers", m.layers, 1, 32)?;
         within("model.k", m.k, 1, 3 * w.future)?;
         within("model.noise_freqs", m.noise_freqs, 1, 64)?;
+        // Each within its range is not enough: the network holds d numbers for every pair of
+        // a window it attends over and for every lane point, so 1024 agents, 2048 lanes and
+        // d 64 (each allowed) asked 512 MB a layer to sample one window, and sampling or
+        // training aborted on allocation (or took the machine's memory).
+        let (a, l) = (w.max_agents, w.max_lanes);
+        for (what, sizes) in [
+            ("window.max_agents × window.max_lanes", [a, l]),
+            ("window.max_lanes × window.max_lanes", [l, l]),
+            ("window.max_agents × window.max_agents", [a, a]),
+            ("window.max_lanes × window.lane_points", [l, w.lane_points]),
+        ] {
+            let values = sizes[0] * sizes[1] * m.d;
+            if values > MAX_PAIR_VALUES {
+                return Err(format!(
+                    "{what} × model.d = {} × {} × {} = {values}: at most {MAX_PAIR_VALUES} (the \
+                     network holds d numbers for each, {} MB a layer for one window); lower \
+                     one of them",
+                    sizes[0],
+                    sizes[1],
+                    m.d,
+                    values * 4 >> 20
+                ));
+            }
+        }
         if m.history != w.history {
             return Err(format!(
                 "model.history = {} but window.history = {}: they must agree",
@@ -343,6 +376,23 @@ impl TrainConfig {
         positive("edm.p_std", e.p_std)?;
         if !e.p_mean.is_finite() {
             return Err(format!("edm.p_mean = {}: must be finite", e.p_mean));
+        }
+        // Finite is not enough: a P_mean of 700 or -50 (or a P_std of 50) drew noise levels
+        // whose square or loss weight is past f32, and the run stopped at its first step with
+        // "training loss is NaN ... (lower --lr)", blaming a flag the user had not given.
+        let (lo, hi) = (MIN_SIGMA.ln(), MAX_SIGMA.ln());
+        if !(lo..=hi).contains(&e.p_mean) {
+            return Err(format!(
+                "edm.p_mean = {}: must be {lo:.1} to {hi:.1} (ln of the median training noise \
+                 level, which must lie within {MIN_SIGMA:e} to {MAX_SIGMA:e}; EDM's is -1.2)",
+                crate::geom::num(e.p_mean)
+            ));
+        }
+        if e.p_std > MAX_P_STD {
+            return Err(format!(
+                "edm.p_std = {}: must be at most {MAX_P_STD} (the spread of ln σ; EDM's is 1.2)",
+                crate::geom::num(e.p_std)
+            ));
         }
         // Positive is not enough: a σ_min of 1e-320 (below what the model's f32 holds) or a
         // σ_max of 1e308 passed, and sampling ended in "non-finite sample at sampling step
@@ -748,12 +798,7 @@ pub fn train_from(
     }
     cfg.validate().map_err(TrainError::Config)?;
     if let Some(r) = &resume {
-        if r.meta.steps_done >= cfg.steps {
-            return Err(TrainError::Data(format!(
-                "the checkpoint has already done {} steps; ask for more than that (--steps is a total)",
-                r.meta.steps_done
-            )));
-        }
+        check_steps_left(r, cfg.steps)?;
     }
     let start = resume.as_ref().map_or(1, |r| r.meta.steps_done + 1);
     let seed = cfg.seed;
@@ -1274,8 +1319,40 @@ fn check_weights(varmap: &VarMap) -> Result<(), String> {
     }
 }
 
-/// Reads a checkpoint written by [`save`].
+/// Refuses to resume `r` towards a total of `steps` it has already done. Said before the
+/// corpus is read as well (`train --resume CK --steps N`): it came after every window was cut.
+pub fn check_steps_left(r: &Trained, steps: usize) -> Result<(), TrainError> {
+    if r.meta.steps_done >= steps {
+        return Err(TrainError::Data(format!(
+            "the checkpoint has already done {} steps; ask for more than that (--steps is a total)",
+            r.meta.steps_done
+        )));
+    }
+    Ok(())
+}
+
+/// Reads a checkpoint written by [`save`] to sample from: [`read_checkpoint`], refusing a
+/// model trained on futures told along each agent's route (`window.route_frame`), whose
+/// outputs the sampler cannot decode yet (it reads every output along the agent's heading).
+/// Such a checkpoint (a config edited by hand, or written by a later drivescript) sampled
+/// futures in the wrong frame, with exit 0.
 pub fn load(dir: &Path) -> Result<Trained, TrainError> {
+    let t = read_checkpoint(dir)?;
+    if t.meta.config.window.route_frame {
+        return Err(TrainError::Io {
+            path: dir.join("config.json").display().to_string(),
+            message: "config.window.route_frame is true: the model tells futures along each \
+                      agent's route, and this drivescript's sampler decodes them only along the \
+                      agent's heading, so it cannot sample from it (train --resume can go on \
+                      training it)"
+                .into(),
+        });
+    }
+    Ok(t)
+}
+
+/// Reads a checkpoint written by [`save`], whatever frame its futures are told in.
+fn read_checkpoint(dir: &Path) -> Result<Trained, TrainError> {
     let io = |path: &Path, e: String| TrainError::Io {
         path: path.display().to_string(),
         message: e,
@@ -1381,7 +1458,7 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
 /// goes on from `model.safetensors`. A checkpoint without that file resumes from
 /// `model.safetensors` (a run that asks for an average starts one there).
 pub fn load_for_training(dir: &Path) -> Result<Trained, TrainError> {
-    let mut t = load(dir)?;
+    let mut t = read_checkpoint(dir)?;
     let online = dir.join(ONLINE_FILE);
     if online.symlink_metadata().is_err() {
         return Ok(t);
