@@ -2956,12 +2956,12 @@ fn a_static_agent_given_a_motion_is_refused_naming_the_fields() {
     ok(&["inspect", s(&f)]);
 }
 
-/// A checkpoint whose futures are told along each agent's route (`window.route_frame`, which
-/// training can write but the sampler cannot decode yet) sampled futures read along the
-/// agent's heading, in the wrong frame, with exit 0. Sampling refuses it naming the field;
-/// training may still resume it.
+/// A checkpoint config that tells futures along each agent's route (`window.route_frame`) for
+/// a network that does not read the route (`model.route_frame` absent, as in an edited
+/// NGSIM config) would decode the network's outputs in a frame it was not trained in. It is
+/// refused naming the field, for sampling and for training alike.
 #[test]
-fn a_checkpoint_trained_along_routes_is_refused_for_sampling_naming_the_field() {
+fn a_checkpoint_whose_window_and_model_disagree_on_the_route_frame_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let ck = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("data/checkpoint");
     std::fs::copy(
@@ -2991,7 +2991,10 @@ fn a_checkpoint_trained_along_routes_is_refused_for_sampling_naming_the_field() 
         "{err}"
     );
     assert!(!out.exists(), "{err}");
-    assert!(drivescript::train::load_for_training(dir.path()).is_ok());
+    let e = drivescript::train::load_for_training(dir.path())
+        .err()
+        .expect("refused");
+    assert!(e.to_string().contains("route_frame"), "{e}");
 }
 
 /// A checkpoint config whose window sizes are each within range but together enormous

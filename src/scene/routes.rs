@@ -151,14 +151,25 @@ pub fn route_lines(map: &Map, p: Point, heading: f64, reach: f64) -> Vec<Vec<Poi
     }
 }
 
-/// `route` from [`LINE_BEHIND`] metres behind where `p` projects onto it to `reach` ahead.
+/// How near (metres) a route may come back to where the vehicle stands before it is cut there
+/// ([`cut`]).
+const LOOP_GAP: f64 = 5.0;
+
+/// `route` from [`LINE_BEHIND`] metres behind where `p` projects onto it to `reach` ahead,
+/// ended before it comes back within [`LOOP_GAP`] of its part behind the vehicle: a route
+/// round a loop of lanes (a roundabout's ring) returns to where it started, and a point there
+/// would project onto either end, its distance along the route off by the loop's length.
 fn cut(route: &LanePath, p: Point, reach: f64) -> Option<Vec<Point>> {
     let s0 = route.frenet.project(p).s;
-    let part = route
-        .frenet
-        .polyline()
-        .slice(s0 - LINE_BEHIND, s0 + reach)?;
-    Some(part.points().to_vec())
+    let line = route.frenet.polyline();
+    let behind = line.slice(s0 - LINE_BEHIND, s0)?;
+    let part = line.slice(s0 - LINE_BEHIND, s0 + reach)?;
+    let (points, arc) = (part.points(), part.arc_lengths());
+    let here = s0 - (s0 - LINE_BEHIND).max(0.0);
+    let end = (0..points.len())
+        .find(|&i| arc[i] > here + 2.0 * LOOP_GAP && behind.distance_to(&points[i]) < LOOP_GAP)
+        .unwrap_or(points.len());
+    Some(points[..end].to_vec())
 }
 
 fn heading_line(p: Point, heading: f64, reach: f64) -> Vec<Point> {
@@ -306,6 +317,45 @@ agents:
         // Arc length counts from the route's start: lane 0, the whole lane behind lane 1.
         assert!((fit.s[0] - 60.0).abs() < 1e-9, "{:?}", fit.s);
         assert!(fit_route(&routes, &[]).is_none() && fit_route(&[], &pts).is_none());
+    }
+
+    #[test]
+    fn a_route_round_a_loop_of_lanes_ends_before_it_comes_back() {
+        // A square ring of four 20 m lanes, each leading into the next; the car stands 1 m
+        // into lane 0 and its route reaches 100 m, more than the 80 m ring.
+        let text = r#"
+steps: 2
+current_step: 0
+map:
+  lanes:
+    - {id: 0, centerline: [[0, 0], [20, 0]], successors: [1]}
+    - {id: 1, centerline: [[20, 0], [20, 20]], successors: [2]}
+    - {id: 2, centerline: [[20, 20], [0, 20]], successors: [3]}
+    - {id: 3, centerline: [[0, 20], [0, 0]], successors: [0]}
+agents:
+  - {id: 1, states: [[1, 0, 0], [2, 0, 0]]}
+"#;
+        let s = yaml::parse(Path::new("ring.yaml"), text).unwrap();
+        let p = Point::new(1.0, 0.0);
+        let line = route_line(&s.map, p, 0.0, &[], 100.0);
+        let path = FrenetPath::new(crate::geom::Polyline::new(line.clone()).unwrap());
+        // It goes round, and stops more than LOOP_GAP short of where the car stands.
+        let last = *line.last().unwrap();
+        assert!(last.x.abs() < 1e-9 && last.y >= LOOP_GAP - 1e-9, "{line:?}");
+        // A car driving round the ring is told against it without a jump in its distance
+        // along: every step 1 m further.
+        let current = [1.0, 0.0, 0.0];
+        let future: Vec<Option<[f64; 3]>> = (1..=60)
+            .map(|t| {
+                let q = path.to_cartesian(path.project(p).s + t as f64, 0.0);
+                Some([q.x, q.y, 0.0])
+            })
+            .collect();
+        let r = route_residual(&path, current, &future, 1.0);
+        for (t, v) in r.iter().enumerate() {
+            assert!(v.unwrap()[0].abs() < 1e-6, "step {t}: {v:?}");
+        }
+        assert_eq!(route_lines(&s.map, p, 0.0, 100.0), vec![line]);
     }
 
     #[test]

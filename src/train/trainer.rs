@@ -1331,28 +1331,8 @@ pub fn check_steps_left(r: &Trained, steps: usize) -> Result<(), TrainError> {
     Ok(())
 }
 
-/// Reads a checkpoint written by [`save`] to sample from: [`read_checkpoint`], refusing a
-/// model trained on futures told along each agent's route (`window.route_frame`), whose
-/// outputs the sampler cannot decode yet (it reads every output along the agent's heading).
-/// Such a checkpoint (a config edited by hand, or written by a later drivescript) sampled
-/// futures in the wrong frame, with exit 0.
+/// Reads a checkpoint written by [`save`].
 pub fn load(dir: &Path) -> Result<Trained, TrainError> {
-    let t = read_checkpoint(dir)?;
-    if t.meta.config.window.route_frame {
-        return Err(TrainError::Io {
-            path: dir.join("config.json").display().to_string(),
-            message: "config.window.route_frame is true: the model tells futures along each \
-                      agent's route, and this drivescript's sampler decodes them only along the \
-                      agent's heading, so it cannot sample from it (train --resume can go on \
-                      training it)"
-                .into(),
-        });
-    }
-    Ok(t)
-}
-
-/// Reads a checkpoint written by [`save`], whatever frame its futures are told in.
-fn read_checkpoint(dir: &Path) -> Result<Trained, TrainError> {
     let io = |path: &Path, e: String| TrainError::Io {
         path: path.display().to_string(),
         message: e,
@@ -1458,7 +1438,7 @@ fn read_checkpoint(dir: &Path) -> Result<Trained, TrainError> {
 /// goes on from `model.safetensors`. A checkpoint without that file resumes from
 /// `model.safetensors` (a run that asks for an average starts one there).
 pub fn load_for_training(dir: &Path) -> Result<Trained, TrainError> {
-    let mut t = read_checkpoint(dir)?;
+    let mut t = load(dir)?;
     let online = dir.join(ONLINE_FILE);
     if online.symlink_metadata().is_err() {
         return Ok(t);
