@@ -5,15 +5,21 @@
 //! largest offset of its future across the route it strays from least, and across the line
 //! of its current heading; the shares within each distance.
 //!
+//! It also counts which of the routes the sampler offers each of those vehicles
+//! (`train::dataset::agent_route_lines`, the first straight on from the nearest lane) its
+//! future strays from least: the prior an unconditional sample's route is drawn from.
+//!
 //!     cargo run --release --example route_coverage -- HORIZON SCENE_OR_DIR...
 
 use std::path::Path;
 
 use drivescript::geom::Point;
+use drivescript::geom::{FrenetPath, Polyline};
 use drivescript::io::{load_scenes, LoadOptions};
 use drivescript::scene::routes::{candidate_routes, fit_route, route_residual};
 use drivescript::scene::AgentType;
-use drivescript::train::dataset::to_frame;
+use drivescript::train::dataset::{agent_route_lines, to_frame};
+use drivescript::train::WindowConfig;
 
 const LIMITS: [f64; 5] = [0.5, 1.0, 1.75, 3.5, 7.0];
 
@@ -24,6 +30,13 @@ fn main() -> anyhow::Result<()> {
         "usage: route_coverage HORIZON SCENE_OR_DIR..."
     );
     let horizon: usize = args[0].parse()?;
+    let cfg = WindowConfig {
+        future: horizon,
+        ..WindowConfig::cities()
+    };
+    // Per number of routes offered (the last row: that many or more), how often each is the
+    // one the future strays from least.
+    let mut chosen = [[0usize; MOST_OFFERED]; MOST_OFFERED];
     let (mut route_max, mut line_max, mut counts) = (Vec::new(), Vec::new(), Vec::new());
     let (mut no_route, mut still) = (0usize, 0usize);
     // Residual futures, along then across, in the route's frame and in the heading's.
@@ -44,7 +57,7 @@ fn main() -> anyhow::Result<()> {
     for file in &files {
         for scene in load_scenes(file, &LoadOptions::default())? {
             let c = scene.meta.current_step;
-            for a in &scene.agents {
+            for (i, a) in scene.agents.iter().enumerate() {
                 if a.agent_type != AgentType::Vehicle || a.is_static {
                     continue;
                 }
@@ -98,6 +111,24 @@ fn main() -> anyhow::Result<()> {
                     None => no_route += 1,
                 }
                 line_max.push(line);
+                let offered = agent_route_lines(&scene, &cfg, c, i);
+                let strays = |l: &Vec<Point>| {
+                    let path = FrenetPath::new(Polyline::new(l.iter().copied())?);
+                    Ok::<f64, drivescript::geom::GeomError>(
+                        pts.iter()
+                            .map(|p| path.project(*p).d.abs())
+                            .fold(0.0, f64::max),
+                    )
+                };
+                let mut best = (f64::INFINITY, 0);
+                for (k, l) in offered.iter().enumerate() {
+                    let m = strays(l)?;
+                    if m < best.0 {
+                        best = (m, k);
+                    }
+                }
+                let row = offered.len().clamp(1, MOST_OFFERED) - 1;
+                chosen[row][best.1.min(MOST_OFFERED - 1)] += 1;
             }
         }
     }
@@ -136,8 +167,25 @@ fn main() -> anyhow::Result<()> {
             [2, 4, 8, 12, 20].map(|k| format!("{k}: {:.3}", pca_rmse(rows, k))).join(", ")
         );
     }
+    let first: usize = chosen.iter().map(|r| r[0]).sum();
+    println!(
+        "the sampler's routes: the first (straight on from the nearest lane) is the nearest for {first} of {n} ({:.3})",
+        first as f64 / n.max(1) as f64
+    );
+    for (row, counts) in chosen.iter().enumerate() {
+        let offered = if row + 1 == MOST_OFFERED {
+            format!("{MOST_OFFERED} or more")
+        } else {
+            (row + 1).to_string()
+        };
+        let shown: Vec<String> = counts[..=row].iter().map(|c| c.to_string()).collect();
+        println!("  {offered} offered: {}", shown.join(" / "));
+    }
     Ok(())
 }
+
+/// Rows of the route-choice table: vehicles offered this many routes or more share the last.
+const MOST_OFFERED: usize = 4;
 
 /// RMS of the along and the across halves of the residuals.
 fn spread(rows: &[Vec<f64>], horizon: usize) -> (f64, f64) {
