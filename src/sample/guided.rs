@@ -139,7 +139,8 @@ struct Setup<'a> {
 }
 
 /// `route_cost`, where guidance asks for something: what an unconditional run's routes are
-/// chosen by ([`Plan::cheapest_routes`], for a checkpoint that tells futures against routes).
+/// chosen by ([`Plan::cheapest_routes`], for a checkpoint that tells futures against routes);
+/// without it each sample draws its own ([`Plan::draw_routes`]).
 fn setup<'a>(
     trained: &'a Trained,
     scene: &Scene,
@@ -233,14 +234,19 @@ fn setup<'a>(
         fixed,
         held: Vec::new(),
         routes,
+        drawn: Vec::new(),
     };
-    if let Some(cost) = route_cost.filter(|_| cfg.task == Task::Unconditional) {
-        plan.cheapest_routes(scene, cost)?;
-    }
     let (n, k, _, nw) = plan.dims();
     let kk = cfg.samples.max(1);
+    if cfg.task == Task::Unconditional {
+        match route_cost {
+            Some(cost) => plan.cheapest_routes(scene, cost)?,
+            // Its own stream: the initial noise stays what the seed gave before routes.
+            None => plan.draw_routes(scene, kk, cfg.seed ^ 0x5EED_2047),
+        }
+    }
     // Batch row `s·W + w` is window w of sample s.
-    let refs: Vec<&Window> = (0..kk).flat_map(|_| plan.windows.iter()).collect();
+    let refs: Vec<&Window> = (0..kk).flat_map(|s| plan.windows_of(s)).collect();
     let rows = kk * nw;
     // A model that reads end points is given the recorded ones where they are known.
     let goals = match cfg.task {
@@ -1118,6 +1124,7 @@ pub(crate) mod tests {
             fixed: Vec::new(),
             held: Vec::new(),
             routes: Vec::new(),
+            drawn: Vec::new(),
         };
         let [x0, y0, h0] = sl.pose;
         let drive = |angle: f64| {
@@ -1163,6 +1170,7 @@ pub(crate) mod tests {
             fixed: Vec::new(),
             held: Vec::new(),
             routes: Vec::new(),
+            drawn: Vec::new(),
         };
         let [x0, y0, h0] = sl.pose;
         // Steps of `step(j)` metres straight ahead, the model's heading wobbling by ±0.2 rad.
@@ -1255,6 +1263,7 @@ pub(crate) mod tests {
             fixed: Vec::new(),
             held: Vec::new(),
             routes: Vec::new(),
+            drawn: Vec::new(),
         };
         let (n, k, _, nw) = (3, t.meta.config.model.k, 0, plan.windows.len());
         let len = nw * n * k;
