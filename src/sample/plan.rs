@@ -7,7 +7,7 @@ use crate::cost::Trajectories;
 use crate::geom::{wrap_angle, FrenetPath, Point, Polyline};
 use crate::scene::routes::route_residual;
 use crate::scene::{AgentId, AgentType, KinematicLimits, Scene};
-use crate::train::dataset::{add_anchor, agent_route_lines, line_point, remove_anchor};
+use crate::train::dataset::{add_anchor, agent_route_lines, from_frame, line_point, remove_anchor};
 use crate::train::{window_among, RouteHint, Trained, Window};
 
 use super::config::Clamp;
@@ -77,11 +77,11 @@ impl Route {
     /// The route of `slot` in window `w` (whose frame it is stored in), taken to the world;
     /// `None` where the slot has none.
     fn of(w: &Window, slot: usize, pose: [f64; 3]) -> Option<Self> {
-        let (sn, cs) = w.origin[2].sin_cos();
-        let line = w.routes.get(slot)?.iter().map(|q| {
-            let (x, y) = (q[0] as f64, q[1] as f64);
-            Point::new(w.origin[0] + cs * x - sn * y, w.origin[1] + sn * x + cs * y)
-        });
+        let line = w
+            .routes
+            .get(slot)?
+            .iter()
+            .map(|q| from_frame(w.origin, q[0] as f64, q[1] as f64));
         let path = FrenetPath::new(Polyline::new(line).ok()?);
         let f = path.project(Point::new(pose[0], pose[1]));
         Some(Self {
@@ -792,10 +792,8 @@ mod tests {
             for &(wi, slot) in &p.copies[si] {
                 let w = &p.windows[wi];
                 let last = *w.routes[slot].last().unwrap();
-                let (sn, cs) = w.origin[2].sin_cos();
-                let (x, y) = (last[0] as f64, last[1] as f64);
-                let world = (w.origin[0] + cs * x - sn * y, w.origin[1] + sn * x + cs * y);
-                assert!((world.0 - e.x).abs() < 1e-3 && (world.1 - e.y).abs() < 1e-3);
+                let world = from_frame(w.origin, last[0] as f64, last[1] as f64);
+                assert!((world.x - e.x).abs() < 1e-3 && (world.y - e.y).abs() < 1e-3);
             }
             // Vehicle 2, whom the script does not name, keeps the first of its routes.
             let sj = p.slots.iter().position(|sl| sl.agent == 1).unwrap();

@@ -261,6 +261,13 @@ pub fn to_frame(origin: [f64; 3], p: Point, heading: f64) -> [f64; 3] {
     ]
 }
 
+/// The world point at `(x, y)` of the frame at `origin`: the inverse of [`to_frame`]'s
+/// position.
+pub fn from_frame(origin: [f64; 3], x: f64, y: f64) -> Point {
+    let (s, c) = origin[2].sin_cos();
+    Point::new(origin[0] + c * x - s * y, origin[1] + s * x + c * y)
+}
+
 /// Cuts the windows of one scene.
 pub fn windows(scene: &Scene, cfg: &WindowConfig) -> Vec<Window> {
     let n = scene.num_steps();
