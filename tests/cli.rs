@@ -1071,6 +1071,9 @@ fn eval_scores_rollouts_over_their_own_horizon_by_default() {
             && !out.contains("fraction of vehicles (pooled over scenes and samples)"),
         "{out}"
     );
+    // Once, though cyclists are scored both as a whole and within their map kind (they were
+    // named twice).
+    assert_eq!(out.matches("cyclists above 15 m/s").count(), 1, "{out}");
     // An explicit horizon still rules, and is said.
     let out = eval(&["--horizon", "30"]);
     assert!(

@@ -754,11 +754,13 @@ fn report(
         })
         .collect();
     // Cyclists and pedestrians scored: the implausible legend names their limits too.
-    let others: Vec<AgentType> = present
-        .iter()
-        .filter_map(|(g, _)| g.agent)
-        .filter(|t| *t != AgentType::Vehicle)
-        .collect();
+    // Each type once, though it is scored both as a whole and within a map kind.
+    let mut others: Vec<AgentType> = Vec::new();
+    for t in present.iter().filter_map(|(g, _)| g.agent) {
+        if t != AgentType::Vehicle && !others.contains(&t) {
+            others.push(t);
+        }
+    }
     let kinds = present.iter().filter(|(g, _)| g.agent.is_none()).count();
     let types = present.iter().filter(|(g, _)| g.map.is_none()).count();
     // A group that is all of its parent repeats its row: map kinds only where there are two,
