@@ -27,6 +27,35 @@ const TARGET_BESIDE: f64 = 5.0;
 /// it: the outer lane.
 const OFF_ROAD_REACH: f64 = 4.0;
 
+/// Farthest (m) a car may stand across its route for `suggest` to ask it to turn along it:
+/// half a lane. Farther, it is off the lane (SUMO's cars cross junctions off the map's
+/// lanes) and the turn asks it to move across first.
+const TURN_ON_ROUTE: f64 = 1.75;
+/// Lateral acceleration (m/s², below the judge's 5) and braking (m/s², as `yield`'s) within
+/// which a car asked to turn must be able to take the corner: at 14 m/s, 3 m before a
+/// corner of 8 m radius, it could only turn by braking at 9-12 m/s² or leaving its route.
+const TURN_LATERAL: f64 = 4.0;
+/// See [`TURN_LATERAL`].
+const TURN_BRAKE: f64 = 3.0;
+/// Metres over which [`can_take_turn`] averages the corner's curvature (a lane's vertices are
+/// metres apart; the path's curvature between them is not the car's).
+const TURN_CURVE_SPAN: f64 = 4.0;
+
+/// Whether a car at arc length `s0` on `route` doing `v` m/s can be at a speed it can corner
+/// at ([`TURN_LATERAL`]) everywhere from here to the end of its turn, braking at
+/// [`TURN_BRAKE`] at most.
+fn can_take_turn(route: &LanePath, s0: f64, v: f64, end: f64) -> bool {
+    let f = &route.frenet;
+    let half = 0.5 * TURN_CURVE_SPAN;
+    let steps = ((end - s0) / 0.5).ceil().max(0.0) as usize;
+    (0..=steps).all(|i| {
+        let s = s0 + (end - s0) * i as f64 / steps.max(1) as f64;
+        let bend = crate::geom::wrap_angle(f.heading_at(s + half) - f.heading_at(s - half));
+        let kappa = bend.abs() / TURN_CURVE_SPAN;
+        v * v - 2.0 * TURN_BRAKE * (s - s0) <= TURN_LATERAL / kappa.max(1e-9)
+    })
+}
+
 /// Braking and backing up as [`suggest`] times a `reverse` request: to a stop at
 /// [`REVERSE_BRAKE`], then backwards at [`REVERSE_ACCEL`] up to [`REVERSE_SPEED`] (the script's
 /// default speed), until [`REVERSE_MARGIN`] beyond the checker's metre behind the start.
@@ -110,7 +139,9 @@ fn can_back_up(scene: &Scene, a: &Agent, horizon: f64) -> bool {
 ///   junction's edge asks for an emergency stop);
 /// - `accident`: the nearest pair; `no_collisions`: no agents;
 /// - `turn_left` / `turn_right`: the nearest car whose route (that way at forks) has such a
-///   turn ahead, whose middle it can reach within the horizon less a second.
+///   turn ahead, whose middle it can reach within the horizon less a second; it stands
+///   within half a lane of the route, and can slow to a speed it can corner at
+///   (4 m/s² across) braking at 3 m/s² at most.
 pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
     let c = scene.meta.current_step;
     let n = scene.num_steps();
@@ -245,10 +276,16 @@ pub fn suggest(b: Behavior, scene: &Scene, horizon: usize) -> Option<Params> {
             cands.iter().find_map(|(a, _, _)| {
                 let route = routes.route(scene, a, way)?;
                 let span = route.next_turn(&scene.map, way)?;
-                let to_go = span.middle - route.frenet.project(a.states[c].position()).s;
+                let here = route.frenet.project(a.states[c].position());
+                let to_go = span.middle - here.s;
                 let t = (horizon - 1.0).max(0.0);
-                let reach = a.states[c].speed() * t + 0.75 * t * t;
-                (to_go > 0.0 && to_go + 1.0 <= reach).then(|| p(&[("vehicle", a.id as f64)]))?
+                let v = a.states[c].speed();
+                let reach = v * t + 0.75 * t * t;
+                (to_go > 0.0
+                    && to_go + 1.0 <= reach
+                    && here.d.abs() <= TURN_ON_ROUTE
+                    && can_take_turn(&route, here.s, v, span.end))
+                .then(|| p(&[("vehicle", a.id as f64)]))?
             })
         }
         Behavior::Accident => {

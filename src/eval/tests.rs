@@ -802,6 +802,29 @@ fn turns_are_suggested_for_a_car_that_can_reach_the_corner() {
         super::suggest::suggest(Behavior::TurnLeft, &parked, 40),
         None
     );
+    // At 14 m/s, 10 m before corners of about 8 m radius, it could only turn braking at 7 m/s²
+    // and more, or leave its route (held-out SUMO towns: 12.4 m/s² at the current step, then
+    // off the route); at 10 m/s it slows to 5.7 m/s by the corner at 2.4 m/s².
+    for (speed, offered) in [(14.0, false), (10.0, true)] {
+        let mut fast = s.clone();
+        let a = fast.agents.iter_mut().find(|a| a.id == 1).unwrap();
+        a.states[10].vx = speed;
+        for b in [Behavior::TurnLeft, Behavior::TurnRight] {
+            let p = super::suggest::suggest(b, &fast, 40);
+            assert_eq!(p.is_some(), offered, "{b:?} at {speed} m/s: {p:?}");
+        }
+    }
+    // Standing 3 m across its lane (SUMO's cars cross junctions off the map's lanes), the
+    // turn would ask it to move across first.
+    for (across, offered) in [(3.0, false), (1.0, true)] {
+        let mut beside = s.clone();
+        let a = beside.agents.iter_mut().find(|a| a.id == 1).unwrap();
+        for st in &mut a.states[..] {
+            st.y -= across;
+        }
+        let p = super::suggest::suggest(Behavior::TurnLeft, &beside, 40);
+        assert_eq!(p.is_some(), offered, "{across} m across: {p:?}");
+    }
 }
 
 #[test]
