@@ -139,8 +139,9 @@ struct Setup<'a> {
 }
 
 /// `route_cost`, where guidance asks for something: what an unconditional run's routes are
-/// chosen by ([`Plan::cheapest_routes`], for a checkpoint that tells futures against routes);
-/// without it each sample draws its own ([`Plan::draw_routes`]).
+/// chosen by, for the agents whose routes it tells apart ([`Plan::cheapest_routes`], for a
+/// checkpoint that tells futures against routes); each sample draws the others' routes
+/// ([`Plan::draw_routes`]) as its unguided twin does.
 fn setup<'a>(
     trained: &'a Trained,
     scene: &Scene,
@@ -239,11 +240,12 @@ fn setup<'a>(
     let (n, k, _, nw) = plan.dims();
     let kk = cfg.samples.max(1);
     if cfg.task == Task::Unconditional {
-        match route_cost {
+        let decided = match route_cost {
             Some(cost) => plan.cheapest_routes(scene, cost)?,
-            // Its own stream: the initial noise stays what the seed gave before routes.
-            None => plan.draw_routes(scene, kk, cfg.seed ^ 0x5EED_2047),
-        }
+            None => Vec::new(),
+        };
+        // Its own stream: the initial noise stays what the seed gave before routes.
+        plan.draw_routes(scene, kk, cfg.seed ^ 0x5EED_2047, &decided);
     }
     // Batch row `s·W + w` is window w of sample s.
     let refs: Vec<&Window> = (0..kk).flat_map(|s| plan.windows_of(s)).collect();

@@ -46,6 +46,11 @@ pub(super) struct Plan<'a> {
 /// 48 (`cargo run --release --example route_coverage -- 80 DIR`).
 pub const FIRST_ROUTE_SHARE: f64 = 0.79;
 
+/// Relative difference below which [`Plan::cheapest_routes`] counts an agent's routes as
+/// costing the same: summed script costs of identical futures of the others differ only in
+/// rounding.
+const SAME_COST: f64 = 1e-9;
+
 /// A modelled agent's route in the world ([`crate::train::WindowConfig::route_frame`]), with
 /// where the agent stands on it: its coefficients decode to `(along, across, heading)` beyond
 /// `(s0, d0)` and the route's heading ([`crate::scene::routes::from_route_residual`]).
@@ -536,8 +541,17 @@ impl Plan<'_> {
     /// Gives every sample of `samples` routes of its own: each modelled agent with a choice
     /// takes the first route with probability [`FIRST_ROUTE_SHARE`], each other with an even
     /// share of the rest. An unguided unconditional sample then turns where recorded traffic
-    /// turns about as often, where straight on for all would never turn.
-    pub(super) fn draw_routes(&mut self, scene: &Scene, samples: usize, seed: u64) {
+    /// turns about as often, where straight on for all would never turn. A slot `decided`
+    /// names ([`Plan::cheapest_routes`]) takes that route in every sample; the draw for it is
+    /// made all the same, so that every other agent draws what it draws in the unguided twin
+    /// of the same seed.
+    pub(super) fn draw_routes(
+        &mut self,
+        scene: &Scene,
+        samples: usize,
+        seed: u64,
+        decided: &[Option<usize>],
+    ) {
         if self.routes.iter().all(Option::is_none) {
             return;
         }
@@ -561,12 +575,13 @@ impl Plan<'_> {
                         continue;
                     }
                     let u = rng.uniform();
-                    let pick = if u < FIRST_ROUTE_SHARE {
+                    let drawn = if u < FIRST_ROUTE_SHARE {
                         0
                     } else {
                         let rest = (u - FIRST_ROUTE_SHARE) / (1.0 - FIRST_ROUTE_SHARE);
                         1 + ((rest * (lines.len() - 1) as f64) as usize).min(lines.len() - 2)
                     };
+                    let pick = decided.get(si).copied().flatten().unwrap_or(drawn);
                     routes[si] = route_into(
                         &mut windows,
                         &self.copies[si],
@@ -579,19 +594,23 @@ impl Plan<'_> {
             .collect();
     }
 
-    /// Gives each modelled agent with a choice of routes the one whose constant-speed future
+    /// Per slot, the route (an index into [`agent_route_lines`]) whose constant-speed future
     /// along it costs least by `cost` (the others on the routes they have), one agent at a
-    /// time in slot order: a script that asks a car to turn left at the junction ahead then
-    /// samples it on the left turn's route, where a future with no offset across it already
-    /// turns. Of equal costs the earlier route wins: straight on from the nearest lane first
-    /// ([`crate::scene::routes::candidate_routes`]).
+    /// time in slot order, each set as it is chosen: a script that asks a car to turn left at
+    /// the junction ahead then samples it on the left turn's route, where a future with no
+    /// offset across it already turns. `None` for an agent whose routes all cost the same
+    /// (one the scripts do not steer, or steer along any route alike: a speed limit): it is
+    /// left on its first route, for [`Plan::draw_routes`] to draw as an unguided sample
+    /// would. Otherwise it would go straight on in every guided sample, wherever recorded
+    /// traffic turns.
     pub(super) fn cheapest_routes<E>(
         &mut self,
         scene: &Scene,
         cost: &dyn Fn(&Trajectories) -> Result<f64, E>,
-    ) -> Result<(), E> {
+    ) -> Result<Vec<Option<usize>>, E> {
+        let mut decided = vec![None; self.slots.len()];
         if self.routes.iter().all(Option::is_none) {
-            return Ok(());
+            return Ok(decided);
         }
         let (n, k, f, nw) = self.dims();
         let norm = &self.trained.meta.normaliser;
@@ -618,18 +637,30 @@ impl Plan<'_> {
             if lines.len() < 2 {
                 continue;
             }
-            let mut best: Option<(usize, f64)> = None;
-            for (i, line) in lines.iter().enumerate() {
+            let mut costs = Vec::with_capacity(lines.len());
+            for line in &lines {
                 self.set_route(si, line);
-                let v = evaluate(self)?;
-                if best.is_none_or(|(_, b)| v < b) {
-                    best = Some((i, v));
-                }
+                costs.push(evaluate(self)?);
             }
-            let (i, _) = best.expect("at least two routes");
-            self.set_route(si, &lines[i]);
+            // The first of the least (a NaN cost never wins).
+            let (i, least) = costs
+                .iter()
+                .enumerate()
+                .fold((0, costs[0]), |(bi, b), (i, &v)| {
+                    if v < b || b.is_nan() && !v.is_nan() {
+                        (i, v)
+                    } else {
+                        (bi, b)
+                    }
+                });
+            let same = costs
+                .iter()
+                .all(|v| (v - least).abs() <= SAME_COST * least.abs().max(1.0));
+            let pick = if same { 0 } else { i };
+            self.set_route(si, &lines[pick]);
+            decided[si] = (!same).then_some(pick);
         }
-        Ok(())
+        Ok(decided)
     }
 
     /// Writes each held agent's coefficients ([`Plan::standing`]) to every copy of it.
@@ -782,8 +813,9 @@ mod tests {
             let cost = |tr: &Trajectories| -> Result<f64, crate::cost::CostError> {
                 script.evaluate(tr).map(|r| r.total)
             };
-            p.cheapest_routes(&s, &cost).unwrap();
+            let decided = p.cheapest_routes(&s, &cost).unwrap();
             let si = p.slots.iter().position(|sl| sl.agent == 0).unwrap();
+            assert_eq!(decided[si], Some(if north { 1 } else { 2 }), "{name}");
             let r = p.routes[si].as_ref().unwrap();
             let e = r.path.to_cartesian(r.path.length(), 0.0);
             assert_eq!(e.y > 30.0, north, "{name}: {e:?}");
@@ -808,7 +840,7 @@ mod tests {
         let (t, s) = crossroads();
         let mut p = plan(&t, &s, RouteHint::Unknown);
         let samples = 400;
-        p.draw_routes(&s, samples, 3);
+        p.draw_routes(&s, samples, 3, &[]);
         assert_eq!(p.drawn.len(), samples);
         let (n, k, f, nw) = p.dims();
         // Every sample's vehicle 1 at constant speed along its route: where it ends says which
@@ -848,6 +880,46 @@ mod tests {
         // The plan's own routes stay as they were: straight on.
         let r = p.routes[si].as_ref().unwrap();
         assert!(r.path.to_cartesian(r.path.length(), 0.0).x > 100.0);
+    }
+
+    #[test]
+    fn a_guided_sample_draws_the_routes_of_the_agents_its_scripts_do_not_steer() {
+        let (t, s) = crossroads();
+        let ends = |p: &Plan, si: usize| -> Vec<(i64, i64)> {
+            (0..p.drawn.len())
+                .map(|smp| {
+                    let r = p.route(smp, si).unwrap();
+                    let e = r.path.to_cartesian(r.path.length(), 0.0);
+                    (e.x.round() as i64, e.y.round() as i64)
+                })
+                .collect()
+        };
+        let samples = 60;
+        let mut unguided = plan(&t, &s, RouteHint::Unknown);
+        unguided.draw_routes(&s, samples, 5, &[]);
+        let si = unguided.slots.iter().position(|sl| sl.agent == 0).unwrap();
+        let twin = ends(&unguided, si);
+        // A cost of vehicle 2's future alone (index 1) cannot tell vehicle 1's routes apart:
+        // it is left to the draw, sample by sample as in the unguided twin, and turns in some
+        // (before, straight on in every guided sample).
+        let mut p = plan(&t, &s, RouteHint::Unknown);
+        let of_two = |tr: &Trajectories| -> Result<f64, ()> {
+            let st = tr.layout.steps;
+            Ok(tr.xyh[st..2 * st].iter().map(|q| q[0] + q[1]).sum())
+        };
+        let decided = p.cheapest_routes(&s, &of_two).unwrap();
+        assert!(decided.iter().all(Option::is_none), "{decided:?}");
+        p.draw_routes(&s, samples, 5, &decided);
+        let drawn = ends(&p, si);
+        assert_eq!(drawn, twin);
+        assert!(drawn.iter().any(|e| e.1 > 30) && drawn.iter().any(|e| e.1 < -30));
+        // One that rewards vehicle 1 for ending north takes the left turn in every sample.
+        let mut p = plan(&t, &s, RouteHint::Unknown);
+        let north = |tr: &Trajectories| -> Result<f64, ()> { Ok(-tr.xyh[tr.layout.steps - 1][1]) };
+        let decided = p.cheapest_routes(&s, &north).unwrap();
+        assert_eq!(decided[si], Some(1));
+        p.draw_routes(&s, samples, 5, &decided);
+        assert!(ends(&p, si).iter().all(|e| e.1 > 30), "{:?}", ends(&p, si));
     }
 
     #[test]
