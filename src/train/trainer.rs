@@ -229,6 +229,25 @@ pub const MAX_P_STD: f64 = 4.0;
 /// 2,560,000 (200 × 200 × 64).
 pub const MAX_PAIR_VALUES: usize = 1 << 25;
 
+/// The most numbers one layer of a training step holds for its whole batch: `batch` windows,
+/// [`window_values`] each. A step keeps every layer's activations for the backward pass, about
+/// 270 bytes for each such number (9.3 GB measured for a batch of 128 windows of the NGSIM
+/// setting, 262,144 numbers each), so about 17 GB here: a batch of 256 of those windows, 26 of
+/// the paper's WOMD sizes. `--batch 4096` (allowed) asked 290 GB and aborted on allocation,
+/// exit 134, or took the machine's memory.
+pub const MAX_TRAIN_BATCH_VALUES: usize = 1 << 26;
+
+/// The numbers the network holds in one layer for one window of these sizes: `d` for each
+/// pair it attends over (agent-lane, lane-lane, agent-agent) or lane point, the most of them.
+pub fn window_values(w: &WindowConfig, m: &DenoiserConfig) -> usize {
+    let (a, l) = (w.max_agents, w.max_lanes);
+    [a * l, l * l, a * a, l * w.lane_points]
+        .into_iter()
+        .max()
+        .unwrap_or(0)
+        .saturating_mul(m.d)
+}
+
 /// `Ok` when `v` is positive and finite, else a message naming the setting.
 fn positive(name: &str, v: f64) -> Result<(), String> {
     if v.is_finite() && v > 0.0 {
@@ -267,6 +286,28 @@ pub fn flag_of(message: &str) -> Option<&'static str> {
 }
 
 impl TrainConfig {
+    /// Checks that a training step of these settings fits in memory ([`MAX_TRAIN_BATCH_VALUES`]);
+    /// the message starts with `batch`, the field `--batch` sets ([`flag_of`]). Apart from
+    /// [`TrainConfig::validate`]: a checkpoint another trainer wrote with a larger batch (the
+    /// PyTorch port's, on a GPU) still samples.
+    pub fn check_batch_memory(&self) -> Result<(), String> {
+        let per = window_values(&self.window, &self.model).max(1);
+        let values = self.batch.saturating_mul(per);
+        if values <= MAX_TRAIN_BATCH_VALUES {
+            return Ok(());
+        }
+        Err(format!(
+            "batch = {}: {} windows × {per} numbers a layer for each (the most of agents × lanes, \
+             lanes × lanes, agents × agents and lanes × points, times d) is {values}, past the \
+             {MAX_TRAIN_BATCH_VALUES} a training step holds (about {} GB with what the backward \
+             pass keeps); at most {} windows a batch with these sizes",
+            self.batch,
+            self.batch,
+            (MAX_TRAIN_BATCH_VALUES as u64 * 270) >> 30,
+            (MAX_TRAIN_BATCH_VALUES / per).max(1)
+        ))
+    }
+
     /// Checks that training can run with these settings, before any data is read: sizes within
     /// bounds (windows of 10^9 agents or 10^6 layers would abort on allocation), at least one
     /// step, and a learning rate and noise settings that are positive and finite (a NaN rate
@@ -797,6 +838,7 @@ pub fn train_from(
         cfg.val_towns = c.val_towns.clone();
     }
     cfg.validate().map_err(TrainError::Config)?;
+    cfg.check_batch_memory().map_err(TrainError::Config)?;
     if let Some(r) = &resume {
         check_steps_left(r, cfg.steps)?;
     }
