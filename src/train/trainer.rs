@@ -1137,13 +1137,26 @@ pub fn save(
     // trainers never write into one temporary file.
     let pid = std::process::id();
     let mut staged: Vec<(PathBuf, PathBuf)> = Vec::new();
+    // Whatever lies at a temporary's name (a link planted there, a leftover of a process that
+    // had this PID) is removed before the file is made: the tensor writer and `fs::write`
+    // open a path through a link, and a link at `.config.json.PID.tmp` had the checkpoint
+    // written over (and its mode set on) the file it named.
+    let fresh = |tmp: &Path| -> Result<(), TrainError> {
+        match std::fs::symlink_metadata(tmp) {
+            Ok(m) if m.is_dir() => Err(io(tmp, "is a directory: remove it".into())),
+            Ok(_) => std::fs::remove_file(tmp).map_err(|e| io(tmp, e.to_string())),
+            Err(_) => Ok(()),
+        }
+    };
     let weights = dir.join("model.safetensors");
     let tmp = dir.join(format!(".model.safetensors.{pid}.tmp"));
+    fresh(&tmp)?;
     match ema {
         Some(e) => {
             e.save(&tmp).map_err(|e| io(&tmp, candle_message(e)))?;
             staged.push((tmp, weights));
             let tmp = dir.join(format!(".{ONLINE_FILE}.{pid}.tmp"));
+            fresh(&tmp)?;
             varmap.save(&tmp).map_err(|e| io(&tmp, candle_message(e)))?;
             staged.push((tmp, dir.join(ONLINE_FILE)));
         }
@@ -1155,13 +1168,30 @@ pub fn save(
     if let Some(opt) = optimizer {
         let path = dir.join(OPTIMIZER_FILE);
         let tmp = dir.join(format!(".optimizer.safetensors.{pid}.tmp"));
+        fresh(&tmp)?;
         opt.save(&tmp).map_err(|e| io(&tmp, candle_message(e)))?;
         staged.push((tmp, path));
     }
     let json = serde_json::to_string_pretty(meta).expect("metadata serialises");
     let tmp = dir.join(format!(".config.json.{pid}.tmp"));
-    std::fs::write(&tmp, json.as_bytes()).map_err(|e| io(&tmp, e.to_string()))?;
+    fresh(&tmp)?;
+    std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(&tmp)
+        .and_then(|mut f| std::io::Write::write_all(&mut f, json.as_bytes()))
+        .map_err(|e| io(&tmp, e.to_string()))?;
     staged.push((tmp, dir.join("config.json")));
+    for (tmp, _) in &staged {
+        // Made above: a link here now was planted while this run wrote, and is not followed.
+        if std::fs::symlink_metadata(tmp).is_ok_and(|m| !m.is_file()) {
+            return Err(io(
+                tmp,
+                "was replaced by something other than a file while the checkpoint was written"
+                    .into(),
+            ));
+        }
+    }
     for (tmp, _) in &staged {
         // One mode for every file of a checkpoint (the tensor writer creates 0600).
         #[cfg(unix)]
@@ -1818,6 +1848,37 @@ mod tests {
         assert!(!dead.exists() && !dead_cfg.exists());
         // PID 1 lives; a name that is not a save's is not touched.
         assert!(live.exists() && mine.exists());
+    }
+
+    #[test]
+    fn a_link_planted_at_a_save_s_temporary_name_is_removed_not_written_through() {
+        // The tensor writer and fs::write opened `.config.json.PID.tmp` through a link there:
+        // the checkpoint went into the file it named, whose mode was then set to 0644.
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("ckpt");
+        std::fs::create_dir(&out).unwrap();
+        let victim = dir.path().join("victim.txt");
+        std::fs::write(&victim, "the user's").unwrap();
+        let pid = std::process::id();
+        for name in ["model.safetensors", "config.json", OPTIMIZER_FILE] {
+            let link = out.join(format!(".{name}.{pid}.tmp"));
+            std::os::unix::fs::symlink(&victim, &link).unwrap();
+        }
+        train(
+            &scenes(),
+            tiny_config(1, 1, 1),
+            Some(&out),
+            None,
+            |_, _, _| (),
+        )
+        .unwrap();
+        assert_eq!(std::fs::read_to_string(&victim).unwrap(), "the user's");
+        assert!(load(&out).is_ok());
+        for name in ["model.safetensors", "config.json", OPTIMIZER_FILE] {
+            let p = out.join(name);
+            let m = std::fs::symlink_metadata(&p).unwrap();
+            assert!(m.is_file(), "{name} is not a regular file");
+        }
     }
 
     #[test]
