@@ -4655,11 +4655,13 @@ fn bench_refuses_flags_of_another_benchmark_and_outputs_over_what_it_did_not_wri
 fn bench_sample_times_a_checkpoint_with_the_inputs_it_was_trained_with() {
     // bench sample replaced the checkpoint's window with the paper's, inputs included: a
     // --nearest-lane-pose checkpoint failed with "shape mismatch in matmul", a --route-times
-    // one with "the batch has no route inputs (window.route_times = 0)".
+    // one with "the batch has no route inputs (window.route_times = 0)", a --route-frame one
+    // with "the batch has no routes (window.route_frame = false)".
     let dir = tempfile::tempdir().unwrap();
     for (name, flag) in [
         ("nearest", &["--nearest-lane-pose"][..]),
         ("route", &["--route-times", "4"]),
+        ("route_frame", &["--route-frame"]),
     ] {
         let ckpt = dir.path().join(name);
         let mut args = vec![
