@@ -2479,6 +2479,18 @@ fn train_refuses_settings_it_cannot_train_with_before_reading_data() {
             "batch = 1000000000: must be 1 to 4096",
         ),
         ("--eval-every", "0", "eval_every = 0: must be at least 1"),
+        // Allowed alone, 4096 windows of the setting's sizes asked 290 GB for one step and
+        // aborted on allocation (exit 134) or took the machine's memory.
+        (
+            "--batch",
+            "4096",
+            "batch = 4096: 4096 windows × 262144 numbers a layer for each",
+        ),
+        (
+            "--batch",
+            "257",
+            "at most 256 windows a batch with these sizes",
+        ),
         // It said "window.route_times = 41", naming no flag.
         (
             "--route-times",
@@ -2500,6 +2512,61 @@ fn train_refuses_settings_it_cannot_train_with_before_reading_data() {
         );
         assert!(!out.exists(), "{flag} {value} wrote {}", out.display());
     }
+}
+
+#[test]
+fn a_sample_batch_too_large_for_memory_is_refused_saying_how_many_samples_fit() {
+    // 120 vehicles on a six-lane road: many windows of 24 agents. 1024 samples of 300 asked
+    // 38 GB for one batch and aborted on allocation (exit 134) or took the machine's memory.
+    let dir = tempfile::tempdir().unwrap();
+    let mut yaml = String::from(
+        "scenario_id: crowd\ndt: 0.1\nsteps: 51\ncurrent_step: 10\nroad:\n  lanes: 6\n  \
+         lane_width: 3.6\n  length: 1500\n  segments: 1\n  speed_limit: 29\nagents:\n",
+    );
+    for lane in 0..6 {
+        for k in 0..20 {
+            let id = lane * 20 + k + 1;
+            yaml += &format!(
+                "  - {{id: {id}, lane: {lane}, s: {}, speed: 20}}\n",
+                20 + k * 60
+            );
+        }
+    }
+    let scene = dir.path().join("crowd.yaml");
+    std::fs::write(&scene, yaml).unwrap();
+    let out = dir.path().join("sim");
+    let started = std::time::Instant::now();
+    let err = fails(&simulate_args(
+        s(&scene),
+        "data/checkpoint",
+        &[
+            "--task",
+            "unconditional",
+            "--samples",
+            "1024",
+            "--steps",
+            "8",
+        ],
+        s(&out),
+    ));
+    assert!(
+        err.contains("samples = 1024: the scene takes")
+            && err.contains("past the 1073741824 one sampling run holds")
+            && err.contains("samples of this scene fit"),
+        "{err}"
+    );
+    assert!(
+        started.elapsed().as_secs() < 30,
+        "refused only after {:?}",
+        started.elapsed()
+    );
+    let fit: usize = err
+        .split("at most ")
+        .nth(1)
+        .and_then(|t| t.split(' ').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no count: {err}"));
+    assert!((1..1024).contains(&fit), "{err}");
 }
 
 #[test]
@@ -4591,11 +4658,13 @@ fn bench_refuses_flags_of_another_benchmark_and_outputs_over_what_it_did_not_wri
 fn bench_sample_times_a_checkpoint_with_the_inputs_it_was_trained_with() {
     // bench sample replaced the checkpoint's window with the paper's, inputs included: a
     // --nearest-lane-pose checkpoint failed with "shape mismatch in matmul", a --route-times
-    // one with "the batch has no route inputs (window.route_times = 0)".
+    // one with "the batch has no route inputs (window.route_times = 0)", a --route-frame one
+    // with "the batch has no routes (window.route_frame = false)".
     let dir = tempfile::tempdir().unwrap();
     for (name, flag) in [
         ("nearest", &["--nearest-lane-pose"][..]),
         ("route", &["--route-times", "4"]),
+        ("route_frame", &["--route-frame"]),
     ] {
         let ckpt = dir.path().join(name);
         let mut args = vec![

@@ -361,13 +361,15 @@ fn bench_sample(args: &Args) -> Result<ExitCode> {
     let mut trained = load(&ckpt).with_context(|| format!("loading {}", ckpt.display()))?;
     // The network does not depend on the window's size; its PCA horizon and the inputs it
     // reads stay the checkpoint's (a --nearest-lane-pose checkpoint failed with "shape
-    // mismatch in matmul", a --route-times one with "the batch has no route inputs").
+    // mismatch in matmul", a --route-times one with "the batch has no route inputs", a
+    // --route-frame one with "the batch has no routes" after the table's first row).
     let own = &trained.meta.config.window;
     trained.meta.config.window = WindowConfig {
         future: own.future,
         nearest_lane_pose: own.nearest_lane_pose,
         route_times: own.route_times,
         goals: own.goals,
+        route_frame: own.route_frame,
         ..window
     };
     let median = |mut v: Vec<f64>| {

@@ -231,7 +231,7 @@ pub fn run(args: Args) -> Result<ExitCode> {
     // A good checkpoint is never overwritten by accident, by a new run or another's resume.
     drivescript::train::check_replaces_checkpoint(&out, args.resume.as_deref(), args.force)?;
     // Before any data is read: --steps, --batch, --lr and --eval-every.
-    if let Err(e) = cfg.validate() {
+    if let Err(e) = cfg.validate().and_then(|()| cfg.check_batch_memory()) {
         match drivescript::train::trainer::flag_of(&e) {
             Some(flag) => anyhow::bail!("training settings: {flag}: {e}"),
             None => anyhow::bail!("training settings: {e}"),

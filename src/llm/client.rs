@@ -1440,9 +1440,27 @@ fn parse_completion_redacted(
     let choices = v["choices"]
         .as_array()
         .ok_or_else(|| bad("the reply has no \"choices\" array".into()))?;
+    if choices.is_empty() {
+        return Err(bad("the reply's \"choices\" is empty".into()));
+    }
+    // The choice of index 0 (one with none is taken for it), as a stream's is: the first in
+    // the list was taken, so a reply holding only a second choice (`"index": 1`), or listing
+    // it first, gave another answer than the one asked for.
     let first = choices
-        .first()
-        .ok_or_else(|| bad("the reply's \"choices\" is empty".into()))?;
+        .iter()
+        .find(|c| c["index"].as_u64().unwrap_or(0) == 0)
+        .ok_or_else(|| {
+            let indices: Vec<String> = choices
+                .iter()
+                .take(8)
+                .map(|c| redact(&crate::io::name::shown_counted(&c["index"].to_string())))
+                .collect();
+            bad(format!(
+                "the reply's \"choices\" hold no choice of index 0, the answer asked for \
+                 (indices {})",
+                indices.join(", ")
+            ))
+        })?;
     let message = &first["message"];
     // A refusal or a tool call carries no text; the model's words say why, and were dropped
     // ("no message content (a refusal or a tool call?)", or an empty reply asked for again).
@@ -1602,6 +1620,19 @@ mod tests {
         );
         let e = parse_completion("<html>oops</html>", "u").unwrap_err();
         assert!(e.to_string().contains("not JSON"), "{e}");
+        // Only a second choice, or the second listed first: another answer was taken.
+        let e = parse_completion(
+            r#"{"choices":[{"index":1,"message":{"role":"assistant","content":"other"}}]}"#,
+            "u",
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("no choice of index 0") && e.contains("(indices 1)"),
+            "{e}"
+        );
+        let two = r#"{"choices":[{"index":1,"message":{"content":"other"}},{"index":0,"message":{"content":"asked"}}]}"#;
+        assert_eq!(parse_completion(two, "u").unwrap().content, "asked");
         let e = parse_completion(r#"{"choices": []}"#, "u").unwrap_err();
         assert!(e.to_string().contains("empty"), "{e}");
         let e = parse_completion(r#"{"id": 1}"#, "u").unwrap_err();

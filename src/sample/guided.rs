@@ -138,6 +138,42 @@ struct Setup<'a> {
     rows: usize,
 }
 
+/// The most numbers one layer of the denoiser holds for a whole sampling batch: samples ×
+/// windows rows, [`crate::train::trainer::window_values`] each. About 6 bytes for each such
+/// number guided at the output, 12 through the denoiser (1.5 and 3 MB a row measured for the
+/// NGSIM checkpoint's 262,144), so 6 to 12 GB here: 1,024 samples of a scene of 4 windows.
+/// 1,024 samples of a scene of 300 vehicles (25 windows) asked 38 GB and aborted on
+/// allocation, exit 134, or took the machine's memory.
+pub const MAX_SAMPLE_BATCH_VALUES: usize = 1 << 30;
+
+/// Refuses `samples` samples of a scene cut into `windows` windows where the batch would not
+/// fit in memory ([`MAX_SAMPLE_BATCH_VALUES`]), saying how many do.
+fn check_batch_memory(
+    trained: &Trained,
+    samples: usize,
+    windows: usize,
+) -> Result<(), SampleError> {
+    let c = &trained.meta.config;
+    let per = crate::train::trainer::window_values(&c.window, &c.model).max(1);
+    let rows = samples.saturating_mul(windows);
+    let values = rows.saturating_mul(per);
+    if values <= MAX_SAMPLE_BATCH_VALUES {
+        return Ok(());
+    }
+    let fit = MAX_SAMPLE_BATCH_VALUES / per.saturating_mul(windows.max(1));
+    let advice = if fit == 0 {
+        "not one sample of this scene fits: simulate fewer of its agents".to_string()
+    } else {
+        format!("at most {fit} samples of this scene fit")
+    };
+    Err(SampleError::Settings(format!(
+        "samples = {samples}: the scene takes {windows} windows of {} agents, so {samples} \
+         samples are {rows} windows in one batch, {values} numbers a layer of the denoiser ({per} \
+         each), past the {MAX_SAMPLE_BATCH_VALUES} one sampling run holds (6 to 12 GB); {advice}",
+        c.window.max_agents,
+    )))
+}
+
 /// `route_cost`, where guidance asks for something: what an unconditional run's routes are
 /// chosen by, for the agents whose routes it tells apart ([`Plan::cheapest_routes`], for a
 /// checkpoint that tells futures against routes); each sample draws the others' routes
@@ -239,6 +275,7 @@ fn setup<'a>(
     };
     let (n, k, _, nw) = plan.dims();
     let kk = cfg.samples.max(1);
+    check_batch_memory(trained, kk, nw)?;
     if cfg.task == Task::Unconditional {
         let decided = match route_cost {
             Some(cost) => plan.cheapest_routes(scene, cost)?,

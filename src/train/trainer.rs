@@ -229,6 +229,25 @@ pub const MAX_P_STD: f64 = 4.0;
 /// 2,560,000 (200 × 200 × 64).
 pub const MAX_PAIR_VALUES: usize = 1 << 25;
 
+/// The most numbers one layer of a training step holds for its whole batch: `batch` windows,
+/// [`window_values`] each. A step keeps every layer's activations for the backward pass, about
+/// 270 bytes for each such number (9.3 GB measured for a batch of 128 windows of the NGSIM
+/// setting, 262,144 numbers each), so about 17 GB here: a batch of 256 of those windows, 26 of
+/// the paper's WOMD sizes. `--batch 4096` (allowed) asked 290 GB and aborted on allocation,
+/// exit 134, or took the machine's memory.
+pub const MAX_TRAIN_BATCH_VALUES: usize = 1 << 26;
+
+/// The numbers the network holds in one layer for one window of these sizes: `d` for each
+/// pair it attends over (agent-lane, lane-lane, agent-agent) or lane point, the most of them.
+pub fn window_values(w: &WindowConfig, m: &DenoiserConfig) -> usize {
+    let (a, l) = (w.max_agents, w.max_lanes);
+    [a * l, l * l, a * a, l * w.lane_points]
+        .into_iter()
+        .max()
+        .unwrap_or(0)
+        .saturating_mul(m.d)
+}
+
 /// `Ok` when `v` is positive and finite, else a message naming the setting.
 fn positive(name: &str, v: f64) -> Result<(), String> {
     if v.is_finite() && v > 0.0 {
@@ -267,6 +286,28 @@ pub fn flag_of(message: &str) -> Option<&'static str> {
 }
 
 impl TrainConfig {
+    /// Checks that a training step of these settings fits in memory ([`MAX_TRAIN_BATCH_VALUES`]);
+    /// the message starts with `batch`, the field `--batch` sets ([`flag_of`]). Apart from
+    /// [`TrainConfig::validate`]: a checkpoint another trainer wrote with a larger batch (the
+    /// PyTorch port's, on a GPU) still samples.
+    pub fn check_batch_memory(&self) -> Result<(), String> {
+        let per = window_values(&self.window, &self.model).max(1);
+        let values = self.batch.saturating_mul(per);
+        if values <= MAX_TRAIN_BATCH_VALUES {
+            return Ok(());
+        }
+        Err(format!(
+            "batch = {}: {} windows × {per} numbers a layer for each (the most of agents × lanes, \
+             lanes × lanes, agents × agents and lanes × points, times d) is {values}, past the \
+             {MAX_TRAIN_BATCH_VALUES} a training step holds (about {} GB with what the backward \
+             pass keeps); at most {} windows a batch with these sizes",
+            self.batch,
+            self.batch,
+            (MAX_TRAIN_BATCH_VALUES as u64 * 270) >> 30,
+            (MAX_TRAIN_BATCH_VALUES / per).max(1)
+        ))
+    }
+
     /// Checks that training can run with these settings, before any data is read: sizes within
     /// bounds (windows of 10^9 agents or 10^6 layers would abort on allocation), at least one
     /// step, and a learning rate and noise settings that are positive and finite (a NaN rate
@@ -797,6 +838,7 @@ pub fn train_from(
         cfg.val_towns = c.val_towns.clone();
     }
     cfg.validate().map_err(TrainError::Config)?;
+    cfg.check_batch_memory().map_err(TrainError::Config)?;
     if let Some(r) = &resume {
         check_steps_left(r, cfg.steps)?;
     }
@@ -1095,13 +1137,26 @@ pub fn save(
     // trainers never write into one temporary file.
     let pid = std::process::id();
     let mut staged: Vec<(PathBuf, PathBuf)> = Vec::new();
+    // Whatever lies at a temporary's name (a link planted there, a leftover of a process that
+    // had this PID) is removed before the file is made: the tensor writer and `fs::write`
+    // open a path through a link, and a link at `.config.json.PID.tmp` had the checkpoint
+    // written over (and its mode set on) the file it named.
+    let fresh = |tmp: &Path| -> Result<(), TrainError> {
+        match std::fs::symlink_metadata(tmp) {
+            Ok(m) if m.is_dir() => Err(io(tmp, "is a directory: remove it".into())),
+            Ok(_) => std::fs::remove_file(tmp).map_err(|e| io(tmp, e.to_string())),
+            Err(_) => Ok(()),
+        }
+    };
     let weights = dir.join("model.safetensors");
     let tmp = dir.join(format!(".model.safetensors.{pid}.tmp"));
+    fresh(&tmp)?;
     match ema {
         Some(e) => {
             e.save(&tmp).map_err(|e| io(&tmp, candle_message(e)))?;
             staged.push((tmp, weights));
             let tmp = dir.join(format!(".{ONLINE_FILE}.{pid}.tmp"));
+            fresh(&tmp)?;
             varmap.save(&tmp).map_err(|e| io(&tmp, candle_message(e)))?;
             staged.push((tmp, dir.join(ONLINE_FILE)));
         }
@@ -1113,13 +1168,30 @@ pub fn save(
     if let Some(opt) = optimizer {
         let path = dir.join(OPTIMIZER_FILE);
         let tmp = dir.join(format!(".optimizer.safetensors.{pid}.tmp"));
+        fresh(&tmp)?;
         opt.save(&tmp).map_err(|e| io(&tmp, candle_message(e)))?;
         staged.push((tmp, path));
     }
     let json = serde_json::to_string_pretty(meta).expect("metadata serialises");
     let tmp = dir.join(format!(".config.json.{pid}.tmp"));
-    std::fs::write(&tmp, json.as_bytes()).map_err(|e| io(&tmp, e.to_string()))?;
+    fresh(&tmp)?;
+    std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(&tmp)
+        .and_then(|mut f| std::io::Write::write_all(&mut f, json.as_bytes()))
+        .map_err(|e| io(&tmp, e.to_string()))?;
     staged.push((tmp, dir.join("config.json")));
+    for (tmp, _) in &staged {
+        // Made above: a link here now was planted while this run wrote, and is not followed.
+        if std::fs::symlink_metadata(tmp).is_ok_and(|m| !m.is_file()) {
+            return Err(io(
+                tmp,
+                "was replaced by something other than a file while the checkpoint was written"
+                    .into(),
+            ));
+        }
+    }
     for (tmp, _) in &staged {
         // One mode for every file of a checkpoint (the tensor writer creates 0600).
         #[cfg(unix)]
@@ -1776,6 +1848,37 @@ mod tests {
         assert!(!dead.exists() && !dead_cfg.exists());
         // PID 1 lives; a name that is not a save's is not touched.
         assert!(live.exists() && mine.exists());
+    }
+
+    #[test]
+    fn a_link_planted_at_a_save_s_temporary_name_is_removed_not_written_through() {
+        // The tensor writer and fs::write opened `.config.json.PID.tmp` through a link there:
+        // the checkpoint went into the file it named, whose mode was then set to 0644.
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("ckpt");
+        std::fs::create_dir(&out).unwrap();
+        let victim = dir.path().join("victim.txt");
+        std::fs::write(&victim, "the user's").unwrap();
+        let pid = std::process::id();
+        for name in ["model.safetensors", "config.json", OPTIMIZER_FILE] {
+            let link = out.join(format!(".{name}.{pid}.tmp"));
+            std::os::unix::fs::symlink(&victim, &link).unwrap();
+        }
+        train(
+            &scenes(),
+            tiny_config(1, 1, 1),
+            Some(&out),
+            None,
+            |_, _, _| (),
+        )
+        .unwrap();
+        assert_eq!(std::fs::read_to_string(&victim).unwrap(), "the user's");
+        assert!(load(&out).is_ok());
+        for name in ["model.safetensors", "config.json", OPTIMIZER_FILE] {
+            let p = out.join(name);
+            let m = std::fs::symlink_metadata(&p).unwrap();
+            assert!(m.is_file(), "{name} is not a regular file");
+        }
     }
 
     #[test]
