@@ -131,7 +131,7 @@ impl Behavior {
             Behavior::Reverse => "the vehicle ends at least 1 m behind its start along its starting heading, its heading never more than 30 degrees off",
             Behavior::OffRoad => "the vehicle's centre ends beyond the road edge",
             Behavior::Weave => "the lateral offset on the starting lane path crosses the centre line at least twice, reaching 0.3 m on both sides",
-            Behavior::Stop => "the speed (from positions) is at most 0.5 m/s at every step from `within` seconds (default 4) on",
+            Behavior::Stop => "the speed (from positions) is at most 0.5 m/s at every step from `within` seconds (default 4, or 0.5 s before the end of a shorter horizon) on",
             Behavior::Accident => "the two boxes overlap at some future step",
             Behavior::TurnLeft => "the vehicle takes the first left-turning lane on its route (left at forks, from its current lane), passing the middle of that turn, and stays within 2 m of the route",
             Behavior::TurnRight => "the vehicle takes the first right-turning lane on its route (right at forks, from its current lane), passing the middle of that turn, and stays within 2 m of the route",
@@ -1279,12 +1279,27 @@ fn weave(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
     })
 }
 
+/// `stop`'s default `within` (seconds) for a future of `future` seconds, as
+/// `scripts/stop.rhai` has it: 4 s, or half a second before the end of a shorter future (half
+/// of one under a second). A fixed 4 s asked a car of a 4 s horizon to be stopped from its
+/// last step, which the script refuses.
+pub fn stop_within(future: f64) -> f64 {
+    if future >= 4.5 {
+        4.0
+    } else if future >= 1.0 {
+        future - 0.5
+    } else {
+        future / 2.0
+    }
+}
+
 /// [`check`] for `Stop`.
 fn stop(mut x: Ctx<'_>) -> Result<Verdict, CheckError> {
     let (s, c) = (x.s, x.s.meta.current_step);
     Ok({
         let a = x.agent("vehicle")?;
-        let within = x.seconds_into_future("within", 4.0, true)?;
+        let future = s.num_steps().saturating_sub(c + 1) as f64 * s.meta.dt;
+        let within = x.seconds_into_future("within", stop_within(future), true)?;
         let from = c + (within / s.meta.dt).round() as usize;
         let after: Vec<f64> = speeds(s, a)
             .into_iter()

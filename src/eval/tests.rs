@@ -263,6 +263,15 @@ fn yield_stop_reverse_off_road_weave_speed_and_target() {
     assert!(passes(Behavior::Reverse, &stop, &[("vehicle", 4.0)]));
     let base = scene("highway.yaml");
     assert!(!passes(Behavior::Stop, &base, &[("vehicle", 1.0)]));
+    // A 4 s future: stopped from 3.5 s by default, as scripts/stop.rhai asks (a fixed 4 s
+    // judged the last step alone, and the script refused it).
+    let short = scene("crossroads.yaml");
+    let v = check(Behavior::Stop, &short, &params(&[("vehicle", 1.0)])).unwrap();
+    assert!(v.reason.ends_with("after 3.5 s"), "{}", v.reason);
+    assert_eq!(
+        [8.0, 4.0, 2.0, 0.6].map(super::behaviors::stop_within),
+        [4.0, 3.5, 1.5, 0.3]
+    );
     assert!(!passes(Behavior::Reverse, &base, &[("vehicle", 4.0)]));
     assert!(!passes(Behavior::OffRoad, &base, &[("vehicle", 3.0)]));
     let mut off = scene("highway.yaml");
