@@ -3616,6 +3616,46 @@ fn a_run_directory_takes_one_run() {
     assert!(e.contains("settings.seed: 1 there, 2 here"), "{e}");
 }
 
+/// `simulate` without `--lambda` guides with the strength chosen for the checkpoint (its
+/// config.json's `guidance_lambda`), else 3: the route-frame model, whose coefficient scales
+/// follow urban traffic, under-steered NGSIM cut-ins at the shipped model's 3.
+#[test]
+fn simulate_guides_with_the_strength_chosen_for_its_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let ck = dir.path().join("ck");
+    std::fs::create_dir(&ck).unwrap();
+    for f in ["config.json", "model.safetensors"] {
+        std::fs::copy(std::path::Path::new("data/checkpoint").join(f), ck.join(f)).unwrap();
+    }
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let lambda = |name: &str, extra: &[&str]| -> Value {
+        let out = dir.path().join(name);
+        let mut a = vec!["simulate", s(&scene), "--checkpoint", s(&ck), "--task"];
+        a.extend([
+            "unconditional",
+            "--script",
+            "scripts/cut_in.rhai",
+            "--param",
+        ]);
+        a.extend(["cutter=2", "victim=1", "--samples", "1", "--steps", "8"]);
+        a.extend(["--polish", "0", "--horizon", "10", "-o", s(&out)]);
+        a.extend(extra);
+        ok(&a);
+        let r: Value = serde_json::from_str(
+            &std::fs::read_to_string(out.join("highway-cut-in_0.json")).unwrap(),
+        )
+        .unwrap();
+        r["run"]["settings"]["lambda"].clone()
+    };
+    assert_eq!(lambda("shipped", &[]), 3.0);
+    let mut cfg: Value =
+        serde_json::from_str(&std::fs::read_to_string(ck.join("config.json")).unwrap()).unwrap();
+    cfg["guidance_lambda"] = serde_json::json!(6.5);
+    std::fs::write(ck.join("config.json"), cfg.to_string()).unwrap();
+    assert_eq!(lambda("chosen", &[]), 6.5);
+    assert_eq!(lambda("given", &["--lambda", "2"]), 2.0, "the flag wins");
+}
+
 #[test]
 fn a_run_resumed_after_its_checkpoint_config_changed_is_refused() {
     // Only the weights were checksummed: a config.json edited in place (another noise

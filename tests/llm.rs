@@ -906,6 +906,47 @@ fn the_rules_planner_is_the_default_without_an_llm_and_follow_ups_revise_its_run
     );
 }
 
+/// `ask` guides with the strength chosen for its checkpoint (config.json's `guidance_lambda`),
+/// as `simulate` does, and keeps it in state.json, so that `--resume` samples as it began.
+#[test]
+fn ask_guides_with_the_strength_chosen_for_its_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let ck = dir.path().join("ck");
+    std::fs::create_dir(&ck).unwrap();
+    for f in ["config.json", "model.safetensors"] {
+        std::fs::copy(Path::new("data/checkpoint").join(f), ck.join(f)).unwrap();
+    }
+    let mut cfg: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(ck.join("config.json")).unwrap()).unwrap();
+    cfg["guidance_lambda"] = serde_json::json!(5.5);
+    std::fs::write(ck.join("config.json"), cfg.to_string()).unwrap();
+    for (checkpoint, want) in [(Path::new("data/checkpoint"), 3.0), (ck.as_path(), 5.5)] {
+        let run = dir.path().join(format!("run{want}"));
+        let scene = samples().join(SCENE);
+        let out = ask(
+            &[
+                s(&scene),
+                "vehicle 405 drives off the road",
+                "-o",
+                s(&run),
+                "--checkpoint",
+                s(checkpoint),
+                "--samples",
+                "1",
+                "--rounds",
+                "0",
+            ],
+            None,
+        );
+        let t = text(&out);
+        assert!(matches!(out.status.code(), Some(0 | 2)), "{t}");
+        let state: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(run.join("state.json")).unwrap())
+                .unwrap();
+        assert_eq!(state["config"]["lambda"], want, "{}", checkpoint.display());
+    }
+}
+
 #[test]
 fn prompt_show_prints_the_first_prompt() {
     let out = common::ok(&[

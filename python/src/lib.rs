@@ -1297,7 +1297,8 @@ impl Sampler {
     ///
     /// `task` is "conditional" (history and recorded end points known) or "unconditional"
     /// (history only: what behaviour scripts such as cut_in are tuned for). Ctrl-C stops it
-    /// within one denoising step (KeyboardInterrupt).
+    /// within one denoising step (KeyboardInterrupt). `guidance` left out is the strength
+    /// chosen for the checkpoint, as `simulate --lambda` left out.
     #[pyo3(signature = (scene, scripts = Vec::new(), samples = Arg::Default(4), *,
         seed = Arg::Default(1), steps = Arg::Default(32), task = Text::Default("conditional"),
         horizon = None,
@@ -1327,7 +1328,12 @@ impl Sampler {
         let horizon = opt(py, &horizon, "horizon")?;
         let guidance_given = matches!(guidance, Arg::Given(_));
         let (guidance, realism, polish) = (
-            guidance.get(py, "guidance")?,
+            // Not given: the strength chosen for the checkpoint, as `simulate` takes it.
+            if guidance_given {
+                guidance.get(py, "guidance")?
+            } else {
+                self.trained.meta.behaviour_lambda()
+            },
             realism.get(py, "realism")?,
             polish.get(py, "polish")?,
         );

@@ -68,7 +68,8 @@ pub struct Args {
     /// Future steps to sample, 1 up to the model's horizon (default: the model's horizon).
     #[arg(long, value_parser = super::ask::usize_in(1, drivescript::io::MAX_STEPS))]
     horizon: Option<usize>,
-    /// Guidance strength of the scripts, default 3 (chosen on held-out NGSIM behaviours with
+    /// Guidance strength of the scripts; default: the strength chosen for the checkpoint (its
+    /// config.json's `guidance_lambda`), else 3 (chosen for the shipped NGSIM checkpoint with
     /// the fading schedule: data/checkpoint/README.md); above 0 only with --script or --auto.
     #[arg(long, value_parser = super::ask::float)]
     lambda: Option<f64>,
@@ -186,7 +187,9 @@ pub fn run(args: Args) -> Result<ExitCode> {
     }
     // Said with the flag: the library's check names its settings, not the command line's.
     let max = drivescript::sample::MAX_WEIGHT;
-    let lambda = args.lambda.unwrap_or(drivescript::sample::BEHAVIOUR_LAMBDA);
+    let lambda = args
+        .lambda
+        .unwrap_or_else(|| trained.meta.behaviour_lambda());
     let known_weight = args.known_weight.unwrap_or(1.0);
     for (flag, v) in [
         ("--lambda", lambda),

@@ -98,8 +98,10 @@ pub struct SessionConfig {
     pub samples: usize,
     /// Seed of the initial noise.
     pub seed: u64,
-    /// Guidance strength.
-    pub lambda: f64,
+    /// Guidance strength; `None`: the checkpoint's ([`crate::train::CheckpointMeta::behaviour_lambda`]),
+    /// which [`Session::start`] writes here, so that a resumed run keeps it.
+    #[serde(default)]
+    pub lambda: Option<f64>,
     /// Weight of the realism terms.
     pub realism: f64,
     /// Where the guidance gradient is taken (`--guidance`). Runs recorded before it was one
@@ -144,7 +146,7 @@ impl Default for SessionConfig {
             max_agents: 30,
             samples: 4,
             seed: 1,
-            lambda: crate::sample::BEHAVIOUR_LAMBDA,
+            lambda: None,
             realism: crate::sample::REALISM_WEIGHT,
             guidance: crate::sample::DEFAULT_GUIDANCE,
             polish: crate::sample::POLISH_STEPS,
@@ -231,7 +233,7 @@ impl SessionConfig {
         SampleConfig {
             samples: self.samples,
             seed: self.seed,
-            lambda: self.lambda,
+            lambda: self.lambda.unwrap_or(crate::sample::BEHAVIOUR_LAMBDA),
             task: crate::sample::Task::Unconditional,
             guidance: self.guidance,
             schedule: crate::sample::LambdaSchedule::Fading,
@@ -997,9 +999,11 @@ impl<'a> Session<'a> {
         trained: &'a Trained,
         backend: Backend,
         prompts: Prompts,
-        config: SessionConfig,
+        mut config: SessionConfig,
         checks: Option<Vec<(Behavior, Params)>>,
     ) -> Result<Self, LlmError> {
+        // Stored resolved: a resumed run keeps the strength it began with.
+        config.lambda.get_or_insert(trained.meta.behaviour_lambda());
         let requests = vec![request.trim().to_string()];
         let checks = checks.unwrap_or_else(|| checks_for(&requests));
         let backend = backend.for_run(&config);
