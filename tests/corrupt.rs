@@ -1581,6 +1581,21 @@ fn implausible_coordinates_speeds_and_sizes_are_refused_at_read_time() {
         err.contains("big.yaml") && err.contains("agent 4: implausible size 1e30 x 2.6 m"),
         "{err}"
     );
+    // An offset across the lane of a kilometre or more, which no road user on that lane has,
+    // was taken without a word (up to 1e6 m).
+    for (name, d) in [("far.yaml", "1.0e6"), ("far2.yaml", "-5000")] {
+        let f = copy_to(dir.path(), &src, name);
+        edit(&f, |t| {
+            t.replacen("s: 150", &format!("s: 150\n    d: {d}"), 1)
+        });
+        let err = fails(&["inspect", s(&f)]);
+        assert!(
+            err.contains(name)
+                && err.contains("agents[3] (id 4): d is ")
+                && err.contains("must be within ±100 m of the lane's centre"),
+            "{err}"
+        );
+    }
 }
 
 #[test]

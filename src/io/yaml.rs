@@ -332,8 +332,13 @@ pub struct YamlAgent {
 const MAX_YAML_SPEED: f64 = 100.0;
 /// The most a generated agent's `accel` may be, m/s² (5 g).
 const MAX_YAML_ACCEL: f64 = 50.0;
-/// The most a generated agent's `s` or `d` may be, m: ten times the longest road.
+/// The most a generated agent's `s` may be, m: ten times the longest road.
 const MAX_MOTION_COORD: f64 = 1e6;
+/// The most a generated agent's `d` may be, m: an offset across its lane, more than the
+/// widest generated road's half (64 lanes of at most 20 m is 640 m across, but an agent that
+/// far across is on another `lane`). `d: 1e6`, a kilometre beyond any road, was taken
+/// without a word.
+pub const MAX_LATERAL_OFFSET: f64 = 100.0;
 
 fn is_zero_f64(v: &f64) -> bool {
     *v == 0.0
@@ -839,7 +844,7 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
         // (-5e307, 1.8)", naming neither the field nor what it may be.
         for (field, v, max, unit) in [
             ("s", a.s, MAX_MOTION_COORD, "m"),
-            ("d", a.d, MAX_MOTION_COORD, "m"),
+            ("d", a.d, MAX_LATERAL_OFFSET, "m"),
             ("speed", a.speed, MAX_YAML_SPEED, "m/s"),
             ("accel", a.accel, MAX_YAML_ACCEL, "m/s²"),
         ] {
@@ -847,9 +852,15 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
                 return Err(bad(
                     loc,
                     format!(
-                        "{field} is {} {unit}: must be within ±{} {unit}",
+                        "{field} is {} {unit}: must be within ±{} {unit}{}",
                         crate::geom::num(v),
-                        crate::geom::num(max)
+                        crate::geom::num(max),
+                        if field == "d" {
+                            " of the lane's centre (an agent on another lane: give its `lane` \
+                             or `route`, or explicit `states`)"
+                        } else {
+                            ""
+                        }
                     ),
                 ));
             }
