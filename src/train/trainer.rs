@@ -248,12 +248,24 @@ pub fn window_values(w: &WindowConfig, m: &DenoiserConfig) -> usize {
         .saturating_mul(m.d)
 }
 
+/// The largest learning rate a run takes: AdamW moves each weight by about this much a step,
+/// and the network's weights are of order 1.
+pub const MAX_LR: f64 = 1.0;
+
+/// The longest half-life of the moving average of the weights, in steps: the most steps a
+/// run takes (`steps` is at most 10^8).
+pub const MAX_EMA_HALF_LIFE: f64 = 1e8;
+
 /// `Ok` when `v` is positive and finite, else a message naming the setting.
 fn positive(name: &str, v: f64) -> Result<(), String> {
     if v.is_finite() && v > 0.0 {
         Ok(())
     } else {
-        Err(format!("{name} = {v}: must be positive and finite"))
+        // In a few characters: 1e308 was said in 309 digits.
+        Err(format!(
+            "{name} = {}: must be positive and finite",
+            crate::geom::num(v)
+        ))
     }
 }
 
@@ -392,10 +404,26 @@ impl TrainConfig {
             ));
         }
         positive("lr", c.lr)?;
-        if !(c.ema_half_life.is_finite() && c.ema_half_life >= 0.0) {
+        // Positive and finite is not enough: `--lr 1e308` was taken, and the first step's
+        // weights were past f32.
+        if c.lr > MAX_LR {
             return Err(format!(
-                "ema_half_life = {}: must be 0 (no average) or a positive number of steps",
-                c.ema_half_life
+                "lr = {}: must be at most {MAX_LR} (AdamW's step in each weight; 3e-4 is the \
+                 default)",
+                crate::geom::num(c.lr)
+            ));
+        }
+        // `--ema-half-life 1e308` was taken: an average that never moves from the first
+        // weights, which the checkpoint then sampled with.
+        if !(c.ema_half_life.is_finite()
+            && c.ema_half_life >= 0.0
+            && c.ema_half_life <= MAX_EMA_HALF_LIFE)
+        {
+            return Err(format!(
+                "ema_half_life = {}: must be 0 (no average) or a positive number of steps, at \
+                 most {} (the most steps a run takes)",
+                crate::geom::num(c.ema_half_life),
+                crate::geom::num(MAX_EMA_HALF_LIFE)
             ));
         }
         if !(c.scale_cap > 0.0 && c.scale_cap <= 1.0) {
@@ -1412,11 +1440,21 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
     // A checkpoint is a directory: named as a file, it read as "config.json/config.json: Not
     // a directory".
     match std::fs::metadata(dir) {
-        Ok(m) if !m.is_dir() => return Err(io(
-            dir,
-            "is a file, not a checkpoint directory (one holding config.json and model.safetensors)"
-                .into(),
-        )),
+        Ok(m) if !m.is_dir() => {
+            // `/dev/null` or a FIFO was called "a file", which it is not.
+            let what = if m.is_file() {
+                "is a file"
+            } else {
+                "is not a regular file but a device, FIFO or socket"
+            };
+            return Err(io(
+                dir,
+                format!(
+                    "{what}, not a checkpoint directory (one holding config.json and \
+                     model.safetensors)"
+                ),
+            ));
+        }
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
             return Err(io(dir, "no such checkpoint directory".into()))
         }
@@ -1920,6 +1958,20 @@ mod tests {
                 && !e.contains("config.json/config.json"),
             "{e}"
         );
+        #[cfg(unix)]
+        {
+            let e = load(Path::new("/dev/null"))
+                .err()
+                .expect("a device")
+                .to_string();
+            assert!(
+                e.contains(
+                    "/dev/null: is not a regular file but a device, FIFO or socket, not a \
+                     checkpoint directory"
+                ) && !e.contains("is a file"),
+                "{e}"
+            );
+        }
         let e = load(&dir.path().join("nowhere"))
             .err()
             .expect("absent")
