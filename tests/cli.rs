@@ -5854,3 +5854,71 @@ fn a_checkpoint_directory_that_is_a_window_cache_is_refused() {
     let left: Vec<_> = std::fs::read_dir(&cache).unwrap().collect();
     assert_eq!(left.len(), 1, "{err}");
 }
+
+/// Float flags far past any sensible value (`--ema-half-life 1e308`, `--lr 1e308`,
+/// `--tolerance 1e308`) were taken: a moving average that never left the first weights, a
+/// first step past f32, a tolerance every sample met. Each is refused before anything is
+/// read or written, naming the flag, in a few characters.
+#[test]
+fn absurdly_large_float_flags_are_refused_naming_the_flag() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let out = dir.path().join("out");
+    let train = ["train", "--data", "scripts/scenes", "--out", s(&out)];
+    let ask = ["ask", s(&scene), "a request", "-o", s(&out)];
+    for (command, flag, says) in [
+        (
+            &train[..],
+            "--ema-half-life",
+            "--ema-half-life: ema_half_life = 1e308: must be 0",
+        ),
+        (&train[..], "--lr", "--lr: lr = 1e308: must be at most 1"),
+        (
+            &ask[..],
+            "--tolerance",
+            "--tolerance 1e308: must be finite and not negative, at most 1000",
+        ),
+    ] {
+        let mut args = command.to_vec();
+        args.extend([flag, "1e308"]);
+        let err = fails(&args);
+        assert!(err.contains(says), "{flag}: {err}");
+        assert!(err.len() < 400, "{flag}: {err}");
+    }
+    assert!(!out.exists());
+}
+
+/// A `train` refused after its --out was made (a held-out town no scene is in) left an empty
+/// OUT/windows behind; a refused run leaves nothing it made.
+#[test]
+fn a_refused_train_leaves_nothing_it_made() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("deep/out");
+    let err = fails(&[
+        "train",
+        "--urban",
+        "scripts/scenes",
+        "--val-town",
+        "DEU_Atlantis",
+        "--out",
+        s(&out),
+        "--steps",
+        "2",
+    ]);
+    assert!(err.contains("--val-town \"DEU_Atlantis\""), "{err}");
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0, "{err}");
+}
+
+/// `bench --seconds 1e9` was repeated as "--seconds 1000000000.0", Rust's debug form of the
+/// float, not as it was typed.
+#[test]
+fn bench_repeats_an_out_of_range_seconds_as_it_was_typed() {
+    for (typed, shown) in [("1e9", "1e9"), ("4000", "4000"), ("0.01", "0.01")] {
+        let err = fails(&["bench", "io", "--seconds", typed]);
+        assert!(
+            err.contains(&format!("--seconds {shown}: give 0.05 to 3600")),
+            "{typed}: {err}"
+        );
+        assert!(!err.contains(".0:"), "{err}");
+    }
+}
