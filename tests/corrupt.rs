@@ -2902,6 +2902,16 @@ fn a_lane_change_that_cannot_happen_as_written_is_refused_naming_the_field() {
             "start: 1.5, duration: 1e308",
             "lane_change.duration is 1e308 s",
         ),
+        // Above 0, as quick: across the lane in one step.
+        (
+            "start: 1.5, duration: 1e-300",
+            "lane_change.duration is 1e-300 s: a lane change that quick crosses the lane in \
+             less than 1 s",
+        ),
+        (
+            "start: 1.5, duration: 0.2",
+            "lane_change.duration is 0.2 s: a lane change that quick",
+        ),
         (
             "start: .nan, duration: 3.0",
             "lane_change.start is NaN: must be a finite number",
@@ -3049,4 +3059,62 @@ fn a_checkpoint_whose_window_sizes_together_are_too_large_is_refused_not_an_abor
             && err.contains("window.max_agents × window.max_lanes × model.d = 1024 × 2048 × 64"),
         "{err}"
     );
+}
+
+#[test]
+fn a_yaml_or_commonroad_lane_drawn_out_and_back_is_named() {
+    // A centre line that turns back on itself loaded without a word from an explicit YAML
+    // map or a CommonRoad lanelet, its length read as the sum of both ways, where WOMD and
+    // GPUDrive lanes were warned of it.
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("zig.yaml");
+    std::fs::write(
+        &f,
+        "scenario_id: zig\nsteps: 51\ncurrent_step: 10\nmap:\n  lanes:\n    - {id: 7, \
+         centerline: [[0, 0], [30, 0], [0, 0.01], [50, 0.02]]}\nagents:\n  - {id: 1, route: \
+         [7], s: 5, speed: 1}\n",
+    )
+    .unwrap();
+    let out = ok(&["inspect", s(&f)]);
+    assert!(
+        out.contains("lanes whose centre line turns back on itself (over 150° within a metre)")
+            && out.contains(": 7 (180° at "),
+        "{out}"
+    );
+    let src = samples().join("commonroad/USA_Lanker-1_1_T-1.xml");
+    let xml = copy_to(dir.path(), &src, "back.xml");
+    edit(&xml, |t| {
+        let at = t.find("<lanelet id=\"3419\">").unwrap();
+        let end = at + t[at..].find("</lanelet>").unwrap();
+        let mut l = t[at..end].to_string();
+        for which in ["leftBound", "rightBound"] {
+            let (open, close) = (format!("<{which}>"), format!("</{which}>"));
+            let a = l.find(&open).unwrap() + open.len();
+            let b = a + l[a..].find(&close).unwrap();
+            let inner = l[a..b].to_string();
+            let last = inner.rfind("</point>").unwrap() + "</point>".len();
+            let points: Vec<String> = inner[..last]
+                .split("</point>")
+                .filter(|p| p.contains("<point>"))
+                .map(|p| format!("{p}</point>"))
+                .collect();
+            let back: String = points.iter().rev().skip(1).cloned().collect();
+            l = format!(
+                "{}{}{back}{}{}",
+                &l[..a],
+                &inner[..last],
+                &inner[last..],
+                &l[b..]
+            );
+        }
+        format!("{}{}{}", &t[..at], l, &t[end..])
+    });
+    let out = ok(&["inspect", s(&xml)]);
+    assert!(
+        out.contains("lanes whose centre line turns back on itself") && out.contains("3419 ("),
+        "{out}"
+    );
+    for f in [samples().join("commonroad/USA_Lanker-1_1_T-1.xml")] {
+        assert!(!ok(&["inspect", s(&f)]).contains("turns back"));
+    }
 }

@@ -237,6 +237,9 @@ fn default_lc_duration() -> f64 {
 /// moved the agent off its lane, and said nothing.
 pub const MAX_LANE_CHANGE_SECONDS: f64 = 60.0;
 
+/// The shortest `lane_change.duration`, seconds: quicker, the agent jumps across its lane.
+pub const MIN_LANE_CHANGE_SECONDS: f64 = 1.0;
+
 /// Refuses a lane change that cannot be the one the file describes: a `duration` of 0, below
 /// 0 or NaN moved the agent across in one step (the motion clamps it to a microsecond), and
 /// one that starts after the last step or ends before the first changed nothing in the
@@ -249,6 +252,15 @@ fn lane_change_problem(lc: &YamlLaneChange, y: &YamlScene) -> Result<(), String>
         return Err(format!(
             "lane_change.duration is {} s: must be more than 0 and at most \
              {MAX_LANE_CHANGE_SECONDS} s",
+            num(lc.duration)
+        ));
+    }
+    // Above 0 is not enough: 1e-300 s moved the agent across in one step, as 0 did.
+    if lc.duration < MIN_LANE_CHANGE_SECONDS {
+        return Err(format!(
+            "lane_change.duration is {} s: a lane change that quick crosses the lane in less \
+             than {MIN_LANE_CHANGE_SECONDS} s, a jump no road user makes; give at least \
+             {MIN_LANE_CHANGE_SECONDS} s (a few seconds is usual)",
             num(lc.duration)
         ));
     }
@@ -788,6 +800,14 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
             ))
         }
     };
+    // An explicit map's centre line drawn out and back loaded without a word (its length,
+    // and every path along it, read as the sum of both ways), where WOMD and GPUDrive
+    // scenes are warned of it.
+    let turning_back = if road.is_none() {
+        super::turning_back_warning(&parts.lanes)
+    } else {
+        None
+    };
     let map = Map::new(parts).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
         location: "map".into(),
@@ -1000,15 +1020,17 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
         dt: y.dt,
         current_step: y.current_step,
         ego: y.ego,
-        warnings: if off_road.is_empty() {
-            Vec::new()
-        } else {
-            vec![format!(
-                "generated agents whose states leave the road or route they are placed on (the \
-                 map ends there): {}",
-                super::first_few(&off_road)
-            )]
-        },
+        warnings: (!off_road.is_empty())
+            .then(|| {
+                format!(
+                    "generated agents whose states leave the road or route they are placed on \
+                     (the map ends there): {}",
+                    super::first_few(&off_road)
+                )
+            })
+            .into_iter()
+            .chain(turning_back)
+            .collect(),
     };
     Scene::recorded(meta, map, agents).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
