@@ -1805,6 +1805,20 @@ fn eval_merge_refuses_shards_of_evaluations_of_different_scenes() {
         err.contains("shards of evaluations of different scenes") && err.contains("other.json"),
         "{err}"
     );
+    // A key named twice was read as its last copy without a word.
+    let text = std::fs::read_to_string(&a).unwrap();
+    let at = text.find('{').unwrap() + 1;
+    let twice = dir.path().join("twice.json");
+    std::fs::write(
+        &twice,
+        format!("{}\"groups\": [],{}", &text[..at], &text[at..]),
+    )
+    .unwrap();
+    let err = fails(&["eval", "--merge", s(&twice), s(&b)]);
+    assert!(
+        err.contains("twice.json") && err.contains("the key \"groups\" twice"),
+        "{err}"
+    );
 }
 
 #[test]

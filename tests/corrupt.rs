@@ -105,6 +105,27 @@ fn av2_errors_name_the_file() {
         "{err}"
     );
     std::fs::write(&map, &good_map).unwrap();
+    // A lane segment keyed twice was read as its last copy, the first dropped unsaid.
+    let at = good_map.find("\"lane_segments\": {").unwrap() + "\"lane_segments\": {".len();
+    let key_end = at + good_map[at..].find("\": {").unwrap();
+    let key = good_map[at..key_end].trim_start_matches('"').to_string();
+    let rest = &good_map[key_end..];
+    // The first segment's whole value: up to the next top-level key of lane_segments.
+    let next = rest.find("}, \"").unwrap() + 1;
+    let first = format!("\"{key}{}", &rest[..next]);
+    std::fs::write(
+        &map,
+        format!("{}{first}, {}", &good_map[..at], &good_map[at..]),
+    )
+    .unwrap();
+    let err = fails(&["inspect", s(dir.path())]);
+    assert!(
+        err.contains("log_map_archive")
+            && err.contains("line 1, column")
+            && err.contains(&format!("the key \"{key}\" twice")),
+        "{err}"
+    );
+    std::fs::write(&map, &good_map).unwrap();
 
     let bytes = std::fs::read(&parquet).unwrap();
     std::fs::write(&parquet, &bytes[..bytes.len() - 100]).unwrap();
@@ -2466,6 +2487,24 @@ fn a_damaged_checkpoint_names_the_weights_file_and_the_tensor() {
             "tensor `{name}` of shape [{}, {c}] (F32) has data offsets",
             r + 1
         )) && err.contains("the header is damaged"),
+        "{err}"
+    );
+    // A tensor named twice in the header was read as its last entry without a word.
+    header[&name]["shape"] = serde_json::json!([r, c]);
+    let text = serde_json::to_string(&header).unwrap();
+    let entry = serde_json::json!({
+        "dtype": "F32",
+        "shape": [r, c],
+        "data_offsets": header[&name]["data_offsets"].clone(),
+    });
+    let h = format!("{{\"{name}\":{entry},{}", &text[1..]).into_bytes();
+    let mut twice = (h.len() as u64).to_le_bytes().to_vec();
+    twice.extend_from_slice(&h);
+    twice.extend_from_slice(&bytes[8 + n..]);
+    std::fs::write(&weights, &twice).unwrap();
+    let err = simulate();
+    assert!(
+        err.contains("model.safetensors: ") && err.contains(&format!("the key \"{name}\" twice")),
         "{err}"
     );
 }

@@ -1287,8 +1287,13 @@ fn tensor_entries(path: &Path) -> Result<Vec<(String, TensorEntry)>, String> {
     f.take(len)
         .read_to_end(&mut header)
         .map_err(|e| e.to_string())?;
-    let header: serde_json::Map<String, serde_json::Value> =
-        serde_json::from_slice(&header).map_err(|e| format!("header: {e}"))?;
+    // A tensor named twice was read as its last entry without a word.
+    let header = std::str::from_utf8(&header)
+        .map_err(|e| format!("header: not UTF-8 text ({e})"))
+        .and_then(|t| crate::llm::stream::parse_json(t).map_err(|e| format!("header: {e}")))?;
+    let serde_json::Value::Object(header) = header else {
+        return Err("header: not a JSON object".into());
+    };
     let data = size - 8 - len;
     let mut entries = Vec::new();
     for (name, v) in header {
