@@ -5869,9 +5869,9 @@ fn a_checkpoint_directory_that_is_a_window_cache_is_refused() {
     assert_eq!(left.len(), 1, "{err}");
 }
 
-/// Float flags far past any sensible value (`--ema-half-life 1e308`, `--lr 1e308`,
-/// `--tolerance 1e308`) were taken: a moving average that never left the first weights, a
-/// first step past f32, a tolerance every sample met. Each is refused before anything is
+/// Float flags far past any sensible value (`--ema-half-life 1e308`, `--tolerance 1e308`,
+/// `--lr 1e-300`) were taken: a moving average that never left the first weights, a tolerance
+/// every sample met, a step rounded away in every weight. Each is refused before anything is
 /// read or written, naming the flag, in a few characters.
 #[test]
 fn absurdly_large_float_flags_are_refused_naming_the_flag() {
@@ -5886,7 +5886,6 @@ fn absurdly_large_float_flags_are_refused_naming_the_flag() {
             "--ema-half-life",
             "--ema-half-life: ema_half_life = 1e308: must be 0",
         ),
-        (&train[..], "--lr", "--lr: lr = 1e308: must be at most 1"),
         (
             &ask[..],
             "--tolerance",
@@ -5899,6 +5898,22 @@ fn absurdly_large_float_flags_are_refused_naming_the_flag() {
         assert!(err.contains(says), "{flag}: {err}");
         assert!(err.len() < 400, "{flag}: {err}");
     }
+    // As small: a rate f32 weights round away trained nothing, exit 0.
+    let mut args = train.to_vec();
+    args.extend(["--lr", "1e-300"]);
+    let err = fails(&args);
+    assert!(
+        err.contains("--lr: lr = 1e-300: must be at least 1e-8"),
+        "{err}"
+    );
+    // The route frame beside route times was refused naming a setting, not the flag.
+    let mut args = train.to_vec();
+    args.extend(["--route-frame", "--route-times", "4"]);
+    let err = fails(&args);
+    assert!(
+        err.contains("training settings: --route-frame: window.route_frame with route_times"),
+        "{err}"
+    );
     assert!(!out.exists());
 }
 

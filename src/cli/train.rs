@@ -68,7 +68,7 @@ pub struct Args {
     /// Windows per batch.
     #[arg(long, default_value_t = 8)]
     batch: usize,
-    /// Learning rate, more than 0 and at most 1.
+    /// Learning rate, at least 1e-8.
     #[arg(long, value_parser = super::ask::float, default_value_t = 3e-4)]
     lr: f64,
     /// Seed (initialisation, batches, noise, augmentation; default 1). A resumed run keeps its

@@ -248,9 +248,10 @@ pub fn window_values(w: &WindowConfig, m: &DenoiserConfig) -> usize {
         .saturating_mul(m.d)
 }
 
-/// The largest learning rate a run takes: AdamW moves each weight by about this much a step,
-/// and the network's weights are of order 1.
-pub const MAX_LR: f64 = 1.0;
+/// The smallest learning rate a run takes: AdamW moves each weight by about this much a step,
+/// and an f32 weight of order 0.1 keeps about 8 digits, so a smaller step is rounded away and
+/// the run trains nothing.
+pub const MIN_LR: f64 = 1e-8;
 
 /// The longest half-life of the moving average of the weights, in steps: the most steps a
 /// run takes (`steps` is at most 10^8).
@@ -272,7 +273,7 @@ fn positive(name: &str, v: f64) -> Result<(), String> {
 /// The `drivescript train` flag that sets each [`TrainConfig`] field a user can give, by the
 /// field's name as [`TrainConfig::validate`] starts its message with it: the message names the
 /// field ("eval_every = 0"), which the user never typed.
-pub const TRAIN_FLAGS: [(&str, &str); 11] = [
+pub const TRAIN_FLAGS: [(&str, &str); 12] = [
     ("steps", "--steps"),
     ("edm.p_mean", "--p-mean"),
     ("edm.p_std", "--p-std"),
@@ -285,6 +286,7 @@ pub const TRAIN_FLAGS: [(&str, &str); 11] = [
     ("val_towns", "--val-town"),
     // "window.route_times = 41: must be 0 to 40" named a setting the user never wrote.
     ("window.route_times", "--route-times"),
+    ("window.route_frame", "--route-frame"),
 ];
 
 /// The flag ([`TRAIN_FLAGS`]) that sets the setting a [`TrainConfig::validate`] message is
@@ -404,13 +406,15 @@ impl TrainConfig {
             ));
         }
         positive("lr", c.lr)?;
-        // Positive and finite is not enough: `--lr 1e308` was taken, and the first step's
-        // weights were past f32.
-        if c.lr > MAX_LR {
+        // Positive is not enough: `--lr 1e-300` was taken, and no step changed a weight. A
+        // rate too large is let by: its first steps diverge, which training says, naming
+        // --lr.
+        if c.lr < MIN_LR {
             return Err(format!(
-                "lr = {}: must be at most {MAX_LR} (AdamW's step in each weight; 3e-4 is the \
-                 default)",
-                crate::geom::num(c.lr)
+                "lr = {}: must be at least {} (AdamW's step in each weight; 3e-4 is the \
+                 default): a smaller step is rounded away in the f32 weights",
+                crate::geom::num(c.lr),
+                crate::geom::num(MIN_LR)
             ));
         }
         // `--ema-half-life 1e308` was taken: an average that never moves from the first
