@@ -237,6 +237,15 @@ fn default_lc_duration() -> f64 {
 /// moved the agent off its lane, and said nothing.
 pub const MAX_LANE_CHANGE_SECONDS: f64 = 60.0;
 
+/// The most lane a generated road holds, metres (lanes × length): reading keeps about 400 KB
+/// a lane-kilometre and sampling about 1.5 MB, so about 200 MB and 750 MB here (four lanes of
+/// the longest road, 100 km, are 400 km).
+pub const MAX_ROAD_LANE_METRES: f64 = 500_000.0;
+
+/// The most lanes a generated road's map holds (lanes × segments): each is a lane of the
+/// map, with its boundaries and links, about 1.5 KB.
+pub const MAX_ROAD_LANES: usize = 10_000;
+
 /// The shortest `lane_change.duration`, seconds: quicker, the agent jumps across its lane.
 pub const MIN_LANE_CHANGE_SECONDS: f64 = 1.0;
 
@@ -1103,6 +1112,33 @@ fn road_parts(path: &Path, r: &YamlRoad) -> Result<(MapParts, FrenetPath), IoErr
                 "{} segments on a road {} m long: a segment is at least 1 m long",
                 r.segments,
                 crate::geom::num(r.length)
+            ),
+        ));
+    }
+    // Each within its range is not enough: 64 lanes of a 100-km road (a 200-byte file) took
+    // 1.9 GB and 9 s to read, and in 100,000 segments (6.4 million lanes) 9.3 GB and a minute.
+    let lane_metres = r.lanes as f64 * r.length;
+    if lane_metres > MAX_ROAD_LANE_METRES {
+        return Err(bad(
+            "road",
+            format!(
+                "{} lanes of {} m are {} km of lane: a generated road holds at most {} km \
+                 (fewer lanes, or a shorter road)",
+                r.lanes,
+                crate::geom::num(r.length),
+                crate::geom::num((lane_metres / 1000.0).round()),
+                crate::geom::num(MAX_ROAD_LANE_METRES / 1000.0)
+            ),
+        ));
+    }
+    let lane_count = r.lanes.saturating_mul(r.segments);
+    if lane_count > MAX_ROAD_LANES {
+        return Err(bad(
+            "road",
+            format!(
+                "{} lanes in {} segments are {lane_count} lanes of the map: a generated road \
+                 holds at most {MAX_ROAD_LANES} (fewer segments)",
+                r.lanes, r.segments
             ),
         ));
     }
