@@ -1805,6 +1805,20 @@ fn eval_merge_refuses_shards_of_evaluations_of_different_scenes() {
         err.contains("shards of evaluations of different scenes") && err.contains("other.json"),
         "{err}"
     );
+    // A key named twice was read as its last copy without a word.
+    let text = std::fs::read_to_string(&a).unwrap();
+    let at = text.find('{').unwrap() + 1;
+    let twice = dir.path().join("twice.json");
+    std::fs::write(
+        &twice,
+        format!("{}\"groups\": [],{}", &text[..at], &text[at..]),
+    )
+    .unwrap();
+    let err = fails(&["eval", "--merge", s(&twice), s(&b)]);
+    assert!(
+        err.contains("twice.json") && err.contains("the key \"groups\" twice"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -5893,4 +5907,113 @@ fn a_checkpoint_directory_that_is_a_window_cache_is_refused() {
     );
     let left: Vec<_> = std::fs::read_dir(&cache).unwrap().collect();
     assert_eq!(left.len(), 1, "{err}");
+}
+
+/// Float flags far past any sensible value (`--ema-half-life 1e308`, `--tolerance 1e308`,
+/// `--lr 1e-300`) were taken: a moving average that never left the first weights, a tolerance
+/// every sample met, a step rounded away in every weight. Each is refused before anything is
+/// read or written, naming the flag, in a few characters.
+#[test]
+fn absurdly_large_float_flags_are_refused_naming_the_flag() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = samples().join("yaml/highway_cut_in.yaml");
+    let out = dir.path().join("out");
+    let train = ["train", "--data", "scripts/scenes", "--out", s(&out)];
+    let ask = ["ask", s(&scene), "a request", "-o", s(&out)];
+    for (command, flag, says) in [
+        (
+            &train[..],
+            "--ema-half-life",
+            "--ema-half-life: ema_half_life = 1e308: must be 0",
+        ),
+        (
+            &ask[..],
+            "--tolerance",
+            "--tolerance 1e308: must be finite and not negative, at most 1000",
+        ),
+    ] {
+        let mut args = command.to_vec();
+        args.extend([flag, "1e308"]);
+        let err = fails(&args);
+        assert!(err.contains(says), "{flag}: {err}");
+        assert!(err.len() < 400, "{flag}: {err}");
+    }
+    // As small: a rate f32 weights round away trained nothing, exit 0.
+    let mut args = train.to_vec();
+    args.extend(["--lr", "1e-300"]);
+    let err = fails(&args);
+    assert!(
+        err.contains("--lr: lr = 1e-300: must be at least 1e-8"),
+        "{err}"
+    );
+    // The route frame beside route times was refused naming a setting, not the flag.
+    let mut args = train.to_vec();
+    args.extend(["--route-frame", "--route-times", "4"]);
+    let err = fails(&args);
+    assert!(
+        err.contains("training settings: --route-frame: window.route_frame with route_times"),
+        "{err}"
+    );
+    assert!(!out.exists());
+}
+
+/// A `train` refused after its --out was made (a held-out town no scene is in) left an empty
+/// OUT/windows behind; a refused run leaves nothing it made.
+#[test]
+fn a_refused_train_leaves_nothing_it_made() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("deep/out");
+    let err = fails(&[
+        "train",
+        "--urban",
+        "scripts/scenes",
+        "--val-town",
+        "DEU_Atlantis",
+        "--out",
+        s(&out),
+        "--steps",
+        "2",
+    ]);
+    assert!(err.contains("--val-town \"DEU_Atlantis\""), "{err}");
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0, "{err}");
+}
+
+/// `bench --seconds 1e9` was repeated as "--seconds 1000000000.0", Rust's debug form of the
+/// float, not as it was typed.
+#[test]
+fn bench_repeats_an_out_of_range_seconds_as_it_was_typed() {
+    for (typed, shown) in [("1e9", "1e9"), ("4000", "4000"), ("0.01", "0.01")] {
+        let err = fails(&["bench", "io", "--seconds", typed]);
+        assert!(
+            err.contains(&format!("--seconds {shown}: give 0.05 to 3600")),
+            "{typed}: {err}"
+        );
+        assert!(!err.contains(".0:"), "{err}");
+    }
+}
+
+/// Labels were placed checking every box and every label already placed: time growing with
+/// the square of the agents (a PNG of 20,000 parked cars took half a minute; a `simulate` of
+/// 20,000 did not finish its GIF). A picture of 40,000 is drawn in seconds.
+#[test]
+fn a_picture_of_tens_of_thousands_of_agents_is_drawn_in_seconds() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut yaml = String::from(
+        "scenario_id: crowd\ndt: 0.1\nsteps: 11\ncurrent_step: 10\nroad: {lanes: 8, length: \
+         40000}\nagents:\n",
+    );
+    for lane in 0..8 {
+        for k in 0..5000 {
+            let id = lane * 5000 + k + 1;
+            yaml += &format!("  - {{id: {id}, lane: {lane}, s: {}}}\n", 10 + k * 8);
+        }
+    }
+    let scene = dir.path().join("crowd.yaml");
+    std::fs::write(&scene, yaml).unwrap();
+    let png = dir.path().join("crowd.png");
+    let t0 = std::time::Instant::now();
+    ok(&["render", s(&scene), "-o", s(&png)]);
+    let took = t0.elapsed().as_secs_f64();
+    assert!(png.exists());
+    assert!(took < 10.0, "{took:.1} s");
 }

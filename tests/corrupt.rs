@@ -105,6 +105,27 @@ fn av2_errors_name_the_file() {
         "{err}"
     );
     std::fs::write(&map, &good_map).unwrap();
+    // A lane segment keyed twice was read as its last copy, the first dropped unsaid.
+    let at = good_map.find("\"lane_segments\": {").unwrap() + "\"lane_segments\": {".len();
+    let key_end = at + good_map[at..].find("\": {").unwrap();
+    let key = good_map[at..key_end].trim_start_matches('"').to_string();
+    let rest = &good_map[key_end..];
+    // The first segment's whole value: up to the next top-level key of lane_segments.
+    let next = rest.find("}, \"").unwrap() + 1;
+    let first = format!("\"{key}{}", &rest[..next]);
+    std::fs::write(
+        &map,
+        format!("{}{first}, {}", &good_map[..at], &good_map[at..]),
+    )
+    .unwrap();
+    let err = fails(&["inspect", s(dir.path())]);
+    assert!(
+        err.contains("log_map_archive")
+            && err.contains("line 1, column")
+            && err.contains(&format!("the key \"{key}\" twice")),
+        "{err}"
+    );
+    std::fs::write(&map, &good_map).unwrap();
 
     let bytes = std::fs::read(&parquet).unwrap();
     std::fs::write(&parquet, &bytes[..bytes.len() - 100]).unwrap();
@@ -1581,6 +1602,21 @@ fn implausible_coordinates_speeds_and_sizes_are_refused_at_read_time() {
         err.contains("big.yaml") && err.contains("agent 4: implausible size 1e30 x 2.6 m"),
         "{err}"
     );
+    // An offset across the lane of a kilometre or more, which no road user on that lane has,
+    // was taken without a word (up to 1e6 m).
+    for (name, d) in [("far.yaml", "1.0e6"), ("far2.yaml", "-5000")] {
+        let f = copy_to(dir.path(), &src, name);
+        edit(&f, |t| {
+            t.replacen("s: 150", &format!("s: 150\n    d: {d}"), 1)
+        });
+        let err = fails(&["inspect", s(&f)]);
+        assert!(
+            err.contains(name)
+                && err.contains("agents[3] (id 4): d is ")
+                && err.contains("must be within ±100 m of the lane's centre"),
+            "{err}"
+        );
+    }
 }
 
 #[test]
@@ -2453,6 +2489,24 @@ fn a_damaged_checkpoint_names_the_weights_file_and_the_tensor() {
         )) && err.contains("the header is damaged"),
         "{err}"
     );
+    // A tensor named twice in the header was read as its last entry without a word.
+    header[&name]["shape"] = serde_json::json!([r, c]);
+    let text = serde_json::to_string(&header).unwrap();
+    let entry = serde_json::json!({
+        "dtype": "F32",
+        "shape": [r, c],
+        "data_offsets": header[&name]["data_offsets"].clone(),
+    });
+    let h = format!("{{\"{name}\":{entry},{}", &text[1..]).into_bytes();
+    let mut twice = (h.len() as u64).to_le_bytes().to_vec();
+    twice.extend_from_slice(&h);
+    twice.extend_from_slice(&bytes[8 + n..]);
+    std::fs::write(&weights, &twice).unwrap();
+    let err = simulate();
+    assert!(
+        err.contains("model.safetensors: ") && err.contains(&format!("the key \"{name}\" twice")),
+        "{err}"
+    );
 }
 
 /// A directory or a symbolic link loop with a scene's name is named for what it is, by every
@@ -2887,6 +2941,16 @@ fn a_lane_change_that_cannot_happen_as_written_is_refused_naming_the_field() {
             "start: 1.5, duration: 1e308",
             "lane_change.duration is 1e308 s",
         ),
+        // Above 0, as quick: across the lane in one step.
+        (
+            "start: 1.5, duration: 1e-300",
+            "lane_change.duration is 1e-300 s: a lane change that quick crosses the lane in \
+             less than 1 s",
+        ),
+        (
+            "start: 1.5, duration: 0.2",
+            "lane_change.duration is 0.2 s: a lane change that quick",
+        ),
         (
             "start: .nan, duration: 3.0",
             "lane_change.start is NaN: must be a finite number",
@@ -3034,4 +3098,98 @@ fn a_checkpoint_whose_window_sizes_together_are_too_large_is_refused_not_an_abor
             && err.contains("window.max_agents × window.max_lanes × model.d = 1024 × 2048 × 64"),
         "{err}"
     );
+}
+
+#[test]
+fn a_yaml_or_commonroad_lane_drawn_out_and_back_is_named() {
+    // A centre line that turns back on itself loaded without a word from an explicit YAML
+    // map or a CommonRoad lanelet, its length read as the sum of both ways, where WOMD and
+    // GPUDrive lanes were warned of it.
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("zig.yaml");
+    std::fs::write(
+        &f,
+        "scenario_id: zig\nsteps: 51\ncurrent_step: 10\nmap:\n  lanes:\n    - {id: 7, \
+         centerline: [[0, 0], [30, 0], [0, 0.01], [50, 0.02]]}\nagents:\n  - {id: 1, route: \
+         [7], s: 5, speed: 1}\n",
+    )
+    .unwrap();
+    let out = ok(&["inspect", s(&f)]);
+    assert!(
+        out.contains("lanes whose centre line turns back on itself (over 150° within a metre)")
+            && out.contains(": 7 (180° at "),
+        "{out}"
+    );
+    let src = samples().join("commonroad/USA_Lanker-1_1_T-1.xml");
+    let xml = copy_to(dir.path(), &src, "back.xml");
+    edit(&xml, |t| {
+        let at = t.find("<lanelet id=\"3419\">").unwrap();
+        let end = at + t[at..].find("</lanelet>").unwrap();
+        let mut l = t[at..end].to_string();
+        for which in ["leftBound", "rightBound"] {
+            let (open, close) = (format!("<{which}>"), format!("</{which}>"));
+            let a = l.find(&open).unwrap() + open.len();
+            let b = a + l[a..].find(&close).unwrap();
+            let inner = l[a..b].to_string();
+            let last = inner.rfind("</point>").unwrap() + "</point>".len();
+            let points: Vec<String> = inner[..last]
+                .split("</point>")
+                .filter(|p| p.contains("<point>"))
+                .map(|p| format!("{p}</point>"))
+                .collect();
+            let back: String = points.iter().rev().skip(1).cloned().collect();
+            l = format!(
+                "{}{}{back}{}{}",
+                &l[..a],
+                &inner[..last],
+                &inner[last..],
+                &l[b..]
+            );
+        }
+        format!("{}{}{}", &t[..at], l, &t[end..])
+    });
+    let out = ok(&["inspect", s(&xml)]);
+    assert!(
+        out.contains("lanes whose centre line turns back on itself") && out.contains("3419 ("),
+        "{out}"
+    );
+    for f in [samples().join("commonroad/USA_Lanker-1_1_T-1.xml")] {
+        assert!(!ok(&["inspect", s(&f)]).contains("turns back"));
+    }
+}
+
+#[test]
+fn a_generated_road_too_large_for_memory_is_refused_before_it_is_built() {
+    // Each field within its range: 64 lanes of a 100-km road (a 200-byte file) took 1.9 GB
+    // and 9 s to read, and cut into 100,000 segments 9.3 GB and a minute.
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("big.yaml");
+    for (road, want) in [
+        (
+            "{lanes: 64, length: 100000}",
+            "big.yaml: road: 64 lanes of 100000 m are 6400 km of lane: a generated road holds \
+             at most 500 km",
+        ),
+        (
+            "{lanes: 4, length: 100000, segments: 100000}",
+            "big.yaml: road: 4 lanes in 100000 segments are 400000 lanes of the map: a \
+             generated road holds at most 10000",
+        ),
+    ] {
+        std::fs::write(
+            &f,
+            format!(
+                "scenario_id: t\nroad: {road}\nagents:\n  - {{id: 1, lane: 0, s: 10, speed: 5}}\n"
+            ),
+        )
+        .unwrap();
+        let t0 = std::time::Instant::now();
+        let err = fails(&["inspect", s(&f)]);
+        assert!(err.contains(want), "{road}: {err}");
+        assert!(
+            t0.elapsed().as_secs_f64() < 5.0,
+            "{road}: {:?}",
+            t0.elapsed()
+        );
+    }
 }

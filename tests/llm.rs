@@ -4315,3 +4315,64 @@ fn ask_refuses_a_scene_of_another_time_step_before_asking_the_model() {
     assert!(srv.received().is_empty(), "{t}");
     assert!(!out.exists(), "{t}");
 }
+
+/// `ask --samples N` with more samples than the scene's sampling batch fits in memory was
+/// refused only when round 0 began to sample: after the run directory was made and the model
+/// asked (and paid). It is refused with the flags, before either, alone or in a batch.
+#[test]
+fn ask_refuses_more_samples_than_fit_before_asking_the_model() {
+    let dir = tempfile::tempdir().unwrap();
+    // 120 vehicles on a six-lane road: many windows, so 1,024 samples are past the budget.
+    let mut yaml = String::from(
+        "scenario_id: crowd\ndt: 0.1\nsteps: 51\ncurrent_step: 10\nroad:\n  lanes: 6\n  \
+         lane_width: 3.6\n  length: 1500\n  segments: 1\n  speed_limit: 29\nagents:\n",
+    );
+    for lane in 0..6 {
+        for k in 0..20 {
+            let id = lane * 20 + k + 1;
+            yaml += &format!(
+                "  - {{id: {id}, lane: {lane}, s: {}, speed: 20}}\n",
+                20 + k * 60
+            );
+        }
+    }
+    let scene = dir.path().join("crowd.yaml");
+    std::fs::write(&scene, yaml).unwrap();
+    let srv = Server::start(vec![Canned::chat(&reply("term(\"x\", 0.0);\n"))]);
+    let out = dir.path().join("run");
+    let request = "vehicle 21 cuts in front of vehicle 2";
+    let o = ask(
+        &[s(&scene), request, "-o", s(&out), "--samples", "1024"],
+        Some(&srv.url),
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("--samples 1024: samples = 1024: the scene takes")
+            && t.contains("samples of this scene fit"),
+        "{t}"
+    );
+    assert!(srv.received().is_empty(), "{t}");
+    assert!(!out.exists(), "{t}");
+    let file = dir.path().join("requests.yaml");
+    std::fs::write(
+        &file,
+        format!(
+            "scenes: {}\nentries:\n  - request: \"{request}\"\n    behaviour: cut_in\n    params: {{cutter: 21, victim: 2}}\n",
+            scene.display()
+        ),
+    )
+    .unwrap();
+    let o = ask(
+        &["--batch", s(&file), "-o", s(&out), "--samples", "1024"],
+        Some(&srv.url),
+    );
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("crowd.yaml") && t.contains("--samples 1024: samples = 1024"),
+        "{t}"
+    );
+    assert!(srv.received().is_empty(), "{t}");
+    assert!(!out.exists(), "{t}");
+}

@@ -124,7 +124,7 @@ pub struct Args {
     #[arg(long, default_value_t = 1)]
     seed: u64,
     /// Largest unweighted script term a sample may keep and still meet the request (finite,
-    /// not negative).
+    /// 0 to 1000).
     #[arg(long, value_parser = float, default_value_t = 0.05)]
     tolerance: f64,
     /// Checkpoint directory (default: the one shipped in data/checkpoint).
@@ -680,9 +680,10 @@ fn load_one(path: &Path) -> Result<drivescript::scene::Scene, LlmError> {
 
 /// Runs `ask`; `given` are the flags given on the command line (clap ids).
 pub fn run(args: Args, given: &[String]) -> Result<ExitCode> {
-    if !(args.tolerance.is_finite() && args.tolerance >= 0.0) {
+    let max_tolerance = drivescript::llm::session::MAX_TOLERANCE;
+    if !(args.tolerance.is_finite() && (0.0..=max_tolerance).contains(&args.tolerance)) {
         bail!(
-            "--tolerance {}: must be finite and not negative",
+            "--tolerance {}: must be finite and not negative, at most {max_tolerance}",
             num(args.tolerance)
         );
     }

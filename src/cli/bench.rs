@@ -164,7 +164,11 @@ pub fn run(args: Args) -> Result<ExitCode> {
     check_flags(&args)?;
     let seconds = args.seconds.unwrap_or(1.0);
     if !(0.05..=3600.0).contains(&seconds) {
-        anyhow::bail!("--seconds {seconds:?}: give 0.05 to 3600 seconds per row");
+        // As typed, in a few characters: `{:?}` wrote 1e9 as "1000000000.0".
+        anyhow::bail!(
+            "--seconds {}: give 0.05 to 3600 seconds per row",
+            drivescript::geom::num(seconds)
+        );
     }
     let min = Duration::from_secs_f64(seconds);
     match args.what {

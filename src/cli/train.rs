@@ -68,7 +68,7 @@ pub struct Args {
     /// Windows per batch.
     #[arg(long, default_value_t = 8)]
     batch: usize,
-    /// Learning rate.
+    /// Learning rate, at least 1e-8.
     #[arg(long, value_parser = super::ask::float, default_value_t = 3e-4)]
     lr: f64,
     /// Seed (initialisation, batches, noise, augmentation; default 1). A resumed run keeps its
@@ -92,8 +92,8 @@ pub struct Args {
     #[arg(long)]
     resume: Option<PathBuf>,
     /// Half-life, in steps, of the moving average of the weights that the checkpoint samples
-    /// with (0: the last step's weights). Default: the setting's (cities 500, ngsim 0), or the
-    /// resumed checkpoint's.
+    /// with (0: the last step's weights; at most 10^8). Default: the setting's (cities 500,
+    /// ngsim 0), or the resumed checkpoint's.
     #[arg(long, value_parser = super::ask::float)]
     ema_half_life: Option<f64>,
     /// How a new run scales the PCA components: `common` (one scale for all) or `capped`

@@ -526,6 +526,17 @@ fn pts(v: &[JsonPoint]) -> Vec<Point> {
 /// The map of a `log_map_archive_*.json`, with what the scene's warnings should say of it.
 fn read_map(path: &Path) -> Result<(Map, Vec<String>), IoError> {
     let text = super::read_text(path)?;
+    // A lane segment, area or crossing keyed twice was read as its last copy: the first left
+    // the map without a word.
+    if let Err(e) = crate::llm::stream::parse_json(&text) {
+        if e.is_data() {
+            return Err(IoError::invalid(
+                path,
+                format!("line {}, column {}", e.line(), e.column()),
+                super::without_position(&e.to_string(), e.line(), e.column()),
+            ));
+        }
+    }
     let m: JsonMap = serde_json::from_str(&text).map_err(|e| {
         IoError::invalid(
             path,

@@ -224,9 +224,12 @@ pub fn parse(path: &Path, text: &str, opts: &LoadOptions) -> Result<Scene, IoErr
         dt,
         current_step,
         ego: None,
+        // A lanelet drawn out and back was read without a word, where WOMD and GPUDrive
+        // lanes are warned of it.
         warnings: warnings(root)
             .into_iter()
             .chain(lanelet_notes.warnings())
+            .chain(super::turning_back_warning(map.lanes()))
             .collect(),
     };
     Scene::recorded(meta, map, agents).map_err(|e| IoError::Scene {

@@ -572,7 +572,7 @@ pub(crate) fn first_few(items: &[String]) -> String {
 }
 
 /// The warning that names [`crate::scene::lanes_turning_back`], if any do (the readers of
-/// polylines given as they are: WOMD, GPUDrive).
+/// polylines given as they are: WOMD, GPUDrive, CommonRoad and YAML maps).
 pub(crate) fn turning_back_warning(lanes: &[crate::scene::Lane]) -> Option<String> {
     let back = crate::scene::lanes_turning_back(lanes);
     if back.is_empty() {

@@ -237,6 +237,18 @@ fn default_lc_duration() -> f64 {
 /// moved the agent off its lane, and said nothing.
 pub const MAX_LANE_CHANGE_SECONDS: f64 = 60.0;
 
+/// The most lane a generated road holds, metres (lanes × length): reading keeps about 400 KB
+/// a lane-kilometre and sampling about 1.5 MB, so about 200 MB and 750 MB here (four lanes of
+/// the longest road, 100 km, are 400 km).
+pub const MAX_ROAD_LANE_METRES: f64 = 500_000.0;
+
+/// The most lanes a generated road's map holds (lanes × segments): each is a lane of the
+/// map, with its boundaries and links, about 1.5 KB.
+pub const MAX_ROAD_LANES: usize = 10_000;
+
+/// The shortest `lane_change.duration`, seconds: quicker, the agent jumps across its lane.
+pub const MIN_LANE_CHANGE_SECONDS: f64 = 1.0;
+
 /// Refuses a lane change that cannot be the one the file describes: a `duration` of 0, below
 /// 0 or NaN moved the agent across in one step (the motion clamps it to a microsecond), and
 /// one that starts after the last step or ends before the first changed nothing in the
@@ -249,6 +261,15 @@ fn lane_change_problem(lc: &YamlLaneChange, y: &YamlScene) -> Result<(), String>
         return Err(format!(
             "lane_change.duration is {} s: must be more than 0 and at most \
              {MAX_LANE_CHANGE_SECONDS} s",
+            num(lc.duration)
+        ));
+    }
+    // Above 0 is not enough: 1e-300 s moved the agent across in one step, as 0 did.
+    if lc.duration < MIN_LANE_CHANGE_SECONDS {
+        return Err(format!(
+            "lane_change.duration is {} s: a lane change that quick crosses the lane in less \
+             than {MIN_LANE_CHANGE_SECONDS} s, a jump no road user makes; give at least \
+             {MIN_LANE_CHANGE_SECONDS} s (a few seconds is usual)",
             num(lc.duration)
         ));
     }
@@ -332,8 +353,13 @@ pub struct YamlAgent {
 const MAX_YAML_SPEED: f64 = 100.0;
 /// The most a generated agent's `accel` may be, m/s² (5 g).
 const MAX_YAML_ACCEL: f64 = 50.0;
-/// The most a generated agent's `s` or `d` may be, m: ten times the longest road.
+/// The most a generated agent's `s` may be, m: ten times the longest road.
 const MAX_MOTION_COORD: f64 = 1e6;
+/// The most a generated agent's `d` may be, m: an offset across its lane, more than the
+/// widest generated road's half (64 lanes of at most 20 m is 640 m across, but an agent that
+/// far across is on another `lane`). `d: 1e6`, a kilometre beyond any road, was taken
+/// without a word.
+pub const MAX_LATERAL_OFFSET: f64 = 100.0;
 
 fn is_zero_f64(v: &f64) -> bool {
     *v == 0.0
@@ -783,6 +809,14 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
             ))
         }
     };
+    // An explicit map's centre line drawn out and back loaded without a word (its length,
+    // and every path along it, read as the sum of both ways), where WOMD and GPUDrive
+    // scenes are warned of it.
+    let turning_back = if road.is_none() {
+        super::turning_back_warning(&parts.lanes)
+    } else {
+        None
+    };
     let map = Map::new(parts).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
         location: "map".into(),
@@ -839,7 +873,7 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
         // (-5e307, 1.8)", naming neither the field nor what it may be.
         for (field, v, max, unit) in [
             ("s", a.s, MAX_MOTION_COORD, "m"),
-            ("d", a.d, MAX_MOTION_COORD, "m"),
+            ("d", a.d, MAX_LATERAL_OFFSET, "m"),
             ("speed", a.speed, MAX_YAML_SPEED, "m/s"),
             ("accel", a.accel, MAX_YAML_ACCEL, "m/s²"),
         ] {
@@ -847,9 +881,15 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
                 return Err(bad(
                     loc,
                     format!(
-                        "{field} is {} {unit}: must be within ±{} {unit}",
+                        "{field} is {} {unit}: must be within ±{} {unit}{}",
                         crate::geom::num(v),
-                        crate::geom::num(max)
+                        crate::geom::num(max),
+                        if field == "d" {
+                            " of the lane's centre (an agent on another lane: give its `lane` \
+                             or `route`, or explicit `states`)"
+                        } else {
+                            ""
+                        }
                     ),
                 ));
             }
@@ -989,15 +1029,17 @@ fn build(path: &Path, y: &YamlScene) -> Result<Scene, IoError> {
         dt: y.dt,
         current_step: y.current_step,
         ego: y.ego,
-        warnings: if off_road.is_empty() {
-            Vec::new()
-        } else {
-            vec![format!(
-                "generated agents whose states leave the road or route they are placed on (the \
-                 map ends there): {}",
-                super::first_few(&off_road)
-            )]
-        },
+        warnings: (!off_road.is_empty())
+            .then(|| {
+                format!(
+                    "generated agents whose states leave the road or route they are placed on \
+                     (the map ends there): {}",
+                    super::first_few(&off_road)
+                )
+            })
+            .into_iter()
+            .chain(turning_back)
+            .collect(),
     };
     Scene::recorded(meta, map, agents).map_err(|e| IoError::Scene {
         path: path.display().to_string(),
@@ -1070,6 +1112,33 @@ fn road_parts(path: &Path, r: &YamlRoad) -> Result<(MapParts, FrenetPath), IoErr
                 "{} segments on a road {} m long: a segment is at least 1 m long",
                 r.segments,
                 crate::geom::num(r.length)
+            ),
+        ));
+    }
+    // Each within its range is not enough: 64 lanes of a 100-km road (a 200-byte file) took
+    // 1.9 GB and 9 s to read, and in 100,000 segments (6.4 million lanes) 9.3 GB and a minute.
+    let lane_metres = r.lanes as f64 * r.length;
+    if lane_metres > MAX_ROAD_LANE_METRES {
+        return Err(bad(
+            "road",
+            format!(
+                "{} lanes of {} m are {} km of lane: a generated road holds at most {} km \
+                 (fewer lanes, or a shorter road)",
+                r.lanes,
+                crate::geom::num(r.length),
+                crate::geom::num((lane_metres / 1000.0).round()),
+                crate::geom::num(MAX_ROAD_LANE_METRES / 1000.0)
+            ),
+        ));
+    }
+    let lane_count = r.lanes.saturating_mul(r.segments);
+    if lane_count > MAX_ROAD_LANES {
+        return Err(bad(
+            "road",
+            format!(
+                "{} lanes in {} segments are {lane_count} lanes of the map: a generated road \
+                 holds at most {MAX_ROAD_LANES} (fewer segments)",
+                r.lanes, r.segments
             ),
         ));
     }

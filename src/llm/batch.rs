@@ -1085,6 +1085,7 @@ impl Batch<'_> {
                 "a batch runs without a person: use the http or rules backend".into(),
             ));
         }
+        self.check_samples_fit()?;
         let before = super::rundir::Before::of(&self.out, self.shard);
         crate::io::create_output_dir(&self.out).map_err(|e| bad(&self.out, e.reason()))?;
         // One process per batch (per shard: the shards of one batch share -o by design), no
@@ -1104,6 +1105,37 @@ impl Batch<'_> {
             )),
             Err(e) => Err(e),
         }
+    }
+
+    /// Refuses, before anything is made or asked, a batch one of whose pairs to start would
+    /// sample more than its scene's batch fits in memory ([`super::session::check_samples_fit`]):
+    /// it stopped the batch at that pair's first round. A pair resumed keeps the samples its
+    /// run recorded, and is not judged by this batch's.
+    fn check_samples_fit(&self) -> Result<(), LlmError> {
+        let mut seen = std::collections::HashSet::new();
+        for (k, inst) in self.instances.iter().enumerate() {
+            if self
+                .shard
+                .is_some_and(|sh| !sh.contains(&inst.scene.meta.scenario_id))
+                || !seen.insert((&inst.scene_path, &inst.scene.meta.scenario_id))
+                || self.run_dir(k)?.join("state.json").exists()
+            {
+                continue;
+            }
+            super::session::check_samples_fit(self.trained, &inst.scene, self.config.samples)
+                .map_err(|e| {
+                    bad(
+                        &inst.scene_path,
+                        format!(
+                            "pair {} of {} ({}): {e}",
+                            k + 1,
+                            self.instances.len(),
+                            inst.scene.meta.scenario_id
+                        ),
+                    )
+                })?;
+        }
+        Ok(())
     }
 
     /// The pairs of [`Batch::run`], each result pushed to `results` as it is done; `started`

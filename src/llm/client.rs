@@ -1446,9 +1446,8 @@ fn parse_completion_redacted(
     // The choice of index 0 (one with none is taken for it), as a stream's is: the first in
     // the list was taken, so a reply holding only a second choice (`"index": 1`), or listing
     // it first, gave another answer than the one asked for.
-    let first = choices
-        .iter()
-        .find(|c| c["index"].as_u64().unwrap_or(0) == 0)
+    let first = super::stream::answer_choice(Some(choices), redact)
+        .map_err(|m| bad(format!("the reply's {m}")))?
         .ok_or_else(|| {
             let indices: Vec<String> = choices
                 .iter()
@@ -1633,6 +1632,23 @@ mod tests {
         );
         let two = r#"{"choices":[{"index":1,"message":{"content":"other"}},{"index":0,"message":{"content":"asked"}}]}"#;
         assert_eq!(parse_completion(two, "u").unwrap().content, "asked");
+        // An index that is no whole number from 0 was taken for 0, and its text for the
+        // answer; two of index 0 gave the first listed.
+        for index in ["-1", "\"0\"", "1.0", "{}"] {
+            let r =
+                format!(r#"{{"choices":[{{"index":{index},"message":{{"content":"other"}}}}]}}"#);
+            let e = parse_completion(&r, "u").unwrap_err().to_string();
+            assert!(
+                e.contains(&format!(
+                    "the reply's choice has \"index\" {index}, not a whole number from 0"
+                )),
+                "{e}"
+            );
+        }
+        let both =
+            r#"{"choices":[{"index":0,"message":{"content":"a"}},{"message":{"content":"b"}}]}"#;
+        let e = parse_completion(both, "u").unwrap_err().to_string();
+        assert!(e.contains("two choices of index 0"), "{e}");
         let e = parse_completion(r#"{"choices": []}"#, "u").unwrap_err();
         assert!(e.to_string().contains("empty"), "{e}");
         let e = parse_completion(r#"{"id": 1}"#, "u").unwrap_err();

@@ -60,7 +60,8 @@ fn bad(path: &Path, message: impl Into<String>) -> LlmError {
 fn read_json(path: &Path) -> Result<Value, LlmError> {
     let text = crate::io::read_regular_text(path, MAX_RUN_FILE_BYTES, "a run's file")
         .map_err(|e| bad(path, format!("cannot read it: {}", e.reason())))?;
-    serde_json::from_str(&text).map_err(|e| bad(path, format!("not JSON ({e})")))
+    // A key named twice (a reply, a request) was read as its last copy without a word.
+    super::stream::parse_json(&text).map_err(|e| bad(path, format!("not JSON ({e})")))
 }
 
 /// Reads a transcript for [`super::Backend::Replay`]: only a run that asked a server holds the
@@ -300,6 +301,19 @@ pub fn compare_replay(transcript: &Path, replayed: &Path) -> Result<ReplayCompar
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_transcript_naming_a_key_twice_is_refused_not_read_as_its_last_copy() {
+        // `{"backend": "http", ..., "backend": "manual"}` was read as its last copy.
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("transcript.json");
+        std::fs::write(&f, r#"{"backend": "manual", "backend": "http"}"#).unwrap();
+        let e = read_transcript(&f).err().expect("refused").to_string();
+        assert!(
+            e.contains("transcript.json") && e.contains("the key \"backend\" twice"),
+            "{e}"
+        );
+    }
 
     #[test]
     fn a_recording_claiming_endless_rounds_or_holding_a_fifo_is_compared_at_once() {

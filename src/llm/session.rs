@@ -136,6 +136,11 @@ pub const MAX_FIXES: usize = 20;
 /// The most agents a scene summary may list (`--max-agents`).
 pub const MAX_AGENTS: usize = 1000;
 
+/// The largest tolerance (`--tolerance`) on an unweighted script term (0 where a sample meets
+/// the request; the default tolerance is 0.05): `--tolerance 1e308` was taken, and any sample
+/// met any request.
+pub const MAX_TOLERANCE: f64 = 1000.0;
+
 impl Default for SessionConfig {
     fn default() -> Self {
         Self {
@@ -189,12 +194,14 @@ impl SessionConfig {
             .or_else(|| range("fixes", self.fixes, 0, MAX_FIXES))
             .or_else(|| range("max_agents", self.max_agents, 1, MAX_AGENTS))
             .or_else(|| {
-                (!(self.tolerance.is_finite() && self.tolerance >= 0.0)).then(|| {
-                    format!(
-                        "tolerance = {}: must be finite and not negative",
-                        crate::geom::num(self.tolerance)
-                    )
-                })
+                (!(self.tolerance.is_finite() && (0.0..=MAX_TOLERANCE).contains(&self.tolerance)))
+                    .then(|| {
+                        format!(
+                            "tolerance = {}: must be finite and not negative, at most \
+                             {MAX_TOLERANCE}",
+                            crate::geom::num(self.tolerance)
+                        )
+                    })
             })
             .or_else(|| {
                 let max = crate::sample::MAX_SCRIPT_BUDGET.as_secs_f64();
@@ -955,6 +962,7 @@ impl<'a> Session<'a> {
             rules::plan_request(request)?;
         }
         check_scene_step(&raw)?;
+        check_samples_fit(trained, &raw, config.samples)?;
         let lock = open_new(dir, scene_path, &raw, &config, false)?;
         Self::begin(
             lock, dir, scene_path, raw, request, trained, backend, prompts, config, checks,
@@ -983,6 +991,7 @@ impl<'a> Session<'a> {
             rules::plan_request(request)?;
         }
         check_scene_step(&raw)?;
+        check_samples_fit(trained, &raw, config.samples)?;
         let lock = open_new(dir, scene_path, &raw, &config, true)?;
         Self::begin(
             lock, dir, scene_path, raw, request, trained, backend, prompts, config, checks,
@@ -2315,6 +2324,16 @@ fn check_scene_step(raw: &Scene) -> Result<(), LlmError> {
         Some(m) => Err(LlmError::Setup(m)),
         None => Ok(()),
     }
+}
+
+/// Refuses, before the run directory is made or the model asked, more samples a round than
+/// the scene's sampling batch fits in memory ([`crate::sample::check_samples_fit`]): they were
+/// refused only when round 0 began to sample, after a request was sent and paid for.
+pub fn check_samples_fit(trained: &Trained, raw: &Scene, samples: usize) -> Result<(), LlmError> {
+    crate::sample::check_samples_fit(trained, raw, samples).map_err(|e| match e {
+        SampleError::Settings(m) => LlmError::Setup(format!("--samples {samples}: {m}")),
+        e => LlmError::Setup(e.to_string()),
+    })
 }
 
 /// The first two messages of a run: the system prompt and the scene summary with the request

@@ -222,6 +222,45 @@ fn read_event_line<R: BufRead>(
     }
 }
 
+/// The `index` of a choice: absent (or null) is 0, as servers asked for one answer leave it;
+/// anything but a whole number from 0 is refused, quoted through `redact`: `-1`, `"0"` and
+/// `1.0` were each taken for index 0, and their text for the answer.
+fn choice_index(c: &Value, redact: &dyn Fn(&str) -> String) -> Result<u64, String> {
+    match c.get("index") {
+        None | Some(Value::Null) => Ok(0),
+        Some(v) => v.as_u64().ok_or_else(|| {
+            format!(
+                "choice has \"index\" {}, not a whole number from 0",
+                redact(&crate::io::name::shown_counted(&v.to_string()))
+            )
+        }),
+    }
+}
+
+/// The choice of index 0 among `choices` (a reply's, or a stream event's), the answer asked
+/// for; `None` where there is none. Two of index 0 are refused: which is the answer is
+/// unclear (the first listed was taken). The message starts with what it is about, to follow
+/// "the reply's" or "a stream event's".
+pub(super) fn answer_choice<'v>(
+    choices: Option<&'v Vec<Value>>,
+    redact: &dyn Fn(&str) -> String,
+) -> Result<Option<&'v Value>, String> {
+    let mut answer = None;
+    for c in choices.into_iter().flatten() {
+        if choice_index(c, redact)? == 0 {
+            if answer.is_some() {
+                return Err(
+                    "\"choices\" hold two choices of index 0, so which one is the \
+                            answer is unclear"
+                        .into(),
+                );
+            }
+            answer = Some(c);
+        }
+    }
+    Ok(answer)
+}
+
 /// What a stream has brought so far, and how its reply ends.
 #[derive(Default)]
 struct Reading {
@@ -293,9 +332,8 @@ impl Reading {
         }
         // The first choice is the one of index 0 (a choice with none is taken for it): a
         // chunk of another choice (a gateway asking for several) was appended to the reply.
-        let Some(choice) = v["choices"]
-            .as_array()
-            .and_then(|c| c.iter().find(|c| c["index"].as_u64().unwrap_or(0) == 0))
+        let Some(choice) = answer_choice(v["choices"].as_array(), redact)
+            .map_err(|m| bad(format!("a stream event's {m}")))?
         else {
             return Ok(false);
         };
@@ -721,6 +759,25 @@ mod tests {
         assert!(e.to_string().contains("out of memory"), "{e}");
         let e = read("data: <html>\n").unwrap_err();
         assert!(e.to_string().contains("not JSON"), "{e}");
+        // A chunk of index -1 or "0" was appended to the answer as index 0's.
+        for index in ["-1", "\"0\""] {
+            let e = read(&format!(
+                "data: {{\"choices\":[{{\"index\":{index},\"delta\":{{\"content\":\"x\"}}}}]}}\n"
+            ))
+            .unwrap_err()
+            .to_string();
+            assert!(
+                e.contains(&format!(
+                    "a stream event's choice has \"index\" {index}, not a whole number from 0"
+                )),
+                "{e}"
+            );
+        }
+        let e = read(
+            "data: {\"choices\":[{\"delta\":{\"content\":\"x\"}},{\"index\":0,\"delta\":{\"content\":\"y\"}}]}\n",
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("two choices of index 0"), "{e}");
     }
 
     /// A body that gives one byte per read, so that every line end is split across reads.

@@ -174,6 +174,50 @@ fn check_batch_memory(
     )))
 }
 
+/// Refuses `samples` samples of `scene` (as read, before [`prepare`]) where their batch would
+/// not fit in memory, as sampling itself would refuse them, without sampling: `ask` checks it
+/// with its flags, before the run directory is made or a model is asked (1,024 samples of a
+/// large scene were refused only when round 0 began sampling). A scene the sampler cannot cut
+/// into windows passes here: sampling says why.
+pub fn check_samples_fit(
+    trained: &Trained,
+    scene: &Scene,
+    samples: usize,
+) -> Result<(), SampleError> {
+    let s = prepare(scene, trained)?;
+    let c = s.meta.current_step;
+    let Some(centre) = centre_agent(trained, &s) else {
+        return Ok(());
+    };
+    // The route hint shapes each window's routes, not which agents it holds.
+    let tiling = tile(
+        &s,
+        &trained.meta.config.window,
+        c,
+        centre,
+        &trained.meta,
+        RouteHint::Unknown,
+    );
+    check_batch_memory(trained, samples.max(1), tiling.windows.len())
+}
+
+/// The agent the sampler's first window is centred on: the ego where it is observed at the
+/// current step and modelled, else the first such agent.
+fn centre_agent(trained: &Trained, scene: &Scene) -> Option<usize> {
+    let c = scene.meta.current_step;
+    scene
+        .meta
+        .ego
+        .and_then(|e| scene.agents.iter().position(|a| a.id == e))
+        .filter(|&i| scene.agents[i].is_valid(c) && modelled(trained, &scene.agents[i]))
+        .or_else(|| {
+            scene
+                .agents
+                .iter()
+                .position(|a| a.is_valid(c) && modelled(trained, a))
+        })
+}
+
 /// `route_cost`, where guidance asks for something: what an unconditional run's routes are
 /// chosen by, for the agents whose routes it tells apart ([`Plan::cheapest_routes`], for a
 /// checkpoint that tells futures against routes); each sample draws the others' routes
@@ -194,23 +238,11 @@ fn setup<'a>(
     let dev = Device::Cpu;
     let wcfg = trained.meta.config.window;
     let c = scene.meta.current_step;
-    let centre = scene
-        .meta
-        .ego
-        .and_then(|e| scene.agents.iter().position(|a| a.id == e))
-        .filter(|&i| scene.agents[i].is_valid(c) && modelled(trained, &scene.agents[i]))
-        .or_else(|| {
-            scene
-                .agents
-                .iter()
-                .position(|a| a.is_valid(c) && modelled(trained, a))
-        })
-        .ok_or_else(|| {
-            SampleError::Scene(
-                "no vehicle is observed at the current step: the model has nothing to simulate"
-                    .into(),
-            )
-        })?;
+    let centre = centre_agent(trained, scene).ok_or_else(|| {
+        SampleError::Scene(
+            "no vehicle is observed at the current step: the model has nothing to simulate".into(),
+        )
+    })?;
     // Conditional simulation is given where each agent ends, and takes the route that leads
     // there; unconditional knows nothing of the future.
     let hint = match cfg.task {

@@ -20,6 +20,6 @@ pub use config::{
     MAX_WEIGHT, MIN_HEUN_STEPS, POLISH_STEPS, REALISM_WEIGHT,
 };
 pub use guided::{
-    horizon_note, modelled, prepare, prepare_for, recorded_future, reference_run, sample,
-    sample_until, sampled_horizon, too_few_steps, Sample,
+    check_samples_fit, horizon_note, modelled, prepare, prepare_for, recorded_future,
+    reference_run, sample, sample_until, sampled_horizon, too_few_steps, Sample,
 };

@@ -599,9 +599,45 @@ pub fn check_cache_beside_checkpoint(cache: &Path, out: &Path) -> Result<(), Tra
 
 /// An exclusive hold on a checkpoint directory (`train --out`) for the life of a run
 /// ([`lock_out_dir`]), released when dropped or when the process ends however it ends.
+/// Dropped, it also removes the directories [`lock_out_dir`] made that are still empty: a run
+/// refused after the lock (a held-out town no scene is in, a scene of another time step) left
+/// an empty `--out` behind.
 #[derive(Debug)]
 pub struct OutLock {
     _dir: File,
+    /// The directories made for the lock, deepest first.
+    made: Vec<PathBuf>,
+}
+
+impl Drop for OutLock {
+    fn drop(&mut self) {
+        // `remove_dir` removes only an empty directory: a checkpoint written, or anything
+        // another put there, keeps it.
+        for d in &self.made {
+            if std::fs::remove_dir(d).is_err() {
+                break;
+            }
+        }
+    }
+}
+
+/// The directories that making `dir` would create (it and its missing parents), deepest
+/// first.
+fn missing_dirs(dir: &Path) -> Vec<PathBuf> {
+    dir.ancestors()
+        .filter(|a| !a.as_os_str().is_empty())
+        .take_while(|a| std::fs::symlink_metadata(a).is_err())
+        .map(Path::to_path_buf)
+        .collect()
+}
+
+/// Removes the directories of `made` (deepest first) that are empty: what a refused build made.
+fn remove_made_dirs(made: &[PathBuf]) {
+    for d in made {
+        if std::fs::remove_dir(d).is_err() {
+            break;
+        }
+    }
 }
 
 /// Makes the checkpoint directory `dir` (`train --out`) and takes it for this run: an advisory
@@ -610,8 +646,12 @@ pub struct OutLock {
 /// cache and replaced each other's checkpoint files in turn (a `config.json` of one run beside
 /// the weights of the other), without a word; the second is now refused.
 pub fn lock_out_dir(dir: &Path) -> Result<OutLock, TrainError> {
+    let made = missing_dirs(dir);
     crate::io::create_output_dir(dir).map_err(|e| TrainError::Data(e.to_string()))?;
-    let file = File::open(dir).map_err(|e| io_err(dir, format!("cannot open it: {e}")))?;
+    let file = File::open(dir).map_err(|e| {
+        remove_made_dirs(&made);
+        io_err(dir, format!("cannot open it: {e}"))
+    })?;
     #[cfg(unix)]
     {
         use std::os::unix::io::AsRawFd;
@@ -619,6 +659,7 @@ pub fn lock_out_dir(dir: &Path) -> Result<OutLock, TrainError> {
         let rc = unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
         if rc != 0 {
             let e = std::io::Error::last_os_error();
+            // Made here, the directory could not be another's yet: nothing to remove.
             return Err(if e.kind() == std::io::ErrorKind::WouldBlock {
                 TrainError::Data(format!(
                     "{}: another drivescript train is writing its checkpoint there (--out): \
@@ -630,7 +671,7 @@ pub fn lock_out_dir(dir: &Path) -> Result<OutLock, TrainError> {
             });
         }
     }
-    Ok(OutLock { _dir: file })
+    Ok(OutLock { _dir: file, made })
 }
 
 /// Refuses a cache directory that is, or is inside, a directory of `corpora` (the windows
@@ -783,6 +824,8 @@ impl WindowStore {
         mut progress: impl FnMut(usize, usize),
     ) -> Result<Self, TrainError> {
         check_cache_dir(dir, corpora)?;
+        // A refused build leaves nothing it made: an empty OUT/windows stayed behind.
+        let made = missing_dirs(dir);
         std::fs::create_dir_all(dir).map_err(|e| io_err(dir, e.to_string()))?;
         remove_dead_temps(dir);
         // Written under a temporary name and renamed into place at the end: another run
@@ -790,13 +833,34 @@ impl WindowStore {
         // of finding them truncated under it.
         let open = |name: &str| -> Result<(PathBuf, BufWriter<File>), TrainError> {
             let p = dir.join(format!("{name}.tmp-{}", std::process::id()));
-            let f = File::create(&p).map_err(|e| io_err(&p, e.to_string()))?;
+            // Made new, never opened through what lies there: `File::create` followed a link
+            // planted at this predictable name and truncated the file it named. Whatever is
+            // there (a leftover of a process that had this id, such a link) is removed first;
+            // removing a link leaves its target alone.
+            match std::fs::symlink_metadata(&p) {
+                Ok(m) if m.is_dir() => return Err(io_err(&p, "is a directory: remove it".into())),
+                Ok(_) => std::fs::remove_file(&p).map_err(|e| io_err(&p, e.to_string()))?,
+                Err(_) => {}
+            }
+            let f = std::fs::OpenOptions::new()
+                .write(true)
+                .create_new(true)
+                .open(&p)
+                .map_err(|e| io_err(&p, e.to_string()))?;
             let mut w = BufWriter::new(f);
             w.write_all(MAGIC).map_err(|e| io_err(&p, e.to_string()))?;
             Ok((p, w))
         };
-        let (tp, mut tw) = open("train.windows")?;
-        let (vp, mut vw) = open("val.windows")?;
+        let (tp, mut tw) = open("train.windows").inspect_err(|_| remove_made_dirs(&made))?;
+        let (vp, mut vw) = match open("val.windows") {
+            Ok(v) => v,
+            Err(e) => {
+                drop(tw);
+                let _ = std::fs::remove_file(&tp);
+                remove_made_dirs(&made);
+                return Err(e);
+            }
+        };
         let mut toff = vec![MAGIC.len() as u64];
         let mut voff = vec![MAGIC.len() as u64];
         let mut summary = Summary::new();
@@ -865,6 +929,7 @@ impl WindowStore {
             drop((tw, vw));
             let _ = std::fs::remove_file(&tp);
             let _ = std::fs::remove_file(&vp);
+            remove_made_dirs(&made);
             return Err(e);
         }
         let mut done = Vec::new();
@@ -1138,6 +1203,66 @@ mod tests {
             .to_string();
         assert!(e.contains("held-out towns are for --urban"), "{e}");
         assert!(build(&urban, vec![there]).is_ok());
+    }
+
+    #[test]
+    fn a_refused_build_leaves_no_directory_it_made() {
+        // A held-out town no scene is in refused the run after OUT/windows was made, and the
+        // empty directory stayed.
+        let (corpus, _, _) = cut_in();
+        let urban = [Corpus {
+            path: corpus[0].path.clone(),
+            split: SplitBy::Town,
+        }];
+        let dir = tempfile::tempdir().unwrap();
+        let cache = dir.path().join("out/windows");
+        let holdout = Holdout {
+            fold: 0,
+            towns: vec!["DEU_Atlantis".into()],
+        };
+        let lock = lock_out_dir(&dir.path().join("out")).unwrap();
+        let e = WindowStore::build(&urban, &WindowConfig::ngsim(), &holdout, &cache, |_, _| ());
+        assert!(e.is_err());
+        assert!(
+            !cache.exists(),
+            "the refused build left {}",
+            cache.display()
+        );
+        drop(lock);
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+        // A directory that was there before is kept, empty as it was.
+        let kept = dir.path().join("kept");
+        std::fs::create_dir(&kept).unwrap();
+        drop(lock_out_dir(&kept).unwrap());
+        assert!(kept.is_dir());
+        let e = WindowStore::build(&urban, &WindowConfig::ngsim(), &holdout, &kept, |_, _| ());
+        assert!(e.is_err());
+        assert!(kept.is_dir());
+    }
+
+    #[test]
+    fn a_link_planted_at_a_window_file_s_temporary_name_is_removed_not_written_through() {
+        // `File::create` opened whatever lay at `train.windows.tmp-PID` and truncated it: a
+        // hard link there (a regular file, which the cache check lets by as a leftover) to a
+        // file of the user's had that file emptied and filled with windows. A symbolic link
+        // planted there after the check was followed the same way.
+        let (corpus, _, fold) = cut_in();
+        let dir = tempfile::tempdir().unwrap();
+        let victim = dir.path().join("victim.txt");
+        std::fs::write(&victim, "keep").unwrap();
+        let cache = dir.path().join("cache");
+        std::fs::create_dir(&cache).unwrap();
+        for name in CACHE_FILES {
+            let tmp = cache.join(format!("{name}.tmp-{}", std::process::id()));
+            std::fs::hard_link(&victim, &tmp).unwrap();
+        }
+        let st = store(&corpus, &WindowConfig::ngsim(), fold, &cache);
+        assert!(st.train_len() + st.val_len() > 0);
+        assert_eq!(std::fs::read_to_string(&victim).unwrap(), "keep");
+        for name in CACHE_FILES {
+            let m = std::fs::symlink_metadata(cache.join(name)).unwrap();
+            assert!(m.is_file(), "{name}");
+        }
     }
 
     #[test]

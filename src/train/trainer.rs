@@ -265,19 +265,32 @@ pub fn window_values(w: &WindowConfig, m: &DenoiserConfig) -> usize {
         .saturating_mul(m.d)
 }
 
+/// The smallest learning rate a run takes: AdamW moves each weight by about this much a step,
+/// and an f32 weight of order 0.1 keeps about 8 digits, so a smaller step is rounded away and
+/// the run trains nothing.
+pub const MIN_LR: f64 = 1e-8;
+
+/// The longest half-life of the moving average of the weights, in steps: the most steps a
+/// run takes (`steps` is at most 10^8).
+pub const MAX_EMA_HALF_LIFE: f64 = 1e8;
+
 /// `Ok` when `v` is positive and finite, else a message naming the setting.
 fn positive(name: &str, v: f64) -> Result<(), String> {
     if v.is_finite() && v > 0.0 {
         Ok(())
     } else {
-        Err(format!("{name} = {v}: must be positive and finite"))
+        // In a few characters: 1e308 was said in 309 digits.
+        Err(format!(
+            "{name} = {}: must be positive and finite",
+            crate::geom::num(v)
+        ))
     }
 }
 
 /// The `drivescript train` flag that sets each [`TrainConfig`] field a user can give, by the
 /// field's name as [`TrainConfig::validate`] starts its message with it: the message names the
 /// field ("eval_every = 0"), which the user never typed.
-pub const TRAIN_FLAGS: [(&str, &str); 11] = [
+pub const TRAIN_FLAGS: [(&str, &str); 12] = [
     ("steps", "--steps"),
     ("edm.p_mean", "--p-mean"),
     ("edm.p_std", "--p-std"),
@@ -290,6 +303,7 @@ pub const TRAIN_FLAGS: [(&str, &str); 11] = [
     ("val_towns", "--val-town"),
     // "window.route_times = 41: must be 0 to 40" named a setting the user never wrote.
     ("window.route_times", "--route-times"),
+    ("window.route_frame", "--route-frame"),
 ];
 
 /// The flag ([`TRAIN_FLAGS`]) that sets the setting a [`TrainConfig::validate`] message is
@@ -409,10 +423,28 @@ impl TrainConfig {
             ));
         }
         positive("lr", c.lr)?;
-        if !(c.ema_half_life.is_finite() && c.ema_half_life >= 0.0) {
+        // Positive is not enough: `--lr 1e-300` was taken, and no step changed a weight. A
+        // rate too large is let by: its first steps diverge, which training says, naming
+        // --lr.
+        if c.lr < MIN_LR {
             return Err(format!(
-                "ema_half_life = {}: must be 0 (no average) or a positive number of steps",
-                c.ema_half_life
+                "lr = {}: must be at least {} (AdamW's step in each weight; 3e-4 is the \
+                 default): a smaller step is rounded away in the f32 weights",
+                crate::geom::num(c.lr),
+                crate::geom::num(MIN_LR)
+            ));
+        }
+        // `--ema-half-life 1e308` was taken: an average that never moves from the first
+        // weights, which the checkpoint then sampled with.
+        if !(c.ema_half_life.is_finite()
+            && c.ema_half_life >= 0.0
+            && c.ema_half_life <= MAX_EMA_HALF_LIFE)
+        {
+            return Err(format!(
+                "ema_half_life = {}: must be 0 (no average) or a positive number of steps, at \
+                 most {} (the most steps a run takes)",
+                crate::geom::num(c.ema_half_life),
+                crate::geom::num(MAX_EMA_HALF_LIFE)
             ));
         }
         if !(c.scale_cap > 0.0 && c.scale_cap <= 1.0) {
@@ -1286,8 +1318,13 @@ fn tensor_entries(path: &Path) -> Result<Vec<(String, TensorEntry)>, String> {
     f.take(len)
         .read_to_end(&mut header)
         .map_err(|e| e.to_string())?;
-    let header: serde_json::Map<String, serde_json::Value> =
-        serde_json::from_slice(&header).map_err(|e| format!("header: {e}"))?;
+    // A tensor named twice was read as its last entry without a word.
+    let header = std::str::from_utf8(&header)
+        .map_err(|e| format!("header: not UTF-8 text ({e})"))
+        .and_then(|t| crate::llm::stream::parse_json(t).map_err(|e| format!("header: {e}")))?;
+    let serde_json::Value::Object(header) = header else {
+        return Err("header: not a JSON object".into());
+    };
     let data = size - 8 - len;
     let mut entries = Vec::new();
     for (name, v) in header {
@@ -1439,11 +1476,21 @@ pub fn load(dir: &Path) -> Result<Trained, TrainError> {
     // A checkpoint is a directory: named as a file, it read as "config.json/config.json: Not
     // a directory".
     match std::fs::metadata(dir) {
-        Ok(m) if !m.is_dir() => return Err(io(
-            dir,
-            "is a file, not a checkpoint directory (one holding config.json and model.safetensors)"
-                .into(),
-        )),
+        Ok(m) if !m.is_dir() => {
+            // `/dev/null` or a FIFO was called "a file", which it is not.
+            let what = if m.is_file() {
+                "is a file"
+            } else {
+                "is not a regular file but a device, FIFO or socket"
+            };
+            return Err(io(
+                dir,
+                format!(
+                    "{what}, not a checkpoint directory (one holding config.json and \
+                     model.safetensors)"
+                ),
+            ));
+        }
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
             return Err(io(dir, "no such checkpoint directory".into()))
         }
@@ -1947,6 +1994,20 @@ mod tests {
                 && !e.contains("config.json/config.json"),
             "{e}"
         );
+        #[cfg(unix)]
+        {
+            let e = load(Path::new("/dev/null"))
+                .err()
+                .expect("a device")
+                .to_string();
+            assert!(
+                e.contains(
+                    "/dev/null: is not a regular file but a device, FIFO or socket, not a \
+                     checkpoint directory"
+                ) && !e.contains("is a file"),
+                "{e}"
+            );
+        }
         let e = load(&dir.path().join("nowhere"))
             .err()
             .expect("absent")
