@@ -277,7 +277,7 @@ fn read_shard(path: &Path) -> Result<(RunRecord, Settings, Vec<Tally>), MergeErr
         crate::io::read_regular_text(path, crate::io::MAX_SCENE_BYTES, "an `eval --json` file")?;
     // A key named twice (a group, a method) was read as its last copy without a word.
     let mut v: Value =
-        crate::llm::stream::parse_json(&text).map_err(|e| bad(path, format!("not JSON ({e})")))?;
+        crate::io::json::parse_json(&text).map_err(|e| bad(path, format!("not JSON ({e})")))?;
     let no_record = || {
         bad(
             path,

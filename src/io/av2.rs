@@ -528,7 +528,7 @@ fn read_map(path: &Path) -> Result<(Map, Vec<String>), IoError> {
     let text = super::read_text(path)?;
     // A lane segment, area or crossing keyed twice was read as its last copy: the first left
     // the map without a word.
-    if let Err(e) = crate::llm::stream::parse_json(&text) {
+    if let Err(e) = super::json::parse_json(&text) {
         if e.is_data() {
             return Err(IoError::invalid(
                 path,

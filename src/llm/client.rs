@@ -1421,7 +1421,7 @@ fn parse_completion_redacted(
     };
     // JSON's own rule lets a reader ignore a byte order mark, which some gateways send.
     let text = text.trim_start_matches('\u{feff}');
-    let v: Value = super::stream::parse_json(text).map_err(|e| {
+    let v: Value = crate::io::json::parse_json(text).map_err(|e| {
         let head: String = text.trim().chars().take(120).collect();
         bad(if e.is_data() {
             format!("the reply holds {e}, so which answer it gives is unclear; it begins {head:?}")

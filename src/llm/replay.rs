@@ -61,7 +61,7 @@ fn read_json(path: &Path) -> Result<Value, LlmError> {
     let text = crate::io::read_regular_text(path, MAX_RUN_FILE_BYTES, "a run's file")
         .map_err(|e| bad(path, format!("cannot read it: {}", e.reason())))?;
     // A key named twice (a reply, a request) was read as its last copy without a word.
-    super::stream::parse_json(&text).map_err(|e| bad(path, format!("not JSON ({e})")))
+    crate::io::json::parse_json(&text).map_err(|e| bad(path, format!("not JSON ({e})")))
 }
 
 /// Reads a transcript for [`super::Backend::Replay`]: only a run that asked a server holds the

@@ -304,7 +304,7 @@ impl Reading {
         }
         let v: Value = match parsed {
             Some(v) => v,
-            None => parse_json(data).map_err(|e| {
+            None => crate::io::json::parse_json(data).map_err(|e| {
                 // Redacted whole, then cut: cut first, a key echoed across the cut kept its head.
                 let head: String = redact(data).chars().take(120).collect();
                 bad(if e.is_data() {
@@ -389,82 +389,12 @@ impl Reading {
     }
 }
 
-/// `text` parsed as JSON, refusing an object that names a key twice: `{"choices": [A],
-/// "choices": [B]}` (or a message with two `content`s) was read as its last copy without a
-/// word, though a reply holding two answers is no answer (and another reader, or a proxy
-/// between, takes the first). Scene, rollout and checkpoint files refuse the same.
-pub(crate) fn parse_json(text: &str) -> serde_json::Result<Value> {
-    use serde::de::{DeserializeSeed, Deserializer, Error, MapAccess, SeqAccess, Visitor};
-    struct Unique;
-    impl<'de> DeserializeSeed<'de> for Unique {
-        type Value = Value;
-        fn deserialize<D: Deserializer<'de>>(self, d: D) -> Result<Value, D::Error> {
-            d.deserialize_any(self)
-        }
-    }
-    impl<'de> Visitor<'de> for Unique {
-        type Value = Value;
-        fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
-            f.write_str("a JSON value")
-        }
-        fn visit_bool<E: Error>(self, v: bool) -> Result<Value, E> {
-            Ok(Value::Bool(v))
-        }
-        fn visit_i64<E: Error>(self, v: i64) -> Result<Value, E> {
-            Ok(Value::from(v))
-        }
-        fn visit_u64<E: Error>(self, v: u64) -> Result<Value, E> {
-            Ok(Value::from(v))
-        }
-        fn visit_f64<E: Error>(self, v: f64) -> Result<Value, E> {
-            Ok(Value::from(v))
-        }
-        fn visit_str<E: Error>(self, v: &str) -> Result<Value, E> {
-            Ok(Value::String(v.to_string()))
-        }
-        fn visit_string<E: Error>(self, v: String) -> Result<Value, E> {
-            Ok(Value::String(v))
-        }
-        fn visit_unit<E: Error>(self) -> Result<Value, E> {
-            Ok(Value::Null)
-        }
-        fn visit_none<E: Error>(self) -> Result<Value, E> {
-            Ok(Value::Null)
-        }
-        fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Value, A::Error> {
-            let mut out = Vec::new();
-            while let Some(v) = seq.next_element_seed(Unique)? {
-                out.push(v);
-            }
-            Ok(Value::Array(out))
-        }
-        fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<Value, A::Error> {
-            let mut out = serde_json::Map::new();
-            while let Some(k) = map.next_key::<String>()? {
-                if out.contains_key(&k) {
-                    return Err(A::Error::custom(format!(
-                        "the key \"{}\" twice in one object",
-                        crate::io::name::shown_counted(&k)
-                    )));
-                }
-                let v = map.next_value_seed(Unique)?;
-                out.insert(k, v);
-            }
-            Ok(Value::Object(out))
-        }
-    }
-    let mut d = serde_json::Deserializer::from_str(text);
-    let v = Unique.deserialize(&mut d)?;
-    d.end()?;
-    Ok(v)
-}
-
 /// The JSON of the data gathered for an event, where it is whole. An event's JSON may come
 /// over several `data:` lines (the format joins them), and some servers end no event with a
 /// blank line, so an event is taken as soon as its data parses, without waiting for the blank
 /// line that may never come.
 fn whole(data: &str) -> Option<Value> {
-    parse_json(data).ok()
+    crate::io::json::parse_json(data).ok()
 }
 
 /// Reads the events of `body` until `data: [DONE]`, a chunk with a `finish_reason` followed

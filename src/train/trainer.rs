@@ -1321,7 +1321,7 @@ fn tensor_entries(path: &Path) -> Result<Vec<(String, TensorEntry)>, String> {
     // A tensor named twice was read as its last entry without a word.
     let header = std::str::from_utf8(&header)
         .map_err(|e| format!("header: not UTF-8 text ({e})"))
-        .and_then(|t| crate::llm::stream::parse_json(t).map_err(|e| format!("header: {e}")))?;
+        .and_then(|t| crate::io::json::parse_json(t).map_err(|e| format!("header: {e}")))?;
     let serde_json::Value::Object(header) = header else {
         return Err("header: not a JSON object".into());
     };
