@@ -2533,21 +2533,7 @@ fn a_sample_batch_too_large_for_memory_is_refused_saying_how_many_samples_fit() 
     // 120 vehicles on a six-lane road: many windows of 24 agents. 1024 samples of 300 asked
     // 38 GB for one batch and aborted on allocation (exit 134) or took the machine's memory.
     let dir = tempfile::tempdir().unwrap();
-    let mut yaml = String::from(
-        "scenario_id: crowd\ndt: 0.1\nsteps: 51\ncurrent_step: 10\nroad:\n  lanes: 6\n  \
-         lane_width: 3.6\n  length: 1500\n  segments: 1\n  speed_limit: 29\nagents:\n",
-    );
-    for lane in 0..6 {
-        for k in 0..20 {
-            let id = lane * 20 + k + 1;
-            yaml += &format!(
-                "  - {{id: {id}, lane: {lane}, s: {}, speed: 20}}\n",
-                20 + k * 60
-            );
-        }
-    }
-    let scene = dir.path().join("crowd.yaml");
-    std::fs::write(&scene, yaml).unwrap();
+    let scene = common::crowd_scene(dir.path());
     let out = dir.path().join("sim");
     let started = std::time::Instant::now();
     let err = fails(&simulate_args(

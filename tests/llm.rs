@@ -4323,21 +4323,7 @@ fn ask_refuses_a_scene_of_another_time_step_before_asking_the_model() {
 fn ask_refuses_more_samples_than_fit_before_asking_the_model() {
     let dir = tempfile::tempdir().unwrap();
     // 120 vehicles on a six-lane road: many windows, so 1,024 samples are past the budget.
-    let mut yaml = String::from(
-        "scenario_id: crowd\ndt: 0.1\nsteps: 51\ncurrent_step: 10\nroad:\n  lanes: 6\n  \
-         lane_width: 3.6\n  length: 1500\n  segments: 1\n  speed_limit: 29\nagents:\n",
-    );
-    for lane in 0..6 {
-        for k in 0..20 {
-            let id = lane * 20 + k + 1;
-            yaml += &format!(
-                "  - {{id: {id}, lane: {lane}, s: {}, speed: 20}}\n",
-                20 + k * 60
-            );
-        }
-    }
-    let scene = dir.path().join("crowd.yaml");
-    std::fs::write(&scene, yaml).unwrap();
+    let scene = common::crowd_scene(dir.path());
     let srv = Server::start(vec![Canned::chat(&reply("term(\"x\", 0.0);\n"))]);
     let out = dir.path().join("run");
     let request = "vehicle 21 cuts in front of vehicle 2";

@@ -85,3 +85,25 @@ pub fn bash_in(dir: &Path, flags: &[&str], script: &str) -> Output {
 pub fn s(p: &Path) -> &str {
     p.to_str().expect("UTF-8 path")
 }
+
+/// A YAML scene of 120 vehicles on a six-lane road (`crowd.yaml` in `dir`): many windows of
+/// 24 agents, so that 1,024 samples of it are past the sampling batch's memory budget.
+#[allow(dead_code)]
+pub fn crowd_scene(dir: &Path) -> PathBuf {
+    let mut yaml = String::from(
+        "scenario_id: crowd\ndt: 0.1\nsteps: 51\ncurrent_step: 10\nroad:\n  lanes: 6\n  \
+         lane_width: 3.6\n  length: 1500\n  segments: 1\n  speed_limit: 29\nagents:\n",
+    );
+    for lane in 0..6 {
+        for k in 0..20 {
+            let id = lane * 20 + k + 1;
+            yaml += &format!(
+                "  - {{id: {id}, lane: {lane}, s: {}, speed: 20}}\n",
+                20 + k * 60
+            );
+        }
+    }
+    let scene = dir.join("crowd.yaml");
+    std::fs::write(&scene, yaml).unwrap();
+    scene
+}
