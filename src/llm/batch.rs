@@ -1312,7 +1312,7 @@ impl Batch<'_> {
         // beside new pairs with the new, as one batch's summary, exit 0.
         let (then, now) = (
             serde_json::to_value(session.config()).unwrap_or_default(),
-            serde_json::to_value(&self.config).unwrap_or_default(),
+            serde_json::to_value(self.config.resolved(self.trained)).unwrap_or_default(),
         );
         if let (Some(then), Some(now)) = (then.as_object(), now.as_object()) {
             if let Some((key, was)) = then

@@ -235,6 +235,14 @@ impl SessionConfig {
             })
     }
 
+    /// These settings with what they leave to the checkpoint filled in from `trained` (the
+    /// guidance strength): what a run stores, and what a batch compares with a run it goes on.
+    pub fn resolved(&self, trained: &Trained) -> SessionConfig {
+        let mut c = self.clone();
+        c.lambda.get_or_insert(trained.meta.behaviour_lambda());
+        c
+    }
+
     /// The sampler settings: `simulate`'s defaults for behaviours.
     pub fn sample_config(&self) -> SampleConfig {
         SampleConfig {
@@ -1012,7 +1020,7 @@ impl<'a> Session<'a> {
         checks: Option<Vec<(Behavior, Params)>>,
     ) -> Result<Self, LlmError> {
         // Stored resolved: a resumed run keeps the strength it began with.
-        config.lambda.get_or_insert(trained.meta.behaviour_lambda());
+        config = config.resolved(trained);
         let requests = vec![request.trim().to_string()];
         let checks = checks.unwrap_or_else(|| checks_for(&requests));
         let backend = backend.for_run(&config);
