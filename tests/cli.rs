@@ -3622,11 +3622,7 @@ fn a_run_directory_takes_one_run() {
 #[test]
 fn simulate_guides_with_the_strength_chosen_for_its_checkpoint() {
     let dir = tempfile::tempdir().unwrap();
-    let ck = dir.path().join("ck");
-    std::fs::create_dir(&ck).unwrap();
-    for f in ["config.json", "model.safetensors"] {
-        std::fs::copy(std::path::Path::new("data/checkpoint").join(f), ck.join(f)).unwrap();
-    }
+    let ck = common::checkpoint_copy(dir.path());
     let scene = samples().join("yaml/highway_cut_in.yaml");
     let lambda = |name: &str, extra: &[&str]| -> Value {
         let out = dir.path().join(name);
@@ -3661,11 +3657,7 @@ fn a_run_resumed_after_its_checkpoint_config_changed_is_refused() {
     // Only the weights were checksummed: a config.json edited in place (another noise
     // schedule here) resumed the run with another sampler, exit 0.
     let dir = tempfile::tempdir().unwrap();
-    let ck = dir.path().join("ck");
-    std::fs::create_dir(&ck).unwrap();
-    for f in ["config.json", "model.safetensors"] {
-        std::fs::copy(std::path::Path::new("data/checkpoint").join(f), ck.join(f)).unwrap();
-    }
+    let ck = common::checkpoint_copy(dir.path());
     let out = dir.path().join("run");
     let scene = samples().join("yaml/highway_cut_in.yaml");
     let sim = |extra: &[&str]| {

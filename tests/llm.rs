@@ -911,11 +911,7 @@ fn the_rules_planner_is_the_default_without_an_llm_and_follow_ups_revise_its_run
 #[test]
 fn ask_guides_with_the_strength_chosen_for_its_checkpoint() {
     let dir = tempfile::tempdir().unwrap();
-    let ck = dir.path().join("ck");
-    std::fs::create_dir(&ck).unwrap();
-    for f in ["config.json", "model.safetensors"] {
-        std::fs::copy(Path::new("data/checkpoint").join(f), ck.join(f)).unwrap();
-    }
+    let ck = common::checkpoint_copy(dir.path());
     let mut cfg: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(ck.join("config.json")).unwrap()).unwrap();
     cfg["guidance_lambda"] = serde_json::json!(5.5);

@@ -107,3 +107,15 @@ pub fn crowd_scene(dir: &Path) -> PathBuf {
     std::fs::write(&scene, yaml).unwrap();
     scene
 }
+
+/// A copy of the shipped checkpoint (`config.json` and `model.safetensors`) in `dir/ck`, for a
+/// test that edits its config.
+#[allow(dead_code)]
+pub fn checkpoint_copy(dir: &Path) -> PathBuf {
+    let ck = dir.join("ck");
+    std::fs::create_dir(&ck).unwrap();
+    for f in ["config.json", "model.safetensors"] {
+        std::fs::copy(Path::new("data/checkpoint").join(f), ck.join(f)).unwrap();
+    }
+    ck
+}
